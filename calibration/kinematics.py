@@ -1,0 +1,183 @@
+"""Forward kinematics, batched over N configurations.
+
+``T_world_tool(q) = B · A_1(q_1) ··· A_n(q_n) · F`` (contracts §2; book eq. 2.15, 2.75).
+
+A model is compiled into a short *program* of elementary operations (a rotation or translation
+about one local axis, or a fixed transform). Walking the program over N configurations at once
+updates a stack of frames ``R (N, 3, 3)``, ``p (N, 3)`` with a few vector operations per step,
+which is far cheaper than multiplying N 4x4 matrices per step. The same walk records, for the
+identification Jacobian (:mod:`calibration.jacobian`), the world axis and origin at which each
+parameter acts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .model import KinematicModel
+from .transforms import homogeneous, invert, pose_to_matrix
+
+
+@dataclass(frozen=True, slots=True)
+class Op:
+    """One step of a kinematic program.
+
+    ``kind``: ``"rot"`` / ``"trans"`` about / along local ``axis`` by ``const`` (+ the joint
+    variable of joint index ``joint`` when given); ``"fixed"`` applies the constant transform
+    ``T`` (4, 4); ``"mark"`` only records the frame under ``key``. A ``rot``/``trans`` op with a
+    ``key`` records its world axis and origin under that key.
+    """
+
+    kind: str
+    axis: int = 2
+    const: float = 0.0
+    joint: int | None = None
+    T: np.ndarray | None = None
+    key: str | None = None
+
+
+def joint_variables(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """The joint displacements produced by readings ``q`` (N, n): ``C·q`` plus the gear-eccentricity
+    harmonic ``A·sin(k·q_i + phi)`` (book eq. 2.4), before each joint's constant ``theta`` (or
+    ``d``) is added. Returns (N, n) rad (m for prismatic joints)."""
+    q = check_q(model, q)
+    v = q @ model.coupling_matrix.T
+    for i, j in enumerate(model.joints):
+        if j.harmonic is not None:
+            amp, freq, phase = j.harmonic
+            v[:, i] += amp * np.sin(freq * q[:, i] + phase)
+    return v
+
+
+def check_q(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """Validate joint readings: (N, n) float (a single (n,) vector becomes N = 1)."""
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        q = q[None, :]
+    if q.ndim != 2 or q.shape[1] != model.n_joints:
+        raise ValueError(f"`q` must have shape (N, {model.n_joints}); got {q.shape}")
+    return q
+
+
+def frame_from_axis(axis: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """A frame (4, 4) whose z axis is ``axis`` and origin ``point``; x is the unit vector
+    perpendicular to z closest to the world axis least aligned with z (deterministic)."""
+    z = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    ref = np.eye(3)[int(np.argmin(np.abs(z)))]
+    x = ref - z * (ref @ z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return homogeneous(np.stack([x, y, z], axis=1), np.asarray(point, dtype=float))
+
+
+def program(model: KinematicModel) -> list[Op]:
+    """Compile ``model`` into its program of elementary operations (see :class:`Op`).
+
+    Keys recorded: ``base``, ``tool``, ``home`` (frames, for their local 6-DOF perturbations);
+    ``<joint>.<field>`` for ``dh``/``mdh`` link parameters; ``<joint>.pre``/``<joint>.post``
+    (frames before and after a ``poe`` joint's motion).
+    """
+    ops: list[Op] = [Op("fixed", T=pose_to_matrix(model.base)), Op("mark", key="base")]
+    for i, j in enumerate(model.joints):
+        n = j.name
+        rev = j.revolute
+        if model.convention == "dh":
+            ops.append(Op("rot", 2, j.theta, i if rev else None, key=f"{n}.theta"))
+            if not (j.hayati and rev):
+                ops.append(Op("trans", 2, j.d, None if rev else i, key=f"{n}.d"))
+            ops.append(Op("trans", 0, j.a, key=f"{n}.a"))
+            ops.append(Op("rot", 0, j.alpha, key=f"{n}.alpha"))
+            if j.hayati:
+                ops.append(Op("rot", 1, j.beta, key=f"{n}.beta"))
+        elif model.convention == "mdh":
+            ops.append(Op("rot", 0, j.alpha, key=f"{n}.alpha"))
+            ops.append(Op("trans", 0, j.a, key=f"{n}.a"))
+            ops.append(Op("rot", 2, j.theta, i if rev else None, key=f"{n}.theta"))
+            ops.append(Op("trans", 2, j.d, None if rev else i, key=f"{n}.d"))
+        else:  # poe: F · Rz(theta + v) · F^-1 (or Tz(d + v) for a prismatic joint)
+            F = frame_from_axis(j.axis, j.point)
+            ops.append(Op("fixed", T=F))
+            ops.append(Op("mark", key=f"{n}.pre"))
+            if rev:
+                ops.append(Op("rot", 2, j.theta, i, key=f"{n}.theta"))
+            else:
+                ops.append(Op("trans", 2, j.d, i, key=f"{n}.d"))
+            ops.append(Op("mark", key=f"{n}.post"))
+            ops.append(Op("fixed", T=invert(F)))
+    if model.convention == "poe":
+        ops += [Op("fixed", T=pose_to_matrix(model.home)), Op("mark", key="home")]
+    ops += [Op("fixed", T=pose_to_matrix(model.tool)), Op("mark", key="tool")]
+    return ops
+
+
+@dataclass(frozen=True, slots=True)
+class Walk:
+    """Result of walking a program: the tool frames and what was recorded.
+
+    ``R`` (N, 3, 3), ``p`` (N, 3): ``T_world_tool``. ``axes[key]`` = (u (N, 3) world unit axis,
+    o (N, 3) world origin) of an op; ``frames[key]`` = (R, p) of a mark.
+    """
+
+    R: np.ndarray
+    p: np.ndarray
+    axes: dict
+    frames: dict
+
+
+def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str] = frozenset()) -> Walk:
+    """Run ``model``'s program over readings ``q`` (N, n), recording the keys in ``record``."""
+    q = check_q(model, q)
+    v = joint_variables(model, q)
+    N = q.shape[0]
+    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
+    p = np.zeros((N, 3))
+    axes: dict = {}
+    frames: dict = {}
+    for op in program(model):
+        if op.kind == "fixed":
+            p = p + R @ op.T[:3, 3]
+            R = R @ op.T[:3, :3]
+        elif op.kind == "mark":
+            if op.key in record:
+                frames[op.key] = (R, p)
+        else:
+            value = op.const if op.joint is None else op.const + v[:, op.joint]
+            a = op.axis
+            if op.kind == "rot":
+                if np.ndim(value) == 0 and value == 0.0:
+                    pass
+                else:
+                    c, s = np.cos(value), np.sin(value)
+                    if np.ndim(value):
+                        c, s = c[:, None], s[:, None]
+                    i, k = [(1, 2), (2, 0), (0, 1)][a]
+                    ci, ck = R[:, :, i], R[:, :, k]
+                    R = R.copy()
+                    R[:, :, i] = c * ci + s * ck
+                    R[:, :, k] = c * ck - s * ci
+            else:
+                if not (np.ndim(value) == 0 and value == 0.0):
+                    dv = value[:, None] if np.ndim(value) else value
+                    p = p + dv * R[:, :, a]
+            if op.key in record:
+                axes[op.key] = (R[:, :, a].copy(), p.copy())
+    return Walk(R, p, axes, frames)
+
+
+def fk(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """``T_world_tool`` (N, 4, 4) for joint readings ``q`` (N, n) (rad; m for prismatic joints)."""
+    w = walk(model, q)
+    return homogeneous(w.R, w.p)
+
+
+def points_world(model: KinematicModel, q: np.ndarray, p_tool: np.ndarray) -> np.ndarray:
+    """World positions (N, 3) of points given in the tool frame: ``p_tool`` (3,) or (N, 3)."""
+    w = walk(model, q)
+    return w.p + np.einsum("nij,nj->ni", w.R, np.broadcast_to(np.asarray(p_tool, float), w.p.shape))
+
+
+def target_positions(model: KinematicModel, q: np.ndarray, target: str | None = None) -> np.ndarray:
+    """World positions (N, 3) of the named target (``None``: the tool origin)."""
+    return points_world(model, q, model.target(target))

@@ -1,0 +1,365 @@
+"""The kinematic model: an immutable description of one robot (contracts §2).
+
+A ``KinematicModel`` is frozen; a changed model is a new model (``dataclasses.replace`` or the
+functions in :mod:`calibration.parameters`). Everything inside is SI (metres, radians); the
+``units`` only say how the model is read from and written to a ``recal.model/1`` document.
+
+Conventions, per joint (contracts §2): ``dh`` ``Rz(theta+q)·Tz(d)·Tx(a)·Rx(alpha)``; ``dh`` with
+``beta`` (Hayati, book eq. 2.64) ``Rz(theta+q)·Tx(a)·Rx(alpha)·Ry(beta)``; ``mdh`` (Craig)
+``Rx(alpha)·Tx(a)·Rz(theta+q)·Tz(d)``; ``poe`` rotation by ``theta+q`` about the unit ``axis``
+through ``point`` (both in the base frame at q = 0; book eq. 2.72-2.75), the chain ending with
+``home``. The joint variable is ``(C·q)_i`` with the coupling matrix ``C`` (default
+``diag(gain)``), plus an optional gear-eccentricity harmonic ``A·sin(k·q_i + phi)`` (book eq. 2.4).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+FORMAT = "recal.model/1"
+CONVENTIONS = ("dh", "mdh", "poe")
+JOINT_TYPES = ("revolute", "prismatic")
+LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "in": 0.0254}
+ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+
+
+class ModelFormatError(ValueError):
+    """A model document is malformed. ``field`` is the JSON path at fault (``joints[2].alpha``)."""
+
+    def __init__(self, field: str, message: str):
+        self.field = field
+        super().__init__(f"{field}: {message}" if field else message)
+
+
+@dataclass(frozen=True, slots=True)
+class Units:
+    """How lengths and angles are written in the model file and the CSVs used with it."""
+
+    length: str = "m"
+    angle: str = "rad"
+
+    @property
+    def length_m(self) -> float:
+        """Metres per file length unit."""
+        return LENGTH_UNITS[self.length]
+
+    @property
+    def angle_rad(self) -> float:
+        """Radians per file angle unit."""
+        return ANGLE_UNITS[self.angle]
+
+
+def _frozen(a, shape=None) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    if shape is not None:
+        arr = arr.reshape(shape)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Joint:
+    """One joint and the link after it. Lengths in m, angles in rad.
+
+    ``dh``/``mdh`` use ``theta, d, a, alpha`` (and ``beta`` for a Hayati link in ``dh``);
+    ``poe`` uses ``axis``, ``point`` and ``theta`` (revolute offset) or ``d`` (prismatic offset).
+    ``harmonic`` is ``(amplitude, frequency, phase)`` of gear eccentricity (book eq. 2.4), in rad
+    (or m), dimensionless and rad.
+    """
+
+    name: str
+    type: str = "revolute"
+    theta: float = 0.0
+    d: float = 0.0
+    a: float = 0.0
+    alpha: float = 0.0
+    beta: float | None = None
+    axis: np.ndarray | None = None
+    point: np.ndarray | None = None
+    gain: float = 1.0
+    lower: float = -2 * math.pi
+    upper: float = 2 * math.pi
+    harmonic: tuple[float, float, float] | None = None
+
+    @property
+    def revolute(self) -> bool:
+        return self.type == "revolute"
+
+    @property
+    def hayati(self) -> bool:
+        return self.beta is not None
+
+
+@dataclass(frozen=True, eq=False)
+class KinematicModel:
+    """A robot: base, joints, tool, named targets. Immutable; SI inside.
+
+    ``base`` and ``tool`` are 6-vector poses (contracts §1), ``home`` (``poe`` only) the flange
+    pose at q = 0 in the base frame; ``targets`` map names to points (3,) in the tool frame;
+    ``coupling`` (n, n) maps readings to joint variables (``None``: ``diag(gain)``).
+    ``metadata`` keeps the document's other top-level fields (e.g. an ``identification`` block).
+    """
+
+    name: str
+    convention: str
+    joints: tuple[Joint, ...]
+    base: np.ndarray = field(default_factory=lambda: _frozen(np.zeros(6)))
+    tool: np.ndarray = field(default_factory=lambda: _frozen(np.zeros(6)))
+    home: np.ndarray | None = None
+    targets: Mapping[str, np.ndarray] = field(default_factory=lambda: MappingProxyType({}))
+    coupling: np.ndarray | None = None
+    units: Units = Units()
+    metadata: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+    def __post_init__(self):
+        if self.convention not in CONVENTIONS:
+            raise ModelFormatError("convention", f"expected one of {', '.join(CONVENTIONS)}, got {self.convention!r}")
+        object.__setattr__(self, "base", _frozen(self.base, (6,)))
+        object.__setattr__(self, "tool", _frozen(self.tool, (6,)))
+        if self.home is not None:
+            object.__setattr__(self, "home", _frozen(self.home, (6,)))
+        elif self.convention == "poe":
+            object.__setattr__(self, "home", _frozen(np.zeros(6)))
+        object.__setattr__(
+            self, "targets", MappingProxyType({k: _frozen(v, (3,)) for k, v in dict(self.targets).items()})
+        )
+        if self.coupling is not None:
+            C = _frozen(self.coupling)
+            n = len(self.joints)
+            if C.shape != (n, n):
+                raise ModelFormatError("coupling", f"expected a {n} x {n} matrix, got shape {C.shape}")
+            object.__setattr__(self, "coupling", C)
+        object.__setattr__(self, "joints", tuple(self.joints))
+        object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """(n, 2) lower and upper limit of each joint reading (rad or m)."""
+        return np.array([[j.lower, j.upper] for j in self.joints], dtype=float)
+
+    @property
+    def coupling_matrix(self) -> np.ndarray:
+        """The (n, n) matrix C mapping readings to joint variables (``diag(gain)`` without coupling)."""
+        if self.coupling is not None:
+            return np.array(self.coupling)
+        return np.diag([j.gain for j in self.joints])
+
+    def target(self, name: str | None) -> np.ndarray:
+        """A target point (3,) in the tool frame; ``None`` is the tool origin."""
+        if name is None or name == "":
+            return np.zeros(3)
+        try:
+            return np.array(self.targets[name])
+        except KeyError:
+            known = ", ".join(sorted(self.targets)) or "none"
+            raise KeyError(f"unknown target {name!r} (the model has: {known})") from None
+
+
+# ------------------------------------------------------------------------- reading documents
+
+
+def _number(d: Mapping, key: str, where: str, default=None, *, required: bool = False) -> float | None:
+    if key not in d or d[key] is None:
+        if required:
+            raise ModelFormatError(f"{where}.{key}" if where else key, "is required (a number)")
+        return default
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ModelFormatError(f"{where}.{key}" if where else key, f"expected a finite number, got {v!r}")
+    return float(v)
+
+
+def _vector(v, n: int, where: str) -> np.ndarray:
+    if not isinstance(v, (list, tuple)) or len(v) != n:
+        raise ModelFormatError(where, f"expected a list of {n} numbers, got {v!r}")
+    out = []
+    for i, x in enumerate(v):
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise ModelFormatError(f"{where}[{i}]", f"expected a finite number, got {x!r}")
+        out.append(float(x))
+    return np.array(out)
+
+
+def _pose(v, where: str, units: Units) -> np.ndarray:
+    p = _vector(v, 6, where)
+    return np.concatenate([p[:3] * units.length_m, p[3:] * units.angle_rad])
+
+
+def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
+    """Read a ``recal.model/1`` document (already parsed JSON) into a model in SI units.
+
+    Raises ``ModelFormatError`` naming the JSON field at fault and what was expected.
+    """
+    if not isinstance(doc, Mapping):
+        raise ModelFormatError("", "expected a JSON object")
+    fmt = doc.get("format")
+    if fmt != FORMAT:
+        raise ModelFormatError("format", f"expected {FORMAT!r}, got {fmt!r}")
+    u = doc.get("units")
+    if not isinstance(u, Mapping):
+        raise ModelFormatError("units", 'expected {"length": "mm"|"m"|"in", "angle": "deg"|"rad"}')
+    if u.get("length") not in LENGTH_UNITS:
+        raise ModelFormatError("units.length", f"expected one of mm, m, in; got {u.get('length')!r}")
+    if u.get("angle") not in ANGLE_UNITS:
+        raise ModelFormatError("units.angle", f"expected deg or rad; got {u.get('angle')!r}")
+    units = Units(u["length"], u["angle"])
+    L, A = units.length_m, units.angle_rad
+    convention = doc.get("convention")
+    if convention not in CONVENTIONS:
+        raise ModelFormatError("convention", f"expected one of {', '.join(CONVENTIONS)}, got {convention!r}")
+    raw_joints = doc.get("joints")
+    if not isinstance(raw_joints, list) or not raw_joints:
+        raise ModelFormatError("joints", "expected a non-empty list of joints")
+    coupling = None
+    if doc.get("coupling") is not None:
+        c = doc["coupling"]
+        n = len(raw_joints)
+        if not isinstance(c, list) or len(c) != n:
+            raise ModelFormatError("coupling", f"expected {n} rows of {n} numbers")
+        coupling = np.array([_vector(row, n, f"coupling[{i}]") for i, row in enumerate(c)])
+    joints = []
+    names = set()
+    for i, jd in enumerate(raw_joints):
+        where = f"joints[{i}]"
+        if not isinstance(jd, Mapping):
+            raise ModelFormatError(where, "expected an object")
+        jtype = jd.get("type", "revolute")
+        if jtype not in JOINT_TYPES:
+            raise ModelFormatError(f"{where}.type", f"expected revolute or prismatic, got {jtype!r}")
+        name = str(jd.get("name", f"j{i + 1}"))
+        if name in names:
+            raise ModelFormatError(f"{where}.name", f"duplicate joint name {name!r}")
+        names.add(name)
+        var_scale = A if jtype == "revolute" else L  # unit of this joint's reading
+        if "gain" in jd and coupling is not None:
+            raise ModelFormatError(f"{where}.gain", "a model may give `coupling` or `gain`, not both")
+        kw: dict[str, Any] = dict(
+            name=name,
+            type=jtype,
+            theta=_number(jd, "theta", where, 0.0) * A,
+            d=_number(jd, "d", where, 0.0) * L,
+            gain=_number(jd, "gain", where, 1.0),
+        )
+        # Without limits: a full turn either way for revolute joints, 10 m for prismatic ones.
+        default_limit = 2 * math.pi if jtype == "revolute" else 10.0
+        lower, upper = _number(jd, "lower", where), _number(jd, "upper", where)
+        kw["lower"] = -default_limit if lower is None else lower * var_scale
+        kw["upper"] = default_limit if upper is None else upper * var_scale
+        if kw["lower"] >= kw["upper"]:
+            raise ModelFormatError(f"{where}.lower", "must be below `upper`")
+        if convention == "poe":
+            if "axis" not in jd:
+                raise ModelFormatError(f"{where}.axis", "is required for convention poe (a unit 3-vector)")
+            axis = _vector(jd["axis"], 3, f"{where}.axis")
+            norm = np.linalg.norm(axis)
+            if not norm > 0:
+                raise ModelFormatError(f"{where}.axis", "must not be zero")
+            kw["axis"] = axis / norm
+            kw["point"] = _vector(jd.get("point", [0, 0, 0]), 3, f"{where}.point") * L
+        else:
+            kw["a"] = _number(jd, "a", where, 0.0) * L
+            kw["alpha"] = _number(jd, "alpha", where, 0.0) * A
+            if jd.get("beta") is not None:
+                if convention != "dh":
+                    raise ModelFormatError(f"{where}.beta", "Hayati's beta is defined for convention dh only")
+                kw["beta"] = _number(jd, "beta", where) * A
+                if kw["d"] != 0.0 and jtype == "revolute":
+                    raise ModelFormatError(f"{where}.d", "must be 0 or absent in a Hayati (beta) link")
+        if jd.get("harmonic") is not None:
+            h = _vector(jd["harmonic"], 3, f"{where}.harmonic")
+            kw["harmonic"] = (h[0] * var_scale, h[1], h[2] * A)
+        joints.append(Joint(**kw))
+    targets = {}
+    raw_targets = doc.get("targets") or {}
+    if not isinstance(raw_targets, Mapping):
+        raise ModelFormatError("targets", "expected an object mapping names to [x, y, z]")
+    for tname, tv in raw_targets.items():
+        targets[str(tname)] = _vector(tv, 3, f"targets.{tname}") * L
+    home = None
+    if convention == "poe":
+        if "home" not in doc:
+            raise ModelFormatError("home", "is required for convention poe (the flange pose at q = 0)")
+        home = _pose(doc["home"], "home", units)
+    known = {"format", "name", "units", "convention", "base", "joints", "tool", "targets", "coupling", "home"}
+    return KinematicModel(
+        name=str(doc.get("name", "")),
+        convention=convention,
+        joints=tuple(joints),
+        base=_pose(doc.get("base", [0] * 6), "base", units),
+        tool=_pose(doc.get("tool", [0] * 6), "tool", units),
+        home=home,
+        targets=targets,
+        coupling=coupling,
+        units=units,
+        metadata={k: v for k, v in doc.items() if k not in known},
+    )
+
+
+def _r(x: float, digits: int = 12) -> float:
+    """Round for writing: keeps files readable without losing meaningful precision."""
+    v = round(float(x), digits)
+    return 0.0 if v == 0 else v
+
+
+def model_to_dict(model: KinematicModel, *, units: Units | None = None) -> dict[str, Any]:
+    """Write a model as a ``recal.model/1`` document in ``units`` (default: the model's own)."""
+    units = units or model.units
+    L, A = units.length_m, units.angle_rad
+
+    def pose(p):
+        p = np.asarray(p)
+        return [_r(v / L) for v in p[:3]] + [_r(v / A) for v in p[3:]]
+
+    joints = []
+    for j in model.joints:
+        var_scale = A if j.revolute else L
+        jd: dict[str, Any] = {"name": j.name, "type": j.type}
+        if model.convention == "poe":
+            jd["axis"] = [_r(v) for v in j.axis]
+            jd["point"] = [_r(v / L) for v in j.point]
+            if j.revolute:
+                jd["theta"] = _r(j.theta / A)
+            else:
+                jd["d"] = _r(j.d / L)
+        else:
+            jd["theta"] = _r(j.theta / A)
+            if not (j.hayati and j.revolute):
+                jd["d"] = _r(j.d / L)
+            jd["a"] = _r(j.a / L)
+            jd["alpha"] = _r(j.alpha / A)
+            if j.hayati:
+                jd["beta"] = _r(j.beta / A)
+        if model.coupling is None and j.gain != 1.0:
+            jd["gain"] = _r(j.gain, 15)
+        if j.harmonic is not None:
+            jd["harmonic"] = [_r(j.harmonic[0] / var_scale), _r(j.harmonic[1]), _r(j.harmonic[2] / A)]
+        jd["lower"] = _r(j.lower / var_scale)
+        jd["upper"] = _r(j.upper / var_scale)
+        joints.append(jd)
+    doc: dict[str, Any] = {
+        "format": FORMAT,
+        "name": model.name,
+        "units": {"length": units.length, "angle": units.angle},
+        "convention": model.convention,
+        "base": pose(model.base),
+        "joints": joints,
+    }
+    if model.convention == "poe":
+        doc["home"] = pose(model.home)
+    doc["tool"] = pose(model.tool)
+    doc["targets"] = {k: [_r(v / L) for v in p] for k, p in model.targets.items()}
+    if model.coupling is not None:
+        doc["coupling"] = [[_r(v) for v in row] for row in model.coupling]
+    for k, v in model.metadata.items():
+        doc[k] = v
+    return doc

@@ -1,0 +1,88 @@
+"""Rigid registration: where the instrument stands relative to the robot.
+
+- :func:`kabsch`: the rigid transform that best maps points onto points (least squares, SVD).
+- :func:`register_points`: base frame (and one common tool-frame point offset) from
+  position-only data, alternating a Kabsch fit with a linear solve for the offset.
+- :func:`register_poses`: base and tool frames from full-pose data, ``T_meas = X · T_pred · Y``
+  (the robot-world/hand-eye problem), rotations by the Kronecker-product null space of
+  Shah (2013), then translations by linear least squares.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .transforms import homogeneous, orthonormalize
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """The rigid transform T (4, 4) minimising sum w |T·src - dst|² for points (N, 3), N >= 3."""
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    H = ((src - cs) * w[:, None]).T @ (dst - cd)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return homogeneous(R, cd - R @ cs)
+
+
+def register_points(
+    R_base_tool: np.ndarray, p_base_tool: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray, *, iterations: int = 20
+) -> tuple[np.ndarray, np.ndarray]:
+    """Base transform ``T_world_base`` (4, 4) and a corrected common point offset (3,).
+
+    ``R_base_tool`` (N, 3, 3), ``p_base_tool`` (N, 3): the tool frames the model predicts in its
+    base frame; ``p_world`` (N, 3): measured points; ``p_tool`` (N, 3): the model's tool-frame
+    point of each row. The offset correction ``c`` (same for all rows, tool frame) absorbs an
+    unknown reflector mounting: ``p_world ≈ T (p_base_tool + R_base_tool (p_tool + c))``.
+    """
+    c = np.zeros(3)
+    T = np.eye(4)
+    for _ in range(iterations):
+        pts = p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool + c)
+        T = kabsch(pts, p_world)
+        # Solve for c given T: R_T R_i c = p_world - T(p_base_tool + R_i p_tool)
+        A = np.einsum("ij,njk->nik", T[:3, :3], R_base_tool).reshape(-1, 3)
+        pred = np.einsum("ij,nj->ni", T[:3, :3], p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool)) + T[:3, 3]
+        b = (p_world - pred).reshape(-1)
+        c_new, *_ = np.linalg.lstsq(A, b, rcond=None)
+        if np.linalg.norm(c_new - c) < 1e-12:
+            c = c_new
+            break
+        c = c_new
+    pts = p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool + c)
+    return kabsch(pts, p_world), c
+
+
+def register_poses(T_pred: np.ndarray, T_meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve ``T_meas_i ≈ X · T_pred_i · Y`` for X (world <- base) and Y (tool correction).
+
+    ``T_pred``, ``T_meas`` (N, 4, 4), N >= 3 with rotations not all about one axis.
+    Rotation: ``R_X R_P,i R_Y = R_M,i`` is linear in (vec R_Y, vec R_X^T) — stacked, its null
+    vector (SVD) gives both up to scale, projected onto SO(3). Translation: linear least squares.
+    """
+    RP, RM = T_pred[:, :3, :3], T_meas[:, :3, :3]
+    N = len(RP)
+    I3 = np.eye(3)
+    # vec() is column-major: vec(A B) = (I ⊗ A) vec(B) = (B^T ⊗ I) vec(A)
+    rows = []
+    for i in range(N):
+        rows.append(np.hstack([np.kron(I3, RP[i]), -np.kron(RM[i].T, I3)]))
+    M = np.vstack(rows)
+    _, _, Vt = np.linalg.svd(M)
+    v = Vt[-1]
+    RY = v[:9].reshape(3, 3, order="F")
+    RXt = v[9:].reshape(3, 3, order="F")
+    s = np.cbrt(np.linalg.det(RY))
+    if s == 0:
+        raise ValueError("poses do not determine the rotations (all about one axis?)")
+    RY, RXt = orthonormalize(RY / s), orthonormalize(RXt / s)
+    RX = RXt.T
+    # Translation: RX (RP t_Y + t_P) + t_X = t_M  ->  [RX RP_i, I] [t_Y; t_X] = t_M - RX t_P
+    A = np.concatenate([np.einsum("ij,njk->nik", RX, RP), np.broadcast_to(I3, (N, 3, 3))], axis=2).reshape(-1, 6)
+    b = (T_meas[:, :3, 3] - np.einsum("ij,nj->ni", RX, T_pred[:, :3, 3])).reshape(-1)
+    t, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return homogeneous(RX, t[3:]), homogeneous(RY, t[:3])

@@ -1,0 +1,95 @@
+"""The identification report: a JSON-ready dict in the model's own units."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .identify import IdentificationResult
+from .model import Units
+from .uncertainty import Validation
+
+
+def _unit(kind: str, units: Units) -> tuple[str, float]:
+    """(unit name, SI per unit) of a parameter kind."""
+    if kind == "length":
+        return units.length, units.length_m
+    if kind == "angle":
+        return units.angle, units.angle_rad
+    return "1", 1.0
+
+
+def _f(x: float, digits: int = 9) -> float | None:
+    x = float(x)
+    return None if not math.isfinite(x) else float(f"{x:.{digits}g}")
+
+
+def identification_report(result: IdentificationResult, units: Units, *, data_rows: np.ndarray | None = None,
+                          validation: Validation | None = None) -> dict:
+    """Everything a metrologist needs to judge the identification, in ``units``."""
+    L = units.length_m
+    rows = np.arange(1, result.n_rows + 1) if data_rows is None else np.asarray(data_rows)
+    params = []
+    for k, p in enumerate(result.params):
+        uname, s = _unit(p.kind, units)
+        params.append({
+            "name": p.name, "unit": uname, "value": _f(result.values[k] / s),
+            "change": _f(result.steps[k] / s), "std_error": _f(result.std_errors[k] / s),
+        })
+    rn = np.linalg.norm(result.residuals_m, axis=1)
+    report = {
+        "success": result.success,
+        "status": result.status,
+        "message": result.message,
+        "iterations": result.iterations,
+        "function_evaluations": result.nfev,
+        "units": {"length": units.length, "angle": units.angle},
+        "rows": result.n_rows,
+        "parameters": params,
+        "unidentifiable": [
+            {"name": u.name, "reason": u.reason,
+             "same_as": [{"name": n, "coefficient": _f(c)} for n, c in u.relation]}
+            for u in result.unidentifiable
+        ],
+        "correlation": {"names": list(result.param_names),
+                        "matrix": [[_f(v, 4) for v in row] for row in result.correlation]},
+        "condition_number": _f(result.condition_number),
+        "observability": {k: _f(v) for k, v in result.observability.items()},
+        "residuals": {
+            "rms": _f(result.rms_m / L), "max": _f(result.max_m / L),
+            "p95": _f(np.percentile(rn, 95) / L) if len(rn) else 0.0,
+            "rms_per_axis": [_f(v / L) for v in np.sqrt(np.mean(result.residuals_m**2, axis=0))],
+            "rms_orientation": _f(result.rms_rad / units.angle_rad),
+            "chi2": _f(result.chi2), "dof": result.dof,
+            "sigma_scale": _f(result.sigma_scale),
+        },
+        "outliers": [
+            {"row": int(rows[i]), "residual": _f(rn[i] / L), "weight": _f(result.row_weights[i], 4)}
+            for i in result.outliers
+        ],
+        "registration": None if result.registration is None else {
+            k: (_f(v / L) if k.startswith("rms") else v) for k, v in result.registration.items()
+            if k != "point_offset_correction_m"
+        },
+        "notes": list(result.notes),
+        "settings": {**{k: v for k, v in result.settings.items() if k not in ("sigma_m", "sigma_rad")},
+                     "sigma": _f(result.settings["sigma_m"] / L),
+                     "sigma_orientation": _f(result.settings["sigma_rad"] / units.angle_rad)},
+    }
+    if validation is not None:
+        report["validation"] = {
+            "rows": validation.n, "rms": _f(validation.rms_m / L), "max": _f(validation.max_m / L),
+            "p95": _f(validation.p95_m / L), "mean": _f(validation.mean_m / L),
+            "inside_predicted_95": _f(validation.coverage_95, 4),
+            "before": {"rms": _f(validation.before_rms_m / L), "max": _f(validation.before_max_m / L),
+                       "p95": _f(validation.before_p95_m / L)},
+        }
+    return report
+
+
+def identification_block(result: IdentificationResult, units: Units) -> dict:
+    """The compact ``identification`` block written into an identified model file."""
+    full = identification_report(result, units)
+    return {k: full[k] for k in ("success", "message", "rows", "parameters", "unidentifiable", "condition_number",
+                                 "observability", "residuals", "notes")}

@@ -1,0 +1,92 @@
+"""Predicted accuracy of an identified model, and hold-out validation (book §4.3, eq. 4.70).
+
+The parameters' covariance ``Σx`` propagates to any configuration through the identification
+Jacobian: the predicted position of a target has covariance ``J Σx Jᵀ`` (N, 3, 3). A fresh
+measurement differs from the prediction by that plus the instrument's noise, so the actual
+error ``e`` should satisfy ``eᵀ (J Σx Jᵀ + σ² I)⁻¹ e ≤ χ²₃(0.95)`` in 95 % of cases.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import gammaincinv
+
+from .identify import IdentificationResult, Measurements
+from .jacobian import predict
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """The ``p`` quantile of the χ² distribution with ``dof`` degrees of freedom."""
+    return float(2.0 * gammaincinv(dof / 2.0, p))
+
+
+def _p_tool(model, names) -> np.ndarray:
+    return np.array([model.target(t) for t in names]) if len(names) else np.zeros((0, 3))
+
+
+def position_covariance(result: IdentificationResult, q: np.ndarray, target: str | None = None,
+                        targets: np.ndarray | None = None) -> np.ndarray:
+    """Covariance (N, 3, 3) m² of the predicted position of ``target`` (or per-row ``targets``)
+    at readings ``q`` (N, n), from the identified parameters' covariance."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    names = np.array([target] * len(q), dtype=object) if targets is None else np.asarray(targets, dtype=object)
+    if not result.params:
+        return np.zeros((len(q), 3, 3))
+    pred = predict(result.model, q, _p_tool(result.model, names), list(result.params), names)
+    return np.einsum("nip,pq,njq->nij", pred.Jp, result.covariance, pred.Jp)
+
+
+def predicted_uncertainty(result: IdentificationResult, q: np.ndarray, target: str | None = None,
+                          *, level: float = 0.95) -> np.ndarray:
+    """A radius (N,) m that the model's position error at ``q`` stays within with probability
+    ``level`` (conservative: the largest principal axis of the covariance, scaled by the χ²₃
+    quantile). The measurement noise is not included."""
+    C = position_covariance(result, q, target)
+    lam = np.linalg.eigvalsh(C)[:, -1]
+    return np.sqrt(chi2_quantile(level, 3) * np.maximum(lam, 0.0))
+
+
+@dataclass(frozen=True, slots=True)
+class Validation:
+    """Hold-out errors of a model on measurements it was not fitted to (m).
+
+    ``coverage_95``: the fraction of rows whose error lies inside the predicted 95 % region
+    (model covariance plus instrument noise); close to 0.95 when the uncertainty is honest.
+    ``before_*``: the same errors of the starting model, for comparison.
+    """
+
+    n: int
+    errors_m: np.ndarray
+    rms_m: float
+    max_m: float
+    p95_m: float
+    mean_m: float
+    coverage_95: float
+    before_rms_m: float
+    before_max_m: float
+    before_p95_m: float
+
+
+def _stats(e: np.ndarray) -> tuple[float, float, float, float]:
+    if len(e) == 0:
+        return 0.0, 0.0, 0.0, 0.0
+    return float(np.sqrt(np.mean(e**2))), float(e.max()), float(np.percentile(e, 95)), float(e.mean())
+
+
+def validate(result: IdentificationResult, holdout: Measurements) -> Validation:
+    """Errors of ``result.model`` (and of the starting model) on ``holdout``."""
+    names = holdout.target
+    sigma = np.where(np.isfinite(holdout.sigma) & (holdout.sigma > 0), holdout.sigma, result.settings["sigma_m"])
+    p = predict(result.model, holdout.q, _p_tool(result.model, names)).p_world
+    e_vec = holdout.p_world - p
+    e = np.linalg.norm(e_vec, axis=1)
+    C = position_covariance(result, holdout.q, targets=names) + (sigma**2)[:, None, None] * np.eye(3)
+    d2 = np.einsum("ni,ni->n", e_vec, np.linalg.solve(C, e_vec[:, :, None])[:, :, 0])
+    coverage = float(np.mean(d2 <= chi2_quantile(0.95, 3))) if len(e) else 0.0
+    p0 = predict(result.start_model, holdout.q, _p_tool(result.start_model, names)).p_world
+    e0 = np.linalg.norm(holdout.p_world - p0, axis=1)
+    rms, mx, p95, mean = _stats(e)
+    b_rms, b_max, b_p95, _ = _stats(e0)
+    return Validation(len(e), e, rms, mx, p95, mean, coverage, b_rms, b_max, b_p95)

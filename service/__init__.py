@@ -1,0 +1,1 @@
+"""Recal's service layer: the ``recal`` command line, file formats, sessions, store and API."""

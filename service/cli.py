@@ -1,0 +1,80 @@
+"""The ``recal`` command line (contracts §6).
+
+Each verb lives in its own module under ``service/commands/`` with ``add_parser(sub)`` and
+``run(args)``; the module is imported only when its verb runs, so ``recal`` starts fast and the
+math verbs never import the web stack. On bad input a verb raises ``InputError`` (or
+``Fail``): ``recal`` prints one line on stderr naming the file, row and column (or JSON field)
+at fault, exits with status 2 and writes no output file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# verb -> (module under service.commands, one-line help). Add a verb: add a module and a line.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "identify": ("identify", "identify a model's parameters from measurements"),
+    "predict": ("predict", "tool poses (or target positions) for joint readings"),
+    "model": ("model", "list library robots, or write one's nominal model"),
+    "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
+}
+
+
+class Fail(Exception):
+    """A one-line failure for the user (exit status 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit 2, without argparse's usage dump
+        self.exit(2, f"{self.prog}: {message} (see `{self.prog} --help`)\n")
+
+
+def progress(message: str) -> None:
+    """Progress for long runs, only when a person is watching (stderr is a terminal)."""
+    if sys.stderr.isatty():
+        print(message, file=sys.stderr, flush=True)
+
+
+def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``verb``, only that verb's module is imported."""
+    p = _Parser(prog="recal", description="Robot calibration: identify, predict, compensate, simulate.")
+    sub = p.add_subparsers(dest="verb", required=True, parser_class=_Parser)
+    for name, (module, help_text) in COMMANDS.items():
+        if verb is None or name == verb:
+            mod = importlib.import_module(f"service.commands.{module}")
+            sp = sub.add_parser(name, help=help_text, description=help_text)
+            mod.add_parser(sp)
+            sp.set_defaults(func=mod.run)
+        else:
+            sub.add_parser(name, help=help_text, add_help=False)
+    sub.add_parser("fake-cell", help="run a simulated cell (contracts §7); see `recal fake-cell --help`", add_help=False)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "fake-cell":
+        from fakes.cell import main as fake_cell
+
+        return int(fake_cell(argv[1:]) or 0)
+    verb = argv[0] if argv and argv[0] in COMMANDS else None
+    args = build_parser(verb).parse_args(argv)
+    from service.files import InputError
+
+    try:
+        return int(args.func(args) or 0)
+    except (InputError, Fail) as exc:
+        print(f"recal {args.verb}: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"recal {args.verb}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # output piped into `head`: not an error
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,69 @@
+"""``recal identify --model NOMINAL.json --data MEAS.csv --out MODEL.json [--report R.json] [--validate VAL.csv]``"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+
+def add_parser(s) -> None:
+    s.add_argument("--model", required=True, help="nominal model file (recal.model/1) or a library robot name")
+    s.add_argument("--data", required=True, help="measurement CSV (contracts §3)")
+    s.add_argument("--out", required=True, help="identified model file to write")
+    s.add_argument("--report", help="JSON report to write")
+    s.add_argument("--validate", help="hold-out measurement CSV to test the identified model on")
+    s.add_argument("--sigma", type=float, help="instrument standard uncertainty per axis, in the model's length "
+                   "unit, for rows without a sigma column (default 0.02 mm)")
+    s.add_argument("--sigma-angle", type=float, help="orientation uncertainty of full-pose rows, model angle unit")
+    s.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
+                   help="robust loss against bad rows (default linear)")
+    s.add_argument("--f-scale", type=float, default=3.0, help="robust loss scale, in sigmas (default 3)")
+    s.add_argument("--register", default="auto", choices=["auto", "always", "never"],
+                   help="start from a rigid registration of the base (default auto: when it fits better)")
+    s.add_argument("--gains", action="store_true", help="also identify joint gains")
+    s.add_argument("--fix", action="append", metavar="NAME", help="keep a parameter fixed (repeatable; prefix* allowed)")
+
+
+def run(args) -> int:
+    from calibration.identify import identify
+    from calibration.report import identification_block, identification_report
+    from calibration.uncertainty import validate
+    from service.cli import Fail
+    from service.files import load_model, read_measurements, save_model, write_atomic
+
+    t0 = time.perf_counter()
+    model = load_model(args.model)
+    data = read_measurements(args.data, model)
+    holdout = read_measurements(args.validate, model) if args.validate else None
+    L = model.units.length_m
+    if args.sigma is not None and not args.sigma > 0:
+        raise Fail(f"--sigma: expected a positive number, got {args.sigma}")
+    try:
+        result = identify(
+            model, data,
+            sigma_m=args.sigma * L if args.sigma is not None else 20e-6,
+            sigma_rad=args.sigma_angle * model.units.angle_rad if args.sigma_angle is not None else None,
+            loss=args.loss, f_scale=args.f_scale, register=args.register, gains=args.gains,
+            fixed=tuple(args.fix or ()),
+        )
+    except (ValueError, KeyError) as exc:
+        raise Fail(f"{args.data}: {exc}") from None
+    validation = validate(result, holdout) if holdout is not None else None
+    report = identification_report(result, model.units, data_rows=data.row, validation=validation)
+    report["elapsed_s"] = round(time.perf_counter() - t0, 3)
+    if args.report:
+        write_atomic(args.report, json.dumps(report, indent=2) + "\n")
+    save_model(args.out, result.model, {"identification": identification_block(result, model.units)})
+    u = model.units.length
+    line = (f"identified {len(result.params)} parameters from {len(data)} rows: "
+            f"residual RMS {result.rms_m / L:.4g} {u}, max {result.max_m / L:.4g} {u}; "
+            f"{len(result.unidentifiable)} not identifiable; {result.message}")
+    if validation is not None:
+        line += (f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
+                 f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound")
+    print(line)
+    if result.outliers:
+        rows = ", ".join(str(int(data.row[i])) for i in result.outliers[:10])
+        print(f"warning: {len(result.outliers)} rows look like outliers (rows {rows}); see the report", file=sys.stderr)
+    return 0 if result.success else 1

@@ -1,0 +1,237 @@
+"""Reading and writing Recal's files (contracts §2-§5), with errors that name the file, the
+row and the column (or JSON field) at fault and what was expected.
+
+Output files are written atomically (a temporary file renamed into place), so a failed run
+never leaves a partial file behind.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration.identify import Measurements
+from calibration.model import KinematicModel, ModelFormatError, model_from_dict, model_to_dict
+
+
+class InputError(ValueError):
+    """Bad input, reported as one line: ``file: row R (line L), column 'c': message``."""
+
+    def __init__(self, path: str | os.PathLike, message: str, *, row: int | None = None, line: int | None = None,
+                 column: str | None = None):
+        self.path, self.row, self.line, self.column = str(path), row, line, column
+        where = [str(path)]
+        if row is not None:
+            where.append(f"row {row}" + (f" (line {line})" if line is not None else ""))
+        if column is not None:
+            where.append(f"column {column!r}")
+        super().__init__(": ".join([", ".join(where), message]))
+
+
+# --------------------------------------------------------------------------- models
+
+
+def load_model(spec: str | os.PathLike) -> KinematicModel:
+    """A model from a ``recal.model/1`` file, or a library robot by name (``ur10e``)."""
+    path = Path(spec)
+    if not path.exists() and os.sep not in str(spec) and not str(spec).endswith(".json"):
+        from calibration import robots
+
+        try:
+            return robots.nominal(str(spec))
+        except KeyError:
+            raise InputError(spec, f"no such file, and not a library robot (known: {', '.join(robots.names())})") from None
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(spec, f"cannot read: {exc.strerror or exc}") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(spec, f"line {exc.lineno}, column {exc.colno}: invalid JSON ({exc.msg})") from None
+    try:
+        return model_from_dict(doc)
+    except ModelFormatError as exc:
+        raise InputError(spec, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}" if exc.field else str(exc)) from None
+
+
+def write_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` all at once: a temporary file in the same folder, renamed."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def save_model(path: str | os.PathLike, model: KinematicModel, extra: dict | None = None) -> None:
+    doc = model_to_dict(model)
+    if extra:
+        doc.update(extra)
+    write_atomic(path, json.dumps(doc, indent=2) + "\n")
+
+
+# --------------------------------------------------------------------------- CSV tables
+
+
+@dataclass(frozen=True)
+class Table:
+    """A parsed CSV: header names, the rows as strings, and each row's file line number."""
+
+    path: str
+    header: list[str]
+    rows: list[list[str]]
+    lines: list[int]
+
+    def has(self, column: str) -> bool:
+        return column in self.index
+
+    @property
+    def index(self) -> dict[str, int]:
+        return {name: i for i, name in enumerate(self.header)}
+
+    def numbers(self, column: str, *, scale: float = 1.0, required: bool = True, allow_empty: bool = False) -> np.ndarray:
+        """Column as floats (times ``scale``); a bad cell raises ``InputError`` naming it."""
+        if column not in self.index:
+            if required:
+                raise InputError(self.path, f"missing required column {column!r} (header has: {', '.join(self.header)})")
+            return np.full(len(self.rows), np.nan)
+        k = self.index[column]
+        out = np.empty(len(self.rows))
+        for r, (row, line) in enumerate(zip(self.rows, self.lines)):
+            cell = row[k].strip() if k < len(row) else ""
+            if cell == "" and allow_empty:
+                out[r] = np.nan
+                continue
+            try:
+                v = float(cell)
+            except ValueError:
+                raise InputError(self.path, f"expected a number, got {cell!r}", row=r + 1, line=line, column=column) from None
+            if not math.isfinite(v):
+                raise InputError(self.path, f"expected a finite number, got {cell!r}", row=r + 1, line=line, column=column)
+            out[r] = v * scale
+        return out
+
+    def strings(self, column: str) -> list[str | None]:
+        if column not in self.index:
+            return [None] * len(self.rows)
+        k = self.index[column]
+        return [(row[k].strip() or None) if k < len(row) else None for row in self.rows]
+
+
+def read_table(path: str | os.PathLike) -> Table:
+    """Read a CSV with one header line; ``#`` starts a comment line; blank lines are skipped."""
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+    header: list[str] | None = None
+    rows, lines = [], []
+    for lineno, row in enumerate(csv.reader(io.StringIO(text)), start=1):
+        if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+            continue
+        if header is None:
+            header = [h.strip() for h in row]
+            dup = {h for h in header if header.count(h) > 1 and h}
+            if dup:
+                raise InputError(path, f"duplicate column {sorted(dup)[0]!r} in the header", line=lineno)
+            continue
+        if len(row) > len(header) and any(c.strip() for c in row[len(header):]):
+            raise InputError(path, f"has {len(row)} values but the header has {len(header)} columns",
+                             row=len(rows) + 1, line=lineno)
+        rows.append(row)
+        lines.append(lineno)
+    if header is None:
+        raise InputError(path, "is empty: expected a header line and data rows")
+    if not rows:
+        raise InputError(path, "has a header but no data rows")
+    return Table(str(path), header, rows, lines)
+
+
+def _joint_columns(table: Table, model: KinematicModel) -> None:
+    """Check that the table's q columns match the model's joints."""
+    n = model.n_joints
+    qcols = sorted((h for h in table.header if h[:1] == "q" and h[1:].isdigit()), key=lambda h: int(h[1:]))
+    extra = [h for h in qcols if int(h[1:]) > n or int(h[1:]) < 1]
+    if extra:
+        raise InputError(table.path, f"column {extra[0]!r}: the model has {n} joints (q1..q{n}), "
+                                     f"so the data's joint count does not match")
+    for i in range(1, n + 1):
+        if f"q{i}" not in table.index:
+            raise InputError(table.path, f"missing joint column 'q{i}': the model has {n} joints (q1..q{n})")
+
+
+def read_joints(path: str | os.PathLike, model: KinematicModel, table: Table | None = None) -> np.ndarray:
+    """Joint readings (N, n) in SI from columns ``q1..qN`` in the model's units."""
+    table = table or read_table(path)
+    _joint_columns(table, model)
+    u = model.units
+    cols = [table.numbers(f"q{i + 1}", scale=u.angle_rad if j.revolute else u.length_m) for i, j in enumerate(model.joints)]
+    return np.stack(cols, axis=1)
+
+
+def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measurements:
+    """A measurement CSV (contracts §3) for ``model``, in SI."""
+    table = read_table(path)
+    q = read_joints(path, model, table)
+    L = model.units.length_m
+    p = np.stack([table.numbers(c, scale=L) for c in "xyz"], axis=1)
+    quat = None
+    qcols = ["qw", "qx", "qy", "qz"]
+    present = [c for c in qcols if table.has(c)]
+    if present:
+        if len(present) != 4:
+            missing = [c for c in qcols if c not in present]
+            raise InputError(path, f"missing column {missing[0]!r}: an orientation needs all of qw, qx, qy, qz")
+        quat = np.stack([table.numbers(c, allow_empty=True) for c in qcols], axis=1)
+        partial = np.isnan(quat).any(axis=1) & ~np.isnan(quat).all(axis=1)
+        if np.any(partial):
+            r = int(np.nonzero(partial)[0][0])
+            col = qcols[int(np.nonzero(np.isnan(quat[r]))[0][0])]
+            raise InputError(path, "expected a number (an orientation needs all four of qw, qx, qy, qz)",
+                             row=r + 1, line=table.lines[r], column=col)
+        norms = np.linalg.norm(quat, axis=1)
+        bad = np.isfinite(norms) & (np.abs(norms - 1.0) > 1e-3)
+        if np.any(bad):
+            r = int(np.nonzero(bad)[0][0])
+            raise InputError(path, f"the quaternion has norm {norms[r]:.6g}; expected a unit quaternion",
+                             row=r + 1, line=table.lines[r], column="qw")
+    targets = table.strings("target")
+    for r, t in enumerate(targets):
+        if t is not None and t not in model.targets:
+            known = ", ".join(sorted(model.targets)) or "none"
+            raise InputError(path, f"unknown target {t!r} (the model has: {known})", row=r + 1, line=table.lines[r],
+                             column="target")
+    sigma = table.numbers("sigma", scale=L, required=False, allow_empty=True)
+    if np.any(sigma[np.isfinite(sigma)] <= 0):
+        r = int(np.nonzero(np.isfinite(sigma) & (sigma <= 0))[0][0])
+        raise InputError(path, "expected a positive standard uncertainty", row=r + 1, line=table.lines[r], column="sigma")
+    pose_id = table.strings("pose_id") if table.has("pose_id") else None
+    return Measurements(q=q, p_world=p, quat=quat, target=np.array(targets, dtype=object), sigma=sigma,
+                        pose_id=None if pose_id is None else np.array(pose_id, dtype=object),
+                        row=np.arange(1, len(table.rows) + 1))
+
+
+def format_csv(header: list[str], rows) -> str:
+    """CSV text with ``header`` and rows of values (floats written with up to 10 significant digits)."""
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(header)
+    for row in rows:
+        w.writerow([f"{v:.10g}" if isinstance(v, (float, np.floating)) else v for v in row])
+    return out.getvalue()
