@@ -101,6 +101,28 @@ class Measurements:
                             pick(self.pose_id), self.row[idx])
 
 
+@dataclass(frozen=True, eq=False)
+class Prior:
+    """Prior knowledge of parameters (book §4.3.2, minimum-variance estimation): the model passed
+    to :func:`identify` is the prior mean, and ``covariance`` (P, P) SI the uncertainty of the
+    parameters ``names`` about it (typically the previous calibration's covariance, inflated for
+    drift). Parameters without a prior are unconstrained."""
+
+    names: tuple[str, ...]
+    covariance: np.ndarray
+
+    def information(self, params: list["Parameter"]) -> np.ndarray:
+        """The prior information matrix (inverse covariance) over ``params`` (zero rows and
+        columns for parameters without a prior)."""
+        idx = {n: i for i, n in enumerate(self.names)}
+        have = [k for k, p in enumerate(params) if p.name in idx]
+        info = np.zeros((len(params), len(params)))
+        if have:
+            sub = np.asarray(self.covariance)[np.ix_([idx[params[k].name] for k in have], [idx[params[k].name] for k in have])]
+            info[np.ix_(have, have)] = np.linalg.pinv(sub, hermitian=True)
+        return info
+
+
 @dataclass(frozen=True, slots=True)
 class Unidentifiable:
     """A parameter the data cannot determine: ``reason`` in words, ``relation`` the freed
@@ -277,33 +299,52 @@ def select_identifiable(
 ) -> tuple[list[int], list[Unidentifiable]]:
     """Choose the columns of the weighted Jacobian ``J`` (M, P) the data determine.
 
-    Columns are scaled to unit norm and factored by QR in the order given (the order of
-    preference): column k is kept if its component orthogonal to the columns before it is at
-    least ``rtol`` of its norm. A dropped column's relation to the kept ones is solved from the
-    triangular factor. Returns the kept indices and, for the others, the reasons.
+    Columns are scaled to unit norm and orthogonalised in the order given (the order of
+    preference), Gram–Schmidt with re-orthogonalisation: column k is kept if its component
+    orthogonal to the KEPT columns before it is at least ``rtol`` of its norm (a QR with column
+    pivoting restricted to a fixed order; dropped columns never enter the basis). A dropped
+    column's relation to the kept ones is solved from the triangular factor of the kept columns.
+    Returns the kept indices and, for the others, the reasons.
     """
+    M, P = J.shape
     norms = np.linalg.norm(J, axis=0)
     scale = np.where(norms > 0, norms, 1.0)
     Jn = J / scale
-    Q, R = np.linalg.qr(Jn)
-    zero_tol = rtol * max(norms.max(initial=0.0), 1e-300)
+    zero = norms <= 1e-12 * max(norms.max(initial=0.0), 1e-300)
+    basis = np.zeros((M, min(M, P)))
     kept: list[int] = []
-    dropped: list[Unidentifiable] = []
-    diag = np.abs(np.diag(R))
-    for k in range(J.shape[1]):
-        if norms[k] <= zero_tol * 1e-3 or norms[k] == 0.0:
-            dropped.append(Unidentifiable(params[k].name, _reason(params[k], [], position_only, multi_target)))
-        elif diag[k] > rtol:
+    pending: list[tuple[int, np.ndarray]] = []
+    for k in range(P):
+        if zero[k]:
+            pending.append((k, np.zeros(0)))
+            continue
+        c = Jn[:, k]
+        Qk = basis[:, : len(kept)]
+        proj = Qk.T @ c
+        v = c - Qk @ proj
+        corr = Qk.T @ v  # re-orthogonalise once: "twice is enough"
+        v -= Qk @ corr
+        proj += corr
+        nv = float(np.linalg.norm(v))
+        if nv > rtol and len(kept) < basis.shape[1]:
+            basis[:, len(kept)] = v / nv
             kept.append(k)
         else:
-            Rk = R[np.ix_(kept, kept)]
-            coef = np.linalg.solve(Rk, R[kept, k]) if kept else np.zeros(0)
-            # back to parameter units: column_k ≈ Σ coef_j column_j  ->  d(param_k) ≡ Σ c_j d(param_j)
-            c = coef * norms[k] / scale[kept]
+            pending.append((k, proj))
+    Rk = basis[:, : len(kept)].T @ Jn[:, kept] if kept else np.zeros((0, 0))
+    dropped: list[Unidentifiable] = []
+    for k, proj in pending:
+        relation: list[tuple[str, float]] = []
+        if proj.size:
+            n_at = proj.size  # kept columns that were in the basis when k was tested
+            coef = np.linalg.solve(Rk[:n_at, :n_at], proj) if n_at else np.zeros(0)
+            # column_k ≈ Σ coef_j column_j (unit-scaled) -> d(param_k) ≡ Σ c_j d(param_j)
+            c_si = coef * norms[k] / scale[kept[:n_at]]
             order = np.argsort(-np.abs(coef))
-            relation = [(params[kept[i]].name, float(c[i])) for i in order if abs(coef[i]) > 1e-3]
-            dropped.append(Unidentifiable(params[k].name, _reason(params[k], relation, position_only, multi_target),
-                                          tuple(relation)))
+            relation = [(params[kept[i]].name, float(c_si[i])) for i in order if abs(coef[i]) > 1e-3]
+        dropped.append(Unidentifiable(params[k].name, _reason(params[k], relation, position_only, multi_target),
+                                      tuple(relation)))
+    dropped.sort(key=lambda u: [p.name for p in params].index(u.name))
     return kept, dropped
 
 
@@ -365,6 +406,7 @@ def identify(
     xtol: float = 1e-10,
     gtol: float = 1e-10,
     outlier_sigma: float = 5.0,
+    prior: Prior | None = None,
 ) -> IdentificationResult:
     """Identify the parameters of ``model`` that ``data`` determine.
 
@@ -373,7 +415,11 @@ def identify(
     the spacing of tooling balls); ``loss``: ``linear``, ``huber``, ``soft_l1`` or ``cauchy``,
     with ``f_scale`` in units of sigma; ``register``: ``auto`` (when it fits better), ``always``,
     ``never``; ``fixed``: parameter names (or prefixes ending in ``*``) not to free; ``gains``:
-    also free the joint gains; ``hayati``: rewrite parallel-axis ``dh`` links in Hayati's form.
+    also free the joint gains; ``hayati``: rewrite parallel-axis ``dh`` links in Hayati's form;
+    ``prior``: minimum-variance estimation about ``model`` (book eq. 4.69-4.70): the cost gains
+    ``½ sᵀ Σp⁻¹ s`` for the step ``s`` away from ``model``, parameters with a prior are freed even
+    where the data alone cannot determine them, and no registration is done (the prior knows
+    the base).
 
     Raises ``ValueError`` for inconsistent input (shapes, unknown targets, non-finite values).
     """
@@ -402,7 +448,7 @@ def identify(
     prob = _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot)
 
     registration = None
-    if register != "never":
+    if register != "never" and prior is None:
         cand, registration = _register(start, prob)
         if register == "always" or registration["applied"]:
             start = cand
@@ -416,7 +462,12 @@ def identify(
     position_only = not np.any(has_rot)
     kept, dropped = select_identifiable(J, cands, rtol=rank_rtol, position_only=position_only,
                                         multi_target=len(used_targets) > 1)
+    if prior is not None:  # a prior determines what the data alone cannot
+        with_prior = set(prior.names)
+        kept = sorted(set(kept) | {k for k, p in enumerate(cands) if p.name in with_prior})
+        dropped = [u for u in dropped if u.name not in with_prior]
     params = [cands[k] for k in kept]
+    info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
 
     # ---- Levenberg–Marquardt with Marquardt scaling and IRLS robust weights
     current = start
@@ -438,8 +489,8 @@ def identify(
         for it in range(1, max_iter + 1):
             Jw = J * np.sqrt(w)[:, None]
             rw = r * np.sqrt(w)
-            A = Jw.T @ Jw
-            g = Jw.T @ rw
+            A = Jw.T @ Jw + info
+            g = Jw.T @ rw - info @ steps
             D = np.maximum(np.diag(A), 1e-30)
             if np.max(np.abs(g) / np.sqrt(D)) < gtol * max(1.0, math.sqrt(2 * cost)):
                 status = 3
@@ -457,9 +508,10 @@ def identify(
                 tr, _ = _stack(prob, trp, trr)
                 tw_row = _robust_weights(_row_norms(prob, tr), loss, f_scale)
                 tw = _expand_rows(prob, tw_row)
-                tcost = 0.5 * float(np.sum(tw * tr**2))
+                prior_cost = 0.5 * float((steps + delta) @ info @ (steps + delta))
+                tcost = 0.5 * float(np.sum(tw * tr**2)) + prior_cost
                 # compare with the cost of the current point under the same weights (IRLS)
-                ref = 0.5 * float(np.sum(tw * r**2))
+                ref = 0.5 * float(np.sum(tw * r**2)) + 0.5 * float(steps @ info @ steps)
                 if tcost < ref or tcost <= cost:
                     improved = True
                     break
@@ -500,9 +552,13 @@ def identify(
     obs: dict = {}
     if P:
         Jw = J * np.sqrt(w)[:, None]
-        U, sv, Vt = np.linalg.svd(Jw, full_matrices=False)
-        inv = np.where(sv > sv[0] * 1e-14, 1.0 / sv, 0.0)
-        cov = (Vt.T * inv**2) @ Vt * sigma_scale**2
+        sv = np.linalg.svd(Jw, compute_uv=False)
+        # Σ = s² (JᵀWJ + Σp⁻¹)⁻¹ (book eq. 4.54 / 4.70); pseudo-inverse on the column-scaled
+        # matrix for numerical safety.
+        A = Jw.T @ Jw + info
+        dscale = np.sqrt(np.maximum(np.diag(A), 1e-300))
+        cov = np.linalg.pinv(A / np.outer(dscale, dscale), rcond=1e-14, hermitian=True) / np.outer(dscale, dscale)
+        cov *= sigma_scale**2
         norms = np.linalg.norm(Jw, axis=0)
         svn = np.linalg.svd(Jw / np.where(norms > 0, norms, 1.0), compute_uv=False)
         cond = float(svn[0] / svn[-1]) if svn[-1] > 0 else float("inf")

@@ -1,0 +1,173 @@
+"""Storage: the engine, schema migrations, and the data-access functions routes and the
+orchestrator use (keyword-only arguments, one transaction each).
+
+SQLite (the embedded default) runs in WAL mode with ``synchronous=FULL``: a measurement the
+service reported as taken survives a crash or a power loss. PostgreSQL comes through
+``RECAL_DATABASE_URL``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import secrets
+from collections.abc import Callable
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+from sqlalchemy import event, func, inspect, text
+from sqlalchemy.engine import Engine
+from sqlmodel import Session, SQLModel, create_engine, select
+
+from .models import (
+    ROLES,
+    AuditEntry,
+    Calibration,
+    Cell,
+    Measurement,
+    RunSession,
+    SchemaVersion,
+    Token,
+    utcnow,
+)
+
+
+def make_engine(url: str) -> Engine:
+    """An engine for ``url``; SQLite files get WAL, full sync and a busy timeout."""
+    if url.startswith("sqlite"):
+        path = url.split("///", 1)[-1]
+        if path and path != ":memory:":
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+
+        @event.listens_for(engine, "connect")
+        def _pragmas(dbapi_conn, _record):  # noqa: ANN001
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA synchronous=FULL")
+            cur.execute("PRAGMA foreign_keys=ON")
+            cur.close()
+
+        return engine
+    return create_engine(url, pool_pre_ping=True)
+
+
+# --------------------------------------------------------------------------- migrations
+
+# Each migration takes a connection and brings the schema from version i to i + 1. Never edit
+# a released migration: add a new one.
+def _v1(conn) -> None:
+    SQLModel.metadata.create_all(conn)
+
+
+MIGRATIONS: list[Callable] = [_v1]
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+def migrate(engine: Engine) -> int:
+    """Bring the database to the current schema; returns the version."""
+    with engine.begin() as conn:
+        if not inspect(conn).has_table("schema_version"):
+            current = 0
+        else:
+            row = conn.execute(text("SELECT version FROM schema_version WHERE id = 1")).first()
+            current = row[0] if row else 0
+        if current > SCHEMA_VERSION:
+            raise RuntimeError(f"the database schema is version {current}, newer than this Recal ({SCHEMA_VERSION})")
+        for version in range(current, SCHEMA_VERSION):
+            MIGRATIONS[version](conn)
+        if current == 0:
+            conn.execute(SchemaVersion.__table__.insert().values(id=1, version=SCHEMA_VERSION))
+        elif current < SCHEMA_VERSION:
+            conn.execute(text("UPDATE schema_version SET version = :v WHERE id = 1"), {"v": SCHEMA_VERSION})
+    return SCHEMA_VERSION
+
+
+# --------------------------------------------------------------------------- tokens
+
+
+def hash_token(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def create_token(db: Session, *, role: str, name: str = "") -> tuple[Token, str]:
+    """A new token: the record (with the hash only) and the token itself, shown once."""
+    if role not in ROLES:
+        raise ValueError(f"role must be one of {', '.join(ROLES)}; got {role!r}")
+    plain = "rc_" + secrets.token_urlsafe(32)
+    tok = Token(name=name or role, role=role, hash=hash_token(plain))
+    db.add(tok)
+    db.commit()
+    db.refresh(tok)
+    return tok, plain
+
+
+def find_token(db: Session, plain: str) -> Token | None:
+    tok = db.exec(select(Token).where(Token.hash == hash_token(plain))).first()
+    return tok if tok is not None and not tok.revoked else None
+
+
+def audit(db: Session, *, actor: str, action: str, subject: str, detail: dict | None = None) -> None:
+    db.add(AuditEntry(actor=actor, action=action, subject=subject, detail=detail))
+    db.commit()
+
+
+# --------------------------------------------------------------------------- sessions
+
+
+def measured_count(db: Session, session_id: int) -> int:
+    """How many planned configurations have been measured (distinct ``seq``)."""
+    return int(db.exec(select(func.count(func.distinct(Measurement.seq))).where(Measurement.session_id == session_id)).one())
+
+
+def set_state(db: Session, run: RunSession, state: str, reason: str | None = None) -> RunSession:
+    run.state = state
+    run.reason = reason
+    run.updated_at = utcnow()
+    db.add(run)
+    db.commit()
+    db.refresh(run)
+    return run
+
+
+def interrupt_unfinished(db: Session, *, owner: str | None = None) -> list[int]:
+    """Mark sessions that were running when the service stopped as ``interrupted``.
+
+    With ``owner``, only sessions leased by that owner (a worker); without, every running one
+    (the embedded single-process service)."""
+    q = select(RunSession).where(RunSession.state == "running")
+    if owner is not None:
+        q = q.where(RunSession.lease_owner == owner)
+    ids = []
+    for run in db.exec(q).all():
+        set_state(db, run, "interrupted", "the service stopped while this session was running; resume it to continue")
+        ids.append(run.id)
+    return ids
+
+
+def last_calibration(db: Session, cell_id: int, *, kind: str | None = None) -> Calibration | None:
+    q = select(Calibration).where(Calibration.cell_id == cell_id)
+    if kind is not None:
+        q = q.where(Calibration.kind == kind)
+    return db.exec(q.order_by(Calibration.id.desc())).first()
+
+
+def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30.0) -> bool:
+    """Take (or renew) the exclusive right to drive ``run``'s cell. At most one session per cell
+    holds a live lease; the check and the write happen in one transaction."""
+    now = utcnow()
+    others = db.exec(
+        select(RunSession).where(RunSession.cell_id == run.cell_id, RunSession.id != run.id,
+                                 RunSession.state == "running")
+    ).all()
+    for other in others:
+        if other.lease_expires is not None and _aware(other.lease_expires) > now:
+            return False
+    run.lease_owner = owner
+    run.lease_expires = now + timedelta(seconds=ttl_s)
+    db.add(run)
+    db.commit()
+    return True
+
+
+def _aware(t: datetime) -> datetime:
+    return t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)
