@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("predict", "tool poses (or target positions) for joint readings"),
     "model": ("model", "list library robots, or write one's nominal model"),
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
+    "serve": ("serve", "run the REST API (contracts §9)"),
+    "token": ("token", "create API tokens"),
 }
 
 

@@ -1,0 +1,223 @@
+"""What happens after a session has measured everything.
+
+- ``pose``: identification, with the cell's previous calibration as a prior when it has one
+  (minimum-variance estimation, book §4.3.2), so that a short nightly session updates a
+  calibration instead of replacing it; stored as a new calibration.
+- ``verify``: the current calibration's errors on fresh configurations; the model is not
+  changed.
+- ``circle``: circle-point analysis (book §4.6); stored as a calibration of kind ``cpa``.
+- ``joint``: per joint, the reference reading against the controller's, fitted with book eq. 2.4
+  ``θ = k1·q + k2 + k3·sin(k4·q + k5)``; gains and eccentricity harmonics stored as a calibration
+  of kind ``joint``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from sqlmodel import Session, select
+
+from calibration.identify import Measurements, Prior, identify
+from calibration.jacobian import predict
+from calibration.model import KinematicModel, model_from_dict, model_to_dict
+from calibration.report import identification_block, identification_report
+
+from .models import Calibration, Cell, Measurement, RunSession
+from .settings import Settings
+from .store import last_calibration
+
+# Allowance for what may have changed since the previous calibration (per parameter, 1 sigma):
+# the prior's covariance is the previous one plus this, so the new data can move the model.
+DRIFT_LENGTH_M = 0.05e-3
+DRIFT_ANGLE_RAD = np.deg2rad(0.005)
+
+
+class AnalysisError(RuntimeError):
+    """The measurements cannot give a result (the reason is for the technician)."""
+
+
+def current_model(db: Session, cell: Cell) -> tuple[KinematicModel, Calibration | None]:
+    """The cell's best model: its last pose calibration, else the nominal model."""
+    cal = last_calibration(db, cell.id, kind="pose")
+    return (model_from_dict(cal.model), cal) if cal is not None else (model_from_dict(cell.model), None)
+
+
+def guide_model(db: Session, cell: Cell) -> KinematicModel:
+    return current_model(db, cell)[0]
+
+
+def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, list[Measurement]]:
+    rows = db.exec(select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq,
+                                                                                         Measurement.id)).all()
+    if not rows:
+        raise AnalysisError("the session has no measurements")
+    has_quat = [r.qw is not None for r in rows]
+    quat = np.array([[r.qw, r.qx, r.qy, r.qz] if h else [np.nan] * 4 for r, h in zip(rows, has_quat)]) if any(has_quat) else None
+    data = Measurements(
+        q=np.array([r.q for r in rows], dtype=float),
+        p_world=np.array([[r.x, r.y, r.z] for r in rows]),
+        quat=quat,
+        target=np.array([r.target or None for r in rows], dtype=object),
+        sigma=np.array([r.sigma if r.sigma else np.nan for r in rows]),
+        pose_id=np.array([r.seq for r in rows]),
+        row=np.array([r.seq + 1 for r in rows]),
+    )
+    return data, rows
+
+
+def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings) -> None:
+    if run.kind == "pose":
+        cal = identify_session(db, run, cell)
+        run.calibration_id = cal.id
+    elif run.kind == "verify":
+        run.plan_info = {**(run.plan_info or {}), "verify": verify_session(db, run, cell)}
+    elif run.kind == "joint":
+        cal = joint_session(db, run, cell)
+        run.calibration_id = cal.id
+    elif run.kind == "circle":
+        cal = circle_session(db, run, cell)
+        run.calibration_id = cal.id
+    db.add(run)
+    db.commit()
+    db.refresh(run)
+
+
+def _store(db: Session, cell: Cell, run: RunSession, kind: str, model: KinematicModel, report: dict,
+           covariance: dict | None, rms: float | None, extra: dict | None = None) -> Calibration:
+    doc = model_to_dict(model)
+    if extra:
+        doc.update(extra)
+    cal = Calibration(cell_id=cell.id, session_id=run.id, kind=kind, model=doc, report=report,
+                      covariance=covariance, rms=rms)
+    db.add(cal)
+    db.commit()
+    db.refresh(cal)
+    return cal
+
+
+def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
+    data, _ = session_measurements(db, run)
+    nominal = model_from_dict(cell.model)
+    prev = last_calibration(db, cell.id, kind="pose")
+    prior = None
+    start = nominal
+    if prev is not None and prev.covariance:
+        start = model_from_dict(prev.model)
+        names = tuple(prev.covariance["names"])
+        cov = np.array(prev.covariance["matrix"], dtype=float)
+        kinds = prev.covariance.get("kinds") or ["length"] * len(names)
+        drift = np.array([DRIFT_ANGLE_RAD if k == "angle" else DRIFT_LENGTH_M if k == "length" else 1e-4 for k in kinds])
+        prior = Prior(names, cov + np.diag(drift**2))
+    result = identify(start, data, prior=prior)
+    if not result.success:
+        raise AnalysisError(f"identification did not converge: {result.message}")
+    units = nominal.units
+    report = identification_report(result, units, data_rows=data.row)
+    report["prior"] = None if prior is None else {"calibration_id": prev.id, "parameters": len(prior.names)}
+    cov = {"names": list(result.param_names), "kinds": [p.kind for p in result.params],
+           "matrix": result.covariance.tolist()}
+    model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
+    L = units.length_m
+    return _store(db, cell, run, "pose", model, report, cov, result.rms_m / L,
+                  {"identification": identification_block(result, units)})
+
+
+def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
+    """(N, 3) measured minus predicted target positions, m."""
+    p_tool = np.array([model.target(t) for t in data.target])
+    return data.p_world - predict(model, data.q, p_tool).p_world
+
+
+def verify_session(db: Session, run: RunSession, cell: Cell) -> dict:
+    data, _ = session_measurements(db, run)
+    model, cal = current_model(db, cell)
+    e = np.linalg.norm(position_errors(model, data), axis=1)
+    L = model.units.length_m
+    return {
+        "calibration_id": None if cal is None else cal.id,
+        "n": int(len(e)),
+        "rms": float(np.sqrt(np.mean(e**2)) / L),
+        "max": float(e.max() / L),
+        "p95": float(np.percentile(e, 95) / L),
+        "mean": float(e.mean() / L),
+        "unit": model.units.length,
+    }
+
+
+def fit_joint_harmonic(q: np.ndarray, ref: np.ndarray, frequency: float | None) -> dict:
+    """Book eq. 2.4 for one joint: ``ref = k1·q + k2 + k3·sin(k4·q + k5)`` by linear least squares
+    for a given ``k4`` (``frequency``; when unknown, the best of the integer harmonics the sweep
+    resolves). Returns k1..k5 and the residual RMS (rad)."""
+    q = np.asarray(q, float)
+    ref = np.unwrap(np.asarray(ref, float))
+
+    def solve(k4):
+        cols = [q, np.ones_like(q)]
+        if k4:
+            cols += [np.sin(k4 * q), np.cos(k4 * q)]
+        A = np.stack(cols, axis=1)
+        x, *_ = np.linalg.lstsq(A, ref, rcond=None)
+        res = ref - A @ x
+        return x, float(np.sqrt(np.mean(res**2)))
+
+    if frequency is None:
+        span = float(q.max() - q.min())
+        spacing = span / max(len(q) - 1, 1)
+        max_k = int(np.floor(np.pi / max(spacing, 1e-9) / 2))  # at least four points a period
+        best = (solve(0.0), 0.0)
+        for k in range(1, max(max_k, 0) + 1):
+            cand = solve(float(k))
+            if cand[1] < best[0][1] * 0.8:
+                best = (cand, float(k))
+        (x, rms), k4 = best
+    else:
+        k4 = float(frequency)
+        x, rms = solve(k4)
+    k1, k2 = float(x[0]), float(x[1])
+    k3 = k5 = 0.0
+    if k4 and len(x) == 4:
+        a, b = float(x[2]), float(x[3])  # a sin + b cos = k3 sin(k4 q + k5)
+        k3, k5 = math.hypot(a, b), math.atan2(b, a)
+    return {"gain": k1, "offset": k2, "amplitude": k3, "frequency": k4, "phase": k5, "residual_rms_rad": rms,
+            "points": int(len(q))}
+
+
+def joint_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
+    rows = db.exec(select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq)).all()
+    if not rows:
+        raise AnalysisError("the session has no measurements")
+    model, _ = current_model(db, cell)
+    results = {}
+    joints = list(model.joints)
+    for j in sorted({r.joint for r in rows if r.joint}):
+        sel = [r for r in rows if r.joint == j]
+        q = np.array([r.q[j - 1] for r in sel])
+        ref = np.array([r.reference for r in sel])
+        freq = joints[j - 1].harmonic[1] if joints[j - 1].harmonic else None
+        fit = fit_joint_harmonic(q, ref, freq)
+        results[str(j)] = fit
+        if model.coupling is None:
+            joints[j - 1] = dataclasses.replace(
+                joints[j - 1], gain=fit["gain"],
+                harmonic=(fit["amplitude"], fit["frequency"], fit["phase"]) if fit["amplitude"] > 0 else None)
+    new = dataclasses.replace(model, joints=tuple(joints))
+    report = {"joints": results, "note": "reference encoder offsets are the encoders' own zeros; joint offsets "
+                                         "come from pose calibration"}
+    return _store(db, cell, run, "joint", new, report, None, None)
+
+
+def circle_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
+    try:
+        from calibration import cpa
+    except ImportError:
+        raise AnalysisError("circle-point analysis is not available in this build") from None
+    data, rows = session_measurements(db, run)
+    joint = np.array([r.joint or 0 for r in rows])
+    nominal = model_from_dict(cell.model)
+    if not hasattr(cpa, "circle_point_analysis"):
+        raise AnalysisError("circle-point analysis is not available in this build")
+    res = cpa.circle_point_analysis(nominal, data, joint)
+    report = res.report() if hasattr(res, "report") else {}
+    return _store(db, cell, run, "cpa", res.model, report, None, None)

@@ -1,0 +1,67 @@
+"""``create_app(settings)``: the FastAPI application. Nothing is created at import time: the
+engine, the migrations and the orchestrator start in the lifespan."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
+from sqlmodel import Session
+
+from ..orchestrator import Orchestrator
+from ..settings import Settings
+from ..store import interrupt_unfinished, make_engine, migrate
+from .routes import calibrations, cells, sessions, system
+
+log = logging.getLogger("recal.api")
+
+
+def _operation_id(route: APIRoute) -> str:
+    return f"{route.tags[0]}-{route.name}" if route.tags else route.name
+
+
+def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -> FastAPI:
+    settings = settings or Settings.from_env()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        engine = make_engine(settings.effective_database_url)
+        migrate(engine)
+        with Session(engine) as db:
+            stopped = interrupt_unfinished(db)
+        if stopped:
+            log.warning("sessions interrupted by the last stop: %s (resume them to continue)", stopped)
+        app.state.engine = engine
+        app.state.settings = settings
+        app.state.orchestrator = (orchestrator_factory or Orchestrator)(engine, settings)
+        try:
+            yield
+        finally:
+            app.state.orchestrator.shutdown()
+            with Session(engine) as db:
+                interrupt_unfinished(db, owner=getattr(app.state.orchestrator, "owner", None))
+            engine.dispose()
+
+    app = FastAPI(title="Recal", version="0.1.0", lifespan=lifespan, generate_unique_id_function=_operation_id,
+                  description="Robot calibration service: cells, measurement sessions, calibrations, compensation.")
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError):
+        # 422 naming each field at fault ("body.count: ...") instead of a nested structure only.
+        errors = [{"field": ".".join(str(p) for p in e["loc"]), "message": e["msg"]} for e in exc.errors()]
+        return JSONResponse({"detail": "; ".join(f"{e['field']}: {e['message']}" for e in errors), "errors": errors},
+                            status_code=422)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception):
+        log.exception("unexpected error on %s %s", request.method, request.url.path)
+        return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the service log has the details"},
+                            status_code=500)
+
+    for module in (system, cells, sessions, calibrations):
+        app.include_router(module.router, prefix="/api/v1")
+    return app

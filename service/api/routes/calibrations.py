@@ -1,0 +1,71 @@
+"""Calibrations: read one, compare two, compensate a task file with one."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException, Request
+from fastapi.responses import PlainTextResponse
+
+from ...models import Calibration, CalibrationPublic, Cell, Compensation
+from ...store import audit
+from ..deps import Compensator, DbSession, Reader
+
+router = APIRouter(tags=["calibrations"])
+
+
+def get_calibration(db, calibration_id: int) -> Calibration:
+    cal = db.get(Calibration, calibration_id)
+    if cal is None:
+        raise HTTPException(404, f"no calibration {calibration_id}")
+    return cal
+
+
+@router.get("/calibrations/{calibration_id}", response_model=CalibrationPublic)
+def read_calibration(calibration_id: int, db: DbSession, tok: Reader):
+    return CalibrationPublic(**get_calibration(db, calibration_id).model_dump())
+
+
+@router.get("/calibrations/{calibration_id}/compare/{other_id}")
+def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> dict:
+    """Which parameters moved between two calibrations, in units of their combined standard
+    uncertainty."""
+    a, b = get_calibration(db, calibration_id), get_calibration(db, other_id)
+    pa = {p["name"]: p for p in a.report.get("parameters", [])}
+    pb = {p["name"]: p for p in b.report.get("parameters", [])}
+    rows = []
+    for name in pa.keys() & pb.keys():
+        if name.startswith(("base.", "tool.", "home.")) or ".tilt_" in name or ".shift_" in name:
+            continue  # local steps: not comparable as values
+        va, vb = pa[name]["value"], pb[name]["value"]
+        sa, sb = pa[name]["std_error"] or 0.0, pb[name]["std_error"] or 0.0
+        d = vb - va
+        s = (sa**2 + sb**2) ** 0.5
+        rows.append({"name": name, "unit": pa[name]["unit"], "from": va, "to": vb, "change": d,
+                     "change_sigmas": abs(d) / s if s > 0 else None, "moved": bool(s > 0 and abs(d) > 2 * s)})
+    rows.sort(key=lambda r: -(r["change_sigmas"] or 0))
+    return {"from": a.id, "to": b.id, "rms_from": a.rms, "rms_to": b.rms, "parameters": rows}
+
+
+@router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
+async def compensate(calibration_id: int, request: Request, db: DbSession, tok: Compensator,
+                     mode: str = "joints", name: str = "task.csv") -> PlainTextResponse:
+    """A task CSV (or a URScript program) in the request body; the compensated file out
+    (contracts §5). ``mode``: ``joints`` or ``targets``."""
+    if mode not in ("joints", "targets"):
+        raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
+    cal = get_calibration(db, calibration_id)
+    body = (await request.body()).decode("utf-8", errors="replace")
+    if not body.strip():
+        raise HTTPException(422, {"field": "body", "message": "expected a task CSV or URScript program, got nothing"})
+    from ...compensate import CompensationInputError, compensate_text
+
+    cell_model = db.get(Cell, cal.cell_id).model
+    try:
+        output, report = compensate_text(body, name=name, model_doc=cal.model, nominal_doc=cell_model, mode=mode)
+    except CompensationInputError as exc:
+        raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
+    rec = Compensation(calibration_id=cal.id, name=name, mode=mode, output=output, report=report, created_by=tok.name)
+    db.add(rec)
+    db.commit()
+    audit(db, actor=tok.name, action="compensate", subject=f"calibration {cal.id}", detail={"name": name, "mode": mode})
+    media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
+    return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec.id)})

@@ -1,0 +1,157 @@
+"""Sessions: start, read, pause, resume, abort; their measurements and progress events."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+from fastapi import APIRouter, HTTPException, Request
+from fastapi.responses import StreamingResponse
+from sqlmodel import Session, select
+
+from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token
+from ...store import audit, measured_count, set_state
+from ..deps import DbSession, Orchestrator, Reader, Runner
+
+router = APIRouter(tags=["sessions"])
+
+ACTIVE = ("planned", "running")
+TERMINAL = ("completed", "failed", "aborted")
+
+
+def public_session(db, run: RunSession) -> SessionPublic:
+    info = dict(run.plan_info or {})
+    info.pop("swept_joint", None)
+    return SessionPublic(**run.model_dump(exclude={"plan", "plan_info", "lease_owner", "lease_expires"}),
+                         measured=measured_count(db, run.id), plan_info=info or None)
+
+
+def get_run(db, session_id: int) -> RunSession:
+    run = db.get(RunSession, session_id)
+    if run is None:
+        raise HTTPException(404, f"no session {session_id}")
+    return run
+
+
+def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orchestrator) -> SessionPublic:
+    from calibration.model import model_from_dict
+
+    model = model_from_dict(cell.model)
+    if body.target is not None and body.target not in model.targets:
+        raise HTTPException(422, {"field": "body.target", "message": f"unknown target {body.target!r}; the cell's model "
+                                                                     f"has: {', '.join(sorted(model.targets)) or 'none'}"})
+    measuring = body.kind in ("pose", "verify", "circle") and not body.dry_run
+    if body.device == "cmm" and measuring and not cell.devices.get("cmm"):
+        raise HTTPException(422, {"field": "body.device", "message": "this cell has no CMM"})
+    if body.device == "tracker" and measuring and not cell.devices.get("tracker"):
+        raise HTTPException(422, {"field": "body.device", "message": "this cell has no laser tracker"})
+    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell.id,
+                                            RunSession.state.in_(("planned", "running")))).first()
+    if busy is not None and not body.dry_run:
+        raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
+    run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
+                     target=body.target if body.target is not None else (_default_target(model, body)),
+                     dry_run=body.dry_run, created_by=tok.name,
+                     plan_info={"joints": body.joints} if body.joints else None)
+    db.add(run)
+    db.commit()
+    db.refresh(run)
+    audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
+          detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run})
+    orchestrator.start(run.id)
+    return public_session(db, run)
+
+
+def _default_target(model, body) -> str | None:
+    if body.kind in ("joint",) or body.device == "cmm":
+        return None
+    names = [n for n in model.targets if not n.startswith("ball")]
+    return names[0] if names else None
+
+
+@router.get("/sessions/{session_id}", response_model=SessionPublic)
+def read_session(session_id: int, db: DbSession, tok: Reader):
+    return public_session(db, get_run(db, session_id))
+
+
+@router.post("/sessions/{session_id}/resume", response_model=SessionPublic)
+def resume(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+    run = get_run(db, session_id)
+    if run.state not in ("paused", "interrupted", "planned"):
+        raise HTTPException(409, f"session {session_id} is {run.state}; only a paused or interrupted session can resume")
+    busy = db.exec(select(RunSession).where(RunSession.cell_id == run.cell_id, RunSession.id != run.id,
+                                            RunSession.state.in_(ACTIVE))).first()
+    if busy is not None:
+        raise HTTPException(409, f"session {busy.id} is driving this cell")
+    set_state(db, run, "planned", None)
+    audit(db, actor=tok.name, action="resume session", subject=f"session {session_id}")
+    orchestrator.start(run.id)
+    return public_session(db, run)
+
+
+@router.post("/sessions/{session_id}/pause", response_model=SessionPublic)
+def pause(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+    run = get_run(db, session_id)
+    if run.state not in ACTIVE:
+        raise HTTPException(409, f"session {session_id} is {run.state}; only a running session can pause")
+    audit(db, actor=tok.name, action="pause session", subject=f"session {session_id}")
+    if not orchestrator.pause(run.id):
+        set_state(db, run, "paused", "paused on request")
+    db.refresh(run)
+    return public_session(db, run)
+
+
+@router.post("/sessions/{session_id}/abort", response_model=SessionPublic)
+def abort(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+    run = get_run(db, session_id)
+    if run.state in TERMINAL:
+        raise HTTPException(409, f"session {session_id} is {run.state} already")
+    audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
+    if not orchestrator.abort(run.id):
+        set_state(db, run, "aborted", "aborted on request")
+    db.refresh(run)
+    return public_session(db, run)
+
+
+@router.get("/sessions/{session_id}/measurements")
+def measurements(session_id: int, db: DbSession, tok: Reader) -> list[dict]:
+    get_run(db, session_id)
+    rows = db.exec(select(Measurement).where(Measurement.session_id == session_id)
+                   .order_by(Measurement.seq, Measurement.id)).all()
+    return [r.model_dump(exclude={"session_id"}) for r in rows]
+
+
+@router.get("/sessions/{session_id}/events")
+async def events(session_id: int, request: Request, tok: Reader):
+    """Progress as server-sent events: an ``event: progress`` with the session's state,
+    planned and measured counts and reason whenever one changes; ends when the session is
+    completed, failed or aborted."""
+    engine = request.app.state.engine
+    with Session(engine) as db:
+        get_run(db, session_id)
+
+    async def stream():
+        last = None
+        idle = 0.0
+        while True:
+            if await request.is_disconnected():
+                return
+            with Session(engine) as db:
+                run = db.get(RunSession, session_id)
+                snap = public_session(db, run).model_dump(mode="json")
+            key = (snap["state"], snap["measured"], snap["reason"])
+            if key != last:
+                last = key
+                idle = 0.0
+                yield f"event: progress\ndata: {json.dumps(snap)}\n\n"
+                if snap["state"] in TERMINAL:
+                    return
+            else:
+                idle += 0.25
+                if idle >= 15.0:
+                    idle = 0.0
+                    yield ": keep-alive\n\n"
+            await asyncio.sleep(0.25)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

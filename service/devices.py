@@ -1,0 +1,105 @@
+"""Opening a cell's devices from its ``devices`` document (the fake cell's endpoint line,
+contracts §7, or the same shape for real equipment).
+
+This is the one place that names concrete drivers (after python-can's backend table): the
+orchestrator only sees the interfaces of ``drivers.base``. Drivers are imported when a cell
+needs them, so a missing client library matters only to the cells that use it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+from typing import Any
+
+from drivers.base import Cmm, JointEncoder, PositionSensor, Robot
+
+
+class DeviceConfigError(ValueError):
+    """A cell's ``devices`` document cannot be used: names the field at fault."""
+
+
+@dataclass
+class CellDevices:
+    """The open devices of one cell. Closing closes every one (idempotent)."""
+
+    robot: Robot | None = None
+    tracker: PositionSensor | None = None
+    cmm: Cmm | None = None
+    encoders: dict[int, JointEncoder] = field(default_factory=dict)
+
+    def close(self) -> None:
+        for dev in [self.robot, self.tracker, self.cmm, *self.encoders.values()]:
+            if dev is not None:
+                with contextlib.suppress(Exception):
+                    dev.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_robot(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Robot:
+    """The cell's robot: UR over RTDE when ``rtde`` is given, else Modbus TCP (``modbus``)."""
+    if devices.get("rtde"):
+        from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
+
+        return UrRtdeRobot(UrRtdeConfig(host=str(devices["rtde"])))
+    if devices.get("modbus"):
+        from drivers.modbus_robot import ModbusRobot, ModbusRobotConfig
+
+        host, _, port = str(devices["modbus"]).rpartition(":")
+        if not host or not port.isdigit():
+            raise DeviceConfigError(f"devices.modbus: expected HOST:PORT, got {devices['modbus']!r}")
+        return ModbusRobot(ModbusRobotConfig(host=host, port=int(port), timeout_s=timeout_s))
+    raise DeviceConfigError("devices: no robot (expected an `rtde` host or a `modbus` HOST:PORT)")
+
+
+def open_tracker(devices: dict[str, Any], *, timeout_s: float = 10.0) -> PositionSensor:
+    if not devices.get("tracker"):
+        raise DeviceConfigError("devices.tracker: this cell has no laser tracker")
+    from drivers.tracker import LineTracker, TrackerConfig
+
+    return LineTracker(TrackerConfig(url=str(devices["tracker"]), timeout_s=timeout_s))
+
+
+def open_cmm(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Cmm:
+    if not devices.get("cmm"):
+        raise DeviceConfigError("devices.cmm: this cell has no CMM")
+    from drivers.ippdme import IppDmeCmm, IppDmeConfig
+
+    return IppDmeCmm(IppDmeConfig(url=str(devices["cmm"]), timeout_s=timeout_s))
+
+
+def open_encoders(devices: dict[str, Any], joints: list[int] | None = None, *, timeout_s: float = 5.0) -> dict[int, JointEncoder]:
+    """Reference encoders (preferred) or resolver readers on the given joints (1-based)."""
+    if not devices.get("can"):
+        raise DeviceConfigError("devices.can: this cell has no CAN bus for reference encoders")
+    from drivers.canopen_encoder import CanBusConfig, CanopenEncoder, CanopenEncoderConfig
+
+    bus = CanBusConfig.from_endpoint(devices["can"])
+    nodes: dict[int, tuple[int, str]] = {}
+    for kind, key in (("resolver", "resolvers"), ("encoder", "encoders")):  # encoders win
+        for j, node in (devices.get(key) or {}).items():
+            nodes[int(j)] = (int(node), kind)
+    wanted = sorted(nodes) if joints is None else joints
+    out: dict[int, JointEncoder] = {}
+    try:
+        for j in wanted:
+            if j not in nodes:
+                raise DeviceConfigError(f"devices: no reference encoder or resolver on joint {j}")
+            node, kind = nodes[j]
+            out[j] = CanopenEncoder(CanopenEncoderConfig(bus=bus, node_id=node, kind=kind, timeout_s=timeout_s))
+    except BaseException:
+        for e in out.values():
+            with contextlib.suppress(Exception):
+                e.close()
+        raise
+    return out
+
+
+def describe(devices: dict[str, Any]) -> list[str]:
+    """The kinds of device a document names (for listings)."""
+    return [k for k in ("rtde", "modbus", "tracker", "cmm", "can") if devices.get(k)]

@@ -1,0 +1,286 @@
+"""Sessions: plan, then for each configuration move, settle, measure and commit, then analyse.
+
+Rules a robot cell needs (issue: sessions):
+
+- every measurement is committed (its own transaction) before the next move, so a crash
+  loses nothing the service reported as taken, and a resumed session continues with the
+  first configuration not yet measured;
+- every commanded configuration is checked against the model's joint limits and the cell's
+  allowed region before anything moves, speeds and accelerations are capped by the settings;
+- device faults are retried (``device_retries``, reconnecting), then the session pauses with
+  the reason; a protective or emergency stop pauses it at once;
+- pause and abort take effect between two steps; abort stops the robot at once;
+- a dry run plans and checks, and moves nothing.
+
+The embedded default runs each session in a thread of the service process
+(:class:`Orchestrator`); ``run_session`` is the whole job, so a worker process can run it too.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from sqlalchemy.engine import Engine
+from sqlmodel import Session, select
+
+from calibration.model import model_from_dict
+from drivers.errors import DeviceError, RobotStoppedError
+
+from . import analysis
+from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
+from .models import Cell, Measurement, RunSession
+from .plans import UnsafePlan, check_configurations, plan_session
+from .settings import Settings
+from .store import acquire_lease, set_state
+
+log = logging.getLogger("recal.sessions")
+
+
+@dataclass
+class Control:
+    """Requests from outside a running session (API threads)."""
+
+    pause: threading.Event = field(default_factory=threading.Event)
+    abort: threading.Event = field(default_factory=threading.Event)
+    devices: CellDevices | None = None
+
+
+class SessionStopped(Exception):
+    """The session stops here: ``state`` and ``reason`` say how."""
+
+    def __init__(self, state: str, reason: str):
+        self.state, self.reason = state, reason
+        super().__init__(reason)
+
+
+def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> CellDevices:
+    """The devices a session needs (opened in the worker, closed when it ends)."""
+    devs = CellDevices()
+    try:
+        devs.robot = open_robot(cell.devices, timeout_s=settings.device_timeout_s)
+        if run.kind == "joint":
+            joints = (run.plan_info or {}).get("joints")
+            devs.encoders = open_encoders(cell.devices, joints, timeout_s=settings.device_timeout_s)
+        elif run.device == "cmm":
+            devs.cmm = open_cmm(cell.devices, timeout_s=settings.device_timeout_s)
+        else:
+            devs.tracker = open_tracker(cell.devices, timeout_s=settings.device_timeout_s)
+    except BaseException:
+        devs.close()
+        raise
+    return devs
+
+
+def _retry(fn: Callable, what: str, settings: Settings, control: Control):
+    """Call ``fn``; on a device fault retry ``device_retries`` times with back-off, then give up
+    by pausing the session. Protective and emergency stops are not retried."""
+    last: Exception | None = None
+    for attempt in range(settings.device_retries + 1):
+        if control.abort.is_set():
+            raise SessionStopped("aborted", "aborted on request")
+        try:
+            return fn()
+        except RobotStoppedError as exc:
+            raise SessionStopped("paused", f"{what}: {exc}") from exc
+        except DeviceError as exc:
+            last = exc
+            log.warning("%s failed (attempt %d): %s", what, attempt + 1, exc)
+            time.sleep(settings.retry_backoff_s * (attempt + 1))
+    raise SessionStopped("paused", f"{what} failed after {settings.device_retries + 1} attempts: {last}")
+
+
+def ensure_plan(db: Session, run: RunSession, cell: Cell) -> RunSession:
+    """Plan the session once (a resumed session keeps its plan) and check it."""
+    model = model_from_dict(cell.model)
+    if run.plan is None:
+        plan = plan_session(run.kind, model, run.planned, region=cell.allowed_region, target=run.target,
+                            joints=(run.plan_info or {}).get("joints"), seed=run.id or 0)
+        run.plan = plan.q.tolist()
+        run.plan_info = {**(run.plan_info or {}), **plan.info, "swept_joint": plan.joint.tolist()}
+        run.planned = len(plan.q)
+        db.add(run)
+        db.commit()
+        db.refresh(run)
+    check_configurations(model, np.asarray(run.plan, dtype=float), cell.allowed_region)
+    return run
+
+
+def run_session(engine: Engine, settings: Settings, session_id: int, control: Control | None = None, *,
+                owner: str = "embedded", open_devices=open_session_devices) -> str:
+    """Run (or continue) one session to its end, a pause, or a failure. Returns the final state."""
+    control = control or Control()
+    with Session(engine) as db:
+        run = db.get(RunSession, session_id)
+        cell = db.get(Cell, run.cell_id)
+        if not acquire_lease(db, run, owner, ttl_s=max(30.0, settings.device_timeout_s * 3)):
+            set_state(db, run, "paused", "another session is driving this cell")
+            return "paused"
+        try:
+            run = ensure_plan(db, run, cell)
+        except UnsafePlan as exc:
+            set_state(db, run, "failed", f"unsafe plan: {exc}")
+            return "failed"
+        if run.dry_run:
+            run.plan_info = {**(run.plan_info or {}), "dry_run": True}
+            db.add(run)
+            set_state(db, run, "completed", "dry run: planned and checked, nothing moved")
+            return "completed"
+        set_state(db, run, "running", None)
+        try:
+            devices = open_devices(cell, run, settings)
+        except (DeviceError, DeviceConfigError, OSError) as exc:
+            set_state(db, run, "paused", f"cannot open the cell's devices: {exc}")
+            return "paused"
+        control.devices = devices
+        try:
+            _measure_all(db, run, cell, devices, settings, control, owner)
+            analysis.finish_session(db, run, cell, settings)
+            set_state(db, run, "completed", None)
+        except SessionStopped as exc:
+            if exc.state == "aborted" and devices.robot is not None:
+                try:
+                    devices.robot.stop()
+                except Exception:  # noqa: BLE001 - stopping is best effort; the state is what matters
+                    pass
+            set_state(db, run, exc.state, exc.reason)
+        except analysis.AnalysisError as exc:
+            set_state(db, run, "failed", str(exc))
+        except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
+            log.error("session %s failed:\n%s", session_id, traceback.format_exc())
+            set_state(db, run, "failed", f"internal error: {type(exc).__name__}: {exc}")
+        finally:
+            devices.close()
+            control.devices = None
+        return run.state
+
+
+def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices, settings: Settings,
+                 control: Control, owner: str) -> None:
+    model = model_from_dict(cell.model)
+    plan = np.asarray(run.plan, dtype=float)
+    swept = (run.plan_info or {}).get("swept_joint") or [0] * len(plan)
+    done = set(db.exec(select(Measurement.seq).where(Measurement.session_id == run.id)).all())
+    speed = settings.max_joint_speed_rad_s
+    accel = settings.max_joint_accel_rad_s2
+    guide = analysis.guide_model(db, cell)  # where the CMM should look for the balls
+    for seq, q in enumerate(plan):
+        if seq in done:
+            continue
+        if control.abort.is_set():
+            raise SessionStopped("aborted", "aborted on request")
+        if control.pause.is_set():
+            raise SessionStopped("paused", "paused on request")
+        check_configurations(model, q[None, :], cell.allowed_region)
+        _retry(lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel,
+                                                 timeout_s=max(60.0, settings.device_timeout_s)), "move", settings, control)
+        if settings.settle_s > 0:
+            time.sleep(settings.settle_s)
+        q_read = _retry(devices.robot.read_joints, "read joints", settings, control)
+        rows = _measure_one(run, devices, settings, control, seq, q_read, int(swept[seq]), model, guide)
+        for row in rows:
+            db.add(row)
+        db.commit()  # committed before the next move: a crash loses nothing reported as taken
+        if seq % 10 == 0:
+            acquire_lease(db, run, owner)
+
+
+def _measure_one(run, devices, settings, control, seq, q_read, joint, model, guide) -> list[Measurement]:
+    qv = [float(v) for v in q_read]
+    if run.kind == "joint":
+        enc = devices.encoders.get(joint)
+        if enc is None:
+            raise SessionStopped("failed", f"no reference encoder on joint {joint}")
+        reading = _retry(enc.read, f"read encoder on joint {joint}", settings, control)
+        return [Measurement(session_id=run.id, seq=seq, joint=joint, q=qv, x=0.0, y=0.0, z=0.0,
+                            reference=float(reading.angle_rad))]
+    if devices.cmm is not None:
+        balls = {k: v for k, v in guide.targets.items() if k.startswith("ball")}
+        if len(balls) < 3:
+            raise SessionStopped("failed", "a CMM session needs at least three tooling balls (targets named ball*) "
+                                           "in the cell's model")
+        from calibration.kinematics import fk
+        from calibration.transforms import matrix_to_quat
+
+        T_nom = fk(guide, np.asarray(qv)[None, :])[0]
+        names = sorted(balls)
+        pose = _retry(lambda: devices.cmm.measure_pose(np.array([balls[n] for n in names]), T_nom, 0.0125),
+                      "CMM pose", settings, control)
+        T = pose.T_world_tool
+        qw, qx, qy, qz = matrix_to_quat(T[:3, :3])
+        return [Measurement(session_id=run.id, seq=seq, joint=joint or None, q=qv, x=float(T[0, 3]), y=float(T[1, 3]),
+                            z=float(T[2, 3]), qw=float(qw), qx=float(qx), qy=float(qy), qz=float(qz),
+                            sigma=max(pose.residual_rms_m, 5e-6))]
+    m = _retry(devices.tracker.measure, "tracker measurement", settings, control)
+    return [Measurement(session_id=run.id, seq=seq, target=run.target or "", joint=joint or None, q=qv,
+                        x=float(m.p_world[0]), y=float(m.p_world[1]), z=float(m.p_world[2]),
+                        sigma=float(np.max(m.sigma)))]
+
+
+class Orchestrator:
+    """Runs sessions in background threads of this process (the embedded default)."""
+
+    def __init__(self, engine: Engine, settings: Settings, *, owner: str = "embedded",
+                 open_devices=open_session_devices):
+        self.engine, self.settings, self.owner, self.open_devices = engine, settings, owner, open_devices
+        self._threads: dict[int, tuple[threading.Thread, Control]] = {}
+        self._lock = threading.Lock()
+
+    def start(self, session_id: int) -> None:
+        with self._lock:
+            t = self._threads.get(session_id)
+            if t is not None and t[0].is_alive():
+                return
+            control = Control()
+            thread = threading.Thread(target=self._run, args=(session_id, control), name=f"session-{session_id}",
+                                      daemon=True)
+            self._threads[session_id] = (thread, control)
+            thread.start()
+
+    def _run(self, session_id: int, control: Control) -> None:
+        try:
+            run_session(self.engine, self.settings, session_id, control, owner=self.owner,
+                        open_devices=self.open_devices)
+        except Exception:  # noqa: BLE001
+            log.error("session %s crashed:\n%s", session_id, traceback.format_exc())
+
+    def is_active(self, session_id: int) -> bool:
+        t = self._threads.get(session_id)
+        return t is not None and t[0].is_alive()
+
+    def pause(self, session_id: int) -> bool:
+        t = self._threads.get(session_id)
+        if t is None or not t[0].is_alive():
+            return False
+        t[1].pause.set()
+        return True
+
+    def abort(self, session_id: int) -> bool:
+        """Ask the session to stop and stop the robot now."""
+        t = self._threads.get(session_id)
+        if t is None or not t[0].is_alive():
+            return False
+        t[1].abort.set()
+        devs = t[1].devices
+        if devs is not None and devs.robot is not None:
+            try:
+                devs.robot.stop()
+            except Exception:  # noqa: BLE001 - the worker stops the robot again on its way out
+                pass
+        return True
+
+    def wait(self, session_id: int, timeout_s: float | None = None) -> None:
+        t = self._threads.get(session_id)
+        if t is not None:
+            t[0].join(timeout_s)
+
+    def shutdown(self, timeout_s: float = 5.0) -> None:
+        for thread, control in list(self._threads.values()):
+            control.pause.set()
+        for thread, _ in list(self._threads.values()):
+            thread.join(timeout_s)
