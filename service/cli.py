@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
     "serve": ("serve", "run the REST API (contracts §9)"),
     "token": ("token", "create API tokens"),
+    "nightly": ("nightly", "check a cell's accuracy and recalibrate it when it drifted"),
 }
 
 

@@ -69,3 +69,11 @@ async def compensate(calibration_id: int, request: Request, db: DbSession, tok: 
     audit(db, actor=tok.name, action="compensate", subject=f"calibration {cal.id}", detail={"name": name, "mode": mode})
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
     return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec.id)})
+
+
+@router.get("/compensations/{compensation_id}", response_class=PlainTextResponse)
+def read_compensation(compensation_id: int, db: DbSession, tok: Reader) -> PlainTextResponse:
+    rec = db.get(Compensation, compensation_id)
+    if rec is None:
+        raise HTTPException(404, f"no compensation {compensation_id}")
+    return PlainTextResponse(rec.output, headers={"X-Recal-Calibration": str(rec.calibration_id)})

@@ -12,6 +12,7 @@ from calibration.model import ModelFormatError, model_from_dict
 from ...models import (
     Calibration,
     Cell,
+    Compensation,
     CellCreate,
     CellPublic,
     CellUpdate,
@@ -21,7 +22,7 @@ from ...models import (
     TaskFile,
 )
 from ...store import audit, last_calibration, measured_count
-from ..deps import CellEditor, DbSession, Orchestrator, Reader, Runner
+from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
 from .sessions import public_session, start_session
 
 router = APIRouter(tags=["cells"])
@@ -160,3 +161,42 @@ def list_tasks(cell_id: int, db: DbSession, tok: Reader) -> list[dict]:
     get_cell(db, cell_id)
     return [{"id": t.id, "name": t.name, "mode": t.mode, "created_at": t.created_at}
             for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all()]
+
+
+@router.get("/cells/{cell_id}/tasks/{task_id}")
+def read_task(cell_id: int, task_id: int, db: DbSession, tok: Reader) -> dict:
+    t = db.get(TaskFile, task_id)
+    if t is None or t.cell_id != cell_id:
+        raise HTTPException(404, f"no task file {task_id} in cell {cell_id}")
+    return {"id": t.id, "name": t.name, "mode": t.mode, "content": t.content, "created_at": t.created_at}
+
+
+@router.post("/cells/{cell_id}/tasks/compensate")
+def compensate_tasks(cell_id: int, db: DbSession, tok: Compensator, calibration_id: int | None = None) -> dict:
+    """Compensate every task file registered with the cell, with ``calibration_id`` (default the
+    cell's last pose calibration); each result is stored."""
+    from ...compensate import CompensationInputError, compensate_text
+
+    cell = get_cell(db, cell_id)
+    cal = db.get(Calibration, calibration_id) if calibration_id is not None else last_calibration(db, cell_id, kind="pose")
+    if cal is None or cal.cell_id != cell_id:
+        raise HTTPException(404, "no calibration to compensate with" if calibration_id is None
+                            else f"no calibration {calibration_id} in cell {cell_id}")
+    results = []
+    for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all():
+        try:
+            output, report = compensate_text(t.content, name=t.name, model_doc=cal.model, nominal_doc=cell.model,
+                                             mode=t.mode)
+        except CompensationInputError as exc:
+            results.append({"task_id": t.id, "name": t.name, "error": str(exc)})
+            continue
+        rec = Compensation(calibration_id=cal.id, name=t.name, mode=t.mode, output=output, report=report,
+                           created_by=tok.name)
+        db.add(rec)
+        db.commit()
+        db.refresh(rec)
+        results.append({"task_id": t.id, "name": t.name, "compensation_id": rec.id,
+                        "summary": (report or {}).get("summary")})
+    audit(db, actor=tok.name, action="compensate tasks", subject=f"cell {cell_id}",
+          detail={"calibration": cal.id, "tasks": len(results)})
+    return {"calibration_id": cal.id, "tasks": results}
