@@ -12,13 +12,10 @@ Exit status: 0 the cell is within its threshold; 10 it drifted and was recalibra
 
 from __future__ import annotations
 
-import json
 import os
 import sys
-import time
-import urllib.error
-import urllib.parse
-import urllib.request
+
+from service.client import Api, ApiError, ServiceError
 
 EXIT_OK, EXIT_RECALIBRATED, EXIT_FAILED, EXIT_USAGE, EXIT_SERVICE = 0, 10, 1, 2, 3
 
@@ -35,48 +32,13 @@ def add_parser(s) -> None:
     s.add_argument("--device", default="tracker", choices=["tracker", "cmm"])
 
 
-class ServiceError(Exception):
-    pass
-
-
-class Api:
-    def __init__(self, url: str, token: str, timeout_s: float = 30.0):
-        self.url, self.token, self.timeout_s = url.rstrip("/"), token, timeout_s
-
-    def call(self, method: str, path: str, body: dict | None = None) -> dict | list:
-        data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.url + "/api/v1" + path, data=data, method=method,
-                                     headers={"Authorization": f"Bearer {self.token}", "Content-Type": "application/json"})
-        try:
-            with urllib.request.urlopen(req, timeout=self.timeout_s) as resp:
-                return json.loads(resp.read() or b"null")
-        except urllib.error.HTTPError as exc:
-            detail = exc.read().decode(errors="replace")
-            if exc.code in (401, 403):
-                raise ServiceError(f"{method} {path}: {exc.code} {detail}") from None
-            raise RuntimeError(f"{method} {path}: {exc.code} {detail}") from None
-        except (urllib.error.URLError, OSError) as exc:
-            raise ServiceError(f"cannot reach {self.url}: {getattr(exc, 'reason', exc)}") from None
-
-
-def _wait(api: Api, session_id: int, timeout_s: float) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        s = api.call("GET", f"/sessions/{session_id}")
-        if s["state"] in ("completed", "failed", "aborted", "paused", "interrupted"):
-            return s
-        if time.monotonic() > deadline:
-            return {**s, "state": "timeout"}
-        time.sleep(0.5)
-
-
 def _find_cell(api: Api, ref: str) -> dict:
     if ref.isdigit():
         return api.call("GET", f"/cells/{ref}")
     for c in api.call("GET", "/cells"):
         if c["name"] == ref:
             return c
-    raise RuntimeError(f"no cell named {ref!r}")
+    raise ApiError(404, f"no cell named {ref!r}", "find cell")
 
 
 def nightly(api: Api, cell_ref: str, *, verify_count: int, count: int, threshold: float | None, timeout_s: float,
@@ -87,7 +49,7 @@ def nightly(api: Api, cell_ref: str, *, verify_count: int, count: int, threshold
     unit = cell["model"].get("units", {}).get("length", "")
     limit = threshold if threshold is not None else cell.get("drift_threshold")
     v = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "verify", "count": verify_count, "device": device})
-    v = _wait(api, v["id"], timeout_s)
+    v = api.wait_session(v["id"], timeout_s)
     if v["state"] != "completed":
         return EXIT_FAILED, f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip()
     rms = v["plan_info"]["verify"]["rms"]
@@ -95,7 +57,7 @@ def nightly(api: Api, cell_ref: str, *, verify_count: int, count: int, threshold
         lim = "no threshold set" if limit is None else f"threshold {limit:g} {unit}"
         return EXIT_OK, f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}); nothing to do"
     p = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "pose", "count": count, "device": device})
-    p = _wait(api, p["id"], timeout_s)
+    p = api.wait_session(p["id"], timeout_s)
     if p["state"] != "completed" or p.get("calibration_id") is None:
         return EXIT_FAILED, (f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}); recalibration session "
                              f"{p['id']} {p['state']}: {p.get('reason') or ''}").strip()
@@ -127,7 +89,7 @@ def run(args) -> int:
     except ServiceError as exc:
         print(f"recal nightly: {exc}", file=sys.stderr)
         return EXIT_SERVICE
-    except RuntimeError as exc:
+    except ApiError as exc:
         print(f"recal nightly: {exc}", file=sys.stderr)
         return EXIT_FAILED
     print(line)

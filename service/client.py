@@ -1,0 +1,63 @@
+"""A small client of Recal's REST API (standard library only): the nightly job, the demo and
+the system tests talk to the service through it."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+
+
+class ServiceError(Exception):
+    """The service cannot be reached, or refused the token (401/403)."""
+
+
+class ApiError(RuntimeError):
+    """The service answered with an error status; ``status`` and ``detail`` say which."""
+
+    def __init__(self, status: int, detail: str, what: str):
+        self.status, self.detail = status, detail
+        super().__init__(f"{what}: {status} {detail}")
+
+
+class Api:
+    def __init__(self, url: str, token: str, timeout_s: float = 30.0):
+        self.url, self.token, self.timeout_s = url.rstrip("/"), token, timeout_s
+
+    def call(self, method: str, path: str, body: dict | None = None, *, raw: str | None = None):
+        """``method`` ``/api/v1`` + ``path`` with a JSON ``body`` (or ``raw`` text); the JSON answer
+        (or text for a text answer)."""
+        data = raw.encode() if raw is not None else (None if body is None else json.dumps(body).encode())
+        ctype = "text/plain" if raw is not None else "application/json"
+        req = urllib.request.Request(self.url + "/api/v1" + path, data=data, method=method,
+                                     headers={"Authorization": f"Bearer {self.token}", "Content-Type": ctype})
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout_s) as resp:
+                payload = resp.read()
+                if resp.headers.get_content_type() == "application/json":
+                    return json.loads(payload or b"null")
+                return payload.decode()
+        except urllib.error.HTTPError as exc:
+            detail = exc.read().decode(errors="replace")
+            if exc.code in (401, 403):
+                raise ServiceError(f"{method} {path}: {exc.code} {detail}") from None
+            raise ApiError(exc.code, detail, f"{method} {path}") from None
+        except (urllib.error.URLError, OSError) as exc:
+            raise ServiceError(f"cannot reach {self.url}: {getattr(exc, 'reason', exc)}") from None
+
+    def wait_session(self, session_id: int, timeout_s: float, *, until=("completed", "failed", "aborted", "paused",
+                                                                         "interrupted"), on_progress=None) -> dict:
+        """Poll a session until its state is in ``until`` (or the timeout: state ``timeout``)."""
+        deadline = time.monotonic() + timeout_s
+        last = None
+        while True:
+            s = self.call("GET", f"/sessions/{session_id}")
+            if on_progress is not None and (s["state"], s["measured"]) != last:
+                last = (s["state"], s["measured"])
+                on_progress(s)
+            if s["state"] in until:
+                return s
+            if time.monotonic() > deadline:
+                return {**s, "state": "timeout"}
+            time.sleep(0.2)
