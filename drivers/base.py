@@ -175,6 +175,10 @@ class Cmm(Device):
 
         Points are spread over the upper hemisphere (seen from +z of the world frame); at least
         four are needed for a sphere of unknown radius (book §6.2: four touches a ball).
+        The centre is fitted with the ball's calibrated radius ``radius_m``: on a cap of the
+        sphere a free radius correlates with the centre's height (about four times the probing
+        noise in z with the 45-degree ring). The free-radius fit gives the reported
+        ``radius_m`` and ``residual_rms_m``, a check on the ball and the probe.
         """
         if n_points < 4:
             raise ValueError(f"n_points must be at least 4 to fit a sphere, got {n_points}")
@@ -182,7 +186,8 @@ class Cmm(Device):
         dirs = _hemisphere_directions(n_points)
         nominal = centre_world + radius_m * dirs
         touched = self.probe(nominal, -dirs)
-        centre, radius, rms = fit_sphere(touched)
+        centre_free, radius, rms = fit_sphere(touched)
+        centre, _, _ = fit_sphere(touched, radius=radius_m, centre_hint=centre_free)
         return BallMeasurement(centre, float(radius), float(rms), touched)
 
     def measure_pose(
