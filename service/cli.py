@@ -16,7 +16,11 @@ import sys
 # verb -> (module under service.commands, one-line help). Add a verb: add a module and a line.
 COMMANDS: dict[str, tuple[str, str]] = {
     "identify": ("identify", "identify a model's parameters from measurements"),
+    "cpa": ("cpa", "circle-point analysis: joint axes from single-joint sweeps, then a model"),
     "predict": ("predict", "tool poses (or target positions) for joint readings"),
+    "plan": ("plan", "choose the configurations to measure, and predict the accuracy they give"),
+    "export": ("export", "write a model as URDF or as a DH table (CSV, Markdown)"),
+    "compensate": ("compensate", "compensated task files (CSV or URScript) for an identified robot"),
     "model": ("model", "list library robots, or write one's nominal model"),
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
     "serve": ("serve", "run the REST API (contracts §9)"),

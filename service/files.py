@@ -63,12 +63,13 @@ def load_model(spec: str | os.PathLike) -> KinematicModel:
         raise InputError(spec, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}" if exc.field else str(exc)) from None
 
 
-def write_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write ``text`` to ``path`` all at once: a temporary file in the same folder, renamed."""
+def write_atomic(path: str | os.PathLike, text: str | bytes) -> None:
+    """Write ``text`` (or ``bytes``, written as they are) to ``path`` all at once: a temporary
+    file in the same folder, renamed."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+        with (os.fdopen(fd, "wb") if isinstance(text, bytes) else os.fdopen(fd, "w", encoding="utf-8", newline="")) as f:
             f.write(text)
         os.replace(tmp, path)
     except BaseException:

@@ -138,25 +138,31 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
             set_state(db, run, "paused", f"cannot open the cell's devices: {exc}")
             return "paused"
         control.devices = devices
+        final, reason = "completed", None
         try:
             _measure_all(db, run, cell, devices, settings, control, owner)
             analysis.finish_session(db, run, cell, settings)
-            set_state(db, run, "completed", None)
         except SessionStopped as exc:
-            if exc.state == "aborted" and devices.robot is not None:
+            final, reason = exc.state, exc.reason
+            if control.abort.is_set():  # the stop we caused ourselves is an abort, not a fault
+                final, reason = "aborted", "aborted on request"
+            if final == "aborted" and devices.robot is not None:
                 try:
                     devices.robot.stop()
                 except Exception:  # noqa: BLE001 - stopping is best effort; the state is what matters
                     pass
-            set_state(db, run, exc.state, exc.reason)
         except analysis.AnalysisError as exc:
-            set_state(db, run, "failed", str(exc))
+            final, reason = "failed", str(exc)
         except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
             log.error("session %s failed:\n%s", session_id, traceback.format_exc())
-            set_state(db, run, "failed", f"internal error: {type(exc).__name__}: {exc}")
+            final, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
         finally:
+            # Close the devices before saying the session stopped, so that whoever resumes it
+            # finds them free.
             devices.close()
             control.devices = None
+        db.refresh(run)
+        set_state(db, run, final, reason)
         return run.state
 
 
@@ -235,7 +241,9 @@ class Orchestrator:
         with self._lock:
             t = self._threads.get(session_id)
             if t is not None and t[0].is_alive():
-                return
+                t[0].join(15.0)  # a session that just paused may still be closing its devices
+                if t[0].is_alive():
+                    return
             control = Control()
             thread = threading.Thread(target=self._run, args=(session_id, control), name=f"session-{session_id}",
                                       daemon=True)

@@ -15,7 +15,7 @@ from sqlmodel import Session
 from ..orchestrator import Orchestrator
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
-from .routes import calibrations, cells, sessions, system
+from .routes import calibrations, cells, results, sessions, system, web, workbench
 
 log = logging.getLogger("recal.api")
 
@@ -62,6 +62,7 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the service log has the details"},
                             status_code=500)
 
-    for module in (system, cells, sessions, calibrations):
+    for module in (system, cells, sessions, calibrations, results, workbench):
         app.include_router(module.router, prefix="/api/v1")
+    app.include_router(web.router)  # the technician's web page at / (service/web)
     return app

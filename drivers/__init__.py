@@ -1,0 +1,1 @@
+"""Device drivers: one small interface per kind of device (drivers.base) and its implementations."""

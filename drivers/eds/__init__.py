@@ -1,0 +1,1 @@
+"""EDS files of the reference CANopen devices (package data of the CANopen driver)."""

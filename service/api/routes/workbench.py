@@ -1,0 +1,220 @@
+"""What the technician's web page needs beyond the core resources: an overview of the cells
+(last accuracy and its trend, without loading reports), a cell's calibration history page by
+page, the connection test of a cell's devices, the robot library, a session's plan before
+anything moves and running exactly that plan, and a running session's residuals and pace."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException, Request
+from sqlalchemy import func
+from sqlmodel import select
+
+from ...devicetest import test_devices
+from ...models import Calibration, Cell, RunSession
+from ...results import _aware, plan_preview, session_live
+from ...store import audit, measured_count
+from ..deps import DbSession, Orchestrator, Reader, Runner
+from .sessions import ACTIVE, public_session
+
+router = APIRouter(tags=["workbench"])
+
+TREND = 30
+
+
+def _cell(db, cell_id: int) -> Cell:
+    cell = db.get(Cell, cell_id)
+    if cell is None:
+        raise HTTPException(404, f"no cell {cell_id}")
+    return cell
+
+
+def _run(db, session_id: int) -> RunSession:
+    run = db.get(RunSession, session_id)
+    if run is None:
+        raise HTTPException(404, f"no session {session_id}")
+    return run
+
+
+def _robot(model_doc: dict) -> dict:
+    joints = model_doc.get("joints") or []
+    return {"name": model_doc.get("name") or "?", "convention": model_doc.get("convention"), "joints": len(joints),
+            "units": model_doc.get("units"), "targets": sorted((model_doc.get("targets") or {}).keys())}
+
+
+def _trend(db, cell_id: int, limit: int = TREND) -> list[dict]:
+    """The last ``limit`` pose calibrations' RMS, oldest first (columns only, no reports)."""
+    rows = db.exec(select(Calibration.id, Calibration.rms, Calibration.created_at)
+                   .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
+                   .order_by(Calibration.id.desc()).limit(limit)).all()
+    return [{"id": i, "rms": r, "created_at": _aware(t).isoformat()} for i, r, t in reversed(rows)]
+
+
+def _active(db, cell_id: int) -> dict | None:
+    run = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == False,  # noqa: E712
+                                           RunSession.state.in_(("planned", "running", "paused", "interrupted")))
+                  .order_by(RunSession.id.desc())).first()
+    if run is None:
+        return None
+    return {"id": run.id, "kind": run.kind, "state": run.state, "planned": run.planned,
+            "measured": measured_count(db, run.id), "reason": run.reason}
+
+
+def _summary(db, cell: Cell) -> dict:
+    trend = _trend(db, cell.id)
+    unit = (cell.model.get("units") or {}).get("length")
+    return {"id": cell.id, "name": cell.name, "site": cell.site, "robot": _robot(cell.model),
+            "devices": [k for k in ("rtde", "modbus", "tracker", "cmm", "can") if (cell.devices or {}).get(k)],
+            "unit": unit, "drift_threshold": cell.drift_threshold,
+            "last": trend[-1] if trend else None, "trend": trend, "active_session": _active(db, cell.id)}
+
+
+@router.get("/overview")
+def overview(db: DbSession, tok: Reader, site: str | None = None, limit: int = 200, offset: int = 0) -> dict:
+    """Every cell (a page of them) with its robot, devices, last pose calibration's RMS, the
+    trend of the last 30, and the session driving it if any; and who is asking."""
+    q = select(Cell).order_by(Cell.id)
+    if site is not None:
+        q = q.where(Cell.site == site)
+    total = db.exec(select(func.count()).select_from(q.subquery())).one()
+    cells = db.exec(q.offset(max(0, offset)).limit(max(1, min(limit, 500)))).all()
+    return {"me": {"name": tok.name, "role": tok.role}, "total": int(total),
+            "cells": [_summary(db, c) for c in cells]}
+
+
+@router.get("/cells/{cell_id}/summary")
+def cell_summary(cell_id: int, db: DbSession, tok: Reader) -> dict:
+    """One cell as on the overview, with its devices document and allowed region."""
+    cell = _cell(db, cell_id)
+    return {**_summary(db, cell), "devices_doc": cell.devices, "allowed_region": cell.allowed_region,
+            "created_at": _aware(cell.created_at).isoformat(), "model": cell.model}
+
+
+@router.get("/cells/{cell_id}/history")
+def history(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 20,
+            offset: int = 0) -> dict:
+    """A page of the cell's calibrations, newest first (without their reports)."""
+    _cell(db, cell_id)
+    where = [Calibration.cell_id == cell_id] + ([Calibration.kind == kind] if kind else [])
+    total = db.exec(select(func.count(Calibration.id)).where(*where)).one()
+    rows = db.exec(select(Calibration.id, Calibration.kind, Calibration.session_id, Calibration.rms,
+                          Calibration.created_at).where(*where).order_by(Calibration.id.desc())
+                   .offset(max(0, offset)).limit(max(1, min(limit, 200)))).all()
+    return {"total": int(total), "offset": offset,
+            "items": [{"id": i, "kind": k, "session_id": s, "rms": r, "created_at": _aware(t).isoformat()}
+                      for i, k, s, r, t in rows]}
+
+
+@router.get("/cells/{cell_id}/session-list")
+def session_list(cell_id: int, db: DbSession, tok: Reader, limit: int = 20, offset: int = 0,
+                 dry_runs: bool = False) -> dict:
+    """A page of the cell's sessions, newest first (dry runs left out unless asked for)."""
+    _cell(db, cell_id)
+    where = [RunSession.cell_id == cell_id] + ([] if dry_runs else [RunSession.dry_run == False])  # noqa: E712
+    total = db.exec(select(func.count(RunSession.id)).where(*where)).one()
+    rows = db.exec(select(RunSession).where(*where).order_by(RunSession.id.desc())
+                   .offset(max(0, offset)).limit(max(1, min(limit, 200)))).all()
+    return {"total": int(total), "offset": offset, "items": [public_session(db, r) for r in rows]}
+
+
+# --------------------------------------------------------------------------- devices
+
+
+@router.post("/cells/{cell_id}/devices/test")
+def test_connections(cell_id: int, request: Request, db: DbSession, tok: Runner, timeout_s: float = 8.0) -> dict:
+    """Open each device of the cell, ask it something harmless (nothing moves) and report what
+    it answered, or the error, each within ``timeout_s``. While a session drives the cell its
+    devices are not opened. The result is kept in the audit log (the certificate quotes the
+    instrument's identity from it)."""
+    cell = _cell(db, cell_id)
+    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE),
+                                            RunSession.dry_run == False)).first()  # noqa: E712
+    reason = f"session {busy.id} is driving this cell ({busy.state}); test when it has stopped" if busy else None
+    timeout_s = max(0.5, min(float(timeout_s), 30.0))
+    results = test_devices(cell.devices or {}, timeout_s=timeout_s, busy=reason)
+    ok = all(r.get("ok") for r in results)
+    audit(db, actor=tok.name, action="test devices", subject=f"cell {cell_id}",
+          detail={"ok": ok, "results": results})
+    return {"cell_id": cell_id, "ok": ok, "results": results}
+
+
+@router.get("/cells/{cell_id}/devices/test")
+def last_test(cell_id: int, db: DbSession, tok: Reader) -> dict:
+    """The last connection test of the cell's devices (``null`` results when none was run)."""
+    from ...certificate import last_device_test
+
+    _cell(db, cell_id)
+    return {"cell_id": cell_id, "last": last_device_test(db, cell_id)}
+
+
+# --------------------------------------------------------------------------- robot library
+
+
+@router.get("/library/robots")
+def library(tok: Reader) -> list[dict]:
+    """The nominal robots Recal knows (name, joints, convention)."""
+    from calibration import robots
+
+    out = []
+    for name in robots.names():
+        doc = robots.nominal_document(name)
+        out.append({"name": name, **_robot(doc)})
+    return out
+
+
+@router.get("/library/robots/{name}")
+def library_robot(name: str, tok: Reader) -> dict:
+    """A library robot's nominal ``recal.model/1`` document."""
+    from calibration import robots
+
+    try:
+        return robots.nominal_document(name)
+    except KeyError as exc:
+        raise HTTPException(404, str(exc).strip("'\"")) from None
+
+
+# --------------------------------------------------------------------------- plans
+
+
+@router.get("/sessions/{session_id}/plan")
+def plan(session_id: int, request: Request, db: DbSession, tok: Reader) -> dict:
+    """A session's plan, for confirmation before anything moves: configurations, the joint
+    ranges they use against the allowed limits, the limit check, the accuracy identification
+    from them is predicted to give, the estimated motion time."""
+    run = _run(db, session_id)
+    return plan_preview(db, run, _cell(db, run.cell_id), request.app.state.settings)
+
+
+@router.post("/sessions/{session_id}/run", status_code=201)
+def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+    """Run the plan of a completed dry-run session for real: a new session measuring exactly
+    the configurations that were shown and checked."""
+    dry = _run(db, session_id)
+    if not dry.dry_run or dry.state != "completed" or not dry.plan:
+        raise HTTPException(409, f"session {session_id} is not a completed dry run with a plan "
+                                 f"(state {dry.state}{', ' + dry.reason if dry.reason else ''})")
+    cell = _cell(db, dry.cell_id)
+    if dry.kind in ("pose", "verify", "circle") and not (cell.devices or {}).get(dry.device):
+        raise HTTPException(422, {"field": "device", "message": f"this cell has no {dry.device}"})
+    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell.id, RunSession.state.in_(ACTIVE),
+                                            RunSession.dry_run == False)).first()  # noqa: E712
+    if busy is not None:
+        raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
+    info = {k: v for k, v in (dry.plan_info or {}).items() if k != "dry_run"}
+    info["from_dry_run"] = dry.id
+    run = RunSession(cell_id=cell.id, kind=dry.kind, planned=len(dry.plan), device=dry.device, target=dry.target,
+                     dry_run=False, created_by=tok.name, plan=dry.plan, plan_info=info)
+    db.add(run)
+    db.commit()
+    db.refresh(run)
+    audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
+          detail={"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id})
+    orchestrator.start(run.id)
+    return public_session(db, run)
+
+
+@router.get("/sessions/{session_id}/live")
+def live(session_id: int, db: DbSession, tok: Reader) -> dict:
+    """A session's residuals so far (per pose, against the cell's current model), the last
+    reading, seconds per pose and the time remaining."""
+    run = _run(db, session_id)
+    return session_live(db, run, _cell(db, run.cell_id))

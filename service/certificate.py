@@ -1,0 +1,291 @@
+"""The calibration certificate: what a metrology lab files about one calibration.
+
+:func:`certificate_data` gathers it (cell, robot, instrument, date, operator, poses, accuracy
+before and after in the manner of ISO 9283 — :mod:`calibration.metrics` — the parameters with
+their uncertainties, and the checks that passed); the web page prints it as HTML and
+:func:`certificate_pdf` renders the same content as a PDF (reportlab).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from datetime import datetime, timezone
+
+import numpy as np
+from sqlmodel import Session, select
+
+from calibration.model import model_from_dict
+
+from .models import AuditEntry, Calibration, Cell, RunSession
+from .results import _aware, _r, calibration_result
+
+INSTRUMENTS = {"tracker": "laser tracker", "cmm": "coordinate measuring machine (I++ DME)"}
+
+
+def _iso_figures(xyz: list | None, unit: str) -> dict | None:
+    """ISO 9283-style figures of single measurements per pose (calibration.metrics)."""
+    if not xyz:
+        return None
+    e = np.asarray(xyz, dtype=float)
+    e = e[np.all(np.isfinite(e), axis=1)]
+    if len(e) == 0:
+        return None
+    try:
+        from calibration.metrics import error_statistics
+
+        s = error_statistics(np.zeros_like(e), e)
+        out = {"n": s.n, "mean": s.mean_m, "std": s.std_m, "mean_plus_3sigma": s.mean_plus_3sigma_m, "rms": s.rms_m,
+               "p95": s.p95_m, "max": s.max_m, "bias_xyz": [float(v) for v in s.bias_xyz_m]}
+    except ImportError:  # pragma: no cover - metrics ships with the package
+        n = np.linalg.norm(e, axis=1)
+        sd = float(np.std(n, ddof=1)) if len(n) > 1 else float("nan")
+        out = {"n": len(n), "mean": float(n.mean()), "std": sd, "mean_plus_3sigma": float(n.mean()) + 3 * sd,
+               "rms": float(np.sqrt(np.mean(n**2))), "p95": float(np.percentile(n, 95)), "max": float(n.max()),
+               "bias_xyz": [float(v) for v in e.mean(axis=0)]}
+    return {k: ([_r(x) for x in v] if isinstance(v, list) else _r(v) if k != "n" else v) for k, v in out.items()} \
+        | {"unit": unit}
+
+
+def _verify_sessions(db: Session, cell_id: int, cal: Calibration) -> tuple[dict | None, dict | None]:
+    """The hold-out checks around ``cal``: the last verify session before it and the first one
+    after it that used it (their results, model units)."""
+    before = after = None
+    rows = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.kind == "verify",
+                                            RunSession.state == "completed", RunSession.dry_run == False)  # noqa: E712
+                   .order_by(RunSession.id.desc()).limit(200)).all()
+    for s in rows:
+        v = (s.plan_info or {}).get("verify")
+        if not v:
+            continue
+        if s.id < (cal.session_id or 0) and before is None:
+            before = {"session_id": s.id, **v}
+        if v.get("calibration_id") == cal.id and s.id > (cal.session_id or 0):
+            after = {"session_id": s.id, **v}  # keeps the earliest (rows go newest first)
+    return before, after
+
+
+def last_device_test(db: Session, cell_id: int, until: datetime | None = None) -> dict | None:
+    """The last connection test of the cell's devices (stored in the audit log)."""
+    q = select(AuditEntry).where(AuditEntry.action == "test devices", AuditEntry.subject == f"cell {cell_id}")
+    if until is not None:
+        q = q.where(AuditEntry.at <= until)
+    a = db.exec(q.order_by(AuditEntry.id.desc())).first()
+    if a is None:
+        return None
+    return {"at": _aware(a.at).isoformat(), "by": a.actor, "results": (a.detail or {}).get("results", [])}
+
+
+def certificate_data(db: Session, cal: Calibration) -> dict:
+    res = calibration_result(db, cal)
+    cell = db.get(Cell, cal.cell_id)
+    run = db.get(RunSession, cal.session_id) if cal.session_id is not None else None
+    nominal = model_from_dict(cell.model)
+    report = res["report"]
+    unit = res["units"]["length"]
+    device = run.device if run is not None else "tracker"
+    test = last_device_test(db, cell.id, cal.created_at) or last_device_test(db, cell.id)
+    identity = None
+    if test:
+        for r in test["results"]:
+            det = r.get("details") or {}
+            if device == "tracker" and r.get("device") == "laser tracker" and det.get("identity"):
+                identity = det["identity"]
+            if device == "cmm" and r.get("device", "").startswith("CMM") and det.get("dme_version"):
+                identity = f"I++ DME server {det['dme_version']}"
+    errors = res.get("errors") or {}
+    before = _iso_figures((errors.get("before") or {}).get("xyz"), unit)
+    after = _iso_figures((errors.get("after") or {}).get("xyz"), unit)
+    verify_before, verify_after = _verify_sessions(db, cell.id, cal)
+    ws = res.get("workspace") or {}
+    settings = report.get("settings") or {}
+    resid = report.get("residuals") or {}
+    params = []
+    for p in report.get("parameters") or []:
+        se = p.get("std_error")
+        params.append({**p, "expanded_uncertainty": _r(2 * se) if se is not None else None})
+    checks = _checks(res, run, report, resid, settings, verify_after, cell, unit)
+    issued = datetime.now(timezone.utc)
+    return {
+        "title": "Robot calibration certificate",
+        "number": f"RECAL-{cell.id:04d}-{cal.id:06d}",
+        "issued_at": issued.isoformat(),
+        "calibration": {"id": cal.id, "kind": cal.kind, "date": _aware(cal.created_at).isoformat(),
+                        "session_id": cal.session_id, "method": "kinematic identification by weighted least squares "
+                                                                "(Levenberg-Marquardt), identifiable parameters only"},
+        "cell": {"id": cell.id, "name": cell.name, "site": cell.site},
+        "robot": {"model": nominal.name, "joints": nominal.n_joints, "convention": nominal.convention,
+                  "identified_convention": (cal.model or {}).get("convention")},
+        "instrument": {"kind": INSTRUMENTS.get(device, device), "device": device,
+                       "address": str((cell.devices or {}).get(device, "")), "identity": identity,
+                       "identity_checked_at": test["at"] if test else None,
+                       "noise": settings.get("sigma"), "target": run.target if run is not None else None},
+        "operator": run.created_by if run is not None else None,
+        "poses": {"planned": run.planned if run is not None else None, "measured": report.get("rows"),
+                  "outliers": len(report.get("outliers") or []),
+                  "plan_method": (run.plan_info or {}).get("method") if run is not None else None},
+        "units": res["units"],
+        "accuracy": {
+            "before": before, "before_model": (errors.get("before") or {}).get("model"),
+            "after": after, "after_model": (errors.get("after") or {}).get("model"),
+            "verify_before": verify_before, "verify_after": verify_after,
+            "predicted_workspace": ws.get("stats95") if ws.get("available") else None,
+            "note": "ISO 9283-style figures from one measurement per pose: mean position error, its standard "
+                    "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
+        },
+        "parameters": params,
+        "unidentifiable": report.get("unidentifiable") or [],
+        "notes": report.get("notes") or [],
+        "checks": checks,
+        "passed": all(c["passed"] for c in checks if c["passed"] is not None),
+    }
+
+
+def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list[dict]:
+    out = []
+
+    def add(name, passed, detail):
+        out.append({"name": name, "passed": passed, "detail": detail})
+
+    add("identification converged", bool(report.get("success")), report.get("message") or "")
+    if run is not None:
+        measured = report.get("rows") or 0
+        add("every planned configuration measured", measured >= (run.planned or 0),
+            f"{measured} of {run.planned} configurations")
+        add("every configuration inside the joint limits and allowed region", bool((run.plan_info or {}).get(
+            "limits_checked")), "checked before each move")
+    sigma = settings.get("sigma")
+    rms = resid.get("rms")
+    if sigma and rms is not None and resid.get("dof"):
+        chi = (resid.get("chi2") or 0) / max(resid["dof"], 1)
+        add("residuals consistent with the instrument's noise", 0.3 <= chi <= 3.0,
+            f"residual RMS {rms:.4g} {unit} for {sigma:.3g} {unit} per axis (chi2/dof = {chi:.2f})")
+    outliers = len(report.get("outliers") or [])
+    add("no outlying measurement", outliers == 0, f"{outliers} measurement(s) down-weighted as outliers")
+    cond = report.get("condition_number")
+    if cond is not None:
+        add("well-conditioned identification", cond < 1000, f"condition number {cond:.3g} (scaled Jacobian)")
+    if verify_after is not None:
+        ok = rms is None or verify_after["rms"] <= max(3 * rms, 1e-12)
+        add("hold-out verification on fresh configurations", ok,
+            f"session {verify_after['session_id']}: RMS {verify_after['rms']:.4g} {unit}, max "
+            f"{verify_after['max']:.4g} {unit} on {verify_after['n']} configurations")
+    else:
+        add("hold-out verification on fresh configurations", None, "not run yet (start a verify session)")
+    if cell.drift_threshold and verify_after is not None:
+        add("within the cell's drift threshold", verify_after["max"] <= cell.drift_threshold,
+            f"max {verify_after['max']:.4g} {unit} against {cell.drift_threshold:.4g} {unit}")
+    return out
+
+
+# --------------------------------------------------------------------------- PDF
+
+
+def _num(v, digits: int = 6) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return f"{v:.{digits}g}"
+
+
+def certificate_pdf(cert: dict) -> bytes:
+    """The certificate as an A4 PDF."""
+    from reportlab.lib import colors
+    from reportlab.lib.pagesizes import A4
+    from reportlab.lib.styles import getSampleStyleSheet
+    from reportlab.lib.units import mm
+    from reportlab.platypus import Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
+
+    buf = io.BytesIO()
+    doc = SimpleDocTemplate(buf, pagesize=A4, leftMargin=18 * mm, rightMargin=18 * mm, topMargin=16 * mm,
+                            bottomMargin=16 * mm, title=f"{cert['title']} {cert['number']}", author="Recal")
+    ss = getSampleStyleSheet()
+    h1, h2, body, small = ss["Title"], ss["Heading2"], ss["BodyText"], ss["BodyText"].clone("small", fontSize=8,
+                                                                                               leading=10)
+    unit = cert["units"]["length"]
+    grid = TableStyle([("GRID", (0, 0), (-1, -1), 0.4, colors.grey), ("FONTSIZE", (0, 0), (-1, -1), 8.5),
+                       ("BACKGROUND", (0, 0), (-1, 0), colors.HexColor("#e8eef5")),
+                       ("VALIGN", (0, 0), (-1, -1), "TOP")])
+    kv = TableStyle([("FONTSIZE", (0, 0), (-1, -1), 9), ("TEXTCOLOR", (0, 0), (0, -1), colors.HexColor("#445")),
+                     ("VALIGN", (0, 0), (-1, -1), "TOP"), ("LINEBELOW", (0, 0), (-1, -1), 0.25, colors.lightgrey)])
+
+    def P(text, style=body):
+        return Paragraph(str(text).replace("&", "&amp;").replace("<", "&lt;"), style)
+
+    s = []
+    s.append(Paragraph(cert["title"], h1))
+    s.append(P(f"Certificate {cert['number']} — issued {cert['issued_at'][:19].replace('T', ' ')} UTC"))
+    s.append(Spacer(1, 4 * mm))
+    inst = cert["instrument"]
+    rows = [
+        ["Cell", f"{cert['cell']['name']} (site {cert['cell']['site']}, id {cert['cell']['id']})"],
+        ["Robot", f"{cert['robot']['model']}, {cert['robot']['joints']} joints, nominal convention "
+                  f"{cert['robot']['convention']}"],
+        ["Instrument", f"{inst['kind']} at {inst['address'] or '–'}"
+                       + (f"; identity {inst['identity']}" if inst.get("identity") else "")
+                       + (f"; noise {inst['noise']:.3g} {unit} per axis" if inst.get("noise") else "")],
+        ["Date of calibration", cert["calibration"]["date"][:19].replace("T", " ") + " UTC"],
+        ["Operator", cert.get("operator") or "–"],
+        ["Poses", f"{cert['poses']['measured']} measured of {cert['poses']['planned']} planned "
+                  f"({cert['poses']['plan_method'] or '–'}); {cert['poses']['outliers']} outlier(s)"],
+        ["Method", cert["calibration"]["method"]],
+    ]
+    s.append(Table([[P(a), P(b)] for a, b in rows], colWidths=[38 * mm, 136 * mm], style=kv))
+
+    s.append(Paragraph("Accuracy before and after calibration", h2))
+    acc = cert["accuracy"]
+    figs = [("n", "poses"), ("mean", "mean error"), ("std", "std dev S"), ("mean_plus_3sigma", "mean + 3 S"),
+            ("rms", "RMS"), ("p95", "95th pct"), ("max", "max")]
+    head = ["", *[f"{label} ({unit})" if k != "n" else label for k, label in figs]]
+    data = [head]
+    for label, f in (("Before", acc["before"]), ("After", acc["after"])):
+        if f:
+            data.append([label, *[str(f[k]) if k == "n" else _num(f[k], 4) for k, _ in figs]])
+    for label, v in (("Verify before", acc.get("verify_before")), ("Verify after", acc.get("verify_after"))):
+        if v:
+            data.append([f"{label} (session {v['session_id']})", str(v["n"]), _num(v["mean"], 4), "–", "–",
+                         _num(v["rms"], 4), _num(v["p95"], 4), _num(v["max"], 4)])
+    s.append(Table(data, style=grid, repeatRows=1))
+    s.append(P(f"Before: {acc.get('before_model') or '–'}. After: {acc.get('after_model') or '–'}. "
+               f"{acc['note']}.", small))
+    if acc.get("predicted_workspace"):
+        w = acc["predicted_workspace"]
+        s.append(P(f"Predicted over the workspace (95 % radius of the model's position uncertainty, "
+                   f"{w['n']} configurations): mean {_num(w['mean'], 3)} {unit}, max {_num(w['max'], 3)} {unit}.",
+                   small))
+
+    s.append(Paragraph("Checks", h2))
+    data = [["Check", "Result", "Detail"]]
+    for c in cert["checks"]:
+        res = "passed" if c["passed"] else ("not run" if c["passed"] is None else "FAILED")
+        data.append([P(c["name"], small), res, P(c["detail"], small)])
+    s.append(Table(data, colWidths=[62 * mm, 18 * mm, 94 * mm], style=grid, repeatRows=1))
+
+    s.append(Paragraph("Identified parameters", h2))
+    data = [["Parameter", "Unit", "Value", "Change", "Std. unc. u", "U (k=2)"]]
+    for p in cert["parameters"]:
+        data.append([p["name"], p["unit"], _num(p["value"], 9), _num(p["change"], 4), _num(p["std_error"], 3),
+                     _num(p["expanded_uncertainty"], 3)])
+    s.append(Table(data, style=grid, repeatRows=1))
+    s.append(P("base.*, tool.* (and home.*) are small displacements of those frames about the calibrated model: "
+               "their value is 0 by definition, the change is what the calibration moved.", small))
+    if cert["unidentifiable"]:
+        s.append(Paragraph("Parameters the data could not determine", h2))
+        data = [["Parameter", "Reason"]] + [[u["name"], P(u["reason"], small)] for u in cert["unidentifiable"]]
+        s.append(Table(data, colWidths=[30 * mm, 144 * mm], style=grid, repeatRows=1))
+    s.append(Spacer(1, 8 * mm))
+    s.append(P(f"Overall: {'all checks that were run passed' if cert['passed'] else 'NOT ALL CHECKS PASSED'}."))
+    s.append(Spacer(1, 14 * mm))
+    s.append(Table([["Operator signature", "", "Reviewed by", ""]], colWidths=[35 * mm, 52 * mm, 30 * mm, 57 * mm],
+                   style=TableStyle([("LINEBELOW", (1, 0), (1, 0), 0.5, colors.black),
+                                     ("LINEBELOW", (3, 0), (3, 0), 0.5, colors.black),
+                                     ("FONTSIZE", (0, 0), (-1, -1), 9)])))
+
+    def footer(canvas, doc_):
+        canvas.saveState()
+        canvas.setFont("Helvetica", 7.5)
+        canvas.drawString(18 * mm, 9 * mm, f"Recal — {cert['number']}")
+        canvas.drawRightString(A4[0] - 18 * mm, 9 * mm, f"page {doc_.page}")
+        canvas.restoreState()
+
+    doc.build(s, onFirstPage=footer, onLaterPages=footer)
+    return buf.getvalue()

@@ -1,0 +1,176 @@
+"""``Test connection``: open each device a cell's ``devices`` document names, ask it something
+harmless, and report what it answered (or the error), each within a time limit.
+
+- robot over RTDE or Modbus: its state (joint readings, safety stops, program running);
+- laser tracker: ``*IDN?``, ``STAT?`` and, when ready, one measurement;
+- CMM: the I++ DME session, server version, probe position and error state;
+- reference encoders / resolvers on CAN: each node's state and one reading.
+
+Nothing moves. Each device runs in its own daemon thread, so a device that does not answer
+costs its time limit and no more, and never holds up the others.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from .devices import open_cmm, open_encoders, open_robot, open_tracker
+
+
+def _fmt(v: float, digits: int = 4) -> str:
+    return f"{v:.{digits}f}"
+
+
+def _robot(devices: dict, key: str, timeout_s: float) -> dict:
+    robot = open_robot({key: devices[key]}, timeout_s=timeout_s)
+    try:
+        st = robot.state()
+        q = np.rad2deg(np.asarray(st.q, dtype=float))
+        flags = []
+        if st.emergency_stop:
+            flags.append("EMERGENCY STOP")
+        if st.protective_stop:
+            flags.append("protective stop")
+        flags.append("moving" if st.moving else "standing still")
+        flags.append("program running" if st.program_running else "no program running")
+        return {"ok": not st.stopped_by_safety, "name": robot.name,
+                "answer": f"joints [{', '.join(_fmt(v, 2) for v in q)}] deg; {', '.join(flags)}",
+                "details": {"q_deg": [float(v) for v in q], "moving": bool(st.moving),
+                            "protective_stop": bool(st.protective_stop), "emergency_stop": bool(st.emergency_stop),
+                            "program_running": bool(st.program_running)}}
+    finally:
+        robot.close()
+
+
+def _tracker(devices: dict, timeout_s: float) -> dict:
+    tr = open_tracker(devices, timeout_s=timeout_s)
+    try:
+        ident = getattr(tr, "identity", None)
+        idn = ", ".join([ident.maker, ident.model, ident.serial, ident.firmware]) if ident else "?"
+        status = tr.status()
+        details: dict[str, Any] = {"identity": idn, "status": status}
+        answer = f"*IDN? {idn}; STAT? {status.upper()}"
+        ok = status == "ready"
+        if ok:
+            m = tr.measure()
+            p, s = m.p_world * 1e3, m.sigma * 1e3
+            details.update({"position_mm": [float(v) for v in p], "sigma_mm": [float(v) for v in s]})
+            answer += f"; MEAS? reflector at ({', '.join(_fmt(v, 3) for v in p)}) mm ± {_fmt(float(np.max(s)), 4)} mm"
+        return {"ok": ok, "name": tr.name, "answer": answer, "details": details}
+    finally:
+        tr.close()
+
+
+def _cmm(devices: dict, timeout_s: float) -> dict:
+    cmm = open_cmm(devices, timeout_s=timeout_s)
+    try:
+        version = getattr(cmm, "dme_version", None)
+        pos = cmm.position() * 1e3 if hasattr(cmm, "position") else None
+        err = cmm.error_status() if hasattr(cmm, "error_status") else False
+        answer = f"I++ DME session started (server {version or '?'})"
+        if pos is not None:
+            answer += f"; probe at ({', '.join(_fmt(v, 3) for v in pos)}) mm"
+        answer += "; error state" if err else "; no error"
+        return {"ok": not err, "name": cmm.name, "answer": answer,
+                "details": {"dme_version": version, "probe_mm": None if pos is None else [float(v) for v in pos],
+                            "error": bool(err)}}
+    finally:
+        cmm.close()
+
+
+def _encoders(devices: dict, timeout_s: float) -> list[dict]:
+    encs = open_encoders(devices, timeout_s=timeout_s)
+    out = []
+    try:
+        for j, enc in sorted(encs.items()):
+            t0 = time.monotonic()
+            try:
+                reading = enc.read()
+                status = enc.status() if hasattr(enc, "status") else "?"
+                out.append({"device": f"reference encoder, joint {j}", "ok": True, "name": enc.name,
+                            "answer": f"{math.degrees(reading.angle_rad):.4f} deg ({reading.counts} counts); {status}",
+                            "details": {"joint": j, "angle_deg": math.degrees(reading.angle_rad),
+                                        "counts": int(reading.counts), "status": status},
+                            "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)})
+            except Exception as exc:  # noqa: BLE001 - reported, per node
+                out.append({"device": f"reference encoder, joint {j}", "ok": False, "name": enc.name,
+                            "error": f"{type(exc).__name__}: {exc}", "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)})
+    finally:
+        for enc in encs.values():
+            try:
+                enc.close()
+            except Exception:  # noqa: BLE001
+                pass
+    return out
+
+
+def _checks(devices: dict) -> list[tuple[str, str, Callable[[float], Any]]]:
+    """(device label, address, check) for each device the document names."""
+    checks = []
+    if devices.get("rtde"):
+        checks.append(("robot (UR RTDE)", str(devices["rtde"]), lambda t: _robot(devices, "rtde", t)))
+    if devices.get("modbus"):
+        checks.append(("robot (Modbus TCP)", str(devices["modbus"]), lambda t: _robot(devices, "modbus", t)))
+    if devices.get("tracker"):
+        checks.append(("laser tracker", str(devices["tracker"]), lambda t: _tracker(devices, t)))
+    if devices.get("cmm"):
+        checks.append(("CMM (I++ DME)", str(devices["cmm"]), lambda t: _cmm(devices, t)))
+    if devices.get("can") and (devices.get("encoders") or devices.get("resolvers")):
+        can = devices["can"]
+        addr = f"{can.get('interface', '?')} {can.get('channel', '')} {can.get('host', '')}:{can.get('port', '')}" \
+            if isinstance(can, dict) else str(can)
+        checks.append(("reference encoders (CANopen)", addr.strip(), lambda t: _encoders(devices, t)))
+    return checks
+
+
+def test_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = None) -> list[dict]:
+    """Test every device of a ``devices`` document; one result per device (encoders: per node).
+
+    ``busy``: why the devices must not be opened now (a session is driving the cell); each is
+    then reported as skipped with that reason."""
+    results: list[dict] = []
+    checks = _checks(devices or {})
+    if not checks:
+        return [{"device": "devices", "address": "", "ok": False,
+                 "error": "the cell's devices document names no device (expected rtde, modbus, tracker, cmm or can)"}]
+    if busy:
+        return [{"device": label, "address": addr, "ok": None, "skipped": True, "answer": f"not opened: {busy}"}
+                for label, addr, _ in checks]
+    threads = []
+    for label, addr, fn in checks:
+        box: dict = {}
+
+        def work(fn=fn, box=box):
+            t0 = time.monotonic()
+            try:
+                box["value"] = fn(timeout_s)
+            except Exception as exc:  # noqa: BLE001 - every failure is a result to show
+                box["error"] = f"{type(exc).__name__}: {exc}"
+            box["elapsed_ms"] = round((time.monotonic() - t0) * 1e3, 1)
+
+        th = threading.Thread(target=work, name=f"devtest-{label}", daemon=True)
+        th.start()
+        threads.append((label, addr, th, box))
+    deadline = time.monotonic() + timeout_s + 2.0
+    for label, addr, th, box in threads:
+        th.join(max(0.0, deadline - time.monotonic()))
+        if th.is_alive():
+            results.append({"device": label, "address": addr, "ok": False,
+                            "error": f"no answer within {timeout_s + 2.0:.0f} s"})
+            continue
+        if "error" in box:
+            results.append({"device": label, "address": addr, "ok": False, "error": box["error"],
+                            "elapsed_ms": box.get("elapsed_ms")})
+            continue
+        value = box.get("value")
+        if isinstance(value, list):
+            for v in value:
+                results.append({"address": addr, **v})
+        else:
+            results.append({"device": label, "address": addr, "elapsed_ms": box.get("elapsed_ms"), **value})
+    return results

@@ -1,0 +1,372 @@
+"""What the technician's web page shows, computed from the stored records (no new tables):
+
+- :func:`calibration_result`: a calibration's per-pose errors before and after, the predicted
+  accuracy over the workspace and its report, for the result page and the certificate;
+- :func:`plan_preview`: what a (dry-run) session will do before anything moves: how many
+  configurations, the joint ranges they use against the allowed limits, the limit check, the
+  accuracy they are predicted to give and how long they will take;
+- :func:`session_live`: a running session's residuals so far, its pace and time remaining.
+
+Everything is returned JSON-ready, lengths in the cell model's length unit, angles in degrees
+where said. Results of finished calibrations are cached in memory (they never change).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from collections import OrderedDict
+from datetime import datetime, timezone
+
+import numpy as np
+from sqlmodel import Session, select
+
+from calibration.jacobian import predict
+from calibration.kinematics import walk
+from calibration.model import KinematicModel, model_from_dict
+from calibration.parameters import candidate_parameters
+from calibration.registration import register_points
+from calibration.uncertainty import chi2_quantile
+
+from .analysis import current_model, position_errors, session_measurements
+from .models import Calibration, Cell, Measurement, RunSession
+from .plans import UnsafePlan, allowed_limits, check_configurations
+
+WORKSPACE_SAMPLES = 400
+
+
+def _r(x, digits: int = 6):
+    """A float rounded to ``digits`` significant digits (None for NaN/inf)."""
+    if x is None:
+        return None
+    x = float(x)
+    if not math.isfinite(x):
+        return None
+    return float(f"{x:.{digits}g}")
+
+
+def _rl(a, digits: int = 6):
+    """An array as nested lists of rounded floats."""
+    def conv(v):
+        return [conv(x) for x in v] if isinstance(v, list) else _r(v, digits)
+
+    return conv(np.asarray(a, dtype=float).tolist())
+
+
+def _stats(e: np.ndarray) -> dict:
+    """RMS, mean, max, p95 and standard deviation of error norms (same unit as ``e``)."""
+    if len(e) == 0:
+        return {"n": 0, "rms": None, "mean": None, "max": None, "p95": None, "std": None}
+    return {"n": int(len(e)), "rms": _r(np.sqrt(np.mean(e**2))), "mean": _r(np.mean(e)), "max": _r(np.max(e)),
+            "p95": _r(np.percentile(e, 95)), "std": _r(np.std(e, ddof=1) if len(e) > 1 else 0.0)}
+
+
+def _aware(t: datetime | None) -> datetime | None:
+    if t is None:
+        return None
+    return t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)
+
+
+# --------------------------------------------------------------------------- registration
+
+
+def registered_errors(model: KinematicModel, data) -> tuple[np.ndarray, dict]:
+    """(N, 3) errors, m, of ``model`` with its base placed where it fits the data best (and one
+    common reflector offset absorbed), as the identification's registration does: the robot's
+    own inaccuracy apart from where the instrument stands."""
+    local = dataclasses.replace(model, base=np.zeros(6))
+    w = walk(local, data.q)
+    p_tool = np.array([model.target(t) for t in data.target])
+    X, c = register_points(w.R, w.p, data.p_world, p_tool)
+    pred = (w.p + np.einsum("nij,nj->ni", w.R, p_tool + c)) @ X[:3, :3].T + X[:3, 3]
+    return data.p_world - pred, {"point_offset_m": c.tolist()}
+
+
+# --------------------------------------------------------------------------- calibration result
+
+_cache: OrderedDict[int, dict] = OrderedDict()
+_cache_lock = threading.Lock()
+
+
+def _cached(key: int, compute) -> dict:
+    with _cache_lock:
+        if key in _cache:
+            _cache.move_to_end(key)
+            return _cache[key]
+    value = compute()
+    with _cache_lock:
+        _cache[key] = value
+        while len(_cache) > 64:
+            _cache.popitem(last=False)
+    return value
+
+
+def previous_calibration_id(db: Session, cal: Calibration) -> int | None:
+    """The cell's calibration of the same kind just before ``cal`` (id only)."""
+    return db.exec(select(Calibration.id).where(Calibration.cell_id == cal.cell_id, Calibration.kind == cal.kind,
+                                                Calibration.id < cal.id).order_by(Calibration.id.desc())).first()
+
+
+def start_model_of(db: Session, cal: Calibration, cell: Cell) -> tuple[KinematicModel, str]:
+    """The model the identification started from: the prior calibration's, else the nominal."""
+    prior = (cal.report or {}).get("prior") or {}
+    pid = prior.get("calibration_id") if isinstance(prior, dict) else None
+    if pid is not None:
+        prev = db.get(Calibration, pid)
+        if prev is not None:
+            return model_from_dict(prev.model), f"calibration {pid} (the prior)"
+    return model_from_dict(cell.model), "the nominal model"
+
+
+def _parameters_for(model: KinematicModel, names: list[str]):
+    gains = any(n.endswith(".gain") for n in names)
+    cands = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets), gains=gains)}
+    missing = [n for n in names if n not in cands]
+    return [cands[n] for n in names if n in cands], missing
+
+
+def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samples: int = WORKSPACE_SAMPLES) -> dict:
+    """The identified model's predicted position uncertainty (95 % radius, from the parameters'
+    covariance, instrument noise not included) at ``samples`` configurations drawn uniformly
+    inside the cell's allowed joint ranges; with where the target is there (for a map)."""
+    cov = cal.covariance or {}
+    names = list(cov.get("names") or [])
+    if not names:
+        return {"available": False, "reason": "this calibration stored no parameter covariance"}
+    model = model_from_dict(cal.model)
+    params, missing = _parameters_for(model, names)
+    if missing:
+        return {"available": False, "reason": f"parameters not in the model: {', '.join(missing[:5])}"}
+    Sigma = np.asarray(cov["matrix"], dtype=float)
+    nominal = model_from_dict(cell.model)
+    try:
+        lim = allowed_limits(nominal, cell.allowed_region)
+    except UnsafePlan:
+        lim = nominal.joint_limits
+    lo, hi = lim[:, 0].copy(), lim[:, 1].copy()
+    for i, j in enumerate(model.joints):
+        if j.revolute:
+            lo[i], hi[i] = max(lo[i], -np.pi), min(hi[i], np.pi)
+    rng = np.random.default_rng(1000 + int(cal.id or 0))
+    q = rng.uniform(lo, hi, size=(samples, model.n_joints))
+    if target is not None and target not in model.targets:
+        target = None
+    names_arr = np.array([target] * samples, dtype=object)
+    pred = predict(model, q, np.broadcast_to(model.target(target), (samples, 3)), params, names_arr)
+    C = np.einsum("nip,pq,njq->nij", pred.Jp, Sigma, pred.Jp)
+    lam = np.linalg.eigvalsh(C)[:, -1]
+    L = model.units.length_m
+    radius = np.sqrt(chi2_quantile(0.95, 3) * np.maximum(lam, 0.0)) / L
+    rms = np.sqrt(np.maximum(np.trace(C, axis1=1, axis2=2), 0.0)) / L
+    p = pred.p_world / L
+    return {
+        "available": True, "samples": int(samples), "target": target,
+        "radius95": _rl(radius, 4), "rms": _rl(rms, 4), "points": _rl(p, 5),
+        "stats95": _stats(radius), "stats_rms": _stats(rms),
+        "note": "95 % radius of the position the model predicts, from the identified parameters' covariance; "
+                "the instrument's own noise is not included",
+    }
+
+
+def calibration_result(db: Session, cal: Calibration) -> dict:
+    """Everything the result page shows about one calibration (cached)."""
+    return _cached(int(cal.id), lambda: _calibration_result(db, cal))
+
+
+def _calibration_result(db: Session, cal: Calibration) -> dict:
+    cell = db.get(Cell, cal.cell_id)
+    run = db.get(RunSession, cal.session_id) if cal.session_id is not None else None
+    report = cal.report or {}
+    model = model_from_dict(cal.model)
+    L = model.units.length_m
+    out: dict = {
+        "id": cal.id, "kind": cal.kind, "created_at": _aware(cal.created_at).isoformat(),
+        "cell": {"id": cell.id, "name": cell.name, "site": cell.site},
+        "robot": model_from_dict(cell.model).name,
+        "session": None if run is None else {
+            "id": run.id, "kind": run.kind, "device": run.device, "target": run.target, "planned": run.planned,
+            "created_by": run.created_by, "created_at": _aware(run.created_at).isoformat(),
+            "plan_method": (run.plan_info or {}).get("method")},
+        "units": {"length": model.units.length, "angle": model.units.angle},
+        "rms": cal.rms,
+        "previous_id": previous_calibration_id(db, cal),
+        "report": {k: report.get(k) for k in ("success", "message", "rows", "parameters", "unidentifiable",
+                                              "condition_number", "observability", "residuals", "outliers",
+                                              "registration", "notes", "prior", "settings", "joints", "note")},
+        "errors": None, "workspace": None,
+    }
+    if cal.kind != "pose" or run is None:
+        return out
+    try:
+        data, rows = session_measurements(db, run)
+    except Exception as exc:  # noqa: BLE001 - a result without its session data still shows its report
+        out["errors"] = {"available": False, "reason": str(exc)}
+        return out
+    start, start_name = start_model_of(db, cal, cell)
+    e_after = position_errors(model, data)
+    raw_before = np.linalg.norm(position_errors(start, data), axis=1)
+    if len(data) >= 3:
+        e_before, _ = registered_errors(start, data)
+        before_how = f"{start_name} with its base placed where it fits these measurements best"
+    else:
+        e_before, before_how = position_errors(start, data), start_name
+    nb, na = np.linalg.norm(e_before, axis=1), np.linalg.norm(e_after, axis=1)
+    out["errors"] = {
+        "available": True,
+        "pose": [int(r.seq) + 1 for r in rows],
+        "target": [r.target or "" for r in rows],
+        "q_deg": _rl(np.rad2deg(data.q), 5),
+        "before": {"norm": _rl(nb / L), "xyz": _rl(e_before / L), "stats": _stats(nb / L), "model": before_how,
+                   "raw_rms": _r(np.sqrt(np.mean(raw_before**2)) / L)},
+        "after": {"norm": _rl(na / L), "xyz": _rl(e_after / L), "stats": _stats(na / L),
+                  "model": "the identified model (in-sample: the same measurements it was fitted to)"},
+        "outlier_poses": [int(o["row"]) for o in report.get("outliers") or []],
+    }
+    out["workspace"] = workspace_accuracy(cal, cell, run.target)
+    return out
+
+
+# --------------------------------------------------------------------------- plan preview
+
+
+def _move_time_s(q: np.ndarray, q0: np.ndarray | None, speed: float, accel: float) -> float:
+    """Time of joint moves through ``q`` (K, n) at the capped speed and acceleration
+    (trapezoidal profile of the joint that moves furthest)."""
+    pts = q if q0 is None else np.vstack([q0[None, :], q])
+    total = 0.0
+    for d in np.max(np.abs(np.diff(pts, axis=0)), axis=1) if len(pts) > 1 else []:
+        t_acc = speed / accel
+        if d < speed * t_acc:
+            total += 2 * math.sqrt(d / accel)
+        else:
+            total += d / speed + t_acc
+    return total
+
+
+def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
+    """A session's plan before anything moves (see the module docstring)."""
+    nominal = model_from_dict(cell.model)
+    out: dict = {"session_id": run.id, "state": run.state, "reason": run.reason, "kind": run.kind,
+                 "device": run.device, "target": run.target, "dry_run": run.dry_run,
+                 "method": (run.plan_info or {}).get("method"), "configurations": 0, "joints": [],
+                 "check": None, "predicted": None, "estimated_duration_s": None,
+                 "units": {"length": nominal.units.length, "angle": "deg"}}
+    if run.plan is None:
+        out["check"] = {"ok": False, "message": run.reason or "not planned yet"}
+        return out
+    q = np.asarray(run.plan, dtype=float)
+    out["configurations"] = int(len(q))
+    try:
+        lim = allowed_limits(nominal, cell.allowed_region)
+    except UnsafePlan as exc:
+        out["check"] = {"ok": False, "message": str(exc)}
+        return out
+    joints = []
+    for i, j in enumerate(nominal.joints):
+        s = math.pi / 180 if j.revolute else nominal.units.length_m
+        unit = "deg" if j.revolute else nominal.units.length
+        used = q[:, i] / s if len(q) else np.zeros(1)
+        joints.append({"name": j.name, "unit": unit, "limit": [_r(lim[i, 0] / s), _r(lim[i, 1] / s)],
+                       "model_limit": [_r(j.lower / s), _r(j.upper / s)],
+                       "used": [_r(used.min()), _r(used.max())], "values": _rl(used, 5)})
+    out["joints"] = joints
+    try:
+        check_configurations(nominal, q, cell.allowed_region)
+        out["check"] = {"ok": True, "message": f"all {len(q)} configurations are inside the joint limits"
+                                               + (" and the cell's allowed region" if cell.allowed_region else "")}
+    except UnsafePlan as exc:
+        out["check"] = {"ok": False, "message": str(exc)}
+    speed, accel = settings.max_joint_speed_rad_s, settings.max_joint_accel_rad_s2
+    out["estimated_duration_s"] = _r(_move_time_s(q, None, speed, accel) + len(q) * (settings.settle_s + 0.05), 3)
+    out["speed_caps"] = {"joint_speed_deg_s": _r(math.degrees(speed), 4), "joint_accel_deg_s2": _r(math.degrees(accel), 4)}
+    if run.kind == "pose":
+        out["predicted"] = _predicted_pose_accuracy(db, cell, q, run)
+    return out
+
+
+def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSession) -> dict:
+    """What identification from these configurations is predicted to achieve (observation
+    planning's covariance σ²(JᵀJ)⁻¹ propagated to random configurations)."""
+    info = run.plan_info or {}
+    L = model_from_dict(cell.model).units.length_m
+    sigma_m = 20e-6
+    if "predicted_rms_m" in info:
+        return {"rms": _r(info["predicted_rms_m"] / L), "p95": _r(info.get("predicted_p95_m", float("nan")) / L),
+                "sigma": _r(sigma_m / L), "source": "planner"}
+    try:
+        from calibration import planning
+    except ImportError:  # pragma: no cover
+        return {"available": False, "reason": "observation planning is not available in this build"}
+    model, _ = current_model(db, cell)
+    target = run.target if run.device != "cmm" else None
+    try:
+        res = planning.plan(model, q, len(q), targets=(target,), sigma_m=sigma_m, exchange=False,
+                            rng=np.random.default_rng(7))
+    except ValueError as exc:
+        return {"available": False, "reason": str(exc)}
+    return {"available": bool(res.success), "rms": _r(res.predicted_rms_m / L), "p95": _r(res.predicted_p95_m / L),
+            "max": _r(res.predicted_max_m / L), "sigma": _r(sigma_m / L), "identifiable": len(res.params),
+            "unidentifiable": len(res.unidentifiable), "message": res.message,
+            "note": f"RMS position error of the identified model over random configurations, predicted for an "
+                    f"instrument with {sigma_m / L:.3g} {model.units.length} noise per axis"}
+
+
+# --------------------------------------------------------------------------- live session
+
+
+def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
+    """The residuals measured so far and the pace of a session."""
+    rows = db.exec(select(Measurement).where(Measurement.session_id == run.id)
+                   .order_by(Measurement.seq, Measurement.id)).all()
+    nominal = model_from_dict(cell.model)
+    L = nominal.units.length_m
+    seqs = sorted({r.seq for r in rows})
+    out: dict = {"session_id": run.id, "state": run.state, "reason": run.reason, "planned": run.planned,
+                 "measured": len(seqs), "units": {"length": nominal.units.length}, "residuals": None,
+                 "elapsed_s": None, "seconds_per_pose": None, "remaining_s": None, "last": None}
+    if not rows:
+        return out
+    times = {}
+    for r in rows:
+        times.setdefault(r.seq, _aware(r.created_at))
+    t_sorted = sorted(times.values())
+    out["elapsed_s"] = _r((t_sorted[-1] - _aware(run.created_at)).total_seconds(), 4)
+    if len(t_sorted) >= 2:
+        d = np.diff([t.timestamp() for t in t_sorted[-11:]])
+        per = float(np.median(d))
+        out["seconds_per_pose"] = _r(per, 3)
+        if run.state in ("running", "planned", "paused", "interrupted"):
+            out["remaining_s"] = _r(max(run.planned - len(seqs), 0) * per, 3)
+    last = rows[-1]
+    out["last"] = {"pose": int(last.seq) + 1, "at": _aware(last.created_at).isoformat(),
+                   "q_deg": _rl(np.rad2deg(np.asarray(last.q, dtype=float)), 5),
+                   "position": [_r(last.x / L), _r(last.y / L), _r(last.z / L)],
+                   "sigma": _r(last.sigma / L) if last.sigma else None,
+                   "reference_deg": _r(math.degrees(last.reference)) if last.reference is not None else None}
+    if run.kind in ("pose", "verify"):
+        data, _ = session_measurements(db, run)
+        model, cal = current_model(db, cell)
+        if cal is not None:
+            e = position_errors(model, data)
+            how = f"calibration {cal.id} as it stands"
+        elif len(data) >= 4:
+            e, _ = registered_errors(model, data)
+            how = "the nominal model, its base placed where it fits the measurements so far"
+        else:
+            e, how = None, "shown from the fourth pose on (the instrument's placement is fitted first)"
+        if e is not None:
+            n = np.linalg.norm(e, axis=1) / L
+            out["residuals"] = {"pose": [int(s) + 1 for s in data.pose_id], "norm": _rl(n), "stats": _stats(n),
+                                "model": how}
+        else:
+            out["residuals"] = {"pose": [], "norm": [], "stats": _stats(np.zeros(0)), "model": how}
+    elif run.kind == "joint":
+        sel = [r for r in rows if r.joint and r.reference is not None]
+        if sel:
+            d = np.array([math.degrees(r.reference - r.q[r.joint - 1]) for r in sel])
+            d = (d + 180.0) % 360.0 - 180.0
+            out["residuals"] = {"pose": [int(r.seq) + 1 for r in sel], "norm": _rl(d - d.mean()),
+                                "stats": _stats(np.abs(d - d.mean())), "unit": "deg",
+                                "model": "reference encoder minus controller reading (mean removed), deg"}
+    return out
