@@ -70,7 +70,7 @@ class Joint:
     ``dh``/``mdh`` use ``theta, d, a, alpha`` (and ``beta`` for a Hayati link in ``dh``);
     ``poe`` uses ``axis``, ``point`` and ``theta`` (revolute offset) or ``d`` (prismatic offset).
     ``harmonic`` is ``(amplitude, frequency, phase)`` of gear eccentricity (book eq. 2.4), in rad
-    (or m), dimensionless and rad.
+    (or m), per rad of reading (or per m) and rad.
     """
 
     name: str
@@ -277,7 +277,9 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
                     raise ModelFormatError(f"{where}.d", "must be 0 or absent in a Hayati (beta) link")
         if jd.get("harmonic") is not None:
             h = _vector(jd["harmonic"], 3, f"{where}.harmonic")
-            kw["harmonic"] = (h[0] * var_scale, h[1], h[2] * A)
+            # k multiplies the reading: per radian (dimensionless) or per file length unit
+            freq_scale = 1.0 if jtype == "revolute" else 1.0 / L
+            kw["harmonic"] = (h[0] * var_scale, h[1] * freq_scale, h[2] * A)
         joints.append(Joint(**kw))
     targets = {}
     raw_targets = doc.get("targets") or {}
@@ -342,7 +344,8 @@ def model_to_dict(model: KinematicModel, *, units: Units | None = None) -> dict[
         if model.coupling is None and j.gain != 1.0:
             jd["gain"] = _r(j.gain, 15)
         if j.harmonic is not None:
-            jd["harmonic"] = [_r(j.harmonic[0] / var_scale), _r(j.harmonic[1]), _r(j.harmonic[2] / A)]
+            freq_scale = 1.0 if j.revolute else 1.0 / L
+            jd["harmonic"] = [_r(j.harmonic[0] / var_scale), _r(j.harmonic[1] / freq_scale), _r(j.harmonic[2] / A)]
         jd["lower"] = _r(j.lower / var_scale)
         jd["upper"] = _r(j.upper / var_scale)
         joints.append(jd)

@@ -83,7 +83,8 @@ def candidate_parameters(
     model: KinematicModel, *, targets: tuple[str, ...] = (), gains: bool = False, base: bool = True, tool: bool = True
 ) -> list[Parameter]:
     """Every parameter identification may free, in the order the identifiability selection
-    prefers to keep them (base first, then the joints in order, then targets, then the tool)."""
+    prefers to keep them (base first, then the joints in order, then targets, then the tool, then
+    the last ``dh``/``mdh`` link's fields other than its joint offset)."""
     params: list[Parameter] = _local6("base", "base") if base else []
     last: list[Parameter] = []
     for i, j in enumerate(model.joints):
@@ -115,9 +116,13 @@ def candidate_parameters(
     for t in targets:
         for k, s in enumerate("xyz"):
             params.append(Parameter(f"target.{t}.{s}", "length", (("tool", "trans", k, 1.0),), target=t))
-    params += last
     if tool:
         params += _local6("tool", "tool")
+    # After the tool: its six local motions span every rigid motion of the last body, so the dh
+    # fields (and mdh's d) are then exactly dependent and dropped (mdh's a, alpha place the last
+    # axis and stay). Before it, a tool frame nearly (not exactly) aligned with the last link kept
+    # both, e.g. j6.a and tool.tx: ill-conditioned, LM drifted them to ±metres and crawled.
+    params += last
     if gains and model.coupling is None:
         for i, j in enumerate(model.joints):
             key, gen, ax = (f"{j.name}.theta", "rot", 2) if j.revolute else (f"{j.name}.d", "trans", 2)

@@ -46,7 +46,8 @@ def read_sweeps(path: str | os.PathLike, model):
     joint = np.empty(len(raw), dtype=int)
     for r, x in enumerate(raw):
         if x != math.floor(x) or not 1 <= x <= model.n_joints:
-            raise InputError(path, f"expected a joint number 1..{model.n_joints}, got {table.rows[r][table.index['joint']].strip()!r}",
+            cell = table.rows[r][table.index["joint"]].strip()
+            raise InputError(path, f"expected a joint number 1..{model.n_joints}, got {cell!r}",
                              row=r + 1, line=table.lines[r], column="joint")
         joint[r] = int(x) - 1
     return Sweeps(q=data.q, p_world=data.p_world, joint=joint, target=data.target, row=data.row), table
