@@ -221,15 +221,19 @@ def joint_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
 
 
 def circle_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
-    try:
-        from calibration import cpa
-    except ImportError:
-        raise AnalysisError("circle-point analysis is not available in this build") from None
+    """Circle-point analysis of the session's sweeps (book §4.6); the report is the one
+    ``recal cpa`` writes."""
+    from calibration.cpa import SweepError, Sweeps, circle_point_analysis
+    from service.commands.cpa import report as cpa_report
+
     data, rows = session_measurements(db, run)
-    joint = np.array([r.joint or 0 for r in rows])
     nominal = model_from_dict(cell.model)
-    if not hasattr(cpa, "circle_point_analysis"):
-        raise AnalysisError("circle-point analysis is not available in this build")
-    res = cpa.circle_point_analysis(nominal, data, joint)
-    report = res.report() if hasattr(res, "report") else {}
-    return _store(db, cell, run, "cpa", res.model, report, None, None)
+    sweeps = Sweeps(q=data.q, p_world=data.p_world, joint=np.array([(r.joint or 1) - 1 for r in rows]),
+                    target=data.target, row=data.row)
+    try:
+        res = circle_point_analysis(nominal, sweeps)
+    except (SweepError, ValueError) as exc:
+        raise AnalysisError(f"circle-point analysis failed: {exc}") from None
+    report = cpa_report(res, nominal, sweeps)
+    model = dataclasses.replace(res.model, units=nominal.units, name=f"{cell.name}-cpa")
+    return _store(db, cell, run, "cpa", model, report, None, None)

@@ -126,10 +126,11 @@ def register(stack, models):
     return lambda **kw: _register(stack, models, **kw)
 
 
-def _register(stack: Stack, models, *, fake_args=None, time_scale=0.0, name=None) -> tuple[dict, object]:
-    """Start a simulated cell and register it with the service; returns (cell, fake process)."""
+def _register(stack: Stack, models, *, fake_args=None, time_scale=0.0, name=None, truth=None) -> tuple[dict, object]:
+    """Start a simulated cell (truth: ``truth`` or the session's) and register it with the
+    service; returns (cell, fake process)."""
     host = next_host()
-    fake = start_fake_cell(models["truth"], host, time_scale=time_scale, extra=fake_args or [],
+    fake = start_fake_cell(truth or models["truth"], host, time_scale=time_scale, extra=fake_args or [],
                            log_path=stack.home / f"cell-{host}.log")
     stack.cells.append(fake)
     cell = stack.api("technician").call("POST", "/cells", {
