@@ -117,20 +117,21 @@ def plan_session(kind: str, model: KinematicModel, count: int, *, region: list |
 
 
 def _planned_poses(model, lim, count, rng, target, sigma_m) -> Plan:
-    """D-optimal poses from random candidates inside the allowed region; predicted accuracy
-    from the planner when ``calibration.planning`` is available."""
-    candidates = _random_inside(lim, max(20 * count, 500), rng, model)
-    try:
-        from calibration import planning
-    except ImportError:  # pragma: no cover - planning ships with the package
-        planning = None
-    if planning is not None and hasattr(planning, "plan_poses"):
-        res = planning.plan_poses(model, candidates, count, target=target, sigma_m=sigma_m)
-        q = candidates[np.asarray(res.indices)]
-        info = {"method": "D-optimal (greedy + exchange)"}
-        for key in ("predicted_rms_m", "predicted_p95_m", "criterion", "criterion_value"):
-            if hasattr(res, key):
-                v = getattr(res, key)
-                info[key] = float(v) if isinstance(v, (int, float, np.floating)) else v
-        return Plan(q, np.zeros(len(q), int), info)
-    return Plan(candidates[:count], np.zeros(count, int), {"method": "random"})
+    """D-optimal poses (``calibration.planning``: greedy start and exchange) from random
+    candidates inside the allowed region, in a short measurement order, with the accuracy
+    they are predicted to give. (The line-of-sight test of the planner needs to know where the
+    instrument stands relative to the robot, which a first calibration does not: the session
+    relies on the retry policy for the occasional blocked beam.)"""
+    from calibration import planning
+
+    candidates = _random_inside(lim, max(20 * count, 1000), rng, model)
+    res = planning.plan(model, candidates, count, targets=(target,), sigma_m=sigma_m, rng=rng)
+    q = res.q[planning.measurement_order(res.q)]
+    info = {
+        "method": f"{res.criterion}-optimal (greedy + exchange) from {len(candidates)} candidates",
+        "predicted_rms_m": float(res.predicted_rms_m),
+        "predicted_p95_m": float(res.predicted_p95_m),
+        "predicted_max_m": float(res.predicted_max_m),
+        "unidentifiable": [u.name for u in res.unidentifiable],
+    }
+    return Plan(q, np.zeros(len(q), int), info)

@@ -96,7 +96,7 @@ def run(args) -> int:
     L, A = u.length_m, u.angle_rad
     targets = tuple(args.target) if args.target else (None,)
     for t in targets:
-        if t not in model.targets:
+        if t is not None and t not in model.targets:
             known = ", ".join(sorted(model.targets)) or "none"
             raise Fail(f"{args.model}: unknown target {t!r} (the model has: {known})")
     if args.count is None and args.accuracy is None:
@@ -109,6 +109,8 @@ def run(args) -> int:
     _positive("--near-target", args.near_target, allow_zero=True)
     if args.candidates_count < 1 or args.evaluation_count < 1:
         raise Fail("--candidates-count and --evaluation-count must be positive")
+    if args.volume_box is not None and args.volume_sphere is not None:
+        raise Fail("give --volume-box or --volume-sphere, not both")
     volume = None
     try:
         if args.volume_box is not None:
@@ -128,8 +130,6 @@ def run(args) -> int:
                 near_target_m=0.1 if args.near_target is None else args.near_target * L)
     except ValueError as exc:
         raise Fail(f"volume / line of sight: {exc}") from None
-    if args.volume_box is not None and args.volume_sphere is not None:
-        raise Fail("give --volume-box or --volume-sphere, not both")
 
     rng = np.random.default_rng(args.seed)
     if args.candidates:

@@ -1,0 +1,222 @@
+"""Observation planning benchmark (``python bench/planning.py [--seeds 20] [--draws 5]``).
+
+A UR10e (every link perturbed: ``simulate.perturbed``, 0.5 mm / 0.05° / 0.1° offsets; base off by
+2 mm and 0.1°, the reflector 0.5 mm off its nominal place) stands 2.5 m in front of a laser
+tracker (noise 0.02 mm per axis). The reflector sits 30 mm off the flange axis, 80 mm out, and
+faces along the tool z axis with a 30° acceptance cone; the beam must clear the arm's stick
+figure by 50 mm; the reflector must be in a 3 m x 3 m x 1.9 m box in front of the tracker. For
+each seed (a different robot, candidate set and hold-out set):
+
+- 2,000 feasible candidate configurations;
+- 30 poses planned (D-optimal, greedy + exchange) against 30 poses drawn at random from the same
+  candidates;
+- each design measured ``--draws`` times (fresh noise) and identified (``identify``, defaults);
+  the hold-out error is the identified model's reflector position against the truth's (no
+  measurement noise), averaged over the draws, on 1,000 fresh configurations of the working
+  volume (reflector in the box, any orientation: where the robot will work) and on 1,000 of the
+  measurable region (in the box and in sight: the candidates' own distribution);
+- the predicted RMS of each design (``planning.plan``'s σ²(JᵀJ)⁻¹ propagated to its own random
+  evaluation configurations, not the hold-out set).
+
+The same cells also compare the criteria (O1 is left out: at a fixed number of poses it gives
+D's design). Then, on the first cell: how many random poses give the predicted accuracy of 30
+planned ones; and planning times.
+
+Prints Markdown (the tables of docs/benchmarks.md, section "Observation planning").
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small LAPACK calls: threads only cost here
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from calibration import planning, robots  # noqa: E402
+from calibration.identify import identify  # noqa: E402
+from calibration.kinematics import target_positions  # noqa: E402
+from calibration.simulate import perturbed, simulate_measurements  # noqa: E402
+
+SMR = np.array([0.03, 0.0, 0.08])
+SIGMA_M = 20e-6
+K = 30
+
+
+def cell():
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": SMR},
+                                  base=np.array([2.5, 0.0, 0.0, 0.0, 0.0, np.pi]))
+    sight = planning.LineOfSight(cone_rad=np.deg2rad(30), clearance_m=0.05, near_target_m=0.1)
+    box = planning.Volume.box([1.0, -1.5, 0.1], [4.0, 1.5, 2.0])
+    return nominal, sight, box
+
+
+def truth_of(nominal, rng):
+    t = perturbed(nominal, rng, base_length_m=2e-3 / np.sqrt(3), base_angle_rad=np.deg2rad(0.1) / np.sqrt(3))
+    return dataclasses.replace(t, targets={"smr": SMR + rng.normal(0, 0.5e-3 / np.sqrt(3), 3)})
+
+
+def holdout_errors(nominal, truth, q, holdouts, rng, draws):
+    """Mean over ``draws`` noise draws of the hold-out RMS, p95 and max (m) of the model identified
+    from measurements at ``q``, on each hold-out set: (3 · len(holdouts),)."""
+    out = []
+    for _ in range(draws):
+        data = simulate_measurements(truth, q, rng, sigma_m=SIGMA_M, targets=("smr",))
+        fit = identify(nominal, data, sigma_m=SIGMA_M)
+        row = []
+        for q_hold in holdouts:
+            e = np.linalg.norm(target_positions(fit.model, q_hold, "smr") - target_positions(truth, q_hold, "smr"),
+                               axis=1)
+            row += [np.sqrt(np.mean(e**2)), np.percentile(e, 95), e.max()]
+        out.append(row)
+    return np.mean(out, axis=0)
+
+
+def predicted_rms(nominal, q, rng, box):
+    """The predicted RMS of a given design: plan over exactly its poses."""
+    return planning.plan(nominal, q, len(q), targets=("smr",), sigma_m=SIGMA_M, rng=rng, volume=box,
+                         exchange=False).predicted_rms_m
+
+
+def fmt(values_m, digits=4):
+    v = np.asarray(values_m) * 1e3
+    q1, med, q3 = np.percentile(v, [25, 50, 75])
+    return f"{med:.{digits}f} ({q1:.{digits}f}–{q3:.{digits}f})"
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import scipy
+
+    return (f"{cpu}, {os.cpu_count()} cores; Python {platform.python_version()}, numpy {np.__version__}, "
+            f"scipy {scipy.__version__}; {platform.system()} {platform.release()}")
+
+
+def poses_sweep(nominal, cand, box) -> None:
+    """Predicted RMS of planned and random designs against the number of poses (first cell)."""
+    rng = np.random.default_rng(9)
+    print("\nPredicted RMS (mm) against the number of poses (first cell; random: median of 10 draws):\n")
+    print("| poses | planned (D) | random | random / planned |")
+    print("|---|---|---|---|")
+    for k in (10, 12, 15, 20, 30, 60):
+        p = planning.plan(nominal, cand, k, targets=("smr",), sigma_m=SIGMA_M, volume=box,
+                          rng=np.random.default_rng(1)).predicted_rms_m
+        v = np.median([predicted_rms(nominal, cand[rng.choice(len(cand), k, replace=False)], np.random.default_rng(1),
+                                     box) for _ in range(10)])
+        print(f"| {k} | {p * 1e3:.4f} | {v * 1e3:.4f} | {v / p:.2f} |")
+
+
+CRITERIA = ("D", "O3", "O4", "condition", "I")  # O1 gives D's design (same determinant at fixed K)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=20, help="simulated cells (default 20)")
+    ap.add_argument("--draws", type=int, default=5, help="noise draws per design (default 5)")
+    args = ap.parse_args(argv)
+    t_start = time.perf_counter()
+    nominal, sight, box = cell()
+    err = {name: [] for name in ("random", *CRITERIA)}  # per cell: (work rms, p95, max, seen rms, p95, max)
+    pred = {name: [] for name in err}  # per cell: (predicted rms, p95)
+    t_plan = {c: [] for c in CRITERIA}
+    t_gen = []
+    keep = {}
+    for seed in range(args.seeds):
+        rng = np.random.default_rng(1000 + seed)
+        truth = truth_of(nominal, rng)
+        t0 = time.perf_counter()
+        cand = planning.generate_candidates(nominal, 2000, rng, targets=("smr",), volume=box, sight=sight)
+        t_gen.append(time.perf_counter() - t0)
+        q_work = planning.generate_candidates(nominal, 1000, rng, targets=("smr",), volume=box)
+        q_seen = planning.generate_candidates(nominal, 1000, rng, targets=("smr",), volume=box, sight=sight)
+        designs = {}
+        for crit in CRITERIA:
+            t0 = time.perf_counter()
+            r = planning.plan(nominal, cand, K, targets=("smr",), sigma_m=SIGMA_M, criterion=crit, volume=box,
+                              rng=np.random.default_rng(seed))
+            t_plan[crit].append(time.perf_counter() - t0)
+            designs[crit] = r
+        r_rand = planning.plan(nominal, cand[rng.choice(len(cand), K, replace=False)], K, targets=("smr",),
+                               sigma_m=SIGMA_M, volume=box, rng=np.random.default_rng(seed), exchange=False)
+        designs["random"] = r_rand
+        for name, r in designs.items():
+            # the same noise draws for every design of a cell (common random numbers)
+            err[name].append(holdout_errors(nominal, truth, r.q, (q_work, q_seen), np.random.default_rng(5000 + seed),
+                                            args.draws))
+            pred[name].append((r.predicted_rms_m, r.predicted_p95_m))
+        if seed == 0:
+            keep = dict(cand=cand, res=designs["D"])
+        print(f"seed {seed}: " + ", ".join(f"{n} {err[n][-1][0] * 1e3:.4f}" for n in err) + " mm", file=sys.stderr)
+    E = {n: np.array(v) for n, v in err.items()}
+    PR = {n: np.array(v) for n, v in pred.items()}
+
+    print(f"Machine: {machine()}.\n")
+    print(f"{args.seeds} cells, {args.draws} noise draws per design (the same draws for every design of a cell). "
+          "Hold-out (noise-free, 1,000 fresh configurations per cell): the working volume (reflector in the box, "
+          "any orientation) and the measurable region (in the box and in sight of the tracker: the candidates' "
+          "distribution). Median (interquartile range) over the cells, mm.\n")
+    print("| 30 poses | working volume: RMS | p95 | max | measurable region: RMS | max | predicted RMS (working volume) |")
+    print("|---|---|---|---|---|---|---|")
+    for name, label in (("D", "planned (D-optimal)"), ("random", "random from the same candidates")):
+        e = E[name]
+        print(f"| {label} | {fmt(e[:, 0])} | {fmt(e[:, 1])} | {fmt(e[:, 2])} | {fmt(e[:, 3])} | {fmt(e[:, 5])} | "
+              f"{fmt(PR[name][:, 0])} |")
+    for label, col in (("working volume", 0), ("measurable region", 3), ("working volume, max", 2)):
+        ratio = E["D"][:, col] / E["random"][:, col]
+        print(f"\nPlanned/random hold-out {'max' if col == 2 else 'RMS'}, {label.split(',')[0]}: median ratio "
+              f"{np.median(ratio):.3f} (range {ratio.min():.3f}–{ratio.max():.3f}); planned better in "
+              f"{int(np.sum(ratio < 1))} of {args.seeds} cells.")
+    print(f"\nPredicted/actual RMS over the working volume (medians): planned "
+          f"{np.median(PR['D'][:, 0] / E['D'][:, 0]):.3f}, random {np.median(PR['random'][:, 0] / E['random'][:, 0]):.3f}.\n")
+
+    print("Criteria (same cells, 30 poses; medians over the cells, mm; time: planning, median):\n")
+    print("| criterion | predicted RMS | predicted p95 | hold-out RMS (working volume) | hold-out max | planning time (s) |")
+    print("|---|---|---|---|---|---|")
+    for name in (*CRITERIA, "random"):
+        tp = f"{np.median(t_plan[name]):.2f}" if name in t_plan else "–"
+        print(f"| {name} | {np.median(PR[name][:, 0]) * 1e3:.4f} | {np.median(PR[name][:, 1]) * 1e3:.4f} | "
+              f"{np.median(E[name][:, 0]) * 1e3:.4f} | {np.median(E[name][:, 2]) * 1e3:.4f} | {tp} |")
+
+    # how many random poses match 30 planned ones (predicted), on the first cell's candidates
+    rng = np.random.default_rng(7)
+    cand, res = keep["cand"], keep["res"]
+    print("\nRandom poses needed to match the predicted accuracy of 30 planned ones (first cell, median of 10 draws):\n")
+    print("| random poses | predicted RMS (mm) |")
+    print("|---|---|")
+    for k in (30, 40, 50, 60, 80):
+        v = [predicted_rms(nominal, cand[rng.choice(len(cand), k, replace=False)], rng, box) for _ in range(10)]
+        print(f"| {k} | {np.median(v) * 1e3:.4f} |")
+    print(f"| 30 planned (D) | {res.predicted_rms_m * 1e3:.4f} |")
+    poses_sweep(nominal, cand, box)
+
+    print("\nPlanning time, D-optimal (greedy + exchange; candidates drawn without constraints):\n")
+    print("| candidates | poses | time (s) | swaps |")
+    print("|---|---|---|---|")
+    for n_c, k in ((2000, 30), (5000, 30), (5000, 60)):
+        c = planning.generate_candidates(nominal, n_c, np.random.default_rng(n_c), targets=("smr",))
+        t0 = time.perf_counter()
+        r = planning.plan(nominal, c, k, targets=("smr",), sigma_m=SIGMA_M)
+        print(f"| {n_c} | {k} | {time.perf_counter() - t0:.2f} | {r.swaps} |")
+    print(f"\nCandidate generation with the line-of-sight and volume tests: median {np.median(t_gen):.2f} s "
+          f"for 2,000 candidates; whole benchmark {time.perf_counter() - t_start:.0f} s.")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,205 @@
+"""Accuracy figures of verification data, in the manner of ISO 9283 (formulas in docs/accuracy.md).
+
+Inputs are what a verification session has: for each measurement row, the commanded position
+(the model's prediction of where the target should be for the commanded joints, or the
+programmed point) and the measured one, both in the world frame (m); optionally the commanded
+and measured orientations (3, 3); and a ``pose_id`` grouping rows that repeat one command.
+
+- :func:`pose_statistics`: per commanded pose measured several times, ISO 9283 §7.2.1 and §7.2.2:
+  the barycentre of the measured positions, the pose accuracy ``AP`` (distance of the barycentre
+  from the command, and its components), the pose repeatability ``RP = l̄ + 3·S_l`` (l the
+  distances of the measurements from their barycentre), and per axis the orientation accuracy
+  ``AP_a, AP_b, AP_c`` and repeatability ``±3·S_a`` etc.
+- :func:`error_statistics`: one measurement per pose: mean, standard deviation, 3σ, mean + 3σ,
+  RMS, 95th percentile and maximum of the position error (and of the orientation error angle).
+
+Orientation (where ISO 9283 subtracts the robot's angles a, b, c): each measured orientation's
+deviation from its command is taken as the small rotation ``δ = log(R_meas · R_cmdᵀ)`` resolved on
+the world (measurement) axes x, y, z. Unlike differences of Euler or RPY angles it does not wrap
+at ±180° and does not depend on the angle convention; for the small deviations a robot has it
+is what the differences of the angles about the fixed x, y, z axes measure.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .transforms import matrix_to_rotvec
+
+
+def _check(p_cmd, p_meas, R_cmd, R_meas) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    p_cmd = np.atleast_2d(np.asarray(p_cmd, float))
+    p_meas = np.atleast_2d(np.asarray(p_meas, float))
+    if p_meas.ndim != 2 or p_meas.shape[1] != 3 or p_cmd.shape != p_meas.shape:
+        raise ValueError(f"`p_cmd` and `p_meas` must both have shape (N, 3); got {p_cmd.shape} and {p_meas.shape}")
+    if len(p_meas) == 0:
+        raise ValueError("no measurements")
+    if not (np.all(np.isfinite(p_cmd)) and np.all(np.isfinite(p_meas))):
+        raise ValueError("positions must be finite")
+    if (R_cmd is None) != (R_meas is None):
+        raise ValueError("give both `R_cmd` and `R_meas`, or neither")
+    delta = None
+    if R_cmd is not None:
+        R_cmd = np.asarray(R_cmd, float).reshape(-1, 3, 3)
+        R_meas = np.asarray(R_meas, float).reshape(-1, 3, 3)
+        if len(R_cmd) != len(p_meas) or len(R_meas) != len(p_meas):
+            raise ValueError(f"`R_cmd` and `R_meas` must have shape ({len(p_meas)}, 3, 3)")
+        delta = orientation_deviation(R_cmd, R_meas)
+    return p_cmd, p_meas, delta
+
+
+def orientation_deviation(R_cmd: np.ndarray, R_meas: np.ndarray) -> np.ndarray:
+    """The small rotation (N, 3) rad taking each commanded orientation to the measured one,
+    resolved on the world axes: ``log(R_meas · R_cmdᵀ)``."""
+    return matrix_to_rotvec(np.asarray(R_meas, float) @ np.swapaxes(np.asarray(R_cmd, float), -1, -2))
+
+
+# --------------------------------------------------------------------------- repeated poses
+
+
+@dataclass(frozen=True, eq=False)
+class PoseStatistics:
+    """ISO 9283 pose accuracy and repeatability, one entry per commanded pose (m, rad).
+
+    ``pose_ids`` (P,) in order of first appearance; ``n`` (P,) measurements per pose;
+    ``command_m`` (P, 3) and ``barycentre_m`` (P, 3); ``AP_xyz_m`` (P, 3) = barycentre − command
+    and ``AP_m`` (P,) its length; ``l_mean_m`` (P,) mean distance of the measurements from their
+    barycentre, ``S_l_m`` (P,) its standard deviation, ``RP_m`` (P,) = l̄ + 3·S_l (NaN where
+    n < 2). With orientations: ``AP_abc_rad`` (P, 3) mean deviation about x, y, z and
+    ``RP_abc_rad`` (P, 3) = 3·S about each axis (the ISO's ±3·S_a), else ``None``.
+    """
+
+    pose_ids: np.ndarray
+    n: np.ndarray
+    command_m: np.ndarray
+    barycentre_m: np.ndarray
+    AP_xyz_m: np.ndarray
+    AP_m: np.ndarray
+    l_mean_m: np.ndarray
+    S_l_m: np.ndarray
+    RP_m: np.ndarray
+    AP_abc_rad: np.ndarray | None
+    RP_abc_rad: np.ndarray | None
+
+    @property
+    def max_AP_m(self) -> float:
+        """The worst pose accuracy over the poses (what an ISO 9283 report quotes)."""
+        return float(np.max(self.AP_m))
+
+    @property
+    def max_RP_m(self) -> float:
+        """The worst pose repeatability over the poses measured at least twice (NaN if none)."""
+        ok = np.isfinite(self.RP_m)
+        return float(np.max(self.RP_m[ok])) if np.any(ok) else float("nan")
+
+
+def _sample_std(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    n = x.shape[axis]
+    if n < 2:
+        return np.full(np.delete(x.shape, axis), np.nan) if x.ndim > 1 else np.array(np.nan)
+    return np.std(x, axis=axis, ddof=1)
+
+
+def pose_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, pose_id: np.ndarray, *,
+                    R_cmd: np.ndarray | None = None, R_meas: np.ndarray | None = None) -> PoseStatistics:
+    """ISO 9283 pose accuracy AP and repeatability RP (§7.2.1-7.2.2) of measurements ``p_meas``
+    (N, 3) m of commands ``p_cmd`` (N, 3), grouped by ``pose_id`` (N,); orientations ``R_cmd``,
+    ``R_meas`` (N, 3, 3) optional. The command of a pose is the mean of its rows' commands (they
+    are equal when the rows repeat one command)."""
+    p_cmd, p_meas, delta = _check(p_cmd, p_meas, R_cmd, R_meas)
+    pose_id = np.asarray(pose_id, dtype=object).reshape(-1)
+    if len(pose_id) != len(p_meas):
+        raise ValueError(f"`pose_id` must have {len(p_meas)} entries; got {len(pose_id)}")
+    ids = list(dict.fromkeys(pose_id.tolist()))
+    rows = {k: [] for k in ids}
+    for i, k in enumerate(pose_id.tolist()):
+        rows[k].append(i)
+    P = len(ids)
+    n = np.zeros(P, int)
+    cmd, bary, l_mean, S_l = np.zeros((P, 3)), np.zeros((P, 3)), np.zeros(P), np.zeros(P)
+    ap_abc = np.zeros((P, 3)) if delta is not None else None
+    rp_abc = np.zeros((P, 3)) if delta is not None else None
+    for k, key in enumerate(ids):
+        idx = np.array(rows[key])
+        n[k] = len(idx)
+        cmd[k] = p_cmd[idx].mean(axis=0)
+        bary[k] = p_meas[idx].mean(axis=0)  # x̄ = (1/n) Σ x_j
+        l = np.linalg.norm(p_meas[idx] - bary[k], axis=1)  # l_j = |x_j − x̄|
+        l_mean[k] = l.mean()
+        S_l[k] = _sample_std(l)
+        if delta is not None:
+            d = delta[idx]
+            ap_abc[k] = d.mean(axis=0)  # ā − a_c (the command's deviation is 0)
+            rp_abc[k] = 3.0 * _sample_std(d)
+    ap_xyz = bary - cmd
+    return PoseStatistics(
+        pose_ids=np.array(ids, dtype=object), n=n, command_m=cmd, barycentre_m=bary, AP_xyz_m=ap_xyz,
+        AP_m=np.linalg.norm(ap_xyz, axis=1), l_mean_m=l_mean, S_l_m=S_l, RP_m=l_mean + 3.0 * S_l,
+        AP_abc_rad=ap_abc, RP_abc_rad=rp_abc,
+    )
+
+
+# --------------------------------------------------------------------------- one measurement per pose
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorStatistics:
+    """Statistics of the position error ``e = |p_meas − p_cmd|`` over N rows (m), and of the
+    orientation error angle ``|δ|`` (rad) when orientations were given (else NaN).
+
+    ``mean``, ``std`` (sample, N − 1), ``three_sigma`` = 3·std, ``mean_plus_3sigma`` = mean +
+    3·std (the bound ISO 9283 uses for repeatability, applied to the errors), ``rms``, ``p95``
+    (95th percentile), ``max``; ``bias_xyz_m`` (3,) the mean error vector and ``std_xyz_m`` (3,)
+    its per-axis standard deviation; ``bias_abc_rad`` (3,) the mean orientation deviation."""
+
+    n: int
+    errors_m: np.ndarray
+    mean_m: float
+    std_m: float
+    three_sigma_m: float
+    mean_plus_3sigma_m: float
+    rms_m: float
+    p95_m: float
+    max_m: float
+    bias_xyz_m: np.ndarray
+    std_xyz_m: np.ndarray
+    errors_rad: np.ndarray | None
+    mean_rad: float
+    std_rad: float
+    three_sigma_rad: float
+    mean_plus_3sigma_rad: float
+    rms_rad: float
+    max_rad: float
+    bias_abc_rad: np.ndarray | None
+
+
+def _scalar_stats(e: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
+    mean = float(e.mean())
+    std = float(_sample_std(e))
+    return (mean, std, 3.0 * std, mean + 3.0 * std, float(np.sqrt(np.mean(e**2))), float(np.percentile(e, 95)),
+            float(e.max()))
+
+
+def error_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, *, R_cmd: np.ndarray | None = None,
+                     R_meas: np.ndarray | None = None) -> ErrorStatistics:
+    """Error statistics of single measurements ``p_meas`` (N, 3) m of commands ``p_cmd`` (N, 3),
+    orientations ``R_cmd``, ``R_meas`` (N, 3, 3) optional (std and 3σ are NaN for N = 1)."""
+    p_cmd, p_meas, delta = _check(p_cmd, p_meas, R_cmd, R_meas)
+    ev = p_meas - p_cmd
+    e = np.linalg.norm(ev, axis=1)
+    mean, std, s3, bound, rms, p95, mx = _scalar_stats(e)
+    nan = float("nan")
+    if delta is not None:
+        a = np.linalg.norm(delta, axis=1)
+        am, asd, a3, ab, arms, _, amx = _scalar_stats(a)
+        bias_abc = delta.mean(axis=0)
+    else:
+        a, am, asd, a3, ab, arms, amx, bias_abc = None, nan, nan, nan, nan, nan, nan, None
+    return ErrorStatistics(
+        n=len(e), errors_m=e, mean_m=mean, std_m=std, three_sigma_m=s3, mean_plus_3sigma_m=bound, rms_m=rms,
+        p95_m=p95, max_m=mx, bias_xyz_m=ev.mean(axis=0), std_xyz_m=_sample_std(ev),
+        errors_rad=a, mean_rad=am, std_rad=asd, three_sigma_rad=a3, mean_plus_3sigma_rad=ab, rms_rad=arms,
+        max_rad=amx, bias_abc_rad=bias_abc,
+    )

@@ -1,0 +1,802 @@
+"""Observation planning: which configurations to measure, and how many (book §4.5).
+
+The book leaves the synthesis of an optimal observation strategy open (§4.5, "as yet an
+unanswered research issue") and offers only measures of a strategy's quality: the condition
+number (eq. 4.174), the observability index O1 of Borm & Menq (eq. 4.193-4.194) and, in the
+literature it cites, O3 (minimum singular value) and O4 (noise amplification). Since then the
+field plans poses as an *optimal experiment design*: choose, from many feasible candidate
+configurations, the K that maximise a scalar function of the information matrix
+``M = Σ_k J_kᵀ W J_k`` of the identifiable parameters (Daney et al. 2005; Sun & Hollerbach
+2008). This module does that:
+
+1. Candidates: given, or drawn uniformly within the joint limits and kept when the measured
+   target lies in the instrument's volume (:class:`Volume`) and can be seen
+   (:class:`LineOfSight`).
+2. The identifiable parameters: the same candidate set and the same selection as
+   :func:`calibration.identify.identify` (:func:`calibration.identify.select_identifiable`),
+   applied to the Jacobian stacked over all candidates.
+3. A greedy start (D-optimal, the determinant lemma ``det(M + JᵢᵀJᵢ) = det M · det(I + Jᵢ M⁻¹ Jᵢᵀ)``
+   scores every candidate with a 3×3 determinant), then an exchange (Fedorov's, one design
+   point at a time): remove a chosen pose (Woodbury: ``(M − JⱼᵀJⱼ)⁻¹`` from ``M⁻¹``) and put in
+   the candidate that improves the criterion most, until no swap helps.
+4. The predicted accuracy: the parameters' covariance ``Σ = (JᵀWJ)⁻¹ = σ²(JᵀJ)⁻¹`` (book eq.
+   4.54 with W = I/σ²) propagated to evaluation configurations, ``C_e = J_e Σ J_eᵀ``.
+
+Criteria (all on the information matrix with angle columns scaled by 1/reach, as
+:func:`calibration.identify.observability_indices` does, so that they do not depend on units):
+
+- ``D`` (default): ``log det M``. Invariant to any rescaling of the parameters, and it
+  minimises the volume of the parameters' confidence ellipsoid.
+- ``O1``: Borm & Menq's index ``det(M)^(1/2L) / √m``. At a fixed number of poses it is a monotone
+  function of ``det M``, so maximising it is the D-optimal design; its value is reported as O1.
+- ``O3``: the minimum singular value ``√λmin`` (E-optimal).
+- ``O4``: the noise amplification index ``λmin / √λmax``.
+- ``condition``: minimise ``√(λmax/λmin)``.
+- ``I``: minimise the mean predicted position variance over the evaluation configurations,
+  ``trace(M⁻¹ W_e)`` (I- or V-optimal design): directly the predicted RMS accuracy.
+
+The greedy start is D-optimal for every criterion (the eigenvalue criteria cannot rank
+candidates while the design is still rank deficient); the exchange then optimises the chosen
+criterion. For the criteria other than D and O1, each exchange screens the candidates by their
+D gain and by how much they add along the weakest direction of the design, and accepts a swap
+on the exact criterion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .conventions import hayati_for_parallel_axes, mdh_to_dh
+from .identify import Unidentifiable, _reach, observability_indices, select_identifiable
+from .jacobian import predict
+from .kinematics import program, walk
+from .model import KinematicModel
+from .parameters import Parameter, candidate_parameters
+from .simulate import random_configurations
+
+CRITERIA = ("D", "O1", "O3", "O4", "condition", "I")
+STATISTICS = ("rms", "p95")
+
+
+# --------------------------------------------------------------------------- where and what can be measured
+
+
+@dataclass(frozen=True, eq=False)
+class Volume:
+    """Where the instrument can measure, in the world (instrument) frame, m: a box ``lo``..``hi``
+    or a spherical shell ``inner_radius <= |p - center| <= radius`` (a laser tracker has a
+    minimum range). Build with :meth:`box` or :meth:`sphere`."""
+
+    kind: str
+    lo: np.ndarray | None = None
+    hi: np.ndarray | None = None
+    center: np.ndarray | None = None
+    radius: float = 0.0
+    inner_radius: float = 0.0
+
+    def __post_init__(self):
+        if self.kind == "box":
+            lo, hi = np.asarray(self.lo, float).reshape(3), np.asarray(self.hi, float).reshape(3)
+            if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)):
+                raise ValueError(f"a box volume needs finite corners with lo < hi on every axis; got {lo}, {hi}")
+            object.__setattr__(self, "lo", lo)
+            object.__setattr__(self, "hi", hi)
+        elif self.kind == "sphere":
+            c = np.asarray(self.center, float).reshape(3)
+            if not (np.all(np.isfinite(c)) and self.radius > 0 and 0 <= self.inner_radius < self.radius):
+                raise ValueError("a sphere volume needs a finite center and 0 <= inner_radius < radius; "
+                                 f"got {c}, {self.inner_radius}, {self.radius}")
+            object.__setattr__(self, "center", c)
+        else:
+            raise ValueError(f"`kind` must be box or sphere; got {self.kind!r}")
+
+    @classmethod
+    def box(cls, lo, hi) -> "Volume":
+        return cls("box", lo=lo, hi=hi)
+
+    @classmethod
+    def sphere(cls, center, radius: float, inner_radius: float = 0.0) -> "Volume":
+        return cls("sphere", center=center, radius=float(radius), inner_radius=float(inner_radius))
+
+    def contains(self, p_world: np.ndarray) -> np.ndarray:
+        """(N,) True where the points ``p_world`` (N, 3) m lie inside."""
+        p = np.atleast_2d(np.asarray(p_world, float))
+        if self.kind == "box":
+            return np.all((p >= self.lo) & (p <= self.hi), axis=1)
+        r = np.linalg.norm(p - self.center, axis=1)
+        return (r <= self.radius) & (r >= self.inner_radius)
+
+
+@dataclass(frozen=True, eq=False)
+class LineOfSight:
+    """When the instrument can see a target (world frame, m and rad).
+
+    - Orientation: the target's normal ``normal_tool`` (tool frame; a reflector faces along the
+      tool z axis by default) must point towards the instrument at ``instrument_m`` within the
+      acceptance half-angle ``cone_rad`` (about 30° for a 1.5" SMR). ``None``: not tested.
+    - Occlusion: the beam from the instrument to the target must stay ``clearance_m`` away from
+      the robot, modelled as its kinematic stick figure (the polyline through the origins of the
+      chain's elementary frames, from the base to the flange: for ``dh`` models the physical link
+      lengths and offsets), except for the last ``near_target_m`` of the beam, where the beam
+      reaches the target carried by the flange. ``None``: not tested.
+    """
+
+    instrument_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    normal_tool: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    cone_rad: float | None = None
+    clearance_m: float | None = None
+    near_target_m: float = 0.1
+
+    def __post_init__(self):
+        inst = np.asarray(self.instrument_m, float).reshape(3)
+        n = np.asarray(self.normal_tool, float).reshape(3)
+        if not (np.all(np.isfinite(inst)) and np.all(np.isfinite(n)) and np.linalg.norm(n) > 0):
+            raise ValueError("`instrument_m` must be finite and `normal_tool` a finite non-zero vector")
+        if self.cone_rad is not None and not 0 < self.cone_rad <= math.pi:
+            raise ValueError(f"`cone_rad` must be in (0, pi]; got {self.cone_rad}")
+        if self.clearance_m is not None and not self.clearance_m >= 0:
+            raise ValueError(f"`clearance_m` must be >= 0; got {self.clearance_m}")
+        if not self.near_target_m >= 0:
+            raise ValueError(f"`near_target_m` must be >= 0; got {self.near_target_m}")
+        object.__setattr__(self, "instrument_m", inst)
+        object.__setattr__(self, "normal_tool", n / np.linalg.norm(n))
+
+
+def stick_figure(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """World positions (N, S, 3) m of the origins of the chain's elementary frames, base to flange
+    (the tool transform excluded), at readings ``q`` (N, n): consecutive points are the links."""
+    ops = program(model)
+    keys = [op.key for op in ops if op.key is not None and op.key != "tool"]
+    w = walk(model, q, set(keys))
+    pts = [w.axes[k][1] if k in w.axes else w.frames[k][1] for k in keys]
+    return np.stack(pts, axis=1)
+
+
+def segment_distance(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray, *, eps: float = 1e-18,
+                     parallel_rtol: float = 1e-12) -> np.ndarray:
+    """Shortest distance between segments ``a0-a1`` and ``b0-b1`` (..., 3), broadcast: (...,).
+
+    The closest points of two segments (Ericson, *Real-Time Collision Detection*, §5.1.9),
+    clamped to both segments; segments shorter than √eps count as points, and (nearly) parallel
+    ones (``sin² < parallel_rtol``) start from s = 0, which is as good as any point there."""
+    d1, d2, r = a1 - a0, b1 - b0, a0 - b0
+    a = np.sum(d1 * d1, axis=-1)
+    e = np.sum(d2 * d2, axis=-1)
+    f = np.sum(d2 * r, axis=-1)
+    c = np.sum(d1 * r, axis=-1)
+    b = np.sum(d1 * d2, axis=-1)
+    a_ok, e_ok = a > eps, e > eps
+    sa, se = np.where(a_ok, a, 1.0), np.where(e_ok, e, 1.0)
+    denom = a * e - b * b
+    general = denom > parallel_rtol * a * e
+    s = np.where(general, np.clip((b * f - c * e) / np.where(general, denom, 1.0), 0, 1), 0.0)
+    t = (b * s + f) / se
+    s = np.where(t < 0, np.clip(-c / sa, 0, 1), np.where(t > 1, np.clip((b - c) / sa, 0, 1), s))
+    t = np.clip(t, 0, 1)
+    # one or both segments degenerate to a point
+    s = np.where(~a_ok, 0.0, np.where(~e_ok, np.clip(-c / sa, 0, 1), s))
+    t = np.where(~e_ok, 0.0, np.where(~a_ok, np.clip(f / se, 0, 1), t))
+    return np.linalg.norm((a0 + d1 * s[..., None]) - (b0 + d2 * t[..., None]), axis=-1)
+
+
+def visible(model: KinematicModel, q: np.ndarray, sight: LineOfSight, target: str | None = None) -> np.ndarray:
+    """(N,) True where the instrument sees ``target`` at readings ``q`` (N, n) (see :class:`LineOfSight`)."""
+    w = walk(model, q)
+    p = w.p + w.R @ model.target(target)
+    beam = sight.instrument_m - p
+    length = np.linalg.norm(beam, axis=1)
+    ok = length > 0
+    if sight.cone_rad is not None:
+        n_world = w.R @ sight.normal_tool
+        cos = np.sum(n_world * beam, axis=1) / np.where(ok, length, 1.0)
+        ok &= cos >= math.cos(sight.cone_rad)
+    if sight.clearance_m is not None:
+        u = beam / np.where(length > 0, length, 1.0)[:, None]
+        end = p + u * np.minimum(sight.near_target_m, length)[:, None]  # the beam stops short of the target
+        pts = stick_figure(model, q)
+        d = segment_distance(sight.instrument_m[None, None, :], end[:, None, :], pts[:, :-1], pts[:, 1:])
+        ok &= np.all(d >= sight.clearance_m, axis=1)
+    return ok
+
+
+def feasible(model: KinematicModel, q: np.ndarray, *, targets: tuple[str | None, ...] = (None,),
+             volume: Volume | None = None, sight: LineOfSight | None = None) -> np.ndarray:
+    """(N,) True where every target lies in ``volume`` and is ``visible``, and ``q`` is within the
+    joint limits."""
+    q = np.atleast_2d(np.asarray(q, float))
+    lim = model.joint_limits
+    ok = np.all((q >= lim[:, 0]) & (q <= lim[:, 1]), axis=1)
+    for t in targets:
+        if volume is not None:
+            w = walk(model, q)
+            ok &= volume.contains(w.p + w.R @ model.target(t))
+        if sight is not None:
+            ok &= visible(model, q, sight, t)
+    return ok
+
+
+def generate_candidates(
+    model: KinematicModel,
+    count: int,
+    rng: np.random.Generator,
+    *,
+    targets: tuple[str | None, ...] = (None,),
+    volume: Volume | None = None,
+    sight: LineOfSight | None = None,
+    limits: np.ndarray | None = None,
+    max_draws: int | None = None,
+) -> np.ndarray:
+    """Up to ``count`` candidate readings (M, n): uniform within ``limits`` (default the joint
+    limits, revolute joints within ±π; :func:`calibration.simulate.random_configurations`), kept
+    when :func:`feasible`. Draws at most ``max_draws`` (default ``200·count``) configurations;
+    returns fewer than ``count`` when the constraints accept too few of them, and raises
+    ``ValueError`` when they accept none."""
+    if count < 1:
+        raise ValueError(f"`count` must be at least 1; got {count}")
+    max_draws = 200 * count if max_draws is None else int(max_draws)
+    batch = max(1000, 2 * count)
+    kept: list[np.ndarray] = []
+    n_kept = drawn = 0
+    while n_kept < count and drawn < max_draws:
+        n = min(batch, max_draws - drawn)
+        q = random_configurations(model, n, rng, limits=limits)
+        drawn += n
+        q = q[feasible(model, q, targets=targets, volume=volume, sight=sight)]
+        kept.append(q)
+        n_kept += len(q)
+    out = np.concatenate(kept)[:count] if kept else np.zeros((0, model.n_joints))
+    if len(out) == 0:
+        raise ValueError(f"none of {drawn} random configurations puts the target(s) inside the volume and in sight "
+                         "of the instrument: check the volume, the instrument position and the acceptance cone")
+    return out
+
+
+# --------------------------------------------------------------------------- the information of one pose
+
+
+@dataclass(frozen=True, eq=False)
+class _Design:
+    """The planning problem in the working space: ``J`` (C, r, P) = ``J_SI · S / σ`` per candidate
+    (r = 3 per target), ``S`` (P,) the column scaling (1/reach for angles)."""
+
+    model: KinematicModel
+    q: np.ndarray
+    params: tuple[Parameter, ...]
+    unidentifiable: tuple[Unidentifiable, ...]
+    J: np.ndarray
+    S: np.ndarray
+    sigma_m: float
+    targets: tuple[str | None, ...]
+    reach_m: float
+
+
+def identification_form(model: KinematicModel, *, hayati: bool = True) -> KinematicModel:
+    """The model in the form :func:`calibration.identify.identify` identifies it: ``mdh`` as
+    ``dh`` (exact), parallel-axis ``dh`` links in Hayati's form."""
+    if model.convention == "mdh" and not any(j.hayati for j in model.joints):
+        model = mdh_to_dh(model)
+    if hayati and model.convention == "dh":
+        model, _ = hayati_for_parallel_axes(model)
+    return model
+
+
+def _jacobians(model: KinematicModel, q: np.ndarray, params: list[Parameter], targets) -> np.ndarray:
+    """SI position Jacobians (N, 3·T, P) of every target at readings ``q``."""
+    blocks = []
+    for t in targets:
+        names = np.array([t] * len(q), dtype=object)
+        blocks.append(predict(model, q, model.target(t), params, names).Jp)
+    return np.concatenate(blocks, axis=1)
+
+
+def _prepare(model, candidates, *, targets, sigma_m, gains, fixed, rank_rtol, hayati) -> _Design:
+    if not sigma_m > 0:
+        raise ValueError(f"`sigma_m` must be positive; got {sigma_m}")
+    targets = tuple(targets) if targets else (None,)
+    for t in targets:
+        model.target(t)  # KeyError naming an unknown target
+    work = identification_form(model, hayati=hayati)
+    q = np.atleast_2d(np.asarray(candidates, float))
+    if q.ndim != 2 or q.shape[1] != model.n_joints or len(q) == 0:
+        raise ValueError(f"`candidates` must have shape (C, {model.n_joints}) with C >= 1; got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise ValueError("`candidates` must be finite")
+    used = tuple(sorted({t for t in targets if t is not None}))
+    cands = candidate_parameters(work, targets=used, gains=gains)
+    cands = [p for p in cands if not any(p.name == f or (f.endswith("*") and p.name.startswith(f[:-1])) for f in fixed)]
+    J_si = _jacobians(work, q, cands, targets)
+    C, r, _ = J_si.shape
+    kept, dropped = select_identifiable((J_si / sigma_m).reshape(C * r, -1), cands, rtol=rank_rtol,
+                                        position_only=True, multi_target=len(used) > 1)
+    params = tuple(cands[k] for k in kept)
+    reach = _reach(work)
+    S = np.array([1.0 / reach if p.kind == "angle" else 1.0 for p in params])
+    J = J_si[:, :, kept] * S / sigma_m
+    return _Design(work, q, params, tuple(dropped), J, S, float(sigma_m), targets, reach)
+
+
+# --------------------------------------------------------------------------- criteria
+
+
+def _logdet(M: np.ndarray) -> np.ndarray:
+    """log det of a stack of symmetric matrices (..., k, k); -inf where not positive definite.
+    3x3 blocks (one target per pose) by the closed form, which is much faster than LAPACK."""
+    if M.shape[-1] == 3:
+        d = (M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+             - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+             + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(d > 0, np.log(np.where(d > 0, d, 1.0)), -np.inf)
+    sign, ld = np.linalg.slogdet(M)
+    return np.where(sign > 0, ld, -np.inf)
+
+
+def _top(values: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
+    """The (at most) ``n`` entries of ``idx`` with the largest ``values``, unordered."""
+    if len(idx) <= n:
+        return idx
+    return idx[np.argpartition(-values[idx], n)[:n]]
+
+
+def _scores(Ms: np.ndarray, criterion: str, W: np.ndarray | None) -> np.ndarray:
+    """The criterion to MAXIMISE for a stack of information matrices (..., P, P)."""
+    if criterion in ("D", "O1"):
+        return _logdet(Ms)
+    if criterion == "I":
+        tr = np.trace(np.linalg.solve(Ms, np.broadcast_to(W, Ms.shape)), axis1=-2, axis2=-1)
+        return np.where(np.isfinite(tr) & (tr > 0), -tr, -np.inf)
+    lam = np.linalg.eigvalsh(Ms)
+    lmin, lmax = np.maximum(lam[..., 0], 0.0), lam[..., -1]
+    if criterion == "O3":
+        return np.sqrt(lmin)
+    if criterion == "O4":
+        return lmin / np.sqrt(np.maximum(lmax, 1e-300))
+    return np.where(lmin > 0, -np.sqrt(lmax / np.where(lmin > 0, lmin, 1.0)), -np.inf)  # condition
+
+
+def criterion_value(M: np.ndarray, criterion: str, *, n_rows: int, W: np.ndarray | None = None) -> float:
+    """The criterion's value as reported (not negated): ``D`` log det M; ``O1`` det(M)^(1/2P)/√m
+    (book eq. 4.194, m = ``n_rows`` measured points); ``O3`` √λmin; ``O4`` λmin/√λmax;
+    ``condition`` √(λmax/λmin); ``I`` √trace(M⁻¹W) m, the predicted RMS position error."""
+    P = M.shape[0]
+    if criterion == "D":
+        return float(_logdet(M))
+    if criterion == "O1":
+        ld = float(_logdet(M))
+        return 0.0 if not math.isfinite(ld) else math.exp(ld / (2 * P)) / math.sqrt(n_rows)
+    if criterion == "I":
+        try:
+            return math.sqrt(max(float(np.trace(np.linalg.solve(M, W))), 0.0))
+        except np.linalg.LinAlgError:
+            return float("inf")
+    s = float(_scores(M, criterion, W))
+    return -s if criterion == "condition" else s
+
+
+# --------------------------------------------------------------------------- greedy and exchange
+
+
+def _inv(M: np.ndarray) -> np.ndarray:
+    d = np.sqrt(np.diag(M))
+    return np.linalg.inv(M / np.outer(d, d)) / np.outer(d, d)
+
+
+def _add_gain(J: np.ndarray, Mi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every candidate: ``G = J M⁻¹`` (C, r, P), ``A = J M⁻¹ Jᵀ`` (C, r, r) and the D gain of
+    adding it, ``log det(I + A)`` (the matrix determinant lemma)."""
+    C, r, P = J.shape
+    G = (J.reshape(C * r, P) @ Mi).reshape(C, r, P)
+    A = G @ np.swapaxes(J, 1, 2)
+    return G, A, _logdet(np.eye(r) + A)
+
+
+def _greedy(J: np.ndarray, k: int, ridge: np.ndarray, on_step=None) -> tuple[list[int], np.ndarray]:
+    """D-optimal greedy: add, k times, the candidate with the largest ``log det(I + Jᵢ M⁻¹ Jᵢᵀ)``.
+    ``M`` starts at ``diag(ridge)``, a tiny regularisation that lets the first picks be ranked.
+    ``on_step(chosen, M)`` is called after each pick; when it returns True the greedy stops early.
+    Returns the picks and ``M`` (ridge included)."""
+    M = np.diag(ridge)
+    free = np.ones(len(J), bool)
+    chosen: list[int] = []
+    for _ in range(k):
+        _, _, gain = _add_gain(J, _inv(M))
+        gain[~free] = -np.inf
+        i = int(np.argmax(gain))
+        chosen.append(i)
+        free[i] = False
+        M = M + J[i].T @ J[i]
+        if on_step is not None and on_step(chosen, M):
+            break
+    return chosen, M
+
+
+def _exchange(J: np.ndarray, chosen: list[int], ridge: np.ndarray, criterion: str, W: np.ndarray | None, *,
+              max_sweeps: int, screen: int, tol: float) -> tuple[list[int], int, int]:
+    """Exchange (Fedorov; one design point at a time): for each chosen pose j, the best candidate
+    to replace it; swap when the criterion improves by more than ``tol`` (relative). Sweeps until
+    a sweep swaps nothing. Returns the design, the number of swaps and of sweeps."""
+    chosen = list(chosen)
+    C, r, P = J.shape
+    in_design = np.zeros(C, bool)
+    in_design[chosen] = True
+    M = np.diag(ridge) + sum(J[i].T @ J[i] for i in chosen)
+    swaps = sweeps = 0
+    eye = np.eye(r)
+    Mi = _inv(M)
+    G, A, _ = _add_gain(J, Mi)  # recomputed exactly after each accepted swap only
+    for sweeps in range(1, max_sweeps + 1):
+        swapped = False
+        for pos in range(len(chosen)):
+            j = chosen[pos]
+            # Woodbury: (M - JjᵀJj)⁻¹ = Mi + Mi Jjᵀ Sj⁻¹ Jj Mi with Sj = I - Jj Mi Jjᵀ
+            Sj = eye - A[j]
+            if np.linalg.det(Sj) <= 1e-12:
+                continue  # j alone carries a direction: removing it would lose rank
+            Sji = np.linalg.inv(Sj)
+            B = G @ J[j].T  # (C, r, r): Jᵢ Mi Jjᵀ
+            A_minus = A + B @ Sji @ np.swapaxes(B, 1, 2)  # Jᵢ (M - JjᵀJj)⁻¹ Jᵢᵀ
+            d_gain = _logdet(eye + A_minus)  # log det(M - JjᵀJj + JᵢᵀJᵢ) - log det(M - JjᵀJj)
+            allowed = ~in_design
+            if not np.any(allowed):
+                return chosen, swaps, sweeps
+            M_minus = M - J[j].T @ J[j]
+            if criterion in ("D", "O1"):
+                cand = np.where(allowed, d_gain, -np.inf)
+                i = int(np.argmax(cand))
+                better = cand[i] > d_gain[j] + tol
+            else:
+                # screen by the D gain and by the information added along the weakest direction
+                _, V = np.linalg.eigh(M_minus)
+                weak = np.sum((J @ V[:, 0]) ** 2, axis=1)
+                idx = np.nonzero(allowed)[0]
+                pool = np.unique(np.concatenate([_top(d_gain, idx, screen), _top(weak, idx, screen)]))
+                Ms = M_minus + np.swapaxes(J[pool], 1, 2) @ J[pool]
+                s = _scores(Ms, criterion, W)
+                now = float(_scores(M, criterion, W))
+                k = int(np.argmax(s))
+                i = int(pool[k])
+                better = s[k] > now + tol * max(abs(now), 1e-300)
+            if better:
+                chosen[pos] = i
+                in_design[j], in_design[i] = False, True
+                M = M_minus + J[i].T @ J[i]
+                Mi = _inv(M)
+                G, A, _ = _add_gain(J, Mi)
+                swaps += 1
+                swapped = True
+        if not swapped:
+            break
+    return chosen, swaps, sweeps
+
+
+# --------------------------------------------------------------------------- predicted accuracy
+
+
+@dataclass(frozen=True, eq=False)
+class _Evaluation:
+    q: np.ndarray  # (E, n)
+    Je: np.ndarray  # (E, 3T, P) SI Jacobian times S (no 1/σ)
+    W: np.ndarray  # (P, P) mean over evaluation points of JeᵀJe per target
+
+
+def _evaluation(design: _Design, q: np.ndarray) -> _Evaluation:
+    Je = _jacobians(design.model, q, list(design.params), design.targets) * design.S
+    E, r, P = Je.shape
+    W = np.einsum("erp,erq->pq", Je, Je) / (E * (r // 3))
+    return _Evaluation(q, Je, W)
+
+
+def _uncertainty(ev: _Evaluation, Mi: np.ndarray) -> np.ndarray:
+    """Per evaluation point and target, ``√trace(J_e Σ J_eᵀ)`` (m): the RMS 3-D position error the
+    model is predicted to have there. (E·T,)"""
+    E, r, P = ev.Je.shape
+    var = np.sum((ev.Je.reshape(E * r, P) @ Mi) * ev.Je.reshape(E * r, P), axis=1)
+    return np.sqrt(np.maximum(var.reshape(E, r // 3, 3).sum(axis=2).reshape(-1), 0.0))
+
+
+def _full_rank(M: np.ndarray, rtol: float = 1e-12) -> bool:
+    d = np.sqrt(np.maximum(np.diag(M), 1e-300))
+    lam = np.linalg.eigvalsh(M / np.outer(d, d))
+    return bool(lam[0] > rtol * lam[-1])
+
+
+def _stats(u: np.ndarray) -> tuple[float, float, float]:
+    return float(np.sqrt(np.mean(u**2))), float(np.percentile(u, 95)), float(np.max(u))
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True, eq=False)
+class PlanResult:
+    """What :func:`plan` chose and what it predicts.
+
+    ``indices`` (K,) rows of the candidates chosen, ``q`` (K, n) those readings (SI);
+    ``criterion`` and its ``value`` (see :func:`criterion_value`), ``greedy_value`` before the
+    exchange; ``observability``: :func:`calibration.identify.observability_indices` of the chosen
+    design (what :func:`~calibration.identify.identify` will report for noise-free data there);
+    ``params`` the identifiable parameters, ``unidentifiable`` the others and why;
+    ``covariance`` (P, P) SI the predicted ``σ²(JᵀJ)⁻¹``; ``uncertainty_m`` (E·T,) the predicted
+    RMS position error at each evaluation configuration (and target) and its ``predicted_rms_m``
+    (root mean square over them), ``predicted_p95_m`` (95th percentile) and ``predicted_max_m``.
+    """
+
+    indices: np.ndarray
+    q: np.ndarray
+    criterion: str
+    value: float
+    greedy_value: float
+    log_det: float
+    observability: dict
+    params: tuple[Parameter, ...]
+    unidentifiable: tuple[Unidentifiable, ...]
+    covariance: np.ndarray
+    std_errors: np.ndarray
+    evaluation_q: np.ndarray
+    uncertainty_m: np.ndarray
+    predicted_rms_m: float
+    predicted_p95_m: float
+    predicted_max_m: float
+    sigma_m: float
+    targets: tuple[str | None, ...]
+    n_candidates: int
+    swaps: int
+    sweeps: int
+    success: bool
+    message: str
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+
+def _ridge(J: np.ndarray, rel: float) -> np.ndarray:
+    """Per-parameter regularisation: ``rel`` times the mean information one candidate carries."""
+    d = np.einsum("crp,crp->p", J, J) / len(J)
+    return rel * np.maximum(d, 1e-300)
+
+
+def _check_count(design: _Design, count: int) -> None:
+    C, r, P = design.J.shape
+    k_min = max(1, math.ceil(P / r))
+    if count < k_min:
+        raise ValueError(f"`count` must be at least {k_min}: {P} identifiable parameters need {P} equations and each "
+                         f"pose gives {r}")
+    if count > C:
+        raise ValueError(f"`count` ({count}) exceeds the number of candidates ({C})")
+
+
+def _evaluation_q(model, evaluation, n_evaluation, rng, volume, targets) -> np.ndarray:
+    if evaluation is not None:
+        q = np.atleast_2d(np.asarray(evaluation, float))
+        if q.ndim != 2 or q.shape[1] != model.n_joints or len(q) == 0:
+            raise ValueError(f"`evaluation` must have shape (E, {model.n_joints}); got {q.shape}")
+        return q
+    if volume is None:
+        return random_configurations(model, n_evaluation, rng)
+    return generate_candidates(model, n_evaluation, rng, targets=targets, volume=volume)
+
+
+def _finish(design, ev, chosen, criterion, greedy_value, swaps, sweeps) -> PlanResult:
+    idx = np.array(chosen, dtype=int)
+    C, r, P = design.J.shape
+    M = np.einsum("krp,krq->pq", design.J[idx], design.J[idx])
+    n_rows = len(idx) * (r // 3)
+    ok = _full_rank(M)
+    if ok:
+        Mi = _inv(M)
+        u = _uncertainty(ev, Mi)
+        cov = Mi * np.outer(design.S, design.S)
+        rms, p95, mx = _stats(u)
+        msg = f"{len(idx)} poses determine the {P} identifiable parameters"
+    else:
+        u = np.full(len(ev.q) * (r // 3), np.inf)
+        cov = np.full((P, P), np.inf)
+        rms = p95 = mx = float("inf")
+        msg = f"the {len(idx)} poses chosen do not determine all {P} identifiable parameters; choose more poses"
+    Jw = design.J[idx].reshape(-1, P) / design.S  # σ-weighted SI Jacobian, as identify builds it
+    return PlanResult(
+        indices=idx, q=design.q[idx],
+        criterion=criterion, value=criterion_value(M, criterion, n_rows=n_rows, W=ev.W),
+        greedy_value=greedy_value, log_det=float(_logdet(M)),
+        observability=observability_indices(Jw, list(design.params), n_poses=n_rows, reach_m=design.reach_m),
+        params=design.params, unidentifiable=design.unidentifiable, covariance=cov,
+        std_errors=np.sqrt(np.maximum(np.diag(cov), 0.0)) if ok else np.full(P, np.inf),
+        evaluation_q=ev.q, uncertainty_m=u, predicted_rms_m=rms, predicted_p95_m=p95, predicted_max_m=mx,
+        sigma_m=design.sigma_m, targets=design.targets, n_candidates=C, swaps=swaps, sweeps=sweeps,
+        success=ok, message=msg,
+    )
+
+
+def plan(
+    model: KinematicModel,
+    candidates: np.ndarray,
+    count: int,
+    *,
+    targets: tuple[str | None, ...] = (None,),
+    criterion: str = "D",
+    sigma_m: float = 20e-6,
+    evaluation: np.ndarray | None = None,
+    n_evaluation: int = 300,
+    volume: Volume | None = None,
+    rng: np.random.Generator | None = None,
+    gains: bool = False,
+    fixed: tuple[str, ...] = (),
+    hayati: bool = True,
+    rank_rtol: float = 1e-6,
+    exchange: bool = True,
+    max_sweeps: int = 20,
+    screen: int = 24,
+    ridge: float = 1e-8,
+    tol: float = 1e-9,
+) -> PlanResult:
+    """Choose ``count`` of the ``candidates`` (C, n) readings (SI) to measure ``targets`` at, for
+    the best identification of ``model`` (see the module docstring for the method).
+
+    ``criterion``: one of :data:`CRITERIA`; ``sigma_m``: the instrument's per-axis standard
+    uncertainty (m), which scales the predicted accuracy; ``evaluation`` (E, n): where the
+    predicted accuracy is evaluated (default ``n_evaluation`` random readings within the joint
+    limits, and within ``volume`` when given, drawn with ``rng``, default seed 0); ``gains``,
+    ``fixed``, ``hayati``, ``rank_rtol``: as for :func:`calibration.identify.identify`;
+    ``exchange``: improve the greedy start by exchanges, at most ``max_sweeps`` sweeps, each
+    screening ``screen`` candidates per pose for the criteria other than D/O1; ``ridge``: the
+    start-up regularisation relative to one candidate's information; ``tol``: the smallest
+    improvement a swap must bring (log det units for D/O1, relative for the others).
+
+    Raises ``ValueError`` for inconsistent input (shapes, ``count`` below the number of poses
+    the identifiable parameters need or above the number of candidates, unknown criterion)."""
+    if criterion not in CRITERIA:
+        raise ValueError(f"`criterion` must be one of {', '.join(CRITERIA)}; got {criterion!r}")
+    rng = np.random.default_rng(0) if rng is None else rng
+    design = _prepare(model, candidates, targets=targets, sigma_m=sigma_m, gains=gains, fixed=tuple(fixed),
+                      rank_rtol=rank_rtol, hayati=hayati)
+    _check_count(design, count)
+    ev = _evaluation(design, _evaluation_q(model, evaluation, n_evaluation, rng, volume, design.targets))
+    return _plan(design, ev, count, criterion, exchange=exchange, max_sweeps=max_sweeps, screen=screen,
+                 ridge=ridge, tol=tol)
+
+
+def _plan(design: _Design, ev: _Evaluation, count: int, criterion: str, *, exchange, max_sweeps, screen, ridge,
+          tol) -> PlanResult:
+    rdiag = _ridge(design.J, ridge)
+    chosen, M = _greedy(design.J, count, rdiag)
+    r = design.J.shape[1]
+    greedy_value = criterion_value(M - np.diag(rdiag), criterion, n_rows=count * (r // 3), W=ev.W)
+    swaps = sweeps = 0
+    if exchange:
+        chosen, swaps, sweeps = _exchange(design.J, chosen, rdiag, criterion, ev.W, max_sweeps=max_sweeps,
+                                          screen=screen, tol=tol)
+    return _finish(design, ev, chosen, criterion, greedy_value, swaps, sweeps)
+
+
+@dataclass(frozen=True, eq=False)
+class AccuracyPlan:
+    """How many poses a wanted accuracy needs (:func:`poses_for_accuracy`).
+
+    ``count``: the fewest poses whose planned design is predicted to meet ``accuracy_m`` in
+    ``statistic`` (``rms`` or ``p95`` of :class:`PlanResult`), ``None`` when even ``k_max`` poses
+    do not; ``plan``: the design at ``count`` (at ``k_max`` when unmet); ``counts`` and
+    ``predicted_m``: the predicted statistic along the greedy sequence, pose by pose (the curve
+    accuracy against number of poses, book §4.5 step 2)."""
+
+    count: int | None
+    plan: PlanResult
+    accuracy_m: float
+    statistic: str
+    counts: np.ndarray
+    predicted_m: np.ndarray
+    success: bool
+    message: str
+
+
+def poses_for_accuracy(
+    model: KinematicModel,
+    candidates: np.ndarray,
+    accuracy_m: float,
+    *,
+    statistic: str = "rms",
+    k_max: int | None = None,
+    targets: tuple[str | None, ...] = (None,),
+    criterion: str = "D",
+    sigma_m: float = 20e-6,
+    evaluation: np.ndarray | None = None,
+    n_evaluation: int = 300,
+    volume: Volume | None = None,
+    rng: np.random.Generator | None = None,
+    gains: bool = False,
+    fixed: tuple[str, ...] = (),
+    hayati: bool = True,
+    rank_rtol: float = 1e-6,
+    max_sweeps: int = 20,
+    screen: int = 24,
+    ridge: float = 1e-8,
+    tol: float = 1e-9,
+) -> AccuracyPlan:
+    """The fewest poses (from ``candidates``) whose plan is predicted to reach ``accuracy_m`` (m) in
+    ``statistic`` (``rms`` or ``p95`` of the predicted position error over the evaluation
+    configurations), and that plan.
+
+    The D-optimal greedy sequence is nested, so one greedy run up to ``k_max`` (default
+    ``min(C, 400)``) gives the predicted accuracy for every K; the first K that meets the
+    accuracy is then planned in full (greedy and exchange) and checked, K growing until the full
+    plan meets it too. Other arguments as for :func:`plan`."""
+    if statistic not in STATISTICS:
+        raise ValueError(f"`statistic` must be one of {', '.join(STATISTICS)}; got {statistic!r}")
+    if not (accuracy_m > 0 and math.isfinite(accuracy_m)):
+        raise ValueError(f"`accuracy_m` must be a positive number; got {accuracy_m}")
+    if criterion not in CRITERIA:
+        raise ValueError(f"`criterion` must be one of {', '.join(CRITERIA)}; got {criterion!r}")
+    rng = np.random.default_rng(0) if rng is None else rng
+    design = _prepare(model, candidates, targets=targets, sigma_m=sigma_m, gains=gains, fixed=tuple(fixed),
+                      rank_rtol=rank_rtol, hayati=hayati)
+    C, r, P = design.J.shape
+    k_min = max(1, math.ceil(P / r))
+    k_max = min(C, 400) if k_max is None else min(int(k_max), C)
+    if k_max < k_min:
+        raise ValueError(f"`k_max` ({k_max}) is below the {k_min} poses the {P} identifiable parameters need "
+                         f"(or there are too few candidates)")
+    ev = _evaluation(design, _evaluation_q(model, evaluation, n_evaluation, rng, volume, design.targets))
+    rdiag = _ridge(design.J, ridge)
+    pick = 0 if statistic == "rms" else 1
+    counts: list[int] = []
+    values: list[float] = []
+
+    def on_step(chosen, M) -> bool:
+        k = len(chosen)
+        if k < k_min:
+            return False
+        M0 = M - np.diag(rdiag)
+        v = _stats(_uncertainty(ev, _inv(M0)))[pick] if _full_rank(M0) else float("inf")
+        counts.append(k)
+        values.append(v)
+        return v <= accuracy_m
+
+    _greedy(design.J, k_max, rdiag, on_step)
+    opts = dict(exchange=True, max_sweeps=max_sweeps, screen=screen, ridge=ridge, tol=tol)
+    name = "RMS" if statistic == "rms" else "95th percentile"
+    if not values or values[-1] > accuracy_m:
+        result = _plan(design, ev, k_max, criterion, **opts)
+        got = result.predicted_rms_m if statistic == "rms" else result.predicted_p95_m
+        if got <= accuracy_m:
+            return AccuracyPlan(k_max, result, accuracy_m, statistic, np.array(counts), np.array(values), True,
+                                f"{k_max} poses are predicted to give a {name} error of {got:.3g} m")
+        return AccuracyPlan(None, result, accuracy_m, statistic, np.array(counts), np.array(values), False,
+                            f"even {k_max} poses are predicted to give a {name} error of {got:.3g} m, above the "
+                            f"{accuracy_m:.3g} m wanted: allow more poses or candidates, or use a better instrument")
+    k = counts[-1]
+    while True:
+        result = _plan(design, ev, k, criterion, **opts)
+        got = result.predicted_rms_m if statistic == "rms" else result.predicted_p95_m
+        if got <= accuracy_m or k >= k_max:
+            ok = got <= accuracy_m
+            msg = (f"{k} poses are predicted to give a {name} error of {got:.3g} m (wanted {accuracy_m:.3g} m)"
+                   if ok else f"even {k} poses are predicted to give a {name} error of {got:.3g} m, above the "
+                              f"{accuracy_m:.3g} m wanted")
+            return AccuracyPlan(k if ok else None, result, accuracy_m, statistic, np.array(counts), np.array(values),
+                                ok, msg)
+        k += 1
+
+
+def measurement_order(q: np.ndarray) -> np.ndarray:
+    """An order (K,) to measure the poses ``q`` (K, n) in: a nearest-neighbour tour in joint space
+    (distance: the largest joint move, which sets the travel time of a joint move), starting from
+    the pose nearest the centre of the set. Short moves save time and keep the robot warm."""
+    q = np.atleast_2d(np.asarray(q, float))
+    K = len(q)
+    if K == 0:
+        return np.zeros(0, dtype=int)
+    D = np.max(np.abs(q[:, None, :] - q[None, :, :]), axis=2)
+    start = int(np.argmin(np.max(np.abs(q - np.median(q, axis=0)), axis=1)))
+    order = [start]
+    left = np.ones(K, bool)
+    left[start] = False
+    for _ in range(K - 1):
+        d = np.where(left, D[order[-1]], np.inf)
+        nxt = int(np.argmin(d))
+        order.append(nxt)
+        left[nxt] = False
+    return np.array(order, dtype=int)

@@ -1,0 +1,101 @@
+"""ISO 9283-style accuracy figures (calibration.metrics) against small hand-computed examples."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from calibration.metrics import error_statistics, orientation_deviation, pose_statistics
+from calibration.transforms import rot
+
+MM = 1e-3
+
+
+def test_pose_accuracy_and_repeatability_by_hand():
+    """Three commanded poses, all at the origin:
+    A: (±1, 0, 0), (0, ±1, 0) mm -> barycentre 0, AP 0; l = 1, 1, 1, 1 -> RP = 1 + 3·0 = 1 mm.
+    B: (1, 0, 0), (3, 0, 0) mm -> barycentre (2, 0, 0), AP 2 mm; l = 1, 1 -> RP = 1 mm.
+    C: (0, 0, 0), (0, 0, 3), (0, 0, 0) mm -> barycentre (0, 0, 1), AP 1 mm; l = 1, 2, 1,
+       l̄ = 4/3, S_l = √(((1/3)²·2 + (2/3)²)/2) = √(1/3) -> RP = 4/3 + √3 mm."""
+    meas = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0],
+                     [1, 0, 0], [3, 0, 0],
+                     [0, 0, 0], [0, 0, 3], [0, 0, 0]], float) * MM
+    ids = ["A"] * 4 + ["B"] * 2 + ["C"] * 3
+    # rows interleaved, as a session that cycles through the poses records them
+    order = [0, 4, 6, 1, 5, 7, 2, 8, 3]
+    s = pose_statistics(np.zeros((9, 3)), meas[order], np.array(ids, dtype=object)[order])
+    assert list(s.pose_ids) == ["A", "B", "C"]
+    assert list(s.n) == [4, 2, 3]
+    np.testing.assert_allclose(s.barycentre_m / MM, [[0, 0, 0], [2, 0, 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(s.AP_m / MM, [0, 2, 1], atol=1e-12)
+    np.testing.assert_allclose(s.AP_xyz_m[1] / MM, [2, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(s.l_mean_m / MM, [1, 1, 4 / 3], atol=1e-12)
+    np.testing.assert_allclose(s.S_l_m / MM, [0, 0, math.sqrt(1 / 3)], atol=1e-12)
+    np.testing.assert_allclose(s.RP_m / MM, [1, 1, 4 / 3 + math.sqrt(3)], atol=1e-12)
+    assert s.max_AP_m == pytest.approx(2 * MM) and s.max_RP_m == pytest.approx((4 / 3 + math.sqrt(3)) * MM)
+    assert s.AP_abc_rad is None and s.RP_abc_rad is None
+
+
+def test_accuracy_is_measured_from_the_command():
+    """A command at (10, 20, 30) mm measured at (10.3, 20.4, 30) twice: AP = 0.5 mm, RP = 0."""
+    cmd = np.tile([10, 20, 30], (2, 1)) * MM
+    s = pose_statistics(cmd, np.tile([10.3, 20.4, 30], (2, 1)) * MM, [7, 7])
+    assert s.AP_m[0] == pytest.approx(0.5 * MM)
+    np.testing.assert_allclose(s.AP_xyz_m[0] / MM, [0.3, 0.4, 0.0], atol=1e-9)
+    assert s.RP_m[0] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_orientation_accuracy_and_repeatability_per_axis():
+    """Rotations about z by +1, −1, +3 mrad from a commanded orientation (itself rotated): mean
+    1 mrad -> AP_c = 1 mrad; S = √((0² + 2² + 2²)/2) = 2 mrad -> RP_c = ±6 mrad; a and b are 0."""
+    R_c = rot(0, 0.4) @ rot(1, -0.2)
+    dz = np.array([1e-3, -1e-3, 3e-3])
+    R_m = rot(2, dz) @ R_c  # a rotation about the world z axis
+    s = pose_statistics(np.zeros((3, 3)), np.zeros((3, 3)), [1, 1, 1], R_cmd=np.stack([R_c] * 3), R_meas=R_m)
+    np.testing.assert_allclose(s.AP_abc_rad[0], [0, 0, 1e-3], atol=1e-12)
+    np.testing.assert_allclose(s.RP_abc_rad[0], [0, 0, 6e-3], atol=1e-12)
+
+
+def test_single_pose_has_no_repeatability():
+    s = pose_statistics(np.zeros((1, 3)), np.array([[0, 0, 1e-3]]), ["p"])
+    assert s.AP_m[0] == pytest.approx(1e-3)
+    assert math.isnan(s.RP_m[0]) and math.isnan(s.max_RP_m)
+
+
+def test_error_statistics_by_hand():
+    """Errors (3, 0, 0), (0, 4, 0), (0, 0, 5) mm: mean 4, sample std 1, 3σ 3, mean + 3σ 7,
+    RMS √(50/3), max 5; bias (1, 4/3, 5/3)."""
+    cmd = np.array([[100, 0, 0], [0, 100, 0], [0, 0, 100]], float) * MM
+    meas = cmd + np.array([[3, 0, 0], [0, 4, 0], [0, 0, 5]]) * MM
+    e = error_statistics(cmd, meas)
+    assert e.n == 3
+    assert e.mean_m / MM == pytest.approx(4) and e.std_m / MM == pytest.approx(1)
+    assert e.three_sigma_m / MM == pytest.approx(3) and e.mean_plus_3sigma_m / MM == pytest.approx(7)
+    assert e.rms_m / MM == pytest.approx(math.sqrt(50 / 3)) and e.max_m / MM == pytest.approx(5)
+    assert e.p95_m / MM == pytest.approx(4.9)  # linear interpolation between 4 and 5
+    np.testing.assert_allclose(e.bias_xyz_m / MM, [1, 4 / 3, 5 / 3])
+    assert math.isnan(e.mean_rad) and e.errors_rad is None
+
+
+def test_error_statistics_with_orientation():
+    """Orientation errors of 1 and 3 mrad about x and y: angles 1, 3 -> mean 2, std √2."""
+    R_c = np.stack([np.eye(3), rot(2, 1.0)])
+    R_m = np.stack([rot(0, 1e-3) @ R_c[0], rot(1, -3e-3) @ R_c[1]])
+    e = error_statistics(np.zeros((2, 3)), np.zeros((2, 3)), R_cmd=R_c, R_meas=R_m)
+    np.testing.assert_allclose(e.errors_rad, [1e-3, 3e-3], atol=1e-12)
+    assert e.mean_rad == pytest.approx(2e-3) and e.std_rad == pytest.approx(math.sqrt(2) * 1e-3)
+    np.testing.assert_allclose(e.bias_abc_rad, [0.5e-3, -1.5e-3, 0], atol=1e-12)
+    np.testing.assert_allclose(orientation_deviation(R_c, R_m), [[1e-3, 0, 0], [0, -3e-3, 0]], atol=1e-12)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="shape"):
+        error_statistics(np.zeros((2, 3)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="both"):
+        error_statistics(np.zeros((2, 3)), np.zeros((2, 3)), R_cmd=np.stack([np.eye(3)] * 2))
+    with pytest.raises(ValueError, match="pose_id"):
+        pose_statistics(np.zeros((2, 3)), np.zeros((2, 3)), [1])
+    with pytest.raises(ValueError, match="finite"):
+        error_statistics(np.zeros((1, 3)), np.full((1, 3), np.nan))
