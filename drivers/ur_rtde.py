@@ -1,0 +1,514 @@
+"""Universal Robots robot over RTDE, through the ``ur_rtde`` library (SDU Robotics).
+
+Network: the robot's controller serves RTDE on TCP 30004, the dashboard on 29999 and the
+script interface on 30003; ``ur_rtde`` cannot use other ports. On PolyScope 5.6 and later the
+robot must be in Remote Control (teach pendant, top right), or ``ur_rtde`` refuses to connect
+from any address other than ``127.0.0.1``. ``ur_rtde`` uploads its own control script: this
+driver takes control of the robot while it is connected.
+
+Isolation: the ``ur_rtde`` objects live in a worker process (``drivers/ur_rtde_worker.py``).
+Its constructors block while holding the GIL, and after a lost connection its control
+interface (1.6.5) reconnects in an endless loop and can crash its process; neither may happen
+to the calling process. Every call to the worker has a timeout; a worker that reports a lost
+connection, stops answering or dies is discarded and the call raises
+``DeviceConnectionError``. The next ``read_joints``, ``state`` or ``move_joints`` connects a
+new worker (reconnecting is safe then: no command is in flight). A move in progress when the
+connection drops is not re-sent.
+
+Before starting a worker the driver probes the controller with a timeout on each port (the
+dashboard greeting, the script port, an RTDE handshake up to the first data package), so an
+absent or silent controller gives a quick ``DeviceConnectionError``, never a hang.
+
+``ur_rtde`` has wheels for CPython 3.11/3.12 on x86_64 only; elsewhere constructing
+``UrRtdeRobot`` raises ``DeviceUnavailableError``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import pickle
+import re
+import select
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers.base import Robot, RobotState
+from drivers.errors import (
+    DeviceConnectionError,
+    DeviceFaultError,
+    DeviceTimeoutError,
+    DeviceUnavailableError,
+    ProtocolError,
+    RobotStoppedError,
+)
+
+RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
+N_JOINTS = 6
+_TWO_PI = 2.0 * math.pi
+
+# What the receive interface subscribes to (a short recipe keeps both sides light).
+RECEIVE_VARIABLES = (
+    "timestamp", "actual_q", "actual_qd", "robot_mode", "safety_mode",
+    "safety_status_bits", "robot_status_bits", "runtime_state",
+)
+# safety_status_bits
+_PROTECTIVE_BITS = (1 << 2) | (1 << 4)  # protective stopped, safeguard stopped
+_EMERGENCY_BITS = (1 << 5) | (1 << 6) | (1 << 7)  # system / robot / any emergency stop
+# safety_mode values
+_PROTECTIVE_MODES = {3, 5, 12, 13}  # protective, safeguard, automatic-mode safeguard, 3PE stop
+_EMERGENCY_MODES = {6, 7}
+_FAULT_MODES = {8, 9}  # violation, fault
+
+_WORKER = Path(__file__).with_name("ur_rtde_worker.py")
+_FRAME = struct.Struct(">I")
+
+
+@dataclass(frozen=True, slots=True)
+class UrRtdeConfig:
+    """How to reach and drive one UR controller over RTDE.
+
+    ``frequency_hz`` is the RTDE output rate of the receive interface (-1: the controller's
+    default, 500 Hz on e-Series, 125 Hz on CB3). Speed and acceleration limits are those of
+    ``ur_rtde``'s ``moveJ``; ``joint_limits_rad`` (6 pairs) are checked before every move.
+    A move has arrived when the controller reports it finished and every joint is within
+    ``arrival_tolerance_rad`` of the target.
+    """
+
+    host: str
+    frequency_hz: float = -1.0
+    connect_timeout_s: float = 15.0
+    probe_timeout_s: float = 2.0
+    command_timeout_s: float = 5.0
+    poll_interval_s: float = 0.002
+    max_speed_rad_s: float = 3.14
+    max_accel_rad_s2: float = 40.0
+    joint_limits_rad: tuple[tuple[float, float], ...] = ((-_TWO_PI, _TWO_PI),) * N_JOINTS
+    arrival_tolerance_rad: float = 1e-4
+    stop_decel_rad_s2: float = 2.0
+
+
+class UrRtdeRobot(Robot):
+    """A UR robot driven with ``ur_rtde``'s ``moveJ``/``stopJ``; joint readings from RTDE.
+
+    Thread-safe: ``stop()`` may be called from another thread while ``move_joints`` waits.
+    """
+
+    n_joints = N_JOINTS
+
+    def __init__(self, config: UrRtdeConfig):
+        if importlib.util.find_spec("rtde_control") is None:
+            raise DeviceUnavailableError(
+                "the ur_rtde package is not installed (wheels exist only for CPython 3.11/3.12 "
+                "on x86_64: pip install ur-rtde==1.6.5)",
+                device=f"UR {config.host}",
+            )
+        self.config = config
+        self.name = f"UR {config.host} (RTDE)"
+        self._lock = threading.RLock()
+        self._worker: _Worker | None = None
+        self._closed = False
+        self._connect()
+
+    # ----------------------------------------------------------------- Robot
+
+    def read_joints(self) -> np.ndarray:
+        """Joint readings (rad) from an RTDE data package that arrived during this call."""
+        return self._fresh_snapshot()["q"]
+
+    def state(self) -> RobotState:
+        snap = self._fresh_snapshot()
+        return RobotState(
+            q=snap["q"],
+            moving=bool(
+                (snap["program_running"] and snap["async_running"])
+                or np.max(np.abs(snap["qd"])) > 1e-4
+            ),
+            protective_stop=_protective(snap),
+            emergency_stop=_emergency(snap),
+            program_running=bool(snap["program_running"]),
+            timestamp_s=float(snap["timestamp_s"]),
+        )
+
+    def move_joints(
+        self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0
+    ) -> None:
+        """``moveJ`` to ``q`` (6,) rad and wait until it is reached (see ``Robot``)."""
+        q_target = self._check_move(q, speed_rad_s, accel_rad_s2)
+        with self._lock:
+            for _ in range(2):  # the script may end just before the move: then once more
+                snap = self._fresh_snapshot()
+                self._raise_if_stopped(snap)
+                if not snap["program_running"]:
+                    # The control script ended (Stop on the pendant, or a safety stop that has
+                    # since been released): a fresh connection uploads it again.
+                    self._reconnect()
+                accepted, status_before = self._call(
+                    "move", [float(v) for v in q_target], float(speed_rad_s), float(accel_rad_s2)
+                )
+                if accepted:
+                    break
+            else:
+                raise DeviceFaultError(
+                    "the controller did not accept moveJ (its control script is not ready)",
+                    device=self.name,
+                )
+        self._wait_for_move(q_target, status_before, timeout_s)
+
+    def stop(self) -> None:
+        """``stopJ``: decelerate every joint to zero (at ``stop_decel_rad_s2``)."""
+        with self._lock:
+            self._call("stop", float(self.config.stop_decel_rad_s2))
+
+    def reconnect(self) -> None:
+        """Drop the connection and connect again (uploads the control script again)."""
+        with self._lock:
+            self._reconnect()
+
+    def close(self) -> None:
+        """Stop the control script (``stopScript``) and disconnect. Idempotent."""
+        with self._lock:
+            self._closed = True
+            worker, self._worker = self._worker, None
+            if worker is not None:
+                worker.close(timeout_s=self.config.command_timeout_s)
+
+    # ----------------------------------------------------------------- internals
+
+    def _connect(self) -> None:
+        probe_controller(self.config.host, self.config.probe_timeout_s)
+        worker = _Worker(self.name)
+        try:
+            worker.call(
+                "connect",
+                self.config.host,
+                float(self.config.frequency_hz),
+                list(RECEIVE_VARIABLES),
+                timeout_s=self.config.connect_timeout_s,
+            )
+        except BaseException:
+            worker.kill()
+            raise
+        self._worker = worker
+
+    def _reconnect(self) -> None:
+        if self._worker is not None:
+            self._worker.kill()
+            self._worker = None
+        self._connect()
+
+    def _call(self, op: str, *args, timeout_s: float | None = None):
+        """One operation in the worker; (re)connects first if there is no worker."""
+        with self._lock:
+            if self._closed:
+                raise DeviceConnectionError("the robot connection is closed", device=self.name)
+            if self._worker is None:
+                self._connect()
+            try:
+                timeout_s = timeout_s or self.config.command_timeout_s
+                return self._worker.call(op, *args, timeout_s=timeout_s)
+            except (DeviceConnectionError, DeviceTimeoutError):
+                self._worker.kill()
+                self._worker = None
+                raise
+
+    def _fresh_snapshot(self) -> dict:
+        period_s = 1.0 / self.config.frequency_hz if self.config.frequency_hz > 0 else 0.008
+        snap = self._call("fresh_snapshot", max(20 * period_s, 0.2))
+        snap["q"] = np.asarray(snap["q"], dtype=float)
+        snap["qd"] = np.asarray(snap["qd"], dtype=float)
+        return snap
+
+    def _check_move(self, q, speed_rad_s: float, accel_rad_s2: float) -> np.ndarray:
+        q = np.asarray(q, dtype=float).reshape(-1)
+        if q.shape != (N_JOINTS,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"`q` must be 6 finite joint angles (rad); got {q!r}")
+        limits = np.asarray(self.config.joint_limits_rad, dtype=float)
+        outside = np.flatnonzero((q < limits[:, 0]) | (q > limits[:, 1]))
+        if outside.size:
+            j = int(outside[0])
+            raise ValueError(
+                f"joint {j + 1} target {q[j]:.6g} rad is outside its limits "
+                f"[{limits[j, 0]:.6g}, {limits[j, 1]:.6g}] rad"
+            )
+        if not 0.0 < speed_rad_s <= self.config.max_speed_rad_s:
+            raise ValueError(
+                f"speed_rad_s must be in (0, {self.config.max_speed_rad_s:g}]; got {speed_rad_s}"
+            )
+        if not 0.0 < accel_rad_s2 <= self.config.max_accel_rad_s2:
+            raise ValueError(
+                f"accel_rad_s2 must be in (0, {self.config.max_accel_rad_s2:g}]; got {accel_rad_s2}"
+            )
+        return q
+
+    def _wait_for_move(self, q_target: np.ndarray, status_before: int, timeout_s: float) -> None:
+        """Poll until the asynchronous move has finished, a safety stop or the timeout."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            snap = self._call("snapshot")
+            self._raise_if_stopped(snap)
+            if not snap["program_running"]:
+                # The receive stream may lag the control stream: look at fresh safety data.
+                self._raise_if_stopped(self._fresh_snapshot())
+                raise RobotStoppedError(
+                    "the control script stopped during the move", device=self.name
+                )
+            if snap["async_status"] != status_before and not snap["async_running"]:
+                break  # a new asynchronous operation has started and finished
+            if time.monotonic() > deadline:
+                self.stop()
+                raise DeviceTimeoutError(
+                    f"the move did not finish within {timeout_s:g} s; the robot was stopped",
+                    device=self.name,
+                )
+            time.sleep(self.config.poll_interval_s)
+        snap = self._fresh_snapshot()
+        self._raise_if_stopped(snap)
+        error = float(np.max(np.abs(snap["q"] - q_target)))
+        if error > self.config.arrival_tolerance_rad:
+            raise RobotStoppedError(
+                f"the move ended {error:.3g} rad from its target (stopped before arriving)",
+                device=self.name,
+            )
+
+    def _raise_if_stopped(self, snap: dict) -> None:
+        if _emergency(snap):
+            raise RobotStoppedError("the robot is in an emergency stop", device=self.name)
+        if _protective(snap):
+            raise RobotStoppedError(
+                "the robot is in a protective stop; inspect the cause, then unlock it on the "
+                "teach pendant (or dashboard 'unlock protective stop')",
+                device=self.name,
+                code=int(snap["safety_mode"]),
+            )
+        if int(snap["safety_mode"]) in _FAULT_MODES:
+            raise RobotStoppedError(
+                "the robot's safety system reports a violation or fault",
+                device=self.name,
+                code=int(snap["safety_mode"]),
+            )
+
+
+def _protective(snap: dict) -> bool:
+    return bool(snap["safety_status_bits"] & _PROTECTIVE_BITS) or (
+        int(snap["safety_mode"]) in _PROTECTIVE_MODES
+    )
+
+
+def _emergency(snap: dict) -> bool:
+    return bool(snap["safety_status_bits"] & _EMERGENCY_BITS) or (
+        int(snap["safety_mode"]) in _EMERGENCY_MODES
+    )
+
+
+# --------------------------------------------------------------------------- the worker
+
+
+class _Worker:
+    """The worker process and its framed pickle protocol, with a timeout on every call."""
+
+    def __init__(self, device: str):
+        self.device = device
+        self.process = subprocess.Popen(
+            [sys.executable, str(_WORKER)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            bufsize=0,
+        )
+
+    def call(self, op: str, *args, timeout_s: float):
+        data = pickle.dumps((op, args))
+        try:
+            self.process.stdin.write(_FRAME.pack(len(data)) + data)
+            self.process.stdin.flush()
+        except OSError as exc:
+            raise DeviceConnectionError(
+                f"the ur_rtde worker has gone ({exc})", device=self.device
+            ) from exc
+        deadline = time.monotonic() + timeout_s
+        (size,) = _FRAME.unpack(self._read(_FRAME.size, deadline, op, timeout_s))
+        reply = pickle.loads(self._read(size, deadline, op, timeout_s))
+        lost = reply[-1]
+        if lost is not None:
+            raise DeviceConnectionError(
+                f"connection to the controller lost: {lost}", device=self.device
+            )
+        if reply[0] == "ok":
+            return reply[1]
+        _, kind, message, _ = reply
+        if kind == "value":
+            raise ValueError(f"{self.device}: {message}")
+        if kind == "timeout":
+            raise DeviceTimeoutError(message, device=self.device)
+        if op == "connect" or kind == "connection":
+            raise DeviceConnectionError(f"{op}: {message}", device=self.device)
+        raise DeviceFaultError(f"{op}: {message}", device=self.device)
+
+    def _read(self, n: int, deadline: float, op: str, timeout_s: float) -> bytes:
+        fd = self.process.stdout.fileno()
+        data = b""
+        while len(data) < n:
+            remaining = deadline - time.monotonic()
+            ready, _, _ = select.select([fd], [], [], max(remaining, 0.0))
+            if not ready:
+                raise DeviceTimeoutError(
+                    f"ur_rtde did not complete {op!r} within {timeout_s:g} s", device=self.device
+                )
+            chunk = os.read(fd, n - len(data))
+            if not chunk:
+                code = self.process.poll()
+                raise DeviceConnectionError(
+                    f"the ur_rtde worker ended during {op!r} (exit code {code})", device=self.device
+                )
+            data += chunk
+        return data
+
+    def close(self, timeout_s: float) -> None:
+        try:
+            self.call("close", timeout_s=timeout_s)
+        except (DeviceConnectionError, DeviceTimeoutError, DeviceFaultError):
+            pass  # the controller is gone or broken: nothing left to release
+        self.kill()
+
+    def kill(self) -> None:
+        """End the worker at once (its connections close with it)."""
+        if self.process.poll() is None:
+            self.process.kill()
+        self.process.wait()
+        for stream in (self.process.stdin, self.process.stdout):
+            try:
+                stream.close()
+            except OSError:
+                pass
+
+
+# --------------------------------------------------------------------------- probing
+
+
+def probe_controller(host: str, timeout_s: float) -> str:
+    """Check, with ``timeout_s`` per step, that a UR controller answers on all three ports.
+
+    Returns the PolyScope version string. Raises ``DeviceConnectionError`` (nothing there),
+    ``DeviceTimeoutError`` (something there that does not answer), ``ProtocolError`` (not a UR
+    controller) or ``DeviceFaultError`` (a PolyScope 5 robot in local control).
+    """
+    device = f"UR {host}"
+    version = _probe_dashboard(host, timeout_s, device)
+    with _connect(host, SCRIPT_PORT, timeout_s, device, "script"):
+        pass
+    _probe_rtde(host, timeout_s, device)
+    return version
+
+
+def _connect(host: str, port: int, timeout_s: float, device: str, what: str) -> socket.socket:
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout_s)
+    except TimeoutError as exc:
+        raise DeviceConnectionError(
+            f"no answer from the {what} port {port} within {timeout_s:g} s", device=device
+        ) from exc
+    except OSError as exc:
+        raise DeviceConnectionError(
+            f"cannot connect to the {what} port {port}: {exc.strerror or exc}", device=device
+        ) from exc
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return sock
+
+
+def _probe_dashboard(host: str, timeout_s: float, device: str) -> str:
+    with _connect(host, DASHBOARD_PORT, timeout_s, device, "dashboard") as sock:
+        reader = sock.makefile("rb")
+
+        def ask(command: str | None) -> str:
+            try:
+                if command is not None:
+                    sock.sendall(command.encode() + b"\n")
+                line = reader.readline()
+            except TimeoutError as exc:
+                raise DeviceTimeoutError(
+                    f"the dashboard did not answer {command or 'the connection'!r} within "
+                    f"{timeout_s:g} s",
+                    device=device,
+                ) from exc
+            except OSError as exc:
+                raise DeviceConnectionError(f"dashboard: {exc}", device=device) from exc
+            return line.decode("ascii", "replace").strip()
+
+        greeting = ask(None)
+        if "Universal Robots Dashboard Server" not in greeting:
+            raise ProtocolError(
+                f"port {DASHBOARD_PORT} is not a UR dashboard server (greeting {greeting!r})",
+                device=device,
+            )
+        version = ask("PolyscopeVersion")
+        match = re.search(r"(\d+)\.(\d+)\.\d+", version)
+        if match and int(match.group(1)) >= 5 and int(match.group(2)) > 5:
+            if ask("is in remote control").lower() == "false":
+                raise DeviceFaultError(
+                    "the robot is in Local Control: switch it to Remote Control on the teach "
+                    "pendant (PolyScope 5.6 and later)",
+                    device=device,
+                )
+        return version
+
+
+def _probe_rtde(host: str, timeout_s: float, device: str) -> None:
+    """RTDE handshake up to the first data package: version 2, one-variable recipe, start."""
+    header = struct.Struct(">HB")
+    with _connect(host, RTDE_PORT, timeout_s, device, "RTDE") as sock:
+
+        def send(kind: str, payload: bytes = b"") -> None:
+            sock.sendall(header.pack(header.size + len(payload), ord(kind)) + payload)
+
+        def receive(kind: str) -> bytes:
+            while True:
+                size, got = header.unpack(_recv_exact(sock, header.size, device, timeout_s))
+                if size < header.size:
+                    raise ProtocolError(f"RTDE package of size {size}", device=device)
+                payload = _recv_exact(sock, size - header.size, device, timeout_s)
+                if got == ord(kind):
+                    return payload
+                if got not in (ord("M"), ord("U")):  # text messages and stray data may come
+                    raise ProtocolError(
+                        f"RTDE: expected a {kind!r} package, got type {got}", device=device
+                    )
+
+        send("V", struct.pack(">H", 2))
+        if receive("V")[:1] != b"\x01":
+            raise ProtocolError("the controller refused RTDE protocol version 2", device=device)
+        send("O", struct.pack(">d", 125.0) + b"timestamp")
+        if receive("O")[:1] in (b"", b"\x00"):
+            raise ProtocolError("the controller refused an RTDE output recipe", device=device)
+        send("S")
+        if receive("S")[:1] != b"\x01":
+            raise ProtocolError("the controller refused to start RTDE streaming", device=device)
+        receive("U")
+        send("P")
+
+
+def _recv_exact(sock: socket.socket, n: int, device: str, timeout_s: float) -> bytes:
+    data = b""
+    while len(data) < n:
+        try:
+            chunk = sock.recv(n - len(data))
+        except TimeoutError as exc:
+            raise DeviceTimeoutError(
+                f"RTDE handshake: no answer within {timeout_s:g} s", device=device
+            ) from exc
+        except OSError as exc:
+            raise DeviceConnectionError(f"RTDE handshake: {exc}", device=device) from exc
+        if not chunk:
+            raise DeviceConnectionError(
+                "RTDE handshake: the controller closed the connection", device=device
+            )
+        data += chunk
+    return data

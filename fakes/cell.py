@@ -1,0 +1,204 @@
+"""``recal fake-cell``: one process that simulates a whole robot cell (contracts §7).
+
+It loads the truth model, builds one ``SimCell`` and starts every device fake that exists
+around it, each on its real protocol and its usual port of ``--host``:
+
+==========  ===================================  ============================
+key         fake                                 port(s)
+==========  ===================================  ============================
+``rtde``    ``fakes.ur_controller``              30004, 29999, 30003
+``modbus``  ``fakes.modbus_server``              502 (an ephemeral port if 502 cannot be bound)
+``tracker`` ``fakes.tracker``                    10001
+``cmm``     ``fakes.cmm``                        1294
+``can``     ``fakes.canopen_nodes``              29536
+==========  ===================================  ============================
+
+When every endpoint accepts connections it prints exactly one line of JSON on stdout (the
+endpoint line, merged from each fake's ``endpoint()``), then serves until SIGINT or SIGTERM
+and shuts everything down. A fake whose module is missing is left out of the line.
+
+Extension flags (beyond the contract): ``--fault NAME=VALUE`` sets a field of
+``fakes.world.Faults`` (lists as comma-separated counts: ``--fault protective_stop_at_move=3``,
+``--fault beam_break_rate=0.1``), ``--noise NAME=VALUE`` a field of ``fakes.world.Noise``
+(SI units), ``--no-ur`` / ``--no-modbus`` / ``--no-tracker`` / ``--no-cmm`` / ``--no-can``
+leave a device out, ``--modbus-port`` moves the Modbus server.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from calibration.model import KinematicModel, model_from_dict
+from fakes.world import Faults, Noise, SimCell
+
+PROG = "recal fake-cell"
+
+# (key of the --no-KEY flag, module, class) in start order.
+FAKES = (
+    ("ur", "fakes.ur_controller", "UrControllerFake"),
+    ("modbus", "fakes.modbus_server", "ModbusRobotFake"),
+    ("tracker", "fakes.tracker", "TrackerFake"),
+    ("cmm", "fakes.cmm", "IppCmmFake"),
+    ("can", "fakes.canopen_nodes", "CanGatewayFake"),
+)
+
+
+class CellError(Exception):
+    """Bad input or a fake that cannot start; the message is the one stderr line."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description="Run a simulated robot cell.")
+    parser.add_argument("--truth", required=True, help="truth model (recal.model/1 JSON)")
+    parser.add_argument(
+        "--host", default="127.0.0.2", help="address to serve on (default 127.0.0.2)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the noise and faults")
+    parser.add_argument(
+        "--time-scale", type=float, default=0.0,
+        help="wall time per second of real robot motion (0: moves are instant)",
+    )
+    parser.add_argument(
+        "--fault", action="append", default=[], metavar="NAME=VALUE",
+        help="inject a fault (a field of fakes.world.Faults); repeatable",
+    )
+    parser.add_argument(
+        "--noise", action="append", default=[], metavar="NAME=VALUE",
+        help="instrument noise (a field of fakes.world.Noise, SI units); repeatable",
+    )
+    parser.add_argument(
+        "--modbus-port", type=int, default=502,
+        help="Modbus TCP port (default 502; a free port if that cannot be bound)",
+    )
+    for key, _, _ in FAKES:
+        parser.add_argument(f"--no-{key}", action="store_true", help=f"do not simulate {key}")
+    return parser
+
+
+def load_truth(path: str) -> KinematicModel:
+    """Read a ``recal.model/1`` file; units are the model module's business."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CellError(f"{path}: cannot read the truth model: {exc.strerror}") from exc
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise CellError(f"{path}: line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+    try:
+        return model_from_dict(data)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CellError(f"{path}: {exc}") from exc
+
+
+def parse_fields(items: list[str], cls, flag: str):
+    """``NAME=VALUE`` strings -> an instance of the dataclass ``cls`` (Faults or Noise).
+
+    A field's default decides the type: lists take comma-separated integers, numbers floats.
+    """
+    defaults = cls()
+    fields = {f.name for f in dataclasses.fields(cls)}
+    values = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or name not in fields:
+            known = ", ".join(sorted(fields))
+            raise CellError(f"{flag} {item!r}: expected NAME=VALUE with NAME one of: {known}")
+        try:
+            if isinstance(getattr(defaults, name), list):
+                values[name] = [int(v) for v in text.split(",") if v.strip()]
+            else:
+                values[name] = float(text)
+        except ValueError as exc:
+            raise CellError(f"{flag} {item!r}: {exc}") from exc
+    return cls(**values)
+
+
+def start_fakes(cell: SimCell, args: argparse.Namespace) -> list:
+    """Construct and start every available fake; stop them all again if one fails."""
+    started = []
+    try:
+        for key, module_name, class_name in FAKES:
+            if getattr(args, f"no_{key}"):
+                continue
+            try:
+                module = importlib.import_module(module_name)
+            except ModuleNotFoundError as exc:
+                if exc.name != module_name:
+                    raise
+                print(f"{PROG}: no {key} fake ({module_name} is missing)", file=sys.stderr)
+                continue
+            cls = getattr(module, class_name)
+            kwargs = {"port": args.modbus_port} if key == "modbus" else {}
+            try:
+                fake = cls(cell, host=args.host, **kwargs)
+            except ValueError as exc:  # this device cannot simulate this robot
+                print(f"{PROG}: no {key} fake: {exc}", file=sys.stderr)
+                continue
+            try:
+                fake.start()
+            except OSError as exc:
+                raise CellError(f"cannot start the {key} fake on {args.host}: {exc}") from exc
+            started.append(fake)
+    except BaseException:
+        stop_fakes(started)
+        raise
+    return started
+
+
+def stop_fakes(fakes: list) -> None:
+    for fake in reversed(fakes):
+        try:
+            fake.stop()
+        except Exception as exc:  # keep stopping the others
+            print(f"{PROG}: stopping {type(fake).__name__}: {exc}", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the cell until SIGINT/SIGTERM. Returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    endpoint_out = sys.stdout
+    sys.stdout = sys.stderr  # nothing but the endpoint line may reach stdout
+    done = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: done.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            if args.time_scale < 0:
+                raise CellError(f"--time-scale {args.time_scale}: must be >= 0")
+            truth = load_truth(args.truth)
+            cell = SimCell(
+                truth,
+                seed=args.seed,
+                time_scale=args.time_scale,
+                noise=parse_fields(args.noise, Noise, "--noise"),
+                faults=parse_fields(args.fault, Faults, "--fault"),
+            )
+            fakes = start_fakes(cell, args)
+        except CellError as exc:
+            print(f"{PROG}: {exc}", file=sys.stderr)
+            return 1
+        line = {"ready": True}
+        for fake in fakes:
+            line.update(fake.endpoint())
+        endpoint_out.write(json.dumps(line) + "\n")
+        endpoint_out.flush()
+        while not done.wait(0.5):
+            pass
+        stop_fakes(fakes)
+        return 0
+    finally:
+        sys.stdout = endpoint_out
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

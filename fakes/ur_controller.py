@@ -1,0 +1,692 @@
+"""A Universal Robots e-Series controller on the wire, driven by a ``SimCell``.
+
+It listens on the controller's fixed ports of one host address:
+
+- RTDE (Real-Time Data Exchange, protocol version 2) on 30004,
+- the dashboard server (text lines) on 29999,
+- the script server (URScript programs in) on 30003,
+
+enough that the unchanged ``ur_rtde`` 1.6.5 ``RTDEReceiveInterface`` and
+``RTDEControlInterface`` (``moveJ``, ``stopJ``, ``stopScript``, ``disconnect``) work against it.
+The ports are fixed because ``ur_rtde`` has no port argument; run several controllers on
+different loopback addresses (``127.0.0.2``, ``127.0.0.3``, ...).
+
+What it simulates:
+
+- ``actual_q`` / ``target_q`` are ``cell.joints()`` (rad); ``actual_TCP_pose`` is the true tool
+  pose ``cell.T_world_tool()`` as ``[x, y, z, rx, ry, rz]`` (m, rotation vector in rad);
+- the control script that ``ur_rtde`` uploads: when a program arrives on the script port the
+  controller starts "playing" it and emulates its register handshake (``input_int_register_0``
+  is the command, ``output_int_register_0`` is 1 = ready, 2 = done; ``output_int_register_2`` is
+  the script's encoded async-operation status: bit 15 running, bits 16-22 a write counter,
+  bits 24-30 an operation id). ``MOVEJ`` starts ``cell.start_move``; a blocking move reports
+  done when the simulated motion is over; ``STOPJ`` stops the robot; ``STOP_SCRIPT`` ends the
+  program;
+- safety: ``safety_status_bits`` / ``safety_mode`` reflect ``cell.protective_stop`` and
+  ``cell.emergency_stop``; a safety stop halts the program, as on the real controller. The
+  dashboard command ``unlock protective stop`` clears it.
+
+Faults (``cell.faults``): ``drop_connection_at`` (counter ``"ur.command"``, the n-th command the
+control script receives) loses that command and closes every open connection of the
+controller (new connections are accepted again at once); ``delay_s`` delays every dashboard
+reply and the completion of every command; ``protective_stop_at_move`` is applied by the cell
+itself. RTDE data are not garbled (``garble_*``): TCP delivers them intact or not at all.
+
+Not simulated: the primary/secondary interfaces (30001/30002), the real-time state stream out
+of 30003, script commands other than moveJ/stopJ/stopScript (the others report "done" and do
+nothing), deceleration (``stopJ`` stops at once).
+
+Run alone (tests, debugging)::
+
+    python -m fakes.ur_controller --truth TRUE.json --host 127.0.0.2
+
+prints one JSON line ``{"ready": true, "rtde": "127.0.0.2"}`` and serves until SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import struct
+import sys
+import threading
+import time
+
+import numpy as np
+
+from calibration.transforms import matrix_to_rotvec
+from fakes.world import SimCell
+
+RTDE_PORT = 30004
+DASHBOARD_PORT = 29999
+SCRIPT_PORT = 30003
+
+# RTDE package types (UR "Real-Time Data Exchange (RTDE) guide", protocol version 2).
+_HEADER = struct.Struct(">HB")  # total package size incl. header, package type
+RTDE_REQUEST_PROTOCOL_VERSION = ord("V")
+RTDE_GET_URCONTROL_VERSION = ord("v")
+RTDE_TEXT_MESSAGE = ord("M")
+RTDE_DATA_PACKAGE = ord("U")
+RTDE_CONTROL_PACKAGE_SETUP_OUTPUTS = ord("O")
+RTDE_CONTROL_PACKAGE_SETUP_INPUTS = ord("I")
+RTDE_CONTROL_PACKAGE_START = ord("S")
+RTDE_CONTROL_PACKAGE_PAUSE = ord("P")
+
+# struct codes of the RTDE data types
+_TYPE_FORMAT = {
+    "BOOL": "?", "UINT8": "B", "UINT32": "I", "UINT64": "Q", "INT32": "i", "DOUBLE": "d",
+    "VECTOR3D": "3d", "VECTOR6D": "6d", "VECTOR6INT32": "6i", "VECTOR6UINT32": "6I",
+}
+
+
+def _variable_types() -> dict[str, str]:
+    """UR's name -> type table. ``ur_rtde`` decodes data packages with its own copy of this
+    table, whatever the server answered, so every type here must be exactly UR's."""
+    v6 = "VECTOR6D"
+    types = {
+        "timestamp": "DOUBLE", "target_q": v6, "target_qd": v6, "target_qdd": v6,
+        "target_current": v6, "target_moment": v6, "actual_q": v6, "actual_qd": v6,
+        "actual_qdd": v6, "actual_current": v6, "actual_moment": v6, "joint_control_output": v6,
+        "actual_TCP_pose": v6, "actual_TCP_speed": v6, "actual_TCP_force": v6,
+        "target_TCP_pose": v6, "target_TCP_speed": v6, "actual_digital_input_bits": "UINT64",
+        "joint_temperatures": v6, "actual_execution_time": "DOUBLE", "robot_mode": "INT32",
+        "joint_mode": "VECTOR6INT32", "safety_mode": "INT32", "safety_status": "INT32",
+        "actual_tool_accelerometer": "VECTOR3D", "speed_scaling": "DOUBLE",
+        "target_speed_fraction": "DOUBLE", "actual_momentum": "DOUBLE",
+        "actual_main_voltage": "DOUBLE", "actual_robot_voltage": "DOUBLE",
+        "actual_robot_current": "DOUBLE", "actual_joint_voltage": v6,
+        "actual_digital_output_bits": "UINT64", "runtime_state": "UINT32",
+        "elbow_position": "VECTOR3D", "elbow_velocity": "VECTOR3D",
+        "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
+        "analog_io_types": "UINT32", "standard_analog_input0": "DOUBLE",
+        "standard_analog_input1": "DOUBLE", "standard_analog_output0": "DOUBLE",
+        "standard_analog_output1": "DOUBLE", "io_current": "DOUBLE",
+        "euromap67_input_bits": "UINT32", "euromap67_output_bits": "UINT32",
+        "euromap67_24V_voltage": "DOUBLE", "euromap67_24V_current": "DOUBLE",
+        "tool_mode": "UINT32", "tool_analog_input_types": "UINT32",
+        "tool_analog_input0": "DOUBLE", "tool_analog_input1": "DOUBLE",
+        "tool_output_voltage": "INT32", "tool_output_current": "DOUBLE",
+        "tool_temperature": "DOUBLE", "tcp_force_scalar": "DOUBLE",
+        "output_bit_registers0_to_31": "UINT32", "output_bit_registers32_to_63": "UINT32",
+        "input_bit_registers0_to_31": "UINT32", "input_bit_registers32_to_63": "UINT32",
+        "ft_raw_wrench": v6, "payload": "DOUBLE", "payload_cog": "VECTOR3D",
+        "payload_inertia": v6, "script_control_line": "UINT32",
+        "external_force_torque": v6,
+        # inputs written by clients
+        "speed_slider_mask": "UINT32", "speed_slider_fraction": "DOUBLE",
+        "standard_digital_output_mask": "UINT8", "standard_digital_output": "UINT8",
+        "configurable_digital_output_mask": "UINT8", "configurable_digital_output": "UINT8",
+        "tool_digital_output_mask": "UINT8", "tool_digital_output": "UINT8",
+        "standard_analog_output_mask": "UINT8", "standard_analog_output_type": "UINT8",
+        "standard_analog_output_0": "DOUBLE", "standard_analog_output_1": "DOUBLE",
+    }
+    for i in range(48):
+        for side in ("input", "output"):
+            types[f"{side}_int_register_{i}"] = "INT32"
+            types[f"{side}_double_register_{i}"] = "DOUBLE"
+    for i in range(64, 128):
+        for side in ("input", "output"):
+            types[f"{side}_bit_register_{i}"] = "BOOL"
+    return types
+
+
+RTDE_TYPES = _variable_types()
+
+# Values of the controller's enumerations that the fake reports.
+ROBOT_MODE_RUNNING = 7
+JOINT_MODE_RUNNING = 253
+SAFETY_MODE_NORMAL, SAFETY_MODE_PROTECTIVE_STOP, SAFETY_MODE_ROBOT_EMERGENCY_STOP = 1, 3, 7
+RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+# safety_status_bits
+SAFETY_BIT_NORMAL = 1 << 0
+SAFETY_BIT_PROTECTIVE_STOPPED = 1 << 2
+SAFETY_BIT_ROBOT_EMERGENCY_STOPPED = 1 << 6
+SAFETY_BIT_EMERGENCY_STOPPED = 1 << 7
+SAFETY_BIT_STOPPED_DUE_TO_SAFETY = 1 << 10
+# robot_status_bits
+ROBOT_STATUS_POWER_ON = 1 << 0
+ROBOT_STATUS_PROGRAM_RUNNING = 1 << 1
+
+# ur_rtde's control-script commands (RTDE::RobotCommand::Type) that the fake executes.
+CMD_NO_CMD, CMD_MOVEJ, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 34, 255
+# "Real-time" commands that the script executes without reporting done.
+_CONTINUOUS_COMMANDS = {6, 9, 10, 11, 12, 24, 25, 26, 27, 38, 58}
+SCRIPT_READY, SCRIPT_DONE, SCRIPT_BUSY = 1, 2, 0
+
+
+class UrControllerFake:
+    """A UR controller (RTDE, dashboard, script server) whose robot is ``cell``'s robot.
+
+    ``port`` is the RTDE port (the other two are fixed as well). ``version`` is what the
+    controller reports (major, minor, bugfix, build); 5.x makes ``ur_rtde`` use 500 Hz.
+    ``max_frequency_hz`` caps the RTDE output rate whatever a client asks for.
+    """
+
+    def __init__(
+        self,
+        cell: SimCell,
+        host: str = "127.0.0.1",
+        port: int = RTDE_PORT,
+        *,
+        dashboard_port: int = DASHBOARD_PORT,
+        script_port: int = SCRIPT_PORT,
+        version: tuple[int, int, int, int] = (5, 11, 1, 108318),
+        max_frequency_hz: float = 500.0,
+    ):
+        if cell.truth.n_joints != 6:
+            raise ValueError(
+                f"a UR controller drives 6 joints; the truth model has {cell.truth.n_joints}"
+            )
+        self.cell = cell
+        self.host = host
+        self.port = port
+        self.dashboard_port = dashboard_port
+        self.script_port = script_port
+        self.version = version
+        self.max_frequency_hz = max_frequency_hz
+        self._lock = threading.RLock()
+        self._stopping = threading.Event()
+        self._listeners: list[socket.socket] = []
+        self._clients: set[socket.socket] = set()
+        self._threads: list[threading.Thread] = []
+        self._t0 = time.monotonic()
+        # The controller's register file and the emulated control script.
+        self._registers: dict[str, float | int] = {
+            name: (0.0 if t == "DOUBLE" else 0)
+            for name, t in RTDE_TYPES.items()
+            if "_register_" in name
+        }
+        self._script_running = False
+        self._executing: int | None = None  # command being executed, None when idle
+        self._command_done_at = 0.0  # monotonic time from which a command may report done
+        self._blocking_move = False
+        self._async_move = False
+        self._async_writes = 0  # the script's async_wr_count
+        self._async_op_id = 0  # the script's async_op_id
+        self._last_q = cell.joints()
+        self._last_q_time = time.monotonic()
+        self._qd = np.zeros(6)
+
+    # ----------------------------------------------------------------- lifecycle
+
+    def start(self) -> None:
+        """Bind the three ports and serve them from background threads."""
+        try:
+            for port, handler in (
+                (self.port, self._serve_rtde),
+                (self.dashboard_port, self._serve_dashboard),
+                (self.script_port, self._serve_script),
+            ):
+                listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                self._listeners.append(listener)
+                listener.bind((self.host, port))
+                listener.listen(8)
+                self._spawn(self._accept_loop, listener, handler)
+        except OSError:
+            self.stop()
+            raise
+
+    def stop(self) -> None:
+        """Close every socket and let the threads end. Idempotent."""
+        self._stopping.set()
+        for listener in self._listeners:
+            try:
+                listener.shutdown(socket.SHUT_RDWR)  # wakes the thread blocked in accept()
+            except OSError:
+                pass
+            _close_quietly(listener)
+        self._listeners.clear()
+        self._drop_clients()
+        for thread in self._threads:
+            if thread is not threading.current_thread():
+                thread.join(timeout=1.0)
+        self._threads.clear()
+
+    def endpoint(self) -> dict:
+        return {"rtde": self.host}
+
+    def _spawn(self, target, *args) -> None:
+        thread = threading.Thread(target=target, args=args, daemon=True)
+        self._threads.append(thread)
+        thread.start()
+
+    def _accept_loop(self, listener: socket.socket, handler) -> None:
+        while not self._stopping.is_set():
+            try:
+                conn, _ = listener.accept()
+            except OSError:
+                return
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._clients.add(conn)
+            threading.Thread(target=self._run_client, args=(handler, conn), daemon=True).start()
+
+    def _run_client(self, handler, conn: socket.socket) -> None:
+        try:
+            handler(conn)
+        except OSError:
+            pass  # the client went away, or a fault dropped the connection
+        finally:
+            with self._lock:
+                self._clients.discard(conn)
+            _close_quietly(conn)
+
+    def _drop_clients(self) -> None:
+        """Close every open client connection abruptly (a network fault, or stop())."""
+        with self._lock:
+            clients = list(self._clients)
+            self._clients.clear()
+        for conn in clients:
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            _close_quietly(conn)
+
+    # ----------------------------------------------------------------- the control script
+
+    def _tick(self) -> None:
+        """Advance the emulated control script one step. Caller holds ``self._lock``."""
+        cell = self.cell
+        if not self._script_running:
+            return
+        if cell.protective_stop or cell.emergency_stop:
+            self._halt_script()  # a safety stop halts the running program
+            return
+        regs = self._registers
+        if self._async_move and not cell.is_moving():
+            self._async_move = False
+            self._write_async_progress(-1)
+        cmd = int(regs["input_int_register_0"])
+        if cmd == CMD_NO_CMD:
+            self._executing = None
+            regs["output_int_register_0"] = SCRIPT_READY
+            return
+        if cmd in _CONTINUOUS_COMMANDS:
+            regs["output_int_register_0"] = SCRIPT_READY
+            return
+        if self._executing is None:
+            self._begin(cmd)
+            if not self._script_running:
+                return
+        if self._command_finished():
+            regs["output_int_register_0"] = SCRIPT_DONE
+
+    def _begin(self, cmd: int) -> None:
+        cell = self.cell
+        regs = self._registers
+        self._executing = cmd
+        self._blocking_move = False
+        regs["output_int_register_0"] = SCRIPT_BUSY
+        self._command_done_at = time.monotonic() + cell.faults.delay_s
+        if cell.count("ur.command") in cell.faults.drop_connection_at:
+            # The network fails as the command arrives: it is lost, every connection drops.
+            regs["input_int_register_0"] = CMD_NO_CMD
+            regs["output_int_register_0"] = SCRIPT_READY
+            self._executing = None
+            threading.Thread(target=self._drop_clients, daemon=True).start()
+            return
+        if cmd == CMD_MOVEJ:
+            q = [float(regs[f"input_double_register_{i}"]) for i in range(6)]
+            speed = float(regs["input_double_register_6"])
+            accel = float(regs["input_double_register_7"])
+            asynchronous = int(regs["input_int_register_1"]) == 1
+            try:
+                cell.start_move(np.array(q), speed, accel)
+            except RuntimeError:  # stopped by safety: the program halts
+                self._halt_script()
+                return
+            if asynchronous:
+                self._async_move = True
+                self._write_async_progress(0)
+            else:
+                self._blocking_move = True
+        elif cmd == CMD_STOPJ:
+            cell.stop()
+            if self._async_move:
+                self._async_move = False
+                self._write_async_progress(-1)
+        elif cmd == CMD_STOP_SCRIPT:
+            self._halt_script()
+
+    def _write_async_progress(self, value: int) -> None:
+        """Encode the async status register as the control script does: ``value`` >= 0 is
+        the progress of a running operation (0 starts a new one), -1 means finished."""
+        self._async_writes = (self._async_writes + 1) % 128
+        if value == 0:
+            self._async_op_id = (self._async_op_id + 1) % 128
+        reg = self._async_writes * 65536 + self._async_op_id * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self._registers["output_int_register_2"] = reg
+
+    def _command_finished(self) -> bool:
+        if time.monotonic() < self._command_done_at:
+            return False
+        return not (self._blocking_move and self.cell.is_moving())
+
+    def _start_script(self) -> None:
+        """A program arrived on the script port: play it (unless a safety stop forbids)."""
+        with self._lock:
+            if self.cell.protective_stop or self.cell.emergency_stop:
+                return
+            self._script_running = True
+            self.cell.program_running = True
+            self._executing = None
+            self._async_move = False
+            self._registers["output_int_register_0"] = SCRIPT_READY
+            self._write_async_progress(-1)
+
+    def _halt_script(self) -> None:
+        self._script_running = False
+        self.cell.program_running = False
+        self._executing = None
+        self._async_move = False
+
+    # ----------------------------------------------------------------- robot state
+
+    def _values(self, names: list[str]) -> list:
+        """The current values of the named RTDE outputs, flattened, ready to pack."""
+        with self._lock:
+            self._tick()
+            now = time.monotonic()
+            q = self.cell.joints()
+            if now - self._last_q_time > 1e-3:
+                self._qd = (q - self._last_q) / (now - self._last_q_time)
+                self._last_q, self._last_q_time = q, now
+            state = self._state(now, q)
+            regs = self._registers
+            flat: list = []
+            for name in names:
+                if name in state:
+                    value = state[name]
+                elif name in regs:
+                    value = regs[name]
+                elif name in ("actual_TCP_pose", "target_TCP_pose"):
+                    value = self._tcp_pose()
+                else:
+                    value = _zero(RTDE_TYPES[name])
+                if isinstance(value, (list, tuple, np.ndarray)):
+                    flat.extend(value)
+                else:
+                    flat.append(value)
+            return flat
+
+    def _state(self, now: float, q: np.ndarray) -> dict:
+        cell = self.cell
+        safety_bits, safety_mode = SAFETY_BIT_NORMAL, SAFETY_MODE_NORMAL
+        if cell.protective_stop:
+            safety_bits = SAFETY_BIT_PROTECTIVE_STOPPED | SAFETY_BIT_STOPPED_DUE_TO_SAFETY
+            safety_mode = SAFETY_MODE_PROTECTIVE_STOP
+        if cell.emergency_stop:
+            safety_bits = (
+                SAFETY_BIT_EMERGENCY_STOPPED
+                | SAFETY_BIT_ROBOT_EMERGENCY_STOPPED
+                | SAFETY_BIT_STOPPED_DUE_TO_SAFETY
+            )
+            safety_mode = SAFETY_MODE_ROBOT_EMERGENCY_STOP
+        status_bits = ROBOT_STATUS_POWER_ON
+        if self._script_running:
+            status_bits |= ROBOT_STATUS_PROGRAM_RUNNING
+        qd = list(self._qd) if cell.is_moving() else [0.0] * 6
+        return {
+            "timestamp": now - self._t0,
+            "actual_q": list(q),
+            "target_q": list(q),
+            "actual_qd": qd,
+            "target_qd": qd,
+            "robot_mode": ROBOT_MODE_RUNNING,
+            "joint_mode": [JOINT_MODE_RUNNING] * 6,
+            "safety_mode": safety_mode,
+            "safety_status": safety_mode,
+            "safety_status_bits": safety_bits,
+            "robot_status_bits": status_bits,
+            "runtime_state": RUNTIME_PLAYING if self._script_running else RUNTIME_STOPPED,
+            "speed_scaling": 1.0,
+            "target_speed_fraction": 1.0,
+            "actual_main_voltage": 48.0,
+            "actual_robot_voltage": 48.0,
+            "joint_temperatures": [30.0] * 6,
+            "actual_joint_voltage": [48.0] * 6,
+            "actual_tool_accelerometer": [0.0, 0.0, 9.81],
+        }
+
+    def _tcp_pose(self) -> list[float]:
+        T = self.cell.T_world_tool()
+        return [*T[:3, 3], *matrix_to_rotvec(T[:3, :3])]
+
+    # ----------------------------------------------------------------- RTDE server
+
+    def _serve_rtde(self, conn: socket.socket) -> None:
+        """One RTDE client: recipe setup, start/pause, input data packages."""
+        send_lock = threading.Lock()
+        output = {"names": [], "fmt": None, "recipe_id": 0, "frequency_hz": 125.0}
+        inputs: dict[int, tuple[list[str], struct.Struct]] = {}
+        streaming = threading.Event()
+
+        def send(kind: int, payload: bytes = b"") -> None:
+            with send_lock:
+                conn.sendall(_HEADER.pack(_HEADER.size + len(payload), kind) + payload)
+
+        for kind, payload in _read_packages(conn):
+            if kind == RTDE_REQUEST_PROTOCOL_VERSION:
+                (version,) = struct.unpack(">H", payload[:2])
+                send(kind, bytes([1 if version in (1, 2) else 0]))
+            elif kind == RTDE_GET_URCONTROL_VERSION:
+                send(kind, struct.pack(">IIII", *self.version))
+            elif kind == RTDE_CONTROL_PACKAGE_SETUP_OUTPUTS:
+                (frequency_hz,) = struct.unpack(">d", payload[:8])
+                names = _csv(payload[8:])
+                types = [RTDE_TYPES.get(n, "NOT_FOUND") for n in names]
+                ok = "NOT_FOUND" not in types and not any(n.startswith("input_") for n in names)
+                if ok:
+                    output.update(
+                        names=names,
+                        fmt=struct.Struct(">B" + "".join(_TYPE_FORMAT[t] for t in types)),
+                        recipe_id=1,
+                        frequency_hz=min(max(frequency_hz, 1.0), self.max_frequency_hz),
+                    )
+                send(kind, bytes([1 if ok else 0]) + ",".join(types).encode())
+            elif kind == RTDE_CONTROL_PACKAGE_SETUP_INPUTS:
+                names = _csv(payload)
+                types = [
+                    RTDE_TYPES.get(n, "NOT_FOUND") if not n.startswith("output_") else "NOT_FOUND"
+                    for n in names
+                ]
+                recipe_id = 0
+                if "NOT_FOUND" not in types:
+                    recipe_id = len(inputs) + 1  # ur_rtde assumes ids 1, 2, ... per connection
+                    fmt = struct.Struct(">" + "".join(_TYPE_FORMAT[t] for t in types))
+                    inputs[recipe_id] = (names, fmt)
+                send(kind, bytes([recipe_id]) + ",".join(types).encode())
+            elif kind == RTDE_CONTROL_PACKAGE_START:
+                ok = output["fmt"] is not None
+                send(kind, bytes([1 if ok else 0]))
+                if ok and not streaming.is_set():
+                    streaming.set()
+                    threading.Thread(
+                        target=self._stream, args=(conn, send, output, streaming), daemon=True
+                    ).start()
+            elif kind == RTDE_CONTROL_PACKAGE_PAUSE:
+                streaming.clear()
+                send(kind, b"\x01")
+            elif kind == RTDE_DATA_PACKAGE:
+                self._apply_inputs(payload, inputs)
+            elif kind == RTDE_TEXT_MESSAGE:
+                pass  # clients may log to the controller; nothing to answer
+        streaming.clear()
+
+    def _apply_inputs(self, payload: bytes, inputs: dict) -> None:
+        recipe_id = payload[0]
+        if recipe_id not in inputs:
+            return  # the real controller ignores packages for unknown recipes
+        names, fmt = inputs[recipe_id]
+        values = fmt.unpack(payload[1 : 1 + fmt.size])
+        with self._lock:
+            k = 0
+            for name in names:
+                width = _width(RTDE_TYPES[name])
+                self._registers[name] = values[k] if width == 1 else list(values[k : k + width])
+                k += width
+            self._tick()
+
+    def _stream(self, conn, send, output: dict, streaming: threading.Event) -> None:
+        """Send one data package per period until paused or disconnected."""
+        period_s = 1.0 / output["frequency_hz"]
+        next_t = time.monotonic()
+        while streaming.is_set() and not self._stopping.is_set():
+            values = self._values(output["names"])
+            try:
+                send(RTDE_DATA_PACKAGE, output["fmt"].pack(output["recipe_id"], *values))
+            except OSError:
+                return
+            next_t += period_s
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                next_t = time.monotonic()
+
+    # ----------------------------------------------------------------- dashboard server
+
+    def _serve_dashboard(self, conn: socket.socket) -> None:
+        conn.sendall(b"Connected: Universal Robots Dashboard Server\n")
+        reader = conn.makefile("rb")
+        for raw in reader:
+            command = raw.decode("ascii", "replace").strip()
+            if self.cell.faults.delay_s:
+                time.sleep(self.cell.faults.delay_s)
+            reply = self._dashboard_reply(command)
+            conn.sendall((reply + "\n").encode())
+            if command == "quit":
+                return
+
+    def _dashboard_reply(self, command: str) -> str:
+        cell = self.cell
+        major, minor, bugfix, build = self.version
+        lower = command.lower()
+        with self._lock:
+            running = self._script_running
+            if lower == "polyscopeversion":
+                return f"URSoftware {major}.{minor}.{bugfix}.{build} (Mar 22 2022)"
+            if lower == "version":
+                return f"Version: {major}.{minor}.{bugfix}.{build}"
+            if lower == "get serial number":
+                return "20185500000"
+            if lower == "get robot model":
+                return "UR5"
+            if lower == "is in remote control":
+                return "true"
+            if lower == "running":
+                return f"Program running: {str(running).lower()}"
+            if lower == "programstate":
+                return "PLAYING <unnamed>" if running else "STOPPED <unnamed>"
+            if lower == "robotmode":
+                return "Robotmode: RUNNING"
+            if lower in ("safetystatus", "safetymode"):
+                word = "Safetystatus" if lower == "safetystatus" else "Safetymode"
+                if cell.emergency_stop:
+                    return f"{word}: ROBOT_EMERGENCY_STOP"
+                return f"{word}: PROTECTIVE_STOP" if cell.protective_stop else f"{word}: NORMAL"
+            if lower == "stop":
+                self._halt_script()
+                return "Stopped"
+            if lower == "pause":
+                return "Pausing program"
+            if lower == "play":
+                return "Failed to execute: play"
+            if lower == "unlock protective stop":
+                if not cell.protective_stop:
+                    return "Cannot unlock protective stop until 5s after occurrence"
+                cell.reset_safety()
+                return "Protective stop releasing"
+            if lower == "close safety popup":
+                return "closing safety popup"
+            if lower == "close popup":
+                return "closing popup"
+            if lower == "power on":
+                return "Powering on"
+            if lower == "power off":
+                return "Powering off"
+            if lower == "brake release":
+                return "Brake releasing"
+            if lower == "quit":
+                return "Disconnected"
+        return f"could not understand: '{command}'"
+
+    # ----------------------------------------------------------------- script server
+
+    def _serve_script(self, conn: socket.socket) -> None:
+        """URScript text in. A complete ``def name(): ... end`` program starts playing.
+
+        The real controller also streams its legacy real-time state out of this port;
+        ``ur_rtde`` never reads it, so the fake sends nothing."""
+        buffer = b""
+        while True:
+            data = conn.recv(65536)
+            if not data:
+                return
+            buffer += data
+            if _PROGRAM_START.search(buffer) and _PROGRAM_END.search(buffer):
+                buffer = b""
+                self._start_script()
+
+
+_PROGRAM_START = re.compile(rb"^def \w+\(\):", re.M)
+_PROGRAM_END = re.compile(rb"\nend\s*$")
+
+
+def _read_packages(conn: socket.socket):
+    """Yield ``(type, payload)`` RTDE packages framed by their size field."""
+    buffer = b""
+    while True:
+        while len(buffer) >= _HEADER.size:
+            size, kind = _HEADER.unpack_from(buffer)
+            if size < _HEADER.size:
+                return  # garbage: a real controller drops such a client
+            if len(buffer) < size:
+                break
+            payload, buffer = buffer[_HEADER.size : size], buffer[size:]
+            yield kind, payload
+        data = conn.recv(65536)
+        if not data:
+            return
+        buffer += data
+
+
+def _csv(payload: bytes) -> list[str]:
+    """Variable names of a setup request; ur_rtde ends the list with a trailing comma."""
+    return [name for name in payload.decode("ascii", "replace").split(",") if name]
+
+
+def _width(rtde_type: str) -> int:
+    code = _TYPE_FORMAT[rtde_type]
+    return int(code[0]) if code[0].isdigit() else 1
+
+
+def _zero(rtde_type: str):
+    width = _width(rtde_type)
+    value = 0.0 if rtde_type.startswith(("DOUBLE", "VECTOR3D", "VECTOR6D")) else 0
+    if rtde_type == "BOOL":
+        value = False
+    return [value] * width if width > 1 else value
+
+
+def _close_quietly(sock: socket.socket) -> None:
+    try:
+        sock.close()
+    except OSError:
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m fakes.ur_controller --truth TRUE.json [--host H]``: serve one controller."""
+    from fakes.cell import main as cell_main
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    return cell_main([*args, "--no-modbus", "--no-tracker", "--no-cmm", "--no-can"])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
