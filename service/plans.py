@@ -125,7 +125,13 @@ def _planned_poses(model, lim, count, rng, target, sigma_m) -> Plan:
     from calibration import planning
 
     candidates = _random_inside(lim, max(20 * count, 1000), rng, model)
-    res = planning.plan(model, candidates, count, targets=(target,), sigma_m=sigma_m, rng=rng)
+    try:
+        res = planning.plan(model, candidates, count, targets=(target,), sigma_m=sigma_m, rng=rng)
+    except ValueError as exc:
+        # Too few poses to determine every parameter from the data alone: a short session that
+        # updates a previous calibration (its prior) needs no more. Spread them at random.
+        return Plan(candidates[:count], np.zeros(count, int),
+                    {"method": "random (too few poses to plan for a full identification)", "note": str(exc)})
     q = res.q[planning.measurement_order(res.q)]
     info = {
         "method": f"{res.criterion}-optimal (greedy + exchange) from {len(candidates)} candidates",
