@@ -35,12 +35,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .conventions import hayati_for_parallel_axes, mdh_to_dh
-from .jacobian import Prediction, predict
+from .jacobian import Prediction, jacobian_from_walk, record_keys, world_points
 from .kinematics import walk
 from .model import KinematicModel
 from .parameters import Parameter, apply_step, candidate_parameters, parameter_values
 from .registration import register_points, register_poses
-from .transforms import homogeneous, matrix_to_pose, matrix_to_rotvec, pose_to_matrix, quat_to_matrix
+from .transforms import homogeneous, invert, matrix_to_pose, matrix_to_rotvec, pose_to_matrix, quat_to_matrix
 
 LOSSES = ("linear", "huber", "soft_l1", "cauchy")
 
@@ -193,56 +193,81 @@ class _Problem:
     R_meas: np.ndarray | None  # (N, 3, 3)
     sigma_pos: np.ndarray  # (N,) m
     sigma_rot: float  # rad
+    target_rows: dict = field(default_factory=dict)  # target name -> (N,) bool, the rows that measure it
 
 
-def _p_tool(model: KinematicModel, names: np.ndarray) -> np.ndarray:
+def _target_rows(names: np.ndarray) -> dict:
+    return {name: names == name for name in sorted(set(names) - {None})}
+
+
+def _p_tool(model: KinematicModel, names: np.ndarray, rows: dict | None = None) -> np.ndarray:
+    """Each row's target point in the tool frame (N, 3); ``rows``: :func:`_target_rows` of
+    ``names``, when already known."""
     out = np.zeros((len(names), 3))
-    for name in set(names) - {None}:
-        out[names == name] = model.targets[name]
+    for name, mask in (_target_rows(names) if rows is None else rows).items():
+        out[mask] = model.targets[name]
     return out
 
 
-def _evaluate(model, prob: _Problem, params=None) -> tuple[Prediction, np.ndarray, np.ndarray]:
-    pred = predict(model, prob.data.q, _p_tool(model, prob.p_tool_names), params, prob.p_tool_names)
-    rp = prob.data.p_world - pred.p_world
+def _residuals(model, prob: _Problem, record=frozenset()):
+    """Walk ``model`` over the data (recording ``record``): the walk, the predicted points and the
+    residuals, measured minus predicted (position (N, 3), orientation (N, 3))."""
+    w = walk(model, prob.data.q, record)
+    pt = world_points(w, _p_tool(model, prob.p_tool_names, prob.target_rows))
+    rp = prob.data.p_world - pt
     rr = np.zeros_like(rp)
     if prob.R_meas is not None and np.any(prob.has_rot):
         m = prob.has_rot
-        rr[m] = matrix_to_rotvec(prob.R_meas[m] @ np.swapaxes(pred.R_world_tool[m], 1, 2))
-    return pred, rp, rr
+        rr[m] = matrix_to_rotvec(prob.R_meas[m] @ np.swapaxes(w.R[m], 1, 2))
+    return w, pt, rp, rr
+
+
+def _evaluate(model, prob: _Problem, params=None) -> tuple[Prediction, np.ndarray, np.ndarray]:
+    w, pt, rp, rr = _residuals(model, prob, record_keys(params))
+    if not params:
+        return Prediction(pt, w.R), rp, rr
+    Jp, Jr = jacobian_from_walk(w, pt, params, prob.data.q, prob.p_tool_names,
+                                orientation=bool(np.any(prob.has_rot)))
+    return Prediction(pt, w.R, Jp, Jr), rp, rr
 
 
 def _stack(prob: _Problem, rp, rr, Jp=None, Jr=None):
     """Weighted residual vector (and Jacobian): position rows / sigma_pos, orientation rows /
-    sigma_rot (book §4.3.3: scale rows to equal variance)."""
-    wp = 1.0 / prob.sigma_pos[:, None]
-    r = [(rp * wp).reshape(-1)]
-    J = None if Jp is None else [(Jp * wp[:, :, None]).reshape(-1, Jp.shape[2])]
+    sigma_rot (book §4.3.3: scale rows to equal variance).
+
+    Component-major order: the x residuals of all rows, then y, then z, then the orientation
+    rows likewise. :func:`calibration.jacobian.predict` computes its columns in that order, so
+    the Jacobian (M, P) is a Fortran-ordered array made without a transposing copy."""
+    wp = 1.0 / prob.sigma_pos
+    r = [(rp.T * wp).reshape(-1)]
+    Jt = None if Jp is None else [(Jp.transpose(2, 1, 0) * wp).reshape(Jp.shape[2], -1)]  # (P, 3N)
     if np.any(prob.has_rot):
         m = prob.has_rot
-        r.append((rr[m] / prob.sigma_rot).reshape(-1))
+        r.append((rr[m].T / prob.sigma_rot).reshape(-1))
         if Jp is not None:
-            J.append((Jr[m] / prob.sigma_rot).reshape(-1, Jr.shape[2]))
-    return np.concatenate(r), (None if J is None else np.vstack(J))
+            Jt.append((Jr.transpose(2, 1, 0)[:, :, m] / prob.sigma_rot).reshape(Jr.shape[2], -1))
+    if Jt is not None:
+        Jt = Jt[0] if len(Jt) == 1 else np.concatenate(Jt, axis=1)
+    return (r[0] if len(r) == 1 else np.concatenate(r)), (None if Jt is None else Jt.T)
 
 
 def _row_norms(prob: _Problem, r: np.ndarray) -> np.ndarray:
     """Per-measurement-row norm of the weighted residual (position and orientation together)."""
     N = len(prob.data)
-    pos = r[: 3 * N].reshape(N, 3)
-    sq = np.sum(pos**2, axis=1)
+    pos = r[: 3 * N].reshape(3, N)
+    sq = pos[0] ** 2 + pos[1] ** 2 + pos[2] ** 2
     if np.any(prob.has_rot):
-        rot = r[3 * N:].reshape(-1, 3)
-        sq[prob.has_rot] += np.sum(rot**2, axis=1)
+        rot = r[3 * N:].reshape(3, -1)
+        sq[prob.has_rot] += rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2
     return np.sqrt(sq)
 
 
 def _expand_rows(prob: _Problem, w_row: np.ndarray) -> np.ndarray:
     """Per-row weights -> per-residual weights, in the order of :func:`_stack`."""
-    parts = [np.repeat(w_row, 3)]
+    parts = [np.tile(w_row, 3)]
     if np.any(prob.has_rot):
-        parts.append(np.repeat(w_row[prob.has_rot], 3))
-    return np.concatenate(parts)
+        parts.append(np.tile(w_row[prob.has_rot], 3))
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _robust_weights(z: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
@@ -294,6 +319,18 @@ def _reason(p: Parameter, relation: list[tuple[str, float]], position_only: bool
     return f"{_describe(n)} is a combination of other parameters ({combo})"
 
 
+def _r_factor(J: np.ndarray, *, block_rows: int = 2048) -> np.ndarray:
+    """The triangular factor R (P, P) of a tall ``J`` (M, P) = QR, by blocks of rows (TSQR: the
+    blocks' factors, stacked, are factored again), so that each QR works in cache: about twice
+    as fast as one QR of a tall-skinny matrix. ``RᵀR = JᵀJ``; R's rows may differ in sign from
+    LAPACK's, which changes no inner product, singular value or Gram matrix computed from it."""
+    M = J.shape[0]
+    if M <= 2 * block_rows:
+        return np.linalg.qr(J, mode="r")
+    blocks = [np.linalg.qr(J[a : a + block_rows], mode="r") for a in range(0, M, block_rows)]
+    return np.linalg.qr(np.vstack(blocks), mode="r")
+
+
 def select_identifiable(
     J: np.ndarray, params: list[Parameter], *, rtol: float = 1e-6, position_only: bool, multi_target: bool = False
 ) -> tuple[list[int], list[Unidentifiable]]:
@@ -307,6 +344,11 @@ def select_identifiable(
     Returns the kept indices and, for the others, the reasons.
     """
     M, P = J.shape
+    if M > P:
+        # Everything below works in the column space through inner products, so the triangular
+        # factor R of J = QR (same Gram matrix JᵀJ = RᵀR) gives the same result at O(P³) cost.
+        J = _r_factor(J)
+        M = P
     norms = np.linalg.norm(J, axis=0)
     scale = np.where(norms > 0, norms, 1.0)
     Jn = J / scale
@@ -355,10 +397,15 @@ def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, di
     """Try a rigid registration of the model's predictions onto the data; keep it if it fits
     better than the model's own base."""
     data = prob.data
-    _, rp, rr = _evaluate(model, prob)
-    before = float(np.sqrt(np.mean(np.sum(rp**2, axis=1))))
     local = dataclasses.replace(model, base=np.zeros(6))
-    w = walk(local, data.q)
+    w = walk(local, data.q)  # the chain in the model's base frame; one walk serves every base
+
+    def rms(base: np.ndarray, p_local: np.ndarray) -> float:
+        e = data.p_world - (p_local @ base[:3, :3].T + base[:3, 3])
+        return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+
+    p_local = world_points(w, _p_tool(model, prob.p_tool_names, prob.target_rows))
+    before = rms(pose_to_matrix(model.base), p_local)
     info = {"rms_before_m": before}
     n_rot = int(np.sum(prob.has_rot))
     if n_rot >= 3:
@@ -373,13 +420,14 @@ def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, di
         tool = matrix_to_pose(pose_to_matrix(model.tool) @ Y)
         candidate = dataclasses.replace(model, base=matrix_to_pose(X), tool=tool)
         info["method"] = "robot-world/hand-eye (base and tool from full poses)"
+        G = invert(pose_to_matrix(model.tool)) @ pose_to_matrix(candidate.tool)  # old tool -> new tool
+        p_local = world_points(w, G[:3, 3] + _p_tool(model, prob.p_tool_names, prob.target_rows) @ G[:3, :3].T)
     else:
-        X, c = register_points(w.R, w.p, data.p_world, _p_tool(model, prob.p_tool_names))
+        X, c = register_points(w.R, w.p, data.p_world, _p_tool(model, prob.p_tool_names, prob.target_rows))
         candidate = dataclasses.replace(model, base=matrix_to_pose(X))
         info["method"] = "rigid point registration (Kabsch)"
         info["point_offset_correction_m"] = c.tolist()
-    _, rp2, _ = _evaluate(candidate, prob)
-    after = float(np.sqrt(np.mean(np.sum(rp2**2, axis=1))))
+    after = rms(pose_to_matrix(candidate.base), p_local)
     info["rms_after_m"] = after
     info["applied"] = bool(after < before)
     return (candidate if after < before else model), info
@@ -445,7 +493,7 @@ def identify(
     R_meas = quat_to_matrix(np.where(np.isfinite(data.quat), data.quat, [1, 0, 0, 0])) if data.quat is not None else None
     sigma_pos = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
     sigma_rot = float(sigma_rad) if sigma_rad is not None else sigma_m / 0.1
-    prob = _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot)
+    prob = _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot, _target_rows(data.target))
 
     registration = None
     if register != "never" and prior is None:
@@ -458,9 +506,9 @@ def identify(
     cands = candidate_parameters(start, targets=used_targets, gains=gains)
     cands = [p for p in cands if not _matches(p.name, fixed)]
     pred, rp, rr = _evaluate(start, prob, cands)
-    _, J = _stack(prob, rp, rr, pred.Jp, pred.Jr)
+    r_start, J_cands = _stack(prob, rp, rr, pred.Jp, pred.Jr)
     position_only = not np.any(has_rot)
-    kept, dropped = select_identifiable(J, cands, rtol=rank_rtol, position_only=position_only,
+    kept, dropped = select_identifiable(J_cands, cands, rtol=rank_rtol, position_only=position_only,
                                         multi_target=len(used_targets) > 1)
     if prior is not None:  # a prior determines what the data alone cannot
         with_prior = set(prior.names)
@@ -478,18 +526,24 @@ def identify(
     nfev = 1
     it = 0
     history: list[float] = []
+    gram = None
     w_row = np.ones(len(data))
     if P:
-        pred, rp, rr = _evaluate(current, prob, params)
-        r, J = _stack(prob, rp, rr, pred.Jp, pred.Jr)
+        r, J = r_start, J_cands[:, kept]  # the Jacobian at the start, already computed
+        del J_cands
+        fresh = True  # r, J, rp, rr are those of `current`
+        keys = record_keys(params)  # trials record what the Jacobian needs: if accepted, no second walk
         w_row = _robust_weights(_row_norms(prob, r), loss, f_scale)
         w = _expand_rows(prob, w_row)
         cost = 0.5 * float(np.sum(w * r**2))
         history.append(cost)
         for it in range(1, max_iter + 1):
-            Jw = J * np.sqrt(w)[:, None]
-            rw = r * np.sqrt(w)
+            if np.all(w == 1.0):  # unit weights (linear loss): skip the copies
+                Jw, rw = J, r
+            else:
+                Jw, rw = J * np.sqrt(w)[:, None], r * np.sqrt(w)
             A = Jw.T @ Jw + info
+            gram = (J, w, A)  # A and what it was computed from, for the statistics
             g = Jw.T @ rw - info @ steps
             D = np.maximum(np.diag(A), 1e-30)
             if np.max(np.abs(g) / np.sqrt(D)) < gtol * max(1.0, math.sqrt(2 * cost)):
@@ -502,9 +556,13 @@ def identify(
                 except np.linalg.LinAlgError:
                     lam *= 10
                     continue
+                if lam <= 1e-3 and float(delta @ g - 0.5 * delta @ A @ delta) <= ftol * cost:
+                    # the (nearly Gauss-Newton) model predicts no relative reduction beyond ftol:
+                    # converged, without spending a trial evaluation to confirm it
+                    break
                 trial = apply_step(current, params, delta)
                 nfev += 1
-                _, trp, trr = _evaluate(trial, prob)
+                t_walk, t_pt, trp, trr = _residuals(trial, prob, keys)
                 tr, _ = _stack(prob, trp, trr)
                 tw_row = _robust_weights(_row_norms(prob, tr), loss, f_scale)
                 tw = _expand_rows(prob, tw_row)
@@ -515,6 +573,11 @@ def identify(
                 if tcost < ref or tcost <= cost:
                     improved = True
                     break
+                # at the rounding floor: neither the actual nor the predicted reduction exceeds
+                # ftol (MINPACK's test), so no damping will find a better point
+                predicted = float(delta @ g - 0.5 * delta @ A @ delta)
+                if abs(cost - tcost) <= ftol * cost and predicted <= ftol * cost:
+                    break
                 lam *= 10
             if not improved:
                 status = 1
@@ -522,6 +585,7 @@ def identify(
             step_norm = float(np.linalg.norm(delta * np.sqrt(D)))
             rel = (cost - tcost) / max(cost, 1e-300)
             current, r, w, w_row, cost = trial, tr, tw, tw_row, tcost
+            fresh = False
             steps += delta
             history.append(cost)
             lam = max(lam / 10, 1e-12)
@@ -531,14 +595,18 @@ def identify(
             if step_norm < xtol * (1.0 + float(np.linalg.norm(steps * np.sqrt(D)))):
                 status = 2
                 break
-            pred, rp, rr = _evaluate(current, prob, params)  # the Jacobian only at accepted points
-            r, J = _stack(prob, rp, rr, pred.Jp, pred.Jr)
+            # the Jacobian only at accepted points, from the trial's own walk
+            rp, rr = trp, trr
+            r, J = _stack(prob, rp, rr, *jacobian_from_walk(t_walk, t_pt, params, data.q, prob.p_tool_names,
+                                                            orientation=bool(np.any(has_rot))))
+            fresh = True
         else:
             status = 0
 
-    # ---- statistics at the solution
-    pred, rp, rr = _evaluate(current, prob, params if P else None)
-    r, J = _stack(prob, rp, rr, pred.Jp, pred.Jr) if P else (_stack(prob, rp, rr)[0], None)
+    # ---- statistics at the solution (the last Jacobian, when it was computed there)
+    if not (P and fresh):
+        pred, rp, rr = _evaluate(current, prob, params if P else None)
+        r, J = _stack(prob, rp, rr, pred.Jp, pred.Jr) if P else (_stack(prob, rp, rr)[0], None)
     z = _row_norms(prob, r)
     w_row = _robust_weights(z, loss, f_scale)
     w = _expand_rows(prob, w_row)
@@ -551,18 +619,25 @@ def identify(
     cond = float("inf") if P == 0 else 0.0
     obs: dict = {}
     if P:
-        Jw = J * np.sqrt(w)[:, None]
-        sv = np.linalg.svd(Jw, compute_uv=False)
+        unit = bool(np.all(w == 1.0))
+        Jw = J if unit else J * np.sqrt(w)[:, None]
+        # The triangular factor of Jw = QR has the same singular values and Gram matrix: one QR
+        # of the tall matrix, then small P x P decompositions.
+        Rw = _r_factor(Jw) if Jw.shape[0] > P else Jw
+        sv = np.linalg.svd(Rw, compute_uv=False)
         # Σ = s² (JᵀWJ + Σp⁻¹)⁻¹ (book eq. 4.54 / 4.70); pseudo-inverse on the column-scaled
         # matrix for numerical safety.
-        A = Jw.T @ Jw + info
+        if gram is not None and gram[0] is J and unit and np.all(gram[1] == 1.0):
+            A = gram[2]  # the last iteration's: the same Jacobian, unit weights, the same prior
+        else:
+            A = Jw.T @ Jw + info
         dscale = np.sqrt(np.maximum(np.diag(A), 1e-300))
         cov = np.linalg.pinv(A / np.outer(dscale, dscale), rcond=1e-14, hermitian=True) / np.outer(dscale, dscale)
         cov *= sigma_scale**2
         norms = np.linalg.norm(Jw, axis=0)
-        svn = np.linalg.svd(Jw / np.where(norms > 0, norms, 1.0), compute_uv=False)
+        svn = np.linalg.svd(Rw / np.where(norms > 0, norms, 1.0), compute_uv=False)
         cond = float(svn[0] / svn[-1]) if svn[-1] > 0 else float("inf")
-        obs = observability_indices(Jw, params, n_poses=len(data), reach_m=_reach(start))
+        obs = observability_indices(Rw, params, n_poses=len(data), reach_m=_reach(start))
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
@@ -619,7 +694,8 @@ def _reach(model: KinematicModel) -> float:
 
 
 def observability_indices(Jw: np.ndarray, params: list[Parameter], *, n_poses: int, reach_m: float) -> dict:
-    """Observability indices of the weighted Jacobian (book §4.5.3).
+    """Observability indices of the weighted Jacobian (book §4.5.3). Only its singular values
+    matter, so ``Jw`` may as well be the triangular factor R of ``Jw = QR`` (P x P, far cheaper).
 
     Angle columns are multiplied by ``1/reach_m`` (an angle error of 1 rad is compared with a
     length error of the robot's reach), so the indices do not depend on the choice of units.

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kinematics import walk
+from .kinematics import Walk, walk
 from .model import KinematicModel
 from .parameters import Parameter
 
@@ -36,6 +36,14 @@ class Prediction:
     Jr: np.ndarray | None = None
 
 
+def world_points(w: Walk, p_tool: np.ndarray) -> np.ndarray:
+    """World positions (N, 3) of tool-frame points ``p_tool`` (3,) or (N, 3) on a walk's tool frames."""
+    p_tool = np.broadcast_to(np.asarray(p_tool, dtype=float), w.p.shape)
+    if not np.any(p_tool):  # the tool origin itself (adding zeros would change nothing)
+        return w.p.copy()
+    return w.p + np.einsum("nij,nj->ni", w.R, p_tool)
+
+
 def predict(
     model: KinematicModel,
     q: np.ndarray,
@@ -47,37 +55,82 @@ def predict(
     with ``params``, also the identification Jacobian. ``target_names`` (N,) names the target each
     row measures (``None`` entries: the tool origin); it selects the rows a ``target.*``
     parameter moves."""
-    record = set().union(*(p.record_keys for p in params)) if params else set()
-    w = walk(model, q, record)
-    p_tool = np.broadcast_to(np.asarray(p_tool, dtype=float), w.p.shape)
-    pt = w.p + np.einsum("nij,nj->ni", w.R, p_tool)
+    w = walk(model, q, record_keys(params))
+    pt = world_points(w, p_tool)
     if not params:
         return Prediction(pt, w.R)
-    N, P = pt.shape[0], len(params)
-    Jp = np.zeros((N, 3, P))
-    Jr = np.zeros((N, 3, P))
+    Jp, Jr = jacobian_from_walk(w, pt, params, q, target_names)
+    return Prediction(pt, w.R, Jp, Jr)
+
+
+def record_keys(params: list[Parameter] | None) -> set[str]:
+    """The keys a walk must record for the Jacobian columns of ``params``."""
+    return set().union(*(p.record_keys for p in params)) if params else set()
+
+
+def jacobian_from_walk(
+    w: Walk, p_world: np.ndarray, params: list[Parameter], q: np.ndarray, target_names: np.ndarray | None = None,
+    *, orientation: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The Jacobian columns ``(Jp, Jr)``, each (N, 3, P), of ``params`` from a walk that recorded
+    :func:`record_keys` (``p_world`` (N, 3): the measured points on that walk). Without
+    ``orientation`` (position-only data) ``Jr`` is not computed (``None``).
+
+    The columns are computed component-major, one contiguous (3, N) block per parameter, and
+    returned as (N, 3, P) views of those (P, 3, N) buffers: ``Jp.transpose(2, 1, 0)`` is
+    contiguous, which the identification stacks without a transposing copy.
+    """
+    N, P = p_world.shape[0], len(params)
     q = np.asarray(q, dtype=float).reshape(N, -1)
+    ptT = p_world.T
+    Jp = np.empty((P, 3, N))
+    Jr = np.zeros((P, 3, N)) if orientation else None
+    lever: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # p − o per origin (keys may share one)
+    tmp = np.empty(N)
     for k, par in enumerate(params):
-        colp = np.zeros((N, 3))
-        colr = np.zeros((N, 3))
+        cp, cr = Jp[k], (Jr[k] if orientation else None)
+        first = True
         for key, gen, axis, sign in par.terms:
             if key in w.axes:  # an op: recorded along its own axis
                 u, o = w.axes[key]
             else:  # a mark: the frame, any of its axes
-                Rf, pf = w.frames[key]
-                u, o = Rf[:, :, axis], pf
-            if gen == "rot":
-                colp += sign * np.cross(u, pt - o)
-                colr += sign * u
+                Rf, o = w.frames[key]
+                u = Rf[:, :, axis]
+            uT = u.T
+            if gen == "rot":  # dp = u × (p − o), dω = u
+                where = (o.__array_interface__["data"][0], o.strides)
+                d = lever.get(where, (None, None))[1]
+                if d is None:
+                    d = ptT - o.T
+                    lever[where] = (o, d)  # keeps o alive, so its memory is not reused
+                if first and sign == 1.0:
+                    np.multiply(uT[1], d[2], out=cp[0])
+                    cp[0] -= np.multiply(uT[2], d[1], out=tmp)
+                    np.multiply(uT[2], d[0], out=cp[1])
+                    cp[1] -= np.multiply(uT[0], d[2], out=tmp)
+                    np.multiply(uT[0], d[1], out=cp[2])
+                    cp[2] -= np.multiply(uT[1], d[0], out=tmp)
+                    if orientation:
+                        cr[...] = uT
+                else:
+                    c = np.cross(uT, d, axis=0)
+                    if first:
+                        np.multiply(c, sign, out=cp)
+                    else:
+                        cp += sign * c
+                    if orientation:
+                        cr += sign * uT
+            elif first:  # translation: dp = u, dω = 0
+                np.multiply(uT, sign, out=cp)
             else:
-                colp += sign * u
+                cp += sign * uT
+            first = False
         if par.q_joint is not None:
-            colp *= q[:, par.q_joint, None]
-            colr *= q[:, par.q_joint, None]
+            cp *= q[:, par.q_joint]
+            if orientation:
+                cr *= q[:, par.q_joint]
         if par.target is not None:
-            mask = (target_names == par.target)[:, None] if target_names is not None else np.zeros((N, 1), bool)
-            colp *= mask
-            colr = np.zeros((N, 3))
-        Jp[:, :, k] = colp
-        Jr[:, :, k] = colr
-    return Prediction(pt, w.R, Jp, Jr)
+            cp *= (target_names == par.target) if target_names is not None else 0.0
+            if orientation:
+                cr[...] = 0.0
+    return Jp.transpose(2, 1, 0), (Jr.transpose(2, 1, 0) if orientation else None)

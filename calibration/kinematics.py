@@ -126,44 +126,61 @@ class Walk:
     frames: dict
 
 
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+def _matrices(cols: list[np.ndarray]) -> np.ndarray:
+    """(N, 3, 3) rotation matrices from the three world axes, each (3, N) component-major."""
+    return np.ascontiguousarray(np.stack(cols, axis=-1).transpose(1, 0, 2))
+
+
 def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str] = frozenset()) -> Walk:
-    """Run ``model``'s program over readings ``q`` (N, n), recording the keys in ``record``."""
+    """Run ``model``'s program over readings ``q`` (N, n), recording the keys in ``record``.
+
+    Inside, the frame is held as its three world axes and its origin, each (3, N)
+    component-major, so every step is a few operations on contiguous length-N rows. A rotation
+    about local axis ``a`` replaces the other two axes with new arrays and keeps the third: no
+    step mutates an array, so what is recorded needs no copy. Recorded arrays are read-only
+    (N, 3) views and may be shared between keys.
+    """
     q = check_q(model, q)
     v = joint_variables(model, q)
     N = q.shape[0]
-    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
-    p = np.zeros((N, 3))
+    eye = np.eye(3)
+    cols = [np.broadcast_to(eye[:, j : j + 1], (3, N)) for j in range(3)]  # world axes x, y, z
+    p = np.zeros((3, N))
     axes: dict = {}
     frames: dict = {}
     for op in program(model):
         if op.kind == "fixed":
-            p = p + R @ op.T[:3, 3]
-            R = R @ op.T[:3, :3]
+            M, t = op.T[:3, :3], op.T[:3, 3]
+            if np.any(t):
+                p = p + sum(t[i] * cols[i] for i in range(3) if t[i] != 0.0)
+            if not np.array_equal(M, eye):
+                C = np.tensordot(M.T, np.stack(cols), axes=1)  # new axis j = Σ_i M[i, j] · axis i
+                cols = [C[0], C[1], C[2]]
         elif op.kind == "mark":
             if op.key in record:
-                frames[op.key] = (R, p)
+                # (N, 3, 3) view of a (3, 3, N) stack: each axis stays a contiguous (3, N) block
+                frames[op.key] = (_readonly(np.stack(cols).transpose(2, 1, 0)), _readonly(p.T))
         else:
             value = op.const if op.joint is None else op.const + v[:, op.joint]
             a = op.axis
-            if op.kind == "rot":
-                if np.ndim(value) == 0 and value == 0.0:
-                    pass
-                else:
-                    c, s = np.cos(value), np.sin(value)
-                    if np.ndim(value):
-                        c, s = c[:, None], s[:, None]
-                    i, k = [(1, 2), (2, 0), (0, 1)][a]
-                    ci, ck = R[:, :, i], R[:, :, k]
-                    R = R.copy()
-                    R[:, :, i] = c * ci + s * ck
-                    R[:, :, k] = c * ck - s * ci
+            if np.ndim(value) == 0 and value == 0.0:
+                pass
+            elif op.kind == "rot":
+                c, s = np.cos(value), np.sin(value)
+                i, k = [(1, 2), (2, 0), (0, 1)][a]
+                ci, ck = cols[i], cols[k]
+                cols[i] = c * ci + s * ck
+                cols[k] = c * ck - s * ci
             else:
-                if not (np.ndim(value) == 0 and value == 0.0):
-                    dv = value[:, None] if np.ndim(value) else value
-                    p = p + dv * R[:, :, a]
+                p = p + value * cols[a]
             if op.key in record:
-                axes[op.key] = (R[:, :, a].copy(), p.copy())
-    return Walk(R, p, axes, frames)
+                axes[op.key] = (_readonly(cols[a].T), _readonly(p.T))
+    return Walk(_matrices(cols), np.ascontiguousarray(p.T), axes, frames)
 
 
 def fk(model: KinematicModel, q: np.ndarray) -> np.ndarray:

@@ -41,20 +41,20 @@ def register_points(
     """
     c = np.zeros(3)
     T = np.eye(4)
+    p_nominal = p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool)  # the points before the correction
     for _ in range(iterations):
-        pts = p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool + c)
+        pts = p_nominal + R_base_tool @ c
         T = kabsch(pts, p_world)
-        # Solve for c given T: R_T R_i c = p_world - T(p_base_tool + R_i p_tool)
-        A = np.einsum("ij,njk->nik", T[:3, :3], R_base_tool).reshape(-1, 3)
-        pred = np.einsum("ij,nj->ni", T[:3, :3], p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool)) + T[:3, 3]
-        b = (p_world - pred).reshape(-1)
-        c_new, *_ = np.linalg.lstsq(A, b, rcond=None)
+        # Solve for c given T: R_T R_i c = p_world - T(p_base_tool + R_i p_tool). The stacked
+        # matrix A = [R_T R_i] has orthonormal 3 x 3 blocks, so AᵀA = N·I and the least-squares
+        # solution is the mean of the blocks' transposes applied to the right-hand side.
+        b = (p_world - T[:3, 3] - p_nominal @ T[:3, :3].T) @ T[:3, :3]  # R_Tᵀ · residual_i
+        c_new = np.einsum("nji,nj->i", R_base_tool, b) / len(b)
         if np.linalg.norm(c_new - c) < 1e-12:
             c = c_new
             break
         c = c_new
-    pts = p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool + c)
-    return kabsch(pts, p_world), c
+    return kabsch(p_nominal + R_base_tool @ c, p_world), c
 
 
 def register_poses(T_pred: np.ndarray, T_meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

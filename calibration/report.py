@@ -69,8 +69,9 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
             for i in result.outliers
         ],
         "registration": None if result.registration is None else {
-            k: (_f(v / L) if k.startswith("rms") else v) for k, v in result.registration.items()
-            if k != "point_offset_correction_m"
+            # SI in the result (rms_before_m); here in the length unit, so without the suffix
+            (k.removesuffix("_m") if k.startswith("rms") else k): (_f(v / L) if k.startswith("rms") else v)
+            for k, v in result.registration.items() if k != "point_offset_correction_m"
         },
         "notes": list(result.notes),
         "settings": {**{k: v for k, v in result.settings.items() if k not in ("sigma_m", "sigma_rad")},

@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import gammaincinv
 
 from .identify import IdentificationResult, Measurements
 from .jacobian import predict
@@ -19,6 +18,8 @@ from .jacobian import predict
 
 def chi2_quantile(p: float, dof: int) -> float:
     """The ``p`` quantile of the χ² distribution with ``dof`` degrees of freedom."""
+    from scipy.special import gammaincinv  # here, not at the top: scipy.special costs ~0.2 s to import
+
     return float(2.0 * gammaincinv(dof / 2.0, p))
 
 

@@ -1,9 +1,11 @@
 """Compensating a task file held in memory (the API's compensate endpoint, the nightly job):
-a thin wrapper over ``service.taskfiles`` (task CSV and URScript) and ``calibration.compensation``."""
+a thin wrapper over ``recal compensate`` (``service.commands.compensate``: task CSV and
+URScript, ``service.taskfiles`` and ``calibration.compensation``), run on temporary files so
+that the service gives exactly what the command gives, with its per-point report."""
 
 from __future__ import annotations
 
-import os
+import json
 import tempfile
 from pathlib import Path
 
@@ -14,14 +16,44 @@ class CompensationInputError(ValueError):
 
 def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str = "joints") -> tuple[str, dict]:
     """Compensate ``text`` (a task CSV or a URScript program, told apart by ``name``) with the
-    identified model ``model_doc``; ``nominal_doc`` is what the controller knows (targets mode).
-    Returns the compensated text and a per-point report."""
-    from calibration.model import model_from_dict
-
+    identified model ``model_doc``; ``nominal_doc`` is what the controller knows (targets mode,
+    URScript). Returns the compensated text and the per-point report
+    (``recal.compensation-report/1``: ``summary``, ``points``, ``uninterpreted``)."""
     try:
         from service import taskfiles
+        from service.commands import compensate as command
     except ImportError:
         raise CompensationInputError("compensation is not available in this build") from None
+    if hasattr(taskfiles, "compensate_file"):  # a library entry point, when there is one
+        return _with_library(taskfiles, text, name=name, model_doc=model_doc, nominal_doc=nominal_doc, mode=mode)
+    import argparse
+
+    from service.cli import Fail
+    from service.files import InputError
+
+    suffix = Path(name).suffix or ".csv"
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        src, out, report = d / f"task{suffix}", d / f"compensated{suffix}", d / "report.json"
+        src.write_text(text, encoding="utf-8")
+        (d / "model.json").write_text(json.dumps(model_doc), encoding="utf-8")
+        (d / "nominal.json").write_text(json.dumps(nominal_doc), encoding="utf-8")
+        parser = argparse.ArgumentParser(prog="recal compensate")
+        command.add_parser(parser)
+        args = parser.parse_args(["--model", str(d / "model.json"), "--nominal", str(d / "nominal.json"),
+                                  "--task", str(src), "--out", str(out), "--mode", mode, "--report", str(report)])
+        try:
+            command.run(args)
+        except (Fail, InputError, ValueError) as exc:
+            raise CompensationInputError(str(exc).replace(str(src), name)) from None
+        doc = json.loads(report.read_text(encoding="utf-8"))
+        doc["task"] = name
+        return out.read_bytes().decode("utf-8", errors="replace"), doc
+
+
+def _with_library(taskfiles, text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str):
+    from calibration.model import model_from_dict
+
     model = model_from_dict(model_doc)
     nominal = model_from_dict(nominal_doc)
     suffix = Path(name).suffix or ".csv"

@@ -23,14 +23,20 @@ from calibration.model import KinematicModel, ModelFormatError, model_from_dict,
 
 
 class InputError(ValueError):
-    """Bad input, reported as one line: ``file: row R (line L), column 'c': message``."""
+    """Bad input, reported as one line: ``file, row R (line L), column 'c': message``.
 
-    def __init__(self, path: str | os.PathLike, message: str, *, row: int | None = None, line: int | None = None,
-                 column: str | None = None):
+    ``row`` is the 1-based data row, or ``"header"`` for the header line; ``line`` the line in
+    the file (alone when there is no row to name)."""
+
+    def __init__(self, path: str | os.PathLike, message: str, *, row: int | str | None = None,
+                 line: int | None = None, column: str | None = None):
         self.path, self.row, self.line, self.column = str(path), row, line, column
         where = [str(path)]
         if row is not None:
-            where.append(f"row {row}" + (f" (line {line})" if line is not None else ""))
+            label = "header" if row == "header" else f"row {row}"
+            where.append(label + (f" (line {line})" if line is not None else ""))
+        elif line is not None:
+            where.append(f"line {line}")
         if column is not None:
             where.append(f"column {column!r}")
         super().__init__(": ".join([", ".join(where), message]))
@@ -56,18 +62,35 @@ def load_model(spec: str | os.PathLike) -> KinematicModel:
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(spec, f"line {exc.lineno}, column {exc.colno}: invalid JSON ({exc.msg})") from None
+        raise InputError(spec, f"line {exc.lineno}, column {exc.colno}: invalid JSON ({exc.msg}); expected a "
+                               f"recal.model/1 JSON document") from None
     try:
         return model_from_dict(doc)
     except ModelFormatError as exc:
         raise InputError(spec, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}" if exc.field else str(exc)) from None
 
 
+def check_output(path: str | os.PathLike) -> None:
+    """Fail before any work is done when ``path`` cannot be written (its folder is missing or
+    not writable, or it is a folder)."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise InputError(path, "cannot write: it is a folder; expected a file name")
+    if not folder.is_dir():
+        raise InputError(path, f"cannot write: the folder {str(folder)!r} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise InputError(path, f"cannot write: no permission to write in the folder {str(folder)!r}")
+
+
 def write_atomic(path: str | os.PathLike, text: str | bytes) -> None:
     """Write ``text`` (or ``bytes``, written as they are) to ``path`` all at once: a temporary
     file in the same folder, renamed."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
     try:
         with (os.fdopen(fd, "wb") if isinstance(text, bytes) else os.fdopen(fd, "w", encoding="utf-8", newline="")) as f:
             f.write(text)
@@ -98,6 +121,7 @@ class Table:
     header: list[str]
     rows: list[list[str]]
     lines: list[int]
+    header_line: int = 1
 
     def has(self, column: str) -> bool:
         return column in self.index
@@ -110,7 +134,9 @@ class Table:
         """Column as floats (times ``scale``); a bad cell raises ``InputError`` naming it."""
         if column not in self.index:
             if required:
-                raise InputError(self.path, f"missing required column {column!r} (header has: {', '.join(self.header)})")
+                raise InputError(self.path, f"missing column; expected a column {column!r} "
+                                            f"(the header has: {', '.join(self.header)})",
+                                 row="header", line=self.header_line, column=column)
             return np.full(len(self.rows), np.nan)
         k = self.index[column]
         out = np.empty(len(self.rows))
@@ -142,26 +168,28 @@ def read_table(path: str | os.PathLike) -> Table:
     except OSError as exc:
         raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
     header: list[str] | None = None
+    header_line = 1
     rows, lines = [], []
     for lineno, row in enumerate(csv.reader(io.StringIO(text)), start=1):
         if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
             continue
         if header is None:
-            header = [h.strip() for h in row]
+            header, header_line = [h.strip() for h in row], lineno
             dup = {h for h in header if header.count(h) > 1 and h}
             if dup:
-                raise InputError(path, f"duplicate column {sorted(dup)[0]!r} in the header", line=lineno)
+                raise InputError(path, "duplicate column in the header; expected each column once",
+                                 row="header", line=lineno, column=sorted(dup)[0])
             continue
         if len(row) > len(header) and any(c.strip() for c in row[len(header):]):
-            raise InputError(path, f"has {len(row)} values but the header has {len(header)} columns",
+            raise InputError(path, f"has {len(row)} values; expected at most {len(header)}, one per header column",
                              row=len(rows) + 1, line=lineno)
         rows.append(row)
         lines.append(lineno)
     if header is None:
         raise InputError(path, "is empty: expected a header line and data rows")
     if not rows:
-        raise InputError(path, "has a header but no data rows")
-    return Table(str(path), header, rows, lines)
+        raise InputError(path, "has a header but no data rows; expected at least one row after the header")
+    return Table(str(path), header, rows, lines, header_line)
 
 
 def _joint_columns(table: Table, model: KinematicModel) -> None:
@@ -170,11 +198,13 @@ def _joint_columns(table: Table, model: KinematicModel) -> None:
     qcols = sorted((h for h in table.header if h[:1] == "q" and h[1:].isdigit()), key=lambda h: int(h[1:]))
     extra = [h for h in qcols if int(h[1:]) > n or int(h[1:]) < 1]
     if extra:
-        raise InputError(table.path, f"column {extra[0]!r}: the model has {n} joints (q1..q{n}), "
-                                     f"so the data's joint count does not match")
+        raise InputError(table.path, f"the model has {n} joints, so expected joint columns q1..q{n} only "
+                                     f"(the data's joint count does not match the model)",
+                         row="header", line=table.header_line, column=extra[0])
     for i in range(1, n + 1):
         if f"q{i}" not in table.index:
-            raise InputError(table.path, f"missing joint column 'q{i}': the model has {n} joints (q1..q{n})")
+            raise InputError(table.path, f"missing joint column 'q{i}': the model has {n} joints, so expected q1..q{n}",
+                             row="header", line=table.header_line, column=f"q{i}")
 
 
 def read_joints(path: str | os.PathLike, model: KinematicModel, table: Table | None = None) -> np.ndarray:
@@ -198,7 +228,8 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
     if present:
         if len(present) != 4:
             missing = [c for c in qcols if c not in present]
-            raise InputError(path, f"missing column {missing[0]!r}: an orientation needs all of qw, qx, qy, qz")
+            raise InputError(path, "missing column; expected all of qw, qx, qy, qz for an orientation",
+                             row="header", line=table.header_line, column=missing[0])
         quat = np.stack([table.numbers(c, allow_empty=True) for c in qcols], axis=1)
         partial = np.isnan(quat).any(axis=1) & ~np.isnan(quat).all(axis=1)
         if np.any(partial):
@@ -216,8 +247,8 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
     for r, t in enumerate(targets):
         if t is not None and t not in model.targets:
             known = ", ".join(sorted(model.targets)) or "none"
-            raise InputError(path, f"unknown target {t!r} (the model has: {known})", row=r + 1, line=table.lines[r],
-                             column="target")
+            raise InputError(path, f"unknown target {t!r}; expected one of the model's targets ({known})",
+                             row=r + 1, line=table.lines[r], column="target")
     sigma = table.numbers("sigma", scale=L, required=False, allow_empty=True)
     if np.any(sigma[np.isfinite(sigma)] <= 0):
         r = int(np.nonzero(np.isfinite(sigma) & (sigma <= 0))[0][0])

@@ -171,14 +171,18 @@ def format_task(
         flip = np.nansum(quat * task.quat, axis=1) < 0
         quat[flip] *= -1.0
         new = np.concatenate([T_command[:, :3, 3] / u.length_m, quat], axis=1)
+    L = u.length_m
+    # whole columns of text first (cheaper than a dict per row), then the rows
+    cols = {c: [_num(v) for v in new[:, k]] for k, c in enumerate(replaced)}
+    cols["converged"] = ["1" if c else "0" for c in converged]
+    cols["residual"] = [_num(v, 6) for v in np.asarray(residual_m) / L]
+    cols["flags"] = list(flags)
+    getters = [(cols[c], None) if c in cols else (None, src[c]) for c in out_header]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(out_header)
-    L = u.length_m
-    for i, row in enumerate(task.table.rows):
-        values = {c: _num(v) for c, v in zip(replaced, new[i])}
-        values.update(converged="1" if converged[i] else "0", residual=_num(residual_m[i] / L, 6), flags=flags[i])
-        w.writerow([values[c] if c in values else (row[src[c]] if src[c] < len(row) else "") for c in out_header])
+    w.writerows([[made[i] if made is not None else (row[k] if k < len(row) else "") for made, k in getters]
+                 for i, row in enumerate(task.table.rows)])
     return buf.getvalue()
 
 
@@ -280,6 +284,19 @@ def _code_end(line: str) -> int:
     return len(line)
 
 
+def _mask_strings(code: str) -> str:
+    """``code`` with the insides of string literals blanked (same length), so that nothing in a
+    string is taken for a call, a target or a variable."""
+    out, in_str = [], False
+    for ch in code:
+        if ch == '"':
+            in_str = not in_str
+            out.append(ch)
+        else:
+            out.append(" " if in_str else ch)
+    return "".join(out)
+
+
 def _args(code: str, open_idx: int) -> tuple[list[tuple[int, int]], int] | None:
     """Top-level arguments (start, end) of the call whose ``(`` is at ``open_idx``, and the index
     of its ``)``; ``None`` when the call does not close on this line."""
@@ -340,7 +357,7 @@ def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | Non
     codes = []
     for ln, (ls, le) in enumerate(lines, start=1):
         raw = text[ls:le].rstrip("\r\n")
-        code = raw[: _code_end(raw)]
+        code = _mask_strings(raw[: _code_end(raw)])
         codes.append((ls, code))
         m = _ASSIGN_RE.match(code)
         if m:

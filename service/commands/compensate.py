@@ -157,6 +157,12 @@ def _concat(parts):
     return dataclasses.replace(first, **out)
 
 
+def _take(comp, idx):
+    """The points ``idx`` of a compensation result, in that order."""
+    return dataclasses.replace(comp, **{f.name: getattr(comp, f.name)[idx] for f in dataclasses.fields(comp)
+                                        if isinstance(getattr(comp, f.name), np.ndarray)})
+
+
 def _chunked(N, fn, t0):
     """Run ``fn(slice)`` over chunks of the task, with a progress line once it takes > 2 s."""
     from service.cli import progress
@@ -179,9 +185,10 @@ def _source_poses(q, taught, nominal, M):
 
 
 def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    from calibration.compensation import compensate_joints, compensate_targets, nominal_solution
-    from service.cli import Fail
-    from service.taskfiles import read_task
+    from calibration.compensation import compensate_joints, compensate_targets, flag_names, nominal_solution
+    from calibration.ik import ur_geometry
+    from service.cli import Fail, progress
+    from service.taskfiles import format_task, read_task
 
     task = read_task(args.task, model)
     N = len(task)
@@ -195,6 +202,12 @@ def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
     if np.any(only_q):
         X[only_q] = _source_poses(task.q[only_q], taught, nominal, M)
     q_near = np.where(task.has_q[:, None], np.nan_to_num(task.q), qnear)
+    no_start = task.has_pose & ~task.has_q
+    if nominal is not None and ur_geometry(nominal) is None and np.any(no_start):
+        r = int(np.nonzero(no_start)[0][0])
+        raise Fail(f"{args.task}: row {r + 1} (line {task.table.lines[r]}) has no q1..q{model.n_joints}: the nominal "
+                   f"model {nominal.name!r} has no closed-form inverse kinematics, so each pose needs the joints it "
+                   f"was taught or planned with")
     if args.mode == "targets":
         if nominal is None:
             raise Fail(f"{args.model}: targets mode needs the nominal model the controller uses: give --nominal "
@@ -216,32 +229,42 @@ def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
             if nominal is not None and np.any(rows):
                 sol = nominal_solution(nominal, M @ X[sl][rows], q_near[sl][rows], keep_branch=task.has_q[sl][rows])
                 q0[rows], reachable[rows] = sol.q, sol.reachable
-            lim = {k: v for k, v in kw.items()}
-            return compensate_joints(model, X[sl], q0, reachable=reachable, calibrated_range=calibrated, **lim)
+            return compensate_joints(model, X[sl], q0, reachable=reachable, calibrated_range=calibrated, **kw)
 
     comp = _chunked(N, run, t0)
+    if time.perf_counter() - t0 > 2.0:
+        progress(f"recal compensate: {N} points compensated; writing {args.out}")
+    names = {int(b): ";".join(flag_names(b)) for b in np.unique(comp.flags)}
+    flags = [names[int(b)] for b in comp.flags]
+    text = format_task(task, model, args.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)
+    prefixes = [f'"row":{i + 1},"line":{line},' for i, line in enumerate(task.table.lines)]
+    return text, comp, prefixes, [], M, fit_rms
+
+
+def _g(x: float) -> str:
+    """A float as JSON text, 9 significant digits (``null`` if not finite)."""
+    return f"{x:.9g}" if np.isfinite(x) else "null"
+
+
+def _point_lines(comp, model, prefixes: list[str]) -> list[str]:
+    """One compact JSON object per point (``prefixes[i]``: its leading fields, JSON text ending
+    in a comma), in the model's units. Written directly: a 100,000-point report in about a
+    second, where ``json.dumps`` of dicts takes several."""
+    import json as _json
+
     from calibration.compensation import flag_names
 
-    flags = [";".join(flag_names(b)) for b in comp.flags]
-    from service.taskfiles import format_task
-
-    text = format_task(task, model, args.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)
-    points = [dict(task.where(i), **_point(comp, i, model)) for i in range(N)]
-    return text, comp, points, [], M, fit_rms
-
-
-def _point(comp, i, model) -> dict:
     u = model.units
-    scales = [u.angle_rad if j.revolute else u.length_m for j in model.joints]
-    return {
-        "converged": bool(comp.converged[i]),
-        "iterations": int(comp.iterations[i]),
-        "residual": _f(comp.residual_m[i] / u.length_m),
-        "residual_angle": _f(comp.residual_rad[i] / u.angle_rad),
-        "correction": [_f(c / s) for c, s in zip(comp.correction[i], scales)],
-        "sigma_min": _f(comp.sigma_min[i]),
-        "flags": comp.flags_of(i),
-    }
+    scales = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
+    res, ang = comp.residual_m / u.length_m, comp.residual_rad / u.angle_rad
+    corr = comp.correction / scales
+    names = {int(b): _json.dumps(flag_names(b)) for b in np.unique(comp.flags)}
+    return ["{" + prefixes[i]
+            + f'"converged":{"true" if comp.converged[i] else "false"},"iterations":{int(comp.iterations[i])},'
+            + f'"residual":{_g(res[i])},"residual_angle":{_g(ang[i])},'
+            + '"correction":[' + ",".join(_g(c) for c in corr[i]) + "],"
+            + f'"sigma_min":{_g(comp.sigma_min[i])},"flags":{names[int(comp.flags[i])]}' + "}"
+            for i in range(len(comp))]
 
 
 def _f(x, digits=9):
@@ -282,7 +305,7 @@ def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
         else:
             prev = t.joints.values
             joint_t.append(t)
-    replacements, literals, points = {}, {}, []
+    replacements, literals, prefixes, order = {}, {}, [], []
     comps = []
     if pose_t:
         P = np.array([t.pose.values for t in pose_t])
@@ -296,38 +319,46 @@ def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
             replacements[id(t.pose)], literals[id(t.pose)] = P_new[i], t.pose
             if t.joints is not None:
                 replacements[id(t.joints)], literals[id(t.joints)] = cp.q[i], t.joints
-            points.append({"line": t.line, "move": t.move, "kind": "pose", "variable": t.pose.name,
-                           "qnear_variable": t.joints.name if t.joints is not None else None,
-                           "original": [float(v) for v in P[i]], "compensated": [_f(v, 12) for v in P_new[i]],
-                           **_point(cp, i, model)})
+            head = {"line": t.line, "move": t.move, "kind": "pose", "variable": t.pose.name,
+                    "qnear_variable": t.joints.name if t.joints is not None else None,
+                    "original": [float(v) for v in P[i]], "compensated": [_f(v, 12) for v in P_new[i]]}
+            order.append(t.line)
+            prefixes.append(json.dumps(head)[1:-1] + ",")
         comps.append(cp)
     if joint_t:
         Q = np.array([t.joints.values for t in joint_t]).reshape(-1, n)
         cj = compensate_joints(model, _source_poses(Q, taught, nominal, M), Q, calibrated_range=calibrated, **kw)
         for i, t in enumerate(joint_t):
             replacements[id(t.joints)], literals[id(t.joints)] = cj.q[i], t.joints
-            points.append({"line": t.line, "move": t.move, "kind": "joints", "variable": t.joints.name,
-                           "original": [float(v) for v in Q[i]], "compensated": [_f(v, 12) for v in cj.q[i]],
-                           **_point(cj, i, model)})
+            head = {"line": t.line, "move": t.move, "kind": "joints", "variable": t.joints.name,
+                    "original": [float(v) for v in Q[i]], "compensated": [_f(v, 12) for v in cj.q[i]]}
+            order.append(t.line)
+            prefixes.append(json.dumps(head)[1:-1] + ",")
         comps.append(cj)
-    points.sort(key=lambda p: p["line"])
     comp = _concat(comps) if len(comps) > 1 else comps[0]
+    # report the targets in program order
+    perm = np.argsort(order, kind="stable")
+    comp = _take(comp, perm)
+    prefixes = [prefixes[k] for k in perm]
     skipped = [{"line": u.line, "text": u.text, "reason": u.reason} for u in script.uninterpreted]
-    return script.rewrite(replacements, literals), comp, points, skipped, M, fit_rms
+    return script.rewrite(replacements, literals), comp, prefixes, skipped, M, fit_rms
 
 
 def run(args) -> int:
     from calibration.transforms import matrix_to_pose
-    from service.files import write_atomic
+    from service.files import check_output, write_atomic
     from service.taskfiles import is_script
 
     t0 = time.perf_counter()
+    for path in (args.out, args.report):  # before any work: a run never ends unable to write
+        if path:
+            check_output(path)
     model, nominal, taught = _models(args)
     calibrated = _calibrated_range(args, model)
     kw, qnear = _settings(args, model)
     script = is_script(args.task)
     handler = _script if script else _csv
-    output, comp, points, skipped, M, fit_rms = handler(args, model, nominal, taught, calibrated, kw, qnear, t0)
+    output, comp, prefixes, skipped, M, fit_rms = handler(args, model, nominal, taught, calibrated, kw, qnear, t0)
     u = model.units
     L = u.length_m
     counts = {name: comp.count(name) for name in
@@ -351,10 +382,12 @@ def run(args) -> int:
                       "fit_rms": _f(fit_rms / L) if fit_rms is not None else None},
             "calibrated_region": None if calibrated is None else [
                 [_f(v / (u.angle_rad if j.revolute else L)) for v in r] for r, j in zip(calibrated, model.joints)],
-            "summary": summary, "uninterpreted": skipped, "points": points,
+            "summary": summary, "uninterpreted": skipped,
             "elapsed_s": round(time.perf_counter() - t0, 3),
         }
-        write_atomic(args.report, json.dumps(report, indent=1) + "\n")
+        head = json.dumps(report, indent=1)
+        lines = _point_lines(comp, model, prefixes)
+        write_atomic(args.report, head[:-2] + ',\n "points": [\n  ' + ",\n  ".join(lines) + "\n ]\n}\n")
     write_atomic(args.out, output)
     for s in skipped:
         print(f"warning: {args.task}, line {s['line']}: not compensated ({s['reason']}): {s['text']}", file=sys.stderr)

@@ -33,15 +33,20 @@ def run(args) -> int:
     from calibration.report import identification_block, identification_report
     from calibration.uncertainty import validate
     from service.cli import Fail
-    from service.files import load_model, read_measurements, save_model, write_atomic
+    from service.files import check_output, load_model, read_measurements, save_model, write_atomic
 
     t0 = time.perf_counter()
+    for path in (args.out, args.report):  # before any work: a run never ends unable to write
+        if path:
+            check_output(path)
     model = load_model(args.model)
     data = read_measurements(args.data, model)
     holdout = read_measurements(args.validate, model) if args.validate else None
     L = model.units.length_m
     if args.sigma is not None and not args.sigma > 0:
         raise Fail(f"--sigma: expected a positive number, got {args.sigma}")
+    if args.sigma_angle is not None and not args.sigma_angle > 0:
+        raise Fail(f"--sigma-angle: expected a positive number, got {args.sigma_angle}")
     try:
         result = identify(
             model, data,

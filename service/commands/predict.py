@@ -15,13 +15,14 @@ def run(args) -> int:
 
     from calibration.kinematics import fk
     from calibration.transforms import matrix_to_quat
-    from service.cli import Fail
-    from service.files import format_csv, load_model, read_joints, write_atomic
+    from service.files import InputError, check_output, format_csv, load_model, read_joints, write_atomic
 
+    check_output(args.out)
     model = load_model(args.model)
     if args.target is not None and args.target not in model.targets:
-        known = ", ".join(sorted(model.targets)) or "none"
-        raise Fail(f"{args.model}: unknown target {args.target!r} (the model has: {known})")
+        known = f"one of {', '.join(sorted(model.targets))}" if model.targets else "a target, but the model has none"
+        raise InputError(args.model, f"field 'targets': no target {args.target!r} (asked for by --target); "
+                                     f"expected {known}")
     q = read_joints(args.joints, model)
     T = fk(model, q)
     L = model.units.length_m
