@@ -273,7 +273,6 @@ def ur_ik_all(model: KinematicModel, T_world_tool: np.ndarray, q_near: np.ndarra
     flags (8, 3) (index bits: shoulder, elbow, wrist; bit set = −1)."""
     T = np.asarray(T_world_tool, dtype=float)
     T = T[None] if T.ndim == 2 else T
-    N = T.shape[0]
     q_near = np.zeros(6) if q_near is None else q_near
     flags = np.array([[-1 if (b >> k) & 1 else 1 for k in range(3)] for b in range(8)])
     qs, oks = [], []

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from .identify import IdentificationResult
-from .model import Units
+from .model import KinematicModel, Units, model_to_dict
 from .uncertainty import Validation
 
 
@@ -89,8 +89,21 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
     return report
 
 
-def identification_block(result: IdentificationResult, units: Units) -> dict:
-    """The compact ``identification`` block written into an identified model file."""
+def identification_block(result: IdentificationResult, units: Units, *, nominal: KinematicModel | None = None,
+                         q: np.ndarray | None = None) -> dict:
+    """The compact ``identification`` block written into an identified model file.
+
+    With ``nominal``, the block also keeps the nominal model (what a controller that was never
+    calibrated knows: compensation's ``targets`` mode needs it); with the identification data's
+    readings ``q`` (N, n), the joint ranges they covered (the calibrated region), in ``units``.
+    """
     full = identification_report(result, units)
-    return {k: full[k] for k in ("success", "message", "rows", "parameters", "unidentifiable", "condition_number",
-                                 "observability", "residuals", "notes")}
+    block = {k: full[k] for k in ("success", "message", "rows", "parameters", "unidentifiable", "condition_number",
+                                  "observability", "residuals", "notes")}
+    if nominal is not None:
+        block["nominal"] = model_to_dict(nominal, units=units)
+    if q is not None and len(q):
+        model = result.model
+        scale = np.array([units.angle_rad if j.revolute else units.length_m for j in model.joints])
+        block["joint_ranges"] = [[float(lo), float(hi)] for lo, hi in zip(q.min(axis=0) / scale, q.max(axis=0) / scale)]
+    return block

@@ -120,8 +120,8 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
            "matrix": result.covariance.tolist()}
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
     L = units.length_m
-    return _store(db, cell, run, "pose", model, report, cov, result.rms_m / L,
-                  {"identification": identification_block(result, units)})
+    block = identification_block(result, units, nominal=nominal, q=data.q)
+    return _store(db, cell, run, "pose", model, report, cov, result.rms_m / L, {"identification": block})
 
 
 def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:

@@ -26,10 +26,8 @@ def add_parser(s) -> None:
 
 
 def run(args) -> int:
-    import numpy as np
 
     from calibration.identify import identify
-    from calibration.model import model_to_dict
     from calibration.report import identification_block, identification_report
     from calibration.uncertainty import validate
     from service.cli import Fail
@@ -62,13 +60,9 @@ def run(args) -> int:
     report["elapsed_s"] = round(time.perf_counter() - t0, 3)
     if args.report:
         write_atomic(args.report, json.dumps(report, indent=2) + "\n")
-    block = identification_block(result, model.units)
-    # what `recal compensate` needs later: the nominal model the controller knows, and the joint
-    # ranges the data covered (its "calibrated region"), in the model's units
-    block["nominal"] = model_to_dict(model)
-    scale = np.array([model.units.angle_rad if j.revolute else model.units.length_m for j in model.joints])
-    block["joint_ranges"] = [[float(lo), float(hi)] for lo, hi in
-                             zip(data.q.min(axis=0) / scale, data.q.max(axis=0) / scale)]
+    # the block keeps what `recal compensate` needs later: the nominal model the controller
+    # knows, and the joint ranges the data covered (its "calibrated region")
+    block = identification_block(result, model.units, nominal=model, q=data.q)
     save_model(args.out, result.model, {"identification": block})
     u = model.units.length
     line = (f"identified {len(result.params)} parameters from {len(data)} rows: "
