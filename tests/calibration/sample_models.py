@@ -72,7 +72,6 @@ def reference_fk(doc: dict, q_file: np.ndarray) -> np.ndarray:
     straight from contracts §2."""
     L, A = LENGTH[doc["units"]["length"]], ANGLE[doc["units"]["angle"]]
     joints = doc["joints"]
-    n = len(joints)
     # readings in SI: revolute in rad, prismatic in m
     q = np.array([q_file[i] * (L if j.get("type", "revolute") == "prismatic" else A) for i, j in enumerate(joints)])
     if doc.get("coupling") is not None:
