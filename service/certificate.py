@@ -229,13 +229,13 @@ def certificate_pdf(cert: dict) -> bytes:
                   f"({cert['poses']['plan_method'] or '–'}); {cert['poses']['outliers']} outlier(s)"],
         ["Method", cert["calibration"]["method"]],
     ]
-    s.append(Table([[P(a), P(b)] for a, b in rows], colWidths=[38 * mm, 136 * mm], style=kv))
+    s.append(Table([[P(a), P(b)] for a, b in rows], colWidths=[38 * mm, 136 * mm], style=kv, hAlign="LEFT"))
 
     s.append(Paragraph("Accuracy before and after calibration", h2))
     acc = cert["accuracy"]
     figs = [("n", "poses"), ("mean", "mean error"), ("std", "std dev S"), ("mean_plus_3sigma", "mean + 3 S"),
             ("rms", "RMS"), ("p95", "95th pct"), ("max", "max")]
-    head = ["", *[f"{label} ({unit})" if k != "n" else label for k, label in figs]]
+    head = [P("", small), *[P(f"{label} ({unit})" if k != "n" else label, small) for k, label in figs]]
     data = [head]
     for label, f in (("Before", acc["before"]), ("After", acc["after"])):
         if f:
@@ -244,7 +244,12 @@ def certificate_pdf(cert: dict) -> bytes:
         if v:
             data.append([f"{label} (session {v['session_id']})", str(v["n"]), _num(v["mean"], 4), "–", "–",
                          _num(v["rms"], 4), _num(v["p95"], 4), _num(v["max"], 4)])
-    s.append(Table(data, style=grid, repeatRows=1))
+            if v.get("registered"):
+                data.append([f"{label}, base fitted", str(v["n"]), "–", "–", "–", _num(v["registered"]["rms"], 4), "–",
+                             _num(v["registered"]["max"], 4)])
+    s.append(Table([[P(r[0], small), *r[1:]] if i else r for i, r in enumerate(data)],
+                   colWidths=[41 * mm] + [19 * mm] * 7, style=TableStyle(grid.getCommands() + [
+                       ("ALIGN", (1, 1), (-1, -1), "RIGHT")]), repeatRows=1, hAlign="LEFT"))
     s.append(P(f"Before: {acc.get('before_model') or '–'}. After: {acc.get('after_model') or '–'}. "
                f"{acc['note']}.", small))
     if acc.get("predicted_workspace"):
@@ -258,20 +263,22 @@ def certificate_pdf(cert: dict) -> bytes:
     for c in cert["checks"]:
         res = "passed" if c["passed"] else ("not run" if c["passed"] is None else "FAILED")
         data.append([P(c["name"], small), res, P(c["detail"], small)])
-    s.append(Table(data, colWidths=[62 * mm, 18 * mm, 94 * mm], style=grid, repeatRows=1))
+    s.append(Table(data, colWidths=[62 * mm, 18 * mm, 94 * mm], style=grid, repeatRows=1, hAlign="LEFT"))
 
     s.append(Paragraph("Identified parameters", h2))
     data = [["Parameter", "Unit", "Value", "Change", "Std. unc. u", "U (k=2)"]]
     for p in cert["parameters"]:
         data.append([p["name"], p["unit"], _num(p["value"], 9), _num(p["change"], 4), _num(p["std_error"], 3),
                      _num(p["expanded_uncertainty"], 3)])
-    s.append(Table(data, style=grid, repeatRows=1))
+    s.append(Table(data, colWidths=[34 * mm, 14 * mm, 34 * mm, 28 * mm, 28 * mm, 28 * mm],
+                   style=TableStyle(grid.getCommands() + [("ALIGN", (2, 1), (-1, -1), "RIGHT")]), repeatRows=1,
+                   hAlign="LEFT"))
     s.append(P("base.*, tool.* (and home.*) are small displacements of those frames about the calibrated model: "
                "their value is 0 by definition, the change is what the calibration moved.", small))
     if cert["unidentifiable"]:
         s.append(Paragraph("Parameters the data could not determine", h2))
         data = [["Parameter", "Reason"]] + [[u["name"], P(u["reason"], small)] for u in cert["unidentifiable"]]
-        s.append(Table(data, colWidths=[30 * mm, 144 * mm], style=grid, repeatRows=1))
+        s.append(Table(data, colWidths=[30 * mm, 144 * mm], style=grid, repeatRows=1, hAlign="LEFT"))
     s.append(Spacer(1, 8 * mm))
     s.append(P(f"Overall: {'all checks that were run passed' if cert['passed'] else 'NOT ALL CHECKS PASSED'}."))
     s.append(Spacer(1, 14 * mm))

@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("serve", "run the REST API (contracts §9)"),
     "token": ("token", "create API tokens"),
     "nightly": ("nightly", "check a cell's accuracy and recalibrate it when it drifted"),
+    "worker": ("worker", "run the sessions of some sites' cells (the fleet, docs/fleet.md)"),
 }
 
 

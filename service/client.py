@@ -47,8 +47,10 @@ class Api:
             raise ServiceError(f"cannot reach {self.url}: {getattr(exc, 'reason', exc)}") from None
 
     def wait_session(self, session_id: int, timeout_s: float, *, until=("completed", "failed", "aborted", "paused",
-                                                                         "interrupted"), on_progress=None) -> dict:
-        """Poll a session until its state is in ``until`` (or the timeout: state ``timeout``)."""
+                                                                         "interrupted"), on_progress=None,
+                     poll_s: float = 0.2) -> dict:
+        """Poll a session every ``poll_s`` until its state is in ``until`` (or the timeout: state
+        ``timeout``)."""
         deadline = time.monotonic() + timeout_s
         last = None
         while True:
@@ -60,4 +62,4 @@ class Api:
                 return s
             if time.monotonic() > deadline:
                 return {**s, "state": "timeout"}
-            time.sleep(0.2)
+            time.sleep(poll_s)

@@ -53,6 +53,7 @@ class RunSession(SQLModel, table=True):
     updated_at: datetime = Field(default_factory=utcnow)
     lease_owner: str | None = None
     lease_expires: datetime | None = None
+    requested: str | None = None  # "pause" / "abort" asked of the process running it (fleet: workers poll it)
 
 
 class Measurement(SQLModel, table=True):

@@ -13,12 +13,17 @@ Rules a robot cell needs (issue: sessions):
 - a dry run plans and checks, and moves nothing.
 
 The embedded default runs each session in a thread of the service process
-(:class:`Orchestrator`); ``run_session`` is the whole job, so a worker process can run it too.
+(:class:`Orchestrator`); ``run_session`` is the whole job, so a worker process can run it too
+(``service.fleet``, docs/fleet.md). A session whose database goes away is not at fault: a
+measurement commit is retried (the unique constraint (session, seq, target) makes a retried
+commit that had in fact gone through harmless), and if the store stays away ``run_session``
+raises and the process running it decides (the session ends ``interrupted``, never ``failed``).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 import traceback
@@ -27,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from sqlalchemy.engine import Engine
+from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError
 from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
@@ -34,21 +40,41 @@ from drivers.errors import DeviceError, RobotStoppedError
 
 from . import analysis
 from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
-from .models import Cell, Measurement, RunSession
+from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, check_configurations, plan_session
 from .settings import Settings
-from .store import acquire_lease, set_state
+from .store import _aware, acquire_lease, set_state
 
 log = logging.getLogger("recal.sessions")
 
 
 @dataclass
 class Control:
-    """Requests from outside a running session (API threads)."""
+    """Requests from outside a running session (API threads, or a fleet worker's monitor).
+
+    ``interrupt``: the process running the session is stopping (the session ends
+    ``interrupted`` with ``interrupt_reason``); ``lease_valid_until`` (``time.monotonic()``):
+    the moment after which this process may no longer be sure it alone holds the cell, so no
+    further move is commanded (a fleet worker renews it; the embedded default never expires)."""
 
     pause: threading.Event = field(default_factory=threading.Event)
     abort: threading.Event = field(default_factory=threading.Event)
     devices: CellDevices | None = None
+    interrupt: threading.Event = field(default_factory=threading.Event)
+    interrupt_reason: str = ""
+    lease_valid_until: float = math.inf
+
+    def check(self) -> None:
+        """Raise :class:`SessionStopped` when the session must not make another move."""
+        if self.abort.is_set():
+            raise SessionStopped("aborted", "aborted on request")
+        if self.interrupt.is_set():
+            raise SessionStopped("interrupted", self.interrupt_reason or "interrupted; resume it to continue")
+        if time.monotonic() >= self.lease_valid_until:
+            raise SessionStopped("interrupted", "this worker could not renew its hold on the cell in time (database "
+                                                "unreachable?); resume the session to continue")
+        if self.pause.is_set():
+            raise SessionStopped("paused", "paused on request")
 
 
 class SessionStopped(Exception):
@@ -57,6 +83,17 @@ class SessionStopped(Exception):
     def __init__(self, state: str, reason: str):
         self.state, self.reason = state, reason
         super().__init__(reason)
+
+
+def database_unavailable(exc: BaseException) -> bool:
+    """The store cannot be reached (connection refused or lost), as opposed to a bad query."""
+    return isinstance(exc, (OperationalError, InterfaceError)) or (
+        isinstance(exc, DBAPIError) and bool(exc.connection_invalidated))
+
+
+def _held_by_other(run: RunSession, owner: str) -> bool:
+    return (run.lease_owner not in (None, owner) and run.lease_expires is not None
+            and _aware(run.lease_expires) > utcnow())
 
 
 def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> CellDevices:
@@ -118,24 +155,27 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
     with Session(engine) as db:
         run = db.get(RunSession, session_id)
         cell = db.get(Cell, run.cell_id)
-        if not acquire_lease(db, run, owner, ttl_s=max(30.0, settings.device_timeout_s * 3)):
+        if not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
+            db.refresh(run)
+            if _held_by_other(run, owner):  # another process runs this very session: leave it alone
+                return run.state
             set_state(db, run, "paused", "another session is driving this cell")
             return "paused"
         try:
             run = ensure_plan(db, run, cell)
         except UnsafePlan as exc:
-            set_state(db, run, "failed", f"unsafe plan: {exc}")
+            _end(db, run, owner, "failed", f"unsafe plan: {exc}")
             return "failed"
         if run.dry_run:
             run.plan_info = {**(run.plan_info or {}), "dry_run": True}
             db.add(run)
-            set_state(db, run, "completed", "dry run: planned and checked, nothing moved")
+            _end(db, run, owner, "completed", "dry run: planned and checked, nothing moved")
             return "completed"
         set_state(db, run, "running", None)
         try:
             devices = open_devices(cell, run, settings)
         except (DeviceError, DeviceConfigError, OSError) as exc:
-            set_state(db, run, "paused", f"cannot open the cell's devices: {exc}")
+            _end(db, run, owner, "paused", f"cannot open the cell's devices: {exc}")
             return "paused"
         control.devices = devices
         final, reason = "completed", None
@@ -154,6 +194,8 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
         except analysis.AnalysisError as exc:
             final, reason = "failed", str(exc)
         except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
+            if database_unavailable(exc):
+                raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
             log.error("session %s failed:\n%s", session_id, traceback.format_exc())
             final, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
         finally:
@@ -161,9 +203,19 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
             # finds them free.
             devices.close()
             control.devices = None
-        db.refresh(run)
-        set_state(db, run, final, reason)
+        db.refresh(run, with_for_update=True)
+        if run.lease_owner not in (None, owner):
+            db.rollback()  # another process took the session over (ours had expired): its state is not ours to write
+            return run.state
+        _end(db, run, owner, final, reason)
         return run.state
+
+
+def _end(db: Session, run: RunSession, owner: str, state: str, reason: str | None) -> None:
+    """The session stops: its state, and the cell's lease given back (a resume may start at once)."""
+    if run.lease_owner == owner:
+        run.lease_expires = utcnow()
+    set_state(db, run, state, reason)
 
 
 def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices, settings: Settings,
@@ -178,10 +230,7 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
     for seq, q in enumerate(plan):
         if seq in done:
             continue
-        if control.abort.is_set():
-            raise SessionStopped("aborted", "aborted on request")
-        if control.pause.is_set():
-            raise SessionStopped("paused", "paused on request")
+        control.check()
         check_configurations(model, q[None, :], cell.allowed_region)
         _retry(lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel,
                                                  timeout_s=max(60.0, settings.device_timeout_s)), "move", settings, control)
@@ -189,11 +238,45 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
             time.sleep(settings.settle_s)
         q_read = _retry(devices.robot.read_joints, "read joints", settings, control)
         rows = _measure_one(run, devices, settings, control, seq, q_read, int(swept[seq]), model, guide)
-        for row in rows:
-            db.add(row)
-        db.commit()  # committed before the next move: a crash loses nothing reported as taken
-        if seq % 10 == 0:
-            acquire_lease(db, run, owner)
+        _commit_measurements(db, rows, settings, control)  # before the next move: a crash loses nothing reported
+        if seq % 10 == 0 and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
+            raise SessionStopped("interrupted", "another process holds this cell now; resume the session to continue")
+
+
+def _commit_measurements(db: Session, rows: list[Measurement], settings: Settings, control: Control) -> None:
+    """Commit one configuration's measurements, retrying while the database is unreachable
+    (at most until the lease would run out: meanwhile the robot does not move)."""
+    data = [r.model_dump(exclude={"id"}) for r in rows]
+    deadline = min(control.lease_valid_until, time.monotonic() + settings.effective_lease_ttl_s)
+    batch, attempt = rows, 0
+    while True:
+        try:
+            db.add_all(batch)
+            db.commit()
+            return
+        except IntegrityError:
+            _rollback(db)
+            if attempt:  # an earlier attempt went through, only its answer was lost: the copy was refused
+                return
+            raise
+        except DBAPIError as exc:
+            if not database_unavailable(exc):
+                raise
+            _rollback(db)
+            attempt += 1
+            delay = min(0.2 * attempt, 2.0)
+            if time.monotonic() + delay >= deadline:
+                raise
+            log.warning("committing a measurement failed (attempt %d), retrying: %s", attempt, exc.orig or exc)
+            time.sleep(delay)
+            batch = [Measurement(**d) for d in data]
+
+
+def _rollback(db: Session) -> None:
+    try:
+        db.rollback()
+    except Exception:  # noqa: BLE001 - a dead connection cannot roll back; the pool replaces it
+        pass
 
 
 def _measure_one(run, devices, settings, control, seq, q_read, joint, model, guide) -> list[Measurement]:
@@ -254,8 +337,20 @@ class Orchestrator:
         try:
             run_session(self.engine, self.settings, session_id, control, owner=self.owner,
                         open_devices=self.open_devices)
-        except Exception:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001
             log.error("session %s crashed:\n%s", session_id, traceback.format_exc())
+            # Never leave it planned or running with nobody on it (that would hold the cell):
+            # the store failing under it is not the session's fault (interrupted, resumable).
+            state, reason = (("interrupted", f"the database failed during the session ({type(exc).__name__}); "
+                                             f"resume it to continue") if database_unavailable(exc)
+                             else ("failed", f"internal error: {type(exc).__name__}: {exc}"))
+            try:
+                with Session(self.engine) as db:
+                    run = db.get(RunSession, session_id)
+                    if run is not None and run.state in ("planned", "running"):
+                        set_state(db, run, state, reason)
+            except Exception:  # noqa: BLE001 - still unreachable: the next start interrupts it
+                pass
 
     def is_active(self, session_id: int) -> bool:
         t = self._threads.get(session_id)
@@ -292,3 +387,13 @@ class Orchestrator:
             control.pause.set()
         for thread, _ in list(self._threads.values()):
             thread.join(timeout_s)
+
+
+def orchestrator_class(settings: Settings):
+    """The orchestrator the settings ask for: the embedded default, or the fleet's
+    (``RECAL_ENGINE=procrastinate``: sessions run by ``recal worker`` processes, docs/fleet.md)."""
+    if settings.engine == "embedded":
+        return Orchestrator
+    from .fleet.orchestrator import FleetOrchestrator
+
+    return FleetOrchestrator

@@ -93,3 +93,29 @@ def start_service(home: Path, port: int, *, env: dict | None = None, timeout_s: 
             time.sleep(0.1)
     p.kill()
     raise RuntimeError(f"recal serve did not answer on {url} within {timeout_s} s")
+
+
+def start_worker(home: Path, sites: list[str] | None, *, env: dict | None = None, name: str = "worker",
+                 concurrency: int = 8, timeout_s: float = 60.0, log_path: Path | None = None) -> Proc:
+    """``recal worker`` (the fleet, docs/fleet.md) in its own process; returns once it printed
+    its ready line (``ready`` holds it: ``owner``, ``pid``...)."""
+    e = {**os.environ, "RECAL_HOME": str(home), "RECAL_ENGINE": "procrastinate", **(env or {})}
+    err = open(log_path, "ab") if log_path else subprocess.DEVNULL
+    site_args = ["--all-sites"] if sites is None else [a for s in sites for a in ("--site", s)]
+    p = subprocess.Popen(_recal() + ["worker", *site_args, "--name", name, "--concurrency", str(concurrency)],
+                         env=e, stdout=subprocess.PIPE, stderr=err, text=True)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = p.stdout.readline()
+        if line.strip():
+            try:
+                return Proc(p, json.loads(line), log_path)
+            except json.JSONDecodeError:
+                p.kill()
+                raise RuntimeError(f"recal worker printed {line!r} instead of its ready line") from None
+        if p.poll() is not None:
+            raise RuntimeError(f"recal worker exited with status {p.returncode} before it was ready"
+                               + (f" (log: {log_path})" if log_path else ""))
+    p.kill()
+    raise RuntimeError(f"recal worker was not ready within {timeout_s} s")
+

@@ -89,7 +89,7 @@ _cache: OrderedDict[int, dict] = OrderedDict()
 _cache_lock = threading.Lock()
 
 
-def _cached(key: int, compute) -> dict:
+def _cached(key, compute) -> dict:
     with _cache_lock:
         if key in _cache:
             _cache.move_to_end(key)
@@ -171,7 +171,8 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
 
 def calibration_result(db: Session, cal: Calibration) -> dict:
     """Everything the result page shows about one calibration (cached)."""
-    return _cached(int(cal.id), lambda: _calibration_result(db, cal))
+    key = (str(db.get_bind().url), int(cal.id), str(cal.created_at))
+    return _cached(key, lambda: _calibration_result(db, cal))
 
 
 def _calibration_result(db: Session, cal: Calibration) -> dict:
@@ -291,9 +292,15 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
     info = run.plan_info or {}
     L = model_from_dict(cell.model).units.length_m
     sigma_m = 20e-6
+    note = (f"RMS position error of the identified model over random configurations, predicted for an "
+            f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis")
     if "predicted_rms_m" in info:
-        return {"rms": _r(info["predicted_rms_m"] / L), "p95": _r(info.get("predicted_p95_m", float("nan")) / L),
-                "sigma": _r(sigma_m / L), "source": "planner"}
+        un = info.get("unidentifiable")
+        return {"available": True, "rms": _r(info["predicted_rms_m"] / L),
+                "p95": _r(info.get("predicted_p95_m", float("nan")) / L),
+                "max": _r(info.get("predicted_max_m", float("nan")) / L), "sigma": _r(sigma_m / L),
+                "unidentifiable": len(un) if isinstance(un, list) else None,
+                "unidentifiable_names": un if isinstance(un, list) else None, "source": "planner", "note": note}
     try:
         from calibration import planning
     except ImportError:  # pragma: no cover
@@ -307,9 +314,8 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
         return {"available": False, "reason": str(exc)}
     return {"available": bool(res.success), "rms": _r(res.predicted_rms_m / L), "p95": _r(res.predicted_p95_m / L),
             "max": _r(res.predicted_max_m / L), "sigma": _r(sigma_m / L), "identifiable": len(res.params),
-            "unidentifiable": len(res.unidentifiable), "message": res.message,
-            "note": f"RMS position error of the identified model over random configurations, predicted for an "
-                    f"instrument with {sigma_m / L:.3g} {model.units.length} noise per axis"}
+            "unidentifiable": len(res.unidentifiable), "message": res.message, "source": "these configurations",
+            "note": note}
 
 
 # --------------------------------------------------------------------------- live session

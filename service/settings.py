@@ -7,12 +7,18 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+ENGINES = ("embedded", "procrastinate")
+
 
 @dataclass(frozen=True)
 class Settings:
     """``database_url``: any SQLAlchemy URL; default an embedded SQLite file in ``home``.
     ``home``: the data directory (``RECAL_HOME``, default ``~/.recal``).
-    Safety caps apply to every session whatever it asks for."""
+    Safety caps apply to every session whatever it asks for.
+    ``engine``: ``embedded`` (sessions run in threads of the API process, the default) or
+    ``procrastinate`` (sessions run by ``recal worker`` processes, docs/fleet.md).
+    ``lease_ttl_s``: how long a session's hold on its cell lasts unless renewed; default
+    ``max(30, 3 * device_timeout_s)``."""
 
     home: Path = field(default_factory=lambda: Path(os.path.expanduser("~/.recal")))
     database_url: str | None = None
@@ -22,6 +28,12 @@ class Settings:
     device_retries: int = 2
     retry_backoff_s: float = 0.5
     device_timeout_s: float = 10.0
+    engine: str = "embedded"
+    lease_ttl_s: float | None = None
+
+    @property
+    def effective_lease_ttl_s(self) -> float:
+        return self.lease_ttl_s if self.lease_ttl_s else max(30.0, self.device_timeout_s * 3)
 
     @property
     def effective_database_url(self) -> str:
@@ -37,6 +49,11 @@ class Settings:
             kw["home"] = Path(env["RECAL_HOME"]).expanduser()
         if env.get("RECAL_DATABASE_URL"):
             kw["database_url"] = env["RECAL_DATABASE_URL"]
+        if env.get("RECAL_ENGINE"):
+            kw["engine"] = env["RECAL_ENGINE"].strip().lower()
+            if kw["engine"] not in ENGINES:
+                raise ValueError(f"environment variable RECAL_ENGINE: expected one of {', '.join(ENGINES)}, "
+                                 f"got {env['RECAL_ENGINE']!r}")
         for name, key, conv in (
             ("max_joint_speed_rad_s", "RECAL_MAX_JOINT_SPEED", float),
             ("max_joint_accel_rad_s2", "RECAL_MAX_JOINT_ACCEL", float),
@@ -44,6 +61,7 @@ class Settings:
             ("device_retries", "RECAL_DEVICE_RETRIES", int),
             ("retry_backoff_s", "RECAL_RETRY_BACKOFF_S", float),
             ("device_timeout_s", "RECAL_DEVICE_TIMEOUT_S", float),
+            ("lease_ttl_s", "RECAL_LEASE_TTL_S", float),
         ):
             if env.get(key):
                 try:

@@ -59,13 +59,29 @@ def _v1(conn) -> None:
     SQLModel.metadata.create_all(conn)
 
 
-MIGRATIONS: list[Callable] = [_v1]
+def _v2(conn) -> None:
+    """Sessions run by other processes (docs/fleet.md): ``session.requested`` carries a pause or
+    abort request to the process running the session; at most one active (planned or running,
+    not a dry run) session per cell, enforced by the database for any number of API processes."""
+    if "requested" not in {c["name"] for c in inspect(conn).get_columns("session")}:
+        conn.execute(text("ALTER TABLE session ADD COLUMN requested VARCHAR"))
+    active = "state IN ('planned', 'running') AND NOT dry_run"
+    dupes = conn.execute(text(f"SELECT cell_id, MAX(id) FROM session WHERE {active} GROUP BY cell_id HAVING COUNT(*) > 1"))
+    for cell_id, keep in dupes.all():  # cannot happen through the API; a damaged store could have them
+        conn.execute(text(f"UPDATE session SET state = 'interrupted', reason = 'another session was driving this cell' "
+                          f"WHERE cell_id = :c AND id <> :k AND {active}"), {"c": cell_id, "k": keep})
+    conn.execute(text(f"CREATE UNIQUE INDEX IF NOT EXISTS uq_session_active_cell ON session (cell_id) WHERE {active}"))
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
 def migrate(engine: Engine) -> int:
     """Bring the database to the current schema; returns the version."""
     with engine.begin() as conn:
+        if conn.dialect.name == "postgresql":  # several processes may start at once (docs/fleet.md)
+            conn.execute(text("SELECT pg_advisory_xact_lock(72430111)"))
         if not inspect(conn).has_table("schema_version"):
             current = 0
         else:
@@ -154,14 +170,23 @@ def last_calibration(db: Session, cell_id: int, *, kind: str | None = None) -> C
 def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30.0) -> bool:
     """Take (or renew) the exclusive right to drive ``run``'s cell. At most one session per cell
     holds a live lease; the check and the write happen in one transaction."""
+    # Lock the cell's row first: two processes taking leases on one cell queue up here.
+    db.exec(select(Cell.id).where(Cell.id == run.cell_id).with_for_update()).first()
     now = utcnow()
     others = db.exec(
         select(RunSession).where(RunSession.cell_id == run.cell_id, RunSession.id != run.id,
-                                 RunSession.state == "running")
+                                 RunSession.state.in_(("planned", "running")),
+                                 (RunSession.state == "running") | (RunSession.dry_run == False))  # noqa: E712
     ).all()
     for other in others:
         if other.lease_expires is not None and _aware(other.lease_expires) > now:
+            db.rollback()
             return False
+    db.refresh(run)
+    if (run.lease_owner not in (None, owner) and run.lease_expires is not None
+            and _aware(run.lease_expires) > now):  # another process holds this very session
+        db.rollback()
+        return False
     run.lease_owner = owner
     run.lease_expires = now + timedelta(seconds=ttl_s)
     db.add(run)

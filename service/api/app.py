@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from sqlmodel import Session
 
-from ..orchestrator import Orchestrator
+from ..orchestrator import orchestrator_class
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
 from .routes import calibrations, cells, results, sessions, system, web, workbench
@@ -31,13 +31,15 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
     async def lifespan(app: FastAPI):
         engine = make_engine(settings.effective_database_url)
         migrate(engine)
-        with Session(engine) as db:
-            stopped = interrupt_unfinished(db)
-        if stopped:
-            log.warning("sessions interrupted by the last stop: %s (resume them to continue)", stopped)
+        factory = orchestrator_factory or orchestrator_class(settings)
+        if not getattr(factory, "distributed", False):  # a fleet's sessions run on, in its workers
+            with Session(engine) as db:
+                stopped = interrupt_unfinished(db)
+            if stopped:
+                log.warning("sessions interrupted by the last stop: %s (resume them to continue)", stopped)
         app.state.engine = engine
         app.state.settings = settings
-        app.state.orchestrator = (orchestrator_factory or Orchestrator)(engine, settings)
+        app.state.orchestrator = factory(engine, settings)
         try:
             yield
         finally:

@@ -1,4 +1,5 @@
 """``recal nightly --cell CELL``: check a cell's accuracy and recalibrate it when it drifted.
+``recal nightly --all [--site SITE ...]``: the same for every cell (of those sites), all at once.
 
 Through the REST API with a ``job`` token (``RECAL_TOKEN`` or ``--token-file``): a ``verify``
 session; if its RMS error exceeds the cell's ``drift_threshold`` (or ``--threshold``), a ``pose``
@@ -8,12 +9,20 @@ with the cell compensated again. Prints one line fit for cron or a systemd timer
 Exit status: 0 the cell is within its threshold; 10 it drifted and was recalibrated;
 1 a session failed, paused or timed out (a person must look); 2 bad arguments;
 3 the service cannot be reached or refused the token.
+
+With ``--all`` (or ``--site`` alone) every cell's check runs concurrently (the fleet's workers
+share them out; ``--parallel`` caps how many at once) and a summary table is printed when all
+are done, then the line of each cell that needs a person. Exit status: 3 if the service could
+not be reached for any cell, else 1 if any cell needs a person, else 10 if any was
+recalibrated, else 0.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
 
 from service.client import Api, ApiError, ServiceError
 
@@ -21,7 +30,13 @@ EXIT_OK, EXIT_RECALIBRATED, EXIT_FAILED, EXIT_USAGE, EXIT_SERVICE = 0, 10, 1, 2,
 
 
 def add_parser(s) -> None:
-    s.add_argument("--cell", required=True, help="cell id or name")
+    which = s.add_mutually_exclusive_group()
+    which.add_argument("--cell", help="cell id or name")
+    which.add_argument("--all", action="store_true", help="every cell (of the --site sites, if given)")
+    s.add_argument("--site", action="append", default=[], metavar="SITE",
+                   help="with --all (or alone): only the cells of this site (repeatable)")
+    s.add_argument("--parallel", type=int, default=0, help="with --all: at most this many cells at once "
+                   "(default: every cell at once; the workers' concurrency is the real limit)")
     s.add_argument("--url", default=os.environ.get("RECAL_URL", "http://127.0.0.1:8000"), help="service URL")
     s.add_argument("--token-file", help="file holding the job token (default: $RECAL_TOKEN)")
     s.add_argument("--verify-count", type=int, default=12, help="configurations of the verify session")
@@ -44,31 +59,112 @@ def _find_cell(api: Api, ref: str) -> dict:
 def nightly(api: Api, cell_ref: str, *, verify_count: int, count: int, threshold: float | None, timeout_s: float,
             device: str) -> tuple[int, str]:
     """Run the nightly check of one cell; returns (exit status, one-line summary)."""
-    cell = _find_cell(api, cell_ref)
+    r = check_cell(api, _find_cell(api, cell_ref), verify_count=verify_count, count=count, threshold=threshold,
+                   timeout_s=timeout_s, device=device)
+    return r["status"], r["line"]
+
+
+def check_cell(api: Api, cell: dict, *, verify_count: int, count: int, threshold: float | None, timeout_s: float,
+               device: str, poll_s: float = 0.2) -> dict:
+    """The nightly check of one cell: ``{"status", "line", "result", "verify_rms", "unit",
+    "threshold", "calibration_id", "tasks"}``."""
     name = cell["name"]
     unit = cell["model"].get("units", {}).get("length", "")
     limit = threshold if threshold is not None else cell.get("drift_threshold")
+    out = {"cell": name, "site": cell.get("site", ""), "unit": unit, "threshold": limit, "verify_rms": None,
+           "calibration_id": None, "tasks": None}
+
+    def done(status: int, result: str, line: str) -> dict:
+        return {**out, "status": status, "result": result, "line": line}
+
     v = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "verify", "count": verify_count, "device": device})
-    v = api.wait_session(v["id"], timeout_s)
+    v = api.wait_session(v["id"], timeout_s, poll_s=poll_s)
     if v["state"] != "completed":
-        return EXIT_FAILED, f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip()
-    rms = v["plan_info"]["verify"]["rms"]
+        return done(EXIT_FAILED, f"verify {v['state']}",
+                    f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip())
+    rms = out["verify_rms"] = v["plan_info"]["verify"]["rms"]
     if limit is None or rms <= limit:
         lim = "no threshold set" if limit is None else f"threshold {limit:g} {unit}"
-        return EXIT_OK, f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}); nothing to do"
+        return done(EXIT_OK, "accurate", f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}); nothing to do")
     p = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "pose", "count": count, "device": device})
-    p = api.wait_session(p["id"], timeout_s)
+    p = api.wait_session(p["id"], timeout_s, poll_s=poll_s)
     if p["state"] != "completed" or p.get("calibration_id") is None:
-        return EXIT_FAILED, (f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}); recalibration session "
-                             f"{p['id']} {p['state']}: {p.get('reason') or ''}").strip()
+        return done(EXIT_FAILED, f"drifted, recalibration {p['state']}",
+                    (f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}); recalibration session "
+                     f"{p['id']} {p['state']}: {p.get('reason') or ''}").strip())
     cal = api.call("GET", f"/calibrations/{p['calibration_id']}")
+    out["calibration_id"] = cal["id"]
     tasks = api.call("POST", f"/cells/{cell['id']}/tasks/compensate?calibration_id={cal['id']}")
     failed = [t for t in tasks["tasks"] if "error" in t]
+    out["tasks"] = len(tasks["tasks"]) - len(failed)
     msg = (f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}) -> recalibrated: calibration {cal['id']}, "
            f"residual RMS {cal['rms']:.4g} {unit}; {len(tasks['tasks']) - len(failed)} task files compensated")
     if failed:
-        return EXIT_FAILED, msg + f", {len(failed)} failed ({failed[0]['name']}: {failed[0]['error']})"
-    return EXIT_RECALIBRATED, msg
+        return done(EXIT_FAILED, f"recalibrated, {len(failed)} task files failed",
+                    msg + f", {len(failed)} failed ({failed[0]['name']}: {failed[0]['error']})")
+    return done(EXIT_RECALIBRATED, f"recalibrated (RMS {cal['rms']:.4g} {unit})", msg)
+
+
+def nightly_fleet(api: Api, sites: list[str], *, parallel: int, **kw) -> tuple[int, str]:
+    """The nightly check of every cell (of ``sites``), concurrently; (exit status, report)."""
+    if sites:
+        cells = [c for site in dict.fromkeys(sites) for c in api.call("GET", f"/cells?site={_quote(site)}")]
+    else:
+        cells = api.call("GET", "/cells")
+    if not cells:
+        return EXIT_OK, "no cells" + (f" in site {', '.join(sites)}" if sites else "")
+    kw.setdefault("poll_s", min(5.0, 0.5 + len(cells) / 50))  # keep the polling load on the API moderate
+
+    def one(cell: dict) -> dict:
+        t0 = time.monotonic()
+        try:
+            r = check_cell(api, cell, **kw)
+        except ServiceError as exc:
+            r = {"cell": cell["name"], "site": cell.get("site", ""), "status": EXIT_SERVICE, "result": "service error",
+                 "line": f"{cell['name']}: {exc}", "verify_rms": None, "unit": "", "threshold": None,
+                 "calibration_id": None, "tasks": None}
+        except ApiError as exc:
+            what = "busy" if exc.status == 409 else f"error {exc.status}"
+            r = {"cell": cell["name"], "site": cell.get("site", ""), "status": EXIT_FAILED, "result": what,
+                 "line": f"{cell['name']}: {exc}", "verify_rms": None, "unit": "", "threshold": None,
+                 "calibration_id": None, "tasks": None}
+        r["seconds"] = time.monotonic() - t0
+        return r
+
+    width = len(cells) if parallel <= 0 else min(parallel, len(cells))
+    with ThreadPoolExecutor(max_workers=min(width, 512), thread_name_prefix="nightly") as pool:
+        results = list(pool.map(one, cells))
+    statuses = {r["status"] for r in results}
+    status = (EXIT_SERVICE if EXIT_SERVICE in statuses else EXIT_FAILED if EXIT_FAILED in statuses
+              else EXIT_RECALIBRATED if EXIT_RECALIBRATED in statuses else EXIT_OK)
+    return status, _report(results)
+
+
+def _quote(s: str) -> str:
+    from urllib.parse import quote
+
+    return quote(s, safe="")
+
+
+def _report(results: list[dict]) -> str:
+    def fmt(v, unit=""):
+        return "-" if v is None else f"{v:.4g} {unit}".strip() if isinstance(v, float) else str(v)
+
+    rows = [("cell", "site", "verify RMS", "threshold", "result", "calibration", "tasks", "time")]
+    for r in results:
+        rows.append((r["cell"], r["site"], fmt(r["verify_rms"], r["unit"]), fmt(r["threshold"]), r["result"],
+                     fmt(r["calibration_id"]), fmt(r["tasks"]), f"{r['seconds']:.1f} s"))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    n = {k: sum(r["status"] == k for r in results) for k in (EXIT_OK, EXIT_RECALIBRATED, EXIT_FAILED, EXIT_SERVICE)}
+    lines.append("")
+    lines.append(f"{len(results)} cells: {n[EXIT_OK]} accurate, {n[EXIT_RECALIBRATED]} recalibrated, "
+                 f"{n[EXIT_FAILED] + n[EXIT_SERVICE]} need a person")
+    for r in results:
+        if r["status"] in (EXIT_FAILED, EXIT_SERVICE):
+            lines.append("  " + r["line"])
+    return "\n".join(lines)
 
 
 def run(args) -> int:
@@ -82,10 +178,21 @@ def run(args) -> int:
     if not token:
         print("recal nightly: no token: set RECAL_TOKEN or pass --token-file (a `job` token)", file=sys.stderr)
         return EXIT_USAGE
+    if args.cell is None and not args.all and not args.site:
+        print("recal nightly: say which cells: --cell CELL, --all, or --site SITE", file=sys.stderr)
+        return EXIT_USAGE
     api = Api(args.url, token)
     try:
-        status, line = nightly(api, args.cell, verify_count=args.verify_count, count=args.count,
-                               threshold=args.threshold, timeout_s=args.timeout, device=args.device)
+        if args.cell is not None:
+            if args.site:
+                print("recal nightly: --site goes with --all, not --cell", file=sys.stderr)
+                return EXIT_USAGE
+            status, line = nightly(api, args.cell, verify_count=args.verify_count, count=args.count,
+                                   threshold=args.threshold, timeout_s=args.timeout, device=args.device)
+        else:
+            status, line = nightly_fleet(api, args.site, parallel=args.parallel, verify_count=args.verify_count,
+                                         count=args.count, threshold=args.threshold, timeout_s=args.timeout,
+                                         device=args.device)
     except ServiceError as exc:
         print(f"recal nightly: {exc}", file=sys.stderr)
         return EXIT_SERVICE

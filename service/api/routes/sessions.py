@@ -7,6 +7,7 @@ import json
 
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import StreamingResponse
+from sqlalchemy.exc import IntegrityError
 from sqlmodel import Session, select
 
 from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token
@@ -54,7 +55,11 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
                      dry_run=body.dry_run, created_by=tok.name,
                      plan_info={"joints": body.joints} if body.joints else None)
     db.add(run)
-    db.commit()
+    try:
+        db.commit()
+    except IntegrityError:  # another request (any API process) started one on this cell meanwhile
+        db.rollback()
+        raise HTTPException(409, "another session is already driving this cell") from None
     db.refresh(run)
     audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
           detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run})
@@ -83,7 +88,11 @@ def resume(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrat
                                             RunSession.state.in_(ACTIVE))).first()
     if busy is not None:
         raise HTTPException(409, f"session {busy.id} is driving this cell")
-    set_state(db, run, "planned", None)
+    try:
+        set_state(db, run, "planned", None)
+    except IntegrityError:
+        db.rollback()
+        raise HTTPException(409, "another session is driving this cell") from None
     audit(db, actor=tok.name, action="resume session", subject=f"session {session_id}")
     orchestrator.start(run.id)
     return public_session(db, run)

@@ -157,7 +157,7 @@ def library(tok: Reader) -> list[dict]:
     out = []
     for name in robots.names():
         doc = robots.nominal_document(name)
-        out.append({"name": name, **_robot(doc)})
+        out.append({**_robot(doc), "name": name, "model_name": doc.get("name")})
     return out
 
 

@@ -1,0 +1,289 @@
+"""Benchmark of the fleet (issue "A fleet of cells", target: 50 cells through two workers,
+engine overhead under 10 % of the embedded default's per-session time).
+
+N simulated cells (``recal fake-cell``, time scale 0: moves are instant, so what is measured is
+the software) each get the nightly job's work: a verify session, then (every cell is off: they
+were never calibrated) a recalibration (pose) session, driven by ``recal nightly --all`` as in
+production. Three set-ups on the same cells:
+
+- ``embedded``: the embedded default, one ``recal serve`` process on SQLite, sessions in its
+  threads (at most ``--embedded-parallel`` cells at once: each running session holds one of the
+  process's 15 pooled database connections, so 50 at once fail with a pool timeout);
+- ``embedded-pg``: the same on PostgreSQL (separates the store's share from the engine's);
+- ``fleet``: ``RECAL_ENGINE=procrastinate`` on PostgreSQL, two API processes, two workers
+  (``recal worker --site a --site b``), the cells in sites ``a`` and ``b``; one
+  ``recal nightly --all --site ...`` per site, each against its own API process.
+
+For each: the wall time of the whole run; per session (from the store's timestamps: created
+by the API -> final state written) the mean and median time; the count of sessions and
+measurements (checked: every configuration exactly once). Then a sequential run (one cell,
+``--sequential`` rounds of verify + pose, one session at a time, nothing else running) gives
+each set-up's per-session time without contention: the fleet's minus the embedded default's
+is the engine's per-session overhead (queueing through PostgreSQL, the worker's claim, lease
+and monitor).
+
+Run: ``python bench/fleet.py`` (a few minutes; needs PostgreSQL: ``--postgres URL``, default
+``$RECAL_TEST_POSTGRES_URL`` or postgres@127.0.0.1). Cells listen on ``--host-prefix``
+(default 127.0.3.) 1..N.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import create_engine, text
+from sqlalchemy.pool import NullPool
+from sqlmodel import Session
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from calibration import robots  # noqa: E402
+from calibration.simulate import perturbed  # noqa: E402
+from service.client import Api  # noqa: E402
+from service.files import save_model  # noqa: E402
+from service.processes import free_port, start_fake_cell, start_service, start_worker  # noqa: E402
+from service.store import create_token, make_engine, migrate  # noqa: E402
+
+ENV = {"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05", "OPENBLAS_NUM_THREADS": "1"}
+
+
+def models(d: Path) -> dict:
+    rng = np.random.default_rng(11)
+    nominal = dataclasses.replace(robots.nominal("ur5e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    truth = perturbed(nominal, rng, tool_length_m=0.0)
+    save_model(d / "nominal.json", nominal)
+    save_model(d / "truth.json", truth)
+    return {"nominal": d / "nominal.json", "truth": d / "truth.json"}
+
+
+class Database:
+    def __init__(self, admin_url: str):
+        self.admin_url = admin_url
+        self.name = f"recal_bench_{uuid.uuid4().hex[:10]}"
+        self._admin(f'CREATE DATABASE "{self.name}"')
+        self.url = f"{admin_url.rpartition('/')[0]}/{self.name}"
+
+    def _admin(self, *sql):
+        eng = create_engine(self.admin_url, isolation_level="AUTOCOMMIT", poolclass=NullPool)
+        with eng.connect() as conn:
+            for q in sql:
+                conn.execute(text(q))
+        eng.dispose()
+
+    def drop(self):
+        self._admin(f"SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = '{self.name}'",
+                    f'DROP DATABASE IF EXISTS "{self.name}"')
+
+
+def session_stats(db_url: str, exclude=()) -> dict:
+    """Sessions and measurements in the store; times of the sessions that completed in one go."""
+    eng = make_engine(db_url)
+    with eng.connect() as conn:
+        rows = conn.execute(text("SELECT kind, state, created_at, updated_at, id FROM session ORDER BY id")).all()
+        meas = conn.execute(text("SELECT count(*), (SELECT count(*) FROM (SELECT DISTINCT session_id, seq "
+                                 "FROM measurement) AS d) FROM measurement")).one()
+    eng.dispose()
+
+    def secs(r):
+        a, b = r[2], r[3]
+        if isinstance(a, str):  # SQLite hands back text
+            from datetime import datetime
+            a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
+        return (b - a).total_seconds()
+
+    out = {"sessions": len(rows), "states": {}, "measurements": meas[0], "distinct_configurations": meas[1]}
+    for r in rows:
+        out["states"][r[1]] = out["states"].get(r[1], 0) + 1
+    timed = [r for r in rows if r[1] == "completed" and r[4] not in exclude]
+    for kind in ("verify", "pose"):
+        t = [secs(r) for r in timed if r[0] == kind]
+        if t:
+            out[kind] = {"n": len(t), "mean_s": statistics.fmean(t), "median_s": statistics.median(t),
+                         "max_s": max(t)}
+    t = [secs(r) for r in timed]
+    out["all"] = {"n": len(t), "mean_s": statistics.fmean(t), "median_s": statistics.median(t)} if t else {}
+    return out
+
+
+def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: Path) -> dict:
+    home = Path(tempfile.mkdtemp(prefix=f"recal-bench-{mode}-"))
+    db = Database(pg_admin) if mode in ("embedded-pg", "fleet") else None
+    env = dict(ENV)
+    if db is not None:
+        env["RECAL_DATABASE_URL"] = db.url
+    db_url = db.url if db is not None else f"sqlite:///{home / 'recal.db'}"
+    procs = []
+    try:
+        engine = make_engine(db_url)
+        migrate(engine)
+        with Session(engine) as s:
+            tokens = {r: create_token(s, role=r, name=r)[1] for r in ("technician", "job")}
+        engine.dispose()
+        n_api = 2 if mode == "fleet" else 1
+        if mode == "fleet":
+            env["RECAL_ENGINE"] = "procrastinate"
+        apis = []
+        for i in range(n_api):
+            apis.append(start_service(home, free_port(), env=env, log_path=log_dir / f"{mode}-api{i}.log"))
+        procs += apis
+        if mode == "fleet":
+            per = -(-len(fakes) // args.workers)
+            for i in range(args.workers):
+                procs.append(start_worker(home, ["a", "b"], env=env, name=f"w{i + 1}", concurrency=per,
+                                          log_path=log_dir / f"{mode}-w{i + 1}.log"))
+        nominal = json.loads(mdl["nominal"].read_text())
+        api = Api(apis[0].ready["url"], tokens["technician"])
+        cells = [api.call("POST", "/cells", {"name": f"cell{i:03d}", "site": "ab"[i % 2], "model": nominal,
+                                              "devices": f.ready, "drift_threshold": 0.1})
+                 for i, f in enumerate(fakes)]
+        # the nightly run of the whole fleet
+        nenv = {**os.environ, "RECAL_TOKEN": tokens["job"]}
+        common = ["--verify-count", str(args.verify_count), "--count", str(args.count), "--timeout", "1800"]
+        if mode == "fleet":
+            cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--site", site,
+                     "--url", apis[i % n_api].ready["url"], *common] for i, site in enumerate(("a", "b"))]
+        else:  # one process, one connection pool (5 + 10): at most that many sessions at once
+            cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--url", apis[0].ready["url"],
+                     "--parallel", str(args.embedded_parallel), *common]]
+        t0 = time.monotonic()
+        runs = [subprocess.Popen(c, env=nenv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                for c in cmds]
+        outs = [r.communicate()[0] for r in runs]
+        wall = time.monotonic() - t0
+        (log_dir / f"{mode}-nightly.txt").write_text("\n\n".join(outs))
+        result = {"mode": mode, "cells": len(cells), "wall_s": wall,
+                  "nightly_exit": [r.returncode for r in runs],
+                  "summary": [next((ln for ln in o.splitlines() if " cells: " in ln), "") for o in outs],
+                  "concurrent": session_stats(db_url)}
+        result["concurrent_incomplete"] = sum(v for k, v in result["concurrent"]["states"].items() if k != "completed")
+        eng = make_engine(db_url)
+        with eng.connect() as conn:
+            nightly_last = conn.execute(text("SELECT max(id) FROM session")).scalar()
+        eng.dispose()
+        # sequential: one cell, one session at a time
+        cell = cells[0]
+        resumed = set()  # sessions a device fault paused (resumed, left out of the times)
+        for _ in range(args.sequential):
+            for kind, n in (("verify", args.verify_count), ("pose", args.count)):
+                s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": kind, "count": n})
+                s = api.wait_session(s["id"], 300, poll_s=0.05)
+                for _attempt in range(3):
+                    if s["state"] != "paused":
+                        break
+                    print(f"  session {s['id']} paused ({s['reason']}): resumed, not timed", file=sys.stderr)
+                    resumed.add(s["id"])
+                    api.call("POST", f"/sessions/{s['id']}/resume")
+                    s = api.wait_session(s["id"], 300, poll_s=0.05)
+                assert s["state"] == "completed", s
+        stats = session_stats(db_url)
+        eng = make_engine(db_url)
+        with eng.connect() as conn:
+            rows = [r for r in conn.execute(text("SELECT kind, created_at, updated_at, id FROM session "
+                                                 "WHERE cell_id = :c ORDER BY id"), {"c": cell["id"]}).all()
+                    if r[3] > nightly_last and r[3] not in resumed]
+        eng.dispose()
+
+        def secs(r):
+            a, b = r[1], r[2]
+            if isinstance(a, str):
+                from datetime import datetime
+                a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
+            return (b - a).total_seconds()
+
+        for kind in ("verify", "pose"):
+            t = [secs(r) for r in rows if r[0] == kind]
+            result.setdefault("sequential", {})[kind] = {"n": len(t), "mean_s": statistics.fmean(t),
+                                                          "median_s": statistics.median(t)}
+        result["checks"] = {"measurements": stats["measurements"], "distinct": stats["distinct_configurations"],
+                            "sequential_resumed": len(resumed)}
+        return result
+    finally:
+        for p in reversed(procs):
+            p.stop(30)
+        if db is not None:
+            db.drop()
+
+
+def machine() -> dict:
+    cpu = ""
+    try:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    info = {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "os": platform.platform()}
+    try:
+        import procrastinate
+        info["procrastinate"] = procrastinate.__version__ if hasattr(procrastinate, "__version__") else \
+            __import__("importlib.metadata").metadata.version("procrastinate")
+    except ImportError:
+        pass
+    return info
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cells", type=int, default=50)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--verify-count", type=int, default=12)
+    ap.add_argument("--count", type=int, default=30)
+    ap.add_argument("--sequential", type=int, default=10, help="rounds of verify + pose, one session at a time")
+    ap.add_argument("--modes", default="embedded,embedded-pg,fleet")
+    ap.add_argument("--embedded-parallel", type=int, default=10,
+                    help="cells at once in the embedded set-ups (its connection pool holds 15; 50 at once "
+                         "exhaust it)")
+    ap.add_argument("--host-prefix", default="127.0.3.")
+    ap.add_argument("--postgres", default=os.environ.get("RECAL_TEST_POSTGRES_URL",
+                                                         "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"))
+    ap.add_argument("--out", help="write the results as JSON here")
+    args = ap.parse_args(argv)
+    log_dir = Path(tempfile.mkdtemp(prefix="recal-bench-fleet-"))
+    print(f"logs: {log_dir}", file=sys.stderr)
+    mdl = models(log_dir)
+    hosts = [f"{args.host_prefix}{i}" for i in range(1, args.cells + 1)]
+    with ThreadPoolExecutor(16) as pool:
+        fakes = list(pool.map(lambda h: start_fake_cell(mdl["truth"], h, time_scale=0.0, timeout_s=120,
+                                                        log_path=log_dir / f"cell-{h}.log"), hosts))
+    results = {"machine": machine(), "args": vars(args), "setups": []}
+    try:
+        for mode in args.modes.split(","):
+            print(f"{mode}: {args.cells} cells ...", file=sys.stderr, flush=True)
+            r = run_setup(mode, fakes, mdl, args, args.postgres, log_dir)
+            results["setups"].append(r)
+            c, s = r["concurrent"], r["sequential"]
+            print(f"  wall {r['wall_s']:.1f} s; per session (concurrent) verify {c['verify']['mean_s']:.3f} s, pose "
+                  f"{c['pose']['mean_s']:.3f} s; sequential verify {s['verify']['mean_s']:.3f} s, pose "
+                  f"{s['pose']['mean_s']:.3f} s; {r['summary']}", file=sys.stderr, flush=True)
+    finally:
+        for f in fakes:
+            f.stop()
+    by = {r["mode"]: r for r in results["setups"]}
+    if "embedded" in by and "fleet" in by:
+        e, f = by["embedded"], by["fleet"]
+        seq_e = statistics.fmean([e["sequential"][k]["mean_s"] for k in ("verify", "pose")])
+        seq_f = statistics.fmean([f["sequential"][k]["mean_s"] for k in ("verify", "pose")])
+        con_e, con_f = e["concurrent"]["all"]["mean_s"], f["concurrent"]["all"]["mean_s"]
+        results["overhead"] = {
+            "sequential_per_session_s": seq_f - seq_e, "sequential_pct": 100 * (seq_f - seq_e) / seq_e,
+            "concurrent_per_session_s": con_f - con_e, "concurrent_pct": 100 * (con_f - con_e) / con_e,
+            "wall_pct": 100 * (f["wall_s"] - e["wall_s"]) / e["wall_s"]}
+    print(json.dumps(results, indent=2, default=str))
+    if args.out:
+        Path(args.out).write_text(json.dumps(results, indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,197 @@
+// A session, live: progress from the server-sent events, residuals so far, device state, time
+// remaining; pause, resume and abort with a confirmation; the reason when it stops.
+
+import { can, get, post, sessionEvents } from "../api.js";
+import { COLORS, chart, sizes } from "../plots.js";
+import { add, badge, busy, card, clear, put, confirmDialog, duration, h, kv, notify, num, when } from "../ui.js";
+
+const TERMINAL = ["completed", "failed", "aborted"];
+const KIND_NAMES = { pose: "Calibration (pose) session", verify: "Verification session", joint: "Joint encoder session",
+                     circle: "Circle-point session" };
+
+export async function live(ctx, id) {
+  let s = await get(`/sessions/${id}`);
+  const cell = await get(`/cells/${s.cell_id}/summary`);
+  if (!ctx.alive()) return;
+  ctx.crumbs([["Cells", "#/"], [cell.name, `#/cells/${cell.id}`], [`Session ${id}`, null]]);
+  const unit = cell.unit;
+
+  const title = h("h1", {}, `${KIND_NAMES[s.kind] || s.kind} ${id}`);
+  const stateEl = h("span", { id: "state" });
+  const banner = h("div", { id: "banner" });
+  const bar = h("div", { class: "bar-fill" });
+  const progressText = h("div", { class: "progress-text", id: "progress" });
+  const remaining = h("span", { id: "remaining" }, "–");
+  const pace = h("span", {}, "–");
+  const controls = h("div", { class: "actions", id: "controls" });
+  const resid = h("div", { id: "residuals" });
+  const devices = h("div", { id: "device-state" });
+  const outcome = h("div", { id: "outcome" });
+
+  put(ctx.root, 
+    h("div", { class: "page-head" }, h("div", {}, title,
+      h("p", { class: "muted" }, `${cell.name} · ${s.device}${s.target ? ` · target ${s.target}` : ""} · started by `
+        + `${s.created_by} ${when(s.created_at)}`)), stateEl),
+    banner,
+    card("Progress",
+      h("div", { class: "bar", role: "progressbar", "aria-label": "poses measured" }, bar), progressText,
+      kv([["Time remaining", remaining], ["Pace", pace]]), controls),
+    outcome,
+    h("div", { class: "two wide-first" }, card("Residuals so far", resid), card("Devices", devices)));
+
+  let lastLive = 0, pending = null;
+  async function refreshLive(force = false) {
+    const now = Date.now();
+    if (!force && now - lastLive < 900) {
+      if (!pending) pending = setTimeout(() => { pending = null; refreshLive(true); }, 900 - (now - lastLive));
+      return;
+    }
+    lastLive = now;
+    try {
+      const l = await get(`/sessions/${id}/live`);
+      if (!ctx.alive()) return;
+      showLive(l);
+    } catch (e) { /* the next event retries */ }
+  }
+
+  let lastL = null;
+  function showLive(l) {
+    lastL = l;
+    remaining.textContent = TERMINAL.includes(s.state) ? "–"
+      : s.state === "paused" || s.state === "interrupted" ? `${l.remaining_s != null ? `about ${duration(l.remaining_s)} ` : ""}once resumed`
+      : l.remaining_s != null ? `about ${duration(l.remaining_s)}` : "estimating…";
+    pace.textContent = l.seconds_per_pose != null ? `${num(l.seconds_per_pose, 2)} s per pose, ${duration(l.elapsed_s)} so far` : "–";
+    const r = l.residuals;
+    clear(resid);
+    if (r && r.norm.length) {
+      const isDeg = r.unit === "deg";
+      add(resid, 
+        chart([{ x: r.pose, y: r.norm, type: "bars", color: COLORS.after, label: isDeg ? "deviation (deg)" : `position error (${unit})` }],
+          { xLabel: "pose", yLabel: isDeg ? "deg" : unit, integerX: true, height: 230, width: sizes().wide, xName: "pose", legend: false,
+            title: "residuals against pose", zeroLine: true }),
+        h("p", { class: "small muted" }, `${r.model}. RMS ${num(r.stats.rms, 3)}, max ${num(r.stats.max, 3)} ${isDeg ? "deg" : unit}.`));
+    } else {
+      add(resid, h("p", { class: "muted" }, !l.measured ? "No measurement yet."
+        : r ? r.model : "No residuals for this kind of session."));
+    }
+    showDevices();
+  }
+
+  function showDevices() {
+    const l = lastL || {};
+    clear(devices);
+    const last = l.last;
+    const rows = [["Robot", cell.devices.filter((d) => d === "rtde" || d === "modbus").map((d) => `${d} ${cell.devices_doc[d]}`).join(", ") || "–"],
+                  ["Instrument", s.kind === "joint" ? "reference encoders (CAN)" : `${s.device} ${cell.devices_doc[s.device] || ""}`],
+                  ["State", deviceState(s)]];
+    if (last) {
+      rows.push(["Last reading", `pose ${last.pose} at ${when(last.at)}`]);
+      rows.push(["Joints (deg)", last.q_deg.map((v) => num(v, 4)).join(", ")]);
+      if (s.kind !== "joint") rows.push(["Measured point", `${last.position.map((v) => num(v, 6)).join(", ")} ${unit}`
+        + (last.sigma ? ` ± ${num(last.sigma, 2)}` : "")]);
+      if (last.reference_deg != null) rows.push(["Reference encoder", `${num(last.reference_deg, 6)} deg`]);
+    }
+    add(devices, kv(rows));
+  }
+
+  function deviceState(x) {
+    if (x.state === "running") return "connected: moving and measuring";
+    if (x.state === "planned") return "opening the devices…";
+    if (x.state === "paused") return "stopped (paused)";
+    if (x.state === "interrupted") return "not connected (the service stopped)";
+    return "closed";
+  }
+
+  function show(snap) {
+    s = snap;
+    put(stateEl, badge(s.state));
+    const pct = s.planned ? Math.round((100 * s.measured) / s.planned) : 0;
+    bar.style.width = `${pct}%`;
+    progressText.textContent = `${s.measured} of ${s.planned} poses measured (${pct} %)`;
+    clear(banner);
+    if (s.state === "paused" || s.state === "interrupted" || s.state === "failed" || s.state === "aborted") {
+      const kind = s.state === "failed" ? "error" : "warn";
+      const heading = { paused: "Paused", interrupted: "Interrupted", failed: "Failed", aborted: "Aborted" }[s.state];
+      add(banner, h("div", { class: `banner banner-${kind}`, role: "alert", id: "stop-banner" },
+        h("strong", {}, `${heading}: `), s.reason || "no reason given",
+        s.state === "paused" || s.state === "interrupted"
+          ? h("div", { class: "small" }, "Nothing moves until someone resumes the session. Measurements taken so far are kept; "
+            + "it continues with the first pose not yet measured.") : null));
+    }
+    clear(controls);
+    if (can("run")) {
+      if (s.state === "running" || s.state === "planned") {
+        add(controls, h("button", { class: "secondary", id: "pause", onclick: (e) => act(e.target, "pause") }, "Pause"));
+      }
+      if (s.state === "paused" || s.state === "interrupted") {
+        add(controls, h("button", { class: "primary", id: "resume", onclick: (e) => act(e.target, "resume") }, "Resume"));
+      }
+      if (!TERMINAL.includes(s.state)) {
+        add(controls, h("button", { class: "danger", id: "abort", onclick: (e) => act(e.target, "abort") }, "Abort"));
+      }
+    }
+    if (TERMINAL.includes(s.state)) showOutcome();
+    if (lastL) showLive(lastL);
+    else showDevices();
+  }
+
+  const ASK = {
+    pause: ["Pause the session?", "The robot stops after the current pose. Measurements taken so far are kept.", "Pause", false],
+    resume: ["Resume the session?", "The robot will move again. Make sure nobody is inside the cell.", "Resume", false],
+    abort: ["Abort the session?", "The robot stops now and the session ends; it cannot be resumed. Measurements taken so "
+      + "far are kept but no calibration is made from them.", "Abort", true],
+  };
+
+  async function act(button, what) {
+    const [t, m, c, danger] = ASK[what];
+    if (!(await confirmDialog(t, m, { confirm: c, danger }))) return;
+    await busy(button, async () => {
+      show(await post(`/sessions/${id}/${what}`));
+      if (what === "resume") listen();
+    });
+  }
+
+  let outcomeShown = false;
+  async function showOutcome() {
+    if (outcomeShown) return;
+    outcomeShown = true;
+    clear(outcome);
+    if (s.state !== "completed") return;
+    if (s.calibration_id) {
+      add(outcome, h("div", { class: "banner banner-ok", id: "done-banner" },
+        h("strong", {}, "Completed. "), "The robot was measured and identified. ",
+        h("a", { class: "button primary", href: `#/calibrations/${s.calibration_id}`, id: "open-result" }, "Open the result")));
+    } else if (s.plan_info && s.plan_info.verify) {
+      const v = s.plan_info.verify;
+      add(outcome, card("Verification result", h("div", { class: "banner banner-ok", id: "done-banner" },
+        h("strong", {}, "Completed. "), `On ${v.n} fresh configurations the ${v.calibration_id ? `calibration ${v.calibration_id}` : "nominal model"} `
+        + `is accurate to RMS ${num(v.rms, 3)} ${v.unit} (max ${num(v.max, 3)}, 95 % within ${num(v.p95, 3)}).`),
+        v.registered ? h("p", { class: "muted" }, `With its base placed where it fits best: RMS ${num(v.registered.rms, 3)}, `
+          + `max ${num(v.registered.max, 3)} ${v.unit}.`) : null));
+    } else {
+      add(outcome, h("div", { class: "banner banner-ok", id: "done-banner" }, h("strong", {}, "Completed. "), s.reason || ""));
+    }
+  }
+
+  let es = null;
+  function listen() {
+    if (es) es.close();
+    if (TERMINAL.includes(s.state)) return;
+    es = sessionEvents(id);
+    es.addEventListener("progress", (ev) => {
+      if (!ctx.alive()) return es.close();
+      const snap = JSON.parse(ev.data);
+      show(snap);
+      refreshLive(TERMINAL.includes(snap.state));
+      if (TERMINAL.includes(snap.state)) es.close();
+    });
+    es.onerror = () => {
+      // The browser reconnects by itself; say so if it takes a while.
+      if (es.readyState === EventSource.CLOSED) notify("Lost the connection to the service; reload the page.");
+    };
+  }
+  ctx.onLeave(() => { if (es) es.close(); if (pending) clearTimeout(pending); });
+  show(s);
+  refreshLive(true);
+  listen();
+}

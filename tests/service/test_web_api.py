@@ -1,0 +1,228 @@
+"""The endpoints behind the technician's web page, in process (TestClient): the page itself,
+the overview and history (paged, without reports), the result (errors before and after,
+predicted accuracy over the workspace), downloads, the certificate (JSON and PDF), the
+connection test, a dry run's plan and running exactly that plan, and a session's live data.
+Calibrations come from simulated measurements stored as a session would store them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from sqlmodel import Session
+
+from calibration.model import model_from_dict
+from calibration.robots import nominal_document
+from calibration.simulate import perturbed, random_configurations, simulate_measurements
+from service import analysis
+from service.api.app import create_app
+from service.models import Cell, Measurement, RunSession
+from service.store import make_engine
+
+
+def auth(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+class NoMotion:
+    """An orchestrator that records what it was asked to start and moves nothing."""
+
+    def __init__(self, engine, settings):
+        self.started: list[int] = []
+
+    def start(self, session_id):
+        self.started.append(session_id)
+
+    def pause(self, session_id):
+        return False
+
+    def abort(self, session_id):
+        return False
+
+    def shutdown(self):
+        pass
+
+
+@pytest.fixture
+def client(settings, tokens):
+    with TestClient(create_app(settings, orchestrator_factory=NoMotion)) as c:
+        yield c
+
+
+def _model() -> dict:
+    doc = nominal_document("ur10e")
+    doc["targets"] = {"smr": [0, 0, 50]}
+    return doc
+
+
+def _cell(client, tokens, name="web-cell") -> dict:
+    r = client.post("/api/v1/cells", json={"name": name, "model": _model(), "devices": {}},
+                    headers=auth(tokens["technician"]))
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _calibrate(settings, cell_id: int, seed: int, n: int = 30) -> int:
+    """Store a pose session's simulated measurements and identify them (what the orchestrator
+    does after the last measurement); returns the calibration id."""
+    engine = make_engine(settings.effective_database_url)
+    try:
+        with Session(engine) as db:
+            cell = db.get(Cell, cell_id)
+            nominal = model_from_dict(cell.model)
+            rng = np.random.default_rng(seed)
+            truth = dataclasses.replace(perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0),
+                                        base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]))
+            q = random_configurations(nominal, n, rng)
+            data = simulate_measurements(truth, q, rng, targets=("smr",))
+            run = RunSession(cell_id=cell_id, kind="pose", state="running", planned=n, target="smr",
+                             created_by="technician-user", plan=q.tolist(), plan_info={"method": "random",
+                                                                                        "limits_checked": True})
+            db.add(run)
+            db.commit()
+            db.refresh(run)
+            for k in range(n):
+                db.add(Measurement(session_id=run.id, seq=k, target="smr", q=data.q[k].tolist(),
+                                   x=float(data.p_world[k, 0]), y=float(data.p_world[k, 1]),
+                                   z=float(data.p_world[k, 2]), sigma=20e-6))
+            db.commit()
+            analysis.finish_session(db, run, cell, settings)
+            run.state = "completed"
+            db.add(run)
+            db.commit()
+            return run.calibration_id
+    finally:
+        engine.dispose()
+
+
+def test_the_page_is_served_at_the_root(client):
+    r = client.get("/")
+    assert r.status_code == 200 and "text/html" in r.headers["content-type"]
+    assert '<script type="module" src="/web/js/main.js">' in r.text
+    js = client.get("/web/js/main.js")
+    assert js.status_code == 200 and "javascript" in js.headers["content-type"]
+    assert client.get("/web/app.css").status_code == 200
+    assert client.get("/web/../models.py").status_code == 404
+    assert client.get("/web/js/nothing.js").status_code == 404
+    # the API still answers JSON 404s, and the OpenAPI document does not list the page
+    assert client.get("/api/v1/cells/999", headers=auth("x")).status_code == 401
+    assert "/web/{path}" not in client.get("/openapi.json").json()["paths"]
+
+
+def test_result_certificate_downloads_and_comparison(client, settings, tokens):
+    cell = _cell(client, tokens)
+    first = _calibrate(settings, cell["id"], seed=2)
+    second = _calibrate(settings, cell["id"], seed=3)
+    v = auth(tokens["viewer"])
+
+    r = client.get(f"/api/v1/calibrations/{second}/result", headers=v)
+    assert r.status_code == 200, r.text
+    res = r.json()
+    assert res["previous_id"] == first
+    e = res["errors"]
+    assert e["available"] and len(e["pose"]) == 30 and len(e["after"]["xyz"]) == 30
+    # after: the identified model fits to the instrument's noise; before: the prior's model
+    assert e["after"]["stats"]["rms"] < 0.06
+    assert "prior" in e["before"]["model"]
+    ws = res["workspace"]
+    assert ws["available"] and ws["samples"] == len(ws["radius95"]) == len(ws["points"])
+    assert 0 < ws["stats95"]["mean"] < 1.0
+    assert res["report"]["unidentifiable"] and res["report"]["parameters"]
+
+    first_res = client.get(f"/api/v1/calibrations/{first}/result", headers=v).json()
+    assert first_res["previous_id"] is None
+    assert first_res["errors"]["before"]["stats"]["rms"] > 10 * first_res["errors"]["after"]["stats"]["rms"]
+    assert "nominal" in first_res["errors"]["before"]["model"]
+
+    cert = client.get(f"/api/v1/calibrations/{second}/certificate", headers=v).json()
+    assert cert["cell"]["name"] == "web-cell" and cert["operator"] == "technician-user"
+    assert cert["accuracy"]["after"]["n"] == 30 and cert["accuracy"]["before"]["rms"] > cert["accuracy"]["after"]["rms"]
+    checks = {c["name"]: c["passed"] for c in cert["checks"]}
+    assert checks["identification converged"] and checks["every planned configuration measured"]
+    assert checks["hold-out verification on fresh configurations"] is None  # none run
+    assert all(p["expanded_uncertainty"] == pytest.approx(2 * p["std_error"], rel=1e-3)
+               for p in cert["parameters"] if p["std_error"])
+    pdf = client.get(f"/api/v1/calibrations/{second}/certificate.pdf", headers=v)
+    assert pdf.status_code == 200 and pdf.content[:4] == b"%PDF"
+    assert cert["number"] in pdf.headers["content-disposition"]
+
+    for fmt, needle in (("model", '"format": "recal.model/1"'), ("urdf", "<robot"), ("dh-csv", "theta"),
+                        ("dh-md", "|")):
+        d = client.get(f"/api/v1/calibrations/{second}/download/{fmt}", headers=v)
+        assert d.status_code == 200, (fmt, d.text)
+        assert needle in d.text and "attachment" in d.headers["content-disposition"]
+    assert client.get(f"/api/v1/calibrations/{second}/download/step", headers=v).status_code == 404
+    assert client.get(f"/api/v1/calibrations/{second}/result").status_code == 401
+
+    hist = client.get(f"/api/v1/cells/{cell['id']}/history?limit=1", headers=v).json()
+    assert hist["total"] == 2 and [i["id"] for i in hist["items"]] == [second]
+    ov = client.get("/api/v1/overview", headers=v).json()
+    assert ov["me"]["role"] == "viewer"
+    mine = next(c for c in ov["cells"] if c["id"] == cell["id"])
+    assert [t["id"] for t in mine["trend"]] == [first, second] and mine["last"]["id"] == second
+
+
+def test_plan_of_a_dry_run_then_run_exactly_that_plan(client, settings, tokens):
+    cell = _cell(client, tokens, "plan-cell")
+    t = auth(tokens["technician"])
+    r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 25, "dry_run": True},
+                    headers=t)
+    dry = r.json()
+    # the stub orchestrator moves nothing: run the dry run the way the orchestrator does
+    from service.orchestrator import run_session
+
+    engine = make_engine(settings.effective_database_url)
+    assert run_session(engine, settings, dry["id"]) == "completed"
+    engine.dispose()
+    plan = client.get(f"/api/v1/sessions/{dry['id']}/plan", headers=auth(tokens["viewer"])).json()
+    assert plan["configurations"] == 25 and plan["check"]["ok"]
+    assert len(plan["joints"]) == 6 and all(len(j["values"]) == 25 for j in plan["joints"])
+    assert plan["predicted"]["rms"] > 0 and plan["estimated_duration_s"] > 0
+    # a viewer may not run it; a technician may, but the cell has no tracker
+    assert client.post(f"/api/v1/sessions/{dry['id']}/run", headers=auth(tokens["viewer"])).status_code == 403
+    r = client.post(f"/api/v1/sessions/{dry['id']}/run", headers=t)
+    assert r.status_code == 422 and "tracker" in r.text
+    client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": {"tracker": "socket://127.0.0.1:9", "rtde": "x"}},
+                 headers=t)
+    r = client.post(f"/api/v1/sessions/{dry['id']}/run", headers=t)
+    assert r.status_code == 201, r.text
+    run = r.json()
+    assert run["planned"] == 25 and not run["dry_run"] and run["plan_info"]["from_dry_run"] == dry["id"]
+    engine = make_engine(settings.effective_database_url)
+    with Session(engine) as db:
+        assert db.get(RunSession, run["id"]).plan == db.get(RunSession, dry["id"]).plan
+    engine.dispose()
+    # only one session drives a cell; a session that is not a dry run cannot be "run"
+    assert client.post(f"/api/v1/sessions/{dry['id']}/run", headers=t).status_code == 409
+    assert client.post(f"/api/v1/sessions/{run['id']}/run", headers=t).status_code == 409
+    live = client.get(f"/api/v1/sessions/{run['id']}/live", headers=auth(tokens["viewer"])).json()
+    assert live["measured"] == 0 and live["planned"] == 25
+    # the connection test does not open devices a session is using
+    test = client.post(f"/api/v1/cells/{cell['id']}/devices/test", headers=t).json()
+    assert all(r["skipped"] for r in test["results"]) and "driving this cell" in test["results"][0]["answer"]
+
+
+def test_connection_test_reports_each_device_and_its_error(client, tokens):
+    cell = _cell(client, tokens, "unreachable")
+    t = auth(tokens["technician"])
+    client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": {"tracker": "socket://127.0.0.1:9",
+                                                                  "modbus": "127.0.0.1:9"}}, headers=t)
+    assert client.post(f"/api/v1/cells/{cell['id']}/devices/test", headers=auth(tokens["viewer"])).status_code == 403
+    r = client.post(f"/api/v1/cells/{cell['id']}/devices/test?timeout_s=2", headers=t)
+    assert r.status_code == 200
+    res = r.json()
+    assert not res["ok"]
+    assert {x["device"] for x in res["results"]} == {"laser tracker", "robot (Modbus TCP)"}
+    assert all(x["ok"] is False and x["error"] for x in res["results"])
+    last = client.get(f"/api/v1/cells/{cell['id']}/devices/test", headers=auth(tokens["viewer"])).json()
+    assert last["last"]["results"] == res["results"]
+
+
+def test_library_robots(client, tokens):
+    v = auth(tokens["viewer"])
+    names = [r["name"] for r in client.get("/api/v1/library/robots", headers=v).json()]
+    assert "ur10e" in names
+    assert client.get("/api/v1/library/robots/ur10e", headers=v).json()["format"] == "recal.model/1"
+    assert client.get("/api/v1/library/robots/nope", headers=v).status_code == 404

@@ -1,0 +1,164 @@
+"""Browser tests of the technician's web page: the real service (``recal serve``) and a
+simulated cell (``recal fake-cell``) as processes, driven from Debian's Chromium through
+Playwright (never ``playwright install``). Loopback addresses 127.0.0.80-127.0.0.89 are this
+folder's (the UR ports are fixed per address). Screenshots land in ``tests/web/screenshots/``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlmodel import Session
+
+from calibration import robots
+from calibration.simulate import perturbed
+from service.files import save_model
+from service.processes import free_port, start_fake_cell, start_service
+from service.settings import Settings
+from service.store import create_token, make_engine, migrate
+
+CHROMIUM = os.environ.get("RECAL_CHROMIUM", "/usr/bin/chromium")
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync"]
+SHOTS = Path(__file__).resolve().parent / "screenshots"
+TABLET = {"width": 1024, "height": 768}  # a 10-inch tablet in landscape
+
+BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0.03, -0.052, 0.04]}
+
+
+def _browser_missing() -> str | None:
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "the browser tests need the playwright Python package (pip install playwright)"
+    if not (Path(CHROMIUM).exists() or shutil.which(CHROMIUM)):
+        return f"the browser tests need Chromium at {CHROMIUM} (apt-get install chromium)"
+    return None
+
+
+@pytest.fixture(scope="session")
+def browser():
+    reason = _browser_missing()
+    if reason:
+        pytest.skip(reason)
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture
+def page(browser):
+    """A fresh tablet-sized page; JavaScript errors on it fail the test."""
+    ctx = browser.new_context(viewport=TABLET, accept_downloads=True, device_scale_factor=1)
+    pg = ctx.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.set_default_timeout(20_000)
+    yield pg
+    ctx.close()
+    assert not errors, f"JavaScript errors on the page: {errors}"
+
+
+def shot(page, name: str, *, full_page: bool = True) -> Path:
+    """Save a screenshot for people to look at (tests/web/screenshots/NAME.png)."""
+    SHOTS.mkdir(exist_ok=True)
+    path = SHOTS / f"{name}.png"
+    if full_page:  # the sticky header belongs at the top; a smooth scroll the page started may
+        # still be running and win over one scrollTo, so scroll on every frame until at the top
+        page.wait_for_function("(() => { window.scrollTo({top: 0, behavior: 'instant'});"
+                               " return window.scrollY === 0; })()")
+    page.screenshot(path=str(path), full_page=full_page)
+    return path
+
+
+@dataclasses.dataclass
+class Stack:
+    url: str
+    home: Path
+    cell_ready: dict
+    tokens: dict
+    nominal_path: Path
+    truth_path: Path
+    cell_host: str
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory, browser):
+    """A simulated UR10e cell (its robot protective-stops once, at the 6th move) and the
+    service on SQLite with a technician's and a viewer's token."""
+    home = tmp_path_factory.mktemp("web")
+    rng = np.random.default_rng(11)
+    targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets=targets)
+    truth = perturbed(nominal, rng, tool_length_m=0.0)
+    truth = dataclasses.replace(truth, base=np.array([1.6, -0.5, 0.25, 0.002, -0.003, np.deg2rad(120.0)]),
+                                targets={k: v + rng.normal(0, 0.6e-3, 3) for k, v in targets.items()})
+    save_model(home / "nominal.json", nominal)
+    save_model(home / "truth.json", truth)
+    engine = make_engine(Settings(home=home).effective_database_url)
+    migrate(engine)
+    tokens = {}
+    with Session(engine) as db:
+        for role in ("technician", "viewer"):
+            tokens[role] = create_token(db, role=role, name=f"{role}-anna" if role == "technician" else "viewer-ben")[1]
+    engine.dispose()
+    host = "127.0.0.81"
+    cell = start_fake_cell(home / "truth.json", host, seed=5, time_scale=0.03,
+                           extra=["--fault", "protective_stop_at_move=6"], log_path=home / "fake-cell.log")
+    try:
+        service = start_service(home, free_port(), env={"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05"},
+                                log_path=home / "service.log")
+    except BaseException:
+        cell.stop()
+        raise
+    try:
+        yield Stack(service.ready["url"], home, cell.ready, tokens, home / "nominal.json", home / "truth.json", host)
+    finally:
+        service.stop()
+        cell.stop()
+
+
+def sign_in(page, stack: Stack, role: str = "technician") -> None:
+    page.goto(stack.url + "/")
+    page.fill("#token", stack.tokens[role])
+    page.click("#sign-in")
+    page.wait_for_selector("#role")
+
+
+def api(stack: Stack, method: str, path: str, body=None, role: str = "technician"):
+    """The REST API directly (set-up and checks the page does not need)."""
+    from service.client import Api
+
+    return Api(stack.url, stack.tokens[role]).call(method, path, body)
+
+
+def register_cell_by_api(stack: Stack, name: str) -> int:
+    doc = json.loads(stack.nominal_path.read_text())
+    return api(stack, "POST", "/cells", {"name": name, "model": doc, "devices": stack.cell_ready})["id"]
+
+
+class Helpers:
+    """What the tests use besides the page: the fixtures' helpers in one object (test modules
+    cannot import the conftest under --import-mode=importlib)."""
+
+    tablet = TABLET
+    shot = staticmethod(shot)
+    sign_in = staticmethod(sign_in)
+    api = staticmethod(api)
+    register_cell_by_api = staticmethod(register_cell_by_api)
+
+
+@pytest.fixture
+def web() -> Helpers:
+    return Helpers()
