@@ -1,0 +1,202 @@
+"""Benchmark of the service (issue "Measurement sessions, run store, REST API", targets:
+orchestrator overhead per pose under 20 ms with the cell at time scale 0;
+``GET /api/v1/sessions/{id}`` p99 under 50 ms with 50 concurrent clients).
+
+Set-up: one simulated UR10e cell (``recal fake-cell``, time scale 0) and ``recal serve`` on its
+embedded default (SQLite), as processes, with ``RECAL_SETTLE_S=0``.
+
+1. **Orchestrator overhead per pose.** A pose session of ``--poses`` configurations through the
+   API. Its time per pose is the interval between consecutive measurements' commit times in
+   the store (planning before and identification after are not per pose). Side by side, in
+   the same run and on the same cell, the baseline: the same configurations through the same
+   drivers in a plain loop (``move_joints``, ``read_joints``, ``measure``), with nothing else.
+   The difference is what the orchestrator adds per pose: the limit check, the retry wrapper,
+   the commit of each measurement before the next move, the lease renewal.
+2. **GET latency under load.** ``--clients`` clients (threads spread over
+   ``--client-processes`` processes, each client on its own keep-alive connection) each send
+   ``--requests`` requests of ``GET /api/v1/sessions/{id}`` (the completed session above), one
+   after another; latencies are measured at the client. Baseline in the same run, same
+   clients: ``GET /api/v1/health`` (no token, no database), what the server and the clients
+   cost by themselves on this machine.
+
+Run: ``python bench/service.py`` (about half a minute).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import http.client
+import json
+import multiprocessing
+import platform
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from calibration import robots  # noqa: E402
+from calibration.simulate import perturbed  # noqa: E402
+from service.client import Api  # noqa: E402
+from service.files import save_model  # noqa: E402
+from service.processes import free_port, start_fake_cell, start_service  # noqa: E402
+from service.settings import Settings  # noqa: E402
+from service.store import create_token, make_engine, migrate  # noqa: E402
+
+
+def _ts(v) -> float:
+    return (datetime.fromisoformat(v) if isinstance(v, str) else v).timestamp()
+
+
+def session_per_pose(api: Api, cell_id: int, poses: int) -> tuple[int, list[float], np.ndarray]:
+    """Run a pose session; (its id, the intervals between consecutive commits (s), readings)."""
+    s = api.call("POST", f"/cells/{cell_id}/sessions", {"kind": "pose", "count": poses, "device": "tracker",
+                                                        "target": "smr"})
+    s = api.wait_session(s["id"], 300, poll_s=0.5)
+    if s["state"] != "completed":
+        raise RuntimeError(f"the pose session ended {s['state']}: {s.get('reason')}")
+    rows = api.call("GET", f"/sessions/{s['id']}/measurements")
+    t = np.array([_ts(r["created_at"]) for r in rows])
+    return s["id"], list(np.diff(t)), np.array([r["q"] for r in rows])
+
+
+def drivers_per_pose(endpoint: dict, configs: np.ndarray) -> list[float]:
+    """The baseline: the same moves and measurements through the same drivers, in a loop."""
+    from drivers.tracker import LineTracker, TrackerConfig
+    from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
+
+    settings = Settings()
+    robot = UrRtdeRobot(UrRtdeConfig(host=endpoint["rtde"]))
+    tracker = LineTracker(TrackerConfig(url=endpoint["tracker"]))
+    out = []
+    try:
+        t_prev = time.time()
+        for q in configs:
+            robot.move_joints(q, speed_rad_s=settings.max_joint_speed_rad_s,
+                              accel_rad_s2=settings.max_joint_accel_rad_s2)
+            robot.read_joints()
+            tracker.measure()
+            now = time.time()
+            out.append(now - t_prev)
+            t_prev = now
+    finally:
+        tracker.close()
+        robot.close()
+    return out[1:]  # as the session's: intervals between consecutive poses
+
+
+def _client(args) -> list[float]:
+    """One client process: ``threads`` keep-alive clients, each ``requests`` GETs in turn."""
+    host, port, path, token, threads, requests, start_at = args
+    lat: list[float] = []
+    lock = threading.Lock()
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+
+    def run():
+        conn = http.client.HTTPConnection(host, port, timeout=30)
+        mine = []
+        for _ in range(requests):
+            t0 = time.perf_counter()
+            conn.request("GET", path, headers=headers)
+            r = conn.getresponse()
+            r.read()
+            mine.append(time.perf_counter() - t0)
+            if r.status != 200:
+                raise RuntimeError(f"GET {path}: {r.status}")
+        conn.close()
+        with lock:
+            lat.extend(mine)
+
+    while time.time() < start_at:  # every client starts together
+        time.sleep(0.001)
+    ts = [threading.Thread(target=run) for _ in range(threads)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    return lat
+
+
+def load(url: str, path: str, token: str | None, clients: int, procs: int, requests: int) -> dict:
+    host, port = url.split("//")[1].split(":")
+    per = [clients // procs + (i < clients % procs) for i in range(procs)]
+    start_at = time.time() + 1.0
+    t0 = time.perf_counter()
+    with multiprocessing.Pool(procs) as pool:
+        parts = pool.map(_client, [(host, int(port), path, token, n, requests, start_at) for n in per])
+    wall = time.perf_counter() - t0 - 1.0
+    lat = np.sort(np.concatenate([np.array(p) for p in parts])) * 1e3
+    return {"n": lat.size, "p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
+            "p99": float(np.percentile(lat, 99)), "max": float(lat[-1]), "rps": lat.size / wall}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--poses", type=int, default=60)
+    ap.add_argument("--clients", type=int, default=50)
+    ap.add_argument("--client-processes", type=int, default=5)
+    ap.add_argument("--requests", type=int, default=40, help="requests per client")
+    ap.add_argument("--host", default="127.0.4.2", help="loopback address of the simulated cell")
+    args = ap.parse_args(argv)
+
+    with tempfile.TemporaryDirectory(prefix="recal-bench-service-") as tmp:
+        home = Path(tmp)
+        nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+        save_model(home / "truth.json", perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0))
+        save_model(home / "nominal.json", nominal)
+        engine = make_engine(Settings(home=home).effective_database_url)
+        migrate(engine)
+        from sqlmodel import Session
+
+        with Session(engine) as db:
+            token = create_token(db, role="technician", name="bench")[1]
+        engine.dispose()
+        cell = start_fake_cell(home / "truth.json", args.host, time_scale=0.0, log_path=home / "cell.log")
+        try:
+            service = start_service(home, free_port(), env={"RECAL_SETTLE_S": "0", "OPENBLAS_NUM_THREADS": "1"},
+                                    log_path=home / "service.log")
+            try:
+                api = Api(service.ready["url"], token)
+                doc = json.loads((home / "nominal.json").read_text())
+                cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
+                session_id, session_dt, configs = session_per_pose(api, cell_id, args.poses)
+                driver_dt = drivers_per_pose(cell.ready, configs)
+                get = load(service.ready["url"], f"/api/v1/sessions/{session_id}", token, args.clients,
+                           args.client_processes, args.requests)
+                health = load(service.ready["url"], "/api/v1/health", None, args.clients,
+                              args.client_processes, args.requests)
+            finally:
+                service.stop()
+        finally:
+            cell.stop()
+
+    print(f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
+          f"Python {platform.python_version()}, {platform.system()} {platform.release()}")
+    print(f"\n## Per pose, {args.poses} poses, time scale 0 (ms)\n")
+    print("| | mean | median | p95 |")
+    print("|---|---|---|---|")
+    for name, dt in (("pose session (orchestrator + drivers + store)", session_dt),
+                     ("drivers alone (baseline)", driver_dt)):
+        d = np.array(dt) * 1e3
+        print(f"| {name} | {d.mean():.2f} | {np.median(d):.2f} | {np.percentile(d, 95):.2f} |")
+    over = (statistics.fmean(session_dt) - statistics.fmean(driver_dt)) * 1e3
+    over_med = (statistics.median(session_dt) - statistics.median(driver_dt)) * 1e3
+    print(f"\norchestrator overhead per pose: {over:.2f} ms (mean), {over_med:.2f} ms (median)")
+    print(f"\n## {args.clients} concurrent clients x {args.requests} requests (ms)\n")
+    print("| request | requests | p50 | p95 | p99 | max | requests/s |")
+    print("|---|---|---|---|---|---|---|")
+    for name, r in ((f"GET /api/v1/sessions/{{id}}", get), ("GET /api/v1/health (baseline)", health)):
+        print(f"| {name} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | {r['max']:.1f} | "
+              f"{r['rps']:.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
