@@ -11,7 +11,7 @@ Must / might (after python-can's ``BusABC``):
 - a ``PositionSensor`` **must** implement ``measure`` and ``status``;
 - a ``Cmm`` **must** implement ``probe``; ``measure_ball`` and ``measure_pose`` are built on it
   here and **might** be overridden by a CMM that measures spheres itself;
-- a ``JointEncoder`` **must** implement ``read``.
+- a ``JointEncoder`` **must** implement ``read`` and ``status``.
 
 Units are SI: metres, radians, seconds. Arrays carry the frame in their name
 (``p_world`` is a point in the instrument's frame).
@@ -244,8 +244,20 @@ class EncoderReading:
 
 
 class JointEncoder(Device):
-    """A reference encoder or resolver reader on one joint."""
+    """A reference encoder or resolver reader on one joint.
+
+    ``status()`` belongs to the interface (like ``PositionSensor.status``) because a reading
+    cannot say why there is none: a fault makes ``read()`` raise, so a reading's ``status``
+    is always ``"ok"``. ``status()`` says, without taking a reading, whether readings can be
+    taken and if not why (for a connection test, or before a sweep).
+    """
 
     @abc.abstractmethod
     def read(self) -> EncoderReading:
         """One fresh reading. Raises ``DeviceTimeoutError`` when none arrives in time."""
+
+    @abc.abstractmethod
+    def status(self) -> str:
+        """``"operational"`` when the device is ready to be read, otherwise its state or what
+        is wrong, in a few words (for example ``"no heartbeat"``, ``"fault: EMCY 0x7320
+        (position sensor)"``, ``"disconnected"``). Never raises and never waits for the device."""

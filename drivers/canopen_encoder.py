@@ -386,8 +386,9 @@ class CanopenEncoder(JointEncoder):
                 raise
 
     def status(self) -> str:
-        """``"operational"``, ``"pre-operational"``, ``"stopped"``, ``"no heartbeat"``,
-        ``"fault: EMCY 0x...."`` or ``"disconnected"``. Does not wait for a read in progress."""
+        """``"operational"``, ``"pre-operational"``, ``"stopped"``, ``"boot-up"``, ``"no
+        heartbeat"``, ``"fault: EMCY 0x...."`` or ``"disconnected"``, from the node's heartbeat
+        and EMCY messages (see ``JointEncoder.status``); does not wait for a read in progress."""
         node, heartbeat_at = self._node, self._heartbeat_at
         if node is None or self._link_down():
             return "disconnected"

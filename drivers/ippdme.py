@@ -311,8 +311,10 @@ class IppDmeCmm(Cmm):
     def _transaction(self, method_call: str, *, timeout_s: float | None = None, event: bool = False) -> list[str]:
         """Send one command; return its data bodies once ``%`` arrives; errors become exceptions."""
         tag = self._next_tag(event)
-        ack_deadline = time.monotonic() + self.config.timeout_s
-        done_deadline = time.monotonic() + (timeout_s or self.config.timeout_s)
+        ack_limit_s = self.config.timeout_s
+        done_limit_s = timeout_s or self.config.timeout_s
+        ack_deadline = time.monotonic() + ack_limit_s
+        done_deadline = time.monotonic() + done_limit_s
         self._event_error = None
         self._link.write_line(f"{tag} {method_call}")
         acked = False
@@ -323,8 +325,14 @@ class IppDmeCmm(Cmm):
             what = "completion" if acked else "acknowledgement"
             try:
                 line = self._link.read_line(remaining, expecting=f"{what} of {tag} {method_call}")
-            except (DeviceTimeoutError, ProtocolError):
+            except DeviceTimeoutError as exc:
                 self._link.close()  # the session state is unknown now: start afresh next time
+                limit_s = done_limit_s if acked else min(ack_limit_s, done_limit_s)
+                raise DeviceTimeoutError(
+                    f"no {what} of {tag} {method_call} within {limit_s:g} s", device=self.name
+                ) from exc
+            except ProtocolError:
+                self._link.close()
                 raise
             m = _RESPONSE.match(line)
             if not m:

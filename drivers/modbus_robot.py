@@ -207,7 +207,14 @@ class ModbusRobot(Robot):
         m = self.map
         with self._lock:
             self._raise_if_stopped()
-            if self._read_status().state == STATE_BUSY:
+            status = self._read_status()
+            if status.state == STATE_BUSY:
+                if not self._program_alive(status):  # halted mid-move (a safety stop, say)
+                    raise RobotStoppedError(
+                        "the motion program is not running (its heartbeat stands still): power "
+                        "the arm on, release its brakes and start the program again",
+                        device=self.name,
+                    )
                 raise DeviceFaultError(
                     "a move is still running on the controller; stop() it first", device=self.name
                 )
@@ -336,7 +343,12 @@ class ModbusRobot(Robot):
     def _raise_if_stopped(self) -> None:
         protective, emergency = self._safety()
         if emergency:
-            raise RobotStoppedError("the robot is in an emergency stop", device=self.name)
+            raise RobotStoppedError(
+                "the robot is in an emergency stop; once its cause is cleared, release the "
+                "emergency stop button, power the arm on, release its brakes and restart the "
+                "motion program",
+                device=self.name,
+            )
         if protective:
             raise RobotStoppedError(
                 "the robot is in a protective stop; inspect the cause, unlock it on the teach "

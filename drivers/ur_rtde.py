@@ -7,13 +7,19 @@ from any address other than ``127.0.0.1``. ``ur_rtde`` uploads its own control s
 driver takes control of the robot while it is connected.
 
 Isolation: the ``ur_rtde`` objects live in a worker process (``drivers/ur_rtde_worker.py``).
-Its constructors block while holding the GIL, and after a lost connection its control
-interface (1.6.5) reconnects in an endless loop and can crash its process; neither may happen
-to the calling process. Every call to the worker has a timeout; a worker that reports a lost
-connection, stops answering or dies is discarded and the call raises
-``DeviceConnectionError``. The next ``read_joints``, ``state`` or ``move_joints`` connects a
-new worker (reconnecting is safe then: no command is in flight). A move in progress when the
-connection drops is not re-sent.
+Its constructors block while holding the GIL, after a lost connection its control interface
+(1.6.5) reconnects in an endless loop and can crash its process, and a malformed RTDE package
+(a header whose size is smaller than the header) makes it abort; none of this may happen to
+the calling process. (Other malformed data packages, of a wrong type, size or recipe,
+``ur_rtde`` drops silently: the driver then waits for the next good one.) Every call to the
+worker has a timeout; a worker that reports a lost connection, stops answering or dies is
+discarded and the call raises ``DeviceConnectionError``. The next ``read_joints``, ``state``
+or ``move_joints`` connects a new worker (reconnecting is safe then: no command is in
+flight). A move in progress when the connection drops is not re-sent.
+
+Safety and power: ``move_joints`` raises ``RobotStoppedError`` for a protective or emergency
+stop, a safety fault, and an arm that is not running (powered off or brakes on, as after an
+emergency stop), each message saying what releases it; the driver itself never does.
 
 Before starting a worker the driver probes the controller with a timeout on each port (the
 dashboard greeting, the script port, an RTDE handshake up to the first data package), so an
@@ -31,6 +37,7 @@ import os
 import pickle
 import re
 import select
+import signal
 import socket
 import struct
 import subprocess
@@ -68,6 +75,12 @@ _EMERGENCY_BITS = (1 << 5) | (1 << 6) | (1 << 7)  # system / robot / any emergen
 _PROTECTIVE_MODES = {3, 5, 12, 13}  # protective, safeguard, automatic-mode safeguard, 3PE stop
 _EMERGENCY_MODES = {6, 7}
 _FAULT_MODES = {8, 9}  # violation, fault
+# robot_mode: the arm's power; only RUNNING (powered, brakes released) can move
+_ROBOT_MODE_RUNNING = 7
+_ROBOT_MODE_NAMES = {
+    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
+}
 
 _WORKER = Path(__file__).with_name("ur_rtde_worker.py")
 _FRAME = struct.Struct(">I")
@@ -282,7 +295,13 @@ class UrRtdeRobot(Robot):
 
     def _raise_if_stopped(self, snap: dict) -> None:
         if _emergency(snap):
-            raise RobotStoppedError("the robot is in an emergency stop", device=self.name)
+            raise RobotStoppedError(
+                "the robot is in an emergency stop; once its cause is cleared, release the "
+                "emergency stop button, then power the arm on and release its brakes (teach "
+                "pendant, or dashboard 'close safety popup', 'power on', 'brake release')",
+                device=self.name,
+                code=int(snap["safety_mode"]),
+            )
         if _protective(snap):
             raise RobotStoppedError(
                 "the robot is in a protective stop; inspect the cause, then unlock it on the "
@@ -295,6 +314,15 @@ class UrRtdeRobot(Robot):
                 "the robot's safety system reports a violation or fault",
                 device=self.name,
                 code=int(snap["safety_mode"]),
+            )
+        mode = int(snap["robot_mode"])
+        if mode != _ROBOT_MODE_RUNNING:
+            raise RobotStoppedError(
+                f"the arm is not running (robot mode {_ROBOT_MODE_NAMES.get(mode, mode)}): power "
+                "it on and release its brakes (teach pendant, or dashboard 'power on', "
+                "'brake release')",
+                device=self.name,
+                code=mode,
             )
 
 
@@ -331,9 +359,7 @@ class _Worker:
             self.process.stdin.write(_FRAME.pack(len(data)) + data)
             self.process.stdin.flush()
         except OSError as exc:
-            raise DeviceConnectionError(
-                f"the ur_rtde worker has gone ({exc})", device=self.device
-            ) from exc
+            raise DeviceConnectionError(self._ended(op), device=self.device) from exc
         deadline = time.monotonic() + timeout_s
         (size,) = _FRAME.unpack(self._read(_FRAME.size, deadline, op, timeout_s))
         reply = pickle.loads(self._read(size, deadline, op, timeout_s))
@@ -365,12 +391,24 @@ class _Worker:
                 )
             chunk = os.read(fd, n - len(data))
             if not chunk:
-                code = self.process.poll()
-                raise DeviceConnectionError(
-                    f"the ur_rtde worker ended during {op!r} (exit code {code})", device=self.device
-                )
+                raise DeviceConnectionError(self._ended(op), device=self.device)
             data += chunk
         return data
+
+    def _ended(self, op: str) -> str:
+        """Why the worker went away during ``op``, for the error message."""
+        try:
+            code = self.process.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            return f"the ur_rtde worker closed its pipes during {op!r}"
+        if code == -signal.SIGABRT:
+            how = ("aborted (ur_rtde aborts its process on what it cannot handle, such as a "
+                   "malformed RTDE package from the controller)")
+        elif code < 0:
+            how = f"was killed by signal {-code} ({signal.strsignal(-code)})"
+        else:
+            how = f"exited with code {code}"
+        return f"the ur_rtde worker {how} during {op!r}; the next call starts a new one"
 
     def close(self, timeout_s: float) -> None:
         try:

@@ -84,6 +84,7 @@ class _Session:
             "qd": list(r.getActualQd()),
             "safety_status_bits": r.getSafetyStatusBits(),
             "safety_mode": r.getSafetyMode(),
+            "robot_mode": r.getRobotMode(),
             "robot_status_bits": robot_status_bits,
             "runtime_state": r.getRuntimeState(),
             "program_running": bool(robot_status_bits & 2),  # bit 1: program running

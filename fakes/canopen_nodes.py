@@ -29,7 +29,9 @@ Faults (read live from ``cell.faults``; counted per position request, i.e. per S
 0x6004 or SYNC frame, with ``cell.count("canopen.read")``):
 
 - ``drop_connection_at``: the gateway closes the requesting client's TCP connection;
-- ``delay_s``: every frame towards the clients is delivered that much later;
+- ``delay_s``: every frame towards the clients is delivered that much later; with
+  ``delay_at``, only the reply to those position requests (the SDO answer, or the TPDOs after
+  that SYNC), and the frames behind it wait for it, as on a bus;
 - ``garble_at`` / ``garble_rate``: the reply is corrupted (SDO command byte inverted; PDO
   truncated to half its length);
 - ``sensor_fault_at``: the encoder answers the position request with SDO abort 0x06060000 (and
@@ -193,8 +195,9 @@ class CanGatewayFake:
         self._nodes: dict[int, _Node] = {}
         self._clients: list[_Client] = []
         self._clients_lock = threading.Lock()
-        self._garble_cob_ids: set[int] = set()
-        self._garble_lock = threading.Lock()
+        self._garble_cob_ids: set[int] = set()  # the next frame with this COB-ID is garbled
+        self._delay_cob_ids: set[int] = set()  # ... is late (with ``delay_at``)
+        self._marks_lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._server: socket.socket | None = None
@@ -567,9 +570,12 @@ class CanGatewayFake:
             log.info("fault: dropping client %s at request %d", client.address, n)
             client.close()
             return False
-        if n in faults.garble_at or self.cell.chance(faults.garble_rate):
-            with self._garble_lock:
-                self._garble_cob_ids.update(reply_base + node.node_id for node in targets)
+        replies = {reply_base + node.node_id for node in targets}
+        with self._marks_lock:
+            if n in faults.garble_at or self.cell.chance(faults.garble_rate):
+                self._garble_cob_ids.update(replies)
+            if n in faults.delay_at:
+                self._delay_cob_ids.update(replies)
         if n in faults.sensor_fault_at:
             for node in targets:
                 node.fault_next = True
@@ -586,16 +592,16 @@ class CanGatewayFake:
                 raise
             if msg is None or self._silent(_source_node(msg.arbitration_id)):
                 continue
-            delay_s = self.cell.faults.delay_s
-            if delay_s > 0:
-                wait_s = msg.timestamp + delay_s - time.time()
+            faults = self.cell.faults
+            with self._marks_lock:
+                delayed = not faults.delay_at or _take(self._delay_cob_ids, msg.arbitration_id)
+                garbled = _take(self._garble_cob_ids, msg.arbitration_id)
+            if delayed and faults.delay_s > 0:
+                # Frames stay in order, as on a bus: the ones behind a late frame wait too.
+                wait_s = msg.timestamp + faults.delay_s - time.time()
                 if wait_s > 0 and self._stop.wait(wait_s):
                     return
-            data = bytes(msg.data)
-            with self._garble_lock:
-                if msg.arbitration_id in self._garble_cob_ids:
-                    self._garble_cob_ids.discard(msg.arbitration_id)
-                    data = _garble(msg.arbitration_id, data)
+            data = _garble(msg.arbitration_id, bytes(msg.data)) if garbled else bytes(msg.data)
             line = _frame_line(msg.arbitration_id, msg.is_extended_id, msg.timestamp, data)
             with self._clients_lock:
                 clients = [c for c in self._clients if c.rawmode]
@@ -630,6 +636,14 @@ def _source_node(can_id: int) -> int | None:
     if can_id <= 0x7FF and (can_id & 0x780) in _NODE_SERVICES and node_id:
         return node_id
     return None
+
+
+def _take(marks: set[int], can_id: int) -> bool:
+    """Whether ``can_id`` is marked; the mark is used up."""
+    if can_id in marks:
+        marks.discard(can_id)
+        return True
+    return False
 
 
 def _garble(can_id: int, data: bytes) -> bytes:

@@ -22,6 +22,23 @@ Extension flags (beyond the contract): ``--fault NAME=VALUE`` sets a field of
 ``--fault beam_break_rate=0.1``), ``--noise NAME=VALUE`` a field of ``fakes.world.Noise``
 (SI units), ``--no-ur`` / ``--no-modbus`` / ``--no-tracker`` / ``--no-cmm`` / ``--no-can``
 leave a device out, ``--modbus-port`` moves the Modbus server.
+
+The faults (``--help`` lists them too). Counts are 1-based and each device counts its own
+requests, so one fault may hit several devices: leave out the devices a test does not use.
+
+- ``drop_connection_at``: requests whose connection is closed instead of answered;
+- ``delay_s``, ``delay_at``: extra latency before every reply, or only before the replies to
+  the ``delay_at`` requests (tracker, CMM, CAN, commands to the UR control script);
+- ``garble_at``, ``garble_rate``: garbled replies (tracker, CMM: non-printable bytes; CAN: a
+  bad SDO command byte or a short PDO; Modbus: a junk PDU; UR: a malformed RTDE package on
+  every stream);
+- ``beam_break_at``, ``beam_break_rate``: tracker measurements that find the beam broken;
+- ``no_touch_at``: CMM ``PtMeas`` that touch nothing (I++ error 1003);
+- ``silent_nodes``: CAN node ids that send nothing (no answer, PDO, heartbeat or EMCY);
+- ``sensor_fault_at``: CAN position requests answered with a sensor fault and an EMCY;
+- ``protective_stop_at_move``: robot moves that stop halfway in a protective stop;
+- ``emergency_stop_at_move``: robot moves that stop halfway in an emergency stop (the arm
+  stays powered off until the button is released and it is powered on again).
 """
 
 from __future__ import annotations
@@ -55,7 +72,10 @@ class CellError(Exception):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=PROG, description="Run a simulated robot cell.")
+    parser = argparse.ArgumentParser(
+        prog=PROG, description="Run a simulated robot cell.", epilog=_faults_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--truth", required=True, help="truth model (recal.model/1 JSON)")
     parser.add_argument(
         "--host", default="127.0.0.2", help="address to serve on (default 127.0.0.2)"
@@ -80,6 +100,15 @@ def build_parser() -> argparse.ArgumentParser:
     for key, _, _ in FAKES:
         parser.add_argument(f"--no-{key}", action="store_true", help=f"do not simulate {key}")
     return parser
+
+
+def _faults_help() -> str:
+    """The list of --fault names and what each injects (from ``Faults``' field metadata)."""
+    lines = ["faults (--fault NAME=VALUE; lists are comma-separated 1-based counts of each",
+             "device's own requests):"]
+    for f in dataclasses.fields(Faults):
+        lines.append(f"  {f.name:<24} {f.metadata['help']}")
+    return "\n".join(lines)
 
 
 def load_truth(path: str) -> KinematicModel:

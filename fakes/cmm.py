@@ -30,8 +30,9 @@ robot carrying the balls is moving), 1502 tool not found, 0508 bad context (no s
 homed), 0501 unsupported command, 0509 bad argument, 0510 bad property.
 
 Link faults (``cell.faults``, counted per command with ``cell.count("cmm.request")``):
-``delay_s`` before the acknowledgement, ``garble_at`` / ``garble_rate`` (the first reply line
-after the acknowledgement is corrupted), ``drop_connection_at`` (the connection is closed instead of answering).
+``delay_s`` before the acknowledgement (of every command, or only of those in ``delay_at``),
+``garble_at`` / ``garble_rate`` (the first reply line after the acknowledgement is
+corrupted), ``drop_connection_at`` (the connection is closed instead of answering).
 :meth:`IppCmmFake.send_event` pushes an unsolicited ``E0000`` line to every session.
 
 Run it alone: ``python -m fakes.cmm --robot ur5e --ball ball1=0.05,0,0.03 ...``.
@@ -175,8 +176,9 @@ class IppCmmFake(LineServer):
         if n in faults.drop_connection_at:
             raise DropConnection
         m = _COMMAND.match(line)
-        if faults.delay_s > 0:
-            time.sleep(faults.delay_s)
+        delay_s = faults.reply_delay_s(n)
+        if delay_s > 0:
+            time.sleep(delay_s)
         if not m or m.group("tag") == "00000":
             snippet = line[:40].replace('"', "'")
             client.send_line(f'E0000 ! Error(2, 0001, "", "Illegal tag or command syntax: {snippet}")')

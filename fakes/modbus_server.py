@@ -5,7 +5,7 @@ registers, 0-based protocol addresses; input registers read the same values, as 
 
 UR's own registers (read only here)::
 
-    258        robot mode (7 = running)
+    258        robot mode (3 power off, 5 idle: brakes on, 7 running)
     260..262   power on, protective stop ("isSecurityStopped"), emergency stop (0/1)
     270..275   joint angles, mrad, wrapped into [0, 2 pi): 0..6283
     320..325   joint revolution counters, int16 (two's complement; -1 for angles in [-2 pi, 0))
@@ -25,14 +25,17 @@ Recal's motion handshake in the general-purpose registers 128..255 (what
 
 Simulation: joints from ``cell.joints()``, TCP pose from the truth FK, motion by
 ``cell.start_move``; "done" when the simulated motion is over. A safety stop (for example
-``cell.faults.protective_stop_at_move``) halts the motion program: no acknowledgements, the
-heartbeat freezes, 261/262 report the stop. The program counts as running again as soon as
-the cell's safety stop is cleared.
+``cell.faults.protective_stop_at_move`` or ``emergency_stop_at_move``) halts the motion
+program: no acknowledgements, the heartbeat freezes, 261/262 report the stop (an emergency
+stop also powers the arm off: 258, 260). The program counts as running again as soon as the
+cell's safety stop is cleared and the arm runs (powered on, brakes released; on a real
+controller it must also be started again).
 
 Faults (``cell.faults``), counted per request with ``cell.count("modbus.request")``:
 ``drop_connection_at`` closes the connection instead of answering, ``garble_at`` /
 ``garble_rate`` answers with a corrupted frame (right header, unknown function code and
-junk data), ``delay_s`` delays every answer.
+junk data), ``delay_s`` delays every answer (none when ``delay_at`` is set: the server does
+not count requests before it answers them).
 
 Port 502 needs root; if it cannot be bound the server takes an ephemeral port and
 ``endpoint()`` reports the port it has.
@@ -58,6 +61,7 @@ N_JOINTS = 6
 # UR's own registers
 ROBOT_MODE, POWER_ON, PROTECTIVE_STOP, EMERGENCY_STOP = 258, 260, 261, 262
 JOINT_ANGLE, JOINT_TURNS, TCP_POSE = 270, 320, 400
+ROBOT_MODE_POWER_OFF, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 5, 7
 # Recal's handshake
 COMMAND, SEQUENCE, TARGET, SPEED, ACCEL = 128, 129, 130, 142, 143
 ACK, STATE, ERROR, HEARTBEAT = 150, 151, 152, 153
@@ -186,8 +190,9 @@ class ModbusRobotFake:
 
     async def _action(self, function_code, start_address, address, count, registers, values):
         """Called by pymodbus before every register access (``values`` is None for reads)."""
-        if self.cell.faults.delay_s:
-            await asyncio.sleep(self.cell.faults.delay_s)
+        delay_s = self.cell.faults.reply_delay_s(None)
+        if delay_s:
+            await asyncio.sleep(delay_s)
         with self._lock:
             if values:
                 offset = address - start_address
@@ -198,7 +203,8 @@ class ModbusRobotFake:
         return None
 
     def _program_running(self) -> bool:
-        return not (self.cell.protective_stop or self.cell.emergency_stop)
+        cell = self.cell
+        return cell.running and not (cell.protective_stop or cell.emergency_stop)
 
     def _on_command(self, registers: list[int], base: int) -> None:
         """The motion program sees a new sequence number: acknowledge and execute."""
@@ -247,8 +253,11 @@ class ModbusRobotFake:
         angles, turns = ur_joint_registers(q)
         put(JOINT_ANGLE, angles)
         put(JOINT_TURNS, turns)
-        put(ROBOT_MODE, [7])
-        put(POWER_ON, [1, int(cell.protective_stop), int(cell.emergency_stop)])
+        if cell.running:
+            put(ROBOT_MODE, [ROBOT_MODE_RUNNING])
+        else:
+            put(ROBOT_MODE, [ROBOT_MODE_IDLE if cell.powered else ROBOT_MODE_POWER_OFF])
+        put(POWER_ON, [int(cell.powered), int(cell.protective_stop), int(cell.emergency_stop)])
         T = cell.T_world_tool()
         rotvec = matrix_to_rotvec(T[:3, :3])
         position = [_u16(round(v * 1e4)) for v in T[:3, 3]]  # 0.1 mm

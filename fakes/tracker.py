@@ -26,8 +26,9 @@ When a measurement cannot be taken:
   return a point that belongs to no robot configuration. The beam stays locked (``READY``).
 
 Injected link faults (``cell.faults``, counted per command with ``cell.count("tracker.request")``):
-``delay_s`` before every reply, ``garble_at`` / ``garble_rate`` (the reply is corrupted with
-non-printable bytes), ``drop_connection_at`` (the connection is closed instead of replying).
+``delay_s`` before every reply (or only those of ``delay_at``), ``garble_at`` /
+``garble_rate`` (the reply is corrupted with non-printable bytes), ``drop_connection_at``
+(the connection is closed instead of replying).
 
 A stationary measurement takes ``measure_time_s`` of simulated time (wall time
 ``measure_time_s * cell.time_scale``). The length unit is a setting of the instrument, shared
@@ -87,8 +88,9 @@ class TrackerFake(LineServer):
         if n in faults.drop_connection_at:
             raise DropConnection
         reply = self._reply(command)
-        if faults.delay_s > 0:
-            time.sleep(faults.delay_s)
+        delay_s = faults.reply_delay_s(n)
+        if delay_s > 0:
+            time.sleep(delay_s)
         if n in faults.garble_at or self.cell.chance(faults.garble_rate):
             reply = garble(reply)
         client.send_line(reply)

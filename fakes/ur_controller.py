@@ -22,15 +22,25 @@ What it simulates:
   bits 24-30 an operation id). ``MOVEJ`` starts ``cell.start_move``; a blocking move reports
   done when the simulated motion is over; ``STOPJ`` stops the robot; ``STOP_SCRIPT`` ends the
   program;
-- safety: ``safety_status_bits`` / ``safety_mode`` reflect ``cell.protective_stop`` and
-  ``cell.emergency_stop``; a safety stop halts the program, as on the real controller. The
-  dashboard command ``unlock protective stop`` clears it.
+- safety and power, as on a UR: ``safety_status_bits`` / ``safety_mode`` reflect
+  ``cell.protective_stop`` and ``cell.emergency_stop``, ``robot_mode`` the arm's power
+  (``POWER_OFF`` 3, ``IDLE`` 5: powered with the brakes on, ``RUNNING`` 7). A safety stop halts
+  the program, and no program starts unless the robot is ``RUNNING``. The dashboard command
+  ``unlock protective stop`` clears a protective stop. Nothing on the wire clears an emergency
+  stop: a person releases the button; the arm is then powered off, and ``power on`` and
+  ``brake release`` (or ``brake release`` alone) make it ``RUNNING`` again. The simulated
+  button is the dashboard's ``sim emergency stop press`` / ``sim emergency stop release``
+  (simulator only: no UR controller knows these commands).
 
-Faults (``cell.faults``): ``drop_connection_at`` (counter ``"ur.command"``, the n-th command the
-control script receives) loses that command and closes every open connection of the
-controller (new connections are accepted again at once); ``delay_s`` delays every dashboard
-reply and the completion of every command; ``protective_stop_at_move`` is applied by the cell
-itself. RTDE data are not garbled (``garble_*``): TCP delivers them intact or not at all.
+Faults (``cell.faults``), counted per command the control script receives (counter
+``"ur.command"``): ``drop_connection_at`` loses that command and closes every open connection
+of the controller (new connections are accepted again at once); ``garble_at`` /
+``garble_rate`` lose that command and send, on every RTDE stream, one package whose header
+claims a size smaller than the header itself (a controller or gateway gone wrong: TCP itself
+delivers bytes intact or not at all; ``ur_rtde`` aborts its process on such a package);
+``delay_s`` delays every dashboard reply and the completion of every command (with
+``delay_at``: only the completion of those commands); ``protective_stop_at_move`` and
+``emergency_stop_at_move`` are applied by the cell itself.
 
 Not simulated: the primary/secondary interfaces (30001/30002), the real-time state stream out
 of 30003, script commands other than moveJ/stopJ/stopScript (the others report "done" and do
@@ -133,7 +143,7 @@ def _variable_types() -> dict[str, str]:
 RTDE_TYPES = _variable_types()
 
 # Values of the controller's enumerations that the fake reports.
-ROBOT_MODE_RUNNING = 7
+ROBOT_MODE_POWER_OFF, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 5, 7
 JOINT_MODE_RUNNING = 253
 SAFETY_MODE_NORMAL, SAFETY_MODE_PROTECTIVE_STOP, SAFETY_MODE_ROBOT_EMERGENCY_STOP = 1, 3, 7
 RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
@@ -152,6 +162,8 @@ CMD_NO_CMD, CMD_MOVEJ, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 34, 255
 # "Real-time" commands that the script executes without reporting done.
 _CONTINUOUS_COMMANDS = {6, 9, 10, 11, 12, 24, 25, 26, 27, 38, 58}
 SCRIPT_READY, SCRIPT_DONE, SCRIPT_BUSY = 1, 2, 0
+# A package header whose size field (1) is smaller than the header (3 bytes): malformed.
+MALFORMED_PACKAGE = struct.pack(">HB", 1, RTDE_DATA_PACKAGE)
 
 
 class UrControllerFake:
@@ -203,6 +215,7 @@ class UrControllerFake:
         self._async_move = False
         self._async_writes = 0  # the script's async_wr_count
         self._async_op_id = 0  # the script's async_op_id
+        self._malformed = 0  # how many malformed packages every RTDE stream must send
         self._last_q = cell.joints()
         self._last_q_time = time.monotonic()
         self._qd = np.zeros(6)
@@ -291,8 +304,8 @@ class UrControllerFake:
         cell = self.cell
         if not self._script_running:
             return
-        if cell.protective_stop or cell.emergency_stop:
-            self._halt_script()  # a safety stop halts the running program
+        if cell.protective_stop or cell.emergency_stop or not cell.running:
+            self._halt_script()  # a safety stop (or power off) halts the running program
             return
         regs = self._registers
         if self._async_move and not cell.is_moving():
@@ -319,13 +332,21 @@ class UrControllerFake:
         self._executing = cmd
         self._blocking_move = False
         regs["output_int_register_0"] = SCRIPT_BUSY
-        self._command_done_at = time.monotonic() + cell.faults.delay_s
-        if cell.count("ur.command") in cell.faults.drop_connection_at:
-            # The network fails as the command arrives: it is lost, every connection drops.
+        n = cell.count("ur.command")
+        faults = cell.faults
+        self._command_done_at = time.monotonic() + faults.reply_delay_s(n)
+        dropped = n in faults.drop_connection_at
+        garbled = not dropped and (n in faults.garble_at or cell.chance(faults.garble_rate))
+        if dropped or garbled:
+            # The network fails as the command arrives: it is lost, and every connection
+            # drops, or every RTDE stream sends a malformed package.
             regs["input_int_register_0"] = CMD_NO_CMD
             regs["output_int_register_0"] = SCRIPT_READY
             self._executing = None
-            threading.Thread(target=self._drop_clients, daemon=True).start()
+            if dropped:
+                threading.Thread(target=self._drop_clients, daemon=True).start()
+            else:
+                self._malformed += 1
             return
         if cmd == CMD_MOVEJ:
             q = [float(regs[f"input_double_register_{i}"]) for i in range(6)]
@@ -367,9 +388,11 @@ class UrControllerFake:
         return not (self._blocking_move and self.cell.is_moving())
 
     def _start_script(self) -> None:
-        """A program arrived on the script port: play it (unless a safety stop forbids)."""
+        """A program arrived on the script port: play it (unless a safety stop forbids, or
+        the arm is not running)."""
         with self._lock:
-            if self.cell.protective_stop or self.cell.emergency_stop:
+            cell = self.cell
+            if cell.protective_stop or cell.emergency_stop or not cell.running:
                 return
             self._script_running = True
             self.cell.program_running = True
@@ -426,7 +449,7 @@ class UrControllerFake:
                 | SAFETY_BIT_STOPPED_DUE_TO_SAFETY
             )
             safety_mode = SAFETY_MODE_ROBOT_EMERGENCY_STOP
-        status_bits = ROBOT_STATUS_POWER_ON
+        status_bits = ROBOT_STATUS_POWER_ON if cell.powered else 0
         if self._script_running:
             status_bits |= ROBOT_STATUS_PROGRAM_RUNNING
         qd = list(self._qd) if cell.is_moving() else [0.0] * 6
@@ -436,7 +459,7 @@ class UrControllerFake:
             "target_q": list(q),
             "actual_qd": qd,
             "target_qd": qd,
-            "robot_mode": ROBOT_MODE_RUNNING,
+            "robot_mode": _robot_mode(cell),
             "joint_mode": [JOINT_MODE_RUNNING] * 6,
             "safety_mode": safety_mode,
             "safety_status": safety_mode,
@@ -535,9 +558,13 @@ class UrControllerFake:
         """Send one data package per period until paused or disconnected."""
         period_s = 1.0 / output["frequency_hz"]
         next_t = time.monotonic()
+        malformed_sent = self._malformed
         while streaming.is_set() and not self._stopping.is_set():
             values = self._values(output["names"])
             try:
+                if malformed_sent < self._malformed:
+                    malformed_sent += 1
+                    conn.sendall(MALFORMED_PACKAGE)
                 send(RTDE_DATA_PACKAGE, output["fmt"].pack(output["recipe_id"], *values))
             except OSError:
                 return
@@ -555,8 +582,9 @@ class UrControllerFake:
         reader = conn.makefile("rb")
         for raw in reader:
             command = raw.decode("ascii", "replace").strip()
-            if self.cell.faults.delay_s:
-                time.sleep(self.cell.faults.delay_s)
+            delay_s = self.cell.faults.reply_delay_s(None)
+            if delay_s:
+                time.sleep(delay_s)
             reply = self._dashboard_reply(command)
             conn.sendall((reply + "\n").encode())
             if command == "quit":
@@ -583,7 +611,7 @@ class UrControllerFake:
             if lower == "programstate":
                 return "PLAYING <unnamed>" if running else "STOPPED <unnamed>"
             if lower == "robotmode":
-                return "Robotmode: RUNNING"
+                return f"Robotmode: {_ROBOT_MODE_NAMES[_robot_mode(cell)]}"
             if lower in ("safetystatus", "safetymode"):
                 word = "Safetystatus" if lower == "safetystatus" else "Safetymode"
                 if cell.emergency_stop:
@@ -597,20 +625,31 @@ class UrControllerFake:
             if lower == "play":
                 return "Failed to execute: play"
             if lower == "unlock protective stop":
-                if not cell.protective_stop:
-                    return "Cannot unlock protective stop until 5s after occurrence"
-                cell.reset_safety()
+                if not cell.unlock_protective_stop():
+                    return "Cannot unlock protective stop: the robot is not in a protective stop"
                 return "Protective stop releasing"
             if lower == "close safety popup":
                 return "closing safety popup"
             if lower == "close popup":
                 return "closing popup"
             if lower == "power on":
+                if not cell.power_on():
+                    return "Failed to execute: power on (emergency stop)"
                 return "Powering on"
             if lower == "power off":
+                cell.power_off()
+                self._halt_script()
                 return "Powering off"
             if lower == "brake release":
+                if not cell.release_brakes():
+                    return "Failed to execute: brake release (emergency stop)"
                 return "Brake releasing"
+            if lower == "sim emergency stop press":
+                cell.press_emergency_stop()
+                return "Emergency stop pressed (simulator)"
+            if lower == "sim emergency stop release":
+                cell.release_emergency_stop()
+                return "Emergency stop released (simulator)"
             if lower == "quit":
                 return "Disconnected"
         return f"could not understand: '{command}'"
@@ -631,6 +670,18 @@ class UrControllerFake:
             if _PROGRAM_START.search(buffer) and _PROGRAM_END.search(buffer):
                 buffer = b""
                 self._start_script()
+
+
+_ROBOT_MODE_NAMES = {
+    ROBOT_MODE_POWER_OFF: "POWER_OFF", ROBOT_MODE_IDLE: "IDLE", ROBOT_MODE_RUNNING: "RUNNING",
+}
+
+
+def _robot_mode(cell: SimCell) -> int:
+    """UR's robot mode for the arm's power and brakes."""
+    if not cell.powered:
+        return ROBOT_MODE_POWER_OFF
+    return ROBOT_MODE_RUNNING if cell.brakes_released else ROBOT_MODE_IDLE
 
 
 _PROGRAM_START = re.compile(rb"^def \w+\(\):", re.M)

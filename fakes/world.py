@@ -23,22 +23,45 @@ from calibration.model import KinematicModel
 
 @dataclass
 class Faults:
-    """Faults to inject, set from ``recal fake-cell`` flags or a test.
+    """Faults to inject, set from ``recal fake-cell --fault NAME=VALUE`` or a test.
 
-    Rates are probabilities per request; ``*_at`` lists are 1-based request counts at which the
-    fault fires once (deterministic, for tests).
+    Rates are probabilities per request; ``*_at`` lists are 1-based counts at which the fault
+    fires once (deterministic, for tests). Each fake counts its own requests (the tracker its
+    commands, the CMM its commands, the CAN gateway its position requests, the UR controller
+    the commands its control script receives, the Modbus server its requests), so a count
+    means "the N-th request to that device"; each fake's docstring says what it counts.
     """
 
-    drop_connection_at: list[int] = field(default_factory=list)  # per device request count
-    delay_s: float = 0.0  # extra latency before every reply
-    garble_rate: float = 0.0  # probability that a reply is garbled
-    garble_at: list[int] = field(default_factory=list)
-    beam_break_rate: float = 0.0  # tracker: probability a measurement finds the beam broken
-    beam_break_at: list[int] = field(default_factory=list)  # tracker: MEAS? counts that fail
-    protective_stop_at_move: list[int] = field(default_factory=list)  # robot: move counts that stop
-    no_touch_at: list[int] = field(default_factory=list)  # CMM: PtMeas counts that miss
-    silent_nodes: list[int] = field(default_factory=list)  # CAN: node ids that stop answering
-    sensor_fault_at: list[int] = field(default_factory=list)  # encoders/resolvers: read counts that report a sensor fault
+    drop_connection_at: list[int] = field(default_factory=list, metadata={
+        "help": "requests whose connection is closed instead of answered"})
+    delay_s: float = field(default=0.0, metadata={
+        "help": "extra latency (s) before every reply, or only those of delay_at"})
+    delay_at: list[int] = field(default_factory=list, metadata={
+        "help": "requests whose reply alone waits delay_s (tracker, CMM, CAN, UR commands)"})
+    garble_rate: float = field(default=0.0, metadata={"help": "probability that a reply is garbled"})
+    garble_at: list[int] = field(default_factory=list, metadata={"help": "requests whose reply is garbled"})
+    beam_break_rate: float = field(default=0.0, metadata={
+        "help": "tracker: probability that a measurement finds the beam broken"})
+    beam_break_at: list[int] = field(default_factory=list, metadata={
+        "help": "tracker: MEAS? counts that find the beam broken"})
+    protective_stop_at_move: list[int] = field(default_factory=list, metadata={
+        "help": "robot: moves that stop halfway in a protective stop"})
+    emergency_stop_at_move: list[int] = field(default_factory=list, metadata={
+        "help": "robot: moves that stop halfway in an emergency stop (arm powered off)"})
+    no_touch_at: list[int] = field(default_factory=list, metadata={
+        "help": "CMM: PtMeas counts that touch nothing"})
+    silent_nodes: list[int] = field(default_factory=list, metadata={
+        "help": "CAN: node ids from which nothing reaches the bus"})
+    sensor_fault_at: list[int] = field(default_factory=list, metadata={
+        "help": "CAN: position requests answered with a sensor fault (EMCY)"})
+
+    def reply_delay_s(self, n: int | None) -> float:
+        """The delay before the reply to request ``n``: ``delay_s`` for every reply, or, when
+        ``delay_at`` is set, only for the requests it lists (``n=None``: an uncounted reply,
+        which is then not delayed)."""
+        if not self.delay_at:
+            return self.delay_s
+        return self.delay_s if n in self.delay_at else 0.0
 
 
 @dataclass(frozen=True)
@@ -91,7 +114,9 @@ class SimCell:
         self._t_start = 0.0
         self._t_end = 0.0
         self.protective_stop = False
-        self.emergency_stop = False
+        self.emergency_stop = False  # the emergency stop button is pressed
+        self.powered = True  # the arm is powered on ...
+        self.brakes_released = True  # ... and its brakes are released: it can move
         self.program_running = False
         self.move_count = 0
         self.counters: dict[str, int] = {}
@@ -143,14 +168,16 @@ class SimCell:
 
     def start_move(self, q_goal: np.ndarray, speed: float, accel: float) -> float:
         """Start a joint move; returns its wall-clock duration. Raises ``RuntimeError`` if the
-        robot is stopped by safety. A protective stop injected for this move freezes the robot
-        halfway."""
+        robot is stopped by safety or not running (powered off, brakes on). A protective or
+        emergency stop injected for this move stops the robot halfway."""
         q_goal = np.asarray(q_goal, dtype=float).reshape(-1)
         if q_goal.shape != (self.truth.n_joints,):
             raise ValueError(f"joint target must have {self.truth.n_joints} values, got {q_goal.shape}")
         with self._lock:
             if self.protective_stop or self.emergency_stop:
                 raise RuntimeError("robot is stopped by safety")
+            if not self.running:
+                raise RuntimeError("robot is not powered on with its brakes released")
             self.move_count += 1
             now = time.monotonic()
             q_now = self._q_at(now)
@@ -160,6 +187,10 @@ class SimCell:
             if self.move_count in self.faults.protective_stop_at_move:
                 q_goal = q_now + 0.5 * (q_goal - q_now)
                 self.protective_stop = True
+            if self.move_count in self.faults.emergency_stop_at_move:
+                q_goal = q_now + 0.5 * (q_goal - q_now)
+                self.emergency_stop = True
+                self.powered = self.brakes_released = False  # a category 1 stop
             self._q_start, self._q_goal = q_now, q_goal
             self._t_start, self._t_end = now, now + duration
             return duration
@@ -171,10 +202,56 @@ class SimCell:
             self._q_start = self._q_goal = q
             self._t_end = self._t_start = time.monotonic()
 
-    def reset_safety(self) -> None:
+    # ----------------------------------------------------------------- safety and power
+    # As on a Universal Robots arm: an emergency stop (a category 1 stop) halts the robot and
+    # then powers the arm off. Only a person releases the button; after that the arm must be
+    # powered on and its brakes released before it moves again. A protective stop leaves the
+    # arm powered; it is unlocked remotely.
+
+    @property
+    def running(self) -> bool:
+        """Powered on with the brakes released (UR robot mode RUNNING)."""
+        return self.powered and self.brakes_released
+
+    def power_off(self) -> None:
+        """Stop now and power the arm off (the brakes engage)."""
         with self._lock:
-            self.protective_stop = False
+            self.stop()
+            self.powered = self.brakes_released = False
+
+    def press_emergency_stop(self) -> None:
+        """The emergency stop button is pressed: stop now and power the arm off."""
+        with self._lock:
+            self.power_off()
+            self.emergency_stop = True
+
+    def release_emergency_stop(self) -> None:
+        """The button is released (by a person); the arm stays powered off."""
+        with self._lock:
             self.emergency_stop = False
+
+    def unlock_protective_stop(self) -> bool:
+        """Clear a protective stop; ``False`` if there is none."""
+        with self._lock:
+            was_stopped, self.protective_stop = self.protective_stop, False
+            return was_stopped
+
+    def power_on(self) -> bool:
+        """Power the arm on (brakes stay on); ``False`` while the emergency stop is pressed."""
+        with self._lock:
+            if self.emergency_stop:
+                return False
+            self.powered = True
+            return True
+
+    def release_brakes(self) -> bool:
+        """Release the brakes, powering the arm on first if needed; ``False`` while the
+        emergency stop is pressed."""
+        with self._lock:
+            if not self.power_on():
+                return False
+            self.brakes_released = True
+            return True
 
     # ----------------------------------------------------------------- truth
 

@@ -38,6 +38,7 @@ if _HERE not in sys.path:
 POOL = [f"127.0.0.{i}" for i in range(2, 19)]
 ABSENT_HOST = "127.0.0.19"  # never given a cell: an absent controller
 START_TIMEOUT_S = 20.0
+DEVICES = ("ur", "modbus", "tracker", "cmm", "can")  # fakes.cell's --no-KEY flags
 
 # The simulated robot: a UR5e whose true geometry differs from the nominal one by up to a
 # millimetre and a few hundredths of a degree, with a reflector and three tooling balls.
@@ -138,6 +139,14 @@ def truth_path() -> Path:
 
 
 @pytest.fixture(scope="session")
+def cell_truth():
+    """The cells' true robot (``KinematicModel``; its robot starts at all joints zero)."""
+    from calibration.model import model_from_dict
+
+    return model_from_dict(json.loads(TRUTH_PATH.read_text()))
+
+
+@pytest.fixture(scope="session")
 def cell_factory(truth_path):
     """``start(*args) -> RunningCell`` on a free pool address; all stopped at session end."""
     started: list[RunningCell] = []
@@ -184,11 +193,19 @@ def timed_cell(cell_factory) -> RunningCell:
 
 @pytest.fixture
 def fault_cell(cell_factory):
-    """``start(*args)``: a cell for one test (faults), stopped when the test ends."""
+    """``start(*args, only=(), faults=())``: a cell for one test, stopped when the test ends.
+
+    ``only`` names the devices to simulate (the keys of the cell's ``--no-KEY`` flags: ``ur``,
+    ``modbus``, ``tracker``, ``cmm``, ``can``; all when empty), ``faults`` the ``--fault``
+    values (``"garble_at=5"``): each device counts its own requests, so a fault meant for one
+    device would also hit the others.
+    """
     cells: list[RunningCell] = []
 
-    def start(*args: str) -> RunningCell:
-        cells.append(cell_factory(*args))
+    def start(*args: str, only: tuple[str, ...] = (), faults: tuple[str, ...] = ()) -> RunningCell:
+        flags = [f"--no-{key}" for key in DEVICES if only and key not in only]
+        flags += [flag for fault in faults for flag in ("--fault", fault)]
+        cells.append(cell_factory(*flags, *args))
         return cells[-1]
 
     yield start

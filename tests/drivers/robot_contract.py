@@ -15,6 +15,7 @@ real socket through the real client library.
 from __future__ import annotations
 
 import contextlib
+import socket
 import threading
 import time
 
@@ -35,6 +36,18 @@ def move_duration_s(dq_rad: float) -> float:
     if dq_rad <= SPEED_RAD_S**2 / ACCEL_RAD_S2:
         return 2.0 * np.sqrt(dq_rad / ACCEL_RAD_S2)
     return dq_rad / SPEED_RAD_S + SPEED_RAD_S / ACCEL_RAD_S2
+
+
+def dashboard(host: str, *commands: str) -> list[str]:
+    """The replies of the cell's UR dashboard server (port 29999) to ``commands``."""
+    with socket.create_connection((host, 29999), timeout=5.0) as sock:
+        reader = sock.makefile("rb")
+        reader.readline()  # the greeting
+        replies = []
+        for command in commands:
+            sock.sendall(command.encode() + b"\n")
+            replies.append(reader.readline().decode().strip())
+    return replies
 
 
 def step_towards_zero(q: np.ndarray, joint: int, dq_rad: float) -> np.ndarray:
@@ -179,6 +192,30 @@ class RobotContract:
             assert time.monotonic() - started < 1.0
             robot.stop()  # harmless: it is stopped already
             np.testing.assert_allclose(robot.read_joints(), reached, atol=self.tolerance_rad)
+
+    def test_emergency_stop_raises_robot_stopped_until_released_and_powered_on(self, fault_cell):
+        cell = fault_cell("--fault", "emergency_stop_at_move=2")
+        with contextlib.closing(self.connect(cell.endpoint)) as robot:
+            self.move(robot, HOME)
+            with pytest.raises(RobotStoppedError, match="emergency stop"):
+                self.move(robot, HOME + 0.2)
+            state = robot.state()
+            assert state.emergency_stop and not state.protective_stop
+            assert not state.moving and not state.program_running
+            # As on a UR (docs/devices/ur.md): nothing on the wire releases an emergency stop.
+            assert dashboard(cell.host, "unlock protective stop") != ["Protective stop releasing"]
+            with pytest.raises(RobotStoppedError, match="emergency stop"):
+                self.move(robot, HOME)
+            # A person releases the button; the arm stays powered off until it is powered on
+            # and its brakes are released.
+            dashboard(cell.host, "sim emergency stop release", "close safety popup")
+            assert not robot.state().emergency_stop
+            with pytest.raises(RobotStoppedError, match="not running"):
+                self.move(robot, HOME)
+            assert dashboard(cell.host, "power on", "brake release") == ["Powering on", "Brake releasing"]
+            self.move(robot, HOME)
+            np.testing.assert_allclose(robot.read_joints(), HOME, atol=self.tolerance_rad)
+            assert not robot.state().stopped_by_safety
 
     def test_dropped_connection_raises_then_the_driver_reconnects(self, fault_cell):
         cell = fault_cell(*self.drop_faults)

@@ -247,16 +247,52 @@ def test_other_process_gateway_serves_sdo_and_pdo_reads():
 # --------------------------------------------------------------------------- device faults
 
 
-def test_encoder_sensor_fault_is_an_sdo_abort_with_emcy_then_recovers(cell, fake):
-    with CanopenEncoder(config(fake, 17)) as enc:
-        enc.read()
-        cell.faults.sensor_fault_at = [next_read(cell)]
-        expected = r"SDO abort.*hardware error.*EMCY 0x7320 \(position sensor\)"
-        with pytest.raises(DeviceFaultError, match=expected) as info:
+@pytest.mark.parametrize(
+    "fault, node_id, use_pdo, error, match, status",
+    [
+        ("sensor_fault_at=2", 17, False, DeviceFaultError,
+         r"SDO abort .*hardware error.*EMCY 0x7320 \(position sensor\) \(code 0x06060000\)",
+         "fault: EMCY 0x7320 (position sensor)"),
+        ("sensor_fault_at=2", 33, True, MeasurementError,
+         r"resolver reports LOS loss of signal, LOT loss of tracking \(code 0x05\)",
+         "fault: EMCY 0x7300 (sensor)"),
+        ("garble_at=2", 17, False, ProtocolError, "unexpected SDO answer 0xBC", "operational"),
+        ("garble_at=2", 18, True, ProtocolError, "TPDO1 of 2 bytes does not hold 0x6004", "operational"),
+    ],
+    ids=["encoder-sensor-fault-sdo", "resolver-fault-pdo", "garbled-sdo", "garbled-pdo"],
+)
+def test_faults_of_a_node_in_another_process(fault_cell, fault, node_id, use_pdo, error, match, status):
+    """``recal fake-cell`` with the fault (counted per position request: SDO upload of 0x6004
+    or SYNC): the first reading is good, the second fails with the driver's error naming the
+    node, ``status()`` tells the node's EMCY, and the next reading is good again.
+    (Frames later than the timeout: tests/drivers/test_late_replies.py.)"""
+    cell = fault_cell(only=("can",), faults=(fault,))
+    kind = "resolver" if node_id == 33 else "encoder"
+    bus = CanBusConfig.from_endpoint(cell.endpoint["can"])
+    with CanopenEncoder(CanopenEncoderConfig(bus=bus, node_id=node_id, kind=kind, use_pdo=use_pdo,
+                                             timeout_s=TIMEOUT_S)) as enc:
+        first = enc.read()
+        with pytest.raises(error, match=match) as info:
             enc.read()
-        assert info.value.code == "0x06060000"
-        reading = enc.read()  # the next reading is good and the EMCY was reset
-        assert reading.angle_rad == pytest.approx(expected_encoder_rad(cell, fake, 1, 17), abs=3 * STEP_RAD)
+        assert f"node {node_id} on socketcand vcan0@{cell.host}" in str(info.value)
+        assert wait_for_status(enc, status) == status
+        third = enc.read()
+        assert wait_for_status(enc, "operational") == "operational"
+    assert third.sequence == 2
+    tolerance = 5 * TAU / 65536 if kind == "resolver" else 3 * STEP_RAD
+    assert third.angle_rad == pytest.approx(first.angle_rad, abs=tolerance)  # the robot stands still
+
+
+def test_silent_node_in_another_process_is_a_timeout_and_the_others_answer(fault_cell):
+    cell = fault_cell(only=("can",), faults=("silent_nodes=18",))
+    configs = configs_from_endpoint(cell.endpoint, timeout_s=TIMEOUT_S)
+    t0 = time.monotonic()
+    expected = "node 18 .*no SDO answer reading the device configuration within 0.3 s"
+    with pytest.raises(DeviceTimeoutError, match=expected):
+        CanopenEncoder(configs[("encoder", 2)])
+    assert time.monotonic() - t0 < 2 * TIMEOUT_S + 0.5
+    with CanopenEncoder(configs[("encoder", 1)]) as enc:
+        assert enc.read().angle_rad == pytest.approx(default_mount_offset_rad(17), abs=3 * STEP_RAD)
 
 
 def test_encoder_sensor_fault_in_pdo_mode_names_the_emcy(cell, fake):
@@ -269,9 +305,8 @@ def test_encoder_sensor_fault_in_pdo_mode_names_the_emcy(cell, fake):
         assert enc.read().sequence == 2
 
 
-@pytest.mark.parametrize("use_pdo", [False, True])
-def test_resolver_fault_bits_refuse_the_reading(cell, fake, use_pdo):
-    with CanopenEncoder(config(fake, 33, use_pdo=use_pdo)) as res:
+def test_resolver_fault_bits_refuse_an_sdo_reading(cell, fake):
+    with CanopenEncoder(config(fake, 33)) as res:
         cell.faults.sensor_fault_at = [next_read(cell)]
         with pytest.raises(MeasurementError, match="LOS loss of signal, LOT loss of tracking") as info:
             res.read()
@@ -305,12 +340,6 @@ def test_silent_node_times_out_and_is_read_again_when_back(cell, fake, use_pdo):
         assert reading.sequence == 2
 
 
-def test_silent_node_at_connect_is_a_timeout(cell, fake):
-    cell.faults.silent_nodes = [17]
-    with pytest.raises(DeviceTimeoutError, match="node 17.*no SDO answer reading the device configuration"):
-        CanopenEncoder(config(fake, 17))
-
-
 @pytest.mark.parametrize("use_pdo", [False, True])
 def test_dropped_connection_reconnects_and_reads_fresh(cell, fake, use_pdo):
     with CanopenEncoder(config(fake, 17, use_pdo=use_pdo)) as enc:
@@ -320,33 +349,6 @@ def test_dropped_connection_reconnects_and_reads_fresh(cell, fake, use_pdo):
         reading = enc.read()
         assert enc.reconnects == 1
         assert reading.sequence == 2
-        assert reading.angle_rad == pytest.approx(expected_encoder_rad(cell, fake, 1, 17), abs=3 * STEP_RAD)
-
-
-@pytest.mark.parametrize("use_pdo", [False, True])
-def test_garbled_reply_is_a_protocol_error(cell, fake, use_pdo):
-    with CanopenEncoder(config(fake, 17, use_pdo=use_pdo)) as enc:
-        cell.faults.garble_at = [next_read(cell)]
-        expected = "unexpected SDO answer 0xBC" if not use_pdo else "TPDO1 of 2 bytes does not hold 0x6004"
-        with pytest.raises(ProtocolError, match=expected):
-            enc.read()
-        assert enc.read().sequence == 1
-
-
-@pytest.mark.parametrize("use_pdo", [False, True])
-def test_late_answers_are_never_taken_for_fresh_ones(cell, fake, use_pdo):
-    with CanopenEncoder(config(fake, 17, use_pdo=use_pdo, timeout_s=0.5)) as enc:
-        cell.faults.delay_s = 0.1  # within the timeout: slow but fine
-        t0 = time.monotonic()
-        enc.read()
-        assert time.monotonic() - t0 >= 0.1
-        cell.faults.delay_s = 0.75  # beyond it: the answer arrives after the driver gave up
-        with pytest.raises(DeviceTimeoutError):
-            enc.read()
-        # The late answer (old angle) now lands after the next request and before its answer.
-        cell.faults.delay_s = 0.3
-        move(cell, [2.0, 0, 0, 0, 0, 0])
-        reading = enc.read()
         assert reading.angle_rad == pytest.approx(expected_encoder_rad(cell, fake, 1, 17), abs=3 * STEP_RAD)
 
 

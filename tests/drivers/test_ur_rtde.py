@@ -109,6 +109,19 @@ def test_program_stopped_on_the_pendant_is_restarted_by_the_next_move(fake_cell)
 
 
 @needs_ur_rtde
+def test_malformed_rtde_package_ends_only_the_worker_and_the_next_move_runs(fault_cell):
+    """The second move's command makes every RTDE stream send a header whose size is smaller
+    than the header: ur_rtde aborts its (worker) process, this one goes on."""
+    cell = fault_cell(only=("ur",), faults=("garble_at=2",))
+    with UrRtdeRobot(UrRtdeConfig(cell.host, probe_timeout_s=1.0)) as robot:
+        robot.move_joints(HOME, speed_rad_s=1.0, accel_rad_s2=2.0)
+        with pytest.raises(DeviceConnectionError, match=r"worker aborted .*malformed RTDE package"):
+            robot.move_joints(HOME + 0.1, speed_rad_s=1.0, accel_rad_s2=2.0)
+        robot.move_joints(HOME - 0.1, speed_rad_s=1.0, accel_rad_s2=2.0)
+        np.testing.assert_allclose(robot.read_joints(), HOME - 0.1, atol=1e-9)
+
+
+@needs_ur_rtde
 def test_silent_controller_times_out_quickly(fault_cell):
     cell = fault_cell("--fault", "delay_s=5")  # the dashboard answers after 5 s
     started = time.monotonic()
