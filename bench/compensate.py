@@ -19,7 +19,10 @@ Reported, per mode (best of ``--repeat`` runs; the machine is shared):
   kinematics at the commands (joints) or at what the nominal closed form makes of the corrected
   targets (targets), against ``X_d``;
 - convergence, iterations and flags;
-- the wall time of ``recal compensate`` on the same task as a CSV file (read, compensate, write).
+- the wall time of ``recal compensate`` on the same task as a CSV file (read, compensate, write);
+- a robot without a closed-form inverse (a PUMA 560 with the same kind of errors): joints mode
+  started from the numerical nominal inverse (``ik.numerical_ik``), for task rows that carry
+  their planned joints and for pose-only rows solved from one ``--qnear`` (``--puma-points``).
 
 Prints Markdown (docs/benchmarks.md, section "Compensation").
 """
@@ -63,6 +66,63 @@ def identified_ur10e(seed: int = 1):
                                 name="ur10e-identified")
     M = frame_map(ident, nominal, rng.uniform(-np.pi, np.pi, (256, 6)))
     return nominal, ident, M
+
+
+def identified_puma(seed: int = 3):
+    """A PUMA 560 as identification describes it (Hayati links, every link parameter off), the
+    base 1.5 m from the tracker and turned; and the nominal's frame in that world."""
+    rng = np.random.default_rng(seed)
+    nominal = robots.nominal("puma560")
+    m, _ = hayati_for_parallel_axes(nominal)
+    params = candidate_parameters(m, base=False, tool=False)
+    sig = [0.5e-3 if p.kind == "length" else np.deg2rad(0.1) if p.name.endswith(".theta") else np.deg2rad(0.05)
+           for p in params]
+    m = apply_step(m, params, rng.normal(0.0, sig))
+    ident = dataclasses.replace(m, base=np.array([1.5, 0.3, 0.2, 0.001, 0.002, np.deg2rad(60.0)]),
+                                name="puma560-identified")
+    return nominal, ident, frame_map(ident, nominal, rng.uniform(-1.5, 1.5, (256, 6)))
+
+
+def puma_configurations(kind: str, n: int, seed: int = 4) -> np.ndarray:
+    """"typical": a task region (shoulder bent, elbow bent 25-85° from stretched, wrist 20-90°
+    from its singularity: one elbow and one wrist branch); "anywhere": uniform within the joint
+    limits (revolute joints within ±180°), singular zones included."""
+    rng = np.random.default_rng(seed)
+    if kind == "typical":
+        lo, hi = np.radians([-90, -80, 115, -90, 20, -180]), np.radians([90, -10, 175, 90, 90, 180])
+    else:
+        lim = np.clip(robots.nominal("puma560").joint_limits, -np.pi, np.pi)
+        lo, hi = lim[:, 0], lim[:, 1]
+    return rng.uniform(lo, hi, (n, 6))
+
+
+def run_puma(n: int, repeat: int) -> None:
+    nominal, ident, M = identified_puma()
+    print(f"### {n:,} task points, PUMA 560 (no closed-form inverse)\n")
+    print("| task rows | time (s) | converged | reached position (µm): median / max over converged | "
+          "iterations (nominal inverse), mean | the planned configuration found | flags |")
+    print("|---|---|---|---|---|---|---|")
+    for kind in ("typical", "anywhere"):
+        q = puma_configurations(kind, n)
+        X = np.linalg.inv(M) @ fk(nominal, q)
+        q_near = np.radians([0, -45, 145, 0, 55, 0]) if kind == "typical" else np.radians([0, -90, 90, 0, 45, 0])
+        for rows, start, keep in (("with their planned q1..q6", q, True), ("pose only, one --qnear", q_near, False)):
+            if kind == "anywhere" and keep:
+                continue  # the same as typical: Newton from the planned joints
+
+            def joints():
+                sol = nominal_solution(nominal, M @ X, start, keep_branch=keep)
+                return sol, compensate_joints(ident, X, sol.q, reachable=sol.reachable,
+                                              branch_changed=sol.branch_changed)
+
+            t, (sol, c) = best_of(repeat, joints)
+            dp, _ = reach(ident, c.q, X)
+            ok = c.converged
+            same = np.mean(np.max(np.abs(sol.q - q), axis=1) < 1e-6)
+            flags = ", ".join(f"{f} {c.count(f)}" for f in FLAGS if c.count(f))
+            print(f"| {kind}, {rows} | {t:.2f} | {ok.mean() * 100:.2f}% | {fmt_um(np.median(dp[ok]))} / "
+                  f"{fmt_um(dp[ok].max())} | {sol.iterations.mean():.1f} | {same * 100:.1f}% | {flags} |")
+    print()
 
 
 def configurations(kind: str, n: int, seed: int = 2) -> np.ndarray:
@@ -154,12 +214,14 @@ def main(argv=None) -> int:
     ap.add_argument("--points", type=int, default=100_000)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--cli-points", type=int, default=100_000)
+    ap.add_argument("--puma-points", type=int, default=20_000, help="PUMA 560 (numerical inverse) task points")
+    ap.add_argument("--no-ur", action="store_true", help="only the PUMA 560 section")
     args = ap.parse_args(argv)
     nominal, ident, M = identified_ur10e()
     print(f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; Python "
           f"{platform.python_version()}, numpy {np.__version__}.\n")
     cli_inputs = None
-    for kind in ("typical", "anywhere"):
+    for kind in () if args.no_ur else ("typical", "anywhere"):
         q, X, before, rows, alg_a = run_set(kind, args.points, args.repeat, nominal, ident, M)
         if kind == "typical":
             cli_inputs = (q, X)
@@ -185,7 +247,9 @@ def main(argv=None) -> int:
               f"{int(np.median(ia))} / {int(ia.max())} | |\n")
         print(f"Cross-method agreement (T17) on the {clean.sum():,} unflagged points: Algorithm A vs Newton "
               f"max {agree:.2g}°, Algorithm B vs Newton max {agree_b:.2g}°.\n")
-    if args.cli_points:
+    if args.puma_points:
+        run_puma(args.puma_points, args.repeat)
+    if args.cli_points and cli_inputs is not None:
         q, X = cli_inputs
         res = cli_time(min(args.cli_points, len(q)), nominal, ident, M, q, X)
         print(f"### `recal compensate` on a {min(args.cli_points, len(q)):,}-row task CSV (whole process)\n")

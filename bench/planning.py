@@ -1,4 +1,5 @@
-"""Observation planning benchmark (``python bench/planning.py [--seeds 20] [--draws 5]``).
+"""Observation planning benchmark (``python bench/planning.py [--seeds 20] [--draws 10] [--random 10]``;
+``--quick`` for a 4-cell smoke run).
 
 A UR10e (every link perturbed: ``simulate.perturbed``, 0.5 mm / 0.05° / 0.1° offsets; base off by
 2 mm and 0.1°, the reflector 0.5 mm off its nominal place) stands 2.5 m in front of a laser
@@ -8,18 +9,22 @@ figure by 50 mm; the reflector must be in a 3 m x 3 m x 1.9 m box in front of th
 each seed (a different robot, candidate set and hold-out set):
 
 - 2,000 feasible candidate configurations;
-- 30 poses planned (D-optimal, greedy + exchange) against 30 poses drawn at random from the same
-  candidates;
+- 30 poses planned (the default criterion D, I and the eigenvalue criteria) against
+  ``--random`` designs of 30 poses drawn at random from the same candidates (random choice is a
+  distribution of designs: one draw per cell compares against a lucky or unlucky draw);
 - each design measured ``--draws`` times (fresh noise) and identified (``identify``, defaults);
   the hold-out error is the identified model's reflector position against the truth's (no
   measurement noise), averaged over the draws, on 1,000 fresh configurations of the working
   volume (reflector in the box, any orientation: where the robot will work) and on 1,000 of the
   measurable region (in the box and in sight: the candidates' own distribution);
-- the predicted RMS of each design (``planning.plan``'s σ²(JᵀJ)⁻¹ propagated to its own random
-  evaluation configurations, not the hold-out set).
+- the expected hold-out RMS of each design: σ²(JᵀJ)⁻¹ propagated to the same 1,000 working-volume
+  configurations, i.e. the mean of the simulated figure over infinitely many noise draws (for the
+  linearised model), without the noise of a finite number of draws;
+- the predicted RMS of each design (``planning.plan``'s own random evaluation configurations, not
+  the hold-out set): what a technician sees before measuring.
 
-The same cells also compare the criteria (O1 is left out: at a fixed number of poses it gives
-D's design). Then, on the first cell: how many random poses give the predicted accuracy of 30
+The same cells compare the criteria (O1 is left out: at a fixed number of poses it gives D's
+design). Then, on the first cell: how many random poses give the predicted accuracy of 30
 planned ones; and planning times.
 
 Prints Markdown (the tables of docs/benchmarks.md, section "Observation planning").
@@ -81,10 +86,11 @@ def holdout_errors(nominal, truth, q, holdouts, rng, draws):
     return np.mean(out, axis=0)
 
 
-def predicted_rms(nominal, q, rng, box):
-    """The predicted RMS of a given design: plan over exactly its poses."""
+def predicted_rms(nominal, q, rng, box, evaluation=None):
+    """The predicted RMS of a given design: plan over exactly its poses (on ``evaluation`` when
+    given: the expected hold-out RMS there)."""
     return planning.plan(nominal, q, len(q), targets=("smr",), sigma_m=SIGMA_M, rng=rng, volume=box,
-                         exchange=False).predicted_rms_m
+                         evaluation=evaluation, exchange=False).predicted_rms_m
 
 
 def fmt(values_m, digits=4):
@@ -112,28 +118,43 @@ def poses_sweep(nominal, cand, box) -> None:
     """Predicted RMS of planned and random designs against the number of poses (first cell)."""
     rng = np.random.default_rng(9)
     print("\nPredicted RMS (mm) against the number of poses (first cell; random: median of 10 draws):\n")
-    print("| poses | planned (D) | random | random / planned |")
-    print("|---|---|---|---|")
+    print("| poses | planned (I) | planned (D, default) | random | random / planned (I) |")
+    print("|---|---|---|---|---|")
     for k in (10, 12, 15, 20, 30, 60):
-        p = planning.plan(nominal, cand, k, targets=("smr",), sigma_m=SIGMA_M, volume=box,
-                          rng=np.random.default_rng(1)).predicted_rms_m
+        p = {c: planning.plan(nominal, cand, k, targets=("smr",), sigma_m=SIGMA_M, volume=box, criterion=c,
+                              rng=np.random.default_rng(1)).predicted_rms_m for c in ("I", "D")}
         v = np.median([predicted_rms(nominal, cand[rng.choice(len(cand), k, replace=False)], np.random.default_rng(1),
                                      box) for _ in range(10)])
-        print(f"| {k} | {p * 1e3:.4f} | {v * 1e3:.4f} | {v / p:.2f} |")
+        print(f"| {k} | {p['I'] * 1e3:.4f} | {p['D'] * 1e3:.4f} | {v * 1e3:.4f} | {v / p['I']:.2f} |")
 
 
-CRITERIA = ("D", "O3", "O4", "condition", "I")  # O1 gives D's design (same determinant at fixed K)
+CRITERIA = ("I", "D", "O3", "O4", "condition")  # O1 gives D's design (same determinant at fixed K)
+
+
+def ratio_line(label, planned, random_mean, random_each) -> str:
+    """Per-cell ratio of a planned design's figure to the mean of the cell's random designs, and how
+    often it beats a single random design."""
+    ratio = planned / random_mean
+    wins = int(np.sum(planned[:, None] < random_each))
+    return (f"| {label} | {np.median(ratio):.3f} | {ratio.min():.3f}–{ratio.max():.3f} | "
+            f"{int(np.sum(ratio < 1))} of {len(ratio)} | {wins} of {random_each.size} |")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="simulated cells (default 20)")
-    ap.add_argument("--draws", type=int, default=5, help="noise draws per design (default 5)")
+    ap.add_argument("--draws", type=int, default=10, help="noise draws per design (default 10)")
+    ap.add_argument("--random", type=int, default=10, help="random designs per cell (default 10)")
+    ap.add_argument("--quick", action="store_true", help="4 cells, 4 draws, 4 random designs, no extra tables")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.seeds, args.draws, args.random = 4, 4, 4
     t_start = time.perf_counter()
     nominal, sight, box = cell()
-    err = {name: [] for name in ("random", *CRITERIA)}  # per cell: (work rms, p95, max, seen rms, p95, max)
-    pred = {name: [] for name in err}  # per cell: (predicted rms, p95)
+    R = args.random
+    names = (*CRITERIA, *(f"random{k}" for k in range(R)))
+    err = {name: [] for name in names}  # per cell: (work rms, p95, max, seen rms, p95, max)
+    pred = {name: [] for name in names}  # per cell: (predicted rms, p95, expected hold-out rms)
     t_plan = {c: [] for c in CRITERIA}
     t_gen = []
     keep = {}
@@ -148,50 +169,68 @@ def main(argv=None) -> int:
         designs = {}
         for crit in CRITERIA:
             t0 = time.perf_counter()
-            r = planning.plan(nominal, cand, K, targets=("smr",), sigma_m=SIGMA_M, criterion=crit, volume=box,
-                              rng=np.random.default_rng(seed))
+            designs[crit] = planning.plan(nominal, cand, K, targets=("smr",), sigma_m=SIGMA_M, criterion=crit,
+                                          volume=box, rng=np.random.default_rng(seed))
             t_plan[crit].append(time.perf_counter() - t0)
-            designs[crit] = r
-        r_rand = planning.plan(nominal, cand[rng.choice(len(cand), K, replace=False)], K, targets=("smr",),
-                               sigma_m=SIGMA_M, volume=box, rng=np.random.default_rng(seed), exchange=False)
-        designs["random"] = r_rand
+        for k in range(R):
+            designs[f"random{k}"] = planning.plan(nominal, cand[rng.choice(len(cand), K, replace=False)], K,
+                                                  targets=("smr",), sigma_m=SIGMA_M, volume=box,
+                                                  rng=np.random.default_rng(seed), exchange=False)
         for name, r in designs.items():
             # the same noise draws for every design of a cell (common random numbers)
             err[name].append(holdout_errors(nominal, truth, r.q, (q_work, q_seen), np.random.default_rng(5000 + seed),
                                             args.draws))
-            pred[name].append((r.predicted_rms_m, r.predicted_p95_m))
+            pred[name].append((r.predicted_rms_m, r.predicted_p95_m, predicted_rms(nominal, r.q, None, box, q_work)))
         if seed == 0:
-            keep = dict(cand=cand, res=designs["D"])
-        print(f"seed {seed}: " + ", ".join(f"{n} {err[n][-1][0] * 1e3:.4f}" for n in err) + " mm", file=sys.stderr)
+            keep = dict(cand=cand, res=designs["I"])
+        rnd = np.mean([err[f"random{k}"][-1][0] for k in range(R)])
+        print(f"seed {seed}: " + ", ".join(f"{n} {err[n][-1][0] * 1e3:.4f}" for n in CRITERIA)
+              + f", random (mean of {R}) {rnd * 1e3:.4f} mm", file=sys.stderr)
     E = {n: np.array(v) for n, v in err.items()}
     PR = {n: np.array(v) for n, v in pred.items()}
+    rand_E = np.stack([E[f"random{k}"] for k in range(R)], axis=0)  # (R, cells, 6)
+    rand_PR = np.stack([PR[f"random{k}"] for k in range(R)], axis=0)
+    E["random"], PR["random"] = rand_E.mean(axis=0), rand_PR.mean(axis=0)
 
     print(f"Machine: {machine()}.\n")
-    print(f"{args.seeds} cells, {args.draws} noise draws per design (the same draws for every design of a cell). "
-          "Hold-out (noise-free, 1,000 fresh configurations per cell): the working volume (reflector in the box, "
-          "any orientation) and the measurable region (in the box and in sight of the tracker: the candidates' "
-          "distribution). Median (interquartile range) over the cells, mm.\n")
-    print("| 30 poses | working volume: RMS | p95 | max | measurable region: RMS | max | predicted RMS (working volume) |")
-    print("|---|---|---|---|---|---|---|")
-    for name, label in (("D", "planned (D-optimal)"), ("random", "random from the same candidates")):
-        e = E[name]
+    print(f"{args.seeds} cells; per cell {len(CRITERIA)} planned designs and {R} random designs of {K} poses, each "
+          f"measured {args.draws} times (the same noise draws for every design of a cell). Hold-out (noise-free, 1,000 "
+          "fresh configurations per cell): the working volume (reflector in the box, any orientation) and the "
+          "measurable region (in the box and in sight of the tracker: the candidates' distribution). Random: the "
+          "mean over the cell's random designs. Median (interquartile range) over the cells, mm.\n")
+    print("| 30 poses | working volume: RMS | p95 | max | measurable region: RMS | max | expected RMS (working volume) "
+          "| predicted RMS |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, label in (("I", "planned (I)"), ("D", "planned (D, default)"),
+                        ("random", "random from the same candidates")):
+        e, p = E[name], PR[name]
         print(f"| {label} | {fmt(e[:, 0])} | {fmt(e[:, 1])} | {fmt(e[:, 2])} | {fmt(e[:, 3])} | {fmt(e[:, 5])} | "
-              f"{fmt(PR[name][:, 0])} |")
-    for label, col in (("working volume", 0), ("measurable region", 3), ("working volume, max", 2)):
-        ratio = E["D"][:, col] / E["random"][:, col]
-        print(f"\nPlanned/random hold-out {'max' if col == 2 else 'RMS'}, {label.split(',')[0]}: median ratio "
-              f"{np.median(ratio):.3f} (range {ratio.min():.3f}–{ratio.max():.3f}); planned better in "
-              f"{int(np.sum(ratio < 1))} of {args.seeds} cells.")
-    print(f"\nPredicted/actual RMS over the working volume (medians): planned "
-          f"{np.median(PR['D'][:, 0] / E['D'][:, 0]):.3f}, random {np.median(PR['random'][:, 0] / E['random'][:, 0]):.3f}.\n")
+              f"{fmt(p[:, 2])} | {fmt(p[:, 0])} |")
+    print("\nPlanned / random, per cell (planned against the mean of the cell's random designs; last column: "
+          "against each random design alone):\n")
+    print("| figure | median ratio | range | cells better | single random designs beaten |")
+    print("|---|---|---|---|---|")
+    for crit in ("I", "D"):
+        for label, col, src, rs in (("working volume, RMS", 0, E, rand_E), ("working volume, max", 2, E, rand_E),
+                                    ("measurable region, RMS", 3, E, rand_E),
+                                    ("expected RMS, working volume", 2, PR, rand_PR)):
+            print(ratio_line(f"{crit}: {label}", src[crit][:, col], src["random"][:, col], rs[:, :, col].T))
+    print(f"\nPredicted/actual RMS over the working volume (medians): planned (I) "
+          f"{np.median(PR['I'][:, 0] / E['I'][:, 0]):.3f}, "
+          f"random {np.median(rand_PR[:, :, 0] / rand_E[:, :, 0]):.3f}.\n")
 
     print("Criteria (same cells, 30 poses; medians over the cells, mm; time: planning, median):\n")
-    print("| criterion | predicted RMS | predicted p95 | hold-out RMS (working volume) | hold-out max | planning time (s) |")
-    print("|---|---|---|---|---|---|")
+    print("| criterion | predicted RMS | predicted p95 | expected hold-out RMS | hold-out RMS (working volume) | "
+          "hold-out max | planning time (s) |")
+    print("|---|---|---|---|---|---|---|")
     for name in (*CRITERIA, "random"):
         tp = f"{np.median(t_plan[name]):.2f}" if name in t_plan else "–"
         print(f"| {name} | {np.median(PR[name][:, 0]) * 1e3:.4f} | {np.median(PR[name][:, 1]) * 1e3:.4f} | "
-              f"{np.median(E[name][:, 0]) * 1e3:.4f} | {np.median(E[name][:, 2]) * 1e3:.4f} | {tp} |")
+              f"{np.median(PR[name][:, 2]) * 1e3:.4f} | {np.median(E[name][:, 0]) * 1e3:.4f} | "
+              f"{np.median(E[name][:, 2]) * 1e3:.4f} | {tp} |")
+    if args.quick:
+        print(f"\nWhole benchmark {time.perf_counter() - t_start:.0f} s.")
+        return 0
 
     # how many random poses match 30 planned ones (predicted), on the first cell's candidates
     rng = np.random.default_rng(7)
@@ -202,17 +241,20 @@ def main(argv=None) -> int:
     for k in (30, 40, 50, 60, 80):
         v = [predicted_rms(nominal, cand[rng.choice(len(cand), k, replace=False)], rng, box) for _ in range(10)]
         print(f"| {k} | {np.median(v) * 1e3:.4f} |")
-    print(f"| 30 planned (D) | {res.predicted_rms_m * 1e3:.4f} |")
+    print(f"| 30 planned (I) | {res.predicted_rms_m * 1e3:.4f} |")
     poses_sweep(nominal, cand, box)
 
-    print("\nPlanning time, D-optimal (greedy + exchange; candidates drawn without constraints):\n")
-    print("| candidates | poses | time (s) | swaps |")
-    print("|---|---|---|---|")
+    print("\nPlanning time (greedy + exchange; candidates drawn without constraints):\n")
+    print("| candidates | poses | I: time (s) | swaps | D: time (s) | swaps |")
+    print("|---|---|---|---|---|---|")
     for n_c, k in ((2000, 30), (5000, 30), (5000, 60)):
         c = planning.generate_candidates(nominal, n_c, np.random.default_rng(n_c), targets=("smr",))
-        t0 = time.perf_counter()
-        r = planning.plan(nominal, c, k, targets=("smr",), sigma_m=SIGMA_M)
-        print(f"| {n_c} | {k} | {time.perf_counter() - t0:.2f} | {r.swaps} |")
+        cells = []
+        for crit in ("I", "D"):
+            t0 = time.perf_counter()
+            r = planning.plan(nominal, c, k, targets=("smr",), sigma_m=SIGMA_M, criterion=crit)
+            cells.append(f"{time.perf_counter() - t0:.2f} | {r.swaps}")
+        print(f"| {n_c} | {k} | {' | '.join(cells)} |")
     print(f"\nCandidate generation with the line-of-sight and volume tests: median {np.median(t_gen):.2f} s "
           f"for 2,000 candidates; whole benchmark {time.perf_counter() - t_start:.0f} s.")
     return 0

@@ -45,9 +45,10 @@ FLAGS = ("joint_limit", "near_singular", "outside_calibrated_region", "no_conver
 at the command is below ``singular_tol``; ``outside_calibrated_region`` the command is outside
 the joint ranges the calibration measured; ``no_convergence`` the residual did not reach the
 tolerance; ``branch_change`` the command crossed a singular surface from the nominal solution
-(the sign of det J changed) or the correction exceeds ``max_correction_rad`` (a large correction
-is a branch or singularity problem, ch5 §10); ``unreachable`` the nominal closed form found the
-pose out of reach."""
+(the sign of det J changed), the correction exceeds ``max_correction_rad`` (a large correction
+is a branch or singularity problem, ch5 §10), or a numerical nominal inverse reached a taught
+point only in another branch than the taught joints'; ``unreachable`` the nominal inverse
+kinematics found the pose out of reach (closed form) or no seed reached it (numerical)."""
 
 FLAG_BIT = {name: 1 << k for k, name in enumerate(FLAGS)}
 
@@ -138,6 +139,7 @@ def assess(
     converged: np.ndarray,
     *,
     reachable: np.ndarray | None = None,
+    branch_changed: np.ndarray | None = None,
     calibrated_range: np.ndarray | None = None,
     singular_tol: float = 0.02,
     max_correction_rad: float = np.deg2rad(5.0),
@@ -150,6 +152,8 @@ def assess(
 
     ``calibrated_range`` (n, 2): the joint ranges the calibration measured (e.g. the
     identification data's min and max readings), SI; ``None`` skips that check.
+    ``reachable`` and ``branch_changed`` (N,): what the nominal inverse kinematics found
+    (:class:`calibration.ik.IKResult`); a changed branch sets ``branch_change``.
     """
     N, n = q.shape
     if J is None:
@@ -171,6 +175,8 @@ def assess(
     if n == 6:
         J0 = pose_and_jacobian(model, q_nominal)[2] if J_nominal is None else J_nominal
         big |= np.sign(np.linalg.det(J0)) != np.sign(np.linalg.det(J))
+    if branch_changed is not None:
+        big |= np.asarray(branch_changed, bool)
     flags |= np.where(big, FLAG_BIT["branch_change"], 0)
     if reachable is not None:
         flags |= np.where(~np.asarray(reachable, bool), FLAG_BIT["unreachable"], 0)
@@ -186,7 +192,10 @@ def nominal_solution(
 ) -> IKResult:
     """The nominal controller's solution of poses in the nominal model's world (N, 4, 4): the
     closed form where the nominal has UR structure (branch of ``q_near``, or nearest to it), else
-    Newton from ``q_near`` (:func:`calibration.ik.inverse_kinematics`)."""
+    the numerical inverse from ``q_near``, the previous point's solution and seeds spread over the
+    joint limits (:func:`calibration.ik.inverse_kinematics`, :func:`calibration.ik.numerical_ik`).
+    ``keep_branch`` (a bool or one per point): ``q_near`` is the point's taught or planned
+    configuration."""
     return inverse_kinematics(nominal, _as_poses(T_nominal_tool), q_near, keep_branch=keep_branch,
                               position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad)
 
@@ -209,6 +218,7 @@ def compensate_joints(
     q_nominal: np.ndarray,
     *,
     reachable: np.ndarray | None = None,
+    branch_changed: np.ndarray | None = None,
     calibrated_range: np.ndarray | None = None,
     position_tol_m: float = 1e-9,
     rotation_tol_rad: float = 1e-9,
@@ -236,7 +246,7 @@ def compensate_joints(
     r = solve_ik(identified, T_desired, q_nominal, position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad,
                  max_iterations=max_iterations)
     flags, smin = assess(identified, r.q, q_nominal, r.converged, reachable=reachable,
-                         calibrated_range=calibrated_range, singular_tol=singular_tol,
+                         branch_changed=branch_changed, calibrated_range=calibrated_range, singular_tol=singular_tol,
                          max_correction_rad=max_correction_rad, max_correction_m=max_correction_m,
                          J=r.jacobian, J_nominal=r.jacobian_start)
     return Compensation(
@@ -291,6 +301,7 @@ def compensate_targets(
                              rotation_tol_rad=kw["rotation_tol_rad"])
     q_nom = first.q
     reachable = first.reachable.copy()
+    branch_changed = first.branch_changed
     branch = ur_branch(nominal, q_nom) if ur_geometry(nominal) is not None else None
     q = q_nom.copy()
     ik_ok = first.converged.copy()
@@ -325,7 +336,8 @@ def compensate_targets(
         iterations[idx] += 1
         active[idx] = ~done(e[idx]) & keep
     converged = done(e) & ik_ok
-    flags, smin = assess(identified, q, q_nom, converged, reachable=reachable, calibrated_range=calibrated_range,
+    flags, smin = assess(identified, q, q_nom, converged, reachable=reachable, branch_changed=branch_changed,
+                         calibrated_range=calibrated_range,
                          singular_tol=singular_tol, max_correction_rad=max_correction_rad,
                          max_correction_m=max_correction_m)
     return Compensation(

@@ -9,9 +9,13 @@
   shoulder, elbow and wrist flags of :func:`ur_branch`.
 - :func:`solve_ik`: damped Newton (Levenberg–Marquardt) for any model, all points iterating
   together; points that have converged are masked out.
+- :func:`numerical_ik`: inverse kinematics of any model (no closed form needed), batched:
+  damped Newton from each point's own seed (its taught or planned joints, else ``q_near``), then
+  from the previous point's solution, then from a few seeds spread over the joint limits for the
+  points still not solved; the solution nearest the point's own seed is kept.
 - :func:`inverse_kinematics`: the nominal solution of a task point: closed form where the model
   has UR structure (then polished by Newton, which only matters with gear harmonics), else
-  Newton from the task's taught or planned joints.
+  :func:`numerical_ik`.
 
 Pose errors are ``e = [p_d − p; rotvec(R_d·Rᵀ)]`` in world axes (tool-point translation and the
 world-frame small rotation, the consistent pair of ch5 §2.3), so ``J·dq = e`` is the Newton step.
@@ -291,7 +295,10 @@ class IKResult:
     """Inverse kinematics of N points. ``q`` (N, n) readings; ``converged`` (N,) both residuals
     within tolerance; ``residual_m`` (N,) remaining position error; ``residual_rad`` (N,)
     remaining orientation error; ``iterations`` (N,); ``reachable`` (N,) False where a closed
-    form found the pose out of reach."""
+    form found the pose out of reach (:func:`numerical_ik`: where no seed converged);
+    ``branch_changed`` (N,) or None: True where :func:`numerical_ik` solved a point that has a
+    taught configuration only from another seed, and the solution lies in another branch than
+    the taught joints (the sign of det J differs; 6-joint robots)."""
 
     q: np.ndarray
     converged: np.ndarray
@@ -301,6 +308,7 @@ class IKResult:
     reachable: np.ndarray
     jacobian: np.ndarray | None = None
     jacobian_start: np.ndarray | None = None
+    branch_changed: np.ndarray | None = None
 
     @property
     def success(self) -> bool:
@@ -387,6 +395,174 @@ def solve_ik(
     )
 
 
+def spread_seeds(model: KinematicModel, count: int) -> np.ndarray:
+    """``count`` readings (count, n) spread over the joint limits (revolute joints within ±π), the
+    same every call: a Halton sequence (bases 2, 3, 5, ...), which covers the box more evenly than
+    random draws of the same number."""
+    lim = model.joint_limits.copy()
+    for i, j in enumerate(model.joints):
+        if j.revolute:
+            lim[i] = np.clip(lim[i], -math.pi, math.pi)
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71]
+    u = np.empty((count, model.n_joints))
+    for i in range(model.n_joints):
+        base = primes[i % len(primes)]
+        for k in range(count):
+            f, x, m = 1.0, 0.0, k + 1
+            while m:
+                f /= base
+                x += f * (m % base)
+                m //= base
+            u[k, i] = x
+    return lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
+
+
+def _branch_sign(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """The configuration branch as the sign of det J (N,) (6-joint robots; 0 elsewhere)."""
+    if model.n_joints != 6 or len(q) == 0:
+        return np.zeros(len(q))
+    return np.sign(np.linalg.det(geometric_jacobian(model, q)))
+
+
+def wrap_into_limits(model: KinematicModel, q: np.ndarray, near: np.ndarray | None = None) -> np.ndarray:
+    """Readings ``q`` (N, n) with each revolute joint moved by whole turns, where a turn is the
+    same pose (the reading is the joint angle: gain 1, no coupling, no gear harmonic): to the turn
+    nearest ``near`` (N, n) when that one is within the joint's limits, else, for a joint outside
+    its limits, into them where some turn fits. Other joints unchanged."""
+    q = np.array(q, dtype=float)
+    if model.coupling is not None:
+        return q
+    lim = model.joint_limits
+    for i, j in enumerate(model.joints):
+        if not j.revolute or j.gain != 1.0 or j.harmonic is not None:
+            continue
+        lo, hi = lim[i]
+        if near is not None:
+            turned = q[:, i] + TWO_PI * np.round((near[:, i] - q[:, i]) / TWO_PI)
+            q[:, i] = np.where((turned >= lo) & (turned <= hi), turned, q[:, i])
+        out = (q[:, i] < lo) | (q[:, i] > hi)
+        if np.any(out):
+            moved = q[out, i] - TWO_PI * np.ceil((q[out, i] - hi) / TWO_PI)  # the highest turn not above hi
+            q[out, i] = np.where(moved >= lo, moved, q[out, i])
+    return q
+
+
+def _inside(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    lim = model.joint_limits
+    return np.all((q >= lim[:, 0]) & (q <= lim[:, 1]), axis=-1)
+
+
+def numerical_ik(
+    model: KinematicModel,
+    T_world_tool: np.ndarray,
+    q_near: np.ndarray,
+    *,
+    taught: bool | np.ndarray = False,
+    n_seeds: int = 24,
+    position_tol_m: float = 1e-9,
+    rotation_tol_rad: float = 1e-9,
+    max_iterations: int = 50,
+    max_chain: int = 32,
+) -> IKResult:
+    """Inverse kinematics of any model (no closed form needed): readings (N, n) with ``model``'s
+    tool at ``T_world_tool`` (N, 4, 4), all points solved together by damped Newton
+    (:func:`solve_ik`), each from a sequence of seeds until one gives a solution within the joint
+    limits (:func:`wrap_into_limits` first puts revolute joints on the turn nearest the point's own
+    seed, or into the limits, where a turn is the same pose):
+
+    1. the point's own seed ``q_near`` (N, n) or (n,): its taught or planned joints where
+       ``taught`` (a bool, or one per point) says it has some, else a configuration near which
+       the solution is wanted (``--qnear``);
+    2. the previous point's solution (a task is a path: the neighbour's configuration is usually
+       a few degrees away, in the same branch), repeated while it solves more points, at most
+       ``max_chain`` times;
+    3. ``n_seeds`` configurations spread over the joint limits (:func:`spread_seeds`), those
+       nearest the point's own seed first, four at a time until a group solves the point; of
+       that group's solutions the one nearest the point's own seed is kept (as a UR controller's
+       ``get_inverse_kin(x, qnear)`` takes the nearest closed-form solution); then step 2 again
+       for the points after the newly solved ones.
+
+    A converged solution outside the joint limits is kept when no seed finds one inside (it is
+    then flagged by :func:`calibration.compensation.assess`). ``reachable`` is False where no
+    seed converged (the pose is out of reach, or too near a singularity for Newton); the best
+    attempt is returned there. ``branch_changed`` is True where a taught point was solved only
+    from another seed and the solution's branch (sign of det J) differs from the taught joints'.
+    """
+    T = np.asarray(T_world_tool, dtype=float)
+    T = T[None] if T.ndim == 2 else T
+    N, n = T.shape[0], model.n_joints
+    seed = np.broadcast_to(check_q(model, np.asarray(q_near, dtype=float).reshape(-1, n)), (N, n)).copy()
+    taught = np.broadcast_to(np.asarray(taught, dtype=bool), (N,))
+    kw = dict(position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations)
+    L = characteristic_length(model)
+    # per point, the best attempt so far, ranked: solved (converged, inside the limits) >
+    # converged > closest
+    q = seed.copy()
+    conv = np.zeros(N, dtype=bool)
+    rank = np.full(N, np.inf)
+    res_m, res_rad = np.full(N, np.inf), np.full(N, np.inf)
+    iters = np.zeros(N, dtype=int)
+
+    def score(r, idx):
+        """Lower is better: -2 solved, -1 converged outside the limits, else the residual size.
+        Revolute joints are first put on the turn nearest the point's own seed."""
+        qw = wrap_into_limits(model, r.q, seed[idx])
+        s = np.where(r.converged, np.where(_inside(model, qw), -2.0, -1.0), r.residual_m + L * r.residual_rad)
+        return qw, s
+
+    def keep(idx, r):
+        qw, s = score(r, idx)
+        take = s < rank[idx]
+        t = idx[take]
+        q[t], conv[t], rank[t] = qw[take], r.converged[take], s[take]
+        res_m[t], res_rad[t] = r.residual_m[take], r.residual_rad[take]
+        iters[idx] += r.iterations
+
+    keep(np.arange(N), solve_ik(model, T, seed, **kw))
+    own = rank == -2.0  # solved from the point's own seed
+    tried_prev = np.zeros(N, dtype=bool)
+
+    def chain():
+        for _ in range(max_chain):
+            idx = np.nonzero((rank[1:] > -2.0) & (rank[:-1] == -2.0) & ~tried_prev[1:])[0] + 1
+            if idx.size == 0:
+                return
+            tried_prev[idx] = True
+            keep(idx, solve_ik(model, T[idx], q[idx - 1], **kw))
+
+    chain()
+    if n_seeds > 0 and np.any(rank > -2.0):
+        seeds = spread_seeds(model, n_seeds)
+        # each point tries the spread seeds nearest its own seed first, ``group`` at a time, and
+        # stops at the first group that solves it: the nearest of that group's solutions is kept
+        order = np.argsort(np.sum((seed[:, None, :] - seeds[None, :, :]) ** 2, axis=2), axis=1)
+        group = 4
+        for start in range(0, len(seeds), group):
+            idx = np.nonzero(rank > -2.0)[0]
+            if idx.size == 0:
+                break
+            cols = order[idx, start:start + group]
+            S = cols.shape[1]
+            r = solve_ik(model, np.repeat(T[idx], S, axis=0), seeds[cols.reshape(-1)], **kw)
+            qw, sc = score(r, np.repeat(idx, S))
+            qw, sc = qw.reshape(idx.size, S, n), sc.reshape(idx.size, S)
+            near = np.sum((qw - seed[idx][:, None, :]) ** 2, axis=2)
+            best = np.argmin(np.where(sc == sc.min(axis=1, keepdims=True), np.where(sc < 0, near, 0.0), np.inf),
+                             axis=1)
+            pick = np.arange(idx.size) * S + best
+            keep(idx, IKResult(q=r.q[pick], converged=r.converged[pick], residual_m=r.residual_m[pick],
+                               residual_rad=r.residual_rad[pick],
+                               iterations=r.iterations.reshape(idx.size, S).sum(axis=1),
+                               reachable=np.ones(idx.size, dtype=bool)))
+        chain()
+    changed = taught & conv & ~own
+    if np.any(changed):
+        k = np.nonzero(changed)[0]
+        changed[k] = _branch_sign(model, q[k]) != _branch_sign(model, seed[k])
+    return IKResult(q=q, converged=conv, residual_m=res_m, residual_rad=res_rad, iterations=iters,
+                    reachable=conv.copy(), branch_changed=changed)
+
+
 def inverse_kinematics(
     model: KinematicModel,
     T_world_tool: np.ndarray,
@@ -405,9 +581,11 @@ def inverse_kinematics(
     configurations) or, without it, the
     branch whose solution is nearest ``q_near`` (what a UR controller's ``get_inverse_kin(x,
     qnear)`` does), on ``q_near``'s joint turns; then Newton polishes the points the closed form
-    leaves above tolerance (gear harmonics). Elsewhere: Newton from ``q_near``, which must then
-    be the task's taught or planned joints (a generic numerical IK from far away can land on any
-    branch, ch5 §10)."""
+    leaves above tolerance (gear harmonics). Elsewhere: :func:`numerical_ik`, from ``q_near``
+    (the taught joints where ``keep_branch``, whose branch it keeps where Newton from them
+    converges), the previous point's solution, and seeds spread over the joint limits. (A
+    numerical IK from far away can land on any branch, ch5 §10: taught joints are the safe
+    start.)"""
     T = np.asarray(T_world_tool, dtype=float)
     T = T[None] if T.ndim == 2 else T
     N = T.shape[0]
@@ -415,7 +593,7 @@ def inverse_kinematics(
                              (N, model.n_joints)).copy()
     kw = dict(position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations)
     if ur_geometry(model) is None:
-        return solve_ik(model, T, q_near, **kw)
+        return numerical_ik(model, T, q_near, taught=keep_branch, **kw)
     keep = np.broadcast_to(np.asarray(keep_branch, dtype=bool), (N,))
     q0 = np.empty_like(q_near)
     ok = np.zeros(N, dtype=bool)

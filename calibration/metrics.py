@@ -12,6 +12,8 @@ and measured orientations (3, 3); and a ``pose_id`` grouping rows that repeat on
   ``AP_a, AP_b, AP_c`` and repeatability ``±3·S_a`` etc.
 - :func:`error_statistics`: one measurement per pose: mean, standard deviation, 3σ, mean + 3σ,
   RMS, 95th percentile and maximum of the position error (and of the orientation error angle).
+- :func:`group_configurations`: which rows repeat one commanded configuration, from their joint
+  readings (when the data carry no pose label).
 
 Orientation (where ISO 9283 subtracts the robot's angles a, b, c): each measured orientation's
 deviation from its command is taken as the small rotation ``δ = log(R_meas · R_cmdᵀ)`` resolved on
@@ -54,6 +56,32 @@ def orientation_deviation(R_cmd: np.ndarray, R_meas: np.ndarray) -> np.ndarray:
     """The small rotation (N, 3) rad taking each commanded orientation to the measured one,
     resolved on the world axes: ``log(R_meas · R_cmdᵀ)``."""
     return matrix_to_rotvec(np.asarray(R_meas, float) @ np.swapaxes(np.asarray(R_cmd, float), -1, -2))
+
+
+# --------------------------------------------------------------------------- which rows repeat a pose
+
+
+def group_configurations(q: np.ndarray, tol: np.ndarray | float) -> np.ndarray:
+    """Pose labels (N,) int, 0, 1, ... in order of first appearance, for joint readings ``q``
+    (N, n): two rows are the same commanded configuration when every joint differs by at most
+    ``tol`` (a number, or (n,) per joint, in the readings' units), and sameness is transitive
+    (connected components of that relation: a robot's readings at one commanded configuration
+    scatter by its encoder resolution, far less than the distance between two poses of a
+    measurement plan)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    q = np.atleast_2d(np.asarray(q, float))
+    tol = np.broadcast_to(np.asarray(tol, float), (q.shape[1],))
+    if not np.all(tol > 0):
+        raise ValueError(f"`tol` must be positive; got {tol}")
+    N = len(q)
+    pairs = cKDTree(q / tol).query_pairs(r=1.0, p=np.inf, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(N, N))
+    _, labels = connected_components(graph, directed=False)
+    first = {}
+    return np.array([first.setdefault(k, len(first)) for k in labels.tolist()], dtype=int)
 
 
 # --------------------------------------------------------------------------- repeated poses

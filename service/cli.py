@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("plan", "choose the configurations to measure, and predict the accuracy they give"),
     "export": ("export", "write a model as URDF or as a DH table (CSV, Markdown)"),
     "compensate": ("compensate", "compensated task files (CSV or URScript) for an identified robot"),
+    "accuracy": ("accuracy", "ISO 9283 pose accuracy and repeatability of measurements against a model"),
     "model": ("model", "list library robots, or write one's nominal model"),
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
     "serve": ("serve", "run the REST API (contracts §9)"),

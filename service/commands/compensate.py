@@ -13,7 +13,11 @@ Compensated task files (contracts §5), from an identified model:
   interpreted are reported (stderr and ``--report``), not guessed.
 
 The nominal model is ``--nominal`` or the one the identified model records
-(``identification.nominal``, written by ``recal identify``). See docs/compensation.md.
+(``identification.nominal``, written by ``recal identify``); in joints mode without one, rows
+without joints start from the identified model's own inverse kinematics. Robots without a
+closed-form inverse use the numerical one (``calibration.ik.numerical_ik``: from the row's joints
+or ``--qnear``, the previous row's solution, seeds over the joint limits). See
+docs/compensation.md.
 """
 
 from __future__ import annotations
@@ -42,7 +46,8 @@ def add_parser(s) -> None:
     s.add_argument("--calibration-data", metavar="MEAS.csv", help="the identification measurements: their joint "
                    "ranges are the calibrated region (default: the ranges the identified model records)")
     s.add_argument("--qnear", help="comma-separated joints (model units) that choose the branch of rows without "
-                   "q1..qN (default: all zero; the nearest solution is taken, as UR's get_inverse_kin does)")
+                   "q1..qN (default: all zero): the solution nearest it is taken, as UR's get_inverse_kin does; "
+                   "for robots without a closed form it is also where the numerical inverse kinematics starts")
     s.add_argument("--tolerance", type=float, help="position residual to reach, model length unit (default 1e-9 m)")
     s.add_argument("--singular-tol", type=float, default=0.02, help="near_singular below this smallest "
                    "dimensionless singular value of the Jacobian (default 0.02)")
@@ -186,7 +191,6 @@ def _source_poses(q, taught, nominal, M):
 
 def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
     from calibration.compensation import compensate_joints, compensate_targets, flag_names, nominal_solution
-    from calibration.ik import ur_geometry
     from service.cli import Fail, progress
     from service.taskfiles import format_task, read_task
 
@@ -202,12 +206,6 @@ def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
     if np.any(only_q):
         X[only_q] = _source_poses(task.q[only_q], taught, nominal, M)
     q_near = np.where(task.has_q[:, None], np.nan_to_num(task.q), qnear)
-    no_start = task.has_pose & ~task.has_q
-    if nominal is not None and ur_geometry(nominal) is None and np.any(no_start):
-        r = int(np.nonzero(no_start)[0][0])
-        raise Fail(f"{args.task}: row {r + 1} (line {task.table.lines[r]}) has no q1..q{model.n_joints}: the nominal "
-                   f"model {nominal.name!r} has no closed-form inverse kinematics, so each pose needs the joints it "
-                   f"was taught or planned with")
     if args.mode == "targets":
         if nominal is None:
             raise Fail(f"{args.model}: targets mode needs the nominal model the controller uses: give --nominal "
@@ -217,19 +215,22 @@ def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
             return compensate_targets(model, nominal, X[sl], q_near[sl], T_nominal_world=M,
                                       keep_branch=task.has_q[sl], calibrated_range=calibrated, **kw)
     else:
-        if nominal is None and np.any(task.has_pose & ~task.has_q):
-            r = int(np.nonzero(task.has_pose & ~task.has_q)[0][0])
-            raise Fail(f"{args.task}: row {r + 1} (line {task.table.lines[r]}) has no q1..q{model.n_joints} to start "
-                       f"from: give --nominal (the closed-form nominal solution starts the correction)")
+        # the correction starts from the nominal controller's solution; without a nominal model,
+        # from the identified model's own inverse kinematics (numerical: calibration.ik.numerical_ik)
+        start = nominal if nominal is not None else model
 
         def run(sl):
             q0 = q_near[sl].copy()
             reachable = np.ones(len(q0), dtype=bool)
+            changed = np.zeros(len(q0), dtype=bool)
             rows = task.has_pose[sl]
-            if nominal is not None and np.any(rows):
-                sol = nominal_solution(nominal, M @ X[sl][rows], q_near[sl][rows], keep_branch=task.has_q[sl][rows])
+            if np.any(rows):
+                sol = nominal_solution(start, M @ X[sl][rows], q_near[sl][rows], keep_branch=task.has_q[sl][rows])
                 q0[rows], reachable[rows] = sol.q, sol.reachable
-            return compensate_joints(model, X[sl], q0, reachable=reachable, calibrated_range=calibrated, **kw)
+                if sol.branch_changed is not None:
+                    changed[rows] = sol.branch_changed
+            return compensate_joints(model, X[sl], q0, reachable=reachable, branch_changed=changed,
+                                     calibrated_range=calibrated, **kw)
 
     comp = _chunked(N, run, t0)
     if time.perf_counter() - t0 > 2.0:
@@ -277,13 +278,11 @@ def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
     from calibration.kinematics import fk
     from calibration.transforms import pose_to_matrix
     from service.cli import Fail
-    from service.files import InputError
     from service.taskfiles import matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur
 
     script = parse_urscript(args.task, model.n_joints)
     if not script.targets:
-        raise InputError(args.task, f"no movej/movel/movep/movec target could be interpreted "
-                                    f"({len(script.uninterpreted)} lines left alone; see them with --report)")
+        _no_targets(args, model, script)
     if nominal is None:
         raise Fail(f"{args.model}: a URScript program needs the nominal model its controller uses: give --nominal "
                    f"NOMINAL.json (this model does not record the one it was identified from)")
@@ -342,6 +341,36 @@ def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
     prefixes = [prefixes[k] for k in perm]
     skipped = [{"line": u.line, "text": u.text, "reason": u.reason} for u in script.uninterpreted]
     return script.rewrite(replacements, literals), comp, prefixes, skipped, M, fit_rms
+
+
+def _no_targets(args, model, script) -> None:
+    """A program without a single target to compensate is bad input. The message names the lines
+    left alone and why the first was; with ``--report`` the report is still written and lists
+    each with its text and reason (and no points), so that the hint can be followed. ``--out`` is
+    not written."""
+    from service.files import InputError, write_atomic
+
+    skipped = script.uninterpreted
+    if not skipped:
+        raise InputError(args.task, "no movej/movel/movep/movec call found; expected a URScript program with move "
+                                    "targets to compensate")
+    first = skipped[0]
+    lines = ", ".join(str(k.line) for k in skipped[:10])
+    if len(skipped) > 10:
+        lines += f" and {len(skipped) - 10} more"
+    message = (f"no movej/movel/movep/movec target could be interpreted: {len(skipped)} line(s) left alone (line "
+               f"{lines}), the first because {first.reason}")
+    where = ("the report lists each with its text and reason" if args.report
+             else "--report R.json lists each with its text and reason")
+    if args.report:
+        u = model.units
+        report = {"format": "recal.compensation-report/1", "task": str(args.task), "model": model.name,
+                  "mode": "script", "units": {"length": u.length, "angle": u.angle}, "error": message,
+                  "summary": {"points": 0, "converged": 0},
+                  "uninterpreted": [{"line": k.line, "text": k.text, "reason": k.reason} for k in skipped],
+                  "points": []}
+        write_atomic(args.report, json.dumps(report, indent=1) + "\n")
+    raise InputError(args.task, f"{message}; {where}", line=first.line)
 
 
 def run(args) -> int:

@@ -18,13 +18,13 @@ from calibration.compensation import (FLAG_BIT, FLAGS, assess, compensate_joints
                                       compensate_targets, error_table, flag_names, frame_map,
                                       inverse_jacobian_iteration, nominal_solution)
 from calibration.conventions import hayati_for_parallel_axes
-from calibration.ik import (geometric_jacobian, inverse_kinematics, pose_error, singular_values, solve_ik, ur_branch,
-                            ur_geometry, ur_ik, ur_ik_all)
+from calibration.ik import (geometric_jacobian, inverse_kinematics, numerical_ik, pose_error, singular_values, solve_ik,
+                            spread_seeds, ur_branch, ur_geometry, ur_ik, ur_ik_all, wrap_into_limits)
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 from calibration.parameters import apply_step, candidate_parameters
 from calibration.transforms import matrix_to_rotvec
-from sample_models import all_convention_docs, random_readings, si_readings
+from sample_models import all_convention_docs, random_readings, si_readings, stanford_5r1p_doc
 
 UM = 1e-6
 
@@ -155,6 +155,88 @@ def test_non_ur_models_are_recognised_and_solved_by_newton_from_the_taught_joint
     regular = ok & (singular_values(puma, geometric_jacobian(puma, q))[:, -1] > 0.02)
     assert regular.mean() > 0.7
     np.testing.assert_allclose(r.q[regular], q[regular], atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- numerical IK (no closed form)
+
+
+def no_closed_form_models():
+    return {"puma560 (dh, Hayati)": robots.nominal("puma560"),
+            "5r1p (dh, prismatic joint 3)": model_from_dict(stanford_5r1p_doc()),
+            "puma560-zrp (poe)": robots.nominal("puma560-zrp")}
+
+
+def inside_limits(model, q):
+    lim = model.joint_limits
+    return np.all((q >= lim[:, 0] - 1e-12) & (q <= lim[:, 1] + 1e-12), axis=1)
+
+
+@pytest.mark.parametrize("name", list(no_closed_form_models()))
+def test_numerical_ik_solves_pose_only_points_from_one_qnear(name):
+    """Task points with a pose and no joints, all from one q_near (``--qnear``): Newton from there
+    alone misses some (other branches, joint limits); with the previous point's solution and the
+    spread seeds every reachable point is solved, within the joint limits, to 1e-9 m."""
+    model = no_closed_form_models()[name]
+    assert ur_geometry(model) is None
+    rng = np.random.default_rng(3)
+    q_true = random_readings_si(model, 300, rng)
+    T = fk(model, q_true)
+    q_near = model.joint_limits.mean(axis=1)
+    seeds = np.tile(q_near, (len(T), 1))
+    plain = solve_ik(model, T, seeds)
+    plain_q = wrap_into_limits(model, plain.q, seeds)  # the same poses, on the turns nearest q_near
+    plain_ok = plain.converged & inside_limits(model, plain_q)
+    r = numerical_ik(model, T, q_near)
+    assert plain_ok.mean() < 0.97  # the fallbacks have work to do
+    assert r.success and r.reachable.all() and inside_limits(model, r.q).all()
+    assert position_error(model, r.q, T).max() < 1e-9 and orientation_error(model, r.q, T).max() < 1e-9
+    # where Newton from q_near alone found a solution inside the limits, that one is kept
+    np.testing.assert_allclose(r.q[plain_ok], plain_q[plain_ok], atol=1e-9)
+    assert not r.branch_changed.any()  # no taught joints, no branch to keep
+
+
+def random_readings_si(model, n, rng):
+    lim = np.clip(model.joint_limits, -np.pi, np.pi)
+    for i, j in enumerate(model.joints):
+        if not j.revolute:
+            lim[i] = model.joint_limits[i]
+    return rng.uniform(lim[:, 0], lim[:, 1], (n, model.n_joints))
+
+
+def test_numerical_ik_keeps_taught_branches_and_flags_a_changed_one():
+    """Taught joints are the start and the branch to keep; a taught configuration outside the joint
+    limits (a wrist flipped past joint 4's range) is solved in another branch, and says so."""
+    puma = robots.nominal("puma560")
+    q_a = np.radians([[20.0, -60.0, 150.0, 30.0, 50.0, 10.0]])
+    T = fk(puma, q_a)
+    flip = solve_ik(puma, T, q_a + np.radians([0, 0, 0, 180, -100, 180])).q  # the other wrist solution
+    assert position_error(puma, flip, T)[0] < 1e-9 and not inside_limits(puma, wrap_into_limits(puma, flip))[0]
+    path = fk(puma, q_a + np.radians(np.outer(np.arange(5), [3, -2, 2, 1, 2, -3])))
+    r = numerical_ik(puma, np.concatenate([T, T, path]), np.concatenate([q_a, flip, q_a + 0.03 * np.ones((5, 6))]),
+                     taught=True)
+    assert r.success
+    np.testing.assert_allclose(r.q[0], q_a[0], atol=1e-9)  # taught and inside: kept as taught
+    np.testing.assert_allclose(r.q[1], q_a[0], atol=1e-9)  # taught outside the limits: the other wrist
+    assert list(r.branch_changed) == [False, True] + [False] * 5
+    assert position_error(puma, r.q, np.concatenate([T, T, path])).max() < 1e-9
+    c = compensate_joints(puma, np.concatenate([T, T]), r.q[:2], branch_changed=r.branch_changed[:2])
+    assert c.flags_of(0) == [] and "branch_change" in c.flags_of(1)
+
+
+def test_numerical_ik_reports_what_it_cannot_reach():
+    puma = robots.nominal("puma560")
+    q = np.radians([[40.0, -30.0, 120.0, 20.0, 60.0, 10.0]])
+    T = fk(puma, q)
+    far = T.copy()
+    far[0, :3, 3] *= 20.0  # far beyond the reach
+    r = numerical_ik(puma, np.concatenate([T, far]), q)
+    assert list(r.converged) == [True, False] and list(r.reachable) == [True, False]
+    assert r.residual_m[1] > 1.0 and np.isfinite(r.q).all()
+    c = compensate_joints(puma, np.concatenate([T, far]), r.q, reachable=r.reachable)
+    assert c.flags_of(0) == [] and {"unreachable", "no_convergence"} <= set(c.flags_of(1))
+    m = model_from_dict(stanford_5r1p_doc())
+    np.testing.assert_array_equal(spread_seeds(m, 8), spread_seeds(m, 8))  # the same seeds every call
+    assert inside_limits(m, spread_seeds(m, 24)).all()
 
 
 # ----------------------------------------------------------------------------- joints mode

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from calibration.metrics import error_statistics, orientation_deviation, pose_statistics
+from calibration.metrics import error_statistics, group_configurations, orientation_deviation, pose_statistics
 from calibration.transforms import rot
 
 MM = 1e-3
@@ -88,6 +88,17 @@ def test_error_statistics_with_orientation():
     assert e.mean_rad == pytest.approx(2e-3) and e.std_rad == pytest.approx(math.sqrt(2) * 1e-3)
     np.testing.assert_allclose(e.bias_abc_rad, [0.5e-3, -1.5e-3, 0], atol=1e-12)
     np.testing.assert_allclose(orientation_deviation(R_c, R_m), [[1e-3, 0, 0], [0, -3e-3, 0]], atol=1e-12)
+
+
+def test_group_configurations_by_joint_readings():
+    """Rows within the tolerance on every joint are one pose (transitively: a chain of readings
+    each within it of the next); labels in order of first appearance; the tolerance per joint."""
+    q = np.array([[1.0, 2.0], [0.0, 0.0], [1.004, 2.0], [0.0, 0.02], [1.008, 2.003], [5.0, 5.0], [0.0, 0.0]])
+    assert group_configurations(q, 0.005).tolist() == [0, 1, 0, 2, 0, 3, 1]
+    assert group_configurations(q, [0.005, 0.03]).tolist() == [0, 1, 0, 1, 0, 2, 1]
+    assert group_configurations(q[:1], 0.005).tolist() == [0]
+    with pytest.raises(ValueError, match="positive"):
+        group_configurations(q, 0.0)
 
 
 def test_bad_input():

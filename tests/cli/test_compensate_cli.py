@@ -22,7 +22,7 @@ import pytest
 
 from calibration import robots
 from calibration.conventions import hayati_for_parallel_axes
-from calibration.ik import inverse_kinematics
+from calibration.ik import geometric_jacobian, inverse_kinematics, singular_values
 from calibration.kinematics import fk
 from calibration.model import model_to_dict
 from calibration.parameters import apply_step, candidate_parameters
@@ -223,11 +223,12 @@ def test_urscript_program_is_rewritten_byte_for_byte_except_its_targets(files):
      r"bad\.csv, row 2 \(line 3\), column 'z': expected a number, got 'oops'"),
     ("short.csv", "x,y,z,qw,qx,qy\n1,2,3,1,0,0\n", [], r"short\.csv: missing column 'qz'"),
     ("empty.script", "def f():\n  textmsg(\"hello\")\n  movel(pose_trans(a, b))\nend\n", [],
-     r"empty\.script: no movej/movel/movep/movec target could be interpreted"),
+     r"empty\.script, line 3: no movej/movel/movep/movec target could be interpreted: 1 line\(s\) left alone \(line "
+     r"3\), the first because the target is computed by an expression; --report R\.json lists each with its text"),
+    ("nomove.script", "def f():\n  textmsg(\"hello\")\nend\n", [], r"nomove\.script: no movej/movel/movep/movec call "
+     r"found"),
     ("ok.csv", "x,y,z,qw,qx,qy,qz\n800,100,500,0,1,0,0\n", ["--mode", "targets", "--model", "bare.json"],
      r"bare\.json: targets mode needs the nominal model the controller uses: give --nominal"),
-    ("ok2.csv", "x,y,z,qw,qx,qy,qz\n800,100,500,0,1,0,0\n", ["--model", "bare.json"],
-     r"ok2\.csv: row 1 \(line 2\) has no q1\.\.q6 to start from: give --nominal"),
 ])
 def test_bad_input_is_one_line_and_no_output_file(files, name, content, args, match):
     d, *_ = files
@@ -292,3 +293,69 @@ def test_an_output_that_cannot_be_written_fails_before_any_work(files):
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [
         "recal compensate: no/such/dir/out.csv: cannot write: the folder 'no/such/dir' does not exist"]
+
+
+def test_a_program_without_targets_still_gets_the_report_its_error_points_to(files):
+    """The hint of "no target could be interpreted" can be followed: with --report the lines left
+    alone are listed there with their numbers; the compensated program is not written."""
+    d, *_ = files
+    (d / "calc.script").write_text("def f():\n  p = get_actual_tcp_pose()\n  movel(pose_trans(p, t))\n"
+                                   "  movej(get_inverse_kin(p))\nend\n")
+    r = recal("compensate", "--model", "identified.json", "--task", "calc.script", "--out", "calc.out.script",
+              "--report", "calc.json", cwd=d)
+    assert r.returncode == 2 and not (d / "calc.out.script").exists()
+    assert r.stderr.strip().splitlines() == [
+        "recal compensate: calc.script, line 2: no movej/movel/movep/movec target could be interpreted: 3 line(s) left "
+        "alone (line 2, 3, 4), the first because p: a target computed by an expression is not compensated; the "
+        "report lists each with its text and reason"]
+    report = json.loads((d / "calc.json").read_text())
+    assert report["summary"]["points"] == 0 and report["points"] == []
+    assert [(u["line"], u["text"]) for u in report["uninterpreted"]] == [
+        (2, "p = get_actual_tcp_pose()"), (3, "movel(pose_trans(p, t))"), (4, "movej(get_inverse_kin(p))")]
+    assert all(u["reason"] for u in report["uninterpreted"])
+
+
+def test_pose_only_rows_on_a_robot_without_a_closed_form(tmp_path):
+    """A PUMA 560 (no closed-form inverse in Recal) identified with small errors; a task of poses
+    without joints. Joints mode: the numerical nominal inverse from --qnear (then the previous
+    row's solution, then seeds over the joint limits) starts the correction, and every command
+    brings the identified robot to its pose within 1 µm, inside the joint limits. Targets mode: the
+    nominal controller's inverse of each corrected target brings it there too."""
+    rng = np.random.default_rng(12)
+    nominal = robots.nominal("puma560")  # inches, degrees
+    m, _ = hayati_for_parallel_axes(nominal)
+    params = candidate_parameters(m, base=False, tool=False)
+    sig = [0.5e-3 if p.kind == "length" else 0.05 * DEG for p in params]
+    ident = dataclasses.replace(apply_step(m, params, rng.normal(0.0, sig)), name="puma-identified")
+    save_model(tmp_path / "ident.json", ident, {"identification": {"nominal": model_to_dict(nominal)}})
+    lim = np.degrees(nominal.joint_limits)
+    q = rng.uniform(np.maximum(lim[:, 0], -150) + 20, np.minimum(lim[:, 1], 150) - 20, (60, 6))
+    # away from singular configurations, where the nominal robot may not reach the identified one's pose
+    q = q[singular_values(ident, geometric_jacobian(ident, np.radians(q)))[:, -1] > 0.02][:30]
+    X = fk(ident, np.radians(q))
+    IN = 0.0254
+    quat = matrix_to_quat(X[:, :3, :3])
+    (tmp_path / "task.csv").write_text("x,y,z,qw,qx,qy,qz\n" + "\n".join(
+        ",".join(f"{v:.10f}" for v in X[i, :3, 3] / IN) + "," + ",".join(f"{v:.15f}" for v in quat[i])
+        for i in range(len(q))) + "\n")
+    r = recal("compensate", "--model", "ident.json", "--task", "task.csv", "--out", "out.csv",
+              "--qnear", "0,-45,180,0,45,0", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("compensated 30 points (joints mode): 30 converged")
+    header, rows = read_out(tmp_path / "out.csv")
+    assert header == [*POSE, *Q, "converged", "residual", "flags"]
+    qc = col(header, rows, Q) * DEG
+    reached = fk(ident, qc)
+    assert np.abs(reached[:, :3, 3] - X[:, :3, 3]).max() < 1e-6  # 1 µm
+    np.testing.assert_allclose(reached[:, :3, :3], X[:, :3, :3], atol=1e-8)
+    assert not any("joint_limit" in row[-1] or "unreachable" in row[-1] for row in rows)
+    r = recal("compensate", "--model", "ident.json", "--task", "task.csv", "--out", "targets.csv", "--mode", "targets",
+              "--qnear", "0,-45,180,0,45,0", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    header, rows = read_out(tmp_path / "targets.csv")
+    assert all(row[header.index("converged")] == "1" for row in rows)
+    P = col(header, rows, POSE)
+    T = np.broadcast_to(np.eye(4), (len(P), 4, 4)).copy()
+    T[:, :3, :3], T[:, :3, 3] = quat_to_matrix(P[:, 3:]), P[:, :3] * IN
+    ctrl = inverse_kinematics(nominal, T, qc)  # the controller, in the branch of the commands above
+    assert np.abs(fk(ident, ctrl.q)[:, :3, 3] - X[:, :3, 3]).max() < 1e-6

@@ -42,7 +42,7 @@ def test_plan_from_a_candidate_file(cell, tmp_path, capsys):
                   "--candidates", str(cell / "cand.csv"), "--target", "smr", "--report", str(rep),
                   "--evaluation-count", "60"]) == 0
     line = capsys.readouterr().out
-    assert line.startswith("planned 25 poses (from 300 candidates, criterion D") and "RMS" in line
+    assert line.startswith("planned 25 poses (from 300 candidates, criterion D = ") and "RMS" in line
     rows = _rows(out)
     assert len(rows) == 25 and list(rows[0]) == [f"q{i}" for i in range(1, 7)] + ["candidate"]
     cand = _rows(cell / "cand.csv")
