@@ -15,15 +15,17 @@ Method (book §4.4.2, §4.3.3, §4.5.3):
    robot-world/hand-eye problem).
 3. Rows are weighted by their uncertainty (``sigma`` per row, or the instrument's).
 4. The identifiable set: a QR factorisation of the column-scaled, weighted Jacobian, in a fixed
-   order of preference; a column that adds (numerically) nothing to the columns before it is
-   not freed, and the report names what it duplicates.
+   order of preference (:func:`preference_order`); a column that adds (numerically) nothing to
+   the columns before it is not freed, keeps the model's value, and the report names what it
+   duplicates, compared in that dimensionless scaling (:func:`select_identifiable`).
 5. Levenberg–Marquardt with Marquardt's scaling (the damping is proportional to diag(JᵀWJ)),
    analytic Jacobian (:mod:`calibration.jacobian`), optional robust loss by iteratively
    reweighted rows (a bumped reflector does not ruin the fit; the rows it down-weights are
    named).
 6. Covariance ``s²(JᵀWJ)⁻¹`` (book eq. 4.54/4.70 with W = Σ⁻¹), ``s² = max(1, χ²/dof)``: if the
    residuals are larger than the stated uncertainty, the stated uncertainty was optimistic and
-   the covariance grows accordingly; it never shrinks below what the instrument states.
+   the covariance grows accordingly; it never shrinks below what the instrument states. With a
+   :class:`Prior` (book §4.3.2): ``s²(JᵀWJ + Σp⁻¹)⁻¹``, the prior's term counted in χ².
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .conventions import hayati_for_parallel_axes, mdh_to_dh
-from .jacobian import Prediction, jacobian_from_walk, record_keys, world_points
-from .kinematics import walk
+from .jacobian import Prediction, jacobian_from_walk, predict, record_keys, world_points
+from .kinematics import Walk, walk
 from .model import KinematicModel
 from .parameters import Parameter, apply_step, candidate_parameters, parameter_values
 from .registration import register_points, register_poses
@@ -111,31 +113,81 @@ class Prior:
     names: tuple[str, ...]
     covariance: np.ndarray
 
-    def information(self, params: list["Parameter"]) -> np.ndarray:
-        """The prior information matrix (inverse covariance) over ``params`` (zero rows and
-        columns for parameters without a prior)."""
+    def _block(self, params: list["Parameter"]) -> tuple[list[int], np.ndarray]:
         idx = {n: i for i, n in enumerate(self.names)}
         have = [k for k, p in enumerate(params) if p.name in idx]
+        rows = [idx[params[k].name] for k in have]
+        return have, np.asarray(self.covariance, dtype=float)[np.ix_(rows, rows)]
+
+    def information(self, params: list["Parameter"]) -> np.ndarray:
+        """The prior information matrix (inverse of the marginal covariance) over ``params`` (zero
+        rows and columns for parameters without a prior)."""
+        have, sub = self._block(params)
         info = np.zeros((len(params), len(params)))
         if have:
-            sub = np.asarray(self.covariance)[np.ix_([idx[params[k].name] for k in have], [idx[params[k].name] for k in have])]
             info[np.ix_(have, have)] = np.linalg.pinv(sub, hermitian=True)
         return info
 
+    def covariance_of(self, params: list["Parameter"]) -> np.ndarray:
+        """The prior covariance (P, P) over ``params`` (NaN rows and columns for parameters without
+        a prior)."""
+        have, sub = self._block(params)
+        cov = np.full((len(params), len(params)), np.nan)
+        cov[np.ix_(have, have)] = sub
+        return cov
 
-@dataclass(frozen=True, slots=True)
-class Unidentifiable:
-    """A parameter the data cannot determine: ``reason`` in words, ``relation`` the freed
-    parameters whose motion it duplicates, with coefficients (SI)."""
 
-    name: str
-    reason: str
-    relation: tuple[tuple[str, float], ...] = ()
+def drift_scale(model: KinematicModel, data: Measurements, names: tuple[str, ...], covariance: np.ndarray,
+                drift: np.ndarray, *, sigma_m: float = 20e-6, scales: np.ndarray | None = None) -> float:
+    """How much drift the new ``data`` show since the calibration that gave ``model`` and the
+    ``covariance`` (P, P) SI of its parameters ``names``: the scale ``s`` of a drift allowance
+    ``drift`` (P,) (1σ per parameter, SI) that makes the data most likely (type-II maximum
+    likelihood, the evidence of the linearised model): the data's position residuals at
+    ``model`` are ``r = J δ + ε`` with ``δ ~ N(0, Σ + s² diag(drift²))`` and ``ε`` the
+    instrument's noise. 0 when the data fit the previous model within its own uncertainty;
+    about 1 when the parameters moved by the allowance. ``scales``: the values tried (default 0
+    and 41 from 0.01 to 100)."""
+    cands = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets),
+                                                     gains=any(n.endswith(".gain") for n in names))}
+    keep = [i for i, n in enumerate(names) if n in cands]
+    if not keep:
+        return 0.0
+    params = [cands[names[i]] for i in keep]
+    cov = np.asarray(covariance, dtype=float)[np.ix_(keep, keep)]
+    d2 = np.asarray(drift, dtype=float)[keep] ** 2
+    sigma = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
+    p_tool = np.array([model.target(t) for t in data.target])
+    pred = predict(model, data.q, p_tool, params, data.target)
+    r = ((data.p_world - pred.p_world) / sigma[:, None]).reshape(-1)
+    J = (pred.Jp / sigma[:, None, None]).reshape(-1, len(params))
+    G, b = J.T @ J, J.T @ r
+    best = (math.inf, 0.0)
+    for s in (np.concatenate([[0.0], np.geomspace(0.01, 100.0, 41)]) if scales is None else scales):
+        # -log evidence, up to a constant, in the parameters' space (determinant lemma, Woodbury):
+        # C = I + J Q Jᵀ, Q = L Lᵀ: log det C = log det K, rᵀC⁻¹r = rᵀr - cᵀK⁻¹c, K = I + LᵀGL, c = Lᵀb
+        L = _sqrt_psd(cov + s * s * np.diag(d2)).T
+        K = np.eye(len(params)) + L.T @ G @ L
+        c = L.T @ b
+        nll = 0.5 * (np.linalg.slogdet(K)[1] + r @ r - c @ np.linalg.solve(K, c))
+        if nll < best[0]:
+            best = (nll, float(s))
+    return best[1]
 
 
 @dataclass(frozen=True, eq=False)
 class IdentificationResult:
-    """Everything :func:`identify` did. Arrays over the freed parameters are (P,) / (P, P), SI.
+    """Everything :func:`identify` did. Arrays over the parameters with an estimate are (P,) /
+    (P, P), SI.
+
+    ``sources`` (P,) says what determined each: ``"data"``, ``"data + prior"`` (minimum-variance
+    estimation with a :class:`Prior`) or ``"prior"`` (the data cannot see it: it keeps the
+    prior's value and uncertainty and was not estimated); ``prior_std_errors`` (P,) the prior's
+    standard errors (NaN without one). ``singular_values``, ``condition_number`` and
+    ``observability`` are those of what was estimated (with a prior: data and prior together);
+    ``data_only`` (with a prior) the same statistics for the parameters the data alone determine.
+    ``chi2`` is the weighted residuals' (plus, with a prior, the prior term ``chi2_prior``) and
+    ``dof`` its degrees of freedom (residuals, plus prior constraints, minus estimated
+    parameters).
 
     Residuals are measured minus predicted: ``residuals_m`` (N, 3) position, ``residuals_rad``
     (N, 3) orientation (zeros for position-only rows).
@@ -172,6 +224,10 @@ class IdentificationResult:
     registration: dict | None
     notes: tuple[str, ...] = ()
     settings: dict = field(default_factory=dict)
+    sources: tuple[str, ...] = ()
+    prior_std_errors: np.ndarray | None = None
+    chi2_prior: float = 0.0
+    data_only: dict | None = None
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -194,6 +250,7 @@ class _Problem:
     sigma_pos: np.ndarray  # (N,) m
     sigma_rot: float  # rad
     target_rows: dict = field(default_factory=dict)  # target name -> (N,) bool, the rows that measure it
+    trig: dict = field(default_factory=dict)  # the joints' cos and sin over the data, for every walk (kinematics.walk)
 
 
 def _target_rows(names: np.ndarray) -> dict:
@@ -212,7 +269,7 @@ def _p_tool(model: KinematicModel, names: np.ndarray, rows: dict | None = None) 
 def _residuals(model, prob: _Problem, record=frozenset()):
     """Walk ``model`` over the data (recording ``record``): the walk, the predicted points and the
     residuals, measured minus predicted (position (N, 3), orientation (N, 3))."""
-    w = walk(model, prob.data.q, record)
+    w = walk(model, prob.data.q, record, prob.trig)
     pt = world_points(w, _p_tool(model, prob.p_tool_names, prob.target_rows))
     rp = prob.data.p_world - pt
     rr = np.zeros_like(rp)
@@ -237,10 +294,15 @@ def _stack(prob: _Problem, rp, rr, Jp=None, Jr=None):
 
     Component-major order: the x residuals of all rows, then y, then z, then the orientation
     rows likewise. :func:`calibration.jacobian.predict` computes its columns in that order, so
-    the Jacobian (M, P) is a Fortran-ordered array made without a transposing copy."""
+    the Jacobian (M, P) is a Fortran-ordered array made without a transposing copy: ``Jp`` (from
+    :func:`~calibration.jacobian.jacobian_from_walk`, used for nothing else) is weighted in place."""
     wp = 1.0 / prob.sigma_pos
     r = [(rp.T * wp).reshape(-1)]
-    Jt = None if Jp is None else [(Jp.transpose(2, 1, 0) * wp).reshape(Jp.shape[2], -1)]  # (P, 3N)
+    Jt = None
+    if Jp is not None:
+        JpT = Jp.transpose(2, 1, 0)  # (P, 3, N), contiguous
+        JpT = np.multiply(JpT, wp, out=JpT) if JpT.flags.c_contiguous and JpT.flags.writeable else JpT * wp
+        Jt = [JpT.reshape(Jp.shape[2], -1)]  # (P, 3N)
     if np.any(prob.has_rot):
         m = prob.has_rot
         r.append((rr[m].T / prob.sigma_rot).reshape(-1))
@@ -286,6 +348,9 @@ def _robust_weights(z: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
 
 # --------------------------------------------------------------------------- parameter selection
 
+# How a parameter the data cannot determine relates to the freed ones (``Unidentifiable.category``).
+CATEGORIES = ("no_effect", "same_motion", "combination", "target_offsets", "tool_orientation", "last_joint_offset")
+
 
 def _describe(name: str) -> str:
     head, _, f = name.rpartition(".")
@@ -300,23 +365,136 @@ def _describe(name: str) -> str:
     return f"joint {head} {words.get(f, f)} ({name})"
 
 
-def _reason(p: Parameter, relation: list[tuple[str, float]], position_only: bool, multi_target: bool) -> str:
+def _is_joint_parameter(name: str) -> bool:
+    head = name.rpartition(".")[0]
+    return head not in ("base", "tool", "home") and not head.startswith("target.")
+
+
+def _last_joint_offset(params: list[Parameter]) -> int | None:
+    """Index of the last joint's offset (its first parameter in the candidate order: ``theta`` of a
+    revolute joint, ``d`` of a prismatic one), or None."""
+    heads = [p.name.rpartition(".")[0] for p in params if _is_joint_parameter(p.name)]
+    if not heads:
+        return None
+    return next(k for k, p in enumerate(params) if p.name.rpartition(".")[0] == heads[-1])
+
+
+def _offset_duplicates(name: str) -> bool:
+    """Parameters that only move the measured points rigidly with the tool: target offsets and
+    tool translations."""
+    return name.startswith(("target.", "tool.t"))
+
+
+def preference_order(params: list[Parameter], *, position_only: bool) -> list[int]:
+    """The order in which :func:`select_identifiable` tries to keep ``params`` (indices).
+
+    The candidates' own order (:func:`calibration.parameters.candidate_parameters`), except that
+    with position-only data the last joint's offset is tried after the target offsets and the
+    tool translations: turning a measured point about the last axis moves it exactly as a change
+    of its offset in the tool frame does, so the data can determine one of the two. The offsets
+    are what was really measured (where the reflector sits); the joint offset, kept first, would
+    absorb them (a reflector 40 mm off the axis and 1 mm off its nominal place is a 1.4° joint
+    offset) and the model would turn the tool orientation by that much.
+    """
+    order = list(range(len(params)))
+    last = _last_joint_offset(params) if position_only else None
+    if last is None:
+        return order
+    anchor = max((k for k, p in enumerate(params) if _offset_duplicates(p.name)), default=-1)
+    if anchor < last:
+        return order
+    order.remove(last)
+    order.insert(order.index(anchor) + 1, last)
+    return order
+
+
+@dataclass(frozen=True, slots=True)
+class Unidentifiable:
+    """A parameter the data cannot determine; it keeps the model's value.
+
+    ``reason`` in words (SI units); ``category`` one of :data:`CATEGORIES`; ``relation`` the
+    freed parameters whose combined motion it duplicates: a unit change of ``name`` moves the
+    measured points as changes ``coefficient`` of those do (SI: m or rad of each per m or rad of
+    ``name``), largest first in the scaled (dimensionless) parameterisation the selection uses;
+    ``kinds`` the kinds (``length``, ``angle``, ``scale``) of ``name`` and of each related
+    parameter, for writing the coefficients in other units (:func:`explain`).
+    """
+
+    name: str
+    reason: str
+    relation: tuple[tuple[str, float], ...] = ()
+    category: str = "no_effect"
+    kinds: tuple[str, ...] = ()
+
+
+def _unit_name(kind: str, units) -> tuple[str, float]:
+    """(unit, SI per unit) of a parameter kind; ``units`` None: SI."""
+    if kind == "length":
+        return ("m", 1.0) if units is None else (units.length, units.length_m)
+    if kind == "angle":
+        return ("rad", 1.0) if units is None else (units.angle, units.angle_rad)
+    return ("", 1.0)
+
+
+def relation_coefficients(u: Unidentifiable, units=None) -> list[tuple[str, float, str]]:
+    """``u.relation`` in ``units`` (a :class:`calibration.model.Units`; None: SI): (name,
+    coefficient, unit of the coefficient such as ``mm/deg``) per related parameter."""
+    out = []
+    kinds = u.kinds or ("",) * (len(u.relation) + 1)
+    un, sn = _unit_name(kinds[0], units)
+    for (name, c), kind in zip(u.relation, kinds[1:]):
+        uj, sj = _unit_name(kind, units)
+        unit = uj if not un else (f"{uj}/{un}" if uj else f"1/{un}")
+        out.append((name, c * sn / sj, "1" if uj == un else unit))
+    return out
+
+
+def relation_text(u: Unidentifiable, units=None, *, terms: int = 6) -> str:
+    """The relation in words: ``1 mm of tool.ty ≡ +1.43 deg of j6.theta +1 mm of target.smr1.x``."""
+    kinds = u.kinds or ("",) * (len(u.relation) + 1)
+    un, _ = _unit_name(kinds[0], units)
+    parts = []
+    for (name, c, _), kind in zip(relation_coefficients(u, units)[:terms], kinds[1:]):
+        uj, _ = _unit_name(kind, units)
+        parts.append(f"{c:+.3g}{' ' + uj if uj else ''} of {name}")
+    more = " + …" if len(u.relation) > terms else ""
+    return f"1{' ' + un if un else ''} of {u.name} ≡ {' '.join(parts)}{more}"
+
+
+def explain(u: Unidentifiable, units=None) -> str:
+    """Why ``u`` is not identified, in words, with the relation's coefficients in ``units``
+    (a :class:`calibration.model.Units`; None: SI)."""
+    d = _describe(u.name)
+    rel = relation_text(u, units) if u.relation else ""
+    if u.category == "tool_orientation":
+        return "tool orientation is unobservable from position-only data" + (f" ({rel})" if rel else "")
+    if u.category == "target_offsets":
+        return f"{d} moves the measured points exactly as the target offsets do ({rel})"
+    if u.category == "last_joint_offset":
+        joint = u.name.rpartition(".")[0]
+        what = ("the target offsets already describe" if any(n.startswith("target.") for n, _ in u.relation)
+                else "the tool translation already describes")
+        return (f"{d} only turns the measured points about the axis of joint {joint}, which {what}: "
+                f"position-only data cannot tell the two apart, so it keeps the model's value ({rel})")
+    if u.category == "same_motion":
+        return f"{d} and {_describe(u.relation[0][0])} are the same motion ({rel})"
+    if u.category == "combination":
+        return f"{d} moves the measured points as a combination of freed parameters does: {rel}"
+    return f"{d} has no effect on these measurements"
+
+
+def _category(p: Parameter, relation: list[tuple[str, float]], pair: bool, position_only: bool,
+              last_offset: bool) -> str:
     n = p.name
+    if n.startswith("tool.r") and position_only:
+        return "tool_orientation"
     if not relation:
-        if n.startswith("tool.r") and position_only:
-            return "tool orientation is unobservable from position-only data"
-        if n.startswith("target."):
-            return f"{_describe(n)} has no effect on these measurements"
-        return f"{_describe(n)} has no effect on these measurements"
-    if n.startswith(("tool.", "home.")) and all(r[0].startswith(("target.", "tool.", "home.")) for r in relation):
-        if position_only and n.startswith("tool.r"):
-            return "tool orientation is unobservable from position-only data (it only moves the targets, whose offsets are identified)"
-        return f"{_describe(n)} moves the measured points exactly as the target offsets do"
-    top = relation[0]
-    if len(relation) == 1 or abs(relation[1][1]) < 0.05 * abs(top[1]):
-        return f"{_describe(n)} and {_describe(top[0])} are the same motion"
-    combo = " + ".join(f"{c:+.3g}·{r}" for r, c in relation[:4])
-    return f"{_describe(n)} is a combination of other parameters ({combo})"
+        return "no_effect"
+    if n.startswith(("tool.t", "home.t")) and all(r.startswith("target.") for r, _ in relation):
+        return "target_offsets"
+    if last_offset and all(_offset_duplicates(r) for r, _ in relation):
+        return "last_joint_offset"
+    return "same_motion" if pair else "combination"
 
 
 def _r_factor(J: np.ndarray, *, block_rows: int = 2048) -> np.ndarray:
@@ -331,32 +509,48 @@ def _r_factor(J: np.ndarray, *, block_rows: int = 2048) -> np.ndarray:
     return np.linalg.qr(np.vstack(blocks), mode="r")
 
 
+# A dropped column is "the same motion" as the kept column it is closest to when the part of it
+# that column does not explain is below this (sine of the angle between the two unit columns).
+SAME_MOTION_SINE = 1e-3
+
+
 def select_identifiable(
     J: np.ndarray, params: list[Parameter], *, rtol: float = 1e-6, position_only: bool, multi_target: bool = False
 ) -> tuple[list[int], list[Unidentifiable]]:
     """Choose the columns of the weighted Jacobian ``J`` (M, P) the data determine.
 
-    Columns are scaled to unit norm and orthogonalised in the order given (the order of
-    preference), Gram–Schmidt with re-orthogonalisation: column k is kept if its component
-    orthogonal to the KEPT columns before it is at least ``rtol`` of its norm (a QR with column
-    pivoting restricted to a fixed order; dropped columns never enter the basis). A dropped
-    column's relation to the kept ones is solved from the triangular factor of the kept columns.
-    Returns the kept indices and, for the others, the reasons.
+    Columns are scaled to unit norm (the dimensionless parameterisation: a metre and a radian
+    are not compared) and orthogonalised in the order of preference (:func:`preference_order`),
+    Gram–Schmidt with re-orthogonalisation: column k is kept if its component orthogonal to the
+    KEPT columns before it is at least ``rtol`` of its norm (a QR with column pivoting restricted
+    to a fixed order; dropped columns never enter the basis). A dropped column's relation to the
+    kept ones is solved from the triangular factor of the kept columns; it is "the same motion"
+    as one kept parameter only when that one column alone explains it (:data:`SAME_MOTION_SINE`),
+    otherwise the whole combination is named. Returns the kept indices (ascending) and, for the
+    others, the reasons. ``multi_target`` is accepted for compatibility and not used.
     """
+    kept, dropped, _ = _select(J, params, rtol=rtol, position_only=position_only)
+    return kept, dropped
+
+
+def _select(J: np.ndarray, params: list[Parameter], *, rtol: float, position_only: bool):
+    """:func:`select_identifiable`, also returning the factor it worked on (a matrix whose Gram
+    matrix is ``JᵀJ``: the triangular factor of a tall ``J``, else ``J``)."""
     M, P = J.shape
     if M > P:
         # Everything below works in the column space through inner products, so the triangular
         # factor R of J = QR (same Gram matrix JᵀJ = RᵀR) gives the same result at O(P³) cost.
         J = _r_factor(J)
         M = P
+    factor = J
     norms = np.linalg.norm(J, axis=0)
     scale = np.where(norms > 0, norms, 1.0)
     Jn = J / scale
     zero = norms <= 1e-12 * max(norms.max(initial=0.0), 1e-300)
     basis = np.zeros((M, min(M, P)))
-    kept: list[int] = []
+    kept: list[int] = []  # in the order tested
     pending: list[tuple[int, np.ndarray]] = []
-    for k in range(P):
+    for k in preference_order(params, position_only=position_only):
         if zero[k]:
             pending.append((k, np.zeros(0)))
             continue
@@ -374,31 +568,41 @@ def select_identifiable(
         else:
             pending.append((k, proj))
     Rk = basis[:, : len(kept)].T @ Jn[:, kept] if kept else np.zeros((0, 0))
+    last = _last_joint_offset(params) if position_only else None
     dropped: list[Unidentifiable] = []
     for k, proj in pending:
         relation: list[tuple[str, float]] = []
+        kinds = [params[k].kind]
+        pair = False
         if proj.size:
             n_at = proj.size  # kept columns that were in the basis when k was tested
             coef = np.linalg.solve(Rk[:n_at, :n_at], proj) if n_at else np.zeros(0)
-            # column_k ≈ Σ coef_j column_j (unit-scaled) -> d(param_k) ≡ Σ c_j d(param_j)
+            # unit column k = Σ coef_j unit column j (dimensionless) -> d(param_k) ≡ Σ c_j d(param_j), SI
             c_si = coef * norms[k] / scale[kept[:n_at]]
-            order = np.argsort(-np.abs(coef))
-            relation = [(params[kept[i]].name, float(c_si[i])) for i in order if abs(coef[i]) > 1e-3]
-        dropped.append(Unidentifiable(params[k].name, _reason(params[k], relation, position_only, multi_target),
-                                      tuple(relation)))
+            # largest first; equal ones (to rounding) in the order of preference
+            order = [i for i in np.argsort(-np.round(np.abs(coef), 9), kind="stable") if abs(coef[i]) > 1e-3]
+            relation = [(params[kept[i]].name, float(c_si[i])) for i in order]
+            kinds += [params[kept[i]].kind for i in order]
+            if order:
+                cos = float(Jn[:, k] @ Jn[:, kept[order[0]]])
+                pair = math.sqrt(max(0.0, 1.0 - cos * cos)) < SAME_MOTION_SINE
+        u = Unidentifiable(params[k].name, "", tuple(relation),
+                           _category(params[k], relation, pair, position_only, k == last), tuple(kinds))
+        dropped.append(dataclasses.replace(u, reason=explain(u)))
     dropped.sort(key=lambda u: [p.name for p in params].index(u.name))
-    return kept, dropped
+    return sorted(kept), dropped, factor
 
 
 # --------------------------------------------------------------------------- registration
 
 
-def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, dict]:
+def _register(model: KinematicModel, prob: _Problem, record=frozenset()) -> tuple[KinematicModel, dict, Walk]:
     """Try a rigid registration of the model's predictions onto the data; keep it if it fits
-    better than the model's own base."""
+    better than the model's own base. Also returns the walk of the chain in its base frame
+    (recording ``record``): one walk serves every base (:func:`_linearise_in_base_frame`)."""
     data = prob.data
     local = dataclasses.replace(model, base=np.zeros(6))
-    w = walk(local, data.q)  # the chain in the model's base frame; one walk serves every base
+    w = walk(local, data.q, record, prob.trig)
 
     def rms(base: np.ndarray, p_local: np.ndarray) -> float:
         e = data.p_world - (p_local @ base[:3, :3].T + base[:3, 3])
@@ -430,10 +634,30 @@ def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, di
     after = rms(pose_to_matrix(candidate.base), p_local)
     info["rms_after_m"] = after
     info["applied"] = bool(after < before)
-    return (candidate if after < before else model), info
+    return (candidate if after < before else model), info, w
+
+
+def _linearise_in_base_frame(model: KinematicModel, prob: _Problem, params: list[Parameter], w_base: Walk):
+    """Position-only data: the weighted residuals and Jacobian of ``params`` at ``model`` from a
+    walk ``w_base`` of the same chain with the base frame at the identity (so no second walk
+    after the registration), and the residuals (N, 3) in the world frame.
+
+    With ``B = (R, t)`` the model's base, a predicted point is ``R·p + t`` and every Jacobian
+    block ``R·J_i``: the measured points brought into the base frame, ``Rᵀ(m − t)``, give the
+    same residuals and Jacobian turned row by row by ``Rᵀ``, which changes no row norm, no
+    inner product JᵀJ or Jᵀr and no triangular factor: what the selection and the solver use."""
+    B = pose_to_matrix(model.base)
+    R, t = B[:3, :3], B[:3, 3]
+    pt = world_points(w_base, _p_tool(model, prob.p_tool_names, prob.target_rows))
+    rp_base = (prob.data.p_world - t) @ R - pt
+    Jp, _ = jacobian_from_walk(w_base, pt, params, prob.data.q, prob.p_tool_names, orientation=False)
+    r, J = _stack(prob, rp_base, None, Jp)
+    return r, J, rp_base @ R.T
 
 
 # --------------------------------------------------------------------------- the solver
+
+_START = object()  # marks a Gram matrix computed from the start's Jacobian (never taken as an array)
 
 
 def identify(
@@ -465,9 +689,10 @@ def identify(
     ``never``; ``fixed``: parameter names (or prefixes ending in ``*``) not to free; ``gains``:
     also free the joint gains; ``hayati``: rewrite parallel-axis ``dh`` links in Hayati's form;
     ``prior``: minimum-variance estimation about ``model`` (book eq. 4.69-4.70): the cost gains
-    ``½ sᵀ Σp⁻¹ s`` for the step ``s`` away from ``model``, parameters with a prior are freed even
-    where the data alone cannot determine them, and no registration is done (the prior knows
-    the base).
+    ``½ sᵀ Σp⁻¹ s`` for the step ``s`` away from ``model``; parameters with a prior that the data
+    see are estimated (source ``data + prior``) even where the data alone cannot determine them,
+    those the data cannot see (:data:`SEEN_BY_DATA`) keep the prior's value and covariance
+    (source ``prior``), and no registration is done (the prior knows the base).
 
     Raises ``ValueError`` for inconsistent input (shapes, unknown targets, non-finite values).
     """
@@ -495,25 +720,42 @@ def identify(
     sigma_rot = float(sigma_rad) if sigma_rad is not None else sigma_m / 0.1
     prob = _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot, _target_rows(data.target))
 
+    used_targets = tuple(sorted(set(data.target) - {None}))
+    prior_targets = () if prior is None else tuple(sorted(
+        {n.split(".")[1] for n in prior.names if n.startswith("target.")} & set(start.targets) - set(used_targets)))
+    with_gains = gains or (prior is not None and any(n.endswith(".gain") for n in prior.names))
+    # the candidates depend on the model's structure, not on its base: the same after registration
+    cands = candidate_parameters(start, targets=used_targets + prior_targets, gains=with_gains)
+    cands = [p for p in cands if not _matches(p.name, fixed)]
+    position_only = not np.any(has_rot)
+
     registration = None
+    w_base = None
     if register != "never" and prior is None:
-        cand, registration = _register(start, prob)
+        cand, registration, w_base = _register(start, prob, record_keys(cands) if position_only else frozenset())
         if register == "always" or registration["applied"]:
             start = cand
             registration["applied"] = True
 
-    used_targets = tuple(sorted(set(data.target) - {None}))
-    cands = candidate_parameters(start, targets=used_targets, gains=gains)
-    cands = [p for p in cands if not _matches(p.name, fixed)]
-    pred, rp, rr = _evaluate(start, prob, cands)
-    r_start, J_cands = _stack(prob, rp, rr, pred.Jp, pred.Jr)
-    position_only = not np.any(has_rot)
-    kept, dropped = select_identifiable(J_cands, cands, rtol=rank_rtol, position_only=position_only,
-                                        multi_target=len(used_targets) > 1)
+    if w_base is not None and position_only:
+        r_start, J_cands, rp = _linearise_in_base_frame(start, prob, cands, w_base)
+        rr = np.zeros_like(rp)
+    else:
+        pred, rp, rr = _evaluate(start, prob, cands)
+        r_start, J_cands = _stack(prob, rp, rr, pred.Jp, pred.Jr)
+    del w_base
+    kept, dropped, R_cands = _select(J_cands, cands, rtol=rank_rtol, position_only=position_only)
+    by_data = set(kept)  # what the data alone determine
+    from_prior: list[int] = []
+    sd_prior = np.full(len(cands), np.nan)
     if prior is not None:  # a prior determines what the data alone cannot
-        with_prior = set(prior.names)
-        kept = sorted(set(kept) | {k for k, p in enumerate(cands) if p.name in with_prior})
-        dropped = [u for u in dropped if u.name not in with_prior]
+        sd_prior = np.sqrt(np.maximum(np.diag(prior.covariance_of(cands)), 0.0))
+        has_prior = [k for k in range(len(cands)) if np.isfinite(sd_prior[k])]
+        seen = _seen_by_data(J_cands, sd_prior)
+        from_prior = [k for k in has_prior if not seen[k]]
+        kept = sorted((set(kept) | set(has_prior)) - set(from_prior))
+        named = {cands[k].name for k in has_prior}
+        dropped = [u for u in dropped if u.name not in named]
     params = [cands[k] for k in kept]
     info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
 
@@ -528,9 +770,10 @@ def identify(
     history: list[float] = []
     gram = None
     w_row = np.ones(len(data))
+    J = None  # the Jacobian over `params` at `current`; at the start: columns `kept` of J_cands, taken when needed
     if P:
-        r, J = r_start, J_cands[:, kept]  # the Jacobian at the start, already computed
-        del J_cands
+        r = r_start
+        R_start = R_cands[:, kept]  # RᵀR = the start's JᵀJ: the selection's factor gives it without J
         fresh = True  # r, J, rp, rr are those of `current`
         keys = record_keys(params)  # trials record what the Jacobian needs: if accepted, no second walk
         w_row = _robust_weights(_row_norms(prob, r), loss, f_scale)
@@ -538,13 +781,17 @@ def identify(
         cost = 0.5 * float(np.sum(w * r**2))
         history.append(cost)
         for it in range(1, max_iter + 1):
-            if np.all(w == 1.0):  # unit weights (linear loss): skip the copies
-                Jw, rw = J, r
+            unit = bool(np.all(w == 1.0))
+            if J is None and unit:  # the start, unit weights: JᵀJ and Jᵀr without taking J's columns
+                G, g = R_start.T @ R_start, (r @ J_cands)[kept]
             else:
-                Jw, rw = J * np.sqrt(w)[:, None], r * np.sqrt(w)
-            A = Jw.T @ Jw + info
-            gram = (J, w, A)  # A and what it was computed from, for the statistics
-            g = Jw.T @ rw - info @ steps
+                if J is None:
+                    J = J_cands[:, kept]
+                Jw, rw = (J, r) if unit else (J * np.sqrt(w)[:, None], r * np.sqrt(w))  # unit: skip the copies
+                G, g = Jw.T @ Jw, Jw.T @ rw
+            A = G + info
+            gram = (_START if J is None else J, w, G)  # G and what it was computed from, for the statistics
+            g = g - info @ steps
             D = np.maximum(np.diag(A), 1e-30)
             if np.max(np.abs(g) / np.sqrt(D)) < gtol * max(1.0, math.sqrt(2 * cost)):
                 status = 3
@@ -599,6 +846,7 @@ def identify(
             rp, rr = trp, trr
             r, J = _stack(prob, rp, rr, *jacobian_from_walk(t_walk, t_pt, params, data.q, prob.p_tool_names,
                                                             orientation=bool(np.any(has_rot))))
+            J_cands = R_start = None  # only the start needed them
             fresh = True
         else:
             status = 0
@@ -611,33 +859,67 @@ def identify(
     w_row = _robust_weights(z, loss, f_scale)
     w = _expand_rows(prob, w_row)
     n_res = r.size
-    chi2 = float(np.sum(w * r**2))
-    dof = max(n_res - P, 1)
+    chi2_prior = float(steps @ info @ steps)
+    n_prior = int(np.count_nonzero(np.any(info != 0.0, axis=0)))  # estimated parameters with a prior
+    chi2 = float(np.sum(w * r**2)) + chi2_prior
+    dof = max(n_res + n_prior - P, 1)
     sigma_scale = math.sqrt(max(1.0, chi2 / dof))
     cov = np.zeros((P, P))
     sv = np.zeros(0)
     cond = float("inf") if P == 0 else 0.0
     obs: dict = {}
+    data_only = None
+    reach = _reach(start)
     if P:
         unit = bool(np.all(w == 1.0))
-        Jw = J if unit else J * np.sqrt(w)[:, None]
-        # The triangular factor of Jw = QR has the same singular values and Gram matrix: one QR
-        # of the tall matrix, then small P x P decompositions.
-        Rw = _r_factor(Jw) if Jw.shape[0] > P else Jw
-        sv = np.linalg.svd(Rw, compute_uv=False)
+        if gram is not None and gram[0] is (_START if J is None else J) and unit and np.all(gram[1] == 1.0):
+            G = gram[2]  # the last iteration's: the same Jacobian, unit weights
+        else:
+            if J is None:
+                J = J_cands[:, kept]
+            Jw = J if unit else J * np.sqrt(w)[:, None]
+            G = Jw.T @ Jw
         # Σ = s² (JᵀWJ + Σp⁻¹)⁻¹ (book eq. 4.54 / 4.70); pseudo-inverse on the column-scaled
         # matrix for numerical safety.
-        if gram is not None and gram[0] is J and unit and np.all(gram[1] == 1.0):
-            A = gram[2]  # the last iteration's: the same Jacobian, unit weights, the same prior
-        else:
-            A = Jw.T @ Jw + info
+        A = G + info
         dscale = np.sqrt(np.maximum(np.diag(A), 1e-300))
         cov = np.linalg.pinv(A / np.outer(dscale, dscale), rcond=1e-14, hermitian=True) / np.outer(dscale, dscale)
         cov *= sigma_scale**2
-        norms = np.linalg.norm(Jw, axis=0)
-        svn = np.linalg.svd(Rw / np.where(norms > 0, norms, 1.0), compute_uv=False)
-        cond = float(svn[0] / svn[-1]) if svn[-1] > 0 else float("inf")
-        obs = observability_indices(Rw, params, n_poses=len(data), reach_m=_reach(start))
+        # A factor with the data's singular values and Gram matrix (RᵀR = JᵀWJ): from G when it
+        # is well conditioned, else the triangular factor of Jw = QR
+        Rw = _gram_factor(G)
+        if Rw is None:
+            if J is None:
+                J = J_cands[:, kept]
+            Jw = J if unit else J * np.sqrt(w)[:, None]
+            Rw = _r_factor(Jw) if Jw.shape[0] > P else Jw
+        # conditioning of what was estimated: with a prior, data and prior together (a factor
+        # whose Gram matrix is JᵀWJ + Σp⁻¹)
+        Ra = Rw if prior is None else np.vstack([Rw, _sqrt_psd(info)])
+        sv, cond, obs = _conditioning(Ra, params, n_poses=len(data), reach_m=reach)
+        if prior is not None:
+            alone = [i for i, k in enumerate(kept) if k in by_data]
+            if alone:
+                _, c_data, o_data = _conditioning(Rw[:, alone], [params[i] for i in alone], n_poses=len(data),
+                                                  reach_m=reach)
+                data_only = {"parameters": [params[i].name for i in alone], "condition_number": c_data,
+                             "observability": o_data}
+    sources = ["data" if np.isnan(sd_prior[k]) else "data + prior" for k in kept]
+    values = parameter_values(current, params)
+    if from_prior:  # not estimated: the prior's value (the model's) and the prior's covariance
+        order = sorted(kept + from_prior)
+        pos = {k: i for i, k in enumerate(order)}
+        full = np.zeros((len(order), len(order)))
+        est = [pos[k] for k in kept]
+        full[np.ix_(est, est)] = cov
+        fp = [pos[k] for k in from_prior]
+        full[np.ix_(fp, fp)] = prior.covariance_of([cands[k] for k in from_prior])
+        cov = full
+        params = [cands[k] for k in order]
+        sources = ["prior" if k in from_prior else sources[kept.index(k)] for k in order]
+        steps = np.array([0.0 if k in from_prior else steps[kept.index(k)] for k in order])
+        values = parameter_values(current, params)
+        kept = order
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
@@ -646,10 +928,10 @@ def identify(
     outliers = tuple(int(i) for i in np.nonzero((z > outlier_sigma) | (w_row < 0.5))[0])
     success = status > 0
     return IdentificationResult(
-        model=dataclasses.replace(current, metadata={}),
+        model=dataclasses.replace(current, metadata={}, name=identified_name(model.name)),
         start_model=start,
         params=tuple(params),
-        values=parameter_values(current, params),
+        values=values,
         steps=steps,
         std_errors=std,
         covariance=cov,
@@ -678,7 +960,75 @@ def identify(
         notes=tuple(notes),
         settings=dict(sigma_m=sigma_m, sigma_rad=sigma_rot, loss=loss, f_scale=f_scale, gains=gains,
                       rank_rtol=rank_rtol, fixed=list(fixed)),
+        sources=tuple(sources),
+        prior_std_errors=None if prior is None else np.array([sd_prior[k] for k in kept]),
+        chi2_prior=chi2_prior,
+        data_only=data_only,
     )
+
+
+def identified_name(name: str) -> str:
+    """The name of a model identified from the model ``name``: ``ur10e-nominal`` ->
+    ``ur10e-identified`` (a model identified again keeps its name)."""
+    stripped = True
+    while stripped:
+        stripped = False
+        for suffix in ("-nominal", "-identified", "-true"):
+            if name.endswith(suffix):
+                name, stripped = name[: -len(suffix)], True
+    return f"{name or 'robot'}-identified"
+
+
+# A parameter with a prior is "seen" by the data when its prior standard error, as a change of the
+# parameter, moves the measurements by at least this much (root sum of squares over all residuals,
+# in noise standard deviations): below it, the data would shrink its variance by less than 1 %.
+SEEN_BY_DATA = 0.1
+
+
+def _seen_by_data(J: np.ndarray, sd_prior: np.ndarray) -> np.ndarray:
+    """(P,) True where the weighted Jacobian's column times the prior standard error reaches
+    :data:`SEEN_BY_DATA` (False where there is no prior)."""
+    with np.errstate(invalid="ignore"):
+        return np.nan_to_num(np.linalg.norm(J, axis=0) * sd_prior) >= SEEN_BY_DATA
+
+
+# Below this condition number (columns scaled to unit norm) the Cholesky factor of JᵀJ gives the
+# singular values to ~1e-8 relative (the error grows as the square of the condition number);
+# above, the QR of J itself is used.
+GRAM_FACTOR_MAX_CONDITION = 1e4
+
+
+def _gram_factor(G: np.ndarray) -> np.ndarray | None:
+    """An upper triangular R with RᵀR = G (P, P), by Cholesky of the column-scaled G, when G is
+    well conditioned (:data:`GRAM_FACTOR_MAX_CONDITION`); else None. A P x P factorisation
+    instead of a QR of the tall Jacobian."""
+    d = np.sqrt(np.diag(G))
+    if not np.all(d > 0):
+        return None
+    try:
+        U = np.linalg.cholesky(G / np.outer(d, d)).T
+    except np.linalg.LinAlgError:
+        return None
+    s = np.linalg.svd(U, compute_uv=False)
+    if not s[-1] > 0 or s[0] / s[-1] > GRAM_FACTOR_MAX_CONDITION:
+        return None
+    return U * d
+
+
+def _sqrt_psd(M: np.ndarray) -> np.ndarray:
+    """A factor F with FᵀF = M for a symmetric positive semi-definite M."""
+    e, V = np.linalg.eigh(M)
+    return np.sqrt(np.maximum(e, 0.0))[:, None] * V.T
+
+
+def _conditioning(R: np.ndarray, params: list[Parameter], *, n_poses: int, reach_m: float) -> tuple:
+    """Singular values, condition number (columns scaled to unit norm) and observability indices
+    of a factor ``R`` whose Gram matrix is the estimate's information (up to the noise scale)."""
+    sv = np.linalg.svd(R, compute_uv=False)
+    norms = np.linalg.norm(R, axis=0)
+    svn = np.linalg.svd(R / np.where(norms > 0, norms, 1.0), compute_uv=False)
+    cond = float(svn[0] / svn[-1]) if svn[-1] > 0 else float("inf")
+    return sv, cond, observability_indices(R, params, n_poses=n_poses, reach_m=reach_m)
 
 
 def _matches(name: str, patterns) -> bool:

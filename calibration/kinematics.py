@@ -136,8 +136,22 @@ def _matrices(cols: list[np.ndarray]) -> np.ndarray:
     return np.ascontiguousarray(np.stack(cols, axis=-1).transpose(1, 0, 2))
 
 
-def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str] = frozenset()) -> Walk:
+def _cos_sin(trig: dict, joint: int, v: np.ndarray, const: float) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of ``const + v`` by the angle-sum formulas, from cos v and sin v kept in
+    ``trig`` for ``joint`` (computed again only when that joint's variables ``v`` changed)."""
+    hit = trig.get(joint)
+    if hit is None or not np.array_equal(hit[0], v):
+        hit = trig[joint] = (v.copy(), np.cos(v), np.sin(v))
+    ck, sk = np.cos(const), np.sin(const)
+    return hit[1] * ck - hit[2] * sk, hit[2] * ck + hit[1] * sk
+
+
+def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str] = frozenset(),
+         trig: dict | None = None) -> Walk:
     """Run ``model``'s program over readings ``q`` (N, n), recording the keys in ``record``.
+
+    ``trig``: a dict kept by a caller that walks models of one structure over the same readings
+    many times (identification): the joints' cos and sin are computed once and reused.
 
     Inside, the frame is held as its three world axes and its origin, each (3, N)
     component-major, so every step is a few operations on contiguous length-N rows. A rotation
@@ -171,7 +185,10 @@ def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str]
             if np.ndim(value) == 0 and value == 0.0:
                 pass
             elif op.kind == "rot":
-                c, s = np.cos(value), np.sin(value)
+                if trig is not None and op.joint is not None:
+                    c, s = _cos_sin(trig, op.joint, v[:, op.joint], op.const)
+                else:
+                    c, s = np.cos(value), np.sin(value)
                 i, k = [(1, 2), (2, 0), (0, 1)][a]
                 ci, ck = cols[i], cols[k]
                 cols[i] = c * ci + s * ck

@@ -19,10 +19,15 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     """The rigid transform T (4, 4) minimising sum w |T·src - dst|² for points (N, 3), N >= 3."""
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=float)
+    w = np.full(len(src), 1.0 / len(src)) if weights is None else np.asarray(weights, dtype=float)
     w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = ((src - cs) * w[:, None]).T @ (dst - cd)
+    cs, cd = w @ src, w @ dst  # as matrix-vector products: far faster than a strided mean
+    return _kabsch_from(((src - cs) * w[:, None]).T @ (dst - cd), cs, cd)
+
+
+def _kabsch_from(H: np.ndarray, cs: np.ndarray, cd: np.ndarray) -> np.ndarray:
+    """The Kabsch transform from the cross-covariance ``H`` (3, 3) of the centred points and the
+    two centroids."""
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(Vt.T @ U.T))
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
@@ -38,23 +43,39 @@ def register_points(
     base frame; ``p_world`` (N, 3): measured points; ``p_tool`` (N, 3): the model's tool-frame
     point of each row. The offset correction ``c`` (same for all rows, tool frame) absorbs an
     unknown reflector mounting: ``p_world ≈ T (p_base_tool + R_base_tool (p_tool + c))``.
+
+    Alternates a Kabsch fit of ``a_i + R_i c`` (``a_i`` the points before the correction) onto
+    the measured ``m_i`` with the least-squares ``c`` for that fit. Both steps need only sums
+    over the points, which are linear in ``c`` and in the fitted rotation: they are formed once
+    (a few passes over the data), and each iteration is a 3 x 3 problem.
     """
+    N = len(p_world)
+    R = np.ascontiguousarray(R_base_tool, dtype=float)
+    m = np.asarray(p_world, dtype=float)
+    a = p_base_tool + np.einsum("nij,nj->ni", R, p_tool)  # the points before the correction
+    w = np.full(N, 1.0 / N)
+    a_bar, m_bar, R_bar = w @ a, w @ m, (w @ R.reshape(N, 9)).reshape(3, 3)
+    m_c = m - m_bar
+    H0 = (a - a_bar).T @ m_c
+    # K[j] = Σ R_i[:, j] m̃_iᵀ: H(c) = H0 + Σ_j c_j K[j] (the centroid's part sums to zero)
+    K = (R.reshape(N, 9).T @ m_c).reshape(3, 3, 3).transpose(1, 0, 2)
+    # c for a fit (R_T, t_T): mean of R_iᵀ R_Tᵀ (m_i - t_T) - R_iᵀ a_i, each block orthonormal
+    Q = (R.reshape(N, 9).T @ m).reshape(3, 3, 3).transpose(1, 0, 2) / N  # Q[j, a, b] = mean R_i[a, j] m_i[b]
+    v = np.einsum("naj,na->j", R, a) / N
+
+    def fit(c):
+        return _kabsch_from(H0 + np.tensordot(c, K, axes=1), a_bar + R_bar @ c, m_bar)
+
     c = np.zeros(3)
-    T = np.eye(4)
-    p_nominal = p_base_tool + np.einsum("nij,nj->ni", R_base_tool, p_tool)  # the points before the correction
     for _ in range(iterations):
-        pts = p_nominal + R_base_tool @ c
-        T = kabsch(pts, p_world)
-        # Solve for c given T: R_T R_i c = p_world - T(p_base_tool + R_i p_tool). The stacked
-        # matrix A = [R_T R_i] has orthonormal 3 x 3 blocks, so AᵀA = N·I and the least-squares
-        # solution is the mean of the blocks' transposes applied to the right-hand side.
-        b = (p_world - T[:3, 3] - p_nominal @ T[:3, :3].T) @ T[:3, :3]  # R_Tᵀ · residual_i
-        c_new = np.einsum("nji,nj->i", R_base_tool, b) / len(b)
+        T = fit(c)
+        RT, tT = T[:3, :3], T[:3, 3]
+        c_new = np.einsum("jab,ba->j", Q, RT) - R_bar.T @ (RT.T @ tT) - v
         if np.linalg.norm(c_new - c) < 1e-12:
             c = c_new
             break
         c = c_new
-    return kabsch(p_nominal + R_base_tool @ c, p_world), c
+    return fit(c), c
 
 
 def register_poses(T_pred: np.ndarray, T_meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from .identify import IdentificationResult
+from .identify import IdentificationResult, explain, relation_coefficients
 from .model import KinematicModel, Units, model_to_dict
 from .uncertainty import Validation
 
@@ -33,10 +33,12 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
     params = []
     for k, p in enumerate(result.params):
         uname, s = _unit(p.kind, units)
-        params.append({
-            "name": p.name, "unit": uname, "value": _f(result.values[k] / s),
-            "change": _f(result.steps[k] / s), "std_error": _f(result.std_errors[k] / s),
-        })
+        entry = {"name": p.name, "unit": uname, "value": _f(result.values[k] / s),
+                 "change": _f(result.steps[k] / s), "std_error": _f(result.std_errors[k] / s),
+                 "source": result.sources[k] if result.sources else "data"}
+        if result.prior_std_errors is not None and math.isfinite(result.prior_std_errors[k]):
+            entry["prior_std_error"] = _f(result.prior_std_errors[k] / s)
+        params.append(entry)
     rn = np.linalg.norm(result.residuals_m, axis=1)
     report = {
         "success": result.success,
@@ -48,8 +50,8 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
         "rows": result.n_rows,
         "parameters": params,
         "unidentifiable": [
-            {"name": u.name, "reason": u.reason,
-             "same_as": [{"name": n, "coefficient": _f(c)} for n, c in u.relation]}
+            {"name": u.name, "reason": explain(u, units), "category": u.category,
+             "same_as": [{"name": n, "coefficient": _f(c), "unit": cu} for n, c, cu in relation_coefficients(u, units)]}
             for u in result.unidentifiable
         ],
         "correlation": {"names": list(result.param_names),
@@ -63,6 +65,11 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
             "rms_orientation": _f(result.rms_rad / units.angle_rad),
             "chi2": _f(result.chi2), "dof": result.dof,
             "sigma_scale": _f(result.sigma_scale),
+        },
+        "data_only": None if result.data_only is None else {
+            "parameters": list(result.data_only["parameters"]),
+            "condition_number": _f(result.data_only["condition_number"]),
+            "observability": {k: _f(v) for k, v in result.data_only["observability"].items()},
         },
         "outliers": [
             {"row": int(rows[i]), "residual": _f(rn[i] / L), "weight": _f(result.row_weights[i], 4)}
@@ -96,10 +103,24 @@ def identification_block(result: IdentificationResult, units: Units, *, nominal:
     With ``nominal``, the block also keeps the nominal model (what a controller that was never
     calibrated knows: compensation's ``targets`` mode needs it); with the identification data's
     readings ``q`` (N, n), the joint ranges they covered (the calibrated region), in ``units``.
+
+    ``identified_from`` names the model the identification started from (the nominal's name) and
+    ``covariance`` keeps the parameters' covariance, SI whatever ``units`` say (``names``, their
+    ``kinds``, ``matrix``): what :func:`calibration.uncertainty.covariance_from_block` needs to
+    predict the position uncertainty anywhere (``recal predict --uncertainty``).
     """
     full = identification_report(result, units)
     block = {k: full[k] for k in ("success", "message", "rows", "parameters", "unidentifiable", "condition_number",
                                   "observability", "residuals", "notes")}
+    if full["data_only"] is not None:
+        block["data_only"] = full["data_only"]
+    block["identified_from"] = (nominal or result.start_model).name
+    block["covariance"] = {
+        "units": "SI (m, rad; gains 1)",
+        "names": list(result.param_names),
+        "kinds": [p.kind for p in result.params],
+        "matrix": [[float(v) for v in row] for row in result.covariance],
+    }
     if nominal is not None:
         block["nominal"] = model_to_dict(nominal, units=units)
     if q is not None and len(q):

@@ -14,6 +14,8 @@ import numpy as np
 
 from .identify import IdentificationResult, Measurements
 from .jacobian import predict
+from .model import KinematicModel
+from .parameters import Parameter, candidate_parameters
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -27,16 +29,32 @@ def _p_tool(model, names) -> np.ndarray:
     return np.array([model.target(t) for t in names]) if len(names) else np.zeros((0, 3))
 
 
+def propagate(model: KinematicModel, params: list[Parameter], covariance: np.ndarray, q: np.ndarray,
+              targets: np.ndarray) -> np.ndarray:
+    """Covariance (N, 3, 3) m² of the positions of per-row ``targets`` (N,) (``None``: the tool
+    origin) at readings ``q`` (N, n), from the covariance (P, P) SI of ``params`` of ``model``:
+    ``J Σx Jᵀ`` (book eq. 4.70)."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    if not params:
+        return np.zeros((len(q), 3, 3))
+    pred = predict(model, q, _p_tool(model, targets), list(params), targets)
+    return np.einsum("nip,pq,njq->nij", pred.Jp, covariance, pred.Jp)
+
+
 def position_covariance(result: IdentificationResult, q: np.ndarray, target: str | None = None,
                         targets: np.ndarray | None = None) -> np.ndarray:
     """Covariance (N, 3, 3) m² of the predicted position of ``target`` (or per-row ``targets``)
     at readings ``q`` (N, n), from the identified parameters' covariance."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     names = np.array([target] * len(q), dtype=object) if targets is None else np.asarray(targets, dtype=object)
-    if not result.params:
-        return np.zeros((len(q), 3, 3))
-    pred = predict(result.model, q, _p_tool(result.model, names), list(result.params), names)
-    return np.einsum("nip,pq,njq->nij", pred.Jp, result.covariance, pred.Jp)
+    return propagate(result.model, list(result.params), result.covariance, q, names)
+
+
+def radius_95(C: np.ndarray, level: float = 0.95) -> np.ndarray:
+    """A radius (N,) that an error of covariance ``C`` (N, 3, 3) stays within with probability
+    ``level`` (conservative: the largest principal axis, scaled by the χ²₃ quantile)."""
+    lam = np.linalg.eigvalsh(C)[:, -1]
+    return np.sqrt(chi2_quantile(level, 3) * np.maximum(lam, 0.0))
 
 
 def predicted_uncertainty(result: IdentificationResult, q: np.ndarray, target: str | None = None,
@@ -44,9 +62,42 @@ def predicted_uncertainty(result: IdentificationResult, q: np.ndarray, target: s
     """A radius (N,) m that the model's position error at ``q`` stays within with probability
     ``level`` (conservative: the largest principal axis of the covariance, scaled by the χ²₃
     quantile). The measurement noise is not included."""
-    C = position_covariance(result, q, target)
-    lam = np.linalg.eigvalsh(C)[:, -1]
-    return np.sqrt(chi2_quantile(level, 3) * np.maximum(lam, 0.0))
+    return radius_95(position_covariance(result, q, target), level)
+
+
+class CovarianceError(ValueError):
+    """A model's stored covariance is missing or does not fit the model; ``field`` is the JSON
+    path at fault (``identification.covariance.names[3]``)."""
+
+    def __init__(self, field: str, message: str):
+        self.field = field
+        super().__init__(message)
+
+
+def covariance_from_block(model: KinematicModel) -> tuple[list[Parameter], np.ndarray]:
+    """The parameters and their covariance (P, P) SI stored in an identified model's
+    ``identification`` block (:func:`calibration.report.identification_block`)."""
+    block = model.metadata.get("identification")
+    cov = block.get("covariance") if isinstance(block, dict) else None
+    if not isinstance(cov, dict):
+        raise CovarianceError("identification.covariance", "this model stores no parameter covariance (a model "
+                              "written by `recal identify` does)")
+    names = cov.get("names")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise CovarianceError("identification.covariance.names", "expected a list of parameter names")
+    try:
+        matrix = np.array(cov.get("matrix"), dtype=float)
+    except (TypeError, ValueError):
+        matrix = np.zeros(0)
+    if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
+        raise CovarianceError("identification.covariance.matrix",
+                              f"expected a {len(names)} x {len(names)} matrix of numbers")
+    gains = any(n.endswith(".gain") for n in names)
+    known = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets), gains=gains)}
+    for i, n in enumerate(names):
+        if n not in known:
+            raise CovarianceError(f"identification.covariance.names[{i}]", f"no parameter {n!r} in this model")
+    return [known[n] for n in names], matrix
 
 
 @dataclass(frozen=True, slots=True)

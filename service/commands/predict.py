@@ -1,6 +1,8 @@
-"""``recal predict --model MODEL.json --joints JOINTS.csv [--target NAME] --out PRED.csv``"""
+"""``recal predict --model MODEL.json --joints JOINTS.csv [--target NAME] --out PRED.csv [--uncertainty]``"""
 
 from __future__ import annotations
+
+UNCERTAINTY_COLUMNS = ["sigma_x", "sigma_y", "sigma_z", "u95"]
 
 
 def add_parser(s) -> None:
@@ -8,6 +10,10 @@ def add_parser(s) -> None:
     s.add_argument("--joints", required=True, help="CSV with q1..qN")
     s.add_argument("--target", help="write x, y, z of this target instead of the tool pose")
     s.add_argument("--out", required=True)
+    s.add_argument("--uncertainty", action="store_true",
+                   help="append sigma_x, sigma_y, sigma_z (standard uncertainty per axis) and u95 (95 %% radius) of "
+                        "the predicted position, in the model's length unit, from the covariance an identified "
+                        "model stores (the model's own uncertainty; the instrument's noise is not included)")
 
 
 def run(args) -> int:
@@ -23,14 +29,39 @@ def run(args) -> int:
         known = f"one of {', '.join(sorted(model.targets))}" if model.targets else "a target, but the model has none"
         raise InputError(args.model, f"field 'targets': no target {args.target!r} (asked for by --target); "
                                      f"expected {known}")
+    covariance = _stored_covariance(args.model, model) if args.uncertainty else None
     q = read_joints(args.joints, model)
     T = fk(model, q)
     L = model.units.length_m
     if args.target is not None:
         p = (T[:, :3, :3] @ model.targets[args.target] + T[:, :3, 3]) / L
-        text = format_csv(["x", "y", "z"], p.tolist())
+        header, rows = ["x", "y", "z"], p
     else:
         quat = matrix_to_quat(T[:, :3, :3])
-        text = format_csv(["x", "y", "z", "qw", "qx", "qy", "qz"], np.hstack([T[:, :3, 3] / L, quat]).tolist())
-    write_atomic(args.out, text)
+        header, rows = ["x", "y", "z", "qw", "qx", "qy", "qz"], np.hstack([T[:, :3, 3] / L, quat])
+    if covariance is not None:
+        header, rows = header + UNCERTAINTY_COLUMNS, np.hstack([rows, _uncertainty(model, covariance, q, args.target)])
+    write_atomic(args.out, format_csv(header, rows.tolist()))
     return 0
+
+
+def _stored_covariance(path, model):
+    from calibration.uncertainty import CovarianceError, covariance_from_block
+    from service.files import InputError
+
+    try:
+        return covariance_from_block(model)
+    except CovarianceError as exc:
+        raise InputError(path, f"field {exc.field!r}: {exc} (needed by --uncertainty)") from None
+
+
+def _uncertainty(model, covariance, q, target):
+    """(N, 4) sigma_x, sigma_y, sigma_z, u95 of the predicted position, model length unit."""
+    import numpy as np
+
+    from calibration.uncertainty import propagate, radius_95
+
+    params, Sigma = covariance
+    C = propagate(model, params, Sigma, q, np.array([target] * len(q), dtype=object))
+    sigma = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
+    return np.hstack([sigma, radius_95(C)[:, None]]) / model.units.length_m

@@ -215,6 +215,59 @@ def test_predict_tool_pose_and_target_equal_fk(cell, identified, model_file):
     assert np.allclose(vals * u.length_m, target_positions(model, q_si, "smr"), atol=1e-9)
 
 
+def test_identified_model_is_named_and_keeps_its_covariance(cell, identified):
+    assert identified["mm"].returncode == 0
+    doc = json.loads((cell.dir / "identified_mm.json").read_text())
+    assert doc["name"] == "ur10e-identified"
+    block = doc["identification"]
+    assert block["identified_from"] == "ur10e-nominal" == block["nominal"]["name"]
+    cov = block["covariance"]
+    names = [p["name"] for p in block["parameters"]]
+    assert cov["names"] == names and len(cov["kinds"]) == len(names)
+    S = np.array(cov["matrix"])
+    assert np.allclose(S, S.T) and np.all(np.linalg.eigvalsh(S) > 0)
+    # SI whatever the file's units: the standard errors the block reports in mm and deg
+    per_unit = {"length": MM_DEG.length_m, "angle": MM_DEG.angle_rad}
+    se = np.array([p["std_error"] * per_unit[k] for p, k in zip(block["parameters"], cov["kinds"])])
+    assert np.allclose(np.sqrt(np.diag(S)), se, rtol=1e-6)
+
+
+def _joints_file(cell, model, name: str) -> np.ndarray:
+    """Write ``cell.q_check`` in ``model``'s units; return them in SI."""
+    q = joints_in(model.units, model, cell.q_check)
+    _write(cell.dir / name, [f"q{i + 1}" for i in range(6)], [[repr(float(v)) for v in row] for row in q])
+    return q * model.units.angle_rad
+
+
+def test_predict_uncertainty_columns_are_honest(cell, identified):
+    assert identified["mm"].returncode == identified["m"].returncode == 0
+    out = {}
+    for tag in ("mm", "m"):
+        model = load_model(cell.dir / f"identified_{tag}.json")
+        q_si = _joints_file(cell, model, f"joints_u_{tag}.csv")
+        proc = recal("predict", "--model", f"identified_{tag}.json", "--joints", f"joints_u_{tag}.csv", "--target",
+                     "smr", "--uncertainty", "--out", f"pred_u_{tag}.csv", cwd=cell.dir)
+        assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+        header, vals = read_csv(cell.dir / f"pred_u_{tag}.csv")
+        assert header == ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "u95"]
+        out[tag] = vals * model.units.length_m  # SI
+    mm, m = out["mm"], out["m"]
+    assert np.allclose(mm, m, rtol=1e-6, atol=1e-12)  # the same in either unit
+    sigma, u95 = mm[:, 3:6], mm[:, 6]
+    assert np.all((sigma > 0) & (sigma < 0.03e-3))  # a few micrometres: 60 poses at 0.02 mm noise
+    assert np.all(u95 >= np.sqrt(7.81) * sigma.max(axis=1) * (1 - 1e-6))  # 95 % radius of the largest axis
+    # the radius holds against the truth (noise-free): the model's actual error is inside it
+    err = np.linalg.norm(mm[:, :3] - target_positions(cell.truth, q_si, "smr"), axis=1)
+    assert np.mean(err <= u95) >= 0.85, np.mean(err <= u95)
+
+    proc = recal("predict", "--model", "identified_mm.json", "--joints", "joints_u_mm.csv", "--uncertainty",
+                 "--out", "pose_u.csv", cwd=cell.dir)
+    assert proc.returncode == 0, proc.stderr
+    header, vals = read_csv(cell.dir / "pose_u.csv")
+    assert header == ["x", "y", "z", "qw", "qx", "qy", "qz", "sigma_x", "sigma_y", "sigma_z", "u95"]
+    assert np.all(vals[:, 7:] > 0)
+
+
 # --------------------------------------------------------------------------- bad input
 
 
@@ -362,6 +415,16 @@ def test_predict_unknown_target_names_the_model_field(cell):
     proc = recal("predict", "--model", "nominal_mm.json", "--joints", "joints_only.csv", "--target", "ball9",
                  "--out", "pred_t.csv", cwd=cell.dir)
     check_failure(proc, cell, "nominal_mm.json", ["field 'targets'", "'ball9'", "expected one of smr"], "pred_t.csv")
+
+
+def test_predict_uncertainty_needs_a_stored_covariance(cell):
+    header, rows = _table(cell)
+    _write(cell.dir / "joints_only2.csv", header[:6], [r[:6] for r in rows])
+    proc = recal("predict", "--model", "nominal_mm.json", "--joints", "joints_only2.csv", "--uncertainty",
+                 "--out", "pred_nocov.csv", cwd=cell.dir)
+    assert proc.returncode == 2
+    check_failure(proc, cell, "nominal_mm.json", ["field 'identification.covariance'", "no parameter covariance",
+                                                  "--uncertainty"], "pred_nocov.csv")
 
 
 @pytest.mark.parametrize("case,make,expected", [DATA_CASES[i] for i in (1, 4, 5, 9)],
