@@ -7,8 +7,9 @@ were never calibrated) a recalibration (pose) session, driven by ``recal nightly
 production. Three set-ups on the same cells:
 
 - ``embedded``: the embedded default, one ``recal serve`` process on SQLite, sessions in its
-  threads (at most ``--embedded-parallel`` cells at once: each running session holds one of the
-  process's 15 pooled database connections, so 50 at once fail with a pool timeout);
+  threads (at most ``--embedded-parallel`` cells at once, default 10: each running session holds
+  one of the process's pooled database connections, 64 on SQLite and 30 on PostgreSQL, and one
+  process runs them all behind one GIL);
 - ``embedded-pg``: the same on PostgreSQL (separates the store's share from the engine's);
 - ``fleet``: ``RECAL_ENGINE=procrastinate`` on PostgreSQL, two API processes, two workers
   (``recal worker --site a --site b``), the cells in sites ``a`` and ``b``; one
@@ -155,7 +156,7 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
         if mode == "fleet":
             cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--site", site,
                      "--url", apis[i % n_api].ready["url"], *common] for i, site in enumerate(("a", "b"))]
-        else:  # one process, one connection pool (5 + 10): at most that many sessions at once
+        else:  # one process, one connection pool: at most --embedded-parallel sessions at once
             cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--url", apis[0].ready["url"],
                      "--parallel", str(args.embedded_parallel), *common]]
         t0 = time.monotonic()
@@ -242,8 +243,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sequential", type=int, default=10, help="rounds of verify + pose, one session at a time")
     ap.add_argument("--modes", default="embedded,embedded-pg,fleet")
     ap.add_argument("--embedded-parallel", type=int, default=10,
-                    help="cells at once in the embedded set-ups (its connection pool holds 15; 50 at once "
-                         "exhaust it)")
+                    help="cells at once in the embedded set-ups (each running session holds a pooled "
+                         "database connection: 64 on SQLite, 30 on PostgreSQL)")
     ap.add_argument("--host-prefix", default="127.0.3.")
     ap.add_argument("--postgres", default=os.environ.get("RECAL_TEST_POSTGRES_URL",
                                                          "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"))

@@ -14,10 +14,16 @@ embedded default (SQLite), as processes, with ``RECAL_SETTLE_S=0``.
    the commit of each measurement before the next move, the lease renewal.
 2. **GET latency under load.** ``--clients`` clients (threads spread over
    ``--client-processes`` processes, each client on its own keep-alive connection) each send
-   ``--requests`` requests of ``GET /api/v1/sessions/{id}`` (the completed session above), one
-   after another; latencies are measured at the client. Baseline in the same run, same
-   clients: ``GET /api/v1/health`` (no token, no database), what the server and the clients
-   cost by themselves on this machine.
+   ``--requests`` requests of ``GET /api/v1/sessions/{id}`` (the completed session above);
+   latencies are measured at the client. Two loads:
+   - *polling*: each client sends one request every ``--interval`` seconds (default 0.1 s, with
+     a random phase), as pages and jobs poll a session (the nightly job polls every 0.2 s or
+     slower, the page follows server-sent events): 50 clients offer 500 requests a second;
+   - *saturated*: each client sends its next request as soon as the answer arrives (a closed
+     loop, like ``wrk -c 50``): the server's throughput; every request then waits behind the
+     other 49, so its latency is about 50 / throughput by construction.
+   Baseline in the same run, same clients: ``GET /api/v1/health`` (no token, no database), what
+   the server and the clients cost by themselves on this machine.
 
 Run: ``python bench/service.py`` (about half a minute).
 """
@@ -29,7 +35,9 @@ import dataclasses
 import http.client
 import json
 import multiprocessing
+import os
 import platform
+import random
 import statistics
 import sys
 import tempfile
@@ -94,15 +102,19 @@ def drivers_per_pose(endpoint: dict, configs: np.ndarray) -> list[float]:
 
 def _client(args) -> list[float]:
     """One client process: ``threads`` keep-alive clients, each ``requests`` GETs in turn."""
-    host, port, path, token, threads, requests, start_at = args
+    host, port, path, token, threads, requests, start_at, interval_s = args
     lat: list[float] = []
     lock = threading.Lock()
     headers = {"Authorization": f"Bearer {token}"} if token else {}
 
-    def run():
+    def run(phase_s: float):
         conn = http.client.HTTPConnection(host, port, timeout=30)
         mine = []
+        t_next = time.perf_counter() + phase_s
         for _ in range(requests):
+            if interval_s:  # polling: one request per interval, whenever the last answer came
+                time.sleep(max(0.0, t_next - time.perf_counter()))
+                t_next += interval_s
             t0 = time.perf_counter()
             conn.request("GET", path, headers=headers)
             r = conn.getresponse()
@@ -116,7 +128,8 @@ def _client(args) -> list[float]:
 
     while time.time() < start_at:  # every client starts together
         time.sleep(0.001)
-    ts = [threading.Thread(target=run) for _ in range(threads)]
+    rng = random.Random(os.getpid())
+    ts = [threading.Thread(target=run, args=(rng.uniform(0, interval_s),)) for _ in range(threads)]
     for t in ts:
         t.start()
     for t in ts:
@@ -124,13 +137,14 @@ def _client(args) -> list[float]:
     return lat
 
 
-def load(url: str, path: str, token: str | None, clients: int, procs: int, requests: int) -> dict:
+def load(url: str, path: str, token: str | None, clients: int, procs: int, requests: int,
+         interval_s: float = 0.0) -> dict:
     host, port = url.split("//")[1].split(":")
     per = [clients // procs + (i < clients % procs) for i in range(procs)]
     start_at = time.time() + 1.0
     t0 = time.perf_counter()
     with multiprocessing.Pool(procs) as pool:
-        parts = pool.map(_client, [(host, int(port), path, token, n, requests, start_at) for n in per])
+        parts = pool.map(_client, [(host, int(port), path, token, n, requests, start_at, interval_s) for n in per])
     wall = time.perf_counter() - t0 - 1.0
     lat = np.sort(np.concatenate([np.array(p) for p in parts])) * 1e3
     return {"n": lat.size, "p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
@@ -142,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", type=int, default=60)
     ap.add_argument("--clients", type=int, default=50)
     ap.add_argument("--client-processes", type=int, default=5)
-    ap.add_argument("--requests", type=int, default=40, help="requests per client")
+    ap.add_argument("--requests", type=int, default=100, help="requests per client")
+    ap.add_argument("--interval", type=float, default=0.1, help="polling: seconds between a client's requests")
     ap.add_argument("--host", default="127.0.4.2", help="loopback address of the simulated cell")
     args = ap.parse_args(argv)
 
@@ -168,10 +183,12 @@ def main(argv: list[str] | None = None) -> int:
                 cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
                 session_id, session_dt, configs = session_per_pose(api, cell_id, args.poses)
                 driver_dt = drivers_per_pose(cell.ready, configs)
-                get = load(service.ready["url"], f"/api/v1/sessions/{session_id}", token, args.clients,
-                           args.client_processes, args.requests)
-                health = load(service.ready["url"], "/api/v1/health", None, args.clients,
-                              args.client_processes, args.requests)
+                path = f"/api/v1/sessions/{session_id}"
+                loads = {}
+                for mode, interval in (("polling", args.interval), ("saturated", 0.0)):
+                    for name, p, tok in ((path, path, token), ("/api/v1/health", "/api/v1/health", None)):
+                        loads[mode, name] = load(service.ready["url"], p, tok, args.clients, args.client_processes,
+                                                 args.requests, interval)
             finally:
                 service.stop()
         finally:
@@ -189,12 +206,14 @@ def main(argv: list[str] | None = None) -> int:
     over = (statistics.fmean(session_dt) - statistics.fmean(driver_dt)) * 1e3
     over_med = (statistics.median(session_dt) - statistics.median(driver_dt)) * 1e3
     print(f"\norchestrator overhead per pose: {over:.2f} ms (mean), {over_med:.2f} ms (median)")
-    print(f"\n## {args.clients} concurrent clients x {args.requests} requests (ms)\n")
-    print("| request | requests | p50 | p95 | p99 | max | requests/s |")
-    print("|---|---|---|---|---|---|---|")
-    for name, r in ((f"GET /api/v1/sessions/{{id}}", get), ("GET /api/v1/health (baseline)", health)):
-        print(f"| {name} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | {r['max']:.1f} | "
-              f"{r['rps']:.0f} |")
+    print(f"\n## {args.clients} concurrent clients x {args.requests} requests (latency in ms)\n")
+    print("| load | request | requests | p50 | p95 | p99 | max | requests/s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for (mode, name), r in loads.items():
+        what = ("GET /api/v1/sessions/{id}" if name != "/api/v1/health" else "GET /api/v1/health (baseline)")
+        load_name = f"polling every {args.interval:g} s" if mode == "polling" else "saturated"
+        print(f"| {load_name} | {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | "
+              f"{r['max']:.1f} | {r['rps']:.0f} |")
     return 0
 
 

@@ -25,7 +25,8 @@ Method (book §4.4.2, §4.3.3, §4.5.3):
 6. Covariance ``s²(JᵀWJ)⁻¹`` (book eq. 4.54/4.70 with W = Σ⁻¹), ``s² = max(1, χ²/dof)``: if the
    residuals are larger than the stated uncertainty, the stated uncertainty was optimistic and
    the covariance grows accordingly; it never shrinks below what the instrument states. With a
-   :class:`Prior` (book §4.3.2): ``s²(JᵀWJ + Σp⁻¹)⁻¹``, the prior's term counted in χ².
+   :class:`Prior` (book §4.3.2): ``s²(JᵀWJ + MᵀΣp⁻¹M)⁻¹`` (``M`` the combinations the prior
+   describes, :meth:`Prior.combinations`), the prior's term counted in χ².
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .conventions import hayati_for_parallel_axes, mdh_to_dh
-from .jacobian import Prediction, jacobian_from_walk, predict, record_keys, world_points
+from .jacobian import Prediction, jacobian_from_walk, record_keys, world_points
 from .kinematics import Walk, walk
 from .model import KinematicModel
 from .parameters import Parameter, apply_step, candidate_parameters, parameter_values
@@ -108,10 +109,19 @@ class Prior:
     """Prior knowledge of parameters (book §4.3.2, minimum-variance estimation): the model passed
     to :func:`identify` is the prior mean, and ``covariance`` (P, P) SI the uncertainty of the
     parameters ``names`` about it (typically the previous calibration's covariance, inflated for
-    drift). Parameters without a prior are unconstrained."""
+    drift). Parameters without a prior are unconstrained.
+
+    ``held``: the parameters the previous calibration kept at the model's value because its data
+    could not tell them from a combination of the ones it estimated, each with that relation
+    (:attr:`Unidentifiable.relation`, SI: a unit change of it moves the measured points as
+    changes ``c`` of those do; :func:`held_relations`). Its data then determined each estimated
+    ``p`` only together with them, ``p + Σ c·u``, and that combination is what ``covariance``
+    describes: a held parameter that new data determine (a tool orientation measured at last)
+    moves the parameters it was confused with instead of being held by their prior."""
 
     names: tuple[str, ...]
     covariance: np.ndarray
+    held: dict = field(default_factory=dict)
 
     def _block(self, params: list["Parameter"]) -> tuple[list[int], np.ndarray]:
         idx = {n: i for i, n in enumerate(self.names)}
@@ -119,14 +129,29 @@ class Prior:
         rows = [idx[params[k].name] for k in have]
         return have, np.asarray(self.covariance, dtype=float)[np.ix_(rows, rows)]
 
+    def combinations(self, params: list["Parameter"]) -> np.ndarray:
+        """The matrix M (H, P) of the combinations the prior describes, one row per parameter of
+        ``params`` with a prior (in the order of ``params``): ``M·s`` for a step ``s`` (P,) over
+        ``params``, the held ones of ``params`` entering by their relation."""
+        have, _ = self._block(params)
+        row = {params[k].name: i for i, k in enumerate(have)}
+        M = np.zeros((len(have), len(params)))
+        M[np.arange(len(have)), have] = 1.0
+        for k, p in enumerate(params):
+            for name, c in self.held.get(p.name, ()):
+                if name in row:
+                    M[row[name], k] += c
+        return M
+
     def information(self, params: list["Parameter"]) -> np.ndarray:
-        """The prior information matrix (inverse of the marginal covariance) over ``params`` (zero
-        rows and columns for parameters without a prior)."""
+        """The prior information matrix ``Mᵀ Σ⁻¹ M`` over ``params`` (:meth:`combinations`, Σ the
+        marginal covariance of the parameters of ``params`` with a prior; zero rows and columns
+        for parameters neither with a prior nor held)."""
         have, sub = self._block(params)
-        info = np.zeros((len(params), len(params)))
-        if have:
-            info[np.ix_(have, have)] = np.linalg.pinv(sub, hermitian=True)
-        return info
+        if not have:
+            return np.zeros((len(params), len(params)))
+        M = self.combinations(params)
+        return M.T @ np.linalg.pinv(sub, hermitian=True) @ M
 
     def covariance_of(self, params: list["Parameter"]) -> np.ndarray:
         """The prior covariance (P, P) over ``params`` (NaN rows and columns for parameters without
@@ -137,36 +162,61 @@ class Prior:
         return cov
 
 
+def held_relations(result: "IdentificationResult") -> dict:
+    """What a :class:`Prior` made from ``result`` needs to know of the parameters it held at the
+    model's value: ``{name: ((estimated name, coefficient SI), ...)}`` for those related to the
+    estimated ones."""
+    return {u.name: tuple(u.relation) for u in result.unidentifiable if u.relation}
+
+
 def drift_scale(model: KinematicModel, data: Measurements, names: tuple[str, ...], covariance: np.ndarray,
-                drift: np.ndarray, *, sigma_m: float = 20e-6, scales: np.ndarray | None = None) -> float:
+                drift: np.ndarray, *, sigma_m: float = 20e-6, sigma_rad: float | None = None,
+                scales: np.ndarray | None = None, held: dict | None = None) -> float:
     """How much drift the new ``data`` show since the calibration that gave ``model`` and the
     ``covariance`` (P, P) SI of its parameters ``names``: the scale ``s`` of a drift allowance
     ``drift`` (P,) (1σ per parameter, SI) that makes the data most likely (type-II maximum
-    likelihood, the evidence of the linearised model): the data's position residuals at
-    ``model`` are ``r = J δ + ε`` with ``δ ~ N(0, Σ + s² diag(drift²))`` and ``ε`` the
-    instrument's noise. 0 when the data fit the previous model within its own uncertainty;
-    about 1 when the parameters moved by the allowance. ``scales``: the values tried (default 0
-    and 41 from 0.01 to 100)."""
-    cands = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets),
-                                                     gains=any(n.endswith(".gain") for n in names))}
-    keep = [i for i, n in enumerate(names) if n in cands]
+    likelihood, the evidence of the linearised model): the data's residuals at ``model``
+    (weighted as :func:`identify` weighs them, ``sigma_m`` and ``sigma_rad`` as there) are
+    ``r = J δ + ε`` with ``δ ~ N(0, Σ + s² diag(drift²))`` and ``ε`` the instrument's noise. 0
+    when the data fit the previous model within its own uncertainty; about 1 when the parameters
+    moved by the allowance. ``scales``: the values tried (default 0 and 41 from 0.01 to 100).
+
+    The parameters without a prior that the data determine (:func:`identify` frees them: a tool
+    frame the previous data could not see) explain what they can first, with no prior (the
+    restricted likelihood, of the residuals' part they cannot explain), so that they are not
+    taken for drift; ``held``: :attr:`Prior.held`, the prior's held parameters, which enter
+    with the prior's combinations kept."""
+    gains = any(n.endswith(".gain") for n in names)
+    cands = candidate_parameters(model, targets=tuple(model.targets), gains=gains)
+    index = {p.name: k for k, p in enumerate(cands)}
+    keep = [i for i, n in enumerate(names) if n in index]
     if not keep:
         return 0.0
-    params = [cands[names[i]] for i in keep]
+    cols = [index[names[i]] for i in keep]
     cov = np.asarray(covariance, dtype=float)[np.ix_(keep, keep)]
     d2 = np.asarray(drift, dtype=float)[keep] ** 2
-    sigma = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
-    p_tool = np.array([model.target(t) for t in data.target])
-    pred = predict(model, data.q, p_tool, params, data.target)
-    r = ((data.p_world - pred.p_world) / sigma[:, None]).reshape(-1)
-    J = (pred.Jp / sigma[:, None, None]).reshape(-1, len(params))
+    prob = _problem(data, sigma_m, sigma_rad)
+    pred, rp, rr = _evaluate(model, prob, cands)
+    r, J_all = _stack(prob, rp, rr, pred.Jp, pred.Jr)
+    J = J_all[:, cols]
+    with_prior = {names[i] for i in keep}
+    kept, _ = select_identifiable(J_all, cands, position_only=not np.any(prob.has_rot))
+    free = [k for k in kept if cands[k].name not in with_prior]
+    if free:
+        # with the prior on z = s_p + H s_u (H: the held ones' relations), a step (s_p, s_u)
+        # moves the points by J_p z + (J_u - J_p H) s_u: project the columns of the latter out
+        M = Prior(tuple(names[i] for i in keep), cov, held or {}).combinations([cands[k] for k in cols + free])
+        U, sv, _ = np.linalg.svd(J_all[:, free] - J @ M[:, len(cols):], full_matrices=False)
+        basis = U[:, sv > 1e-9 * max(sv[0], 1e-300)]
+        r = r - basis @ (basis.T @ r)
+        J = J - basis @ (basis.T @ J)
     G, b = J.T @ J, J.T @ r
     best = (math.inf, 0.0)
     for s in (np.concatenate([[0.0], np.geomspace(0.01, 100.0, 41)]) if scales is None else scales):
         # -log evidence, up to a constant, in the parameters' space (determinant lemma, Woodbury):
         # C = I + J Q Jᵀ, Q = L Lᵀ: log det C = log det K, rᵀC⁻¹r = rᵀr - cᵀK⁻¹c, K = I + LᵀGL, c = Lᵀb
         L = _sqrt_psd(cov + s * s * np.diag(d2)).T
-        K = np.eye(len(params)) + L.T @ G @ L
+        K = np.eye(len(keep)) + L.T @ G @ L
         c = L.T @ b
         nll = 0.5 * (np.linalg.slogdet(K)[1] + r @ r - c @ np.linalg.solve(K, c))
         if nll < best[0]:
@@ -251,6 +301,16 @@ class _Problem:
     sigma_rot: float  # rad
     target_rows: dict = field(default_factory=dict)  # target name -> (N,) bool, the rows that measure it
     trig: dict = field(default_factory=dict)  # the joints' cos and sin over the data, for every walk (kinematics.walk)
+
+
+def _problem(data: Measurements, sigma_m: float, sigma_rad: float | None) -> _Problem:
+    """The data with their weights: ``sigma_m`` for rows without their own ``sigma``, ``sigma_rad``
+    for orientations (default ``sigma_m`` over 0.1 m)."""
+    has_rot = data.has_orientation
+    R_meas = quat_to_matrix(np.where(np.isfinite(data.quat), data.quat, [1, 0, 0, 0])) if data.quat is not None else None
+    sigma_pos = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
+    sigma_rot = float(sigma_rad) if sigma_rad is not None else sigma_m / 0.1
+    return _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot, _target_rows(data.target))
 
 
 def _target_rows(names: np.ndarray) -> dict:
@@ -689,10 +749,13 @@ def identify(
     ``never``; ``fixed``: parameter names (or prefixes ending in ``*``) not to free; ``gains``:
     also free the joint gains; ``hayati``: rewrite parallel-axis ``dh`` links in Hayati's form;
     ``prior``: minimum-variance estimation about ``model`` (book eq. 4.69-4.70): the cost gains
-    ``½ sᵀ Σp⁻¹ s`` for the step ``s`` away from ``model``; parameters with a prior that the data
-    see are estimated (source ``data + prior``) even where the data alone cannot determine them,
-    those the data cannot see (:data:`SEEN_BY_DATA`) keep the prior's value and covariance
-    (source ``prior``), and no registration is done (the prior knows the base).
+    ``½ (Ms)ᵀ Σp⁻¹ (Ms)`` for the step ``s`` away from ``model`` (``M``: :meth:`Prior.combinations`,
+    the identity but for the prior's held parameters); parameters with a prior that the data see
+    are estimated (source ``data + prior``) even where the data alone cannot determine them, those
+    the data cannot see (:data:`SEEN_BY_DATA`) keep the prior's value and covariance (source
+    ``prior``) unless a held parameter the data determine was confused with them (a reflector's
+    offset and the tool orientation): then they move with it (source ``data + prior``); no
+    registration is done (the prior knows the base).
 
     Raises ``ValueError`` for inconsistent input (shapes, unknown targets, non-finite values).
     """
@@ -714,11 +777,8 @@ def identify(
     if hayati and start.convention == "dh":
         start, hn = hayati_for_parallel_axes(start)
         notes += hn
-    has_rot = data.has_orientation
-    R_meas = quat_to_matrix(np.where(np.isfinite(data.quat), data.quat, [1, 0, 0, 0])) if data.quat is not None else None
-    sigma_pos = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
-    sigma_rot = float(sigma_rad) if sigma_rad is not None else sigma_m / 0.1
-    prob = _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot, _target_rows(data.target))
+    prob = _problem(data, sigma_m, sigma_rad)
+    has_rot, sigma_rot = prob.has_rot, prob.sigma_rot
 
     used_targets = tuple(sorted(set(data.target) - {None}))
     prior_targets = () if prior is None else tuple(sorted(
@@ -752,7 +812,9 @@ def identify(
         sd_prior = np.sqrt(np.maximum(np.diag(prior.covariance_of(cands)), 0.0))
         has_prior = [k for k in range(len(cands)) if np.isfinite(sd_prior[k])]
         seen = _seen_by_data(J_cands, sd_prior)
-        from_prior = [k for k in has_prior if not seen[k]]
+        # a held parameter the data determine moves those it was confused with: estimated too
+        released = {n for k in kept for n, _ in prior.held.get(cands[k].name, ())}
+        from_prior = [k for k in has_prior if not seen[k] and cands[k].name not in released]
         kept = sorted((set(kept) | set(has_prior)) - set(from_prior))
         named = {cands[k].name for k in has_prior}
         dropped = [u for u in dropped if u.name not in named]
@@ -860,7 +922,7 @@ def identify(
     w = _expand_rows(prob, w_row)
     n_res = r.size
     chi2_prior = float(steps @ info @ steps)
-    n_prior = int(np.count_nonzero(np.any(info != 0.0, axis=0)))  # estimated parameters with a prior
+    n_prior = int(np.count_nonzero(np.isfinite(sd_prior[kept])))  # estimated parameters with a prior
     chi2 = float(np.sum(w * r**2)) + chi2_prior
     dof = max(n_res + n_prior - P, 1)
     sigma_scale = math.sqrt(max(1.0, chi2 / dof))
@@ -879,7 +941,7 @@ def identify(
                 J = J_cands[:, kept]
             Jw = J if unit else J * np.sqrt(w)[:, None]
             G = Jw.T @ Jw
-        # Σ = s² (JᵀWJ + Σp⁻¹)⁻¹ (book eq. 4.54 / 4.70); pseudo-inverse on the column-scaled
+        # Σ = s² (JᵀWJ + MᵀΣp⁻¹M)⁻¹ (book eq. 4.54 / 4.70); pseudo-inverse on the column-scaled
         # matrix for numerical safety.
         A = G + info
         dscale = np.sqrt(np.maximum(np.diag(A), 1e-300))
@@ -894,7 +956,7 @@ def identify(
             Jw = J if unit else J * np.sqrt(w)[:, None]
             Rw = _r_factor(Jw) if Jw.shape[0] > P else Jw
         # conditioning of what was estimated: with a prior, data and prior together (a factor
-        # whose Gram matrix is JᵀWJ + Σp⁻¹)
+        # whose Gram matrix is JᵀWJ + MᵀΣp⁻¹M)
         Ra = Rw if prior is None else np.vstack([Rw, _sqrt_psd(info)])
         sv, cond, obs = _conditioning(Ra, params, n_poses=len(data), reach_m=reach)
         if prior is not None:

@@ -19,19 +19,24 @@ import math
 import numpy as np
 from sqlmodel import Session, select
 
-from calibration.identify import Measurements, Prior, identify
+from calibration.identify import Measurements, Prior, drift_scale, held_relations, identify
 from calibration.jacobian import predict
 from calibration.model import KinematicModel, model_from_dict, model_to_dict
 from calibration.report import identification_block, identification_report
 
 from .models import Calibration, Cell, Measurement, RunSession
 from .settings import Settings
-from .store import last_calibration
+from .store import current_calibration
 
 # Allowance for what may have changed since the previous calibration (per parameter, 1 sigma):
-# the prior's covariance is the previous one plus this, so the new data can move the model.
+# the prior's covariance is the previous one plus this allowance times a scale the new data show
+# (calibration.identify.drift_scale: about 1 when the parameters moved by this much, 0 when the
+# data fit the previous model), so the new data can move the model as far as they say it moved,
+# and a robot that did not move is not made to look less certain than it was.
 DRIFT_LENGTH_M = 0.05e-3
 DRIFT_ANGLE_RAD = np.deg2rad(0.005)
+# The scale never goes below this: a short session cannot rule out a little drift.
+DRIFT_SCALE_MIN = 0.1
 
 
 class AnalysisError(RuntimeError):
@@ -39,8 +44,9 @@ class AnalysisError(RuntimeError):
 
 
 def current_model(db: Session, cell: Cell) -> tuple[KinematicModel, Calibration | None]:
-    """The cell's best model: its last pose calibration, else the nominal model."""
-    cal = last_calibration(db, cell.id, kind="pose")
+    """The cell's best model: its last pose calibration (from its present nominal model), else the
+    nominal model."""
+    cal = current_calibration(db, cell)
     return (model_from_dict(cal.model), cal) if cal is not None else (model_from_dict(cell.model), None)
 
 
@@ -69,7 +75,11 @@ def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, li
 
 def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings) -> None:
     if run.kind == "pose":
+        from .results import predicted_accuracy
+
         cal = identify_session(db, run, cell)
+        cal.predicted = predicted_accuracy(cal, cell, run.target)  # stored with it: drift lists it without reports
+        db.add(cal)
         run.calibration_id = cal.id
     elif run.kind == "verify":
         run.plan_info = {**(run.plan_info or {}), "verify": verify_session(db, run, cell)}
@@ -90,7 +100,7 @@ def _store(db: Session, cell: Cell, run: RunSession, kind: str, model: Kinematic
     if extra:
         doc.update(extra)
     cal = Calibration(cell_id=cell.id, session_id=run.id, kind=kind, model=doc, report=report,
-                      covariance=covariance, rms=rms)
+                      covariance=covariance, rms=rms, nominal_version=cell.model_version)
     db.add(cal)
     db.commit()
     db.refresh(cal)
@@ -100,7 +110,7 @@ def _store(db: Session, cell: Cell, run: RunSession, kind: str, model: Kinematic
 def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     data, _ = session_measurements(db, run)
     nominal = model_from_dict(cell.model)
-    prev = last_calibration(db, cell.id, kind="pose")
+    prev = current_calibration(db, cell)
     prior = None
     start = nominal
     if prev is not None and prev.covariance:
@@ -109,19 +119,43 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         cov = np.array(prev.covariance["matrix"], dtype=float)
         kinds = prev.covariance.get("kinds") or ["length"] * len(names)
         drift = np.array([DRIFT_ANGLE_RAD if k == "angle" else DRIFT_LENGTH_M if k == "length" else 1e-4 for k in kinds])
-        prior = Prior(names, cov + np.diag(drift**2))
+        # what it held at the model's value, confused with what it estimated (e.g. the tool orientation
+        # a tracker cannot see): new data that determine them move the combinations it measured
+        held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
+        scale = max(drift_scale(start, data, names, cov, drift, held=held), DRIFT_SCALE_MIN)
+        prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
     result = identify(start, data, prior=prior)
     if not result.success:
         raise AnalysisError(f"identification did not converge: {result.message}")
     units = nominal.units
     report = identification_report(result, units, data_rows=data.row)
-    report["prior"] = None if prior is None else {"calibration_id": prev.id, "parameters": len(prior.names)}
+    report["prior"] = None if prior is None else _prior_summary(result, prev, prior, scale, units)
     cov = {"names": list(result.param_names), "kinds": [p.kind for p in result.params],
-           "matrix": result.covariance.tolist()}
+           "matrix": result.covariance.tolist(),
+           "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()}}
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q)
     return _store(db, cell, run, "pose", model, report, cov, result.rms_m / L, {"identification": block})
+
+
+def _prior_summary(result, prev: Calibration, prior: Prior, scale: float, units) -> dict:
+    """What the prior (the previous calibration) contributed: how many parameters each source
+    determined, the ones the new data cannot see (kept from the prior), the ones it held at the
+    model's value that the new data determine (``released``, e.g. a tool orientation a tracker
+    could not see, measured by a CMM), and the drift allowance with the scale the data showed."""
+    by = {s: [n for n, src in zip(result.param_names, result.sources) if src == s]
+          for s in ("data", "data + prior", "prior")}
+    return {
+        "calibration_id": prev.id, "parameters": len(prior.names),
+        "determined_by": {s: len(names) for s, names in by.items()},
+        "from_prior": by["prior"],
+        "released": [n for n in result.param_names if n in prior.held],
+        "drift_allowance": {"length": DRIFT_LENGTH_M / units.length_m, "angle": DRIFT_ANGLE_RAD / units.angle_rad,
+                            "scale": scale,
+                            "note": "per parameter, 1 sigma, times scale (how far the new data show the robot moved; "
+                                    f"at least {DRIFT_SCALE_MIN}), added to the previous calibration's covariance"},
+    }
 
 
 def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
@@ -155,7 +189,28 @@ def verify_session(db: Session, run: RunSession, cell: Cell) -> dict:
         placed = dataclasses.replace(model, base=matrix_to_pose(X @ pose_to_matrix(model.base)))
         e2 = np.linalg.norm(position_errors(placed, data), axis=1)
         out["registered"] = {"rms": float(np.sqrt(np.mean(e2**2)) / L), "max": float(e2.max() / L)}
+    repeats = int((run.plan_info or {}).get("repeats") or 1)
+    if repeats > 1:
+        out["iso9283"] = pose_repeatability(model, data, repeats)
     return out
+
+
+def pose_repeatability(model: KinematicModel, data: Measurements, repeats: int) -> dict:
+    """ISO 9283 pose accuracy AP and repeatability RP (§7.2.1-7.2.2, ``calibration.metrics``) of
+    a verify session that visited each configuration ``repeats`` times (step ``s`` visits
+    configuration ``s // repeats``); the command is where the current model puts the target."""
+    from calibration.metrics import pose_statistics
+
+    p_cmd = data.p_world - position_errors(model, data)
+    st = pose_statistics(p_cmd, data.p_world, data.pose_id // repeats)
+    L = model.units.length_m
+    return {
+        "repeats": repeats, "poses": int(len(st.pose_ids)), "unit": model.units.length,
+        "accuracy": {"mean": float(st.AP_m.mean() / L), "max": float(st.AP_m.max() / L)},
+        "repeatability": {"mean": float(st.RP_m.mean() / L), "max": float(st.RP_m.max() / L)},
+        "per_pose": [{"pose": int(k) + 1, "visits": int(n), "AP": float(ap / L), "RP": float(rp / L)}
+                     for k, n, ap, rp in zip(st.pose_ids, st.n, st.AP_m, st.RP_m)],
+    }
 
 
 def fit_joint_harmonic(q: np.ndarray, ref: np.ndarray, frequency: float | None) -> dict:

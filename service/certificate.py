@@ -2,8 +2,12 @@
 
 :func:`certificate_data` gathers it (cell, robot, instrument, date, operator, poses, accuracy
 before and after in the manner of ISO 9283 — :mod:`calibration.metrics` — the parameters with
-their uncertainties, and the checks that passed); the web page prints it as HTML and
-:func:`certificate_pdf` renders the same content as a PDF (reportlab).
+their uncertainties, the checks that were run and passed and those not run); the web page
+prints it as HTML and :func:`certificate_pdf` renders the same content as a PDF (reportlab).
+
+Accuracy after calibration comes in two kinds: in-sample (the identified model's residuals on
+the measurements it was fitted to: optimistic) and hold-out (a verify session that followed
+the calibration on the same cell and used it: fresh configurations, the accuracy to quote).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
 
+from .analysis import position_errors, session_measurements
 from .models import AuditEntry, Calibration, Cell, RunSession
 from .results import _aware, _r, calibration_result
 
@@ -65,6 +70,24 @@ def _verify_sessions(db: Session, cell_id: int, cal: Calibration) -> tuple[dict 
     return before, after
 
 
+def _holdout(db: Session, cal: Calibration, verify_after: dict | None, unit: str) -> dict | None:
+    """ISO 9283-style figures of the identified model on a verify session's measurements (the
+    configurations it was not fitted to), with the session's id and what it measured."""
+    if verify_after is None:
+        return None
+    run = db.get(RunSession, verify_after["session_id"])
+    try:
+        data, _ = session_measurements(db, run)
+    except Exception:  # noqa: BLE001 - without its measurements the verify summary still stands
+        return None
+    model = model_from_dict(cal.model)
+    figures = _iso_figures((position_errors(model, data) / model.units.length_m).tolist(), unit)
+    if figures is None:
+        return None
+    return {**figures, "session_id": run.id, "operator": run.created_by, "date": _aware(run.created_at).isoformat(),
+            "target": run.target}
+
+
 def last_device_test(db: Session, cell_id: int, until: datetime | None = None) -> dict | None:
     """The last connection test of the cell's devices (stored in the audit log)."""
     q = select(AuditEntry).where(AuditEntry.action == "test devices", AuditEntry.subject == f"cell {cell_id}")
@@ -97,6 +120,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
     before = _iso_figures((errors.get("before") or {}).get("xyz"), unit)
     after = _iso_figures((errors.get("after") or {}).get("xyz"), unit)
     verify_before, verify_after = _verify_sessions(db, cell.id, cal)
+    holdout = _holdout(db, cal, verify_after, unit)
     ws = res.get("workspace") or {}
     settings = report.get("settings") or {}
     resid = report.get("residuals") or {}
@@ -105,6 +129,22 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         se = p.get("std_error")
         params.append({**p, "expanded_uncertainty": _r(2 * se) if se is not None else None})
     checks = _checks(res, run, report, resid, settings, verify_after, cell, unit)
+    not_run = [c["name"] for c in checks if c["passed"] is None]
+    accuracy = {
+        "before": before, "before_model": (errors.get("before") or {}).get("model"),
+        "after": after, "after_model": (errors.get("after") or {}).get("model"),
+        "after_kind": "in-sample: the identified model's residuals on the measurements it was fitted to "
+                      "(optimistic; the hold-out figures are the accuracy to quote)",
+        "holdout": holdout,
+        "holdout_model": None if holdout is None else
+        f"the identified model as it stands on the {holdout['n']} fresh configurations of verify session "
+        f"{holdout['session_id']}, measured after the calibration",
+        "verify_before": verify_before, "verify_after": verify_after,
+        "predicted_workspace": _predicted(ws),
+        "note": "ISO 9283-style figures from one measurement per pose: mean position error, its standard "
+                "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
+    }
+    accuracy["rows"] = [{"label": label, **f} for label, f in _accuracy_rows(accuracy)]
     issued = datetime.now(timezone.utc)
     return {
         "title": "Robot calibration certificate",
@@ -125,20 +165,36 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
                   "outliers": len(report.get("outliers") or []),
                   "plan_method": (run.plan_info or {}).get("method") if run is not None else None},
         "units": res["units"],
-        "accuracy": {
-            "before": before, "before_model": (errors.get("before") or {}).get("model"),
-            "after": after, "after_model": (errors.get("after") or {}).get("model"),
-            "verify_before": verify_before, "verify_after": verify_after,
-            "predicted_workspace": ws.get("stats95") if ws.get("available") else None,
-            "note": "ISO 9283-style figures from one measurement per pose: mean position error, its standard "
-                    "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
-        },
+        "accuracy": accuracy,
         "parameters": params,
         "unidentifiable": report.get("unidentifiable") or [],
         "notes": report.get("notes") or [],
         "checks": checks,
         "passed": all(c["passed"] for c in checks if c["passed"] is not None),
+        "not_run": not_run,
+        "verdict": _verdict(checks, not_run),
     }
+
+
+def _verdict(checks: list[dict], not_run: list[str]) -> str:
+    failed = [c["name"] for c in checks if c["passed"] is False]
+    if failed:
+        return f"{len(failed)} check(s) failed: {', '.join(failed)}"
+    text = "All checks that were run passed"
+    return text + (f"; not run: {', '.join(not_run)}" if not_run else "")
+
+
+def _predicted(ws: dict) -> dict | None:
+    """The predicted position error of the calibrated model (from its parameters' uncertainty)
+    at random configurations inside the allowed region: the same quantity the session's plan
+    predicted before anything moved (RMS over the configurations, 95th percentile, maximum)."""
+    if not ws.get("available"):
+        return None
+    st = ws.get("stats_rms") or {}
+    return {"n": ws.get("samples"), "rms": st.get("rms"), "p95": st.get("p95"), "max": st.get("max"),
+            "what": "predicted position error of the calibrated model from its parameters' uncertainty (1 sigma, "
+                    f"3-D) at {ws.get('samples')} random configurations inside the allowed joint ranges; the "
+                    "instrument's own noise not included"}
 
 
 def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list[dict]:
@@ -176,6 +232,21 @@ def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list
         add("within the cell's drift threshold", verify_after["max"] <= cell.drift_threshold,
             f"max {verify_after['max']:.4g} {unit} against {cell.drift_threshold:.4g} {unit}")
     return out
+
+
+def _accuracy_rows(acc: dict) -> list[tuple[str, dict]]:
+    """(label, ISO 9283-style figures) of each accuracy row of the certificate, in order."""
+    rows = []
+    if acc.get("verify_before"):
+        v = acc["verify_before"]
+        rows.append((f"Before: verify session {v['session_id']} (the model then in use)", v))
+    if acc.get("before"):
+        rows.append(("Before calibration (starting model, base fitted)", acc["before"]))
+    if acc.get("after"):
+        rows.append(("After calibration, in-sample (fitted poses)", acc["after"]))
+    if acc.get("holdout"):
+        rows.append((f"After calibration, hold-out (verify session {acc['holdout']['session_id']})", acc["holdout"]))
+    return rows
 
 
 # --------------------------------------------------------------------------- PDF
@@ -237,26 +308,19 @@ def certificate_pdf(cert: dict) -> bytes:
             ("rms", "RMS"), ("p95", "95th pct"), ("max", "max")]
     head = [P("", small), *[P(f"{label} ({unit})" if k != "n" else label, small) for k, label in figs]]
     data = [head]
-    for label, f in (("Before", acc["before"]), ("After", acc["after"])):
-        if f:
-            data.append([label, *[str(f[k]) if k == "n" else _num(f[k], 4) for k, _ in figs]])
-    for label, v in (("Verify before", acc.get("verify_before")), ("Verify after", acc.get("verify_after"))):
-        if v:
-            data.append([f"{label} (session {v['session_id']})", str(v["n"]), _num(v["mean"], 4), "–", "–",
-                         _num(v["rms"], 4), _num(v["p95"], 4), _num(v["max"], 4)])
-            if v.get("registered"):
-                data.append([f"{label}, base fitted", str(v["n"]), "–", "–", "–", _num(v["registered"]["rms"], 4), "–",
-                             _num(v["registered"]["max"], 4)])
+    for label, f in _accuracy_rows(acc):
+        data.append([label, *[str(f[k]) if k == "n" else _num(f.get(k), 4) for k, _ in figs]])
     s.append(Table([[P(r[0], small), *r[1:]] if i else r for i, r in enumerate(data)],
                    colWidths=[41 * mm] + [19 * mm] * 7, style=TableStyle(grid.getCommands() + [
                        ("ALIGN", (1, 1), (-1, -1), "RIGHT")]), repeatRows=1, hAlign="LEFT"))
-    s.append(P(f"Before: {acc.get('before_model') or '–'}. After: {acc.get('after_model') or '–'}. "
-               f"{acc['note']}.", small))
+    s.append(P(f"Before: {acc.get('before_model') or '–'}. After, {acc['after_kind']}. "
+               + (f"Hold-out: {acc['holdout_model']}. " if acc.get("holdout") else
+                  "No hold-out check yet: run a verify session on the cell to measure fresh configurations. ")
+               + f"{acc['note']}.", small))
     if acc.get("predicted_workspace"):
         w = acc["predicted_workspace"]
-        s.append(P(f"Predicted over the workspace (95 % radius of the model's position uncertainty, "
-                   f"{w['n']} configurations): mean {_num(w['mean'], 3)} {unit}, max {_num(w['max'], 3)} {unit}.",
-                   small))
+        s.append(P(f"Predicted: {w['what']}: RMS {_num(w['rms'], 3)} {unit}, 95th percentile {_num(w['p95'], 3)} "
+                   f"{unit}, max {_num(w['max'], 3)} {unit}.", small))
 
     s.append(Paragraph("Checks", h2))
     data = [["Check", "Result", "Detail"]]
@@ -268,7 +332,8 @@ def certificate_pdf(cert: dict) -> bytes:
     s.append(Paragraph("Identified parameters", h2))
     data = [["Parameter", "Unit", "Value", "Change", "Std. unc. u", "U (k=2)"]]
     for p in cert["parameters"]:
-        data.append([p["name"], p["unit"], _num(p["value"], 9), _num(p["change"], 4), _num(p["std_error"], 3),
+        name = p["name"] + (" (from the prior)" if p.get("source") == "prior" else "")
+        data.append([name, p["unit"], _num(p["value"], 9), _num(p["change"], 4), _num(p["std_error"], 3),
                      _num(p["expanded_uncertainty"], 3)])
     s.append(Table(data, colWidths=[34 * mm, 14 * mm, 34 * mm, 28 * mm, 28 * mm, 28 * mm],
                    style=TableStyle(grid.getCommands() + [("ALIGN", (2, 1), (-1, -1), "RIGHT")]), repeatRows=1,
@@ -280,7 +345,7 @@ def certificate_pdf(cert: dict) -> bytes:
         data = [["Parameter", "Reason"]] + [[u["name"], P(u["reason"], small)] for u in cert["unidentifiable"]]
         s.append(Table(data, colWidths=[30 * mm, 144 * mm], style=grid, repeatRows=1, hAlign="LEFT"))
     s.append(Spacer(1, 8 * mm))
-    s.append(P(f"Overall: {'all checks that were run passed' if cert['passed'] else 'NOT ALL CHECKS PASSED'}."))
+    s.append(P(f"Overall: {cert['verdict']}."))
     s.append(Spacer(1, 14 * mm))
     s.append(Table([["Operator signature", "", "Reviewed by", ""]], colWidths=[35 * mm, 52 * mm, 30 * mm, 57 * mm],
                    style=TableStyle([("LINEBELOW", (1, 0), (1, 0), 0.5, colors.black),

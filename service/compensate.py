@@ -5,6 +5,8 @@ that the service gives exactly what the command gives, with its per-point report
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import tempfile
 from pathlib import Path
@@ -43,7 +45,8 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
         args = parser.parse_args(["--model", str(d / "model.json"), "--nominal", str(d / "nominal.json"),
                                   "--task", str(src), "--out", str(out), "--mode", mode, "--report", str(report)])
         try:
-            command.run(args)
+            with contextlib.redirect_stdout(io.StringIO()):  # its one-line summary names our temporary files
+                command.run(args)
         except (Fail, InputError, ValueError) as exc:
             raise CompensationInputError(str(exc).replace(str(src), name)) from None
         doc = json.loads(report.read_text(encoding="utf-8"))

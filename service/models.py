@@ -6,10 +6,11 @@ documents (models, reports, endpoint lines) exactly as they were given.
 
 from __future__ import annotations
 
+import math
 from datetime import datetime, timezone
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field as PField
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field as PField, ValidationInfo, field_validator
 from sqlalchemy import JSON, Column, UniqueConstraint
 from sqlmodel import Field, SQLModel
 
@@ -32,6 +33,8 @@ class Cell(SQLModel, table=True):
     allowed_region: list | None = Field(default=None, sa_column=Column(JSON))  # [[lo, hi], ...] model units
     drift_threshold: float | None = None  # model length unit; nightly recalibrates beyond it
     created_at: datetime = Field(default_factory=utcnow)
+    # counts the nominal models this cell has had (PATCH model; the old ones are in the audit log)
+    model_version: int = Field(default=1, sa_column_kwargs={"server_default": "1"})
 
 
 class RunSession(SQLModel, table=True):
@@ -54,6 +57,9 @@ class RunSession(SQLModel, table=True):
     lease_owner: str | None = None
     lease_expires: datetime | None = None
     requested: str | None = None  # "pause" / "abort" asked of the process running it (fleet: workers poll it)
+    # What the devices were doing at the last committed pose, stop or fault (schema v3):
+    # {"robot": {"state", "detail"}, "tracker" | "cmm" | "encoder": {"state", "detail"}, "at": ISO time}
+    device_state: dict | None = Field(default=None, sa_column=Column(JSON))
 
 
 class Measurement(SQLModel, table=True):
@@ -86,6 +92,10 @@ class Calibration(SQLModel, table=True):
     covariance: dict | None = Field(default=None, sa_column=Column(JSON))  # {"names": [...], "matrix": [[...]]} SI
     rms: float | None = None  # hold-out / residual RMS, model length unit
     created_at: datetime = Field(default_factory=utcnow)
+    nominal_version: int | None = None  # the cell's model_version this was identified from (schema v3)
+    # Predicted accuracy over the workspace (the 95 % radius statistics /result shows), stored when the
+    # calibration is made so that drift over hundreds of calibrations reads no reports (schema v3).
+    predicted: dict | None = Field(default=None, sa_column=Column(JSON))
 
 
 class Compensation(SQLModel, table=True):
@@ -136,25 +146,85 @@ class SchemaVersion(SQLModel, table=True):
 # --------------------------------------------------------------------------- API shapes
 
 
+MAX_ID = 2**63 - 1  # ids are 64-bit integers in every database we use
+
+# Configurations a session may ask for, per kind: what a session can really use, and no more (a
+# request for 100000 once held a core and gigabytes for minutes while nothing could stop it).
+# - pose: about 30 parameters are identified; 200 planned configurations (600 coordinates) are
+#   twenty per parameter, far past where more poses still improve the model much (its uncertainty
+#   falls only as 1/sqrt(K)), and D-optimal planning from 20 candidates each already takes a few
+#   seconds (it grows faster than the square of the count);
+# - verify: 500 measured configurations (repeats included) give percentiles to a fraction of a
+#   percent, and take a night;
+# - circle: points per joint sweep; 120 over at most 300 deg is one every 2.5 deg, far more than a
+#   circle fit needs;
+# - joint: points per joint sweep; 360 resolve gear harmonics up to about 40 cycles per turn
+#   (four points a period, book eq. 2.4).
+MAX_COUNT = {"pose": 200, "verify": 500, "circle": 120, "joint": 360}
+MAX_REPEATS = 30  # ISO 9283 measures repeatability over 30 cycles
+
+
+def _trimmed(value: str) -> str:
+    if not value.strip() or value != value.strip():
+        raise ValueError("expected a name that is not blank and has no leading or trailing blanks")
+    return value
+
+
+Name = Annotated[str, PField(min_length=1, max_length=200), AfterValidator(_trimmed)]
+
+
+def _finite(value: Any, path: str) -> None:
+    """Raise ``ValueError`` naming the first NaN or infinity inside a JSON document."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{path}: expected a finite number, got {value}")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _finite(v, f"{path}.{k}")
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _finite(v, f"{path}[{i}]")
+
+
 class _In(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A request body: unknown fields, NaN and infinities are refused (JSON has none, and the
+    store could not hold them)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _documents_are_finite(cls, value: Any, info: ValidationInfo) -> Any:
+        if isinstance(value, (dict, list)):
+            _finite(value, info.field_name)
+        return value
 
 
 class CellCreate(_In):
-    name: str = PField(min_length=1, max_length=200)
+    name: Name
     model: dict[str, Any]
     devices: dict[str, Any] = PField(default_factory=dict)
-    site: str = "default"
-    allowed_region: list[list[float]] | None = None
+    site: Name = "default"
+    allowed_region: list[list[float]] | None = None  # per joint [lower, upper], model units (checked by the route)
     drift_threshold: float | None = PField(default=None, gt=0)
 
 
 class CellUpdate(_In):
-    name: str | None = PField(default=None, min_length=1, max_length=200)
+    """Fields to change; a field left out stays as it is. ``model`` replaces the nominal model
+    (refused while a session drives the cell; the old one is kept in the audit log)."""
+
+    name: Name | None = None
+    model: dict[str, Any] | None = None
     devices: dict[str, Any] | None = None
-    site: str | None = None
-    allowed_region: list[list[float]] | None = None
-    drift_threshold: float | None = PField(default=None, gt=0)
+    site: Name | None = None
+    allowed_region: list[list[float]] | None = None  # null: no region beyond the model's joint limits
+    drift_threshold: float | None = PField(default=None, gt=0)  # null: no threshold
+
+    @field_validator("name", "model", "devices", "site", mode="before")
+    @classmethod
+    def _not_null(cls, value: Any) -> Any:
+        if value is None:
+            raise ValueError("may not be null (leave the field out to keep it)")
+        return value
 
 
 class CellPublic(BaseModel):
@@ -162,6 +232,7 @@ class CellPublic(BaseModel):
     name: str
     site: str
     model: dict[str, Any]
+    model_version: int = 1
     devices: dict[str, Any]
     allowed_region: list[list[float]] | None
     drift_threshold: float | None
@@ -171,11 +242,31 @@ class CellPublic(BaseModel):
 
 class SessionCreate(_In):
     kind: Literal["pose", "circle", "joint", "verify"]
-    count: int = PField(default=30, ge=1, le=100000)
+    count: int = PField(default=30, ge=1, le=max(MAX_COUNT.values()))
     device: Literal["tracker", "cmm"] = "tracker"
     target: str | None = None
     dry_run: bool = False
-    joints: list[int] | None = None  # circle / joint sessions: which joints (1-based); default all
+    joints: list[int] | None = PField(default=None, min_length=1)  # circle / joint sessions: which joints (1-based)
+    repeats: int = PField(default=1, ge=1, le=MAX_REPEATS)  # verify: visits of each configuration (ISO 9283)
+
+    @field_validator("count")
+    @classmethod
+    def _count_within_what_the_kind_uses(cls, count: int, info: ValidationInfo) -> int:
+        kind = info.data.get("kind")
+        if kind in MAX_COUNT and count > MAX_COUNT[kind]:
+            raise ValueError(f"at most {MAX_COUNT[kind]} for a {kind} session, got {count}")
+        return count
+
+    @field_validator("repeats")
+    @classmethod
+    def _repeats_of_verify_sessions(cls, repeats: int, info: ValidationInfo) -> int:
+        kind, count = info.data.get("kind"), info.data.get("count")
+        if repeats != 1 and kind != "verify":
+            raise ValueError(f"only verify sessions repeat their configurations (this is a {kind} session)")
+        if count is not None and count * repeats > MAX_COUNT["verify"]:
+            raise ValueError(f"count x repeats is at most {MAX_COUNT['verify']} measurements, got "
+                             f"{count} x {repeats}")
+        return repeats
 
 
 class SessionPublic(BaseModel):
@@ -194,6 +285,7 @@ class SessionPublic(BaseModel):
     created_at: datetime
     updated_at: datetime
     plan_info: dict[str, Any] | None = None
+    device_state: dict[str, Any] | None = None  # the devices at the last committed pose, stop or fault
 
 
 class CalibrationPublic(BaseModel):
@@ -205,6 +297,8 @@ class CalibrationPublic(BaseModel):
     report: dict[str, Any]
     rms: float | None
     created_at: datetime
+    nominal_version: int | None = None
+    predicted: dict[str, Any] | None = None
 
 
 class TokenCreate(_In):

@@ -7,10 +7,18 @@ Rules a robot cell needs (issue: sessions):
   first configuration not yet measured;
 - every commanded configuration is checked against the model's joint limits and the cell's
   allowed region before anything moves, speeds and accelerations are capped by the settings;
-- device faults are retried (``device_retries``, reconnecting), then the session pauses with
-  the reason; a protective or emergency stop pauses it at once;
-- pause and abort take effect between two steps; abort stops the robot at once;
-- a dry run plans and checks, and moves nothing.
+- device faults are retried (``device_retries``, with back-off), then the session pauses with
+  the reason; a protective or emergency stop pauses it at once. A retry calls the device
+  again, and the drivers reconnect on that call where it is safe: the UR driver replaces a
+  worker that lost its connection (a move in progress is not re-sent by the driver; the retry
+  re-sends the same, already checked target), the tracker and CMM drivers close a link after
+  a timeout or a garbled reply and reconnect on the next command, the Modbus driver repeats its
+  idempotent requests on a new connection, the CANopen driver reconnects once on a lost bus;
+- pause and abort take effect between two steps (planning included: between its phases);
+  abort stops the robot at once;
+- a dry run plans and checks, and moves nothing;
+- ``session.device_state`` says what the devices were doing at the last committed pose (in the
+  same transaction as its measurements), stop or fault, for the live page.
 
 The embedded default runs each session in a thread of the service process
 (:class:`Orchestrator`); ``run_session`` is the whole job, so a worker process can run it too
@@ -36,12 +44,12 @@ from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, Operation
 from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
-from drivers.errors import DeviceError, RobotStoppedError
+from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedError
 
 from . import analysis
 from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
 from .models import Cell, Measurement, RunSession, utcnow
-from .plans import UnsafePlan, check_configurations, plan_session
+from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
 from .store import _aware, acquire_lease, set_state
 
@@ -78,11 +86,20 @@ class Control:
 
 
 class SessionStopped(Exception):
-    """The session stops here: ``state`` and ``reason`` say how."""
+    """The session stops here: ``state`` and ``reason`` say how; ``device`` which device's fault
+    (``robot``, ``tracker``, ``cmm``, ``encoder``) stopped it, if one did, and ``cause`` the error."""
 
-    def __init__(self, state: str, reason: str):
-        self.state, self.reason = state, reason
+    def __init__(self, state: str, reason: str, *, device: str | None = None, cause: Exception | None = None):
+        self.state, self.reason, self.device, self.cause = state, reason, device, cause
         super().__init__(reason)
+
+
+class DeviceOpenError(ConnectionError):
+    """One of the session's devices (``device``) could not be opened."""
+
+    def __init__(self, device: str, cause: Exception):
+        self.device, self.cause = device, cause
+        super().__init__(str(cause))
 
 
 def database_unavailable(exc: BaseException) -> bool:
@@ -96,11 +113,19 @@ def _held_by_other(run: RunSession, owner: str) -> bool:
             and _aware(run.lease_expires) > utcnow())
 
 
+def instrument_of(run: RunSession) -> str:
+    """The session's measuring device: ``encoder`` (joint sessions), ``cmm`` or ``tracker``."""
+    return "encoder" if run.kind == "joint" else "cmm" if run.device == "cmm" else "tracker"
+
+
 def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> CellDevices:
-    """The devices a session needs (opened in the worker, closed when it ends)."""
+    """The devices a session needs (opened in the worker, closed when it ends). Raises
+    :class:`DeviceOpenError` naming the device that could not be opened."""
     devs = CellDevices()
+    device = "robot"
     try:
         devs.robot = open_robot(cell.devices, timeout_s=settings.device_timeout_s)
+        device = instrument_of(run)
         if run.kind == "joint":
             joints = (run.plan_info or {}).get("joints")
             devs.encoders = open_encoders(cell.devices, joints, timeout_s=settings.device_timeout_s)
@@ -108,15 +133,19 @@ def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> Cel
             devs.cmm = open_cmm(cell.devices, timeout_s=settings.device_timeout_s)
         else:
             devs.tracker = open_tracker(cell.devices, timeout_s=settings.device_timeout_s)
+    except (DeviceError, DeviceConfigError, OSError) as exc:
+        devs.close()
+        raise DeviceOpenError(device, exc) from exc
     except BaseException:
         devs.close()
         raise
     return devs
 
 
-def _retry(fn: Callable, what: str, settings: Settings, control: Control):
-    """Call ``fn``; on a device fault retry ``device_retries`` times with back-off, then give up
-    by pausing the session. Protective and emergency stops are not retried."""
+def _retry(fn: Callable, what: str, settings: Settings, control: Control, device: str = "robot"):
+    """Call ``fn`` on ``device``; on a device fault call it again ``device_retries`` times with
+    back-off (the drivers reconnect on that call where it is safe: module docstring), then give
+    up by pausing the session. Protective and emergency stops are not retried."""
     last: Exception | None = None
     for attempt in range(settings.device_retries + 1):
         if control.abort.is_set():
@@ -124,28 +153,87 @@ def _retry(fn: Callable, what: str, settings: Settings, control: Control):
         try:
             return fn()
         except RobotStoppedError as exc:
-            raise SessionStopped("paused", f"{what}: {exc}") from exc
+            raise SessionStopped("paused", f"{what}: {exc}", device=device, cause=exc) from exc
         except DeviceError as exc:
             last = exc
             log.warning("%s failed (attempt %d): %s", what, attempt + 1, exc)
             time.sleep(settings.retry_backoff_s * (attempt + 1))
-    raise SessionStopped("paused", f"{what} failed after {settings.device_retries + 1} attempts: {last}")
+    raise SessionStopped("paused", f"{what} failed after {settings.device_retries + 1} attempts: {last}",
+                         device=device, cause=last)
 
 
-def ensure_plan(db: Session, run: RunSession, cell: Cell) -> RunSession:
-    """Plan the session once (a resumed session keeps its plan) and check it."""
+def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | None = None) -> RunSession:
+    """Plan the session once (a resumed session keeps its plan) and check it. Between the
+    planning's phases ``control.check()`` stops it (abort, pause, the process stopping)."""
     model = model_from_dict(cell.model)
     if run.plan is None:
+        info = run.plan_info or {}
         plan = plan_session(run.kind, model, run.planned, region=cell.allowed_region, target=run.target,
-                            joints=(run.plan_info or {}).get("joints"), seed=run.id or 0)
+                            joints=info.get("joints"), seed=run.id or 0, repeats=int(info.get("repeats") or 1),
+                            between=None if control is None else control.check)
         run.plan = plan.q.tolist()
-        run.plan_info = {**(run.plan_info or {}), **plan.info, "swept_joint": plan.joint.tolist()}
+        run.plan_info = {**info, **plan.info, "swept_joint": plan.joint.tolist(), "nominal_version": cell.model_version}
         run.planned = len(plan.q)
         db.add(run)
         db.commit()
         db.refresh(run)
-    check_configurations(model, np.asarray(run.plan, dtype=float), cell.allowed_region)
+    q = np.asarray(run.plan, dtype=float)
+    check_configurations(model, q, cell.allowed_region)
+    if _repeats(run) > 1:
+        check_configurations(model, approach_configurations(model, cell.allowed_region, q), cell.allowed_region)
     return run
+
+
+def _repeats(run: RunSession) -> int:
+    return int((run.plan_info or {}).get("repeats") or 1)
+
+
+def _device_state(what: str, detail: str) -> dict:
+    return {"state": what, "detail": detail}
+
+
+def stopped_device_state(run: RunSession, devices: CellDevices | None, final: str, reason: str | None,
+                         exc: BaseException | None = None) -> dict:
+    """``session.device_state`` when the session stops: what the robot and the instrument are
+    doing, as far as this process knows (the robot is asked only after a safety stop)."""
+    key = instrument_of(run)
+    connected = devices is not None and devices.robot is not None
+    robot = _device_state("ready" if connected else "not connected", reason or final)
+    instrument = _device_state("ready" if connected else "not connected", reason or final)
+    if isinstance(exc, DeviceOpenError):
+        if exc.device == "robot":
+            robot = _device_state("not connected", str(exc.cause))
+        else:
+            robot = _device_state("ready", f"connected; nothing moved: the {exc.device} could not be opened")
+            instrument = _device_state("not connected", str(exc.cause))
+    elif isinstance(exc, SessionStopped) and exc.device is not None and exc.cause is not None:
+        cause = exc.cause
+        if exc.device == "robot" and isinstance(cause, RobotStoppedError):
+            what = _safety_state(devices, cause)
+        elif isinstance(cause, (OSError, DeviceUnavailableError)):  # lost connection, timeout
+            what = "not connected"
+        else:
+            what = "fault"
+        if exc.device == "robot":
+            robot = _device_state(what, str(cause))
+        else:
+            instrument = _device_state(what, str(cause))
+    if final == "aborted" and connected:
+        robot = _device_state("ready", "stopped on abort")
+    return {"robot": robot, key: instrument, "at": utcnow().isoformat()}
+
+
+def _safety_state(devices: CellDevices | None, exc: Exception) -> str:
+    """``protective stop`` or ``emergency stop``: asked of the robot, else read from the error."""
+    try:
+        st = devices.robot.state()
+        if st.emergency_stop:
+            return "emergency stop"
+        if st.protective_stop:
+            return "protective stop"
+    except Exception:  # noqa: BLE001 - the robot may not answer now; the error says enough
+        pass
+    return "emergency stop" if "emergency" in str(exc).lower() else "protective stop"
 
 
 def run_session(engine: Engine, settings: Settings, session_id: int, control: Control | None = None, *,
@@ -162,30 +250,33 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
             set_state(db, run, "paused", "another session is driving this cell")
             return "paused"
         try:
-            run = ensure_plan(db, run, cell)
+            run = ensure_plan(db, run, cell, control)
         except UnsafePlan as exc:
-            _end(db, run, owner, "failed", f"unsafe plan: {exc}")
+            _end(db, run, owner, "failed", f"unsafe plan: {exc}", None)
             return "failed"
+        except SessionStopped as exc:  # asked to stop while planning: nothing moved
+            _end(db, run, owner, *_stop_outcome(exc, control), None)
+            return run.state
         if run.dry_run:
             run.plan_info = {**(run.plan_info or {}), "dry_run": True}
             db.add(run)
-            _end(db, run, owner, "completed", "dry run: planned and checked, nothing moved")
+            _end(db, run, owner, "completed", "dry run: planned and checked, nothing moved", None)
             return "completed"
         set_state(db, run, "running", None)
         try:
             devices = open_devices(cell, run, settings)
         except (DeviceError, DeviceConfigError, OSError) as exc:
-            _end(db, run, owner, "paused", f"cannot open the cell's devices: {exc}")
+            reason = f"cannot open the cell's devices: {exc}"
+            _end(db, run, owner, "paused", reason, stopped_device_state(run, None, "paused", reason, exc))
             return "paused"
         control.devices = devices
-        final, reason = "completed", None
+        final, reason, stop = "completed", None, None
         try:
             _measure_all(db, run, cell, devices, settings, control, owner)
             analysis.finish_session(db, run, cell, settings)
         except SessionStopped as exc:
-            final, reason = exc.state, exc.reason
-            if control.abort.is_set():  # the stop we caused ourselves is an abort, not a fault
-                final, reason = "aborted", "aborted on request"
+            stop = exc
+            final, reason = _stop_outcome(exc, control)
             if final == "aborted" and devices.robot is not None:
                 try:
                     devices.robot.stop()
@@ -198,6 +289,8 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
                 raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
             log.error("session %s failed:\n%s", session_id, traceback.format_exc())
             final, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
+        try:
+            state = stopped_device_state(run, devices, final, reason or "session completed", stop)
         finally:
             # Close the devices before saying the session stopped, so that whoever resumes it
             # finds them free.
@@ -207,14 +300,23 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
         if run.lease_owner not in (None, owner):
             db.rollback()  # another process took the session over (ours had expired): its state is not ours to write
             return run.state
-        _end(db, run, owner, final, reason)
+        _end(db, run, owner, final, reason, state)
         return run.state
 
 
-def _end(db: Session, run: RunSession, owner: str, state: str, reason: str | None) -> None:
-    """The session stops: its state, and the cell's lease given back (a resume may start at once)."""
+def _stop_outcome(exc: SessionStopped, control: Control) -> tuple[str, str]:
+    if control.abort.is_set():  # the stop we caused ourselves is an abort, not a fault
+        return "aborted", "aborted on request"
+    return exc.state, exc.reason
+
+
+def _end(db: Session, run: RunSession, owner: str, state: str, reason: str | None, device_state: dict | None) -> None:
+    """The session stops: its state (and the devices' state, when known), and the cell's lease
+    given back (a resume may start at once)."""
     if run.lease_owner == owner:
         run.lease_expires = utcnow()
+    if device_state is not None:
+        run.device_state = device_state
     set_state(db, run, state, reason)
 
 
@@ -222,35 +324,54 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
                  control: Control, owner: str) -> None:
     model = model_from_dict(cell.model)
     plan = np.asarray(run.plan, dtype=float)
+    approach = approach_configurations(model, cell.allowed_region, plan) if _repeats(run) > 1 else None
     swept = (run.plan_info or {}).get("swept_joint") or [0] * len(plan)
     done = set(db.exec(select(Measurement.seq).where(Measurement.session_id == run.id)).all())
+    todo = [seq for seq in range(len(plan)) if seq not in done]
     speed = settings.max_joint_speed_rad_s
     accel = settings.max_joint_accel_rad_s2
+    timeout_s = max(60.0, settings.device_timeout_s)
+    key = instrument_of(run)
     guide = analysis.guide_model(db, cell)  # where the CMM should look for the balls
-    for seq, q in enumerate(plan):
-        if seq in done:
-            continue
-        control.check()
+
+    def move(q):
         check_configurations(model, q[None, :], cell.allowed_region)
-        _retry(lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel,
-                                                 timeout_s=max(60.0, settings.device_timeout_s)), "move", settings, control)
+        _retry(lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel, timeout_s=timeout_s),
+               "move", settings, control)
+
+    for k, seq in enumerate(todo):
+        control.check()
+        if approach is not None:  # a repeated visit: always from the same side (ISO 9283)
+            move(approach[seq])
+        move(plan[seq])
         if settings.settle_s > 0:
             time.sleep(settings.settle_s)
         q_read = _retry(devices.robot.read_joints, "read joints", settings, control)
         rows = _measure_one(run, devices, settings, control, seq, q_read, int(swept[seq]), model, guide)
-        _commit_measurements(db, rows, settings, control)  # before the next move: a crash loses nothing reported
+        following = todo[k + 1] if k + 1 < len(todo) else None
+        robot = (_device_state("moving", f"to configuration {following + 1} of {len(plan)}") if following is not None
+                 else _device_state("ready", f"at configuration {seq + 1} of {len(plan)}, the last"))
+        state = {"robot": robot, key: _device_state("ready", f"measured configuration {seq + 1}"),
+                 "at": utcnow().isoformat()}
+        # before the next move, with the devices' state in the same transaction: a crash loses nothing reported
+        _commit_measurements(db, rows, settings, control, run=run, device_state=state)
         if seq % 10 == 0 and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
             raise SessionStopped("interrupted", "another process holds this cell now; resume the session to continue")
 
 
-def _commit_measurements(db: Session, rows: list[Measurement], settings: Settings, control: Control) -> None:
-    """Commit one configuration's measurements, retrying while the database is unreachable
-    (at most until the lease would run out: meanwhile the robot does not move)."""
+def _commit_measurements(db: Session, rows: list[Measurement], settings: Settings, control: Control, *,
+                         run: RunSession | None = None, device_state: dict | None = None) -> None:
+    """Commit one configuration's measurements (and ``run.device_state``, in the same
+    transaction), retrying while the database is unreachable (at most until the lease would
+    run out: meanwhile the robot does not move)."""
     data = [r.model_dump(exclude={"id"}) for r in rows]
     deadline = min(control.lease_valid_until, time.monotonic() + settings.effective_lease_ttl_s)
     batch, attempt = rows, 0
     while True:
         try:
+            if run is not None:
+                run.device_state = device_state
+                db.add(run)
             db.add_all(batch)
             db.commit()
             return
@@ -285,7 +406,7 @@ def _measure_one(run, devices, settings, control, seq, q_read, joint, model, gui
         enc = devices.encoders.get(joint)
         if enc is None:
             raise SessionStopped("failed", f"no reference encoder on joint {joint}")
-        reading = _retry(enc.read, f"read encoder on joint {joint}", settings, control)
+        reading = _retry(enc.read, f"read encoder on joint {joint}", settings, control, "encoder")
         return [Measurement(session_id=run.id, seq=seq, joint=joint, q=qv, x=0.0, y=0.0, z=0.0,
                             reference=float(reading.angle_rad))]
     if devices.cmm is not None:
@@ -299,13 +420,19 @@ def _measure_one(run, devices, settings, control, seq, q_read, joint, model, gui
         T_nom = fk(guide, np.asarray(qv)[None, :])[0]
         names = sorted(balls)
         pose = _retry(lambda: devices.cmm.measure_pose(np.array([balls[n] for n in names]), T_nom, 0.0125),
-                      "CMM pose", settings, control)
+                      "CMM pose", settings, control, "cmm")
         T = pose.T_world_tool
         qw, qx, qy, qz = matrix_to_quat(T[:3, :3])
+        # The row's uncertainty is the probing's (the probed points' scatter about each fitted ball),
+        # not how far the centres lie from the drawn layout (pose.residual_rms_m): balls mounted off
+        # their drawing leave the same misfit at every pose, and the frame fitted to their drawn
+        # positions is then the tool frame times a constant, which identification takes for the tool
+        # frame (book eq. 6.12-6.15).
+        probing_m = math.sqrt(float(np.mean([b.residual_rms_m**2 for b in pose.balls])))
         return [Measurement(session_id=run.id, seq=seq, joint=joint or None, q=qv, x=float(T[0, 3]), y=float(T[1, 3]),
                             z=float(T[2, 3]), qw=float(qw), qx=float(qx), qy=float(qy), qz=float(qz),
-                            sigma=max(pose.residual_rms_m, 5e-6))]
-    m = _retry(devices.tracker.measure, "tracker measurement", settings, control)
+                            sigma=max(probing_m, 5e-6))]
+    m = _retry(devices.tracker.measure, "tracker measurement", settings, control, "tracker")
     return [Measurement(session_id=run.id, seq=seq, target=run.target or "", joint=joint or None, q=qv,
                         x=float(m.p_world[0]), y=float(m.p_world[1]), z=float(m.p_world[2]),
                         sigma=float(np.max(m.sigma)))]

@@ -1,9 +1,11 @@
 """What a session will do, before anything moves: its joint configurations, and the safety
 check of every one of them against the model's joint limits and the cell's allowed region.
 
-- ``pose``: observation planning (``calibration.planning``, D-optimal) over candidates drawn
-  inside the allowed region;
-- ``verify``: fresh random configurations inside the allowed region (not the planned ones);
+- ``pose``: observation planning (``calibration.planning``, its default criterion) over
+  candidates drawn inside the allowed region;
+- ``verify``: fresh random configurations inside the allowed region (not the planned ones); with
+  ``repeats`` > 1 each is visited that many times in a row, every visit approached from the same
+  direction through the same nearby configuration (ISO 9283 pose repeatability, §7.2.2);
 - ``circle``: each joint swept over as much of its allowed range as it has (up to 300 deg),
   the others held at a signature configuration (book §4.6.3, sequence A);
 - ``joint``: each joint with a reference encoder swept over its allowed range.
@@ -11,11 +13,20 @@ check of every one of them against the model's joint limits and the cell's allow
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from calibration.model import KinematicModel
+
+
+# How far (rad, or m for a prismatic joint, per joint) a repeated verify visit backs away before it
+# approaches its configuration again: well beyond any backlash, small enough to stay near the pose.
+APPROACH_OFFSET_RAD = np.deg2rad(5.0)
+APPROACH_OFFSET_M = 0.02
+POLL_S = 0.1  # s: how often a stop is looked for while observation planning computes
 
 
 @dataclass(frozen=True)
@@ -30,6 +41,34 @@ class Plan:
 
 class UnsafePlan(ValueError):
     """A configuration is outside the joint limits or the cell's allowed region."""
+
+
+class RegionError(ValueError):
+    """An allowed region that cannot be used: ``row`` (0-based, or None for the whole region)."""
+
+    def __init__(self, message: str, row: int | None = None):
+        self.row = row
+        super().__init__(message)
+
+
+def check_region(model: KinematicModel, region: list | None) -> None:
+    """Raise ``RegionError`` unless ``region`` (per joint ``[lower, upper]``, model units) has one
+    row per joint, each two finite numbers with lower < upper, overlapping the joint's limits."""
+    if region is None:
+        return
+    if len(region) != model.n_joints:
+        raise RegionError(f"expected one [lower, upper] row per joint ({model.n_joints}), got {len(region)} rows")
+    lim = model.joint_limits
+    for i, (row, j) in enumerate(zip(region, model.joints)):
+        unit = model.units.angle if j.revolute else model.units.length
+        if len(row) != 2 or not all(np.isfinite(v) for v in row):
+            raise RegionError(f"expected [lower, upper] in {unit}, two finite numbers; got {row}", i)
+        if not row[0] < row[1]:
+            raise RegionError(f"lower ({row[0]:g}) must be below upper ({row[1]:g})", i)
+        s = model.units.angle_rad if j.revolute else model.units.length_m
+        if row[1] * s <= lim[i, 0] or row[0] * s >= lim[i, 1]:
+            raise RegionError(f"[{row[0]:g}, {row[1]:g}] {unit} leaves joint {i + 1} no motion within its limits "
+                              f"[{lim[i, 0] / s:.6g}, {lim[i, 1] / s:.6g}] {unit}", i)
 
 
 def allowed_limits(model: KinematicModel, region: list | None) -> np.ndarray:
@@ -73,16 +112,19 @@ def _random_inside(lim: np.ndarray, count: int, rng: np.random.Generator, model:
 
 def plan_session(kind: str, model: KinematicModel, count: int, *, region: list | None = None,
                  target: str | None = None, joints: list[int] | None = None, seed: int = 0,
-                 sigma_m: float = 20e-6) -> Plan:
-    """The configurations of a session of ``kind`` (see the module docstring)."""
+                 sigma_m: float = 20e-6, repeats: int = 1, between: Callable[[], None] | None = None) -> Plan:
+    """The configurations of a session of ``kind`` (see the module docstring). ``between()`` is
+    called between the planning's phases, and every ``POLL_S`` during the observation planning
+    (it raises to stop the planning: an abort, a pause, the process stopping)."""
+    between = between or (lambda: None)
     rng = np.random.default_rng(seed)
     lim = allowed_limits(model, region)
     n = model.n_joints
     if kind in ("pose", "verify"):
         if kind == "pose":
-            plan = _planned_poses(model, lim, count, rng, target, sigma_m)
+            plan = _planned_poses(model, lim, count, rng, target, sigma_m, between)
         else:
-            plan = Plan(_random_inside(lim, count, rng, model), np.zeros(count, int), {"method": "random"})
+            plan = _repeated(_random_inside(lim, count, rng, model), repeats)
     elif kind in ("circle", "joint"):
         which = joints or list(range(1, n + 1))
         for j in which:
@@ -106,7 +148,10 @@ def plan_session(kind: str, model: KinematicModel, count: int, *, region: list |
                                                       "joints": which})
     else:
         raise ValueError(f"unknown session kind {kind!r}")
+    between()
     check_configurations(model, plan.q, region)
+    if repeats > 1:
+        check_configurations(model, approach_configurations(model, region, plan.q), region)
     span = np.rad2deg(plan.q.max(axis=0) - plan.q.min(axis=0)) if len(plan.q) else np.zeros(n)
     info = dict(plan.info)
     info.update({"configurations": int(len(plan.q)),
@@ -116,8 +161,29 @@ def plan_session(kind: str, model: KinematicModel, count: int, *, region: list |
     return Plan(plan.q, plan.joint, info)
 
 
-def _planned_poses(model, lim, count, rng, target, sigma_m) -> Plan:
-    """D-optimal poses (``calibration.planning``: greedy start and exchange) from random
+def _repeated(q: np.ndarray, repeats: int) -> Plan:
+    """Verify configurations ``q`` (K, n), each visited ``repeats`` times in a row: step ``s``
+    visits configuration ``s // repeats`` (see :func:`approach_configurations`)."""
+    steps = np.repeat(np.arange(len(q)), max(int(repeats), 1))
+    info = {"method": "random"}
+    if repeats > 1:
+        info.update({"repeats": int(repeats), "poses": int(len(q)),
+                     "approach": "every visit from the same approach configuration (ISO 9283)"})
+    return Plan(q[steps], np.zeros(len(steps), int), info)
+
+
+def approach_configurations(model: KinematicModel, region: list | None, q: np.ndarray) -> np.ndarray:
+    """(K, n): where the robot goes just before each of the configurations ``q`` (K, n) of a
+    session that repeats them, so that every visit approaches from the same direction (ISO 9283
+    §7.2.2): a few degrees (``APPROACH_OFFSET_*``) below the configuration on every joint, or
+    above it for a joint too near its lower allowed limit."""
+    lim = allowed_limits(model, region)
+    step = np.array([APPROACH_OFFSET_RAD if j.revolute else APPROACH_OFFSET_M for j in model.joints])
+    return np.where(q - step >= lim[:, 0], q - step, np.minimum(q + step, lim[:, 1]))
+
+
+def _planned_poses(model, lim, count, rng, target, sigma_m, between) -> Plan:
+    """Planned poses (``calibration.planning``: greedy start and exchange) from random
     candidates inside the allowed region, in a short measurement order, with the accuracy
     they are predicted to give. (The line-of-sight test of the planner needs to know where the
     instrument stands relative to the robot, which a first calibration does not: the session
@@ -125,13 +191,16 @@ def _planned_poses(model, lim, count, rng, target, sigma_m) -> Plan:
     from calibration import planning
 
     candidates = _random_inside(lim, max(20 * count, 1000), rng, model)
+    between()
     try:
-        res = planning.plan(model, candidates, count, targets=(target,), sigma_m=sigma_m, rng=rng)
+        res = _checking(lambda: planning.plan(model, candidates, count, targets=(target,), sigma_m=sigma_m, rng=rng),
+                        between)
     except ValueError as exc:
         # Too few poses to determine every parameter from the data alone: a short session that
         # updates a previous calibration (its prior) needs no more. Spread them at random.
         return Plan(candidates[:count], np.zeros(count, int),
                     {"method": "random (too few poses to plan for a full identification)", "note": str(exc)})
+    between()
     q = res.q[planning.measurement_order(res.q)]
     info = {
         "method": f"{res.criterion}-optimal (greedy + exchange) from {len(candidates)} candidates",
@@ -141,3 +210,26 @@ def _planned_poses(model, lim, count, rng, target, sigma_m) -> Plan:
         "unidentifiable": [u.name for u in res.unidentifiable],
     }
     return Plan(q, np.zeros(len(q), int), info)
+
+
+def _checking(compute: Callable, between: Callable[[], None]):
+    """``compute()`` (pure, seconds long: observation planning) in a helper thread, calling
+    ``between()`` every ``POLL_S`` while it runs, so that a stop takes effect at once; a stopped
+    computation is abandoned (it ends on its own, bounded by the session's count cap)."""
+    box: dict = {}
+    done = threading.Event()
+
+    def run():
+        try:
+            box["value"] = compute()
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            box["error"] = exc
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="planning", daemon=True).start()
+    while not done.wait(POLL_S):
+        between()
+    if "error" in box:
+        raise box["error"]
+    return box["value"]

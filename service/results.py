@@ -116,6 +116,10 @@ def start_model_of(db: Session, cal: Calibration, cell: Cell) -> tuple[Kinematic
         prev = db.get(Calibration, pid)
         if prev is not None:
             return model_from_dict(prev.model), f"calibration {pid} (the prior)"
+    if cal.nominal_version not in (None, cell.model_version):  # the cell's nominal was replaced since
+        earlier = ((cal.model or {}).get("identification") or {}).get("nominal")
+        if earlier:
+            return model_from_dict(earlier), f"the nominal model it was identified from (version {cal.nominal_version})"
     return model_from_dict(cell.model), "the nominal model"
 
 
@@ -167,6 +171,18 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
         "note": "95 % radius of the position the model predicts, from the identified parameters' covariance; "
                 "the instrument's own noise is not included",
     }
+
+
+def predicted_accuracy(cal: Calibration, cell: Cell, target: str | None) -> dict | None:
+    """The calibration's predicted accuracy over the workspace, compact, to store with it: the
+    statistics of the 95 % radius :func:`workspace_accuracy` gives (what /result shows), in the
+    model's length unit; None when the calibration has no covariance."""
+    ws = workspace_accuracy(cal, cell, target)
+    if not ws.get("available"):
+        return None
+    st = ws["stats95"]
+    return {"radius95_mean": st["mean"], "radius95_p95": st["p95"], "radius95_max": st["max"],
+            "samples": ws["samples"], "target": ws["target"], "unit": model_from_dict(cal.model).units.length}
 
 
 def calibration_result(db: Session, cal: Calibration) -> dict:

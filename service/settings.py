@@ -3,11 +3,30 @@ is called by whoever builds the app)."""
 
 from __future__ import annotations
 
+import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 ENGINES = ("embedded", "procrastinate")
+
+# What each numeric setting may be: (lowest, highest, environment variable, unit). The speed and
+# acceleration ceilings are the robot drivers' own (``ur_rtde``'s moveJ accepts at most 3.14 rad/s
+# and 40 rad/s²; the fastest UR joint turns at 180 °/s): a cap above them caps nothing, so a
+# setting beyond is a mistake (a unit slip, deg/s for rad/s) and the service refuses to start.
+LIMITS: dict[str, tuple[float, float, str, str]] = {
+    "max_joint_speed_rad_s": (1e-3, 3.14, "RECAL_MAX_JOINT_SPEED", "rad/s"),
+    "max_joint_accel_rad_s2": (1e-3, 40.0, "RECAL_MAX_JOINT_ACCEL", "rad/s²"),
+    "settle_s": (0.0, 60.0, "RECAL_SETTLE_S", "s"),
+    "device_retries": (0, 20, "RECAL_DEVICE_RETRIES", "retries"),
+    "retry_backoff_s": (0.0, 60.0, "RECAL_RETRY_BACKOFF_S", "s"),
+    "device_timeout_s": (0.1, 600.0, "RECAL_DEVICE_TIMEOUT_S", "s"),
+    "lease_ttl_s": (1.0, 3600.0, "RECAL_LEASE_TTL_S", "s"),
+}
+
+
+class SettingsError(ValueError):
+    """A setting is missing its form or out of its range: one line naming the variable."""
 
 
 @dataclass(frozen=True)
@@ -31,6 +50,19 @@ class Settings:
     engine: str = "embedded"
     lease_ttl_s: float | None = None
 
+    def __post_init__(self):
+        for f in fields(self):
+            if f.name not in LIMITS:
+                continue
+            value = getattr(self, f.name)
+            lo, hi, env, unit = LIMITS[f.name]
+            if value is None and f.name == "lease_ttl_s":
+                continue
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
+                raise SettingsError(f"environment variable {env}: expected {lo:g} to {hi:g} {unit}, got {value!r}")
+        if self.engine not in ENGINES:
+            raise SettingsError(f"environment variable RECAL_ENGINE: expected one of {', '.join(ENGINES)}, got {self.engine!r}")
+
     @property
     def effective_lease_ttl_s(self) -> float:
         return self.lease_ttl_s if self.lease_ttl_s else max(30.0, self.device_timeout_s * 3)
@@ -51,21 +83,11 @@ class Settings:
             kw["database_url"] = env["RECAL_DATABASE_URL"]
         if env.get("RECAL_ENGINE"):
             kw["engine"] = env["RECAL_ENGINE"].strip().lower()
-            if kw["engine"] not in ENGINES:
-                raise ValueError(f"environment variable RECAL_ENGINE: expected one of {', '.join(ENGINES)}, "
-                                 f"got {env['RECAL_ENGINE']!r}")
-        for name, key, conv in (
-            ("max_joint_speed_rad_s", "RECAL_MAX_JOINT_SPEED", float),
-            ("max_joint_accel_rad_s2", "RECAL_MAX_JOINT_ACCEL", float),
-            ("settle_s", "RECAL_SETTLE_S", float),
-            ("device_retries", "RECAL_DEVICE_RETRIES", int),
-            ("retry_backoff_s", "RECAL_RETRY_BACKOFF_S", float),
-            ("device_timeout_s", "RECAL_DEVICE_TIMEOUT_S", float),
-            ("lease_ttl_s", "RECAL_LEASE_TTL_S", float),
-        ):
+        for name, (_, _, key, _) in LIMITS.items():
             if env.get(key):
+                conv = int if name == "device_retries" else float
                 try:
                     kw[name] = conv(env[key])
                 except ValueError:
-                    raise ValueError(f"environment variable {key}: expected a number, got {env[key]!r}") from None
+                    raise SettingsError(f"environment variable {key}: expected a number, got {env[key]!r}") from None
         return cls(**kw)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
-from sqlalchemy import event, func, inspect, text
+from sqlalchemy import event, func, inspect, text, update
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, SQLModel, create_engine, select
 
@@ -37,7 +37,11 @@ def make_engine(url: str) -> Engine:
         path = url.split("///", 1)[-1]
         if path and path != ":memory:":
             Path(path).parent.mkdir(parents=True, exist_ok=True)
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+        # Pool as many connections as the server's threads may want at once (anyio's 40 request
+        # threads and the sessions' own): an SQLite connection costs a file handle, but opening
+        # one per request beyond a small pool (and its PRAGMAs) was a fifth of a polled GET's cost.
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30},
+                               pool_size=48, max_overflow=16)
 
         @event.listens_for(engine, "connect")
         def _pragmas(dbapi_conn, _record):  # noqa: ANN001
@@ -48,7 +52,9 @@ def make_engine(url: str) -> Engine:
             cur.close()
 
         return engine
-    return create_engine(url, pool_pre_ping=True)
+    # PostgreSQL: kept connections for the usual load, a few more at peaks; two API replicas and
+    # two workers stay under the server's default max_connections (100).
+    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
 
 
 # --------------------------------------------------------------------------- migrations
@@ -73,7 +79,22 @@ def _v2(conn) -> None:
     conn.execute(text(f"CREATE UNIQUE INDEX IF NOT EXISTS uq_session_active_cell ON session (cell_id) WHERE {active}"))
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2]
+def _v3(conn) -> None:
+    """The devices' state of each session for the live page (``session.device_state``); nominal
+    models that can be replaced (``cell.model_version``, and ``calibration.nominal_version``: the
+    one each calibration was identified from; every existing one was made from version 1); the
+    predicted accuracy of each calibration, stored with it (``calibration.predicted``)."""
+    columns = {table: {c["name"] for c in inspect(conn).get_columns(table)} for table in ("session", "cell", "calibration")}
+    for table, column, ddl in (("session", "device_state", "JSON"),
+                               ("cell", "model_version", "INTEGER NOT NULL DEFAULT 1"),
+                               ("calibration", "nominal_version", "INTEGER"),
+                               ("calibration", "predicted", "JSON")):
+        if column not in columns[table]:
+            conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {ddl}"))
+    conn.execute(text("UPDATE calibration SET nominal_version = 1 WHERE nominal_version IS NULL"))
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -145,26 +166,54 @@ def set_state(db: Session, run: RunSession, state: str, reason: str | None = Non
     return run
 
 
-def interrupt_unfinished(db: Session, *, owner: str | None = None) -> list[int]:
-    """Mark sessions that were running when the service stopped as ``interrupted``.
+def set_state_unless(db: Session, run: RunSession, final: tuple[str, ...], state: str, reason: str | None) -> bool:
+    """``set_state`` in one conditional update, unless the session reached one of ``final``
+    meanwhile (a session that just completed is not then marked aborted). True if it changed."""
+    res = db.exec(update(RunSession).where(RunSession.id == run.id, RunSession.state.not_in(final))
+                  .values(state=state, reason=reason, updated_at=utcnow()))
+    db.commit()
+    db.refresh(run)
+    return res.rowcount > 0
 
-    With ``owner``, only sessions leased by that owner (a worker); without, every running one
-    (the embedded single-process service)."""
-    q = select(RunSession).where(RunSession.state == "running")
+
+def interrupt_unfinished(db: Session, *, owner: str | None = None) -> list[int]:
+    """Mark sessions that were planned or running when the service stopped as ``interrupted``:
+    nobody runs them any more, and an active session holds its cell (409 for every other).
+
+    With ``owner``, only sessions leased by that owner (the process stopping); without, every
+    planned or running one (the embedded single-process service starting: its threads died with
+    it). A fleet's API processes never call it without ``owner``: a planned session there may be
+    waiting in a worker's queue (its lease owner is ``queued:...``), the reaper handles those."""
+    q = select(RunSession).where(RunSession.state.in_(("planned", "running")))
     if owner is not None:
         q = q.where(RunSession.lease_owner == owner)
     ids = []
     for run in db.exec(q).all():
-        set_state(db, run, "interrupted", "the service stopped while this session was running; resume it to continue")
+        # nobody holds the devices any more: whatever the last pose said of them is history
+        run.device_state = {**{k: {"state": "not connected", "detail": "the service stopped"}
+                               for k in (run.device_state or {}) if k != "at"},
+                            "at": utcnow().isoformat()} if run.device_state else None
+        set_state(db, run, "interrupted", f"the service stopped while this session was {run.state}; resume it to "
+                                          f"continue")
         ids.append(run.id)
     return ids
 
 
-def last_calibration(db: Session, cell_id: int, *, kind: str | None = None) -> Calibration | None:
+def last_calibration(db: Session, cell_id: int, *, kind: str | None = None,
+                     nominal_version: int | None = None) -> Calibration | None:
+    """The cell's newest calibration (of ``kind``; identified from nominal model ``nominal_version``)."""
     q = select(Calibration).where(Calibration.cell_id == cell_id)
     if kind is not None:
         q = q.where(Calibration.kind == kind)
+    if nominal_version is not None:
+        q = q.where(Calibration.nominal_version == nominal_version)
     return db.exec(q.order_by(Calibration.id.desc())).first()
+
+
+def current_calibration(db: Session, cell: Cell) -> Calibration | None:
+    """The calibration the cell's robot is known by: its newest pose calibration identified from
+    the cell's present nominal model (after the nominal is replaced, none until the next one)."""
+    return last_calibration(db, cell.id, kind="pose", nominal_version=cell.model_version)
 
 
 def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30.0) -> bool:

@@ -4,14 +4,16 @@ engine, the migrations and the orchestrator start in the lifespan."""
 from __future__ import annotations
 
 import logging
+import typing
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from sqlmodel import Session
 
+from ..models import MAX_ID
 from ..orchestrator import orchestrator_class
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
@@ -22,6 +24,49 @@ log = logging.getLogger("recal.api")
 
 def _operation_id(route: APIRoute) -> str:
     return f"{route.tags[0]}-{route.name}" if route.tags else route.name
+
+
+def _declares_int(annotation) -> bool:
+    return annotation is int or int in typing.get_args(annotation)
+
+
+async def bounded_numbers(request: Request) -> None:
+    """Every route's integer parameters, before anything reads them: an id (``*_id``, in the
+    path or the query) is 1 to 2**63 - 1, any other integer (``limit``, ``offset``) fits 64 bits,
+    as the database stores them (beyond, SQLite and PostgreSQL raise instead of finding nothing).
+    422 naming the parameter. An app-wide dependency: it covers the routes added later too (async:
+    no thread hop on every request)."""
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if dependant is None:
+        return
+    errors = []
+    for where, declared, given in (("path", dependant.path_params, request.path_params),
+                                   ("query", dependant.query_params, request.query_params)):
+        for param in declared:
+            value = given.get(param.alias or param.name)
+            if value is None or not _declares_int(param.field_info.annotation):
+                continue
+            try:
+                v = int(value)
+            except ValueError:
+                continue  # not an integer: the route's own validation answers
+            if param.name.endswith("_id") and not 1 <= v <= MAX_ID:
+                errors.append({"loc": (where, param.name), "msg": f"expected an id from 1 to {MAX_ID}, got {value}",
+                               "type": "value_error"})
+            elif not -MAX_ID - 1 <= v <= MAX_ID:
+                errors.append({"loc": (where, param.name), "msg": f"expected a 64-bit integer, got {value}",
+                               "type": "value_error"})
+    if errors:
+        raise RequestValidationError(errors)
+
+
+def _field(loc) -> str:
+    """``("body", "allowed_region", 0, 1)`` -> ``body.allowed_region[0][1]``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
 
 
 def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -> FastAPI:
@@ -49,12 +94,13 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
             engine.dispose()
 
     app = FastAPI(title="Recal", version="0.1.0", lifespan=lifespan, generate_unique_id_function=_operation_id,
+                  dependencies=[Depends(bounded_numbers)],
                   description="Robot calibration service: cells, measurement sessions, calibrations, compensation.")
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
         # 422 naming each field at fault ("body.count: ...") instead of a nested structure only.
-        errors = [{"field": ".".join(str(p) for p in e["loc"]), "message": e["msg"]} for e in exc.errors()]
+        errors = [{"field": _field(e["loc"]), "message": e["msg"]} for e in exc.errors()]
         return JSONResponse({"detail": "; ".join(f"{e['field']}: {e['message']}" for e in errors), "errors": errors},
                             status_code=422)
 

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
 from sqlmodel import Session
+from starlette.concurrency import run_in_threadpool
 
 from ..models import Token
-from ..store import find_token
+from ..store import find_token, hash_token
 
 
 def get_db(request: Request) -> Iterator[Session]:
@@ -37,14 +40,76 @@ def _bearer(request: Request) -> str | None:
     return None
 
 
-def current_token(request: Request, db: DbSession) -> Token:
+class TokenCache:
+    """Tokens verified in the last ``ttl_s`` seconds, keyed by their hash, so that a page or a
+    nightly job polling a session does not cost a database query per request. Revoking a token
+    through this process forgets it at once; other API processes of a fleet see the revocation
+    within ``ttl_s``. Unknown tokens are never cached (a token created a moment ago works)."""
+
+    def __init__(self, ttl_s: float = 2.0):
+        self.ttl_s = ttl_s
+        self._entries: dict[str, tuple[float, Token]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, token_hash: str) -> Token | None:
+        with self._lock:
+            hit = self._entries.get(token_hash)
+        if hit is None or time.monotonic() - hit[0] > self.ttl_s:
+            return None
+        return hit[1]
+
+    def put(self, token_hash: str, tok: Token) -> None:
+        with self._lock:
+            if len(self._entries) > 10_000:  # only live tokens are cached; drop the stale ones
+                now = time.monotonic()
+                self._entries = {k: v for k, v in self._entries.items() if now - v[0] <= self.ttl_s}
+            self._entries[token_hash] = (time.monotonic(), tok)
+
+    def forget(self, token_id: int) -> None:
+        with self._lock:
+            self._entries = {k: v for k, v in self._entries.items() if v[1].id != token_id}
+
+
+def token_cache(app) -> TokenCache:
+    cache = getattr(app.state, "token_cache", None)
+    if cache is None:
+        cache = app.state.token_cache = TokenCache()
+    return cache
+
+
+async def quick_read(request: Request, fn, *args):
+    """``fn(engine, *args)``: a read of one or two indexed rows that every polled request makes
+    (the caller's token, a session's progress). On SQLite it runs on the event loop: it takes a
+    fraction of a millisecond on a local file, and a thread hop per request cost more than the
+    query and put every request behind the GIL's 5 ms switch interval (half the throughput,
+    bench/service.py). A networked database can stall (connection lost, server restarting), and
+    must not stall the whole server: there it runs in the thread pool."""
+    engine = request.app.state.engine
+    if engine.dialect.name == "sqlite":
+        return fn(engine, *args)
+    return await run_in_threadpool(fn, engine, *args)
+
+
+def _lookup_token(engine, plain: str) -> Token | None:
+    with Session(engine) as db:
+        tok = find_token(db, plain)
+        return None if tok is None else Token(**tok.model_dump())  # detached: outlives the session
+
+
+async def current_token(request: Request) -> Token:
+    # async, and the database only on a cache miss: authentication is on every request, and a
+    # thread hop plus a query per request was most of the cost of a polled GET (bench/service.py).
     plain = _bearer(request)
     if not plain:
         raise HTTPException(401, "missing token: send `Authorization: Bearer <token>`",
                             headers={"WWW-Authenticate": "Bearer"})
-    tok = find_token(db, plain)
+    cache, key = token_cache(request.app), hash_token(plain)
+    tok = cache.get(key)
     if tok is None:
-        raise HTTPException(401, "unknown or revoked token", headers={"WWW-Authenticate": "Bearer"})
+        tok = await quick_read(request, _lookup_token, plain)
+        if tok is None:
+            raise HTTPException(401, "unknown or revoked token", headers={"WWW-Authenticate": "Bearer"})
+        cache.put(key, tok)
     return tok
 
 
@@ -63,7 +128,7 @@ PERMISSIONS = {
 def require(permission: str):
     roles = PERMISSIONS[permission]
 
-    def check(tok: CurrentToken) -> Token:
+    async def check(tok: CurrentToken) -> Token:
         if tok.role not in roles:
             raise HTTPException(403, f"role {tok.role!r} may not do this (needs one of: {', '.join(sorted(roles))})")
         return tok

@@ -13,6 +13,8 @@ cell, and a calibration end to end through the REST API.
    running until Ctrl-C (``--exit`` stops at once).
 
 ``--offline`` skips the service: simulated measurement files and ``recal identify`` on them.
+``--models-only`` writes the nominal model and the simulated robot's truth (``nominal.json``,
+``truth.json`` in ``--dir``) and stops: what ``docker/compose.yaml`` starts its cell with.
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ def add_parser(s) -> None:
     s.add_argument("--port", type=int, default=8000, help="port of the service")
     s.add_argument("--exit", action="store_true", help="stop the service and the cell when done")
     s.add_argument("--offline", action="store_true", help="no service: files and `recal identify` only")
+    s.add_argument("--models-only", action="store_true",
+                   help="write nominal.json and truth.json (the simulated robot) into --dir, then stop")
 
 
 def _truth_and_nominal(args):
@@ -56,7 +60,22 @@ def _truth_and_nominal(args):
 
 
 def run(args) -> int:
+    if args.models_only:
+        return _models_only(args)
     return _offline(args) if args.offline else _live(args)
+
+
+def _models_only(args) -> int:
+    from service.files import save_model
+
+    out = Path(args.dir)
+    out.mkdir(parents=True, exist_ok=True)
+    nominal, truth, _ = _truth_and_nominal(args)
+    save_model(out / "nominal.json", nominal)
+    save_model(out / "truth.json", truth)
+    print(f"recal demo: {out / 'nominal.json'} (register the cell with it) and {out / 'truth.json'} "
+          f"(the simulated {args.robot}, for recal fake-cell --truth)")
+    return 0
 
 
 def _live(args) -> int:

@@ -18,10 +18,14 @@ def run(args) -> int:
     import uvicorn
 
     from service.api.app import create_app
-    from service.settings import Settings
+    from service.cli import Fail
+    from service.settings import Settings, SettingsError
 
+    try:
+        settings = Settings.from_env()
+    except SettingsError as exc:  # refuse to start on an absurd setting (a speed cap above what drivers allow...)
+        raise Fail(str(exc)) from None
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    settings = Settings.from_env()
     app = create_app(settings)
     uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
     return 0

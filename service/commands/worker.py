@@ -31,7 +31,7 @@ def run(args) -> int:
     import logging
 
     from service.cli import Fail
-    from service.settings import Settings
+    from service.settings import Settings, SettingsError
 
     if bool(args.site) == bool(args.all_sites):
         raise Fail("give the sites this worker serves (--site SITE, repeatable) or --all-sites")
@@ -44,7 +44,10 @@ def run(args) -> int:
     from service.fleet.jobs import FleetConfigError, libpq_url
     from service.fleet.worker import run_worker
 
-    settings = dataclasses.replace(Settings.from_env(), engine="procrastinate")
+    try:
+        settings = dataclasses.replace(Settings.from_env(), engine="procrastinate")
+    except SettingsError as exc:
+        raise Fail(str(exc)) from None
     try:
         libpq_url(settings)
     except FleetConfigError as exc:

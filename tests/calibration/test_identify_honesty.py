@@ -9,7 +9,9 @@
 - With a prior (minimum-variance estimation, book §4.3.2), every parameter is either determined
   (by the data, or by data and prior) or undetermined, never both; the conditioning reported
   is that of what was estimated; what the data cannot see keeps the prior's value and
-  uncertainty.
+  uncertainty. What the previous calibration could not determine is not held by it: a CMM's
+  full poses after a tracker calibration determine the tool frame, and the reflector's offset
+  (which stood in for the tool's) moves with it.
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calibration.identify import Prior, drift_scale, identify
+from calibration.geometry import pose_from_points
+from calibration.identify import Prior, drift_scale, held_relations, identify
 from calibration.jacobian import predict
 from calibration.kinematics import fk
 from calibration.model import Units
@@ -27,7 +30,7 @@ from calibration.parameters import apply_step, candidate_parameters, parameter_v
 from calibration.report import identification_report
 from calibration.robots import nominal
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
-from calibration.transforms import matrix_to_rotvec
+from calibration.transforms import matrix_to_pose, matrix_to_rotvec, pose_to_matrix
 from calibration.uncertainty import predicted_uncertainty, propagate, radius_95
 
 SIGMA = 20e-6
@@ -128,7 +131,7 @@ def two_sessions():
     first = identify(nom, simulate_measurements(truth, random_configurations(nom, 24, rng), rng,
                                                 targets=("smr", "ball1")))
     drift = np.array([np.deg2rad(0.005) if p.kind == "angle" else 0.05e-3 for p in first.params])
-    prior = Prior(first.param_names, first.covariance + np.diag(drift**2))
+    prior = Prior(first.param_names, first.covariance + np.diag(drift**2), held_relations(first))
     data2 = simulate_measurements(truth, random_configurations(nom, 16, rng), rng, targets=("smr",))
     second = identify(first.model, data2, prior=prior)
     alone = identify(nom, data2)
@@ -205,3 +208,78 @@ def test_drift_scale_follows_what_the_data_show():
         prior = Prior(first.param_names, first.covariance + np.diag((scale * drift) ** 2))
         u[scale] = np.median(predicted_uncertainty(identify(first.model, same, prior=prior), q, "smr"))
     assert u[max(s_same, 0.1)] <= u_first < u[1.0]
+
+
+# --------------------------------------------------------------------------- a CMM after a tracker
+
+BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0.03, -0.052, 0.04]}
+CMM_SIGMA_M, CMM_SIGMA_RAD = 5e-6, 5e-5
+
+
+def _drift(params):
+    return np.array([np.deg2rad(0.005) if p.kind == "angle" else 0.05e-3 for p in params])
+
+
+@pytest.fixture(scope="module")
+def tracker_then_cmm():
+    """A UR5e with a reflector `smr` and three tooling balls, all mounted about 0.5 mm off their
+    drawing. First a tracker calibration (24 poses of `smr`, position only: it cannot see the
+    tool orientation, and the reflector's offset stands in for the tool's); then a CMM session
+    (16 full poses) with it as the prior, built as the service builds it (held relations, drift
+    allowance scaled by drift_scale). The CMM measures the frame the balls' drawn layout fits
+    best on the real balls (service.orchestrator, book eq. 6.12-6.15): the true tool frame times
+    the constant X, simulated here with the noise the rows state."""
+    rng = np.random.default_rng(11)
+    targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}
+    nom = dataclasses.replace(nominal("ur5e"), targets=targets)
+    truth = perturbed(nom, rng)
+    truth = dataclasses.replace(truth, base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
+                                targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in targets.items()})
+    first = identify(nom, simulate_measurements(truth, random_configurations(nom, 24, rng), rng, targets=("smr",)))
+    X, misfit = pose_from_points(np.array(list(BALLS.values())), np.array([truth.targets[k] for k in BALLS]))
+    seen_by_cmm = dataclasses.replace(truth, tool=matrix_to_pose(pose_to_matrix(truth.tool) @ X))
+    cmm = simulate_measurements(seen_by_cmm, random_configurations(nom, 16, rng), rng, sigma_m=CMM_SIGMA_M,
+                                full_pose=True, sigma_rad=CMM_SIGMA_RAD)
+    held = held_relations(first)
+    kw = dict(sigma_m=CMM_SIGMA_M, sigma_rad=CMM_SIGMA_RAD)
+    drift = _drift(first.params)
+    scale = drift_scale(first.model, cmm, first.param_names, first.covariance, drift, held=held, **kw)
+    prior = Prior(first.param_names, first.covariance + np.diag((max(scale, 0.1) * drift) ** 2), held)
+    second = identify(first.model, cmm, prior=prior, **kw)
+    return truth, seen_by_cmm, misfit, first, cmm, scale, prior, second
+
+
+def test_a_cmm_after_a_tracker_determines_the_tool_frame_the_tracker_could_not(tracker_then_cmm):
+    truth, seen_by_cmm, misfit, first, cmm, scale, prior, second = tracker_then_cmm
+    assert misfit > 0.2e-3  # the balls are off their drawing
+    held = {u.name for u in first.unidentifiable}
+    assert {"tool.tx", "tool.ty", "tool.tz", "tool.rx", "tool.ry"} <= held  # the tracker could not see them
+    # the data determine what they can (tool frame, and the wrist parameters the reflector hid)
+    src = dict(zip(second.param_names, second.sources))
+    for name in ("tool.tx", "tool.ty", "tool.tz", "tool.rx", "tool.ry", "j5.a", "j5.alpha"):
+        assert src[name] == "data", (name, src.get(name))
+    # the robot did not move: no drift, and the fit reaches the noise the rows state
+    assert scale < 0.3, scale
+    assert second.success and 0.6 < second.chi2 / second.dof < 1.4, second.chi2 / second.dof
+    assert second.chi2_prior < len(prior.names), second.chi2_prior
+    q = random_configurations(truth, 200, np.random.default_rng(12))
+    T_cmm, T_id = fk(seen_by_cmm, q), fk(second.model, q)
+    err = np.linalg.norm(T_cmm[:, :3, 3] - T_id[:, :3, 3], axis=1)
+    angle = np.linalg.norm(matrix_to_rotvec(T_id[:, :3, :3] @ np.swapaxes(T_cmm[:, :3, :3], 1, 2)), axis=1)
+    assert np.sqrt(np.mean(err**2)) < 20e-6 and np.degrees(angle.max()) < 0.01, (err.max(), angle.max())
+    # the reflector's offset moved with the tool frame: it is still where the tracker measured it
+    smr = lambda m: fk(m, q)[:, :3, :3] @ m.targets["smr"] + fk(m, q)[:, :3, 3]  # noqa: E731
+    assert np.sqrt(np.mean(np.sum((smr(truth) - smr(second.model)) ** 2, axis=1))) < 30e-6
+    assert src["target.smr.x"] == "data + prior"
+    rep = identification_report(second, Units("mm", "deg"))
+    assert {p["name"]: p["source"] for p in rep["parameters"]} == src
+
+
+def test_without_its_held_relations_the_tracker_prior_holds_the_cmm_off(tracker_then_cmm):
+    """The prior's covariance is of what the tracker determined with the held parameters at the
+    model's value (its j5.theta stands in for j5.a as well): taken for the parameters themselves,
+    it fights the CMM's data."""
+    truth, seen_by_cmm, misfit, first, cmm, scale, prior, second = tracker_then_cmm
+    naive = identify(first.model, cmm, prior=Prior(prior.names, prior.covariance), sigma_m=CMM_SIGMA_M,
+                     sigma_rad=CMM_SIGMA_RAD)
+    assert naive.chi2 / naive.dof > 5 * second.chi2 / second.dof, (naive.chi2 / naive.dof, second.chi2 / second.dof)

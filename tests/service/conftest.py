@@ -59,3 +59,85 @@ def tokens(settings) -> dict[str, str]:
 
 def auth(token: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
+
+
+class NoMotion:
+    """An orchestrator that runs nothing: sessions stay as the API left them (``started`` lists
+    the ones the API asked it to run)."""
+
+    def __init__(self, engine, settings):
+        self.started: list[int] = []
+
+    def start(self, session_id):
+        self.started.append(session_id)
+
+    def pause(self, session_id):
+        return False
+
+    def abort(self, session_id):
+        return False
+
+    def shutdown(self):
+        pass
+
+
+@pytest.fixture
+def idle_app(settings):
+    """``idle_app(**testclient_kw)``: a TestClient of the app on ``settings`` whose sessions never
+    run (:class:`NoMotion`); use it as a context manager (startup and shutdown run)."""
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+
+    return lambda **kw: TestClient(create_app(settings, orchestrator_factory=NoMotion), **kw)
+
+
+@pytest.fixture
+def stored_session(settings):
+    """``stored_session(cell_id, kind=..., seed=..., n=..., repeats=...)``: see :func:`store_session`."""
+    return lambda cell_id, **kw: store_session(settings, cell_id, **kw)
+
+
+def store_session(settings: Settings, cell_id: int, *, kind: str = "pose", seed: int = 0, n: int = 30,
+                  repeats: int = 1, truth_seed: int = 1) -> tuple[int, int | None]:
+    """A completed session of the cell stored as the orchestrator stores one: simulated tracker
+    measurements (reflector ``smr``) of a robot near the cell's nominal model (link errors from
+    ``truth_seed``), then the analysis (identification for ``pose``, accuracy for ``verify``,
+    each configuration visited ``repeats`` times). Returns (session id, calibration id)."""
+    import dataclasses
+
+    import numpy as np
+
+    from calibration.model import model_from_dict
+    from calibration.simulate import perturbed, random_configurations, simulate_measurements
+    from service import analysis
+    from service.models import Cell, Measurement, RunSession
+
+    engine = make_engine(settings.effective_database_url)
+    try:
+        with Session(engine) as db:
+            cell = db.get(Cell, cell_id)
+            nominal = model_from_dict(cell.model)
+            rng = np.random.default_rng(seed)
+            truth = dataclasses.replace(perturbed(nominal, np.random.default_rng(truth_seed), tool_length_m=0.0),
+                                        base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]))
+            q = np.repeat(random_configurations(nominal, n, rng), repeats, axis=0)
+            data = simulate_measurements(truth, q, rng, targets=("smr",))
+            info = {"method": "random", "limits_checked": True, **({"repeats": repeats} if repeats > 1 else {})}
+            run = RunSession(cell_id=cell_id, kind=kind, state="running", planned=len(q), target="smr",
+                             created_by="technician-user", plan=q.tolist(), plan_info=info)
+            db.add(run)
+            db.commit()
+            db.refresh(run)
+            for k in range(len(q)):
+                db.add(Measurement(session_id=run.id, seq=k, target="smr", q=data.q[k].tolist(),
+                                   x=float(data.p_world[k, 0]), y=float(data.p_world[k, 1]),
+                                   z=float(data.p_world[k, 2]), sigma=20e-6))
+            db.commit()
+            analysis.finish_session(db, run, cell, settings)
+            run.state = "completed"
+            db.add(run)
+            db.commit()
+            return run.id, run.calibration_id
+    finally:
+        engine.dispose()

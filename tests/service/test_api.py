@@ -4,6 +4,7 @@ simulated cell in tests/system/."""
 
 from __future__ import annotations
 
+import re
 import time
 
 import pytest
@@ -11,6 +12,7 @@ from fastapi.testclient import TestClient
 
 from calibration.robots import nominal_document
 from service.api.app import create_app
+from service.settings import Settings
 
 
 
@@ -31,7 +33,7 @@ def client(settings, tokens):
 
 
 def _cell(client, tokens, name="cell-1", **extra):
-    body = {"name": name, "model": _model(), "devices": {"tracker": "socket://127.0.0.1:1", "rtde": "127.0.0.9"}}
+    body = {"name": name, "model": _model(), "devices": {"tracker": "socket://127.0.0.1:1", "rtde": "127.0.0.19"}}
     body.update(extra)
     r = client.post("/api/v1/cells", json=body, headers=auth(tokens["technician"]))
     assert r.status_code == 201, r.text
@@ -52,33 +54,36 @@ def test_health_needs_no_token(client):
     assert client.get("/api/v1/health").json() == {"status": "ok"}
 
 
-MUTATING = [
-    ("post", "/api/v1/cells", {"name": "x", "model": {}}),
-    ("patch", "/api/v1/cells/1", {"name": "y"}),
-    ("post", "/api/v1/cells/1/sessions", {"kind": "pose"}),
-    ("post", "/api/v1/sessions/1/resume", None),
-    ("post", "/api/v1/sessions/1/pause", None),
-    ("post", "/api/v1/sessions/1/abort", None),
-    ("post", "/api/v1/calibrations/1/compensate", None),
-    ("post", "/api/v1/cells/1/tasks", {"name": "t.csv", "content": "x"}),
-    ("post", "/api/v1/cells/1/tasks/compensate", None),
-    ("post", "/api/v1/tokens", {"role": "viewer"}),
-    ("delete", "/api/v1/tokens/1", None),
-]
+def _routes() -> list[tuple[str, str]]:
+    """Every API route (method, path) the app has, from its OpenAPI document: a route added
+    later is checked too."""
+    paths = create_app(Settings()).openapi()["paths"]
+    return [(m.upper(), p) for p, ops in paths.items() for m in ops]
 
 
-@pytest.mark.parametrize("method,path,body", MUTATING)
-def test_every_mutating_route_needs_a_token(client, method, path, body):
-    r = client.request(method.upper(), path, json=body)
-    assert r.status_code == 401
-    r = client.request(method.upper(), path, json=body, headers=auth("rc_not-a-token"))
-    assert r.status_code == 401
+MUTATING = [(m, p) for m, p in _routes() if m in ("POST", "PUT", "PATCH", "DELETE")]
+READING = [(m, p) for m, p in _routes() if m == "GET" and p != "/api/v1/health"]
 
 
-@pytest.mark.parametrize("method,path,body", MUTATING)
-def test_viewers_may_not_change_anything(client, tokens, method, path, body):
-    r = client.request(method.upper(), path, json=body, headers=auth(tokens["viewer"]))
-    assert r.status_code == 403, r.text
+def _concrete(path: str) -> str:
+    return re.sub(r"\{[^}]+\}", "1", path)
+
+
+def test_every_route_needs_a_token_and_viewers_may_not_change_anything(client, tokens):
+    assert ("POST", "/api/v1/cells/{cell_id}/devices/test") in MUTATING
+    assert ("POST", "/api/v1/sessions/{session_id}/run") in MUTATING and len(MUTATING) >= 13
+    wrong = []
+    for method, path in MUTATING + READING:
+        url = _concrete(path)
+        for headers in ({}, auth("rc_not-a-token")):
+            r = client.request(method, url, json={}, headers=headers)
+            if r.status_code != 401:
+                wrong.append(f"{method} {path} {'bad token' if headers else 'no token'}: {r.status_code}")
+        if (method, path) in MUTATING:
+            r = client.request(method, url, json={}, headers=auth(tokens["viewer"]))
+            if r.status_code != 403:
+                wrong.append(f"{method} {path} viewer: {r.status_code}")
+    assert not wrong, "\n".join(wrong)
 
 
 def test_job_token_may_not_register_cells_or_tokens(client, tokens):
@@ -101,7 +106,7 @@ def test_a_bad_model_names_the_field(client, tokens):
     doc["joints"][2]["alpha"] = "ninety"
     r = client.post("/api/v1/cells", json={"name": "c", "model": doc}, headers=auth(tokens["admin"]))
     assert r.status_code == 422
-    assert r.json()["detail"]["field"] == "model.joints[2].alpha"
+    assert r.json()["detail"]["field"] == "body.model.joints[2].alpha"
 
 
 @pytest.mark.parametrize("body,field", [
@@ -174,3 +179,20 @@ def test_openapi_document_lists_the_contract_paths(client):
               "/api/v1/sessions/{session_id}/events", "/api/v1/calibrations/{calibration_id}",
               "/api/v1/calibrations/{calibration_id}/compensate"):
         assert p in paths
+
+
+@pytest.mark.parametrize("env,needle", [
+    ({"RECAL_MAX_JOINT_SPEED": "30"}, "RECAL_MAX_JOINT_SPEED: expected 0.001 to 3.14 rad/s, got 30.0"),
+    ({"RECAL_MAX_JOINT_ACCEL": "nan"}, "RECAL_MAX_JOINT_ACCEL"),
+    ({"RECAL_MAX_JOINT_SPEED": "-1"}, "RECAL_MAX_JOINT_SPEED"),
+    ({"RECAL_SETTLE_S": "fast"}, "RECAL_SETTLE_S: expected a number"),
+])
+def test_absurd_settings_stop_the_service_at_startup(monkeypatch, capsys, tmp_path, env, needle):
+    from service.cli import main
+
+    monkeypatch.setenv("RECAL_HOME", str(tmp_path))
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    assert main(["serve", "--port", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("recal serve: environment variable") and needle in err and "\n" not in err

@@ -11,11 +11,16 @@ from sqlmodel import Session
 from service.models import Cell, RunSession
 from service.store import SCHEMA_VERSION, make_engine, migrate
 
+V3_COLUMNS = [("session", "device_state"), ("cell", "model_version"), ("calibration", "nominal_version"),
+              ("calibration", "predicted")]
+
 
 def test_version_1_store_is_upgraded(database_url):
     engine = make_engine(database_url)
     migrate(engine)
     with engine.begin() as conn:  # back to what version 1 made
+        for table, column in V3_COLUMNS:
+            conn.execute(text(f"ALTER TABLE {table} DROP COLUMN {column}"))
         conn.execute(text("DROP INDEX uq_session_active_cell"))
         conn.execute(text("ALTER TABLE session DROP COLUMN requested"))
         conn.execute(text("UPDATE schema_version SET version = 1"))

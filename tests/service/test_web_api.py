@@ -6,19 +6,11 @@ Calibrations come from simulated measurements stored as a session would store th
 
 from __future__ import annotations
 
-import dataclasses
-
-import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 from sqlmodel import Session
 
-from calibration.model import model_from_dict
 from calibration.robots import nominal_document
-from calibration.simulate import perturbed, random_configurations, simulate_measurements
-from service import analysis
-from service.api.app import create_app
-from service.models import Cell, Measurement, RunSession
+from service.models import RunSession
 from service.store import make_engine
 
 
@@ -26,28 +18,11 @@ def auth(token: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
 
 
-class NoMotion:
-    """An orchestrator that records what it was asked to start and moves nothing."""
-
-    def __init__(self, engine, settings):
-        self.started: list[int] = []
-
-    def start(self, session_id):
-        self.started.append(session_id)
-
-    def pause(self, session_id):
-        return False
-
-    def abort(self, session_id):
-        return False
-
-    def shutdown(self):
-        pass
 
 
 @pytest.fixture
-def client(settings, tokens):
-    with TestClient(create_app(settings, orchestrator_factory=NoMotion)) as c:
+def client(idle_app, tokens):
+    with idle_app() as c:
         yield c
 
 
@@ -64,39 +39,6 @@ def _cell(client, tokens, name="web-cell") -> dict:
     return r.json()
 
 
-def _calibrate(settings, cell_id: int, seed: int, n: int = 30) -> int:
-    """Store a pose session's simulated measurements and identify them (what the orchestrator
-    does after the last measurement); returns the calibration id."""
-    engine = make_engine(settings.effective_database_url)
-    try:
-        with Session(engine) as db:
-            cell = db.get(Cell, cell_id)
-            nominal = model_from_dict(cell.model)
-            rng = np.random.default_rng(seed)
-            truth = dataclasses.replace(perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0),
-                                        base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]))
-            q = random_configurations(nominal, n, rng)
-            data = simulate_measurements(truth, q, rng, targets=("smr",))
-            run = RunSession(cell_id=cell_id, kind="pose", state="running", planned=n, target="smr",
-                             created_by="technician-user", plan=q.tolist(), plan_info={"method": "random",
-                                                                                        "limits_checked": True})
-            db.add(run)
-            db.commit()
-            db.refresh(run)
-            for k in range(n):
-                db.add(Measurement(session_id=run.id, seq=k, target="smr", q=data.q[k].tolist(),
-                                   x=float(data.p_world[k, 0]), y=float(data.p_world[k, 1]),
-                                   z=float(data.p_world[k, 2]), sigma=20e-6))
-            db.commit()
-            analysis.finish_session(db, run, cell, settings)
-            run.state = "completed"
-            db.add(run)
-            db.commit()
-            return run.calibration_id
-    finally:
-        engine.dispose()
-
-
 def test_the_page_is_served_at_the_root(client):
     r = client.get("/")
     assert r.status_code == 200 and "text/html" in r.headers["content-type"]
@@ -111,10 +53,10 @@ def test_the_page_is_served_at_the_root(client):
     assert "/web/{path}" not in client.get("/openapi.json").json()["paths"]
 
 
-def test_result_certificate_downloads_and_comparison(client, settings, tokens):
+def test_result_certificate_downloads_and_comparison(client, stored_session, tokens):
     cell = _cell(client, tokens)
-    first = _calibrate(settings, cell["id"], seed=2)
-    second = _calibrate(settings, cell["id"], seed=3)
+    first = stored_session(cell["id"], seed=2)[1]
+    second = stored_session(cell["id"], seed=3)[1]
     v = auth(tokens["viewer"])
 
     r = client.get(f"/api/v1/calibrations/{second}/result", headers=v)

@@ -111,8 +111,15 @@ class Stack:
 
 
 @pytest.fixture
-def stack(tmp_path, db_url):
-    s = Stack(tmp_path, db_url, {"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05", "RECAL_DEVICE_RETRIES": "2"})
+def stack_env() -> dict:
+    """Settings of the service beyond the tests' defaults (a test parametrizes it)."""
+    return {}
+
+
+@pytest.fixture
+def stack(tmp_path, db_url, stack_env):
+    s = Stack(tmp_path, db_url, {"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05", "RECAL_DEVICE_RETRIES": "2",
+                                 **stack_env})
     s.start()
     yield s
     s.stop()

@@ -28,7 +28,7 @@ def test_joint_session_finds_gain_and_gear_eccentricity(stack, geared_models, re
     api = stack.api()
     s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "joint", "count": 60, "joints": [1, 2]})
     s = api.wait_session(s["id"], 120)
-    assert s["state"] == "completed", s
+    assert s["state"] == "completed", (s["state"], s.get("reason"))
     cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
     assert cal["kind"] == "joint"
     truth = geared_models["truth_model"]
@@ -48,7 +48,7 @@ def test_circle_session_gives_the_joint_axes(stack, models, register):
     api = stack.api()
     s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "circle", "count": 12})
     s = api.wait_session(s["id"], 120)
-    assert s["state"] == "completed", s
+    assert s["state"] == "completed", (s["state"], s.get("reason"))
     assert s["measured"] == 6 * 12
     cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
     assert cal["kind"] == "cpa"

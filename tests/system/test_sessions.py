@@ -29,8 +29,9 @@ def test_pose_session_calibrates_the_cell_to_the_noise_floor(stack, models, regi
     api = stack.api()
     s = _start(api, cell, kind="pose", count=40)
     s = api.wait_session(s["id"], 120)
-    assert s["state"] == "completed", s
+    assert s["state"] == "completed", (s["state"], s.get("reason"))
     assert s["measured"] == s["planned"] == 40 and s["calibration_id"] is not None
+    assert s["device_state"]["robot"]["state"] == "ready" and s["device_state"]["tracker"]["state"] == "ready"
     meas = api.call("GET", f"/sessions/{s['id']}/measurements")
     assert len(meas) == 40 and sorted(m["seq"] for m in meas) == list(range(40))
     cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
@@ -100,7 +101,7 @@ def test_beam_breaks_are_retried_and_the_session_completes(stack, models, regist
     cell, _ = register(fake_args=["--fault", "beam_break_at=3,7"])
     api = stack.api()
     s = api.wait_session(_start(api, cell, kind="pose", count=12)["id"], 60)
-    assert s["state"] == "completed", s
+    assert s["state"] == "completed", (s["state"], s.get("reason"))
     assert s["measured"] == 12
 
 
@@ -111,6 +112,8 @@ def test_persistent_beam_break_pauses_with_the_reason_and_resume_finishes(stack,
     s = api.wait_session(_start(api, cell, kind="pose", count=10)["id"], 60)
     assert s["state"] == "paused", s
     assert "beam" in s["reason"].lower() and s["measured"] == 3
+    assert s["device_state"]["tracker"]["state"] == "fault" and "beam" in s["device_state"]["tracker"]["detail"]
+    assert s["device_state"]["robot"]["state"] == "ready"
     s = api.call("POST", f"/sessions/{s['id']}/resume")
     s = api.wait_session(s["id"], 60)
     assert s["state"] == "completed" and s["measured"] == 10
@@ -123,6 +126,7 @@ def test_protective_stop_pauses_the_session_at_once(stack, models, register):
     assert s["state"] == "paused", s
     assert "stop" in s["reason"].lower()
     assert s["measured"] == 2
+    assert s["device_state"]["robot"]["state"] == "protective stop", s["device_state"]
 
 
 def test_abort_stops_the_session(stack, models, register):
@@ -165,3 +169,186 @@ def test_server_sent_events_report_progress_to_the_end(stack, models, register):
     assert events[-1]["state"] == "completed"
     measured = [e["measured"] for e in events]
     assert measured == sorted(measured) and measured[-1] == 8
+    # the devices' state travels with each committed pose: the robot on its way to the next one
+    moving = [e["device_state"]["robot"] for e in events if e["state"] == "running" and 0 < e["measured"] < 8]
+    assert moving and all(r["state"] == "moving" and r["detail"].endswith("of 8") for r in moving)
+
+
+# --------------------------------------------------------------------------- the robot, observed
+
+
+def _modbus_reader(fake):
+    """The simulated robot's joints as its controller's Modbus server reports them (read-only,
+    beside the RTDE connection the session drives it through)."""
+    from drivers.modbus_robot import ModbusRobot, ModbusRobotConfig
+
+    host, _, port = fake.ready["modbus"].rpartition(":")
+    return ModbusRobot(ModbusRobotConfig(host=host, port=int(port)))
+
+
+CAP, ACCEL = 0.4, 2.0  # rad/s, rad/s²: below the defaults
+
+
+@pytest.mark.parametrize("stack_env", [{"RECAL_MAX_JOINT_SPEED": str(CAP), "RECAL_MAX_JOINT_ACCEL": str(ACCEL)}])
+def test_moves_run_at_the_capped_speed_and_abort_stops_the_robot_short_of_its_target(stack, register):
+    import threading
+
+    from service.models import RunSession
+
+    scale = 0.25  # wall seconds per robot second
+    cell, fake = register(time_scale=scale)
+    api = stack.api()
+    robot = _modbus_reader(fake)
+    samples: list[tuple[float, np.ndarray]] = []
+    watching = threading.Event()
+    watching.set()
+
+    def watch():
+        while watching.is_set():
+            t0 = time.monotonic()
+            q = robot.read_joints()
+            samples.append(((t0 + time.monotonic()) / 2, q))
+            time.sleep(0.005)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    s = _start(api, cell, kind="verify", count=12)
+    deadline = time.monotonic() + 60
+    while api.call("GET", f"/sessions/{s['id']}")["measured"] < 2:
+        assert time.monotonic() < deadline, "the session did not progress"
+        time.sleep(0.05)
+    while np.abs(samples[-1][1] - samples[-3][1]).max() < 2e-3:  # abort while it moves
+        time.sleep(0.01)
+    a = api.call("POST", f"/sessions/{s['id']}/abort")
+    time.sleep(0.5)
+    watching.clear()
+    watcher.join()
+    assert a["state"] == "aborted" and a["measured"] < 12, a
+    assert a["device_state"]["robot"] == {"state": "ready", "detail": "stopped on abort"}
+    # it stands still where it stopped, short of every configuration of the plan
+    still = robot.read_joints()
+    time.sleep(0.5)
+    assert np.abs(robot.read_joints() - still).max() <= 1e-3
+    robot.close()
+    engine = make_engine(Settings(home=stack.home).effective_database_url)
+    with Session(engine) as db:
+        plan = np.array(db.get(RunSession, s["id"]).plan)
+    engine.dispose()
+    assert np.abs(plan - still).max(axis=1).min() > 0.02, "the robot reached a target after the abort"
+    # the speed of every joint, over windows of 0.4 s of wall time (1.6 s of the robot's)
+    t = np.array([x[0] for x in samples])
+    q = np.array([x[1] for x in samples])
+    ends = np.searchsorted(t, t + 0.4)
+    ok = ends < len(t)
+    speeds = np.abs(q[ends[ok]] - q[ok]).max(axis=1) / (t[ends[ok]] - t[ok]) * scale
+    assert 0.75 * CAP < speeds.max() <= 1.05 * CAP, speeds.max()  # the default cap (0.5 rad/s) is above
+
+
+def test_pause_and_resume_in_the_embedded_service(stack, models, register):
+    cell, _ = register(time_scale=0.02)
+    api = stack.api()
+    s = _start(api, cell, kind="verify", count=8)
+    deadline = time.monotonic() + 60
+    while api.call("GET", f"/sessions/{s['id']}")["measured"] < 2:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    api.call("POST", f"/sessions/{s['id']}/pause")
+    p = api.wait_session(s["id"], 30, until=("paused",))
+    assert p["state"] == "paused" and p["reason"] == "paused on request" and p["measured"] < 8
+    assert p["device_state"]["robot"]["state"] == "ready" and p["device_state"]["tracker"]["state"] == "ready"
+    time.sleep(0.5)
+    assert api.call("GET", f"/sessions/{s['id']}")["measured"] == p["measured"]  # nothing moves
+    api.call("POST", f"/sessions/{s['id']}/resume")
+    done = api.wait_session(s["id"], 60)
+    assert done["state"] == "completed" and done["measured"] == 8, done
+    assert sorted(m["seq"] for m in api.call("GET", f"/sessions/{s['id']}/measurements")) == list(range(8))
+
+
+def test_cmm_pose_session_calibrates_from_full_poses(stack, models, register):
+    import json
+
+    from calibration.geometry import pose_from_points
+    from calibration.transforms import matrix_to_rotvec
+
+    # The truth's tooling balls sit about 0.5 mm off their drawing. The CMM measures the frame
+    # their drawn layout fits best on the real balls (book eq. 6.12-6.15): the true tool frame
+    # times a constant X, which the calibration takes as the tool frame.
+    truth = models["truth_model"]
+    drawn = model_from_dict(json.loads(models["nominal"].read_text())).targets
+    balls = sorted(k for k in drawn if k.startswith("ball"))
+    X, misfit = pose_from_points(np.array([drawn[k] for k in balls]), np.array([truth.targets[k] for k in balls]))
+    assert misfit > 0.2e-3  # off the drawing by far more than the CMM's noise
+    cell, _ = register()
+    api = stack.api()
+    # the CMM probes where the cell's model puts the balls, which a nominal model does not know
+    # well enough (where the robot stands): a tracker calibration first, as on a real cell; it
+    # cannot see the tool orientation, and its reflector's offset stands in for the tool's
+    first = api.wait_session(_start(api, cell, kind="pose", count=20)["id"], 120)
+    assert first["state"] == "completed", first["reason"]
+    s = api.wait_session(_start(api, cell, kind="pose", count=15, device="cmm")["id"], 120)
+    assert s["state"] == "completed", (s["reason"], s["device_state"])
+    assert s["device_state"]["cmm"]["state"] == "ready"
+    meas = api.call("GET", f"/sessions/{s['id']}/measurements")
+    assert len(meas) == 15 and all(m["qw"] is not None for m in meas)
+    cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
+    report = cal["report"]
+    assert report["prior"]["calibration_id"] == first["calibration_id"]
+    # the fit reaches the CMM's noise (not held off by the tracker calibration's prior)
+    assert report["residuals"]["chi2"] / report["residuals"]["dof"] < 2.0, report["residuals"]
+    assert report["residuals"]["rms"] < 0.01, report["residuals"]  # mm
+    # the tool orientation and offset the tracker could not see are the CMM data's
+    source = {p["name"]: p["source"] for p in report["parameters"]}
+    assert {"tool.tx", "tool.ty", "tool.tz", "tool.rx", "tool.ry"} <= set(report["prior"]["released"])
+    assert all(source[f"tool.{f}"] == "data" for f in ("tx", "ty", "tz", "rx", "ry"))
+    model = model_from_dict(cal["model"])
+    q = np.random.default_rng(5).uniform(-np.pi, np.pi, (200, 6))
+    T_true, T_model = fk(truth, q) @ X, fk(model, q)
+    err = np.linalg.norm(T_true[:, :3, 3] - T_model[:, :3, 3], axis=1)
+    angle = np.linalg.norm(matrix_to_rotvec(T_model[:, :3, :3] @ np.swapaxes(T_true[:, :3, :3], 1, 2)), axis=1)
+    # 15 full poses from the CMM (2 µm a probed point): the tool frame to a few hundredths of a mm
+    assert np.sqrt(np.mean(err**2)) < 0.05e-3, np.sqrt(np.mean(err**2))
+    assert np.degrees(angle.max()) < 0.01, np.degrees(angle.max())
+    # and the reflector is still where the tracker measured it: its offset moved with the tool
+    smr = lambda m: fk(m, q)[:, :3, :3] @ m.targets["smr"] + fk(m, q)[:, :3, 3]  # noqa: E731
+    assert np.sqrt(np.mean(np.sum((smr(truth) - smr(model)) ** 2, axis=1))) < 0.05e-3
+
+
+def test_configurations_outside_the_limits_or_the_region_are_refused_before_anything_moves(stack, models, register):
+    import json
+
+    cell, fake = register()
+    api = stack.api()
+    dry = api.wait_session(_start(api, cell, kind="verify", count=6, dry_run=True)["id"], 30)
+    assert dry["state"] == "completed"
+    lo, hi = np.array(dry["plan_info"]["joint_ranges_deg"]).T
+    robot = _modbus_reader(fake)
+    before = robot.read_joints()
+    # the cell's allowed region narrowed after the plan was checked: joint 1 only up to its midrange
+    region = [[-180, 180]] * 6
+    region[0] = [-180, float((lo[0] + hi[0]) / 2)]
+    api.call("PATCH", f"/cells/{cell['id']}", {"allowed_region": region})
+    s = api.wait_session(api.call("POST", f"/sessions/{dry['id']}/run")["id"], 30)
+    assert s["state"] == "failed" and s["measured"] == 0, s
+    assert s["reason"].startswith("unsafe plan: configuration") and "joint 1" in s["reason"]
+    # the model's own joint limits narrowed (a replaced nominal model): refused the same way
+    api.call("PATCH", f"/cells/{cell['id']}", {"allowed_region": None})
+    model = json.loads(models["nominal"].read_text())
+    model["joints"][2]["lower"], model["joints"][2]["upper"] = float(lo[2] + hi[2]) / 2, 180.0
+    api.call("PATCH", f"/cells/{cell['id']}", {"model": model})
+    s = api.wait_session(api.call("POST", f"/sessions/{dry['id']}/run")["id"], 30)
+    assert s["state"] == "failed" and s["measured"] == 0 and "joint 3" in s["reason"], s
+    assert np.abs(robot.read_joints() - before).max() <= 1e-3  # nothing moved
+    robot.close()
+
+
+def test_verify_with_repeats_visits_each_configuration_from_the_same_side(stack, models, register):
+    cell, _ = register()
+    api = stack.api()
+    s = api.wait_session(_start(api, cell, kind="verify", count=3, repeats=4)["id"], 60)
+    assert s["state"] == "completed" and s["measured"] == s["planned"] == 12, s
+    meas = api.call("GET", f"/sessions/{s['id']}/measurements")
+    q = np.array([m["q"] for m in meas]).reshape(3, 4, 6)
+    assert np.abs(q - q[:, :1]).max() < 1e-4  # each configuration four times over
+    iso = s["plan_info"]["verify"]["iso9283"]
+    assert iso["poses"] == 3 and [p["visits"] for p in iso["per_pose"]] == [4, 4, 4]
+    assert iso["repeatability"]["max"] < 0.1  # the simulated robot repeats exactly: the tracker's noise

@@ -10,6 +10,7 @@ import dataclasses
 import json
 import os
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -74,12 +75,17 @@ def shot(page, name: str, *, full_page: bool = True) -> Path:
     """Save a screenshot for people to look at (tests/web/screenshots/NAME.png)."""
     SHOTS.mkdir(exist_ok=True)
     path = SHOTS / f"{name}.png"
-    if full_page:  # the sticky header belongs at the top; a smooth scroll the page started may
-        # still be running and win over one scrollTo, so scroll on every frame until at the top
-        page.wait_for_function("(() => { window.scrollTo({top: 0, behavior: 'instant'});"
-                               " return window.scrollY === 0; })()")
+    if full_page:  # the sticky header belongs at the top: scroll there, and make sure the page
+        # stays there for two frames (a scroll the page started may still be running)
+        page.wait_for_function("""() => new Promise((done) => {
+            window.scrollTo({top: 0, behavior: 'instant'});
+            requestAnimationFrame(() => requestAnimationFrame(() => done(window.scrollY === 0)));
+        })""")
     page.screenshot(path=str(path), full_page=full_page)
     return path
+
+
+SERVICE_ENV = {"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05"}
 
 
 @dataclasses.dataclass
@@ -91,12 +97,35 @@ class Stack:
     nominal_path: Path
     truth_path: Path
     cell_host: str
+    crashed_cell_ready: dict  # the same cell after a crash bent link 3 (another simulated cell)
+    service: object = None
+
+    def crash_and_restart_service(self) -> None:
+        """kill -9 the service (what a power loss does) and start it again on the same address."""
+        port = int(self.url.rsplit(":", 1)[1])
+        self.service.kill()
+        self.service = start_service(self.home, port, env=SERVICE_ENV, log_path=self.home / "service.log")
+
+
+def longer_link(model, k: int, by_m: float):
+    """``model`` (``poe``) with the link after joint ``k`` (0-based) ``by_m`` longer: every later
+    joint axis, and the flange, moved along the link's common normal."""
+    j, nxt = model.joints[k], model.joints[k + 1]
+    axis = j.axis / np.linalg.norm(j.axis)
+    d = nxt.point - j.point
+    d = d - axis * (d @ axis)
+    d = d / np.linalg.norm(d) * by_m
+    joints = tuple(dataclasses.replace(jj, point=jj.point + d) if i > k else jj for i, jj in enumerate(model.joints))
+    home = np.array(model.home, dtype=float)
+    home[:3] += d
+    return dataclasses.replace(model, joints=joints, home=home)
 
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory, browser):
-    """A simulated UR10e cell (its robot protective-stops once, at the 6th move) and the
-    service on SQLite with a technician's and a viewer's token."""
+    """A simulated UR10e cell (its robot protective-stops once, at the 6th move), the same
+    robot after a crash lengthened its link 3 by 0.4 mm (a second simulated cell, 127.0.0.82),
+    and the service on SQLite with a technician's and a viewer's token."""
     home = tmp_path_factory.mktemp("web")
     rng = np.random.default_rng(11)
     targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}
@@ -104,8 +133,10 @@ def stack(tmp_path_factory, browser):
     truth = perturbed(nominal, rng, tool_length_m=0.0)
     truth = dataclasses.replace(truth, base=np.array([1.6, -0.5, 0.25, 0.002, -0.003, np.deg2rad(120.0)]),
                                 targets={k: v + rng.normal(0, 0.6e-3, 3) for k, v in targets.items()})
+    crashed = longer_link(truth, 2, 0.4e-3)  # the robot after a crash (the next calibration must see it)
     save_model(home / "nominal.json", nominal)
     save_model(home / "truth.json", truth)
+    save_model(home / "crashed.json", crashed)
     engine = make_engine(Settings(home=home).effective_database_url)
     migrate(engine)
     tokens = {}
@@ -114,19 +145,27 @@ def stack(tmp_path_factory, browser):
             tokens[role] = create_token(db, role=role, name=f"{role}-anna" if role == "technician" else "viewer-ben")[1]
     engine.dispose()
     host = "127.0.0.81"
-    cell = start_fake_cell(home / "truth.json", host, seed=5, time_scale=0.03,
-                           extra=["--fault", "protective_stop_at_move=6"], log_path=home / "fake-cell.log")
+    with ThreadPoolExecutor(2) as pool:  # both simulated cells start at once
+        starting = [pool.submit(start_fake_cell, home / "truth.json", host, seed=5, time_scale=0.03,
+                                extra=["--fault", "protective_stop_at_move=6"], log_path=home / "fake-cell.log"),
+                    pool.submit(start_fake_cell, home / "crashed.json", "127.0.0.82", seed=6, time_scale=0.03,
+                                log_path=home / "fake-cell-2.log")]
+    cells = [f.result() for f in starting if f.exception() is None]
+    if len(cells) < len(starting):
+        for c in cells:
+            c.stop()
+        raise next(f.exception() for f in starting if f.exception() is not None)
+    cell, crashed_cell = cells
+    stack = Stack("", home, cell.ready, tokens, home / "nominal.json", home / "truth.json", host, crashed_cell.ready)
     try:
-        service = start_service(home, free_port(), env={"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05"},
-                                log_path=home / "service.log")
-    except BaseException:
-        cell.stop()
-        raise
-    try:
-        yield Stack(service.ready["url"], home, cell.ready, tokens, home / "nominal.json", home / "truth.json", host)
+        stack.service = start_service(home, free_port(), env=SERVICE_ENV, log_path=home / "service.log")
+        stack.url = stack.service.ready["url"]
+        yield stack
     finally:
-        service.stop()
+        if stack.service is not None:
+            stack.service.stop()
         cell.stop()
+        crashed_cell.stop()
 
 
 def sign_in(page, stack: Stack, role: str = "technician") -> None:
@@ -148,6 +187,34 @@ def register_cell_by_api(stack: Stack, name: str) -> int:
     return api(stack, "POST", "/cells", {"name": name, "model": doc, "devices": stack.cell_ready})["id"]
 
 
+OVERFLOWING = """() => {
+  const name = (el) => el.tagName.toLowerCase() + (el.id ? '#' + el.id : '')
+    + (el.classList.length ? '.' + [...el.classList].join('.') : '') + ` "${(el.textContent || '').trim().slice(0, 40)}"`;
+  const bad = [];
+  for (const box of document.querySelectorAll('.card, .stat, .certificate')) {
+    const r = box.getBoundingClientRect();
+    if (!r.width) continue;
+    for (const el of box.querySelectorAll('*')) {
+      if (el.closest('svg') !== null && el.tagName.toLowerCase() !== 'svg') continue;
+      const wrap = el.closest('.table-wrap');
+      if (wrap && wrap !== el && box.contains(wrap)) continue;  // wide tables scroll in their own box
+      const e = el.getBoundingClientRect();
+      if (!e.width) continue;
+      if (e.right > r.right + 1 || e.left < r.left - 1) bad.push(`${name(el)} sticks out of ${name(box)}`);
+      else if (el.clientWidth && el.scrollWidth > el.clientWidth + 1 && getComputedStyle(el).overflowX === 'visible')
+        bad.push(`the content of ${name(el)} overflows it (${el.scrollWidth} > ${el.clientWidth} px)`);
+    }
+  }
+  return bad;
+}"""
+
+
+def overflowing(page) -> list[str]:
+    """Elements on the page whose content sticks out of them or of their card (wide tables,
+    which scroll sideways in their own box, apart)."""
+    return page.evaluate(OVERFLOWING)
+
+
 class Helpers:
     """What the tests use besides the page: the fixtures' helpers in one object (test modules
     cannot import the conftest under --import-mode=importlib)."""
@@ -157,6 +224,7 @@ class Helpers:
     sign_in = staticmethod(sign_in)
     api = staticmethod(api)
     register_cell_by_api = staticmethod(register_cell_by_api)
+    overflowing = staticmethod(overflowing)
 
 
 @pytest.fixture

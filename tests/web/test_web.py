@@ -1,8 +1,11 @@
 """The technician's web page in a real (headless) browser against the real service and a
-simulated cell: sign in, register a cell, test its connections, plan and start a pose session,
-watch it (it pauses on a protective stop, is resumed), open the result, download the URDF,
-compensate a URScript program, print the certificate; a viewer cannot start a session; pages
-stay fast with a thousand stored calibrations."""
+simulated cell: sign in, register a cell (from the endpoint line, with inline checks), test its
+connections, plan and start a pose session, watch it (it pauses on a protective stop, is
+resumed), open the result, download the model, URDF and DH table, compensate a URScript program
+and a task CSV with flagged points, print the certificate (before and after a verify session);
+a session interrupted by a crash of the service, resumed, paused and aborted; a second
+calibration after a crash shows what moved; a viewer cannot start a session; pages stay fast
+with a thousand stored calibrations and page through many cells; a portrait tablet."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ import re
 import socket
 import time
 
+import numpy as np
 import pytest
 
 
@@ -64,30 +68,65 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.select_option("#model-source", "file")
     page.set_input_files("#model-file", str(stack.nominal_path))
     page.wait_for_selector("#model-info:has-text('targets: smr')")
-    page.fill("#cell-devices", json.dumps(stack.cell_ready))
+    page.wait_for_selector("#enc-6")  # a row of node ids per joint of the model
+    page.fill("#endpoint-line", "not json")
+    page.click("#fill-from-line")
+    assert "Not an endpoint line" in page.inner_text("#endpoint-line-error")
+    page.fill("#endpoint-line", json.dumps(stack.cell_ready))
+    page.click("#fill-from-line")
+    assert page.input_value("#dev-rtde") == stack.cell_ready["rtde"]
+    assert page.input_value("#dev-tracker") == stack.cell_ready["tracker"]
+    assert page.input_value("#dev-can-port") == str(stack.cell_ready["can"]["port"])
+    assert page.input_value("#enc-2") == str(stack.cell_ready["encoders"]["2"])
+    assert page.input_value("#res-1") == str(stack.cell_ready["resolvers"]["1"])
+    # inline checks: a wrong field says what it expects, and nothing is registered
+    page.fill("#dev-modbus", "127.0.0.81")
+    page.fill("#region-lo-2", "10")
+    page.fill("#region-hi-2", "-10")
+    page.fill("#res-2", str(stack.cell_ready["encoders"]["1"]))  # a node id used twice
     page.fill("#cell-drift", "0.1")
-    shot(page, "03-register-cell")
+    page.click("#save-cell")
+    assert "HOST:PORT" in page.inner_text("#dev-modbus-error")
+    assert "above the lower end" in page.inner_text("#region-hi-2-error")
+    assert "already the joint 1 reference encoder" in page.inner_text("#res-2-error")
+    assert "need attention" in page.inner_text("#form-error")
+    shot(page, "03-register-cell-checks")
+    page.fill("#dev-modbus", stack.cell_ready["modbus"])
+    page.fill("#res-2", "")
+    page.fill("#region-lo-2", "")
+    page.fill("#region-hi-2", "")
     page.click("#save-cell")
     page.wait_for_url(re.compile(r"#/cells/\d+$"))
     cell_id = int(page.url.rsplit("/", 1)[1])
     page.wait_for_selector("h1:has-text('line 3 UR10e')")
+    cell = api(stack, "GET", f"/cells/{cell_id}")
+    assert cell["devices"] == {k: v for k, v in stack.cell_ready.items() if k != "ready"}, cell["devices"]
+    assert cell["allowed_region"] is None
 
     # --- edit it
     page.click("#edit-cell")
     page.wait_for_selector("#save-cell")
+    assert page.input_value("#enc-1") == str(stack.cell_ready["encoders"]["1"])
     page.fill("#cell-site", "plant B")
     page.click("#save-cell")
     page.wait_for_selector("text=site plant B")
 
-    # --- test the connections: every device answers
+    # --- test the connections: every device answers, each encoder and resolver on its own
     page.click("#test-devices")
-    rows = page.locator("table.device-test tbody tr")
-    rows.first.wait_for()
+    page.locator("table.device-test tbody tr").first.wait_for()
     text = page.inner_text("table.device-test")
     assert "ERROR" not in text, text
-    for what in ("robot (UR RTDE)", "laser tracker", "CMM (I++ DME)", "reference encoder, joint 1"):
-        assert what in text
+    for what in ("robot (UR RTDE)", "laser tracker", "CMM (I++ DME)", "reference encoder, joint 1",
+                 "reference encoder, joint 2", "resolver, joint 1"):
+        assert what in text, what
     assert "SIM-LT" in text  # the tracker's *IDN? answer
+    encoder2 = page.inner_text("table.device-test tr:has-text('reference encoder, joint 2')")
+    assert re.search(r"-1\d\d\.\d{4}°", encoder2) and "counts" in encoder2 and "per count" in encoder2, encoder2
+    assert "no heartbeat" not in text or "alive" in text, text  # a state that is said, is explained
+    notices = page.locator("#notices .notice")
+    if notices.count():  # a success notice never covers the buttons
+        n, b = notices.first.bounding_box(), page.locator("#start-session").bounding_box()
+        assert n["y"] + n["height"] <= b["y"] or b["y"] + b["height"] <= n["y"], (n, b)
     shot(page, "04-cell-devices-tested")
 
     # --- plan a pose session (a dry run: nothing moves), look at it, confirm
@@ -98,7 +137,8 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.click("#plan")
     page.wait_for_selector("#plan-check")
     assert page.inner_text("#plan-check").startswith("✓")
-    assert "RMS" in page.inner_text("#predicted")
+    assert "95th percentile" in page.inner_text("#predicted")
+    assert "random configurations" in page.inner_text("#predicted-note")
     assert page.locator("svg[aria-label='joint ranges']").count() == 1
     shot(page, "05-session-plan")
     page.click("#confirm-start")
@@ -111,6 +151,13 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     banner = page.inner_text("#stop-banner")
     assert "Paused" in banner and "protective stop" in banner.lower(), banner
     page.wait_for_selector("#residuals svg")
+    state = api(stack, "GET", f"/sessions/{session_id}").get("device_state")
+    devices = page.inner_text("#device-state")
+    if state:  # the devices' own state, as the session last saw it
+        assert state["robot"]["state"] in devices and "As of" in devices, (state, devices)
+    else:
+        assert "stopped (paused)" in devices, devices
+    assert re.search(r"Last reading\s+pose \d+ at \S*\d:\d\d:\d\d", devices), devices  # to the second
     shot(page, "06-session-paused-on-fault")
     assert unlock_protective_stop(stack.cell_host).startswith("Protective stop releasing")
     page.click("#resume")
@@ -126,23 +173,36 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     # --- the result
     page.click("#open-result")
     page.wait_for_selector("#summary")
+    calibration_id = int(page.url.rsplit("/", 1)[1])
     summary = page.inner_text("#summary")
-    assert "Before" in summary and "After" in summary and "Predicted" in summary
+    for label in ("Before", "After (fitted poses)", "Predicted error", "95th percentile at random configurations"):
+        assert label in summary, summary
     for label in ("histogram of errors before", "histogram of errors after", "per-pose errors before and after",
                   "residuals against pose", "workspace map from above"):
         assert page.locator(f"svg[aria-label='{label}']").count() == 1, label
+    bins = page.eval_on_selector_all("svg[aria-label='histogram of errors before'] rect title",
+                                     "ts => ts.map(t => +t.textContent.split(': ').pop())")
+    assert bins[0] > 0 and bins[-1] > 0 and sum(bins) == 24, bins  # no empty bar at either end
     assert page.locator("table.params tbody tr").count() > 10
     assert "same motion" in page.inner_text("table.unidentifiable")
+    assert "not determined" in page.inner_text("#numerical-notes")  # what the warnings mean
     assert "first calibration" in page.inner_text("#compare")
     shot(page, "09-result")
 
-    # --- downloads: the URDF
-    with page.expect_download() as dl:
-        page.click("#download-urdf")
-    urdf = tmp_path / dl.value.suggested_filename
-    dl.value.save_as(urdf)
-    assert urdf.suffix == ".urdf"
-    assert "<robot" in urdf.read_text() and "<joint" in urdf.read_text()
+    # --- downloads: the model file, the URDF and the DH table
+    def download(button: str) -> str:
+        with page.expect_download() as dl:
+            page.click(button)
+        path = tmp_path / dl.value.suggested_filename
+        dl.value.save_as(path)
+        return path
+
+    model = json.loads(download("#download-model").read_text())
+    assert model["format"] == "recal.model/1" and len(model["joints"]) == 6
+    urdf = download("#download-urdf")
+    assert urdf.suffix == ".urdf" and "<robot" in urdf.read_text() and "<joint" in urdf.read_text()
+    dh = download("#download-dh").read_text().splitlines()
+    assert any(r.startswith("joint,type,theta,d,a,alpha") for r in dh) and sum(r.startswith("j") for r in dh) == 7, dh
 
     # --- compensate a URScript program: per-point flags shown, the compensated file downloaded
     prog = tmp_path / "pick_and_place.script"
@@ -152,35 +212,72 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.wait_for_selector("#compensated", timeout=30_000)
     page.evaluate("document.querySelector('#compensated').closest('.card').scrollIntoView()")
     shot(page, "10-compensated", full_page=False)
-    with page.expect_download() as dl:
-        page.click("#download-compensated")
-    out = tmp_path / dl.value.suggested_filename
-    dl.value.save_as(out)
+    out = download("#download-compensated")
     assert out.name == "pick_and_place-compensated.script"
     compensated = out.read_text()
     assert compensated != URSCRIPT and "def pick_and_place():" in compensated
 
-    # --- the certificate: printable page, the browser's print to PDF, and the service's PDF
+    # --- a task CSV with a point outside the calibrated joint ranges and one at a wrist singularity
+    ranges = model["identification"]["joint_ranges"]
+    from calibration.ik import pose_and_jacobian, singular_values
+    from calibration.model import model_from_dict
+
+    nominal = model_from_dict(json.loads(stack.nominal_path.read_text()))
+    q = np.array([m["q"] for m in api(stack, "GET", f"/sessions/{session_id}/measurements")])
+    farthest = np.argmax(singular_values(nominal, pose_and_jacobian(nominal, q)[2])[:, -1])
+    inside = [round(float(v), 4) for v in np.rad2deg(q[farthest])]  # the measured one farthest from a singularity
+    outside = [ranges[0][1] + 25 if ranges[0][1] < 330 else ranges[0][0] - 25, *inside[1:]]
+    singular = [*inside[:4], 0.0, inside[5]]
+    task = tmp_path / "task.csv"
+    rows = (",".join(map(str, q)) for q in (inside, outside, singular))
+    task.write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(rows) + "\n")
+    page.set_input_files("#task-file", str(task))
+    page.click("#compensate")
+    page.wait_for_selector("#compensated:has-text('task-compensated.csv')", timeout=30_000)
+    flags = page.locator("table.compensation tbody tr td.flags").all_inner_texts()
+    assert len(flags) == 3 and flags[0] == "—", flags
+    assert "outside calibrated region" in flags[1] and "near singular" in flags[2], flags
+    assert "extrapolated" in page.inner_text("#flag-meanings")
+    page.evaluate("document.querySelector('#compensated').closest('.card').scrollIntoView()")
+    shot(page, "10b-compensated-task-flags", full_page=False)
+
+    # --- the certificate: no hold-out check yet, so it says which checks were not run
     page.click("#open-certificate")
     page.wait_for_selector("#certificate")
     cert = page.inner_text("#certificate")
     for what in ("line 3 UR10e", "ur10e", "laser tracker", "SIM-LT", "technician-anna", "Before calibration",
-                 "After calibration", "identification converged", "j2.a"):
+                 "After calibration, in-sample", "identification converged", "j2.a", "No hold-out check yet"):
         assert what in cert, what
+    verdict = page.inner_text("#verdict")
+    assert "Not run: hold-out verification" in verdict and "All checks passed" not in verdict, verdict
+
+    # ... a verify session after the calibration (through the API, as the nightly job would): the
+    # certificate quotes its fresh configurations as the hold-out accuracy
+    verify = api(stack, "POST", f"/cells/{cell_id}/sessions", {"kind": "verify", "count": 8, "device": "tracker",
+                                                               "target": "smr"})
+    deadline = time.monotonic() + 90
+    while (v := api(stack, "GET", f"/sessions/{verify['id']}"))["state"] not in ("completed", "failed", "aborted"):
+        assert time.monotonic() < deadline, v
+        time.sleep(0.3)
+    assert v["state"] == "completed", v
+    page.reload()
+    page.wait_for_selector("#certificate tr.holdout")
+    cert = page.inner_text("#certificate")
+    assert f"After calibration, hold-out (verify session {verify['id']})" in cert, cert
+    assert "Not run" not in page.inner_text("#verdict")
+    assert re.search(r"✓ passed\s+hold-out verification on fresh configurations", cert), cert
+    assert "Predicted: predicted position error" in cert
     shot(page, "11-certificate")
     page.emulate_media(media="print")
     page.pdf(path=str(tmp_path / "printed.pdf"), format="A4")
     shot(page, "12-certificate-print-view")
     page.emulate_media(media="screen")
     assert (tmp_path / "printed.pdf").read_bytes()[:4] == b"%PDF"
-    with page.expect_download() as dl:
-        page.click("#download-pdf")
-    pdf = tmp_path / "cert.pdf"
-    dl.value.save_as(pdf)
+    pdf = download("#download-pdf")
     assert pdf.read_bytes()[:4] == b"%PDF" and pdf.stat().st_size > 2000
 
-    # --- abort a session (with a confirmation), then a second calibration and the comparison
-    def plan_and_start(count: int) -> None:
+    # --- a session interrupted by a crash of the service, resumed, paused and aborted from the page
+    def plan_and_start(count: int) -> int:
         page.goto(f"{stack.url}/#/cells/{cell_id}/start")
         page.wait_for_selector("#plan")
         page.fill("#count", str(count))
@@ -189,23 +286,50 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
         page.click("#confirm-start")
         confirm(page, "Start the session?")
         page.wait_for_url(re.compile(r"#/sessions/\d+$"))
+        return int(page.url.rsplit("/", 1)[1])
 
     plan_and_start(40)
+    page.wait_for_function("/^[1-9]\\d* of/.test(document.querySelector('#progress')?.innerText)")  # running
+    stack.crash_and_restart_service()
+    page.wait_for_selector("#stop-banner:has-text('Interrupted')", timeout=30_000)
+    assert "the service stopped" in page.inner_text("#stop-banner")
+    assert "not connected" in page.inner_text("#device-state")  # what the devices said before is only the last known
+    shot(page, "13-session-interrupted")
+    page.click("#resume")
+    confirm(page, "Resume the session?")
+    page.wait_for_function("document.querySelector('#state').innerText.trim() === 'running'")
+    page.click("#pause")
+    confirm(page, "Pause the session?")
+    page.wait_for_selector("#stop-banner:has-text('Paused')")
+    assert page.locator("#resume").count() == 1
+    shot(page, "13b-session-paused")
     page.click("#abort")
     confirm(page, "Abort the session?")
     page.wait_for_selector("#stop-banner:has-text('Aborted')")
-    shot(page, "13-session-aborted")
+    assert page.locator("#resume").count() == 0
+    shot(page, "13c-session-aborted")
+
+    # --- a crash bent link 3 (the cell's devices now reach that robot): the next calibration
+    # shows which parameters moved beyond their uncertainty, the base and tool included
+    page.goto(f"{stack.url}/#/cells/{cell_id}/edit")
+    page.fill("#endpoint-line", json.dumps(stack.crashed_cell_ready))
+    page.click("#fill-from-line")
+    page.click("#save-cell")
+    page.wait_for_selector("text=site plant B")
     plan_and_start(16)
     page.wait_for_selector("#open-result", timeout=90_000)
     page.click("#open-result")
     page.wait_for_selector("#moved-count")
-    assert "calibration" in page.inner_text("#compare")
-    assert page.locator("table.compare tbody tr").count() > 5
+    moved = page.inner_text("#moved-count")
+    assert "moved beyond their uncertainty" in moved and "j3.a" in moved, moved
+    assert page.locator("table.compare tr.moved:has-text('j3.a')").count() == 1
+    compare = page.inner_text("table.compare")
+    assert "base.tx" in compare and f"calibration {calibration_id}" in page.inner_text("#compare"), compare
     page.evaluate("document.querySelector('#compare').closest('.card').scrollIntoView()")
     shot(page, "14-result-compared-with-previous", full_page=False)
 
     s = api(stack, "GET", f"/sessions/{session_id}")
-    assert s["state"] == "completed" and s["calibration_id"]
+    assert s["state"] == "completed" and s["calibration_id"] == calibration_id
 
 
 def test_viewer_cannot_start_a_session(page, stack, web):
@@ -232,10 +356,10 @@ def test_viewer_cannot_start_a_session(page, stack, web):
 
 def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     """A cell with 1000 stored calibrations (reports of full size): the overview and the cell's
-    page load quickly (they never load all the reports)."""
+    page load quickly (they never load all the reports); the overview shows the cells page by page."""
     from sqlmodel import Session
 
-    from service.models import Calibration
+    from service.models import Calibration, Cell
     from service.settings import Settings
     from service.store import make_engine
 
@@ -251,6 +375,8 @@ def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     with Session(engine) as db:
         for k in range(1000):
             db.add(Calibration(cell_id=cell_id, kind="pose", model=model, report=report, rms=0.03 + 0.01 * (k % 7) / 7))
+        for k in range(30):  # more cells than one page of the overview holds
+            db.add(Cell(name=f"spare cell {k + 1:02d}", site="plant C", model=model, devices={}))
         db.commit()
     engine.dispose()
     quiet_id = register_cell_by_api(stack, "quiet cell")
@@ -272,28 +398,46 @@ def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     page.goto(f"{stack.url}/#/")
     page.wait_for_selector(f"[data-cell='{cell_id}'] svg.spark polyline")
     overview_s = time.monotonic() - t
+    cells_total = web.api(stack, "GET", "/overview?limit=1")["total"]
+    pager = page.inner_text("#overview-pager")
+    assert f"of {cells_total}" in pager and page.locator(".cell-card").count() == 30, pager
+    page.click("#next-page")
+    page.wait_for_selector("#prev-page")
+    assert page.locator(".cell-card").count() == cells_total - 30
+    assert "spare cell 30" in page.inner_text(".cell-grid")
     # compared with a cell without calibrations on the same (possibly busy) machine
     assert busy_s < 2 * quiet_s + 1.5 and overview_s < 2 * quiet_s + 1.5, (quiet_s, busy_s, overview_s)
     assert busy_s < 10 and overview_s < 10
 
 
 def test_page_fits_a_portrait_tablet(page, stack, web):
-    """The overview and a cell's page on a tablet held upright (no sideways scrolling)."""
+    """The overview, a cell's page and a result on a tablet held upright: no sideways scrolling,
+    no figure sticking out of its card, the trend labelled along its time axis."""
     shot, sign_in, TABLET = web.shot, web.sign_in, web.tablet
     page.set_viewport_size({"width": TABLET["height"], "height": TABLET["width"]})
     sign_in(page, stack)
     page.wait_for_selector(".cell-card")
     fits = "document.documentElement.scrollWidth <= window.innerWidth + 1"
     assert page.evaluate(fits)
+    assert web.overflowing(page) == []
     shot(page, "40-portrait-cells")
     cells = {c["name"]: c for c in web.api(stack, "GET", "/overview")["cells"]}
     cell = cells.get("line 3 UR10e") or next(iter(cells.values()))
     page.goto(f"{stack.url}/#/cells/{cell['id']}")
     page.wait_for_selector("#test-devices")
     assert page.evaluate(fits)
+    assert web.overflowing(page) == []
+    if len(cell["trend"]) > 1:
+        ticks = page.locator("svg[aria-label='accuracy trend'] g.axes text:not(.label)").all_text_contents()
+        assert len([t for t in ticks if ":" in t]) >= 2, ticks  # times along the x axis, not one lone "1"
+        tips = page.locator("svg[aria-label='accuracy trend'] circle title").all_text_contents()
+        assert all(t.startswith("calibration ") for t in tips) and len(tips) == len(cell["trend"]), tips
     shot(page, "41-portrait-cell")
     if cell["last"]:
         page.goto(f"{stack.url}/#/calibrations/{cell['last']['id']}")
-        page.wait_for_selector("#summary")
+        page.wait_for_selector("#compare table, #compare p")
         assert page.evaluate(fits)
+        assert web.overflowing(page) == []
+        widths = page.eval_on_selector_all(".stat .value", "vs => vs.map(v => [v.scrollWidth, v.clientWidth])")
+        assert widths and all(sw <= cw for sw, cw in widths), widths
         shot(page, "42-portrait-result")

@@ -27,22 +27,13 @@ def read_calibration(calibration_id: int, db: DbSession, tok: Reader):
 @router.get("/calibrations/{calibration_id}/compare/{other_id}")
 def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> dict:
     """Which parameters moved between two calibrations, in units of their combined standard
-    uncertainty."""
+    uncertainty: every parameter, the base and tool frames included (the page's comparison,
+    :func:`.results.compare_calibrations`), with the predicted accuracy of both."""
+    from .results import compare_calibrations
+
     a, b = get_calibration(db, calibration_id), get_calibration(db, other_id)
-    pa = {p["name"]: p for p in a.report.get("parameters", [])}
-    pb = {p["name"]: p for p in b.report.get("parameters", [])}
-    rows = []
-    for name in pa.keys() & pb.keys():
-        if name.startswith(("base.", "tool.", "home.")) or ".tilt_" in name or ".shift_" in name:
-            continue  # local steps: not comparable as values
-        va, vb = pa[name]["value"], pb[name]["value"]
-        sa, sb = pa[name]["std_error"] or 0.0, pb[name]["std_error"] or 0.0
-        d = vb - va
-        s = (sa**2 + sb**2) ** 0.5
-        rows.append({"name": name, "unit": pa[name]["unit"], "from": va, "to": vb, "change": d,
-                     "change_sigmas": abs(d) / s if s > 0 else None, "moved": bool(s > 0 and abs(d) > 2 * s)})
-    rows.sort(key=lambda r: -(r["change_sigmas"] or 0))
-    return {"from": a.id, "to": b.id, "rms_from": a.rms, "rms_to": b.rms, "parameters": rows}
+    return {**compare_calibrations(a, b), "predicted_from": a.predicted, "predicted_to": b.predicted,
+            "nominal_versions": [a.nominal_version, b.nominal_version]}
 
 
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)

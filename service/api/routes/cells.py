@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from fastapi import APIRouter, HTTPException
-from pydantic import BaseModel, Field
+from pydantic import Field
 from sqlmodel import select
 
 from calibration.model import ModelFormatError, model_from_dict
@@ -20,16 +20,18 @@ from ...models import (
     SessionCreate,
     SessionPublic,
     TaskFile,
+    _In,
 )
-from ...store import audit, last_calibration, measured_count
+from ...plans import RegionError, check_region
+from ...store import audit, current_calibration
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
-from .sessions import public_session, start_session
+from .sessions import ACTIVE, public_session, start_session
 
 router = APIRouter(tags=["cells"])
 
 
 def _public(db, cell: Cell) -> CellPublic:
-    last = last_calibration(db, cell.id, kind="pose")
+    last = current_calibration(db, cell)
     return CellPublic(**cell.model_dump(), last_calibration_id=None if last is None else last.id)
 
 
@@ -40,19 +42,37 @@ def get_cell(db, cell_id: int) -> Cell:
     return cell
 
 
-def _check_model(doc: dict) -> None:
+def _check_model(doc: dict):
+    """The parsed model, or 422 naming the field of ``body.model`` at fault."""
     try:
-        model_from_dict(doc)
+        return model_from_dict(doc)
     except ModelFormatError as exc:
-        field = f"model.{exc.field}" if exc.field else "model"
+        field = f"body.model.{exc.field}" if exc.field else "body.model"
         raise HTTPException(422, {"field": field, "message": str(exc).split(": ", 1)[-1]}) from None
+
+
+def _check_region(model, region: list | None, *, sent: bool = True) -> None:
+    """422 naming the row of ``body.allowed_region`` at fault (``sent``: the region came with
+    this request; else it is the cell's, checked against a new model)."""
+    try:
+        check_region(model, region)
+    except RegionError as exc:
+        field = "body.allowed_region" + (f"[{exc.row}]" if exc.row is not None else "")
+        message = str(exc) if sent else f"the cell's allowed region does not fit the new model: {exc}; send an " \
+                                          f"allowed_region for it with the model"
+        raise HTTPException(422, {"field": field, "message": message}) from None
+
+
+def _name_free(db, name: str, cell_id: int | None = None) -> None:
+    other = db.exec(select(Cell.id).where(Cell.name == name)).first()
+    if other is not None and other != cell_id:
+        raise HTTPException(409, f"a cell named {name!r} exists already")
 
 
 @router.post("/cells", status_code=201, response_model=CellPublic)
 def create_cell(body: CellCreate, db: DbSession, tok: CellEditor):
-    _check_model(body.model)
-    if db.exec(select(Cell).where(Cell.name == body.name)).first() is not None:
-        raise HTTPException(409, f"a cell named {body.name!r} exists already")
+    _check_region(_check_model(body.model), body.allowed_region)
+    _name_free(db, body.name)
     cell = Cell(**body.model_dump())
     db.add(cell)
     db.commit()
@@ -76,14 +96,35 @@ def read_cell(cell_id: int, db: DbSession, tok: Reader):
 
 @router.patch("/cells/{cell_id}", response_model=CellPublic)
 def update_cell(cell_id: int, body: CellUpdate, db: DbSession, tok: CellEditor):
+    """Change some of a cell's fields. A new ``model`` (the nominal model) is validated as at
+    registration, refused while a session drives the cell, and counted (``model_version``; each
+    calibration says which it was identified from); the old one is kept in the audit log.
+    Calibrations of an earlier nominal no longer serve as the cell's current model or prior."""
     cell = get_cell(db, cell_id)
     changes = body.model_dump(exclude_unset=True)
+    if "name" in changes:
+        _name_free(db, changes["name"], cell_id)
+    detail: dict = {"fields": sorted(changes)}
+    if "model" in changes and changes["model"] == cell.model:
+        del changes["model"]
+    if "model" in changes:
+        model = _check_model(changes["model"])
+        _check_region(model, changes.get("allowed_region", cell.allowed_region), sent="allowed_region" in changes)
+        busy = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE))).first()
+        if busy is not None:
+            raise HTTPException(409, f"session {busy.id} is driving this cell ({busy.state}); replace the model when "
+                                     f"it has stopped")
+        detail.update({"old_model": cell.model, "old_model_version": cell.model_version,
+                       "model_version": cell.model_version + 1})
+        cell.model_version += 1
+    elif changes.get("allowed_region") is not None:
+        _check_region(model_from_dict(cell.model), changes["allowed_region"])
     for k, v in changes.items():
         setattr(cell, k, v)
     db.add(cell)
     db.commit()
     db.refresh(cell)
-    audit(db, actor=tok.name, action="edit cell", subject=f"cell {cell_id}", detail={"fields": sorted(changes)})
+    audit(db, actor=tok.name, action="edit cell", subject=f"cell {cell_id}", detail=detail)
     return _public(db, cell)
 
 
@@ -103,43 +144,85 @@ def list_sessions(cell_id: int, db: DbSession, tok: Reader, limit: int = 50):
 
 @router.get("/cells/{cell_id}/calibrations")
 def list_calibrations(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 100) -> list[dict]:
+    """The cell's calibrations, newest first (``limit`` of them, at most 5000), without models
+    and reports: the residual RMS, the predicted accuracy (``predicted``: 95 % radius over the
+    workspace) and the nominal model version each was identified from."""
     get_cell(db, cell_id)
-    q = select(Calibration).where(Calibration.cell_id == cell_id)
+    q = select(Calibration.id, Calibration.kind, Calibration.session_id, Calibration.rms, Calibration.created_at,
+               Calibration.nominal_version, Calibration.predicted).where(Calibration.cell_id == cell_id)
     if kind:
         q = q.where(Calibration.kind == kind)
     rows = db.exec(q.order_by(Calibration.id.desc()).limit(max(1, min(limit, 5000)))).all()
-    return [{"id": c.id, "kind": c.kind, "session_id": c.session_id, "rms": c.rms, "created_at": c.created_at,
-             "success": c.report.get("success")} for c in rows]
+    return [{"id": i, "kind": k, "session_id": s, "rms": r, "created_at": t, "nominal_version": v, "predicted": p}
+            for i, k, s, r, t, v, p in rows]
+
+
+def comparable_parameter(name: str) -> bool:
+    """Parameters whose values mean the same in two calibrations (local steps do not)."""
+    return not (name.startswith(("base.", "tool.", "home.")) or ".tilt_" in name or ".shift_" in name)
+
+
+def change_in_sigmas(a: dict, b: dict) -> dict | None:
+    """The change of one parameter from report entry ``a`` to ``b``, and in units of their
+    combined standard uncertainty ``|Δ| / sqrt(σa² + σb²)`` (None where it cannot be said)."""
+    if a.get("value") is None or b.get("value") is None:
+        return None
+    d = b["value"] - a["value"]
+    s = float(np.hypot(a.get("std_error") or 0.0, b.get("std_error") or 0.0))
+    return {"change": d, "change_sigmas": abs(d) / s if s > 0 else None, "moved": bool(s > 0 and abs(d) > 2 * s)}
 
 
 @router.get("/cells/{cell_id}/drift")
 def drift(cell_id: int, db: DbSession, tok: Reader) -> dict:
-    """Each identified parameter and the residual RMS over the cell's pose calibrations, oldest
-    first, with each parameter's change from the previous calibration in units of its combined
-    standard uncertainty (|Δ| / sqrt(σ₁² + σ₂²) > 2: moved beyond its uncertainty)."""
+    """How the cell's robot changed over time, oldest first:
+
+    - ``calibrations``: each pose calibration's time, residual RMS, predicted accuracy over the
+      workspace (``predicted``: the 95 % radius statistics stored with it) and the nominal model
+      version it was identified from;
+    - ``parameters``: each identified parameter over those calibrations, with its change from the
+      previous calibration of the same nominal model in units of their combined standard
+      uncertainty (|Δ| / sqrt(σ₁² + σ₂²) > 2: moved beyond its uncertainty);
+    - ``verify``: each completed verify session's measured accuracy (RMS, max, 95th percentile,
+      and ISO 9283 pose accuracy and repeatability when it repeated its configurations) with its
+      time and the calibration it checked.
+    """
     get_cell(db, cell_id)
-    cals = db.exec(select(Calibration).where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
-                   .order_by(Calibration.id)).all()
+    cals = db.exec(select(Calibration.id, Calibration.created_at, Calibration.rms, Calibration.predicted,
+                          Calibration.nominal_version, Calibration.report["parameters"])  # not whole reports
+                   .where(Calibration.cell_id == cell_id, Calibration.kind == "pose").order_by(Calibration.id)).all()
     series: dict[str, list] = {}
     history = []
     prev: dict[str, dict] = {}
-    for c in cals:
-        history.append({"id": c.id, "created_at": c.created_at, "rms": c.rms})
-        params = {p["name"]: p for p in c.report.get("parameters", [])}
+    prev_version = None
+    for cid, at, rms, predicted, version, parameters in cals:
+        history.append({"id": cid, "created_at": at, "rms": rms, "predicted": predicted, "nominal_version": version})
+        params = {p["name"]: p for p in parameters or []}
         for name, p in params.items():
-            entry = {"calibration_id": c.id, "value": p["value"], "std_error": p["std_error"], "unit": p["unit"]}
-            if name in prev and p["value"] is not None and prev[name]["value"] is not None and \
-                    not name.startswith(("base.", "tool.", "home.")) and ".tilt_" not in name and ".shift_" not in name:
-                d = p["value"] - prev[name]["value"]
-                s = float(np.hypot(p["std_error"] or 0.0, prev[name]["std_error"] or 0.0))
-                entry["change"] = d
-                entry["change_sigmas"] = (abs(d) / s) if s > 0 else None
+            entry = {"calibration_id": cid, "value": p["value"], "std_error": p["std_error"], "unit": p["unit"]}
+            if name in prev and version == prev_version and comparable_parameter(name):
+                moved = change_in_sigmas(prev[name], p)
+                if moved is not None:
+                    entry.update({"change": moved["change"], "change_sigmas": moved["change_sigmas"]})
             series.setdefault(name, []).append(entry)
-        prev = params
-    return {"calibrations": history, "parameters": series}
+        prev, prev_version = params, version
+    runs = db.exec(select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
+                   .where(RunSession.cell_id == cell_id, RunSession.kind == "verify", RunSession.state == "completed",
+                          RunSession.dry_run == False).order_by(RunSession.id)).all()  # noqa: E712
+    verify = []
+    for sid, at, info in runs:
+        v = (info or {}).get("verify")
+        if not v:
+            continue
+        iso = v.get("iso9283")
+        verify.append({"session_id": sid, "at": at, "calibration_id": v.get("calibration_id"), "n": v.get("n"),
+                       "rms": v.get("rms"), "max": v.get("max"), "p95": v.get("p95"), "unit": v.get("unit"),
+                       "iso9283": None if not iso else {
+                           "repeats": iso["repeats"], "AP_mean": iso["accuracy"]["mean"], "AP_max": iso["accuracy"]["max"],
+                           "RP_mean": iso["repeatability"]["mean"], "RP_max": iso["repeatability"]["max"]}})
+    return {"calibrations": history, "parameters": series, "verify": verify}
 
 
-class TaskFileCreate(BaseModel):
+class TaskFileCreate(_In):
     name: str = Field(min_length=1, max_length=200)
     content: str = Field(min_length=1)
     mode: str = Field(default="joints", pattern="^(joints|targets)$")
@@ -178,7 +261,7 @@ def compensate_tasks(cell_id: int, db: DbSession, tok: Compensator, calibration_
     from ...compensate import CompensationInputError, compensate_text
 
     cell = get_cell(db, cell_id)
-    cal = db.get(Calibration, calibration_id) if calibration_id is not None else last_calibration(db, cell_id, kind="pose")
+    cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
     if cal is None or cal.cell_id != cell_id:
         raise HTTPException(404, "no calibration to compensate with" if calibration_id is None
                             else f"no calibration {calibration_id} in cell {cell_id}")

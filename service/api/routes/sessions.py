@@ -7,17 +7,20 @@ import json
 
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import StreamingResponse
+from sqlalchemy import bindparam, func
+from sqlalchemy import select as sa_select
 from sqlalchemy.exc import IntegrityError
 from sqlmodel import Session, select
 
 from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token
-from ...store import audit, measured_count, set_state
-from ..deps import DbSession, Orchestrator, Reader, Runner
+from ...store import audit, measured_count, set_state, set_state_unless
+from ..deps import DbSession, Orchestrator, Reader, Runner, quick_read
 
 router = APIRouter(tags=["sessions"])
 
 ACTIVE = ("planned", "running")
 TERMINAL = ("completed", "failed", "aborted")
+ABORT_WAIT_S = 3.0  # how long POST /abort waits for the session to have stopped before answering
 
 
 def public_session(db, run: RunSession) -> SessionPublic:
@@ -25,6 +28,25 @@ def public_session(db, run: RunSession) -> SessionPublic:
     info.pop("swept_joint", None)
     return SessionPublic(**run.model_dump(exclude={"plan", "plan_info", "lease_owner", "lease_expires"}),
                          measured=measured_count(db, run.id), plan_info=info or None)
+
+
+# What GET /sessions/{id} and the progress events read: the public columns and the measured count
+# in one query, without the plan (every configuration of the session) or an ORM object. Pages and
+# nightly jobs poll this; bench/service.py measures it.
+_PUBLIC = [c for c in RunSession.__table__.columns if c.name in SessionPublic.model_fields]
+_MEASURED = (select(func.count(func.distinct(Measurement.seq))).where(Measurement.session_id == RunSession.id)
+             .correlate(RunSession).scalar_subquery().label("measured"))
+_READ_PUBLIC = sa_select(*_PUBLIC, _MEASURED).where(RunSession.id == bindparam("session_id"))  # built once
+
+
+def read_public_session(db, session_id: int) -> SessionPublic:
+    row = db.connection().execute(_READ_PUBLIC, {"session_id": session_id}).mappings().first()
+    if row is None:
+        raise HTTPException(404, f"no session {session_id}")
+    doc = dict(row)
+    info = dict(doc.pop("plan_info") or {})
+    info.pop("swept_joint", None)
+    return SessionPublic(**doc, plan_info=info or None)
 
 
 def get_run(db, session_id: int) -> RunSession:
@@ -46,14 +68,18 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
         raise HTTPException(422, {"field": "body.device", "message": "this cell has no CMM"})
     if body.device == "tracker" and measuring and not cell.devices.get("tracker"):
         raise HTTPException(422, {"field": "body.device", "message": "this cell has no laser tracker"})
-    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell.id,
-                                            RunSession.state.in_(("planned", "running")))).first()
+    for i, j in enumerate(body.joints or []):
+        if not 1 <= j <= model.n_joints or j in body.joints[:i]:
+            raise HTTPException(422, {"field": f"body.joints[{i}]", "message": f"expected a joint number from 1 to "
+                                                                              f"{model.n_joints}, each once; got {j}"})
+    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell.id, RunSession.state.in_(ACTIVE),
+                                            RunSession.dry_run == False)).first()  # noqa: E712 - dry runs move nothing
     if busy is not None and not body.dry_run:
         raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
+    info = {**({"joints": body.joints} if body.joints else {}), **({"repeats": body.repeats} if body.repeats > 1 else {})}
     run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
                      target=body.target if body.target is not None else (_default_target(model, body)),
-                     dry_run=body.dry_run, created_by=tok.name,
-                     plan_info={"joints": body.joints} if body.joints else None)
+                     dry_run=body.dry_run, created_by=tok.name, plan_info=info or None)
     db.add(run)
     try:
         db.commit()
@@ -74,9 +100,14 @@ def _default_target(model, body) -> str | None:
     return names[0] if names else None
 
 
+def _read_public(engine, session_id: int) -> SessionPublic:
+    with Session(engine) as db:
+        return read_public_session(db, session_id)
+
+
 @router.get("/sessions/{session_id}", response_model=SessionPublic)
-def read_session(session_id: int, db: DbSession, tok: Reader):
-    return public_session(db, get_run(db, session_id))
+async def read_session(session_id: int, request: Request, tok: Reader):
+    return await quick_read(request, _read_public, session_id)  # polled by pages and jobs: see quick_read
 
 
 @router.post("/sessions/{session_id}/resume", response_model=SessionPublic)
@@ -84,6 +115,11 @@ def resume(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrat
     run = get_run(db, session_id)
     if run.state not in ("paused", "interrupted", "planned"):
         raise HTTPException(409, f"session {session_id} is {run.state}; only a paused or interrupted session can resume")
+    planned_for = (run.plan_info or {}).get("nominal_version")
+    cell = db.get(Cell, run.cell_id)
+    if run.plan is not None and planned_for is not None and planned_for != cell.model_version:
+        raise HTTPException(409, f"session {session_id} was planned for the cell's nominal model version {planned_for}; "
+                                 f"it has been replaced (version {cell.model_version}): start a new session")
     busy = db.exec(select(RunSession).where(RunSession.cell_id == run.cell_id, RunSession.id != run.id,
                                             RunSession.state.in_(ACTIVE))).first()
     if busy is not None:
@@ -104,8 +140,8 @@ def pause(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrato
     if run.state not in ACTIVE:
         raise HTTPException(409, f"session {session_id} is {run.state}; only a running session can pause")
     audit(db, actor=tok.name, action="pause session", subject=f"session {session_id}")
-    if not orchestrator.pause(run.id):
-        set_state(db, run, "paused", "paused on request")
+    if not orchestrator.pause(run.id):  # nothing runs it: paused here
+        set_state_unless(db, run, TERMINAL + ("paused", "interrupted"), "paused", "paused on request")
     db.refresh(run)
     return public_session(db, run)
 
@@ -116,8 +152,12 @@ def abort(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrato
     if run.state in TERMINAL:
         raise HTTPException(409, f"session {session_id} is {run.state} already")
     audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
-    if not orchestrator.abort(run.id):
-        set_state(db, run, "aborted", "aborted on request")
+    if orchestrator.abort(run.id):
+        # It stops the robot at once and the session at its next step (while planning: within
+        # 0.1 s); answer with the state it ends in when that is quick.
+        orchestrator.wait(run.id, ABORT_WAIT_S)
+    else:  # nothing runs it (planned and never started, paused, interrupted): aborted here
+        set_state_unless(db, run, TERMINAL, "aborted", "aborted on request")
     db.refresh(run)
     return public_session(db, run)
 
@@ -146,9 +186,8 @@ async def events(session_id: int, request: Request, tok: Reader):
             if await request.is_disconnected():
                 return
             with Session(engine) as db:
-                run = db.get(RunSession, session_id)
-                snap = public_session(db, run).model_dump(mode="json")
-            key = (snap["state"], snap["measured"], snap["reason"])
+                snap = read_public_session(db, session_id).model_dump(mode="json")
+            key = (snap["state"], snap["measured"], snap["reason"], json.dumps(snap.get("device_state")))
             if key != last:
                 last = key
                 idle = 0.0

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, HTTPException, Request
 from sqlmodel import select
 
 from ...models import AuditEntry, Token, TokenCreate
 from ...store import audit, create_token
-from ..deps import Admin, CurrentToken, DbSession
+from ..deps import Admin, CurrentToken, DbSession, token_cache
 
 router = APIRouter(tags=["system"])
 
@@ -36,13 +36,14 @@ def list_tokens(db: DbSession, tok: Admin) -> list[dict]:
 
 
 @router.delete("/tokens/{token_id}")
-def revoke(token_id: int, db: DbSession, tok: Admin) -> dict:
+def revoke(token_id: int, request: Request, db: DbSession, tok: Admin) -> dict:
     t = db.get(Token, token_id)
     if t is None:
         raise HTTPException(404, f"no token {token_id}")
     t.revoked = True
     db.add(t)
     db.commit()
+    token_cache(request.app).forget(token_id)
     audit(db, actor=tok.name, action="revoke token", subject=f"token {token_id}")
     return {"id": token_id, "revoked": True}
 

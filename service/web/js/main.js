@@ -1,7 +1,7 @@
 // The page: sign-in with a token, then a hash router over the views.
 
 import { ApiError, clearToken, get, getToken, me, setToken } from "./api.js";
-import { clear, h, notify, put } from "./ui.js";
+import { clear, h, notify } from "./ui.js";
 import * as cells from "./views/cells.js";
 import * as session from "./views/session.js";
 import * as result from "./views/result.js";
@@ -9,6 +9,7 @@ import * as certificate from "./views/certificate.js";
 
 const routes = [
   [/^#?\/?$/, cells.overview],
+  [/^#\/page\/(\d+)$/, cells.overview],
   [/^#\/cells\/new$/, cells.register],
   [/^#\/cells\/(\d+)$/, cells.detail],
   [/^#\/cells\/(\d+)\/edit$/, cells.edit],

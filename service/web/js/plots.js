@@ -31,17 +31,63 @@ function fmt(v) {
   return String(+v.toPrecision(4));
 }
 
-export function niceTicks(lo, hi, count = 5) {
-  if (!(hi > lo)) { hi = lo + 1; lo = lo - 1; }
-  const span = hi - lo;
-  const step0 = span / count;
+// A round step (1, 2 or 5 times a power of ten) that cuts ``span`` into about ``count`` parts,
+// no finer than ``minStep``.
+function niceStep(span, count, minStep = 0) {
+  const step0 = Math.max(span / Math.max(count, 1), minStep);
   const mag = 10 ** Math.floor(Math.log10(step0));
   const err = step0 / mag;
-  const step = (err >= 7.5 ? 10 : err >= 3.5 ? 5 : err >= 1.5 ? 2 : 1) * mag;
-  const start = Math.ceil(lo / step - 1e-9) * step;
+  return Math.max((err >= 7.5 ? 10 : err >= 3.5 ? 5 : err >= 1.5 ? 2 : 1) * mag, minStep);
+}
+
+// Ticks at round values inside [lo, hi]; ``minStep``: no finer than this (1 for counts such as
+// pose numbers). Each tick is computed from its index, so 1.2 + 0.2 + ... never misses 2.
+export function niceTicks(lo, hi, count = 5, minStep = 0) {
+  if (!(hi > lo)) { hi = lo + 1; lo = lo - 1; }
+  const step = niceStep(hi - lo, count, minStep);
   const ticks = [];
-  for (let v = start; v <= hi + step * 1e-9; v += step) ticks.push(Math.abs(v) < step * 1e-9 ? 0 : v);
+  for (let k = Math.ceil(lo / step - 1e-9); k * step <= hi + step * 1e-9; k++) {
+    ticks.push(k === 0 ? 0 : +(k * step).toPrecision(12));
+  }
   return ticks;
+}
+
+// Ticks of a time axis (x in ms since the epoch) at round local times: seconds, minutes, hours,
+// days or months, about ``count`` of them; with the label format that fits the step.
+const SECOND = 1000, MINUTE = 60 * SECOND, HOUR = 60 * MINUTE, DAY = 24 * HOUR;
+const TIME_STEPS = [SECOND, 2 * SECOND, 5 * SECOND, 10 * SECOND, 15 * SECOND, 30 * SECOND, MINUTE, 2 * MINUTE,
+                    5 * MINUTE, 10 * MINUTE, 15 * MINUTE, 30 * MINUTE, HOUR, 2 * HOUR, 3 * HOUR, 6 * HOUR, 12 * HOUR,
+                    DAY, 2 * DAY, 7 * DAY];
+
+export function timeTicks(t0, t1, count = 5) {
+  const want = (t1 - t0) / Math.max(count, 1);
+  const step = TIME_STEPS.find((s) => s >= want);
+  const ticks = [];
+  let label;
+  if (step === undefined) { // months: the first of a month, every 1, 3, 6 or 12 months
+    const months = [1, 3, 6, 12, 24, 60].find((m) => m * 30 * DAY >= want) || 120;
+    const d = new Date(t0);
+    d.setHours(0, 0, 0, 0);
+    d.setDate(1);
+    d.setMonth(Math.ceil(d.getMonth() / months) * months);
+    for (; d.getTime() <= t1; d.setMonth(d.getMonth() + months)) if (d.getTime() >= t0) ticks.push(d.getTime());
+    label = (t) => new Date(t).toLocaleDateString(undefined, { month: "short", year: "numeric" });
+  } else if (step >= DAY) { // local midnights
+    const d = new Date(t0);
+    d.setHours(0, 0, 0, 0);
+    if (d.getTime() < t0) d.setDate(d.getDate() + 1);
+    const days = step / DAY;
+    for (; d.getTime() <= t1; d.setDate(d.getDate() + days)) ticks.push(d.getTime());
+    label = (t) => new Date(t).toLocaleDateString(undefined, { month: "short", day: "numeric" });
+  } else {
+    const off = new Date(t0).getTimezoneOffset() * MINUTE; // round in local time
+    for (let t = Math.ceil((t0 - off) / step) * step + off; t <= t1; t += step) ticks.push(t);
+    const days = new Date(t0).toDateString() !== new Date(t1).toDateString();
+    const opts = { hour: "2-digit", minute: "2-digit", ...(step < MINUTE ? { second: "2-digit" } : {}),
+                   ...(days ? { month: "short", day: "numeric" } : {}) };
+    label = (t) => new Date(t).toLocaleString(undefined, opts);
+  }
+  return { ticks, label };
 }
 
 function logTicks(lo, hi) {
@@ -55,9 +101,12 @@ function logTicks(lo, hi) {
   return out.length > 8 ? out.filter((v) => Math.abs(Math.log10(v) % 1) < 1e-9) : out;
 }
 
-// A chart of `series` ({x, y, type: "line"|"points"|"bars", color, label, width}) with axes.
+// A chart of `series` ({x, y, type: "line"|"points"|"bars", color, label, width, titles,
+// onclick(x, y, i)}) with axes; `titles[i]`: the tooltip of point i.
 // Options: xLabel, yLabel, logY, yMin, yMax, xMin, xMax, zeroLine, width, height, legend,
-// hlines ([{y, label, color}]), title (accessible name).
+// hlines ([{y, label, color}]), title (accessible name), integerX, integerY (ticks on whole numbers),
+// xTime (x in ms since the epoch: ticks at round local times), barWidth (x units, default 1),
+// xTicks and xFormat (ticks and their labels chosen by the caller).
 export function chart(series, o = {}) {
   const W = o.width || sizes().full, H = o.height || 260;
   const m = { l: 64, r: 14, t: o.legend === false ? 12 : 28, b: 44 };
@@ -68,7 +117,14 @@ export function chart(series, o = {}) {
   let x0 = o.xMin ?? Math.min(...xs), x1 = o.xMax ?? Math.max(...xs);
   if (!xs.length) { x0 = 0; x1 = 1; }
   const bars = series.some((d) => d.type === "bars");
-  if (bars) { x0 -= 0.5; x1 += 0.5; }
+  const barWidth = o.barWidth || 1;
+  const padL = bars && o.xMin === undefined ? barWidth / 2 : 0, padR = bars && o.xMax === undefined ? barWidth / 2 : 0;
+  x0 -= padL;
+  x1 += padR;
+  if (o.xTime) { // room around the points; an hour either side of a single one
+    const pad = x1 > x0 ? (x1 - x0) * 0.04 : 3600e3;
+    x0 -= pad; x1 += pad;
+  }
   if (x1 === x0) { x0 -= 1; x1 += 1; }
   let y0, y1;
   if (o.logY) {
@@ -91,19 +147,20 @@ export function chart(series, o = {}) {
   const svg = s("svg", { viewBox: `0 0 ${W} ${H}`, class: "plot", role: "img", "aria-label": o.title || o.yLabel || "plot" });
   const g = s("g", { class: "axes" });
   svg.appendChild(g);
-  const yt = o.logY ? logTicks(y0, y1) : niceTicks(y0, y1, 5);
+  const yt = o.logY ? logTicks(y0, y1) : niceTicks(y0, y1, 5, o.integerY ? 1 : 0);
   for (const t of yt) {
     if (t < y0 - 1e-12 || t > y1 + 1e-12) continue;
     g.appendChild(s("line", { x1: m.l, x2: W - m.r, y1: py(t), y2: py(t), class: "grid" }));
     g.appendChild(s("text", { x: m.l - 6, y: py(t) + 4, "text-anchor": "end" }, fmt(t)));
   }
-  let xt = o.xTicks || niceTicks(bars ? x0 + 0.5 : x0, bars ? x1 - 0.5 : x1, Math.max(2, Math.floor((W - m.l) / 80)));
-  if (o.integerX) xt = xt.filter((v) => Number.isInteger(v));
+  const nx = Math.max(2, Math.floor((W - m.l) / (o.xTime ? 110 : 80)));
+  let xt = o.xTicks, xf = o.xFormat || fmt;
+  if (!xt && o.xTime) ({ ticks: xt, label: xf } = timeTicks(x0, x1, nx));
+  if (!xt) xt = niceTicks(x0 + padL, x1 - padR, nx, o.integerX ? 1 : 0);
   for (const t of xt) {
     if (t < x0 - 1e-12 || t > x1 + 1e-12) continue;
     g.appendChild(s("line", { x1: px(t), x2: px(t), y1: H - m.b, y2: H - m.b + 5, class: "tick" }));
-    g.appendChild(s("text", { x: px(t), y: H - m.b + 18, "text-anchor": "middle" },
-      o.xFormat ? o.xFormat(t) : fmt(t)));
+    g.appendChild(s("text", { x: px(t), y: H - m.b + 18, "text-anchor": "middle" }, xf(t)));
   }
   g.appendChild(s("line", { x1: m.l, x2: W - m.r, y1: H - m.b, y2: H - m.b, class: "axis" }));
   g.appendChild(s("line", { x1: m.l, x2: m.l, y1: m.t, y2: H - m.b, class: "axis" }));
@@ -125,7 +182,7 @@ export function chart(series, o = {}) {
   for (const d of series) {
     const color = d.color || COLORS.after;
     if (d.type === "bars") {
-      const slot = (px(1) - px(0)) * 0.8;
+      const slot = Math.min((px(barWidth) - px(0)) * 0.8, o.barWidth ? Infinity : 60); // a lone pose: no slab
       const bw = Math.max(1, slot / nb);
       const base = o.logY ? y0 : Math.max(y0, Math.min(0, y1));
       d.x.forEach((xv, i) => {
@@ -135,22 +192,22 @@ export function chart(series, o = {}) {
         const ya = py(Math.max(yv, base)), yb = py(Math.min(yv, base));
         const r = s("rect", { x: xa, y: Math.min(ya, yb), width: Math.max(bw - 1, 1), height: Math.max(Math.abs(yb - ya), 0.5),
                               fill: color, opacity: d.opacity ?? 0.85 });
-        r.appendChild(s("title", {}, `${d.label ? d.label + ": " : ""}${o.xName || "x"} ${fmt(xv)}, ${fmt(yv)}`));
+        r.appendChild(s("title", {}, d.titles?.[i] ?? `${d.label ? d.label + ": " : ""}${o.xName || "x"} ${fmt(xv)}, ${fmt(yv)}`));
         plot.appendChild(r);
       });
       bi += 1;
     } else {
-      const pts = d.x.map((xv, i) => [xv, d.y[i]]).filter(([a, b]) => Number.isFinite(a) && Number.isFinite(b) && (!o.logY || b > 0));
+      const pts = d.x.map((xv, i) => [xv, d.y[i], i]).filter(([a, b]) => Number.isFinite(a) && Number.isFinite(b) && (!o.logY || b > 0));
       if (d.type !== "points" && pts.length > 1) {
         plot.appendChild(s("polyline", { points: pts.map(([a, b]) => `${px(a).toFixed(1)},${py(b).toFixed(1)}`).join(" "),
                                          fill: "none", stroke: color, "stroke-width": d.width || 1.8,
                                          "stroke-dasharray": d.dash || null }));
       }
       if (d.type !== "line" || pts.length < 30) {
-        for (const [a, b] of pts) {
+        for (const [a, b, i] of pts) {
           const c = s("circle", { cx: px(a), cy: py(b), r: d.r || (d.type === "points" ? 3.2 : 2.4), fill: color });
-          c.appendChild(s("title", {}, `${d.label ? d.label + ": " : ""}${o.xName || "x"} ${fmt(a)}, ${fmt(b)}`));
-          if (d.onclick) { c.style.cursor = "pointer"; c.addEventListener("click", () => d.onclick(a, b)); }
+          c.appendChild(s("title", {}, d.titles?.[i] ?? `${d.label ? d.label + ": " : ""}${o.xName || "x"} ${fmt(a)}, ${fmt(b)}`));
+          if (d.onclick) { c.style.cursor = "pointer"; c.addEventListener("click", () => d.onclick(a, b, i)); }
           plot.appendChild(c);
         }
       }
@@ -168,21 +225,26 @@ export function chart(series, o = {}) {
   return svg;
 }
 
-// Histograms of several datasets on common bins (bars side by side).
+// Histograms of several datasets on common bins of a round width (bars side by side). The
+// bins start at a round number at or below the smallest value (not at 0), so no bar is empty
+// for lack of small values; each bar's tooltip gives its bin and count. ``o.bins``: about how
+// many bins.
 export function histogram(datasets, o = {}) {
   const all = datasets.flatMap((d) => d.values).filter(Number.isFinite);
   if (!all.length) return chart([], o);
-  const lo = o.min ?? 0, hi = Math.max(...all) * 1.0001 || 1;
+  const mn = Math.min(...all), mx = Math.max(...all);
   const nbins = o.bins || Math.min(20, Math.max(6, Math.round(Math.sqrt(all.length))));
-  const w = (hi - lo) / nbins;
+  const w = niceStep(Math.max(mx - mn, Math.abs(mx) * 1e-6, 1e-12), nbins);
+  const lo = Math.floor(mn / w + 1e-9) * w;
+  const n = Math.max(1, Math.floor((mx - lo) / w + 1e-9) + 1);
   const series = datasets.map((d) => {
-    const counts = new Array(nbins).fill(0);
-    for (const v of d.values) if (Number.isFinite(v)) counts[Math.min(nbins - 1, Math.max(0, Math.floor((v - lo) / w)))]++;
-    return { type: "bars", x: counts.map((_, i) => i), y: counts, color: d.color, label: d.label };
+    const counts = new Array(n).fill(0);
+    for (const v of d.values) if (Number.isFinite(v)) counts[Math.min(n - 1, Math.max(0, Math.floor((v - lo) / w + 1e-9)))]++;
+    const x = counts.map((_, i) => lo + (i + 0.5) * w);
+    return { type: "bars", x, y: counts, color: d.color, label: d.label,
+             titles: counts.map((c, i) => `${fmt(+(lo + i * w).toPrecision(6))} to ${fmt(+(lo + (i + 1) * w).toPrecision(6))}: ${c}`) };
   });
-  const edges = (i) => lo + (i + 0.5) * w;
-  return chart(series, { ...o, xTicks: niceTicks(0, nbins - 1, 5).filter(Number.isInteger),
-                         xFormat: (i) => fmt(+edges(i).toPrecision(2)), xName: "bin", integerX: true,
+  return chart(series, { ...o, barWidth: w, xMin: lo, xMax: lo + n * w, xName: "bin", integerY: true,
                          yLabel: o.yLabel || "poses" });
 }
 

@@ -52,17 +52,34 @@ export function num(v, digits = 4) {
   return v.toFixed(Math.min(d, 8));
 }
 
+function parseTime(iso) {
+  return new Date(iso.endsWith("Z") || /[+-]\d\d:\d\d$/.test(iso) ? iso : iso + "Z");
+}
+
 export function when(iso) {
   if (!iso) return "–";
-  const t = new Date(iso.endsWith("Z") || /[+-]\d\d:\d\d$/.test(iso) ? iso : iso + "Z");
-  return t.toLocaleString(undefined, { year: "numeric", month: "short", day: "numeric", hour: "2-digit",
-                                       minute: "2-digit" });
+  return parseTime(iso).toLocaleString(undefined, { year: "numeric", month: "short", day: "numeric", hour: "2-digit",
+                                                    minute: "2-digit" });
+}
+
+// A time to the second (readings, device states): the date only when it is not today.
+export function whenSeconds(iso) {
+  if (!iso) return "–";
+  const t = parseTime(iso);
+  const opts = { hour: "2-digit", minute: "2-digit", second: "2-digit" };
+  if (t.toDateString() !== new Date().toDateString()) Object.assign(opts, { year: "numeric", month: "short", day: "numeric" });
+  return t.toLocaleString(undefined, opts);
+}
+
+// Milliseconds since the epoch of an ISO time from the service (UTC when it names no zone).
+export function epochMs(iso) {
+  return parseTime(iso).getTime();
 }
 
 // Compact date and time for tables: the year only when it is not this year.
 export function whenShort(iso) {
   if (!iso) return "–";
-  const t = new Date(iso.endsWith("Z") || /[+-]\d\d:\d\d$/.test(iso) ? iso : iso + "Z");
+  const t = parseTime(iso);
   const opts = { month: "short", day: "numeric", hour: "2-digit", minute: "2-digit" };
   if (t.getFullYear() !== new Date().getFullYear()) opts.year = "numeric";
   return t.toLocaleString(undefined, opts);
@@ -95,9 +112,19 @@ export function table(head, rows, attrs = {}) {
       h("tbody", {}, rows.map((r) => (r instanceof Node ? r : h("tr", {}, r.map((c) => h("td", {}, c))))))));
 }
 
-// A notice at the top of the page (errors stay until closed; others fade).
+// What a report says about where a parameter's value came from, when it is not simply these
+// measurements: "from the prior" (kept from the previous calibration), or a label it gives; "".
+export function paramLabel(p) {
+  if (p.source === "prior") return "from the prior";
+  for (const k of ["label", "status", "note"]) if (typeof p[k] === "string" && p[k]) return p[k];
+  return "";
+}
+
+// A notice: errors stay (at the bottom of the screen, over the page) until closed; others
+// appear above the page's content, pushing it down (never covering a button), and fade.
 export function notify(message, kind = "error") {
-  const box = document.getElementById("notices");
+  const box = document.getElementById(kind === "error" ? "toasts" : "notices");
+  if (kind !== "error") clear(box); // the latest success only
   const el = h("div", { class: `notice notice-${kind}`, role: kind === "error" ? "alert" : "status" },
     h("span", {}, message), h("button", { class: "close", "aria-label": "close", onclick: () => el.remove() }, "×"));
   box.appendChild(el);
@@ -143,6 +170,14 @@ export async function busy(button, fn) {
   }
 }
 
-export function link(href, ...children) {
-  return h("a", { href }, ...children);
+// A device address as code that wraps only at its natural breaks (after "//", before ":port",
+// after ", "), never in the middle of a number.
+export function address(v) {
+  const text = v == null ? "" : typeof v === "object" ? JSON.stringify(v) : String(v);
+  const el = h("code", { class: "address" });
+  text.split(/(?<=\/\/)|(?=:\d)|(?<=, )/).forEach((part, i) => {
+    if (i) el.appendChild(h("wbr"));
+    el.appendChild(document.createTextNode(part));
+  });
+  return el;
 }

@@ -3,7 +3,8 @@
 
 import { can, get, me, patch, post } from "../api.js";
 import { COLORS, chart, jointRanges, sizes, sparkline } from "../plots.js";
-import { add, badge, busy, card, clear, put, confirmDialog, duration, h, kv, notify, num, table, when, whenShort } from "../ui.js";
+import { address, badge, busy, card, put, confirmDialog, duration, epochMs, h, kv, notify, num, table, when,
+         whenShort } from "../ui.js";
 
 const DEVICE_NAMES = { rtde: "robot (UR RTDE)", modbus: "robot (Modbus TCP)", tracker: "laser tracker",
                        cmm: "CMM (I++ DME)", can: "CAN bus", encoders: "reference encoders", resolvers: "resolvers" };
@@ -20,9 +21,12 @@ function activeLink(a) {
 
 // --------------------------------------------------------------------------- overview
 
-export async function overview(ctx) {
+const PAGE = 30; // cells per page of the overview
+
+export async function overview(ctx, page = 1) {
   ctx.crumbs([["Cells", null]]);
-  const data = await get("/overview?limit=200");
+  page = Math.max(1, page || 1);
+  const data = await get(`/overview?limit=${PAGE}&offset=${(page - 1) * PAGE}`);
   if (!ctx.alive()) return;
   const grid = h("div", { class: "cell-grid" });
   for (const c of data.cells) {
@@ -45,11 +49,22 @@ export async function overview(ctx) {
     h("div", { class: "page-head" },
       h("h1", {}, "Cells"),
       can("cells") ? h("a", { class: "button primary", href: "#/cells/new", id: "register-cell" }, "Register a cell") : null),
-    data.cells.length ? grid : card("No cells yet",
+    data.cells.length ? grid : data.total ? card("No cells on this page", h("a", { href: "#/" }, "Back to the first page"))
+      : card("No cells yet",
       h("p", {}, can("cells") ? "Register the first robot cell: its robot model and the address of each device."
         : "A technician registers cells; there are none yet.")),
-    data.total > data.cells.length ? h("p", { class: "muted" }, `${data.cells.length} of ${data.total} cells shown`) : null,
+    data.total > PAGE ? overviewPager(page, data.total) : null,
     howTo(data.cells.length === 0));
+}
+
+function overviewPager(page, total) {
+  const pages = Math.ceil(total / PAGE);
+  const first = (page - 1) * PAGE + 1;
+  return h("nav", { class: "pager", id: "overview-pager", "aria-label": "pages of cells" },
+    page > 1 ? h("a", { class: "button secondary", href: page === 2 ? "#/" : `#/page/${page - 1}`, id: "prev-page" }, "‹ Previous")
+      : null,
+    h("span", { class: "muted" }, `cells ${first}–${Math.min(total, first + PAGE - 1)} of ${total} (page ${page} of ${pages})`),
+    page < pages ? h("a", { class: "button secondary", href: `#/page/${page + 1}`, id: "next-page" }, "Next ›") : null);
 }
 
 function howTo(open) {
@@ -97,7 +112,7 @@ export async function detail(ctx, id) {
   const results = h("div", { id: "device-results" });
   const testBtn = can("run") ? h("button", { class: "primary", id: "test-devices" }, "Test connections") : null;
   const devRows = Object.entries(c.devices_doc || {}).filter(([k]) => k !== "ready")
-    .map(([k, v]) => [DEVICE_NAMES[k] || k, h("code", {}, address(k, v))]);
+    .map(([k, v]) => [DEVICE_NAMES[k] || k, describeAddress(k, v)]);
   const devCard = card("Devices", table(["Device", "Address"], devRows),
     h("p", { class: "muted small" }, "The test opens each device, asks it something harmless and shows what it "
       + "answered. Nothing moves."), testBtn, results);
@@ -109,12 +124,14 @@ export async function detail(ctx, id) {
   get(`/cells/${id}/devices/test`).then((t) => { if (t.last && !results.firstChild) showTest(results, t.last, true); })
     .catch(() => {});
 
-  // accuracy trend
+  // accuracy trend, against the date (each point: one calibration, its id in the tooltip)
   const trend = c.trend;
   const trendCard = card("Accuracy over time",
-    trend.length ? chart([{ x: trend.map((t) => t.id), y: trend.map((t) => t.rms), type: "line", color: COLORS.after,
-                            label: `residual RMS (${unit})`, onclick: (x) => ctx.go(`#/calibrations/${x}`) }],
-      { xLabel: "calibration", yLabel: unit, integerX: true, height: 220, title: "accuracy trend", width: sizes().half })
+    trend.length ? chart([{ x: trend.map((t) => epochMs(t.created_at)), y: trend.map((t) => t.rms), type: "line",
+                            color: COLORS.after, label: `residual RMS (${unit})`,
+                            titles: trend.map((t) => `calibration ${t.id}, ${whenShort(t.created_at)}: RMS ${num(t.rms, 3)} ${unit}`),
+                            onclick: (x, y, i) => ctx.go(`#/calibrations/${trend[i].id}`) }],
+      { xLabel: "date", yLabel: unit, xTime: true, height: 220, title: "accuracy trend", width: sizes().half })
       : h("p", { class: "muted" }, "No calibration yet."),
     c.last ? h("p", {}, "Last calibration: ", h("a", { href: `#/calibrations/${c.last.id}`, id: "last-calibration" },
       `calibration ${c.last.id}`), `, RMS ${num(c.last.rms, 3)} ${unit}, ${when(c.last.created_at)}`) : null);
@@ -129,14 +146,29 @@ export async function detail(ctx, id) {
   pagedCalibrations(calsBox, id, 0, unit);
 }
 
-function address(key, v) {
+function describeAddress(key, v) {
   if ((key === "encoders" || key === "resolvers") && v && typeof v === "object") {
     return Object.entries(v).map(([j, node]) => `joint ${j}: CANopen node ${node}`).join(", ");
   }
   if (key === "can" && v && typeof v === "object") {
-    return `${v.interface || "?"} ${v.channel || ""}${v.host ? ` at ${v.host}:${v.port}` : ""}`;
+    return address(`${v.interface || "?"} ${v.channel || ""}${v.host ? ` at ${v.host}:${v.port}` : ""}`);
   }
-  return typeof v === "object" ? JSON.stringify(v) : String(v);
+  return address(v);
+}
+
+// What a device answered, for people: an encoder's or resolver's angle first, its counts,
+// resolution and node state as detail.
+function answerOf(r) {
+  const d = r.details || {};
+  if (r.ok !== false && d.angle_deg != null) {
+    const detail = [`${d.counts} counts`, d.resolution_deg ? `${num(d.resolution_deg, 3)}° per count` : null,
+                    d.pole_pairs > 1 ? `${d.pole_pairs} pole pairs` : null, `CANopen node ${d.node_id}`].filter(Boolean);
+    return h("span", {}, h("strong", { class: "angle" }, `${d.angle_deg.toFixed(4)}°`),
+      h("span", { class: "muted" }, " on the device's own scale"),
+      h("div", { class: "small muted" }, detail.join(" · ")),
+      d.state ? h("div", { class: `small ${d.status === "operational" ? "muted" : "warn-text"}` }, `Node ${d.state}`) : null);
+  }
+  return h("span", { class: r.ok === false ? "error-text" : "" }, r.answer || r.error || "");
 }
 
 function showTest(box, t, old = false) {
@@ -144,8 +176,8 @@ function showTest(box, t, old = false) {
     r.device,
     r.skipped ? h("span", { class: "badge state-paused" }, "not tested") : r.ok
       ? h("span", { class: "badge state-completed" }, "OK") : h("span", { class: "badge state-failed" }, "ERROR"),
-    h("span", { class: r.ok ? "" : "error-text" }, r.answer || r.error || ""),
-    r.elapsed_ms != null ? `${Math.round(r.elapsed_ms)} ms` : ""]);
+    answerOf(r),
+    r.elapsed_ms != null ? h("span", { class: "nowrap" }, `${Math.round(r.elapsed_ms)} ms`) : ""]);
   put(box, 
     h("p", { class: "muted small" }, `${old ? "Last test" : "Tested"} ${when(t.at)} by ${t.by || "?"}`),
     table(["Device", "Result", "What it answered", "Time"], rows, { class: "device-test" }));
@@ -179,16 +211,284 @@ function pager(total, offset, size, go) {
 
 // --------------------------------------------------------------------------- register / edit
 
-function parseJson(text, what) {
-  if (!text.trim()) return null;
-  try {
-    return JSON.parse(text);
-  } catch (e) {
-    throw new Error(`${what}: not valid JSON (${e.message})`);
-  }
+// The devices document's keys the form has fields for (contracts §7); other keys are kept.
+const FORM_KEYS = ["rtde", "modbus", "tracker", "cmm", "can", "encoders", "resolvers", "ready"];
+const CAN_KEYS = ["interface", "channel", "host", "port"];
+
+const HOST_RE = /^(?:[A-Za-z0-9](?:[A-Za-z0-9-]*[A-Za-z0-9])?(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]*[A-Za-z0-9])?)*|\[[0-9A-Fa-f:.]+\])$/;
+const INSTRUMENT_RE = /^(?:(?:socket|rfc2217):\/\/\S+:\d+|\/dev\/\S+|COM\d+|loop:\/\/)$/i;
+
+function port(text) {
+  return /^\d+$/.test(text) && +text >= 1 && +text <= 65535;
 }
 
-const DEVICES_EXAMPLE = '{"rtde": "127.0.0.2", "tracker": "socket://127.0.0.2:10001", "cmm": "socket://127.0.0.2:1294"}';
+// One input with its label, help and the place for its error message.
+function field(label, input, help) {
+  const id = input.id || `f${Math.random().toString(36).slice(2)}`;
+  input.id = id;
+  const err = h("p", { class: "field-error", id: `${id}-error`, role: "alert" });
+  input.setAttribute("aria-describedby", `${id}-error`);
+  return h("div", { class: "field" }, h("label", { for: id }, label), input, help ? h("p", { class: "help" }, help) : null, err);
+}
+
+// Show (or clear) an input's error message; returns whether it is valid.
+function mark(input, message) {
+  const err = document.getElementById(`${input.id}-error`);
+  input.classList.toggle("invalid", !!message);
+  if (message) input.setAttribute("aria-invalid", "true");
+  else input.removeAttribute("aria-invalid");
+  if (err) err.textContent = message || "";
+  return !message;
+}
+
+// The devices and allowed-region part of the cell form: fields for the robot controller, the
+// instrument, the CAN bus with its encoder and resolver nodes per joint, and the allowed joint
+// ranges; a shortcut that fills them from the endpoint line `recal fake-cell` prints; checks
+// each field as it is left and all of them on `read()` (which returns {devices, allowed_region}
+// or null when a field is wrong, with the messages shown at the fields).
+function deviceForm(doc, region) {
+  doc = doc || {};
+  const can = typeof doc.can === "object" && doc.can ? doc.can : {};
+  const input = (id, value, attrs = {}) => h("input", { id, value: value ?? "", spellcheck: "false", autocomplete: "off", ...attrs });
+  const rtde = input("dev-rtde", doc.rtde, { placeholder: "e.g. 192.168.1.10" });
+  const modbus = input("dev-modbus", doc.modbus, { placeholder: "e.g. 192.168.1.10:502" });
+  const tracker = input("dev-tracker", doc.tracker, { placeholder: "e.g. socket://192.168.1.20:10001" });
+  const cmm = input("dev-cmm", doc.cmm, { placeholder: "e.g. socket://192.168.1.30:1294" });
+  const canIf = input("dev-can-interface", can.interface, { placeholder: "socketcand", list: "can-interfaces" });
+  const canCh = input("dev-can-channel", can.channel, { placeholder: "e.g. vcan0, can0" });
+  const canHost = input("dev-can-host", can.host, { placeholder: "socketcand only" });
+  const canPort = input("dev-can-port", can.port, { placeholder: "e.g. 29536", inputmode: "numeric" });
+  const line = h("textarea", { id: "endpoint-line", rows: 3, spellcheck: "false",
+                               placeholder: '{"ready": true, "rtde": "127.0.0.2", "modbus": "127.0.0.2:502", "tracker": "socket://127.0.0.2:10001", …}' });
+  const fill = h("button", { type: "button", class: "secondary", id: "fill-from-line" }, "Fill in the fields");
+  const lineErr = h("p", { class: "field-error", id: "endpoint-line-error", role: "alert" });
+  const lineOk = h("p", { class: "small ok-text", id: "endpoint-line-status", role: "status" });
+  const jointsBox = h("div", { id: "joint-devices" });
+  const regionBox = h("div", { id: "region-fields" });
+  let joints = [];
+  let units = { length: "mm", angle: "deg" };
+  let nodes = { encoders: { ...(doc.encoders || {}) }, resolvers: { ...(doc.resolvers || {}) } };
+  let regionRows = Array.isArray(region) ? region.map((r) => [...r]) : [];
+  const extra = Object.fromEntries(Object.entries(doc).filter(([k]) => !FORM_KEYS.includes(k)));
+  const canExtra = Object.fromEntries(Object.entries(can).filter(([k]) => !CAN_KEYS.includes(k)));
+  const nodeInputs = [], regionInputs = [];
+
+  const checks = [
+    [rtde, (v) => !v || HOST_RE.test(v) ? "" : "expected the controller's host name or IP address, e.g. 192.168.1.10 (no port: RTDE uses 30004)"],
+    [modbus, (v) => {
+      if (!v) return "";
+      const m = /^(.+):(\d+)$/.exec(v);
+      return m && HOST_RE.test(m[1]) && port(m[2]) ? "" : "expected HOST:PORT, e.g. 192.168.1.10:502";
+    }],
+    [tracker, (v) => !v || INSTRUMENT_RE.test(v) ? "" : "expected socket://HOST:PORT or a serial port (/dev/ttyUSB0, COM3)"],
+    [cmm, (v) => !v || INSTRUMENT_RE.test(v) ? "" : "expected socket://HOST:PORT (the I++ DME server)"],
+    [canIf, (v) => !v && usesCan() ? "the reference encoders and resolvers need the CAN interface (socketcand, socketcan, pcan, …)" : ""],
+    [canCh, (v) => !v && (canIf.value.trim() || usesCan()) ? "expected the CAN channel, e.g. vcan0 or can0" : ""],
+    [canHost, (v) => {
+      if (canIf.value.trim() !== "socketcand") return v && !HOST_RE.test(v) ? "expected a host name or IP address" : "";
+      return v && HOST_RE.test(v) ? "" : "socketcand needs the host of the socketcand server";
+    }],
+    [canPort, (v) => {
+      if (canIf.value.trim() !== "socketcand" && !v) return "";
+      return port(v) ? "" : "expected a port number (1–65535), e.g. 29536";
+    }],
+  ];
+  const checkOne = (inp) => {
+    const c = checks.find(([i]) => i === inp);
+    return c ? mark(inp, c[1](inp.value.trim())) : true;
+  };
+  for (const [inp] of checks) inp.addEventListener("change", () => checkOne(inp));
+
+  function usesCan() {
+    return nodeInputs.some((i) => i.value.trim());
+  }
+
+  function checkNodes() {
+    let ok = true;
+    const seen = {};
+    for (const inp of nodeInputs) {
+      const v = inp.value.trim();
+      let msg = "";
+      if (v && !(/^\d+$/.test(v) && +v >= 1 && +v <= 127)) msg = "expected a CANopen node id, 1–127";
+      else if (v && seen[v]) msg = `node ${v} is already the ${seen[v]}`;
+      if (v && !msg) seen[v] = inp.dataset.what;
+      ok = mark(inp, msg) && ok;
+    }
+    return ok;
+  }
+
+  function checkRegion() {
+    let ok = true;
+    joints.forEach((j, i) => {
+      const [lo, hi] = regionInputs[i];
+      const a = lo.value.trim(), b = hi.value.trim();
+      let msgLo = "", msgHi = "";
+      if (a && !Number.isFinite(+a)) msgLo = "expected a number";
+      if (b && !Number.isFinite(+b)) msgHi = "expected a number";
+      if (!msgLo && !msgHi && (a || b)) {
+        const l = a ? +a : j.lower, u = b ? +b : j.upper;
+        if (l != null && u != null && !(l < u)) msgHi = `must be above the lower end (${l})`;
+        else if (j.lower != null && j.upper != null && (u <= j.lower || l >= j.upper)) {
+          msgHi = `[${l}, ${u}] lies outside the joint's limits [${j.lower}, ${j.upper}]: no motion left`;
+        }
+      }
+      ok = mark(lo, msgLo) && ok;
+      ok = mark(hi, msgHi) && ok;
+    });
+    return ok;
+  }
+
+  // The per-joint inputs (encoder and resolver nodes, allowed range) for the model's joints,
+  // keeping what was typed.
+  function setJoints(js, u) {
+    remember();
+    joints = (js || []).map((j, i) => ({ name: j.name || `j${i + 1}`, prismatic: j.type === "prismatic",
+                                         lower: j.lower ?? null, upper: j.upper ?? null }));
+    units = u || units;
+    render();
+  }
+
+  function render() {
+    nodeInputs.length = 0;
+    regionInputs.length = 0;
+    const nodeRows = joints.map((j, i) => {
+      const n = String(i + 1);
+      const enc = input(`enc-${n}`, nodes.encoders[n], { inputmode: "numeric", placeholder: "–", "aria-label": `joint ${n} reference encoder node id` });
+      const res = input(`res-${n}`, nodes.resolvers[n], { inputmode: "numeric", placeholder: "–", "aria-label": `joint ${n} resolver node id` });
+      enc.dataset.what = `joint ${n} reference encoder`;
+      res.dataset.what = `joint ${n} resolver`;
+      nodeInputs.push(enc, res);
+      for (const x of [enc, res]) x.addEventListener("change", () => { checkNodes(); checkOne(canIf); checkOne(canCh); });
+      return h("tr", {}, h("th", {}, `${n} (${j.name})`), h("td", {}, enc, errorOf(enc)), h("td", {}, res, errorOf(res)));
+    });
+    put(jointsBox, joints.length ? h("div", { class: "table-wrap" }, h("table", { class: "joint-fields" },
+      h("thead", {}, h("tr", {}, h("th", {}, "Joint"), h("th", {}, "Reference encoder node"), h("th", {}, "Resolver node"))),
+      h("tbody", {}, nodeRows))) : h("p", { class: "muted small" }, "Choose the robot model first."));
+    const unitOf = (j) => (j.prismatic ? units.length : units.angle);
+    const same = joints.every((j) => unitOf(j) === unitOf(joints[0]));
+    const rows = joints.map((j, i) => {
+      // a bound equal to the joint's limit is shown empty (its placeholder says the limit)
+      const r = (regionRows[i] || []).map((v, k) => (v !== "" && v != null && +v === [j.lower, j.upper][k] ? "" : v));
+      const lo = input(`region-lo-${i + 1}`, r[0], { inputmode: "decimal", placeholder: j.lower ?? "", "aria-label": `joint ${i + 1} lowest allowed` });
+      const hi = input(`region-hi-${i + 1}`, r[1], { inputmode: "decimal", placeholder: j.upper ?? "", "aria-label": `joint ${i + 1} highest allowed` });
+      regionInputs.push([lo, hi]);
+      for (const x of [lo, hi]) x.addEventListener("change", checkRegion);
+      return h("tr", {}, h("th", {}, `${i + 1} (${j.name})${same ? "" : `, ${unitOf(j)}`}`), h("td", {}, lo, errorOf(lo)),
+        h("td", {}, hi, errorOf(hi)));
+    });
+    const unit = same && joints.length ? ` (${unitOf(joints[0])})` : "";
+    put(regionBox, joints.length ? h("div", { class: "table-wrap" }, h("table", { class: "joint-fields" },
+      h("thead", {}, h("tr", {}, h("th", {}, "Joint"), h("th", {}, `From${unit}`), h("th", {}, `To${unit}`))),
+      h("tbody", {}, rows))) : null);
+  }
+
+  function errorOf(inp) {
+    const err = h("p", { class: "field-error", id: `${inp.id}-error`, role: "alert" });
+    inp.setAttribute("aria-describedby", err.id);
+    return err;
+  }
+
+  // What was typed in the per-joint inputs, so that rebuilding them keeps it.
+  function remember() {
+    if (!joints.length) return;
+    nodes = { encoders: {}, resolvers: {} };
+    nodeInputs.forEach((inp) => {
+      const [kind, n] = inp.id.split("-");
+      if (inp.value.trim()) nodes[kind === "enc" ? "encoders" : "resolvers"][n] = inp.value.trim();
+    });
+    regionRows = regionInputs.map(([lo, hi]) => [lo.value.trim(), hi.value.trim()]);
+  }
+
+  fill.addEventListener("click", () => {
+    lineErr.textContent = lineOk.textContent = "";
+    let d;
+    try {
+      d = JSON.parse(line.value.trim());
+      if (!d || typeof d !== "object" || Array.isArray(d)) throw new Error("expected a JSON object");
+    } catch (e) {
+      lineErr.textContent = `Not an endpoint line: ${e.message}. Paste the one line of JSON that recal fake-cell printed.`;
+      return;
+    }
+    const known = Object.keys(d).filter((k) => FORM_KEYS.includes(k) && k !== "ready");
+    if (!known.length) {
+      lineErr.textContent = "This JSON names no device (expected rtde, modbus, tracker, cmm, can, encoders, resolvers).";
+      return;
+    }
+    rtde.value = d.rtde ?? ""; modbus.value = d.modbus ?? ""; tracker.value = d.tracker ?? ""; cmm.value = d.cmm ?? "";
+    const c = d.can && typeof d.can === "object" ? d.can : {};
+    canIf.value = c.interface ?? ""; canCh.value = c.channel ?? ""; canHost.value = c.host ?? ""; canPort.value = c.port ?? "";
+    Object.keys(canExtra).forEach((k) => delete canExtra[k]);
+    Object.assign(canExtra, Object.fromEntries(Object.entries(c).filter(([k]) => !CAN_KEYS.includes(k))));
+    remember();
+    nodes = { encoders: { ...(d.encoders || {}) }, resolvers: { ...(d.resolvers || {}) } };
+    render();
+    const missing = Object.keys(d.encoders || {}).concat(Object.keys(d.resolvers || {})).filter((n) => +n > joints.length);
+    if (missing.length) lineErr.textContent = `The line names joint(s) ${missing.join(", ")}, which this robot does not have.`;
+    read(true);
+    lineOk.textContent = `Filled in from the line: ${known.join(", ")}. Check the fields below, then save.`;
+  });
+
+  // {devices, allowed_region} from the fields, or null (the errors shown at the fields).
+  function read(quiet = false) {
+    let ok = checkNodes();
+    for (const [inp] of checks) ok = checkOne(inp) && ok;
+    ok = checkRegion() && ok;
+    if (!ok) {
+      if (!quiet) document.querySelector("[aria-invalid=true]")?.focus();
+      return null;
+    }
+    remember();
+    const devices = { ...extra };
+    const v = (x) => x.value.trim();
+    if (v(rtde)) devices.rtde = v(rtde);
+    if (v(modbus)) devices.modbus = v(modbus);
+    if (v(tracker)) devices.tracker = v(tracker);
+    if (v(cmm)) devices.cmm = v(cmm);
+    if (v(canIf)) {
+      devices.can = { interface: v(canIf), channel: v(canCh), ...canExtra };
+      if (v(canHost)) devices.can.host = v(canHost);
+      if (v(canPort)) devices.can.port = Number(v(canPort));
+    }
+    for (const key of ["encoders", "resolvers"]) {
+      const m = Object.fromEntries(Object.entries(nodes[key]).map(([j, n]) => [j, Number(n)]));
+      if (Object.keys(m).length) devices[key] = m;
+    }
+    let allowed = null;
+    if (regionRows.some(([a, b]) => a || b)) {
+      allowed = joints.map((j, i) => [regionRows[i][0] ? +regionRows[i][0] : j.lower, regionRows[i][1] ? +regionRows[i][1] : j.upper]);
+    }
+    return { devices, allowed_region: allowed };
+  }
+
+  const element = h("div", { class: "device-form" },
+    h("fieldset", {}, h("legend", {}, "Devices"),
+      h("div", { class: "paste" },
+        h("label", { for: "endpoint-line" }, "Shortcut: paste the simulated cell's endpoint line"),
+        h("p", { class: "help" }, "The one line of JSON that ", h("code", {}, "recal fake-cell"), " (or ", h("code", {}, "make demo"),
+          ") printed; the fields below are filled from it."),
+        line, h("div", { class: "actions wrap" }, fill), lineErr, lineOk),
+      h("h3", {}, "Robot controller"),
+      h("div", { class: "pair" },
+        field("UR controller (RTDE) host", rtde, "Universal Robots: the controller's address (RTDE on port 30004)"),
+        field("Modbus TCP host:port", modbus, "a robot read over Modbus TCP (UR register map)")),
+      h("h3", {}, "Instrument"),
+      h("div", { class: "pair" },
+        field("Laser tracker", tracker, "socket://HOST:PORT, or the serial port it is plugged into"),
+        field("CMM (I++ DME)", cmm, "socket://HOST:PORT of the I++ DME server")),
+      h("h3", {}, "CAN bus (reference encoders and resolvers)"),
+      h("datalist", { id: "can-interfaces" }, ["socketcand", "socketcan", "pcan", "kvaser", "slcan"].map((x) => h("option", { value: x }))),
+      h("div", { class: "pair" }, field("Interface", canIf, "python-can interface: socketcand, socketcan, pcan, …"),
+        field("Channel", canCh, "e.g. vcan0, can0, PCAN_USBBUS1")),
+      h("div", { class: "pair" }, field("Host", canHost, "socketcand: the server's address"),
+        field("Port", canPort, "socketcand: the server's port")),
+      h("p", { class: "help" }, "CANopen node id (1–127) of the reference encoder and of the resolver on each joint; "
+        + "leave empty where there is none."),
+      jointsBox),
+    h("fieldset", {}, h("legend", {}, "Allowed region"),
+      h("p", { class: "help" }, "The joint ranges sessions may use, in the model's units; empty: the joint's limits "
+        + "(shown greyed)."), regionBox));
+  return { element, read, setJoints };
+}
 
 export async function register(ctx) {
   ctx.crumbs([["Cells", "#/"], ["Register a cell", null]]);
@@ -198,6 +498,7 @@ export async function register(ctx) {
   }
   const library = await get("/library/robots");
   if (!ctx.alive()) return;
+  const docs = {};
   let fileModel = null;
   const name = h("input", { id: "cell-name", required: true, placeholder: "e.g. line 3 welding robot" });
   const site = h("input", { id: "cell-site", value: "default" });
@@ -207,19 +508,16 @@ export async function register(ctx) {
   const file = h("input", { type: "file", id: "model-file", accept: ".json,application/json" });
   const fileRow = h("div", { class: "field", hidden: true }, h("label", { for: "model-file" }, "Model file"), file);
   const modelInfo = h("p", { class: "muted small", id: "model-info" });
-  src.addEventListener("change", () => { fileRow.hidden = src.value !== "file"; describeModel(); });
-  file.addEventListener("change", async () => {
-    fileModel = null;
-    const f = file.files[0];
-    if (!f) return describeModel();
-    try {
-      fileModel = JSON.parse(await f.text());
-    } catch (e) {
-      notify(`${f.name}: not valid JSON (${e.message})`);
-    }
-    describeModel();
-  });
-  function describeModel() {
+  const devs = deviceForm({}, null);
+  async function model() {
+    if (src.value === "file") return fileModel;
+    const key = src.value.slice(4);
+    docs[key] ||= await get(`/library/robots/${encodeURIComponent(key)}`);
+    return docs[key];
+  }
+  async function describeModel() {
+    const m = await model().catch(() => null);
+    devs.setJoints(m?.joints || [], m?.units);
     if (src.value === "file") {
       modelInfo.textContent = fileModel ? `${fileModel.name || "model"}: ${fileModel.joints?.length} joints, `
         + `${fileModel.convention}, units ${fileModel.units?.length}/${fileModel.units?.angle}, targets: `
@@ -230,48 +528,53 @@ export async function register(ctx) {
         + "no targets: a tracker measures the tool flange origin (use a model file to name reflectors and tooling balls)" : "";
     }
   }
-  describeModel();
-  const devices = h("textarea", { id: "cell-devices", rows: 5, placeholder: DEVICES_EXAMPLE, spellcheck: "false" });
+  src.addEventListener("change", () => { fileRow.hidden = src.value !== "file"; describeModel(); });
+  file.addEventListener("change", async () => {
+    fileModel = null;
+    const f = file.files[0];
+    if (f) {
+      try {
+        fileModel = JSON.parse(await f.text());
+      } catch (e) {
+        notify(`${f.name}: not valid JSON (${e.message})`);
+      }
+    }
+    describeModel();
+  });
   const drift = h("input", { id: "cell-drift", type: "number", step: "any", min: "0", placeholder: "optional" });
-  const region = h("textarea", { id: "cell-region", rows: 2, placeholder: "optional: [[-180, 180], [-150, 0], ...] one [low, high] per joint, model units" });
   const submit = h("button", { type: "submit", class: "primary", id: "save-cell" }, "Register the cell");
-  const form = h("form", { class: "card form" },
+  const formErr = h("p", { class: "error-text", id: "form-error", role: "alert" });
+  const form = h("form", { class: "card form", novalidate: true },
     h("h1", {}, "Register a cell"),
     field("Name", name), field("Site", site),
     field("Robot model", src), fileRow, modelInfo,
-    field("Devices", devices, "Paste the line `recal fake-cell` printed, or the same shape for real devices: "
-      + "rtde (UR controller address) or modbus (HOST:PORT), tracker and cmm (socket://HOST:PORT or a serial port), "
-      + "can with encoders / resolvers."),
-    field(`Drift threshold`, drift, "in the model's length unit: the nightly job recalibrates beyond it"),
-    field("Allowed region", region, "joint ranges the sessions may use"),
+    devs.element,
+    field("Drift threshold", drift, "in the model's length unit: the nightly job recalibrates beyond it"),
+    formErr,
     h("div", { class: "actions" }, h("a", { class: "button secondary", href: "#/" }, "Cancel"), submit));
+  name.addEventListener("change", () => mark(name, name.value.trim() ? "" : "give the cell a name"));
   form.addEventListener("submit", (e) => {
     e.preventDefault();
+    formErr.textContent = "";
     busy(submit, async () => {
-      let model;
-      if (src.value === "file") {
-        if (!fileModel) throw new Error("choose a model file first");
-        model = fileModel;
-      } else {
-        model = await get(`/library/robots/${encodeURIComponent(src.value.slice(4))}`);
+      const m = await model();
+      const okName = mark(name, name.value.trim() ? "" : "give the cell a name");
+      const d = devs.read();
+      if (!okName || !d || !m) {
+        formErr.textContent = !m ? "Choose the robot's model file first." : "Some fields need attention (marked in red).";
+        if (!okName) name.focus();
+        return;
       }
-      const body = { name: name.value.trim(), site: site.value.trim() || "default", model,
-                     devices: parseJson(devices.value, "Devices") || {} };
+      const body = { name: name.value.trim(), site: site.value.trim() || "default", model: m, devices: d.devices };
       if (drift.value) body.drift_threshold = Number(drift.value);
-      const reg = parseJson(region.value, "Allowed region");
-      if (reg) body.allowed_region = reg;
+      if (d.allowed_region) body.allowed_region = d.allowed_region;
       const cell = await post("/cells", body);
       notify(`Cell ${cell.name} registered.`, "ok");
       ctx.go(`#/cells/${cell.id}`);
     });
   });
   put(ctx.root, form);
-}
-
-function field(label, input, help) {
-  const id = input.id || `f${Math.random().toString(36).slice(2)}`;
-  input.id = id;
-  return h("div", { class: "field" }, h("label", { for: id }, label), input, help ? h("p", { class: "help" }, help) : null);
+  await describeModel();
 }
 
 export async function edit(ctx, id) {
@@ -284,24 +587,29 @@ export async function edit(ctx, id) {
   }
   const name = h("input", { id: "cell-name", value: c.name, required: true });
   const site = h("input", { id: "cell-site", value: c.site });
-  const devices = h("textarea", { id: "cell-devices", rows: 6, spellcheck: "false" });
-  devices.value = JSON.stringify(c.devices_doc || {}, null, 1);
+  const devs = deviceForm(c.devices_doc, c.allowed_region);
+  devs.setJoints(c.model.joints, c.model.units);
   const drift = h("input", { id: "cell-drift", type: "number", step: "any", min: "0", value: c.drift_threshold ?? "" });
-  const region = h("textarea", { id: "cell-region", rows: 3 });
-  region.value = c.allowed_region ? JSON.stringify(c.allowed_region) : "";
   const submit = h("button", { type: "submit", class: "primary", id: "save-cell" }, "Save");
-  const form = h("form", { class: "card form" }, h("h1", {}, `Edit ${c.name}`),
-    field("Name", name), field("Site", site), field("Devices", devices),
-    field("Drift threshold", drift, `in ${c.unit}`), field("Allowed region", region, "one [low, high] per joint, model units; empty: the joint limits"),
+  const formErr = h("p", { class: "error-text", id: "form-error", role: "alert" });
+  const form = h("form", { class: "card form", novalidate: true }, h("h1", {}, `Edit ${c.name}`),
+    field("Name", name), field("Site", site), devs.element,
+    field("Drift threshold", drift, `in ${c.unit}`),
     h("p", { class: "muted small" }, "The robot model cannot be changed: register a new cell for another robot."),
+    formErr,
     h("div", { class: "actions" }, h("a", { class: "button secondary", href: `#/cells/${id}` }, "Cancel"), submit));
   form.addEventListener("submit", (e) => {
     e.preventDefault();
+    formErr.textContent = "";
     busy(submit, async () => {
-      const body = { name: name.value.trim(), site: site.value.trim() || "default",
-                     devices: parseJson(devices.value, "Devices") || {},
-                     allowed_region: parseJson(region.value, "Allowed region") };
-      body.drift_threshold = drift.value ? Number(drift.value) : null;
+      const okName = mark(name, name.value.trim() ? "" : "give the cell a name");
+      const d = devs.read();
+      if (!okName || !d) {
+        formErr.textContent = "Some fields need attention (marked in red).";
+        return;
+      }
+      const body = { name: name.value.trim(), site: site.value.trim() || "default", devices: d.devices,
+                     allowed_region: d.allowed_region, drift_threshold: drift.value ? Number(drift.value) : null };
       await patch(`/cells/${id}`, body);
       notify("Saved.", "ok");
       ctx.go(`#/cells/${id}`);
@@ -312,11 +620,12 @@ export async function edit(ctx, id) {
 
 // --------------------------------------------------------------------------- start a session
 
+// [label, what it does, default count, most the service accepts (service/models.py MAX_COUNT)]
 const KINDS = {
-  pose: ["Calibrate", "measure the robot at planned poses and identify its true geometry", 40],
-  verify: ["Verify", "measure fresh poses and report how accurate the current model is (changes nothing)", 20],
-  joint: ["Joint encoders", "sweep joints against reference encoders: gains and gear eccentricity", 12],
-  circle: ["Circle points", "sweep each joint alone to locate its axis", 12],
+  pose: ["Calibrate", "measure the robot at planned poses and identify its true geometry", 40, 200],
+  verify: ["Verify", "measure fresh poses and report how accurate the current model is (changes nothing)", 20, 500],
+  joint: ["Joint encoders", "sweep joints against reference encoders: gains and gear eccentricity", 12, 360],
+  circle: ["Circle points", "sweep each joint alone to locate its axis", 12, 120],
 };
 
 export async function start(ctx, id) {
@@ -336,7 +645,7 @@ export async function start(ctx, id) {
       h("input", { type: "radio", name: "kind", value: k, checked: k === "pose", disabled: !needs }),
       h("span", {}, h("strong", {}, label), ` — ${text}`)));
   }
-  const count = h("input", { type: "number", id: "count", min: 1, max: 2000, value: 40 });
+  const count = h("input", { type: "number", id: "count", min: 1, max: KINDS.pose[3], value: 40 });
   const device = h("select", { id: "device" },
     devs.includes("tracker") ? h("option", { value: "tracker" }, "laser tracker") : null,
     devs.includes("cmm") ? h("option", { value: "cmm" }, "CMM (tooling balls, full pose)") : null);
@@ -355,7 +664,9 @@ export async function start(ctx, id) {
     targetField.hidden = k === "joint" || device.value === "cmm";
   }
   kind.addEventListener("change", () => {
-    count.value = KINDS[kind.querySelector("input:checked").value][2];
+    const spec = KINDS[kind.querySelector("input:checked").value];
+    count.value = spec[2];
+    count.max = spec[3];
     sync();
   });
   device.addEventListener("change", sync);
@@ -387,7 +698,7 @@ export async function start(ctx, id) {
       const plan = await get(`/sessions/${dry.id}/plan`);
       if (!ctx.alive()) return;
       showPlan(ctx, planBox, plan, s, c);
-      planBox.scrollIntoView({ behavior: "smooth", block: "start" });
+      planBox.scrollIntoView({ block: "start" });
     });
   });
   put(ctx.root, form, planBox);
@@ -401,12 +712,16 @@ function showPlan(ctx, box, plan, s, c) {
     ["Configurations", `${plan.configurations}${plan.method ? ` (${plan.method})` : ""}`],
     ["Limit check (dry run)", h("span", { class: ok ? "ok-text" : "error-text", id: "plan-check" },
       ok ? `✓ ${plan.check.message}` : `✗ ${s.reason || plan.check?.message || "the plan failed"}`)],
-    p && p.rms != null ? ["Predicted accuracy", h("span", { id: "predicted" },
-      `RMS ${num(p.rms, 3)} ${unit}, 95 % of the workspace within ${num(p.p95, 3)} ${unit}`)] : null,
+    p && p.rms != null ? ["Predicted error after calibration", h("span", {},
+      h("span", { id: "predicted" }, `95th percentile ${num(p.p95, 3)} ${unit}, RMS ${num(p.rms, 3)} ${unit}`),
+      h("span", { class: "muted small", id: "predicted-note", style: { display: "block" } }, "The position error the "
+        + "calibrated model is expected to have at random configurations of the workspace, from how well these poses "
+        + `determine its parameters (for an instrument with ${num(p.sigma, 2)} ${unit} noise per axis): 95 % of the `
+        + "configurations within the first figure. The result page shows the same quantity for the calibration "
+        + "actually obtained."))] : null,
     p && p.identifiable ? ["Parameters", `${p.identifiable} identifiable, ${p.unidentifiable} that these poses cannot determine`]
       : p && p.unidentifiable != null ? ["Parameters", `${p.unidentifiable} that these poses cannot determine`
         + (p.unidentifiable_names ? ` (${p.unidentifiable_names.slice(0, 6).join(", ")}${p.unidentifiable > 6 ? ", …" : ""})` : "")] : null,
-    p && p.note ? ["", h("span", { class: "muted small" }, p.note)] : null,
     plan.estimated_duration_s != null ? ["Estimated robot time", `${duration(plan.estimated_duration_s)} (motion at `
       + `≤ ${num(plan.speed_caps?.joint_speed_deg_s, 3)} °/s, settling and measuring)`] : null,
   ];

@@ -2,7 +2,7 @@
 // service's own PDF.
 
 import { download, get } from "../api.js";
-import { busy, clear, h, num, put, when } from "../ui.js";
+import { busy, h, num, paramLabel, put, when } from "../ui.js";
 
 export async function show(ctx, id) {
   const c = await get(`/calibrations/${id}/certificate`);
@@ -20,23 +20,17 @@ export async function show(ctx, id) {
   const acc = c.accuracy;
   const figs = [["n", "Poses"], ["mean", "Mean error"], ["std", "Std. dev. S"], ["mean_plus_3sigma", "Mean + 3 S"],
                 ["rms", "RMS"], ["p95", "95th percentile"], ["max", "Maximum"]];
-  const accRows = [];
-  for (const [label, f] of [["Before calibration", acc.before], ["After calibration", acc.after]]) {
-    if (f) accRows.push(h("tr", {}, h("th", {}, label), figs.map(([k]) => h("td", { class: "num" }, k === "n" ? String(f.n) : num(f[k], 4)))));
-  }
-  for (const [label, v] of [["Verification before", acc.verify_before], ["Verification after", acc.verify_after]]) {
-    if (v) accRows.push(h("tr", {}, h("th", {}, `${label} (session ${v.session_id})`), h("td", { class: "num" }, String(v.n)),
-      h("td", { class: "num" }, num(v.mean, 4)), h("td", {}, "–"), h("td", {}, "–"), h("td", { class: "num" }, num(v.rms, 4)),
-      h("td", { class: "num" }, num(v.p95, 4)), h("td", { class: "num" }, num(v.max, 4))));
-    if (v && v.registered) accRows.push(h("tr", {}, h("th", {}, `${label}, base placed where it fits best`),
-      h("td", { class: "num" }, String(v.n)), h("td", {}, "–"), h("td", {}, "–"), h("td", {}, "–"),
-      h("td", { class: "num" }, num(v.registered.rms, 4)), h("td", {}, "–"), h("td", { class: "num" }, num(v.registered.max, 4))));
-  }
+  const accRows = acc.rows.map((f) => h("tr", { class: f === acc.rows.at(-1) && acc.holdout ? "holdout" : "" },
+    h("th", {}, f.label), figs.map(([k]) => h("td", { class: "num" }, k === "n" ? String(f.n) : num(f[k], 4)))));
+  const w = acc.predicted_workspace;
+  const notRun = c.not_run || [];
 
   const doc = h("article", { class: "certificate", id: "certificate" },
     h("header", {},
       h("div", {}, h("div", { class: "cert-title" }, c.title), h("div", { class: "muted" }, `Certificate ${c.number}`)),
-      h("div", { class: `cert-verdict ${c.passed ? "pass" : "fail"}` }, c.passed ? "All checks passed" : "Not all checks passed")),
+      h("div", { class: `cert-verdict ${c.passed ? "pass" : "fail"}`, id: "verdict" },
+        c.passed ? "All checks that were run passed" : "Not all checks passed",
+        notRun.length ? h("div", { class: "small" }, `Not run: ${notRun.join("; ")}`) : null)),
     h("table", { class: "cert-kv" }, h("tbody", {},
       row("Cell", `${c.cell.name} (site ${c.cell.site}, id ${c.cell.id})`),
       row("Robot", `${c.robot.model}, ${c.robot.joints} joints, nominal convention ${c.robot.convention}`
@@ -52,9 +46,12 @@ export async function show(ctx, id) {
     h("h2", {}, `Accuracy (${unit})`),
     h("table", { class: "grid" }, h("thead", {}, h("tr", {}, h("th", {}, ""), figs.map(([, l]) => h("th", {}, l)))),
       h("tbody", {}, accRows)),
-    h("p", { class: "small" }, `Before: ${acc.before_model || "–"}. After: ${acc.after_model || "–"}. ${acc.note}.`
-      + (acc.predicted_workspace ? ` Predicted over the workspace (95 % radius of the model's uncertainty): mean `
-        + `${num(acc.predicted_workspace.mean, 3)}, max ${num(acc.predicted_workspace.max, 3)} ${unit}.` : "")),
+    h("p", { class: "small" }, `Before: ${acc.before_model || "–"}. After, ${acc.after_kind}. `,
+      acc.holdout ? h("strong", {}, `Hold-out: ${acc.holdout_model}. `)
+        : h("strong", {}, "No hold-out check yet: run a verify session on this cell to measure fresh configurations. "),
+      `${acc.note}.`),
+    w ? h("p", { class: "small", id: "cert-predicted" }, `Predicted: ${w.what}: RMS ${num(w.rms, 3)} ${unit}, `
+      + `95th percentile ${num(w.p95, 3)} ${unit}, max ${num(w.max, 3)} ${unit}.`) : null,
     h("h2", {}, "Checks"),
     h("table", { class: "grid checks" }, h("tbody", {}, c.checks.map((k) => h("tr", {},
       h("td", { class: k.passed ? "pass" : k.passed === null ? "na" : "fail" }, k.passed ? "✓ passed" : k.passed === null ? "– not run" : "✗ failed"),
@@ -62,7 +59,8 @@ export async function show(ctx, id) {
     h("h2", {}, "Identified parameters"),
     h("table", { class: "grid params" },
       h("thead", {}, h("tr", {}, ["Parameter", "Value", "Change", "Std. uncertainty u", "U (k = 2)", "Unit"].map((t) => h("th", {}, t)))),
-      h("tbody", {}, c.parameters.map((p) => h("tr", {}, h("td", {}, p.name), h("td", { class: "num" }, num(p.value, 9)),
+      h("tbody", {}, c.parameters.map((p) => h("tr", {}, h("td", {}, p.name, paramLabel(p) ? ` (${paramLabel(p)})` : ""),
+        h("td", { class: "num" }, num(p.value, 9)),
         h("td", { class: "num" }, num(p.change, 4)), h("td", { class: "num" }, num(p.std_error, 3)),
         h("td", { class: "num" }, num(p.expanded_uncertainty, 3)), h("td", {}, p.unit))))),
     h("p", { class: "small" }, "base.* and tool.* are small displacements of those frames about the calibrated model: their value "

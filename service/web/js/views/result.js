@@ -5,7 +5,10 @@
 
 import { api, can, download, get, saveBlob } from "../api.js";
 import { COLORS, chart, colorMap, histogram, sizes } from "../plots.js";
-import { add, badge, busy, card, clear, put, h, kv, notify, num, table, when } from "../ui.js";
+import { add, badge, busy, card, clear, put, h, kv, num, paramLabel, table, when } from "../ui.js";
+
+// Above this the identification's (scaled) Jacobian is called ill-conditioned (as the certificate's check).
+const CONDITION_LIMIT = 1000;
 
 export async function show(ctx, id) {
   const r = await get(`/calibrations/${id}/result`);
@@ -29,15 +32,25 @@ export async function show(ctx, id) {
         + (r.session ? ` · session ${r.session.id} by ${r.session.created_by}` : ""))),
     rep.success === false ? badge("failed") : badge("completed"));
 
+  const pred = ws ? ws.stats_rms : null;
   const summary = h("div", { class: "stats", id: "summary" },
-    e ? stat("Before", `${num(e.before.stats.rms, 3)} ${unit}`, `RMS, max ${num(e.before.stats.max, 3)}`, "before") : null,
-    stat("After", `${num(e ? e.after.stats.rms : r.rms, 3)} ${unit}`, e ? `RMS, max ${num(e.after.stats.max, 3)}` : "residual RMS", "after"),
-    ws ? stat("Predicted (95 %)", `${num(ws.stats95.mean, 3)} ${unit}`, `over the workspace, max ${num(ws.stats95.max, 3)}`) : null,
-    stat("Poses", String(rep.rows ?? "–"), `${(rep.outliers || []).length} outlier(s)`),
-    stat("Parameters", String((rep.parameters || []).length), `${(rep.unidentifiable || []).length} not determinable`));
+    e ? stat("Before", num(e.before.stats.rms, 3), unit, `RMS, max ${num(e.before.stats.max, 3)}`, "before") : null,
+    stat("After (fitted poses)", num(e ? e.after.stats.rms : r.rms, 3), unit,
+      e ? `RMS, max ${num(e.after.stats.max, 3)}` : "residual RMS", "after"),
+    pred ? stat("Predicted error", num(pred.p95, 3), unit,
+      `95th percentile at random configurations; RMS ${num(pred.rms, 3)}`, "predicted") : null,
+    stat("Poses", String(rep.rows ?? "–"), "", `${(rep.outliers || []).length} outlier(s)`),
+    stat("Parameters", String((rep.parameters || []).length), "", `${(rep.unidentifiable || []).length} not determinable`));
+  const summaryNote = h("p", { class: "small muted", id: "summary-note" },
+    "After: residuals on the measurements the model was fitted to (in-sample, optimistic). ",
+    pred ? `Predicted: the position error the calibrated model is expected to have at ${ws.samples} random `
+      + "configurations inside the allowed joint ranges, from its parameters' uncertainty — the same quantity the "
+      + "plan predicted before the session. " : "",
+    "A verify session measures fresh configurations: the accuracy to quote (the certificate uses it).");
 
-  const parts = [head, summary, card("Files", downloads, h("p", { class: "muted small" },
-    "The model file works with every recal command; URDF for ROS; the DH table for the robot controller or a report."))];
+  const parts = [head, summary, summaryNote, numericalNotes(rep, unit),
+    card("Files", downloads, h("p", { class: "muted small" },
+      "The model file works with every recal command; URDF for ROS; the DH table for the robot controller or a report."))];
 
   if (e) {
     parts.push(h("div", { class: "two" },
@@ -73,35 +86,43 @@ export async function show(ctx, id) {
     parts.push(card("Predicted accuracy over the workspace",
       h("div", { class: "two" },
         h("div", {}, h("h3", {}, "Seen from above"),
-          colorMap(p.map((v) => v[0]), p.map((v) => v[1]), ws.radius95, { xLabel: `x (${unit})`, yLabel: `y (${unit})`,
-                                                                           unit, equal: true, title: "workspace map from above" })),
+          colorMap(p.map((v) => v[0]), p.map((v) => v[1]), ws.rms, { xLabel: `x (${unit})`, yLabel: `y (${unit})`,
+                                                                     unit, equal: true, title: "workspace map from above" })),
         h("div", {}, h("h3", {}, "Seen from the side"),
-          colorMap(p.map((v) => Math.hypot(v[0] - avg(p, 0), v[1] - avg(p, 1))), p.map((v) => v[2]), ws.radius95,
+          colorMap(p.map((v) => Math.hypot(v[0] - avg(p, 0), v[1] - avg(p, 1))), p.map((v) => v[2]), ws.rms,
             { xLabel: `distance from the centre (${unit})`, yLabel: `z (${unit})`, unit, title: "workspace map from the side" }))),
-      histogram([{ values: ws.radius95, color: COLORS.after }], { xLabel: `95 % radius (${unit})`, yLabel: "configurations",
-                                                                   height: 180, legend: false,
-                                                                   min: Math.min(...ws.radius95) * 0.95 }),
-      h("p", { class: "small muted" }, `${ws.note}. ${ws.samples} random configurations inside the allowed joint ranges`
-        + `${ws.target ? `, target ${ws.target}` : ""}: mean ${num(ws.stats95.mean, 3)}, 95th percentile ${num(ws.stats95.p95, 3)}, `
-        + `max ${num(ws.stats95.max, 3)} ${unit}.`)));
+      histogram([{ values: ws.rms, color: COLORS.after }], { xLabel: `predicted position error (${unit})`,
+                                                             yLabel: "configurations", height: 180, legend: false,
+                                                             title: "histogram of predicted errors" }),
+      h("p", { class: "small muted" }, `Each dot: where the ${ws.target ? `target ${ws.target}` : "tool"} is at one of `
+        + `${ws.samples} random configurations inside the allowed joint ranges, coloured by the position error the `
+        + `calibrated model is predicted to have there (1σ, 3-D, from the identified parameters' covariance; the `
+        + `instrument's own noise is not included). RMS over the configurations ${num(ws.stats_rms.rms, 3)}, 95th `
+        + `percentile ${num(ws.stats_rms.p95, 3)}, max ${num(ws.stats_rms.max, 3)} ${unit}. (As a 95 % uncertainty `
+        + `radius, ${num(ws.stats95.mean, 3)} ${unit} on average.)`)));
   }
 
   // parameters
   const params = rep.parameters || [];
   if (params.length) {
+    const labelled = params.some((p) => paramLabel(p));
     parts.push(card("Identified parameters",
-      table(["Parameter", "Value", "Change", "Std. error", "Unit"],
+      table(["Parameter", "Value", "Change", "Std. error", "Unit", labelled ? "Note" : null].filter(Boolean),
         params.map((p) => h("tr", { class: significant(p) ? "" : "muted" },
           h("td", {}, p.name), h("td", { class: "num" }, num(p.value, 8)), h("td", { class: "num" }, num(p.change, 4)),
-          h("td", { class: "num" }, num(p.std_error, 3)), h("td", {}, p.unit))), { class: "params" }),
+          h("td", { class: "num" }, num(p.std_error, 3)), h("td", {}, p.unit),
+          labelled ? h("td", { class: "small" }, paramLabel(p)) : null)), { class: "params" }),
       h("p", { class: "small muted" }, "Change: how far the calibration moved the parameter from where it started. "
         + "base.* and tool.* are small displacements of those frames (their value is 0 by definition). "
-        + "Greyed rows moved less than twice their standard error.")));
+        + "Greyed rows moved less than twice their standard error."
+        + (labelled ? " Note: what the identification says about the parameter (\u201cfrom the prior\u201d: these "
+          + "measurements did not determine it; its value and uncertainty come from the previous calibration)." : ""))));
   }
   const un = rep.unidentifiable || [];
   if (un.length) {
     parts.push(card("Parameters the data could not determine",
-      table(["Parameter", "Why"], un.map((u) => [u.name, u.reason]), { class: "unidentifiable" }),
+      table(["Parameter", "Why"], un.map((u) => [u.name, [u.reason, paramLabel(u) ? ` (${paramLabel(u)})` : ""]]),
+        { class: "unidentifiable" }),
       h("p", { class: "small muted" }, "These keep their starting values. It is normal for some (a joint offset and the base "
         + "rotation are the same motion); others need more varied poses or another target.")));
   }
@@ -111,7 +132,7 @@ export async function show(ctx, id) {
   const cmpBox = h("div", { id: "compare" }, h("p", { class: "muted" }, r.previous_id ? "Loading…" : "This is the cell's first calibration."));
   parts.push(card("Compared with the previous calibration", cmpBox));
   if (r.previous_id) {
-    get(`/calibrations/${r.previous_id}/compare/${id}`).then((c) => showCompare(cmpBox, c, r.previous_id, unit))
+    get(`/calibrations/${id}/comparison?previous=${r.previous_id}`).then((c) => showCompare(cmpBox, c, r.previous_id, unit))
       .catch((err) => { put(cmpBox, h("p", { class: "error-text" }, err.message)); });
   }
 
@@ -127,6 +148,42 @@ export async function show(ctx, id) {
   put(ctx.root, ...parts);
 }
 
+// What the identification's numbers mean when they look alarming: a large condition number,
+// parameters the data could not determine, parameters kept from the prior. Null when none.
+function numericalNotes(rep, unit) {
+  const items = [];
+  const cond = rep.condition_number;
+  if (cond != null && cond > CONDITION_LIMIT) {
+    items.push(h("li", { id: "note-condition" }, h("strong", {}, `Condition number ${num(cond, 3)}. `),
+      "Some combinations of parameters are only weakly told apart by these poses, so those parameters' individual "
+      + "values are uncertain (their standard errors say how much). This does not make the model inaccurate: "
+      + `the position errors on this page (in ${unit}) are what count. More varied poses lower it.`));
+  }
+  const un = rep.unidentifiable || [];
+  if (un.length) {
+    items.push(h("li", { id: "note-undetermined" }, h("strong", {}, `${un.length} parameter(s) not determined. `),
+      "These measurements cannot tell them apart from other parameters (see the list below, with the reason); they "
+      + "keep their starting values and the others absorb their effect, so positions are still predicted "
+      + "correctly. This is normal for a robot measured at one point of its tool."));
+  }
+  const labels = {};
+  for (const p of rep.parameters || []) {
+    const l = paramLabel(p);
+    if (l) (labels[l] ||= []).push(p.name);
+  }
+  for (const [label, names] of Object.entries(labels)) {
+    const prior = /prior/i.test(label);
+    items.push(h("li", { class: "note-label" }, h("strong", {}, `${names.length} parameter(s) ${label}: `),
+      `${names.slice(0, 8).join(", ")}${names.length > 8 ? ", …" : ""}. `,
+      prior ? "These measurements did not determine them; their values and uncertainties come from the previous "
+        + `calibration${rep.prior ? `, ${rep.prior.calibration_id}` : ""}, which is as it should be for a short `
+        + "update session." : ""));
+  }
+  if (!items.length) return null;
+  return h("section", { class: "card notes-card", id: "numerical-notes" }, h("h2", {}, "Reading these numbers"),
+    h("ul", {}, items));
+}
+
 function avg(p, k) {
   return p.reduce((a, v) => a + v[k], 0) / (p.length || 1);
 }
@@ -135,8 +192,9 @@ function significant(p) {
   return p.std_error == null || Math.abs(p.change || 0) > 2 * p.std_error;
 }
 
-function stat(label, value, sub, cls = "") {
-  return h("div", { class: `stat ${cls}` }, h("div", { class: "label" }, label), h("div", { class: "value" }, value),
+function stat(label, value, unit, sub, cls = "") {
+  return h("div", { class: `stat ${cls}` }, h("div", { class: "label" }, label),
+    h("div", { class: "value" }, h("span", { class: "figure" }, value), unit ? [" ", h("span", { class: "unit" }, unit)] : null),
     h("div", { class: "sub" }, sub));
 }
 
@@ -147,20 +205,57 @@ function dl(label, path, name, id) {
   return b;
 }
 
+const STATUS = {
+  both: "",
+  new: "new: estimated now, not in the previous calibration",
+  "not estimated": "not estimated now: kept its value",
+  "from the prior": "from the prior: these measurements did not determine it",
+  fixed: "not estimated in either",
+};
+
 function showCompare(box, c, prevId, unit) {
-  const moved = c.parameters.filter((p) => p.moved);
-  const rows = c.parameters.slice(0, 40).map((p) => h("tr", { class: p.moved ? "moved" : "" },
-    h("td", {}, p.name), h("td", { class: "num" }, num(p.from, 8)), h("td", { class: "num" }, num(p.to, 8)),
+  const rows = c.parameters;
+  const moved = rows.filter((p) => p.moved);
+  const frame = (p) => p.group === "base" || p.group === "tool" || p.group === "home";
+  const tr = (p) => h("tr", { class: [p.moved ? "moved" : "", p.status !== "both" ? "partial" : ""].join(" ").trim(),
+                              "data-status": p.status },
+    h("td", {}, p.name), h("td", { class: "num" }, frame(p) ? "–" : num(p.from, 8)),
+    h("td", { class: "num" }, frame(p) ? "–" : num(p.to, 8)),
     h("td", { class: "num" }, num(p.change, 3)), h("td", { class: "num" }, p.change_sigmas == null ? "–" : `${num(p.change_sigmas, 2)} σ`),
-    h("td", {}, p.unit), h("td", {}, p.moved ? "moved" : "")));
-  put(box, 
+    h("td", {}, p.unit),
+    h("td", { class: "small" }, [p.moved ? h("strong", {}, "moved") : null, p.moved && STATUS[p.status] ? "; " : null,
+                                 STATUS[p.status]]));
+  const list = h("div", {});
+  const LIMIT = 40;
+  const showRows = (all) => put(list, table(["Parameter", "Before", "Now", "Change", "In σ", "Unit", ""],
+    (all ? rows : rows.slice(0, LIMIT)).map(tr), { class: "compare" }),
+    !all && rows.length > LIMIT ? h("button", { class: "secondary", onclick: () => showRows(true) },
+      `Show all ${rows.length} parameters`) : null);
+  const n = c.counts || {};
+  put(box,
     h("p", {}, "Against ", h("a", { href: `#/calibrations/${prevId}` }, `calibration ${prevId}`),
       `: RMS ${num(c.rms_from, 3)} → ${num(c.rms_to, 3)} ${unit}. `,
-      h("strong", { id: "moved-count" }, moved.length ? `${moved.length} parameter(s) moved beyond their uncertainty (more than 2σ).`
-        : "No parameter moved beyond its uncertainty.")),
-    rows.length ? table(["Parameter", "Before", "Now", "Change", "In σ", "Unit", ""], rows, { class: "compare" }) : null,
-    h("p", { class: "small muted" }, "σ: the combined standard uncertainty of the two values. Sorted by how far each moved."));
+      h("strong", { id: "moved-count" }, moved.length ? `${moved.length} parameter(s) moved beyond their uncertainty (more than 2σ): `
+        + `${moved.slice(0, 6).map((p) => p.name).join(", ")}${moved.length > 6 ? ", …" : ""}.`
+        : "No parameter moved beyond its uncertainty."),
+      n.new || n["not estimated"] ? ` ${n.new || 0} estimated only now (new), ${n["not estimated"] || 0} only before.` : ""),
+    rows.length ? list : null,
+    h("p", { class: "small muted" }, "σ: the combined standard uncertainty of the two values (or the one calibration's, "
+      + "for a parameter estimated in only one). base.* and tool.*: how far the robot's base (as seen from the instrument) "
+      + "and its tool frame moved, along and about their own axes; the base moves when the robot or the instrument was "
+      + "moved. Moved parameters first, then by how far each moved."));
+  if (rows.length) showRows(false);
 }
+
+// What each compensation flag means (calibration/compensation.py FLAGS).
+const FLAG_TEXT = {
+  joint_limit: "outside the joint limits",
+  near_singular: "near a singular configuration: small position changes need large joint moves",
+  outside_calibrated_region: "outside the joint ranges the calibration measured: the correction is extrapolated",
+  no_convergence: "the correction did not reach the tolerance",
+  branch_change: "the correction changed the arm's configuration (branch) or is unusually large",
+  unreachable: "the pose is out of the robot's reach",
+};
 
 function compensationCard(id, r) {
   const box = h("div", { id: "compensation-result" });
@@ -209,23 +304,25 @@ function showCompensation(box, name, text, report, unit) {
     h("td", {}, String(p.row ?? i + 1)), h("td", {}, p.line != null ? String(p.line) : "–"),
     h("td", {}, p.move ? `${p.move}${p.kind ? ` (${p.kind}${p.variable ? ` ${p.variable}` : ""})` : ""}` : report.mode || ""),
     h("td", {}, p.converged === false ? "no" : p.converged ? "yes" : "–"),
-    h("td", { class: "num" }, p.residual != null ? num(p.residual, 3) : "–"),
+    h("td", { class: "num" }, p.residual != null ? num(Math.abs(p.residual) < 1e-6 ? 0 : p.residual, 3) : "–"),
     h("td", { class: "num" }, maxAbs(p.correction) != null ? num(maxAbs(p.correction), 3) : "–"),
-    h("td", {}, (p.flags || []).join(", ") || "—")));
+    h("td", { class: "flags" }, (p.flags || []).length
+      ? (p.flags || []).map((f) => h("span", { class: "flag", title: FLAG_TEXT[f] || f }, f.replace(/_/g, " "))) : "—")));
   const skipped = report.uninterpreted || [];
   const counts = Object.entries(summary.flags || {}).filter(([, v]) => v);
   clear(box);
   add(box,
-    h("div", { class: "banner banner-ok", id: "compensated" },
+    h("div", { class: `banner banner-${flagged.length ? "warn" : "ok"}`, id: "compensated" },
       h("strong", {}, "Compensated. "), `${summary.points ?? points.length} point(s), ${summary.converged ?? "?"} converged, `
         + `${flagged.length} flagged${skipped.length ? `, ${skipped.length} line(s) left unchanged` : ""}. `, save),
     h("p", { class: "small muted" }, `Largest remaining error ${num(summary.residual_max, 3)} ${unit}; largest joint `
       + `correction ${num(summary.correction_max, 3)} ${angle}`
       + (counts.length ? `; flags: ${counts.map(([k, v]) => `${k.replace(/_/g, " ")} ${v}`).join(", ")}` : "; no flags") + "."),
+    counts.length ? h("ul", { class: "small", id: "flag-meanings" }, counts.map(([k]) =>
+      h("li", {}, h("strong", {}, k.replace(/_/g, " ")), `: ${FLAG_TEXT[k] || ""}`))) : null,
     points.length ? table(["Point", "Line", "Move", "Converged", `Residual (${unit})`, `Largest joint correction (${angle})`, "Flags"],
       rows, { class: "compensation" }) : h("pre", { class: "preview" }, text.split("\n").slice(0, 30).join("\n")),
     skipped.length ? h("div", {}, h("h3", {}, "Left unchanged"),
       h("ul", {}, skipped.slice(0, 50).map((u) => h("li", {}, `line ${u.line}: ${u.reason || ""}`,
         u.text ? h("code", {}, ` ${u.text}`) : null)))) : null);
 }
-

@@ -3,11 +3,13 @@
 
 import { can, get, post, sessionEvents } from "../api.js";
 import { COLORS, chart, sizes } from "../plots.js";
-import { add, badge, busy, card, clear, put, confirmDialog, duration, h, kv, notify, num, when } from "../ui.js";
+import { add, address, badge, busy, card, clear, put, confirmDialog, duration, h, kv, notify, num, when, whenSeconds } from "../ui.js";
 
 const TERMINAL = ["completed", "failed", "aborted"];
 const KIND_NAMES = { pose: "Calibration (pose) session", verify: "Verification session", joint: "Joint encoder session",
                      circle: "Circle-point session" };
+// The devices of a session's device_state, in order, with what to call them.
+const DEVICE_LABELS = [["robot", "Robot"], ["tracker", "Laser tracker"], ["cmm", "CMM"], ["encoder", "Reference encoders"]];
 
 export async function live(ctx, id) {
   let s = await get(`/sessions/${id}`);
@@ -81,11 +83,30 @@ export async function live(ctx, id) {
     const l = lastL || {};
     clear(devices);
     const last = l.last;
-    const rows = [["Robot", cell.devices.filter((d) => d === "rtde" || d === "modbus").map((d) => `${d} ${cell.devices_doc[d]}`).join(", ") || "–"],
-                  ["Instrument", s.kind === "joint" ? "reference encoders (CAN)" : `${s.device} ${cell.devices_doc[s.device] || ""}`],
-                  ["State", deviceState(s)]];
+    const robots = cell.devices.filter((d) => d === "rtde" || d === "modbus");
+    const where = { robot: robots.map((d, i) => [i ? ", " : "", `${d} `, address(cell.devices_doc[d])]),
+                    tracker: address(cell.devices_doc.tracker), cmm: address(cell.devices_doc.cmm),
+                    encoder: "CANopen" };
+    const ds = s.device_state;
+    let rows;
+    if (ds && DEVICE_LABELS.some(([k]) => ds[k])) {
+      // a detail that only repeats the reason in the banner above is left out
+      const detail = (k) => (ds[k].detail && ds[k].detail !== s.reason ? ` — ${ds[k].detail}` : "");
+      rows = DEVICE_LABELS.filter(([k]) => ds[k]).map(([k, label]) => [label, h("span", { class: "device-state", "data-device": k },
+        h("span", { class: `state state-${String(ds[k].state || "").replace(/\s+/g, "-")}` }, ds[k].state || "–"),
+        detail(k), h("br"), h("span", { class: "small muted" }, where[k] || ""))]);
+      if (s.state === "interrupted") { // the devices' state from before the service stopped: only the last known
+        rows.unshift(["Now", "not connected: the service stopped while the session ran; below, what the devices "
+          + "last reported"]);
+        if (ds.at) rows.push(["Last known at", whenSeconds(ds.at)]);
+      } else if (ds.at) rows.push(["As of", whenSeconds(ds.at)]);
+    } else {
+      rows = [["Robot", robots.length ? where.robot : "–"],
+              ["Instrument", s.kind === "joint" ? "reference encoders (CAN)" : [`${s.device} `, address(cell.devices_doc[s.device] || "")]],
+              ["State", deviceState(s)]];
+    }
     if (last) {
-      rows.push(["Last reading", `pose ${last.pose} at ${when(last.at)}`]);
+      rows.push(["Last reading", `pose ${last.pose} at ${whenSeconds(last.at)}`]);
       rows.push(["Joints (deg)", last.q_deg.map((v) => num(v, 4)).join(", ")]);
       if (s.kind !== "joint") rows.push(["Measured point", `${last.position.map((v) => num(v, 6)).join(", ")} ${unit}`
         + (last.sigma ? ` ± ${num(last.sigma, 2)}` : "")]);

@@ -1,0 +1,63 @@
+"""``recal nightly --cell`` through the real service and a simulated cell, each exit status:
+10 (drifted: recalibrated, task files compensated again), 0 (accurate), 1 (a session did not
+complete), 2 (bad arguments), 3 (service unreachable, or the token refused)."""
+
+from __future__ import annotations
+
+import json
+
+from service.cli import main
+from service.processes import free_port
+
+TASK = "q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n-30,-100,60,-50,-80,0\n"
+
+
+def nightly(monkeypatch, capsys, *args, token: str | None = None) -> tuple[int, str, str]:
+    monkeypatch.delenv("RECAL_TOKEN", raising=False)
+    if token is not None:
+        monkeypatch.setenv("RECAL_TOKEN", token)
+    status = main(["nightly", *args])
+    out = capsys.readouterr()
+    return status, out.out.strip(), out.err.strip()
+
+
+def test_nightly_exit_statuses(stack, models, register, monkeypatch, capsys):
+    url = stack.service.ready["url"]
+    job = stack.tokens["job"]
+    cell, _ = register(name="weld-3")  # never calibrated: the nominal model is millimetres off
+    stack.api().call("POST", f"/cells/{cell['id']}/tasks", {"name": "weld.csv", "content": TASK})
+
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", url, token=job)
+    assert status == 10, (out, err)
+    assert out.startswith("weld-3: drifted (verify RMS") and "-> recalibrated: calibration" in out
+    assert out.endswith("1 task files compensated") and "\n" not in out
+    cal = stack.api().call("GET", f"/cells/{cell['id']}")["last_calibration_id"]
+    assert cal is not None and f"calibration {cal}," in out
+
+    status, out, err = nightly(monkeypatch, capsys, "--cell", str(cell["id"]), "--url", url, token=job)
+    assert status == 0, (out, err)
+    assert out.startswith("weld-3: accurate, verify RMS") and "threshold 0.1 mm" in out
+
+    # a cell whose devices do not answer: the verify session pauses, a person must look
+    stack.api().call("POST", "/cells", {"name": "dark", "model": json.loads(models["nominal"].read_text()),
+                                        "devices": {"rtde": "127.0.0.19", "tracker": "socket://127.0.0.19:9"},
+                                        "drift_threshold": 0.1})
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "dark", "--url", url, token=job)
+    assert status == 1, (out, err)
+    assert out.startswith("dark: verify session") and "paused" in out and "devices" in out
+
+    # bad arguments
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", url)
+    assert status == 2 and "no token" in err
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", url, "--token-file",
+                               str(stack.home / "missing.token"))
+    assert status == 2 and "missing.token" in err
+    status, out, err = nightly(monkeypatch, capsys, "--url", url, token=job)
+    assert status == 2 and "--cell" in err
+
+    # the service refuses the token, or cannot be reached
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", url, token="rc_wrong")
+    assert status == 3 and "401" in err
+    nobody = f"http://127.0.0.1:{free_port()}"
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", nobody, token=job)
+    assert status == 3 and "cannot reach" in err
