@@ -373,6 +373,18 @@ def _no_targets(args, model, script) -> None:
     raise InputError(args.task, f"{message}; {where}", line=first.line)
 
 
+def _notes(model) -> list[str]:
+    """What the user of the compensated file must know about the model it came from: a tool
+    orientation the calibration data could not determine (position-only data) stays the nominal
+    one, so orientations are compensated only as far as the identified joints go."""
+    held = [u["name"] for u in (model.metadata.get("identification") or {}).get("unidentifiable", [])
+            if u.get("category") == "tool_orientation"]
+    if not held:
+        return []
+    return [f"the calibration did not determine the tool orientation ({', '.join(held)}: position-only "
+            f"data); the compensated orientations keep the nominal tool frame's, positions are compensated fully"]
+
+
 def run(args) -> int:
     from calibration.transforms import matrix_to_pose
     from service.files import check_output, write_atomic
@@ -399,6 +411,7 @@ def run(args) -> int:
         "residual_angle_max": _f(comp.residual_rad.max(initial=0.0) / u.angle_rad),
         "correction_max": _f(np.abs(comp.correction).max(initial=0.0) / u.angle_rad),
         "flags": counts,
+        "notes": _notes(model),
     }
     if args.report:
         pose = matrix_to_pose(M)
@@ -420,6 +433,8 @@ def run(args) -> int:
     write_atomic(args.out, output)
     for s in skipped:
         print(f"warning: {args.task}, line {s['line']}: not compensated ({s['reason']}): {s['text']}", file=sys.stderr)
+    for note in summary["notes"]:
+        print(f"note: {note}", file=sys.stderr)
     flagged = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
     print(f"compensated {len(comp)} points ({'URScript' if script else args.mode + ' mode'}): "
           f"{summary['converged']} converged, residual max {summary['residual_max']:.3g} {u.length}"

@@ -272,6 +272,8 @@ def test_identify_then_compensate_uses_what_identify_recorded(tmp_path):
     r = recal("compensate", "--model", "ident.json", "--task", "task.csv", "--out", "out.csv", "--mode", "targets",
               cwd=tmp_path)
     assert r.returncode == 0, r.stderr
+    # position-only data: the tool orientation stayed nominal, and the user is told so
+    assert "note: the calibration did not determine the tool orientation (tool.rx" in r.stderr
     header, out = read_out(tmp_path / "out.csv")
     assert [row[-1] for row in out] == ["", "outside_calibrated_region"]
     ident = load_model(tmp_path / "ident.json")
