@@ -167,7 +167,9 @@ class CanopenEncoderConfig:
 
     ``use_pdo``: read TPDO1 instead of SDO; ``pdo_trigger`` ``"sync"`` (the driver sends a SYNC
     per reading; TPDO transmission type 1) or ``"event"`` (the node sends every
-    ``event_timer_ms``; type 254). ``configure_pdo=False`` leaves the node's own TPDO1
+    ``event_timer_ms``; type 254: a reading takes the second TPDO that arrives after it is asked
+    for, since the first may have been on its way already, sampled before the robot stopped).
+    ``configure_pdo=False`` leaves the node's own TPDO1
     configuration alone (it is read back over SDO). ``timeout_s`` bounds every request.
     ``eds_path`` is the device's EDS (default: the reference EDS of ``kind`` in
     ``drivers/eds/``). ``signed_range``: centre a multi-turn range on zero.
@@ -649,12 +651,16 @@ class CanopenEncoder(JointEncoder):
         if self.config.pdo_trigger == "sync":
             with self._errors("sending SYNC"):
                 self._network.sync.transmit()
+        # SYNC: the node samples when it sees our SYNC, so the first TPDO after it is fresh.
+        # Event timer: the first TPDO after the call may have been sampled before it and been
+        # on its way (gateway, TCP); the second was sampled at least one timer period later.
+        wanted = start + (1 if self.config.pdo_trigger == "sync" else 2)
         with inbox.cond:
-            arrived = inbox.cond.wait_for(lambda: inbox.count > start or self._link_down(), self.config.timeout_s)
+            arrived = inbox.cond.wait_for(lambda: inbox.count >= wanted or self._link_down(), self.config.timeout_s)
             data = inbox.data
         if self._link_down():
             raise DeviceConnectionError(f"CAN link lost: {self._link_error}", device=self.name)
-        if not arrived or inbox.count == start:
+        if not arrived or inbox.count < wanted:
             active = list(self._node.emcy.active)
             trigger = "after SYNC" if self.config.pdo_trigger == "sync" else "(event timer)"
             message = f"no TPDO1 (COB-ID 0x{self._pdo_cob_id:03X}) within {self.config.timeout_s:g} s {trigger}"

@@ -94,6 +94,7 @@ _NODE_SERVICES = (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700)
 _U8 = struct.Struct("<B")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
+_EVENT_RECHECK_S = 0.05  # the event-timer loop's longest sleep (see CanGatewayFake._event_loop)
 
 
 def default_mount_offset_rad(node_id: int) -> float:
@@ -199,6 +200,7 @@ class CanGatewayFake:
         self._delay_cob_ids: set[int] = set()  # ... is late (with ``delay_at``)
         self._marks_lock = threading.Lock()
         self._stop = threading.Event()
+        self._events_changed = threading.Event()  # wakes the event-timer loop
         self._threads: list[threading.Thread] = []
         self._server: socket.socket | None = None
         self._dev_net: canopen.Network | None = None
@@ -246,6 +248,7 @@ class CanGatewayFake:
             return
         self._started = False
         self._stop.set()
+        self._events_changed.set()
         if self._server is not None:
             self._server.close()
         with self._clients_lock:
@@ -400,7 +403,9 @@ class CanGatewayFake:
         return None
 
     def _on_write(self, node: _Node, index: int, subindex: int, od, data: bytes) -> None:
-        """LocalNode write callback: a preset (0x6003) makes the current position read ``preset``."""
+        """LocalNode write callback: a preset (0x6003) makes the current position read ``preset``;
+        any write may change the TPDO's timer (the event loop looks again)."""
+        self._events_changed.set()
         if node.kind == "encoder" and index == 0x6003:
             preset = _U32.unpack(bytes(data))[0]
             theta = self.cell.joint_angle(node.joint) + node.mount_offset_rad
@@ -451,6 +456,7 @@ class CanGatewayFake:
                 self._send_tpdo(node)
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._events_changed.set()  # a node started or stopped: its TPDO events too
         if len(data) < 2 or data[0] not in (129, 130):
             return
         for node in list(self._nodes.values()):
@@ -458,21 +464,36 @@ class CanGatewayFake:
                 self._boot(node, reset_application=data[0] == 129)
 
     def _event_loop(self) -> None:
-        while not self._stop.wait(0.005):
+        """Event-driven TPDOs (transmission type 254/255 with an event timer). Sleeps until the
+        next node is due, woken early by a write to a node's object dictionary or an NMT
+        command (either may start or change a timer). An idle cell costs next to nothing:
+        the bench runs fifty of them on two cores."""
+        wait_s = 0.0
+        while True:
+            self._events_changed.wait(wait_s)
+            if self._stop.is_set():
+                return
+            self._events_changed.clear()
             now = time.monotonic()
+            # Check again at least this often: NMT start/stop handled inside canopen's LocalNode
+            # (not ours to hook) may change which nodes produce.
+            due_s = now + _EVENT_RECHECK_S
             for node in list(self._nodes.values()):
                 try:
                     if not self._operational(node):
                         continue
                     trans_type, timer_ms = self._transmission(node)
-                    if trans_type < 254 or timer_ms == 0 or now < node.next_event_s:
+                    if trans_type < 254 or timer_ms == 0:
                         continue
-                    node.next_event_s = now + timer_ms / 1000.0
-                    self._send_tpdo(node)
+                    if now >= node.next_event_s:
+                        node.next_event_s = now + timer_ms / 1000.0
+                        self._send_tpdo(node)
+                    due_s = min(due_s, node.next_event_s)
                 except Exception:  # the bus closed under us while stopping
                     if self._stop.is_set():
                         return
                     log.exception("TPDO event of node %d failed", node.node_id)
+            wait_s = max(0.0, due_s - time.monotonic())
 
     # ------------------------------------------------------------------ the TCP side
 
