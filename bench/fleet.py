@@ -7,13 +7,21 @@ were never calibrated) a recalibration (pose) session, driven by ``recal nightly
 production. Three set-ups on the same cells:
 
 - ``embedded``: the embedded default, one ``recal serve`` process on SQLite, sessions in its
-  threads (at most ``--embedded-parallel`` cells at once, default 10: each running session holds
-  one of the process's pooled database connections, 64 on SQLite and 30 on PostgreSQL, and one
-  process runs them all behind one GIL);
+  threads;
 - ``embedded-pg``: the same on PostgreSQL (separates the store's share from the engine's);
 - ``fleet``: ``RECAL_ENGINE=procrastinate`` on PostgreSQL, two API processes, two workers
   (``recal worker --site a --site b``), the cells in sites ``a`` and ``b``; one
   ``recal nightly --all --site ...`` per site, each against its own API process.
+
+Like with like: at most ``--parallel`` sessions (default 10) run at once in every set-up. The
+embedded ones get ``recal nightly --all --parallel 10``; the fleet gets workers of concurrency
+``--parallel / --workers`` and one ``nightly --parallel`` of half of it per site, so sessions
+are created only when a worker is free (the per-session time, from the store's timestamps, is
+then the same thing in every set-up: no time waiting in a queue). 10 at once on 2 cores keeps
+the machine loaded (every simulated session wants a core), not swamped. ``--parallel 0
+--fleet-concurrency 25`` (with ``--modes fleet``) is the stress run of the first measurement:
+every cell at once, 50 sessions in two workers on 2 cores, the queue and the leases under a
+load average of tens.
 
 For each: the wall time of the whole run; per session (from the store's timestamps: created
 by the API -> final state written) the mean and median time; the count of sessions and
@@ -141,9 +149,9 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
             apis.append(start_service(home, free_port(), env=env, log_path=log_dir / f"{mode}-api{i}.log"))
         procs += apis
         if mode == "fleet":
-            per = -(-len(fakes) // args.workers)
             for i in range(args.workers):
-                procs.append(start_worker(home, ["a", "b"], env=env, name=f"w{i + 1}", concurrency=per,
+                procs.append(start_worker(home, ["a", "b"], env=env, name=f"w{i + 1}",
+                                          concurrency=fleet_concurrency(args, len(fakes)),
                                           log_path=log_dir / f"{mode}-w{i + 1}.log"))
         nominal = json.loads(mdl["nominal"].read_text())
         api = Api(apis[0].ready["url"], tokens["technician"])
@@ -153,19 +161,21 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
         # the nightly run of the whole fleet
         nenv = {**os.environ, "RECAL_TOKEN": tokens["job"]}
         common = ["--verify-count", str(args.verify_count), "--count", str(args.count), "--timeout", "1800"]
-        if mode == "fleet":
+        if mode == "fleet":  # one nightly per site, half of the sessions at once each
             cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--site", site,
-                     "--url", apis[i % n_api].ready["url"], *common] for i, site in enumerate(("a", "b"))]
-        else:  # one process, one connection pool: at most --embedded-parallel sessions at once
+                     "--url", apis[i % n_api].ready["url"], "--parallel", str(-(-args.parallel // 2)), *common]
+                    for i, site in enumerate(("a", "b"))]
+        else:
             cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--url", apis[0].ready["url"],
-                     "--parallel", str(args.embedded_parallel), *common]]
+                     "--parallel", str(args.parallel), *common]]
         t0 = time.monotonic()
         runs = [subprocess.Popen(c, env=nenv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
                 for c in cmds]
         outs = [r.communicate()[0] for r in runs]
         wall = time.monotonic() - t0
         (log_dir / f"{mode}-nightly.txt").write_text("\n\n".join(outs))
-        result = {"mode": mode, "cells": len(cells), "wall_s": wall,
+        result = {"mode": mode, "cells": len(cells), "wall_s": wall, "parallel": args.parallel,
+                  "worker_concurrency": fleet_concurrency(args, len(fakes)) if mode == "fleet" else None,
                   "nightly_exit": [r.returncode for r in runs],
                   "summary": [next((ln for ln in o.splitlines() if " cells: " in ln), "") for o in outs],
                   "concurrent": session_stats(db_url)}
@@ -192,22 +202,30 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
         stats = session_stats(db_url)
         eng = make_engine(db_url)
         with eng.connect() as conn:
-            rows = [r for r in conn.execute(text("SELECT kind, created_at, updated_at, id FROM session "
-                                                 "WHERE cell_id = :c ORDER BY id"), {"c": cell["id"]}).all()
+            rows = [r for r in conn.execute(text(
+                "SELECT s.kind, s.created_at, s.updated_at, s.id, min(m.created_at), max(m.created_at) "
+                "FROM session s JOIN measurement m ON m.session_id = s.id WHERE s.cell_id = :c "
+                "GROUP BY s.id, s.kind, s.created_at, s.updated_at ORDER BY s.id"), {"c": cell["id"]}).all()
                     if r[3] > nightly_last and r[3] not in resumed]
         eng.dispose()
 
-        def secs(r):
-            a, b = r[1], r[2]
+        def secs(a, b):
             if isinstance(a, str):
                 from datetime import datetime
                 a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
             return (b - a).total_seconds()
 
+        # Where the time goes: created -> first measurement stored (queue, claim, devices opened,
+        # planning, first move), first -> last measurement, last measurement -> final state
+        # (analysis, results stored).
         for kind in ("verify", "pose"):
-            t = [secs(r) for r in rows if r[0] == kind]
-            result.setdefault("sequential", {})[kind] = {"n": len(t), "mean_s": statistics.fmean(t),
-                                                          "median_s": statistics.median(t)}
+            mine = [r for r in rows if r[0] == kind]
+            t = [secs(r[1], r[2]) for r in mine]
+            result.setdefault("sequential", {})[kind] = {
+                "n": len(t), "mean_s": statistics.fmean(t), "median_s": statistics.median(t),
+                "to_first_measurement_s": statistics.median(secs(r[1], r[4]) for r in mine),
+                "measuring_s": statistics.median(secs(r[4], r[5]) for r in mine),
+                "after_last_measurement_s": statistics.median(secs(r[5], r[2]) for r in mine)}
         result["checks"] = {"measurements": stats["measurements"], "distinct": stats["distinct_configurations"],
                             "sequential_resumed": len(resumed)}
         return result
@@ -216,6 +234,14 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
             p.stop(30)
         if db is not None:
             db.drop()
+
+
+def fleet_concurrency(args, cells: int) -> int:
+    """Sessions each worker runs at once: ``--fleet-concurrency``, else its share of ``--parallel``
+    (of every cell when ``--parallel 0``)."""
+    if args.fleet_concurrency:
+        return args.fleet_concurrency
+    return -(-(args.parallel or cells) // args.workers)
 
 
 def machine() -> dict:
@@ -242,9 +268,10 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=30)
     ap.add_argument("--sequential", type=int, default=10, help="rounds of verify + pose, one session at a time")
     ap.add_argument("--modes", default="embedded,embedded-pg,fleet")
-    ap.add_argument("--embedded-parallel", type=int, default=10,
-                    help="cells at once in the embedded set-ups (each running session holds a pooled "
-                         "database connection: 64 on SQLite, 30 on PostgreSQL)")
+    ap.add_argument("--parallel", type=int, default=10,
+                    help="sessions at once in every set-up (0: every cell at once)")
+    ap.add_argument("--fleet-concurrency", type=int, default=0,
+                    help="each worker's concurrency (default: its share of --parallel)")
     ap.add_argument("--host-prefix", default="127.0.3.")
     ap.add_argument("--postgres", default=os.environ.get("RECAL_TEST_POSTGRES_URL",
                                                          "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"))
@@ -255,7 +282,11 @@ def main(argv=None) -> int:
     mdl = models(log_dir)
     hosts = [f"{args.host_prefix}{i}" for i in range(1, args.cells + 1)]
     with ThreadPoolExecutor(16) as pool:
+        # Only the devices the sessions use (the UR and the tracker): fifty idle CMMs and CAN
+        # buses (heartbeats every 0.1 s) would take a good share of the two cores from what is
+        # measured.
         fakes = list(pool.map(lambda h: start_fake_cell(mdl["truth"], h, time_scale=0.0, timeout_s=120,
+                                                        extra=["--no-can", "--no-cmm", "--no-modbus"],
                                                         log_path=log_dir / f"cell-{h}.log"), hosts))
     results = {"machine": machine(), "args": vars(args), "setups": []}
     try:
@@ -271,15 +302,26 @@ def main(argv=None) -> int:
         for f in fakes:
             f.stop()
     by = {r["mode"]: r for r in results["setups"]}
-    if "embedded" in by and "fleet" in by:
-        e, f = by["embedded"], by["fleet"]
-        seq_e = statistics.fmean([e["sequential"][k]["mean_s"] for k in ("verify", "pose")])
-        seq_f = statistics.fmean([f["sequential"][k]["mean_s"] for k in ("verify", "pose")])
-        con_e, con_f = e["concurrent"]["all"]["mean_s"], f["concurrent"]["all"]["mean_s"]
-        results["overhead"] = {
-            "sequential_per_session_s": seq_f - seq_e, "sequential_pct": 100 * (seq_f - seq_e) / seq_e,
-            "concurrent_per_session_s": con_f - con_e, "concurrent_pct": 100 * (con_f - con_e) / con_e,
-            "wall_pct": 100 * (f["wall_s"] - e["wall_s"]) / e["wall_s"]}
+    # The fleet against the embedded default (SQLite), and against the embedded service on the
+    # fleet's store (PostgreSQL: the engine's own share), each in % of the embedded default's time.
+    for base in ("embedded", "embedded-pg"):
+        if base not in by or "fleet" not in by or "embedded" not in by:
+            continue
+        b, f, e = by[base], by["fleet"], by["embedded"]
+        out = {}
+        for stat in ("mean_s", "median_s"):
+            seq_b = statistics.fmean([b["sequential"][k][stat] for k in ("verify", "pose")])
+            seq_f = statistics.fmean([f["sequential"][k][stat] for k in ("verify", "pose")])
+            seq_e = statistics.fmean([e["sequential"][k][stat] for k in ("verify", "pose")])
+            out[f"sequential_{stat[:-2]}_per_session_s"] = seq_f - seq_b
+            out[f"sequential_{stat[:-2]}_pct"] = 100 * (seq_f - seq_b) / seq_e
+            for k in ("verify", "pose"):
+                out[f"sequential_{stat[:-2]}_{k}_pct"] = 100 * (f["sequential"][k][stat] - b["sequential"][k][stat]) \
+                    / e["sequential"][k][stat]
+        con_b, con_f = b["concurrent"]["all"]["mean_s"], f["concurrent"]["all"]["mean_s"]
+        out.update({"concurrent_per_session_s": con_f - con_b, "concurrent_pct": 100 * (con_f - con_b) / con_b,
+                    "wall_pct": 100 * (f["wall_s"] - b["wall_s"]) / b["wall_s"]})
+        results["overhead" if base == "embedded" else "overhead_vs_embedded_pg"] = out
     print(json.dumps(results, indent=2, default=str))
     if args.out:
         Path(args.out).write_text(json.dumps(results, indent=2, default=str))

@@ -13,6 +13,10 @@ class ServiceError(Exception):
     """The service cannot be reached, or refused the token (401/403)."""
 
 
+class ServiceUnreachableError(ServiceError, ConnectionError):
+    """No answer from the service: refused, reset or timed out (worth trying again later)."""
+
+
 class ApiError(RuntimeError):
     """The service answered with an error status; ``status`` and ``detail`` say which."""
 
@@ -44,7 +48,7 @@ class Api:
                 raise ServiceError(f"{method} {path}: {exc.code} {detail}") from None
             raise ApiError(exc.code, detail, f"{method} {path}") from None
         except (urllib.error.URLError, OSError) as exc:
-            raise ServiceError(f"cannot reach {self.url}: {getattr(exc, 'reason', exc)}") from None
+            raise ServiceUnreachableError(f"cannot reach {self.url}: {getattr(exc, 'reason', exc)}") from None
 
     def wait_session(self, session_id: int, timeout_s: float, *, until=("completed", "failed", "aborted", "paused",
                                                                          "interrupted"), on_progress=None,

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
@@ -63,7 +64,11 @@ class Control:
     ``interrupt``: the process running the session is stopping (the session ends
     ``interrupted`` with ``interrupt_reason``); ``lease_valid_until`` (``time.monotonic()``):
     the moment after which this process may no longer be sure it alone holds the cell, so no
-    further move is commanded (a fleet worker renews it; the embedded default never expires)."""
+    further move is commanded (a fleet worker renews it; the embedded default never expires).
+    ``renew``: called when that moment has come before the next move (a fleet worker's monitor
+    thread was late, e.g. on a loaded machine): renews the hold in the store if this process
+    still has it (moving ``lease_valid_until`` on), else sets ``interrupt``; a store that
+    cannot be reached raises (the worker waits for it, module docstring)."""
 
     pause: threading.Event = field(default_factory=threading.Event)
     abort: threading.Event = field(default_factory=threading.Event)
@@ -71,16 +76,19 @@ class Control:
     interrupt: threading.Event = field(default_factory=threading.Event)
     interrupt_reason: str = ""
     lease_valid_until: float = math.inf
+    renew: Callable[[], object] | None = None
 
     def check(self) -> None:
         """Raise :class:`SessionStopped` when the session must not make another move."""
         if self.abort.is_set():
             raise SessionStopped("aborted", "aborted on request")
+        if time.monotonic() >= self.lease_valid_until and self.renew is not None and not self.interrupt.is_set():
+            self.renew()  # the robot stands still meanwhile: slower, never two drivers
         if self.interrupt.is_set():
             raise SessionStopped("interrupted", self.interrupt_reason or "interrupted; resume it to continue")
         if time.monotonic() >= self.lease_valid_until:
-            raise SessionStopped("interrupted", "this worker could not renew its hold on the cell in time (database "
-                                                "unreachable?); resume the session to continue")
+            raise SessionStopped("interrupted", "this worker's hold on the cell ran out before it was renewed; every "
+                                                "measurement reported is kept: resume the session to continue")
         if self.pause.is_set():
             raise SessionStopped("paused", "paused on request")
 
@@ -103,8 +111,9 @@ class DeviceOpenError(ConnectionError):
 
 
 def database_unavailable(exc: BaseException) -> bool:
-    """The store cannot be reached (connection refused or lost), as opposed to a bad query."""
-    return isinstance(exc, (OperationalError, InterfaceError)) or (
+    """The store cannot be reached (connection refused or lost, or no pooled connection free in
+    time: a loaded machine), as opposed to a bad query."""
+    return isinstance(exc, (OperationalError, InterfaceError, PoolTimeout)) or (
         isinstance(exc, DBAPIError) and bool(exc.connection_invalidated))
 
 
@@ -237,13 +246,15 @@ def _safety_state(devices: CellDevices | None, exc: Exception) -> str:
 
 
 def run_session(engine: Engine, settings: Settings, session_id: int, control: Control | None = None, *,
-                owner: str = "embedded", open_devices=open_session_devices) -> str:
-    """Run (or continue) one session to its end, a pause, or a failure. Returns the final state."""
+                owner: str = "embedded", open_devices=open_session_devices, leased: bool = False) -> str:
+    """Run (or continue) one session to its end, a pause, or a failure. Returns the final state.
+    ``leased``: ``owner`` has just taken the cell's lease for this session (a fleet worker's
+    claim), so it is not taken again here."""
     control = control or Control()
     with Session(engine) as db:
         run = db.get(RunSession, session_id)
         cell = db.get(Cell, run.cell_id)
-        if not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
+        if not leased and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
             db.refresh(run)
             if _held_by_other(run, owner):  # another process runs this very session: leave it alone
                 return run.state

@@ -91,3 +91,27 @@ class Settings:
                 except ValueError:
                     raise SettingsError(f"environment variable {key}: expected a number, got {env[key]!r}") from None
         return cls(**kw)
+
+
+def worker_concurrency(env: dict[str, str] | None = None) -> int:
+    """How many sessions one ``recal worker`` runs at once unless ``--concurrency`` says:
+    ``RECAL_WORKER_CONCURRENCY``, else four per CPU core the process may use.
+
+    Why four: a session whose robot moves costs its worker about a sixth of a core (the RTDE
+    stream at 500 Hz and the wait for the move), planning and identification a core for a
+    fraction of a second each. Four per core keeps a worker's cores busy but not saturated while
+    robots move, so that leases are renewed, requests answered and database connections opened
+    in time; more sessions than that only wait longer for the same cores (and hold a database
+    connection each). Sessions beyond the limit wait in the queue, ``planned``."""
+    env = os.environ if env is None else env
+    raw = (env.get("RECAL_WORKER_CONCURRENCY") or "").strip()
+    if raw:
+        try:
+            value = int(raw)
+        except ValueError:
+            raise SettingsError(f"environment variable RECAL_WORKER_CONCURRENCY: expected a whole number, got {raw!r}") from None
+        if value < 1:
+            raise SettingsError(f"environment variable RECAL_WORKER_CONCURRENCY: expected at least 1, got {value}")
+        return value
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 4 * max(1, cores)

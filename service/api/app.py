@@ -11,10 +11,12 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
+from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session
 
 from ..models import MAX_ID
-from ..orchestrator import orchestrator_class
+from ..orchestrator import database_unavailable, orchestrator_class
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
 from .routes import calibrations, cells, results, sessions, system, web, workbench
@@ -104,11 +106,27 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
         return JSONResponse({"detail": "; ".join(f"{e['field']}: {e['message']}" for e in errors), "errors": errors},
                             status_code=422)
 
-    @app.exception_handler(Exception)
-    async def _unexpected(request: Request, exc: Exception):
-        log.exception("unexpected error on %s %s", request.method, request.url.path)
+    def _internal_error(request: Request, exc: Exception) -> JSONResponse:
+        log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the service log has the details"},
                             status_code=500)
+
+    # The store's errors get a handler of their own (not only the catch-all below, after which
+    # Starlette re-raises, and the server logs a traceback for what is only a busy database).
+    @app.exception_handler(DBAPIError)
+    @app.exception_handler(PoolTimeout)
+    async def _database(request: Request, exc: Exception):
+        if not database_unavailable(exc):
+            return _internal_error(request, exc)
+        # Nothing wrong with the request: the database is away or out of connections.
+        log.warning("database unavailable on %s %s: %s", request.method, request.url.path,
+                    getattr(exc, "orig", None) or exc)
+        return JSONResponse({"detail": "the database is unavailable or overloaded: try again shortly"},
+                            status_code=503, headers={"Retry-After": "2"})
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception):
+        return _internal_error(request, exc)
 
     for module in (system, cells, sessions, calibrations, results, workbench):
         app.include_router(module.router, prefix="/api/v1")

@@ -21,8 +21,9 @@ def add_parser(s) -> None:
     s.add_argument("--all-sites", action="store_true", help="drive the cells of every site (a one-worker fleet)")
     s.add_argument("--name", default=os.environ.get("RECAL_WORKER_NAME") or socket.gethostname(),
                    help="this worker's name in logs and leases (default: $RECAL_WORKER_NAME or the host name)")
-    s.add_argument("--concurrency", type=int, default=int(os.environ.get("RECAL_WORKER_CONCURRENCY", "32")),
-                   help="sessions run at once (one thread each; default 32 or $RECAL_WORKER_CONCURRENCY)")
+    s.add_argument("--concurrency", type=int, default=None,
+                   help="sessions run at once (one thread and one database connection each; default "
+                        "$RECAL_WORKER_CONCURRENCY, else four per CPU core); more wait in the queue")
     s.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
 
 
@@ -31,12 +32,16 @@ def run(args) -> int:
     import logging
 
     from service.cli import Fail
-    from service.settings import Settings, SettingsError
+    from service.settings import Settings, SettingsError, worker_concurrency
 
     if bool(args.site) == bool(args.all_sites):
         raise Fail("give the sites this worker serves (--site SITE, repeatable) or --all-sites")
-    if args.concurrency < 1:
-        raise Fail(f"--concurrency: expected at least 1, got {args.concurrency}")
+    try:
+        concurrency = args.concurrency if args.concurrency is not None else worker_concurrency(os.environ)
+    except SettingsError as exc:
+        raise Fail(str(exc)) from None
+    if concurrency < 1:
+        raise Fail(f"--concurrency: expected at least 1, got {concurrency}")
     try:
         import procrastinate  # noqa: F401
     except ImportError:
@@ -56,4 +61,4 @@ def run(args) -> int:
     if args.log_level != "debug":
         logging.getLogger("procrastinate").setLevel(logging.WARNING)
     return run_worker(settings, name=args.name, sites=None if args.all_sites else sorted(set(args.site)),
-                      concurrency=args.concurrency)
+                      concurrency=concurrency)

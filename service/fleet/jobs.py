@@ -9,8 +9,9 @@ A session is one job of the task ``recal.run_session`` (``{"session_id": N}``):
 - ``queueing_lock`` ``session:<id>``: one waiting job per session, however often it is resumed.
 
 The job is deferred in the same transaction as the session's ``planned`` state
-(:func:`defer_session`), so a session is never queued twice and never planned without a job
-unless the process died in between (the reaper interrupts those, service.fleet.reaper).
+(:func:`defer_session`), so a session is never queued twice. A new session is stored first,
+then queued: if the API process stops, or the database refuses it, in between, the session is
+``planned`` without a job, and the reaper queues it (service.fleet.reaper).
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ from ..settings import Settings
 log = logging.getLogger("recal.fleet")
 
 TASK = "recal.run_session"
+# Connecting to PostgreSQL on a machine that is busy (a night's sessions starting together) can
+# take seconds; a shorter limit turns load into errors.
+CONNECT_TIMEOUT_S = 15
 # LISTEN/NOTIFY channel names are at most 63 bytes; Procrastinate's prefix takes 23.
 _MAX_SITE = 35
 
@@ -70,7 +74,7 @@ def ensure_schema(engine: Engine) -> None:
 def sync_app(settings: Settings, *, max_size: int = 4) -> App:
     """A Procrastinate app for synchronous use (API processes, reapers), opened."""
     app = App(connector=SyncPsycopgConnector(conninfo=libpq_url(settings), min_size=1, max_size=max_size,
-                                             kwargs={"connect_timeout": 5}))
+                                             kwargs={"connect_timeout": CONNECT_TIMEOUT_S}))
     app.open()
     return app
 
@@ -135,7 +139,7 @@ class ResilientConnector(PsycopgConnector):
 def worker_app(settings: Settings, *, max_size: int) -> App:
     """The asyncio Procrastinate app a worker runs (open it with ``open_async``)."""
     return App(connector=ResilientConnector(conninfo=libpq_url(settings), min_size=2, max_size=max_size,
-                                            kwargs={"connect_timeout": 5}))
+                                            kwargs={"connect_timeout": CONNECT_TIMEOUT_S}))
 
 
 def defer_session(db: Session, app: App, run: RunSession, cell: Cell) -> int | None:
@@ -159,13 +163,13 @@ def cancel_waiting(app: App, session_id: int) -> bool:
     return cancelled
 
 
-def session_jobs(app: App, status: str) -> dict[int, int]:
-    """``{session id: job id}`` of the session jobs in ``status`` (``todo``, ``doing``)."""
+def session_jobs(app: App, status: str) -> dict[int, Job]:
+    """``{session id: job}`` of the session jobs in ``status`` (``todo``, ``doing``)."""
     out = {}
     for job in app.job_manager.list_jobs(task=TASK, status=status):
         sid = job.task_kwargs.get("session_id")
         if isinstance(sid, int):
-            out[sid] = job.id
+            out[sid] = job
     return out
 
 

@@ -1,16 +1,26 @@
 """The reaper: sessions whose worker vanished become ``interrupted`` (resumable, measurements
-kept), and the jobs those workers left ``doing`` are ended so that their cell's lock is free.
+kept), jobs that vanished workers left ``doing`` are ended so that their cell's lock is free,
+and sessions left ``planned`` without a job are queued again.
 
 Every worker and every API process runs one (a thread, every third of the lease); they may run
-at once: each change is a conditional update that only one of them makes.
+at once: each change is a conditional update that only one of them makes. A busy machine makes
+everything slower, never one of these: a worker that is alive shows it by its lease (renewed by
+its monitor, or by the session itself before its next move) and by its heartbeat in the task
+queue (``procrastinate_workers``), and a session that never moved is queued again, not
+interrupted.
 
 1. A session ``planned`` or ``running`` whose lease expired (its worker stopped renewing it:
    killed, powered off, cut off from the database for longer than the lease) -> ``interrupted``.
-2. A ``doing`` job whose session has had no live lease for a whole lease period -> the job is
-   ended ``failed`` (the worker is gone or lost track of it), its session interrupted if active.
-3. A ``planned`` session with no job waiting or running for a whole lease period (the API
-   process stopped between the session and its job; cannot happen when both are in one
-   transaction, kept as a safety net) -> ``interrupted``.
+2. A ``doing`` job whose worker has sent no heartbeat for a whole lease period (the worker is
+   gone) and whose session holds no live lease -> the job is ended ``failed``, so that the
+   cell's lock is free (a session it had started is interrupted by 1.; one it had not yet
+   claimed is queued again by 3.).
+3. A ``planned`` session that nobody has claimed and that has no job waiting or running for a
+   whole lease period (the API process stored it but could not queue it: the database refused
+   the second transaction, or the process stopped in between; or a worker gave its job up)
+   -> queued. Nothing has
+   moved: it runs as it was asked to. A pause or abort asked meanwhile is honoured by the
+   worker that claims it.
 """
 
 from __future__ import annotations
@@ -20,10 +30,10 @@ import threading
 import time
 from datetime import timedelta
 
-from sqlalchemy import update
+from sqlalchemy import text, update
 from sqlmodel import Session, select
 
-from ..models import RunSession, utcnow
+from ..models import Cell, RunSession, utcnow
 from ..orchestrator import database_unavailable
 from ..store import _aware
 from . import jobs
@@ -38,8 +48,7 @@ class Reaper:
         self.engine, self.app, self.ttl_s, self.name = engine, app, ttl_s, name
         self.grace_s = max(1.0, ttl_s / 6)
         self.interval_s = max(0.5, ttl_s / 3)
-        self._suspect_jobs: dict[int, float] = {}  # job id -> when first seen without a live lease
-        self._suspect_planned: dict[int, float] = {}
+        self._suspect_planned: dict[int, float] = {}  # session id -> when first seen planned without a job
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -65,60 +74,54 @@ class Reaper:
             doing = jobs.session_jobs(self.app, "doing")
             for sid in out:  # their worker stopped moving before the lease ran out: free the cell's lock now
                 if sid in doing:
-                    jobs.fail_job(self.app, doing[sid])
-        out += self._orphan_jobs(cutoff)
-        out += self._unqueued_sessions()
+                    jobs.fail_job(self.app, doing[sid].id)
+        self._orphan_jobs(cutoff)
+        self._requeue_unclaimed()
         return out
 
-    def _orphan_jobs(self, cutoff) -> list[int]:
+    def _orphan_jobs(self, cutoff) -> None:
         doing = jobs.session_jobs(self.app, "doing")
-        mono = time.monotonic()
-        suspects = {}
+        if not doing:
+            return
         with Session(self.engine) as db:
-            for sid, job_id in doing.items():
+            alive = set(db.exec(text("SELECT id FROM procrastinate_workers WHERE last_heartbeat > now() - "
+                                     "make_interval(secs => :s)"), params={"s": self.ttl_s}).scalars().all())
+            for sid, job in doing.items():
+                if job.worker_id in alive:
+                    continue
                 run = db.get(RunSession, sid)
-                live = (run is not None and run.lease_expires is not None and _aware(run.lease_expires) >= cutoff
-                        and run.state in ACTIVE)
-                if not live:
-                    suspects[job_id] = (sid, self._suspect_jobs.get(job_id, mono))
-        self._suspect_jobs = {j: t for j, (_, t) in suspects.items()}
-        out = []
-        for job_id, (sid, since) in suspects.items():
-            if mono - since < self.ttl_s:
-                continue
-            if jobs.fail_job(self.app, job_id):
-                log.warning("%s: job %s of session %s had no live worker: ended as failed", self.name, job_id, sid)
-            if self._interrupt(sid, "its worker lost track of it; every measurement it reported is kept: resume it to "
-                                    "continue"):
-                out.append(sid)
-            self._suspect_jobs.pop(job_id, None)
-        return out
+                if (run is not None and run.state in ACTIVE and run.lease_expires is not None
+                        and _aware(run.lease_expires) >= cutoff):
+                    continue  # its lease is live: pass 1 decides when it runs out
+                if jobs.fail_job(self.app, job.id):
+                    log.warning("%s: job %s of session %s: its worker is gone; ended as failed", self.name, job.id,
+                                sid)
 
-    def _unqueued_sessions(self) -> list[int]:
+    def _requeue_unclaimed(self) -> None:
         mono = time.monotonic()
         with Session(self.engine) as db:
             planned = db.exec(select(RunSession.id).where(RunSession.state == "planned",
                                                           RunSession.lease_expires.is_(None))).all()
         if not planned:
             self._suspect_planned = {}
-            return []
+            return
         queued = set(jobs.session_jobs(self.app, "todo")) | set(jobs.session_jobs(self.app, "doing"))
         self._suspect_planned = {sid: self._suspect_planned.get(sid, mono) for sid in planned if sid not in queued}
-        out = []
         for sid, since in list(self._suspect_planned.items()):
-            if mono - since >= self.ttl_s and self._interrupt(
-                    sid, "it was never queued for a worker (the API process stopped?): resume it to run it", state="planned"):
-                out.append(sid)
+            if mono - since >= self.ttl_s:
                 self._suspect_planned.pop(sid, None)
-        return out
+                if self._requeue(sid):
+                    log.warning("%s: session %s was planned with no job for a worker for %.0f s: queued it again",
+                                self.name, sid, mono - since)
 
-    def _interrupt(self, sid: int, reason: str, *, state: str | None = None) -> bool:
+    def _requeue(self, sid: int) -> bool:
         with Session(self.engine) as db:
-            q = update(RunSession).where(RunSession.id == sid)
-            q = q.where(RunSession.state == state) if state else q.where(RunSession.state.in_(ACTIVE))
-            res = db.exec(q.values(state="interrupted", reason=reason, updated_at=utcnow(), requested=None))
+            run = db.get(RunSession, sid, with_for_update=True)
+            if run is None or run.state != "planned" or run.lease_expires is not None:
+                return False  # claimed or ended meanwhile
+            job_id = jobs.defer_session(db, self.app, run, db.get(Cell, run.cell_id))
             db.commit()
-            return res.rowcount > 0
+            return job_id is not None
 
     # ------------------------------------------------------------------ the thread
 

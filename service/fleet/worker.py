@@ -2,15 +2,20 @@
 
 Per job (one session): claim the session (it must still be ``planned``; a pause or abort asked
 while it waited is honoured without moving), take the cell's lease, then ``run_session`` as the
-embedded default does, in a thread. Around it, one monitor thread for the whole process:
+embedded default does, in a thread. Around it, one monitor thread for the whole process, on
+database connections of its own (a busy session pool cannot hold it up):
 
-- renews the lease of every session it runs every third of the lease; a session whose lease
-  could not be renewed in time makes no further move (``Control.lease_valid_until``), so by
-  the time the reaper of another process declares it ``interrupted`` it is standing still;
+- renews the lease of every session it runs every sixth of the lease; a session whose lease
+  was not renewed in time (the monitor late: a loaded machine) renews it itself before its
+  next move (``Control.renew``), standing still meanwhile. Only if the store says the hold is
+  gone (the reaper of another process took it after it ran out) does the session stop,
+  ``interrupted``: by then it stands still, so no other worker can ever drive it at the same
+  time;
 - carries pause and abort requests (``session.requested``; LISTEN ``recal_control`` wakes it at
   once, a poll every 0.25 s is the fallback); an abort stops the robot immediately.
 
-The database going away mid-session: measurement commits are retried (orchestrator); if the
+The database going away or answering slowly: claiming a session waits for it (the job is not
+given up, the session stays queued); measurement commits are retried (orchestrator); if a
 session still cannot go on, the worker waits for the database and, if it still holds the lease,
 continues the session where it stopped; otherwise the session ends ``interrupted``.
 SIGTERM / SIGINT: no new job; every running session stops between two steps as
@@ -54,6 +59,7 @@ class Monitor:
     def __init__(self, engine, conninfo: str, owner: str, ttl_s: float):
         self.engine, self.conninfo, self.owner, self.ttl_s = engine, conninfo, owner, ttl_s
         self.safety_s = max(1.0, ttl_s / 6)  # stop moving this long before the lease runs out
+        self.renew_every_s = ttl_s / 6  # five chances to renew before the session has to itself
         self.controls: dict[int, Control] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -97,7 +103,8 @@ class Monitor:
             if sid in renewed:
                 c.lease_valid_until = self.valid_until(t0)
             else:  # reaped or taken over: never move again
-                c.interrupt_reason = "this worker lost its hold on the cell; resume the session to continue"
+                c.interrupt_reason = ("this worker's hold on the cell ran out before it was renewed and the cell was "
+                                      "released; every measurement reported is kept: resume the session to continue")
                 c.interrupt.set()
         return renewed
 
@@ -140,7 +147,7 @@ class Monitor:
                     if c is not None and req:
                         self._apply(sid, c, req)
                 if time.monotonic() >= self._next_renew:
-                    self._next_renew = time.monotonic() + self.ttl_s / 3
+                    self._next_renew = time.monotonic() + self.renew_every_s
                     self.renew(set(controls))
                 failing = False
             except Exception as exc:  # noqa: BLE001 - keep monitoring through a database restart
@@ -176,14 +183,20 @@ class WorkerRuntime:
         self.ttl_s = settings.effective_lease_ttl_s
         self.owner = f"worker:{name}:{socket.gethostname()}:{os.getpid()}"
         conninfo = jobs.libpq_url(settings)
-        # One connection per running session (run_session holds one between its commits).
-        self.engine = create_engine(settings.database_url, pool_pre_ping=True, pool_size=concurrency + 2,
-                                    max_overflow=4, connect_args={"connect_timeout": 5})
+        # One connection per running session (run_session holds one between its commits), one
+        # for claiming the next, a few for bursts; no more: PostgreSQL's connections are few
+        # (docs/fleet.md, sizing), and a server out of them refuses everyone.
+        self.engine = create_engine(settings.database_url, pool_pre_ping=True, pool_size=concurrency + 1,
+                                    max_overflow=4, connect_args={"connect_timeout": jobs.CONNECT_TIMEOUT_S})
+        # The monitor and the reaper on connections of their own: however busy the sessions, the
+        # leases are renewed on time. (A session renewing its own late lease uses these too.)
+        self.control_engine = create_engine(settings.database_url, pool_pre_ping=True, pool_size=2,
+                                            max_overflow=2, connect_args={"connect_timeout": jobs.CONNECT_TIMEOUT_S})
         migrate(self.engine)
         jobs.ensure_schema(self.engine)
-        self.monitor = Monitor(self.engine, conninfo, self.owner, self.ttl_s)
+        self.monitor = Monitor(self.control_engine, conninfo, self.owner, self.ttl_s)
         self.jobs_sync = jobs.sync_app(settings, max_size=2)
-        self.reaper = Reaper(self.engine, self.jobs_sync, self.ttl_s, name=f"{name}-reaper")
+        self.reaper = Reaper(self.control_engine, self.jobs_sync, self.ttl_s, name=f"{name}-reaper")
         self.app = jobs.worker_app(settings, max_size=4)
         self.app.task(name=jobs.TASK, pass_context=True)(self.run_job)
         self.queues = None if sites is None else [jobs.queue_for_site(s) for s in sites]
@@ -192,8 +205,8 @@ class WorkerRuntime:
     # ------------------------------------------------------------------ one job
 
     def run_job(self, context, session_id: int) -> str:
-        control = Control()
-        outcome = self._claim(session_id, control)
+        control = Control(renew=lambda: self.monitor.renew({session_id}))
+        outcome = self._claim_patiently(session_id, control)
         if outcome is not None:
             log.info("session %s: %s", session_id, outcome)
             return outcome
@@ -202,6 +215,29 @@ class WorkerRuntime:
             return self._run(session_id, control)
         finally:
             self.monitor.remove(session_id)
+
+    def _claim_patiently(self, sid: int, control: Control) -> str | None:
+        """``_claim``, waiting for a store that is away or slow to answer (a loaded machine)
+        instead of giving the job up. Nothing has moved yet: waiting is always safe. If the
+        store stays away, the job fails and the session stays ``planned``: the reaper queues it
+        again once the store is back (service.fleet.reaper)."""
+        deadline = time.monotonic() + max(2 * self.ttl_s, 30.0)
+        delay = 0.2
+        while True:
+            try:
+                return self._claim(sid, control)
+            except Exception as exc:  # noqa: BLE001
+                if not database_unavailable(exc):
+                    log.error("session %s: %s", sid, traceback.format_exc())
+                    self._end_if_ours(sid, "failed", f"internal error in the worker: {type(exc).__name__}: {exc}",
+                                      claiming=True)
+                    return "failed"
+                if self.stopping.is_set() or time.monotonic() + delay > deadline:
+                    raise
+                log.warning("session %s: cannot claim it yet, the database is unreachable or slow (%s); retrying",
+                            sid, getattr(exc, "orig", None) or exc)
+                time.sleep(delay)
+                delay = min(2 * delay, 5.0)
 
     def _claim(self, sid: int, control: Control) -> str | None:
         """Take the session for this process; None when taken, else why not."""
@@ -232,7 +268,7 @@ class WorkerRuntime:
         attempts = 0
         while True:
             try:
-                return run_session(self.engine, self.settings, sid, control, owner=self.owner)
+                return run_session(self.engine, self.settings, sid, control, owner=self.owner, leased=True)
             except Exception as exc:  # noqa: BLE001
                 if not database_unavailable(exc):
                     log.error("session %s: %s", sid, traceback.format_exc())
@@ -259,13 +295,16 @@ class WorkerRuntime:
                 time.sleep(0.5)
         return False
 
-    def _end_if_ours(self, sid: int, state: str, reason: str) -> None:
+    def _end_if_ours(self, sid: int, state: str, reason: str, *, claiming: bool = False) -> None:
+        """Record the session's end if this process holds it (``claiming``: or nobody does yet)."""
         deadline = time.monotonic() + max(2 * self.ttl_s, 30.0)
+        ours = RunSession.lease_owner == self.owner
+        if claiming:
+            ours = ours | RunSession.lease_expires.is_(None)
         while True:
             try:
                 with Session(self.engine) as db:
-                    db.exec(update(RunSession).where(RunSession.id == sid, RunSession.lease_owner == self.owner,
-                                                     RunSession.state.in_(ACTIVE))
+                    db.exec(update(RunSession).where(RunSession.id == sid, ours, RunSession.state.in_(ACTIVE))
                             .values(state=state, reason=reason, updated_at=utcnow(), lease_expires=utcnow()))
                     db.commit()
                 return
@@ -321,6 +360,7 @@ class WorkerRuntime:
         self.reaper.stop()
         self.jobs_sync.close()
         self.engine.dispose()
+        self.control_engine.dispose()
 
 
 def run_worker(settings: Settings, *, name: str, sites: list[str] | None, concurrency: int) -> int:

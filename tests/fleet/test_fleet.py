@@ -20,6 +20,7 @@ from sqlmodel import Session, select
 
 from service.client import ApiError
 from service.models import Measurement, RunSession
+from service.processes import start_service
 
 
 @pytest.fixture(scope="module")
@@ -168,6 +169,19 @@ def test_worker_killed_mid_session_is_interrupted_and_resumed_by_the_other(fleet
     fleet.start_worker(victim, ["north", "south", "east"] if victim == "w1" else ["north", "south"])
 
 
+def test_a_session_left_planned_without_a_job_is_queued_again_and_runs(fleet):
+    (cell,) = fleet.add_cells(["north"])
+    # What an API process that stopped between the session and its job, or a worker that gave
+    # the job up before claiming the session, leaves behind: planned, nothing queued.
+    with Session(fleet.engine) as db:
+        run = RunSession(cell_id=cell["id"], kind="verify", planned=5, target="smr", created_by="test")
+        db.add(run)
+        db.commit()
+        sid = run.id
+    done = fleet.api().wait_session(sid, 8 * fleet.ttl_s, poll_s=0.1)
+    assert done["state"] == "completed" and done["measured"] == 5, done  # queued again, not interrupted
+
+
 def test_nightly_all_checks_every_cell_of_a_site_and_prints_a_summary(fleet):
     fresh = fleet.add_cells(["south", "south"])  # never calibrated: the verify finds them off
     env = {**os.environ, "RECAL_TOKEN": fleet.tokens["job"]}
@@ -186,3 +200,35 @@ def test_nightly_all_checks_every_cell_of_a_site_and_prints_a_summary(fleet):
         assert "recalibrated" in row, row
         assert fleet.api().call("GET", f"/cells/{c['id']}")["last_calibration_id"] is not None
     assert f"{len(south)} cells:" in r.stdout and "0 need a person" in r.stdout
+
+
+def test_nightly_waits_through_a_restart_of_the_api_replica_it_talks_to(fleet):
+    """The replica the nightly job polls goes away mid-run and comes back on the same address:
+    the sessions run on in the workers meanwhile, the job waits for the replica (no session
+    started twice) and reports every cell recalibrated."""
+    cells = fleet.add_cells(["east"], time_scale=0.02)  # slow enough to be mid-run when the replica stops
+    env = {**os.environ, "RECAL_TOKEN": fleet.tokens["job"]}
+    url = fleet.apis[1].ready["url"]
+    job = subprocess.Popen([sys.executable, "-m", "service.cli", "nightly", "--all", "--site", "east", "--url", url,
+                            "--timeout", "120"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not fleet.sql("SELECT id FROM session WHERE cell_id = :c AND kind = 'verify'", c=cells[0]["id"]):
+            assert time.monotonic() < deadline and job.poll() is None, "the nightly job started no session"
+            time.sleep(0.1)
+        fleet.apis[1].stop()
+        time.sleep(3)  # the job's polls are refused meanwhile
+        fleet.apis[1] = start_service(fleet.home, int(url.rsplit(":", 1)[1]), env=fleet.env,
+                                      log_path=fleet.home / "api1-restarted.log")
+        out, err = job.communicate(timeout=240)
+    finally:
+        if job.poll() is None:
+            job.kill()
+    print(out, err)
+    assert job.returncode == 10, (out, err)
+    east = fleet.api().call("GET", "/cells?site=east")
+    assert f"{len(east)} cells:" in out and "0 need a person" in out
+    row = next(line for line in out.splitlines() if line.startswith(cells[0]["name"] + " "))
+    assert "recalibrated" in row, row
+    kinds = [r[0] for r in fleet.sql("SELECT kind FROM session WHERE cell_id = :c ORDER BY id", c=cells[0]["id"])]
+    assert kinds == ["verify", "pose"], kinds  # each started once
