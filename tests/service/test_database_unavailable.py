@@ -5,44 +5,33 @@ service answers normally again once the database takes connections."""
 from __future__ import annotations
 
 import logging
-import uuid
 
 import pytest
 from sqlalchemy import create_engine, text
+from sqlalchemy.pool import NullPool
 
 from calibration.model import model_to_dict
 from calibration.robots import nominal
-from service.settings import Settings
 
 from .conftest import POSTGRES_URL, auth
 
 
 @pytest.fixture
-def pg_settings(tmp_path):
-    if not POSTGRES_URL:
-        pytest.skip("PostgreSQL tests need RECAL_TEST_POSTGRES_URL (.ci/run sets it)")
-    name = f"recal_test_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(POSTGRES_URL, isolation_level="AUTOCOMMIT")
-    with admin.connect() as conn:
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield Settings(home=tmp_path, database_url=f"{POSTGRES_URL.rpartition('/')[0]}/{name}"), admin, name
-    finally:
-        with admin.connect() as conn:
-            conn.execute(text(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS true'))
-            conn.execute(text(f"SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = '{name}'"))
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}"'))
-        admin.dispose()
+def admin():
+    engine = create_engine(POSTGRES_URL, isolation_level="AUTOCOMMIT", poolclass=NullPool)
+    yield engine
+    engine.dispose()
 
 
-def test_a_database_out_of_connections_gives_503_then_recovers(pg_settings, caplog):
+@pytest.mark.parametrize("database_url", ["postgres"], indirect=True)
+def test_a_database_out_of_connections_gives_503_then_recovers(settings, admin, caplog):
     from fastapi.testclient import TestClient
 
     from service.api.app import create_app
     from service.store import create_token, make_engine
     from sqlmodel import Session
 
-    settings, admin, name = pg_settings
+    name = settings.database_url.rpartition("/")[2]
     with TestClient(create_app(settings)) as client:
         engine = make_engine(settings.database_url)
         with Session(engine) as db:
@@ -56,7 +45,8 @@ def test_a_database_out_of_connections_gives_503_then_recovers(pg_settings, capl
         caplog.clear()
         try:
             with caplog.at_level(logging.WARNING):
-                r = client.post("/api/v1/cells", headers=auth(token), json={"name": "c", "model": model_to_dict(nominal("ur5e"))})
+                r = client.post("/api/v1/cells", headers=auth(token),
+                                json={"name": "c", "model": model_to_dict(nominal("ur5e"))})
                 listed = client.get("/api/v1/cells", headers=auth(token))
         finally:
             with admin.connect() as conn:
