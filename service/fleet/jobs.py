@@ -9,9 +9,8 @@ A session is one job of the task ``recal.run_session`` (``{"session_id": N}``):
 - ``queueing_lock`` ``session:<id>``: one waiting job per session, however often it is resumed.
 
 The job is deferred in the same transaction as the session's ``planned`` state
-(:func:`defer_session`), so a session is never queued twice. A new session is stored first,
-then queued: if the API process stops, or the database refuses it, in between, the session is
-``planned`` without a job, and the reaper queues it (service.fleet.reaper).
+(:func:`defer_session`, called by the API routes through ``FleetOrchestrator.queue``), so a
+session is never queued twice and never stored planned without its job.
 """
 
 from __future__ import annotations

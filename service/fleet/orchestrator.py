@@ -1,8 +1,9 @@
 """``FleetOrchestrator``: what an API process uses when ``RECAL_ENGINE=procrastinate``.
 
 The same methods as the embedded :class:`service.orchestrator.Orchestrator`, but nothing runs
-here: ``start`` queues the session for a worker of its cell's site (in one transaction with
-clearing its requests), ``pause`` and ``abort`` go through the database (``session.requested``,
+here: ``queue`` puts the session's job on the queue of its cell's site in the API request's own
+transaction (the session is stored planned and queued at once; ``start`` does the same in a
+transaction of its own), ``pause`` and ``abort`` go through the database (``session.requested``,
 and a NOTIFY on ``recal_control`` so that the worker running the session hears it at once),
 and a job still waiting in its queue is cancelled outright.
 """
@@ -40,20 +41,27 @@ class FleetOrchestrator:
         self.app = jobs.sync_app(settings)
         self.reaper = Reaper(engine, self.app, settings.effective_lease_ttl_s, name="api-reaper").start()
 
+    def queue(self, db: Session, run: RunSession) -> bool:
+        """Queue ``run`` (planned, flushed) for a worker of its cell's site in the caller's
+        transaction: the caller commits the session and its job at once, so a session is never
+        stored planned without its job. False when a worker holds it already (nothing queued)."""
+        if _held_by_other(run, self.owner):
+            return False  # two resumes at once: a worker has it already
+        run.requested = None
+        # Marked queued, not leased: a worker that had it before (and lost it) may not write
+        # its state any more (run_session checks the owner), the next worker takes the lease.
+        run.lease_owner, run.lease_expires = f"queued:{self.owner}", None
+        db.add(run)
+        jobs.defer_session(db, self.app, run, db.get(Cell, run.cell_id))
+        return True
+
     def start(self, session_id: int) -> None:
-        """Queue the session (planned) for a worker of its cell's site."""
+        """Queue the session (planned) for a worker of its cell's site, in a transaction of its
+        own (the reaper's requeue, tests); the API routes queue in theirs (:meth:`queue`)."""
         with Session(self.engine) as db:
             run = db.get(RunSession, session_id, with_for_update=True)
-            if run.state != "planned" or _held_by_other(run, self.owner):
-                return  # a worker has it already (two resumes at once): nothing to queue
-            cell = db.get(Cell, run.cell_id)
-            run.requested = None
-            # Marked queued, not leased: a worker that had it before (and lost it) may not write
-            # its state any more (run_session checks the owner), the next worker takes the lease.
-            run.lease_owner, run.lease_expires = f"queued:{self.owner}", None
-            db.add(run)
-            jobs.defer_session(db, self.app, run, cell)
-            db.commit()
+            if run.state == "planned" and self.queue(db, run):
+                db.commit()
 
     def _request(self, session_id: int, what: str) -> bool:
         """Record ``what`` for the session; False when nothing will act on it (the route then

@@ -16,9 +16,8 @@ interrupted.
    cell's lock is free (a session it had started is interrupted by 1.; one it had not yet
    claimed is queued again by 3.).
 3. A ``planned`` session that nobody has claimed and that has no job waiting or running for a
-   whole lease period (the API process stored it but could not queue it: the database refused
-   the second transaction, or the process stopped in between; or a worker gave its job up)
-   -> queued. Nothing has
+   whole lease period (a worker gave its job up; a session planned outside the API, e.g. by
+   hand in the database) -> queued. Nothing has
    moved: it runs as it was asked to. A pause or abort asked meanwhile is honoured by the
    worker that claims it.
 """

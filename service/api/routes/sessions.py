@@ -12,8 +12,8 @@ from sqlalchemy import select as sa_select
 from sqlalchemy.exc import IntegrityError
 from sqlmodel import Session, select
 
-from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token
-from ...store import audit, measured_count, set_state, set_state_unless
+from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
+from ...store import audit, measured_count, set_state_unless
 from ..deps import DbSession, Orchestrator, Reader, Runner, quick_read
 
 router = APIRouter(tags=["sessions"])
@@ -80,17 +80,29 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
                      target=body.target if body.target is not None else (_default_target(model, body)),
                      dry_run=body.dry_run, created_by=tok.name, plan_info=info or None)
-    db.add(run)
     try:
-        db.commit()
+        queued = commit_planned(db, run, orchestrator)
     except IntegrityError:  # another request (any API process) started one on this cell meanwhile
         db.rollback()
         raise HTTPException(409, "another session is already driving this cell") from None
     db.refresh(run)
     audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
           detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run})
-    orchestrator.start(run.id)
+    if not queued:
+        orchestrator.start(run.id)
     return public_session(db, run)
+
+
+def commit_planned(db, run: RunSession, orchestrator) -> bool:
+    """Commit ``run``, planned. Where the engine queues sessions (the fleet: ``queue``), its job
+    is queued in the same transaction, so that no session is ever stored planned without one;
+    True then. Else (the embedded default) the caller starts it once committed."""
+    queue = getattr(orchestrator, "queue", None)
+    db.add(run)
+    db.flush()  # the id, for the job (and the one-active-session-per-cell index speaks here)
+    queued = queue is not None and queue(db, run)
+    db.commit()
+    return queued
 
 
 def _default_target(model, body) -> str | None:
@@ -124,13 +136,16 @@ def resume(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrat
                                             RunSession.state.in_(ACTIVE))).first()
     if busy is not None:
         raise HTTPException(409, f"session {busy.id} is driving this cell")
+    run.state, run.reason, run.updated_at = "planned", None, utcnow()
     try:
-        set_state(db, run, "planned", None)
+        queued = commit_planned(db, run, orchestrator)
     except IntegrityError:
         db.rollback()
         raise HTTPException(409, "another session is driving this cell") from None
+    db.refresh(run)
     audit(db, actor=tok.name, action="resume session", subject=f"session {session_id}")
-    orchestrator.start(run.id)
+    if not queued:
+        orchestrator.start(run.id)
     return public_session(db, run)
 
 

@@ -12,6 +12,7 @@ import time
 
 from fastapi import APIRouter, HTTPException, Request
 from sqlalchemy import func
+from sqlalchemy.exc import IntegrityError
 from sqlmodel import select
 
 from ...devicetest import test_devices
@@ -19,7 +20,7 @@ from ...models import Calibration, Cell, RunSession
 from ...results import _aware, plan_preview, session_live
 from ...store import audit, measured_count
 from ..deps import DbSession, Orchestrator, Reader, Runner
-from .sessions import ACTIVE, public_session
+from .sessions import ACTIVE, commit_planned, public_session
 
 router = APIRouter(tags=["workbench"])
 
@@ -319,12 +320,16 @@ def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestr
     info["from_dry_run"] = dry.id
     run = RunSession(cell_id=cell.id, kind=dry.kind, planned=len(dry.plan), device=dry.device, target=dry.target,
                      dry_run=False, created_by=tok.name, plan=dry.plan, plan_info=info)
-    db.add(run)
-    db.commit()
+    try:
+        queued = commit_planned(db, run, orchestrator)
+    except IntegrityError:  # another request (any API process) started one on this cell meanwhile
+        db.rollback()
+        raise HTTPException(409, "another session is already driving this cell") from None
     db.refresh(run)
     audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
           detail={"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id})
-    orchestrator.start(run.id)
+    if not queued:
+        orchestrator.start(run.id)
     return public_session(db, run)
 
 
