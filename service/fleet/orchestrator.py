@@ -57,7 +57,8 @@ class FleetOrchestrator:
 
     def start(self, session_id: int) -> None:
         """Queue the session (planned) for a worker of its cell's site, in a transaction of its
-        own (the reaper's requeue, tests); the API routes queue in theirs (:meth:`queue`)."""
+        own, under a lock on its row (the API routes queue in theirs, :meth:`queue`; they call
+        this only when that found a worker holding the session, and so does this)."""
         with Session(self.engine) as db:
             run = db.get(RunSession, session_id, with_for_update=True)
             if run.state == "planned" and self.queue(db, run):

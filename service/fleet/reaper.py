@@ -17,9 +17,8 @@ interrupted.
    claimed is queued again by 3.).
 3. A ``planned`` session that nobody has claimed and that has no job waiting or running for a
    whole lease period (a worker gave its job up; a session planned outside the API, e.g. by
-   hand in the database) -> queued. Nothing has
-   moved: it runs as it was asked to. A pause or abort asked meanwhile is honoured by the
-   worker that claims it.
+   hand in the database) -> queued. Nothing has moved: it runs as it was asked to. A pause or
+   abort asked meanwhile is honoured by the worker that claims it.
 """
 
 from __future__ import annotations
