@@ -57,8 +57,9 @@ class FleetOrchestrator:
 
     def start(self, session_id: int) -> None:
         """Queue the session (planned) for a worker of its cell's site, in a transaction of its
-        own, under a lock on its row (the API routes queue in theirs, :meth:`queue`; they call
-        this only when that found a worker holding the session, and so does this)."""
+        own, under a lock on its row. The API routes queue in their own transaction
+        (:meth:`queue`) and call this only when that found a worker holding the session: then
+        this queues nothing either, unless the worker let the session go meanwhile."""
         with Session(self.engine) as db:
             run = db.get(RunSession, session_id, with_for_update=True)
             if run.state == "planned" and self.queue(db, run):
