@@ -27,11 +27,14 @@ For each: the wall time of the whole run; per session (from the store's timestam
 by the API -> final state written) the mean and median time; the count of sessions and
 measurements (checked: every configuration exactly once). Then a sequential run (one cell,
 ``--sequential`` rounds of verify + pose, one session at a time, nothing else running) gives
-each set-up's per-session time without contention: the fleet's minus the embedded default's
-is the engine's per-session overhead (queueing through PostgreSQL, the worker's claim, lease
-and monitor).
+each set-up's per-session time without contention, broken down (to the first measurement
+stored, measuring, after the last). The fleet's minus embedded-pg's is the engine's
+per-session overhead (queueing through PostgreSQL, the worker's claim, lease and monitor); the
+fleet's minus the embedded default's is what moving to a fleet costs, the store included.
+The cells run only the devices the sessions use (UR and tracker). Results and their reading:
+docs/benchmarks.md#fleet.
 
-Run: ``python bench/fleet.py`` (a few minutes; needs PostgreSQL: ``--postgres URL``, default
+Run: ``python bench/fleet.py`` (about 8 minutes; needs PostgreSQL: ``--postgres URL``, default
 ``$RECAL_TEST_POSTGRES_URL`` or postgres@127.0.0.1). Cells listen on ``--host-prefix``
 (default 127.0.3.) 1..N.
 """
