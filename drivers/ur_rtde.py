@@ -94,7 +94,10 @@ class UrRtdeConfig:
     default, 500 Hz on e-Series, 125 Hz on CB3). Speed and acceleration limits are those of
     ``ur_rtde``'s ``moveJ``; ``joint_limits_rad`` (6 pairs) are checked before every move.
     A move has arrived when the controller reports it finished and every joint is within
-    ``arrival_tolerance_rad`` of the target.
+    ``arrival_tolerance_rad`` of the target. The joint readings come over the receive
+    interface's own connection, which may lag the control interface's that reported the end:
+    they get ``arrival_grace_s`` of controller time (RTDE timestamps) to show the arrival before
+    the move is called short.
     """
 
     host: str
@@ -107,6 +110,7 @@ class UrRtdeConfig:
     max_accel_rad_s2: float = 40.0
     joint_limits_rad: tuple[tuple[float, float], ...] = ((-_TWO_PI, _TWO_PI),) * N_JOINTS
     arrival_tolerance_rad: float = 1e-4
+    arrival_grace_s: float = 0.1
     stop_decel_rad_s2: float = 2.0
 
 
@@ -287,6 +291,14 @@ class UrRtdeRobot(Robot):
         snap = self._fresh_snapshot()
         self._raise_if_stopped(snap)
         error = float(np.max(np.abs(snap["q"] - q_target)))
+        # A package that arrived after the end was reported may still have been sampled before
+        # it (the receive connection lagging, e.g. a loaded computer): wait for packages sampled
+        # up to arrival_grace_s later, by the controller's clock, before calling the move short.
+        settled_by = snap["timestamp_s"] + self.config.arrival_grace_s
+        while error > self.config.arrival_tolerance_rad and snap["timestamp_s"] < settled_by:
+            snap = self._fresh_snapshot()
+            self._raise_if_stopped(snap)
+            error = float(np.max(np.abs(snap["q"] - q_target)))
         if error > self.config.arrival_tolerance_rad:
             raise RobotStoppedError(
                 f"the move ended {error:.3g} rad from its target (stopped before arriving)",
