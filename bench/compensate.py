@@ -54,33 +54,28 @@ from calibration.parameters import apply_step, candidate_parameters  # noqa: E40
 from calibration.transforms import matrix_to_quat, matrix_to_rotvec  # noqa: E402
 
 
-def identified_ur10e(seed: int = 1):
+def identified(robot: str, *, seed: int, base, q_range_rad: float):
+    """``robot`` as identification describes it (Hayati links, every link parameter off), its
+    base ``base`` (x, y, z m, rx, ry, rz rad) from the tracker; and the nominal's frame in that
+    world, fitted over configurations within ±``q_range_rad``."""
     rng = np.random.default_rng(seed)
-    nominal = robots.nominal("ur10e")
+    nominal = robots.nominal(robot)
     m, _ = hayati_for_parallel_axes(nominal)
     params = candidate_parameters(m, base=False, tool=False)
     sig = [0.5e-3 if p.kind == "length" else np.deg2rad(0.1) if p.name.endswith(".theta") else np.deg2rad(0.05)
            for p in params]
     m = apply_step(m, params, rng.normal(0.0, sig))
-    ident = dataclasses.replace(m, base=np.array([1.8, -0.6, 0.3, 0.002, -0.004, np.deg2rad(130.0)]),
-                                name="ur10e-identified")
-    M = frame_map(ident, nominal, rng.uniform(-np.pi, np.pi, (256, 6)))
-    return nominal, ident, M
+    ident = dataclasses.replace(m, base=np.asarray(base, dtype=float), name=f"{robot}-identified")
+    return nominal, ident, frame_map(ident, nominal, rng.uniform(-q_range_rad, q_range_rad, (256, 6)))
 
 
-def identified_puma(seed: int = 3):
-    """A PUMA 560 as identification describes it (Hayati links, every link parameter off), the
-    base 1.5 m from the tracker and turned; and the nominal's frame in that world."""
-    rng = np.random.default_rng(seed)
-    nominal = robots.nominal("puma560")
-    m, _ = hayati_for_parallel_axes(nominal)
-    params = candidate_parameters(m, base=False, tool=False)
-    sig = [0.5e-3 if p.kind == "length" else np.deg2rad(0.1) if p.name.endswith(".theta") else np.deg2rad(0.05)
-           for p in params]
-    m = apply_step(m, params, rng.normal(0.0, sig))
-    ident = dataclasses.replace(m, base=np.array([1.5, 0.3, 0.2, 0.001, 0.002, np.deg2rad(60.0)]),
-                                name="puma560-identified")
-    return nominal, ident, frame_map(ident, nominal, rng.uniform(-1.5, 1.5, (256, 6)))
+def identified_ur10e():
+    return identified("ur10e", seed=1, base=[1.8, -0.6, 0.3, 0.002, -0.004, np.deg2rad(130.0)], q_range_rad=np.pi)
+
+
+def identified_puma():
+    """A PUMA 560, the base 1.5 m from the tracker and turned."""
+    return identified("puma560", seed=3, base=[1.5, 0.3, 0.2, 0.001, 0.002, np.deg2rad(60.0)], q_range_rad=1.5)
 
 
 def puma_configurations(kind: str, n: int, seed: int = 4) -> np.ndarray:
