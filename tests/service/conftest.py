@@ -61,6 +61,18 @@ def auth(token: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
 
 
+def register_cell(client, token: str, name: str, *, robot: str = "ur10e") -> dict:
+    """A cell with ``robot``'s nominal model (a reflector 50 mm out) and no devices, registered
+    through the API; its JSON."""
+    from calibration.robots import nominal_document
+
+    doc = nominal_document(robot)
+    doc["targets"] = {"smr": [0, 0, 50]}
+    r = client.post("/api/v1/cells", json={"name": name, "model": doc, "devices": {}}, headers=auth(token))
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
 class NoMotion:
     """An orchestrator that runs nothing: sessions stay as the API left them (``started`` lists
     the ones the API asked it to run)."""

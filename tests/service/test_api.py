@@ -14,10 +14,7 @@ from calibration.robots import nominal_document
 from service.api.app import create_app
 from service.settings import Settings
 
-
-
-def auth(token: str) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"}
+from .conftest import auth
 
 
 def _model(targets=None) -> dict:

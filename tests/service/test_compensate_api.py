@@ -14,26 +14,17 @@ import pytest
 
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
-from calibration.robots import nominal_document
 from calibration.transforms import matrix_to_quat
 
+from .conftest import auth, register_cell
+
 Q = [f"q{i}" for i in range(1, 7)]
-
-
-def auth(token: str) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"}
-
-
 
 
 @pytest.fixture
 def calibrated(idle_app, tokens, stored_session):
     with idle_app() as client:
-        doc = nominal_document("ur10e")
-        doc["targets"] = {"smr": [0, 0, 50]}
-        r = client.post("/api/v1/cells", json={"name": "comp", "model": doc, "devices": {}},
-                        headers=auth(tokens["technician"]))
-        cell = r.json()["id"]
+        cell = register_cell(client, tokens["technician"], "comp")["id"]
         yield client, cell, stored_session(cell, seed=2)[1]
 
 

@@ -8,13 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from calibration.robots import nominal_document
-
-
-def auth(token: str) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"}
-
-
+from .conftest import auth, register_cell
 
 
 @pytest.fixture
@@ -22,11 +16,7 @@ def history(idle_app, tokens, stored_session):
     """A cell calibrated twice, verified (each configuration three times), then calibrated
     after its robot changed."""
     with idle_app() as client:
-        doc = nominal_document("ur10e")
-        doc["targets"] = {"smr": [0, 0, 50]}
-        r = client.post("/api/v1/cells", json={"name": "drifting", "model": doc, "devices": {}},
-                        headers=auth(tokens["technician"]))
-        cell = r.json()["id"]
+        cell = register_cell(client, tokens["technician"], "drifting")["id"]
         first = stored_session(cell, seed=2)[1]
         second = stored_session(cell, seed=3)[1]
         verify = stored_session(cell, kind="verify", seed=4, n=5, repeats=3)[0]

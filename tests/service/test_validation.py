@@ -17,13 +17,9 @@ from service.api.app import create_app
 from service.models import MAX_COUNT, AuditEntry, RunSession
 from service.store import make_engine
 
+from .conftest import auth
+
 HUGE = "99999999999999999999999"
-
-
-def auth(token: str) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"}
-
-
 
 
 def _model(**changes) -> dict:

@@ -9,15 +9,10 @@ from __future__ import annotations
 import pytest
 from sqlmodel import Session
 
-from calibration.robots import nominal_document
 from service.models import RunSession
 from service.store import make_engine
 
-
-def auth(token: str) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"}
-
-
+from .conftest import auth, register_cell
 
 
 @pytest.fixture
@@ -26,17 +21,8 @@ def client(idle_app, tokens):
         yield c
 
 
-def _model() -> dict:
-    doc = nominal_document("ur10e")
-    doc["targets"] = {"smr": [0, 0, 50]}
-    return doc
-
-
 def _cell(client, tokens, name="web-cell") -> dict:
-    r = client.post("/api/v1/cells", json={"name": name, "model": _model(), "devices": {}},
-                    headers=auth(tokens["technician"]))
-    assert r.status_code == 201, r.text
-    return r.json()
+    return register_cell(client, tokens["technician"], name)
 
 
 def test_the_page_is_served_at_the_root(client):
