@@ -23,6 +23,14 @@ def _start(api, cell, **body):
     return api.call("POST", f"/cells/{cell['id']}/sessions", body)
 
 
+def _wait_measured(api, session_id: int, n: int, timeout_s: float = 60.0) -> None:
+    """Until the session has measured ``n`` configurations (it is progressing)."""
+    deadline = time.monotonic() + timeout_s
+    while api.call("GET", f"/sessions/{session_id}")["measured"] < n:
+        assert time.monotonic() < deadline, f"session {session_id} did not reach {n} measurements"
+        time.sleep(0.02)
+
+
 @BOTH_DATABASES
 def test_pose_session_calibrates_the_cell_to_the_noise_floor(stack, models, register):
     cell, _ = register()
@@ -68,10 +76,7 @@ def test_kill_9_mid_session_then_restart_and_resume_loses_and_duplicates_nothing
     cell, _ = register(time_scale=0.05)
     api = stack.api()
     s = _start(api, cell, kind="pose", count=25)
-    deadline = time.monotonic() + 60
-    while api.call("GET", f"/sessions/{s['id']}")["measured"] < 5:
-        assert time.monotonic() < deadline, "the session did not progress"
-        time.sleep(0.05)
+    _wait_measured(api, s["id"], 5)
     stack.kill()  # kill -9: no chance to clean up
     settings = Settings(home=stack.home, database_url=stack.db_url)
     engine = make_engine(settings.effective_database_url)
@@ -133,8 +138,7 @@ def test_abort_stops_the_session(stack, models, register):
     cell, _ = register(time_scale=0.1)
     api = stack.api()
     s = _start(api, cell, kind="pose", count=40)
-    while api.call("GET", f"/sessions/{s['id']}")["measured"] < 2:
-        time.sleep(0.05)
+    _wait_measured(api, s["id"], 2)
     api.call("POST", f"/sessions/{s['id']}/abort")
     s = api.wait_session(s["id"], 30)
     assert s["state"] == "aborted" and s["measured"] < 40
@@ -213,10 +217,7 @@ def test_moves_run_at_the_capped_speed_and_abort_stops_the_robot_short_of_its_ta
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
     s = _start(api, cell, kind="verify", count=12)
-    deadline = time.monotonic() + 60
-    while api.call("GET", f"/sessions/{s['id']}")["measured"] < 2:
-        assert time.monotonic() < deadline, "the session did not progress"
-        time.sleep(0.05)
+    _wait_measured(api, s["id"], 2)
     while np.abs(samples[-1][1] - samples[-3][1]).max() < 2e-3:  # abort while it moves
         time.sleep(0.01)
     a = api.call("POST", f"/sessions/{s['id']}/abort")
@@ -248,10 +249,7 @@ def test_pause_and_resume_in_the_embedded_service(stack, models, register):
     cell, _ = register(time_scale=0.02)
     api = stack.api()
     s = _start(api, cell, kind="verify", count=8)
-    deadline = time.monotonic() + 60
-    while api.call("GET", f"/sessions/{s['id']}")["measured"] < 2:
-        assert time.monotonic() < deadline
-        time.sleep(0.02)
+    _wait_measured(api, s["id"], 2)
     api.call("POST", f"/sessions/{s['id']}/pause")
     p = api.wait_session(s["id"], 30, until=("paused",))
     assert p["state"] == "paused" and p["reason"] == "paused on request" and p["measured"] < 8
