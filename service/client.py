@@ -50,15 +50,33 @@ class Api:
         except (urllib.error.URLError, OSError) as exc:
             raise ServiceUnreachableError(f"cannot reach {self.url}: {getattr(exc, 'reason', exc)}") from None
 
+    def call_patiently(self, method: str, path: str, body: dict | None = None, *, deadline: float):
+        """``call``, repeated while the service does not answer or says it is busy (502, 503,
+        504: a replica restarting, a database away), until ``time.monotonic()`` passes
+        ``deadline``. Only for requests that are safe to repeat."""
+        delay = 1.0
+        while True:
+            try:
+                return self.call(method, path, body)
+            except (ServiceError, ApiError) as exc:
+                if not transient(exc) or time.monotonic() + delay > deadline:
+                    raise
+            time.sleep(delay)
+            delay = min(2 * delay, 10.0)
+
     def wait_session(self, session_id: int, timeout_s: float, *, until=("completed", "failed", "aborted", "paused",
                                                                          "interrupted"), on_progress=None,
-                     poll_s: float = 0.2) -> dict:
+                     poll_s: float = 0.2, patient: bool = False) -> dict:
         """Poll a session every ``poll_s`` until its state is in ``until`` (or the timeout: state
-        ``timeout``)."""
+        ``timeout``). ``patient``: wait through a service that is briefly away or busy
+        (:meth:`call_patiently`) instead of raising."""
         deadline = time.monotonic() + timeout_s
         last = None
         while True:
-            s = self.call("GET", f"/sessions/{session_id}")
+            if patient:
+                s = self.call_patiently("GET", f"/sessions/{session_id}", deadline=deadline)
+            else:
+                s = self.call("GET", f"/sessions/{session_id}")
             if on_progress is not None and (s["state"], s["measured"]) != last:
                 last = (s["state"], s["measured"])
                 on_progress(s)
@@ -67,3 +85,14 @@ class Api:
             if time.monotonic() > deadline:
                 return {**s, "state": "timeout"}
             time.sleep(poll_s)
+
+
+# Answers that say "not now": a load balancer without a live replica, or a replica whose
+# database is away or overloaded (503).
+BUSY_STATUSES = (502, 503, 504)
+
+
+def transient(exc: Exception) -> bool:
+    """No answer, or one that says to try again later (as opposed to a refused token or a bad
+    request, which trying again cannot mend)."""
+    return isinstance(exc, ServiceUnreachableError) or (isinstance(exc, ApiError) and exc.status in BUSY_STATUSES)

@@ -29,7 +29,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from service.client import Api, ApiError, ServiceError, ServiceUnreachableError
+from service.client import Api, ApiError, ServiceError, transient
 
 EXIT_OK, EXIT_RECALIBRATED, EXIT_FAILED, EXIT_USAGE, EXIT_SERVICE = 0, 10, 1, 2, 3
 
@@ -83,7 +83,7 @@ def check_cell(api: Api, cell: dict, *, verify_count: int, count: int, threshold
         return {**out, "status": status, "result": result, "line": line}
 
     v = start_session(api, cell["id"], {"kind": "verify", "count": verify_count, "device": device}, timeout_s)
-    v = wait_session(api, v["id"], timeout_s, poll_s)
+    v = api.wait_session(v["id"], timeout_s, poll_s=poll_s, patient=True)
     if v["state"] != "completed":
         return done(EXIT_FAILED, f"verify {v['state']}",
                     f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip())
@@ -92,12 +92,12 @@ def check_cell(api: Api, cell: dict, *, verify_count: int, count: int, threshold
         lim = "no threshold set" if limit is None else f"threshold {limit:g} {unit}"
         return done(EXIT_OK, "accurate", f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}); nothing to do")
     p = start_session(api, cell["id"], {"kind": "pose", "count": count, "device": device}, timeout_s)
-    p = wait_session(api, p["id"], timeout_s, poll_s)
+    p = api.wait_session(p["id"], timeout_s, poll_s=poll_s, patient=True)
     if p["state"] != "completed" or p.get("calibration_id") is None:
         return done(EXIT_FAILED, f"drifted, recalibration {p['state']}",
                     (f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}); recalibration session "
                      f"{p['id']} {p['state']}: {p.get('reason') or ''}").strip())
-    cal = _patiently(api, time.monotonic() + timeout_s, "GET", f"/calibrations/{p['calibration_id']}")
+    cal = api.call_patiently("GET", f"/calibrations/{p['calibration_id']}", deadline=time.monotonic() + timeout_s)
     # Not repeated: each call stores a compensation of every task file (a failure needs a person).
     out["calibration_id"] = cal["id"]
     tasks = api.call("POST", f"/cells/{cell['id']}/tasks/compensate?calibration_id={cal['id']}")
@@ -111,37 +111,13 @@ def check_cell(api: Api, cell: dict, *, verify_count: int, count: int, threshold
     return done(EXIT_RECALIBRATED, f"recalibrated (RMS {cal['rms']:.4g} {unit})", msg)
 
 
-# Answers that say "not now": a load balancer without a live replica, or a replica whose
-# database is away or overloaded (503).
-_BUSY = (502, 503, 504)
-
-
-def _transient(exc: Exception) -> bool:
-    """No answer, or one that says to try again later (as opposed to a refused token or a bad
-    request, which trying again cannot mend)."""
-    return isinstance(exc, ServiceUnreachableError) or (isinstance(exc, ApiError) and exc.status in _BUSY)
-
-
-def _patiently(api: Api, deadline: float, method: str, path: str, body: dict | None = None):
-    """``api.call``, repeated while the service does not answer or is busy, until ``deadline``."""
-    delay = 1.0
-    while True:
-        try:
-            return api.call(method, path, body)
-        except (ServiceError, ApiError) as exc:
-            if not _transient(exc) or time.monotonic() + delay > deadline:
-                raise
-        time.sleep(delay)
-        delay = min(2 * delay, 10.0)
-
-
 def start_session(api: Api, cell_id: int, body: dict, timeout_s: float) -> dict:
     """Start a session on the cell. If the service does not answer, or answers that it is busy,
     the request may still have gone through: the cell's newest sessions say, before the start
     is sent again (a session is never started twice)."""
     deadline = time.monotonic() + timeout_s
     path = f"/cells/{cell_id}/sessions"
-    newest = _patiently(api, deadline, "GET", f"{path}?limit=1")
+    newest = api.call_patiently("GET", f"{path}?limit=1", deadline=deadline)
     before = newest[0]["id"] if newest else 0
     lost, delay = False, 1.0  # lost: a start was sent whose outcome is unknown
     while True:
@@ -151,11 +127,11 @@ def start_session(api: Api, cell_id: int, body: dict, timeout_s: float) -> dict:
         except (ServiceError, ApiError) as exc:
             if isinstance(exc, ApiError) and exc.status == 409 and lost:
                 busy = exc  # perhaps with our own start, whose answer was lost
-            elif not _transient(exc) or time.monotonic() + delay > deadline:
+            elif not transient(exc) or time.monotonic() + delay > deadline:
                 raise
             else:
                 lost = True
-        mine = [s for s in _patiently(api, deadline, "GET", f"{path}?limit=5")
+        mine = [s for s in api.call_patiently("GET", f"{path}?limit=5", deadline=deadline)
                 if s["id"] > before and s["kind"] == body["kind"]]
         if mine:
             return mine[-1]  # newest first: the first one after ours was sent
@@ -163,18 +139,6 @@ def start_session(api: Api, cell_id: int, body: dict, timeout_s: float) -> dict:
             raise busy  # another session is driving the cell
         time.sleep(delay)
         delay = min(2 * delay, 10.0)
-
-
-def wait_session(api: Api, session_id: int, timeout_s: float, poll_s: float) -> dict:
-    """Poll the session until it stops (or the timeout: state ``timeout``)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        s = _patiently(api, deadline, "GET", f"/sessions/{session_id}")
-        if s["state"] not in ("planned", "running"):
-            return s
-        if time.monotonic() > deadline:
-            return {**s, "state": "timeout"}
-        time.sleep(poll_s)
 
 
 def nightly_fleet(api: Api, sites: list[str], *, parallel: int, **kw) -> tuple[int, str]:
