@@ -31,12 +31,16 @@ from pathlib import Path
 
 import pytest
 
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
+
 REPO = Path(__file__).resolve().parents[2]
 _HERE = str(Path(__file__).resolve().parent)
 if _HERE not in sys.path:
     sys.path.insert(0, _HERE)
-POOL = [f"127.0.0.{i}" for i in range(2, 19)]
-ABSENT_HOST = "127.0.0.19"  # never given a cell: an absent controller
+POOL = [f"{NET}.{i}" for i in range(2, 19)]
+ABSENT_HOST = f"{NET}.19"  # never given a cell: an absent controller
 START_TIMEOUT_S = 20.0
 DEVICES = ("ur", "modbus", "tracker", "cmm", "can")  # fakes.cell's --no-KEY flags
 

@@ -12,6 +12,10 @@ from pathlib import Path
 
 import pytest
 
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
+
 REPO = Path(__file__).resolve().parents[2]
 TRUTH_PATH = Path(__file__).with_name("ur5e_truth.json")
 
@@ -58,7 +62,7 @@ def test_left_out_devices_leave_their_keys_out(cell_factory):
     ],
 )
 def test_bad_flags_give_one_line_naming_them(args, expected):
-    done = run_cell("--truth", str(TRUTH_PATH), "--host", "127.0.0.19", *args)
+    done = run_cell("--truth", str(TRUTH_PATH), "--host", f"{NET}.19", *args)
     assert done.returncode != 0
     assert done.stdout == ""
     lines = done.stderr.strip().splitlines()
@@ -70,7 +74,7 @@ def test_unreadable_truth_file_is_named(tmp_path):
     broken.write_text('{"format": "recal.model/1",\n "units": ')
     cases = ((tmp_path / "missing.json", "missing.json"), (broken, "broken.json: line 2"))
     for path, expected in cases:
-        done = run_cell("--truth", str(path), "--host", "127.0.0.19")
+        done = run_cell("--truth", str(path), "--host", f"{NET}.19")
         assert done.returncode != 0 and done.stdout == ""
         assert expected in done.stderr, done.stderr
 

@@ -3,6 +3,7 @@ server in another process, and the server's own behaviour in this one."""
 
 from __future__ import annotations
 
+import os
 import json
 import time
 from pathlib import Path
@@ -22,6 +23,10 @@ from drivers.modbus_robot import (
 )
 from fakes.modbus_server import ModbusRobotFake
 from fakes.world import SimCell
+
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 TRUTH_PATH = Path(__file__).with_name("ur5e_truth.json")  # the cells' truth (conftest.py)
 
@@ -86,7 +91,7 @@ def test_register_map_and_config_are_checked():
     with pytest.raises(ValueError, match="joint_angle_scale"):
         ModbusRegisterMap(joint_angle_scale=0.0)
     with pytest.raises(ValueError, match="joint_limits_rad"):
-        ModbusRobot(ModbusRobotConfig("127.0.0.19", joint_limits_rad=((-1.0, 1.0),)))
+        ModbusRobot(ModbusRobotConfig(f"{NET}.19", joint_limits_rad=((-1.0, 1.0),)))
     assert UR_REGISTER_MAP.joint_angle == 270 and UR_REGISTER_MAP.joint_turns == 320
 
 

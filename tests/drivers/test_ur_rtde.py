@@ -6,6 +6,7 @@ constructors hold the GIL while they wait, so it never runs in the test process 
 
 from __future__ import annotations
 
+import os
 import importlib.util
 import json
 import socket
@@ -32,6 +33,10 @@ from drivers.errors import (
 )
 from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
 from robot_contract import HOME, RobotContract
+
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 TRUTH_PATH = Path(__file__).with_name("ur5e_truth.json")  # the cells' truth (conftest.py)
 needs_ur_rtde = pytest.mark.skipif(
@@ -190,7 +195,7 @@ def test_missing_ur_rtde_is_reported_as_unavailable(monkeypatch):
         lambda name, *a: None if name == "rtde_control" else real_find_spec(name, *a),
     )
     with pytest.raises(DeviceUnavailableError, match="pip install ur-rtde"):
-        UrRtdeRobot(UrRtdeConfig("127.0.0.19"))
+        UrRtdeRobot(UrRtdeConfig(f"{NET}.19"))
 
 
 def test_probe_of_an_absent_controller_names_the_port(free_host):

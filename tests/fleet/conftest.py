@@ -29,6 +29,10 @@ from service.models import RunSession
 from service.processes import free_port, start_fake_cell, start_service, start_worker
 from service.store import create_token, make_engine, migrate
 
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
+
 POSTGRES_URL = os.environ.get("RECAL_TEST_POSTGRES_URL")
 _hosts = itertools.count(120)
 
@@ -37,7 +41,7 @@ def next_host() -> str:
     n = next(_hosts)
     if n > 159:
         raise RuntimeError("tests/fleet ran out of loopback addresses (127.0.0.120-159)")
-    return f"127.0.0.{n}"
+    return f"{NET}.{n}"
 
 
 def _skip_reason() -> str | None:

@@ -22,6 +22,10 @@ from service.processes import free_port, start_fake_cell, start_service
 from service.settings import Settings
 from service.store import create_token, make_engine, migrate
 
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
+
 _hosts = itertools.count(100)
 POSTGRES_URL = os.environ.get("RECAL_TEST_POSTGRES_URL")
 
@@ -32,7 +36,7 @@ def next_host() -> str:
     n = next(_hosts)
     if n > 119:
         raise RuntimeError("tests/system ran out of loopback addresses")
-    return f"127.0.0.{n}"
+    return f"{NET}.{n}"
 
 
 @pytest.fixture(scope="session")

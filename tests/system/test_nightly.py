@@ -4,10 +4,15 @@ complete), 2 (bad arguments), 3 (service unreachable, or the token refused)."""
 
 from __future__ import annotations
 
+import os
 import json
 
 from service.cli import main
 from service.processes import free_port
+
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 TASK = "q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n-30,-100,60,-50,-80,0\n"
 
@@ -40,7 +45,7 @@ def test_nightly_exit_statuses(stack, models, register, monkeypatch, capsys):
 
     # a cell whose devices do not answer: the verify session pauses, a person must look
     stack.api().call("POST", "/cells", {"name": "dark", "model": json.loads(models["nominal"].read_text()),
-                                        "devices": {"rtde": "127.0.0.19", "tracker": "socket://127.0.0.19:9"},
+                                        "devices": {"rtde": f"{NET}.19", "tracker": f"socket://{NET}.19:9"},
                                         "drift_threshold": 0.1})
     status, out, err = nightly(monkeypatch, capsys, "--cell", "dark", "--url", url, token=job)
     assert status == 1, (out, err)

@@ -24,6 +24,10 @@ from service.processes import free_port, start_fake_cell, start_service
 from service.settings import Settings
 from service.store import create_token, make_engine, migrate
 
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
+
 CHROMIUM = os.environ.get("RECAL_CHROMIUM", "/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--disable-sync"]
@@ -144,11 +148,11 @@ def stack(tmp_path_factory, browser):
         for role in ("technician", "viewer"):
             tokens[role] = create_token(db, role=role, name=f"{role}-anna" if role == "technician" else "viewer-ben")[1]
     engine.dispose()
-    host = "127.0.0.81"
+    host = f"{NET}.81"
     with ThreadPoolExecutor(2) as pool:  # both simulated cells start at once
         starting = [pool.submit(start_fake_cell, home / "truth.json", host, seed=5, time_scale=0.03,
                                 extra=["--fault", "protective_stop_at_move=6"], log_path=home / "fake-cell.log"),
-                    pool.submit(start_fake_cell, home / "crashed.json", "127.0.0.82", seed=6, time_scale=0.03,
+                    pool.submit(start_fake_cell, home / "crashed.json", f"{NET}.82", seed=6, time_scale=0.03,
                                 log_path=home / "fake-cell-2.log")]
     cells = [f.result() for f in starting if f.exception() is None]
     if len(cells) < len(starting):

@@ -9,6 +9,7 @@ with a thousand stored calibrations and page through many cells; a portrait tabl
 
 from __future__ import annotations
 
+import os
 import json
 import re
 import socket
@@ -16,6 +17,10 @@ import time
 
 import numpy as np
 import pytest
+
+# Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
+# use disjoint addresses (the UR controller's ports are fixed per address).
+NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 
 pytestmark = pytest.mark.slow
@@ -80,7 +85,7 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     assert page.input_value("#enc-2") == str(stack.cell_ready["encoders"]["2"])
     assert page.input_value("#res-1") == str(stack.cell_ready["resolvers"]["1"])
     # inline checks: a wrong field says what it expects, and nothing is registered
-    page.fill("#dev-modbus", "127.0.0.81")
+    page.fill("#dev-modbus", f"{NET}.81")
     page.fill("#region-lo-2", "10")
     page.fill("#region-hi-2", "-10")
     page.fill("#res-2", str(stack.cell_ready["encoders"]["1"]))  # a node id used twice
