@@ -44,6 +44,7 @@ from .kinematics import check_q, fk, joint_variables, target_positions, walk
 from .model import KinematicModel
 from .registration import register_points
 from .transforms import homogeneous, invert, matrix_to_pose, pose_to_matrix, rot, rotvec_to_matrix
+from .errors import RecalError
 
 METHODS = ("geometric", "kasa")
 
@@ -55,7 +56,7 @@ _MIN_TARGET_RADIUS_M = 1e-3
 _DEGENERATE_RTOL = 1e-9
 
 
-class SweepError(ValueError):
+class SweepError(RecalError, ValueError):
     """Sweeps that circle-point analysis cannot use. ``row`` (1-based data row) and ``column``
     say where, when one place is at fault."""
 

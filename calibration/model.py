@@ -21,6 +21,7 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
+from .errors import RecalError
 
 FORMAT = "recal.model/1"
 CONVENTIONS = ("dh", "mdh", "poe")
@@ -29,7 +30,7 @@ LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "in": 0.0254}
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 
 
-class ModelFormatError(ValueError):
+class ModelFormatError(RecalError, ValueError):
     """A model document is malformed. ``field`` is the JSON path at fault (``joints[2].alpha``)."""
 
     def __init__(self, field: str, message: str):

@@ -16,6 +16,7 @@ from .identify import IdentificationResult, Measurements
 from .jacobian import predict
 from .model import KinematicModel
 from .parameters import Parameter, candidate_parameters
+from .errors import RecalError
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -65,7 +66,7 @@ def predicted_uncertainty(result: IdentificationResult, q: np.ndarray, target: s
     return radius_95(position_covariance(result, q, target), level)
 
 
-class CovarianceError(ValueError):
+class CovarianceError(RecalError, ValueError):
     """A model's stored covariance is missing or does not fit the model; ``field`` is the JSON
     path at fault (``identification.covariance.names[3]``)."""
 

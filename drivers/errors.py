@@ -1,6 +1,7 @@
 """Exceptions raised by device drivers.
 
-The tree (each class also inherits the matching built-in, so callers can catch either)::
+The device branch of Recal's exception tree (its root, ``RecalError``, is in calibration/errors.py;
+each class also inherits the matching built-in, so callers can catch either)::
 
     RecalError
     └── DeviceError
@@ -22,9 +23,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 
-
-class RecalError(Exception):
-    """Base of every exception Recal raises on purpose."""
+from calibration.errors import RecalError  # the root of the tree, re-exported here for drivers' callers
 
 
 class DeviceError(RecalError):

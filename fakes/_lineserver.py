@@ -10,11 +10,12 @@ from __future__ import annotations
 import logging
 import socket
 import threading
+from calibration.errors import RecalError
 
 log = logging.getLogger(__name__)
 
 
-class DropConnection(Exception):
+class DropConnection(RecalError):
     """Raised by a handler to close the client's connection without replying."""
 
 

@@ -54,6 +54,7 @@ from pathlib import Path
 
 from calibration.model import KinematicModel, model_from_dict
 from fakes.world import Faults, Noise, SimCell
+from calibration.errors import RecalError
 
 PROG = "recal fake-cell"
 
@@ -67,7 +68,7 @@ FAKES = (
 )
 
 
-class CellError(Exception):
+class CellError(RecalError, ValueError):
     """Bad input or a fake that cannot start; the message is the one stderr line."""
 
 

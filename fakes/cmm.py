@@ -48,6 +48,7 @@ import numpy as np
 
 from fakes._lineserver import Client, DropConnection, LineServer, garble
 from fakes.world import SimCell
+from calibration.errors import RecalError
 
 MM = 1e-3
 
@@ -66,7 +67,7 @@ _PROPS = {
 _REPORT_ITEMS = {"X", "Y", "Z", "IJK", "ER", "R", "Tool.A", "Tool.B", "Tool.C"}
 
 
-class IppError(Exception):
+class IppError(RecalError):
     """An I++ error to send as ``! Error(severity, number, method, text)``."""
 
     def __init__(self, severity: int, number: int, text: str):

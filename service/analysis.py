@@ -27,6 +27,7 @@ from calibration.report import identification_block, identification_report
 from .models import Calibration, Cell, Measurement, RunSession
 from .settings import Settings
 from .store import current_calibration
+from calibration.errors import RecalError
 
 # Allowance for what may have changed since the previous calibration (per parameter, 1 sigma):
 # the prior's covariance is the previous one plus this allowance times a scale the new data show
@@ -39,7 +40,7 @@ DRIFT_ANGLE_RAD = np.deg2rad(0.005)
 DRIFT_SCALE_MIN = 0.1
 
 
-class AnalysisError(RuntimeError):
+class AnalysisError(RecalError, RuntimeError):
     """The measurements cannot give a result (the reason is for the technician)."""
 
 

@@ -13,6 +13,7 @@ import argparse
 import importlib
 import os
 import sys
+from calibration.errors import RecalError
 
 # Recal's matrices are small (tens of parameters): on a shared machine a multithreaded BLAS
 # spends more time synchronising threads than computing (measured ~25x slower on 2 cores).
@@ -36,7 +37,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-class Fail(Exception):
+class Fail(RecalError):
     """A one-line failure for the user (exit status 2)."""
 
 

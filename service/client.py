@@ -7,9 +7,10 @@ import json
 import time
 import urllib.error
 import urllib.request
+from calibration.errors import RecalError
 
 
-class ServiceError(Exception):
+class ServiceError(RecalError, RuntimeError):
     """The service cannot be reached, or refused the token (401/403)."""
 
 
@@ -17,7 +18,7 @@ class ServiceUnreachableError(ServiceError, ConnectionError):
     """No answer from the service: refused, reset or timed out (worth trying again later)."""
 
 
-class ApiError(RuntimeError):
+class ApiError(RecalError, RuntimeError):
     """The service answered with an error status; ``status`` and ``detail`` say which."""
 
     def __init__(self, status: int, detail: str, what: str):

@@ -10,9 +10,10 @@ import io
 import json
 import tempfile
 from pathlib import Path
+from calibration.errors import RecalError
 
 
-class CompensationInputError(ValueError):
+class CompensationInputError(RecalError, ValueError):
     """The task file cannot be compensated; the message names the line and field."""
 
 

@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivers.base import Cmm, JointEncoder, PositionSensor, Robot
+from calibration.errors import RecalError
 
 
-class DeviceConfigError(ValueError):
+class DeviceConfigError(RecalError, ValueError):
     """A cell's ``devices`` document cannot be used: names the field at fault."""
 
 

@@ -20,9 +20,10 @@ import numpy as np
 
 from calibration.identify import Measurements
 from calibration.model import KinematicModel, ModelFormatError, model_from_dict, model_to_dict
+from calibration.errors import RecalError
 
 
-class InputError(ValueError):
+class InputError(RecalError, ValueError):
     """Bad input, reported as one line: ``file, row R (line L), column 'c': message``.
 
     ``row`` is the 1-based data row, or ``"header"`` for the header line; ``line`` the line in

@@ -53,6 +53,7 @@ from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
 from .store import _aware, acquire_lease, set_state
+from calibration.errors import RecalError
 
 log = logging.getLogger("recal.sessions")
 
@@ -93,7 +94,7 @@ class Control:
             raise SessionStopped("paused", "paused on request")
 
 
-class SessionStopped(Exception):
+class SessionStopped(RecalError):
     """The session stops here: ``state`` and ``reason`` say how; ``device`` which device's fault
     (``robot``, ``tracker``, ``cmm``, ``encoder``) stopped it, if one did, and ``cause`` the error."""
 
@@ -102,7 +103,7 @@ class SessionStopped(Exception):
         super().__init__(reason)
 
 
-class DeviceOpenError(ConnectionError):
+class DeviceOpenError(RecalError, ConnectionError):
     """One of the session's devices (``device``) could not be opened."""
 
     def __init__(self, device: str, cause: Exception):

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.model import KinematicModel
+from calibration.errors import RecalError
 
 
 # How far (rad, or m for a prismatic joint, per joint) a repeated verify visit backs away before it
@@ -39,11 +40,11 @@ class Plan:
     info: dict
 
 
-class UnsafePlan(ValueError):
+class UnsafePlan(RecalError, ValueError):
     """A configuration is outside the joint limits or the cell's allowed region."""
 
 
-class RegionError(ValueError):
+class RegionError(RecalError, ValueError):
     """An allowed region that cannot be used: ``row`` (0-based, or None for the whole region)."""
 
     def __init__(self, message: str, row: int | None = None):

@@ -7,6 +7,7 @@ import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from calibration.errors import RecalError
 
 ENGINES = ("embedded", "procrastinate")
 
@@ -25,7 +26,7 @@ LIMITS: dict[str, tuple[float, float, str, str]] = {
 }
 
 
-class SettingsError(ValueError):
+class SettingsError(RecalError, ValueError):
     """A setting is missing its form or out of its range: one line naming the variable."""
 
 

@@ -30,6 +30,7 @@ from sqlmodel import Session
 
 from ..models import Cell, RunSession
 from ..settings import Settings
+from calibration.errors import RecalError
 
 log = logging.getLogger("recal.fleet")
 
@@ -41,7 +42,7 @@ CONNECT_TIMEOUT_S = 15
 _MAX_SITE = 35
 
 
-class FleetConfigError(ValueError):
+class FleetConfigError(RecalError, ValueError):
     """The settings do not describe a fleet (one line for the user)."""
 
 
