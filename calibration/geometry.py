@@ -9,9 +9,14 @@ nothing here knows about units beyond that.
   their measured world positions (SVD / Kabsch), over all points. This is what Recal uses.
 - :func:`pose_from_three_points`: the book's construction from exactly three ball centres
   (eqs. 6.12-6.15, same as eqs. 3.22-3.27), kept as the reference path.
+- :func:`fit_joint_harmonic`: a joint's reference reading against its controller reading,
+  book eq. 2.4 (gain, offset and an eccentricity harmonic).
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -335,3 +340,58 @@ def _homogeneous_columns(p: np.ndarray) -> np.ndarray:
     cols = np.stack([x2, x3, x5, xf], axis=-1)  # (N, 3, 4)
     ones = np.ones((p.shape[0], 1, 4))
     return np.concatenate([cols, ones], axis=1)
+
+
+# --------------------------------------------------------------------------- joint level
+
+
+@dataclass(frozen=True)
+class JointHarmonic:
+    """Book eq. 2.4 for one joint, ``θ = k1·q + k2 + k3·sin(k4·q + k5)``: ``gain`` k1,
+    ``offset`` k2 (rad), ``amplitude`` k3 (rad), ``frequency`` k4 (per rad of reading), ``phase``
+    k5 (rad), the fit's ``residual_rms_rad`` and the number of ``points``."""
+
+    gain: float
+    offset: float
+    amplitude: float
+    frequency: float
+    phase: float
+    residual_rms_rad: float
+    points: int
+
+
+def fit_joint_harmonic(q: np.ndarray, ref: np.ndarray, frequency: float | None) -> JointHarmonic:
+    """Book eq. 2.4 for one joint: ``ref = k1·q + k2 + k3·sin(k4·q + k5)`` by linear least squares
+    for a given ``k4`` (``frequency``; when unknown, the best of the integer harmonics the sweep
+    resolves, each kept only if it lowers the residual by a fifth). ``q``, ``ref`` (N,) rad."""
+    q = np.asarray(q, float)
+    ref = np.unwrap(np.asarray(ref, float))
+
+    def solve(k4):
+        cols = [q, np.ones_like(q)]
+        if k4:
+            cols += [np.sin(k4 * q), np.cos(k4 * q)]
+        A = np.stack(cols, axis=1)
+        x, *_ = np.linalg.lstsq(A, ref, rcond=None)
+        res = ref - A @ x
+        return x, float(np.sqrt(np.mean(res**2)))
+
+    if frequency is None:
+        span = float(q.max() - q.min())
+        spacing = span / max(len(q) - 1, 1)
+        max_k = int(np.floor(np.pi / max(spacing, 1e-9) / 2))  # at least four points a period
+        best = (solve(0.0), 0.0)
+        for k in range(1, max(max_k, 0) + 1):
+            cand = solve(float(k))
+            if cand[1] < best[0][1] * 0.8:
+                best = (cand, float(k))
+        (x, rms), k4 = best
+    else:
+        k4 = float(frequency)
+        x, rms = solve(k4)
+    k3 = k5 = 0.0
+    if k4 and len(x) == 4:
+        a, b = float(x[2]), float(x[3])  # a sin + b cos = k3 sin(k4 q + k5)
+        k3, k5 = math.hypot(a, b), math.atan2(b, a)
+    return JointHarmonic(gain=float(x[0]), offset=float(x[1]), amplitude=k3, frequency=k4, phase=k5,
+                         residual_rms_rad=rms, points=int(len(q)))

@@ -14,6 +14,10 @@ and measured orientations (3, 3); and a ``pose_id`` grouping rows that repeat on
   RMS, 95th percentile and maximum of the position error (and of the orientation error angle).
 - :func:`group_configurations`: which rows repeat one commanded configuration, from their joint
   readings (when the data carry no pose label).
+- :func:`position_errors` and :func:`registered_errors`: what a model gets wrong on measured
+  data, as it stands and with its base placed where it fits best; :func:`norm_statistics` the
+  figures of a set of error lengths. These are the one definition of the errors and figures the
+  CLI, the API, the web page and the certificate show.
 
 Orientation (where ISO 9283 subtracts the robot's angles a, b, c): each measured orientation's
 deviation from its command is taken as the small rotation ``δ = log(R_meas · R_cmdᵀ)`` resolved on
@@ -24,10 +28,14 @@ is what the differences of the angles about the fixed x, y, z axes measure.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
+from .kinematics import points_world, walk
+from .model import KinematicModel
+from .registration import register_points
 from .transforms import matrix_to_rotvec
 
 
@@ -231,3 +239,51 @@ def error_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, *, R_cmd: np.ndarray
         errors_rad=a, mean_rad=am, std_rad=asd, three_sigma_rad=a3, mean_plus_3sigma_rad=ab, rms_rad=arms,
         max_rad=amx, bias_abc_rad=bias_abc,
     )
+
+
+# --------------------------------------------------------------------------- a model's errors on data
+
+
+def position_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray) -> np.ndarray:
+    """(N, 3) measured minus predicted positions, m: ``e = p_world − T_world_tool(q) · p_tool``
+    (the book's position error, eq. 4.1 with the model as the estimate), ``p_tool`` (3,) or (N, 3)."""
+    return np.asarray(p_world, float) - points_world(model, q, p_tool)
+
+
+def registered_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray,
+                      p_tool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) errors, m, of ``model`` with its base placed where it fits the data best and one
+    common tool-frame offset of the measured point absorbed (``registration.register_points``,
+    as the identification registers), and that offset (3,), m.
+
+    The robot's own inaccuracy apart from where the instrument stands and how the reflector
+    sits: what "before" means for a nominal model whose placement in the instrument frame is
+    unknown. Needs at least three non-collinear points."""
+    w = walk(dataclasses.replace(model, base=np.zeros(6)), q)
+    pt = np.broadcast_to(np.asarray(p_tool, float), w.p.shape)
+    X, c = register_points(w.R, w.p, p_world, pt)
+    pred = (w.p + np.einsum("nij,nj->ni", w.R, pt + c)) @ X[:3, :3].T + X[:3, 3]
+    return np.asarray(p_world, float) - pred, c
+
+
+@dataclass(frozen=True)
+class NormStatistics:
+    """Figures of N error lengths (any one unit): ``rms``, ``mean``, ``max``, ``p95`` (95th
+    percentile), ``std`` (sample, N − 1; 0 for one value). All NaN when N = 0."""
+
+    n: int
+    rms: float
+    mean: float
+    max: float
+    p95: float
+    std: float
+
+
+def norm_statistics(e: np.ndarray) -> NormStatistics:
+    """:class:`NormStatistics` of the lengths ``e`` (N,)."""
+    e = np.asarray(e, dtype=float).ravel()
+    if len(e) == 0:
+        nan = float("nan")
+        return NormStatistics(0, nan, nan, nan, nan, nan)
+    return NormStatistics(n=len(e), rms=float(np.sqrt(np.mean(e**2))), mean=float(e.mean()), max=float(e.max()),
+                          p95=float(np.percentile(e, 95)), std=float(_sample_std(e)) if len(e) > 1 else 0.0)

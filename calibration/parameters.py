@@ -188,3 +188,12 @@ def parameter_values(model: KinematicModel, params: list[Parameter]) -> np.ndarr
             joint = next(j for j in model.joints if j.name == head)
             out.append(float(getattr(joint, field)))
     return np.array(out)
+
+
+def parameters_by_name(model: KinematicModel, names: list[str]) -> tuple[list[Parameter], list[str]]:
+    """The candidate parameters of ``model`` named in ``names`` (in that order), and the names it
+    has no such parameter for (for example a stored covariance's names on a changed model)."""
+    gains = any(n.endswith(".gain") for n in names)
+    cands = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets), gains=gains)}
+    missing = [n for n in names if n not in cands]
+    return [cands[n] for n in names if n in cands], missing

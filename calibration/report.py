@@ -8,6 +8,8 @@ import numpy as np
 
 from .identify import IdentificationResult, explain, relation_coefficients
 from .model import KinematicModel, Units, model_to_dict
+from .parameters import LOCAL_6, parameter_values, parameters_by_name
+from .transforms import invert, matrix_to_pose, matrix_to_rotvec, pose_to_matrix
 from .uncertainty import Validation
 
 
@@ -128,3 +130,147 @@ def identification_block(result: IdentificationResult, units: Units, *, nominal:
         scale = np.array([units.angle_rad if j.revolute else units.length_m for j in model.joints])
         block["joint_ranges"] = [[float(lo), float(hi)] for lo, hi in zip(q.min(axis=0) / scale, q.max(axis=0) / scale)]
     return block
+
+
+# --------------------------------------------------------------------------- circle-point analysis
+
+
+def _vec(v, scale: float = 1.0) -> list:
+    return [_f(x / scale) for x in np.asarray(v, dtype=float)]
+
+
+def _plain(key: str) -> str:
+    """A setting's name without its SI suffix (the report is in the model's units)."""
+    return {"held_tol_rad": "held_tol_angle", "held_tol_m": "held_tol_length"}.get(
+        key, key.removesuffix("_rad").removesuffix("_m"))
+
+
+def _setting(key: str, value, L: float, A: float):
+    """A setting in the model's units (``*_rad`` angles, ``*_m`` lengths)."""
+    if value is None or isinstance(value, (str, int)):
+        return value
+    return _f(value / A) if key.endswith("_rad") else _f(value / L) if key.endswith("_m") else _f(value)
+
+
+def cpa_report(result, nominal: KinematicModel, sweeps) -> dict:
+    """The circle-point analysis report (``recal cpa --report``, a circle session's result), JSON-ready,
+    in the nominal model's units."""
+    u = nominal.units
+    L, A = u.length_m, u.angle_rad
+    joints = []
+    for j, jt in enumerate(nominal.joints):
+        axis = result.axes[j]
+        rows = sweeps.row[sweeps.joint == j]
+        entry = {"joint": j + 1, "name": jt.name, "type": jt.type, "swept": axis is not None,
+                 "axis": {"direction": _vec(result.directions[j]), "point": _vec(result.points[j], L)},
+                 "from_nominal": {"tilt": _f(result.nominal_tilt_rad[j] / A),
+                                  "offset": _f(result.nominal_offset_m[j] / L) if jt.revolute else None}}
+        if axis is not None:
+            entry["rows"] = [int(rows[0]), int(rows[-1])]
+            entry["targets"] = [t for t in result.fits[j]]
+            fits = []
+            for t, f in result.fits[j].items():
+                fits.append({
+                    "target": t, "points": f.n_points, "method": f.method,
+                    "radius": _f(f.radius_m / L), "arc": _f(f.arc_rad / A), "travel": _f(f.travel_m / L),
+                    "out_of_plane_rms": _f(f.out_of_plane_rms_m / L), "circle_rms": _f(f.circle_rms_m / L),
+                    "noise": _f(f.noise_m / L), "direction_std": _f(f.direction_std_rad / A),
+                    "position_std": _f(f.point_std_m / L), "scale": _f(f.scale),
+                    "axis": {"direction": _vec(f.direction), "point": _vec(f.point, L)},
+                    "warnings": list(f.warnings),
+                })
+            entry["fits"] = fits
+        joints.append(entry)
+    base = matrix_to_pose(result.T_world_base)
+    return {
+        "success": result.success,
+        "message": result.message,
+        "units": {"length": u.length, "angle": u.angle},
+        "convention": result.model.convention,
+        "rows": len(sweeps),
+        "signature": {"q": [_f(v / (A if jt.revolute else L)) for v, jt in zip(result.signature_q, nominal.joints)]},
+        "joints": joints,
+        "registration": {"base": _vec(np.concatenate([base[:3] / L, base[3:] / A])),
+                         "rms": _f(result.registration_rms_m / L),
+                         "method": "rigid point registration of the nominal model onto the sweeps (Kabsch)"},
+        "target_changes": {("tool" if t is None else t): _vec(d, L) for t, d in result.target_changes.items()},
+        "warnings": list(result.warnings),
+        "notes": list(result.notes),
+        "settings": {_plain(k): _setting(k, v, L, A) for k, v in result.settings.items()},
+    }
+
+
+# --------------------------------------------------------------------------- two calibrations
+
+FRAMES = ("base", "tool", "home")
+COMPARISON_STATUSES = ("both", "new", "not estimated", "from the prior", "fixed")
+
+
+def frame_step(a: KinematicModel, b: KinematicModel, frame: str) -> np.ndarray | None:
+    """(6,) SI: how ``frame`` moved from model ``a`` to model ``b``, as the local step the
+    ``frame.*`` parameters describe (``T_b = T_a · exp(step)``, calibration.parameters)."""
+    pa, pb = getattr(a, frame), getattr(b, frame)
+    if pa is None or pb is None:
+        return None
+    D = invert(pose_to_matrix(pa)) @ pose_to_matrix(pb)
+    return np.concatenate([D[:3, 3], matrix_to_rotvec(D[:3, :3])])
+
+
+def _model_values(model: KinematicModel, names: list[str]) -> dict[str, float]:
+    """SI values of the named (non-local) parameters in ``model`` (those it has)."""
+    params, _ = parameters_by_name(model, names)
+    return dict(zip((p.name for p in params), parameter_values(model, params).tolist()))
+
+
+def compare_parameters(model_a: KinematicModel, params_a: list[dict], model_b: KinematicModel,
+                       params_b: list[dict]) -> list[dict]:
+    """Every parameter of two calibrations, from ``a`` to ``b`` (``params_*``: the reports'
+    ``parameters`` entries, in ``model_b``'s units): those estimated in both, in only one
+    (``new``: estimated in ``b`` only; ``not estimated``: in ``a`` only, ``b`` kept its starting
+    value; ``from the prior``: ``b`` kept it from ``a``, its data could not determine it) and the
+    base and tool frames (how far each moved, along and about its own axes). ``moved``: the
+    change exceeds twice its standard uncertainty (both calibrations' combined, or the one that
+    estimated it). Rows sorted with the moved first, by how many sigmas they moved."""
+    units = model_b.units
+    ra = {p["name"]: p for p in params_a}
+    rb = {p["name"]: p for p in params_b}
+    names = list(dict.fromkeys([*ra, *rb]))
+    plain = [n for n in names if n.split(".")[0] not in FRAMES and ".tilt_" not in n and ".shift_" not in n]
+    va, vb = _model_values(model_a, plain), _model_values(model_b, plain)
+    rows = []
+
+    def add(name, unit, x_from, x_to, group, change=None):
+        pa, pb = ra.get(name), rb.get(name)
+        sa = pa.get("std_error") if pa else None
+        sb = pb.get("std_error") if pb else None
+        sig = [s for s in (sa, sb) if s is not None]
+        sigma = float(np.sqrt(sum(s * s for s in sig))) if sig else None
+        if change is None and x_from is not None and x_to is not None:
+            change = x_to - x_from
+        if pb and pb.get("source") == "prior":
+            status = "from the prior"  # in b, but kept from a: these measurements did not determine it
+        else:
+            status = "both" if pa and pb else "new" if pb else "not estimated" if pa else "fixed"
+        moved = bool(sigma and change is not None and abs(change) > 2 * sigma)
+        rows.append({"name": name, "unit": unit, "group": group, "from": x_from, "to": x_to, "change": change,
+                     "sigma": sigma, "change_sigmas": abs(change) / sigma if sigma and change is not None else None,
+                     "moved": moved, "status": status})
+
+    for n in plain:
+        unit = (rb.get(n) or ra.get(n))["unit"]
+        scale = units.length_m if unit == units.length else units.angle_rad if unit == units.angle else 1.0
+        fa = va[n] / scale if n in va else (ra[n]["value"] if n in ra else None)
+        fb = vb[n] / scale if n in vb else (rb[n]["value"] if n in rb else None)
+        add(n, unit, fa, fb, "target" if n.startswith("target.") else "joint")
+    for frame in FRAMES:
+        step = frame_step(model_a, model_b, frame)
+        if step is None:
+            continue
+        for k, axis in enumerate(LOCAL_6):
+            name = f"{frame}.{axis}"
+            translation = k < 3
+            value = step[k] / (units.length_m if translation else units.angle_rad)
+            if name in ra or name in rb or abs(value) > 1e-9:
+                add(name, units.length if translation else units.angle, None, None, frame, float(value))
+    rows.sort(key=lambda r: (not r["moved"], -(r["change_sigmas"] or 0), r["name"]))
+    return rows

@@ -20,11 +20,15 @@ import numpy as np
 from sqlmodel import Session, select
 
 from calibration.identify import Measurements, Prior, drift_scale, held_relations, identify
-from calibration.jacobian import predict
+from calibration import metrics
+from calibration.geometry import fit_joint_harmonic
 from calibration.model import KinematicModel, model_from_dict, model_to_dict
 from calibration.report import identification_block, identification_report
 
+from . import records
 from .models import Calibration, Cell, Measurement, RunSession
+from .records import NoMeasurementsError, current_model, position_errors, registered_errors
+from .results import predicted_accuracy
 from .settings import Settings
 from .store import current_calibration
 from calibration.errors import RecalError
@@ -44,40 +48,20 @@ class AnalysisError(RecalError, RuntimeError):
     """The measurements cannot give a result (the reason is for the technician)."""
 
 
-def current_model(db: Session, cell: Cell) -> tuple[KinematicModel, Calibration | None]:
-    """The cell's best model: its last pose calibration (from its present nominal model), else the
-    nominal model."""
-    cal = current_calibration(db, cell)
-    return (model_from_dict(cal.model), cal) if cal is not None else (model_from_dict(cell.model), None)
-
-
 def guide_model(db: Session, cell: Cell) -> KinematicModel:
     return current_model(db, cell)[0]
 
 
 def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, list[Measurement]]:
-    rows = db.exec(select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq,
-                                                                                         Measurement.id)).all()
-    if not rows:
-        raise AnalysisError("the session has no measurements")
-    has_quat = [r.qw is not None for r in rows]
-    quat = np.array([[r.qw, r.qx, r.qy, r.qz] if h else [np.nan] * 4 for r, h in zip(rows, has_quat)]) if any(has_quat) else None
-    data = Measurements(
-        q=np.array([r.q for r in rows], dtype=float),
-        p_world=np.array([[r.x, r.y, r.z] for r in rows]),
-        quat=quat,
-        target=np.array([r.target or None for r in rows], dtype=object),
-        sigma=np.array([r.sigma if r.sigma else np.nan for r in rows]),
-        pose_id=np.array([r.seq for r in rows]),
-        row=np.array([r.seq + 1 for r in rows]),
-    )
-    return data, rows
+    """As :func:`records.session_measurements`, with "no measurements" as the session's reason."""
+    try:
+        return records.session_measurements(db, run)
+    except NoMeasurementsError as exc:
+        raise AnalysisError(str(exc)) from None
 
 
 def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings) -> None:
     if run.kind == "pose":
-        from .results import predicted_accuracy
-
         cal = identify_session(db, run, cell)
         cal.predicted = predicted_accuracy(cal, cell, run.target)  # stored with it: drift lists it without reports
         db.add(cal)
@@ -159,37 +143,23 @@ def _prior_summary(result, prev: Calibration, prior: Prior, scale: float, units)
     }
 
 
-def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
-    """(N, 3) measured minus predicted target positions, m."""
-    p_tool = np.array([model.target(t) for t in data.target])
-    return data.p_world - predict(model, data.q, p_tool).p_world
-
-
 def verify_session(db: Session, run: RunSession, cell: Cell) -> dict:
     data, _ = session_measurements(db, run)
     model, cal = current_model(db, cell)
     e = np.linalg.norm(position_errors(model, data), axis=1)
     L = model.units.length_m
+    st = metrics.norm_statistics(e / L)
     out = {
         "calibration_id": None if cal is None else cal.id,
-        "n": int(len(e)),
-        "rms": float(np.sqrt(np.mean(e**2)) / L),
-        "max": float(e.max() / L),
-        "p95": float(np.percentile(e, 95) / L),
-        "mean": float(e.mean() / L),
+        "n": st.n, "rms": st.rms, "max": st.max, "p95": st.p95, "mean": st.mean,
         "unit": model.units.length,
     }
     if len(e) >= 3:
         # Also with the base placed where it fits best (book Table 1.1 does the same): the robot's
-        # own inaccuracy, apart from where the instrument stands.
-        from calibration.registration import kabsch
-        from calibration.transforms import matrix_to_pose, pose_to_matrix
-
-        p_pred = data.p_world - position_errors(model, data)
-        X = kabsch(p_pred, data.p_world)
-        placed = dataclasses.replace(model, base=matrix_to_pose(X @ pose_to_matrix(model.base)))
-        e2 = np.linalg.norm(position_errors(placed, data), axis=1)
-        out["registered"] = {"rms": float(np.sqrt(np.mean(e2**2)) / L), "max": float(e2.max() / L)}
+        # own inaccuracy, apart from where the instrument stands; the same figure as the result
+        # page's "before" (one definition, calibration.metrics.registered_errors).
+        reg = metrics.norm_statistics(np.linalg.norm(registered_errors(model, data), axis=1) / L)
+        out["registered"] = {"rms": reg.rms, "max": reg.max}
     repeats = int((run.plan_info or {}).get("repeats") or 1)
     if repeats > 1:
         out["iso9283"] = pose_repeatability(model, data, repeats)
@@ -214,46 +184,8 @@ def pose_repeatability(model: KinematicModel, data: Measurements, repeats: int) 
     }
 
 
-def fit_joint_harmonic(q: np.ndarray, ref: np.ndarray, frequency: float | None) -> dict:
-    """Book eq. 2.4 for one joint: ``ref = k1·q + k2 + k3·sin(k4·q + k5)`` by linear least squares
-    for a given ``k4`` (``frequency``; when unknown, the best of the integer harmonics the sweep
-    resolves). Returns k1..k5 and the residual RMS (rad)."""
-    q = np.asarray(q, float)
-    ref = np.unwrap(np.asarray(ref, float))
-
-    def solve(k4):
-        cols = [q, np.ones_like(q)]
-        if k4:
-            cols += [np.sin(k4 * q), np.cos(k4 * q)]
-        A = np.stack(cols, axis=1)
-        x, *_ = np.linalg.lstsq(A, ref, rcond=None)
-        res = ref - A @ x
-        return x, float(np.sqrt(np.mean(res**2)))
-
-    if frequency is None:
-        span = float(q.max() - q.min())
-        spacing = span / max(len(q) - 1, 1)
-        max_k = int(np.floor(np.pi / max(spacing, 1e-9) / 2))  # at least four points a period
-        best = (solve(0.0), 0.0)
-        for k in range(1, max(max_k, 0) + 1):
-            cand = solve(float(k))
-            if cand[1] < best[0][1] * 0.8:
-                best = (cand, float(k))
-        (x, rms), k4 = best
-    else:
-        k4 = float(frequency)
-        x, rms = solve(k4)
-    k1, k2 = float(x[0]), float(x[1])
-    k3 = k5 = 0.0
-    if k4 and len(x) == 4:
-        a, b = float(x[2]), float(x[3])  # a sin + b cos = k3 sin(k4 q + k5)
-        k3, k5 = math.hypot(a, b), math.atan2(b, a)
-    return {"gain": k1, "offset": k2, "amplitude": k3, "frequency": k4, "phase": k5, "residual_rms_rad": rms,
-            "points": int(len(q))}
-
-
 def joint_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
-    rows = db.exec(select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq)).all()
+    rows = records.stored_rows(db, run)
     if not rows:
         raise AnalysisError("the session has no measurements")
     model, _ = current_model(db, cell)
@@ -264,7 +196,7 @@ def joint_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         q = np.array([r.q[j - 1] for r in sel])
         ref = np.array([r.reference for r in sel])
         freq = joints[j - 1].harmonic[1] if joints[j - 1].harmonic else None
-        fit = fit_joint_harmonic(q, ref, freq)
+        fit = dataclasses.asdict(fit_joint_harmonic(q, ref, freq))
         results[str(j)] = fit
         if model.coupling is None:
             joints[j - 1] = dataclasses.replace(
@@ -280,7 +212,7 @@ def circle_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     """Circle-point analysis of the session's sweeps (book §4.6); the report is the one
     ``recal cpa`` writes."""
     from calibration.cpa import SweepError, Sweeps, circle_point_analysis
-    from service.commands.cpa import report as cpa_report
+    from calibration.report import cpa_report
 
     data, rows = session_measurements(db, run)
     nominal = model_from_dict(cell.model)

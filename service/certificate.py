@@ -19,11 +19,13 @@ from datetime import datetime, timezone
 import numpy as np
 from sqlmodel import Session, select
 
+from calibration.metrics import error_statistics
 from calibration.model import model_from_dict
 
-from .analysis import position_errors, session_measurements
+from .records import position_errors, session_measurements
 from .models import AuditEntry, Calibration, Cell, RunSession
-from .results import _aware, _r, calibration_result
+from .results import _r, calibration_result
+from .store import as_utc
 
 INSTRUMENTS = {"tracker": "laser tracker", "cmm": "coordinate measuring machine (I++ DME)"}
 
@@ -36,18 +38,9 @@ def _iso_figures(xyz: list | None, unit: str) -> dict | None:
     e = e[np.all(np.isfinite(e), axis=1)]
     if len(e) == 0:
         return None
-    try:
-        from calibration.metrics import error_statistics
-
-        s = error_statistics(np.zeros_like(e), e)
-        out = {"n": s.n, "mean": s.mean_m, "std": s.std_m, "mean_plus_3sigma": s.mean_plus_3sigma_m, "rms": s.rms_m,
-               "p95": s.p95_m, "max": s.max_m, "bias_xyz": [float(v) for v in s.bias_xyz_m]}
-    except ImportError:  # pragma: no cover - metrics ships with the package
-        n = np.linalg.norm(e, axis=1)
-        sd = float(np.std(n, ddof=1)) if len(n) > 1 else float("nan")
-        out = {"n": len(n), "mean": float(n.mean()), "std": sd, "mean_plus_3sigma": float(n.mean()) + 3 * sd,
-               "rms": float(np.sqrt(np.mean(n**2))), "p95": float(np.percentile(n, 95)), "max": float(n.max()),
-               "bias_xyz": [float(v) for v in e.mean(axis=0)]}
+    s = error_statistics(np.zeros_like(e), e)
+    out = {"n": s.n, "mean": s.mean_m, "std": s.std_m, "mean_plus_3sigma": s.mean_plus_3sigma_m, "rms": s.rms_m,
+           "p95": s.p95_m, "max": s.max_m, "bias_xyz": [float(v) for v in s.bias_xyz_m]}
     return {k: ([_r(x) for x in v] if isinstance(v, list) else _r(v) if k != "n" else v) for k, v in out.items()} \
         | {"unit": unit}
 
@@ -84,7 +77,7 @@ def _holdout(db: Session, cal: Calibration, verify_after: dict | None, unit: str
     figures = _iso_figures((position_errors(model, data) / model.units.length_m).tolist(), unit)
     if figures is None:
         return None
-    return {**figures, "session_id": run.id, "operator": run.created_by, "date": _aware(run.created_at).isoformat(),
+    return {**figures, "session_id": run.id, "operator": run.created_by, "date": as_utc(run.created_at).isoformat(),
             "target": run.target}
 
 
@@ -96,7 +89,7 @@ def last_device_test(db: Session, cell_id: int, until: datetime | None = None) -
     a = db.exec(q.order_by(AuditEntry.id.desc())).first()
     if a is None:
         return None
-    return {"at": _aware(a.at).isoformat(), "by": a.actor, "results": (a.detail or {}).get("results", [])}
+    return {"at": as_utc(a.at).isoformat(), "by": a.actor, "results": (a.detail or {}).get("results", [])}
 
 
 def certificate_data(db: Session, cal: Calibration) -> dict:
@@ -150,7 +143,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         "title": "Robot calibration certificate",
         "number": f"RECAL-{cell.id:04d}-{cal.id:06d}",
         "issued_at": issued.isoformat(),
-        "calibration": {"id": cal.id, "kind": cal.kind, "date": _aware(cal.created_at).isoformat(),
+        "calibration": {"id": cal.id, "kind": cal.kind, "date": as_utc(cal.created_at).isoformat(),
                         "session_id": cal.session_id, "method": "kinematic identification by weighted least squares "
                                                                 "(Levenberg-Marquardt), identifiable parameters only"},
         "cell": {"id": cell.id, "name": cell.name, "site": cell.site},

@@ -52,7 +52,7 @@ from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, op
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
-from .store import _aware, acquire_lease, set_state
+from .store import as_utc, acquire_lease, set_state
 from calibration.errors import RecalError
 
 log = logging.getLogger("recal.sessions")
@@ -120,7 +120,7 @@ def database_unavailable(exc: BaseException) -> bool:
 
 def _held_by_other(run: RunSession, owner: str) -> bool:
     return (run.lease_owner not in (None, owner) and run.lease_expires is not None
-            and _aware(run.lease_expires) > utcnow())
+            and as_utc(run.lease_expires) > utcnow())
 
 
 def instrument_of(run: RunSession) -> str:

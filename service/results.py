@@ -23,13 +23,14 @@ import numpy as np
 from sqlmodel import Session, select
 
 from calibration.jacobian import predict
-from calibration.kinematics import walk
 from calibration.model import KinematicModel, model_from_dict
-from calibration.parameters import candidate_parameters
-from calibration.registration import register_points
+from calibration.parameters import parameters_by_name
+from calibration.report import COMPARISON_STATUSES, compare_parameters
+from calibration.metrics import norm_statistics
 from calibration.uncertainty import chi2_quantile
 
-from .analysis import current_model, position_errors, session_measurements
+from .store import as_utc
+from .records import current_model, position_errors, registered_errors, session_measurements
 from .models import Calibration, Cell, Measurement, RunSession
 from .plans import UnsafePlan, allowed_limits, check_configurations
 
@@ -55,32 +56,9 @@ def _rl(a, digits: int = 6):
 
 
 def _stats(e: np.ndarray) -> dict:
-    """RMS, mean, max, p95 and standard deviation of error norms (same unit as ``e``)."""
-    if len(e) == 0:
-        return {"n": 0, "rms": None, "mean": None, "max": None, "p95": None, "std": None}
-    return {"n": int(len(e)), "rms": _r(np.sqrt(np.mean(e**2))), "mean": _r(np.mean(e)), "max": _r(np.max(e)),
-            "p95": _r(np.percentile(e, 95)), "std": _r(np.std(e, ddof=1) if len(e) > 1 else 0.0)}
-
-
-def _aware(t: datetime | None) -> datetime | None:
-    if t is None:
-        return None
-    return t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)
-
-
-# --------------------------------------------------------------------------- registration
-
-
-def registered_errors(model: KinematicModel, data) -> tuple[np.ndarray, dict]:
-    """(N, 3) errors, m, of ``model`` with its base placed where it fits the data best (and one
-    common reflector offset absorbed), as the identification's registration does: the robot's
-    own inaccuracy apart from where the instrument stands."""
-    local = dataclasses.replace(model, base=np.zeros(6))
-    w = walk(local, data.q)
-    p_tool = np.array([model.target(t) for t in data.target])
-    X, c = register_points(w.R, w.p, data.p_world, p_tool)
-    pred = (w.p + np.einsum("nij,nj->ni", w.R, p_tool + c)) @ X[:3, :3].T + X[:3, 3]
-    return data.p_world - pred, {"point_offset_m": c.tolist()}
+    """The figures of error lengths ``e`` (calibration.metrics.norm_statistics), rounded, JSON-ready."""
+    st = norm_statistics(e)
+    return {"n": st.n, "rms": _r(st.rms), "mean": _r(st.mean), "max": _r(st.max), "p95": _r(st.p95), "std": _r(st.std)}
 
 
 # --------------------------------------------------------------------------- calibration result
@@ -123,13 +101,6 @@ def start_model_of(db: Session, cal: Calibration, cell: Cell) -> tuple[Kinematic
     return model_from_dict(cell.model), "the nominal model"
 
 
-def _parameters_for(model: KinematicModel, names: list[str]):
-    gains = any(n.endswith(".gain") for n in names)
-    cands = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets), gains=gains)}
-    missing = [n for n in names if n not in cands]
-    return [cands[n] for n in names if n in cands], missing
-
-
 def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samples: int = WORKSPACE_SAMPLES) -> dict:
     """The identified model's predicted position uncertainty (95 % radius, from the parameters'
     covariance, instrument noise not included) at ``samples`` configurations drawn uniformly
@@ -139,7 +110,7 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
     if not names:
         return {"available": False, "reason": "this calibration stored no parameter covariance"}
     model = model_from_dict(cal.model)
-    params, missing = _parameters_for(model, names)
+    params, missing = parameters_by_name(model, names)
     if missing:
         return {"available": False, "reason": f"parameters not in the model: {', '.join(missing[:5])}"}
     Sigma = np.asarray(cov["matrix"], dtype=float)
@@ -198,12 +169,12 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
     model = model_from_dict(cal.model)
     L = model.units.length_m
     out: dict = {
-        "id": cal.id, "kind": cal.kind, "created_at": _aware(cal.created_at).isoformat(),
+        "id": cal.id, "kind": cal.kind, "created_at": as_utc(cal.created_at).isoformat(),
         "cell": {"id": cell.id, "name": cell.name, "site": cell.site},
         "robot": model_from_dict(cell.model).name,
         "session": None if run is None else {
             "id": run.id, "kind": run.kind, "device": run.device, "target": run.target, "planned": run.planned,
-            "created_by": run.created_by, "created_at": _aware(run.created_at).isoformat(),
+            "created_by": run.created_by, "created_at": as_utc(run.created_at).isoformat(),
             "plan_method": (run.plan_info or {}).get("method")},
         "units": {"length": model.units.length, "angle": model.units.angle},
         "rms": cal.rms,
@@ -224,7 +195,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
     e_after = position_errors(model, data)
     raw_before = np.linalg.norm(position_errors(start, data), axis=1)
     if len(data) >= 3:
-        e_before, _ = registered_errors(start, data)
+        e_before = registered_errors(start, data)
         before_how = f"{start_name} with its base placed where it fits these measurements best"
     else:
         e_before, before_how = position_errors(start, data), start_name
@@ -242,6 +213,17 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
     }
     out["workspace"] = workspace_accuracy(cal, cell, run.target)
     return out
+
+
+def compare_calibrations(a: Calibration, b: Calibration) -> dict:
+    """Every parameter of two calibrations of a cell, from ``a`` to ``b``
+    (``calibration.report.compare_parameters``), with their ids and residuals."""
+    rows = compare_parameters(model_from_dict(a.model), (a.report or {}).get("parameters") or [],
+                              model_from_dict(b.model), (b.report or {}).get("parameters") or [])
+    return {"from": a.id, "to": b.id, "rms_from": a.rms, "rms_to": b.rms, "parameters": rows,
+            "counts": {k: sum(r["status"] == k for r in rows)
+                       for k in COMPARISON_STATUSES}
+            | {"moved": sum(r["moved"] for r in rows)}}
 
 
 # --------------------------------------------------------------------------- plan preview
@@ -351,9 +333,9 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         return out
     times = {}
     for r in rows:
-        times.setdefault(r.seq, _aware(r.created_at))
+        times.setdefault(r.seq, as_utc(r.created_at))
     t_sorted = sorted(times.values())
-    out["elapsed_s"] = _r((t_sorted[-1] - _aware(run.created_at)).total_seconds(), 4)
+    out["elapsed_s"] = _r((t_sorted[-1] - as_utc(run.created_at)).total_seconds(), 4)
     if len(t_sorted) >= 2:
         d = np.diff([t.timestamp() for t in t_sorted[-11:]])
         per = float(np.median(d))
@@ -361,7 +343,7 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         if run.state in ("running", "planned", "paused", "interrupted"):
             out["remaining_s"] = _r(max(run.planned - len(seqs), 0) * per, 3)
     last = rows[-1]
-    out["last"] = {"pose": int(last.seq) + 1, "at": _aware(last.created_at).isoformat(),
+    out["last"] = {"pose": int(last.seq) + 1, "at": as_utc(last.created_at).isoformat(),
                    "q_deg": _rl(np.rad2deg(np.asarray(last.q, dtype=float)), 5),
                    "position": [_r(last.x / L), _r(last.y / L), _r(last.z / L)],
                    "sigma": _r(last.sigma / L) if last.sigma else None,
@@ -373,7 +355,7 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
             e = position_errors(model, data)
             how = f"calibration {cal.id} as it stands"
         elif len(data) >= 4:
-            e, _ = registered_errors(model, data)
+            e = registered_errors(model, data)
             how = "the nominal model, its base placed where it fits the measurements so far"
         else:
             e, how = None, "shown from the fourth pose on (the instrument's placement is fitted first)"

@@ -228,12 +228,12 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
                                  (RunSession.state == "running") | (RunSession.dry_run == False))  # noqa: E712
     ).all()
     for other in others:
-        if other.lease_expires is not None and _aware(other.lease_expires) > now:
+        if other.lease_expires is not None and as_utc(other.lease_expires) > now:
             db.rollback()
             return False
     db.refresh(run)
     if (run.lease_owner not in (None, owner) and run.lease_expires is not None
-            and _aware(run.lease_expires) > now):  # another process holds this very session
+            and as_utc(run.lease_expires) > now):  # another process holds this very session
         db.rollback()
         return False
     run.lease_owner = owner
@@ -243,5 +243,8 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
     return True
 
 
-def _aware(t: datetime) -> datetime:
+def as_utc(t: datetime | None) -> datetime | None:
+    """A stored time as an aware UTC time (SQLite gives naive ones back); None stays None."""
+    if t is None:
+        return None
     return t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)

@@ -15,6 +15,8 @@ import time
 
 import numpy as np
 
+from calibration.report import cpa_report
+
 
 def add_parser(s) -> None:
     s.add_argument("--model", required=True, help="nominal model file (recal.model/1) or a library robot name")
@@ -53,77 +55,6 @@ def read_sweeps(path: str | os.PathLike, model):
     return Sweeps(q=data.q, p_world=data.p_world, joint=joint, target=data.target, row=data.row), table
 
 
-def _f(x, digits: int = 9):
-    x = float(x)
-    return None if not math.isfinite(x) else float(f"{x:.{digits}g}")
-
-
-def _vec(v, scale: float = 1.0) -> list:
-    return [_f(x / scale) for x in np.asarray(v, dtype=float)]
-
-
-def _plain(key: str) -> str:
-    """A setting's name without its SI suffix (the report is in the model's units)."""
-    return {"held_tol_rad": "held_tol_angle", "held_tol_m": "held_tol_length"}.get(
-        key, key.removesuffix("_rad").removesuffix("_m"))
-
-
-def _setting(key: str, value, L: float, A: float):
-    """A setting in the model's units (``*_rad`` angles, ``*_m`` lengths)."""
-    if value is None or isinstance(value, (str, int)):
-        return value
-    return _f(value / A) if key.endswith("_rad") else _f(value / L) if key.endswith("_m") else _f(value)
-
-
-def report(result, nominal, sweeps) -> dict:
-    """The CPA report, JSON-ready, in the nominal model's units."""
-    from calibration.transforms import matrix_to_pose
-
-    u = nominal.units
-    L, A = u.length_m, u.angle_rad
-    joints = []
-    for j, jt in enumerate(nominal.joints):
-        axis = result.axes[j]
-        rows = sweeps.row[sweeps.joint == j]
-        entry = {"joint": j + 1, "name": jt.name, "type": jt.type, "swept": axis is not None,
-                 "axis": {"direction": _vec(result.directions[j]), "point": _vec(result.points[j], L)},
-                 "from_nominal": {"tilt": _f(result.nominal_tilt_rad[j] / A),
-                                  "offset": _f(result.nominal_offset_m[j] / L) if jt.revolute else None}}
-        if axis is not None:
-            entry["rows"] = [int(rows[0]), int(rows[-1])]
-            entry["targets"] = [t for t in result.fits[j]]
-            fits = []
-            for t, f in result.fits[j].items():
-                fits.append({
-                    "target": t, "points": f.n_points, "method": f.method,
-                    "radius": _f(f.radius_m / L), "arc": _f(f.arc_rad / A), "travel": _f(f.travel_m / L),
-                    "out_of_plane_rms": _f(f.out_of_plane_rms_m / L), "circle_rms": _f(f.circle_rms_m / L),
-                    "noise": _f(f.noise_m / L), "direction_std": _f(f.direction_std_rad / A),
-                    "position_std": _f(f.point_std_m / L), "scale": _f(f.scale),
-                    "axis": {"direction": _vec(f.direction), "point": _vec(f.point, L)},
-                    "warnings": list(f.warnings),
-                })
-            entry["fits"] = fits
-        joints.append(entry)
-    base = matrix_to_pose(result.T_world_base)
-    return {
-        "success": result.success,
-        "message": result.message,
-        "units": {"length": u.length, "angle": u.angle},
-        "convention": result.model.convention,
-        "rows": len(sweeps),
-        "signature": {"q": [_f(v / (A if jt.revolute else L)) for v, jt in zip(result.signature_q, nominal.joints)]},
-        "joints": joints,
-        "registration": {"base": _vec(np.concatenate([base[:3] / L, base[3:] / A])),
-                         "rms": _f(result.registration_rms_m / L),
-                         "method": "rigid point registration of the nominal model onto the sweeps (Kabsch)"},
-        "target_changes": {("tool" if t is None else t): _vec(d, L) for t, d in result.target_changes.items()},
-        "warnings": list(result.warnings),
-        "notes": list(result.notes),
-        "settings": {_plain(k): _setting(k, v, L, A) for k, v in result.settings.items()},
-    }
-
-
 def run(args) -> int:
     from calibration.cpa import SweepError, circle_point_analysis
     from service.cli import Fail
@@ -150,7 +81,7 @@ def run(args) -> int:
         raise InputError(args.data, str(exc), row=exc.row, line=line, column=exc.column) from None
     except ValueError as exc:
         raise InputError(args.data, str(exc)) from None
-    rep = report(result, model, sweeps)
+    rep = cpa_report(result, model, sweeps)
     rep["elapsed_s"] = round(time.perf_counter() - t0, 3)
     if args.report:
         write_atomic(args.report, json.dumps(rep, indent=2) + "\n")

@@ -33,7 +33,7 @@ from sqlmodel import Session, select
 
 from ..models import Cell, RunSession, utcnow
 from ..orchestrator import database_unavailable
-from ..store import _aware
+from ..store import as_utc
 from . import jobs
 
 log = logging.getLogger("recal.fleet.reaper")
@@ -89,7 +89,7 @@ class Reaper:
                     continue
                 run = db.get(RunSession, sid)
                 if (run is not None and run.state in ACTIVE and run.lease_expires is not None
-                        and _aware(run.lease_expires) >= cutoff):
+                        and as_utc(run.lease_expires) >= cutoff):
                     continue  # its lease is live: pass 1 decides when it runs out
                 if jobs.fail_job(self.app, job.id):
                     log.warning("%s: job %s of session %s: its worker is gone; ended as failed", self.name, job.id,

@@ -238,3 +238,25 @@ def test_pose_from_three_points_with_noise_is_not_orthonormal():
 def test_pose_from_three_points_rejects_collinear():
     with pytest.raises(ValueError, match="collinear"):
         pose_from_three_points(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]), np.eye(3))
+
+
+def test_joint_harmonic_recovers_book_eq_2_4():
+    """θ = k1·q + k2 + k3·sin(k4·q + k5) with known k's and a little noise: recovered, with the
+    harmonic's frequency found among the integer ones when not given."""
+    from calibration.geometry import fit_joint_harmonic
+
+    rng = np.random.default_rng(4)
+    q = np.linspace(-3.0, 3.0, 181)
+    k = dict(gain=1.0004, offset=0.002, amplitude=3e-4, frequency=2.0, phase=0.7)
+    ref = k["gain"] * q + k["offset"] + k["amplitude"] * np.sin(k["frequency"] * q + k["phase"])
+    ref = ref + rng.normal(0.0, 1e-6, q.shape)
+    for given in (None, 2.0):
+        fit = fit_joint_harmonic(q, ref, given)
+        assert fit.frequency == 2.0
+        assert fit.gain == pytest.approx(k["gain"], abs=1e-6)
+        assert fit.offset == pytest.approx(k["offset"], abs=1e-6)
+        assert fit.amplitude == pytest.approx(k["amplitude"], rel=1e-2)
+        assert fit.phase == pytest.approx(k["phase"], abs=1e-2)
+        assert fit.residual_rms_rad < 2e-6 and fit.points == len(q)
+    plain = fit_joint_harmonic(q, k["gain"] * q + k["offset"] + rng.normal(0.0, 1e-6, q.shape), None)
+    assert plain.amplitude < 1e-6  # a noise harmonic at most: none is kept unless it helps

@@ -110,3 +110,84 @@ def test_bad_input():
         pose_statistics(np.zeros((2, 3)), np.zeros((2, 3)), [1])
     with pytest.raises(ValueError, match="finite"):
         error_statistics(np.zeros((1, 3)), np.full((1, 3), np.nan))
+
+
+# --------------------------------------------------------------------------- a model's errors on data
+
+
+def _ur5e_and_readings(n=40, seed=3):
+    from calibration.robots import nominal
+
+    model = nominal("ur5e")
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-2.5, 2.5, size=(n, model.n_joints))
+    return model, q
+
+
+def test_position_errors_are_measured_minus_the_models_point():
+    from calibration.kinematics import fk
+    from calibration.metrics import position_errors
+
+    model, q = _ur5e_and_readings()
+    p_tool = np.array([0.01, -0.02, 0.05])
+    T = fk(model, q)
+    p_world = T[:, :3, :3] @ p_tool + T[:, :3, 3] + np.array([1e-3, 0.0, -2e-3])
+    e = position_errors(model, q, p_world, p_tool)
+    np.testing.assert_allclose(e, np.broadcast_to([1e-3, 0.0, -2e-3], e.shape), atol=1e-12)
+
+
+def test_registered_errors_absorb_the_instrument_placement_and_the_reflector_offset():
+    """Data of the model itself, seen from a displaced instrument and with the reflector mounted
+    off its drawing: the registered errors vanish, the plain ones do not, and the absorbed offset
+    is the mounting error."""
+    from calibration.kinematics import fk
+    from calibration.metrics import position_errors, registered_errors
+    from calibration.transforms import pose_to_matrix
+
+    model, q = _ur5e_and_readings()
+    p_drawn = np.array([0.0, 0.0, 0.05])
+    mount = np.array([0.8e-3, -0.5e-3, 0.3e-3])
+    X = pose_to_matrix(np.array([1.2, -0.4, 0.3, 0.2, -0.1, 0.7]))
+    T = fk(model, q)
+    p_model = T[:, :3, :3] @ (p_drawn + mount) + T[:, :3, 3]
+    p_world = p_model @ X[:3, :3].T + X[:3, 3]
+    e, c = registered_errors(model, q, p_world, p_drawn)
+    assert np.max(np.linalg.norm(e, axis=1)) < 1e-9
+    np.testing.assert_allclose(c, mount, atol=1e-9)
+    assert np.min(np.linalg.norm(position_errors(model, q, p_world, p_drawn), axis=1)) > 0.1
+
+
+def test_norm_statistics_by_hand():
+    from calibration.metrics import norm_statistics
+
+    e = np.array([3.0, 4.0, 0.0, 5.0])
+    s = norm_statistics(e)
+    assert s.n == 4
+    assert s.rms == pytest.approx(math.sqrt((9 + 16 + 0 + 25) / 4))
+    assert s.mean == pytest.approx(3.0)
+    assert s.max == 5.0
+    assert s.std == pytest.approx(math.sqrt(((0) ** 2 + 1 + 9 + 4) / 3))
+    assert s.p95 == pytest.approx(4.85)  # linear interpolation between 4 and 5 at 0.95 * 3 = 2.85
+    assert norm_statistics(np.array([2.0])).std == 0.0
+    assert math.isnan(norm_statistics(np.zeros(0)).rms)
+
+
+def test_compare_parameters_flags_what_moved_beyond_twice_its_uncertainty():
+    import dataclasses
+
+    from calibration.report import compare_parameters
+    from calibration.robots import nominal
+
+    a = nominal("ur5e")
+    joints = list(a.joints)
+    joints[1] = dataclasses.replace(joints[1], a=joints[1].a + 0.3e-3)  # 0.3 mm: 3 sigma of 0.1 mm
+    b = dataclasses.replace(a, joints=tuple(joints), base=np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    name = f"{joints[1].name}.a"
+    pa = [{"name": name, "unit": "m", "value": joints[1].a - 0.3e-3, "std_error": 0.1e-3 / math.sqrt(2)}]
+    pb = [{"name": name, "unit": "m", "value": joints[1].a, "std_error": 0.1e-3 / math.sqrt(2)},
+          {"name": "j3.d", "unit": "m", "value": 0.0, "std_error": 1e-3, "source": "prior"}]
+    rows = {r["name"]: r for r in compare_parameters(a, pa, b, pb)}
+    assert rows[name]["moved"] and rows[name]["status"] == "both"
+    assert rows[name]["change"] == pytest.approx(0.3e-3, abs=1e-12)
+    assert rows[name]["change_sigmas"] == pytest.approx(3.0)
+    assert rows["j3.d"]["status"] == "from the prior" and not rows["j3.d"]["moved"]

@@ -17,7 +17,7 @@ from service.fleet.worker import Monitor
 from service.models import Cell, RunSession, utcnow
 from service.orchestrator import Control, SessionStopped
 from service.settings import Settings
-from service.store import _aware
+from service.store import as_utc
 
 OWNER = "worker:test:host:1"
 
@@ -40,7 +40,7 @@ def test_a_late_lease_is_renewed_by_the_session_and_a_lost_one_stops_it(make_fle
     control.lease_valid_until = time.monotonic() - 0.1
     control.check()  # renewed, goes on
     assert control.lease_valid_until > time.monotonic()
-    assert _aware(f.session_row(sid).lease_expires) > utcnow() + timedelta(seconds=4)
+    assert as_utc(f.session_row(sid).lease_expires) > utcnow() + timedelta(seconds=4)
 
     # The hold runs out unrenewed and the reaper of another process interrupts the session.
     with Session(f.engine) as db:

@@ -6,6 +6,7 @@ from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import PlainTextResponse
 
 from ...models import Calibration, CalibrationPublic, Cell, Compensation
+from ...results import compare_calibrations
 from ...store import audit
 from ..deps import Compensator, DbSession, Reader
 
@@ -28,9 +29,7 @@ def read_calibration(calibration_id: int, db: DbSession, tok: Reader):
 def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> dict:
     """Which parameters moved between two calibrations, in units of their combined standard
     uncertainty: every parameter, the base and tool frames included (the page's comparison,
-    :func:`.results.compare_calibrations`), with the predicted accuracy of both."""
-    from .results import compare_calibrations
-
+    :func:`service.results.compare_calibrations`), with the predicted accuracy of both."""
     a, b = get_calibration(db, calibration_id), get_calibration(db, other_id)
     return {**compare_calibrations(a, b), "predicted_from": a.predicted, "predicted_to": b.predicted,
             "nominal_versions": [a.nominal_version, b.nominal_version]}

@@ -17,7 +17,8 @@ from sqlmodel import select
 
 from ...devicetest import test_devices
 from ...models import Calibration, Cell, RunSession
-from ...results import _aware, plan_preview, session_live
+from ...results import plan_preview, session_live
+from ...store import as_utc
 from ...store import audit, measured_count
 from ..deps import DbSession, Orchestrator, Reader, Runner
 from .sessions import ACTIVE, commit_planned, public_session
@@ -52,7 +53,7 @@ def _trend(db, cell_id: int, limit: int = TREND) -> list[dict]:
     rows = db.exec(select(Calibration.id, Calibration.rms, Calibration.created_at)
                    .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
                    .order_by(Calibration.id.desc()).limit(limit)).all()
-    return [{"id": i, "rms": r, "created_at": _aware(t).isoformat()} for i, r, t in reversed(rows)]
+    return [{"id": i, "rms": r, "created_at": as_utc(t).isoformat()} for i, r, t in reversed(rows)]
 
 
 def _active(db, cell_id: int) -> dict | None:
@@ -92,7 +93,7 @@ def cell_summary(cell_id: int, db: DbSession, tok: Reader) -> dict:
     """One cell as on the overview, with its devices document and allowed region."""
     cell = _cell(db, cell_id)
     return {**_summary(db, cell), "devices_doc": cell.devices, "allowed_region": cell.allowed_region,
-            "created_at": _aware(cell.created_at).isoformat(), "model": cell.model}
+            "created_at": as_utc(cell.created_at).isoformat(), "model": cell.model}
 
 
 @router.get("/cells/{cell_id}/history")
@@ -106,7 +107,7 @@ def history(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, l
                           Calibration.created_at).where(*where).order_by(Calibration.id.desc())
                    .offset(max(0, offset)).limit(max(1, min(limit, 200)))).all()
     return {"total": int(total), "offset": offset,
-            "items": [{"id": i, "kind": k, "session_id": s, "rms": r, "created_at": _aware(t).isoformat()}
+            "items": [{"id": i, "kind": k, "session_id": s, "rms": r, "created_at": as_utc(t).isoformat()}
                       for i, k, s, r, t in rows]}
 
 

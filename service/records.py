@@ -1,0 +1,79 @@
+"""Stored rows and calibration's arrays, both directions in one place.
+
+- :func:`measurements_of`: a session's stored ``Measurement`` rows as ``calibration``'s
+  :class:`~calibration.identify.Measurements` (SI, one row each, the row number being the
+  session's pose number);
+- :func:`position_errors`, :func:`registered_errors`: a model's errors on those measurements
+  (``calibration.metrics``, the one definition);
+- :func:`current_model`: the cell's best model (its last pose calibration, else its nominal
+  model), as a :class:`~calibration.model.KinematicModel`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sqlmodel import Session, select
+
+from calibration import metrics
+from calibration.errors import RecalError
+from calibration.identify import Measurements
+from calibration.model import KinematicModel, model_from_dict
+
+from .models import Calibration, Cell, Measurement, RunSession
+from .store import current_calibration
+
+
+class NoMeasurementsError(RecalError, LookupError):
+    """The session has no stored measurements."""
+
+
+def stored_rows(db: Session, run: RunSession) -> list[Measurement]:
+    """The session's measurement rows, in the order they were taken."""
+    return list(db.exec(select(Measurement).where(Measurement.session_id == run.id)
+                        .order_by(Measurement.seq, Measurement.id)).all())
+
+
+def measurements_of(rows: list[Measurement]) -> Measurements:
+    """Stored rows as :class:`Measurements` (SI; ``row`` and ``pose_id`` from the pose number)."""
+    if not rows:
+        raise NoMeasurementsError("the session has no measurements")
+    has_quat = [r.qw is not None for r in rows]
+    quat = (np.array([[r.qw, r.qx, r.qy, r.qz] if h else [np.nan] * 4 for r, h in zip(rows, has_quat)])
+            if any(has_quat) else None)
+    return Measurements(
+        q=np.array([r.q for r in rows], dtype=float),
+        p_world=np.array([[r.x, r.y, r.z] for r in rows]),
+        quat=quat,
+        target=np.array([r.target or None for r in rows], dtype=object),
+        sigma=np.array([r.sigma if r.sigma else np.nan for r in rows]),
+        pose_id=np.array([r.seq for r in rows]),
+        row=np.array([r.seq + 1 for r in rows]),
+    )
+
+
+def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, list[Measurement]]:
+    """The session's measurements as arrays, and the rows they came from."""
+    rows = stored_rows(db, run)
+    return measurements_of(rows), rows
+
+
+def target_points(model: KinematicModel, data: Measurements) -> np.ndarray:
+    """(N, 3) tool-frame point of each row: the model's position of the row's target."""
+    return np.array([model.target(t) for t in data.target]).reshape(len(data.target), 3)
+
+
+def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
+    """(N, 3) measured minus predicted target positions, m (``calibration.metrics``)."""
+    return metrics.position_errors(model, data.q, data.p_world, target_points(model, data))
+
+
+def registered_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
+    """(N, 3) errors, m, with the model's base placed where it fits best (``calibration.metrics``)."""
+    return metrics.registered_errors(model, data.q, data.p_world, target_points(model, data))[0]
+
+
+def current_model(db: Session, cell: Cell) -> tuple[KinematicModel, Calibration | None]:
+    """The cell's best model: its last pose calibration (from its present nominal model), else the
+    nominal model."""
+    cal = current_calibration(db, cell)
+    return (model_from_dict(cal.model), cal) if cal is not None else (model_from_dict(cell.model), None)
