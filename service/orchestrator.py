@@ -40,8 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from sqlalchemy.engine import Engine
-from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError
-from sqlalchemy.exc import TimeoutError as PoolTimeout
+from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
@@ -52,7 +51,7 @@ from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, op
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
-from .store import as_utc, acquire_lease, set_state
+from .store import acquire_lease, as_utc, database_unavailable, held_by_other, set_state
 from calibration.errors import RecalError
 
 log = logging.getLogger("recal.sessions")
@@ -109,18 +108,6 @@ class DeviceOpenError(RecalError, ConnectionError):
     def __init__(self, device: str, cause: Exception):
         self.device, self.cause = device, cause
         super().__init__(str(cause))
-
-
-def database_unavailable(exc: BaseException) -> bool:
-    """The store cannot be reached (connection refused or lost, or no pooled connection free in
-    time: a loaded machine), as opposed to a bad query."""
-    return isinstance(exc, (OperationalError, InterfaceError, PoolTimeout)) or (
-        isinstance(exc, DBAPIError) and bool(exc.connection_invalidated))
-
-
-def _held_by_other(run: RunSession, owner: str) -> bool:
-    return (run.lease_owner not in (None, owner) and run.lease_expires is not None
-            and as_utc(run.lease_expires) > utcnow())
 
 
 def instrument_of(run: RunSession) -> str:
@@ -257,7 +244,7 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
         cell = db.get(Cell, run.cell_id)
         if not leased and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
             db.refresh(run)
-            if _held_by_other(run, owner):  # another process runs this very session: leave it alone
+            if held_by_other(run, owner):  # another process runs this very session: leave it alone
                 return run.state
             set_state(db, run, "paused", "another session is driving this cell")
             return "paused"
@@ -526,13 +513,3 @@ class Orchestrator:
             control.pause.set()
         for thread, _ in list(self._threads.values()):
             thread.join(timeout_s)
-
-
-def orchestrator_class(settings: Settings):
-    """The orchestrator the settings ask for: the embedded default, or the fleet's
-    (``RECAL_ENGINE=procrastinate``: sessions run by ``recal worker`` processes, docs/fleet.md)."""
-    if settings.engine == "embedded":
-        return Orchestrator
-    from .fleet.orchestrator import FleetOrchestrator
-
-    return FleetOrchestrator

@@ -16,6 +16,8 @@ from pathlib import Path
 
 from sqlalchemy import event, func, inspect, text, update
 from sqlalchemy.engine import Engine
+from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session, SQLModel, create_engine, select
 
 from .models import (
@@ -248,3 +250,16 @@ def as_utc(t: datetime | None) -> datetime | None:
     if t is None:
         return None
     return t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)
+
+
+def database_unavailable(exc: BaseException) -> bool:
+    """The store cannot be reached (connection refused or lost, or no pooled connection free in
+    time: a loaded machine), as opposed to a bad query."""
+    return isinstance(exc, (OperationalError, InterfaceError, PoolTimeout)) or (
+        isinstance(exc, DBAPIError) and bool(exc.connection_invalidated))
+
+
+def held_by_other(run: RunSession, owner: str) -> bool:
+    """Another process (``lease_owner``) holds this session's lease, and the lease runs."""
+    return (run.lease_owner not in (None, owner) and run.lease_expires is not None
+            and as_utc(run.lease_expires) > utcnow())

@@ -16,7 +16,8 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session
 
 from ..models import MAX_ID
-from ..orchestrator import database_unavailable, orchestrator_class
+from ..runners import runner_class
+from ..store import database_unavailable
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
 from .routes import calibrations, cells, results, sessions, system, web, workbench
@@ -78,7 +79,7 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
     async def lifespan(app: FastAPI):
         engine = make_engine(settings.effective_database_url)
         migrate(engine)
-        factory = orchestrator_factory or orchestrator_class(settings)
+        factory = orchestrator_factory or runner_class(settings)
         if not getattr(factory, "distributed", False):  # a fleet's sessions run on, in its workers
             with Session(engine) as db:
                 stopped = interrupt_unfinished(db)

@@ -19,7 +19,7 @@ from sqlalchemy import text, update
 from sqlmodel import Session
 
 from ..models import Cell, RunSession
-from ..orchestrator import _held_by_other
+from ..store import held_by_other
 from ..settings import Settings
 from . import jobs
 from .reaper import Reaper
@@ -45,7 +45,7 @@ class FleetOrchestrator:
         """Queue ``run`` (planned, flushed) for a worker of its cell's site in the caller's
         transaction: the caller commits the session and its job at once, so a session is never
         stored planned without its job. False when a worker holds it already (nothing queued)."""
-        if _held_by_other(run, self.owner):
+        if held_by_other(run, self.owner):
             return False  # two resumes at once: a worker has it already
         run.requested = None
         # Marked queued, not leased: a worker that had it before (and lost it) may not write

@@ -32,8 +32,7 @@ from sqlalchemy import text, update
 from sqlmodel import Session, select
 
 from ..models import Cell, RunSession, utcnow
-from ..orchestrator import database_unavailable
-from ..store import as_utc
+from ..store import as_utc, database_unavailable
 from . import jobs
 
 log = logging.getLogger("recal.fleet.reaper")

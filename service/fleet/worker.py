@@ -41,7 +41,8 @@ from sqlalchemy import create_engine, text, update
 from sqlmodel import Session
 
 from ..models import RunSession, utcnow
-from ..orchestrator import Control, _held_by_other, database_unavailable, run_session
+from ..orchestrator import Control, run_session
+from ..store import database_unavailable, held_by_other
 from ..settings import Settings
 from ..store import acquire_lease, migrate, set_state
 from . import jobs
@@ -254,7 +255,7 @@ class WorkerRuntime:
             t0 = time.monotonic()
             if not acquire_lease(db, run, self.owner, ttl_s=self.ttl_s):
                 db.refresh(run)
-                if _held_by_other(run, self.owner):
+                if held_by_other(run, self.owner):
                     return f"another worker holds it ({run.lease_owner})"
                 set_state(db, run, "paused", "another session is driving this cell")
                 return "paused"
