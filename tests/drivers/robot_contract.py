@@ -143,10 +143,13 @@ class RobotContract:
         target = step_towards_zero(timed_robot.read_joints(), 1, 1.0)  # 0.375 s of wall time
         mover = threading.Thread(target=self.move, args=(timed_robot, target))
         mover.start()
-        time.sleep(0.1)
-        during = timed_robot.state()
+        # Poll until the move shows, or the mover is done: a state read while the joints move
+        # away from where they started must say "moving".
+        seen_moving = False
+        while mover.is_alive() and not seen_moving:
+            seen_moving = timed_robot.state().moving
         mover.join(timeout=10.0)
-        assert during.moving
+        assert seen_moving, "no state read during the move said it was moving"
         assert not timed_robot.state().moving
 
     def test_stop_interrupts_a_move(self, timed_robot):
@@ -162,7 +165,10 @@ class RobotContract:
 
         mover = threading.Thread(target=move)
         mover.start()
-        time.sleep(0.15)
+        # stop once the move is under way (the joint has left its start), not after a guessed delay
+        deadline = time.monotonic() + 5.0
+        while abs(timed_robot.read_joints()[0] - q0[0]) < 0.05:
+            assert mover.is_alive() and time.monotonic() < deadline, "the move did not start"
         timed_robot.stop()
         mover.join(timeout=10.0)
         assert len(errors) == 1 and isinstance(errors[0], RobotStoppedError), errors

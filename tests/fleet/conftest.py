@@ -11,14 +11,12 @@ import importlib.util
 import itertools
 import json
 import os
-import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
 from sqlalchemy import create_engine, text
-from sqlalchemy.pool import NullPool
 from sqlmodel import Session
 
 from calibration import robots
@@ -156,36 +154,14 @@ class Fleet:
         self.engine.dispose()
 
 
-def _admin():
-    # no pool: a test may restart the server, and the drop at the end must still get through
-    return create_engine(POSTGRES_URL, isolation_level="AUTOCOMMIT", poolclass=NullPool)
-
-
-def _temp_database():
-    name = f"recal_fleet_{uuid.uuid4().hex[:12]}"
-    admin = _admin()
-    with admin.connect() as conn:
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
-    admin.dispose()
-    return name, f"{POSTGRES_URL.rpartition('/')[0]}/{name}"
-
-
-def _drop_database(name):
-    admin = _admin()
-    with admin.connect() as conn:
-        conn.execute(text(f"SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = '{name}'"))
-        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}"'))
-    admin.dispose()
-
-
 @pytest.fixture(scope="module")
-def make_fleet(tmp_path_factory, fleet_models):
+def make_fleet(tmp_path_factory, fleet_models, postgres_databases):
     """``make_fleet(ttl_s=...)``: a fresh fleet on its own database, stopped and dropped at the
     end of the module."""
     made = []
 
     def make(ttl_s: float = 5.0) -> Fleet:
-        name, url = _temp_database()
+        name, url = postgres_databases.create("recal_fleet")
         f = Fleet(tmp_path_factory.mktemp("fleet"), url, fleet_models, ttl_s=ttl_s)
         made.append((f, name))
         return f
@@ -195,5 +171,5 @@ def make_fleet(tmp_path_factory, fleet_models):
         try:
             f.stop()
         finally:
-            _drop_database(name)
+            postgres_databases.drop(name)
 

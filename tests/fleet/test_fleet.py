@@ -131,11 +131,11 @@ def test_pause_resume_and_abort_across_processes(fleet):
     assert fleet.api(0).call("GET", f"/sessions/{s['id']}")["measured"] == p["measured"]  # nothing moves
     fleet.api(0).call("POST", f"/sessions/{s['id']}/resume")
     _wait_measured(fleet.api(1), s["id"], p["measured"] + 3)
-    t0 = time.monotonic()
+    at_abort = fleet.api(1).call("GET", f"/sessions/{s['id']}")["measured"]
     fleet.api(1).call("POST", f"/sessions/{s['id']}/abort")
     a = _wait_state(fleet.api(0), s["id"], ("aborted",), 10)
-    assert time.monotonic() - t0 < 2.0, "abort reached the worker late"
-    assert a["measured"] < 40
+    # the worker stops the robot within one pose of the abort (the pose under way may finish)
+    assert a["measured"] <= at_abort + 1, f"{a['measured'] - at_abort} poses measured after the abort"
     seqs = [m["seq"] for m in fleet.api().call("GET", f"/sessions/{s['id']}/measurements")]
     assert sorted(seqs) == list(range(len(seqs)))  # every configuration measured at most once
 

@@ -7,11 +7,9 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import uuid
 
 import numpy as np
 import pytest
-from sqlalchemy import create_engine, text
 from sqlmodel import Session
 
 from calibration import robots
@@ -27,7 +25,6 @@ from service.store import create_token, make_engine, migrate
 NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 _hosts = itertools.count(100)
-POSTGRES_URL = os.environ.get("RECAL_TEST_POSTGRES_URL")
 
 BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0.03, -0.052, 0.04]}
 
@@ -65,20 +62,12 @@ def db_url(request, tmp_path):
     if getattr(request, "param", "sqlite") == "sqlite":
         yield None  # the embedded default in RECAL_HOME
         return
-    if not POSTGRES_URL:
-        pytest.skip("PostgreSQL tests need RECAL_TEST_POSTGRES_URL (.ci/run sets it)")
-    name = f"recal_sys_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(POSTGRES_URL, isolation_level="AUTOCOMMIT")
-    with admin.connect() as conn:
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
-    base = POSTGRES_URL.rpartition("/")[0]
+    pg = request.getfixturevalue("postgres_databases")
+    name, url = pg.create("recal_sys")
     try:
-        yield f"{base}/{name}"
+        yield url
     finally:
-        with admin.connect() as conn:
-            conn.execute(text(f"SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = '{name}'"))
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}"'))
-        admin.dispose()
+        pg.drop(name)
 
 
 class Stack:
