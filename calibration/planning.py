@@ -659,55 +659,71 @@ def _finish(design, ev, chosen, criterion, greedy_value, swaps, sweeps) -> PlanR
     )
 
 
-def plan(
-    model: KinematicModel,
-    candidates: np.ndarray,
-    count: int,
-    *,
-    targets: tuple[str | None, ...] = (None,),
-    criterion: str = "D",
-    sigma_m: float = 20e-6,
-    evaluation: np.ndarray | None = None,
-    n_evaluation: int = 300,
-    volume: Volume | None = None,
-    rng: np.random.Generator | None = None,
-    gains: bool = False,
-    fixed: tuple[str, ...] = (),
-    hayati: bool = True,
-    rank_rtol: float = 1e-6,
-    exchange: bool = True,
-    max_sweeps: int = 20,
-    screen: int = 24,
-    ridge: float = 1e-8,
-    tol: float = 1e-9,
-) -> PlanResult:
-    """Choose ``count`` of the ``candidates`` (C, n) readings (SI) to measure ``targets`` at, for
-    the best identification of ``model`` (see the module docstring for the method).
+@dataclass(frozen=True, eq=False)
+class PlanOptions:
+    """How :func:`plan` and :func:`poses_for_accuracy` choose poses (one definition of the
+    defaults for both).
 
-    ``criterion``: one of :data:`CRITERIA` (default D, the issue's choice and the fastest; I, the
-    least predicted mean position error over the evaluation configurations, is 4–5 % better on
-    average accuracy at 3–7 times the planning time, docs/benchmarks.md); ``sigma_m``: the instrument's per-axis standard uncertainty
-    (m), which scales the predicted accuracy; ``evaluation`` (E, n): where the predicted accuracy
-    is evaluated and what the I criterion minimises (default ``n_evaluation`` random readings
-    within the joint limits, and within ``volume`` when given, drawn with ``rng``, default seed
-    0); ``gains``,
-    ``fixed``, ``hayati``, ``rank_rtol``: as for :func:`calibration.identify.identify`;
-    ``exchange``: improve the greedy start by exchanges, at most ``max_sweeps`` sweeps, each
-    screening ``screen`` candidates per pose for the eigenvalue criteria; ``ridge``: the
-    start-up regularisation relative to one candidate's information; ``tol``: the smallest
-    improvement a swap must bring (log det units for D/O1, relative for the others).
+    ``targets``: the targets measured at each pose; ``criterion``: one of :data:`CRITERIA`
+    (default D, the issue's choice and the fastest; I, the least predicted mean position error
+    over the evaluation configurations, is 4–5 % better on average accuracy at 3–7 times the
+    planning time, docs/benchmarks.md); ``sigma_m``: the instrument's per-axis standard
+    uncertainty (m), which scales the predicted accuracy; ``evaluation`` (E, n): where the
+    predicted accuracy is evaluated and what the I criterion minimises (default ``n_evaluation``
+    random readings within the joint limits, and within ``volume`` when given, drawn with
+    ``rng``, default seed 0); ``gains``, ``fixed``, ``hayati``, ``rank_rtol``: as for
+    :func:`calibration.identify.identify`; ``exchange``: improve the greedy start by exchanges, at
+    most ``max_sweeps`` sweeps, each screening ``screen`` candidates per pose for the eigenvalue
+    criteria; ``ridge``: the start-up regularisation relative to one candidate's information;
+    ``tol``: the smallest improvement a swap must bring (log det units for D/O1, relative for the
+    others)."""
+
+    targets: tuple[str | None, ...] = (None,)
+    criterion: str = "D"
+    sigma_m: float = 20e-6
+    evaluation: np.ndarray | None = None
+    n_evaluation: int = 300
+    volume: Volume | None = None
+    rng: np.random.Generator | None = None
+    gains: bool = False
+    fixed: tuple[str, ...] = ()
+    hayati: bool = True
+    rank_rtol: float = 1e-6
+    exchange: bool = True
+    max_sweeps: int = 20
+    screen: int = 24
+    ridge: float = 1e-8
+    tol: float = 1e-9
+
+
+def _options(options: PlanOptions | None, overrides: dict) -> PlanOptions:
+    """``options`` (default :class:`PlanOptions`) with the keyword ``overrides`` applied; checks the
+    criterion."""
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(PlanOptions)})
+    if unknown:
+        raise TypeError(f"unknown planning option(s): {', '.join(unknown)}")
+    o = dataclasses.replace(options or PlanOptions(), **overrides)
+    if o.criterion not in CRITERIA:
+        raise ValueError(f"`criterion` must be one of {', '.join(CRITERIA)}; got {o.criterion!r}")
+    return o
+
+
+def plan(model: KinematicModel, candidates: np.ndarray, count: int, options: PlanOptions | None = None,
+         **overrides) -> PlanResult:
+    """Choose ``count`` of the ``candidates`` (C, n) readings (SI) to measure at, for the best
+    identification of ``model`` (see the module docstring for the method), as ``options`` say
+    (:class:`PlanOptions`; keyword arguments override single fields).
 
     Raises ``ValueError`` for inconsistent input (shapes, ``count`` below the number of poses
     the identifiable parameters need or above the number of candidates, unknown criterion)."""
-    if criterion not in CRITERIA:
-        raise ValueError(f"`criterion` must be one of {', '.join(CRITERIA)}; got {criterion!r}")
-    rng = np.random.default_rng(0) if rng is None else rng
-    design = _prepare(model, candidates, targets=targets, sigma_m=sigma_m, gains=gains, fixed=tuple(fixed),
-                      rank_rtol=rank_rtol, hayati=hayati)
+    o = _options(options, overrides)
+    rng = np.random.default_rng(0) if o.rng is None else o.rng
+    design = _prepare(model, candidates, targets=o.targets, sigma_m=o.sigma_m, gains=o.gains, fixed=tuple(o.fixed),
+                      rank_rtol=o.rank_rtol, hayati=o.hayati)
     _check_count(design, count)
-    ev = _evaluation(design, _evaluation_q(model, evaluation, n_evaluation, rng, volume, design.targets))
-    return _plan(design, ev, count, criterion, exchange=exchange, max_sweeps=max_sweeps, screen=screen,
-                 ridge=ridge, tol=tol)
+    ev = _evaluation(design, _evaluation_q(model, o.evaluation, o.n_evaluation, rng, o.volume, design.targets))
+    return _plan(design, ev, count, o.criterion, exchange=o.exchange, max_sweeps=o.max_sweeps, screen=o.screen,
+                 ridge=o.ridge, tol=o.tol)
 
 
 def _plan(design: _Design, ev: _Evaluation, count: int, criterion: str, *, exchange, max_sweeps, screen, ridge,
@@ -743,29 +759,8 @@ class AccuracyPlan:
     message: str
 
 
-def poses_for_accuracy(
-    model: KinematicModel,
-    candidates: np.ndarray,
-    accuracy_m: float,
-    *,
-    statistic: str = "rms",
-    k_max: int | None = None,
-    targets: tuple[str | None, ...] = (None,),
-    criterion: str = "D",
-    sigma_m: float = 20e-6,
-    evaluation: np.ndarray | None = None,
-    n_evaluation: int = 300,
-    volume: Volume | None = None,
-    rng: np.random.Generator | None = None,
-    gains: bool = False,
-    fixed: tuple[str, ...] = (),
-    hayati: bool = True,
-    rank_rtol: float = 1e-6,
-    max_sweeps: int = 20,
-    screen: int = 24,
-    ridge: float = 1e-8,
-    tol: float = 1e-9,
-) -> AccuracyPlan:
+def poses_for_accuracy(model: KinematicModel, candidates: np.ndarray, accuracy_m: float, *, statistic: str = "rms",
+                       k_max: int | None = None, options: PlanOptions | None = None, **overrides) -> AccuracyPlan:
     """The fewest poses (from ``candidates``) whose plan is predicted to reach ``accuracy_m`` (m) in
     ``statistic`` (``rms`` or ``p95`` of the predicted position error over the evaluation
     configurations), and that plan.
@@ -778,19 +773,19 @@ def poses_for_accuracy(
         raise ValueError(f"`statistic` must be one of {', '.join(STATISTICS)}; got {statistic!r}")
     if not (accuracy_m > 0 and math.isfinite(accuracy_m)):
         raise ValueError(f"`accuracy_m` must be a positive number; got {accuracy_m}")
-    if criterion not in CRITERIA:
-        raise ValueError(f"`criterion` must be one of {', '.join(CRITERIA)}; got {criterion!r}")
-    rng = np.random.default_rng(0) if rng is None else rng
-    design = _prepare(model, candidates, targets=targets, sigma_m=sigma_m, gains=gains, fixed=tuple(fixed),
-                      rank_rtol=rank_rtol, hayati=hayati)
+    o = _options(options, overrides)
+    rng = np.random.default_rng(0) if o.rng is None else o.rng
+    design = _prepare(model, candidates, targets=o.targets, sigma_m=o.sigma_m, gains=o.gains, fixed=tuple(o.fixed),
+                      rank_rtol=o.rank_rtol, hayati=o.hayati)
+    criterion = o.criterion
     C, r, P = design.J.shape
     k_min = max(1, math.ceil(P / r))
     k_max = min(C, 400) if k_max is None else min(int(k_max), C)
     if k_max < k_min:
         raise ValueError(f"`k_max` ({k_max}) is below the {k_min} poses the {P} identifiable parameters need "
                          f"(or there are too few candidates)")
-    ev = _evaluation(design, _evaluation_q(model, evaluation, n_evaluation, rng, volume, design.targets))
-    rdiag = _ridge(design.J, ridge)
+    ev = _evaluation(design, _evaluation_q(model, o.evaluation, o.n_evaluation, rng, o.volume, design.targets))
+    rdiag = _ridge(design.J, o.ridge)
     pick = 0 if statistic == "rms" else 1
     counts: list[int] = []
     values: list[float] = []
@@ -806,7 +801,7 @@ def poses_for_accuracy(
         return v <= accuracy_m
 
     _greedy(design.J, k_max, rdiag, on_step)
-    opts = dict(exchange=True, max_sweeps=max_sweeps, screen=screen, ridge=ridge, tol=tol)
+    opts = dict(exchange=True, max_sweeps=o.max_sweeps, screen=o.screen, ridge=o.ridge, tol=o.tol)
     name = "RMS" if statistic == "rms" else "95th percentile"
     if not values or values[-1] > accuracy_m:
         result = _plan(design, ev, k_max, criterion, **opts)

@@ -154,18 +154,18 @@ def run(args) -> int:
         rows = np.arange(1, len(cand) + 1)
     evaluation = read_joints(args.evaluation, model) if args.evaluation else None
     sigma_m = args.sigma * L if args.sigma is not None else 20e-6
-    kw = dict(targets=targets, criterion=args.criterion, sigma_m=sigma_m, evaluation=evaluation,
-              n_evaluation=args.evaluation_count, volume=volume, rng=rng, gains=args.gains,
-              fixed=tuple(args.fix or ()))
+    options = planning.PlanOptions(targets=targets, criterion=args.criterion, sigma_m=sigma_m, evaluation=evaluation,
+                                   n_evaluation=args.evaluation_count, volume=volume, rng=rng, gains=args.gains,
+                                   fixed=tuple(args.fix or ()))
     progress(f"planning among {len(cand)} candidates ...")
     curve = None
     try:
         if args.accuracy is not None:
             acc = planning.poses_for_accuracy(model, cand, args.accuracy * L, statistic=args.statistic,
-                                              k_max=args.count, **kw)
+                                              k_max=args.count, options=options)
             result, curve = acc.plan, acc
         else:
-            result = planning.plan(model, cand, args.count, **kw)
+            result = planning.plan(model, cand, args.count, options)
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.candidates or 'candidates'}: {exc.args[0] if isinstance(exc, KeyError) else exc}") from None
 
