@@ -66,11 +66,12 @@ class Api:
             delay = min(2 * delay, 10.0)
 
     def wait_session(self, session_id: int, timeout_s: float, *, until=("completed", "failed", "aborted", "paused",
-                                                                         "interrupted"), on_progress=None,
-                     poll_s: float = 0.2, patient: bool = False) -> dict:
-        """Poll a session every ``poll_s`` until its state is in ``until`` (or the timeout: state
-        ``timeout``). ``patient``: wait through a service that is briefly away or busy
-        (:meth:`call_patiently`) instead of raising."""
+                                                                         "interrupted"), measured: int | None = None,
+                     on_progress=None, poll_s: float = 0.2, patient: bool = False) -> dict:
+        """Poll a session every ``poll_s`` until its state is in ``until``, or (``measured``) it
+        has measured that many configurations (or the timeout: state ``timeout``). ``patient``:
+        wait through a service that is briefly away or busy (:meth:`call_patiently`) instead of
+        raising."""
         deadline = time.monotonic() + timeout_s
         last = None
         while True:
@@ -81,7 +82,7 @@ class Api:
             if on_progress is not None and (s["state"], s["measured"]) != last:
                 last = (s["state"], s["measured"])
                 on_progress(s)
-            if s["state"] in until:
+            if s["state"] in until or (measured is not None and s["measured"] >= measured):
                 return s
             if time.monotonic() > deadline:
                 return {**s, "state": "timeout"}

@@ -438,13 +438,20 @@ def _measure_one(run, devices, settings, control, seq, q_read, joint, model, gui
 
 
 class Orchestrator:
-    """Runs sessions in background threads of this process (the embedded default)."""
+    """Runs sessions in background threads of this process (the embedded default); a
+    :class:`service.runners.SessionRunner`."""
+
+    distributed = False  # its sessions end with the process: its start interrupts what was left running
 
     def __init__(self, engine: Engine, settings: Settings, *, owner: str = "embedded",
                  open_devices=open_session_devices):
         self.engine, self.settings, self.owner, self.open_devices = engine, settings, owner, open_devices
         self._threads: dict[int, tuple[threading.Thread, Control]] = {}
         self._lock = threading.Lock()
+
+    def queue(self, db: Session, run: RunSession) -> bool:
+        """Nothing to queue: the caller starts the session once it is committed."""
+        return False
 
     def start(self, session_id: int) -> None:
         with self._lock:

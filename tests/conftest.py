@@ -11,6 +11,12 @@ import pytest
 
 if importlib.util.find_spec("drivers") is None or importlib.util.find_spec("fakes") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+# pytest runs with --import-mode=importlib, which puts no test folder on sys.path: this one goes
+# there so that test modules of every folder can import the contract suites written once here
+# (runner_contract).
+_TESTS = str(Path(__file__).resolve().parent)
+if _TESTS not in sys.path:
+    sys.path.insert(0, _TESTS)
 
 POSTGRES_URL = os.environ.get("RECAL_TEST_POSTGRES_URL")
 

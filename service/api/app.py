@@ -80,7 +80,7 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
         engine = make_engine(settings.effective_database_url)
         migrate(engine)
         factory = orchestrator_factory or runner_class(settings)
-        if not getattr(factory, "distributed", False):  # a fleet's sessions run on, in its workers
+        if not factory.distributed:  # a fleet's sessions run on, in its workers
             with Session(engine) as db:
                 stopped = interrupt_unfinished(db)
             if stopped:
@@ -93,7 +93,7 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
         finally:
             app.state.orchestrator.shutdown()
             with Session(engine) as db:
-                interrupt_unfinished(db, owner=getattr(app.state.orchestrator, "owner", None))
+                interrupt_unfinished(db, owner=app.state.orchestrator.owner)
             engine.dispose()
 
     app = FastAPI(title="Recal", version="0.1.0", lifespan=lifespan, generate_unique_id_function=_operation_id,

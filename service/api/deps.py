@@ -12,6 +12,7 @@ from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
 from ..models import Token
+from ..runners import SessionRunner
 from ..store import find_token, hash_token
 
 
@@ -27,7 +28,7 @@ def get_orchestrator(request: Request):
     return request.app.state.orchestrator
 
 
-Orchestrator = Annotated[object, Depends(get_orchestrator)]
+Orchestrator = Annotated[SessionRunner, Depends(get_orchestrator)]
 
 
 def _bearer(request: Request) -> str | None:

@@ -30,6 +30,9 @@ CONTROL_CHANNEL = "recal_control"
 
 
 class FleetOrchestrator:
+    """Queues sessions for the fleet's workers and relays pause and abort to them; a
+    :class:`service.runners.SessionRunner`."""
+
     distributed = True  # sessions run in other processes: an API start must not interrupt them
 
     def __init__(self, engine, settings: Settings):

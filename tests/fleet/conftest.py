@@ -173,3 +173,14 @@ def make_fleet(tmp_path_factory, fleet_models, postgres_databases):
         finally:
             postgres_databases.drop(name)
 
+
+@pytest.fixture(scope="module")
+def fleet(make_fleet):
+    """A fleet of two API processes and two workers (w1 serves north, south and east; w2 north and
+    south), one per test module."""
+    f = make_fleet(ttl_s=5.0)
+    f.start_api()
+    f.start_api()
+    f.start_worker("w1", ["north", "south", "east"])
+    f.start_worker("w2", ["north", "south"])
+    return f

@@ -12,48 +12,16 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import threading
 import time
 
-import pytest
-from sqlmodel import Session, select
+from sqlmodel import Session
 
-from service.client import ApiError
-from service.models import Measurement, RunSession
+from service.models import RunSession
 from service.processes import start_service
-
-
-@pytest.fixture(scope="module")
-def fleet(make_fleet):
-    f = make_fleet(ttl_s=5.0)
-    f.start_api()
-    f.start_api()
-    f.start_worker("w1", ["north", "south", "east"])
-    f.start_worker("w2", ["north", "south"])
-    return f
 
 
 def _start(api, cell, **body):
     return api.call("POST", f"/cells/{cell['id']}/sessions", body)
-
-
-def _wait_state(api, sid, states, timeout_s=30.0):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        s = api.call("GET", f"/sessions/{sid}")
-        if s["state"] in states:
-            return s
-        assert time.monotonic() < deadline, f"session {sid} still {s['state']} after {timeout_s} s: {s}"
-        time.sleep(0.05)
-
-
-def _wait_measured(api, sid, n, timeout_s=60.0):
-    deadline = time.monotonic() + timeout_s
-    while (s := api.call("GET", f"/sessions/{sid}"))["measured"] < n:
-        assert s["state"] in ("planned", "running"), s
-        assert time.monotonic() < deadline, f"session {sid} did not progress: {s}"
-        time.sleep(0.02)
-    return s
 
 
 def test_all_cells_calibrated_concurrently_across_both_workers_and_api_processes(fleet):
@@ -90,83 +58,6 @@ def test_a_session_for_a_site_no_worker_serves_waits_and_can_be_aborted(fleet):
     # the cell is free again: a new session can start (and waits, like the first)
     s2 = _start(fleet.api(0), cell, kind="verify", count=5)
     assert fleet.api(0).call("POST", f"/sessions/{s2['id']}/pause")["state"] == "paused"
-
-
-def test_two_simultaneous_starts_on_one_cell_exactly_one_runs(fleet):
-    (cell,) = fleet.add_cells(["north"], time_scale=0.02)
-    for _ in range(4):
-        barrier = threading.Barrier(2)
-        results = [None, None]
-
-        def start(i):
-            barrier.wait()
-            try:
-                results[i] = _start(fleet.api(i), cell, kind="verify", count=6)
-            except ApiError as exc:
-                results[i] = exc
-
-        threads = [threading.Thread(target=start, args=(i,)) for i in (0, 1)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        ok = [r for r in results if isinstance(r, dict)]
-        refused = [r for r in results if isinstance(r, ApiError)]
-        assert len(ok) == 1 and len(refused) == 1, results
-        assert refused[0].status == 409
-        assert fleet.api().wait_session(ok[0]["id"], 60)["state"] == "completed"
-    with Session(fleet.engine) as db:
-        runs = db.exec(select(RunSession).where(RunSession.cell_id == cell["id"])).all()
-    assert len(runs) == 4 and all(r.state == "completed" for r in runs)
-
-
-def test_pause_resume_and_abort_across_processes(fleet):
-    (cell,) = fleet.add_cells(["south"], time_scale=0.05)
-    s = _start(fleet.api(0), cell, kind="pose", count=40)
-    _wait_measured(fleet.api(1), s["id"], 3)
-    fleet.api(1).call("POST", f"/sessions/{s['id']}/pause")
-    p = _wait_state(fleet.api(0), s["id"], ("paused",), 10)
-    assert p["reason"] == "paused on request" and p["measured"] < 40
-    time.sleep(0.5)
-    assert fleet.api(0).call("GET", f"/sessions/{s['id']}")["measured"] == p["measured"]  # nothing moves
-    fleet.api(0).call("POST", f"/sessions/{s['id']}/resume")
-    _wait_measured(fleet.api(1), s["id"], p["measured"] + 3)
-    at_abort = fleet.api(1).call("GET", f"/sessions/{s['id']}")["measured"]
-    fleet.api(1).call("POST", f"/sessions/{s['id']}/abort")
-    a = _wait_state(fleet.api(0), s["id"], ("aborted",), 10)
-    # the worker stops the robot within one pose of the abort (the pose under way may finish)
-    assert a["measured"] <= at_abort + 1, f"{a['measured'] - at_abort} poses measured after the abort"
-    seqs = [m["seq"] for m in fleet.api().call("GET", f"/sessions/{s['id']}/measurements")]
-    assert sorted(seqs) == list(range(len(seqs)))  # every configuration measured at most once
-
-
-def test_worker_killed_mid_session_is_interrupted_and_resumed_by_the_other(fleet):
-    (cell,) = fleet.add_cells(["north"], time_scale=0.05)
-    s = _start(fleet.api(0), cell, kind="pose", count=30)
-    _wait_measured(fleet.api(0), s["id"], 5)
-    victim = fleet.owner_name(s["id"])
-    survivor = ({"w1", "w2"} - {victim}).pop()
-    fleet.workers[victim].kill()  # kill -9: no chance to clean up
-    with Session(fleet.engine) as db:
-        before = {(m.seq, m.target): (m.id, m.x, m.y, m.z)
-                  for m in db.exec(select(Measurement).where(Measurement.session_id == s["id"])).all()}
-    t0 = time.monotonic()
-    i = _wait_state(fleet.api(1), s["id"], ("interrupted",), 4 * fleet.ttl_s)
-    detected = time.monotonic() - t0
-    assert "resume" in i["reason"] and i["measured"] == len(before) >= 5
-    time.sleep(1.0)
-    assert fleet.api(1).call("GET", f"/sessions/{s['id']}")["measured"] == len(before)  # nothing moves
-    fleet.api(1).call("POST", f"/sessions/{s['id']}/resume")
-    done = fleet.api(1).wait_session(s["id"], 120)
-    assert done["state"] == "completed", done
-    assert fleet.owner_name(s["id"]) == survivor
-    meas = fleet.api().call("GET", f"/sessions/{s['id']}/measurements")
-    assert sorted(m["seq"] for m in meas) == list(range(30)), "every configuration measured exactly once"
-    after = {(m["seq"], m["target"]): (m["id"], m["x"], m["y"], m["z"]) for m in meas}
-    for key, value in before.items():
-        assert after[key] == value, "a measurement taken before the kill changed"
-    print(f"killed worker's session interrupted after {detected:.1f} s")
-    fleet.start_worker(victim, ["north", "south", "east"] if victim == "w1" else ["north", "south"])
 
 
 def test_a_session_left_planned_without_a_job_is_queued_again_and_runs(fleet):

@@ -64,11 +64,17 @@ def register_cell(client, token: str, name: str, *, robot: str = "ur10e") -> dic
 
 
 class NoMotion:
-    """An orchestrator that runs nothing: sessions stay as the API left them (``started`` lists
-    the ones the API asked it to run)."""
+    """A :class:`service.runners.SessionRunner` that runs nothing: sessions stay as the API left
+    them (``started`` lists the ones the API asked it to run)."""
+
+    owner = "no-motion"
+    distributed = False
 
     def __init__(self, engine, settings):
         self.started: list[int] = []
+
+    def queue(self, db, run):
+        return False
 
     def start(self, session_id):
         self.started.append(session_id)
@@ -79,7 +85,13 @@ class NoMotion:
     def abort(self, session_id):
         return False
 
-    def shutdown(self):
+    def is_active(self, session_id):
+        return False
+
+    def wait(self, session_id, timeout_s=None):
+        pass
+
+    def shutdown(self, timeout_s=5.0):
         pass
 
 

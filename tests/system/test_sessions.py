@@ -6,11 +6,11 @@ import time
 
 import numpy as np
 import pytest
-from sqlmodel import Session, select
+from runner_contract import wait_measured
+from sqlmodel import Session
 
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
-from service.models import Measurement
 from service.settings import Settings
 from service.store import make_engine
 
@@ -21,14 +21,6 @@ BOTH_DATABASES = pytest.mark.parametrize("db_url", ["sqlite", "postgres"], indir
 
 def _start(api, cell, **body):
     return api.call("POST", f"/cells/{cell['id']}/sessions", body)
-
-
-def _wait_measured(api, session_id: int, n: int, timeout_s: float = 60.0) -> None:
-    """Until the session has measured ``n`` configurations (it is progressing)."""
-    deadline = time.monotonic() + timeout_s
-    while api.call("GET", f"/sessions/{session_id}")["measured"] < n:
-        assert time.monotonic() < deadline, f"session {session_id} did not reach {n} measurements"
-        time.sleep(0.02)
 
 
 @BOTH_DATABASES
@@ -70,38 +62,6 @@ def test_verify_then_recalibrate_uses_the_previous_calibration_as_prior(stack, m
     assert cal["report"]["residuals"]["rms"] < 0.08
 
 
-@BOTH_DATABASES
-def test_kill_9_mid_session_then_restart_and_resume_loses_and_duplicates_nothing(stack, models, register):
-    # time scale 0.05: each move takes a fraction of a second, so the session is still running
-    cell, _ = register(time_scale=0.05)
-    api = stack.api()
-    s = _start(api, cell, kind="pose", count=25)
-    _wait_measured(api, s["id"], 5)
-    stack.kill()  # kill -9: no chance to clean up
-    settings = Settings(home=stack.home, database_url=stack.db_url)
-    engine = make_engine(settings.effective_database_url)
-    with Session(engine) as db:
-        before = {(m.seq, m.target): (m.id, m.x, m.y, m.z) for m in
-                  db.exec(select(Measurement).where(Measurement.session_id == s["id"])).all()}
-    engine.dispose()
-    assert len(before) >= 5
-    stack.start()  # restart: the unfinished session is interrupted, nothing moves
-    api = stack.api()
-    s2 = api.call("GET", f"/sessions/{s['id']}")
-    assert s2["state"] == "interrupted" and "resume" in s2["reason"]
-    time.sleep(0.5)
-    assert api.call("GET", f"/sessions/{s['id']}")["measured"] == len(before)  # nothing moved
-    api.call("POST", f"/sessions/{s['id']}/resume")
-    done = api.wait_session(s["id"], 120)
-    assert done["state"] == "completed", done
-    meas = api.call("GET", f"/sessions/{s['id']}/measurements")
-    seqs = [m["seq"] for m in meas]
-    assert sorted(seqs) == list(range(25)), "every configuration measured exactly once"
-    after = {(m["seq"], m["target"]): (m["id"], m["x"], m["y"], m["z"]) for m in meas}
-    for key, value in before.items():
-        assert after[key] == value, "a measurement taken before the crash changed"
-
-
 def test_beam_breaks_are_retried_and_the_session_completes(stack, models, register):
     cell, _ = register(fake_args=["--fault", "beam_break_at=3,7"])
     api = stack.api()
@@ -132,28 +92,6 @@ def test_protective_stop_pauses_the_session_at_once(stack, models, register):
     assert "stop" in s["reason"].lower()
     assert s["measured"] == 2
     assert s["device_state"]["robot"]["state"] == "protective stop", s["device_state"]
-
-
-def test_abort_stops_the_session(stack, models, register):
-    cell, _ = register(time_scale=0.1)
-    api = stack.api()
-    s = _start(api, cell, kind="pose", count=40)
-    _wait_measured(api, s["id"], 2)
-    api.call("POST", f"/sessions/{s['id']}/abort")
-    s = api.wait_session(s["id"], 30)
-    assert s["state"] == "aborted" and s["measured"] < 40
-
-
-def test_two_starts_on_one_cell_one_is_refused(stack, models, register):
-    cell, _ = register(time_scale=0.2)
-    api = stack.api()
-    first = _start(api, cell, kind="pose", count=10)
-    from service.client import ApiError
-
-    with pytest.raises(ApiError) as exc:
-        _start(api, cell, kind="verify", count=5)
-    assert exc.value.status == 409
-    api.call("POST", f"/sessions/{first['id']}/abort")
 
 
 def test_server_sent_events_report_progress_to_the_end(stack, models, register):
@@ -217,7 +155,7 @@ def test_moves_run_at_the_capped_speed_and_abort_stops_the_robot_short_of_its_ta
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
     s = _start(api, cell, kind="verify", count=12)
-    _wait_measured(api, s["id"], 2)
+    wait_measured(api, s["id"], 2)
     while np.abs(samples[-1][1] - samples[-3][1]).max() < 2e-3:  # abort while it moves
         time.sleep(0.01)
     a = api.call("POST", f"/sessions/{s['id']}/abort")
@@ -243,23 +181,6 @@ def test_moves_run_at_the_capped_speed_and_abort_stops_the_robot_short_of_its_ta
     ok = ends < len(t)
     speeds = np.abs(q[ends[ok]] - q[ok]).max(axis=1) / (t[ends[ok]] - t[ok]) * scale
     assert 0.75 * CAP < speeds.max() <= 1.05 * CAP, speeds.max()  # the default cap (0.5 rad/s) is above
-
-
-def test_pause_and_resume_in_the_embedded_service(stack, models, register):
-    cell, _ = register(time_scale=0.02)
-    api = stack.api()
-    s = _start(api, cell, kind="verify", count=8)
-    _wait_measured(api, s["id"], 2)
-    api.call("POST", f"/sessions/{s['id']}/pause")
-    p = api.wait_session(s["id"], 30, until=("paused",))
-    assert p["state"] == "paused" and p["reason"] == "paused on request" and p["measured"] < 8
-    assert p["device_state"]["robot"]["state"] == "ready" and p["device_state"]["tracker"]["state"] == "ready"
-    time.sleep(0.5)
-    assert api.call("GET", f"/sessions/{s['id']}")["measured"] == p["measured"]  # nothing moves
-    api.call("POST", f"/sessions/{s['id']}/resume")
-    done = api.wait_session(s["id"], 60)
-    assert done["state"] == "completed" and done["measured"] == 8, done
-    assert sorted(m["seq"] for m in api.call("GET", f"/sessions/{s['id']}/measurements")) == list(range(8))
 
 
 def test_cmm_pose_session_calibrates_from_full_poses(stack, models, register):

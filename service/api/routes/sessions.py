@@ -13,6 +13,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlmodel import Session, select
 
 from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
+from ...runners import SessionRunner
 from ...store import audit, measured_count, set_state_unless
 from ..deps import DbSession, Orchestrator, Reader, Runner, quick_read
 
@@ -93,14 +94,13 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     return public_session(db, run)
 
 
-def commit_planned(db, run: RunSession, orchestrator) -> bool:
-    """Commit ``run``, planned. Where the engine queues sessions (the fleet: ``queue``), its job
-    is queued in the same transaction, so that no session is ever stored planned without one;
-    True then. Else (the embedded default) the caller starts it once committed."""
-    queue = getattr(orchestrator, "queue", None)
+def commit_planned(db, run: RunSession, orchestrator: SessionRunner) -> bool:
+    """Commit ``run``, planned. Where the runner queues sessions (the fleet), its job is queued in
+    the same transaction, so that no session is ever stored planned without one; True then. Else
+    (the embedded default) the caller starts it once committed."""
     db.add(run)
     db.flush()  # the id, for the job (and the one-active-session-per-cell index speaks here)
-    queued = queue is not None and queue(db, run)
+    queued = orchestrator.queue(db, run)
     db.commit()
     return queued
 

@@ -1,0 +1,117 @@
+"""The contract every session runner keeps (service.runners.SessionRunner), written once and run
+against both: the embedded runner (tests/system/test_embedded_runner.py) and the fleet's
+(tests/fleet/test_fleet_runner.py), each through the real service processes and simulated cells.
+
+A subclass provides the ``deployment`` fixture, an object with:
+
+- ``api(i=0)``: an ``Api`` client of API process ``i`` (the fleet has two; the embedded service
+  one, whatever ``i``);
+- ``add_cell(time_scale)``: a simulated cell registered with the service (its JSON);
+- ``crash(session_id)``: kill -9 whatever runs the session (the embedded service process; the
+  fleet's worker that holds it);
+- ``after_crash()``: what an operator does next (restart the service; the fleet: nothing, its
+  reaper and the other worker carry on);
+- ``stored(session_id)``: the session's measurements as stored, ``{(seq, target): (id, x, y, z)}``.
+"""
+
+from __future__ import annotations
+
+import threading
+
+from service.client import ApiError
+
+ENDED = ("completed", "failed", "aborted", "paused", "interrupted")
+
+
+def start(api, cell: dict, **body) -> dict:
+    return api.call("POST", f"/cells/{cell['id']}/sessions", body)
+
+
+def wait_measured(api, sid: int, n: int, timeout_s: float = 60.0) -> dict:
+    """Until the session has measured ``n`` configurations; it must still be running then."""
+    s = api.wait_session(sid, timeout_s, measured=n, until=ENDED)
+    assert s["measured"] >= n and s["state"] in ("planned", "running"), f"session {sid} did not progress: {s}"
+    return s
+
+
+def wait_state(api, sid: int, states: tuple[str, ...], timeout_s: float = 30.0) -> dict:
+    s = api.wait_session(sid, timeout_s, until=states, poll_s=0.05)
+    assert s["state"] in states, f"session {sid} is {s['state']}, expected one of {states}: {s}"
+    return s
+
+
+def seqs(api, sid: int) -> list[int]:
+    return sorted(m["seq"] for m in api.call("GET", f"/sessions/{sid}/measurements"))
+
+
+class RunnerContract:
+    def test_pause_then_resume_measures_every_configuration_once(self, deployment):
+        cell = deployment.add_cell(time_scale=0.05)
+        s = start(deployment.api(0), cell, kind="verify", count=12)
+        wait_measured(deployment.api(1), s["id"], 2)
+        deployment.api(1).call("POST", f"/sessions/{s['id']}/pause")
+        p = wait_state(deployment.api(0), s["id"], ("paused",))
+        assert p["reason"] == "paused on request" and p["measured"] < 12
+        # nothing moves while paused: a second look, after the pose that was under way, agrees
+        again = deployment.api(0).wait_session(s["id"], 0.5, until=("running",))
+        assert again["measured"] == p["measured"] and again["state"] in ("paused", "timeout")
+        deployment.api(0).call("POST", f"/sessions/{s['id']}/resume")
+        done = deployment.api(1).wait_session(s["id"], 120)
+        assert done["state"] == "completed" and done["measured"] == 12, done
+        assert seqs(deployment.api(), s["id"]) == list(range(12))
+
+    def test_abort_stops_within_one_pose(self, deployment):
+        cell = deployment.add_cell(time_scale=0.05)
+        s = start(deployment.api(0), cell, kind="pose", count=40)
+        wait_measured(deployment.api(1), s["id"], 3)
+        at_abort = deployment.api(1).call("GET", f"/sessions/{s['id']}")["measured"]
+        deployment.api(1).call("POST", f"/sessions/{s['id']}/abort")
+        a = wait_state(deployment.api(0), s["id"], ("aborted",))
+        # the pose under way at the abort may finish; no other is measured
+        assert a["measured"] <= at_abort + 1, f"{a['measured'] - at_abort} poses measured after the abort"
+        assert seqs(deployment.api(), s["id"]) == list(range(a["measured"]))
+
+    def test_a_crash_mid_session_interrupts_it_and_resume_loses_and_duplicates_nothing(self, deployment):
+        cell = deployment.add_cell(time_scale=0.05)
+        s = start(deployment.api(0), cell, kind="pose", count=25)
+        wait_measured(deployment.api(0), s["id"], 5)
+        deployment.crash(s["id"])  # kill -9: no chance to clean up
+        before = deployment.stored(s["id"])
+        assert len(before) >= 5
+        deployment.after_crash()
+        i = wait_state(deployment.api(1), s["id"], ("interrupted",), timeout_s=60)
+        assert "resume" in i["reason"] and i["measured"] == len(before)
+        # nothing moves until someone resumes it
+        again = deployment.api(1).wait_session(s["id"], 1.0, until=("running", "planned"))
+        assert again["measured"] == len(before) and again["state"] in ("interrupted", "timeout")
+        deployment.api(1).call("POST", f"/sessions/{s['id']}/resume")
+        done = deployment.api(1).wait_session(s["id"], 120)
+        assert done["state"] == "completed", done
+        assert seqs(deployment.api(), s["id"]) == list(range(25)), "every configuration measured exactly once"
+        after = deployment.stored(s["id"])
+        for key, value in before.items():
+            assert after[key] == value, "a measurement taken before the crash changed"
+
+    def test_two_simultaneous_starts_on_one_cell_exactly_one_runs(self, deployment):
+        cell = deployment.add_cell(time_scale=0.02)
+        for _ in range(3):
+            barrier = threading.Barrier(2)
+            results: list = [None, None]
+
+            def go(i):
+                barrier.wait()
+                try:
+                    results[i] = start(deployment.api(i), cell, kind="verify", count=6)
+                except ApiError as exc:
+                    results[i] = exc
+
+            threads = [threading.Thread(target=go, args=(i,)) for i in (0, 1)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            ok = [r for r in results if isinstance(r, dict)]
+            refused = [r for r in results if isinstance(r, ApiError)]
+            assert len(ok) == 1 and len(refused) == 1, results
+            assert refused[0].status == 409
+            assert deployment.api().wait_session(ok[0]["id"], 60)["state"] == "completed"
