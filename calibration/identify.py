@@ -501,6 +501,10 @@ def _unit_name(kind: str, units) -> tuple[str, float]:
         return ("m", 1.0) if units is None else (units.length, units.length_m)
     if kind == "angle":
         return ("rad", 1.0) if units is None else (units.angle, units.angle_rad)
+    if kind == "angle_per_length":  # compliance x mass terms (calibration.compliance)
+        return ("rad/m", 1.0) if units is None else (f"{units.angle}/{units.length}", units.angle_rad / units.length_m)
+    if kind == "angle_per_torque":  # a joint's compliance
+        return ("rad/(N·m)", 1.0) if units is None else (f"{units.angle}/(N·m)", units.angle_rad)
     return ("", 1.0)
 
 
