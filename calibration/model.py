@@ -420,15 +420,17 @@ class GravityCompliance:
             object.__setattr__(self, "payload", tuple(float(v) for v in self.payload))
 
     def term_names(self, joint_order: tuple[str, ...]) -> list[str]:
-        """Every term of this section (``j2.k``, ``j2.j3.m``, ...): per deflecting joint its
-        compliance, then each lump on a link at or after it (``m`` only for a lump after it)."""
+        """Every term of this section (``j2.j3.m``, ..., ``j2.k``): per deflecting joint each lump
+        on a link at or after it, then its compliance. In that order the identifiability selection
+        prefers them: with one payload throughout, the payload's torque is a heavier last link and
+        the lumps keep it; only a second payload determines the compliance itself."""
         pos = {n: i for i, n in enumerate(joint_order)}
         out = []
         for j in self.joints:
-            out.append(f"{j}.k")
             for lump in self.lumps:
                 if pos[lump] >= pos[j]:
                     out += [f"{j}.{lump}.{t}" for t in COMPLIANCE_TERMS[1:]]
+            out.append(f"{j}.k")
         return out
 
 
