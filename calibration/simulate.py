@@ -143,11 +143,13 @@ def heavy_arm_nominal() -> KinematicModel:
 #   dynamic parameters (upper arm 13 kg, forearm 4 kg, wrists 4.7 kg lumped at the flange);
 #   joint stiffness 2e5 N·m/rad (shoulder) and 1e5 N·m/rad (elbow), the order reported for
 #   harmonic-drive cobot joints. Sag at full reach and payload: about 2 mm.
-# - "arm165": a 165 kg-payload arm. Joint stiffness 5e6 N·m/rad (j2) and 2e6 N·m/rad (j3), as
-#   identified on a KUKA KR 240 (Dumas et al., 2011); the lower arm's net weight after its gravity
-#   balancer 60 kg, the upper arm with the wrist housing 180 kg, the wrist 50 kg. Unmodelled by
-#   a geometric model, the sag leaves a few tenths of a millimetre: the magnitude reported for
-#   such arms measured with a laser tracker.
+# - "arm165": a 165 kg-payload arm. Joint stiffness 5e6 N·m/rad (j2) and 2e6 N·m/rad (j3), the
+#   order of magnitude identified on heavy arms of this class (a few 1e6 N·m/rad for the
+#   shoulder and elbow, e.g. Dumas et al. 2011 on a KUKA KR 240); the lower arm's net weight after
+#   its gravity balancer 60 kg, the upper arm with the wrist housing 180 kg, the wrist 50 kg. Sag
+#   at full payload, arm stretched out: 4 to 6 mm; what a complete geometric model cannot absorb of it,
+#   over the whole joint range with and without the payload: about 1.5 mm RMS (bench/compliance.py;
+#   the arm in issue 17, measured in a smaller region, left 0.5 mm).
 SAGGING_ARMS = {
     "cobot": dict(compliance={"j2": 5e-6, "j3": 1e-5},
                   masses={"j2": (13.0, (0.306, 0.0, 0.175)), "j3": (4.0, (0.286, 0.0, 0.05)),
