@@ -46,6 +46,9 @@ def export_warnings(model: KinematicModel, fmt: str = "urdf") -> list[str]:
     for j in model.joints:
         if j.harmonic is not None:
             out.append(f"joint {j.name}: the gear-eccentricity harmonic is not representable in {fmt}")
+    if model.compliance is not None:
+        out.append(f"{'URDF' if fmt == 'urdf' else fmt} cannot carry joint compliance under gravity: "
+                   "the rigid part of the model is written")
     return out
 
 

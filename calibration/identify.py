@@ -62,7 +62,8 @@ class Measurements:
     positions; ``quat`` (N, 4) tool orientation ``(qw, qx, qy, qz)`` or NaN where a row has
     none (``None``: position-only data); ``target`` (N,) target names (``None``: tool origin);
     ``sigma`` (N,) m per-axis standard uncertainty or NaN for the instrument's; ``pose_id`` (N,);
-    ``row`` (N,) row numbers in the source file, for reports."""
+    ``row`` (N,) row numbers in the source file, for reports; ``payload`` (N, 4) kg and centre of
+    gravity in the tool frame (m) per row, for a compliant model (``None``: the model's own)."""
 
     q: np.ndarray
     p_world: np.ndarray
@@ -71,6 +72,7 @@ class Measurements:
     sigma: np.ndarray | None = None
     pose_id: np.ndarray | None = None
     row: np.ndarray | None = None
+    payload: np.ndarray | None = None
 
     def __post_init__(self):
         q = np.atleast_2d(np.asarray(self.q, dtype=float))
@@ -87,6 +89,8 @@ class Measurements:
         object.__setattr__(self, "sigma", s)
         if self.row is None:
             object.__setattr__(self, "row", np.arange(1, N + 1))
+        if self.payload is not None:
+            object.__setattr__(self, "payload", np.asarray(self.payload, dtype=float).reshape(N, 4))
 
     def __len__(self) -> int:
         return self.q.shape[0]
@@ -101,7 +105,7 @@ class Measurements:
     def subset(self, idx) -> "Measurements":
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
         return Measurements(self.q[idx], self.p_world[idx], pick(self.quat), self.target[idx], self.sigma[idx],
-                            pick(self.pose_id), self.row[idx])
+                            pick(self.pose_id), self.row[idx], pick(self.payload))
 
 
 @dataclass(frozen=True, eq=False)
@@ -329,7 +333,7 @@ def _p_tool(model: KinematicModel, names: np.ndarray, rows: dict | None = None) 
 def _residuals(model, prob: _Problem, record=frozenset()):
     """Walk ``model`` over the data (recording ``record``): the walk, the predicted points and the
     residuals, measured minus predicted (position (N, 3), orientation (N, 3))."""
-    w = walk(model, prob.data.q, record, prob.trig)
+    w = walk(model, prob.data.q, record, prob.trig, prob.data.payload)
     pt = world_points(w, _p_tool(model, prob.p_tool_names, prob.target_rows))
     rp = prob.data.p_world - pt
     rr = np.zeros_like(rp)
@@ -413,6 +417,10 @@ CATEGORIES = ("no_effect", "same_motion", "combination", "target_offsets", "tool
 
 
 def _describe(name: str) -> str:
+    if name.startswith("compliance."):  # joint compliance under gravity (calibration.compliance)
+        from .compliance import describe_term
+
+        return describe_term(name)
     head, _, f = name.rpartition(".")
     words = {"theta": "offset", "d": "d", "a": "a", "alpha": "twist alpha", "beta": "Hayati beta",
              "gain": "gain", "tilt_x": "axis tilt x", "tilt_y": "axis tilt y", "shift_x": "axis shift x",
@@ -427,7 +435,7 @@ def _describe(name: str) -> str:
 
 def _is_joint_parameter(name: str) -> bool:
     head = name.rpartition(".")[0]
-    return head not in ("base", "tool", "home") and not head.startswith("target.")
+    return head not in ("base", "tool", "home") and not head.startswith(("target.", "compliance."))
 
 
 def _last_joint_offset(params: list[Parameter]) -> int | None:
@@ -493,6 +501,10 @@ def _unit_name(kind: str, units) -> tuple[str, float]:
         return ("m", 1.0) if units is None else (units.length, units.length_m)
     if kind == "angle":
         return ("rad", 1.0) if units is None else (units.angle, units.angle_rad)
+    if kind == "angle_per_length":  # compliance x mass terms (calibration.compliance)
+        return ("rad/m", 1.0) if units is None else (f"{units.angle}/{units.length}", units.angle_rad / units.length_m)
+    if kind == "angle_per_torque":  # a joint's compliance
+        return ("rad/(N·m)", 1.0) if units is None else (f"{units.angle}/(N·m)", units.angle_rad)
     return ("", 1.0)
 
 
@@ -662,7 +674,7 @@ def _register(model: KinematicModel, prob: _Problem, record=frozenset()) -> tupl
     (recording ``record``): one walk serves every base (:func:`_linearise_in_base_frame`)."""
     data = prob.data
     local = dataclasses.replace(model, base=np.zeros(6))
-    w = walk(local, data.q, record, prob.trig)
+    w = walk(local, data.q, record, prob.trig, data.payload)
 
     def rms(base: np.ndarray, p_local: np.ndarray) -> float:
         e = data.p_world - (p_local @ base[:3, :3].T + base[:3, 3])

@@ -50,12 +50,14 @@ def predict(
     p_tool: np.ndarray,
     params: list[Parameter] | None = None,
     target_names: np.ndarray | None = None,
+    payload: np.ndarray | None = None,
 ) -> Prediction:
     """Predict the world position of tool-frame points ``p_tool`` (N, 3) at readings ``q`` (N, n);
     with ``params``, also the identification Jacobian. ``target_names`` (N,) names the target each
     row measures (``None`` entries: the tool origin); it selects the rows a ``target.*``
-    parameter moves."""
-    w = walk(model, q, record_keys(params))
+    parameter moves. ``payload`` (N, 4): kg and centre of gravity in the tool frame (m) per row,
+    for a compliant model (:func:`calibration.kinematics.walk`)."""
+    w = walk(model, q, record_keys(params), payload=payload)
     pt = world_points(w, p_tool)
     if not params:
         return Prediction(pt, w.R)
@@ -129,6 +131,10 @@ def jacobian_from_walk(
             cp *= q[:, par.q_joint]
             if orientation:
                 cr *= q[:, par.q_joint]
+        if par.regressor is not None:  # a compliance term: its joint's offset column times its regressor
+            cp *= w.regressors[par.regressor]
+            if orientation:
+                cr *= w.regressors[par.regressor]
         if par.target is not None:
             cp *= (target_names == par.target) if target_names is not None else 0.0
             if orientation:

@@ -12,7 +12,7 @@ parameter acts.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -77,7 +77,9 @@ def program(model: KinematicModel) -> list[Op]:
 
     Keys recorded: ``base``, ``tool``, ``home`` (frames, for their local 6-DOF perturbations);
     ``<joint>.<field>`` for ``dh``/``mdh`` link parameters; ``<joint>.pre``/``<joint>.post``
-    (frames before and after a ``poe`` joint's motion).
+    (frames before and after a ``poe`` joint's motion); ``<joint>.link`` the frame of the link the
+    joint moves (``dh``: Denavit–Hartenberg frame i; ``mdh``: Craig's frame i; ``poe``: the base
+    frame carried by joints 1..i), where a lumped mass of :mod:`calibration.compliance` sits.
     """
     ops: list[Op] = [Op("fixed", T=pose_to_matrix(model.base)), Op("mark", key="base")]
     for i, j in enumerate(model.joints):
@@ -106,6 +108,7 @@ def program(model: KinematicModel) -> list[Op]:
                 ops.append(Op("trans", 2, j.d, i, key=f"{n}.d"))
             ops.append(Op("mark", key=f"{n}.post"))
             ops.append(Op("fixed", T=invert(F)))
+        ops.append(Op("mark", key=f"{n}.link"))
     if model.convention == "poe":
         ops += [Op("fixed", T=pose_to_matrix(model.home)), Op("mark", key="home")]
     ops += [Op("fixed", T=pose_to_matrix(model.tool)), Op("mark", key="tool")]
@@ -124,6 +127,7 @@ class Walk:
     p: np.ndarray
     axes: dict
     frames: dict
+    regressors: dict = field(default_factory=dict)  # compliance term -> (N,) (calibration.compliance)
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -147,11 +151,16 @@ def _cos_sin(trig: dict, joint: int, v: np.ndarray, const: float) -> tuple[np.nd
 
 
 def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str] = frozenset(),
-         trig: dict | None = None) -> Walk:
+         trig: dict | None = None, payload: np.ndarray | None = None) -> Walk:
     """Run ``model``'s program over readings ``q`` (N, n), recording the keys in ``record``.
 
     ``trig``: a dict kept by a caller that walks models of one structure over the same readings
     many times (identification): the joints' cos and sin are computed once and reused.
+
+    A model with a ``compliance`` section is walked at its deflected configuration
+    (:func:`calibration.compliance.deflections`; ``payload`` (N, 4) or (4,): kg and the centre of
+    gravity in the tool frame, m; ``None``: the section's own payload), and the walk keeps the
+    compliance terms' regressors for the Jacobian.
 
     Inside, the frame is held as its three world axes and its origin, each (3, N)
     component-major, so every step is a few operations on contiguous length-N rows. A rotation
@@ -161,6 +170,12 @@ def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str]
     """
     q = check_q(model, q)
     v = joint_variables(model, q)
+    regressors: dict = {}
+    if model.compliance is not None:
+        from .compliance import deflections  # imported here: compliance walks the rigid chain with walk()
+
+        dv, regressors = deflections(model, q, payload, trig)
+        v = v + dv
     N = q.shape[0]
     eye = np.eye(3)
     cols = [np.broadcast_to(eye[:, j : j + 1], (3, N)) for j in range(3)]  # world axes x, y, z
@@ -197,21 +212,23 @@ def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str]
                 p = p + value * cols[a]
             if op.key in record:
                 axes[op.key] = (_readonly(cols[a].T), _readonly(p.T))
-    return Walk(_matrices(cols), np.ascontiguousarray(p.T), axes, frames)
+    return Walk(_matrices(cols), np.ascontiguousarray(p.T), axes, frames, regressors)
 
 
-def fk(model: KinematicModel, q: np.ndarray) -> np.ndarray:
-    """``T_world_tool`` (N, 4, 4) for joint readings ``q`` (N, n) (rad; m for prismatic joints)."""
-    w = walk(model, q)
+def fk(model: KinematicModel, q: np.ndarray, payload: np.ndarray | None = None) -> np.ndarray:
+    """``T_world_tool`` (N, 4, 4) for joint readings ``q`` (N, n) (rad; m for prismatic joints);
+    ``payload`` as in :func:`walk` (a compliant model only)."""
+    w = walk(model, q, payload=payload)
     return homogeneous(w.R, w.p)
 
 
-def points_world(model: KinematicModel, q: np.ndarray, p_tool: np.ndarray) -> np.ndarray:
+def points_world(model: KinematicModel, q: np.ndarray, p_tool: np.ndarray, payload: np.ndarray | None = None) -> np.ndarray:
     """World positions (N, 3) of points given in the tool frame: ``p_tool`` (3,) or (N, 3)."""
-    w = walk(model, q)
+    w = walk(model, q, payload=payload)
     return w.p + np.einsum("nij,nj->ni", w.R, np.broadcast_to(np.asarray(p_tool, float), w.p.shape))
 
 
-def target_positions(model: KinematicModel, q: np.ndarray, target: str | None = None) -> np.ndarray:
+def target_positions(model: KinematicModel, q: np.ndarray, target: str | None = None,
+                     payload: np.ndarray | None = None) -> np.ndarray:
     """World positions (N, 3) of the named target (``None``: the tool origin)."""
-    return points_world(model, q, model.target(target))
+    return points_world(model, q, model.target(target), payload)

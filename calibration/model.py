@@ -117,6 +117,7 @@ class KinematicModel:
     coupling: np.ndarray | None = None
     units: Units = Units()
     metadata: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    compliance: "GravityCompliance | None" = None  # joint compliance under gravity (level 3), see below
 
     def __post_init__(self):
         if self.convention not in CONVENTIONS:
@@ -138,6 +139,8 @@ class KinematicModel:
             object.__setattr__(self, "coupling", C)
         object.__setattr__(self, "joints", tuple(self.joints))
         object.__setattr__(self, "metadata", MappingProxyType(dict(self.metadata)))
+        if self.compliance is not None:
+            _check_compliance(self.compliance, self.joints)
 
     @property
     def n_joints(self) -> int:
@@ -293,7 +296,8 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
         if "home" not in doc:
             raise ModelFormatError("home", "is required for convention poe (the flange pose at q = 0)")
         home = _pose(doc["home"], "home", units)
-    known = {"format", "name", "units", "convention", "base", "joints", "tool", "targets", "coupling", "home"}
+    known = {"format", "name", "units", "convention", "base", "joints", "tool", "targets", "coupling", "home",
+             "compliance"}
     return KinematicModel(
         name=str(doc.get("name", "")),
         convention=convention,
@@ -305,6 +309,7 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
         coupling=coupling,
         units=units,
         metadata={k: v for k, v in doc.items() if k not in known},
+        compliance=None if doc.get("compliance") is None else compliance_from_dict(doc["compliance"], joints, units),
     )
 
 
@@ -364,6 +369,151 @@ def model_to_dict(model: KinematicModel, *, units: Units | None = None) -> dict[
     doc["targets"] = {k: [_r(v / L) for v in p] for k, p in model.targets.items()}
     if model.coupling is not None:
         doc["coupling"] = [[_r(v) for v in row] for row in model.coupling]
+    if model.compliance is not None:
+        doc["compliance"] = compliance_to_dict(model.compliance, units)
     for k, v in model.metadata.items():
         doc[k] = v
     return doc
+
+
+# ------------------------------------------------------------- joint compliance under gravity
+
+STANDARD_GRAVITY = 9.80665  # m/s²; gravity's magnitude (the section gives only its direction)
+COMPLIANCE_TERMS = ("k", "m", "x", "y", "z")
+
+
+@dataclass(frozen=True, eq=False)
+class GravityCompliance:
+    """Joint compliance under gravity, the model's optional level-3 section (book §2.1, §7.7;
+    :mod:`calibration.compliance` computes with it). SI inside.
+
+    ``gravity`` (3,) the unit direction of gravity in the robot base frame (default ``-z``);
+    ``joints`` the revolute joints that deflect; ``lumps`` the joints whose moving link carries a
+    lumped mass. ``values`` maps term names to SI values; a term not given is 0:
+
+    - ``<joint>.k``: the joint's compliance c (rad per N·m), which multiplies the (known) payload's
+      gravity torque;
+    - ``<joint>.<lump>.m``: c·m·g of the lump (rad per m of lever of the lump's link-frame origin);
+    - ``<joint>.<lump>.x|y|z``: c·m·g·r of the lump (rad), ``r`` its centre of gravity in that
+      link's frame.
+
+    Only these products are identifiable from positions (a compliance and a mass appear only
+    multiplied). ``payload`` (kg, x, y, z m in the tool frame) is the payload applied to
+    configurations given without one (the task's payload; ``None``: no payload).
+    """
+
+    joints: tuple[str, ...]
+    lumps: tuple[str, ...]
+    gravity: np.ndarray = field(default_factory=lambda: _frozen([0.0, 0.0, -1.0]))
+    values: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    payload: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self):
+        g = np.array(self.gravity, dtype=float).reshape(3)
+        n = float(np.linalg.norm(g))
+        if not n > 0:
+            raise ModelFormatError("compliance.gravity", "must not be zero")
+        object.__setattr__(self, "gravity", _frozen(g / n))
+        object.__setattr__(self, "joints", tuple(self.joints))
+        object.__setattr__(self, "lumps", tuple(self.lumps))
+        object.__setattr__(self, "values", MappingProxyType({k: float(v) for k, v in dict(self.values).items()}))
+        if self.payload is not None:
+            object.__setattr__(self, "payload", tuple(float(v) for v in self.payload))
+
+    def term_names(self, joint_order: tuple[str, ...]) -> list[str]:
+        """Every term of this section (``j2.j3.m``, ..., ``j2.k``): per deflecting joint each lump
+        on a link at or after it, then its compliance. In that order the identifiability selection
+        prefers them: with one payload throughout, the payload's torque is a heavier last link and
+        the lumps keep it; only a second payload determines the compliance itself."""
+        pos = {n: i for i, n in enumerate(joint_order)}
+        out = []
+        for j in self.joints:
+            for lump in self.lumps:
+                if pos[lump] >= pos[j]:
+                    out += [f"{j}.{lump}.{t}" for t in COMPLIANCE_TERMS[1:]]
+            out.append(f"{j}.k")
+        return out
+
+
+def compliance_term_kind(term: str) -> str:
+    """The unit kind of a term: ``angle_per_torque`` (rad/N·m), ``angle_per_length`` (rad/m) or
+    ``angle`` (rad)."""
+    t = term.rpartition(".")[2]
+    return {"k": "angle_per_torque", "m": "angle_per_length"}.get(t, "angle")
+
+
+def _compliance_scale(term: str, units: Units) -> float:
+    """SI per file unit of a term (torque stays N·m: the units block has no force unit)."""
+    kind = compliance_term_kind(term)
+    if kind == "angle_per_length":
+        return units.angle_rad / units.length_m
+    return units.angle_rad
+
+
+def _check_compliance(c: GravityCompliance, joints) -> None:
+    by_name = {j.name: j for j in joints}
+    for i, n in enumerate(c.joints):
+        if n not in by_name:
+            raise ModelFormatError(f"compliance.joints[{i}]", f"no joint {n!r} in this model")
+        if not by_name[n].revolute:
+            raise ModelFormatError(f"compliance.joints[{i}]", f"joint {n!r} is prismatic; expected a revolute joint")
+    for i, n in enumerate(c.lumps):
+        if n not in by_name:
+            raise ModelFormatError(f"compliance.lumps[{i}]", f"no joint {n!r} in this model")
+    allowed = set(c.term_names(tuple(by_name)))
+    for k in c.values:
+        if k not in allowed:
+            raise ModelFormatError(f"compliance.terms.{k}", "not a term of these joints and lumps (expected "
+                                   "<joint>.k or <joint>.<lump>.m|x|y|z with the lump's link at or after the joint)")
+
+
+def compliance_from_dict(d: Any, joints, units: Units) -> GravityCompliance:
+    """Read the ``compliance`` section (docs/formats.md) in the model's ``units``."""
+    if not isinstance(d, Mapping):
+        raise ModelFormatError("compliance", "expected an object with joints, lumps, gravity and terms")
+    names = [j.name for j in joints]
+
+    def name_list(key):
+        v = d.get(key, [])
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise ModelFormatError(f"compliance.{key}", "expected a list of joint names")
+        return tuple(v)
+
+    jl, ll = name_list("joints"), name_list("lumps")
+    for key, lst in (("joints", jl), ("lumps", ll)):
+        for i, n in enumerate(lst):
+            if n not in names:
+                raise ModelFormatError(f"compliance.{key}[{i}]", f"no joint {n!r}; expected one of {', '.join(names)}")
+    gravity = _vector(d.get("gravity", [0, 0, -1]), 3, "compliance.gravity")
+    terms = d.get("terms", {})
+    if not isinstance(terms, Mapping):
+        raise ModelFormatError("compliance.terms", "expected an object mapping term names to numbers")
+    values = {}
+    for k, v in terms.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ModelFormatError(f"compliance.terms.{k}", f"expected a finite number, got {v!r}")
+        values[str(k)] = float(v) * _compliance_scale(str(k), units)
+    payload = None
+    if d.get("payload") is not None:
+        p = _vector(d["payload"], 4, "compliance.payload")
+        if p[0] < 0:
+            raise ModelFormatError("compliance.payload[0]", "expected a mass >= 0 kg")
+        payload = (p[0], *(p[1:] * units.length_m))
+    c = GravityCompliance(jl, ll, gravity, values, payload)
+    _check_compliance(c, joints)
+    return c
+
+
+def compliance_to_dict(c: GravityCompliance, units: Units) -> dict[str, Any]:
+    """The ``compliance`` section in ``units``."""
+    A, L = units.angle, units.length
+    out: dict[str, Any] = {
+        "gravity": [_r(v) for v in c.gravity],
+        "joints": list(c.joints),
+        "lumps": list(c.lumps),
+        "terms": {k: float(f"{v / _compliance_scale(k, units):.12g}") for k, v in c.values.items()},
+        "term_units": {"k": f"{A}/(N·m)", "m": f"{A}/{L}", "x|y|z": A},
+    }
+    if c.payload is not None:
+        out["payload"] = [_r(c.payload[0])] + [_r(v / units.length_m) for v in c.payload[1:]]
+    return out

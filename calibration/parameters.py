@@ -18,6 +18,9 @@ Names:
   perpendicular to the axis.
 - ``<joint>.gain``: the reading scale (level-1 calibration, book eq. 2.2).
 - ``target.<name>.x|y|z``: a target's position in the tool frame.
+- ``compliance.<joint>.k``, ``compliance.<joint>.<lump>.m|x|y|z``: the terms of a compliant
+  model's joint compliance under gravity (:class:`calibration.model.GravityCompliance`); each
+  moves the chain like its joint's offset, times its regressor (:mod:`calibration.compliance`).
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .kinematics import frame_from_axis
-from .model import KinematicModel
+from .model import KinematicModel, compliance_term_kind
 from .transforms import homogeneous, matrix_to_pose, pose_to_matrix, rotvec_to_matrix
 
 LOCAL_6 = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -41,8 +44,10 @@ class Parameter:
     ``terms``: ``(key, generator, axis, sign)`` — the parameter moves the chain like a unit
     ``generator`` (``"rot"``/``"trans"``) about/along local ``axis`` of the frame recorded
     under ``key``, times ``sign``. ``q_joint``: the column is scaled by that joint's reading
-    (gains). ``target``: the parameter moves only rows that measure this target.
-    ``kind`` is ``"length"``, ``"angle"`` or ``"scale"`` (for units and column scaling).
+    (gains). ``target``: the parameter moves only rows that measure this target. ``regressor``:
+    the column is scaled by the walk's regressor of that name (compliance terms).
+    ``kind`` is ``"length"``, ``"angle"``, ``"scale"``, or for compliance terms
+    ``"angle_per_torque"`` / ``"angle_per_length"`` (for units and column scaling).
     """
 
     name: str
@@ -50,6 +55,7 @@ class Parameter:
     terms: tuple[tuple[str, str, int, float], ...]
     q_joint: int | None = None
     target: str | None = None
+    regressor: str | None = None  # the column is scaled by the walk's regressor of this name (compliance)
 
     @property
     def record_keys(self) -> set[str]:
@@ -127,7 +133,22 @@ def candidate_parameters(
         for i, j in enumerate(model.joints):
             key, gen, ax = (f"{j.name}.theta", "rot", 2) if j.revolute else (f"{j.name}.d", "trans", 2)
             params.append(Parameter(f"{j.name}.gain", "scale", ((key, gen, ax, 1.0),), q_joint=i))
-    return params
+    return params + compliance_parameters(model)
+
+
+def compliance_parameters(model: KinematicModel) -> list[Parameter]:
+    """The terms of the model's compliance section (none for a rigid model), after every
+    geometric parameter: the identifiability selection keeps geometry first. A term deflects
+    its joint, so it moves the chain like that joint's offset times the term's regressor."""
+    c = model.compliance
+    if c is None:
+        return []
+    out = []
+    for term in c.term_names(tuple(j.name for j in model.joints)):
+        joint = term.partition(".")[0]
+        name = f"compliance.{term}"
+        out.append(Parameter(name, compliance_term_kind(term), ((f"{joint}.theta", "rot", 2, 1.0),), regressor=name))
+    return out
 
 
 def _compose_local(pose6: np.ndarray, delta6: np.ndarray) -> np.ndarray:
@@ -169,6 +190,13 @@ def apply_step(model: KinematicModel, params: list[Parameter], delta: np.ndarray
         d3 = np.array([by_name.get(f"target.{t}.{s}", 0.0) for s in "xyz"])
         moved_targets[t] = p + d3
     changes["targets"] = moved_targets
+    if model.compliance is not None:
+        terms = {n[len("compliance."):]: d for n, d in by_name.items() if n.startswith("compliance.")}
+        if terms:
+            values = dict(model.compliance.values)
+            for t, d in terms.items():
+                values[t] = values.get(t, 0.0) + d
+            changes["compliance"] = dataclasses.replace(model.compliance, values=values)
     return dataclasses.replace(model, **changes)
 
 
@@ -179,7 +207,9 @@ def parameter_values(model: KinematicModel, params: list[Parameter]) -> np.ndarr
     out = []
     for p in params:
         head, _, field = p.name.rpartition(".")
-        if p.name.startswith("target."):
+        if p.name.startswith("compliance."):
+            out.append(float(model.compliance.values.get(p.name[len("compliance."):], 0.0)))
+        elif p.name.startswith("target."):
             t = p.name.split(".")[1]
             out.append(float(model.targets[t]["xyz".index(field)]))
         elif head in ("base", "tool", "home") or field.startswith(("tilt_", "shift_")):

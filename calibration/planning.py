@@ -152,7 +152,8 @@ def stick_figure(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """World positions (N, S, 3) m of the origins of the chain's elementary frames, base to flange
     (the tool transform excluded), at readings ``q`` (N, n): consecutive points are the links."""
     ops = program(model)
-    keys = [op.key for op in ops if op.key is not None and op.key != "tool"]
+    # the ".link" marks (where compliance's lumped masses sit) repeat an origin already listed
+    keys = [op.key for op in ops if op.key is not None and op.key != "tool" and not op.key.endswith(".link")]
     w = walk(model, q, set(keys))
     pts = [w.axes[k][1] if k in w.axes else w.frames[k][1] for k in keys]
     return np.stack(pts, axis=1)

@@ -19,6 +19,10 @@ def _unit(kind: str, units: Units) -> tuple[str, float]:
         return units.length, units.length_m
     if kind == "angle":
         return units.angle, units.angle_rad
+    if kind == "angle_per_length":  # compliance x mass terms (calibration.compliance)
+        return f"{units.angle}/{units.length}", units.angle_rad / units.length_m
+    if kind == "angle_per_torque":  # a joint's compliance; torque stays N·m (the units have no force)
+        return f"{units.angle}/(N·m)", units.angle_rad
     return "1", 1.0
 
 

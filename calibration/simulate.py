@@ -80,19 +80,24 @@ def simulate_measurements(
     targets: tuple[str | None, ...] = (None,),
     full_pose: bool = False,
     sigma_rad: float = 0.0,
+    payload: np.ndarray | None = None,
 ) -> Measurements:
     """Measurements of ``truth`` at readings ``q`` (N, n): every named target (``None``: the tool
     origin) at every configuration, with normal noise ``sigma_m`` per axis; with ``full_pose``,
-    the tool orientation too, rotated by normal noise ``sigma_rad`` per axis."""
+    the tool orientation too, rotated by normal noise ``sigma_rad`` per axis. ``payload`` (N, 4)
+    or (4,): kg and centre of gravity in the tool frame (m) at each configuration (a compliant
+    ``truth`` sags under it); the rows carry it."""
     q = np.asarray(q, dtype=float)
-    T = fk(truth, q)
-    rows_q, rows_p, rows_t, rows_quat, pose_id = [], [], [], [], []
+    pay = None if payload is None else np.broadcast_to(np.asarray(payload, dtype=float), (len(q), 4))
+    T = fk(truth, q, pay)
+    rows_q, rows_p, rows_t, rows_quat, pose_id, rows_pay = [], [], [], [], [], []
     for t in targets:
         p_tool = truth.target(t)
         p = T[:, :3, 3] + T[:, :3, :3] @ p_tool
         rows_q.append(q)
         rows_p.append(p + rng.normal(0, sigma_m, p.shape))
         rows_t += [t] * len(q)
+        rows_pay.append(np.zeros((len(q), 4)) if pay is None else pay)
         pose_id.append(np.arange(len(q)))
         if full_pose:
             R = T[:, :3, :3]
@@ -104,4 +109,66 @@ def simulate_measurements(
     return Measurements(
         q=cat(rows_q), p_world=cat(rows_p), quat=cat(rows_quat) if full_pose else None,
         target=np.array(rows_t, dtype=object)[order], pose_id=cat(pose_id),
+        payload=None if pay is None else cat(rows_pay),
     )
+
+
+# ------------------------------------------------------------------ arms that sag under gravity
+
+# A 165 kg-payload industrial arm: R-2000iC/165F-class dimensions (mm), standard DH, the
+# shoulder (j2) offset so that q = 0 holds the lower arm upright. Approximate figures for
+# simulation; not a vendor's published model.
+HEAVY_ARM_DH = ((670.0, 312.0, -90.0, 0.0), (0.0, 1075.0, 0.0, -90.0), (0.0, 225.0, -90.0, 0.0),
+                (1280.0, 0.0, 90.0, 0.0), (0.0, 0.0, -90.0, 0.0), (215.0, 0.0, 0.0, 0.0))  # d, a, alpha, theta
+
+
+def heavy_arm_nominal() -> KinematicModel:
+    """The nominal model of a 165 kg-payload arm (:data:`HEAVY_ARM_DH`), in mm and degrees."""
+    from .model import model_from_dict
+
+    limits = ((-180, 180), (-60, 75), (-80, 180), (-180, 180), (-125, 125), (-180, 180))
+    return model_from_dict({
+        "format": "recal.model/1", "name": "arm165-nominal", "units": {"length": "mm", "angle": "deg"},
+        "convention": "dh", "base": [0] * 6, "tool": [0] * 6, "targets": {},
+        "joints": [{"name": f"j{i + 1}", "type": "revolute", "d": d, "a": a, "alpha": al, "theta": th,
+                    "lower": lo, "upper": hi}
+                   for i, ((d, a, al, th), (lo, hi)) in enumerate(zip(HEAVY_ARM_DH, limits))],
+    })
+
+
+# Physical figures of two sagging arms (SI): joint compliance (rad per N·m = 1 / stiffness), lumped
+# masses {link joint: (kg, centre of gravity in that link's DH frame, m)}, rated payload (kg, cog).
+#
+# - "cobot": a UR10e-class arm (10 kg payload class). Link masses from Universal Robots' published
+#   dynamic parameters (upper arm 13 kg, forearm 4 kg, wrists 4.7 kg lumped at the flange);
+#   joint stiffness 2e5 N·m/rad (shoulder) and 1e5 N·m/rad (elbow), the order reported for
+#   harmonic-drive cobot joints. Sag at full reach and payload: about 2 mm.
+# - "arm165": a 165 kg-payload arm. Joint stiffness 5e6 N·m/rad (j2) and 2e6 N·m/rad (j3), the
+#   order of magnitude identified on heavy arms of this class (a few 1e6 N·m/rad for the
+#   shoulder and elbow, e.g. Dumas et al. 2011 on a KUKA KR 240); the lower arm's net weight after
+#   its gravity balancer 60 kg, the upper arm with the wrist housing 180 kg, the wrist 50 kg. Sag
+#   at full payload, arm stretched out: 4 to 6 mm; what a complete geometric model cannot absorb of it,
+#   over the whole joint range with and without the payload: about 1.5 mm RMS (bench/compliance.py;
+#   the arm in issue 17, measured in a smaller region, left 0.5 mm).
+SAGGING_ARMS = {
+    "cobot": dict(compliance={"j2": 5e-6, "j3": 1e-5},
+                  masses={"j2": (13.0, (0.306, 0.0, 0.175)), "j3": (4.0, (0.286, 0.0, 0.05)),
+                          "j6": (4.7, (0.0, 0.0, -0.08))},
+                  payload=(10.0, 0.0, 0.0, 0.1)),
+    "arm165": dict(compliance={"j2": 2e-7, "j3": 5e-7},
+                   masses={"j2": (60.0, (-0.54, 0.0, 0.0)), "j3": (180.0, (0.0, -0.4, 0.0)),
+                           "j6": (50.0, (0.0, 0.0, -0.1))},
+                   payload=(165.0, 0.0, 0.0, 0.2)),
+}
+
+
+def sagging(model: KinematicModel, arm: str, *, frames_of: KinematicModel | None = None) -> KinematicModel:
+    """``model`` with the joint compliance and lumped masses of one of :data:`SAGGING_ARMS` (no
+    default payload). The masses' centres of gravity are given in DH link frames: ``frames_of``
+    names the DH model they refer to when ``model`` is in another convention (a true robot made
+    by :func:`perturbed` is in ``poe``)."""
+    from .compliance import lumps_in_frames_of, physical_section, with_section
+
+    fig = SAGGING_ARMS[arm]
+    masses = fig["masses"] if frames_of is None else lumps_in_frames_of(fig["masses"], frames_of, model)
+    return with_section(model, physical_section(model, fig["compliance"], masses))

@@ -31,24 +31,24 @@ def _p_tool(model, names) -> np.ndarray:
 
 
 def propagate(model: KinematicModel, params: list[Parameter], covariance: np.ndarray, q: np.ndarray,
-              targets: np.ndarray) -> np.ndarray:
+              targets: np.ndarray, payload: np.ndarray | None = None) -> np.ndarray:
     """Covariance (N, 3, 3) m² of the positions of per-row ``targets`` (N,) (``None``: the tool
     origin) at readings ``q`` (N, n), from the covariance (P, P) SI of ``params`` of ``model``:
-    ``J Σx Jᵀ`` (book eq. 4.70)."""
+    ``J Σx Jᵀ`` (book eq. 4.70). ``payload`` (N, 4): per row, for a compliant model."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     if not params:
         return np.zeros((len(q), 3, 3))
-    pred = predict(model, q, _p_tool(model, targets), list(params), targets)
+    pred = predict(model, q, _p_tool(model, targets), list(params), targets, payload)
     return np.einsum("nip,pq,njq->nij", pred.Jp, covariance, pred.Jp)
 
 
 def position_covariance(result: IdentificationResult, q: np.ndarray, target: str | None = None,
-                        targets: np.ndarray | None = None) -> np.ndarray:
+                        targets: np.ndarray | None = None, payload: np.ndarray | None = None) -> np.ndarray:
     """Covariance (N, 3, 3) m² of the predicted position of ``target`` (or per-row ``targets``)
     at readings ``q`` (N, n), from the identified parameters' covariance."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     names = np.array([target] * len(q), dtype=object) if targets is None else np.asarray(targets, dtype=object)
-    return propagate(result.model, list(result.params), result.covariance, q, names)
+    return propagate(result.model, list(result.params), result.covariance, q, names, payload)
 
 
 def radius_95(C: np.ndarray, level: float = 0.95) -> np.ndarray:
@@ -132,13 +132,13 @@ def validate(result: IdentificationResult, holdout: Measurements) -> Validation:
     """Errors of ``result.model`` (and of the starting model) on ``holdout``."""
     names = holdout.target
     sigma = np.where(np.isfinite(holdout.sigma) & (holdout.sigma > 0), holdout.sigma, result.settings["sigma_m"])
-    p = predict(result.model, holdout.q, _p_tool(result.model, names)).p_world
+    p = predict(result.model, holdout.q, _p_tool(result.model, names), payload=holdout.payload).p_world
     e_vec = holdout.p_world - p
     e = np.linalg.norm(e_vec, axis=1)
-    C = position_covariance(result, holdout.q, targets=names) + (sigma**2)[:, None, None] * np.eye(3)
+    C = position_covariance(result, holdout.q, targets=names, payload=holdout.payload) + (sigma**2)[:, None, None] * np.eye(3)
     d2 = np.einsum("ni,ni->n", e_vec, np.linalg.solve(C, e_vec[:, :, None])[:, :, 0])
     coverage = float(np.mean(d2 <= chi2_quantile(0.95, 3))) if len(e) else 0.0
-    p0 = predict(result.start_model, holdout.q, _p_tool(result.start_model, names)).p_world
+    p0 = predict(result.start_model, holdout.q, _p_tool(result.start_model, names), payload=holdout.payload).p_world
     e0 = np.linalg.norm(holdout.p_world - p0, axis=1)
     rms, mx, p95, mean = _stats(e)
     b_rms, b_max, b_p95, _ = _stats(e0)

@@ -257,7 +257,46 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
     pose_id = table.strings("pose_id") if table.has("pose_id") else None
     return Measurements(q=q, p_world=p, quat=quat, target=np.array(targets, dtype=object), sigma=sigma,
                         pose_id=None if pose_id is None else np.array(pose_id, dtype=object),
-                        row=np.arange(1, len(table.rows) + 1))
+                        row=np.arange(1, len(table.rows) + 1), payload=read_payload(table, model))
+
+
+PAYLOAD_COLUMNS = ("payload_kg", "payload_x", "payload_y", "payload_z")
+
+
+def read_payload(table: Table, model: KinematicModel) -> np.ndarray | None:
+    """Columns ``payload_kg, payload_x, payload_y, payload_z`` (contracts §3: kg, then the centre of
+    gravity in the tool frame in the model's length unit) as (N, 4) SI, or None without
+    ``payload_kg``. An empty cell is no payload (0 kg) or a centre of gravity at the tool origin."""
+    if not table.has("payload_kg"):
+        for c in PAYLOAD_COLUMNS[1:]:
+            if table.has(c):
+                raise InputError(table.path, "a payload's centre of gravity needs its mass; expected a column "
+                                             "'payload_kg'", row="header", line=table.header_line, column=c)
+        return None
+    L = model.units.length_m
+    cols = [table.numbers(c, scale=1.0 if c == "payload_kg" else L, required=False, allow_empty=True)
+            for c in PAYLOAD_COLUMNS]
+    kg = cols[0]
+    if np.any(kg[np.isfinite(kg)] < 0):
+        r = int(np.nonzero(np.isfinite(kg) & (kg < 0))[0][0])
+        raise InputError(table.path, "expected a payload mass >= 0 kg", row=r + 1, line=table.lines[r], column="payload_kg")
+    return np.nan_to_num(np.stack(cols, axis=1), nan=0.0)
+
+
+def parse_payload(text: str, model: KinematicModel, flag: str = "--payload") -> tuple[float, float, float, float]:
+    """``KG[,X,Y,Z]`` (a payload's mass, and its centre of gravity in the tool frame in the model's
+    length unit, default the tool origin) as SI (kg, x, y, z m). Raises ``ValueError`` with a
+    one-line message naming ``flag``."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 4) or not all(math.isfinite(v) for v in vals) or vals[0] < 0:
+        raise ValueError(f"{flag}: expected KG or KG,X,Y,Z (mass >= 0 kg, centre of gravity in the tool frame in "
+                         f"{model.units.length}), got {text!r}")
+    vals += [0.0] * (4 - len(vals))
+    L = model.units.length_m
+    return (vals[0], vals[1] * L, vals[2] * L, vals[3] * L)
 
 
 def format_csv(header: list[str], rows) -> str:

@@ -65,7 +65,7 @@ def _commands(model, data, target):
     from calibration.transforms import quat_to_matrix
 
     names = np.array([t if t is not None else target for t in data.target], dtype=object)
-    T = fk(model, data.q)
+    T = fk(model, data.q, data.payload)  # a compliant model sags under each row's payload
     p_cmd = np.einsum("nij,nj->ni", T[:, :3, :3], np.stack([model.target(t) for t in names])) + T[:, :3, 3]
     full = data.quat is not None and bool(np.all(data.has_orientation))
     R = (T[:, :3, :3], quat_to_matrix(data.quat)) if full else (None, None)

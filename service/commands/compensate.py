@@ -43,6 +43,9 @@ def add_parser(s) -> None:
     s.add_argument("--taught-on", metavar="MODEL", help="identified model of the robot the task's joint vectors were "
                    "taught on, same world frame (default: they were planned on the nominal model)")
     s.add_argument("--report", help="per-point report to write (JSON)")
+    s.add_argument("--payload", metavar="KG[,X,Y,Z]",
+                   help="the task's payload, for a compliant model: mass (kg) and centre of gravity in the tool frame "
+                        "(model length unit)")
     s.add_argument("--calibration-data", metavar="MEAS.csv", help="the identification measurements: their joint "
                    "ranges are the calibrated region (default: the ranges the identified model records)")
     s.add_argument("--qnear", help="comma-separated joints (model units) that choose the branch of rows without "
@@ -64,6 +67,14 @@ def _models(args):
     from service.files import load_model
 
     model = load_model(args.model)
+    if args.payload is not None:  # a compliant model sags under it (a rigid one ignores it)
+        from calibration.compliance import with_payload
+        from service.files import parse_payload
+
+        try:
+            model = with_payload(model, parse_payload(args.payload, model))
+        except ValueError as exc:
+            raise Fail(str(exc)) from None
     nominal = None
     if args.nominal:
         nominal = load_model(args.nominal)
@@ -110,6 +121,9 @@ def _frame(model, nominal, calibrated):
     from calibration.kinematics import fk
     from calibration.simulate import random_configurations
 
+    # the frame is geometry: a compliant model's sag under gravity is what compensation corrects,
+    # not part of where the nominal model's world sits
+    model = dataclasses.replace(model, compliance=None)
     rng = np.random.default_rng(0)
     q = random_configurations(model, 256, rng, limits=calibrated)
     M = frame_map(model, nominal, q)

@@ -1,4 +1,5 @@
-"""``recal identify --model NOMINAL.json --data MEAS.csv --out MODEL.json [--report R.json] [--validate VAL.csv]``"""
+"""``recal identify --model NOMINAL.json --data MEAS.csv --out MODEL.json [--report R.json] [--validate VAL.csv]
+[--compliance gravity|auto]``"""
 
 from __future__ import annotations
 
@@ -23,6 +24,13 @@ def add_parser(s) -> None:
                    help="start from a rigid registration of the base (default auto: when it fits better)")
     s.add_argument("--gains", action="store_true", help="also identify joint gains")
     s.add_argument("--fix", action="append", metavar="NAME", help="keep a parameter fixed (repeatable; prefix* allowed)")
+    s.add_argument("--compliance", choices=["gravity", "auto"],
+                   help="add joint compliance under gravity (level 3): 'gravity' always, 'auto' only for the joints "
+                        "where 5-fold cross-validation on the data shows a gain (the figures are reported either way)")
+    s.add_argument("--compliance-joints", metavar="J2,J3",
+                   help="the joints that may deflect (default: the revolute ones among the first three whose axis "
+                        "is not along gravity)")
+    s.add_argument("--gravity", metavar="X,Y,Z", help="gravity's direction in the robot base frame (default 0,0,-1)")
 
 
 def run(args) -> int:
@@ -45,18 +53,21 @@ def run(args) -> int:
         raise Fail(f"--sigma: expected a positive number, got {args.sigma}")
     if args.sigma_angle is not None and not args.sigma_angle > 0:
         raise Fail(f"--sigma-angle: expected a positive number, got {args.sigma_angle}")
+    kw = dict(
+        sigma_m=args.sigma * L if args.sigma is not None else 20e-6,
+        sigma_rad=args.sigma_angle * model.units.angle_rad if args.sigma_angle is not None else None,
+        loss=args.loss, f_scale=args.f_scale, register=args.register, gains=args.gains,
+        fixed=tuple(args.fix or ()),
+    )
     try:
-        result = identify(
-            model, data,
-            sigma_m=args.sigma * L if args.sigma is not None else 20e-6,
-            sigma_rad=args.sigma_angle * model.units.angle_rad if args.sigma_angle is not None else None,
-            loss=args.loss, f_scale=args.f_scale, register=args.register, gains=args.gains,
-            fixed=tuple(args.fix or ()),
-        )
+        start, compliance = _with_compliance(args, model, data, kw)
+        result = identify(start, data, **kw)
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.data}: {exc}") from None
     validation = validate(result, holdout) if holdout is not None else None
     report = identification_report(result, model.units, data_rows=data.row, validation=validation)
+    if compliance is not None:
+        report["compliance"] = compliance
     report["elapsed_s"] = round(time.perf_counter() - t0, 3)
     if args.report:
         write_atomic(args.report, json.dumps(report, indent=2) + "\n")
@@ -72,7 +83,64 @@ def run(args) -> int:
         line += (f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
                  f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound")
     print(line)
+    if compliance is not None and "cross_validation" in compliance:
+        cv = compliance["cross_validation"]
+        verdict = (f"compliance of {', '.join(compliance['joints'])} added" if compliance["joints"]
+                   else "no gain: the model stays rigid")
+        print(f"compliance ({cv['folds']}-fold cross-validation): RMS rigid {cv['rms_rigid']:.4g} {u}, "
+              f"compliant {cv['rms_compliant']:.4g} {u}; {verdict}")
     if result.outliers:
         rows = ", ".join(str(int(data.row[i])) for i in result.outliers[:10])
         print(f"warning: {len(result.outliers)} rows look like outliers (rows {rows}); see the report", file=sys.stderr)
     return 0 if result.success else 1
+
+
+def _with_compliance(args, model, data, kw):
+    """The model identification starts from under ``--compliance`` (a section with every term 0,
+    or the model's own), and the report's ``compliance`` entry (None without the flag)."""
+    from calibration import compliance as comp
+    from service.cli import Fail
+
+    if args.compliance is None:
+        if args.compliance_joints or args.gravity:
+            raise Fail("--compliance-joints and --gravity need --compliance gravity or auto")
+        return model, None
+    names = [j.name for j in model.joints]
+    joints = None
+    if args.compliance_joints:
+        joints = tuple(j.strip() for j in args.compliance_joints.split(",") if j.strip())
+        for j in joints:
+            if j not in names:
+                raise Fail(f"--compliance-joints: no joint {j!r}; expected names from {', '.join(names)}")
+            if not model.joints[names.index(j)].revolute:
+                raise Fail(f"--compliance-joints: joint {j!r} is prismatic; expected revolute joints")
+    gravity = (0.0, 0.0, -1.0)
+    if args.gravity:
+        try:
+            gravity = tuple(float(v) for v in args.gravity.split(","))
+        except ValueError:
+            gravity = ()
+        if len(gravity) != 3 or not any(gravity):
+            raise Fail(f"--gravity: expected three numbers X,Y,Z not all zero, got {args.gravity!r}")
+    if model.compliance is not None and joints is None and not args.gravity:
+        candidates = model.compliance
+    else:
+        candidates = comp.default_section(model, gravity=gravity, joints=joints)
+    L = model.units.length_m
+    entry = {"mode": args.compliance}
+    if args.compliance == "gravity":
+        start = comp.with_section(model, candidates)
+    else:
+        cv = comp.choose_compliance(model, data, candidates=candidates, identify_kw=kw)
+        start = comp.with_section(model, cv.section)
+        entry["cross_validation"] = {
+            "folds": cv.folds, "min_gain": comp.MIN_CV_GAIN,
+            "rms_rigid": cv.rms_rigid_m / L, "rms_compliant": cv.rms_compliant_m / L,
+            "candidates": list(candidates.joints),
+            "tried": [{"joints": list(j), "rms": r / L} for j, r in cv.tried],
+        }
+    section = start.compliance
+    entry["joints"] = [] if section is None else list(section.joints)
+    entry["lumps"] = [] if section is None else list(section.lumps)
+    entry["gravity"] = list(candidates.gravity)
+    return start, entry

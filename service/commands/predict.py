@@ -10,6 +10,9 @@ def add_parser(s) -> None:
     s.add_argument("--joints", required=True, help="CSV with q1..qN")
     s.add_argument("--target", help="write x, y, z of this target instead of the tool pose")
     s.add_argument("--out", required=True)
+    s.add_argument("--payload", metavar="KG[,X,Y,Z]",
+                   help="the task's payload for a compliant model: mass (kg) and centre of gravity in the tool frame "
+                        "(model length unit); rows of JOINTS.csv with payload_kg columns carry their own")
     s.add_argument("--uncertainty", action="store_true",
                    help="append sigma_x, sigma_y, sigma_z (standard uncertainty per axis) and u95 (95 %% radius) of "
                         "the predicted position, in the model's length unit, from the covariance an identified "
@@ -21,7 +24,10 @@ def run(args) -> int:
 
     from calibration.kinematics import fk
     from calibration.transforms import matrix_to_quat
-    from service.files import InputError, check_output, format_csv, load_model, read_joints, write_atomic
+    from calibration.compliance import with_payload
+    from service.cli import Fail
+    from service.files import (InputError, check_output, format_csv, load_model, parse_payload, read_joints,
+                               read_payload, read_table, write_atomic)
 
     check_output(args.out)
     model = load_model(args.model)
@@ -30,8 +36,15 @@ def run(args) -> int:
         raise InputError(args.model, f"field 'targets': no target {args.target!r} (asked for by --target); "
                                      f"expected {known}")
     covariance = _stored_covariance(args.model, model) if args.uncertainty else None
-    q = read_joints(args.joints, model)
-    T = fk(model, q)
+    if args.payload is not None:
+        try:
+            model = with_payload(model, parse_payload(args.payload, model))
+        except ValueError as exc:
+            raise Fail(str(exc)) from None
+    table = read_table(args.joints)
+    q = read_joints(args.joints, model, table)
+    payload = read_payload(table, model)  # per row, where the CSV gives it
+    T = fk(model, q, payload)
     L = model.units.length_m
     if args.target is not None:
         p = (T[:, :3, :3] @ model.targets[args.target] + T[:, :3, 3]) / L
@@ -40,7 +53,8 @@ def run(args) -> int:
         quat = matrix_to_quat(T[:, :3, :3])
         header, rows = ["x", "y", "z", "qw", "qx", "qy", "qz"], np.hstack([T[:, :3, 3] / L, quat])
     if covariance is not None:
-        header, rows = header + UNCERTAINTY_COLUMNS, np.hstack([rows, _uncertainty(model, covariance, q, args.target)])
+        header, rows = header + UNCERTAINTY_COLUMNS, np.hstack([rows, _uncertainty(model, covariance, q, args.target,
+                                                                                   payload)])
     write_atomic(args.out, format_csv(header, rows.tolist()))
     return 0
 
@@ -55,13 +69,13 @@ def _stored_covariance(path, model):
         raise InputError(path, f"field {exc.field!r}: {exc} (needed by --uncertainty)") from None
 
 
-def _uncertainty(model, covariance, q, target):
+def _uncertainty(model, covariance, q, target, payload=None):
     """(N, 4) sigma_x, sigma_y, sigma_z, u95 of the predicted position, model length unit."""
     import numpy as np
 
     from calibration.uncertainty import propagate, radius_95
 
     params, Sigma = covariance
-    C = propagate(model, params, Sigma, q, np.array([target] * len(q), dtype=object))
+    C = propagate(model, params, Sigma, q, np.array([target] * len(q), dtype=object), payload)
     sigma = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
     return np.hstack([sigma, radius_95(C)[:, None]]) / model.units.length_m

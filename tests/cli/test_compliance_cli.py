@@ -1,0 +1,169 @@
+"""Joint compliance under gravity as a user runs it (contracts §2, §3, §6): the real `recal`
+console script in a subprocess, on files written here from a simulated cobot that sags under
+its own weight and a 10 kg payload, measured with and without the payload."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration import robots
+from calibration.kinematics import target_positions
+from calibration.model import Units, model_to_dict
+from calibration.simulate import SAGGING_ARMS, perturbed, random_configurations, sagging, simulate_measurements
+from service.files import load_model
+
+_EXE = Path(sys.executable).with_name("recal")
+RECAL = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "service.cli"]
+MM_DEG = Units("mm", "deg")
+PAYLOAD = SAGGING_ARMS["cobot"]["payload"]  # 10 kg, 100 mm out along the tool z axis
+
+
+def recal(*args, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([*RECAL, *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=120)
+
+
+def write_measurements(path: Path, data, *, payload_columns: bool = True) -> None:
+    header = [f"q{i + 1}" for i in range(6)] + ["x", "y", "z", "target"]
+    if payload_columns:
+        header += ["payload_kg", "payload_x", "payload_y", "payload_z"]
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for k in range(len(data)):
+            row = [f"{v:.12g}" for v in np.rad2deg(data.q[k])] + [f"{v:.12g}" for v in data.p_world[k] * 1e3] + ["smr"]
+            if payload_columns:
+                pl = data.payload[k]
+                row += ["" if pl[0] == 0 else f"{pl[0]:g}"] + [f"{v * 1e3:.12g}" for v in pl[1:]]
+            w.writerow(row)
+
+
+@dataclasses.dataclass
+class Cell:
+    dir: Path
+    truth: object
+    q: np.ndarray
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory) -> Cell:
+    d = tmp_path_factory.mktemp("compliance")
+    rng = np.random.default_rng(4)
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    truth = sagging(perturbed(nominal, rng, base_length_m=0.5, base_angle_rad=0.3), "cobot", frames_of=nominal)
+    (d / "nominal.json").write_text(json.dumps(model_to_dict(nominal, units=MM_DEG)))
+
+    def measure(n):
+        q = random_configurations(nominal, n, rng)
+        pay = np.array([PAYLOAD if i % 2 else (0.0, 0.0, 0.0, 0.0) for i in range(n)])
+        return simulate_measurements(truth, q, rng, sigma_m=20e-6, targets=("smr",), payload=pay)
+
+    write_measurements(d / "meas.csv", measure(120))
+    write_measurements(d / "holdout.csv", measure(300))
+    q = random_configurations(nominal, 20, rng)
+    with (d / "joints.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([f"q{i + 1}" for i in range(6)])
+        w.writerows(np.rad2deg(q).tolist())
+    return Cell(d, truth, q)
+
+
+@pytest.fixture(scope="module")
+def auto(cell):
+    return recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--validate", "holdout.csv",
+                 "--out", "id.json", "--report", "report.json", "--compliance", "auto", cwd=cell.dir)
+
+
+def test_identify_auto_adds_compliance_and_reports_cross_validation(cell, auto):
+    assert auto.returncode == 0, auto.stderr
+    lines = auto.stdout.splitlines()
+    cv_line = next(line for line in lines if line.startswith("compliance (5-fold cross-validation)"))
+    assert "compliance of j2, j3 added" in cv_line
+    rep = json.loads((cell.dir / "report.json").read_text())
+    cv = rep["compliance"]["cross_validation"]
+    assert cv["rms_compliant"] < 0.1 * cv["rms_rigid"]  # mm
+    assert cv["rms_compliant"] < 1.15 * np.sqrt(3) * 0.02
+    assert rep["validation"]["rms"] < 1.1 * np.sqrt(3) * 0.02
+    units = {p["name"]: p["unit"] for p in rep["parameters"]}
+    assert units["compliance.j2.k"] == "deg/(N·m)" and units["compliance.j2.j6.m"] == "deg/mm"
+    doc = json.loads((cell.dir / "id.json").read_text())
+    assert doc["compliance"]["joints"] == ["j2", "j3"]
+    c = SAGGING_ARMS["cobot"]["compliance"]["j2"]
+    assert doc["compliance"]["terms"]["j2.k"] == pytest.approx(np.rad2deg(c), rel=0.03)
+    assert "compliance.j2.k" in doc["identification"]["covariance"]["names"]
+
+
+def test_identify_gravity_with_chosen_joints_runs_no_cross_validation(cell):
+    proc = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "g.json",
+                 "--compliance", "gravity", "--compliance-joints", "j2", cwd=cell.dir)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((cell.dir / "g.json").read_text())["compliance"]["joints"] == ["j2"]
+    assert "cross-validation" not in proc.stdout
+
+
+def test_predict_and_compensate_take_the_task_payload(cell, auto):
+    assert auto.returncode == 0, auto.stderr
+    model = load_model(cell.dir / "id.json")
+    for args, payload in (([], None), (["--payload", "10,0,0,100"], np.array(PAYLOAD))):
+        proc = recal("predict", "--model", "id.json", "--joints", "joints.csv", "--target", "smr",
+                     "--out", "pred.csv", *args, cwd=cell.dir)
+        assert proc.returncode == 0, proc.stderr
+        rows = np.array(list(csv.reader((cell.dir / "pred.csv").open()))[1:], dtype=float) * 1e-3
+        truth = target_positions(cell.truth, cell.q, "smr", payload=payload)
+        assert np.sqrt(np.mean(np.sum((rows - truth) ** 2, axis=1))) < 50e-6  # where the sagging robot is
+        assert np.allclose(rows, target_positions(model, cell.q, "smr", payload=payload), atol=1e-9)
+    with (cell.dir / "task.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([f"q{i + 1}" for i in range(6)])
+        w.writerows(np.rad2deg(cell.q[:5]).tolist())
+    outs = []
+    for args in ([], ["--payload", "10,0,0,100"]):
+        proc = recal("compensate", "--model", "id.json", "--task", "task.csv", "--out", "c.csv", *args, cwd=cell.dir)
+        assert proc.returncode == 0, proc.stderr
+        outs.append(np.array([r[:6] for r in list(csv.reader((cell.dir / "c.csv").open()))[1:]], dtype=float))
+    # the payload makes the arm sag more, so the commands differ (by hundredths of a degree)
+    assert 1e-3 < np.abs(outs[0] - outs[1]).max() < 0.5
+
+
+def test_export_urdf_says_compliance_is_left_out(cell, auto):
+    assert auto.returncode == 0, auto.stderr
+    proc = recal("export", "--model", "id.json", "--format", "urdf", "--out", "id.urdf", cwd=cell.dir)
+    assert proc.returncode == 0
+    warn = [line for line in proc.stderr.splitlines() if "compliance" in line]
+    assert len(warn) == 1 and "rigid part" in warn[0]
+    assert (cell.dir / "id.urdf").read_text().count("<joint ") >= 6
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["predict", "--model", "id.json", "--joints", "joints.csv", "--out", "bad.csv", "--payload", "10,1"],
+     "--payload: expected KG or KG,X,Y,Z"),
+    (["identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "bad.csv", "--compliance", "gravity",
+      "--compliance-joints", "j9"], "--compliance-joints: no joint 'j9'"),
+    (["identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "bad.csv", "--compliance", "auto",
+      "--gravity", "0,0"], "--gravity: expected three numbers"),
+])
+def test_bad_payload_and_compliance_flags_fail_in_one_line(cell, auto, args, expected):
+    proc = recal(*args, cwd=cell.dir)
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1 and expected in proc.stderr
+    assert not (cell.dir / "bad.csv").exists()
+
+
+def test_negative_payload_mass_names_row_and_column(cell):
+    lines = (cell.dir / "meas.csv").read_text().splitlines()
+    head = lines[0].split(",")
+    row = lines[3].split(",")
+    row[head.index("payload_kg")] = "-2"
+    (cell.dir / "neg.csv").write_text("\n".join([lines[0], lines[1], lines[2], ",".join(row)]) + "\n")
+    proc = recal("identify", "--model", "nominal.json", "--data", "neg.csv", "--out", "bad.json", cwd=cell.dir)
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert "neg.csv, row 3 (line 4), column 'payload_kg'" in proc.stderr and ">= 0 kg" in proc.stderr
+    assert not (cell.dir / "bad.json").exists()
