@@ -14,6 +14,7 @@ through ``point`` (both in the base frame at q = 0; book eq. 2.72-2.75), the cha
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -26,6 +27,14 @@ from .errors import RecalError
 FORMAT = "recal.model/1"
 CONVENTIONS = ("dh", "mdh", "poe")
 JOINT_TYPES = ("revolute", "prismatic")
+# The fields this format defines. A joint field outside JOINT_FIELDS is refused (a misspelt
+# "alpah" would otherwise silently default to 0 and give a wrong model); top-level sections
+# beyond MODEL_FIELDS are kept (an identified model's "identification", a library file's
+# "source", a compliant model's "compliance", ...) unless they look like a misspelt known one.
+MODEL_FIELDS = ("format", "name", "units", "convention", "base", "joints", "tool", "targets", "coupling", "home",
+                "compliance")
+JOINT_FIELDS = ("name", "type", "theta", "d", "a", "alpha", "beta", "gain", "lower", "upper", "axis", "point",
+                "harmonic", "velocity", "effort")
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "in": 0.0254}
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 
@@ -199,6 +208,32 @@ def _pose(v, where: str, units: Units) -> np.ndarray:
     return np.concatenate([p[:3] * units.length_m, p[3:] * units.angle_rad])
 
 
+def _did_you_mean(key: str, known: tuple[str, ...], cutoff: float) -> str | None:
+    """The known field ``key`` is probably a misspelling of (case aside, or by difflib's ratio)."""
+    for k in known:
+        if key.lower() == k.lower():
+            return k
+    close = difflib.get_close_matches(key, known, n=1, cutoff=cutoff)
+    return close[0] if close else None
+
+
+def _check_fields(doc: Mapping[str, Any], raw_joints) -> None:
+    """Refuse unknown joint fields and top-level near-misses of known fields (``MODEL_FIELDS``)."""
+    for key in doc:
+        if key not in MODEL_FIELDS:
+            guess = _did_you_mean(str(key), MODEL_FIELDS, 0.8)
+            if guess is not None:
+                raise ModelFormatError(str(key), f"unknown field; did you mean {guess!r}?")
+    for i, jd in enumerate(raw_joints):
+        if not isinstance(jd, Mapping):
+            continue
+        for key in jd:
+            if key not in JOINT_FIELDS:
+                guess = _did_you_mean(str(key), JOINT_FIELDS, 0.6)
+                hint = f"did you mean {guess!r}?" if guess else f"expected one of {', '.join(JOINT_FIELDS)}"
+                raise ModelFormatError(f"joints[{i}].{key}", f"unknown field; {hint}")
+
+
 def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
     """Read a ``recal.model/1`` document (already parsed JSON) into a model in SI units.
 
@@ -206,6 +241,7 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
     """
     if not isinstance(doc, Mapping):
         raise ModelFormatError("", "expected a JSON object")
+    _check_fields(doc, doc.get("joints") if isinstance(doc.get("joints"), list) else [])
     fmt = doc.get("format")
     if fmt != FORMAT:
         raise ModelFormatError("format", f"expected {FORMAT!r}, got {fmt!r}")
@@ -296,8 +332,7 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
         if "home" not in doc:
             raise ModelFormatError("home", "is required for convention poe (the flange pose at q = 0)")
         home = _pose(doc["home"], "home", units)
-    known = {"format", "name", "units", "convention", "base", "joints", "tool", "targets", "coupling", "home",
-             "compliance"}
+    known = set(MODEL_FIELDS)
     return KinematicModel(
         name=str(doc.get("name", "")),
         convention=convention,

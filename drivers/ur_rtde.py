@@ -203,6 +203,12 @@ class UrRtdeRobot(Robot):
 
     def _connect(self) -> None:
         probe_controller(self.config.host, self.config.probe_timeout_s)
+        # A safety-stopped (or powered-off) controller refuses ur_rtde's control script, which
+        # then reports only "Failed to start control script" after its timeout: ask the
+        # dashboard first and say which stop holds the robot and what releases it.
+        stop = dashboard_stop(self.config.host, self.config.probe_timeout_s)
+        if stop is not None:
+            raise stop
         worker = _Worker(self.name)
         try:
             worker.call(
@@ -307,20 +313,9 @@ class UrRtdeRobot(Robot):
 
     def _raise_if_stopped(self, snap: dict) -> None:
         if _emergency(snap):
-            raise RobotStoppedError(
-                "the robot is in an emergency stop; once its cause is cleared, release the "
-                "emergency stop button, then power the arm on and release its brakes (teach "
-                "pendant, or dashboard 'close safety popup', 'power on', 'brake release')",
-                device=self.name,
-                code=int(snap["safety_mode"]),
-            )
+            raise RobotStoppedError(EMERGENCY_STOP_MESSAGE, device=self.name, code=int(snap["safety_mode"]))
         if _protective(snap):
-            raise RobotStoppedError(
-                "the robot is in a protective stop; inspect the cause, then unlock it on the "
-                "teach pendant (or dashboard 'unlock protective stop')",
-                device=self.name,
-                code=int(snap["safety_mode"]),
-            )
+            raise RobotStoppedError(PROTECTIVE_STOP_MESSAGE, device=self.name, code=int(snap["safety_mode"]))
         if int(snap["safety_mode"]) in _FAULT_MODES:
             raise RobotStoppedError(
                 "the robot's safety system reports a violation or fault",
@@ -330,12 +325,27 @@ class UrRtdeRobot(Robot):
         mode = int(snap["robot_mode"])
         if mode != _ROBOT_MODE_RUNNING:
             raise RobotStoppedError(
-                f"the arm is not running (robot mode {_ROBOT_MODE_NAMES.get(mode, mode)}): power "
-                "it on and release its brakes (teach pendant, or dashboard 'power on', "
-                "'brake release')",
-                device=self.name,
-                code=mode,
+                not_running_message(_ROBOT_MODE_NAMES.get(mode, str(mode))), device=self.name, code=mode
             )
+
+
+# What stops the robot and what releases it, in the technician's words (the driver never does).
+EMERGENCY_STOP_MESSAGE = (
+    "the robot is in an emergency stop; once its cause is cleared, release the emergency stop "
+    "button, then power the arm on and release its brakes (teach pendant, or dashboard 'close "
+    "safety popup', 'power on', 'brake release'), then resume"
+)
+PROTECTIVE_STOP_MESSAGE = (
+    "the robot is in a protective stop; inspect the cause, then unlock it on the teach pendant "
+    "(or dashboard 'unlock protective stop'), then resume"
+)
+
+
+def not_running_message(mode_name: str) -> str:
+    return (
+        f"the arm is not running (robot mode {mode_name}): power it on and release its brakes "
+        "(teach pendant, or dashboard 'power on', 'brake release'), then resume"
+    )
 
 
 def _protective(snap: dict) -> bool:
@@ -509,6 +519,40 @@ def _probe_dashboard(host: str, timeout_s: float, device: str) -> str:
                     device=device,
                 )
         return version
+
+
+def dashboard_stop(host: str, timeout_s: float) -> RobotStoppedError | None:
+    """What keeps the robot from moving, asked of the dashboard (``safetystatus``, PolyScope
+    3.11 / 5.4 and later, else ``safetymode``; ``robotmode``): a ``RobotStoppedError`` saying
+    what releases it, or ``None`` (running, or a controller that does not say)."""
+    device = f"UR {host}"
+    with _connect(host, DASHBOARD_PORT, timeout_s, device, "dashboard") as sock:
+        reader = sock.makefile("rb")
+
+        def ask(command: str | None) -> str:
+            try:
+                if command is not None:
+                    sock.sendall(command.encode() + b"\n")
+                return reader.readline().decode("ascii", "replace").strip()
+            except OSError as exc:  # timeouts included
+                raise DeviceConnectionError(f"dashboard: {exc}", device=device) from exc
+
+        ask(None)  # greeting
+        safety = ask("safetystatus")
+        if ":" not in safety:  # "could not understand" on older controllers
+            safety = ask("safetymode")
+        status = safety.partition(":")[2].strip().upper()
+        if "EMERGENCY" in status:
+            return RobotStoppedError(EMERGENCY_STOP_MESSAGE, device=device)
+        if status in ("PROTECTIVE_STOP", "SAFEGUARD_STOP", "AUTOMATIC_MODE_SAFEGUARD_STOP",
+                      "SYSTEM_THREE_POSITION_ENABLING_STOP"):
+            return RobotStoppedError(PROTECTIVE_STOP_MESSAGE, device=device)
+        if status in ("VIOLATION", "FAULT"):
+            return RobotStoppedError("the robot's safety system reports a violation or fault", device=device)
+        mode = ask("robotmode").partition(":")[2].strip().upper()
+        if mode and mode != "RUNNING" and mode in _ROBOT_MODE_NAMES.values():
+            return RobotStoppedError(not_running_message(mode), device=device)
+    return None
 
 
 def _probe_rtde(host: str, timeout_s: float, device: str) -> None:

@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
     "serve": ("serve", "run the REST API (contracts §9)"),
     "token": ("token", "create API tokens"),
+    "backup": ("backup", "a consistent copy of the embedded SQLite store, while the service runs"),
     "nightly": ("nightly", "check a cell's accuracy and recalibrate it when it drifted"),
     "worker": ("worker", "run the sessions of some sites' cells (the fleet, docs/fleet.md)"),
 }

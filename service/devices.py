@@ -71,7 +71,13 @@ def open_cmm(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Cmm:
         raise DeviceConfigError("devices.cmm: this cell has no CMM")
     from drivers.ippdme import IppDmeCmm, IppDmeConfig
 
-    return IppDmeCmm(IppDmeConfig(url=str(devices["cmm"]), timeout_s=timeout_s))
+    # The session finds the tooling balls where the cell's current model puts them. After a
+    # tracker calibration that model cannot know the tool's orientation (one reflector does not
+    # show it) nor how the balls are really mounted, so it is a few millimetres off; with the
+    # driver's default 3 mm approach the probe then starts inside a ball (I++ 1001 "Illegal
+    # touch"). Start 10 mm off the nominal surface and search 15 mm past it, as CMM programs
+    # probing a part that is not yet aligned do (each point then takes a little longer).
+    return IppDmeCmm(IppDmeConfig(url=str(devices["cmm"]), timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
 
 
 def open_encoders(devices: dict[str, Any], joints: list[int] | None = None, *, timeout_s: float = 5.0) -> dict[int, JointEncoder]:

@@ -23,6 +23,13 @@ from calibration.model import KinematicModel, ModelFormatError, model_from_dict,
 from calibration.errors import RecalError
 
 
+# The largest magnitude any number in a Recal file may have, in SI units (metres, radians,
+# kilograms): 100 km, or ten thousand turns. Nothing in a robot cell comes near it, and values
+# far beyond (1e308) overflow the identification's sums of squares ("SVD did not converge")
+# instead of being named.
+MAX_MAGNITUDE_SI = 1e5
+
+
 class InputError(RecalError, ValueError):
     """Bad input, reported as one line: ``file, row R (line L), column 'c': message``.
 
@@ -56,10 +63,7 @@ def load_model(spec: str | os.PathLike) -> KinematicModel:
             return robots.nominal(str(spec))
         except KeyError:
             raise InputError(spec, f"no such file, and not a library robot (known: {', '.join(robots.names())})") from None
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(spec, f"cannot read: {exc.strerror or exc}") from None
+    text = read_text(spec, "a recal.model/1 JSON document")
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -69,6 +73,25 @@ def load_model(spec: str | os.PathLike) -> KinematicModel:
         return model_from_dict(doc)
     except ModelFormatError as exc:
         raise InputError(spec, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}" if exc.field else str(exc)) from None
+
+
+def read_text(path: str | os.PathLike, expected: str, *, encoding: str = "utf-8") -> str:
+    """A text file's contents; a file that cannot be read, a binary file (NUL bytes) or one
+    that is not UTF-8 raises ``InputError`` (one line) naming where and what was expected."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+    nul = data.find(b"\x00")
+    if nul >= 0:
+        raise InputError(path, f"is a binary file (a NUL byte at byte {nul + 1}); expected {expected} (UTF-8 text)",
+                         line=data.count(b"\n", 0, nul) + 1)
+    try:
+        return data.decode(encoding)
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"byte {exc.start + 1} (0x{data[exc.start]:02x}) is not UTF-8 text; expected "
+                               f"{expected} in UTF-8 (save it as UTF-8)",
+                         line=data.count(b"\n", 0, exc.start) + 1) from None
 
 
 def check_output(path: str | os.PathLike) -> None:
@@ -152,6 +175,10 @@ class Table:
                 raise InputError(self.path, f"expected a number, got {cell!r}", row=r + 1, line=line, column=column) from None
             if not math.isfinite(v):
                 raise InputError(self.path, f"expected a finite number, got {cell!r}", row=r + 1, line=line, column=column)
+            if abs(v * scale) > MAX_MAGNITUDE_SI:
+                raise InputError(self.path, f"{cell} is beyond any robot cell; expected a magnitude of at most "
+                                            f"{MAX_MAGNITUDE_SI / scale:.6g} in the model's units",
+                                 row=r + 1, line=line, column=column)
             out[r] = v * scale
         return out
 
@@ -164,10 +191,7 @@ class Table:
 
 def read_table(path: str | os.PathLike) -> Table:
     """Read a CSV with one header line; ``#`` starts a comment line; blank lines are skipped."""
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+    text = read_text(path, "a CSV file", encoding="utf-8-sig")
     header: list[str] | None = None
     header_line = 1
     rows, lines = [], []
@@ -214,7 +238,26 @@ def read_joints(path: str | os.PathLike, model: KinematicModel, table: Table | N
     _joint_columns(table, model)
     u = model.units
     cols = [table.numbers(f"q{i + 1}", scale=u.angle_rad if j.revolute else u.length_m) for i, j in enumerate(model.joints)]
-    return np.stack(cols, axis=1)
+    q = np.stack(cols, axis=1)
+    check_joint_limits(table, model, q)
+    return q
+
+
+def check_joint_limits(table: Table, model: KinematicModel, q: np.ndarray, *, tolerance: float = 1e-6) -> None:
+    """Refuse joint readings beyond the model's limits (a reading no robot can give: a unit slip,
+    a wrong column), naming the first such row and column."""
+    limits = model.joint_limits
+    outside = (q < limits[:, 0] - tolerance) | (q > limits[:, 1] + tolerance)
+    if not np.any(outside):
+        return
+    r, c = (int(v) for v in np.argwhere(outside)[0])
+    j = model.joints[c]
+    scale = model.units.angle_rad if j.revolute else model.units.length_m
+    unit = model.units.angle if j.revolute else model.units.length
+    raise InputError(table.path, f"{q[r, c] / scale:.6g} is outside joint {j.name}'s limits "
+                                 f"[{j.lower / scale:.6g}, {j.upper / scale:.6g}] {unit}; expected a reading "
+                                 f"within the model's lower and upper", row=r + 1, line=table.lines[r],
+                     column=f"q{c + 1}")
 
 
 def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measurements:

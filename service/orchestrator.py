@@ -198,7 +198,10 @@ def stopped_device_state(run: RunSession, devices: CellDevices | None, final: st
     robot = _device_state("ready" if connected else "not connected", reason or final)
     instrument = _device_state("ready" if connected else "not connected", reason or final)
     if isinstance(exc, DeviceOpenError):
-        if exc.device == "robot":
+        if exc.device == "robot" and isinstance(exc.cause, RobotStoppedError):
+            robot = _device_state(_safety_state(None, exc.cause), str(exc.cause))
+            instrument = _device_state("not connected", "not opened: the robot is stopped")
+        elif exc.device == "robot":
             robot = _device_state("not connected", str(exc.cause))
         else:
             robot = _device_state("ready", f"connected; nothing moved: the {exc.device} could not be opened")
@@ -230,7 +233,10 @@ def _safety_state(devices: CellDevices | None, exc: Exception) -> str:
             return "protective stop"
     except Exception:  # noqa: BLE001 - the robot may not answer now; the error says enough
         pass
-    return "emergency stop" if "emergency" in str(exc).lower() else "protective stop"
+    text = str(exc).lower()
+    if "emergency" in text:
+        return "emergency stop"
+    return "powered off" if "not running" in text else "protective stop"
 
 
 def run_session(engine: Engine, settings: Settings, session_id: int, control: Control | None = None, *,
@@ -265,7 +271,7 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
         try:
             devices = open_devices(cell, run, settings)
         except (DeviceError, DeviceConfigError, OSError) as exc:
-            reason = f"cannot open the cell's devices: {exc}"
+            reason = _open_failure_reason(exc)
             _end(db, run, owner, "paused", reason, stopped_device_state(run, None, "paused", reason, exc))
             return "paused"
         control.devices = devices
@@ -301,6 +307,14 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
             return run.state
         _end(db, run, owner, final, reason, state)
         return run.state
+
+
+def _open_failure_reason(exc: BaseException) -> str:
+    """Why a session could not start moving. A robot still held by a safety stop (a session
+    resumed before the technician released it) is named with what releases it."""
+    if isinstance(exc, DeviceOpenError) and isinstance(exc.cause, RobotStoppedError):
+        return f"nothing moved: {exc.cause}"
+    return f"cannot open the cell's devices: {exc}"
 
 
 def _stop_outcome(exc: SessionStopped, control: Control) -> tuple[str, str]:

@@ -82,6 +82,8 @@ class Settings:
             kw["home"] = Path(env["RECAL_HOME"]).expanduser()
         if env.get("RECAL_DATABASE_URL"):
             kw["database_url"] = env["RECAL_DATABASE_URL"]
+        if env.get("RECAL_DATABASE_PASSWORD_FILE"):
+            kw["database_url"] = _with_password(kw.get("database_url"), env["RECAL_DATABASE_PASSWORD_FILE"])
         if env.get("RECAL_ENGINE"):
             kw["engine"] = env["RECAL_ENGINE"].strip().lower()
         for name, (_, _, key, _) in LIMITS.items():
@@ -92,6 +94,28 @@ class Settings:
                 except ValueError:
                     raise SettingsError(f"environment variable {key}: expected a number, got {env[key]!r}") from None
         return cls(**kw)
+
+
+def _with_password(url: str | None, password_file: str) -> str:
+    """``url`` with the password read from ``password_file`` (a Docker or systemd secret, so the
+    password is in no environment variable, compose file or process listing)."""
+    if not url:
+        raise SettingsError("environment variable RECAL_DATABASE_PASSWORD_FILE: expected RECAL_DATABASE_URL too "
+                            "(the database the password is for)")
+    try:
+        password = Path(password_file).read_text(encoding="utf-8").rstrip("\r\n")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SettingsError(f"environment variable RECAL_DATABASE_PASSWORD_FILE: cannot read {password_file}: "
+                            f"{getattr(exc, 'strerror', None) or exc}") from None
+    if not password:
+        raise SettingsError(f"environment variable RECAL_DATABASE_PASSWORD_FILE: {password_file} is empty; "
+                            f"expected the database password")
+    from sqlalchemy.engine import make_url
+
+    try:
+        return make_url(url).set(password=password).render_as_string(hide_password=False)
+    except Exception as exc:  # noqa: BLE001 - any malformed URL: one line naming the variable
+        raise SettingsError(f"environment variable RECAL_DATABASE_URL: not a database URL ({exc})") from None
 
 
 def worker_concurrency(env: dict[str, str] | None = None) -> int:

@@ -20,7 +20,7 @@ from ..runners import runner_class
 from ..store import database_unavailable
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
-from .routes import calibrations, cells, results, sessions, system, web, workbench
+from .routes import calibrations, cells, records, results, sessions, system, web, workbench
 
 log = logging.getLogger("recal.api")
 
@@ -129,7 +129,7 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
     async def _unexpected(request: Request, exc: Exception):
         return _internal_error(request, exc)
 
-    for module in (system, cells, sessions, calibrations, results, workbench):
+    for module in (system, cells, sessions, calibrations, results, workbench, records):
         app.include_router(module.router, prefix="/api/v1")
     app.include_router(web.router)  # the technician's web page at / (service/web)
     return app

@@ -451,6 +451,11 @@ def run(args) -> int:
         print(f"note: {note}", file=sys.stderr)
     flagged = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
     print(f"compensated {len(comp)} points ({'URScript' if script else args.mode + ' mode'}): "
-          f"{summary['converged']} converged, residual max {summary['residual_max']:.3g} {u.length}"
+          f"{summary['converged']} converged, residual max {_shown(summary['residual_max'])} {u.length}"
           + (f"; flagged: {flagged}" if flagged else "") + f"; wrote {args.out}")
     return 0
+
+
+def _shown(v: float | None) -> str:
+    """A figure for the summary line; ``None`` where the report holds no finite number."""
+    return "n/a" if v is None else f"{v:.3g}"

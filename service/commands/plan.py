@@ -65,23 +65,6 @@ def _positive(name: str, v, allow_zero: bool = False) -> None:
         raise Fail(f"{name}: expected a {'non-negative' if allow_zero else 'positive'} number, got {v}")
 
 
-def _check_limits(path: str, table, model, q) -> None:
-    """A candidate outside the joint limits is bad input: name its row and column."""
-    import numpy as np
-
-    from service.files import InputError
-
-    lim = model.joint_limits
-    bad = (q < lim[:, 0]) | (q > lim[:, 1])
-    if bad.any():
-        r, c = (int(v) for v in np.argwhere(bad)[0])
-        j = model.joints[c]
-        s = model.units.angle_rad if j.revolute else model.units.length_m
-        raise InputError(path, f"{q[r, c] / s:.6g} is outside joint {j.name}'s limits "
-                               f"[{j.lower / s:.6g}, {j.upper / s:.6g}]", row=r + 1, line=table.lines[r],
-                         column=f"q{c + 1}")
-
-
 def run(args) -> int:
     import sys
 
@@ -136,7 +119,6 @@ def run(args) -> int:
     if args.candidates:
         table = read_table(args.candidates)
         cand = read_joints(args.candidates, model, table)
-        _check_limits(args.candidates, table, model, cand)
         rows = np.arange(1, len(cand) + 1)
         if volume is not None or sight is not None:
             ok = planning.feasible(model, cand, targets=targets, volume=volume, sight=sight)

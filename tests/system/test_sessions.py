@@ -94,6 +94,47 @@ def test_protective_stop_pauses_the_session_at_once(stack, models, register):
     assert s["device_state"]["robot"]["state"] == "protective stop", s["device_state"]
 
 
+def _dashboard(host: str, command: str) -> str:
+    """One command to the simulated UR controller's dashboard (what a technician does at the
+    teach pendant: unlock a protective stop, power the arm on, ...)."""
+    import socket
+
+    with socket.create_connection((host, 29999), timeout=5) as sock:
+        reader = sock.makefile("rb")
+        reader.readline()  # greeting
+        sock.sendall(command.encode() + b"\n")
+        return reader.readline().decode().strip()
+
+
+@pytest.mark.parametrize("stop, release", [
+    ("protective", ["unlock protective stop"]),
+    ("emergency", ["sim emergency stop release", "power on", "brake release"]),
+])
+def test_a_safety_stop_is_still_named_on_resume_until_it_is_released(stack, models, register, stop, release):
+    # Recal never releases a safety stop. Resumed before the technician has, the session pauses
+    # again saying which stop holds the robot and what releases it (not "cannot open the cell's
+    # devices"), and the robot's state still says so; once released, resume finishes the session.
+    cell, fake = register(fake_args=["--fault", f"{stop}_stop_at_move=3"])
+    api = stack.api()
+    s = api.wait_session(_start(api, cell, kind="pose", count=8)["id"], 60)
+    assert s["state"] == "paused" and s["measured"] == 2, s
+    first_reason = s["reason"]
+    assert f"{stop} stop" in first_reason, first_reason
+    for _ in range(2):  # twice: a stop still named after a second resume too
+        api.call("POST", f"/sessions/{s['id']}/resume")
+        s = api.wait_session(s["id"], 60, until=("paused", "completed", "failed", "aborted"))
+        assert s["state"] == "paused", s
+        assert f"{stop} stop" in s["reason"] and "cannot open" not in s["reason"], s["reason"]
+        assert ("unlock" if stop == "protective" else "power") in s["reason"], s["reason"]
+        assert s["device_state"]["robot"]["state"] == f"{stop} stop", s["device_state"]
+        assert s["measured"] == 2
+    for command in release:
+        _dashboard(fake.ready["rtde"], command)
+    api.call("POST", f"/sessions/{s['id']}/resume")
+    s = api.wait_session(s["id"], 60)
+    assert s["state"] == "completed" and s["measured"] == 8, s
+
+
 def test_server_sent_events_report_progress_to_the_end(stack, models, register):
     import json
     import urllib.request
@@ -271,3 +312,36 @@ def test_verify_with_repeats_visits_each_configuration_from_the_same_side(stack,
     iso = s["plan_info"]["verify"]["iso9283"]
     assert iso["poses"] == 3 and [p["visits"] for p in iso["per_pose"]] == [4, 4, 4]
     assert iso["repeatability"]["max"] < 0.1  # the simulated robot repeats exactly: the tracker's noise
+
+
+def test_cmm_pose_session_after_a_tracker_calibration_on_the_demo_cell(stack, tmp_path):
+    # The demo's cell (recal demo: a UR10e standing where the tracker happens to be, its
+    # reflector and tooling balls mounted about 0.8 mm off their drawings), no fault injected:
+    # a CMM session after the tracker calibration finds every ball and completes.
+    import argparse
+    import json
+
+    from service.commands.demo import _truth_and_nominal
+    from service.processes import start_fake_cell
+
+    from .conftest import next_host
+
+    nominal, truth, _ = _truth_and_nominal(argparse.Namespace(seed=1, robot="ur10e"))
+    from service.files import save_model
+
+    save_model(tmp_path / "nominal.json", nominal)
+    save_model(tmp_path / "truth.json", truth)
+    host = next_host()
+    fake = start_fake_cell(tmp_path / "truth.json", host, seed=1, log_path=stack.home / "cell-demo.log")
+    stack.cells.append(fake)
+    api = stack.api()
+    cell = api.call("POST", "/cells", {"name": "demo-ur10e", "model": json.loads((tmp_path / "nominal.json").read_text()),
+                                       "devices": fake.ready, "drift_threshold": 0.1})
+    first = api.wait_session(_start(api, cell, kind="pose", count=40)["id"], 180)
+    assert first["state"] == "completed", first["reason"]
+    s = api.wait_session(_start(api, cell, kind="pose", count=15, device="cmm")["id"], 180)
+    assert s["state"] == "completed", (s["reason"], s["device_state"])
+    assert s["measured"] == 15
+    cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
+    res = cal["report"]["residuals"]
+    assert res["rms"] < 0.01 and res["chi2"] / res["dof"] < 2.0, res  # mm: the CMM's noise
