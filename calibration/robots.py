@@ -327,7 +327,7 @@ def arm_chain(name: str) -> list[ChainJoint]:
 
 def _arm(name: str) -> dict[str, Any]:
     arm = _ARMS[name]
-    model = chain_to_model(f"{name}-nominal", arm_chain(name), convention="dh", units=Units("mm", "deg"))
+    model = chain_to_model(f"{name}-nominal", arm_chain(name), convention="auto", units=Units("mm", "deg"))
     doc = model_to_dict(model)
     if arm.get("j23"):
         # Fanuc reports J3 relative to the horizon; fanuc_driver turns it into the serial angle
@@ -374,9 +374,11 @@ def names() -> tuple[str, ...]:
 def nominal_document(name: str) -> dict[str, Any]:
     """The ``recal.model/1`` document of a library robot (its published units)."""
     try:
-        return _LIBRARY[name.lower()]()
+        doc = _LIBRARY[name.lower()]()
     except KeyError:
         raise KeyError(f"unknown robot {name!r}; known: {', '.join(names())}") from None
+    doc.setdefault("description", describe(name))
+    return doc
 
 
 def nominal(name: str) -> KinematicModel:

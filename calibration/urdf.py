@@ -18,6 +18,7 @@ The library (:mod:`calibration.robots`) builds its arms from the same chain desc
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -26,7 +27,7 @@ import numpy as np
 
 from .conventions import poe_to_dh
 from .model import KinematicModel, Joint, Units
-from .transforms import homogeneous, matrix_to_pose, rpy_to_matrix
+from .transforms import homogeneous, matrix_to_pose, pose_to_matrix, rot, rpy_to_matrix
 
 MOVING = ("revolute", "continuous", "prismatic")
 
@@ -221,23 +222,60 @@ def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = Units("mm
     return KinematicModel(name=name, convention="poe", joints=tuple(joints), home=matrix_to_pose(T), units=units)
 
 
-def chain_to_model(name: str, chain: list[ChainJoint], *, convention: str = "dh",
+def chain_to_model(name: str, chain: list[ChainJoint], *, convention: str = "auto",
                    units: Units = Units("mm", "deg")) -> KinematicModel:
-    """The model of a serial chain in ``convention`` ``poe`` or ``dh`` (the ``poe`` model converted
-    with :func:`calibration.conventions.poe_to_dh`: common normals, Hayati's form where
-    consecutive axes are parallel; exact)."""
+    """The model of a serial chain, exact in every ``convention``:
+
+    - ``poe``: :func:`chain_to_poe`;
+    - ``dh``: the ``poe`` model converted with :func:`calibration.conventions.poe_to_dh` (common
+      normals, Hayati's form where consecutive axes are parallel), the tip frame folded into the
+      last link where it can be; what the DH links cannot hold is in ``base`` and ``tool``;
+    - ``auto``: ``dh`` when the DH chain starts on the base link and ends on the tip link
+      (``base`` and ``tool`` zero), else ``poe``. Then the base link is the model's robot base and
+      the tip link its flange, so that a user's ``base`` (world -> robot) and ``tool`` (the TCP)
+      mean what they say.
+    """
+    if convention not in ("auto", "dh", "poe"):
+        raise ValueError(f"`convention` must be auto, dh or poe; got {convention!r}")
     poe = chain_to_poe(name, chain, units=units)
     if convention == "poe":
         return poe
-    if convention != "dh":
-        raise ValueError(f"`convention` must be dh or poe; got {convention!r}")
-    return poe_to_dh(poe)
+    dh = poe_to_dh(poe)
+    folded = _flange_into_last_link(dh)
+    if convention == "dh":
+        return dh if folded is None else folded
+    exact = folded is not None and np.allclose(folded.base, 0.0, atol=1e-12)
+    return folded if exact else poe
 
 
-def model_from_urdf(text: str, *, base: str | None = None, tip: str | None = None, convention: str = "dh",
+def _flange_into_last_link(model: KinematicModel) -> KinematicModel | None:
+    """``model`` (``dh``, last link with ``a = alpha = 0`` as :func:`poe_to_dh` writes it) with its
+    tool folded into the last link, or ``None`` when the tool is not of the form
+    ``Rz(phi)·Tz(d)·Tx(a)·Rx(alpha)`` (tip frame's x axis not perpendicular to the last joint's
+    axis, or its origin off the plane of that x axis and the joint axis)."""
+    last = model.joints[-1]
+    if last.hayati or last.a != 0.0 or last.alpha != 0.0:
+        return None
+    T = pose_to_matrix(model.tool)
+    R, p = T[:3, :3], T[:3, 3]
+    if abs(R[2, 0]) > 1e-12:
+        return None
+    phi = math.atan2(R[1, 0], R[0, 0])
+    M = rot(2, -phi) @ R
+    alpha = math.atan2(M[2, 1], M[1, 1])
+    x = np.array([math.cos(phi), math.sin(phi), 0.0])
+    a = float(p @ x)
+    if not (np.allclose(M, rot(0, alpha), atol=1e-12) and np.allclose(p, a * x + [0, 0, p[2]], atol=1e-12)):
+        return None
+    joints = model.joints[:-1] + (dataclasses.replace(last, theta=last.theta + phi, d=last.d + p[2], a=a,
+                                                      alpha=alpha),)
+    return dataclasses.replace(model, joints=joints, tool=np.zeros(6))
+
+
+def model_from_urdf(text: str, *, base: str | None = None, tip: str | None = None, convention: str = "auto",
                     units: Units = Units("mm", "deg"), name: str | None = None) -> KinematicModel:
     """The model whose forward kinematics is the URDF chain's from link ``base`` to link ``tip``
-    (defaults: the root link, and the only leaf). Raises :class:`UrdfError` naming the element at
+    (defaults: the root link, and the only leaf) in ``convention`` (see :func:`chain_to_model`). Raises :class:`UrdfError` naming the element at
     fault: a branch without ``tip``, a link that does not exist, a ``floating`` or ``planar`` joint
     on the chain, a malformed number."""
     robot, links, joints = parse_urdf(text)

@@ -16,9 +16,10 @@ def add_parser(s) -> None:
     s.add_argument("--base", metavar="LINK", help="with --from-urdf: the chain's first link (default: the root link)")
     s.add_argument("--tip", metavar="LINK", help="with --from-urdf: the chain's last link, the model's flange "
                                                  "(default: the only leaf; required where the tree branches)")
-    s.add_argument("--convention", choices=["dh", "poe"], default="dh",
-                   help="with --from-urdf: write standard DH (Hayati links for parallel axes) or product of "
-                        "exponentials; both are exact (default dh)")
+    s.add_argument("--convention", choices=["auto", "dh", "poe"], default="auto",
+                   help="with --from-urdf: standard DH (Hayati links for parallel axes; what the links cannot "
+                        "hold goes to base and tool) or product of exponentials, both exact; auto (default): DH "
+                        "when it starts on the base link and ends on the tip, else POE")
 
 
 def run(args) -> int:
