@@ -29,6 +29,8 @@ import numpy as np
 from .conventions import poe_to_dh
 from .kinematics import Op, program
 from .model import KinematicModel
+from .robots import is_ur, nominal
+from .robots import names as library_names
 from .transforms import homogeneous, invert, matrix_to_pose, pose_to_matrix, rot
 
 FORMATS = ("urdf", "ur-calibration", "dh-csv", "dh-md")
@@ -147,8 +149,6 @@ def naming(model: KinematicModel, names: str = "auto") -> str:
         if names == "ur" and (model.n_joints != 6 or not all(j.revolute for j in model.joints)):
             raise ValueError("UR names need six revolute joints")
         return names
-    from .robots import is_ur
-
     return "ur" if is_ur(model.name) and model.n_joints == 6 and all(j.revolute for j in model.joints) else "ros"
 
 
@@ -158,13 +158,11 @@ def joint_limits_for_export(model: KinematicModel, *, velocity: float | None = N
     (every joint), else the model's, else those of the library robot the model is named after
     (``kr16-identified`` -> ``kr16``). Raises ``ValueError`` naming the joint when neither is known:
     a URDF limit of 0 stops every ROS planner."""
-    from .robots import nominal, names
-
     lib = None
     head = model.name.lower()
     for suffix in ("-nominal", "-identified", "-true", "-controller"):
         head = head.removesuffix(suffix)
-    if head in names():
+    if head in library_names():
         cand = nominal(head)
         if cand.n_joints == model.n_joints:
             lib = cand.joints

@@ -45,8 +45,8 @@ def run(args) -> int:
         doc = model_to_dict(model)
         doc = {"format": doc.pop("format"), "name": doc.pop("name"),
                "source": f"URDF {args.from_urdf}, chain {args.base or '(root)'} -> {args.tip or '(leaf)'}", **doc}
-    elif args.base or args.tip:
-        raise Fail("--base and --tip go with --from-urdf FILE")
+    elif args.base or args.tip or args.convention != "auto":
+        raise Fail("--base, --tip and --convention go with --from-urdf FILE")
     elif args.name is None:
         width = max(len(n) for n in robots.names())
         print("\n".join(f"{n:<{width}}  {robots.describe(n)}" for n in robots.names()))

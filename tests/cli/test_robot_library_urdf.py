@@ -358,3 +358,23 @@ def test_a_floating_joint_off_the_chain_does_not_matter(tmp_path):
     urdf, out = tmp_path / "f.urdf", tmp_path / "m.json"
     urdf.write_text(_broken(a=('name="l1-camera" type="fixed"', 'name="l1-camera" type="floating"')))
     assert recal(["model", "--from-urdf", str(urdf), "--tip", "flange", "--out", str(out)]) == 0
+
+
+def test_velocity_and_effort_in_the_model_file(tmp_path, capsys):
+    """``velocity`` is in the reading's unit per second (deg/s here), ``effort`` in N·m; both must be
+    positive, and a bad one is named by its JSON field."""
+    doc = robots.nominal_document("ur5e")
+    doc["joints"][0]["velocity"] = 90.0
+    path, urdf = tmp_path / "m.json", tmp_path / "m.urdf"
+    path.write_text(json.dumps(doc))
+    assert recal(["export", "--model", str(path), "--format", "urdf", "--out", str(urdf)]) == 0
+    robot = yourdfpy.URDF.load(str(urdf), load_meshes=False, build_scene_graph=True)
+    assert robot.joint_map["shoulder_pan_joint"].limit.velocity == pytest.approx(np.pi / 2)
+    assert robot.joint_map["shoulder_pan_joint"].limit.effort == 150.0
+    doc["joints"][2]["effort"] = -5
+    path.write_text(json.dumps(doc))
+    out = tmp_path / "p.csv"
+    (tmp_path / "q.csv").write_text("q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0\n")
+    assert recal(["predict", "--model", str(path), "--joints", str(tmp_path / "q.csv"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "joints[2].effort" in err and "positive" in err and not out.exists()
