@@ -26,10 +26,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .conventions import poe_to_dh
-from .model import KinematicModel, Joint, Units
+from .model import Joint, KinematicModel, Units
 from .transforms import homogeneous, matrix_to_pose, pose_to_matrix, rot, rpy_to_matrix
 
 MOVING = ("revolute", "continuous", "prismatic")
+MM_DEG = Units("mm", "deg")  # what models read from a URDF are written in
 
 
 class UrdfError(ValueError):
@@ -201,7 +202,7 @@ def _leaves(children: dict, link: str) -> list[str]:
 # --------------------------------------------------------------------------- chain -> model
 
 
-def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = Units("mm", "deg")) -> KinematicModel:
+def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = MM_DEG) -> KinematicModel:
     """The ``poe`` model of a serial chain (book eq. 2.72-2.75): each moving joint's axis and
     origin in the first link's frame at zero joint positions, the last link's frame as ``home``.
     Exact for any chain. Joints without limits get the model's defaults."""
@@ -223,7 +224,7 @@ def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = Units("mm
 
 
 def chain_to_model(name: str, chain: list[ChainJoint], *, convention: str = "auto",
-                   units: Units = Units("mm", "deg")) -> KinematicModel:
+                   units: Units = MM_DEG) -> KinematicModel:
     """The model of a serial chain, exact in every ``convention``:
 
     - ``poe``: :func:`chain_to_poe`;
@@ -273,7 +274,7 @@ def _flange_into_last_link(model: KinematicModel) -> KinematicModel | None:
 
 
 def model_from_urdf(text: str, *, base: str | None = None, tip: str | None = None, convention: str = "auto",
-                    units: Units = Units("mm", "deg"), name: str | None = None) -> KinematicModel:
+                    units: Units = MM_DEG, name: str | None = None) -> KinematicModel:
     """The model whose forward kinematics is the URDF chain's from link ``base`` to link ``tip``
     (defaults: the root link, and the only leaf) in ``convention`` (see :func:`chain_to_model`). Raises :class:`UrdfError` naming the element at
     fault: a branch without ``tip``, a link that does not exist, a ``floating`` or ``planar`` joint

@@ -29,7 +29,8 @@ COUPLED = {"m20ia", "r2000ic"}
 
 
 def _rows(path) -> tuple[list[str], np.ndarray]:
-    rows = [r for r in csv.reader(open(path)) if r and not r[0].startswith("#")]
+    with open(path) as f:
+        rows = [r for r in csv.reader(f) if r and not r[0].startswith("#")]
     return rows[0], np.array(rows[1:], dtype=float)
 
 

@@ -73,7 +73,8 @@ def _predict(tmp_path, model_spec, q_deg) -> np.ndarray:
         w.writerow([f"q{i}" for i in range(1, 7)])
         w.writerows([[repr(float(v)) for v in row] for row in q_deg])
     assert recal(["predict", "--model", str(model_spec), "--joints", str(joints), "--out", str(out)]) == 0
-    v = np.array([r for r in csv.reader(open(out))][1:], dtype=float)
+    with open(out) as f:
+        v = np.array(list(csv.reader(f))[1:], dtype=float)
     T = np.tile(np.eye(4), (len(v), 1, 1))
     T[:, :3, :3] = quat_to_matrix(v[:, 3:7])
     T[:, :3, 3] = v[:, :3] * 1e-3
