@@ -80,7 +80,9 @@ class Joint:
     ``dh``/``mdh`` use ``theta, d, a, alpha`` (and ``beta`` for a Hayati link in ``dh``);
     ``poe`` uses ``axis``, ``point`` and ``theta`` (revolute offset) or ``d`` (prismatic offset).
     ``harmonic`` is ``(amplitude, frequency, phase)`` of gear eccentricity (book eq. 2.4), in rad
-    (or m), per rad of reading (or per m) and rad.
+    (or m), per rad of reading (or per m) and rad. ``velocity`` (rad/s or m/s) and ``effort`` (N·m
+    or N) are the joint's published limits where known (``None``: unknown); the kinematics do not
+    use them, exports (URDF) do.
     """
 
     name: str
@@ -96,6 +98,8 @@ class Joint:
     lower: float = -2 * math.pi
     upper: float = 2 * math.pi
     harmonic: tuple[float, float, float] | None = None
+    velocity: float | None = None
+    effort: float | None = None
 
     @property
     def revolute(self) -> bool:
@@ -315,6 +319,13 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
                 kw["beta"] = _number(jd, "beta", where) * A
                 if kw["d"] != 0.0 and jtype == "revolute":
                     raise ModelFormatError(f"{where}.d", "must be 0 or absent in a Hayati (beta) link")
+        # Published speed and torque (force) limits, for exports; SI inside (rad/s or m/s, N·m or N).
+        for key, scale in (("velocity", var_scale), ("effort", 1.0)):
+            v = _number(jd, key, where)
+            if v is not None:
+                if not v > 0:
+                    raise ModelFormatError(f"{where}.{key}", f"expected a positive number, got {v!r}")
+                kw[key] = v * scale
         if jd.get("harmonic") is not None:
             h = _vector(jd["harmonic"], 3, f"{where}.harmonic")
             # k multiplies the reading: per radian (dimensionless) or per file length unit
@@ -389,6 +400,10 @@ def model_to_dict(model: KinematicModel, *, units: Units | None = None) -> dict[
             jd["harmonic"] = [_r(j.harmonic[0] / var_scale), _r(j.harmonic[1] / freq_scale), _r(j.harmonic[2] / A)]
         jd["lower"] = _r(j.lower / var_scale)
         jd["upper"] = _r(j.upper / var_scale)
+        if j.velocity is not None:
+            jd["velocity"] = _r(j.velocity / var_scale)
+        if j.effort is not None:
+            jd["effort"] = _r(j.effort)
         joints.append(jd)
     doc: dict[str, Any] = {
         "format": FORMAT,

@@ -139,8 +139,11 @@ def test_export_urdf_dh_csv_and_markdown(cell, tmp_path, capsys):
     assert recal(["export", "--model", str(model), "--format", "urdf", "--out", str(urdf), "--name", "cell1"]) == 0
     root = ET.parse(urdf).getroot()
     assert root.get("name") == "cell1"
-    assert [j.get("name") for j in root.findall("joint") if j.get("type") == "revolute"] == [f"j{i}" for i in range(1, 7)]
+    # a UR arm gets UR's names (ur_description), the model's base before base_link
+    assert [j.get("name") for j in root.findall("joint") if j.get("type") == "revolute"] == [
+        "shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
     assert root.find("joint[@name='base_joint']/origin").get("xyz") == "2.5 0 0"
+    assert all(float(lim.get("velocity")) > 0 and float(lim.get("effort")) > 0 for lim in root.iter("limit"))
     assert recal(["export", "--model", str(model), "--format", "dh-csv", "--out", str(dhcsv)]) == 0
     rows = _rows(dhcsv)
     assert [r["joint"] for r in rows] == [f"j{i}" for i in range(1, 7)] and float(rows[1]["a"]) == pytest.approx(-612.7)

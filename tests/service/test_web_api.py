@@ -77,7 +77,7 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
     assert cert["number"] in pdf.headers["content-disposition"]
 
     for fmt, needle in (("model", '"format": "recal.model/1"'), ("urdf", "<robot"), ("dh-csv", "theta"),
-                        ("dh-md", "|")):
+                        ("dh-md", "|"), ("ur-calibration", "  wrist_3:\n")):
         d = client.get(f"/api/v1/calibrations/{second}/download/{fmt}", headers=v)
         assert d.status_code == 200, (fmt, d.text)
         assert needle in d.text and "attachment" in d.headers["content-disposition"]

@@ -22,6 +22,7 @@ router = APIRouter(tags=["results"])
 DOWNLOADS = {
     "model": ("application/json", "json"),
     "urdf": ("application/xml", "urdf"),
+    "ur-calibration": ("application/yaml", "ur-calibration.yaml"),
     "dh-csv": ("text/csv", "dh.csv"),
     "dh-md": ("text/markdown", "dh.md"),
 }
@@ -62,8 +63,8 @@ def comparison(calibration_id: int, db: DbSession, tok: Reader, previous: int | 
 
 @router.get("/calibrations/{calibration_id}/download/{fmt}")
 def download(calibration_id: int, fmt: str, db: DbSession, tok: Reader) -> Response:
-    """The identified model as a file: ``model`` (recal.model/1 JSON), ``urdf``, ``dh-csv`` or
-    ``dh-md`` (DH table, CSV or Markdown)."""
+    """The identified model as a file: ``model`` (recal.model/1 JSON), ``urdf``, ``ur-calibration``
+    (UR's calibration YAML), ``dh-csv`` or ``dh-md`` (DH table, CSV or Markdown)."""
     if fmt not in DOWNLOADS:
         raise HTTPException(404, f"unknown format {fmt!r}; one of: {', '.join(DOWNLOADS)}")
     cal = _get(db, calibration_id)

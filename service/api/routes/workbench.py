@@ -275,7 +275,8 @@ def library(tok: Reader) -> list[dict]:
     out = []
     for name in robots.names():
         doc = robots.nominal_document(name)
-        out.append({**_robot(doc), "name": name, "model_name": doc.get("name")})
+        out.append({**_robot(doc), "name": name, "model_name": doc.get("name"), "description": doc.get("description"),
+                    "source": doc.get("source")})
     return out
 
 
