@@ -175,7 +175,10 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
         true_t = dataclasses.replace(true, tool=matrix_to_pose(tool))
         q_plan = np.radians([Q[t0.name or "inline"]])
         X_d = np.linalg.inv(M) @ (W @ t0.P)[None]  # what the written target means, world frame
-        # the text parsed here by a regex of the test, not the library's parser
+        # the parser reads what was written: the planned pose, to the written 2 decimals of mm
+        planned = np.linalg.inv(W) @ fk(nom_t, q_plan)[0]
+        assert np.abs(t0.P[:3, 3] - planned[:3, 3]).max() < 6e-6
+        np.testing.assert_allclose(t0.P[:3, :3], planned[:3, :3], atol=1e-6)
         errs.append(pose_error(reached(true_t, nom_t, (W @ t1.P)[None], q_plan), X_d))
         before.append(pose_error(reached(true_t, nom_t, (W @ t0.P)[None], q_plan), X_d))
         # the same pose through the library call the task CSV's targets mode makes
