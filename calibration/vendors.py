@@ -127,7 +127,7 @@ def _closest_points(u1, o1, u2, o2):
 def _wrist_geometry(model: KinematicModel, q: np.ndarray):
     keys = [f"{j.name}.theta" if j.revolute else f"{j.name}.d" for j in model.joints]
     w = walk(model, q, set(keys))
-    (u1, o1), (u2, o2), (u3, o3), (u4, o4), (u5, o5) = (w.axes[k] for k in keys[:5])
+    (u1, o1), (u2, o2), (_, o3), (u4, o4), (u5, o5) = (w.axes[k] for k in keys[:5])
     wc = _closest_points(u4, o4, u5, o5)  # the wrist centre: where axes 4 and 5 meet
     return u1, o1, u2, o2, o3, wc
 
@@ -238,8 +238,9 @@ def configured_ik(
     configuration, and ``found`` (N,): what a controller does with a Cartesian target and its
     configuration data.
 
-    ``front``, ``up`` (N,) bool and ``codes`` (N, 6) int are the configuration as
-    :func:`arm_flags` and :func:`joint_codes` state it (``None``: any). Damped Newton
+    ``front``, ``up`` (N,) and ``codes`` (N, 6) are the configuration as :func:`arm_flags` and
+    :func:`joint_codes` state it, as floats with NaN where a target does not state that part
+    (``None``: none does). Damped Newton
     (:func:`calibration.ik.solve_ik`) runs from ``q_near`` (N, 6) and ``n_seeds`` configurations
     spread over the joint limits; each converged solution has its joints moved by whole turns
     (where a turn of the reading is a turn of the joint: integer coupling, no gear harmonic) to
@@ -265,9 +266,9 @@ def configured_ik(
     cand = q[..., None] + np.where(turnable, 1.0, 0.0)[:, None] * shifts  # (N, K, 6, 5)
     ok = (cand >= lim[:, 0, None] - 1e-9) & (cand <= lim[:, 1, None] + 1e-9)
     if codes is not None:
-        want = np.asarray(codes).reshape(N, 1, 6, 1)
+        want = np.asarray(codes, dtype=float).reshape(N, 1, 6, 1)
         # a reading on a code's boundary (0°, ±90°, ...) to rounding matches either side
-        hit = np.zeros_like(ok)
+        hit = np.broadcast_to(np.isnan(want), ok.shape).copy()
         for eps in (-1e-7, 0.0, 1e-7):
             got = np.stack([joint_codes(cand[..., s].reshape(-1, 6) + eps, brand).reshape(N, K, 6) for s in range(5)],
                            axis=-1)
@@ -280,10 +281,10 @@ def configured_ik(
     if front is not None or up is not None:
         f, u = arm_flags(model, qs.reshape(-1, 6), brand)
         f, u = f.reshape(N, K), u.reshape(N, K)
-        if front is not None:
-            match &= f == np.asarray(front, bool).reshape(N, 1)
-        if up is not None:
-            match &= u == np.asarray(up, bool).reshape(N, 1)
+        for got, want in ((f, front), (u, up)):
+            if want is not None:
+                w = np.asarray(want, dtype=float).reshape(N, 1)
+                match &= np.isnan(w) | (got == (w == 1.0))
     d = np.sum((qs - near) ** 2, axis=-1)
     best = np.argmin(np.where(match, d, np.inf), axis=1)
     found = np.any(match, axis=1)
@@ -296,6 +297,16 @@ def configured_ik(
 
 
 __all__ = [
-    "REFERENCE", "abb_confdata", "configured_ik", "arm_flags", "fanuc_config", "fanuc_wpr_to_matrix", "joint_codes",
-    "kuka_abc_to_matrix", "kuka_status_turn", "matrix_to_fanuc_wpr", "matrix_to_kuka_abc", "quat_near",
+    "REFERENCE",
+    "abb_confdata",
+    "arm_flags",
+    "configured_ik",
+    "fanuc_config",
+    "fanuc_wpr_to_matrix",
+    "joint_codes",
+    "kuka_abc_to_matrix",
+    "kuka_status_turn",
+    "matrix_to_fanuc_wpr",
+    "matrix_to_kuka_abc",
+    "quat_near",
 ]

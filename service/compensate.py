@@ -107,7 +107,4 @@ def _with_library(taskfiles, text: str, *, name: str, model_doc: dict, nominal_d
         try:
             return taskfiles.compensate_file(src, model=model, nominal=nominal, mode=mode)
         except ValueError as exc:
-            message = str(exc).replace(str(src), name).replace(str(d / "config.dat"), "$config.dat")
-            for other in companions:
-                message = message.replace(str(d / f"task{Path(other).suffix}"), other)
-            raise CompensationInputError(message) from None
+            raise CompensationInputError(str(exc).replace(str(src), name)) from None

@@ -203,7 +203,12 @@ def _source_poses(q, taught, nominal, M):
 
 
 def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    from calibration.compensation import compensate_joints, compensate_targets, flag_names, nominal_solution
+    from calibration.compensation import (
+        compensate_joints,
+        compensate_targets,
+        flag_names,
+        nominal_solution,
+    )
     from service.cli import Fail, progress
     from service.taskfiles import format_task, read_task
 
@@ -287,7 +292,11 @@ def _f(x, digits=9):
 
 
 def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    from calibration.compensation import compensate_joints, compensate_targets, nominal_solution
+    from calibration.compensation import (
+        compensate_joints,
+        compensate_targets,
+        nominal_solution,
+    )
     from calibration.kinematics import fk
     from calibration.transforms import pose_to_matrix
     from service.cli import Fail

@@ -27,6 +27,7 @@ import numpy as np
 
 from calibration import vendors
 from calibration.compensation import FLAG_BIT, compensate_joints, compensate_targets
+from calibration.ik import numerical_ik
 from calibration.kinematics import fk
 from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
 
@@ -34,8 +35,9 @@ from .base import Program, Target, written
 
 
 def decode(brand: str, config: tuple | None):
-    """A written configuration as (front, up, codes) for :func:`calibration.vendors.configured_ik`
-    (``None`` where the target does not state that part)."""
+    """A written configuration as (front, up, codes (6,)) for
+    :func:`calibration.vendors.configured_ik` (``None``, or NaN in ``codes``, where the target does
+    not state that part)."""
     if config is None:
         return None, None, None
     if brand == "abb":
@@ -47,11 +49,9 @@ def decode(brand: str, config: tuple | None):
         up = None if S is None else bool(S & 2)
         if T is None:
             return front, up, None
-        codes = np.array([(T >> i) & 1 for i in range(6)])
-        if S is not None:
-            codes[4] += 2 * ((S >> 2) & 1)
-        else:
-            return front, up, None
+        codes = np.array([(T >> i) & 1 for i in range(6)], dtype=float)
+        # A5's code holds T bit 4 and S bit 2 (sin A5 < 0): not stated without S
+        codes[4] = float("nan") if S is None else codes[4] + 2 * ((S >> 2) & 1)
         return front, up, codes
     if brand == "fanuc":
         flip, up, front, t4, t5, t6 = config
@@ -125,27 +125,28 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
             X_nom = np.array([B @ t.T_work @ t.P for t in ts])
             q_nom = np.zeros((len(ts), 6))
             found = np.ones(len(ts), dtype=bool)
-            stated = [k for k, t in enumerate(ts) if decode(brand, t.config)[0] is not None
-                      or decode(brand, t.config)[2] is not None]
-            if stated:
-                dec = [decode(brand, ts[k].config) for k in stated]
-                fr = np.array([d[0] if d[0] is not None else True for d in dec])
-                up = np.array([d[1] if d[1] is not None else True for d in dec])
-                codes = np.array([d[2] if d[2] is not None else np.zeros(6, int) for d in dec])
-                if any(d[0] is None or d[2] is None for d in dec):
-                    # KUKA targets that state only part of S and T: solve those one by one
-                    for j, (k, d) in enumerate(zip(stated, dec)):
-                        q1, f1 = vendors.configured_ik(nom, X_nom[k:k + 1], brand, d[0], d[1], d[2], ref)
-                        q_nom[k], found[k] = q1[0], f1[0]
-                else:
-                    q_s, f_s = vendors.configured_ik(nom, X_nom[stated], brand, fr, up, codes, ref)
-                    q_nom[stated], found[stated] = q_s, f_s
-            prev = ref
-            for k, t in enumerate(ts):  # no configuration written: the solution nearest the previous target's
-                if k not in stated:
-                    q1, f1 = vendors.configured_ik(nom, X_nom[k:k + 1], brand, None, None, None, prev)
-                    q_nom[k], found[k] = q1[0], f1[0]
-                prev = q_nom[k]
+            dec = [decode(brand, t.config) for t in ts]
+            stated = np.array([d[0] is not None or d[1] is not None or d[2] is not None for d in dec], dtype=bool)
+            if np.any(stated):
+                # the controller's solution in the written configuration (NaN: a part not written)
+                nan = float("nan")
+                fr = np.array([nan if d[0] is None else float(d[0]) for d, s in zip(dec, stated) if s])
+                up = np.array([nan if d[1] is None else float(d[1]) for d, s in zip(dec, stated) if s])
+                codes = np.array([np.full(6, nan) if d[2] is None else d[2].astype(float)
+                                  for d, s in zip(dec, stated) if s])
+                q_s, f_s = vendors.configured_ik(nom, X_nom[stated], brand, fr, up, codes, ref)
+                q_nom[stated], found[stated] = q_s, f_s
+            if not np.all(stated):
+                # nothing written (a KRL POS or FRAME without S and T): the solution nearest the
+                # previous target's, as the controller moves from there
+                prev, near = ref, np.empty((len(ts), 6))
+                for k in range(len(ts)):
+                    near[k] = prev
+                    if stated[k]:
+                        prev = q_nom[k]
+                free = ~stated
+                r = numerical_ik(nom, X_nom[free], near[free])
+                q_nom[free], found[free] = r.q, r.converged
             X_d = np.linalg.inv(M) @ X_nom if tau is None else fk(tau, q_nom)
             cp = compensate_targets(ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True,
                                     calibrated_range=calibrated, **kw)

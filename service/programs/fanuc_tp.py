@@ -30,13 +30,13 @@ from ..files import InputError
 from .base import NUM, Number, Program, Target, line_of, line_starts, read_text
 from .frames import Frames
 
-_POS_RE = re.compile(r"^/POS\b", re.M)
-_END_RE = re.compile(r"^/END\b", re.M)
-_P_RE = re.compile(r'P\[\s*(\d+)\s*(?::\s*"([^"\r\n]*)")?\s*\]\s*\{(.*?)\}\s*;', re.S)
+_POS_RE = re.compile(r"^/POS\b", re.MULTILINE)
+_END_RE = re.compile(r"^/END\b", re.MULTILINE)
+_P_RE = re.compile(r'P\[\s*(\d+)\s*(?::\s*"([^"\r\n]*)")?\s*\]\s*\{(.*?)\}\s*;', re.DOTALL)
 _GP_RE = re.compile(r"GP(\d+)\s*:")
 _FRAME_RE = re.compile(r"\b(UF|UT)\s*:\s*([^\s,]+)")
 _CONFIG_RE = re.compile(r"CONFIG\s*:\s*'([^']*)'")
-_CONF_VALUE_RE = re.compile(r"^\s*([NF])\s*([UD])\s*([TB])\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*$", re.I)
+_CONF_VALUE_RE = re.compile(r"^\s*([NF])\s*([UD])\s*([TB])\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*$", re.IGNORECASE)
 _COMP_RE = re.compile(rf"\b([XYZWPR]|J[1-9]|E[1-9])\s*=\s*({NUM})\s*(mm|deg)?")
 
 

@@ -33,7 +33,7 @@ class Frames:
     config_dat: str | None = None
 
     @classmethod
-    def from_options(cls, tools: list[str], bases: list[str], config_dat: str | None = None) -> "Frames":
+    def from_options(cls, tools: list[str], bases: list[str], config_dat: str | None = None) -> Frames:
         t = dict(parse_frame_option(o, "--tool-frame") for o in tools)
         b = dict(parse_frame_option(o, "--base-frame") for o in bases)
         return cls(t, b, config_dat)

@@ -29,21 +29,30 @@ from calibration.transforms import homogeneous
 from calibration.vendors import kuka_abc_to_matrix
 
 from ..files import InputError
-from .base import Number, Program, Target, Uninterpreted, line_of, line_starts, line_text, read_text
+from .base import (
+    Number,
+    Program,
+    Target,
+    Uninterpreted,
+    line_of,
+    line_starts,
+    line_text,
+    read_text,
+)
 from .frames import Frames
 
 POSE_TYPES = ("e6pos", "pos", "frame")
 AXIS_TYPES = ("e6axis", "axis")
 _DECL_RE = re.compile(r"^[ \t]*(?:decl\s+)?(?:global\s+)?(?:decl\s+)?(e6pos|pos|frame|e6axis|axis|fdat)\s+(.*)$",
-                      re.I)
-_ELEM_RE = re.compile(r"^[ \t]*([a-z_$]\w*)\s*\[\s*(\d+)\s*\]\s*=\s*(\{.*)$", re.I)
+                      re.IGNORECASE)
+_ELEM_RE = re.compile(r"^[ \t]*([a-z_$]\w*)\s*\[\s*(\d+)\s*\]\s*=\s*(\{.*)$", re.IGNORECASE)
 _MOVE_RE = re.compile(r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$",
-                      re.I)
-_FRAME_SET_RE = re.compile(r"^[ \t]*\$(tool|base)\s*=\s*(.*?)\s*$", re.I)
-_DATA_RE = re.compile(r"^(tool|base)_data\s*\[\s*(\d+)\s*\]$", re.I)
-_BAS_RE = re.compile(r"^[ \t]*bas\s*\(\s*#(tool|base)\s*,\s*(\d+)\s*\)", re.I)
-_FDAT_ACT_RE = re.compile(r"^[ \t]*fdat_act\s*=\s*([a-z_]\w*)\s*$", re.I)
-_REF_RE = re.compile(r"([a-z_]\w*)(?:\s*\[\s*(\d+)\s*\])?$", re.I)
+                      re.IGNORECASE)
+_FRAME_SET_RE = re.compile(r"^[ \t]*\$(tool|base)\s*=\s*(.*?)\s*$", re.IGNORECASE)
+_DATA_RE = re.compile(r"^(tool|base)_data\s*\[\s*(\d+)\s*\]$", re.IGNORECASE)
+_BAS_RE = re.compile(r"^[ \t]*bas\s*\(\s*#(tool|base)\s*,\s*(\d+)\s*\)", re.IGNORECASE)
+_FDAT_ACT_RE = re.compile(r"^[ \t]*fdat_act\s*=\s*([a-z_]\w*)\s*$", re.IGNORECASE)
+_REF_RE = re.compile(r"([a-z_]\w*)(?:\s*\[\s*(\d+)\s*\])?$", re.IGNORECASE)
 _IDENT_RE = re.compile(r"[A-Za-z_]\w*")
 
 
@@ -93,14 +102,14 @@ def _aggregate(f: _File, code: str, i: int, base: int, what: str):
     if j < 0:
         f.fail(base + i, f"{what}: expected '}}' closing the aggregate on this line")
     body = code[i + 1:j]
-    colon = re.match(r"\s*[a-z_]\w*\s*:", body, re.I)
+    colon = re.match(r"\s*[a-z_]\w*\s*:", body, re.IGNORECASE)
     off = i + 1 + (colon.end() if colon else 0)
     items = {}
     pos = off
     for piece in body[off - i - 1:].split(","):
         s = pos
         pos += len(piece) + 1
-        m = re.match(r"(\s*)([a-z_]\w*)(\s+)(\S.*?)\s*$", piece, re.I)
+        m = re.match(r"(\s*)([a-z_]\w*)(\s+)(\S.*?)\s*$", piece, re.IGNORECASE)
         if not m:
             continue  # a component that is not NAME value (FDAT's POINT2[] " "): not a target's
         vs = s + m.start(4)
@@ -111,7 +120,7 @@ def _aggregate(f: _File, code: str, i: int, base: int, what: str):
 
 def _value(f: _File, item: Number, what: str, comp: str) -> float:
     t = item.text.strip()
-    bits = re.fullmatch(r"'([bh])([0-9a-f]+)'", t, re.I)
+    bits = re.fullmatch(r"'([bh])([0-9a-f]+)'", t, re.IGNORECASE)
     if bits:
         return float(int(bits.group(2), 2 if bits.group(1).lower() == "b" else 16))
     try:
@@ -163,7 +172,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
                 rest_at = m.start(2)
                 i = rest_at
                 while True:  # NAME={...}, NAME2={...}
-                    mm = re.compile(r"\s*([a-z_]\w*)\s*=\s*", re.I).match(code, i)
+                    mm = re.compile(r"\s*([a-z_]\w*)\s*=\s*", re.IGNORECASE).match(code, i)
                     if not mm:
                         break
                     name = mm.group(1)
@@ -257,7 +266,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
             targets.append((args_at, j + 1 if j >= 0 else len(code)))
             rest = code[targets[-1][1]:]
         else:
-            t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[args_at:], re.I)
+            t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[args_at:], re.IGNORECASE)
             if not t:
                 skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
                 continue
@@ -272,7 +281,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
                 j = code.find("}", a2)
                 targets.append((a2, j + 1 if j >= 0 else len(code)))
             else:
-                t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[a2:], re.I)
+                t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[a2:], re.IGNORECASE)
                 if not t:
                     skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
                     continue

@@ -26,12 +26,21 @@ import numpy as np
 from calibration.transforms import homogeneous, quat_to_matrix
 
 from ..files import InputError
-from .base import Number, Program, Target, Uninterpreted, line_of, line_starts, line_text, read_text
+from .base import (
+    Number,
+    Program,
+    Target,
+    Uninterpreted,
+    line_of,
+    line_starts,
+    line_text,
+    read_text,
+)
 
 MOVES = {"movej": (1, 3), "movel": (1, 3), "movec": (2, 4), "moveabsj": (1, 3)}  # targets, tool index
-_MOVE_RE = re.compile(r"(?<![\w\\])(movej|movel|movec|moveabsj)(?=[\s\\,])", re.I)
+_MOVE_RE = re.compile(r"(?<![\w\\])(movej|movel|movec|moveabsj)(?=[\s\\,])", re.IGNORECASE)
 _DECL_RE = re.compile(r"^[ \t]*(?:(local|task)\s+)?(const|pers|var)\s+([a-z_]\w*)\s+([a-z_]\w*)\s*(\{[^}]*\})?\s*",
-                      re.I | re.M)
+                      re.IGNORECASE | re.MULTILINE)
 _IDENT_RE = re.compile(r"[A-Za-z_]\w*")
 _REF_RE = re.compile(r"([A-Za-z_]\w*)\s*(?:\{\s*(\d+)\s*\})?")
 TYPES = ("robtarget", "jointtarget", "tooldata", "wobjdata")
@@ -243,7 +252,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         if len(args) <= tool_i:
             r.fail(s0 + m.start(), f"{mv}: expected {tool_i + 1} arguments (target(s), speed, zone, tool), "
                                    f"got {len(args)}")
-        tool_main, tool_opts = _options(code, *args[tool_i])
+        tool_main, _ = _options(code, *args[tool_i])
         opts = {}
         for a in args:
             opts.update(_options(code, *a)[1])

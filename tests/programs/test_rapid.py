@@ -70,8 +70,6 @@ def robtarget(T, conf, digits=(2, 7)):
 
 
 def program(nominal):
-    from .test_rapid import T_tool as _tt  # noqa: F401 (same module; keeps the helpers in one place)
-
     import dataclasses
 
     from calibration.transforms import matrix_to_pose
