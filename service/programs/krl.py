@@ -4,7 +4,8 @@ Targets: ``E6POS``/``POS``/``FRAME`` ``{X, Y, Z, A, B, C, S, T, E1..E6}`` (mm; A
 Euler ZYX; S and T the status and turn bits, also written ``'B110'``; E1..E6 left untouched) and
 ``E6AXIS``/``AXIS`` ``{A1..A6, E1..E6}`` (degrees), declared in ``DECL`` lines (several
 declarators in one line included; ``GLOBAL``; ``NAME[k]={...}`` element lines) of the ``.dat``
-or the ``.src``, or written inline in ``PTP``/``LIN``/``CIRC`` (and ``SPTP``/``SLIN``/``SCIRC``).
+or the ``.src``, or written inline in ``PTP``/``LIN``/``CIRC`` (and the spline moves ``SPTP``/``SLIN``/
+``SCIRC``/``SPL``).
 ``;`` starts a comment: an inline form fold (``;FOLD PTP P1 ...``) is a comment, its body holds
 the real move.
 
@@ -46,7 +47,7 @@ AXIS_TYPES = ("e6axis", "axis")
 _DECL_RE = re.compile(r"^[ \t]*(?:decl\s+)?(?:global\s+)?(?:decl\s+)?(e6pos|pos|frame|e6axis|axis|fdat)\s+(.*)$",
                       re.IGNORECASE)
 _ELEM_RE = re.compile(r"^[ \t]*([a-z_$]\w*)\s*\[\s*(\d+)\s*\]\s*=\s*(\{.*)$", re.IGNORECASE)
-_MOVE_RE = re.compile(r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$",
+_MOVE_RE = re.compile(r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|spl|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$",
                       re.IGNORECASE)
 _FRAME_SET_RE = re.compile(r"^[ \t]*\$(tool|base)\s*=\s*(.*?)\s*$", re.IGNORECASE)
 _DATA_RE = re.compile(r"^(tool|base)_data\s*\[\s*(\d+)\s*\]$", re.IGNORECASE)

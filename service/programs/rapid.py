@@ -4,7 +4,8 @@ Targets: ``robtarget`` ``[[x, y, z], [q1, q2, q3, q4], [cf1, cf4, cf6, cfx], [ea
 (mm; quaternion scalar first; configuration; external axes, left untouched) and ``jointtarget``
 ``[[rax_1, ..., rax_6], [eax_a, ...]]`` (degrees), declared (``CONST``/``PERS``/``VAR``, with
 ``LOCAL`` or ``TASK``, arrays ``name{k}`` included) or written inline as the target of ``MoveJ``,
-``MoveL``, ``MoveC`` (both points) and ``MoveAbsJ``. A statement runs to its ``;`` across lines;
+``MoveL``, ``MoveC`` (both points) and ``MoveAbsJ``, their ``DO`` and ``Sync`` variants,
+``TriggJ``/``TriggL``/``TriggC`` and ``ArcL``/``ArcC`` (whose tool is their last argument). A statement runs to its ``;`` across lines;
 ``!`` starts a comment; RAPID is not case sensitive.
 
 Frames: a move's tool (``tool0``, the flange, or a ``tooldata`` declared in the file, held by the
@@ -37,8 +38,13 @@ from .base import (
     read_text,
 )
 
-MOVES = {"movej": (1, 3), "movel": (1, 3), "movec": (2, 4), "moveabsj": (1, 3)}  # targets, tool index
-_MOVE_RE = re.compile(r"(?<![\w\\])(movej|movel|movec|moveabsj)(?=[\s\\,])", re.IGNORECASE)
+# instruction -> (number of targets, index of the tool among the positional arguments; -1: the last)
+MOVES = {"movej": (1, 3), "movel": (1, 3), "movec": (2, 4), "moveabsj": (1, 3),
+         "movejdo": (1, 3), "moveldo": (1, 3), "movecdo": (2, 4),
+         "movejsync": (1, 3), "movelsync": (1, 3), "movecsync": (2, 4),
+         "triggj": (1, -1), "triggl": (1, -1), "triggc": (2, -1), "arcl": (1, -1), "arcc": (2, -1)}
+_MOVE_RE = re.compile(r"(?<![\w\\])(" + "|".join(sorted(MOVES, key=len, reverse=True)) + r")(?=[\s\\,])",
+                      re.IGNORECASE)
 _DECL_RE = re.compile(r"^[ \t]*(?:(local|task)\s+)?(const|pers|var)\s+([a-z_]\w*)\s+([a-z_]\w*)\s*(\{[^}]*\})?\s*",
                       re.IGNORECASE | re.MULTILINE)
 _IDENT_RE = re.compile(r"[A-Za-z_]\w*")
@@ -249,9 +255,11 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         start = s0 + m.end()
         args = [a for a in _split_args(code, start, stmt_end) if not code[a[0]:a[1]].startswith("\\")]
         n_t, tool_i = MOVES[mv.lower()]
-        if len(args) <= tool_i:
-            r.fail(s0 + m.start(), f"{mv}: expected {tool_i + 1} arguments (target(s), speed, zone, tool), "
+        need = max(tool_i + 1, n_t + 2)
+        if len(args) < need:
+            r.fail(s0 + m.start(), f"{mv}: expected at least {need} arguments (target(s), speed, zone, tool), "
                                    f"got {len(args)}")
+        tool_i = tool_i if tool_i >= 0 else len(args) - 1
         tool_main, _ = _options(code, *args[tool_i])
         opts = {}
         for a in args:

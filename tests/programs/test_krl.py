@@ -219,3 +219,13 @@ def test_bad_programs_name_file_line_and_token(tmp_path, src, dat, message):
     (tmp_path / "t.dat").write_text(dat)
     with pytest.raises(InputError, match=message):
         krl.parse(tmp_path / "t.src")
+
+
+def test_bad_program_on_the_command_line_exits_2_and_writes_neither_file(run, tmp_path):
+    d, *_ = run
+    (tmp_path / "t.src").write_text("DEF t( )\nLIN XP1\nEND\n")
+    (tmp_path / "t.dat").write_text("DEFDAT t\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0}\nENDDAT\n")
+    r = recal("compensate", "--model", d / "identified.json", "--task", "t.src", "--out", "o.src", cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1] == "recal compensate: t.dat, line 2: E6POS XP1: expected component C"
+    assert not (tmp_path / "o.src").exists() and not (tmp_path / "o.dat").exists()

@@ -105,6 +105,7 @@ def program(nominal):
         "  PROC main()",
         "    MoveAbsJ jHome\\NoEOffs, v1000, fine, tool0;",
         "    MoveJ pApp, v1000, z50, tGun\\WObj:=wTable;",
+        "    TriggL pApp, v200, gunOn, z10, tGun\\WObj:=wTable;",
         "    MoveL pWeld, v200, fine, tGun \\WObj:=wTable;  ! weld start",
         "    MoveL Offs(pWeld,0,0,50), v200, z10, tGun\\WObj:=wTable;",
         "    MoveC path{1}, path{2}, v100, z5, tGun\\WObj:=wTable;",
@@ -148,6 +149,7 @@ def test_every_byte_but_the_targets_numbers_is_unchanged(run):
     assert conf.findall(out) == conf.findall(data)
     warn = r.stderr
     assert "Offs(pWeld" in warn and "pSpare is not the target of a move" in warn
+    assert "TriggL" not in warn  # pApp, same tool and work object as its MoveJ: one target
 
 
 def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
