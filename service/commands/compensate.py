@@ -451,11 +451,14 @@ def _notes(model) -> list[str]:
 
 def run(args) -> int:
     from calibration.transforms import matrix_to_pose
-    from service.files import check_output, write_atomic
+    from service.files import InputError, check_output, write_atomic
     from service.programs import BRAND, format_of
 
     t0 = time.perf_counter()
     fmt = format_of(args.task, getattr(args, "format", None))
+    if fmt == "csv" and str(args.task).lower().endswith(".dat"):
+        raise InputError(args.task, "a KRL program is compensated from its .src (the .dat beside it is read and "
+                                    "written with it): give --task PROGRAM.src")
     for path in (args.out, args.report):  # before any work: a run never ends unable to write
         if path:
             check_output(path)
