@@ -36,7 +36,12 @@ def format_of(path: str | os.PathLike, given: str | None = None) -> str:
 
 
 def parse(fmt: str, path: str | os.PathLike, **options):
-    """Parse a RAPID, KRL or TP program (see each module's ``parse``)."""
+    """Parse a RAPID, KRL or TP program (see each module's ``parse``), or a URScript program
+    (:func:`service.taskfiles.parse_urscript`, its own target types)."""
+    if fmt == "urscript":
+        from ..taskfiles import parse_urscript
+
+        return parse_urscript(path, options.get("n_joints", 6))
     if fmt == "rapid":
         from . import rapid
 
