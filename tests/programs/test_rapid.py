@@ -241,3 +241,57 @@ def test_bad_program_on_the_command_line_exits_2_without_output(run, tmp_path):
     assert r.stderr.strip().splitlines()[-1] == ("recal compensate: prog.mod, line 2: robtarget p20: expected 4 "
                                                  "quaternion values, got 3")
     assert not (tmp_path / "out.mod").exists()
+
+
+def _one_target_module(nominal, q, conf):
+    T = fk(nominal, np.radians([q]))[0]
+    return ("MODULE m\n  CONST robtarget p1:=" + robtarget(T, conf, (3, 8)) + ";\n  PROC main()\n"
+            "    MoveL p1, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n")
+
+
+def test_a_configuration_the_compensation_leaves_is_flagged_not_rewritten(run, tmp_path):
+    """Axis 4 planned exactly at 90°: the written cf4 may say quadrant 0 or 1. The correction moves
+    axis 4 to one side; the target whose cf4 names the other is flagged branch_change, and both
+    keep their written configuration."""
+    import json
+
+    d, nominal, *_ = run
+    q = [20, 10, -20, 90, 50, -40]
+    flagged = []
+    for cf4 in (0, 1):
+        conf = confdata(q)
+        conf[1] = cf4
+        (tmp_path / f"q{cf4}.mod").write_text(_one_target_module(nominal, q, conf))
+        r = recal("compensate", "--model", d / "identified.json", "--task", f"q{cf4}.mod", "--out", f"o{cf4}.mod",
+                  "--report", f"r{cf4}.json", cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        assert f"[0,{cf4},-1,0]" in (tmp_path / f"o{cf4}.mod").read_text()
+        row = json.loads((tmp_path / f"r{cf4}.json").read_text())["points"][0]
+        flagged.append("branch_change" in row["flags"])
+        assert row["configuration"]["written"][1] == cf4
+    assert sorted(flagged) == [False, True]
+
+
+def test_a_target_out_of_reach_in_its_written_configuration_is_left_as_written(run, tmp_path):
+    d, nominal, *_ = run
+    q = [20, 10, -20, 30, 50, -40]
+    conf = confdata(q)
+    conf[0] = 1  # axis 1 in 90°..180° with the wrist in front: not this pose
+    text = _one_target_module(nominal, q, conf)
+    (tmp_path / "m.mod").write_text(text)
+    r = recal("compensate", "--model", d / "identified.json", "--task", "m.mod", "--out", "o.mod", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "unreachable 1" in r.stdout and "0 converged" in r.stdout
+    assert (tmp_path / "o.mod").read_text() == text
+
+
+def test_a_target_used_with_two_tools_is_left_alone_and_reported(tmp_path):
+    p = tmp_path / "m.mod"
+    p.write_text("MODULE m\n  PERS tooldata tA:=[TRUE,[[0,0,100],[1,0,0,0]],[1,[0,0,1],[1,0,0,0],0,0,0]];\n"
+                 "  CONST robtarget p1:=[[900,0,900],[0,0,1,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
+                 "  PROC main()\n    MoveL p1, v100, fine, tool0;\n    MoveL p1, v100, fine, tA;\n  ENDPROC\n"
+                 "ENDMODULE\n")
+    prog = rapid.parse(p)
+    assert prog.targets == []
+    assert [(u.line, u.reason) for u in prog.uninterpreted] == [
+        (3, "robtarget p1 is used with different tools or work objects (lines 5, 6): not compensated")]
