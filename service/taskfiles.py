@@ -257,13 +257,9 @@ class Script:
             if len(values) != len(lit.spans):
                 raise ValueError(f"line {lit.line}: {len(lit.spans)} numbers, {len(values)} replacements")
             edits += [(s, e, _fixed(v)) for (s, e), v in zip(lit.spans, values)]
-        edits.sort()
-        parts, pos = [], 0
-        for s, e, t in edits:
-            parts += [self.text[pos:s], t]
-            pos = e
-        parts.append(self.text[pos:])
-        return "".join(parts).encode("utf-8", "surrogateescape")
+        from .programs.base import replace_spans
+
+        return replace_spans(self.text, edits)
 
 
 def _fixed(v: float, decimals: int = 10) -> str:

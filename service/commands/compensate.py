@@ -10,7 +10,10 @@ Compensated task files (contracts §5), from an identified model:
   frame);
 - URScript program (``.script``/``.urscript``): pose targets rewritten for the nominal controller,
   joint targets rewritten as joint commands, every other byte kept; lines that cannot be
-  interpreted are reported (stderr and ``--report``), not guessed.
+  interpreted are reported (stderr and ``--report``), not guessed;
+- ABB RAPID (``.mod``/``.modx``/``.prg``), KUKA KRL (``.src`` with its ``.dat``) and Fanuc TP
+  (``.ls``) programs, the same way (``service.programs``): Cartesian targets for the nominal
+  controller in their written configuration, joint targets as joint commands.
 
 The nominal model is ``--nominal`` or the one the identified model records
 (``identification.nominal``, written by ``recal identify``); in joints mode without one, rows
@@ -34,7 +37,17 @@ CHUNK = 25_000
 
 def add_parser(s) -> None:
     s.add_argument("--model", required=True, help="identified model (recal.model/1)")
-    s.add_argument("--task", required=True, help="task CSV (contracts §5) or URScript program (.script, .urscript)")
+    s.add_argument("--task", required=True, help="task CSV (contracts §5) or robot program: URScript (.script, "
+                   ".urscript), ABB RAPID (.mod, .modx, .prg), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls)")
+    s.add_argument("--format", choices=["csv", "urscript", "rapid", "krl", "fanuc-tp"],
+                   help="the task file's format (default: from its extension)")
+    s.add_argument("--tool-frame", action="append", metavar="[N=]X,Y,Z,A,B,C", help="KRL/TP: a tool frame in the "
+                   "flange (mm; KUKA A,B,C or Fanuc W,P,R in degrees); N= numbers it (TOOL_DATA[N], UT N), without "
+                   "it the tool active when the program starts (KRL) or of every target (TP). Repeatable")
+    s.add_argument("--base-frame", action="append", metavar="[N=]X,Y,Z,A,B,C", help="KRL/TP: a base (user) frame "
+                   "in the robot's base frame, as --tool-frame (BASE_DATA[N], UF N). Repeatable")
+    s.add_argument("--config-dat", metavar="$config.dat", help="KRL: the controller's $config.dat, whose "
+                   "TOOL_DATA[N] and BASE_DATA[N] give the frames the program selects")
     s.add_argument("--out", required=True, help="compensated task file to write")
     s.add_argument("--mode", choices=["joints", "targets"], default="joints",
                    help="CSV: replace q1..qN (joints, default) or x..qz for a nominal controller (targets)")
@@ -204,7 +217,12 @@ def _source_poses(q, taught, nominal, M):
 
 
 def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    from calibration.compensation import compensate_joints, compensate_targets, flag_names, nominal_solution
+    from calibration.compensation import (
+        compensate_joints,
+        compensate_targets,
+        flag_names,
+        nominal_solution,
+    )
     from service.cli import Fail, progress
     from service.taskfiles import format_task, read_task
 
@@ -288,7 +306,11 @@ def _f(x, digits=9):
 
 
 def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    from calibration.compensation import compensate_joints, compensate_targets, nominal_solution
+    from calibration.compensation import (
+        compensate_joints,
+        compensate_targets,
+        nominal_solution,
+    )
     from calibration.kinematics import fk
     from calibration.transforms import pose_to_matrix
     from service.cli import Fail
@@ -357,6 +379,45 @@ def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
     return script.rewrite(replacements, literals), comp, prefixes, skipped, M, fit_rms
 
 
+def _program(args, model, nominal, taught, calibrated, kw, qnear, t0):
+    """RAPID, KRL or TP (``service.programs``)."""
+    from service import programs
+    from service.cli import Fail
+    from service.programs.compensate import compensate_program
+
+    fmt = programs.format_of(args.task, args.format)
+    prog = programs.parse(fmt, args.task, n_joints=model.n_joints, frames=_frames(args))
+    if not prog.targets:
+        _no_targets(args, model, prog)
+    if nominal is None:
+        raise Fail(f"{args.model}: a robot program needs the nominal model its controller uses: give --nominal "
+                   f"NOMINAL.json (this model does not record the one it was identified from)")
+    M, fit_rms = _frame(model, nominal, calibrated)
+    outputs, comp, prefixes = compensate_program(prog, model, nominal, taught, M, calibrated, kw)
+    skipped = [{"line": u.line, "text": u.text, "reason": u.reason} | ({"file": prog.paths[u.file]} if u.file else {})
+               for u in prog.uninterpreted]
+    paths = [args.out] + [_companion(args.out, p) for p in prog.paths[1:]]
+    return list(zip(paths, outputs)), comp, prefixes, skipped, M, fit_rms
+
+
+def _companion(out, path):
+    """Where a program's second file (KRL's .dat) goes: beside ``out``, with ``out``'s stem."""
+    from pathlib import Path
+
+    return str(Path(out).with_suffix(Path(path).suffix))
+
+
+def _frames(args):
+    """``--tool-frame``, ``--base-frame`` and ``--config-dat`` for the program parsers."""
+    from service.cli import Fail
+    from service.programs.frames import Frames
+
+    try:
+        return Frames.from_options(args.tool_frame or [], args.base_frame or [], args.config_dat)
+    except ValueError as exc:
+        raise Fail(str(exc)) from None
+
+
 def _no_targets(args, model, script) -> None:
     """A program without a single target to compensate is bad input. The message names the lines
     left alone and why the first was; with ``--report`` the report is still written and lists
@@ -366,13 +427,16 @@ def _no_targets(args, model, script) -> None:
 
     skipped = script.uninterpreted
     if not skipped:
+        if hasattr(script, "brand"):
+            raise InputError(args.task, "no move target found; expected a program with move targets to compensate")
         raise InputError(args.task, "no movej/movel/movep/movec call found; expected a URScript program with move "
                                     "targets to compensate")
     first = skipped[0]
     lines = ", ".join(str(k.line) for k in skipped[:10])
     if len(skipped) > 10:
         lines += f" and {len(skipped) - 10} more"
-    message = (f"no movej/movel/movep/movec target could be interpreted: {len(skipped)} line(s) left alone (line "
+    what = "move" if hasattr(script, "brand") else "movej/movel/movep/movec"
+    message = (f"no {what} target could be interpreted: {len(skipped)} line(s) left alone (line "
                f"{lines}), the first because {first.reason}")
     where = ("the report lists each with its text and reason" if args.report
              else "--report R.json lists each with its text and reason")
@@ -401,18 +465,22 @@ def _notes(model) -> list[str]:
 
 def run(args) -> int:
     from calibration.transforms import matrix_to_pose
-    from service.files import check_output, write_atomic
-    from service.taskfiles import is_script
+    from service.files import InputError, check_output, write_atomic
+    from service.programs import BRAND, format_of
 
     t0 = time.perf_counter()
+    fmt = format_of(args.task, getattr(args, "format", None))
+    if fmt == "csv" and str(args.task).lower().endswith(".dat"):
+        raise InputError(args.task, "a KRL program is compensated from its .src (the .dat beside it is read and "
+                                    "written with it): give --task PROGRAM.src")
     for path in (args.out, args.report):  # before any work: a run never ends unable to write
         if path:
             check_output(path)
     model, nominal, taught = _models(args)
     calibrated = _calibrated_range(args, model)
     kw, qnear = _settings(args, model)
-    script = is_script(args.task)
-    handler = _script if script else _csv
+    script = fmt != "csv"
+    handler = _script if fmt == "urscript" else _program if fmt in BRAND else _csv
     output, comp, prefixes, skipped, M, fit_rms = handler(args, model, nominal, taught, calibrated, kw, qnear, t0)
     u = model.units
     L = u.length_m
@@ -432,7 +500,7 @@ def run(args) -> int:
         report = {
             "format": "recal.compensation-report/1",
             "task": str(args.task), "model": model.name, "nominal": nominal.name if nominal is not None else None,
-            "mode": "script" if script else args.mode,
+            "mode": ("script" if fmt == "urscript" else fmt) if script else args.mode,
             "units": {"length": u.length, "angle": u.angle},
             "frame": {"T_nominal_world": [_f(v / L) for v in pose[:3]] + [_f(v / u.angle_rad) for v in pose[3:]],
                       "fit_rms": _f(fit_rms / L) if fit_rms is not None else None},
@@ -444,15 +512,18 @@ def run(args) -> int:
         head = json.dumps(report, indent=1)
         lines = _point_lines(comp, model, prefixes)
         write_atomic(args.report, head[:-2] + ',\n "points": [\n  ' + ",\n  ".join(lines) + "\n ]\n}\n")
-    write_atomic(args.out, output)
+    for path, data in (output if isinstance(output, list) else [(args.out, output)]):
+        write_atomic(path, data)
     for s in skipped:
-        print(f"warning: {args.task}, line {s['line']}: not compensated ({s['reason']}): {s['text']}", file=sys.stderr)
+        print(f"warning: {s.get('file', args.task)}, line {s['line']}: not compensated ({s['reason']}): {s['text']}", file=sys.stderr)
     for note in summary["notes"]:
         print(f"note: {note}", file=sys.stderr)
     flagged = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
-    print(f"compensated {len(comp)} points ({'URScript' if script else args.mode + ' mode'}): "
+    label = {"urscript": "URScript", "rapid": "RAPID", "krl": "KRL", "fanuc-tp": "Fanuc TP"}.get(fmt)
+    print(f"compensated {len(comp)} points ({label or args.mode + ' mode'}): "
           f"{summary['converged']} converged, residual max {_shown(summary['residual_max'])} {u.length}"
-          + (f"; flagged: {flagged}" if flagged else "") + f"; wrote {args.out}")
+          + (f"; flagged: {flagged}" if flagged else "")
+          + f"; wrote {', '.join(p for p, _ in output) if isinstance(output, list) else args.out}")
     return 0
 
 

@@ -1,8 +1,8 @@
 """The technician's web page in a real (headless) browser against the real service and a
 simulated cell: sign in, register a cell (from the endpoint line, with inline checks), test its
 connections, plan and start a pose session, watch it (it pauses on a protective stop, is
-resumed), open the result, download the model, URDF and DH table, compensate a URScript program
-and a task CSV with flagged points, print the certificate (before and after a verify session);
+resumed), open the result, download the model, URDF and DH table, compensate a URScript program,
+a KUKA .src with its .dat and a task CSV with flagged points, print the certificate (before and after a verify session);
 a session interrupted by a crash of the service, resumed, paused and aborted; a second
 calibration after a crash shows what moved; a viewer cannot start a session; pages stay fast
 with a thousand stored calibrations and page through many cells; a portrait tablet."""
@@ -221,6 +221,17 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     assert out.name == "pick_and_place-compensated.script"
     compensated = out.read_text()
     assert compensated != URSCRIPT and "def pick_and_place():" in compensated
+
+    # --- a KUKA program: its .src and .dat chosen together, both compensated files downloaded
+    (tmp_path / "job.src").write_text("DEF job( )\nPTP XP1\nPTP {A1 5, A2 -90, A3 80, A4 -60, A5 70, A6 0}\nEND\n")
+    dat = "DEFDAT job\nDECL E6AXIS XP1={A1 10.0,A2 -80.0,A3 90.0,A4 -100.0,A5 70.0,A6 20.0,E1 0.0}\nENDDAT\n"
+    (tmp_path / "job.dat").write_text(dat)
+    page.set_input_files("#task-file", [str(tmp_path / "job.src"), str(tmp_path / "job.dat")])
+    page.click("#compensate")
+    page.wait_for_selector("#compensated:has-text('job-compensated.src')", timeout=30_000)
+    assert download("#download-compensated").name == "job-compensated.src"
+    out_dat = download("#download-compensated-1")
+    assert out_dat.name == "job-compensated.dat" and out_dat.read_text() != dat and "DECL E6AXIS XP1={" in out_dat.read_text()
 
     # --- a task CSV with a point outside the calibrated joint ranges and one at a wrist singularity
     ranges = model["identification"]["joint_ranges"]

@@ -38,25 +38,47 @@ def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> d
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
 async def compensate(calibration_id: int, request: Request, db: DbSession, tok: Compensator,
                      mode: str = "joints", name: str = "task.csv") -> PlainTextResponse:
-    """A task CSV (or a URScript program) in the request body; the compensated file out
-    (contracts §5). ``mode``: ``joints`` or ``targets``."""
+    """A task CSV or a robot program (URScript, RAPID, TP; ``name`` tells which) in the request
+    body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``. A program
+    of several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one
+    part per file; the answer is then JSON ``{"files": [{"name", "text"}, ...]}``, the program
+    first."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
     cal = get_calibration(db, calibration_id)
-    body = (await request.body()).decode("utf-8", errors="replace")
+    from ...compensate import CompensationInputError, compensate_text, read_multipart
+
+    raw = await request.body()
+    content_type = request.headers.get("content-type", "")
+    companions = None
+    try:
+        if content_type.lower().startswith("multipart/form-data"):
+            files = read_multipart(content_type, raw)
+            main = next((f for f in files if not f[0].lower().endswith(".dat")), files[0])
+            name, body = main
+            companions = {n: t for n, t in files if (n, t) != main}
+        else:
+            body = raw.decode("utf-8", errors="replace")
+    except CompensationInputError as exc:
+        raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
     if not body.strip():
-        raise HTTPException(422, {"field": "body", "message": "expected a task CSV or URScript program, got nothing"})
-    from ...compensate import CompensationInputError, compensate_text
+        raise HTTPException(422, {"field": "body", "message": "expected a task CSV or robot program, got nothing"})
 
     cell_model = db.get(Cell, cal.cell_id).model
     try:
-        output, report = compensate_text(body, name=name, model_doc=cal.model, nominal_doc=cell_model, mode=mode)
+        output, report = compensate_text(body, name=name, model_doc=cal.model, nominal_doc=cell_model, mode=mode,
+                                         companions=companions)
     except CompensationInputError as exc:
         raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
     rec = Compensation(calibration_id=cal.id, name=name, mode=mode, output=output, report=report, created_by=tok.name)
     db.add(rec)
     db.commit()
     audit(db, actor=tok.name, action="compensate", subject=f"calibration {cal.id}", detail={"name": name, "mode": mode})
+    if companions is not None:
+        from fastapi.responses import JSONResponse
+
+        return JSONResponse({"files": [{"name": name, "text": output}] + report.get("files", [])},
+                            headers={"X-Recal-Compensation": str(rec.id)})
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
     return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec.id)})
 

@@ -43,6 +43,8 @@ export async function api(method, path, body, { raw = false, token = null } = {}
   if (typeof body === "string") {
     headers["Content-Type"] = "text/plain; charset=utf-8";
     data = body;
+  } else if (body instanceof FormData) {
+    data = body; // the browser writes the multipart Content-Type with its boundary
   } else if (body !== undefined) {
     headers["Content-Type"] = "application/json";
     data = JSON.stringify(body);

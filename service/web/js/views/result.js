@@ -262,26 +262,44 @@ function compensationCard(id, r) {
   if (!can("compensate")) {
     return card("Compensate a program", h("p", { class: "muted" }, "Your role cannot compensate programs."));
   }
-  const file = h("input", { type: "file", id: "task-file", accept: ".csv,.script,.urscript,.txt" });
+  const file = h("input", { type: "file", id: "task-file", multiple: true,
+    accept: ".csv,.script,.urscript,.txt,.mod,.modx,.prg,.src,.dat,.ls" });
   const mode = h("select", { id: "comp-mode" },
     h("option", { value: "joints" }, "joints — new joint commands"),
     h("option", { value: "targets" }, "targets — corrected poses (for a nominal controller)"));
   const go = h("button", { class: "primary", id: "compensate" }, "Compensate");
   go.addEventListener("click", () => busy(go, async () => {
-    const f = file.files[0];
-    if (!f) throw new Error("choose a task file (CSV) or a URScript program first");
-    const text = await f.text();
-    const resp = await api("POST", `/calibrations/${id}/compensate?mode=${mode.value}&name=${encodeURIComponent(f.name)}`, text);
-    const compId = resp.headers.get("x-recal-compensation");
+    const chosen = [...file.files];
+    if (!chosen.length) throw new Error("choose a task file (CSV) or a robot program first");
+    let name, text, extras = [], compId;
+    if (chosen.length > 1) {
+      // a program of several files (KUKA: the .src and its .dat): one multipart request
+      const form = new FormData();
+      chosen.forEach((f) => form.append("file", f, f.name));
+      const resp = await api("POST", `/calibrations/${id}/compensate?mode=${mode.value}`, form, { raw: true });
+      compId = resp.headers.get("x-recal-compensation");
+      const files = (await resp.json()).files || [];
+      ({ name, text } = files[0]);
+      extras = files.slice(1);
+    } else {
+      const f = chosen[0];
+      name = f.name;
+      if (name.toLowerCase().endsWith(".src")) throw new Error("a KUKA program needs its .src and its .dat: choose both");
+      const resp = await api("POST", `/calibrations/${id}/compensate?mode=${mode.value}&name=${encodeURIComponent(name)}`, await f.text());
+      compId = resp.headers.get("x-recal-compensation");
+      text = resp.text;
+    }
     let report = {};
     if (compId) {
       try { report = (await get(`/compensations/${compId}/report`)).report || {}; } catch (_) { /* shown without */ }
     }
-    showCompensation(box, f.name, resp.text, report, r.units.length);
+    showCompensation(box, name, text, report, r.units.length, extras);
   }));
   return card("Compensate a program",
-    h("p", {}, "Upload a task file (CSV with x, y, z, qw, qx, qy, qz and/or q1…qN) or a URScript program; "
-      + "download it with every point corrected for this robot's real geometry."),
+    h("p", {}, "Upload a task file (CSV with x, y, z, qw, qx, qy, qz and/or q1…qN) or a robot program: URScript, "
+      + "ABB RAPID (.mod, .modx, .prg), Fanuc TP (.ls), or a KUKA KRL .src together with its .dat (choose both; "
+      + "add $config.dat for the TOOL_DATA and BASE_DATA it selects). Download it with every point corrected for "
+      + "this robot's real geometry, every other character as it was."),
     h("div", { class: "row" }, h("div", { class: "field" }, h("label", { for: "task-file" }, "Task file"), file),
       h("div", { class: "field" }, h("label", { for: "comp-mode" }, "Mode"), mode), go),
     box);
@@ -292,13 +310,19 @@ function compensatedName(name) {
   return dot > 0 ? `${name.slice(0, dot)}-compensated${name.slice(dot)}` : `${name}-compensated`;
 }
 
-function showCompensation(box, name, text, report, unit) {
+function showCompensation(box, name, text, report, unit, extras = []) {
   const points = report.points || [];
   const summary = report.summary || {};
   const angle = report.units?.angle || "deg";
   const flagged = points.filter((p) => (p.flags || []).length || p.converged === false);
   const save = h("button", { class: "primary", id: "download-compensated" }, `Download ${compensatedName(name)}`);
   save.addEventListener("click", () => saveBlob(new Blob([text], { type: "text/plain" }), compensatedName(name)));
+  // a program's other files (KRL's .dat): saved under the same stem, so the .src still finds its .dat
+  const saveExtras = extras.map((f, i) => {
+    const b = h("button", { id: `download-compensated-${i + 1}` }, `Download ${compensatedName(f.name)}`);
+    b.addEventListener("click", () => saveBlob(new Blob([f.text], { type: "text/plain" }), compensatedName(f.name)));
+    return b;
+  });
   const maxAbs = (a) => (Array.isArray(a) && a.length ? Math.max(...a.map((v) => Math.abs(v ?? 0))) : null);
   const rows = points.map((p, i) => h("tr", { class: (p.flags || []).length || p.converged === false ? "flagged" : "" },
     h("td", {}, String(p.row ?? i + 1)), h("td", {}, p.line != null ? String(p.line) : "–"),
@@ -314,7 +338,8 @@ function showCompensation(box, name, text, report, unit) {
   add(box,
     h("div", { class: `banner banner-${flagged.length ? "warn" : "ok"}`, id: "compensated" },
       h("strong", {}, "Compensated. "), `${summary.points ?? points.length} point(s), ${summary.converged ?? "?"} converged, `
-        + `${flagged.length} flagged${skipped.length ? `, ${skipped.length} line(s) left unchanged` : ""}. `, save),
+        + `${flagged.length} flagged${skipped.length ? `, ${skipped.length} line(s) left unchanged` : ""}. `, save,
+      ...saveExtras),
     h("p", { class: "small muted" }, `Largest remaining error ${num(summary.residual_max, 3)} ${unit}; largest joint `
       + `correction ${num(summary.correction_max, 3)} ${angle}`
       + (counts.length ? `; flags: ${counts.map(([k, v]) => `${k.replace(/_/g, " ")} ${v}`).join(", ")}` : "; no flags") + "."),
@@ -323,6 +348,6 @@ function showCompensation(box, name, text, report, unit) {
     points.length ? table(["Point", "Line", "Move", "Converged", `Residual (${unit})`, `Largest joint correction (${angle})`, "Flags"],
       rows, { class: "compensation" }) : h("pre", { class: "preview" }, text.split("\n").slice(0, 30).join("\n")),
     skipped.length ? h("div", {}, h("h3", {}, "Left unchanged"),
-      h("ul", {}, skipped.slice(0, 50).map((u) => h("li", {}, `line ${u.line}: ${u.reason || ""}`,
+      h("ul", {}, skipped.slice(0, 50).map((u) => h("li", {}, `${u.file ? `${u.file}, ` : ""}line ${u.line}: ${u.reason || ""}`,
         u.text ? h("code", {}, ` ${u.text}`) : null)))) : null);
 }

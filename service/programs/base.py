@@ -1,0 +1,152 @@
+"""What every program format shares: a target (numbers and where they are), a parsed program,
+the byte-preserving rewrite, and how a new number is written."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..files import InputError
+
+NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
+NUM_RE = re.compile(NUM)
+LINE_RE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n|$)")
+
+# The fewest decimals a rewritten number gets (written precision is kept where it has more):
+# 0.5 µm for millimetres, 5e-6° (under 0.1 µm per metre of reach) for degrees, 5e-9 for quaternion
+# components. A program written with 2 decimals of mm would otherwise round a compensation of a
+# few tens of µm away.
+MIN_DECIMALS = {"mm": 3, "deg": 5, "quat": 8}
+
+
+@dataclass(frozen=True, eq=False)
+class Number:
+    """One number in a file: ``file`` index, ``(start, end)`` character offsets, its text."""
+
+    file: int
+    start: int
+    end: int
+    text: str
+
+    @property
+    def value(self) -> float:
+        return float(self.text)
+
+
+@dataclass(frozen=True, eq=False)
+class Target:
+    """A target to compensate. ``kind`` ``"pose"`` or ``"joints"``; ``line`` (1-based) and
+    ``file`` (index into the program's files) of its definition; ``name`` (a declared target)
+    or ``None`` (inline); ``move`` the instruction that uses it first.
+
+    Pose: ``P`` (4, 4) the tool pose in the work frame, SI; ``rotation`` how the orientation is
+    written (``"quat"``, ``"kuka_abc"``, ``"fanuc_wpr"``) and ``position``/``orientation`` its
+    numbers; ``config`` the written configuration (brand terms, or ``None`` when the target has
+    none) and ``config_text`` as written. Joints: ``q`` (6,) readings in rad and ``joints`` its
+    numbers. ``T_work`` (4, 4) the work frame (wobj, base, user frame) in the robot's base frame,
+    ``T_tool`` (4, 4) the tool in the flange frame, ``frames`` how they were named."""
+
+    kind: str
+    file: int
+    line: int
+    name: str | None
+    move: str
+    P: np.ndarray | None = None
+    rotation: str | None = None
+    position: tuple[Number, ...] = ()
+    orientation: tuple[Number, ...] = ()
+    config: tuple | None = None
+    config_text: str | None = None
+    q: np.ndarray | None = None
+    joints: tuple[Number, ...] = ()
+    T_work: np.ndarray = field(default_factory=lambda: np.eye(4))
+    T_tool: np.ndarray = field(default_factory=lambda: np.eye(4))
+    frames: str = ""
+
+
+@dataclass(frozen=True)
+class Uninterpreted:
+    """A line left alone, and why."""
+
+    line: int
+    text: str
+    reason: str
+    file: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Program:
+    """A parsed program: ``paths`` and ``texts`` of its files (the first is the program; KRL's
+    ``.dat`` second), ``brand`` (``abb``, ``kuka``, ``fanuc``), targets in program order, lines
+    left alone."""
+
+    paths: tuple[str, ...]
+    texts: tuple[str, ...]
+    brand: str
+    targets: list[Target]
+    uninterpreted: list[Uninterpreted]
+
+    def rewrite(self, edits: list[tuple[Number, str]]) -> list[bytes]:
+        """Each file with the numbers of ``edits`` replaced by their new text, every other
+        character as it was; bytes as read."""
+        return [replace_spans(text, [(n.start, n.end, t) for n, t in edits if n.file == k])
+                for k, text in enumerate(self.texts)]
+
+
+def replace_spans(text: str, edits: list[tuple[int, int, str]]) -> bytes:
+    """``text`` with each ``(start, end)`` character span replaced by its new text, every other
+    character as it was, encoded back to the bytes it was read from (UTF-8, undecodable bytes
+    kept as surrogates): the rewrite every program format shares (URScript's included)."""
+    parts, pos = [], 0
+    for s, e, t in sorted(edits):
+        if s < pos:
+            raise ValueError(f"overlapping edits at character {s}")
+        parts += [text[pos:s], t]
+        pos = e
+    parts.append(text[pos:])
+    return "".join(parts).encode("utf-8", "surrogateescape")
+
+
+def read_text(path, data: bytes | None = None) -> str:
+    """A file's text, UTF-8 with undecodable bytes kept as surrogates (so every byte comes back)."""
+    if data is None:
+        try:
+            data = Path(path).read_bytes()
+        except OSError as exc:
+            raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+    return data.decode("utf-8", "surrogateescape")
+
+
+def line_starts(text: str) -> list[int]:
+    return [m.start() for m in LINE_RE.finditer(text) if m.end() > m.start()] or [0]
+
+
+def line_of(starts: list[int], offset: int) -> int:
+    """1-based line of a character offset."""
+    import bisect
+
+    return bisect.bisect_right(starts, offset)
+
+
+def line_text(text: str, starts: list[int], line: int) -> str:
+    s = starts[line - 1]
+    e = starts[line] if line < len(starts) else len(text)
+    return text[s:e].rstrip("\r\n").strip()
+
+
+def written(number: Number, value: float, unit: str) -> str:
+    """``value`` written like ``number`` was: as many decimals (at least :data:`MIN_DECIMALS`),
+    no exponent, and no sign on a zero."""
+    t = number.text.lower()
+    mant = t.split("e")[0]
+    decimals = len(mant.split(".")[1]) if "." in mant else 0
+    d = max(decimals, MIN_DECIMALS[unit])
+    s = f"{float(value):.{d}f}"
+    if float(s) == 0.0:
+        s = s.lstrip("-")
+    if t.startswith("+") and not s.startswith("-"):
+        s = "+" + s
+    return s

@@ -1,0 +1,201 @@
+"""Compensating a parsed RAPID, KRL or TP program (:class:`.base.Program`) with an identified
+model, for a controller that knows only the nominal one (docs/compensation.md §7).
+
+Pose targets: the pose the program means is ``X = B · T_work · P`` in the nominal model's world
+(``B`` its base: the robot's base frame), with the program's tool; the nominal controller's joint
+solution in the target's written configuration is found (:func:`calibration.vendors.configured_ik`);
+the target is corrected by :func:`calibration.compensation.compensate_targets` (Algorithm B) from
+that solution, so the compensated joints keep its branch and turns; the configuration of the
+result, in the brand's terms, is compared with the written one (``branch_change`` where it
+differs; the configuration numbers are never rewritten). A target the nominal model cannot reach
+in its written configuration is left as written and flagged ``unreachable``.
+
+Joint targets: the pose the nominal robot reached there, reached by the identified robot
+(:func:`calibration.compensation.compensate_joints`).
+
+Tools: the program's tool ``t`` is taken on the nominal model's flange (its tool replaced by
+``t``) and on the identified model as ``T_tool_identified · T_tool_nominal⁻¹ · t`` (the
+identified correction of the flange and tool kept).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+
+from calibration import vendors
+from calibration.compensation import FLAG_BIT, compensate_joints, compensate_targets
+from calibration.ik import numerical_ik
+from calibration.kinematics import fk
+from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
+
+from .base import Program, Target, written
+
+
+def decode(brand: str, config: tuple | None):
+    """A written configuration as (front, up, codes (6,)) for
+    :func:`calibration.vendors.configured_ik` (``None``, or NaN in ``codes``, where the target does
+    not state that part)."""
+    if config is None:
+        return None, None, None
+    if brand == "abb":
+        cf1, cf4, cf6, cfx = config
+        return not (cfx & 4), not (cfx & 2), np.array([cf1, 0, 0, cf4, cfx & 1, cf6])
+    if brand == "kuka":
+        S, T = config
+        front = None if S is None else not (S & 1)
+        up = None if S is None else bool(S & 2)
+        if T is None:
+            return front, up, None
+        codes = np.array([(T >> i) & 1 for i in range(6)], dtype=float)
+        # A5's code holds T bit 4 and S bit 2 (sin A5 < 0): not stated without S
+        codes[4] = float("nan") if S is None else codes[4] + 2 * ((S >> 2) & 1)
+        return front, up, codes
+    if brand == "fanuc":
+        flip, up, front, t4, t5, t6 = config
+        return bool(front), bool(up), np.array([0, 0, 0, 2 * t4, 2 * t5 + flip, 2 * t6])
+    raise ValueError(brand)
+
+
+def configuration(brand: str, model, q: np.ndarray) -> list[tuple]:
+    """The configurations (brand terms) of readings ``q`` (N, 6)."""
+    if brand == "abb":
+        return [tuple(int(v) for v in row) for row in vendors.abb_confdata(model, q)]
+    if brand == "kuka":
+        return [tuple(int(v) for v in row) for row in vendors.kuka_status_turn(model, q)]
+    return [tuple(int(v) for v in row) for row in vendors.fanuc_config(model, q)]
+
+
+def same(brand: str, written_config: tuple, found: tuple) -> bool:
+    if brand == "kuka":
+        return all(w is None or w == f for w, f in zip(written_config, found))
+    return tuple(written_config) == tuple(found)
+
+
+def show(brand: str, config: tuple | None):
+    """A configuration as the brand writes it (for the report)."""
+    if config is None:
+        return None
+    if brand == "fanuc":
+        flip, up, front, t4, t5, t6 = config
+        return f"{'F' if flip else 'N'} {'U' if up else 'D'} {'T' if front else 'B'}, {t4}, {t5}, {t6}"
+    if brand == "kuka":
+        return {"S": config[0], "T": config[1]}
+    return list(config)
+
+
+def _with_tool(model, T_tool: np.ndarray, nominal):
+    """``model`` with the program's tool (see the module docstring)."""
+    if model is nominal:
+        return dataclasses.replace(model, tool=matrix_to_pose(T_tool))
+    corr = pose_to_matrix(model.tool) @ invert(pose_to_matrix(nominal.tool))
+    return dataclasses.replace(model, tool=matrix_to_pose(corr @ T_tool))
+
+
+def _f(x, digits=12):
+    x = float(x)
+    return None if not np.isfinite(x) else float(f"{x:.{digits}g}")
+
+
+def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, calibrated, kw: dict):
+    """The compensated files (bytes, one per file of ``prog``), the
+    :class:`~calibration.compensation.Compensation` of every target in program order, and the
+    report's leading fields per target (JSON text ending in a comma)."""
+    from service.commands.compensate import _concat, _source_poses, _take
+
+    brand = prog.brand
+    B = pose_to_matrix(nominal.base)
+    groups: dict[bytes, list[int]] = {}
+    for i, t in enumerate(prog.targets):
+        groups.setdefault(np.round(t.T_tool, 12).tobytes(), []).append(i)
+    parts, order, heads, edits = [], [], [], []
+    ref = np.zeros(6)
+    ref[1:] = vendors.REFERENCE[brand]
+    for idx in groups.values():
+        T_tool = prog.targets[idx[0]].T_tool
+        nom = _with_tool(nominal, T_tool, nominal)
+        ide = _with_tool(model, T_tool, nominal)
+        tau = _with_tool(taught, T_tool, nominal) if taught is not None else None
+        poses = [i for i in idx if prog.targets[i].kind == "pose"]
+        joints = [i for i in idx if prog.targets[i].kind == "joints"]
+        if poses:
+            ts = [prog.targets[i] for i in poses]
+            X_nom = np.array([B @ t.T_work @ t.P for t in ts])
+            q_nom = np.zeros((len(ts), 6))
+            found = np.ones(len(ts), dtype=bool)
+            dec = [decode(brand, t.config) for t in ts]
+            stated = np.array([d[0] is not None or d[1] is not None or d[2] is not None for d in dec], dtype=bool)
+            if np.any(stated):
+                # the controller's solution in the written configuration (NaN: a part not written)
+                nan = float("nan")
+                fr = np.array([nan if d[0] is None else float(d[0]) for d, s in zip(dec, stated) if s])
+                up = np.array([nan if d[1] is None else float(d[1]) for d, s in zip(dec, stated) if s])
+                codes = np.array([np.full(6, nan) if d[2] is None else d[2].astype(float)
+                                  for d, s in zip(dec, stated) if s])
+                q_s, f_s = vendors.configured_ik(nom, X_nom[stated], brand, fr, up, codes, ref)
+                q_nom[stated], found[stated] = q_s, f_s
+            if not np.all(stated):
+                # nothing written (a KRL POS or FRAME without S and T): the solution nearest the
+                # previous target's, as the controller moves from there
+                prev, near = ref, np.empty((len(ts), 6))
+                for k in range(len(ts)):
+                    near[k] = prev
+                    if stated[k]:
+                        prev = q_nom[k]
+                free = ~stated
+                r = numerical_ik(nom, X_nom[free], near[free])
+                q_nom[free], found[free] = r.q, r.converged
+            X_d = np.linalg.inv(M) @ X_nom if tau is None else fk(tau, q_nom)
+            cp = compensate_targets(ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True,
+                                    calibrated_range=calibrated, **kw)
+            sol = configuration(brand, nom, cp.q)
+            changed = np.array([t.config is not None and not same(brand, t.config, s) for t, s in zip(ts, sol)])
+            flags = cp.flags | np.where(changed, FLAG_BIT["branch_change"], 0) \
+                | np.where(~found, FLAG_BIT["unreachable"] | FLAG_BIT["branch_change"], 0)
+            cp = dataclasses.replace(cp, flags=flags, converged=cp.converged & found)
+            P_new = np.linalg.inv(np.array([B @ t.T_work for t in ts])) @ cp.T_command
+            for k, t in enumerate(ts):
+                new_pos = P_new[k, :3, 3] * 1e3
+                orig_rot = np.array([n.value for n in t.orientation])
+                if t.rotation == "quat":
+                    new_rot, unit = vendors.quat_near(P_new[k, :3, :3], orig_rot)[0], "quat"
+                elif t.rotation == "kuka_abc":
+                    new_rot = np.degrees(vendors.matrix_to_kuka_abc(P_new[k, :3, :3], np.radians(orig_rot))[0])
+                    unit = "deg"
+                else:
+                    new_rot = np.degrees(vendors.matrix_to_fanuc_wpr(P_new[k, :3, :3], np.radians(orig_rot))[0])
+                    unit = "deg"
+                texts = [written(n, v, "mm") for n, v in zip(t.position, new_pos)] + \
+                        [written(n, v, unit) for n, v in zip(t.orientation, new_rot)]
+                if found[k]:
+                    edits += list(zip(t.position + t.orientation, texts))
+                heads.append(_head(prog, t, [n.text for n in t.position + t.orientation],
+                                   texts if found[k] else None,
+                                   {"written": show(brand, t.config), "solution": show(brand, sol[k])}))
+                order.append((t.file, t.line))
+            parts.append(cp)
+        if joints:
+            ts = [prog.targets[i] for i in joints]
+            Q = np.array([t.q for t in ts])
+            cj = compensate_joints(ide, _source_poses(Q, tau, nom, M), Q, calibrated_range=calibrated, **kw)
+            for k, t in enumerate(ts):
+                texts = [written(n, v, "deg") for n, v in zip(t.joints, np.degrees(cj.q[k]))]
+                edits += list(zip(t.joints, texts))
+                heads.append(_head(prog, t, [n.text for n in t.joints], texts, None))
+                order.append((t.file, t.line))
+            parts.append(cj)
+    comp = _concat(parts)
+    perm = sorted(range(len(order)), key=lambda k: order[k])
+    comp = _take(comp, np.array(perm, dtype=int))
+    heads = [heads[k] for k in perm]
+    return prog.rewrite(edits), comp, heads
+
+
+def _head(prog: Program, t: Target, original, compensated, config) -> str:
+    head = {"file": prog.paths[t.file], "line": t.line, "move": t.move, "kind": t.kind, "variable": t.name,
+            "frames": t.frames, "original": original, "compensated": compensated}
+    if config is not None:
+        head["configuration"] = config
+    return json.dumps(head)[1:-1] + ","

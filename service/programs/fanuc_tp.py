@@ -1,0 +1,145 @@
+"""Fanuc TP programs in ASCII (``.ls``).
+
+Targets are the positions of the ``/POS`` section, each ``P[n]`` or ``P[n:"comment"]`` with its
+group 1 (``GP1:``; other groups are left untouched):
+
+- Cartesian: ``UF : u, UT : t, CONFIG : 'N U T, 0, 0, 0', X = .. mm, Y, Z, W = .. deg, P, R``
+  (W, P, R Fanuc's fixed angles about X, Y, Z of the user frame; the configuration: flip F/N,
+  up U/D, front T/B and the turn numbers of J4, J5, J6);
+- joint: ``UF : u, UT : t, J1 = .. deg, ..., J6`` (Fanuc's readings: J3 from the horizon, which
+  the model's coupling matrix turns into joint angles, contracts §2).
+
+The form stays as written. Positions span several lines; ``/MN`` (the instructions, their ``!``
+comments and continuation lines) is not read: every position of ``/POS`` is compensated. User
+frame ``u`` and tool frame ``t`` come from ``--base-frame u=X,Y,Z,W,P,R`` and
+``--tool-frame t=...`` (or the unnumbered option for every number); ``UF : 0`` is the robot's
+world frame (taken as its base frame) and ``UT : 0`` the faceplate. ``F`` (the frame active at
+run time) or a number not given refuses the program, naming the line.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from calibration.transforms import homogeneous
+from calibration.vendors import fanuc_wpr_to_matrix
+
+from ..files import InputError
+from .base import NUM, Number, Program, Target, line_of, line_starts, read_text
+from .frames import Frames
+
+_POS_RE = re.compile(r"^/POS\b", re.MULTILINE)
+_END_RE = re.compile(r"^/END\b", re.MULTILINE)
+_P_RE = re.compile(r'P\[\s*(\d+)\s*(?::\s*"([^"\r\n]*)")?\s*\]\s*\{(.*?)\}\s*;', re.DOTALL)
+_GP_RE = re.compile(r"GP(\d+)\s*:")
+_FRAME_RE = re.compile(r"\b(UF|UT)\s*:\s*([^\s,]+)")
+_CONFIG_RE = re.compile(r"CONFIG\s*:\s*'([^']*)'")
+_CONF_VALUE_RE = re.compile(r"^\s*([NF])\s*([UD])\s*([TB])\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*$", re.IGNORECASE)
+_COMP_RE = re.compile(rf"\b([XYZWPR]|J[1-9]|E[1-9])\s*=\s*({NUM})\s*(mm|deg)?")
+
+
+def _frame(values) -> np.ndarray:
+    x, y, z, w, p, r = values
+    return homogeneous(fanuc_wpr_to_matrix(np.radians([w, p, r])), np.array([x, y, z]) * 1e-3)
+
+
+def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames | None = None) -> Program:
+    """Parse the ``/POS`` section of an ``.ls`` program (see the module docstring)."""
+    if n_joints != 6:
+        raise InputError(path, f"TP programs are compensated for six-axis arms; the model has {n_joints} joints")
+    frames = frames or Frames()
+    text = read_text(path, data)
+    starts = line_starts(text)
+
+    def fail(offset, message):
+        raise InputError(path, message, line=line_of(starts, offset))
+
+    m = _POS_RE.search(text)
+    if m is None:
+        raise InputError(path, "expected a /POS section (an ASCII .ls program); none found")
+    end = _END_RE.search(text, m.end())
+    stop = end.start() if end else len(text)
+    out = []
+    for p in _P_RE.finditer(text, m.end(), stop):
+        label = f"P[{p.group(1)}]"
+        body_at = p.start(3)
+        body = p.group(3)
+        gps = list(_GP_RE.finditer(body))
+        if not gps:
+            fail(p.start(), f"{label}: expected a group 'GP1:'")
+        gp1 = [g for g in gps if g.group(1) == "1"]
+        if not gp1:
+            continue
+        g = gp1[0]
+        nxt = [x.start() for x in gps if x.start() > g.start()]
+        seg_s, seg_e = body_at + g.end(), body_at + (nxt[0] if nxt else len(body))
+        seg = text[seg_s:seg_e]
+        fr = {k.upper(): (v, seg_s + mm.start(2)) for mm in _FRAME_RE.finditer(seg) for k, v in [mm.groups()]}
+        for key in ("UF", "UT"):
+            if key not in fr:
+                fail(seg_s, f"{label}: expected '{key} : n'")
+        comps = {}
+        for c in _COMP_RE.finditer(seg):
+            comps[c.group(1).upper()] = Number(0, seg_s + c.start(2), seg_s + c.end(2), c.group(2))
+        last = max((n.start for n in comps.values()), default=seg_s)  # a missing component: named at the last
+        _components(fail, label, comps, last)
+        T_work, uf_name = _resolve(fail, label, "UF", *fr["UF"], frames.bases, "--base-frame")
+        T_tool, ut_name = _resolve(fail, label, "UT", *fr["UT"], frames.tools, "--tool-frame")
+        ln = line_of(starts, p.start())
+        names = f"UF {uf_name}, UT {ut_name}"
+        if any(k.startswith("J") for k in comps):
+            need = [f"J{i}" for i in range(1, 7)]
+            missing = [k for k in need if k not in comps]
+            if missing:
+                fail(seg_s, f"{label}: expected component {missing[0]}")
+            nums = tuple(comps[k] for k in need)
+            out.append(Target("joints", 0, ln, label, "P", q=np.radians([n.value for n in nums]), joints=nums,
+                              T_work=T_work, T_tool=T_tool, frames=names))
+            continue
+        need = list("XYZWPR")
+        missing = [k for k in need if k not in comps]
+        if missing:
+            fail(seg_s, f"{label}: expected component {missing[0]} (Cartesian X, Y, Z, W, P, R or joints J1..J6)")
+        cm = _CONFIG_RE.search(seg)
+        if cm is None:
+            fail(seg_s, f"{label}: expected CONFIG : 'N U T, 0, 0, 0' in a Cartesian position")
+        cv = _CONF_VALUE_RE.match(cm.group(1))
+        if cv is None:
+            fail(seg_s + cm.start(1), f"{label}: CONFIG: expected 'F|N U|D T|B, turn4, turn5, turn6', got "
+                                      f"{cm.group(1)!r}")
+        config = (int(cv.group(1).upper() == "F"), int(cv.group(2).upper() == "U"), int(cv.group(3).upper() == "T"),
+                  int(cv.group(4)), int(cv.group(5)), int(cv.group(6)))
+        v = [comps[k].value for k in need]
+        out.append(Target("pose", 0, ln, label, "P", P=_frame(v), rotation="fanuc_wpr",
+                          position=tuple(comps[k] for k in "XYZ"), orientation=tuple(comps[k] for k in "WPR"),
+                          config=config, config_text=cm.group(1), T_work=T_work, T_tool=T_tool, frames=names))
+    return Program((str(path),), (text,), "fanuc", out, [])
+
+
+def _components(fail, label, comps, offset):
+    if any(k.startswith("J") for k in comps):
+        missing = [f"J{i}" for i in range(1, 7) if f"J{i}" not in comps]
+        if missing:
+            fail(offset, f"{label}: expected component {missing[0]}")
+        return
+    missing = [k for k in "XYZWPR" if k not in comps]
+    if missing:
+        fail(offset, f"{label}: expected component {missing[0]} (Cartesian X, Y, Z, W, P, R or joints J1..J6)")
+
+
+def _resolve(fail, label, key, value, offset, given: dict, flag: str):
+    if value.upper() == "F":
+        fail(offset, f"{label}: {key} : F (the frame active at run time) cannot be compensated statically")
+    try:
+        n = int(value)
+    except ValueError:
+        fail(offset, f"{label}: {key}: expected a frame number, got {value!r}")
+    if n in given:
+        return _frame(given[n]), str(n)
+    if None in given:
+        return _frame(given[None]), f"{n} ({flag})"
+    if n == 0:
+        return np.eye(4), "0"
+    fail(offset, f"{label}: {key} {n} is not given: pass {flag} {n}=X,Y,Z,W,P,R")

@@ -1,0 +1,394 @@
+"""KUKA KRL programs: a ``.src`` with its ``.dat`` (same name, same folder).
+
+Targets: ``E6POS``/``POS``/``FRAME`` ``{X, Y, Z, A, B, C, S, T, E1..E6}`` (mm; A, B, C in degrees,
+Euler ZYX; S and T the status and turn bits, also written ``'B110'``; E1..E6 left untouched) and
+``E6AXIS``/``AXIS`` ``{A1..A6, E1..E6}`` (degrees), declared in ``DECL`` lines (several
+declarators in one line included; ``GLOBAL``; ``NAME[k]={...}`` element lines) of the ``.dat``
+or the ``.src``, or written inline in ``PTP``/``LIN``/``CIRC`` (and the spline moves ``SPTP``/``SLIN``/
+``SCIRC``/``SPL``).
+``;`` starts a comment: an inline form fold (``;FOLD PTP P1 ...``) is a comment, its body holds
+the real move.
+
+Frames, in program order of the ``.src``: ``$TOOL = TOOL_DATA[n]``, ``$BASE = BASE_DATA[n]``,
+``$TOOL``/``$BASE = $NULLFRAME``, ``BAS(#TOOL, n)``/``BAS(#BASE, n)``, and the inline forms'
+``FDAT_ACT = FP1`` with the ``.dat``'s ``DECL FDAT FP1={TOOL_NO 1, BASE_NO 2, ...}``. Frame n comes
+from ``--tool-frame n=X,Y,Z,A,B,C`` / ``--base-frame n=...`` or from ``TOOL_DATA[n]`` /
+``BASE_DATA[n]`` of a ``$config.dat`` (``--config-dat``); before the program selects any, the
+unnumbered ``--tool-frame``/``--base-frame`` or ``$NULLFRAME`` (the flange, the robot's base).
+The base frame is taken in the robot's base frame (``$ROBROOT`` = ``$WORLD``). A move that uses a
+frame Recal cannot resolve refuses the program, naming the line.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from calibration.transforms import homogeneous
+from calibration.vendors import kuka_abc_to_matrix
+
+from ..files import InputError
+from .base import (
+    Number,
+    Program,
+    Target,
+    Uninterpreted,
+    line_of,
+    line_starts,
+    line_text,
+    read_text,
+)
+from .frames import Frames
+
+POSE_TYPES = ("e6pos", "pos", "frame")
+AXIS_TYPES = ("e6axis", "axis")
+_DECL_RE = re.compile(r"^[ \t]*(?:decl\s+)?(?:global\s+)?(?:decl\s+)?(e6pos|pos|frame|e6axis|axis|fdat)\s+(.*)$",
+                      re.IGNORECASE)
+_ELEM_RE = re.compile(r"^[ \t]*([a-z_$]\w*)\s*\[\s*(\d+)\s*\]\s*=\s*(\{.*)$", re.IGNORECASE)
+_MOVE_RE = re.compile(r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|spl|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$",
+                      re.IGNORECASE)
+_FRAME_SET_RE = re.compile(r"^[ \t]*\$(tool|base)\s*=\s*(.*?)\s*$", re.IGNORECASE)
+_DATA_RE = re.compile(r"^(tool|base)_data\s*\[\s*(\d+)\s*\]$", re.IGNORECASE)
+_BAS_RE = re.compile(r"^[ \t]*bas\s*\(\s*#(tool|base)\s*,\s*(\d+)\s*\)", re.IGNORECASE)
+_FDAT_ACT_RE = re.compile(r"^[ \t]*fdat_act\s*=\s*([a-z_]\w*)\s*$", re.IGNORECASE)
+_REF_RE = re.compile(r"([a-z_]\w*)(?:\s*\[\s*(\d+)\s*\])?$", re.IGNORECASE)
+_IDENT_RE = re.compile(r"[A-Za-z_]\w*")
+
+
+def _mask(text: str) -> str:
+    """Comments (``;`` to the end of the line) and string contents blanked, same length."""
+    out = list(text)
+    i, n = 0, len(text)
+    while i < n:
+        ch = text[i]
+        if ch == '"':
+            j = i + 1
+            while j < n and text[j] != '"' and text[j] not in "\r\n":
+                out[j] = " "
+                j += 1
+            i = j + 1
+        elif ch == ";":
+            while i < n and text[i] not in "\r\n":
+                out[i] = " "
+                i += 1
+        else:
+            i += 1
+    return "".join(out)
+
+
+class _File:
+    def __init__(self, index, path, text):
+        self.index, self.path, self.text, self.code = index, str(path), text, _mask(text)
+        self.starts = line_starts(text)
+
+    def lines(self):
+        """(line number, start offset, masked code of the line)."""
+        for k, s in enumerate(self.starts):
+            e = self.starts[k + 1] if k + 1 < len(self.starts) else len(self.text)
+            yield k + 1, s, self.code[s:e].rstrip("\r\n")
+
+    def fail(self, offset, message):
+        raise InputError(self.path, message, line=line_of(self.starts, offset))
+
+    def line(self, offset):
+        return line_of(self.starts, offset)
+
+
+def _aggregate(f: _File, code: str, i: int, base: int, what: str):
+    """``{[TYPE:] NAME value, ...}`` starting at ``code[i] == '{'`` (``base``: the line's offset):
+    (dict lowercase name -> Number or text, end index)."""
+    j = code.find("}", i)
+    if j < 0:
+        f.fail(base + i, f"{what}: expected '}}' closing the aggregate on this line")
+    body = code[i + 1:j]
+    colon = re.match(r"\s*[a-z_]\w*\s*:", body, re.IGNORECASE)
+    off = i + 1 + (colon.end() if colon else 0)
+    items = {}
+    pos = off
+    for piece in body[off - i - 1:].split(","):
+        s = pos
+        pos += len(piece) + 1
+        m = re.match(r"(\s*)([a-z_]\w*)(\s+)(\S.*?)\s*$", piece, re.IGNORECASE)
+        if not m:
+            continue  # a component that is not NAME value (FDAT's POINT2[] " "): not a target's
+        vs = s + m.start(4)
+        ve = s + m.end(4)
+        items[m.group(2).lower()] = Number(f.index, base + vs, base + ve, f.text[base + vs:base + ve])
+    return items, j + 1
+
+
+def _value(f: _File, item: Number, what: str, comp: str) -> float:
+    t = item.text.strip()
+    bits = re.fullmatch(r"'([bh])([0-9a-f]+)'", t, re.IGNORECASE)
+    if bits:
+        return float(int(bits.group(2), 2 if bits.group(1).lower() == "b" else 16))
+    try:
+        return float(t)
+    except ValueError:
+        f.fail(item.start, f"{what}: component {comp.upper()}: expected a number, got {t!r}")
+
+
+def _frame(values) -> np.ndarray:
+    x, y, z, a, b, c = values
+    return homogeneous(kuka_abc_to_matrix(np.radians([a, b, c])), np.array([x, y, z]) * 1e-3)
+
+
+def _config_frames(path) -> dict:
+    """``TOOL_DATA[n]`` and ``BASE_DATA[n]`` of a ``$config.dat``: {("tool"|"base", n): values}."""
+    f = _File(0, path, read_text(path))
+    out = {}
+    for ln, s, code in f.lines():
+        m = _ELEM_RE.match(code)
+        if m and m.group(1).lower() in ("tool_data", "base_data"):
+            items, _ = _aggregate(f, code, m.start(3), s, f"{m.group(1)}[{m.group(2)}]")
+            vals = []
+            for k in "xyzabc":
+                vals.append(_value(f, items[k], m.group(1), k) if k in items else 0.0)
+            out[(m.group(1).lower()[:4], int(m.group(2)))] = tuple(vals)
+    return out
+
+
+def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames | None = None,
+          dat_data: bytes | None = None) -> Program:
+    """Parse a ``.src`` and the ``.dat`` beside it (``dat_data``: its bytes, when given)."""
+    if n_joints != 6:
+        raise InputError(path, f"KRL programs are compensated for six-axis arms; the model has {n_joints} joints")
+    frames = frames or Frames()
+    src = _File(0, path, read_text(path, data))
+    files = [src]
+    dat_path = _dat_beside(Path(path))
+    if dat_data is not None or dat_path is not None:
+        dp = dat_path or Path(path).with_suffix(".dat")
+        files.append(_File(1, dp, read_text(dp, dat_data)))
+    config = _config_frames(frames.config_dat) if frames.config_dat else {}
+    decls: dict[str, dict] = {}
+    fdat: dict[str, dict] = {}
+    for f in files:
+        for ln, s, code in f.lines():
+            m = _DECL_RE.match(code)
+            if m:
+                typ = m.group(1).lower()
+                rest_at = m.start(2)
+                i = rest_at
+                while True:  # NAME={...}, NAME2={...}
+                    mm = re.compile(r"\s*([a-z_]\w*)\s*=\s*", re.IGNORECASE).match(code, i)
+                    if not mm:
+                        break
+                    name = mm.group(1)
+                    if mm.end() >= len(code) or code[mm.end()] != "{":
+                        break
+                    items, i = _aggregate(f, code, mm.end(), s, f"{typ.upper()} {name}")
+                    entry = {"type": typ, "items": items, "file": f, "offset": s + mm.start(1), "name": name}
+                    (fdat if typ == "fdat" else decls)[name.lower()] = entry
+                    c = re.compile(r"\s*,").match(code, i)
+                    if not c:
+                        break
+                    i = c.end()
+                continue
+            m = _ELEM_RE.match(code)
+            if m:
+                base_name = m.group(1).lower()
+                items, _ = _aggregate(f, code, m.start(3), s, f"{m.group(1)}[{m.group(2)}]")
+                typ = "e6axis" if any(k.startswith("a") and k[1:].isdigit() for k in items) else "e6pos"
+                decls[f"{base_name}[{int(m.group(2))}]"] = {"type": typ, "items": items, "file": f,
+                                                            "offset": s + m.start(1),
+                                                            "name": f"{m.group(1)}[{m.group(2)}]"}
+    # the .src in program order: frames and moves
+    state = {"tool": ("opt", None), "base": ("opt", None)}
+    out, skipped, uses, expected = [], [], {}, set()
+
+    def resolve(kind, ref, offset):
+        how, n = ref
+        if how == "null" or (how == "num" and n == 0):
+            return np.eye(4), "$NULLFRAME"
+        if how == "opt":
+            vals = (frames.tools if kind == "tool" else frames.bases).get(None)
+            return (np.eye(4), "$NULLFRAME") if vals is None else (_frame(vals), f"--{kind}-frame")
+        if how == "num":
+            vals = (frames.tools if kind == "tool" else frames.bases).get(n)
+            if vals is not None:
+                return _frame(vals), f"{kind.upper()}_DATA[{n}] (--{kind}-frame)"
+            if (kind, n) in config:
+                return _frame(config[(kind, n)]), f"{kind.upper()}_DATA[{n}] ($config.dat)"
+            src.fail(offset, f"{kind.upper()}_DATA[{n}] is selected here but not given: pass --{kind}-frame "
+                             f"{n}=X,Y,Z,A,B,C or --config-dat $config.dat")
+        if how == "lit":
+            return _frame(n), f"${kind.upper()} literal"
+        src.fail(offset, f"${kind.upper()} = {n}: Recal cannot resolve this {kind} frame (use TOOL_DATA[n]/"
+                         f"BASE_DATA[n], BAS(#{kind.upper()}, n) or an inline FDAT)")
+
+    for ln, s, code in src.lines():
+        m = _FRAME_SET_RE.match(code)
+        if m:
+            kind, val = m.group(1).lower(), m.group(2)
+            dm = _DATA_RE.match(val)
+            if dm and dm.group(1).lower() == kind:
+                state[kind] = ("num", int(dm.group(2)))
+            elif val.upper() == "$NULLFRAME":
+                state[kind] = ("null", None)
+            elif val.startswith("{"):
+                items, _ = _aggregate(src, code, code.index("{"), s, f"${kind.upper()}")
+                state[kind] = ("lit", tuple(_value(src, items[k], f"${kind.upper()}", k) if k in items else 0.0
+                                            for k in "xyzabc"))
+            else:
+                state[kind] = ("bad", val)
+            continue
+        m = _BAS_RE.match(code)
+        if m:
+            state[m.group(1).lower()] = ("num", int(m.group(2)))
+            continue
+        m = _FDAT_ACT_RE.match(code)
+        if m:
+            fd = fdat.get(m.group(1).lower())
+            if fd is None:
+                state["tool"] = state["base"] = ("bad", f"FDAT_ACT={m.group(1)} (not declared in the .dat)")
+                continue
+            for kind, key in (("tool", "tool_no"), ("base", "base_no")):
+                if key in fd["items"]:
+                    state[kind] = ("num", int(_value(fd["file"], fd["items"][key], f"FDAT {fd['name']}", key)))
+            ipo = fd["items"].get("ipo_frame")
+            if ipo is not None and ipo.text.strip().upper() == "#TCP":
+                state["tool"] = ("bad", f"FDAT {fd['name']} with IPO_FRAME #TCP (an external TCP)")
+            continue
+        m = _MOVE_RE.match(code)
+        if not m:
+            continue
+        mv = m.group(1).upper()
+        raw = line_text(src.text, src.starts, ln)
+        if mv.endswith("_REL"):
+            skipped.append(Uninterpreted(ln, raw, f"{mv} moves relative to where the robot is: not compensated"))
+            continue
+        args_at = m.start(2)
+        targets = []  # (start, end) in the line's code
+        if code[args_at:args_at + 1] == "{":
+            j = code.find("}", args_at)
+            targets.append((args_at, j + 1 if j >= 0 else len(code)))
+            rest = code[targets[-1][1]:]
+        else:
+            t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[args_at:], re.IGNORECASE)
+            if not t:
+                skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
+                continue
+            targets.append((args_at, args_at + t.end()))
+            rest = code[args_at + t.end():]
+        if mv in ("CIRC", "SCIRC"):
+            c = re.match(r"\s*,\s*", rest)
+            if not c:
+                src.fail(s + targets[0][1], f"{mv}: expected ', target' after the auxiliary point")
+            a2 = targets[0][1] + c.end()
+            if code[a2:a2 + 1] == "{":
+                j = code.find("}", a2)
+                targets.append((a2, j + 1 if j >= 0 else len(code)))
+            else:
+                t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[a2:], re.IGNORECASE)
+                if not t:
+                    skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
+                    continue
+                targets.append((a2, a2 + t.end()))
+        tool = resolve("tool", state["tool"], s)
+        base = resolve("base", state["base"], s)
+        for a, b in targets:
+            text = code[a:b]
+            if text.startswith("{"):
+                items, _ = _aggregate(src, code, a, s, f"{mv} inline target")
+                t = _target(src, None, None, items, mv, s + a, tool, base, inline=True)
+                if isinstance(t, str):
+                    skipped.append(Uninterpreted(ln, raw, t))
+                else:
+                    out.append(t)
+                continue
+            r = _REF_RE.match(text.replace(" ", ""))
+            if text.startswith("$") or r is None:
+                skipped.append(Uninterpreted(ln, raw, f"{text} is a system variable: not compensated"))
+                continue
+            key = r.group(1).lower() + (f"[{int(r.group(2))}]" if r.group(2) else "")
+            expected.add((0, s + a))
+            uses.setdefault(key, []).append((ln, mv, tool, base))
+    names_done = set()
+    for key, dd in decls.items():
+        f = dd["file"]
+        ln = f.line(dd["offset"])
+        us = uses.get(key, [])
+        if not us:
+            if dd["type"] in POSE_TYPES + AXIS_TYPES:
+                skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), f"{dd['type'].upper()} "
+                               f"{dd['name']} is not the target of a move in this program: its frames are unknown",
+                               f.index))
+            continue
+        if len({(u[2][1], u[3][1]) for u in us}) > 1 and dd["type"] in POSE_TYPES:
+            skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), f"{dd['name']} is used with different "
+                           f"tools or bases (lines {', '.join(str(u[0]) for u in us)}): not compensated", f.index))
+            continue
+        _, mv, tool, base = us[0]
+        t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base)
+        if isinstance(t, str):
+            skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), t, f.index))
+            continue
+        out.append(t)
+        names_done.add(key.split("[")[0])
+    for key, us in uses.items():
+        if key not in decls:
+            for u in us:
+                skipped.append(Uninterpreted(u[0], line_text(src.text, src.starts, u[0]),
+                                             f"{key.upper()} is not declared in this program's .src or .dat: not "
+                                             f"compensated"))
+    # other uses of a target's name in the .src (e.g. XP1.Z = ...): they see the new value
+    for ln, s, code in src.lines():
+        if _DECL_RE.match(code) or _ELEM_RE.match(code):
+            continue
+        for m in _IDENT_RE.finditer(code):
+            if m.group().lower() in names_done and (0, s + m.start()) not in expected:
+                skipped.append(Uninterpreted(ln, line_text(src.text, src.starts, ln),
+                                             f"uses target {m.group()} in an expression: this use sees the "
+                                             f"compensated value and is not itself compensated"))
+                break
+    out.sort(key=lambda t: (t.file, t.line))
+    seen, dedup = set(), []
+    for u in sorted(skipped, key=lambda u: (u.file, u.line)):
+        if (u.file, u.line, u.reason) not in seen:
+            seen.add((u.file, u.line, u.reason))
+            dedup.append(u)
+    return Program(tuple(f.path for f in files), tuple(f.text for f in files), "kuka", out, dedup)
+
+
+def _dat_beside(src: Path) -> Path | None:
+    for suffix in (".dat", ".DAT", ".Dat"):
+        p = src.with_suffix(suffix)
+        if p.exists():
+            return p
+    return None
+
+
+def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
+    """A :class:`Target` from a KRL aggregate, or the reason it is left alone (a string)."""
+    what = f"{(typ or 'inline').upper()} {name}" if name else f"{mv} inline target"
+    is_axis = typ in AXIS_TYPES if typ else any(k in items for k in ("a1", "a2", "a3"))
+    frames = f"tool {tool[1]}, base {base[1]}"
+    ln = f.line(offset)
+    if is_axis:
+        need = [f"a{i}" for i in range(1, 7)]
+        missing = [k for k in need if k not in items]
+        if missing:
+            if inline:
+                return f"{what}: A1..A6 not all given (missing ones come from where the robot is): not compensated"
+            f.fail(offset, f"{what}: expected component {missing[0].upper()}")
+        nums = tuple(items[k] for k in need)
+        q = np.radians([_value(f, n, what, k) for n, k in zip(nums, need)])
+        return Target("joints", f.index, ln, name, mv, q=q, joints=nums, T_work=base[0], T_tool=tool[0], frames=frames)
+    need = list("xyzabc")
+    missing = [k for k in need if k not in items]
+    if missing:
+        if inline:
+            return f"{what}: X, Y, Z, A, B, C not all given (missing ones come from where the robot is): not compensated"
+        f.fail(offset, f"{what}: expected component {missing[0].upper()}")
+    v = [_value(f, items[k], what, k) for k in need]
+    P = _frame(v)
+    S = int(_value(f, items["s"], what, "s")) if "s" in items else None
+    T = int(_value(f, items["t"], what, "t")) if "t" in items else None
+    config = None if S is None and T is None else (S, T)
+    ctext = None if config is None else f"S {items['s'].text if S is not None else '-'}, T {items['t'].text if T is not None else '-'}"
+    return Target("pose", f.index, ln, name, mv, P=P, rotation="kuka_abc", position=tuple(items[k] for k in "xyz"),
+                  orientation=tuple(items[k] for k in "abc"), config=config, config_text=ctext, T_work=base[0],
+                  T_tool=tool[0], frames=frames)

@@ -1,0 +1,80 @@
+"""Robot programs through the compensation route: a KRL program's .src and .dat posted together
+as multipart/form-data come back as JSON with both files compensated; a RAPID module posted as
+the body (like a task CSV) comes back as text. The task CSV request is unchanged
+(tests/service/test_compensate_api.py)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from calibration.kinematics import fk
+from calibration.model import model_from_dict
+
+from .conftest import auth, register_cell
+
+NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+SRC = "DEF job( )\n; PTP {A1 1, A2 2} is a comment\nPTP XHOME\nPTP XP1\nEND\n"
+DAT = ("DEFDAT job\r\nDECL E6AXIS XHOME={A1 10.0,A2 -80.0,A3 90.0,A4 -100.0,A5 70.0,A6 20.0,E1 0.0}\r\n"
+       "DECL E6AXIS XP1={A1 -30.0,A2 -100.0,A3 60.0,A4 -50.0,A5 -80.0,A6 0.0,E1 12.5}\r\nENDDAT\r\n")
+
+
+@pytest.fixture
+def calibrated(idle_app, tokens, stored_session):
+    with idle_app() as client:
+        cell = register_cell(client, tokens["technician"], "programs")["id"]
+        yield client, cell, stored_session(cell, seed=2)[1]
+
+
+def test_a_krl_program_and_its_dat_as_multipart(calibrated, tokens):
+    client, cell, cal = calibrated
+    files = [("program", ("job.src", SRC.encode(), "text/plain")), ("dat", ("job.dat", DAT.encode(), "text/plain"))]
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate", files=files, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    out = r.json()["files"]
+    assert [f["name"] for f in out] == ["job.src", "job.dat"]
+    assert out[0]["text"] == SRC  # the .src holds no target's number
+    dat = out[1]["text"]
+    assert NUMBER.sub("#", dat) == NUMBER.sub("#", DAT) and dat.count("\r\n") == DAT.count("\r\n")
+    assert "E1 12.5}" in dat  # external axes untouched
+    # the joint commands bring the identified robot where the nominal joints meant (same frame fit
+    # as the command's)
+    model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"])
+    nominal = model_from_dict(client.get(f"/api/v1/cells/{cell}", headers=auth(tokens["viewer"])).json()["model"])
+    import argparse
+    import dataclasses
+
+    from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
+    from service.commands.compensate import _calibrated_range, _frame
+
+    M = _frame(model, nominal, _calibrated_range(argparse.Namespace(calibration_data=None, model=""), model))[0]
+    # no $TOOL in the program: the flange ($NULLFRAME), with the identified tool's correction kept
+    flange = dataclasses.replace(nominal, tool=np.zeros(6))
+    model = dataclasses.replace(model, tool=matrix_to_pose(pose_to_matrix(model.tool) @ invert(
+        pose_to_matrix(nominal.tool))))
+    q_old = np.radians([[float(v) for v in re.findall(r"A\d (-?[\d.]+)", line)[:6]] for line in DAT.splitlines()[1:3]])
+    q_new = np.radians([[float(v) for v in re.findall(r"A\d (-?[\d.]+)", line)[:6]] for line in dat.splitlines()[1:3]])
+    X_d = np.linalg.inv(M) @ fk(flange, q_old)
+    assert np.abs(fk(model, q_new)[:, :3, 3] - X_d[:, :3, 3]).max() < 2e-6
+    assert np.abs(q_new - q_old).max() > 1e-5  # corrected
+    report = client.get(f"/api/v1/compensations/{r.headers['x-recal-compensation']}/report",
+                        headers=auth(tokens["viewer"])).json()["report"]
+    assert {p["file"] for p in report["points"]} == {"job.dat"}
+    assert report["files"][0]["name"] == "job.dat"
+
+
+def test_a_rapid_module_as_the_body_and_a_bad_one(calibrated, tokens):
+    client, _, cal = calibrated
+    mod = ("MODULE m\n  ! MoveAbsJ [[1,2,3,4,5,6],[9E9,9E9,9E9,9E9,9E9,9E9]], v1, fine, tool0;\n  PROC main()\n"
+           "    MoveAbsJ [[10,-80,90,-100,70,20],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, fine, tool0;\n"
+           "  ENDPROC\nENDMODULE\n")
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=m.mod", content=mod, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"].startswith("text/plain")
+    assert NUMBER.sub("#", r.text) == NUMBER.sub("#", mod) and r.text != mod
+    bad = mod.replace("[[10,-80,90,-100,70,20]", "[[10,-80,90,-100,70]")
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=m.mod", content=bad, headers=auth(tokens["job"]))
+    assert r.status_code == 422
+    assert r.json()["detail"]["message"].startswith("m.mod, line 4: jointtarget (inline): robot axes: expected 6 values")
