@@ -28,6 +28,7 @@ correction applied and flags (:data:`FLAGS`).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +38,7 @@ from .ik import (IKResult, _polish, characteristic_length, inverse_kinematics, p
 from .kinematics import check_q, fk, walk
 from .model import KinematicModel
 from .registration import kabsch
+from .simulate import random_configurations
 from .transforms import invert, rotvec_to_matrix
 
 FLAGS = ("joint_limit", "near_singular", "outside_calibrated_region", "no_convergence", "branch_change", "unreachable")
@@ -115,6 +117,32 @@ def frame_map(model_from: KinematicModel, model_to: KinematicModel, q_samples: n
     if q.shape[0] < 3:
         raise ValueError("frame_map needs at least 3 configurations")
     return kabsch(fk(model_from, q)[:, :3, 3], fk(model_to, q)[:, :3, 3])
+
+
+def nominal_world_frame(model: KinematicModel, nominal: KinematicModel, calibrated_range: np.ndarray | None = None,
+                        *, samples: int = 256, seed: int = 0) -> tuple[np.ndarray, float]:
+    """``T_nominal_world`` (4, 4) and the RMS (m) of its fit: where the nominal model's world (the
+    controller's base frame) sits in the identified model's, from :func:`frame_map` over
+    ``samples`` configurations drawn in ``calibrated_range`` (n, 2) (else the joint limits within
+    ±180°). The frame is geometry: a compliant model's sag under gravity is what compensation
+    corrects, not part of where the nominal model's world sits, so the rigid part is fitted."""
+    rigid = dataclasses.replace(model, compliance=None)
+    q = random_configurations(rigid, samples, np.random.default_rng(seed), limits=calibrated_range)
+    M = frame_map(rigid, nominal, q)
+    p_id = fk(rigid, q)[:, :3, 3]
+    p_nom = fk(nominal, q)[:, :3, 3]
+    rms = float(np.sqrt(np.mean(np.sum((p_id @ M[:3, :3].T + M[:3, 3] - p_nom) ** 2, axis=1))))
+    return M, rms
+
+
+def source_poses(q: np.ndarray, taught: KinematicModel | None, nominal: KinematicModel,
+                 T_nominal_world: np.ndarray) -> np.ndarray:
+    """World poses (N, 4, 4) that the joint vectors ``q`` gave the robot they were taught on
+    (``taught``, an identified model in the world frame), or planned on (the ``nominal`` model,
+    whose world is ``T_nominal_world`` away)."""
+    if taught is not None:
+        return fk(taught, q)
+    return np.linalg.inv(T_nominal_world) @ fk(nominal, q)
 
 
 def _apply(T: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -391,6 +419,25 @@ def _message(converged: np.ndarray, flags: np.ndarray) -> str:
         if k and name != "no_convergence":
             parts.append(f"{k} {name}")
     return "; ".join(parts)
+
+
+def concatenate(parts: list[Compensation]) -> Compensation:
+    """The points of several compensations, in order, as one."""
+    if len(parts) == 1:
+        return parts[0]
+    first = parts[0]
+    out = {}
+    for f in dataclasses.fields(first):
+        v = getattr(first, f.name)
+        out[f.name] = np.concatenate([getattr(p, f.name) for p in parts]) if isinstance(v, np.ndarray) else v
+    out["message"] = _message(out["converged"], out["flags"])
+    return dataclasses.replace(first, **out)
+
+
+def take(comp: Compensation, idx: np.ndarray) -> Compensation:
+    """The points ``idx`` of a compensation, in that order."""
+    return dataclasses.replace(comp, **{f.name: getattr(comp, f.name)[idx] for f in dataclasses.fields(comp)
+                                        if isinstance(getattr(comp, f.name), np.ndarray)})
 
 
 # ----------------------------------------------------------------------------- book Algorithm A

@@ -77,11 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         return int(fake_cell(argv[1:]) or 0)
     verb = argv[0] if argv and argv[0] in COMMANDS else None
     args = build_parser(verb).parse_args(argv)
+    from service.compensation import CompensationInputError
     from service.files import InputError
 
     try:
         return int(args.func(args) or 0)
-    except (InputError, Fail) as exc:
+    except (InputError, Fail, CompensationInputError) as exc:
         print(f"recal {args.verb}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

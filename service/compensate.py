@@ -1,20 +1,21 @@
-"""Compensating a task file held in memory (the API's compensate endpoint, the nightly job):
-a thin wrapper over ``recal compensate`` (``service.commands.compensate``: task CSV, URScript,
-RAPID, KRL and TP, ``service.taskfiles``, ``service.programs`` and ``calibration.compensation``), run on temporary files so
-that the service gives exactly what the command gives, with its per-point report."""
+"""Compensating a task file held in memory (the API's compensation routes, the nightly job):
+the files are laid in a temporary folder (the parsers read a KRL program's .dat beside its .src)
+and compensated by the same library function as ``recal compensate``
+(:func:`service.compensation.compensate_task`); messages name the user's files."""
 
 from __future__ import annotations
 
-import contextlib
-import io
-import json
 import tempfile
 from pathlib import Path
-from calibration.errors import RecalError
 
+from calibration.model import ModelFormatError, model_from_dict
 
-class CompensationInputError(RecalError, ValueError):
-    """The task file cannot be compensated; the message names the line and field."""
+from . import programs
+from .compensation import CompensationInputError, CompensationRequest, calibrated_range_of, compensate_task
+from .files import InputError
+from .programs.frames import Frames
+
+__all__ = ["CompensationInputError", "compensate_text", "read_multipart"]
 
 
 def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str = "joints",
@@ -23,58 +24,58 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
     by ``name``) with the identified model ``model_doc``; ``nominal_doc`` is what the controller
     knows (targets mode, programs). ``companions``: the program's other files by name (a KRL
     ``.src``'s ``.dat``; a ``$config.dat`` is read for its ``TOOL_DATA``/``BASE_DATA``). Returns
-    the compensated text and the per-point report (``recal.compensation-report/1``: ``summary``, ``points``, ``uninterpreted``; with companions,
-    ``files``: their compensated texts, ``[{"name", "text"}]``)."""
+    the compensated text and the per-point report (``recal.compensation-report/1``: ``summary``,
+    ``points``, ``uninterpreted``; with companions, ``files``: their compensated texts,
+    ``[{"name", "text"}]``)."""
     try:
-        from service import taskfiles
-        from service.commands import compensate as command
-    except ImportError:
-        raise CompensationInputError("compensation is not available in this build") from None
-    if hasattr(taskfiles, "compensate_file"):  # a library entry point, when there is one
-        return _with_library(taskfiles, text, name=name, model_doc=model_doc, nominal_doc=nominal_doc, mode=mode)
-    import argparse
-
-    from service.cli import Fail
-    from service.files import InputError
-
+        model, nominal = model_from_dict(model_doc), model_from_dict(nominal_doc)
+    except ModelFormatError as exc:
+        raise CompensationInputError(f"the calibration's model: {exc}") from None
+    if nominal.n_joints != model.n_joints:
+        raise CompensationInputError(f"the cell's nominal model has {nominal.n_joints} joints, the calibration "
+                                     f"{model.n_joints}")
     suffix = Path(name).suffix or ".csv"
+    companions = dict(companions or {})
+    config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
-        src, out, report = d / f"task{suffix}", d / f"compensated{suffix}", d / "report.json"
+        src, out = d / f"task{suffix}", d / f"compensated{suffix}"
         src.write_text(text, encoding="utf-8")
-        companions = dict(companions or {})
-        config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}
         for other, content in companions.items():  # beside the program, under its stem (KRL's .dat)
             (d / f"task{Path(other).suffix}").write_text(content, encoding="utf-8")
-        extra = []
+        config_path = None
         for content in config.values():  # KUKA's $config.dat: the TOOL_DATA and BASE_DATA the program selects
-            (d / "config.dat").write_text(content, encoding="utf-8")
-            extra = ["--config-dat", str(d / "config.dat")]
-        (d / "model.json").write_text(json.dumps(model_doc), encoding="utf-8")
-        (d / "nominal.json").write_text(json.dumps(nominal_doc), encoding="utf-8")
-        parser = argparse.ArgumentParser(prog="recal compensate")
-        command.add_parser(parser)
-        args = parser.parse_args(["--model", str(d / "model.json"), "--nominal", str(d / "nominal.json"),
-                                  "--task", str(src), "--out", str(out), "--mode", mode, "--report", str(report),
-                                  *extra])
+            config_path = d / "config.dat"
+            config_path.write_text(content, encoding="utf-8")
+        names = {str(src): name, **{str(d / f"task{Path(o).suffix}"): o for o in companions}}
+        if config_path is not None:
+            names[str(config_path)] = "$config.dat"
+
+        def ours(message: str) -> str:  # the user's file names, not our temporary ones
+            for path, user in names.items():
+                message = message.replace(path, user)
+            return message
+
         try:
-            with contextlib.redirect_stdout(io.StringIO()):  # its one-line summary names our temporary files
-                command.run(args)
-        except (Fail, InputError, ValueError) as exc:
-            message = str(exc).replace(str(src), name).replace(str(d / "config.dat"), "$config.dat")
-            for other in companions:
-                message = message.replace(str(d / f"task{Path(other).suffix}"), other)
-            raise CompensationInputError(message) from None
-        doc = json.loads(report.read_text(encoding="utf-8"))
+            fmt = programs.format_of(str(src), None)
+            frames = Frames.from_options([], [], str(config_path) if config_path else None) \
+                if fmt not in ("csv", "urscript") else None
+            req = CompensationRequest(task=str(src), out=str(out), model_label="the calibration's model", fmt=fmt,
+                                      mode=mode, nominal=nominal, calibrated=calibrated_range_of(model),
+                                      frames=frames, report=True)
+            result = compensate_task(model, req)
+        except (InputError, CompensationInputError, ValueError) as exc:
+            raise CompensationInputError(ours(str(exc))) from None
+        doc = result.report()
         doc["task"] = name
-        names = {f"task{Path(o).suffix}": o for o in companions or {}}
         for point in doc.get("points", []) + doc.get("uninterpreted", []):
-            if "file" in point:  # the user's file names, not our temporary ones
-                point["file"] = names.get(Path(point["file"]).name, name)
+            if "file" in point:
+                point["file"] = names.get(str(d / Path(point["file"]).name), name)
+        texts = [data if isinstance(data, str) else data.decode("utf-8", errors="replace")
+                 for _, data in result.outputs]
         if companions:
-            doc["files"] = [{"name": o, "text": (d / f"compensated{Path(o).suffix}").read_bytes().decode(
-                "utf-8", errors="replace")} for o in companions if (d / f"compensated{Path(o).suffix}").exists()]
-        return out.read_bytes().decode("utf-8", errors="replace"), doc
+            doc["files"] = [{"name": o, "text": t} for o, t in zip(companions, texts[1:])]
+        return texts[0], doc
 
 
 def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str]]:
@@ -94,18 +95,3 @@ def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str]]:
     if not files:
         raise CompensationInputError("expected at least one file in the multipart body")
     return files
-
-
-def _with_library(taskfiles, text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str):
-    from calibration.model import model_from_dict
-
-    model = model_from_dict(model_doc)
-    nominal = model_from_dict(nominal_doc)
-    suffix = Path(name).suffix or ".csv"
-    with tempfile.TemporaryDirectory() as tmp:
-        src = Path(tmp) / f"task{suffix}"
-        src.write_text(text, encoding="utf-8")
-        try:
-            return taskfiles.compensate_file(src, model=model, nominal=nominal, mode=mode)
-        except ValueError as exc:
-            raise CompensationInputError(str(exc).replace(str(src), name)) from None

@@ -25,14 +25,11 @@ docs/compensation.md.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
-import time
 
 import numpy as np
 
-CHUNK = 25_000
 
 
 def add_parser(s) -> None:
@@ -107,43 +104,19 @@ def _models(args):
 
 
 def _calibrated_range(args, model):
-    """(n, 2) joint ranges of the calibration data, SI, or None."""
+    """(n, 2) joint ranges of the calibration data (``--calibration-data``), else the ones the
+    identified model records, SI, or None."""
     from service.cli import Fail
+    from service.compensation import CompensationInputError, calibrated_range_of
     from service.files import read_joints
 
     if args.calibration_data:
         q = read_joints(args.calibration_data, model)
         return np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
-    ranges = (model.metadata.get("identification") or {}).get("joint_ranges")
-    if ranges is None:
-        return None
-    scale = np.array([model.units.angle_rad if j.revolute else model.units.length_m for j in model.joints])
     try:
-        r = np.asarray(ranges, dtype=float).reshape(model.n_joints, 2)
-    except (TypeError, ValueError):
-        raise Fail(f"{args.model}: field 'identification.joint_ranges': expected {model.n_joints} pairs "
-                   f"[lower, upper]") from None
-    return r * scale[:, None]
-
-
-def _frame(model, nominal, calibrated):
-    """``T_nominal_world`` and the RMS of the fit (m): where the nominal model's world (the
-    controller's base frame) sits, fitted over configurations of the calibrated region (or of the
-    joint limits, within ±180°)."""
-    from calibration.compensation import frame_map
-    from calibration.kinematics import fk
-    from calibration.simulate import random_configurations
-
-    # the frame is geometry: a compliant model's sag under gravity is what compensation corrects,
-    # not part of where the nominal model's world sits
-    model = dataclasses.replace(model, compliance=None)
-    rng = np.random.default_rng(0)
-    q = random_configurations(model, 256, rng, limits=calibrated)
-    M = frame_map(model, nominal, q)
-    p_id = fk(model, q)[:, :3, 3]
-    p_nom = fk(nominal, q)[:, :3, 3]
-    rms = float(np.sqrt(np.mean(np.sum((p_id @ M[:3, :3].T + M[:3, 3] - p_nom) ** 2, axis=1))))
-    return M, rms
+        return calibrated_range_of(model)
+    except CompensationInputError as exc:
+        raise Fail(f"{args.model}: {exc}") from None
 
 
 def _settings(args, model):
@@ -175,238 +148,6 @@ def _settings(args, model):
 # ----------------------------------------------------------------------------- running
 
 
-def _concat(parts):
-    if len(parts) == 1:
-        return parts[0]
-    first = parts[0]
-    out = {}
-    for f in dataclasses.fields(first):
-        v = getattr(first, f.name)
-        out[f.name] = np.concatenate([getattr(p, f.name) for p in parts]) if isinstance(v, np.ndarray) else v
-    from calibration.compensation import _message
-
-    out["message"] = _message(out["converged"], out["flags"])
-    return dataclasses.replace(first, **out)
-
-
-def _take(comp, idx):
-    """The points ``idx`` of a compensation result, in that order."""
-    return dataclasses.replace(comp, **{f.name: getattr(comp, f.name)[idx] for f in dataclasses.fields(comp)
-                                        if isinstance(getattr(comp, f.name), np.ndarray)})
-
-
-def _chunked(N, fn, t0):
-    """Run ``fn(slice)`` over chunks of the task, with a progress line once it takes > 2 s."""
-    from service.cli import progress
-
-    parts = []
-    for start in range(0, N, CHUNK):
-        parts.append(fn(slice(start, min(start + CHUNK, N))))
-        if time.perf_counter() - t0 > 2.0 and start + CHUNK < N:
-            progress(f"recal compensate: {start + CHUNK} of {N} points")
-    return _concat(parts)
-
-
-def _source_poses(q, taught, nominal, M):
-    """World poses (N, 4, 4) the joint vectors ``q`` gave the robot they were taught or planned on."""
-    from calibration.kinematics import fk
-
-    if taught is not None:
-        return fk(taught, q)
-    return np.linalg.inv(M) @ fk(nominal, q)
-
-
-def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    from calibration.compensation import (
-        compensate_joints,
-        compensate_targets,
-        flag_names,
-        nominal_solution,
-    )
-    from service.cli import Fail, progress
-    from service.taskfiles import format_task, read_task
-
-    task = read_task(args.task, model)
-    N = len(task)
-    M, fit_rms = _frame(model, nominal, calibrated) if nominal is not None else (np.eye(4), None)
-    only_q = task.has_q & ~task.has_pose
-    if np.any(only_q) and taught is None and nominal is None:
-        r = int(np.nonzero(only_q)[0][0])
-        raise Fail(f"{args.task}: row {r + 1} (line {task.table.lines[r]}) has only joints: give --nominal (they were "
-                   f"planned on it) or --taught-on MODEL (the robot they were taught on)")
-    X = task.T_world_tool.copy()
-    if np.any(only_q):
-        X[only_q] = _source_poses(task.q[only_q], taught, nominal, M)
-    q_near = np.where(task.has_q[:, None], np.nan_to_num(task.q), qnear)
-    if args.mode == "targets":
-        if nominal is None:
-            raise Fail(f"{args.model}: targets mode needs the nominal model the controller uses: give --nominal "
-                       f"NOMINAL.json (this model does not record the one it was identified from)")
-
-        def run(sl):
-            return compensate_targets(model, nominal, X[sl], q_near[sl], T_nominal_world=M,
-                                      keep_branch=task.has_q[sl], calibrated_range=calibrated, **kw)
-    else:
-        # the correction starts from the nominal controller's solution; without a nominal model,
-        # from the identified model's own inverse kinematics (numerical: calibration.ik.numerical_ik)
-        start = nominal if nominal is not None else model
-
-        def run(sl):
-            q0 = q_near[sl].copy()
-            reachable = np.ones(len(q0), dtype=bool)
-            changed = np.zeros(len(q0), dtype=bool)
-            rows = task.has_pose[sl]
-            if np.any(rows):
-                sol = nominal_solution(start, M @ X[sl][rows], q_near[sl][rows], keep_branch=task.has_q[sl][rows])
-                q0[rows], reachable[rows] = sol.q, sol.reachable
-                if sol.branch_changed is not None:
-                    changed[rows] = sol.branch_changed
-            return compensate_joints(model, X[sl], q0, reachable=reachable, branch_changed=changed,
-                                     calibrated_range=calibrated, **kw)
-
-    comp = _chunked(N, run, t0)
-    if time.perf_counter() - t0 > 2.0:
-        progress(f"recal compensate: {N} points compensated; writing {args.out}")
-    names = {int(b): ";".join(flag_names(b)) for b in np.unique(comp.flags)}
-    flags = [names[int(b)] for b in comp.flags]
-    text = format_task(task, model, args.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)
-    prefixes = [f'"row":{i + 1},"line":{line},' for i, line in enumerate(task.table.lines)]
-    return text, comp, prefixes, [], M, fit_rms
-
-
-def _g(x: float) -> str:
-    """A float as JSON text, 9 significant digits (``null`` if not finite)."""
-    return f"{x:.9g}" if np.isfinite(x) else "null"
-
-
-def _point_lines(comp, model, prefixes: list[str]) -> list[str]:
-    """One compact JSON object per point (``prefixes[i]``: its leading fields, JSON text ending
-    in a comma), in the model's units. Written directly: a 100,000-point report in about a
-    second, where ``json.dumps`` of dicts takes several."""
-    import json as _json
-
-    from calibration.compensation import flag_names
-
-    u = model.units
-    scales = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
-    res, ang = comp.residual_m / u.length_m, comp.residual_rad / u.angle_rad
-    corr = comp.correction / scales
-    names = {int(b): _json.dumps(flag_names(b)) for b in np.unique(comp.flags)}
-    return ["{" + prefixes[i]
-            + f'"converged":{"true" if comp.converged[i] else "false"},"iterations":{int(comp.iterations[i])},'
-            + f'"residual":{_g(res[i])},"residual_angle":{_g(ang[i])},'
-            + '"correction":[' + ",".join(_g(c) for c in corr[i]) + "],"
-            + f'"sigma_min":{_g(comp.sigma_min[i])},"flags":{names[int(comp.flags[i])]}' + "}"
-            for i in range(len(comp))]
-
-
-def _f(x, digits=9):
-    x = float(x)
-    return None if not np.isfinite(x) else float(f"{x:.{digits}g}")
-
-
-def _script(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    from calibration.compensation import (
-        compensate_joints,
-        compensate_targets,
-        nominal_solution,
-    )
-    from calibration.kinematics import fk
-    from calibration.transforms import pose_to_matrix
-    from service.cli import Fail
-    from service.taskfiles import matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur
-
-    script = parse_urscript(args.task, model.n_joints)
-    if not script.targets:
-        _no_targets(args, model, script)
-    if nominal is None:
-        raise Fail(f"{args.model}: a URScript program needs the nominal model its controller uses: give --nominal "
-                   f"NOMINAL.json (this model does not record the one it was identified from)")
-    M, fit_rms = _frame(model, nominal, calibrated)
-    B = pose_to_matrix(nominal.base)
-    n = model.n_joints
-    # program order: pose targets without qnear take the branch nearest the previous target (what
-    # the controller's get_inverse_kin does from the robot's current joints)
-    prev = qnear
-    pose_t, pose_seed, joint_t = [], [], []
-    for t in script.targets:
-        if t.pose is not None:
-            X_nom = B @ pose_to_matrix_ur(t.pose.values)
-            seed, keep = (t.joints.values, True) if t.joints is not None else (prev, False)
-            sol = nominal_solution(nominal, X_nom, seed, keep_branch=keep)
-            prev = sol.q[0]
-            pose_t.append(t)
-            pose_seed.append(sol.q[0])
-        else:
-            prev = t.joints.values
-            joint_t.append(t)
-    replacements, literals, prefixes, order = {}, {}, [], []
-    comps = []
-    if pose_t:
-        P = np.array([t.pose.values for t in pose_t])
-        X_nom = B @ pose_to_matrix_ur(P)
-        seeds = np.array(pose_seed)
-        X_d = np.linalg.inv(M) @ X_nom if taught is None else fk(taught, seeds)
-        cp = compensate_targets(model, nominal, X_d, seeds, T_nominal_world=M, keep_branch=True,
-                                calibrated_range=calibrated, **kw)
-        P_new = matrix_to_pose_ur(np.linalg.inv(B) @ cp.T_command, like=P)
-        for i, t in enumerate(pose_t):
-            replacements[id(t.pose)], literals[id(t.pose)] = P_new[i], t.pose
-            if t.joints is not None:
-                replacements[id(t.joints)], literals[id(t.joints)] = cp.q[i], t.joints
-            head = {"line": t.line, "move": t.move, "kind": "pose", "variable": t.pose.name,
-                    "qnear_variable": t.joints.name if t.joints is not None else None,
-                    "original": [float(v) for v in P[i]], "compensated": [_f(v, 12) for v in P_new[i]]}
-            order.append(t.line)
-            prefixes.append(json.dumps(head)[1:-1] + ",")
-        comps.append(cp)
-    if joint_t:
-        Q = np.array([t.joints.values for t in joint_t]).reshape(-1, n)
-        cj = compensate_joints(model, _source_poses(Q, taught, nominal, M), Q, calibrated_range=calibrated, **kw)
-        for i, t in enumerate(joint_t):
-            replacements[id(t.joints)], literals[id(t.joints)] = cj.q[i], t.joints
-            head = {"line": t.line, "move": t.move, "kind": "joints", "variable": t.joints.name,
-                    "original": [float(v) for v in Q[i]], "compensated": [_f(v, 12) for v in cj.q[i]]}
-            order.append(t.line)
-            prefixes.append(json.dumps(head)[1:-1] + ",")
-        comps.append(cj)
-    comp = _concat(comps) if len(comps) > 1 else comps[0]
-    # report the targets in program order
-    perm = np.argsort(order, kind="stable")
-    comp = _take(comp, perm)
-    prefixes = [prefixes[k] for k in perm]
-    skipped = [{"line": u.line, "text": u.text, "reason": u.reason} for u in script.uninterpreted]
-    return script.rewrite(replacements, literals), comp, prefixes, skipped, M, fit_rms
-
-
-def _program(args, model, nominal, taught, calibrated, kw, qnear, t0):
-    """RAPID, KRL or TP (``service.programs``)."""
-    from service import programs
-    from service.cli import Fail
-    from service.programs.compensate import compensate_program
-
-    fmt = programs.format_of(args.task, args.format)
-    prog = programs.parse(fmt, args.task, n_joints=model.n_joints, frames=_frames(args))
-    if not prog.targets:
-        _no_targets(args, model, prog)
-    if nominal is None:
-        raise Fail(f"{args.model}: a robot program needs the nominal model its controller uses: give --nominal "
-                   f"NOMINAL.json (this model does not record the one it was identified from)")
-    M, fit_rms = _frame(model, nominal, calibrated)
-    outputs, comp, prefixes = compensate_program(prog, model, nominal, taught, M, calibrated, kw)
-    skipped = [{"line": u.line, "text": u.text, "reason": u.reason} | ({"file": prog.paths[u.file]} if u.file else {})
-               for u in prog.uninterpreted]
-    paths = [args.out] + [_companion(args.out, p) for p in prog.paths[1:]]
-    return list(zip(paths, outputs)), comp, prefixes, skipped, M, fit_rms
-
-
-def _companion(out, path):
-    """Where a program's second file (KRL's .dat) goes: beside ``out``, with ``out``'s stem."""
-    from pathlib import Path
-
-    return str(Path(out).with_suffix(Path(path).suffix))
-
-
 def _frames(args):
     """``--tool-frame``, ``--base-frame`` and ``--config-dat`` for the program parsers."""
     from service.cli import Fail
@@ -418,57 +159,12 @@ def _frames(args):
         raise Fail(str(exc)) from None
 
 
-def _no_targets(args, model, script) -> None:
-    """A program without a single target to compensate is bad input. The message names the lines
-    left alone and why the first was; with ``--report`` the report is still written and lists
-    each with its text and reason (and no points), so that the hint can be followed. ``--out`` is
-    not written."""
-    from service.files import InputError, write_atomic
-
-    skipped = script.uninterpreted
-    if not skipped:
-        if hasattr(script, "brand"):
-            raise InputError(args.task, "no move target found; expected a program with move targets to compensate")
-        raise InputError(args.task, "no movej/movel/movep/movec call found; expected a URScript program with move "
-                                    "targets to compensate")
-    first = skipped[0]
-    lines = ", ".join(str(k.line) for k in skipped[:10])
-    if len(skipped) > 10:
-        lines += f" and {len(skipped) - 10} more"
-    what = "move" if hasattr(script, "brand") else "movej/movel/movep/movec"
-    message = (f"no {what} target could be interpreted: {len(skipped)} line(s) left alone (line "
-               f"{lines}), the first because {first.reason}")
-    where = ("the report lists each with its text and reason" if args.report
-             else "--report R.json lists each with its text and reason")
-    if args.report:
-        u = model.units
-        report = {"format": "recal.compensation-report/1", "task": str(args.task), "model": model.name,
-                  "mode": "script", "units": {"length": u.length, "angle": u.angle}, "error": message,
-                  "summary": {"points": 0, "converged": 0},
-                  "uninterpreted": [{"line": k.line, "text": k.text, "reason": k.reason} for k in skipped],
-                  "points": []}
-        write_atomic(args.report, json.dumps(report, indent=1) + "\n")
-    raise InputError(args.task, f"{message}; {where}", line=first.line)
-
-
-def _notes(model) -> list[str]:
-    """What the user of the compensated file must know about the model it came from: a tool
-    orientation the calibration data could not determine (position-only data) stays the nominal
-    one, so orientations are compensated only as far as the identified joints go."""
-    held = [u["name"] for u in (model.metadata.get("identification") or {}).get("unidentifiable", [])
-            if u.get("category") == "tool_orientation"]
-    if not held:
-        return []
-    return [f"the calibration did not determine the tool orientation ({', '.join(held)}: position-only "
-            f"data); the compensated orientations keep the nominal tool frame's, positions are compensated fully"]
-
-
 def run(args) -> int:
-    from calibration.transforms import matrix_to_pose
+    from service.cli import progress
+    from service.compensation import CompensationRequest, NoTargetsError, compensate_task
     from service.files import InputError, check_output, write_atomic
-    from service.programs import BRAND, format_of
+    from service.programs import format_of
 
-    t0 = time.perf_counter()
     fmt = format_of(args.task, getattr(args, "format", None))
     if fmt == "csv" and str(args.task).lower().endswith(".dat"):
         raise InputError(args.task, "a KRL program is compensated from its .src (the .dat beside it is read and "
@@ -477,53 +173,33 @@ def run(args) -> int:
         if path:
             check_output(path)
     model, nominal, taught = _models(args)
-    calibrated = _calibrated_range(args, model)
     kw, qnear = _settings(args, model)
-    script = fmt != "csv"
-    handler = _script if fmt == "urscript" else _program if fmt in BRAND else _csv
-    output, comp, prefixes, skipped, M, fit_rms = handler(args, model, nominal, taught, calibrated, kw, qnear, t0)
-    u = model.units
-    L = u.length_m
-    counts = {name: comp.count(name) for name in
-              ("joint_limit", "near_singular", "outside_calibrated_region", "no_convergence", "branch_change",
-               "unreachable")}
-    summary = {
-        "points": len(comp), "converged": int(np.count_nonzero(comp.converged)),
-        "residual_max": _f(comp.residual_m.max(initial=0.0) / L),
-        "residual_angle_max": _f(comp.residual_rad.max(initial=0.0) / u.angle_rad),
-        "correction_max": _f(np.abs(comp.correction).max(initial=0.0) / u.angle_rad),
-        "flags": counts,
-        "notes": _notes(model),
-    }
+    req = CompensationRequest(task=args.task, out=args.out, model_label=args.model, fmt=fmt, mode=args.mode,
+                              nominal=nominal, taught=taught, calibrated=_calibrated_range(args, model), settings=kw,
+                              qnear=qnear, frames=_frames(args) if fmt not in ("csv", "urscript") else None,
+                              report=bool(args.report))
+    try:
+        result = compensate_task(model, req, progress=progress)
+    except NoTargetsError as exc:
+        if args.report and exc.report is not None:  # the report says which lines were left alone, and why
+            write_atomic(args.report, json.dumps(exc.report, indent=1) + "\n")
+        raise
     if args.report:
-        pose = matrix_to_pose(M)
-        report = {
-            "format": "recal.compensation-report/1",
-            "task": str(args.task), "model": model.name, "nominal": nominal.name if nominal is not None else None,
-            "mode": ("script" if fmt == "urscript" else fmt) if script else args.mode,
-            "units": {"length": u.length, "angle": u.angle},
-            "frame": {"T_nominal_world": [_f(v / L) for v in pose[:3]] + [_f(v / u.angle_rad) for v in pose[3:]],
-                      "fit_rms": _f(fit_rms / L) if fit_rms is not None else None},
-            "calibrated_region": None if calibrated is None else [
-                [_f(v / (u.angle_rad if j.revolute else L)) for v in r] for r, j in zip(calibrated, model.joints)],
-            "summary": summary, "uninterpreted": skipped,
-            "elapsed_s": round(time.perf_counter() - t0, 3),
-        }
-        head = json.dumps(report, indent=1)
-        lines = _point_lines(comp, model, prefixes)
-        write_atomic(args.report, head[:-2] + ',\n "points": [\n  ' + ",\n  ".join(lines) + "\n ]\n}\n")
-    for path, data in (output if isinstance(output, list) else [(args.out, output)]):
+        write_atomic(args.report, result.report_text())
+    for path, data in result.outputs:
         write_atomic(path, data)
-    for s in skipped:
-        print(f"warning: {s.get('file', args.task)}, line {s['line']}: not compensated ({s['reason']}): {s['text']}", file=sys.stderr)
+    for s in result.skipped:
+        print(f"warning: {s.get('file', args.task)}, line {s['line']}: not compensated ({s['reason']}): {s['text']}",
+              file=sys.stderr)
+    summary = result.summary
     for note in summary["notes"]:
         print(f"note: {note}", file=sys.stderr)
-    flagged = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
+    flagged = ", ".join(f"{k} {v}" for k, v in summary["flags"].items() if v)
     label = {"urscript": "URScript", "rapid": "RAPID", "krl": "KRL", "fanuc-tp": "Fanuc TP"}.get(fmt)
-    print(f"compensated {len(comp)} points ({label or args.mode + ' mode'}): "
-          f"{summary['converged']} converged, residual max {_shown(summary['residual_max'])} {u.length}"
+    print(f"compensated {len(result.comp)} points ({label or args.mode + ' mode'}): "
+          f"{summary['converged']} converged, residual max {_shown(summary['residual_max'])} {model.units.length}"
           + (f"; flagged: {flagged}" if flagged else "")
-          + f"; wrote {', '.join(p for p, _ in output) if isinstance(output, list) else args.out}")
+          + f"; wrote {', '.join(str(p) for p, _ in result.outputs)}")
     return 0
 
 

@@ -26,7 +26,14 @@ import json
 import numpy as np
 
 from calibration import vendors
-from calibration.compensation import FLAG_BIT, compensate_joints, compensate_targets
+from calibration.compensation import (
+    FLAG_BIT,
+    compensate_joints,
+    compensate_targets,
+    concatenate,
+    source_poses,
+    take,
+)
 from calibration.ik import numerical_ik
 from calibration.kinematics import fk
 from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
@@ -103,8 +110,6 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
     """The compensated files (bytes, one per file of ``prog``), the
     :class:`~calibration.compensation.Compensation` of every target in program order, and the
     report's leading fields per target (JSON text ending in a comma)."""
-    from service.commands.compensate import _concat, _source_poses, _take
-
     brand = prog.brand
     B = pose_to_matrix(nominal.base)
     groups: dict[bytes, list[int]] = {}
@@ -179,16 +184,16 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
         if joints:
             ts = [prog.targets[i] for i in joints]
             Q = np.array([t.q for t in ts])
-            cj = compensate_joints(ide, _source_poses(Q, tau, nom, M), Q, calibrated_range=calibrated, **kw)
+            cj = compensate_joints(ide, source_poses(Q, tau, nom, M), Q, calibrated_range=calibrated, **kw)
             for k, t in enumerate(ts):
                 texts = [written(n, v, "deg") for n, v in zip(t.joints, np.degrees(cj.q[k]))]
                 edits += list(zip(t.joints, texts))
                 heads.append(_head(prog, t, [n.text for n in t.joints], texts, None))
                 order.append((t.file, t.line))
             parts.append(cj)
-    comp = _concat(parts)
+    comp = concatenate(parts)
     perm = sorted(range(len(order)), key=lambda k: order[k])
-    comp = _take(comp, np.array(perm, dtype=int))
+    comp = take(comp, np.array(perm, dtype=int))
     heads = [heads[k] for k in perm]
     return prog.rewrite(edits), comp, heads
 

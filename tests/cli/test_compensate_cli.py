@@ -72,9 +72,9 @@ def files(tmp_path_factory):
     rng = np.random.default_rng(3)
     q = task_q(rng, 40)
     # desired poses: where the robot was planned to be, in the world of the identified model
-    from service.commands.compensate import _frame
+    from calibration.compensation import nominal_world_frame
 
-    M, _ = _frame(ident, nominal, np.radians(ranges))
+    M, _ = nominal_world_frame(ident, nominal, np.radians(ranges))
     X = np.linalg.inv(M) @ fk(nominal, np.radians(q))
     quat = matrix_to_quat(X[:, :3, :3])
     lines = ["# planned off line", "name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6"]
@@ -282,9 +282,9 @@ def test_identify_then_compensate_uses_what_identify_recorded(tmp_path):
     T[:, :3, :3], T[:, :3, 3] = quat_to_matrix(P[:, 3:]), P[:, :3] * MM
     qt = np.radians([[10, -90, 80, -80, 90, 0], [150, -90, 80, -80, 90, 0]])
     ctrl = inverse_kinematics(robots.nominal("ur10e"), T, qt)
-    from service.commands.compensate import _frame
+    from calibration.compensation import nominal_world_frame
 
-    M, _ = _frame(ident, robots.nominal("ur10e"), np.radians(doc["identification"]["joint_ranges"]))
+    M, _ = nominal_world_frame(ident, robots.nominal("ur10e"), np.radians(doc["identification"]["joint_ranges"]))
     meant = np.linalg.inv(M) @ fk(robots.nominal("ur10e"), qt)
     assert np.abs(fk(ident, ctrl.q)[:, :3, 3] - meant[:, :3, 3]).max() < 1e-6
 

@@ -39,9 +39,9 @@ def models(d: Path, brand: str, seed: int = 1):
 
 
 def frame_of(true, nominal):
-    from service.commands.compensate import _frame
+    from calibration.compensation import nominal_world_frame
 
-    return _frame(true, nominal, None)[0]
+    return nominal_world_frame(true, nominal, None)[0]
 
 
 def skeleton(data: bytes) -> bytes:

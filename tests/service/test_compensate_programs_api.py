@@ -43,13 +43,13 @@ def test_a_krl_program_and_its_dat_as_multipart(calibrated, tokens):
     # as the command's)
     model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"])
     nominal = model_from_dict(client.get(f"/api/v1/cells/{cell}", headers=auth(tokens["viewer"])).json()["model"])
-    import argparse
     import dataclasses
 
     from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
-    from service.commands.compensate import _calibrated_range, _frame
+    from calibration.compensation import nominal_world_frame
+    from service.compensation import calibrated_range_of
 
-    M = _frame(model, nominal, _calibrated_range(argparse.Namespace(calibration_data=None, model=""), model))[0]
+    M = nominal_world_frame(model, nominal, calibrated_range_of(model))[0]
     # no $TOOL in the program: the flange ($NULLFRAME), with the identified tool's correction kept
     flange = dataclasses.replace(nominal, tool=np.zeros(6))
     model = dataclasses.replace(model, tool=matrix_to_pose(pose_to_matrix(model.tool) @ invert(
