@@ -210,7 +210,7 @@ async function pagedCalibrations(box, id, offset, unit) {
   const page = await get(`/cells/${id}/history?limit=10&offset=${offset}`);
   const rows = page.items.map((c) => [h("a", { href: `#/calibrations/${c.id}` }, `#${c.id}`), c.kind,
     c.rms != null ? num(c.rms, 3) : "–", h("span", { class: "nowrap" }, whenShort(c.created_at))]);
-  put(box, rows.length ? table(["", "Kind", `RMS (${unit})`, "Date"], rows, { class: "calibrations" })
+  put(box, rows.length ? table(["", "Kind", `Fit residual RMS (${unit})`, "Date"], rows, { class: "calibrations" })
     : h("p", { class: "muted" }, "No calibrations yet."),
     pager(page.total, offset, 10, (o) => pagedCalibrations(box, id, o, unit)));
 }
