@@ -95,15 +95,12 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     return public_session(db, run)
 
 
-def forget_dry_runs(db, cell_id: int, *, keep: int | None = None) -> None:
-    """Delete the cell's finished dry runs (but ``keep``). A dry run ("Show the plan") is a plan
-    to confirm, not a session: it is kept only until the next one or until its plan runs, and
-    never appears in the cell's history. Dry runs have no measurements."""
-    q = delete(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == True,  # noqa: E712
-                                 RunSession.state.not_in(ACTIVE))
-    if keep is not None:
-        q = q.where(RunSession.id != keep)
-    db.execute(q)
+def forget_dry_runs(db, cell_id: int) -> None:
+    """Delete the cell's finished dry runs. A dry run ("Show the plan") is a plan to confirm
+    (and to run, ``POST /sessions/{id}/run``, as often as wanted), not a session: only the
+    cell's latest is kept, and session lists leave it out. Dry runs have no measurements."""
+    db.execute(delete(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == True,  # noqa: E712
+                                        RunSession.state.not_in(ACTIVE)))
     db.commit()
 
 

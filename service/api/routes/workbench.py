@@ -20,7 +20,7 @@ from ...models import Calibration, Cell, RunSession
 from ...results import _aware, plan_preview, session_live
 from ...store import audit, measured_count
 from ..deps import DbSession, Orchestrator, Reader, Runner
-from .sessions import ACTIVE, commit_planned, forget_dry_runs, public_session
+from .sessions import ACTIVE, commit_planned, public_session
 
 router = APIRouter(tags=["workbench"])
 
@@ -353,7 +353,6 @@ def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestr
     db.refresh(run)
     audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
           detail={"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id})
-    forget_dry_runs(db, cell.id)  # its plan is the new session's now
     if not queued:
         orchestrator.start(run.id)
     return public_session(db, run)
