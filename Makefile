@@ -16,11 +16,25 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/recal demo
 
+# The browser tests (tests/web) drive Debian's Chromium through Playwright (never `playwright
+# install`): installed here when it is missing and this is Debian as root; otherwise those tests
+# are skipped, and pytest's summary says why.
+browser:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    apt-get update -qq && apt-get install -y -qq chromium; \
+	  else \
+	    echo "make: no chromium here; the browser tests will be skipped (as root on Debian: apt-get install chromium)"; \
+	  fi; }
+
 # One BLAS thread: Recal's matrices are small and a 2-core machine is shared (see service/cli.py).
-test: $(STAMP)
+# The PostgreSQL tests run when RECAL_TEST_POSTGRES_URL names a server where they may create and
+# drop databases (`make test RECAL_TEST_POSTGRES_URL=postgresql+psycopg://postgres@127.0.0.1:5432/postgres`;
+# .ci/run sets it); without it they are skipped, and pytest's summary says so.
+test: $(STAMP) browser
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	$(BIN)/python bench/identify.py
 
-.PHONY: install demo test bench
+.PHONY: install demo test bench browser

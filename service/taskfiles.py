@@ -34,7 +34,7 @@ import numpy as np
 from calibration.model import KinematicModel
 from calibration.transforms import homogeneous, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, rotvec_to_matrix
 
-from .files import InputError, Table, read_table
+from .files import MAX_MAGNITUDE_SI, InputError, Table, read_table
 
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 RESULT_COLUMNS = ("converged", "residual", "flags")
@@ -460,6 +460,13 @@ def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | Non
                                              f"uses target variable {m.group()} in an expression: this use sees the "
                                              f"compensated value and is not itself compensated"))
                 break
+    for t in targets:  # numbers no robot cell can have (1e308) are a slip: named, never compensated
+        for lit in (t.pose, t.joints):
+            if lit is not None and np.any(np.abs(lit.values) > MAX_MAGNITUDE_SI):
+                v = float(lit.values[np.argmax(np.abs(lit.values))])
+                raise InputError(path, f"{_line(text, lines, lit.line).strip()}: {v:g} is beyond any robot cell; expected "
+                                       f"a magnitude of at most {MAX_MAGNITUDE_SI:g} (URScript: metres, radians)",
+                                 line=lit.line)
     skipped.sort(key=lambda u: u.line)
     dedup, seen = [], set()
     for u in skipped:

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -32,12 +34,24 @@ from calibration.simulate import perturbed, random_configurations, simulate_meas
 
 BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0.03, -0.052, 0.04]}
 
+# The simulated cell's clock: every move and measurement takes this fraction of the time it takes
+# on the real robot at the service's speed caps. 0.15 gives about one pose a second, slow enough
+# to watch a session's progress on the web page (and pause or resume it); 0 is as fast as the
+# machine goes (the tests).
+DEMO_TIME_SCALE = 0.15
+SHOWN = 8  # undetermined parameters listed; the rest are counted ("and N more")
+
 
 def add_parser(s) -> None:
     s.add_argument("--robot", default="ur10e", help="library robot to simulate (default ur10e)")
     s.add_argument("--poses", type=int, default=40, help="configurations of the pose session (default 40)")
     s.add_argument("--seed", type=int, default=1)
-    s.add_argument("--dir", default="demo-output", help="folder for the database, logs and files")
+    s.add_argument("--dir", default=None,
+                   help="the demo's RECAL_HOME: its database, logs, tokens and files (default $RECAL_HOME if set, "
+                        "else demo-output)")
+    s.add_argument("--time-scale", type=float, default=DEMO_TIME_SCALE,
+                   help=f"the simulated cell's speed: a fraction of real time (default {DEMO_TIME_SCALE:g}, about one "
+                        f"pose a second; 0: as fast as possible)")
     s.add_argument("--host", default="127.0.0.2", help="loopback address of the simulated cell")
     s.add_argument("--port", type=int, default=8000, help="port of the service")
     s.add_argument("--exit", action="store_true", help="stop the service and the cell when done")
@@ -60,6 +74,13 @@ def _truth_and_nominal(args):
 
 
 def run(args) -> int:
+    from service.cli import Fail
+
+    if args.dir is None:  # the live demo's service uses it as its RECAL_HOME, so `recal token create` finds it
+        live = not (args.offline or args.models_only)
+        args.dir = (os.environ.get("RECAL_HOME") if live else None) or "demo-output"
+    if not (args.time_scale >= 0 and args.time_scale <= 100):
+        raise Fail(f"--time-scale: expected a number from 0 to 100, got {args.time_scale}")
     if args.models_only:
         return _models_only(args)
     return _offline(args) if args.offline else _live(args)
@@ -106,9 +127,18 @@ def _live(args) -> int:
     def say(msg):
         print(msg, flush=True)
 
+    # `kill` (SIGTERM) stops the demo as Ctrl-C does: its service and simulated cell with it.
+    def terminate(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    say(f"RECAL_HOME={out}   (the demo's database, logs and tokens; `RECAL_HOME={out} recal token create "
+        f"--role technician` makes another token for this service)")
+    say(f"technician token: {tech}   (admin: {admin}; both in {out / 'tokens.txt'})")
     cell = service = None
     try:
-        cell = start_fake_cell(out / "truth.json", args.host, seed=args.seed, log_path=out / "fake-cell.log")
+        cell = start_fake_cell(out / "truth.json", args.host, seed=args.seed, time_scale=args.time_scale,
+                               log_path=out / "fake-cell.log")
         say(f"simulated cell ready on {args.host}: {', '.join(k for k in cell.ready if k != 'ready')}")
         service = start_service(out, args.port, env={"RECAL_SETTLE_S": "0"}, log_path=out / "service.log")
         url = service.ready["url"]
@@ -146,14 +176,21 @@ def _live(args) -> int:
         (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
         (out / "report.json").write_text(json.dumps(cal["report"], indent=2) + "\n")
         say("")
-        reg = before.get("registered", {})
-        say(f"accuracy before: RMS {before['rms']:.1f} mm with the nominal model as it stands (the tracker's "
-            f"placement is unknown); RMS {reg.get('rms', float('nan')):.3f} mm, max {reg.get('max', float('nan')):.3f} mm "
-            f"even with its base placed where it fits best")
-        say(f"accuracy after:  RMS {after['rms']:.4f} mm, max {after['max']:.4f} mm")
+        reg = before.get("registered")
+        if reg:  # the robot's own inaccuracy first; where the tracker stands is not the robot's error
+            say(f"accuracy before: RMS {reg['rms']:.3f} mm, max {reg['max']:.3f} mm (the nominal model, with the "
+                f"robot placed where it fits the tracker best; {before['rms']:.0f} mm RMS before the tracker's "
+                f"placement is known)")
+        else:
+            say(f"accuracy before: RMS {before['rms']:.3f} mm, max {before['max']:.3f} mm (the nominal model)")
+        say(f"accuracy after:  RMS {after['rms']:.4f} mm, max {after['max']:.4f} mm (the calibrated model, "
+            f"on {after['n']} fresh configurations)")
         say("parameters the data cannot determine (and why):")
-        for u in cal["report"]["unidentifiable"][:8]:
+        undetermined = cal["report"]["unidentifiable"]
+        for u in undetermined[:SHOWN]:
             say(f"  - {u['name']}: {u['reason']}")
+        if len(undetermined) > SHOWN:
+            say(f"  ... and {len(undetermined) - SHOWN} more ({out / 'report.json'} lists all {len(undetermined)})")
         say("")
         say(f"where to look: {url}/            (web page; log in with the technician token in {out / 'tokens.txt'})")
         say(f"               {url}/docs        (the REST API, OpenAPI at {url}/openapi.json)")
@@ -167,9 +204,11 @@ def _live(args) -> int:
     except KeyboardInterrupt:
         return 0
     finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the clean-up short
         for p in (service, cell):
             if p is not None:
                 p.stop()
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _write_measurements(path: Path, model, data) -> None:

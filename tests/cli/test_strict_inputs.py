@@ -157,3 +157,13 @@ def test_1e308_in_a_task_row_is_named_and_compensate_writes_nothing(files, tmp_p
     status, err = _run(capsys, "compensate", "--model", files / "nominal.json", "--task", bad, "--out", out)
     _one_line(status, err, str(bad), "row 2", "column 'x'", "1e308")
     assert not out.exists()
+
+
+def test_1e308_in_a_urscript_target_is_named_and_compensate_writes_nothing(files, tmp_path, capsys):
+    prog = tmp_path / "prog.script"
+    prog.write_text("def prog():\n  movej([0.1, -1.2, 1.3, -1.6, -1.5, 0.2], a=1.2, v=0.5)\n"
+                    "  movej([0.1, -1.2, 1.3, -1.6, -1.5, 1e308], a=1.2, v=0.5)\nend\n")
+    out = tmp_path / "out.script"
+    status, err = _run(capsys, "compensate", "--model", files / "nominal.json", "--task", prog, "--out", out)
+    _one_line(status, err, str(prog), "line 3", "1e+308")
+    assert not out.exists()

@@ -135,3 +135,4 @@ def test_a_cell_with_a_session_under_way_is_not_deleted(app, tokens):
     r = app.delete(f"/api/v1/cells/{cell['id']}", headers=auth(tokens["admin"]))
     assert r.status_code == 409 and f"session {s['id']}" in r.json()["detail"]
     assert app.delete(f"/api/v1/sessions/{s['id']}", headers=auth(tokens["admin"])).status_code == 409
+

@@ -7,7 +7,7 @@ Calibrations come from simulated measurements stored as a session would store th
 from __future__ import annotations
 
 import pytest
-from sqlmodel import Session
+from sqlmodel import Session, select
 
 from service.models import RunSession
 from service.store import make_engine
@@ -114,13 +114,15 @@ def test_plan_of_a_dry_run_then_run_exactly_that_plan(client, settings, tokens):
     assert r.status_code == 422 and "tracker" in r.text
     client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": {"tracker": "socket://127.0.0.1:9", "rtde": "x"}},
                  headers=t)
+    engine = make_engine(settings.effective_database_url)
+    with Session(engine) as db:
+        shown = db.get(RunSession, dry["id"]).plan
     r = client.post(f"/api/v1/sessions/{dry['id']}/run", headers=t)
     assert r.status_code == 201, r.text
     run = r.json()
     assert run["planned"] == 25 and not run["dry_run"] and run["plan_info"]["from_dry_run"] == dry["id"]
-    engine = make_engine(settings.effective_database_url)
     with Session(engine) as db:
-        assert db.get(RunSession, run["id"]).plan == db.get(RunSession, dry["id"]).plan
+        assert db.get(RunSession, run["id"]).plan == shown
     engine.dispose()
     # only one session drives a cell; a session that is not a dry run cannot be "run"
     assert client.post(f"/api/v1/sessions/{dry['id']}/run", headers=t).status_code == 409
@@ -154,3 +156,27 @@ def test_library_robots(client, tokens):
     assert "ur10e" in names
     assert client.get("/api/v1/library/robots/ur10e", headers=v).json()["format"] == "recal.model/1"
     assert client.get("/api/v1/library/robots/nope", headers=v).status_code == 404
+
+
+def test_showing_the_plan_stores_no_session(client, settings, tokens):
+    # "Show the plan" (a dry run) is a plan to confirm: the cell's sessions never list it, and
+    # showing a plan again replaces the previous one instead of adding a session each time
+    from service.orchestrator import run_session
+
+    cell = _cell(client, tokens, "plans-only")
+    t = auth(tokens["technician"])
+    engine = make_engine(settings.effective_database_url)
+    ids = []
+    for _ in range(3):
+        dry = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 5, "dry_run": True},
+                          headers=t).json()
+        assert run_session(engine, settings, dry["id"]) == "completed"
+        ids.append(dry["id"])
+    with Session(engine) as db:
+        stored = [r.id for r in db.exec(select(RunSession).where(RunSession.cell_id == cell["id"])).all()]
+    engine.dispose()
+    assert stored == ids[-1:]
+    v = auth(tokens["viewer"])
+    assert client.get(f"/api/v1/cells/{cell['id']}/sessions", headers=v).json() == []
+    assert client.get(f"/api/v1/cells/{cell['id']}/session-list", headers=v).json()["items"] == []
+    assert client.get(f"/api/v1/sessions/{ids[-1]}/plan", headers=v).json()["configurations"] == 5

@@ -412,7 +412,7 @@ def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     shot(page, "30-cell-with-1000-calibrations")
     t = time.monotonic()
     page.goto(f"{stack.url}/#/")
-    page.wait_for_selector(f"[data-cell='{cell_id}'] svg.spark polyline")
+    page.wait_for_selector(f"[data-cell='{cell_id}'] .accuracy:has-text('not verified yet')")
     overview_s = time.monotonic() - t
     cells_total = web.api(stack, "GET", "/overview?limit=1")["total"]
     pager = page.inner_text("#overview-pager")
@@ -443,11 +443,12 @@ def test_page_fits_a_portrait_tablet(page, stack, web):
     page.wait_for_selector("#test-devices")
     assert page.evaluate(fits)
     assert web.overflowing(page) == []
-    if len(cell["trend"]) > 1:
+    if len(cell["verified"]) > 1:
         ticks = page.locator("svg[aria-label='accuracy trend'] g.axes text:not(.label)").all_text_contents()
         assert len([t for t in ticks if ":" in t]) >= 2, ticks  # times along the x axis, not one lone "1"
         tips = page.locator("svg[aria-label='accuracy trend'] circle title").all_text_contents()
-        assert all(t.startswith("calibration ") for t in tips) and len(tips) == len(cell["trend"]), tips
+        assert all(t.startswith("calibration ") and " verified " in t for t in tips), tips
+        assert len(tips) == len(cell["verified"]), tips
     shot(page, "41-portrait-cell")
     if cell["last"]:
         page.goto(f"{stack.url}/#/calibrations/{cell['last']['id']}")
@@ -457,3 +458,110 @@ def test_page_fits_a_portrait_tablet(page, stack, web):
         widths = page.eval_on_selector_all(".stat .value", "vs => vs.map(v => [v.scrollWidth, v.clientWidth])")
         assert widths and all(sw <= cw for sw, cw in widths), widths
         shot(page, "42-portrait-result")
+
+
+def _wait_done(api, stack, session_id: int, timeout_s: float = 90) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while (s := api(stack, "GET", f"/sessions/{session_id}"))["state"] not in ("completed", "failed", "aborted", "paused"):
+        assert time.monotonic() < deadline, s
+        time.sleep(0.2)
+    assert s["state"] == "completed", s
+    return s
+
+
+def js_num(v: float, digits: int = 3) -> str:
+    """A figure as the page's ``num`` writes it (service/web/js/ui.js)."""
+    import math
+
+    if v == 0:
+        return "0"
+    d = max(0, digits - 1 - math.floor(math.log10(abs(v))))
+    return f"{v:.{min(d, 8)}f}"
+
+
+TEXT_OUTSIDE_DETAILS = """() => { const c = document.querySelector('#app, main, body').cloneNode(true);
+  c.querySelectorAll('details#details').forEach((d) => d.remove()); return c.textContent; }"""
+
+
+def test_figures_and_banners_say_what_happened_in_a_technicians_words(page, stack, web, tmp_path):
+    """The nominal model's check leads with the robot's own error (placed where it fits best), in
+    mm; a calibration says "Calibrated", its mathematics folded into details; "Show the plan"
+    stores no session; the cell card's accuracy is the verified one; an error toast names the
+    file, not "body"."""
+    shot, sign_in, api = web.shot, web.sign_in, web.api
+    doc = json.loads(stack.nominal_path.read_text())
+    # the second simulated cell (no injected fault) under a name of its own
+    cell_id = api(stack, "POST", "/cells", {"name": "words and figures", "model": doc,
+                                            "devices": stack.crashed_cell_ready})["id"]
+    nominal = _wait_done(api, stack, api(stack, "POST", f"/cells/{cell_id}/sessions",
+                                         {"kind": "verify", "count": 6, "target": "smr"})["id"])
+    v = nominal["plan_info"]["verify"]
+    sign_in(page, stack)
+    page.goto(f"{stack.url}/#/sessions/{nominal['id']}")
+    page.wait_for_selector("#done-banner")
+    banner = page.inner_text("#done-banner")
+    assert banner.startswith("Not calibrated yet.") and "Completed" not in banner, banner
+    assert "banner-warn" in page.get_attribute("#done-banner", "class")
+    registered, raw = js_num(v["registered"]["rms"]), js_num(v["rms"])
+    assert f"{registered} mm RMS" in banner and banner.index(registered) < banner.index(raw), banner
+    shot(page, "50-nominal-verified")
+
+    # "Show the plan" twice, then run the second plan: no dry run is left among the sessions
+    page.goto(f"{stack.url}/#/cells/{cell_id}/start")
+    page.wait_for_selector("#plan")
+    page.fill("#count", "12")
+    for _ in range(2):
+        shown = page.query_selector("#confirm-start")
+        page.click("#plan")
+        if shown is not None:  # the new plan replaces the one shown
+            shown.wait_for_element_state("hidden")
+        page.wait_for_selector("#confirm-start:not([disabled])")
+    page.click("#confirm-start")
+    confirm(page, "Start the session?")
+    page.wait_for_url(re.compile(r"#/sessions/\d+$"))
+    page.wait_for_selector("#open-result", timeout=90_000)
+    done = page.inner_text("#done-banner")
+    assert done.startswith("Calibrated.") and "12 poses" in done, done
+    sessions = api(stack, "GET", f"/cells/{cell_id}/sessions")
+    assert [s["kind"] for s in sessions] == ["pose", "verify"] and not any(s["dry_run"] for s in sessions), sessions
+
+    # the result: the identification's terms are in a closed "details" fold
+    page.click("#open-result")
+    page.wait_for_selector("#summary")
+    assert page.get_attribute("details#details", "open") is None
+    outside = page.evaluate(TEXT_OUTSIDE_DETAILS)
+    for term in ("ftol", "χ²", "chi2", "Hayati"):
+        assert term not in outside, term
+    page.click("details#details summary")
+    assert "χ² / dof" in page.inner_text("details#details")
+    # a bad task file: the toast names the file, row and column, not the request's "body"
+    bad = tmp_path / "bad-task.csv"
+    bad.write_text("q1,q2,q3,q4,q5,q6\n0,abc,0,0,0,0\n")
+    page.set_input_files("#task-file", str(bad))
+    page.click("#compensate")
+    toast = page.locator("#toasts .notice-error").last
+    toast.wait_for()
+    text = toast.inner_text()
+    assert text.startswith("bad-task.csv, row 1") and "column 'q2'" in text and not text.startswith("body"), text
+
+    # after a verify session, the cell card's accuracy is its result (fresh configurations)
+    check = _wait_done(api, stack, api(stack, "POST", f"/cells/{cell_id}/sessions",
+                                       {"kind": "verify", "count": 6, "target": "smr"})["id"])
+    rms = check["plan_info"]["verify"]["rms"]
+    summary = api(stack, "GET", f"/cells/{cell_id}/summary")
+    assert summary["accuracy"]["session_id"] == check["id"] and summary["accuracy"]["rms"] == rms
+    order = [c["id"] for c in api(stack, "GET", "/overview?limit=500")["cells"]]
+    page.goto(f"{stack.url}/#/page/{order.index(cell_id) // 30 + 1}")  # the overview shows 30 cells a page
+    card = page.locator(f".cell-card[data-cell='{cell_id}'] .accuracy")
+    card.wait_for()
+    assert card.locator(".big").inner_text() == f"{js_num(rms)} mm"
+    assert "fresh configurations" in card.inner_text()
+    page.goto(f"{stack.url}/#/cells/{cell_id}")
+    page.wait_for_selector("#last-calibration")
+    assert "fresh configurations" in page.inner_text("#last-calibration >> xpath=..")
+    shot(page, "51-cell-verified-accuracy")
+
+    # the register form claims no endpoint line from `make demo`
+    page.goto(f"{stack.url}/#/cells/new")
+    page.wait_for_selector("#endpoint-line")
+    assert "make demo" not in page.inner_text("main, body")

@@ -135,9 +135,11 @@ def create_session(cell_id: int, body: SessionCreate, db: DbSession, tok: Runner
 
 
 @router.get("/cells/{cell_id}/sessions", response_model=list[SessionPublic])
-def list_sessions(cell_id: int, db: DbSession, tok: Reader, limit: int = 50):
+def list_sessions(cell_id: int, db: DbSession, tok: Reader, limit: int = 50, dry_runs: bool = False):
+    """The cell's sessions, newest first; dry runs (plans shown, nothing measured) only if asked."""
     get_cell(db, cell_id)
-    rows = db.exec(select(RunSession).where(RunSession.cell_id == cell_id).order_by(RunSession.id.desc())
+    where = [RunSession.cell_id == cell_id] + ([] if dry_runs else [RunSession.dry_run == False])  # noqa: E712
+    rows = db.exec(select(RunSession).where(*where).order_by(RunSession.id.desc())
                    .limit(max(1, min(limit, 1000)))).all()
     return [public_session(db, r) for r in rows]
 

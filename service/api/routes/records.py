@@ -138,7 +138,7 @@ def _import(db, cell_id: int, body: bytes, kind: str, name: str, tok, settings) 
     db.refresh(run)
     try:
         analysis.finish_session(db, run, cell, settings)
-    except analysis.AnalysisError as exc:
+    except (analysis.AnalysisError, ValueError, np.linalg.LinAlgError) as exc:  # the data cannot conclude
         db.rollback()
         _delete_session_rows(db, run.id)
         db.commit()

@@ -7,7 +7,7 @@ import json
 
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import StreamingResponse
-from sqlalchemy import bindparam, func
+from sqlalchemy import bindparam, delete, func
 from sqlalchemy import select as sa_select
 from sqlalchemy.exc import IntegrityError
 from sqlmodel import Session, select
@@ -77,6 +77,8 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
                                             RunSession.dry_run == False)).first()  # noqa: E712 - dry runs move nothing
     if busy is not None and not body.dry_run:
         raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
+    if body.dry_run:
+        forget_dry_runs(db, cell.id)
     info = {**({"joints": body.joints} if body.joints else {}), **({"repeats": body.repeats} if body.repeats > 1 else {})}
     run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
                      target=body.target if body.target is not None else (_default_target(model, body)),
@@ -92,6 +94,15 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     if not queued:
         orchestrator.start(run.id)
     return public_session(db, run)
+
+
+def forget_dry_runs(db, cell_id: int) -> None:
+    """Delete the cell's finished dry runs. A dry run ("Show the plan") is a plan to confirm
+    (and to run, ``POST /sessions/{id}/run``, as often as wanted), not a session: only the
+    cell's latest is kept, and session lists leave it out. Dry runs have no measurements."""
+    db.execute(delete(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == True,  # noqa: E712
+                                        RunSession.state.not_in(ACTIVE)))
+    db.commit()
 
 
 def commit_planned(db, run: RunSession, orchestrator: SessionRunner) -> bool:

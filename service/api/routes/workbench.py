@@ -56,6 +56,26 @@ def _trend(db, cell_id: int, limit: int = TREND) -> list[dict]:
     return [{"id": i, "rms": r, "created_at": as_utc(t).isoformat()} for i, r, t in reversed(rows)]
 
 
+def _verified(db, cell_id: int, limit: int = TREND) -> list[dict]:
+    """The cell's verified accuracy over time, oldest first: each completed verify session of
+    one of its calibrations (not of the nominal model) among the last ``limit`` verify
+    sessions, with the calibration it checked and its RMS and max error on fresh
+    configurations. This, not a calibration's residual (how well the model fits the data it was
+    identified from), is the cell's accuracy."""
+    rows = db.exec(select(RunSession.id, RunSession.plan_info, RunSession.updated_at)
+                   .where(RunSession.cell_id == cell_id, RunSession.kind == "verify", RunSession.state == "completed",
+                          RunSession.dry_run == False)  # noqa: E712
+                   .order_by(RunSession.id.desc()).limit(limit)).all()
+    out = []
+    for sid, info, t in reversed(rows):
+        v = (info or {}).get("verify") or {}
+        if v.get("calibration_id") is None or v.get("rms") is None:
+            continue
+        out.append({"session_id": sid, "calibration_id": v["calibration_id"], "rms": v["rms"], "max": v.get("max"),
+                    "n": v.get("n"), "created_at": _aware(t).isoformat()})
+    return out
+
+
 def _active(db, cell_id: int) -> dict | None:
     run = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == False,  # noqa: E712
                                            RunSession.state.in_(("planned", "running", "paused", "interrupted")))
@@ -68,11 +88,16 @@ def _active(db, cell_id: int) -> dict | None:
 
 def _summary(db, cell: Cell) -> dict:
     trend = _trend(db, cell.id)
+    verified = _verified(db, cell.id)
     unit = (cell.model.get("units") or {}).get("length")
+    last = trend[-1] if trend else None
+    # the cell's accuracy: the last verification of its current calibration (None until verified)
+    accuracy = verified[-1] if verified and last and verified[-1]["calibration_id"] == last["id"] else None
     return {"id": cell.id, "name": cell.name, "site": cell.site, "robot": _robot(cell.model),
             "devices": [k for k in ("rtde", "modbus", "tracker", "cmm", "can") if (cell.devices or {}).get(k)],
             "unit": unit, "drift_threshold": cell.drift_threshold,
-            "last": trend[-1] if trend else None, "trend": trend, "active_session": _active(db, cell.id)}
+            "last": last, "trend": trend, "verified": verified, "accuracy": accuracy,
+            "active_session": _active(db, cell.id)}
 
 
 @router.get("/overview")

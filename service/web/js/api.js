@@ -26,11 +26,20 @@ export class ApiError extends Error {
   }
 }
 
+// The service names request fields as "body.count", "query.mode" or "body" (the whole body, whose
+// message names the file, row and column itself): a person reads "count: ..." or the message alone.
+function fieldName(field) {
+  return String(field).replace(/^(?:body|query|path)(?:\.|$)/, "");
+}
+
 function describe(detail) {
   if (detail == null) return "";
-  if (typeof detail === "string") return detail;
+  if (typeof detail === "string") return detail.replace(/(^|; )(?:body|query|path)(?:\.|: )/g, "$1");
   if (Array.isArray(detail)) return detail.map(describe).join("; ");
-  if (detail.field && detail.message) return `${detail.field}: ${detail.message}`;
+  if (detail.field && detail.message) {
+    const name = fieldName(detail.field);
+    return name ? `${name}: ${detail.message}` : detail.message;
+  }
   if (detail.message) return detail.message;
   return JSON.stringify(detail);
 }

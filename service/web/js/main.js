@@ -99,8 +99,8 @@ function login(message) {
     h("button", { type: "submit", class: "primary", id: "sign-in" }, "Sign in"),
     h("details", {}, h("summary", {}, "Where do I get a token?"),
       h("p", {}, "Ask whoever runs the service: ", h("code", {}, "recal token create --role technician"),
-        " prints one. After ", h("code", {}, "make demo"), " the technician's token is in ",
-        h("code", {}, "demo-output/tokens.txt"), ". Viewers can watch and read; technicians also register cells, "
+        " prints one. ", h("code", {}, "make demo"), " prints the technician's token and keeps it in ",
+        h("code", {}, "demo-output/tokens.txt"), " (the demo's RECAL_HOME). Viewers can watch and read; technicians also register cells, "
         + "run sessions and compensate programs.")));
   clear(root).appendChild(form);
   input.focus();

@@ -23,6 +23,15 @@ function activeLink(a) {
 
 const PAGE = 30; // cells per page of the overview
 
+// What the cell card's accuracy figure is: a verification of the current calibration on fresh
+// configurations, never the calibration's own residual (how well it fits the data it came from).
+function accuracyNote(c) {
+  const a = c.accuracy, last = c.last;
+  if (a) return `accuracy: RMS error on ${a.n} fresh configurations (verified ${whenShort(a.created_at)})`;
+  if (last) return `calibrated ${whenShort(last.created_at)}, not verified yet: run a verify session`;
+  return "not calibrated yet";
+}
+
 export async function overview(ctx, page = 1) {
   ctx.crumbs([["Cells", null]]);
   page = Math.max(1, page || 1);
@@ -37,11 +46,10 @@ export async function overview(ctx, page = 1) {
       h("p", {}, robotLine(c.robot)),
       h("p", { class: "chips" }, c.devices.map((d) => h("span", { class: "chip" }, DEVICE_NAMES[d] || d))),
       h("div", { class: "accuracy" },
-        h("div", { class: "big" }, last ? `${num(last.rms, 3)} ${c.unit}` : "—"),
-        h("div", { class: "muted small" }, last ? `residual RMS of calibration ${last.id}, ${whenShort(last.created_at)}`
-          : "not calibrated yet"),
-        c.trend.length > 1 ? sparkline(c.trend.map((t) => t.rms), { width: 260, height: 40,
-                                                                   title: "accuracy trend (RMS of the last calibrations)" }) : null),
+        h("div", { class: "big" }, c.accuracy ? `${num(c.accuracy.rms, 3)} ${c.unit}` : "—"),
+        h("div", { class: "muted small" }, accuracyNote(c)),
+        c.verified.length > 1 ? sparkline(c.verified.map((t) => t.rms), { width: 260, height: 40,
+                                                                         title: "verified accuracy (RMS) over time" }) : null),
       activeLink(c.active_session),
       h("a", { class: "button", href: `#/cells/${c.id}` }, "Open")));
   }
@@ -124,17 +132,22 @@ export async function detail(ctx, id) {
   get(`/cells/${id}/devices/test`).then((t) => { if (t.last && !results.firstChild) showTest(results, t.last, true); })
     .catch(() => {});
 
-  // accuracy trend, against the date (each point: one calibration, its id in the tooltip)
-  const trend = c.trend;
+  // accuracy over time: each verification of a calibration (RMS error on fresh configurations),
+  // against the date; the calibration it checked in the tooltip
+  const trend = c.verified;
   const trendCard = card("Accuracy over time",
     trend.length ? chart([{ x: trend.map((t) => epochMs(t.created_at)), y: trend.map((t) => t.rms), type: "line",
-                            color: COLORS.after, label: `residual RMS (${unit})`,
-                            titles: trend.map((t) => `calibration ${t.id}, ${whenShort(t.created_at)}: RMS ${num(t.rms, 3)} ${unit}`),
-                            onclick: (x, y, i) => ctx.go(`#/calibrations/${trend[i].id}`) }],
+                            color: COLORS.after, label: `verified RMS error (${unit})`,
+                            titles: trend.map((t) => `calibration ${t.calibration_id}, verified ${whenShort(t.created_at)} `
+                              + `on ${t.n} configurations: RMS ${num(t.rms, 3)} ${unit}, max ${num(t.max, 3)} ${unit}`),
+                            onclick: (x, y, i) => ctx.go(`#/sessions/${trend[i].session_id}`) }],
       { xLabel: "date", yLabel: unit, xTime: true, height: 220, title: "accuracy trend", width: sizes().half })
-      : h("p", { class: "muted" }, "No calibration yet."),
+      : h("p", { class: "muted" }, c.last ? "Not verified yet: a verify session measures the calibrated robot at "
+        + "fresh configurations and gives its accuracy." : "No calibration yet."),
     c.last ? h("p", {}, "Last calibration: ", h("a", { href: `#/calibrations/${c.last.id}`, id: "last-calibration" },
-      `calibration ${c.last.id}`), `, RMS ${num(c.last.rms, 3)} ${unit}, ${when(c.last.created_at)}`) : null);
+      `calibration ${c.last.id}`), `, ${when(c.last.created_at)}`,
+      c.accuracy && c.accuracy.calibration_id === c.last.id ? `; accuracy ${num(c.accuracy.rms, 3)} ${unit} RMS, `
+        + `max ${num(c.accuracy.max, 3)} ${unit} on ${c.accuracy.n} fresh configurations` : "; not verified yet") : null);
 
   const sessionsBox = h("div", {});
   const calsBox = h("div", {});
@@ -197,7 +210,7 @@ async function pagedCalibrations(box, id, offset, unit) {
   const page = await get(`/cells/${id}/history?limit=10&offset=${offset}`);
   const rows = page.items.map((c) => [h("a", { href: `#/calibrations/${c.id}` }, `#${c.id}`), c.kind,
     c.rms != null ? num(c.rms, 3) : "–", h("span", { class: "nowrap" }, whenShort(c.created_at))]);
-  put(box, rows.length ? table(["", "Kind", `RMS (${unit})`, "Date"], rows, { class: "calibrations" })
+  put(box, rows.length ? table(["", "Kind", `Fit residual RMS (${unit})`, "Date"], rows, { class: "calibrations" })
     : h("p", { class: "muted" }, "No calibrations yet."),
     pager(page.total, offset, 10, (o) => pagedCalibrations(box, id, o, unit)));
 }
@@ -464,8 +477,8 @@ function deviceForm(doc, region) {
     h("fieldset", {}, h("legend", {}, "Devices"),
       h("div", { class: "paste" },
         h("label", { for: "endpoint-line" }, "Shortcut: paste the simulated cell's endpoint line"),
-        h("p", { class: "help" }, "The one line of JSON that ", h("code", {}, "recal fake-cell"), " (or ", h("code", {}, "make demo"),
-          ") printed; the fields below are filled from it."),
+        h("p", { class: "help" }, "The one line of JSON that ", h("code", {}, "recal fake-cell"),
+          " prints once its devices are ready; the fields below are filled from it."),
         line, h("div", { class: "actions wrap" }, fill), lineErr, lineOk),
       h("h3", {}, "Robot controller"),
       h("div", { class: "pair" },
@@ -721,7 +734,7 @@ function showPlan(ctx, box, plan, s, c) {
         + "actually obtained."))] : null,
     p && p.identifiable ? ["Parameters", `${p.identifiable} identifiable, ${p.unidentifiable} that these poses cannot determine`]
       : p && p.unidentifiable != null ? ["Parameters", `${p.unidentifiable} that these poses cannot determine`
-        + (p.unidentifiable_names ? ` (${p.unidentifiable_names.slice(0, 6).join(", ")}${p.unidentifiable > 6 ? ", …" : ""})` : "")] : null,
+        + (p.unidentifiable_names ? ` (${p.unidentifiable_names.slice(0, 6).join(", ")}${p.unidentifiable > 6 ? ` and ${p.unidentifiable - 6} more` : ""})` : "")] : null,
     plan.estimated_duration_s != null ? ["Estimated robot time", `${duration(plan.estimated_duration_s)} (motion at `
       + `≤ ${num(plan.speed_caps?.joint_speed_deg_s, 3)} °/s, settling and measuring)`] : null,
   ];

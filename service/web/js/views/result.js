@@ -126,7 +126,6 @@ export async function show(ctx, id) {
       h("p", { class: "small muted" }, "These keep their starting values. It is normal for some (a joint offset and the base "
         + "rotation are the same motion); others need more varied poses or another target.")));
   }
-  if ((rep.notes || []).length) parts.push(card("Notes", h("ul", {}, rep.notes.map((n) => h("li", {}, n)))));
 
   // comparison with the previous calibration
   const cmpBox = h("div", { id: "compare" }, h("p", { class: "muted" }, r.previous_id ? "Loading…" : "This is the cell's first calibration."));
@@ -138,13 +137,19 @@ export async function show(ctx, id) {
 
   // compensation
   parts.push(compensationCard(id, r));
-  parts.push(card("Identification details", kv([
-    ["Converged", rep.message || "–"], ["Condition number", num(rep.condition_number, 4)],
-    ["Residual RMS", `${num(rep.residuals?.rms, 4)} ${unit} (per axis ${(rep.residuals?.rms_per_axis || []).map((v) => num(v, 3)).join(", ")})`],
-    ["χ² / dof", rep.residuals ? `${num(rep.residuals.chi2, 4)} / ${rep.residuals.dof}` : "–"],
-    ["Instrument noise assumed", rep.settings?.sigma != null ? `${num(rep.settings.sigma, 3)} ${unit} per axis` : "–"],
-    ["Prior", rep.prior ? `calibration ${rep.prior.calibration_id} (${rep.prior.parameters} parameters)` : "none (first calibration)"],
-    ["Plan", r.session?.plan_method || "–"]])));
+  // The identification's own terms (its stopping rule, χ²/dof, model conventions) for whoever
+  // checks the mathematics, folded away from the technician's reading.
+  parts.push(h("details", { class: "card details", id: "details" },
+    h("summary", {}, "Details for specialists (how the identification went)"),
+    kv([
+      ["Converged", rep.message || "–"], ["Condition number", num(rep.condition_number, 4)],
+      ["Residual RMS", `${num(rep.residuals?.rms, 4)} ${unit} (per axis ${(rep.residuals?.rms_per_axis || []).map((v) => num(v, 3)).join(", ")})`],
+      ["χ² / dof", rep.residuals ? `${num(rep.residuals.chi2, 4)} / ${rep.residuals.dof}` : "–"],
+      ["Instrument noise assumed", rep.settings?.sigma != null ? `${num(rep.settings.sigma, 3)} ${unit} per axis` : "–"],
+      ["Prior", rep.prior ? `calibration ${rep.prior.calibration_id} (${rep.prior.parameters} parameters)` : "none (first calibration)"],
+      ["Plan", r.session?.plan_method || "–"]]),
+    (rep.notes || []).length ? h("div", { id: "notes" }, h("h3", {}, "Notes"), h("ul", {}, rep.notes.map((n) => h("li", {}, n))))
+      : null));
   put(ctx.root, ...parts);
 }
 
@@ -174,7 +179,7 @@ function numericalNotes(rep, unit) {
   for (const [label, names] of Object.entries(labels)) {
     const prior = /prior/i.test(label);
     items.push(h("li", { class: "note-label" }, h("strong", {}, `${names.length} parameter(s) ${label}: `),
-      `${names.slice(0, 8).join(", ")}${names.length > 8 ? ", …" : ""}. `,
+      `${names.slice(0, 8).join(", ")}${names.length > 8 ? ` and ${names.length - 8} more` : ""}. `,
       prior ? "These measurements did not determine them; their values and uncertainties come from the previous "
         + `calibration${rep.prior ? `, ${rep.prior.calibration_id}` : ""}, which is as it should be for a short `
         + "update session." : ""));

@@ -180,17 +180,13 @@ export async function live(ctx, id) {
     if (s.state !== "completed") return;
     if (s.calibration_id) {
       add(outcome, h("div", { class: "banner banner-ok", id: "done-banner" },
-        h("strong", {}, "Completed. "), "The robot was measured and identified. ",
+        h("strong", {}, "Calibrated. "), `The robot was measured at ${s.measured} poses and its true geometry worked out `
+        + `(calibration ${s.calibration_id}). A verify session next measures how accurate it now is. `,
         h("a", { class: "button primary", href: `#/calibrations/${s.calibration_id}`, id: "open-result" }, "Open the result")));
     } else if (s.plan_info && s.plan_info.verify) {
-      const v = s.plan_info.verify;
-      add(outcome, card("Verification result", h("div", { class: "banner banner-ok", id: "done-banner" },
-        h("strong", {}, "Completed. "), `On ${v.n} fresh configurations the ${v.calibration_id ? `calibration ${v.calibration_id}` : "nominal model"} `
-        + `is accurate to RMS ${num(v.rms, 3)} ${v.unit} (max ${num(v.max, 3)}, 95 % within ${num(v.p95, 3)}).`),
-        v.registered ? h("p", { class: "muted" }, `With its base placed where it fits best: RMS ${num(v.registered.rms, 3)}, `
-          + `max ${num(v.registered.max, 3)} ${v.unit}.`) : null));
+      add(outcome, card("Verification result", verifyBanner(s.plan_info.verify)));
     } else {
-      add(outcome, h("div", { class: "banner banner-ok", id: "done-banner" }, h("strong", {}, "Completed. "), s.reason || ""));
+      add(outcome, h("div", { class: "banner banner-ok", id: "done-banner" }, h("strong", {}, "Done. "), s.reason || ""));
     }
   }
 
@@ -215,4 +211,26 @@ export async function live(ctx, id) {
   show(s);
   refreshLive(true);
   listen();
+}
+
+// What a verify session found, in a technician's words and with units: a calibration's accuracy
+// (green), or the nominal model's error, led by the figure with the robot placed where it fits
+// the instrument best (its own inaccuracy; where the instrument stands is not the robot's error).
+function verifyBanner(v) {
+  const u = v.unit;
+  if (v.calibration_id) {
+    return h("div", { class: "banner banner-ok", id: "done-banner" },
+      h("strong", {}, "Checked. "), `Calibration ${v.calibration_id} is accurate to ${num(v.rms, 3)} ${u} RMS `
+      + `(max ${num(v.max, 3)} ${u}; 95 % of points within ${num(v.p95, 3)} ${u}), measured at ${v.n} fresh configurations.`);
+  }
+  const reg = v.registered;
+  return h("div", { class: "banner banner-warn", id: "done-banner" },
+    h("strong", {}, "Not calibrated yet. "),
+    reg ? `With its nominal model the robot is off by ${num(reg.rms, 3)} ${u} RMS (max ${num(reg.max, 3)} ${u}) at `
+      + `${v.n} fresh configurations, even placed where it fits the instrument best. `
+      : `With its nominal model the robot is off by ${num(v.rms, 3)} ${u} RMS (max ${num(v.max, 3)} ${u}) at ${v.n} `
+      + "fresh configurations. ",
+    "A pose session calibrates it.",
+    reg ? h("div", { class: "small" }, `Before its position in front of the instrument is known, points are `
+      + `${num(v.rms, 3)} ${u} RMS off (max ${num(v.max, 3)} ${u}); a calibration finds that position too.`) : null);
 }

@@ -1,0 +1,73 @@
+"""`recal demo` as a newcomer runs it (issue 12): it says its RECAL_HOME and the token to use,
+a token made with `recal token create` in that RECAL_HOME works with its service, and `kill`
+(SIGTERM) stops its service and simulated cell as Ctrl-C does."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+from service.processes import free_port
+
+from .conftest import next_host
+
+
+def _refused(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=0.5):
+            return False
+    except OSError:
+        return True
+
+
+def _get(url: str, token: str) -> dict:
+    req = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"})
+    with urllib.request.urlopen(req, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path):
+    home, host, port = tmp_path / "demo", next_host(), free_port()
+    env = {**os.environ, "RECAL_HOME": str(home)}  # the demo takes RECAL_HOME as its folder
+    demo = subprocess.Popen([sys.executable, "-m", "service.cli", "demo", "--host", host, "--port", str(port),
+                             "--time-scale", "0.2"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env)
+    try:
+        lines, url, deadline = [], None, time.monotonic() + 60
+        while url is None:
+            assert time.monotonic() < deadline and demo.poll() is None, lines
+            line = demo.stdout.readline()
+            lines.append(line)
+            m = re.search(r"service ready at (http://\S+)", line)
+            url = m.group(1) if m else None
+        text = "".join(lines)
+        assert f"RECAL_HOME={home}" in text, text
+        printed = re.search(r"technician token: (rc_\S+)", text).group(1)
+        assert _get(f"{url}/api/v1/me", printed)["role"] == "technician"
+        # a token made the way the README says works with the demo's service
+        made = subprocess.run([sys.executable, "-m", "service.cli", "token", "create", "--role", "viewer"],
+                              capture_output=True, text=True, env=env, timeout=60)
+        assert made.returncode == 0, made.stderr
+        assert _get(f"{url}/api/v1/me", made.stdout.strip())["role"] == "viewer"
+        # a session is under way (time scale 0.2: about a pose a second); then `kill`
+        deadline = time.monotonic() + 60
+        while not _get(f"{url}/api/v1/sessions/1", printed)["measured"]:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        demo.send_signal(signal.SIGTERM)
+        assert demo.wait(30) == 0
+        deadline = time.monotonic() + 10  # its children are gone: nothing answers on their ports
+        while not (_refused("127.0.0.1", port) and _refused(host, 29999) and _refused(host, 10001)):
+            assert time.monotonic() < deadline, "the demo's service or simulated cell outlived it"
+            time.sleep(0.1)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait(10)
