@@ -21,6 +21,24 @@ import numpy as np
 from calibration.identify import Measurements
 from calibration.model import KinematicModel, ModelFormatError, model_from_dict, model_to_dict
 
+# The largest magnitude of any number Recal reads (a coordinate, an angle, a model parameter, in
+# the file's or document's own units). A robot cell's lengths are metres (1e3-1e4 in mm), its
+# angles a few turns; 1e9 leaves room for any unit and any cell while every product the
+# kinematics forms (squares in least squares, 4x4 products) stays far inside float64. Beyond,
+# 1e200 overflowed to inf in the solver ("SVD did not converge", a 500 from the API). The CLI's
+# tables (identify, compensate), the API's JSON documents and its posted task files check it
+# here, with the same message.
+MAX_MAGNITUDE = 1e9
+
+
+def magnitude_problem(value: float) -> str | None:
+    """Why ``value`` cannot be used (NaN, infinite, beyond :data:`MAX_MAGNITUDE`), or None."""
+    if not math.isfinite(value):
+        return f"expected a finite number, got {value!r}"
+    if abs(value) > MAX_MAGNITUDE:
+        return f"expected a number from {-MAX_MAGNITUDE:g} to {MAX_MAGNITUDE:g}, got {value!r}"
+    return None
+
 
 class InputError(ValueError):
     """Bad input, reported as one line: ``file, row R (line L), column 'c': message``.
@@ -149,8 +167,9 @@ class Table:
                 v = float(cell)
             except ValueError:
                 raise InputError(self.path, f"expected a number, got {cell!r}", row=r + 1, line=line, column=column) from None
-            if not math.isfinite(v):
-                raise InputError(self.path, f"expected a finite number, got {cell!r}", row=r + 1, line=line, column=column)
+            if magnitude_problem(v):
+                raise InputError(self.path, magnitude_problem(v).replace(repr(v), repr(cell)), row=r + 1, line=line,
+                                 column=column)
             out[r] = v * scale
         return out
 

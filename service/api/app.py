@@ -15,6 +15,7 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session
 
+from ..heavy import HeavyPool
 from ..models import MAX_ID
 from ..orchestrator import database_unavailable, orchestrator_class
 from ..settings import Settings
@@ -87,9 +88,11 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
         app.state.engine = engine
         app.state.settings = settings
         app.state.orchestrator = factory(engine, settings)
+        app.state.heavy = HeavyPool(settings.heavy_workers)
         try:
             yield
         finally:
+            app.state.heavy.shutdown()
             app.state.orchestrator.shutdown()
             with Session(engine) as db:
                 interrupt_unfinished(db, owner=getattr(app.state.orchestrator, "owner", None))
