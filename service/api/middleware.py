@@ -93,7 +93,18 @@ def route_of(scope) -> str:
     """The route's template (``/api/v1/sessions/{session_id}``), or ``unmatched``: a label with
     few values (the metrics), never an id or a query."""
     route = scope.get("route")
-    return getattr(route, "path", None) or ("unmatched" if not scope["path"].startswith("/web/") else "/web/{path}")
+    template, regex = getattr(route, "path", None), getattr(route, "path_regex", None)
+    if template is None or regex is None:
+        return "unmatched"
+    # An included router's route knows its path without the router's prefix ("/sessions/{id}"):
+    # the prefix is what comes before the part of the request's path the route matched.
+    path = scope["path"]
+    k = 0
+    while k != -1:
+        if regex.match(path[k:]):
+            return path[:k] + template
+        k = path.find("/", k + 1)
+    return template
 
 
 class RequestLog:
