@@ -22,6 +22,24 @@ from calibration.identify import Measurements
 from calibration.model import KinematicModel, ModelFormatError, model_from_dict, model_to_dict
 from calibration.errors import RecalError
 
+# The largest magnitude of any number in a JSON document the API takes (a model, a region, a
+# body field), checked before its units are known, in the document's own units. A robot cell's lengths are metres (1e3-1e4 in mm), its
+# angles a few turns; 1e9 leaves room for any unit and any cell while every product the
+# kinematics forms (squares in least squares, 4x4 products) stays far inside float64. Beyond,
+# 1e200 overflowed to inf in the solver ("SVD did not converge", a 500 from the API). Tables (CSV
+# rows, read with their model's units by the CLI and the API alike) are held to the tighter
+# MAX_MAGNITUDE_SI below.
+MAX_MAGNITUDE = 1e9
+
+
+def magnitude_problem(value: float) -> str | None:
+    """Why ``value`` cannot be used (NaN, infinite, beyond :data:`MAX_MAGNITUDE`), or None."""
+    if not math.isfinite(value):
+        return f"expected a finite number, got {value!r}"
+    if abs(value) > MAX_MAGNITUDE:
+        return f"expected a number from {-MAX_MAGNITUDE:g} to {MAX_MAGNITUDE:g}, got {value!r}"
+    return None
+
 
 # The largest magnitude any number in a Recal file may have, in SI units (metres, radians,
 # kilograms): 100 km, or ten thousand turns. Nothing in a robot cell comes near it, and values

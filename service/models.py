@@ -14,6 +14,8 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field as PField, Val
 from sqlalchemy import JSON, Column, UniqueConstraint
 from sqlmodel import Field, SQLModel
 
+from .files import MAX_MAGNITUDE, magnitude_problem
+
 
 def utcnow() -> datetime:
     return datetime.now(timezone.utc)
@@ -174,11 +176,19 @@ Name = Annotated[str, PField(min_length=1, max_length=200), AfterValidator(_trim
 
 
 def _finite(value: Any, path: str) -> None:
-    """Raise ``ValueError`` naming the first NaN or infinity inside a JSON document."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ValueError(f"{path}: expected a finite number, got {value}")
+    """Raise ``ValueError`` naming the first number the model cannot use (NaN, infinite, beyond
+    ``files.MAX_MAGNITUDE``) or the first text with a NUL character inside a JSON document
+    (neither database stores NUL in text: PostgreSQL refused it with a 500)."""
+    if isinstance(value, float) and magnitude_problem(value):
+        raise ValueError(f"{path}: {magnitude_problem(value)}")
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > MAX_MAGNITUDE:
+        raise ValueError(f"{path}: expected a number from {-MAX_MAGNITUDE:g} to {MAX_MAGNITUDE:g}, got {value}")
+    if isinstance(value, str) and "\x00" in value:
+        raise ValueError(f"{path}: expected text without NUL characters")
     if isinstance(value, dict):
         for k, v in value.items():
+            if "\x00" in str(k):
+                raise ValueError(f"{path}: expected field names without NUL characters")
             _finite(v, f"{path}.{k}")
     elif isinstance(value, (list, tuple)):
         for i, v in enumerate(value):
@@ -194,7 +204,7 @@ class _In(BaseModel):
     @field_validator("*", mode="after")
     @classmethod
     def _documents_are_finite(cls, value: Any, info: ValidationInfo) -> Any:
-        if isinstance(value, (dict, list)):
+        if isinstance(value, (dict, list, str, float, int)):
             _finite(value, info.field_name)
         return value
 

@@ -462,6 +462,7 @@ class Orchestrator:
         self.engine, self.settings, self.owner, self.open_devices = engine, settings, owner, open_devices
         self._threads: dict[int, tuple[threading.Thread, Control]] = {}
         self._lock = threading.Lock()
+        self._stopping = False
 
     def queue(self, db: Session, run: RunSession) -> bool:
         """Nothing to queue: the caller starts the session once it is committed."""
@@ -529,7 +530,12 @@ class Orchestrator:
         if t is not None:
             t[0].join(timeout_s)
 
+    def not_ready(self) -> str | None:
+        """Why this runner cannot take a session now (``/ready``), or None."""
+        return "shutting down" if self._stopping else None
+
     def shutdown(self, timeout_s: float = 5.0) -> None:
+        self._stopping = True
         for thread, control in list(self._threads.values()):
             control.pause.set()
         for thread, _ in list(self._threads.values()):

@@ -73,11 +73,11 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 
 def start_service(home: Path, port: int, *, env: dict | None = None, timeout_s: float = 30.0,
-                  log_path: Path | None = None, host: str = "127.0.0.1") -> Proc:
+                  log_path: Path | None = None, host: str = "127.0.0.1", log_level: str = "warning") -> Proc:
     """``recal serve`` in its own process with ``RECAL_HOME=home``; returns once /health answers."""
     e = {**os.environ, "RECAL_HOME": str(home), **(env or {})}
     out = open(log_path, "ab") if log_path else subprocess.DEVNULL
-    p = subprocess.Popen(_recal() + ["serve", "--host", host, "--port", str(port), "--log-level", "warning"],
+    p = subprocess.Popen(_recal() + ["serve", "--host", host, "--port", str(port), "--log-level", log_level],
                          env=e, stdout=out, stderr=subprocess.STDOUT)
     url = f"http://{host}:{port}"
     deadline = time.monotonic() + timeout_s

@@ -23,7 +23,17 @@ LIMITS: dict[str, tuple[float, float, str, str]] = {
     "retry_backoff_s": (0.0, 60.0, "RECAL_RETRY_BACKOFF_S", "s"),
     "device_timeout_s": (0.1, 600.0, "RECAL_DEVICE_TIMEOUT_S", "s"),
     "lease_ttl_s": (1.0, 3600.0, "RECAL_LEASE_TTL_S", "s"),
+    # Heavy work (compensation, PDF rendering) runs in this many worker processes, never on the
+    # event loop; requests beyond wait their turn (docs/service.md, "Heavy work and limits").
+    "heavy_workers": (1, 64, "RECAL_HEAVY_WORKERS", "processes"),
+    # Request bodies: JSON documents (a cell's model and devices, a session request) and task
+    # files (a compensation's task CSV or URScript, a task file registered with a cell). Beyond,
+    # 413 before anything is parsed (docs/service.md).
+    "max_body_bytes": (1024, 1 << 30, "RECAL_MAX_BODY_BYTES", "bytes"),
+    "max_task_bytes": (1024, 1 << 30, "RECAL_MAX_TASK_BYTES", "bytes"),
 }
+
+INTEGER_SETTINGS = ("device_retries", "heavy_workers", "max_body_bytes", "max_task_bytes")
 
 
 class SettingsError(RecalError, ValueError):
@@ -50,6 +60,13 @@ class Settings:
     device_timeout_s: float = 10.0
     engine: str = "embedded"
     lease_ttl_s: float | None = None
+    heavy_workers: int = 2
+    # 1 MiB: a cell's model and devices documents are a few kB, a session request under 1 kB.
+    max_body_bytes: int = 1 << 20
+    # 4 MiB: a task CSV row (name, pose, six joints) is about 140 bytes, so some 29,000 points;
+    # real robot programs have hundreds to a few thousand (a URScript program of 5,000 moves is
+    # under 1 MiB). Compensating the largest allowed file takes seconds in a worker process.
+    max_task_bytes: int = 4 << 20
 
     def __post_init__(self):
         for f in fields(self):
@@ -88,7 +105,7 @@ class Settings:
             kw["engine"] = env["RECAL_ENGINE"].strip().lower()
         for name, (_, _, key, _) in LIMITS.items():
             if env.get(key):
-                conv = int if name == "device_retries" else float
+                conv = int if name in INTEGER_SETTINGS else float
                 try:
                     kw[name] = conv(env[key])
                 except ValueError:

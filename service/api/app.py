@@ -15,11 +15,15 @@ from sqlalchemy.exc import DBAPIError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session
 
+from ..heavy import HeavyPool
 from ..models import MAX_ID
 from ..runners import runner_class
 from ..store import database_unavailable
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
+from . import docs, metrics
+from .docs import document_errors
+from .middleware import BodyLimit, RequestLog
 from .routes import calibrations, cells, records, results, sessions, system, web, workbench
 
 log = logging.getLogger("recal.api")
@@ -48,6 +52,10 @@ async def bounded_numbers(request: Request) -> None:
                                    ("query", dependant.query_params, request.query_params)):
         for param in declared:
             value = given.get(param.alias or param.name)
+            if isinstance(value, str) and "\x00" in value:  # no database stores NUL in text (PostgreSQL: a 500)
+                errors.append({"loc": (where, param.name), "msg": "expected text without NUL characters",
+                               "type": "value_error"})
+                continue
             if value is None or not _declares_int(param.field_info.annotation):
                 continue
             try:
@@ -88,17 +96,23 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
         app.state.engine = engine
         app.state.settings = settings
         app.state.orchestrator = factory(engine, settings)
+        app.state.heavy = HeavyPool(settings.heavy_workers)
         try:
             yield
         finally:
+            app.state.heavy.shutdown()
             app.state.orchestrator.shutdown()
             with Session(engine) as db:
                 interrupt_unfinished(db, owner=app.state.orchestrator.owner)
             engine.dispose()
 
     app = FastAPI(title="Recal", version="0.1.0", lifespan=lifespan, generate_unique_id_function=_operation_id,
-                  dependencies=[Depends(bounded_numbers)],
+                  dependencies=[Depends(bounded_numbers)], docs_url=None, redoc_url=None,
+                  swagger_ui_oauth2_redirect_url=None,
                   description="Robot calibration service: cells, measurement sessions, calibrations, compensation.")
+    # Outermost last: every request is logged and timed (413s included), then its body limited.
+    app.add_middleware(BodyLimit, settings=settings)
+    app.add_middleware(RequestLog, observe=metrics.install(app))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
@@ -132,4 +146,7 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
     for module in (system, cells, sessions, calibrations, results, workbench, records):
         app.include_router(module.router, prefix="/api/v1")
     app.include_router(web.router)  # the technician's web page at / (service/web)
+    app.include_router(metrics.router)
+    docs.install(app)
+    document_errors(app)
     return app

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
+from fastapi.security import HTTPBearer
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
@@ -31,13 +32,18 @@ def get_orchestrator(request: Request):
 Orchestrator = Annotated[SessionRunner, Depends(get_orchestrator)]
 
 
+# The bearer scheme of the OpenAPI document (auto_error off: a missing token is our own 401 with
+# its message). A token is only ever taken from the Authorization header, never from a URL (URLs
+# end up in access logs, proxies' logs and browser history): the page's event stream, which
+# cannot send headers, uses a short-lived single-use ticket instead (:class:`Tickets`).
+bearer_scheme = HTTPBearer(auto_error=False, scheme_name="bearer",
+                           description="An API token (`recal token create`), as `Authorization: Bearer <token>`.")
+
+
 def _bearer(request: Request) -> str | None:
     auth = request.headers.get("authorization", "")
     if auth.lower().startswith("bearer "):
         return auth[7:].strip()
-    # EventSource (server-sent events in a browser) cannot set headers: allow ?token= on GETs.
-    if request.method == "GET":
-        return request.query_params.get("token")
     return None
 
 
@@ -97,7 +103,7 @@ def _lookup_token(engine, plain: str) -> Token | None:
         return None if tok is None else Token(**tok.model_dump())  # detached: outlives the session
 
 
-async def current_token(request: Request) -> Token:
+async def current_token(request: Request, _scheme: Annotated[object, Depends(bearer_scheme)] = None) -> Token:
     # async, and the database only on a cache miss: authentication is on every request, and a
     # thread hop plus a query per request was most of the cost of a polled GET (bench/service.py).
     plain = _bearer(request)
@@ -142,3 +148,41 @@ Runner = Annotated[Token, require("run")]
 Compensator = Annotated[Token, require("compensate")]
 CellEditor = Annotated[Token, require("cells")]
 Admin = Annotated[Token, require("admin")]
+
+
+class Tickets:
+    """Short-lived, single-use tickets for the page's event stream (``EventSource`` cannot send
+    an Authorization header). A ticket is issued to a caller who authenticated with their token,
+    for one session's stream; it is good for ``ttl_s`` seconds and for one connection, and is
+    stored only as its hash. A ticket in an access log is worthless: it was used up when the
+    stream opened. Kept in the API process that issued it (a fleet's load balancer must send the
+    stream to the same process, or the page falls back to polling)."""
+
+    def __init__(self, ttl_s: float = 30.0):
+        self.ttl_s = ttl_s
+        self._entries: dict[str, tuple[float, Token, str]] = {}
+        self._lock = threading.Lock()
+
+    def issue(self, tok: Token, scope: str) -> str:
+        import secrets
+
+        plain = secrets.token_urlsafe(24)
+        now = time.monotonic()
+        with self._lock:
+            self._entries = {k: v for k, v in self._entries.items() if v[0] > now}  # drop the expired
+            self._entries[hash_token(plain)] = (now + self.ttl_s, tok, scope)
+        return plain
+
+    def redeem(self, plain: str, scope: str) -> Token | None:
+        with self._lock:
+            hit = self._entries.pop(hash_token(plain), None)
+        if hit is None or hit[0] < time.monotonic() or hit[2] != scope:
+            return None
+        return hit[1]
+
+
+def tickets(app) -> Tickets:
+    t = getattr(app.state, "tickets", None)
+    if t is None:
+        t = app.state.tickets = Tickets()
+    return t

@@ -27,5 +27,7 @@ def run(args) -> int:
         raise Fail(str(exc)) from None
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     app = create_app(settings)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    # uvicorn's access log writes each request's full URL; the service's own (recal.access,
+    # service/api/middleware.py) writes one structured line per request with secrets redacted.
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, access_log=False)
     return 0

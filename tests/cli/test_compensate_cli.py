@@ -222,6 +222,9 @@ def test_urscript_program_is_rewritten_byte_for_byte_except_its_targets(files):
     ("bad.csv", "x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1,2,oops,1,0,0,0\n", [],
      r"bad\.csv, row 2 \(line 3\), column 'z': expected a number, got 'oops'"),
     ("short.csv", "x,y,z,qw,qx,qy\n1,2,3,1,0,0\n", [], r"short\.csv: missing column 'qz'"),
+    # was a traceback, and the output written all the same
+    ("huge.csv", "x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1e308,2,3,1,0,0,0\n", [],
+     r"huge\.csv, row 2 \(line 3\), column 'x': 1e308 is beyond any robot cell"),
     ("empty.script", "def f():\n  textmsg(\"hello\")\n  movel(pose_trans(a, b))\nend\n", [],
      r"empty\.script, line 3: no movej/movel/movep/movec target could be interpreted: 1 line\(s\) left alone \(line "
      r"3\), the first because the target is computed by an expression; --report R\.json lists each with its text"),

@@ -326,6 +326,9 @@ DATA_CASES = [
     ("text", _cell_value(4, "y", "abc"), ["row 4", "column 'y'", "expected a number", "'abc'"]),
     ("nan", _cell_value(2, "z", "NaN"), ["row 2", "column 'z'", "expected a finite number"]),
     ("inf", _cell_value(7, "q2", "inf"), ["row 7", "column 'q2'", "expected a finite number"]),
+    # beyond what the model can use (was "SVD did not converge" with no row named); the API's
+    # documents and task files answer the same (tests/service/test_limits.py)
+    ("huge", _cell_value(3, "x", "1e308"), ["row 3", "column 'x'", "1e308 is beyond any robot cell"]),
     ("q7", _add_q7, ["header", "column 'q7'", "6 joints", "expected joint columns q1..q6"]),
     ("no-q6", _drop("q6"), ["header", "column 'q6'", "expected q1..q6"]),
     ("unknown-target", _cell_value(5, "target", "ball9"), ["row 5", "column 'target'", "'ball9'", "expected one of"]),
@@ -427,8 +430,10 @@ def test_predict_uncertainty_needs_a_stored_covariance(cell):
                                                   "--uncertainty"], "pred_nocov.csv")
 
 
-@pytest.mark.parametrize("case,make,expected", [DATA_CASES[i] for i in (1, 4, 5, 9)],
-                         ids=[DATA_CASES[i][0] for i in (1, 4, 5, 9)])
+JOINT_CASES = [c for c in DATA_CASES if c[0] in ("no-q3", "inf", "q7", "empty")]
+
+
+@pytest.mark.parametrize("case,make,expected", JOINT_CASES, ids=[c[0] for c in JOINT_CASES])
 def test_predict_bad_joints(cell, case, make, expected):
     bad = cell.dir / f"badjoints_{case}.csv"
     make(cell, bad)

@@ -58,8 +58,11 @@ def _routes() -> list[tuple[str, str]]:
     return [(m.upper(), p) for p, ops in paths.items() for m in ops]
 
 
-MUTATING = [(m, p) for m, p in _routes() if m in ("POST", "PUT", "PATCH", "DELETE")]
-READING = [(m, p) for m, p in _routes() if m == "GET" and p != "/api/v1/health"]
+PUBLIC = ("/api/v1/health", "/api/v1/ready")  # for load balancers: no token, nothing of a cell's
+# POSTs that change nothing: a viewer watching a session asks for its event stream's ticket.
+READING_POSTS = (("POST", "/api/v1/sessions/{session_id}/events/ticket"),)
+MUTATING = [(m, p) for m, p in _routes() if m in ("POST", "PUT", "PATCH", "DELETE") and (m, p) not in READING_POSTS]
+READING = [(m, p) for m, p in _routes() if (m == "GET" and p not in PUBLIC) or (m, p) in READING_POSTS]
 
 
 def _concrete(path: str) -> str:

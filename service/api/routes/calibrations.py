@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import PlainTextResponse
+from sqlmodel import Session
+from starlette.concurrency import run_in_threadpool
 
 from ...models import Calibration, CalibrationPublic, Cell, Compensation
 from ...results import compare_calibrations
@@ -35,19 +37,39 @@ def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> d
             "nominal_versions": [a.nominal_version, b.nominal_version]}
 
 
+def _load_for_compensation(engine, calibration_id: int) -> tuple[dict, dict]:
+    with Session(engine) as db:
+        cal = get_calibration(db, calibration_id)
+        return cal.model, db.get(Cell, cal.cell_id).model
+
+
+def _store_compensation(engine, calibration_id: int, name: str, mode: str, output: str, report: dict,
+                        actor: str) -> int:
+    with Session(engine) as db:
+        rec = Compensation(calibration_id=calibration_id, name=name, mode=mode, output=output, report=report,
+                           created_by=actor)
+        db.add(rec)
+        db.commit()
+        audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
+              detail={"name": name, "mode": mode})
+        return rec.id
+
+
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
-async def compensate(calibration_id: int, request: Request, db: DbSession, tok: Compensator,
+async def compensate(calibration_id: int, request: Request, tok: Compensator,
                      mode: str = "joints", name: str = "task.csv") -> PlainTextResponse:
     """A task CSV or a robot program (URScript, RAPID, TP; ``name`` tells which) in the request
     body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``. A program
     of several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one
     part per file; the answer is then JSON ``{"files": [{"name", "text"}, ...]}``, the program
-    first."""
+    first. The compensation runs in a worker process (service.heavy): the service answers every
+    other request meanwhile; the database in the thread pool (a networked database may stall)."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
-    cal = get_calibration(db, calibration_id)
     from ...compensate import CompensationInputError, compensate_text, read_multipart
 
+    engine = request.app.state.engine
+    model_doc, cell_model = await run_in_threadpool(_load_for_compensation, engine, calibration_id)
     raw = await request.body()
     content_type = request.headers.get("content-type", "")
     companions = None
@@ -63,24 +85,22 @@ async def compensate(calibration_id: int, request: Request, db: DbSession, tok: 
         raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
     if not body.strip():
         raise HTTPException(422, {"field": "body", "message": "expected a task CSV or robot program, got nothing"})
+    if any("\x00" in text for text in [body, *(companions or {}).values()]):
+        raise HTTPException(422, {"field": "body", "message": "expected a text file, got NUL characters (binary data?)"})
 
-    cell_model = db.get(Cell, cal.cell_id).model
     try:
-        output, report = compensate_text(body, name=name, model_doc=cal.model, nominal_doc=cell_model, mode=mode,
-                                         companions=companions)
+        output, report = await request.app.state.heavy.run(compensate_text, body, name=name, model_doc=model_doc,
+                                                           nominal_doc=cell_model, mode=mode, companions=companions)
     except CompensationInputError as exc:
         raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
-    rec = Compensation(calibration_id=cal.id, name=name, mode=mode, output=output, report=report, created_by=tok.name)
-    db.add(rec)
-    db.commit()
-    audit(db, actor=tok.name, action="compensate", subject=f"calibration {cal.id}", detail={"name": name, "mode": mode})
+    rec_id = await run_in_threadpool(_store_compensation, engine, calibration_id, name, mode, output, report, tok.name)
     if companions is not None:
         from fastapi.responses import JSONResponse
 
         return JSONResponse({"files": [{"name": name, "text": output}] + report.get("files", [])},
-                            headers={"X-Recal-Compensation": str(rec.id)})
+                            headers={"X-Recal-Compensation": str(rec_id)})
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
-    return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec.id)})
+    return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec_id)})
 
 
 @router.get("/compensations/{compensation_id}", response_class=PlainTextResponse)

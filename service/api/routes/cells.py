@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
 from sqlmodel import select
 
@@ -257,7 +257,8 @@ def read_task(cell_id: int, task_id: int, db: DbSession, tok: Reader) -> dict:
 
 
 @router.post("/cells/{cell_id}/tasks/compensate")
-def compensate_tasks(cell_id: int, db: DbSession, tok: Compensator, calibration_id: int | None = None) -> dict:
+def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compensator,
+                     calibration_id: int | None = None) -> dict:
     """Compensate every task file registered with the cell, with ``calibration_id`` (default the
     cell's last pose calibration); each result is stored."""
     from ...compensate import CompensationInputError, compensate_text
@@ -270,8 +271,8 @@ def compensate_tasks(cell_id: int, db: DbSession, tok: Compensator, calibration_
     results = []
     for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all():
         try:
-            output, report = compensate_text(t.content, name=t.name, model_doc=cal.model, nominal_doc=cell.model,
-                                             mode=t.mode)
+            output, report = request.app.state.heavy.call(  # in a worker process: service.heavy
+                compensate_text, t.content, name=t.name, model_doc=cal.model, nominal_doc=cell.model, mode=t.mode)
         except CompensationInputError as exc:
             results.append({"task_id": t.id, "name": t.name, "error": str(exc)})
             continue

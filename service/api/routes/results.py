@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 import re
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import Response
 
 
@@ -97,11 +97,11 @@ def certificate(calibration_id: int, db: DbSession, tok: Reader) -> dict:
 
 
 @router.get("/calibrations/{calibration_id}/certificate.pdf")
-def certificate_as_pdf(calibration_id: int, db: DbSession, tok: Reader) -> Response:
-    """The calibration certificate as a PDF (A4)."""
+def certificate_as_pdf(calibration_id: int, request: Request, db: DbSession, tok: Reader) -> Response:
+    """The calibration certificate as a PDF (A4), rendered in a worker process (service.heavy)."""
     cert = certificate_data(db, _get(db, calibration_id))
     try:
-        pdf = certificate_pdf(cert)
+        pdf = request.app.state.heavy.call(certificate_pdf, cert)
     except ImportError:
         raise HTTPException(501, "PDF output needs the reportlab package (pip install reportlab); print the "
                                  "certificate page to PDF instead") from None

@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import json
 
-from fastapi import APIRouter, HTTPException, Request
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy import bindparam, delete, func
 from sqlalchemy import select as sa_select
@@ -15,7 +17,8 @@ from sqlmodel import Session, select
 from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
 from ...runners import SessionRunner
 from ...store import audit, measured_count, set_state_unless
-from ..deps import DbSession, Orchestrator, Reader, Runner, quick_read
+from ..deps import PERMISSIONS, DbSession, Orchestrator, Reader, Runner, current_token, quick_read, tickets
+from ..schemas import EventTicket
 
 router = APIRouter(tags=["sessions"])
 
@@ -196,11 +199,39 @@ def measurements(session_id: int, db: DbSession, tok: Reader) -> list[dict]:
     return [r.model_dump(exclude={"session_id"}) for r in rows]
 
 
-@router.get("/sessions/{session_id}/events")
-async def events(session_id: int, request: Request, tok: Reader):
+@router.post("/sessions/{session_id}/events/ticket", status_code=201, response_model=EventTicket)
+async def events_ticket(session_id: int, request: Request, tok: Reader):
+    """A ticket for one connection to the session's event stream, good for 30 seconds: what a
+    browser's ``EventSource`` (which cannot send an Authorization header) puts in the stream's
+    URL instead of the token (``GET .../events?ticket=...``)."""
+    await quick_read(request, _read_public, session_id)  # 404 for a session that does not exist
+    store = tickets(request.app)
+    return EventTicket(ticket=store.issue(tok, f"events:{session_id}"), expires_in_s=store.ttl_s)
+
+
+async def stream_reader(session_id: int, request: Request,
+                        ticket: Annotated[str | None, Query(max_length=200)] = None) -> Token:
+    """The event stream's caller: a ticket (single use, this session's), else the bearer token."""
+    if ticket is not None:
+        tok = tickets(request.app).redeem(ticket, f"events:{session_id}")
+        if tok is None:
+            raise HTTPException(401, "unknown, used or expired ticket: ask for a new one "
+                                     "(POST /api/v1/sessions/{id}/events/ticket)")
+        return tok
+    tok = await current_token(request)
+    if tok.role not in PERMISSIONS["read"]:
+        raise HTTPException(403, f"role {tok.role!r} may not do this")
+    return tok
+
+
+@router.get("/sessions/{session_id}/events", response_class=StreamingResponse,
+            responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}},
+                             "description": "Server-sent events (`event: progress`, data: the session)"}})
+async def events(session_id: int, request: Request, tok: Annotated[Token, Depends(stream_reader)]):
     """Progress as server-sent events: an ``event: progress`` with the session's state,
     planned and measured counts and reason whenever one changes; ends when the session is
-    completed, failed or aborted."""
+    completed, failed or aborted. Authenticated by the Authorization header or by a ticket
+    (``?ticket=``, from ``POST .../events/ticket``); never by a token in the URL."""
     engine = request.app.state.engine
     with Session(engine) as db:
         get_run(db, session_id)

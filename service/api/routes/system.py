@@ -2,41 +2,70 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException, Request
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.responses import JSONResponse
+from sqlalchemy import text
 from sqlmodel import select
+from starlette.concurrency import run_in_threadpool
 
 from ...models import AuditEntry, Token, TokenCreate
 from ...store import audit, create_token
 from ..deps import Admin, CurrentToken, DbSession, token_cache
+from ..schemas import AuditRow, Health, Me, Ready, ReadyCheck, TokenCreated, TokenInfo, TokenRevoked
 
 router = APIRouter(tags=["system"])
 
 
-@router.get("/health")
-def health() -> dict:
+@router.get("/health", response_model=Health)
+async def health():
+    """The process answers (async: no thread, no database; see ``/ready``)."""
     return {"status": "ok"}
 
 
-@router.get("/me")
-def me(tok: CurrentToken) -> dict:
+def _database_check(engine) -> ReadyCheck:
+    try:
+        with engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+        return ReadyCheck(ok=True, detail=f"{engine.dialect.name}: answers")
+    except Exception as exc:  # noqa: BLE001 - not ready is the answer, whatever the cause
+        return ReadyCheck(ok=False, detail=f"{engine.dialect.name}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
+
+
+@router.get("/ready", response_model=Ready, responses={503: {"model": Ready, "description": "not ready"}})
+async def ready(request: Request):
+    """Whether this process can take work: the database answers a query, and the runner of
+    sessions is up (the embedded orchestrator not shut down; a fleet's queue in the database).
+    503 with the same body when not. No token: for load balancers and orchestrators."""
+    state = request.app.state
+    db = await run_in_threadpool(_database_check, state.engine)
+    runner_problem = getattr(state.orchestrator, "not_ready", lambda: None)()
+    runner = ReadyCheck(ok=runner_problem is None, detail=runner_problem or type(state.orchestrator).__name__ + ": up")
+    body = Ready(ready=db.ok and runner.ok, checks={"database": db, "runner": runner})
+    return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
+
+
+@router.get("/me", response_model=Me)
+def me(tok: CurrentToken):
     return {"name": tok.name, "role": tok.role}
 
 
-@router.post("/tokens", status_code=201)
-def create(body: TokenCreate, db: DbSession, tok: Admin) -> dict:
+@router.post("/tokens", status_code=201, response_model=TokenCreated)
+def create(body: TokenCreate, db: DbSession, tok: Admin):
     new, plain = create_token(db, role=body.role, name=body.name)
     audit(db, actor=tok.name, action="create token", subject=f"token {new.id}", detail={"role": new.role, "name": new.name})
     return {"id": new.id, "name": new.name, "role": new.role, "token": plain}
 
 
-@router.get("/tokens")
-def list_tokens(db: DbSession, tok: Admin) -> list[dict]:
+@router.get("/tokens", response_model=list[TokenInfo])
+def list_tokens(db: DbSession, tok: Admin):
     return [{"id": t.id, "name": t.name, "role": t.role, "revoked": t.revoked, "created_at": t.created_at}
             for t in db.exec(select(Token).order_by(Token.id)).all()]
 
 
-@router.delete("/tokens/{token_id}")
-def revoke(token_id: int, request: Request, db: DbSession, tok: Admin) -> dict:
+@router.delete("/tokens/{token_id}", response_model=TokenRevoked)
+def revoke(token_id: int, request: Request, db: DbSession, tok: Admin):
     t = db.get(Token, token_id)
     if t is None:
         raise HTTPException(404, f"no token {token_id}")
@@ -48,7 +77,7 @@ def revoke(token_id: int, request: Request, db: DbSession, tok: Admin) -> dict:
     return {"id": token_id, "revoked": True}
 
 
-@router.get("/audit")
-def audit_log(db: DbSession, tok: Admin, limit: int = 200) -> list[dict]:
+@router.get("/audit", response_model=list[AuditRow])
+def audit_log(db: DbSession, tok: Admin, limit: Annotated[int, Query(ge=1, le=5000)] = 200):
     rows = db.exec(select(AuditEntry).order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all()
     return [{"at": a.at, "actor": a.actor, "action": a.action, "subject": a.subject, "detail": a.detail} for a in rows]

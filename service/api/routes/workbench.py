@@ -72,7 +72,7 @@ def _verified(db, cell_id: int, limit: int = TREND) -> list[dict]:
         if v.get("calibration_id") is None or v.get("rms") is None:
             continue
         out.append({"session_id": sid, "calibration_id": v["calibration_id"], "rms": v["rms"], "max": v.get("max"),
-                    "n": v.get("n"), "created_at": _aware(t).isoformat()})
+                    "n": v.get("n"), "created_at": as_utc(t).isoformat()})
     return out
 
 

@@ -102,10 +102,13 @@ export function saveBlob(blob, name) {
   setTimeout(() => URL.revokeObjectURL(url), 10000);
 }
 
-// Server-sent events of a session (EventSource cannot send headers: the token goes as ?token=,
-// which the service accepts on GET requests only).
-export function sessionEvents(id) {
-  return new EventSource(`/api/v1/sessions/${id}/events?token=${encodeURIComponent(getToken())}`);
+// Server-sent events of a session. EventSource cannot send an Authorization header, and a token
+// in a URL ends up in logs and history: the page asks for a single-use ticket (good for 30 s, for
+// this session's stream only) and puts that in the URL instead. A ticket serves one connection,
+// so the caller opens a new stream (with a new ticket) when one drops.
+export async function sessionEvents(id) {
+  const { ticket } = await api("POST", `/sessions/${id}/events/ticket`);
+  return new EventSource(`/api/v1/sessions/${id}/events?ticket=${encodeURIComponent(ticket)}`);
 }
 
 // What each role may do (service/api/deps.py PERMISSIONS).

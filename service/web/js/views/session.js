@@ -191,23 +191,40 @@ export async function live(ctx, id) {
   }
 
   let es = null;
-  function listen() {
+  let retries = 0;
+  let done = TERMINAL.includes(s.state);
+  async function listen() {
     if (es) es.close();
-    if (TERMINAL.includes(s.state)) return;
-    es = sessionEvents(id);
+    if (done || !ctx.alive()) return;
+    let stream;
+    try {
+      stream = await sessionEvents(id);
+    } catch (e) {
+      return retry();
+    }
+    if (!ctx.alive()) return stream.close();
+    es = stream;
     es.addEventListener("progress", (ev) => {
       if (!ctx.alive()) return es.close();
+      retries = 0;
       const snap = JSON.parse(ev.data);
       show(snap);
       refreshLive(TERMINAL.includes(snap.state));
-      if (TERMINAL.includes(snap.state)) es.close();
+      if (TERMINAL.includes(snap.state)) { done = true; es.close(); }
     });
     es.onerror = () => {
-      // The browser reconnects by itself; say so if it takes a while.
-      if (es.readyState === EventSource.CLOSED) notify("Lost the connection to the service; reload the page.");
+      // A ticket serves one connection: the browser's own reconnection would be refused, so
+      // open a new stream with a new ticket instead.
+      stream.close();
+      if (!done) retry();
     };
   }
-  ctx.onLeave(() => { if (es) es.close(); if (pending) clearTimeout(pending); });
+  function retry() {
+    retries += 1;
+    if (retries === 5) notify("Lost the connection to the service; trying again.");
+    setTimeout(listen, Math.min(10000, 500 * retries));
+  }
+  ctx.onLeave(() => { done = true; if (es) es.close(); if (pending) clearTimeout(pending); });
   show(s);
   refreshLive(true);
   listen();
