@@ -247,6 +247,20 @@ def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
                                      calibrated_range=calibrated, **kw)
 
     comp = _chunked(N, run, t0)
+    rmap = _residual_map(args, model)
+    if rmap is not None:
+        # the robot is where the parametric model puts it plus the map's correction at the command:
+        # aim the parametric model at the goal minus that correction (run() reads X when called)
+        from calibration.compensation import FLAG_BIT
+
+        goal = X.copy()
+        for _ in range(2):  # the map is smooth and small: two passes settle it to well below a micrometre
+            corr, inside = rmap.evaluate(comp.q)
+            X = goal.copy()
+            X[:, :3, 3] -= corr
+            comp = _chunked(N, run, t0)
+        corr, inside = rmap.evaluate(comp.q)
+        comp = dataclasses.replace(comp, flags=comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"]))
     if time.perf_counter() - t0 > 2.0:
         progress(f"recal compensate: {N} points compensated; writing {args.out}")
     names = {int(b): ";".join(flag_names(b)) for b in np.unique(comp.flags)}
@@ -254,6 +268,17 @@ def _csv(args, model, nominal, taught, calibrated, kw, qnear, t0):
     text = format_task(task, model, args.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)
     prefixes = [f'"row":{i + 1},"line":{line},' for i, line in enumerate(task.table.lines)]
     return text, comp, prefixes, [], M, fit_rms
+
+
+def _residual_map(args, model):
+    """The model's residual map (calibration.residual_map), or None."""
+    from calibration.residual_map import ResidualMapError, from_model
+    from service.cli import Fail
+
+    try:
+        return from_model(model)
+    except ResidualMapError as exc:
+        raise Fail(f"{args.model}: field {exc.field!r}: {str(exc).split(': ', 1)[-1]}") from None
 
 
 def _g(x: float) -> str:
@@ -413,12 +438,17 @@ def run(args) -> int:
     kw, qnear = _settings(args, model)
     script = is_script(args.task)
     handler = _script if script else _csv
+    if script and _residual_map(args, model) is not None:
+        print("warning: the model's residual map is applied to CSV tasks only; this program is compensated with the "
+              "parametric model", file=sys.stderr)
     output, comp, prefixes, skipped, M, fit_rms = handler(args, model, nominal, taught, calibrated, kw, qnear, t0)
     u = model.units
     L = u.length_m
     counts = {name: comp.count(name) for name in
               ("joint_limit", "near_singular", "outside_calibrated_region", "no_convergence", "branch_change",
                "unreachable")}
+    if comp.count("outside_mapped_region"):  # only a model with a residual map sets it
+        counts["outside_mapped_region"] = comp.count("outside_mapped_region")
     summary = {
         "points": len(comp), "converged": int(np.count_nonzero(comp.converged)),
         "residual_max": _f(comp.residual_m.max(initial=0.0) / L),
