@@ -77,3 +77,29 @@ def test_set_payload_through_ur_rtde_makes_the_true_robot_sag(sagging_cell):
     np.testing.assert_allclose(got["loaded"][:3], loaded, atol=1e-9)
     # setPayload(0, [0, 0, 0]) keeps the centre of gravity (the control script does) and removes the mass
     np.testing.assert_allclose(got["empty"][:3], unloaded, atol=1e-9)
+
+
+@needs_ur_rtde
+def test_driver_set_payload_reaches_the_controller(sagging_cell):
+    from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
+
+    cell, truth = sagging_cell
+    with UrRtdeRobot(UrRtdeConfig(cell.host)) as robot:
+        robot.move_joints(HOME, speed_rad_s=1.0, accel_rad_s2=2.0)
+        robot.set_payload(3.5, [0.0, 0.01, 0.05])
+        # what the controller reports, read by ur_rtde's own receive interface in a child process
+        script = textwrap.dedent(
+            f"""
+            import json, rtde_receive
+            r = rtde_receive.RTDEReceiveInterface({cell.host!r})
+            print(json.dumps(dict(mass=r.getPayload(), cog=r.getPayloadCog())))
+            r.disconnect()
+            """
+        )
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
+        assert done.returncode == 0, done.stderr
+        got = json.loads(done.stdout.strip().splitlines()[-1])
+        assert got["mass"] == 3.5 and got["cog"] == pytest.approx([0.0, 0.01, 0.05])
+        with pytest.raises(ValueError, match="payload"):
+            robot.set_payload(-1.0, [0, 0, 0])
+        robot.set_payload(0.0, [0.0, 0.0, 0.0])
