@@ -16,10 +16,12 @@ class CompensationInputError(ValueError):
     """The task file cannot be compensated; the message names the line and field."""
 
 
-def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str = "joints") -> tuple[str, dict]:
+def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str = "joints",
+                    payload: str | None = None) -> tuple[str, dict]:
     """Compensate ``text`` (a task CSV or a URScript program, told apart by ``name``) with the
     identified model ``model_doc``; ``nominal_doc`` is what the controller knows (targets mode,
-    URScript). Returns the compensated text and the per-point report
+    URScript); ``payload`` the task's payload ``KG[,X,Y,Z]`` for a compliant model (``recal
+    compensate --payload``). Returns the compensated text and the per-point report
     (``recal.compensation-report/1``: ``summary``, ``points``, ``uninterpreted``)."""
     try:
         from service import taskfiles
@@ -27,7 +29,8 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
     except ImportError:
         raise CompensationInputError("compensation is not available in this build") from None
     if hasattr(taskfiles, "compensate_file"):  # a library entry point, when there is one
-        return _with_library(taskfiles, text, name=name, model_doc=model_doc, nominal_doc=nominal_doc, mode=mode)
+        return _with_library(taskfiles, text, name=name, model_doc=model_doc, nominal_doc=nominal_doc, mode=mode,
+                             payload=payload)
     import argparse
 
     from service.cli import Fail
@@ -43,7 +46,8 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
         parser = argparse.ArgumentParser(prog="recal compensate")
         command.add_parser(parser)
         args = parser.parse_args(["--model", str(d / "model.json"), "--nominal", str(d / "nominal.json"),
-                                  "--task", str(src), "--out", str(out), "--mode", mode, "--report", str(report)])
+                                  "--task", str(src), "--out", str(out), "--mode", mode, "--report", str(report),
+                                  *(["--payload", payload] if payload is not None else [])])
         try:
             with contextlib.redirect_stdout(io.StringIO()):  # its one-line summary names our temporary files
                 command.run(args)
@@ -54,10 +58,18 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
         return out.read_bytes().decode("utf-8", errors="replace"), doc
 
 
-def _with_library(taskfiles, text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str):
+def _with_library(taskfiles, text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str,
+                  payload: str | None = None):
+    from calibration.compliance import with_payload
     from calibration.model import model_from_dict
+    from service.files import parse_payload
 
     model = model_from_dict(model_doc)
+    if payload is not None:
+        try:
+            model = with_payload(model, parse_payload(payload, model))
+        except ValueError as exc:
+            raise CompensationInputError(str(exc)) from None
     nominal = model_from_dict(nominal_doc)
     suffix = Path(name).suffix or ".csv"
     with tempfile.TemporaryDirectory() as tmp:

@@ -38,9 +38,11 @@ def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> d
 
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
 async def compensate(calibration_id: int, request: Request, db: DbSession, tok: Compensator,
-                     mode: str = "joints", name: str = "task.csv") -> PlainTextResponse:
+                     mode: str = "joints", name: str = "task.csv", payload: str | None = None) -> PlainTextResponse:
     """A task CSV (or a URScript program) in the request body; the compensated file out
-    (contracts §5). ``mode``: ``joints`` or ``targets``."""
+    (contracts §5). ``mode``: ``joints`` or ``targets``; ``payload``: the task's payload
+    ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the model's length unit), which a
+    calibration with joint compliance sags under."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
     cal = get_calibration(db, calibration_id)
@@ -51,13 +53,16 @@ async def compensate(calibration_id: int, request: Request, db: DbSession, tok: 
 
     cell_model = db.get(Cell, cal.cell_id).model
     try:
-        output, report = compensate_text(body, name=name, model_doc=cal.model, nominal_doc=cell_model, mode=mode)
+        output, report = compensate_text(body, name=name, model_doc=cal.model, nominal_doc=cell_model, mode=mode,
+                                         payload=payload)
     except CompensationInputError as exc:
-        raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
+        field = "query.payload" if str(exc).startswith("--payload") else "body"
+        raise HTTPException(422, {"field": field, "message": str(exc)}) from None
     rec = Compensation(calibration_id=cal.id, name=name, mode=mode, output=output, report=report, created_by=tok.name)
     db.add(rec)
     db.commit()
-    audit(db, actor=tok.name, action="compensate", subject=f"calibration {cal.id}", detail={"name": name, "mode": mode})
+    audit(db, actor=tok.name, action="compensate", subject=f"calibration {cal.id}", detail={"name": name, "mode": mode,
+                                                                                     **({"payload": payload} if payload else {})})
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
     return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec.id)})
 
