@@ -256,3 +256,13 @@ def test_compensate_aims_the_parametric_model_at_the_goal_minus_the_map(mapped):
     ok = inside & np.array(["outside_mapped_region" not in f for f in flags])
     assert ok.sum() >= 4
     assert np.abs(reached - goal)[ok].max() < 1e-6
+
+
+def test_demo_shows_rigid_and_compliant_side_by_side(tmp_path):
+    proc = recal("demo", "--offline", "--sag", "cobot", "--poses", "100", "--dir", tmp_path / "demo", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("rigid against compliant"))
+    rigid, compliant = (float(v) for v in line.split("RMS ")[1].split(" mm;")[0].split(" mm against "))
+    floor = np.sqrt(3) * 0.02
+    assert compliant < 1.15 * floor < 3 * floor < rigid
+    assert "payload_kg" in (tmp_path / "demo" / "measurements.csv").read_text().splitlines()[1]
