@@ -325,3 +325,19 @@ def choose_compliance(model: KinematicModel, data, *, candidates: GravityComplia
         best = rms
     full = score(cand.joints)
     return CrossValidation(folds, tuple(tried.items()), chosen, tried[()], full, section(chosen))
+
+
+def compare(model: KinematicModel, data, *, folds: int = 5, seed: int = 0, identify_kw: dict | None = None) -> dict:
+    """Rigid against compliant for a model with a compliance section: the k-fold
+    cross-validated RMS (m) of the model identified without its section and with it (every term
+    from 0), with the section's joints; what a result page shows side by side."""
+    if model.compliance is None:
+        raise ValueError("the model has no compliance section to compare with")
+    kw = dict(identify_kw or {})
+    fidx = fold_indices(data, folds, seed)
+    fresh = dataclasses.replace(model.compliance, values={})
+    rigid = cv_rms(with_section(model, None), data, fidx, kw)
+    compliant = cv_rms(with_section(model, fresh), data, fidx, kw)
+    return {"folds": folds, "joints": list(fresh.joints), "lumps": list(fresh.lumps),
+            "cv_rms_rigid_m": rigid, "cv_rms_compliant_m": compliant,
+            "gain": 1.0 - compliant / rigid if rigid > 0 else 0.0}
