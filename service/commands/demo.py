@@ -69,6 +69,17 @@ def _truth_and_nominal(args):
     return nominal, truth, rng
 
 
+def _cell_model(args, nominal):
+    """The model a cell is registered with: with ``--sag``, the nominal one with a compliance
+    section (every term 0), so that the service identifies the compliant model and its result
+    page shows it against the rigid one."""
+    if not args.sag:
+        return nominal
+    from calibration.compliance import default_section, with_section
+
+    return with_section(nominal, default_section(nominal))
+
+
 def run(args) -> int:
     if args.models_only:
         return _models_only(args)
@@ -81,7 +92,7 @@ def _models_only(args) -> int:
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
     nominal, truth, _ = _truth_and_nominal(args)
-    save_model(out / "nominal.json", nominal)
+    save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
     print(f"recal demo: {out / 'nominal.json'} (register the cell with it) and {out / 'truth.json'} "
           f"(the simulated {args.robot}, for recal fake-cell --truth)")
@@ -99,7 +110,7 @@ def _live(args) -> int:
     out = Path(args.dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     nominal, truth, _ = _truth_and_nominal(args)
-    save_model(out / "nominal.json", nominal)
+    save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
     db_file = out / "recal.db"
     for f in out.glob("recal.db*"):
@@ -151,6 +162,10 @@ def _live(args) -> int:
         cal = api.call("GET", f"/calibrations/{pose['calibration_id']}")
         say(f"  identified {len(cal['report']['parameters'])} parameters in {time.monotonic() - t0:.1f} s; "
             f"residual RMS {cal['rms']:.4f} mm")
+        comp = cal["report"].get("compliance")
+        if comp:  # --sag: the cell's model is compliant; the service compared it with the rigid one
+            say(f"  rigid against compliant ({comp['folds']}-fold cross-validation on the session's data): RMS "
+                f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)")
         say("verifying the calibrated model (20 fresh configurations)...")
         after = session("verify", 20)["plan_info"]["verify"]
         (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
