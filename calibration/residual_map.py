@@ -152,7 +152,7 @@ def choose_residual_map(start: KinematicModel, data, *, folds: int = 5, min_gain
         return None, figures
     final = final if final is not None else identify(start, data, **kw).model
     r = residuals(final, data)
-    ell, lam, rms = select_smoothness(data.q, r, revolute, fold_indices(data, folds, seed + 1))
+    ell, lam, _ = select_smoothness(data.q, r, revolute, fold_indices(data, folds, seed + 1))
     figures.update(length_scale=ell, ridge=lam)
     return fit(data.q, r, revolute, ell, lam, figures), figures
 

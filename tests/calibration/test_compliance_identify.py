@@ -134,7 +134,7 @@ def test_planning_for_compliance_chooses_configurations_that_excite_the_gravity_
     errors of the same compliant identification)."""
     from calibration import planning
 
-    nom, truth, rng = _cell("cobot", seed=13)
+    nom, _, rng = _cell("cobot", seed=13)
     compliant = C.with_section(nom, C.default_section(nom))
     cand = random_configurations(nom, 400, rng)
     kw = dict(targets=("smr",), n_evaluation=50, rng=np.random.default_rng(0))

@@ -235,11 +235,11 @@ def test_compensate_aims_the_parametric_model_at_the_goal_minus_the_map(mapped):
     d, truth, q, proc = mapped
     assert proc.returncode == 0, proc.stderr
     model = load_model(d / "id.json")
-    goal = target_positions(truth, q[:-1], None, payload=np.array(PAYLOAD))  # tool origin: where the robot must go
+    goal = target_positions(truth, q, None, payload=np.array(PAYLOAD))  # tool origin: where the robot must go
     from calibration.kinematics import fk
     from calibration.transforms import matrix_to_quat
 
-    quat = matrix_to_quat(fk(truth, q[:-1], np.array(PAYLOAD))[:, :3, :3])
+    quat = matrix_to_quat(fk(truth, q, np.array(PAYLOAD))[:, :3, :3])
     with (d / "task.csv").open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["x", "y", "z", "qw", "qx", "qy", "qz"] + [f"q{i + 1}" for i in range(6)])
@@ -256,6 +256,8 @@ def test_compensate_aims_the_parametric_model_at_the_goal_minus_the_map(mapped):
     ok = inside & np.array(["outside_mapped_region" not in f for f in flags])
     assert ok.sum() >= 4
     assert np.abs(reached - goal)[ok].max() < 1e-6
+    assert "outside_mapped_region" in flags[-1].split(";")  # the base turned where nothing was measured
+    assert np.linalg.norm(fk(model, qc[-1:])[0, :3, 3] - goal[-1]) < 1e-6  # the parametric model alone there
 
 
 def test_demo_shows_rigid_and_compliant_side_by_side(tmp_path):

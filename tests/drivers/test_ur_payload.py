@@ -83,7 +83,7 @@ def test_set_payload_through_ur_rtde_makes_the_true_robot_sag(sagging_cell):
 def test_driver_set_payload_reaches_the_controller(sagging_cell):
     from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
 
-    cell, truth = sagging_cell
+    cell, _ = sagging_cell
     with UrRtdeRobot(UrRtdeConfig(cell.host)) as robot:
         robot.move_joints(HOME, speed_rad_s=1.0, accel_rad_s2=2.0)
         robot.set_payload(3.5, [0.0, 0.01, 0.05])
