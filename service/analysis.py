@@ -69,8 +69,20 @@ def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, li
         sigma=np.array([r.sigma if r.sigma else np.nan for r in rows]),
         pose_id=np.array([r.seq for r in rows]),
         row=np.array([r.seq + 1 for r in rows]),
+        payload=payload_of(run, np.array([r.seq for r in rows])),
     )
     return data, rows
+
+
+def payload_of(run: RunSession, seq: np.ndarray) -> np.ndarray | None:
+    """The payload (N, 4) (kg, centre of gravity in the tool frame, m) each configuration ``seq``
+    of a session with ``payloads`` was measured with: the plan is split between them in order
+    (the first share of the configurations with the first payload, ...). None without payloads."""
+    payloads = (run.plan_info or {}).get("payloads")
+    if not payloads:
+        return None
+    n = max(int(run.planned or 0), int(np.max(seq, initial=0)) + 1)
+    return np.asarray(payloads, dtype=float)[np.asarray(seq, dtype=int) * len(payloads) // n]
 
 
 def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings) -> None:
@@ -167,7 +179,7 @@ def _prior_summary(result, prev: Calibration, prior: Prior, scale: float, units)
 def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
     """(N, 3) measured minus predicted target positions, m."""
     p_tool = np.array([model.target(t) for t in data.target])
-    return data.p_world - predict(model, data.q, p_tool).p_world
+    return data.p_world - predict(model, data.q, p_tool, payload=data.payload).p_world  # a compliant model sags
 
 
 def verify_session(db: Session, run: RunSession, cell: Cell) -> dict:

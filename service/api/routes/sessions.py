@@ -77,6 +77,9 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     if busy is not None and not body.dry_run:
         raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
     info = {**({"joints": body.joints} if body.joints else {}), **({"repeats": body.repeats} if body.repeats > 1 else {})}
+    if body.payloads:  # SI: kg, then the centre of gravity in the tool frame (m)
+        L = model.units.length_m
+        info["payloads"] = [[p[0], p[1] * L, p[2] * L, p[3] * L] for p in body.payloads]
     run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
                      target=body.target if body.target is not None else (_default_target(model, body)),
                      dry_run=body.dry_run, created_by=tok.name, plan_info=info or None)
