@@ -26,3 +26,8 @@ def test_compliant_cell_result_shows_rigid_against_compliant(idle_app, tokens, s
         assert comp["cv_rms_compliant"] < 0.05
         model = client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"]
         assert model["compliance"]["terms"]  # the identified terms are in the stored model
+        # the next session starts from this calibration, its covariance as the prior (compliance terms included)
+        _, cal2 = stored_session(r.json()["id"], n=40, seed=5, sag="cobot")
+        rep = client.get(f"/api/v1/calibrations/{cal2}/result", headers=auth(tokens["viewer"])).json()["report"]
+        assert rep["prior"] is not None and rep["compliance"]["cv_rms_compliant"] < 0.05
+        assert any(p["name"].startswith("compliance.") and p["source"] == "data + prior" for p in rep["parameters"])
