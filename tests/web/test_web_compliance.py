@@ -58,14 +58,14 @@ def compliant_result(tmp_path, browser):
             db.add(run)
             db.commit()
             calibration_id = run.calibration_id
-        yield service.ready["url"], token, calibration_id
+        yield service.ready["url"], token, calibration_id, cell_id
     finally:
         service.stop()
         engine.dispose()
 
 
 def test_result_page_shows_rigid_against_compliant(page, compliant_result):
-    url, token, calibration_id = compliant_result
+    url, token, calibration_id, _ = compliant_result
     page.goto(url + "/")
     page.fill("#token", token)
     page.click("#sign-in")
@@ -78,3 +78,22 @@ def test_result_page_shows_rigid_against_compliant(page, compliant_result):
     assert compliant < 0.2 * rigid  # mm: the arm sags; the compliant model knows it
     assert "j2, j3" in rows[1].inner_text()
     assert "lower error than rigid" in page.inner_text("body")
+
+
+def test_session_form_sends_the_payloads(page, compliant_result):
+    """The session form's payloads go with the plan: a dry run (nothing moves) carries them, in SI."""
+    from service.client import Api
+
+    url, token, _, cell_id = compliant_result
+    page.goto(url + "/")
+    page.fill("#token", token)
+    page.click("#sign-in")
+    page.wait_for_selector("#role")
+    page.goto(f"{url}/#/cells/{cell_id}/start")
+    page.fill("#count", "12")
+    page.fill("#payloads", "0; 10,0,0,100")
+    page.click("#plan")
+    page.wait_for_selector("#plan-check")
+    api = Api(url, token)
+    dry = [s for s in api.call("GET", f"/cells/{cell_id}/sessions") if s["dry_run"]][0]
+    assert api.call("GET", f"/sessions/{dry['id']}")["plan_info"]["payloads"] == [[0, 0, 0, 0], [10, 0, 0, 0.1]]
