@@ -268,3 +268,21 @@ def test_demo_shows_rigid_and_compliant_side_by_side(tmp_path):
     floor = np.sqrt(3) * 0.02
     assert compliant < 1.15 * floor < 3 * floor < rigid
     assert "payload_kg" in (tmp_path / "demo" / "measurements.csv").read_text().splitlines()[1]
+
+
+def test_accuracy_applies_the_residual_map(mapped):
+    d, truth, _, proc = mapped
+    assert proc.returncode == 0, proc.stderr
+    rng = np.random.default_rng(12)
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    held = simulate_measurements(truth, random_configurations(nominal, 150, rng, limits=REGION), rng, sigma_m=20e-6,
+                                 targets=("smr",), payload=np.array(PAYLOAD))
+    write_measurements(d / "held.csv", held)
+    doc = json.loads((d / "id.json").read_text())
+    (d / "nomap.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "residual_map"}))
+    rms = {}
+    for name in ("id.json", "nomap.json"):
+        a = recal("accuracy", "--model", name, "--data", "held.csv", "--out", f"acc-{name}", cwd=d)
+        assert a.returncode == 0, a.stderr
+        rms[name] = json.loads((d / f"acc-{name}").read_text())["errors"]["rms"]
+    assert rms["id.json"] < 0.7 * rms["nomap.json"]
