@@ -232,7 +232,8 @@ class CrossValidation:
     deflecting joints evaluated, as ``(joints, cv_rms_m)`` (``()``: rigid), in the order tried;
     ``joints`` the set chosen (``()``: the model stays rigid); ``rms_rigid_m`` and
     ``rms_compliant_m`` the cross-validated RMS of the rigid model and of the model with every
-    candidate joint's compliance; ``folds`` the number of folds."""
+    candidate joint's compliance; ``folds`` the number of folds; ``section`` the compliance
+    section chosen (every term 0, for identification to start from), or None."""
 
     folds: int
     tried: tuple[tuple[tuple[str, ...], float], ...]
@@ -348,8 +349,8 @@ def reexpress(model: KinematicModel, source: KinematicModel) -> KinematicModel:
     ``mdh_to_dh``, Hayati links or ``to_poe``) with ``source``'s compliance section re-expressed
     in its own link frames and base frame, so that both sag alike. A lump's terms are its first
     moment: with ``(R, p)`` its link's frames in the two models, ``ν' = R'ᵀ((p − p') μ + R ν)``
-    and ``μ' = μ`` (book-free: the frames are fixed on the same link, so q = 0 relates them);
-    gravity's direction moves with the base frame."""
+    and ``μ' = μ`` (both frames are fixed on the same link, so q = 0 relates them); gravity's
+    direction moves with the base frame."""
     c = source.compliance
     if c is None:
         return dataclasses.replace(model, compliance=None)
