@@ -41,7 +41,8 @@ from .registration import kabsch
 from .simulate import random_configurations
 from .transforms import invert, rotvec_to_matrix
 
-FLAGS = ("joint_limit", "near_singular", "outside_calibrated_region", "no_convergence", "branch_change", "unreachable")
+FLAGS = ("joint_limit", "near_singular", "outside_calibrated_region", "no_convergence", "branch_change", "unreachable",
+         "outside_mapped_region")
 """Flag names, in bit order: ``joint_limit`` the command is outside the model's joint limits;
 ``near_singular`` the smallest dimensionless singular value of the identified robot's Jacobian
 at the command is below ``singular_tol``; ``outside_calibrated_region`` the command is outside
@@ -50,7 +51,10 @@ tolerance; ``branch_change`` the command crossed a singular surface from the nom
 (the sign of det J changed), the correction exceeds ``max_correction_rad`` (a large correction
 is a branch or singularity problem, ch5 §10), or a numerical nominal inverse reached a taught
 point only in another branch than the taught joints'; ``unreachable`` the nominal inverse
-kinematics found the pose out of reach (closed form) or no seed reached it (numerical)."""
+kinematics found the pose out of reach (closed form) or no seed reached it (numerical);
+``outside_mapped_region`` (set by ``recal compensate`` for a model with a residual map,
+:mod:`calibration.residual_map`) the command is outside the region the map was fitted in, so
+only the parametric model corrected it."""
 
 FLAG_BIT = {name: 1 << k for k, name in enumerate(FLAGS)}
 

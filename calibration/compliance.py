@@ -232,7 +232,8 @@ class CrossValidation:
     deflecting joints evaluated, as ``(joints, cv_rms_m)`` (``()``: rigid), in the order tried;
     ``joints`` the set chosen (``()``: the model stays rigid); ``rms_rigid_m`` and
     ``rms_compliant_m`` the cross-validated RMS of the rigid model and of the model with every
-    candidate joint's compliance; ``folds`` the number of folds."""
+    candidate joint's compliance; ``folds`` the number of folds; ``section`` the compliance
+    section chosen (every term 0, for identification to start from), or None."""
 
     folds: int
     tried: tuple[tuple[tuple[str, ...], float], ...]
@@ -325,3 +326,52 @@ def choose_compliance(model: KinematicModel, data, *, candidates: GravityComplia
         best = rms
     full = score(cand.joints)
     return CrossValidation(folds, tuple(tried.items()), chosen, tried[()], full, section(chosen))
+
+
+def compare(model: KinematicModel, data, *, folds: int = 5, seed: int = 0, identify_kw: dict | None = None) -> dict:
+    """Rigid against compliant for a model with a compliance section: the k-fold
+    cross-validated RMS (m) of the model identified without its section and with it (every term
+    from 0), with the section's joints; what a result page shows side by side."""
+    if model.compliance is None:
+        raise ValueError("the model has no compliance section to compare with")
+    kw = dict(identify_kw or {})
+    fidx = fold_indices(data, folds, seed)
+    fresh = dataclasses.replace(model.compliance, values={})
+    rigid = cv_rms(with_section(model, None), data, fidx, kw)
+    compliant = cv_rms(with_section(model, fresh), data, fidx, kw)
+    return {"folds": folds, "joints": list(fresh.joints), "lumps": list(fresh.lumps),
+            "cv_rms_rigid_m": rigid, "cv_rms_compliant_m": compliant,
+            "gain": 1.0 - compliant / rigid if rigid > 0 else 0.0}
+
+
+def reexpress(model: KinematicModel, source: KinematicModel) -> KinematicModel:
+    """``model`` (the same robot as ``source`` in another convention or form, e.g. after
+    ``mdh_to_dh``, Hayati links or ``to_poe``) with ``source``'s compliance section re-expressed
+    in its own link frames and base frame, so that both sag alike. A lump's terms are its first
+    moment: with ``(R, p)`` its link's frames in the two models, ``ν' = R'ᵀ((p − p') μ + R ν)``
+    and ``μ' = μ`` (both frames are fixed on the same link, so q = 0 relates them); gravity's
+    direction moves with the base frame."""
+    c = source.compliance
+    if c is None:
+        return dataclasses.replace(model, compliance=None)
+    keys = {f"{lump}.link" for lump in c.lumps}
+    q0 = np.zeros((1, source.n_joints))
+    ws = walk(dataclasses.replace(source, compliance=None), q0, keys | {"base"})
+    wt = walk(dataclasses.replace(model, compliance=None), q0, keys | {"base"})
+    Rbs, Rbt = ws.frames["base"][0][0], wt.frames["base"][0][0]
+    values = dict(c.values)
+    pos = {j.name: i for i, j in enumerate(source.joints)}
+    for j in c.joints:
+        for lump in c.lumps:
+            if pos[lump] < pos[j]:
+                continue
+            Rs, ps = (a[0] for a in ws.frames[f"{lump}.link"])
+            Rt, pt = (a[0] for a in wt.frames[f"{lump}.link"])
+            mu = c.values.get(f"{j}.{lump}.m", 0.0)
+            nu = np.array([c.values.get(f"{j}.{lump}.{s}", 0.0) for s in "xyz"])
+            nu_t = Rt.T @ ((ps - pt) * mu + Rs @ nu)
+            for s, v in zip("xyz", nu_t):
+                if v != 0.0 or f"{j}.{lump}.{s}" in values:
+                    values[f"{j}.{lump}.{s}"] = float(v)
+    gravity = Rbt.T @ (Rbs @ c.gravity)
+    return dataclasses.replace(model, compliance=dataclasses.replace(c, gravity=gravity, values=values))

@@ -789,6 +789,10 @@ def identify(
     if hayati and start.convention == "dh":
         start, hn = hayati_for_parallel_axes(start)
         notes += hn
+    if start is not model and model.compliance is not None:  # compliance (issue 17): lumps sit in link frames
+        from .compliance import reexpress
+
+        start = reexpress(start, model)
     prob = _problem(data, sigma_m, sigma_rad)
     has_rot, sigma_rot = prob.has_rot, prob.sigma_rot
 

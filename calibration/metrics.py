@@ -244,22 +244,24 @@ def error_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, *, R_cmd: np.ndarray
 # --------------------------------------------------------------------------- a model's errors on data
 
 
-def position_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray) -> np.ndarray:
+def position_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray,
+                    payload: np.ndarray | None = None) -> np.ndarray:
     """(N, 3) measured minus predicted positions, m: ``e = p_world − T_world_tool(q) · p_tool``
-    (the book's position error, eq. 4.1 with the model as the estimate), ``p_tool`` (3,) or (N, 3)."""
-    return np.asarray(p_world, float) - points_world(model, q, p_tool)
+    (the book's position error, eq. 4.1 with the model as the estimate), ``p_tool`` (3,) or (N, 3);
+    ``payload`` (N, 4) per row, which a compliant model sags under."""
+    return np.asarray(p_world, float) - points_world(model, q, p_tool, payload)
 
 
 def registered_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray,
-                      p_tool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      p_tool: np.ndarray, payload: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) errors, m, of ``model`` with its base placed where it fits the data best and one
     common tool-frame offset of the measured point absorbed (``registration.register_points``,
     as the identification registers), and that offset (3,), m.
 
     The robot's own inaccuracy apart from where the instrument stands and how the reflector
     sits: what "before" means for a nominal model whose placement in the instrument frame is
-    unknown. Needs at least three non-collinear points."""
-    w = walk(dataclasses.replace(model, base=np.zeros(6)), q)
+    unknown. Needs at least three non-collinear points. ``payload`` as in :func:`position_errors`."""
+    w = walk(dataclasses.replace(model, base=np.zeros(6)), q, payload=payload)
     pt = np.broadcast_to(np.asarray(p_tool, float), w.p.shape)
     X, c = register_points(w.R, w.p, p_world, pt)
     pred = (w.p + np.einsum("nij,nj->ni", w.R, pt + c)) @ X[:3, :3].T + X[:3, 3]

@@ -98,6 +98,13 @@ class Robot(Device):
     def state(self) -> RobotState:
         """The controller's current state."""
 
+    def set_payload(self, mass_kg: float, cog_m) -> None:
+        """Tell the controller the payload now mounted: ``mass_kg`` and its centre of gravity
+        ``cog_m`` (3,) relative to the tool flange (UR's ``set_payload``), so that it (and a
+        calibration with joint compliance) accounts for the arm's sag under it. Controllers
+        without such an interface raise ``NotImplementedError``: set the payload on the pendant."""
+        raise NotImplementedError(f"{type(self).__name__}: this controller has no payload interface")
+
 
 # --------------------------------------------------------------------------- position sensors
 

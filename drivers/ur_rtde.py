@@ -186,6 +186,17 @@ class UrRtdeRobot(Robot):
         with self._lock:
             self._call("stop", float(self.config.stop_decel_rad_s2))
 
+    def set_payload(self, mass_kg: float, cog_m) -> None:
+        """``setPayload``: the mounted payload (kg) and its centre of gravity (3,) m from the
+        tool flange (the control script's ``set_payload``; an all-zero centre of gravity keeps the
+        current one, as the script does)."""
+        cog = [float(v) for v in np.asarray(cog_m, dtype=float).reshape(3)]
+        if not (np.isfinite(mass_kg) and mass_kg >= 0 and np.all(np.isfinite(cog))):
+            raise ValueError(f"payload: expected a mass >= 0 kg and a finite centre of gravity, got {mass_kg}, {cog}")
+        with self._lock:
+            if not self._call("set_payload", float(mass_kg), cog):
+                raise DeviceFaultError("the controller did not accept setPayload", device=self.name)
+
     def reconnect(self) -> None:
         """Drop the connection and connect again (uploads the control script again)."""
         with self._lock:

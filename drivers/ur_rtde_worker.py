@@ -113,6 +113,9 @@ class _Session:
     def stop(self, accel: float) -> None:
         self.control.stopJ(accel, False)
 
+    def set_payload(self, mass: float, cog: list[float]) -> bool:
+        return bool(self.control.setPayload(mass, cog))
+
     def close(self) -> None:
         """End the control script. The worker then exits, which closes every connection
         (``disconnect()`` would do the same and then sleep 0.5 s per interface)."""

@@ -21,7 +21,8 @@ What it simulates:
   the script's encoded async-operation status: bit 15 running, bits 16-22 a write counter,
   bits 24-30 an operation id). ``MOVEJ`` starts ``cell.start_move``; a blocking move reports
   done when the simulated motion is over; ``STOPJ`` stops the robot; ``STOP_SCRIPT`` ends the
-  program;
+  program; ``SET_PAYLOAD`` (``setPayload``) tells the cell the mounted payload, under which a
+  truth with joint compliance sags (``payload``/``payload_cog`` outputs report it);
 - safety and power, as on a UR: ``safety_status_bits`` / ``safety_mode`` reflect
   ``cell.protective_stop`` and ``cell.emergency_stop``, ``robot_mode`` the arm's power
   (``POWER_OFF`` 3, ``IDLE`` 5: powered with the brakes on, ``RUNNING`` 7). A safety stop halts
@@ -43,8 +44,8 @@ delivers bytes intact or not at all; ``ur_rtde`` aborts its process on such a pa
 ``emergency_stop_at_move`` are applied by the cell itself.
 
 Not simulated: the primary/secondary interfaces (30001/30002), the real-time state stream out
-of 30003, script commands other than moveJ/stopJ/stopScript (the others report "done" and do
-nothing), deceleration (``stopJ`` stops at once).
+of 30003, script commands other than moveJ/stopJ/stopScript/setPayload (the others report "done" and
+do nothing), deceleration (``stopJ`` stops at once).
 
 Run alone (tests, debugging)::
 
@@ -159,6 +160,7 @@ ROBOT_STATUS_PROGRAM_RUNNING = 1 << 1
 
 # ur_rtde's control-script commands (RTDE::RobotCommand::Type) that the fake executes.
 CMD_NO_CMD, CMD_MOVEJ, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 34, 255
+CMD_SET_PAYLOAD = 17  # ur_rtde's setPayload: mass and centre of gravity (flange) in input_double_register_0..3
 # "Real-time" commands that the script executes without reporting done.
 _CONTINUOUS_COMMANDS = {6, 9, 10, 11, 12, 24, 25, 26, 27, 38, 58}
 SCRIPT_READY, SCRIPT_DONE, SCRIPT_BUSY = 1, 2, 0
@@ -219,6 +221,7 @@ class UrControllerFake:
         self._last_q = cell.joints()
         self._last_q_time = time.monotonic()
         self._qd = np.zeros(6)
+        self._payload_cog_flange = [0.0, 0.0, 0.0]  # set_payload's centre of gravity (flange frame, m)
 
     # ----------------------------------------------------------------- lifecycle
 
@@ -370,6 +373,13 @@ class UrControllerFake:
                 self._write_async_progress(-1)
         elif cmd == CMD_STOP_SCRIPT:
             self._halt_script()
+        elif cmd == CMD_SET_PAYLOAD:
+            mass = float(regs["input_double_register_0"])
+            cog = [float(regs[f"input_double_register_{i}"]) for i in (1, 2, 3)]
+            if not any(cog):  # the control script keeps the current centre of gravity then
+                cog = list(self._payload_cog_flange)
+            self._payload_cog_flange = cog
+            cell.set_payload(mass, cog)
 
     def _write_async_progress(self, value: int) -> None:
         """Encode the async status register as the control script does: ``value`` >= 0 is
@@ -473,6 +483,8 @@ class UrControllerFake:
             "joint_temperatures": [30.0] * 6,
             "actual_joint_voltage": [48.0] * 6,
             "actual_tool_accelerometer": [0.0, 0.0, 9.81],
+            "payload": float(cell.payload[0]),
+            "payload_cog": list(self._payload_cog_flange),
         }
 
     def _tcp_pose(self) -> list[float]:

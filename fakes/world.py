@@ -19,6 +19,7 @@ import numpy as np
 
 from calibration.kinematics import fk, joint_variables
 from calibration.model import KinematicModel
+from calibration.transforms import pose_to_matrix
 
 
 @dataclass
@@ -123,6 +124,9 @@ class SimCell:
         self.reflector: str | None = next(
             (name for name in truth.targets if not name.startswith("ball")), None
         )
+        # The payload the controller was told it carries (kg, centre of gravity in the tool
+        # frame, m): a truth with joint compliance under gravity sags under it.
+        self.payload = np.zeros(4)
 
     # ----------------------------------------------------------------- bookkeeping
 
@@ -255,9 +259,17 @@ class SimCell:
 
     # ----------------------------------------------------------------- truth
 
+    def set_payload(self, mass_kg: float, cog_flange_m) -> None:
+        """The payload mounted now: ``mass_kg`` and its centre of gravity relative to the tool
+        flange (as UR's ``set_payload`` takes it), kept in the tool frame."""
+        F = pose_to_matrix(self.truth.tool)
+        cog_tool = F[:3, :3].T @ (np.asarray(cog_flange_m, float) - F[:3, 3])
+        with self._lock:
+            self.payload = np.array([float(mass_kg), *cog_tool])
+
     def T_world_tool(self) -> np.ndarray:
-        """The true tool pose now, (4, 4)."""
-        return fk(self.truth, self.joints()[None, :])[0]
+        """The true tool pose now, (4, 4): a compliant truth sags under the payload."""
+        return fk(self.truth, self.joints()[None, :], self.payload)[0]
 
     def point_world(self, p_tool: np.ndarray) -> np.ndarray:
         """Where a point fixed in the tool frame truly is now, (3,)."""

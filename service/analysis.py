@@ -14,10 +14,9 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
-from sqlmodel import Session, select
+from sqlmodel import Session
 
 from calibration.identify import Measurements, Prior, drift_scale, held_relations, identify
 from calibration import metrics
@@ -115,6 +114,12 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     units = nominal.units
     report = identification_report(result, units, data_rows=data.row)
     report["prior"] = None if prior is None else _prior_summary(result, prev, prior, scale, units)
+    if start.compliance is not None:  # a compliant calibration: rigid against compliant, cross-validated
+        from calibration.compliance import compare
+
+        cmp = compare(start, data)
+        report["compliance"] = {k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v)
+                                for k, v in cmp.items()}
     cov = {"names": list(result.param_names), "kinds": [p.kind for p in result.params],
            "matrix": result.covariance.tolist(),
            "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()}}

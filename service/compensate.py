@@ -8,29 +8,36 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+from calibration.compliance import with_payload
 from calibration.model import ModelFormatError, model_from_dict
 
 from . import programs
 from .compensation import CompensationInputError, CompensationRequest, calibrated_range_of, compensate_task
-from .files import InputError
+from .files import InputError, parse_payload
 from .programs.frames import Frames
 
 __all__ = ["CompensationInputError", "compensate_text", "read_multipart"]
 
 
 def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str = "joints",
-                    companions: dict[str, str] | None = None) -> tuple[str, dict]:
+                    companions: dict[str, str] | None = None, payload: str | None = None) -> tuple[str, dict]:
     """Compensate ``text`` (a task CSV or a robot program: URScript, RAPID, KRL, TP, told apart
     by ``name``) with the identified model ``model_doc``; ``nominal_doc`` is what the controller
     knows (targets mode, programs). ``companions``: the program's other files by name (a KRL
     ``.src``'s ``.dat``; a ``$config.dat`` is read for its ``TOOL_DATA``/``BASE_DATA``). Returns
     the compensated text and the per-point report (``recal.compensation-report/1``: ``summary``,
     ``points``, ``uninterpreted``; with companions, ``files``: their compensated texts,
-    ``[{"name", "text"}]``)."""
+    ``[{"name", "text"}]``). ``payload``: the task's payload ``KG[,X,Y,Z]`` for a compliant model
+    (``recal compensate --payload``)."""
     try:
         model, nominal = model_from_dict(model_doc), model_from_dict(nominal_doc)
     except ModelFormatError as exc:
         raise CompensationInputError(f"the calibration's model: {exc}") from None
+    if payload is not None:
+        try:
+            model = with_payload(model, parse_payload(payload, model))
+        except ValueError as exc:
+            raise CompensationInputError(str(exc)) from None
     if nominal.n_joints != model.n_joints:
         raise CompensationInputError(f"the cell's nominal model has {nominal.n_joints} joints, the calibration "
                                      f"{model.n_joints}")

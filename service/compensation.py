@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.compensation import (
+    FLAG_BIT,
     Compensation,
     compensate_joints,
     compensate_targets,
@@ -33,6 +34,7 @@ from calibration.compensation import (
 from calibration.errors import RecalError
 from calibration.kinematics import fk
 from calibration.model import KinematicModel
+from calibration.residual_map import ResidualMapError, from_model
 from calibration.transforms import matrix_to_pose, pose_to_matrix
 
 from . import programs
@@ -114,6 +116,14 @@ class CompensationResult:
         return json.loads(self.report_text())
 
 
+def residual_map_of(model: KinematicModel):
+    """The model's residual map (``calibration.residual_map``), or None."""
+    try:
+        return from_model(model)
+    except ResidualMapError as exc:
+        raise CompensationInputError(f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}") from None
+
+
 def calibrated_range_of(model: KinematicModel) -> np.ndarray | None:
     """(n, 2) SI joint ranges the identified model records (``identification.joint_ranges``), or
     None."""
@@ -141,13 +151,17 @@ def compensate_task(model: KinematicModel, req: CompensationRequest, *,
     u = model.units
     L = u.length_m
     counts = {name: comp.count(name) for name in FLAG_COUNTS}
+    if comp.count("outside_mapped_region"):  # only a model with a residual map sets it
+        counts["outside_mapped_region"] = comp.count("outside_mapped_region")
     summary = {
         "points": len(comp), "converged": int(np.count_nonzero(comp.converged)),
         "residual_max": _f(comp.residual_m.max(initial=0.0) / L),
         "residual_angle_max": _f(comp.residual_rad.max(initial=0.0) / u.angle_rad),
         "correction_max": _f(np.abs(comp.correction).max(initial=0.0) / u.angle_rad),
         "flags": counts,
-        "notes": notes_for(model),
+        "notes": notes_for(model) + ([
+            "the model's residual map is applied to CSV tasks only; this program is compensated with the "
+            "parametric model"] if handler is not _csv and residual_map_of(model) is not None else []),
     }
     pose = matrix_to_pose(M)
     script = req.fmt != "csv"
@@ -220,6 +234,18 @@ def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
                                      calibrated_range=calibrated, **kw)
 
     comp = _chunked(N, run, t0, progress)
+    rmap = residual_map_of(model)
+    if rmap is not None:
+        # the robot is where the parametric model puts it plus the map's correction at the command:
+        # aim the parametric model at the goal minus that correction (run() reads X when called)
+        goal = X.copy()
+        for _ in range(2):  # the map is smooth and small: two passes settle it to well below a micrometre
+            corr, inside = rmap.evaluate(comp.q)
+            X = goal.copy()
+            X[:, :3, 3] -= corr
+            comp = _chunked(N, run, t0, progress)
+        corr, inside = rmap.evaluate(comp.q)
+        comp = dataclasses.replace(comp, flags=comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"]))
     names = {int(b): ";".join(flag_names(b)) for b in np.unique(comp.flags)}
     flags = [names[int(b)] for b in comp.flags]
     text = format_task(task, model, req.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)

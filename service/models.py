@@ -258,6 +258,21 @@ class SessionCreate(_In):
     dry_run: bool = False
     joints: list[int] | None = PField(default=None, min_length=1)  # circle / joint sessions: which joints (1-based)
     repeats: int = PField(default=1, ge=1, le=MAX_REPEATS)  # verify: visits of each configuration (ISO 9283)
+    # pose / verify sessions: payloads [kg] or [kg, x, y, z] (centre of gravity in the tool frame, model length
+    # unit), the plan split between them in order (a compliant model separates the arm's weight from the payload's)
+    payloads: list[list[float]] | None = PField(default=None, min_length=1, max_length=4)
+
+    @field_validator("payloads")
+    @classmethod
+    def _payloads(cls, payloads, info: ValidationInfo):
+        if payloads is None:
+            return None
+        if info.data.get("kind") not in ("pose", "verify"):
+            raise ValueError(f"only pose and verify sessions carry payloads (this is a {info.data.get('kind')} session)")
+        for p in payloads:
+            if len(p) not in (1, 4) or p[0] < 0:
+                raise ValueError(f"each payload is [kg] or [kg, x, y, z] with kg >= 0, got {p}")
+        return [list(p) + [0.0] * (4 - len(p)) for p in payloads]
 
     @field_validator("count")
     @classmethod

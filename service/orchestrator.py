@@ -46,7 +46,7 @@ from sqlmodel import Session, select
 from calibration.model import model_from_dict
 from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedError
 
-from . import analysis
+from . import analysis, records
 from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
@@ -352,8 +352,14 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
         _retry(lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel, timeout_s=timeout_s),
                "move", settings, control)
 
+    payloads = records.payload_of(run, np.arange(len(plan)))
+    mounted = None  # set at the first configuration, also after a resume
+
     for k, seq in enumerate(todo):
         control.check()
+        if payloads is not None and (mounted is None or not np.array_equal(payloads[seq], mounted)):
+            _set_payload(devices, model, payloads[seq], settings, control)
+            mounted = payloads[seq]
         if approach is not None:  # a repeated visit: always from the same side (ISO 9283)
             move(approach[seq])
         move(plan[seq])
@@ -370,6 +376,22 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
         _commit_measurements(db, rows, settings, control, run=run, device_state=state)
         if seq % 10 == 0 and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
             raise SessionStopped("interrupted", "another process holds this cell now; resume the session to continue")
+
+
+def _set_payload(devices: CellDevices, model, payload: np.ndarray, settings: Settings, control: Control) -> None:
+    """Tell the controller the payload now mounted (its centre of gravity from the tool frame to
+    the flange, as the controller takes it). In the simulated cell this mounts it; on a real cell
+    the payload is mounted by hand first: a session with payloads is for a cell set up to change
+    it."""
+    from calibration.transforms import pose_to_matrix
+
+    F = pose_to_matrix(model.tool)
+    cog_flange = F[:3, :3] @ payload[1:] + F[:3, 3]
+    try:
+        _retry(lambda: devices.robot.set_payload(float(payload[0]), cog_flange), "set payload", settings, control)
+    except NotImplementedError as exc:
+        raise SessionStopped("failed", f"{exc}: a session with payloads needs a controller that takes one (UR)",
+                             device="robot", cause=exc) from None
 
 
 def _commit_measurements(db: Session, rows: list[Measurement], settings: Settings, control: Control, *,

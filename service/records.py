@@ -33,8 +33,20 @@ def stored_rows(db: Session, run: RunSession) -> list[Measurement]:
                         .order_by(Measurement.seq, Measurement.id)).all())
 
 
-def measurements_of(rows: list[Measurement]) -> Measurements:
-    """Stored rows as :class:`Measurements` (SI; ``row`` and ``pose_id`` from the pose number)."""
+def payload_of(run: RunSession, seq: np.ndarray) -> np.ndarray | None:
+    """The payload (N, 4) (kg, centre of gravity in the tool frame, m) each configuration ``seq``
+    of a session with ``payloads`` was measured with: the plan is split between them in order
+    (the first share of the configurations with the first payload, ...). None without payloads."""
+    payloads = (run.plan_info or {}).get("payloads")
+    if not payloads:
+        return None
+    n = max(int(run.planned or 0), int(np.max(seq, initial=0)) + 1)
+    return np.asarray(payloads, dtype=float)[np.asarray(seq, dtype=int) * len(payloads) // n]
+
+
+def measurements_of(rows: list[Measurement], run: RunSession | None = None) -> Measurements:
+    """Stored rows as :class:`Measurements` (SI; ``row`` and ``pose_id`` from the pose number; the
+    payloads of ``run``'s plan, :func:`payload_of`)."""
     if not rows:
         raise NoMeasurementsError("the session has no measurements")
     has_quat = [r.qw is not None for r in rows]
@@ -48,13 +60,14 @@ def measurements_of(rows: list[Measurement]) -> Measurements:
         sigma=np.array([r.sigma if r.sigma else np.nan for r in rows]),
         pose_id=np.array([r.seq for r in rows]),
         row=np.array([r.seq + 1 for r in rows]),
+        payload=None if run is None else payload_of(run, np.array([r.seq for r in rows])),
     )
 
 
 def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, list[Measurement]]:
     """The session's measurements as arrays, and the rows they came from."""
     rows = stored_rows(db, run)
-    return measurements_of(rows), rows
+    return measurements_of(rows, run), rows
 
 
 def target_points(model: KinematicModel, data: Measurements) -> np.ndarray:
@@ -64,12 +77,12 @@ def target_points(model: KinematicModel, data: Measurements) -> np.ndarray:
 
 def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
     """(N, 3) measured minus predicted target positions, m (``calibration.metrics``)."""
-    return metrics.position_errors(model, data.q, data.p_world, target_points(model, data))
+    return metrics.position_errors(model, data.q, data.p_world, target_points(model, data), data.payload)
 
 
 def registered_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
     """(N, 3) errors, m, with the model's base placed where it fits best (``calibration.metrics``)."""
-    return metrics.registered_errors(model, data.q, data.p_world, target_points(model, data))[0]
+    return metrics.registered_errors(model, data.q, data.p_world, target_points(model, data), data.payload)[0]
 
 
 def current_model(db: Session, cell: Cell) -> tuple[KinematicModel, Calibration | None]:

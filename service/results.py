@@ -181,7 +181,8 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         "previous_id": previous_calibration_id(db, cal),
         "report": {k: report.get(k) for k in ("success", "message", "rows", "parameters", "unidentifiable",
                                               "condition_number", "observability", "residuals", "outliers",
-                                              "registration", "notes", "prior", "settings", "joints", "note")},
+                                              "registration", "notes", "prior", "settings", "joints", "note",
+                                              "compliance")},
         "errors": None, "workspace": None,
     }
     if cal.kind != "pose" or run is None:

@@ -67,9 +67,22 @@ def _commands(model, data, target):
     names = np.array([t if t is not None else target for t in data.target], dtype=object)
     T = fk(model, data.q, data.payload)  # a compliant model sags under each row's payload
     p_cmd = np.einsum("nij,nj->ni", T[:, :3, :3], np.stack([model.target(t) for t in names])) + T[:, :3, 3]
+    rmap = _residual_map(model)
+    if rmap is not None:  # where the model's residual map applies, it corrects the commanded position
+        p_cmd = p_cmd + rmap.evaluate(data.q)[0]
     full = data.quat is not None and bool(np.all(data.has_orientation))
     R = (T[:, :3, :3], quat_to_matrix(data.quat)) if full else (None, None)
     return names, p_cmd, R
+
+
+def _residual_map(model):
+    from calibration.residual_map import ResidualMapError, from_model
+    from service.cli import Fail
+
+    try:
+        return from_model(model)
+    except ResidualMapError as exc:
+        raise Fail(f"model field {exc.field!r}: {str(exc).split(': ', 1)[-1]}") from None
 
 
 def _f(x, digits=6):

@@ -13,6 +13,9 @@ cell, and a calibration end to end through the REST API.
    running until Ctrl-C (``--exit`` stops at once).
 
 ``--offline`` skips the service: simulated measurement files and ``recal identify`` on them.
+``--sag cobot|arm165`` gives the true robot joint compliance under gravity
+(``calibration.simulate.SAGGING_ARMS``; with ``--offline``, half the poses carry the rated payload
+and the rigid and compliant identifications are shown side by side).
 ``--models-only`` writes the nominal model and the simulated robot's truth (``nominal.json``,
 ``truth.json`` in ``--dir``) and stops: what ``docker/compose.yaml`` starts its cell with.
 """
@@ -56,6 +59,9 @@ def add_parser(s) -> None:
     s.add_argument("--port", type=int, default=8000, help="port of the service")
     s.add_argument("--exit", action="store_true", help="stop the service and the cell when done")
     s.add_argument("--offline", action="store_true", help="no service: files and `recal identify` only")
+    s.add_argument("--sag", choices=["cobot", "arm165"],
+                   help="the true robot sags under gravity (joint compliance of a cobot or a 165 kg-payload arm); "
+                        "offline, half the poses carry the rated payload and rigid and compliant are compared")
     s.add_argument("--models-only", action="store_true",
                    help="write nominal.json and truth.json (the simulated robot) into --dir, then stop")
 
@@ -70,7 +76,22 @@ def _truth_and_nominal(args):
         base=np.array([1.8, -0.6, 0.3, 0.002, -0.004, np.deg2rad(130.0)]),  # where the tracker happens to stand
         targets={name: p + rng.normal(0, 0.8e-3, 3) for name, p in targets.items()},  # as really mounted
     )
+    if getattr(args, "sag", None):
+        from calibration.simulate import sagging
+
+        truth = sagging(truth, args.sag, frames_of=nominal)
     return nominal, truth, rng
+
+
+def _cell_model(args, nominal):
+    """The model a cell is registered with: with ``--sag``, the nominal one with a compliance
+    section (every term 0), so that the service identifies the compliant model and its result
+    page shows it against the rigid one."""
+    if not args.sag:
+        return nominal
+    from calibration.compliance import default_section, with_section
+
+    return with_section(nominal, default_section(nominal))
 
 
 def run(args) -> int:
@@ -92,7 +113,7 @@ def _models_only(args) -> int:
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
     nominal, truth, _ = _truth_and_nominal(args)
-    save_model(out / "nominal.json", nominal)
+    save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
     print(f"recal demo: {out / 'nominal.json'} (register the cell with it) and {out / 'truth.json'} "
           f"(the simulated {args.robot}, for recal fake-cell --truth)")
@@ -110,7 +131,7 @@ def _live(args) -> int:
     out = Path(args.dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     nominal, truth, _ = _truth_and_nominal(args)
-    save_model(out / "nominal.json", nominal)
+    save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
     db_file = out / "recal.db"
     for f in out.glob("recal.db*"):
@@ -171,6 +192,10 @@ def _live(args) -> int:
         cal = api.call("GET", f"/calibrations/{pose['calibration_id']}")
         say(f"  identified {len(cal['report']['parameters'])} parameters in {time.monotonic() - t0:.1f} s; "
             f"residual RMS {cal['rms']:.4f} mm")
+        comp = cal["report"].get("compliance")
+        if comp:  # --sag: the cell's model is compliant; the service compared it with the rigid one
+            say(f"  rigid against compliant ({comp['folds']}-fold cross-validation on the session's data): RMS "
+                f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)")
         say("verifying the calibrated model (20 fresh configurations)...")
         after = session("verify", 20)["plan_info"]["verify"]
         (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
@@ -219,6 +244,9 @@ def _write_measurements(path: Path, model, data) -> None:
     header = [f"q{i + 1}" for i in range(model.n_joints)] + ["x", "y", "z", "target", "pose_id"]
     rows = [list(qr) + list(p / u.length_m) + [t or "", pid]
             for qr, p, t, pid in zip(qs, data.p_world, data.target, data.pose_id)]
+    if data.payload is not None:  # the payload each pose was measured with (kg, centre of gravity in mm)
+        header += ["payload_kg", "payload_x", "payload_y", "payload_z"]
+        rows = [r + [pl[0], *(pl[1:] / u.length_m)] for r, pl in zip(rows, data.payload)]
     write_atomic(path, "# simulated laser-tracker measurements (recal demo)\n" + format_csv(header, rows))
 
 
@@ -230,8 +258,16 @@ def _offline(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     nominal, truth, rng = _truth_and_nominal(args)
     save_model(out / "nominal.json", nominal)
-    data = simulate_measurements(truth, random_configurations(nominal, args.poses, rng), rng, sigma_m=20e-6, targets=("smr",))
-    holdout = simulate_measurements(truth, random_configurations(nominal, 200, rng), rng, sigma_m=20e-6, targets=("smr",))
+    payload = None
+    if args.sag:  # every other pose with the rated payload: two payloads separate the arm's weight from it
+        from calibration.simulate import SAGGING_ARMS
+
+        rated = np.array(SAGGING_ARMS[args.sag]["payload"])
+        payload = lambda n: np.array([rated if i % 2 else np.zeros(4) for i in range(n)])  # noqa: E731
+    data = simulate_measurements(truth, random_configurations(nominal, args.poses, rng), rng, sigma_m=20e-6,
+                                 targets=("smr",), payload=payload(args.poses) if payload else None)
+    holdout = simulate_measurements(truth, random_configurations(nominal, 200, rng), rng, sigma_m=20e-6,
+                                    targets=("smr",), payload=payload(200) if payload else None)
     _write_measurements(out / "measurements.csv", nominal, data)
     _write_measurements(out / "holdout.csv", nominal, holdout)
     print(f"recal demo: simulated {args.robot} measured at {args.poses} configurations; files in {out}/")
@@ -245,4 +281,14 @@ def _offline(args) -> int:
     print(f"accuracy on 200 fresh configurations: RMS {v['rms']:.4f} mm, max {v['max']:.4f} mm "
           f"(nominal model after registration: RMS {v['before']['rms']:.3f} mm, max {v['before']['max']:.3f} mm)")
     print(f"identified model: {out / 'identified.json'}   full report: {out / 'report.json'}")
+    if args.sag:
+        status = recal(["identify", "--model", str(out / "nominal.json"), "--data", str(out / "measurements.csv"),
+                        "--validate", str(out / "holdout.csv"), "--out", str(out / "identified-compliant.json"),
+                        "--report", str(out / "report-compliant.json"), "--compliance", "auto"])
+        if status != 0:
+            return status
+        c = json.loads((out / "report-compliant.json").read_text())
+        print(f"rigid against compliant on 200 fresh configurations: RMS {v['rms']:.4f} mm against "
+              f"{c['validation']['rms']:.4f} mm; inside the predicted 95 % bound {100 * v['inside_predicted_95']:.1f} % "
+              f"against {100 * c['validation']['inside_predicted_95']:.1f} % (noise floor {np.sqrt(3) * 0.02:.4f} mm)")
     return 0

@@ -54,6 +54,9 @@ def add_parser(s) -> None:
     s.add_argument("--gains", action="store_true", help="plan for identifying joint gains too")
     s.add_argument("--fix", action="append", metavar="NAME", help="a parameter kept fixed (repeatable; prefix*)")
     s.add_argument("--report", help="JSON report to write")
+    s.add_argument("--compliance", choices=["gravity"],
+                   help="plan for joint compliance under gravity too (configurations that excite the gravity torques "
+                        "of the joints that carry the arm; a model with a compliance section plans for it anyway)")
 
 
 def _positive(name: str, v, allow_zero: bool = False) -> None:
@@ -76,6 +79,10 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     model = load_model(args.model)
+    if args.compliance and model.compliance is None:
+        from calibration.compliance import default_section, with_section
+
+        model = with_section(model, default_section(model))
     u = model.units
     L, A = u.length_m, u.angle_rad
     targets = tuple(args.target) if args.target else (None,)

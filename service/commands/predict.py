@@ -45,6 +45,7 @@ def run(args) -> int:
     q = read_joints(args.joints, model, table)
     payload = read_payload(table, model)  # per row, where the CSV gives it
     T = fk(model, q, payload)
+    flags = _residual_map(args, model, q, T)
     L = model.units.length_m
     if args.target is not None:
         p = (T[:, :3, :3] @ model.targets[args.target] + T[:, :3, 3]) / L
@@ -55,7 +56,10 @@ def run(args) -> int:
     if covariance is not None:
         header, rows = header + UNCERTAINTY_COLUMNS, np.hstack([rows, _uncertainty(model, covariance, q, args.target,
                                                                                    payload)])
-    write_atomic(args.out, format_csv(header, rows.tolist()))
+    rows = rows.tolist()
+    if flags is not None:  # a model with a residual map says where it applied
+        header, rows = header + ["flags"], [r + [f] for r, f in zip(rows, flags)]
+    write_atomic(args.out, format_csv(header, rows))
     return 0
 
 
@@ -79,3 +83,23 @@ def _uncertainty(model, covariance, q, target, payload=None):
     C = propagate(model, params, Sigma, q, np.array([target] * len(q), dtype=object), payload)
     sigma = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
     return np.hstack([sigma, radius_95(C)[:, None]]) / model.units.length_m
+
+
+def _residual_map(args, model, q, T):
+    """Apply the model's residual map (book §5.4) to the tool poses ``T`` (N, 4, 4) in place (a
+    translation of the tool frame); the per-row flags (``outside_mapped_region`` where it does not
+    apply), or None for a model without a map."""
+    import numpy as np
+
+    from calibration.residual_map import ResidualMapError, from_model
+    from service.files import InputError
+
+    try:
+        rmap = from_model(model)
+    except ResidualMapError as exc:
+        raise InputError(args.model, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}") from None
+    if rmap is None:
+        return None
+    corr, inside = rmap.evaluate(q)
+    T[:, :3, 3] += corr
+    return np.where(inside, "", "outside_mapped_region").tolist()

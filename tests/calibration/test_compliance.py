@@ -218,3 +218,28 @@ def test_default_section_skips_a_vertical_first_axis():
     tilted = dataclasses.replace(nominal("ur10e"))
     # gravity along the base x axis (a wall-mounted arm): j1 feels gravity too
     assert C.default_section(tilted, gravity=(1.0, 0.0, 0.0)).joints[0] == "j1"
+
+
+@pytest.mark.parametrize("convert", ["poe", "hayati", "mdh"])
+def test_converting_the_convention_keeps_the_sag(convert):
+    """The lumps sit in link frames, which a conversion moves: re-expressed, the converted model
+    sags exactly as the original (identification converts mdh to dh and parallel axes to Hayati
+    links before it starts)."""
+    from calibration.conventions import dh_to_mdh, hayati_for_parallel_axes, mdh_to_dh
+
+    base = dataclasses.replace(nominal("ur10e"), base=np.array([0.2, 0.1, 0.3, 0.3, -0.2, 1.0]),
+                               tool=np.array([0.0, 0.01, 0.12, 0.0, 0.1, 0.0]))
+    if convert == "mdh":
+        source = sagging(dh_to_mdh(base), "cobot")
+        converted = mdh_to_dh(dataclasses.replace(source, compliance=None))
+    else:
+        source = sagging(base, "cobot")
+        rigid = dataclasses.replace(source, compliance=None)
+        converted = to_poe(rigid) if convert == "poe" else hayati_for_parallel_axes(rigid)[0]
+    moved = C.reexpress(converted, source)
+    q = np.random.default_rng(6).uniform(-3, 3, (10, 6))
+    payload = np.array([7.0, 0.01, 0.0, 0.09])
+    assert np.abs(fk(moved, q, payload) - fk(source, q, payload)).max() < 1e-12
+    if convert != "hayati":  # (the UR's parallel links have d = 0: Hayati's form keeps their frames)
+        naive = dataclasses.replace(converted, compliance=source.compliance)  # frames moved, terms not
+        assert np.abs(fk(naive, q, payload)[:, :3, 3] - fk(source, q, payload)[:, :3, 3]).max() > 1e-5

@@ -126,3 +126,26 @@ def test_folds_keep_a_configuration_together():
     for f in folds:
         others = np.setdiff1d(np.arange(len(data)), f)
         assert not set(data.pose_id[f].tolist()) & set(data.pose_id[others].tolist())
+
+
+def test_planning_for_compliance_chooses_configurations_that_excite_the_gravity_torques():
+    """A compliant nominal model plans for its compliance terms too: the poses it chooses
+    determine them better than poses planned for geometry alone (smaller predicted standard
+    errors of the same compliant identification)."""
+    from calibration import planning
+
+    nom, _, rng = _cell("cobot", seed=13)
+    compliant = C.with_section(nom, C.default_section(nom))
+    cand = random_configurations(nom, 400, rng)
+    kw = dict(targets=("smr",), n_evaluation=50, rng=np.random.default_rng(0))
+    for_compliance = planning.plan(compliant, cand, 30, **kw)
+    for_geometry = planning.plan(nom, cand, 30, **kw)
+    assert any(p.name.startswith("compliance.") for p in for_compliance.params)
+    # the same compliant identification predicted from each design: the compliance terms' errors
+    geometry_design = planning.plan(compliant, cand[for_geometry.indices], 30, exchange=False, **kw)
+    names = [p.name for p in for_compliance.params]
+    other = {p.name: s for p, s in zip(geometry_design.params, geometry_design.std_errors)}
+    shared = [n for n in names if n.startswith("compliance.") and n in other]
+    assert shared
+    ratio = np.median([other[n] / for_compliance.std_errors[names.index(n)] for n in shared])
+    assert ratio > 1.2, ratio

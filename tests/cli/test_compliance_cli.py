@@ -167,3 +167,122 @@ def test_negative_payload_mass_names_row_and_column(cell):
     assert len(proc.stderr.strip().splitlines()) == 1
     assert "neg.csv, row 3 (line 4), column 'payload_kg'" in proc.stderr and ">= 0 kg" in proc.stderr
     assert not (cell.dir / "bad.json").exists()
+
+
+# --------------------------------------------------------------------------- residual maps
+
+CENTRE = np.deg2rad([0.0, -60.0, 90.0, -120.0, -90.0, 0.0])
+REGION = np.stack([CENTRE - np.deg2rad(40), CENTRE + np.deg2rad(40)], axis=1)
+
+
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory):
+    """A sagging cobot measured in one region of its workspace with its payload on; the rigid
+    model identified with a residual map."""
+    d = tmp_path_factory.mktemp("residual_map")
+    rng = np.random.default_rng(8)
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    truth = sagging(perturbed(nominal, rng, base_length_m=0.5, base_angle_rad=0.3), "cobot", frames_of=nominal)
+    (d / "nominal.json").write_text(json.dumps(model_to_dict(nominal, units=MM_DEG)))
+    data = simulate_measurements(truth, random_configurations(nominal, 200, rng, limits=REGION), rng, sigma_m=20e-6,
+                                 targets=("smr",), payload=np.array(PAYLOAD))
+    write_measurements(d / "meas.csv", data)
+    proc = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "id.json",
+                 "--residual-map", "auto", cwd=d)
+    q = np.vstack([random_configurations(nominal, 6, rng, limits=REGION), CENTRE + np.deg2rad([150, 0, 0, 0, 0, 0])])
+    return d, truth, q, proc
+
+
+def test_identify_keeps_a_map_that_helps_and_predict_flags_outside(mapped):
+    d, truth, q, proc = mapped
+    assert proc.returncode == 0, proc.stderr
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("residual map (5-fold cross-validation)"))
+    assert "kept" in line
+    doc = json.loads((d / "id.json").read_text())
+    assert doc["residual_map"]["format"] == "recal.residual_map/1"
+    with (d / "joints.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([f"q{i + 1}" for i in range(6)])
+        w.writerows(np.rad2deg(q).tolist())
+    p = recal("predict", "--model", "id.json", "--joints", "joints.csv", "--target", "smr", "--out", "p.csv", cwd=d)
+    assert p.returncode == 0, p.stderr
+    rows = list(csv.reader((d / "p.csv").open()))
+    assert rows[0] == ["x", "y", "z", "flags"]
+    flags = [r[3] for r in rows[1:]]
+    assert flags[-1] == "outside_mapped_region" and flags.count("outside_mapped_region") <= 2
+    xyz = np.array([r[:3] for r in rows[1:]], dtype=float) * 1e-3
+    parametric = target_positions(load_model(d / "id.json"), q, "smr")
+    true = target_positions(truth, q, "smr", payload=np.array(PAYLOAD))
+    inside = np.array([f == "" for f in flags])
+    # inside, the map brings the prediction closer to where the robot really is; outside it does nothing
+    assert np.mean(np.linalg.norm(xyz - true, axis=1)[inside]) < 0.7 * np.mean(
+        np.linalg.norm(parametric - true, axis=1)[inside])
+    assert np.allclose(xyz[~inside], parametric[~inside], atol=1e-9)
+
+
+def test_identify_leaves_out_a_map_that_does_not_help(mapped):
+    d = mapped[0]
+    proc = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "idc.json",
+                 "--compliance", "gravity", "--residual-map", "auto", cwd=d)
+    assert proc.returncode == 0, proc.stderr
+    assert "no gain of 5 % or more: left out" in proc.stdout
+    assert "residual_map" not in json.loads((d / "idc.json").read_text())
+
+
+def test_compensate_aims_the_parametric_model_at_the_goal_minus_the_map(mapped):
+    from calibration.residual_map import from_model
+
+    d, truth, q, proc = mapped
+    assert proc.returncode == 0, proc.stderr
+    model = load_model(d / "id.json")
+    goal = target_positions(truth, q, None, payload=np.array(PAYLOAD))  # tool origin: where the robot must go
+    from calibration.kinematics import fk
+    from calibration.transforms import matrix_to_quat
+
+    quat = matrix_to_quat(fk(truth, q, np.array(PAYLOAD))[:, :3, :3])
+    with (d / "task.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["x", "y", "z", "qw", "qx", "qy", "qz"] + [f"q{i + 1}" for i in range(6)])
+        for k in range(len(goal)):
+            w.writerow([*(goal[k] * 1e3), *quat[k], *np.rad2deg(q[k])])
+    c = recal("compensate", "--model", "id.json", "--task", "task.csv", "--out", "c.csv", cwd=d)
+    assert c.returncode == 0, c.stderr
+    rows = list(csv.reader((d / "c.csv").open()))
+    head = rows[0]
+    qc = np.deg2rad(np.array([[r[head.index(f"q{i + 1}")] for i in range(6)] for r in rows[1:]], dtype=float))
+    flags = [r[head.index("flags")] for r in rows[1:]]
+    corr, inside = from_model(model).evaluate(qc)
+    reached = fk(model, qc)[:, :3, 3] + corr
+    ok = inside & np.array(["outside_mapped_region" not in f for f in flags])
+    assert ok.sum() >= 4
+    assert np.abs(reached - goal)[ok].max() < 1e-6
+    assert "outside_mapped_region" in flags[-1].split(";")  # the base turned where nothing was measured
+    assert np.linalg.norm(fk(model, qc[-1:])[0, :3, 3] - goal[-1]) < 1e-6  # the parametric model alone there
+
+
+def test_demo_shows_rigid_and_compliant_side_by_side(tmp_path):
+    proc = recal("demo", "--offline", "--sag", "cobot", "--poses", "100", "--dir", tmp_path / "demo", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("rigid against compliant"))
+    rigid, compliant = (float(v) for v in line.split("RMS ")[1].split(" mm;")[0].split(" mm against "))
+    floor = np.sqrt(3) * 0.02
+    assert compliant < 1.15 * floor < 3 * floor < rigid
+    assert "payload_kg" in (tmp_path / "demo" / "measurements.csv").read_text().splitlines()[1]
+
+
+def test_accuracy_applies_the_residual_map(mapped):
+    d, truth, _, proc = mapped
+    assert proc.returncode == 0, proc.stderr
+    rng = np.random.default_rng(12)
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    held = simulate_measurements(truth, random_configurations(nominal, 150, rng, limits=REGION), rng, sigma_m=20e-6,
+                                 targets=("smr",), payload=np.array(PAYLOAD))
+    write_measurements(d / "held.csv", held)
+    doc = json.loads((d / "id.json").read_text())
+    (d / "nomap.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "residual_map"}))
+    rms = {}
+    for name in ("id.json", "nomap.json"):
+        a = recal("accuracy", "--model", name, "--data", "held.csv", "--out", f"acc-{name}", cwd=d)
+        assert a.returncode == 0, a.stderr
+        rms[name] = json.loads((d / f"acc-{name}").read_text())["errors"]["rms"]
+    assert rms["id.json"] < 0.7 * rms["nomap.json"]

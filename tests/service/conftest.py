@@ -113,11 +113,12 @@ def stored_session(settings):
 
 
 def store_session(settings: Settings, cell_id: int, *, kind: str = "pose", seed: int = 0, n: int = 30,
-                  repeats: int = 1, truth_seed: int = 1) -> tuple[int, int | None]:
+                  repeats: int = 1, truth_seed: int = 1, sag: str | None = None) -> tuple[int, int | None]:
     """A completed session of the cell stored as the orchestrator stores one: simulated tracker
     measurements (reflector ``smr``) of a robot near the cell's nominal model (link errors from
     ``truth_seed``), then the analysis (identification for ``pose``, accuracy for ``verify``,
-    each configuration visited ``repeats`` times). Returns (session id, calibration id)."""
+    each configuration visited ``repeats`` times; ``sag``: the robot sags under gravity, one of
+    ``calibration.simulate.SAGGING_ARMS``). Returns (session id, calibration id)."""
     import dataclasses
 
     import numpy as np
@@ -135,6 +136,10 @@ def store_session(settings: Settings, cell_id: int, *, kind: str = "pose", seed:
             rng = np.random.default_rng(seed)
             truth = dataclasses.replace(perturbed(nominal, np.random.default_rng(truth_seed), tool_length_m=0.0),
                                         base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]))
+            if sag is not None:
+                from calibration.simulate import sagging
+
+                truth = sagging(truth, sag, frames_of=dataclasses.replace(nominal, compliance=None))
             q = np.repeat(random_configurations(nominal, n, rng), repeats, axis=0)
             data = simulate_measurements(truth, q, rng, targets=("smr",))
             info = {"method": "random", "limits_checked": True, **({"repeats": repeats} if repeats > 1 else {})}

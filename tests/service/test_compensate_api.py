@@ -96,3 +96,19 @@ def test_registered_task_files_are_compensated_again(calibrated, tokens, stored_
     assert client.post(f"/api/v1/cells/{cell}/tasks/compensate?calibration_id={cal}",
                        headers=t).json()["calibration_id"] == cal
     assert client.post(f"/api/v1/cells/{cell}/tasks/compensate?calibration_id=999", headers=t).status_code == 404
+
+
+def test_the_compensate_endpoint_takes_the_task_payload(calibrated, tokens):
+    """``?payload=KG,X,Y,Z`` reaches the compensation (a calibration without joint compliance does
+    not sag under it, so the commands are those without it); a malformed one names the field."""
+    client, _, cal = calibrated
+    model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"])
+    text, _, _ = _task(model, n=3)
+    url = f"/api/v1/calibrations/{cal}/compensate?mode=joints&name=pick.csv"
+    plain = client.post(url, content=text, headers=auth(tokens["job"]))
+    loaded = client.post(url + "&payload=10,0,0,100", content=text, headers=auth(tokens["job"]))
+    assert plain.status_code == loaded.status_code == 200, loaded.text
+    assert loaded.text == plain.text
+    bad = client.post(url + "&payload=ten", content=text, headers=auth(tokens["job"]))
+    assert bad.status_code == 422
+    assert bad.json()["detail"]["field"] == "query.payload" and "KG or KG,X,Y,Z" in bad.json()["detail"]["message"]

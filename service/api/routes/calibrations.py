@@ -44,26 +44,28 @@ def _load_for_compensation(engine, calibration_id: int) -> tuple[dict, dict]:
 
 
 def _store_compensation(engine, calibration_id: int, name: str, mode: str, output: str, report: dict,
-                        actor: str) -> int:
+                        actor: str, payload: str | None = None) -> int:
     with Session(engine) as db:
         rec = Compensation(calibration_id=calibration_id, name=name, mode=mode, output=output, report=report,
                            created_by=actor)
         db.add(rec)
         db.commit()
         audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
-              detail={"name": name, "mode": mode})
+              detail={"name": name, "mode": mode, **({"payload": payload} if payload else {})})
         return rec.id
 
 
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
 async def compensate(calibration_id: int, request: Request, tok: Compensator,
-                     mode: str = "joints", name: str = "task.csv") -> PlainTextResponse:
+                     mode: str = "joints", name: str = "task.csv", payload: str | None = None) -> PlainTextResponse:
     """A task CSV or a robot program (URScript, RAPID, TP; ``name`` tells which) in the request
-    body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``. A program
-    of several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one
-    part per file; the answer is then JSON ``{"files": [{"name", "text"}, ...]}``, the program
-    first. The compensation runs in a worker process (service.heavy): the service answers every
-    other request meanwhile; the database in the thread pool (a networked database may stall)."""
+    body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``;
+    ``payload``: the task's payload ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the
+    model's length unit), which a calibration with joint compliance sags under. A program of
+    several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one part
+    per file; the answer is then JSON ``{"files": [{"name", "text"}, ...]}``, the program first.
+    The compensation runs in a worker process (service.heavy): the service answers every other
+    request meanwhile; the database in the thread pool (a networked database may stall)."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
     from ...compensate import CompensationInputError, compensate_text, read_multipart
@@ -90,10 +92,13 @@ async def compensate(calibration_id: int, request: Request, tok: Compensator,
 
     try:
         output, report = await request.app.state.heavy.run(compensate_text, body, name=name, model_doc=model_doc,
-                                                           nominal_doc=cell_model, mode=mode, companions=companions)
+                                                           nominal_doc=cell_model, mode=mode, companions=companions,
+                                                           payload=payload)
     except CompensationInputError as exc:
-        raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
-    rec_id = await run_in_threadpool(_store_compensation, engine, calibration_id, name, mode, output, report, tok.name)
+        field = "query.payload" if str(exc).startswith("--payload") else "body"
+        raise HTTPException(422, {"field": field, "message": str(exc)}) from None
+    rec_id = await run_in_threadpool(_store_compensation, engine, calibration_id, name, mode, output, report, tok.name,
+                                     payload)
     if companions is not None:
         from fastapi.responses import JSONResponse
 

@@ -83,6 +83,9 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     if body.dry_run:
         forget_dry_runs(db, cell.id)
     info = {**({"joints": body.joints} if body.joints else {}), **({"repeats": body.repeats} if body.repeats > 1 else {})}
+    if body.payloads:  # SI: kg, then the centre of gravity in the tool frame (m)
+        L = model.units.length_m
+        info["payloads"] = [[p[0], p[1] * L, p[2] * L, p[3] * L] for p in body.payloads]
     run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
                      target=body.target if body.target is not None else (_default_target(model, body)),
                      dry_run=body.dry_run, created_by=tok.name, plan_info=info or None)

@@ -669,12 +669,17 @@ export async function start(ctx, id) {
   const targetField = field("Target (reflector)", target, "the point on the tool the tracker follows");
   const countHelp = h("p", { class: "help" });
   const deviceField = field("Instrument", device);
+  const payloads = h("input", { type: "text", id: "payloads", placeholder: "e.g. 0; 10,0,0,100" });
+  const payloadField = field("Payloads (optional)", payloads, `kg or kg,x,y,z (centre of gravity in the tool frame, `
+    + `${c.unit}), separated by ";": the plan is split between them, each set through the robot controller (UR). `
+    + "Two payloads let a model with joint compliance tell the arm's own weight from the payload's.");
   function sync() {
     const k = kind.querySelector("input:checked").value;
     countHelp.textContent = k === "pose" || k === "verify" ? "number of robot configurations to measure"
       : "points per swept joint";
     deviceField.hidden = k === "joint";
     targetField.hidden = k === "joint" || device.value === "cmm";
+    payloadField.hidden = !(k === "pose" || k === "verify");
   }
   kind.addEventListener("change", () => {
     const spec = KINDS[kind.querySelector("input:checked").value];
@@ -691,7 +696,7 @@ export async function start(ctx, id) {
       " — only one session can drive a cell at a time.") : null,
     h("fieldset", {}, h("legend", {}, "What to do"), kind),
     h("div", { class: "field" }, h("label", { for: "count" }, "How many"), count, countHelp),
-    deviceField, targetField,
+    deviceField, targetField, payloadField,
     h("div", { class: "actions" }, h("a", { class: "button secondary", href: `#/cells/${id}` }, "Cancel"), planBtn));
   sync();
   form.addEventListener("submit", (e) => {
@@ -702,6 +707,9 @@ export async function start(ctx, id) {
       const body = { kind: k, count: Number(count.value), dry_run: true };
       if (k !== "joint") body.device = device.value || "tracker";
       if (k !== "joint" && device.value !== "cmm" && target.value) body.target = target.value;
+      if (!payloadField.hidden && payloads.value.trim()) {  // "0; 10,0,0,100" -> [[0], [10, 0, 0, 100]]
+        body.payloads = payloads.value.split(";").map((p) => p.split(",").map((v) => Number(v.trim())));
+      }
       const dry = await post(`/cells/${id}/sessions`, body);
       let s = dry;
       for (let i = 0; i < 600 && !["completed", "failed", "aborted", "paused"].includes(s.state); i++) {

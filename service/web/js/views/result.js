@@ -102,6 +102,19 @@ export async function show(ctx, id) {
         + `radius, ${num(ws.stats95.mean, 3)} ${unit} on average.)`)));
   }
 
+  // joint compliance under gravity: the rigid and the compliant model, cross-validated on the same data
+  const comp = rep.compliance;
+  if (comp && comp.cv_rms_rigid != null) {
+    parts.push(card("Rigid against compliant",
+      table(["Model", `Cross-validated RMS (${unit})`],
+        [["Rigid (geometric parameters only)", num(comp.cv_rms_rigid, 4)],
+         [`Compliant (joints ${(comp.joints || []).join(", ")} sag under gravity)`, num(comp.cv_rms_compliant, 4)]],
+        { class: "compliance", id: "rigid-compliant" }),
+      h("p", { class: "small muted" }, `${comp.folds}-fold cross-validation: each model identified on all folds but `
+        + "one and tested on that one. This calibration is the compliant model"
+        + (comp.gain > 0 ? `: ${num(100 * comp.gain, 3)} % lower error than rigid.` : "; here it does no better than rigid."))));
+  }
+
   // parameters
   const params = rep.parameters || [];
   if (params.length) {

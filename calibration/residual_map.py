@@ -1,0 +1,211 @@
+"""Residual maps: a smooth correction of what the parametric model leaves (book §5.4,
+nonparametric compensation).
+
+The book fits polynomials in the joint angles to the remaining error (Shamma and Whitney,
+§5.4.1) or a CMAC table (§5.4.2). What the field uses now for a smooth function of a handful of
+joint angles from a few hundred samples is a kernel method; here kernel ridge regression (the
+mean of a Gaussian process) with a Gaussian kernel on the joint configuration: revolute joints
+enter as (cos q, sin q), so the map is periodic in them and a distance between configurations
+is the chordal distance (≈ the angle, for small ones); prismatic joints enter as q over 1 m.
+
+    correction(q) = Σ_j k(q, q_j) α_j,   k(q, q') = exp(−|φ(q) − φ(q')|² / (2ℓ²)),
+    α = (K + λ I)⁻¹ R                                                                  (5.4)
+
+with ``R`` (M, 3) the world-frame position residuals (measured − parametric) at the training
+configurations. The smoothness ``ℓ`` and the ridge ``λ`` are chosen on held-out data
+(k-fold cross-validation, a configuration's rows together). The map applies only inside the
+measured region: within the joint ranges the training configurations span and within ``ℓ`` of
+one of them; elsewhere it says so and the parametric model is used alone. A map is a correction of one parametric model: identify that
+model again and the map must be fitted again.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import RecalError
+from .model import KinematicModel
+
+LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)
+RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # relative to the kernel's unit diagonal
+MIN_CV_GAIN = 0.05  # a map must lower the cross-validated RMS by at least this fraction to be kept
+FORMAT = "recal.residual_map/1"
+
+
+def features(q: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """The embedding φ(q) (N, F): (cos, sin) of each revolute joint, q / 1 m of each prismatic one."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    rev = np.asarray(revolute, dtype=bool)
+    return np.hstack([np.cos(q[:, rev]), np.sin(q[:, rev]), q[:, ~rev]])
+
+
+def _sqdist(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    d = np.sum(A**2, axis=1)[:, None] + np.sum(B**2, axis=1)[None, :] - 2.0 * A @ B.T
+    return np.maximum(d, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class ResidualMap:
+    """A fitted map (eq. 5.4). ``q_train`` (M, n) SI readings, ``alpha`` (M, 3) m,
+    ``length_scale`` ℓ and ``ridge`` λ, ``revolute`` (n,); ``cv`` the cross-validation figures
+    that chose it (m)."""
+
+    q_train: np.ndarray
+    alpha: np.ndarray
+    length_scale: float
+    ridge: float
+    revolute: np.ndarray
+    cv: dict
+
+    def evaluate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The correction (N, 3) m to add to the parametric model's position at readings ``q``
+        (N, n), and (N,) whether each is inside the measured region (the correction is zero
+        outside)."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        F = features(q, self.revolute)
+        D = _sqdist(F, features(self.q_train, self.revolute))
+        lo, hi = self.q_train.min(axis=0), self.q_train.max(axis=0)
+        in_box = np.all((q >= lo) & (q <= hi), axis=1)
+        inside = in_box & (np.sqrt(D.min(axis=1)) <= self.length_scale)
+        corr = np.exp(-D / (2.0 * self.length_scale**2)) @ self.alpha
+        corr[~inside] = 0.0
+        return corr, inside
+
+
+def fit(q: np.ndarray, residuals: np.ndarray, revolute: np.ndarray, length_scale: float, ridge: float,
+        cv: dict | None = None) -> ResidualMap:
+    """Kernel ridge regression (eq. 5.4) of ``residuals`` (M, 3) m on readings ``q`` (M, n)."""
+    F = features(q, revolute)
+    K = np.exp(-_sqdist(F, F) / (2.0 * length_scale**2))
+    alpha = np.linalg.solve(K + ridge * np.eye(len(K)), np.asarray(residuals, dtype=float))
+    return ResidualMap(np.array(q, dtype=float), alpha, float(length_scale), float(ridge),
+                       np.asarray(revolute, dtype=bool), dict(cv or {}))
+
+
+def select_smoothness(q: np.ndarray, residuals: np.ndarray, revolute: np.ndarray, folds: list[np.ndarray]
+                      ) -> tuple[float, float, float]:
+    """The (ℓ, λ) of :data:`LENGTH_SCALES` x :data:`RIDGES` with the least held-out RMS over
+    ``folds`` (row indices), and that RMS (m)."""
+    F = features(q, revolute)
+    D = _sqdist(F, F)
+    R = np.asarray(residuals, dtype=float)
+    best = (math.inf, LENGTH_SCALES[0], RIDGES[0])
+    for ell in LENGTH_SCALES:
+        K = np.exp(-D / (2.0 * ell**2))
+        for lam in RIDGES:
+            sq = 0.0
+            for test in folds:
+                train = np.setdiff1d(np.arange(len(R)), test)
+                a = np.linalg.solve(K[np.ix_(train, train)] + lam * np.eye(len(train)), R[train])
+                sq += float(np.sum((R[test] - K[np.ix_(test, train)] @ a) ** 2))
+            rms = math.sqrt(sq / len(R))
+            if rms < best[0]:
+                best = (rms, ell, lam)
+    return best[1], best[2], best[0]
+
+
+def residuals(model: KinematicModel, data) -> np.ndarray:
+    """Measured minus predicted positions (N, 3) m of ``data`` on ``model`` (each row's target and payload)."""
+    from .jacobian import predict
+
+    p_tool = np.array([model.target(t) for t in data.target])
+    return data.p_world - predict(model, data.q, p_tool, payload=data.payload).p_world
+
+
+def choose_residual_map(start: KinematicModel, data, *, folds: int = 5, min_gain: float = MIN_CV_GAIN, seed: int = 0,
+                        identify_kw: dict | None = None, final: KinematicModel | None = None
+                        ) -> tuple[ResidualMap | None, dict]:
+    """``recal identify --residual-map auto``: k-fold cross-validation of the whole procedure
+    (identify ``start`` on the training folds, fit a map to its residuals with the smoothness
+    chosen by an inner cross-validation, test on the held-out fold, with and without the map).
+    Returns the map fitted to ``final``'s residuals on all ``data`` (``final``: the model
+    identified from all of them; default: identified here) when it lowers the cross-validated RMS
+    by at least ``min_gain``, else None; and the figures either way (m)."""
+    from .compliance import fold_indices
+    from .identify import identify
+
+    kw = dict(identify_kw or {})
+    revolute = np.array([j.revolute for j in start.joints])
+    outer = fold_indices(data, folds, seed)
+    sq_without = sq_with = 0.0
+    inside_share = []
+    for test in outer:
+        train = np.setdiff1d(np.arange(len(data)), test)
+        tr, te = data.subset(train), data.subset(test)
+        model = identify(start, tr, **kw).model
+        r_tr = residuals(model, tr)
+        ell, lam, _ = select_smoothness(tr.q, r_tr, revolute, fold_indices(tr, folds, seed + 1))
+        m = fit(tr.q, r_tr, revolute, ell, lam)
+        r_te = residuals(model, te)
+        corr, inside = m.evaluate(te.q)
+        sq_without += float(np.sum(r_te**2))
+        sq_with += float(np.sum((r_te - corr) ** 2))
+        inside_share.append(float(np.mean(inside)))
+    n = len(data)
+    rms_without, rms_with = math.sqrt(sq_without / n), math.sqrt(sq_with / n)
+    gain = 1.0 - rms_with / rms_without if rms_without > 0 else 0.0
+    figures = {"folds": folds, "rms_without_m": rms_without, "rms_with_m": rms_with, "gain": gain,
+               "min_gain": min_gain, "held_out_inside_share": float(np.mean(inside_share)), "kept": gain >= min_gain}
+    if gain < min_gain:
+        return None, figures
+    final = final if final is not None else identify(start, data, **kw).model
+    r = residuals(final, data)
+    ell, lam, _ = select_smoothness(data.q, r, revolute, fold_indices(data, folds, seed + 1))
+    figures.update(length_scale=ell, ridge=lam)
+    return fit(data.q, r, revolute, ell, lam, figures), figures
+
+
+# ----------------------------------------------------------------------------- the file section
+
+
+def to_dict(m: ResidualMap, model: KinematicModel) -> dict:
+    """The model file's ``residual_map`` section, in the model's units (configurations in its
+    joint units, coefficients in its length unit; ℓ is dimensionless, chordal)."""
+    u = model.units
+    scale = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
+    return {
+        "format": FORMAT,
+        "kernel": "gaussian on (cos q, sin q) of revolute joints, q / 1 m of prismatic ones",
+        "length_scale": m.length_scale,
+        "ridge": m.ridge,
+        "configurations": [[float(f"{v:.12g}") for v in row] for row in m.q_train / scale],
+        "coefficients": [[float(f"{v:.12g}") for v in row] for row in m.alpha / u.length_m],
+        "cross_validation": {k: (v / u.length_m if k.endswith("_m") else v) for k, v in m.cv.items()},
+    }
+
+
+class ResidualMapError(RecalError, ValueError):
+    """A model's ``residual_map`` section is malformed; ``field`` is the JSON path at fault."""
+
+    def __init__(self, field: str, message: str):
+        self.field = field
+        super().__init__(f"{field}: {message}")
+
+
+def from_model(model: KinematicModel) -> ResidualMap | None:
+    """The residual map a model file carries (its top-level ``residual_map``), or None."""
+    d = model.metadata.get("residual_map")
+    if d is None:
+        return None
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise ResidualMapError("residual_map.format", f"expected {FORMAT!r}")
+    n = model.n_joints
+    try:
+        Q = np.array(d["configurations"], dtype=float)
+        A = np.array(d["coefficients"], dtype=float)
+        ell, lam = float(d["length_scale"]), float(d["ridge"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ResidualMapError("residual_map", f"expected configurations, coefficients, length_scale and ridge ({exc})"
+                               ) from None
+    if Q.ndim != 2 or Q.shape[1] != n or A.shape != (len(Q), 3) or not (np.all(np.isfinite(Q)) and np.all(np.isfinite(A))):
+        raise ResidualMapError("residual_map.configurations", f"expected M rows of {n} joint values and M rows of 3 "
+                               "coefficients")
+    if not ell > 0:
+        raise ResidualMapError("residual_map.length_scale", "expected a positive number")
+    u = model.units
+    scale = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
+    return ResidualMap(Q * scale, A * u.length_m, ell, lam, np.array([j.revolute for j in model.joints]),
+                       dict(d.get("cross_validation") or {}))

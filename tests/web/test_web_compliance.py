@@ -1,0 +1,100 @@
+"""The result page of a compliant calibration shows the rigid and the compliant model side by
+side, in a real (headless) browser against the real service. The calibration is a stored pose
+session of a sagging arm, analysed as the orchestrator analyses one (no cell process needed)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from sqlmodel import Session
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture
+def compliant_result(tmp_path, browser):
+    from calibration.compliance import default_section, with_section
+    from calibration.model import model_to_dict
+    from calibration.robots import nominal
+    from calibration.simulate import perturbed, random_configurations, sagging, simulate_measurements
+    from service import analysis
+    from service.client import Api
+    from service.models import Cell, Measurement, RunSession
+    from service.processes import free_port, start_service
+    from service.settings import Settings
+    from service.store import create_token, make_engine, migrate
+
+    settings = Settings(home=tmp_path)
+    engine = make_engine(settings.effective_database_url)
+    migrate(engine)
+    with Session(engine) as db:
+        token = create_token(db, role="technician", name="technician-anna")[1]
+    service = start_service(tmp_path, free_port(), env={}, log_path=tmp_path / "service.log")
+    try:
+        nom = dataclasses.replace(nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+        doc = model_to_dict(with_section(nom, default_section(nom)))
+        cell_id = Api(service.ready["url"], token).call("POST", "/cells", {"name": "sagging", "model": doc,
+                                                                            "devices": {}})["id"]
+        rng = np.random.default_rng(3)
+        truth = sagging(dataclasses.replace(perturbed(nom, rng), base=np.array([1.5, -0.4, 0.2, 0, 0, 1.0])),
+                        "cobot", frames_of=nom)
+        data = simulate_measurements(truth, random_configurations(nom, 60, rng), rng, targets=("smr",))
+        with Session(engine) as db:
+            cell = db.get(Cell, cell_id)
+            run = RunSession(cell_id=cell_id, kind="pose", state="running", planned=60, target="smr",
+                             created_by="technician-anna", plan=data.q.tolist(), plan_info={"method": "random"})
+            db.add(run)
+            db.commit()
+            db.refresh(run)
+            for k in range(len(data)):
+                db.add(Measurement(session_id=run.id, seq=k, target="smr", q=data.q[k].tolist(),
+                                   x=float(data.p_world[k, 0]), y=float(data.p_world[k, 1]),
+                                   z=float(data.p_world[k, 2]), sigma=20e-6))
+            db.commit()
+            analysis.finish_session(db, run, cell, settings)
+            run.state = "completed"
+            db.add(run)
+            db.commit()
+            calibration_id = run.calibration_id
+        yield service.ready["url"], token, calibration_id, cell_id
+    finally:
+        service.stop()
+        engine.dispose()
+
+
+def test_result_page_shows_rigid_against_compliant(page, compliant_result):
+    url, token, calibration_id, _ = compliant_result
+    page.goto(url + "/")
+    page.fill("#token", token)
+    page.click("#sign-in")
+    page.wait_for_selector("#role")
+    page.goto(f"{url}/#/calibrations/{calibration_id}")
+    table = page.wait_for_selector("#rigid-compliant")
+    rows = table.query_selector_all("tbody tr")
+    assert len(rows) == 2
+    rigid, compliant = (float(r.query_selector_all("td")[1].inner_text()) for r in rows)
+    assert compliant < 0.2 * rigid  # mm: the arm sags; the compliant model knows it
+    assert "j2, j3" in rows[1].inner_text()
+    assert "lower error than rigid" in page.inner_text("body")
+
+
+def test_session_form_sends_the_payloads(page, compliant_result):
+    """The session form's payloads go with the plan: a dry run (nothing moves) carries them, in SI."""
+    from service.client import Api
+
+    url, token, _, cell_id = compliant_result
+    page.goto(url + "/")
+    page.fill("#token", token)
+    page.click("#sign-in")
+    page.wait_for_selector("#role")
+    page.goto(f"{url}/#/cells/{cell_id}/start")
+    page.fill("#count", "12")
+    page.fill("#payloads", "0; 10,0,0,100")
+    page.click("#plan")
+    page.wait_for_selector("#plan-check")
+    api = Api(url, token)
+    # a dry run is a plan, not a session: listed only when asked for
+    dry = [s for s in api.call("GET", f"/cells/{cell_id}/sessions?dry_runs=true") if s["dry_run"]][0]
+    assert api.call("GET", f"/sessions/{dry['id']}")["plan_info"]["payloads"] == [[0, 0, 0, 0], [10, 0, 0, 0.1]]
