@@ -53,7 +53,7 @@ from typing import Literal
 
 import numpy as np
 
-from drivers.base import PointMeasurement, PositionSensor
+from drivers.base import PointMeasurement, SteerablePositionSensor
 from drivers.errors import (
     DeviceConnectionError,
     DeviceError,
@@ -258,7 +258,7 @@ class Reflector:
 # --------------------------------------------------------------------------- driver
 
 
-class EmsconTracker(PositionSensor):
+class EmsconTracker(SteerablePositionSensor):
     """A Leica tracker through its emScon server. Connects (and sets up) on construction."""
 
     def __init__(self, config: EmsconConfig):

@@ -75,12 +75,29 @@ def registered_errors(model: KinematicModel, data) -> tuple[np.ndarray, dict]:
     """(N, 3) errors, m, of ``model`` with its base placed where it fits the data best (and one
     common reflector offset absorbed), as the identification's registration does: the robot's
     own inaccuracy apart from where the instrument stands."""
+    local, X, c = _registration(model, data)
+    p_tool = np.array([model.target(t) for t in data.target])
+    return data.p_world - _placed(walk(local, data.q), p_tool, X, c), {"point_offset_m": c.tolist()}
+
+
+def registered_points(model: KinematicModel, data, q: np.ndarray, p_tool: np.ndarray) -> np.ndarray:
+    """Where ``model`` puts the tool-frame points ``p_tool`` (N, 3) at readings ``q`` (N, n), in
+    the instrument's frame: its base placed where it fits ``data`` best (and one common reflector
+    offset absorbed), as :func:`registered_errors` places it. (N, 3), m."""
+    local, X, c = _registration(model, data)
+    return _placed(walk(local, np.atleast_2d(q)), np.atleast_2d(p_tool), X, c)
+
+
+def _registration(model: KinematicModel, data):
     local = dataclasses.replace(model, base=np.zeros(6))
     w = walk(local, data.q)
     p_tool = np.array([model.target(t) for t in data.target])
     X, c = register_points(w.R, w.p, data.p_world, p_tool)
-    pred = (w.p + np.einsum("nij,nj->ni", w.R, p_tool + c)) @ X[:3, :3].T + X[:3, 3]
-    return data.p_world - pred, {"point_offset_m": c.tolist()}
+    return local, X, c
+
+
+def _placed(w, p_tool: np.ndarray, X: np.ndarray, c: np.ndarray) -> np.ndarray:
+    return (w.p + np.einsum("nij,nj->ni", w.R, p_tool + c)) @ X[:3, :3].T + X[:3, 3]
 
 
 # --------------------------------------------------------------------------- calibration result
