@@ -17,7 +17,8 @@ packet (``SingleMeasResultT``, or ``SingleMeasResult2T`` with covariances). Stat
 
 Connecting (every connect, reconnects included, runs the whole set-up):
 ``GetSystemStatus`` and ``GetTrackerStatus``; ``Initialize`` when the tracker processor is not
-initialised; ``SetUnits`` (millimetre, degree, Celsius, mbar, %RH); the environment: set from the
+initialised; ``SetUnits`` (millimetre, degree, Celsius, mbar, %RH); ``GetCoordinateSystemType``
+(it must be the right-handed cartesian one: Recal reads x, y, z and never changes it); the environment: set from the
 config (``SetEnvironmentParams``) or read from the tracker's meteo station
 (``GetEnvironmentParams``); ``GetReflectors`` and ``SetReflector`` by the configured name;
 ``SetMeasurementMode`` stationary and ``SetStationaryModeParams`` (averaging time).
@@ -78,6 +79,7 @@ C_INITIALIZE = 7
 C_SET_ENVIRONMENT_PARAMS = 20
 C_GET_ENVIRONMENT_PARAMS = 21
 C_SET_MEASUREMENT_MODE = 24
+C_GET_COORDINATE_SYSTEM_TYPE = 27
 C_SET_STATIONARY_MODE_PARAMS = 28
 C_SET_REFLECTOR = 40
 C_GET_REFLECTORS = 42
@@ -112,6 +114,7 @@ MSI_REFLECTOR_FOUND, MSI_INITIALIZED = 2048, 65536
 UNITS_MM_DEG_C_MBAR_RH = (1, 1, 0, 0, 0)
 MM_M = 1e-3
 MM_STATIONARY = 0  # ES_MM_Stationary
+CS_RHR = 0  # ES_CS_RHR: cartesian, right-handed (dVal1..3 are x, y, z)
 
 # --------------------------------------------------------------------------- layouts
 # Little-endian, no padding (the header packs with 4-byte alignment and every field is 4 or 8
@@ -124,7 +127,7 @@ REPLY = struct.Struct("<iIII")  # BasicCommandRT: header, command, status
 
 COMMAND_PARAMS = {
     C_GET_SYSTEM_STATUS: "", C_GET_TRACKER_STATUS: "", C_INITIALIZE: "", C_GET_ENVIRONMENT_PARAMS: "",
-    C_GET_REFLECTORS: "", C_START_MEASUREMENT: "", C_GET_MEASUREMENT_STATUS_INFO: "",
+    C_GET_REFLECTORS: "", C_START_MEASUREMENT: "", C_GET_MEASUREMENT_STATUS_INFO: "", C_GET_COORDINATE_SYSTEM_TYPE: "",
     C_SET_UNITS: "5I",  # SystemUnitsDataT: length, angle, temperature, pressure, humidity unit
     C_SET_ENVIRONMENT_PARAMS: "3d",  # EnvironmentDataT: temperature, pressure, humidity
     C_SET_MEASUREMENT_MODE: "I",  # ES_MeasMode
@@ -138,6 +141,7 @@ REPLY_DATA = {
     # weatherMonitorStatus, lFlagsValue, lTrackerSerialNumber
     C_GET_SYSTEM_STATUS: "4I3iIii",
     C_GET_TRACKER_STATUS: "I",  # ES_TrackerStatus
+    C_GET_COORDINATE_SYSTEM_TYPE: "I",  # ES_CoordinateSystemType
     C_GET_ENVIRONMENT_PARAMS: "3d",
     C_GET_REFLECTORS: "iiId64s",  # iTotalReflectors, iInternalReflectorId, targetType, dSurfaceOffset, name (32 UTF-16 units)
     C_GET_MEASUREMENT_STATUS_INFO: "Ii",  # lastResultStatus, lMeasurementStatusInfo
@@ -352,6 +356,10 @@ class EmsconTracker(SteerablePositionSensor):
                      self.name, processor, tracker_status)
             self._exchange(C_INITIALIZE, timeout_s=cfg.initialize_timeout_s)
         self._exchange(C_SET_UNITS, *UNITS_MM_DEG_C_MBAR_RH)
+        system = self._exchange(C_GET_COORDINATE_SYSTEM_TYPE)[4]
+        if system != CS_RHR:  # spherical or left-handed: dVal1..3 would not be x, y, z; Recal does not change it
+            raise DeviceFaultError(f"the tracker's coordinate system type is {system}; Recal needs the right-handed "
+                                   f"cartesian one (ES_CS_RHR, 0): set it in the tracker software", device=self.name)
         if cfg.environment == "config":
             self._exchange(C_SET_ENVIRONMENT_PARAMS, cfg.temperature_c, cfg.pressure_mbar, cfg.humidity_pct)
             self.environment = (cfg.temperature_c, cfg.pressure_mbar, cfg.humidity_pct)

@@ -81,6 +81,7 @@ log = logging.getLogger(__name__)
 DT_COMMAND, DT_ERROR, DT_RESULT, DT_STATUS_CHANGE, DT_RESULT2 = 0, 1, 2, 8, 9
 (C_GET_SYSTEM_STATUS, C_GET_TRACKER_STATUS, C_SET_UNITS, C_GET_UNITS, C_INITIALIZE) = (1, 2, 5, 6, 7)
 C_SET_ENV, C_GET_ENV, C_SET_MODE, C_GET_MODE, C_SET_STATIONARY, C_GET_STATIONARY = 20, 21, 24, 25, 28, 29
+C_SET_COORDINATE_SYSTEM, C_GET_COORDINATE_SYSTEM = 26, 27
 C_SET_REFLECTOR, C_GET_REFLECTOR, C_GET_REFLECTORS, C_START_MEASUREMENT = 40, 41, 42, 49
 C_GO_BIRD_BATH, C_GO_POSITION, C_FIND_REFLECTOR, C_GET_MEAS_STATUS_INFO = 54, 55, 63, 122
 RS_OK, RS_NOT_IMPLEMENTED, RS_WRONG_PARAMETER1, RS_UNKNOWN, RS_NOT_INITIALIZED = 0, 2, 4, 36, 39
@@ -93,10 +94,11 @@ COMMANDS = {C_GET_SYSTEM_STATUS: "", C_GET_TRACKER_STATUS: "", C_SET_UNITS: "5I"
             C_INITIALIZE: "", C_SET_ENV: "3d", C_GET_ENV: "", C_SET_MODE: "I", C_GET_MODE: "",
             C_SET_STATIONARY: "2i", C_GET_STATIONARY: "", C_SET_REFLECTOR: "i", C_GET_REFLECTOR: "",
             C_GET_REFLECTORS: "", C_START_MEASUREMENT: "", C_GO_BIRD_BATH: "", C_GO_POSITION: "3di",
-            C_FIND_REFLECTOR: "d", C_GET_MEAS_STATUS_INFO: ""}
+            C_FIND_REFLECTOR: "d", C_GET_MEAS_STATUS_INFO: "", C_SET_COORDINATE_SYSTEM: "I",
+            C_GET_COORDINATE_SYSTEM: ""}
 REPLIES = {C_GET_SYSTEM_STATUS: "4I3iIii", C_GET_TRACKER_STATUS: "I", C_GET_UNITS: "5I", C_GET_ENV: "3d",
            C_GET_MODE: "I", C_GET_STATIONARY: "2i", C_GET_REFLECTOR: "i", C_GET_REFLECTORS: "iiId64s",
-           C_GET_MEAS_STATUS_INFO: "Ii"}
+           C_GET_MEAS_STATUS_INFO: "Ii", C_GET_COORDINATE_SYSTEM: "I"}
 HEADER = struct.Struct("<iI")
 RESULT = struct.Struct("<iIIIi17d")  # ReturnDataT, measMode, bIsTryMode, 17 doubles
 RESULT2 = struct.Struct("<iIIIi23d")  # ... 23 doubles (with covariances)
@@ -195,6 +197,7 @@ class LeicaTrackerFake(LineServer):
         self.units = (1, 1, 0, 0, 0)  # mm, degree, Celsius, mbar, %RH
         self.environment = (20.0, 1013.25, 50.0)
         self.meas_mode = 0
+        self.coordinate_system = 0  # ES_CS_RHR (the fake reports x, y, z whatever is set)
         self.stationary = (1000, 0)
         self.reflector_id = 0
         self.locked = True  # the tracker holds the reflector
@@ -311,6 +314,11 @@ class LeicaTrackerFake(LineServer):
             return ok()
         if c == C_GET_UNITS:
             return ok(*self.units)
+        if c == C_SET_COORDINATE_SYSTEM:
+            self.coordinate_system = params[0]
+            return ok()
+        if c == C_GET_COORDINATE_SYSTEM:
+            return ok(self.coordinate_system)
         if c == C_SET_ENV:
             self.environment = tuple(params)
             return ok()

@@ -94,8 +94,8 @@ class Late:
 CASES = {
     # handshake: requests 1-3; the second MEAS? is 5
     "tracker": Late("tracker", 5, _tracker, 1e-4, r"no reply to MEAS\? within 0\.4 s"),
-    # set-up: commands 1-9 (with Initialize); the second StartMeasurement is 11
-    "emscon": Late("emscon", 11, _emscon, 1e-4, r"no answer to command 49 within 0\.4 s"),
+    # set-up: commands 1-10 (with Initialize); the second StartMeasurement is 12
+    "emscon": Late("emscon", 12, _emscon, 1e-4, r"no answer to command 49 within 0\.4 s"),
     # session: commands 1-10 (with Home); the second PtMeas is 12
     "cmm": Late("cmm", 12, _cmm, 1e-5, r"no acknowledgement of 00012 PtMeas\(.* within 0\.4 s"),
     # position requests: SDO uploads of 0x6004 or SYNCs; the set-up reads other objects

@@ -143,6 +143,7 @@ def test_cesapi_drives_the_fake_through_every_command_the_driver_sends(fake, cel
         units.lenUnitType, units.angUnitType = P.ES_LU_Meter, P.ES_AU_Degree
         units.tempUnitType, units.pressUnitType, units.humUnitType = P.ES_TU_Celsius, P.ES_PU_Mbar, P.ES_HU_RH
         cmd.SetUnits(units)
+        assert cmd.GetCoordinateSystemType().coordSysType == P.ES_CS_RHR
         env = P.EnvironmentDataT()
         env.dTemperature, env.dPressure, env.dHumidity = 21.5, 990.0, 40.0
         cmd.SetEnvironmentParams(env)
@@ -201,7 +202,7 @@ def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
         assert packet.pack() == raw
     commands = [p.packetInfo.command for p in sent]
     assert commands == [P.ES_C_GetSystemStatus, P.ES_C_GetTrackerStatus, P.ES_C_Initialize, P.ES_C_SetUnits,
-                        P.ES_C_SetEnvironmentParams, P.ES_C_GetReflectors, P.ES_C_SetReflector,
+                        P.ES_C_GetCoordinateSystemType, P.ES_C_SetEnvironmentParams, P.ES_C_GetReflectors, P.ES_C_SetReflector,
                         P.ES_C_SetMeasurementMode, P.ES_C_SetStationaryModeParams, P.ES_C_StartMeasurement,
                         P.ES_C_GoPosition, P.ES_C_FindReflector, P.ES_C_GetMeasurementStatusInfo]
     by = dict(zip(commands, sent))
@@ -290,6 +291,11 @@ def test_configuration_errors_name_what_is_wrong(fake):
     fake.weather_station = False
     with pytest.raises(DeviceFaultError, match="no weather station"):
         EmsconTracker(_config(fake))
+    fake.weather_station = True
+    fake.coordinate_system = 6  # ES_CS_SCW: spherical
+    with pytest.raises(DeviceFaultError, match="coordinate system type is 6; Recal needs the right-handed cartesian"):
+        EmsconTracker(_config(fake))
+    fake.coordinate_system = 0
     with EmsconTracker(_config(fake, environment="config", temperature_c=23.0)) as tracker:
         assert tracker.environment == (23.0, 1013.25, 50.0)
     assert fake.environment == (23.0, 1013.25, 50.0)
@@ -406,12 +412,9 @@ class Scripted(LeicaTrackerFake):
         super().__init__(cell, port=0, initialised=True)
         self.before = before
 
-    def handle_packet(self, client, kind, packet):
-        command = struct.unpack_from("<I", packet, 8)[0]
+    def _answer(self, kind, command, packet):  # after the fake counted the command
         extra = self.before.pop(command, None)
-        if extra is not None:
-            client.send_raw(extra)
-        super().handle_packet(client, kind, packet)
+        return ([extra] if extra else []) + super()._answer(kind, command, packet)
 
 
 def _result_packet(x_mm: float) -> bytes:
@@ -453,7 +456,7 @@ def test_wrong_packets_are_protocol_errors_then_a_full_reconnect(cell, packet, m
                 tracker.measure()
             before = cell.counters["emscon.request"]
             m = tracker.measure()
-            assert cell.counters["emscon.request"] - before == 9  # full set-up (8 commands) and the measurement
+            assert cell.counters["emscon.request"] - before == 10  # full set-up (9 commands) and the measurement
             assert m.sequence == 1 and np.linalg.norm(m.p_world - cell.target_world()) < 1e-4
     finally:
         fake.stop()
@@ -468,17 +471,17 @@ def test_no_server_there(fake):
 
 # --------------------------------------------------------------------------- faults across processes
 
-# The set-up of a tracker that is not yet initialised is commands 1-9 (GetSystemStatus,
-# GetTrackerStatus, Initialize, SetUnits, GetEnvironmentParams, GetReflectors, SetReflector,
-# SetMeasurementMode, SetStationaryModeParams); the first StartMeasurement is 10, the second 11.
-# A reconnect's set-up is 8 commands (no Initialize).
+# The set-up of a tracker that is not yet initialised is commands 1-10 (GetSystemStatus,
+# GetTrackerStatus, Initialize, SetUnits, GetCoordinateSystemType, GetEnvironmentParams,
+# GetReflectors, SetReflector, SetMeasurementMode, SetStationaryModeParams); the first
+# StartMeasurement is 11, the second 12. A reconnect's set-up is 9 commands (no Initialize).
 FAULTS = {
-    "dropped": (("drop_connection_at=11",), None, None, "ready"),
-    "dropped-twice": (("drop_connection_at=11,12",), DeviceConnectionError,
+    "dropped": (("drop_connection_at=12",), None, None, "ready"),
+    "dropped-twice": (("drop_connection_at=12,13",), DeviceConnectionError,
                       r"command 49 failed after one reconnect", "ready"),
-    "delay": (("delay_at=11", "delay_s=1.0"), DeviceTimeoutError, r"no answer to command 49 within 0\.6 s", "ready"),
-    "malformed": (("garble_at=11",), ProtocolError, r"reply to command 49 of 23 bytes; expected 16", "ready"),
-    "error-status": (("error_status_at=11",), DeviceFaultError, r"command 49: the server reports status 36 \(code 36\)",
+    "delay": (("delay_at=12", "delay_s=1.0"), DeviceTimeoutError, r"no answer to command 49 within 0\.6 s", "ready"),
+    "malformed": (("garble_at=12",), ProtocolError, r"reply to command 49 of 23 bytes; expected 16", "ready"),
+    "error-status": (("error_status_at=12",), DeviceFaultError, r"command 49: the server reports status 36 \(code 36\)",
                      "ready"),
     "beam-break": (("beam_break_at=2",), MeasurementError, r"no reflector locked \(beam broken\) \(code 10004\)",
                    "beam_broken"),
