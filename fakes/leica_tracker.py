@@ -191,7 +191,7 @@ class LeicaTrackerFake(LineServer):
         self.initialize_time_s = initialize_time_s
         self.extended_result = extended_result
         self.weather_station = weather_station
-        self._lock = threading.RLock()
+        self._state_lock = threading.RLock()  # one command at a time changes the instrument
         # the instrument's state, shared by every connection
         self.initialised = initialised
         self.units = (1, 1, 0, 0, 0)  # mm, degree, Celsius, mbar, %RH
@@ -293,7 +293,7 @@ class LeicaTrackerFake(LineServer):
         if len(packet) != fmt.size:
             return [pack_reply(command, RS_WRONG_PARAMETER1)]
         params = fmt.unpack(packet)[3:]
-        with self._lock:
+        with self._state_lock:
             return self._command(command, params)
 
     def _command(self, c: int, params: tuple) -> list[bytes]:

@@ -481,6 +481,8 @@ def _measure_recovering_the_beam(db, run, tracker: SteerablePositionSensor, sett
         if attempt + 1 == attempts:
             break
         if isinstance(last, MeasurementError) and _status(tracker) == "beam_broken":
+            if control.abort.is_set():  # pointing moves the tracker: not after an abort
+                raise SessionStopped("aborted", "aborted on request")
             p = _where_the_reflector_is(db, run, guide, q_read)
             try:
                 tracker.find_reflector(p)
