@@ -286,6 +286,8 @@ class EmsconTracker(SteerablePositionSensor):
         now, and the other errors of the module docstring."""
         result = self._command(C_START_MEASUREMENT, extra_s=self.config.measure_time_s)
         kind, values = result
+        if values[2] != RS_ALL_OK:  # the result's own status (ReturnDataT)
+            raise self._error(C_START_MEASUREMENT, values[2])
         doubles = values[5:]
         p_mm = np.array(doubles[0:3])
         std_mm = np.array(doubles[3:6])

@@ -512,3 +512,22 @@ def test_faults_of_an_emscon_tracker_in_another_process(fault_cell, cell_truth, 
         m = tracker.measure()
     assert m.sequence == (3 if error is None else 2)
     assert np.all(np.abs(m.p_world - expected) < 5 * m.sigma)
+
+
+def test_a_result_with_a_bad_status_is_not_a_measurement(cell):
+    class BadResult(LeicaTrackerFake):
+        def _measure(self):
+            answer = super()._measure()
+            bad = bytearray(answer[1])
+            struct.pack_into("<I", bad, 8, P.ES_RS_NoStationaryResult)  # ReturnDataT.status
+            return [answer[0], bytes(bad)]
+
+    fake = BadResult(cell, port=0, initialised=True)
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            with pytest.raises(MeasurementError, match="no stationary result") as info:
+                tracker.measure()
+            assert info.value.code == P.ES_RS_NoStationaryResult
+    finally:
+        fake.stop()
