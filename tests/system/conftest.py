@@ -1,6 +1,7 @@
 """System tests: the real service process (``recal serve``) and a simulated cell process
 (``recal fake-cell``) on loopback, driven through the REST API. Loopback addresses
-127.0.0.100-127.0.0.119 are this folder's (the UR ports are fixed per address)."""
+127.0.0.100-127.0.0.119 and 127.0.0.160-127.0.0.179 are this folder's (the UR ports are fixed
+per address; tests/fleet has 120-159)."""
 
 from __future__ import annotations
 
@@ -26,16 +27,16 @@ from service.store import create_token, make_engine, migrate
 # use disjoint addresses (the UR controller's ports are fixed per address).
 NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
-_hosts = itertools.count(100)
+_hosts = itertools.chain(range(100, 120), range(160, 180))
 POSTGRES_URL = os.environ.get("RECAL_TEST_POSTGRES_URL")
 
 BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0.03, -0.052, 0.04]}
 
 
 def next_host() -> str:
-    n = next(_hosts)
-    if n > 119:
-        raise RuntimeError("tests/system ran out of loopback addresses")
+    n = next(_hosts, None)
+    if n is None:
+        raise RuntimeError("tests/system ran out of loopback addresses (100-119, 160-179)")
     return f"{NET}.{n}"
 
 
