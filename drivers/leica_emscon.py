@@ -236,19 +236,7 @@ class EmsconIdentity:
 
     server_version: str
     serial: int
-    weather_monitor: int
-
-    @property
-    def maker(self) -> str:
-        return "Leica"
-
-    @property
-    def model(self) -> str:
-        return "emScon tracker"
-
-    @property
-    def firmware(self) -> str:
-        return self.server_version
+    weather_monitor: int  # ES_WeatherMonitorStatus: 0 none connected
 
 
 @dataclass(frozen=True, slots=True)
