@@ -260,7 +260,7 @@ class EmsconTracker(SteerablePositionSensor):
         self._buffer = bytearray()
         self._sequence = 0
         self._closed = False
-        self._beam_lost = False  # from the last status change the server sent
+        self.beam_lost = False  # as the server last said: a status change, a status reply or an error
         self.identity: EmsconIdentity | None = None
         self.reflector: Reflector | None = None
         self.environment: tuple[float, float, float] | None = None  # degC, mbar, %RH in use
@@ -287,7 +287,7 @@ class EmsconTracker(SteerablePositionSensor):
             raise ProtocolError(f"measurement result with non-finite values or negative deviations: "
                                 f"{p_mm.tolist()} ± {std_mm.tolist()} mm", device=self.name)
         self._sequence += 1
-        self._beam_lost = False
+        self.beam_lost = False
         return PointMeasurement(p_world=p_mm * MM_M, sigma=std_mm * MM_M, sequence=self._sequence,
                                 timestamp_s=time.time())
 
@@ -298,8 +298,8 @@ class EmsconTracker(SteerablePositionSensor):
         info = reply[5]
         if not info & MSI_INITIALIZED:
             return "not_initialised"
-        self._beam_lost = not info & MSI_REFLECTOR_FOUND
-        return "beam_broken" if self._beam_lost else "ready"
+        self.beam_lost = not info & MSI_REFLECTOR_FOUND
+        return "beam_broken" if self.beam_lost else "ready"
 
     def find_reflector(self, p_world: np.ndarray) -> None:
         """Point the tracker at where the reflector should be (``p_world`` (3,) m, tracker frame)
@@ -311,7 +311,7 @@ class EmsconTracker(SteerablePositionSensor):
             raise ValueError(f"p_world must be three finite numbers; got {p_world!r}")
         self._command(C_GO_POSITION, *p_mm.tolist(), int(self.config.use_adm), extra_s=self.config.timeout_s)
         self._command(C_FIND_REFLECTOR, float(np.linalg.norm(p_mm)), extra_s=self.config.timeout_s)
-        self._beam_lost = False
+        self.beam_lost = False
 
     def close(self) -> None:
         self._closed = True
@@ -528,9 +528,9 @@ class EmsconTracker(SteerablePositionSensor):
     def _status_change(self, data: bytes) -> None:
         change = STATUS_CHANGE.unpack(data)[2]
         if change == SSC_MEAS_STATUS_NOT_READY:
-            self._beam_lost = True
+            self.beam_lost = True
         elif change == SSC_MEAS_STATUS_READY:
-            self._beam_lost = False
+            self.beam_lost = False
         elif change in (SSC_TP_CONNECTION_CLOSING, SSC_SERVER_CLOSING):
             raise DeviceConnectionError("the emScon server is closing the connection", device=self.name)
         log.debug("%s: status change %d", self.name, change)
@@ -542,7 +542,7 @@ class EmsconTracker(SteerablePositionSensor):
     def _error(self, command: int, status: int) -> DeviceError:
         """The exception for an emScon status other than ``ES_RS_AllOK`` (module docstring)."""
         if status in MEASUREMENT_STATUSES:
-            self._beam_lost = status == RS_MEASUREMENT_STATUS_NOT_READY
+            self.beam_lost = status == RS_MEASUREMENT_STATUS_NOT_READY
             what = {RS_MEASUREMENT_STATUS_NOT_READY: "no reflector locked (beam broken)",
                     RS_ADM_STARTUP_BUSY: "the distance meter is warming up",
                     RS_NO_STATIONARY_RESULT: "no stationary result (reflector moving)",
