@@ -531,3 +531,23 @@ def test_a_result_with_a_bad_status_is_not_a_measurement(cell):
             assert info.value.code == P.ES_RS_NoStationaryResult
     finally:
         fake.stop()
+
+
+def test_status_changes_reach_every_client_and_a_closing_server_means_a_reconnect(cell):
+    fake = Scripted(cell, {})
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as a, EmsconTracker(_config(fake)) as b:
+            cell.faults.beam_break_at = [1]
+            with pytest.raises(MeasurementError):
+                a.measure()
+            assert a.beam_lost and not b.beam_lost
+            assert b.status() == "beam_broken" and b.beam_lost  # the status change, then the reply
+            b.find_reflector(cell.target_world())
+            assert not b.beam_lost
+            fake.before[122] = struct.pack("<iII", 12, 8, 998)  # ES_SSC_ServerClosing in the exchange
+            before = cell.counters["emscon.request"]
+            assert b.status() == "ready"
+            assert cell.counters["emscon.request"] - before == 11  # the status, a full set-up (9), the status again
+    finally:
+        fake.stop()
