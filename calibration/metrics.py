@@ -252,20 +252,37 @@ def position_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p
     return np.asarray(p_world, float) - points_world(model, q, p_tool, payload)
 
 
+def registration(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray,
+                 payload: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``model``'s base fits the measured points best, ``T_world_base`` (4, 4), and one common
+    tool-frame offset (3,) m of the measured point (``registration.register_points``, as the
+    identification registers): a model placed on data whose instrument placement and reflector
+    mounting are unknown. Needs at least three non-collinear points; ``payload`` as in
+    :func:`position_errors`."""
+    w = walk(dataclasses.replace(model, base=np.zeros(6)), q, payload=payload)
+    return register_points(w.R, w.p, p_world, np.broadcast_to(np.asarray(p_tool, float), w.p.shape))
+
+
+def placed_points(model: KinematicModel, X: np.ndarray, c: np.ndarray, q: np.ndarray, p_tool: np.ndarray,
+                  payload: np.ndarray | None = None) -> np.ndarray:
+    """(N, 3) world positions of the tool-frame points ``p_tool`` (3,) or (N, 3) at readings ``q``
+    with ``model``'s base at ``X`` and the common offset ``c`` (:func:`registration`)."""
+    w = walk(dataclasses.replace(model, base=np.zeros(6)), np.atleast_2d(q), payload=payload)
+    pt = np.broadcast_to(np.asarray(p_tool, float), w.p.shape)
+    return (w.p + np.einsum("nij,nj->ni", w.R, pt + c)) @ X[:3, :3].T + X[:3, 3]
+
+
 def registered_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray,
                       p_tool: np.ndarray, payload: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) errors, m, of ``model`` with its base placed where it fits the data best and one
-    common tool-frame offset of the measured point absorbed (``registration.register_points``,
-    as the identification registers), and that offset (3,), m.
+    common tool-frame offset of the measured point absorbed (:func:`registration`), and that
+    offset (3,), m.
 
     The robot's own inaccuracy apart from where the instrument stands and how the reflector
     sits: what "before" means for a nominal model whose placement in the instrument frame is
-    unknown. Needs at least three non-collinear points. ``payload`` as in :func:`position_errors`."""
-    w = walk(dataclasses.replace(model, base=np.zeros(6)), q, payload=payload)
-    pt = np.broadcast_to(np.asarray(p_tool, float), w.p.shape)
-    X, c = register_points(w.R, w.p, p_world, pt)
-    pred = (w.p + np.einsum("nij,nj->ni", w.R, pt + c)) @ X[:3, :3].T + X[:3, 3]
-    return np.asarray(p_world, float) - pred, c
+    unknown."""
+    X, c = registration(model, q, p_world, p_tool, payload)
+    return np.asarray(p_world, float) - placed_points(model, X, c, q, p_tool, payload), c
 
 
 @dataclass(frozen=True)

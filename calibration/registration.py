@@ -1,6 +1,9 @@
 """Rigid registration: where the instrument stands relative to the robot.
 
 - :func:`kabsch`: the rigid transform that best maps points onto points (least squares, SVD).
+- :func:`kabsch_levelled`: the same with the rotation restricted to one about the vertical, for
+  two frames that are both levelled (a tracker on its stand, a robot on the floor): from one
+  or two points, where :func:`kabsch` needs three that are not collinear.
 - :func:`register_points`: base frame (and one common tool-frame point offset) from
   position-only data, alternating a Kabsch fit with a linear solve for the offset.
 - :func:`register_poses`: base and tool frames from full-pose data, ``T_meas = X · T_pred · Y``
@@ -23,6 +26,21 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     w = w / w.sum()
     cs, cd = w @ src, w @ dst  # as matrix-vector products: far faster than a strided mean
     return _kabsch_from(((src - cs) * w[:, None]).T @ (dst - cd), cs, cd)
+
+
+def kabsch_levelled(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The transform T (4, 4), a rotation about z and a translation, minimising sum |T·src - dst|²
+    for points (N, 3), N >= 1 (one point: the translation alone). The rotation angle is the 2-D
+    Kabsch solution ``atan2(sum(a_x b_y - a_y b_x), sum(a_x b_x + a_y b_y))`` of the centred
+    points' horizontal components."""
+    src = np.atleast_2d(np.asarray(src, dtype=float))
+    dst = np.atleast_2d(np.asarray(dst, dtype=float))
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - cs, dst - cd
+    yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return homogeneous(R, cd - R @ cs)
 
 
 def _kabsch_from(H: np.ndarray, cs: np.ndarray, cd: np.ndarray) -> np.ndarray:

@@ -8,7 +8,8 @@ Must / might (after python-can's ``BusABC``):
 
 - every device **must** implement ``close()`` and set ``name`` (a human-readable address);
 - a ``Robot`` **must** implement ``read_joints``, ``move_joints``, ``stop`` and ``state``;
-- a ``PositionSensor`` **must** implement ``measure`` and ``status``;
+- a ``PositionSensor`` **must** implement ``measure`` and ``status``; a
+  ``SteerablePositionSensor`` (a tracker that can be pointed) also ``find_reflector``;
 - a ``Cmm`` **must** implement ``probe``; ``measure_ball`` and ``measure_pose`` are built on it
   here and **might** be overridden by a CMM that measures spheres itself;
 - a ``JointEncoder`` **must** implement ``read`` and ``status``.
@@ -134,6 +135,16 @@ class PositionSensor(Device):
     @abc.abstractmethod
     def status(self) -> str:
         """``"ready"``, ``"beam_broken"`` or ``"not_initialised"``."""
+
+
+class SteerablePositionSensor(PositionSensor):
+    """A laser tracker that can be pointed at where the reflector should be and search for it
+    there (after a beam break, a tracker has lost the reflector until it is found again)."""
+
+    @abc.abstractmethod
+    def find_reflector(self, p_world: np.ndarray) -> None:
+        """Point at ``p_world`` (3,) m, instrument frame, and search for the reflector there.
+        Raises ``MeasurementError`` when it is not found."""
 
 
 # --------------------------------------------------------------------------- CMMs

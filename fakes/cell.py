@@ -9,6 +9,7 @@ key         fake                                 port(s)
 ``rtde``    ``fakes.ur_controller``              30004, 29999, 30003
 ``modbus``  ``fakes.modbus_server``              502 (an ephemeral port if 502 cannot be bound)
 ``tracker`` ``fakes.tracker``                    10001
+``emscon``  ``fakes.leica_tracker``              700 (an ephemeral port if 700 cannot be bound)
 ``cmm``     ``fakes.cmm``                        1294
 ``can``     ``fakes.canopen_nodes``              29536
 ==========  ===================================  ============================
@@ -20,8 +21,11 @@ and shuts everything down. A fake whose module is missing is left out of the lin
 Extension flags (beyond the contract): ``--fault NAME=VALUE`` sets a field of
 ``fakes.world.Faults`` (lists as comma-separated counts: ``--fault protective_stop_at_move=3``,
 ``--fault beam_break_rate=0.1``), ``--noise NAME=VALUE`` a field of ``fakes.world.Noise``
-(SI units), ``--no-ur`` / ``--no-modbus`` / ``--no-tracker`` / ``--no-cmm`` / ``--no-can``
-leave a device out, ``--modbus-port`` moves the Modbus server.
+(SI units), ``--no-ur`` / ``--no-modbus`` / ``--no-tracker`` / ``--no-emscon`` / ``--no-cmm`` /
+``--no-can`` leave a device out, ``--modbus-port`` moves the Modbus server, ``--emscon-port``
+the emScon server; ``--reflector-axis X,Y,Z`` (tool frame) and ``--arm-radius M`` turn on the
+emScon tracker's beam geometry (the reflector's acceptance angle, the arm blocking the line of
+sight: fakes/leica_tracker.py).
 
 The faults (``--help`` lists them too). Counts are 1-based and each device counts its own
 requests, so one fault may hit several devices: leave out the devices a test does not use.
@@ -32,7 +36,9 @@ requests, so one fault may hit several devices: leave out the devices a test doe
 - ``garble_at``, ``garble_rate``: garbled replies (tracker, CMM: non-printable bytes; CAN: a
   bad SDO command byte or a short PDO; Modbus: a junk PDU; UR: a malformed RTDE package on
   every stream);
-- ``beam_break_at``, ``beam_break_rate``: tracker measurements that find the beam broken;
+- ``beam_break_at``, ``beam_break_rate``: tracker measurements that find the beam broken (the
+  emScon tracker then has lost the reflector until it is found again);
+- ``error_status_at``: emScon commands answered with an error packet;
 - ``no_touch_at``: CMM ``PtMeas`` that touch nothing (I++ error 1003);
 - ``silent_nodes``: CAN node ids that send nothing (no answer, PDO, heartbeat or EMCY);
 - ``sensor_fault_at``: CAN position requests answered with a sensor fault and an EMCY;
@@ -63,6 +69,7 @@ FAKES = (
     ("ur", "fakes.ur_controller", "UrControllerFake"),
     ("modbus", "fakes.modbus_server", "ModbusRobotFake"),
     ("tracker", "fakes.tracker", "TrackerFake"),
+    ("emscon", "fakes.leica_tracker", "LeicaTrackerFake"),
     ("cmm", "fakes.cmm", "IppCmmFake"),
     ("can", "fakes.canopen_nodes", "CanGatewayFake"),
 )
@@ -98,9 +105,31 @@ def build_parser() -> argparse.ArgumentParser:
         "--modbus-port", type=int, default=502,
         help="Modbus TCP port (default 502; a free port if that cannot be bound)",
     )
+    parser.add_argument(
+        "--emscon-port", type=int, default=700,
+        help="emScon TPI port (default 700; a free port if that cannot be bound)",
+    )
+    parser.add_argument(
+        "--reflector-axis", type=_vector, default=None, metavar="X,Y,Z",
+        help="emScon tracker: the reflector faces along this tool-frame axis (default: no acceptance check)",
+    )
+    parser.add_argument(
+        "--arm-radius", type=float, default=0.0, metavar="M",
+        help="emScon tracker: the arm's links block the beam within this radius (default 0: not checked)",
+    )
     for key, _, _ in FAKES:
         parser.add_argument(f"--no-{key}", action="store_true", help=f"do not simulate {key}")
     return parser
+
+
+def _vector(text: str):
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z; got {text!r}")
+    return values
 
 
 def _faults_help() -> str:
@@ -168,6 +197,9 @@ def start_fakes(cell: SimCell, args: argparse.Namespace) -> list:
                 continue
             cls = getattr(module, class_name)
             kwargs = {"port": args.modbus_port} if key == "modbus" else {}
+            if key == "emscon":
+                kwargs = {"port": args.emscon_port, "reflector_axis_tool": args.reflector_axis,
+                          "arm_radius_m": args.arm_radius}
             try:
                 fake = cls(cell, host=args.host, **kwargs)
             except ValueError as exc:  # this device cannot simulate this robot

@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     from fakes.cell import main as cell_main
 
     args = list(sys.argv[1:] if argv is None else argv)
-    return cell_main([*args, "--no-ur", "--no-tracker", "--no-cmm", "--no-can"])
+    return cell_main([*args, "--no-ur", "--no-tracker", "--no-emscon", "--no-cmm", "--no-can"])
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ class Faults:
     beam_break_rate: float = field(default=0.0, metadata={
         "help": "tracker: probability that a measurement finds the beam broken"})
     beam_break_at: list[int] = field(default_factory=list, metadata={
-        "help": "tracker: MEAS? counts that find the beam broken"})
+        "help": "tracker: MEAS? (emScon: StartMeasurement) counts that find the beam broken"})
     protective_stop_at_move: list[int] = field(default_factory=list, metadata={
         "help": "robot: moves that stop halfway in a protective stop"})
     emergency_stop_at_move: list[int] = field(default_factory=list, metadata={
@@ -55,6 +55,8 @@ class Faults:
         "help": "CAN: node ids from which nothing reaches the bus"})
     sensor_fault_at: list[int] = field(default_factory=list, metadata={
         "help": "CAN: position requests answered with a sensor fault (EMCY)"})
+    error_status_at: list[int] = field(default_factory=list, metadata={
+        "help": "emScon tracker: commands answered with an error packet (ES_RS_Unknown)"})
 
     def reply_delay_s(self, n: int | None) -> float:
         """The delay before the reply to request ``n``: ``delay_s`` for every reply, or, when
@@ -69,7 +71,11 @@ class Faults:
 class Noise:
     """Standard deviations of the simulated instruments (SI)."""
 
-    tracker_m: float = 20e-6  # per axis
+    tracker_m: float = 20e-6  # per axis (the line-protocol tracker)
+    # The emScon tracker's maximum permissible error of a point, MPE = const + per_m * range:
+    # Leica's published Uxyz for the AT960/AT930 (fakes/leica_tracker.py).
+    tracker_mpe_const_m: float = 15e-6
+    tracker_mpe_per_m: float = 6e-6
     cmm_m: float = 2e-6  # per probed point, along the surface normal
     encoder_counts: float = 0.5
     robot_repeatability_rad: float = 0.0  # joint noise on arrival (robot repeatability)

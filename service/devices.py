@@ -58,9 +58,58 @@ def open_robot(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Robot:
     raise DeviceConfigError("devices: no robot (expected an `rtde` host or a `modbus` HOST:PORT)")
 
 
+#: Settings of an ``emscon`` entry given as an object (the fields of ``drivers.leica_emscon.EmsconConfig``).
+EMSCON_FIELDS = {"host": str, "port": int, "reflector": str, "measure_time_s": float, "use_adm": bool,
+                 "environment": str, "temperature_c": float, "pressure_mbar": float, "humidity_pct": float,
+                 "initialize_timeout_s": float}
+
+
+def has_tracker(devices: dict[str, Any]) -> bool:
+    """The cell has a laser tracker: a Leica on emScon (``emscon``) or one on the line protocol
+    (``tracker``, directly or through a bridge)."""
+    return bool(devices.get("emscon") or devices.get("tracker"))
+
+
+def emscon_config(value: Any, *, timeout_s: float = 10.0):
+    """``devices.emscon``: ``"HOST:PORT"`` (the endpoint line, contracts §7), ``"HOST"`` (port
+    700), or an object with ``host`` and any of :data:`EMSCON_FIELDS`. Raises
+    ``DeviceConfigError`` naming the field."""
+    from drivers.leica_emscon import EmsconConfig
+
+    try:
+        if isinstance(value, str):
+            return EmsconConfig.from_endpoint(value, timeout_s=timeout_s)
+        if not isinstance(value, dict):
+            raise DeviceConfigError(f"devices.emscon: expected \"HOST:PORT\" or an object; got {value!r}")
+        kwargs: dict[str, Any] = {"timeout_s": timeout_s}
+        for key, v in value.items():
+            kind = EMSCON_FIELDS.get(key)
+            if kind is None:
+                raise DeviceConfigError(f"devices.emscon.{key}: unknown setting; expected one of "
+                                        f"{', '.join(EMSCON_FIELDS)}")
+            ok = isinstance(v, kind) if kind in (str, bool) else isinstance(v, (int, float)) and not isinstance(v, bool)
+            if not ok or (kind is int and v != int(v)):
+                raise DeviceConfigError(f"devices.emscon.{key}: expected {kind.__name__}; got {v!r}")
+            kwargs[key] = kind(v)
+        if "host" not in kwargs:
+            raise DeviceConfigError("devices.emscon.host: missing; the emScon server's address")
+        return EmsconConfig(**kwargs)
+    except ValueError as exc:
+        if isinstance(exc, DeviceConfigError):
+            raise
+        raise DeviceConfigError(f"devices.emscon: {exc}") from exc
+
+
 def open_tracker(devices: dict[str, Any], *, timeout_s: float = 10.0) -> PositionSensor:
+    """The cell's laser tracker: a Leica through its emScon server when ``emscon`` is given (the
+    simulated cell names both: sessions use emScon), else the line protocol of ``tracker``."""
+    if devices.get("emscon"):
+        config = emscon_config(devices["emscon"], timeout_s=timeout_s)
+        from drivers.leica_emscon import EmsconTracker
+
+        return EmsconTracker(config)
     if not devices.get("tracker"):
-        raise DeviceConfigError("devices.tracker: this cell has no laser tracker")
+        raise DeviceConfigError("devices.tracker: this cell has no laser tracker (expected `emscon` or `tracker`)")
     from drivers.tracker import LineTracker, TrackerConfig
 
     return LineTracker(TrackerConfig(url=str(devices["tracker"]), timeout_s=timeout_s))
@@ -109,4 +158,4 @@ def open_encoders(devices: dict[str, Any], joints: list[int] | None = None, *, t
 
 def describe(devices: dict[str, Any]) -> list[str]:
     """The kinds of device a document names (for listings)."""
-    return [k for k in ("rtde", "modbus", "tracker", "cmm", "can") if devices.get(k)]
+    return [k for k in ("rtde", "modbus", "emscon", "tracker", "cmm", "can") if devices.get(k)]

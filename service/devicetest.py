@@ -2,7 +2,9 @@
 harmless, and report what it answered (or the error), each within a time limit.
 
 - robot over RTDE or Modbus: its state (joint readings, safety stops, program running);
-- laser tracker: ``*IDN?``, ``STAT?`` and, when ready, one measurement;
+- laser tracker on the line protocol: ``*IDN?``, ``STAT?`` and, when ready, one measurement;
+- Leica tracker on emScon: its set-up (server version, serial, reflector, environment), its
+  measurement status and, when ready, one measurement (the tracker is not moved);
 - CMM: the I++ DME session, server version, probe position and error state;
 - reference encoders / resolvers on CAN: each node's state and one reading.
 
@@ -19,7 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .devices import open_cmm, open_encoders, open_robot, open_tracker
+from .devices import emscon_config, open_cmm, open_encoders, open_robot, open_tracker
 
 
 def _fmt(v: float, digits: int = 4) -> str:
@@ -47,8 +49,32 @@ def _robot(devices: dict, key: str, timeout_s: float) -> dict:
         robot.close()
 
 
+def _emscon(devices: dict, timeout_s: float) -> dict:
+    from drivers.leica_emscon import EmsconTracker
+
+    tr = EmsconTracker(emscon_config(devices["emscon"], timeout_s=timeout_s))
+    try:
+        ident, refl, env = tr.identity, tr.reflector, tr.environment
+        idn = f"Leica, emScon {ident.server_version}, tracker {ident.serial}"
+        status = tr.status()
+        details: dict[str, Any] = {"identity": idn, "status": status, "reflector": refl.name,
+                                   "environment": {"temperature_c": env[0], "pressure_mbar": env[1],
+                                                   "humidity_pct": env[2]}}
+        answer = (f"{idn}; reflector {refl.name}; {env[0]:.1f} °C, {env[1]:.1f} mbar, {env[2]:.0f} %RH "
+                  f"({tr.config.environment}); {status.replace('_', ' ')}")
+        ok = status == "ready"
+        if ok:
+            m = tr.measure()
+            p, s = m.p_world * 1e3, m.sigma * 1e3
+            details.update({"position_mm": [float(v) for v in p], "sigma_mm": [float(v) for v in s]})
+            answer += f"; reflector at ({', '.join(_fmt(v, 3) for v in p)}) mm ± {_fmt(float(np.max(s)), 4)} mm"
+        return {"ok": ok, "name": tr.name, "answer": answer, "details": details}
+    finally:
+        tr.close()
+
+
 def _tracker(devices: dict, timeout_s: float) -> dict:
-    tr = open_tracker(devices, timeout_s=timeout_s)
+    tr = open_tracker({"tracker": devices["tracker"]}, timeout_s=timeout_s)
     try:
         ident = getattr(tr, "identity", None)
         idn = ", ".join([ident.maker, ident.model, ident.serial, ident.firmware]) if ident else "?"
@@ -116,8 +142,12 @@ def _checks(devices: dict) -> list[tuple[str, str, Callable[[float], Any]]]:
         checks.append(("robot (UR RTDE)", str(devices["rtde"]), lambda t: _robot(devices, "rtde", t)))
     if devices.get("modbus"):
         checks.append(("robot (Modbus TCP)", str(devices["modbus"]), lambda t: _robot(devices, "modbus", t)))
+    if devices.get("emscon"):
+        address = devices["emscon"] if isinstance(devices["emscon"], str) else str(devices["emscon"].get("host", "?"))
+        checks.append(("laser tracker", address, lambda t: _emscon(devices, t)))
     if devices.get("tracker"):
-        checks.append(("laser tracker", str(devices["tracker"]), lambda t: _tracker(devices, t)))
+        label = "laser tracker (line protocol)" if devices.get("emscon") else "laser tracker"
+        checks.append((label, str(devices["tracker"]), lambda t: _tracker(devices, t)))
     if devices.get("cmm"):
         checks.append(("CMM (I++ DME)", str(devices["cmm"]), lambda t: _cmm(devices, t)))
     if devices.get("can") and (devices.get("encoders") or devices.get("resolvers")):
@@ -137,7 +167,7 @@ def test_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = No
     checks = _checks(devices or {})
     if not checks:
         return [{"device": "devices", "address": "", "ok": False,
-                 "error": "the cell's devices document names no device (expected rtde, modbus, tracker, cmm or can)"}]
+                 "error": "the cell's devices document names no device (expected rtde, modbus, emscon, tracker, cmm or can)"}]
     if busy:
         return [{"device": label, "address": addr, "ok": None, "skipped": True, "answer": f"not opened: {busy}"}
                 for label, addr, _ in checks]

@@ -62,6 +62,8 @@ class RunSession(SQLModel, table=True):
     # What the devices were doing at the last committed pose, stop or fault (schema v3):
     # {"robot": {"state", "detail"}, "tracker" | "cmm" | "encoder": {"state", "detail"}, "at": ISO time}
     device_state: dict | None = Field(default=None, sa_column=Column(JSON))
+    # Beam breaks the session repaired itself by pointing the tracker at the reflector (schema v4)
+    beam_recoveries: int = Field(default=0, sa_column_kwargs={"server_default": "0"})
 
 
 class Measurement(SQLModel, table=True):
@@ -311,6 +313,7 @@ class SessionPublic(BaseModel):
     updated_at: datetime
     plan_info: dict[str, Any] | None = None
     device_state: dict[str, Any] | None = None  # the devices at the last committed pose, stop or fault
+    beam_recoveries: int = 0  # beam breaks repaired by pointing the tracker at the reflector
 
 
 class CalibrationPublic(BaseModel):

@@ -8,7 +8,11 @@ Rules a robot cell needs (issue: sessions):
 - every commanded configuration is checked against the model's joint limits and the cell's
   allowed region before anything moves, speeds and accelerations are capped by the settings;
 - device faults are retried (``device_retries``, with back-off), then the session pauses with
-  the reason; a protective or emergency stop pauses it at once. A retry calls the device
+  the reason; a protective or emergency stop pauses it at once. A tracker that lost the
+  reflector (a beam break) is first pointed at where the reflector is: from the current model
+  and the joint readings, its base placed where it fits the session's measurements so far, the
+  tracker is pointed there and searches (``find_reflector``), then measures again; the session
+  pauses only when that fails, and counts the recoveries (``session.beam_recoveries``). A retry calls the device
   again, and the drivers reconnect on that call where it is safe: the UR driver replaces a
   worker that lost its connection (a move in progress is not re-sent by the driver; the retry
   re-sends the same, already checked target), the tracker and CMM drivers close a link after
@@ -44,14 +48,15 @@ from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
-from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedError
+from drivers.base import SteerablePositionSensor
+from drivers.errors import DeviceError, DeviceUnavailableError, MeasurementError, RobotStoppedError
 
 from . import analysis, records
 from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
-from .store import acquire_lease, as_utc, database_unavailable, held_by_other, set_state
+from .store import acquire_lease, database_unavailable, held_by_other, set_state
 from calibration.errors import RecalError
 
 log = logging.getLogger("recal.sessions")
@@ -366,7 +371,7 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
         if settings.settle_s > 0:
             time.sleep(settings.settle_s)
         q_read = _retry(devices.robot.read_joints, "read joints", settings, control)
-        rows = _measure_one(run, devices, settings, control, seq, q_read, int(swept[seq]), model, guide)
+        rows = _measure_one(run, devices, settings, control, seq, q_read, int(swept[seq]), model, guide, db=db)
         following = todo[k + 1] if k + 1 < len(todo) else None
         robot = (_device_state("moving", f"to configuration {following + 1} of {len(plan)}") if following is not None
                  else _device_state("ready", f"at configuration {seq + 1} of {len(plan)}, the last"))
@@ -435,7 +440,7 @@ def _rollback(db: Session) -> None:
         pass
 
 
-def _measure_one(run, devices, settings, control, seq, q_read, joint, model, guide) -> list[Measurement]:
+def _measure_one(run, devices, settings, control, seq, q_read, joint, model, guide, *, db=None) -> list[Measurement]:
     qv = [float(v) for v in q_read]
     if run.kind == "joint":
         enc = devices.encoders.get(joint)
@@ -467,10 +472,93 @@ def _measure_one(run, devices, settings, control, seq, q_read, joint, model, gui
         return [Measurement(session_id=run.id, seq=seq, joint=joint or None, q=qv, x=float(T[0, 3]), y=float(T[1, 3]),
                             z=float(T[2, 3]), qw=float(qw), qx=float(qx), qy=float(qy), qz=float(qz),
                             sigma=max(probing_m, 5e-6))]
-    m = _retry(devices.tracker.measure, "tracker measurement", settings, control, "tracker")
+    if isinstance(devices.tracker, SteerablePositionSensor) and db is not None:
+        m = _measure_recovering_the_beam(db, run, devices.tracker, settings, control, seq, q_read, guide)
+    else:
+        m = _retry(devices.tracker.measure, "tracker measurement", settings, control, "tracker")
     return [Measurement(session_id=run.id, seq=seq, target=run.target or "", joint=joint or None, q=qv,
                         x=float(m.p_world[0]), y=float(m.p_world[1]), z=float(m.p_world[2]),
                         sigma=float(np.max(m.sigma)))]
+
+
+def _measure_recovering_the_beam(db, run, tracker: SteerablePositionSensor, settings, control, seq, q_read, guide):
+    """A tracker measurement at configuration ``seq``: as :func:`_retry` (``device_retries``
+    more attempts), except that when the tracker says it lost the reflector it is first pointed
+    at where the reflector is (:func:`_where_the_reflector_is`) and searches there. A reflector
+    not found there pauses the session at once with the reason; a measurement that succeeds
+    after a search counts as a recovery (``run.beam_recoveries``, committed with the row)."""
+    what = f"tracker measurement at configuration {seq + 1}"
+    attempts = settings.device_retries + 1
+    recovered, last = False, None
+    for attempt in range(attempts):
+        if control.abort.is_set():
+            raise SessionStopped("aborted", "aborted on request")
+        try:
+            m = tracker.measure()
+            if recovered:
+                run.beam_recoveries = (run.beam_recoveries or 0) + 1
+                log.info("session %s: %s: beam recovered", run.id, what)
+            return m
+        except DeviceError as exc:
+            last = exc
+            log.warning("%s failed (attempt %d): %s", what, attempt + 1, exc)
+        if attempt + 1 == attempts:
+            break
+        if isinstance(last, MeasurementError) and _status(tracker) == "beam_broken":
+            if control.abort.is_set():  # pointing moves the tracker: not after an abort
+                raise SessionStopped("aborted", "aborted on request")
+            p = _where_the_reflector_is(db, run, guide, q_read)
+            try:
+                tracker.find_reflector(p)
+                recovered = True
+                continue
+            except MeasurementError as exc:
+                where = ", ".join(f"{v * 1e3:.1f}" for v in p)
+                raise SessionStopped("paused", f"{what}: the beam broke and the tracker did not find the reflector "
+                                               f"where the model puts it ({where}) mm: {exc}",
+                                     device="tracker", cause=exc) from exc
+            except DeviceError as exc:
+                last = exc
+        time.sleep(settings.retry_backoff_s * (attempt + 1))
+    raise SessionStopped("paused", f"{what} failed after {attempts} attempts: {last}", device="tracker", cause=last)
+
+
+def _status(tracker) -> str | None:
+    try:
+        return tracker.status()
+    except DeviceError:
+        return None
+
+
+def _where_the_reflector_is(db, run, guide, q_read) -> np.ndarray:
+    """Where the reflector is now, (3,) m, tracker frame: the current model (``guide``) at the
+    joint readings, placed where it fits this session's measurements so far. From four of them
+    on, its base and the reflector's mounting are fitted as the identification registers them;
+    with one to three, a shift and a turn about the vertical (the tracker stands levelled, the
+    robot on the floor); with none, the model as it is (right once the cell is calibrated)."""
+    from calibration.kinematics import target_positions
+    from calibration.registration import kabsch_levelled
+
+    q = np.asarray(q_read, dtype=float)[None, :]
+    try:
+        data, rows = analysis.session_measurements(db, run)
+    except analysis.AnalysisError:  # nothing measured yet
+        rows = []
+    if len(rows) >= 4:  # the rows' own target: the fitted common offset carries the reflector's mounting
+        return records.registered_points(guide, data, q, guide.target(run.target)[None, :])[0]
+    target = run.target or _reflector_target(guide)
+    p_model = target_positions(guide, q, target)[0]
+    if not rows:
+        return p_model
+    T = kabsch_levelled(target_positions(guide, data.q, target), data.p_world)
+    return T[:3, :3] @ p_model + T[:3, 3]
+
+
+def _reflector_target(model) -> str | None:
+    """The model's reflector when the session names none: its one target that is not a tooling
+    ball (what the cell's tracker follows), else the tool origin."""
+    names = [k for k in model.targets if not k.startswith("ball")]
+    return names[0] if len(names) == 1 else None
 
 
 class Orchestrator:

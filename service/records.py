@@ -85,6 +85,14 @@ def registered_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
     return metrics.registered_errors(model, data.q, data.p_world, target_points(model, data), data.payload)[0]
 
 
+def registered_points(model: KinematicModel, data: Measurements, q: np.ndarray, p_tool: np.ndarray) -> np.ndarray:
+    """Where ``model`` puts the tool-frame points ``p_tool`` (N, 3) at readings ``q`` (N, n), in the
+    instrument's frame, its base placed where it fits the measurements ``data`` best (and one
+    common reflector offset absorbed), as :func:`registered_errors` places it. (N, 3), m."""
+    X, c = metrics.registration(model, data.q, data.p_world, target_points(model, data), data.payload)
+    return metrics.placed_points(model, X, c, q, p_tool)
+
+
 def current_model(db: Session, cell: Cell) -> tuple[KinematicModel, Calibration | None]:
     """The cell's best model: its last pose calibration (from its present nominal model), else the
     nominal model."""

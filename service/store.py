@@ -96,7 +96,14 @@ def _v3(conn) -> None:
     conn.execute(text("UPDATE calibration SET nominal_version = 1 WHERE nominal_version IS NULL"))
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3]
+def _v4(conn) -> None:
+    """The beam breaks each session repaired by pointing the tracker at the reflector
+    (``session.beam_recoveries``, shown on the live page)."""
+    if "beam_recoveries" not in {c["name"] for c in inspect(conn).get_columns("session")}:
+        conn.execute(text("ALTER TABLE session ADD COLUMN beam_recoveries INTEGER NOT NULL DEFAULT 0"))
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 

@@ -4,7 +4,8 @@ cell, and a calibration end to end through the REST API.
 1. Make a "true" robot: the nominal one (``--robot``, default UR10e) with small random errors in
    every link, standing somewhere unknown in front of the laser tracker, with a reflector and
    three tooling balls mounted slightly off their drawings.
-2. Start ``recal fake-cell`` with that truth (UR controller over RTDE, tracker, CMM, encoders)
+2. Start ``recal fake-cell`` with that truth (UR controller over RTDE, a Leica tracker on emScon
+   (what the sessions measure with), the line-protocol tracker, CMM, encoders)
    and ``recal serve`` on SQLite in ``--dir``.
 3. Through the API, as a technician would: register the cell with the nominal model, verify
    it (the nominal model's accuracy), run a pose session (observation-planned poses, each

@@ -48,7 +48,7 @@ def test_endpoint_line_is_the_only_output_and_sigterm_ends_the_cell(cell_factory
 
 
 def test_left_out_devices_leave_their_keys_out(cell_factory):
-    cell = cell_factory("--no-ur", "--no-tracker", "--no-cmm", "--no-can")
+    cell = cell_factory("--no-ur", "--no-tracker", "--no-emscon", "--no-cmm", "--no-can")
     assert set(cell.endpoint) == {"ready", "modbus"}
 
 

@@ -21,6 +21,7 @@ from calibration.kinematics import fk, joint_variables
 from drivers.canopen_encoder import CanBusConfig, CanopenEncoder, CanopenEncoderConfig
 from drivers.errors import DeviceTimeoutError
 from drivers.ippdme import IppDmeCmm, IppDmeConfig
+from drivers.leica_emscon import EmsconConfig, EmsconTracker
 from drivers.modbus_robot import ModbusRobot, ModbusRobotConfig
 from drivers.tracker import LineTracker, TrackerConfig
 from fakes.canopen_nodes import default_mount_offset_rad
@@ -39,6 +40,16 @@ def _target_world(truth, q: np.ndarray, name: str) -> np.ndarray:
 
 def _tracker(endpoint: dict):
     tracker = LineTracker(TrackerConfig(url=endpoint["tracker"], timeout_s=TIMEOUT_S))
+
+    def error_m(truth, q: np.ndarray) -> float:
+        return float(np.linalg.norm(tracker.measure().p_world - _target_world(truth, q, "smr1")))
+
+    return tracker, error_m
+
+
+def _emscon(endpoint: dict):
+    config = EmsconConfig.from_endpoint(endpoint["emscon"], timeout_s=TIMEOUT_S - 0.1, measure_time_s=0.1)
+    tracker = EmsconTracker(config)
 
     def error_m(truth, q: np.ndarray) -> float:
         return float(np.linalg.norm(tracker.measure().p_world - _target_world(truth, q, "smr1")))
@@ -83,6 +94,8 @@ class Late:
 CASES = {
     # handshake: requests 1-3; the second MEAS? is 5
     "tracker": Late("tracker", 5, _tracker, 1e-4, r"no reply to MEAS\? within 0\.4 s"),
+    # set-up: commands 1-10 (with Initialize); the second StartMeasurement is 12
+    "emscon": Late("emscon", 12, _emscon, 1e-4, r"no answer to command 49 within 0\.4 s"),
     # session: commands 1-10 (with Home); the second PtMeas is 12
     "cmm": Late("cmm", 12, _cmm, 1e-5, r"no acknowledgement of 00012 PtMeas\(.* within 0\.4 s"),
     # position requests: SDO uploads of 0x6004 or SYNCs; the set-up reads other objects

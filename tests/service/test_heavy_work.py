@@ -62,8 +62,10 @@ def test_health_and_status_are_answered_while_a_large_compensation_runs(idle_app
         worker.join(5.0)
         assert done["response"].status_code == 200, done["response"].text
         assert done["response"].text.count("\n") == 12_001
-        # The compensation ran long enough for the check to mean something, and many polls
-        # were answered while it did, each promptly.
-        assert done["elapsed_s"] > 3 * PROMPT_S
+        # Many polls were answered while it ran, each promptly: well under the compensation's own
+        # time, which a request queued behind it on the event loop would have waited (the bound
+        # is relative, so that a fast machine's short compensation still tells the two apart).
+        bound_s = min(PROMPT_S, done["elapsed_s"] / 3)
         assert len(latencies) >= 5
-        assert max(latencies) < PROMPT_S, f"health and status took up to {max(latencies):.2f} s during a compensation"
+        assert max(latencies) < bound_s, (f"health and status took up to {max(latencies):.2f} s during a "
+                                          f"{done['elapsed_s']:.2f} s compensation")

@@ -33,7 +33,7 @@ BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0
 def next_host() -> str:
     n = next(_hosts, None)
     if n is None:
-        raise RuntimeError("tests/system ran out of loopback addresses")
+        raise RuntimeError("tests/system ran out of loopback addresses (100-119, 160-199)")
     return f"{NET}.{n}"
 
 

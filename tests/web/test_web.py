@@ -124,7 +124,8 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     for what in ("robot (UR RTDE)", "laser tracker", "CMM (I++ DME)", "reference encoder, joint 1",
                  "reference encoder, joint 2", "resolver, joint 1"):
         assert what in text, what
-    assert "SIM-LT" in text  # the tracker's *IDN? answer
+    assert "SIM-LT" in text  # the line-protocol tracker's *IDN? answer
+    assert "Leica, emScon 3.8.400" in text  # the emScon server's GetSystemStatus
     encoder2 = page.inner_text("table.device-test tr:has-text('reference encoder, joint 2')")
     assert re.search(r"-1\d\d\.\d{4}°", encoder2) and "counts" in encoder2 and "per count" in encoder2, encoder2
     assert "no heartbeat" not in text or "alive" in text, text  # a state that is said, is explained
@@ -261,7 +262,8 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.click("#open-certificate")
     page.wait_for_selector("#certificate")
     cert = page.inner_text("#certificate")
-    for what in ("line 3 UR10e", "ur10e", "laser tracker", "SIM-LT", "technician-anna", "Before calibration",
+    # the instrument that measured: the Leica tracker on emScon (the simulated cell's default)
+    for what in ("line 3 UR10e", "ur10e", "laser tracker", "emScon 3.8.400", "technician-anna", "Before calibration",
                  "After calibration, in-sample", "identification converged", "j2.a", "No hold-out check yet"):
         assert what in cert, what
     verdict = page.inner_text("#verdict")

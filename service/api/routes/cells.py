@@ -9,6 +9,7 @@ from sqlmodel import select
 
 from calibration.model import ModelFormatError, model_from_dict
 
+from ...devices import DeviceConfigError, emscon_config
 from ...models import (
     Calibration,
     Cell,
@@ -63,6 +64,17 @@ def _check_region(model, region: list | None, *, sent: bool = True) -> None:
         raise HTTPException(422, {"field": field, "message": message}) from None
 
 
+def _check_devices(devices: dict | None) -> None:
+    """An ``emscon`` entry must make a tracker configuration (the other entries are checked
+    when they are opened)."""
+    if devices and devices.get("emscon") is not None:
+        try:
+            emscon_config(devices["emscon"])
+        except DeviceConfigError as exc:
+            where, _, message = str(exc).partition(": ")
+            raise HTTPException(422, {"field": f"body.{where}", "message": message}) from None
+
+
 def _name_free(db, name: str, cell_id: int | None = None) -> None:
     other = db.exec(select(Cell.id).where(Cell.name == name)).first()
     if other is not None and other != cell_id:
@@ -72,6 +84,7 @@ def _name_free(db, name: str, cell_id: int | None = None) -> None:
 @router.post("/cells", status_code=201, response_model=CellPublic)
 def create_cell(body: CellCreate, db: DbSession, tok: CellEditor):
     _check_region(_check_model(body.model), body.allowed_region)
+    _check_devices(body.devices)
     _name_free(db, body.name)
     cell = Cell(**body.model_dump())
     db.add(cell)
@@ -104,6 +117,7 @@ def update_cell(cell_id: int, body: CellUpdate, db: DbSession, tok: CellEditor):
     changes = body.model_dump(exclude_unset=True)
     if "name" in changes:
         _name_free(db, changes["name"], cell_id)
+    _check_devices(changes.get("devices"))
     detail: dict = {"fields": sorted(changes)}
     if "model" in changes and changes["model"] == cell.model:
         del changes["model"]

@@ -14,6 +14,7 @@ from sqlalchemy import select as sa_select
 from sqlalchemy.exc import IntegrityError
 from sqlmodel import Session, select
 
+from ...devices import has_tracker
 from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
 from ...runners import SessionRunner
 from ...store import audit, measured_count, set_state_unless
@@ -70,7 +71,7 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     measuring = body.kind in ("pose", "verify", "circle") and not body.dry_run
     if body.device == "cmm" and measuring and not cell.devices.get("cmm"):
         raise HTTPException(422, {"field": "body.device", "message": "this cell has no CMM"})
-    if body.device == "tracker" and measuring and not cell.devices.get("tracker"):
+    if body.device == "tracker" and measuring and not has_tracker(cell.devices):
         raise HTTPException(422, {"field": "body.device", "message": "this cell has no laser tracker"})
     for i, j in enumerate(body.joints or []):
         if not 1 <= j <= model.n_joints or j in body.joints[:i]:

@@ -15,6 +15,7 @@ from sqlalchemy import func
 from sqlalchemy.exc import IntegrityError
 from sqlmodel import select
 
+from ...devices import describe
 from ...devicetest import test_devices
 from ...models import Calibration, Cell, RunSession
 from ...results import plan_preview, session_live
@@ -94,7 +95,7 @@ def _summary(db, cell: Cell) -> dict:
     # the cell's accuracy: the last verification of its current calibration (None until verified)
     accuracy = verified[-1] if verified and last and verified[-1]["calibration_id"] == last["id"] else None
     return {"id": cell.id, "name": cell.name, "site": cell.site, "robot": _robot(cell.model),
-            "devices": [k for k in ("rtde", "modbus", "tracker", "cmm", "can") if (cell.devices or {}).get(k)],
+            "devices": describe(cell.devices or {}),
             "unit": unit, "drift_threshold": cell.drift_threshold,
             "last": last, "trend": trend, "verified": verified, "accuracy": accuracy,
             "active_session": _active(db, cell.id)}
@@ -266,7 +267,7 @@ def test_connections(cell_id: int, request: Request, db: DbSession, tok: Runner,
                                   name="devtest-can", daemon=True)
     can_thread.start()  # the CAN nodes alongside the other devices (each within its own time limit)
     others = {k: v for k, v in devices.items() if k not in ("encoders", "resolvers")}
-    has_other = any(others.get(k) for k in ("rtde", "modbus", "tracker", "cmm"))
+    has_other = any(others.get(k) for k in ("rtde", "modbus", "emscon", "tracker", "cmm"))
     results = test_devices(others, timeout_s=timeout_s, busy=reason) if has_other or not _has_can_nodes(devices) else []
     can_thread.join()
     results += box.get("results", [])

@@ -6,7 +6,8 @@ import { COLORS, chart, jointRanges, sizes, sparkline } from "../plots.js";
 import { address, badge, busy, card, put, confirmDialog, duration, epochMs, h, kv, notify, num, table, when,
          whenShort } from "../ui.js";
 
-const DEVICE_NAMES = { rtde: "robot (UR RTDE)", modbus: "robot (Modbus TCP)", tracker: "laser tracker",
+const DEVICE_NAMES = { rtde: "robot (UR RTDE)", modbus: "robot (Modbus TCP)", emscon: "laser tracker (Leica emScon)",
+                       tracker: "laser tracker (line protocol)",
                        cmm: "CMM (I++ DME)", can: "CAN bus", encoders: "reference encoders", resolvers: "resolvers" };
 
 function robotLine(r) {
@@ -225,7 +226,7 @@ function pager(total, offset, size, go) {
 // --------------------------------------------------------------------------- register / edit
 
 // The devices document's keys the form has fields for (contracts §7); other keys are kept.
-const FORM_KEYS = ["rtde", "modbus", "tracker", "cmm", "can", "encoders", "resolvers", "ready"];
+const FORM_KEYS = ["rtde", "modbus", "emscon", "tracker", "cmm", "can", "encoders", "resolvers", "ready"];
 const CAN_KEYS = ["interface", "channel", "host", "port"];
 
 const HOST_RE = /^(?:[A-Za-z0-9](?:[A-Za-z0-9-]*[A-Za-z0-9])?(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]*[A-Za-z0-9])?)*|\[[0-9A-Fa-f:.]+\])$/;
@@ -265,6 +266,9 @@ function deviceForm(doc, region) {
   const input = (id, value, attrs = {}) => h("input", { id, value: value ?? "", spellcheck: "false", autocomplete: "off", ...attrs });
   const rtde = input("dev-rtde", doc.rtde, { placeholder: "e.g. 192.168.1.10" });
   const modbus = input("dev-modbus", doc.modbus, { placeholder: "e.g. 192.168.1.10:502" });
+  // emScon as "HOST:PORT" has a field; an object (host, reflector, environment, …) is kept as it is
+  const emscon = input("dev-emscon", typeof doc.emscon === "string" ? doc.emscon : "",
+                       { placeholder: typeof doc.emscon === "object" && doc.emscon ? `${doc.emscon.host} (settings kept)` : "e.g. 192.168.0.1:700" });
   const tracker = input("dev-tracker", doc.tracker, { placeholder: "e.g. socket://192.168.1.20:10001" });
   const cmm = input("dev-cmm", doc.cmm, { placeholder: "e.g. socket://192.168.1.30:1294" });
   const canIf = input("dev-can-interface", can.interface, { placeholder: "socketcand", list: "can-interfaces" });
@@ -282,7 +286,8 @@ function deviceForm(doc, region) {
   let units = { length: "mm", angle: "deg" };
   let nodes = { encoders: { ...(doc.encoders || {}) }, resolvers: { ...(doc.resolvers || {}) } };
   let regionRows = Array.isArray(region) ? region.map((r) => [...r]) : [];
-  const extra = Object.fromEntries(Object.entries(doc).filter(([k]) => !FORM_KEYS.includes(k)));
+  const extra = Object.fromEntries(Object.entries(doc).filter(([k, v]) => !FORM_KEYS.includes(k)
+    || (k === "emscon" && v && typeof v === "object")));
   const canExtra = Object.fromEntries(Object.entries(can).filter(([k]) => !CAN_KEYS.includes(k)));
   const nodeInputs = [], regionInputs = [];
 
@@ -292,6 +297,11 @@ function deviceForm(doc, region) {
       if (!v) return "";
       const m = /^(.+):(\d+)$/.exec(v);
       return m && HOST_RE.test(m[1]) && port(m[2]) ? "" : "expected HOST:PORT, e.g. 192.168.1.10:502";
+    }],
+    [emscon, (v) => {
+      if (!v) return "";
+      const m = /^(.+?)(?::(\d+))?$/.exec(v);
+      return m && HOST_RE.test(m[1]) && (m[2] === undefined || port(m[2])) ? "" : "expected HOST:PORT of the emScon server, e.g. 192.168.0.1:700";
     }],
     [tracker, (v) => !v || INSTRUMENT_RE.test(v) ? "" : "expected socket://HOST:PORT or a serial port (/dev/ttyUSB0, COM3)"],
     [cmm, (v) => !v || INSTRUMENT_RE.test(v) ? "" : "expected socket://HOST:PORT (the I++ DME server)"],
@@ -424,10 +434,11 @@ function deviceForm(doc, region) {
     }
     const known = Object.keys(d).filter((k) => FORM_KEYS.includes(k) && k !== "ready");
     if (!known.length) {
-      lineErr.textContent = "This JSON names no device (expected rtde, modbus, tracker, cmm, can, encoders, resolvers).";
+      lineErr.textContent = "This JSON names no device (expected rtde, modbus, emscon, tracker, cmm, can, encoders, resolvers).";
       return;
     }
     rtde.value = d.rtde ?? ""; modbus.value = d.modbus ?? ""; tracker.value = d.tracker ?? ""; cmm.value = d.cmm ?? "";
+    emscon.value = typeof d.emscon === "string" ? d.emscon : "";
     const c = d.can && typeof d.can === "object" ? d.can : {};
     canIf.value = c.interface ?? ""; canCh.value = c.channel ?? ""; canHost.value = c.host ?? ""; canPort.value = c.port ?? "";
     Object.keys(canExtra).forEach((k) => delete canExtra[k]);
@@ -455,6 +466,7 @@ function deviceForm(doc, region) {
     const v = (x) => x.value.trim();
     if (v(rtde)) devices.rtde = v(rtde);
     if (v(modbus)) devices.modbus = v(modbus);
+    if (v(emscon)) devices.emscon = v(emscon);
     if (v(tracker)) devices.tracker = v(tracker);
     if (v(cmm)) devices.cmm = v(cmm);
     if (v(canIf)) {
@@ -486,7 +498,11 @@ function deviceForm(doc, region) {
         field("Modbus TCP host:port", modbus, "a robot read over Modbus TCP (UR register map)")),
       h("h3", {}, "Instrument"),
       h("div", { class: "pair" },
-        field("Laser tracker", tracker, "socket://HOST:PORT, or the serial port it is plugged into"),
+        field("Leica laser tracker (emScon)", emscon, "HOST:PORT of the tracker's emScon server (port 700); sessions use it "
+          + "when it is given"),
+        field("Laser tracker (line protocol)", tracker, "socket://HOST:PORT, or the serial port it is plugged into "
+          + "(a bridge for FARO and API trackers)")),
+      h("div", { class: "pair" },
         field("CMM (I++ DME)", cmm, "socket://HOST:PORT of the I++ DME server")),
       h("h3", {}, "CAN bus (reference encoders and resolvers)"),
       h("datalist", { id: "can-interfaces" }, ["socketcand", "socketcan", "pcan", "kvaser", "slcan"].map((x) => h("option", { value: x }))),
@@ -653,14 +669,14 @@ export async function start(ctx, id) {
   const devs = c.devices;
   const kind = h("div", { class: "kinds", role: "radiogroup" });
   for (const [k, [label, text]] of Object.entries(KINDS)) {
-    const needs = k === "joint" ? devs.includes("can") : devs.includes("tracker") || devs.includes("cmm");
+    const needs = k === "joint" ? devs.includes("can") : devs.includes("tracker") || devs.includes("emscon") || devs.includes("cmm");
     kind.appendChild(h("label", { class: `kind${needs ? "" : " disabled"}` },
       h("input", { type: "radio", name: "kind", value: k, checked: k === "pose", disabled: !needs }),
       h("span", {}, h("strong", {}, label), ` — ${text}`)));
   }
   const count = h("input", { type: "number", id: "count", min: 1, max: KINDS.pose[3], value: 40 });
   const device = h("select", { id: "device" },
-    devs.includes("tracker") ? h("option", { value: "tracker" }, "laser tracker") : null,
+    devs.includes("tracker") || devs.includes("emscon") ? h("option", { value: "tracker" }, "laser tracker") : null,
     devs.includes("cmm") ? h("option", { value: "cmm" }, "CMM (tooling balls, full pose)") : null);
   const targets = c.robot.targets;
   const target = h("select", { id: "target" },

@@ -85,7 +85,7 @@ export async function live(ctx, id) {
     const last = l.last;
     const robots = cell.devices.filter((d) => d === "rtde" || d === "modbus");
     const where = { robot: robots.map((d, i) => [i ? ", " : "", `${d} `, address(cell.devices_doc[d])]),
-                    tracker: address(cell.devices_doc.tracker), cmm: address(cell.devices_doc.cmm),
+                    tracker: trackerAddress(), cmm: address(cell.devices_doc.cmm),
                     encoder: "CANopen" };
     const ds = s.device_state;
     let rows;
@@ -102,9 +102,12 @@ export async function live(ctx, id) {
       } else if (ds.at) rows.push(["As of", whenSeconds(ds.at)]);
     } else {
       rows = [["Robot", robots.length ? where.robot : "–"],
-              ["Instrument", s.kind === "joint" ? "reference encoders (CAN)" : [`${s.device} `, address(cell.devices_doc[s.device] || "")]],
+              ["Instrument", s.kind === "joint" ? "reference encoders (CAN)"
+                : [`${s.device} `, s.device === "tracker" ? trackerAddress() : address(cell.devices_doc[s.device] || "")]],
               ["State", deviceState(s)]];
     }
+    if (s.beam_recoveries) rows.push(["Beam recoveries", h("span", { id: "beam-recoveries" },
+      `${s.beam_recoveries}: the beam broke and the tracker found the reflector where the model puts it`)]);
     if (last) {
       rows.push(["Last reading", `pose ${last.pose} at ${whenSeconds(last.at)}`]);
       rows.push(["Joints (deg)", last.q_deg.map((v) => num(v, 4)).join(", ")]);
@@ -113,6 +116,13 @@ export async function live(ctx, id) {
       if (last.reference_deg != null) rows.push(["Reference encoder", `${num(last.reference_deg, 6)} deg`]);
     }
     add(devices, kv(rows));
+  }
+
+  // The tracker sessions use: Leica emScon when the cell has one, else the line protocol.
+  function trackerAddress() {
+    const e = cell.devices_doc.emscon;
+    if (e) return address(`emScon ${typeof e === "object" ? `${e.host}:${e.port || 700}` : e}`);
+    return address(cell.devices_doc.tracker || "");
   }
 
   function deviceState(x) {

@@ -1,0 +1,553 @@
+"""The emScon tracker: the fake proven with ``cesapi`` (an independent emScon client), the bytes
+our driver writes decoded with ``cesapi``'s packet classes, the driver against the fake, the
+fake's beam geometry, and each injectable fault across processes."""
+
+from __future__ import annotations
+
+import dataclasses
+import select
+import socket
+import struct
+import threading
+
+import numpy as np
+import pytest
+
+CESAPI = pytest.importorskip("CESAPI.packet", reason="cesapi (the test extra) is the independent emScon client")
+from CESAPI import packet as P  # noqa: E402
+from CESAPI.command import CommandSync  # noqa: E402
+from CESAPI.connection import Connection  # noqa: E402
+
+from calibration.kinematics import fk  # noqa: E402
+from calibration.robots import nominal  # noqa: E402
+from drivers.errors import (  # noqa: E402
+    DeviceConnectionError,
+    DeviceFaultError,
+    DeviceTimeoutError,
+    MeasurementError,
+    ProtocolError,
+)
+from drivers.leica_emscon import EmsconConfig, EmsconTracker  # noqa: E402
+from fakes.leica_tracker import LeicaTrackerFake  # noqa: E402
+from fakes.world import SimCell  # noqa: E402
+
+REFLECTOR_TOOL = np.array([0.0, 0.0, 0.05])
+Q_POSE = np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.2])
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return dataclasses.replace(nominal("ur5e"), targets={"smr1": REFLECTOR_TOOL})
+
+
+@pytest.fixture
+def cell(truth):
+    return SimCell(truth, seed=3, q_home=Q_POSE)
+
+
+@pytest.fixture
+def fake(cell):
+    f = LeicaTrackerFake(cell, port=0)
+    f.start()
+    yield f
+    f.stop()
+
+
+def _config(fake, **kw) -> EmsconConfig:
+    return EmsconConfig(host="127.0.0.1", port=fake.port, **{"timeout_s": 1.0, "measure_time_s": 0.1, **kw})
+
+
+def _sigma_m(cell) -> float:
+    r = float(np.linalg.norm(cell.target_world()))
+    return 0.5 * (cell.noise.tracker_mpe_const_m + cell.noise.tracker_mpe_per_m * r) / np.sqrt(3.0)
+
+
+# --------------------------------------------------------------------------- a recording proxy
+
+
+class Proxy:
+    """A TCP relay between a client and the fake that keeps every byte each way."""
+
+    def __init__(self, port: int):
+        self.upstream = port
+        self.to_server = bytearray()
+        self.to_client = bytearray()
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self._threads: list[threading.Thread] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        while True:
+            try:
+                client, _ = self.server.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.upstream))
+            for src, dst, log in ((client, upstream, self.to_server), (upstream, client, self.to_client)):
+                t = threading.Thread(target=self._pump, args=(src, dst, log), daemon=True)
+                t.start()
+                self._threads.append(t)
+
+    @staticmethod
+    def _pump(src, dst, log):
+        while True:
+            try:
+                data = src.recv(65536)
+            except OSError:
+                data = b""
+            if not data:
+                for s in (src, dst):
+                    try:
+                        s.shutdown(socket.SHUT_RDWR)
+                    except OSError:
+                        pass
+                return
+            log += data
+            dst.sendall(data)
+
+    def close(self):
+        self.server.close()
+
+
+def _split(data: bytes) -> list[bytes]:
+    out = []
+    while data:
+        size = struct.unpack_from("<i", data)[0]
+        out.append(data[:size])
+        data = data[size:]
+    return out
+
+
+# --------------------------------------------------------------------------- cesapi drives the fake
+
+
+def test_cesapi_drives_the_fake_through_every_command_the_driver_sends(fake, cell):
+    """The independent client sends each command our driver uses, built and parsed by its own
+    packet classes, and gets the answers a real emScon server gives."""
+    connection = Connection()
+    connection.connect(host="127.0.0.1", port=fake.port)
+    try:
+        cmd = CommandSync(connection)
+        status = cmd.GetSystemStatus()
+        assert status.packetInfo.status == P.ES_RS_AllOK
+        assert status.trackerProcessorStatus != P.ES_TPS_Initialized  # a tracker just powered up
+        assert status.weatherMonitorStatus == P.ES_WMS_ReadAndCalculateRefractions
+        assert (status.esVersionNumber.iMajorVersionNumber, status.esVersionNumber.iMinorVersionNumber) == (3, 8)
+        assert cmd.GetTrackerStatus().trackerStatus == P.ES_TS_NotReady
+        cmd.Initialize()
+        assert cmd.GetSystemStatus().trackerProcessorStatus == P.ES_TPS_Initialized
+        assert cmd.GetTrackerStatus().trackerStatus == P.ES_TS_Ready
+
+        units = P.SystemUnitsDataT()
+        units.lenUnitType, units.angUnitType = P.ES_LU_Meter, P.ES_AU_Degree
+        units.tempUnitType, units.pressUnitType, units.humUnitType = P.ES_TU_Celsius, P.ES_PU_Mbar, P.ES_HU_RH
+        cmd.SetUnits(units)
+        assert cmd.GetCoordinateSystemType().coordSysType == P.ES_CS_RHR
+        env = P.EnvironmentDataT()
+        env.dTemperature, env.dPressure, env.dHumidity = 21.5, 990.0, 40.0
+        cmd.SetEnvironmentParams(env)
+        got = cmd.GetEnvironmentParams().environmentData
+        assert (got.dTemperature, got.dPressure, got.dHumidity) == (21.5, 990.0, 40.0)
+
+        first = cmd.GetReflectors()  # the server sends one reply per reflector; cesapi keeps the first
+        assert first.iTotalReflectors == 3
+        assert first.cReflectorName.decode("utf-16-le").rstrip("\x00") == "RRR 1.5in"
+        assert first.targetType == P.ES_TT_RRR15 and first.dSurfaceOffset == pytest.approx(19.05)
+        cmd.SetReflector(first.iInternalReflectorId)
+        cmd.SetMeasurementMode(P.ES_MM_Stationary)
+        stationary = P.StationaryModeDataT()
+        stationary.lMeasTime, stationary.bUseADM = 100, 0
+        cmd.SetStationaryModeParams(stationary)
+
+        info = cmd.GetMeasurementStatusInfo()
+        assert info.lMeasurementStatusInfo & P.ES_MSI_ReflectorFound
+        result = cmd.StartMeasurement()
+        assert P.packetType(result) == P.ES_DT_SingleMeasResult
+        p = np.array([result.dVal1, result.dVal2, result.dVal3])  # metres: the units set above
+        sigma = _sigma_m(cell)
+        assert result.dStd1 == pytest.approx(sigma)
+        assert np.all(np.abs(p - cell.target_world()) < 5 * sigma)
+        assert (result.dTemperature, result.dPressure) == (21.5, 990.0)
+
+        target = cell.target_world()
+        cmd.GoPosition(0, *(target + [0.03, -0.02, 0.01]))
+        assert not cmd.GetMeasurementStatusInfo().lMeasurementStatusInfo & P.ES_MSI_ReflectorFound
+        cmd.FindReflector(float(np.linalg.norm(target)))
+        assert cmd.GetMeasurementStatusInfo().lMeasurementStatusInfo & P.ES_MSI_ReflectorFound
+
+        with pytest.raises(Exception, match="failed with status 2"):  # ES_RS_NotImplemented
+            cmd.Park()  # outside the fake's subset (ParkRT is a bare reply)
+    finally:
+        connection.disconnect()
+
+
+def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
+    """Every packet our driver sends, parsed by cesapi's classes, has the intended fields and
+    packs back to the same bytes; every answer the fake sends parses with cesapi too."""
+    proxy = Proxy(fake.port)
+    try:
+        with EmsconTracker(EmsconConfig(host="127.0.0.1", port=proxy.port, timeout_s=1.0, measure_time_s=0.25,
+                                        environment="config", temperature_c=19.5, pressure_mbar=1001.0,
+                                        humidity_pct=35.0, reflector="RRR 0.5in")) as tracker:
+            tracker.measure()
+            target = cell.target_world()
+            tracker.find_reflector(target)
+            assert tracker.status() == "ready"
+    finally:
+        proxy.close()
+    factory = P.PacketFactory()
+    sent = [factory.packet(raw, return_type=False) for raw in _split(bytes(proxy.to_server))]
+    for raw, packet in zip(_split(bytes(proxy.to_server)), sent):
+        assert packet.pack() == raw
+    commands = [p.packetInfo.command for p in sent]
+    assert commands == [P.ES_C_GetSystemStatus, P.ES_C_GetTrackerStatus, P.ES_C_Initialize, P.ES_C_SetUnits,
+                        P.ES_C_GetCoordinateSystemType, P.ES_C_SetEnvironmentParams, P.ES_C_GetReflectors, P.ES_C_SetReflector,
+                        P.ES_C_SetMeasurementMode, P.ES_C_SetStationaryModeParams, P.ES_C_StartMeasurement,
+                        P.ES_C_GoPosition, P.ES_C_FindReflector, P.ES_C_GetMeasurementStatusInfo]
+    by = dict(zip(commands, sent))
+    u = by[P.ES_C_SetUnits].unitsSettings
+    assert (u.lenUnitType, u.angUnitType, u.tempUnitType, u.pressUnitType, u.humUnitType) == (
+        P.ES_LU_Millimeter, P.ES_AU_Degree, P.ES_TU_Celsius, P.ES_PU_Mbar, P.ES_HU_RH)
+    e = by[P.ES_C_SetEnvironmentParams].environmentData
+    assert (e.dTemperature, e.dPressure, e.dHumidity) == (19.5, 1001.0, 35.0)
+    assert by[P.ES_C_SetReflector].iInternalReflectorId == 1
+    assert by[P.ES_C_SetMeasurementMode].measMode == P.ES_MM_Stationary
+    assert by[P.ES_C_SetStationaryModeParams].stationaryModeData.lMeasTime == 250
+    go = by[P.ES_C_GoPosition]
+    assert np.allclose([go.dVal1, go.dVal2, go.dVal3], target * 1e3) and go.bUseADM == 0
+    assert by[P.ES_C_FindReflector].dAproxDistance == pytest.approx(np.linalg.norm(target) * 1e3)
+
+    answers = [factory.packet(raw) for raw in _split(bytes(proxy.to_client))]
+    assert all(a is not None for a in answers)
+    kinds = [P.packetType(a) for a in answers]
+    assert kinds.count(P.ES_DT_SingleMeasResult) == 1
+    replies = [a.packetInfo.command for a in answers if P.packetType(a) == P.ES_DT_Command]
+    assert replies.count(P.ES_C_GetReflectors) == 3 and len(replies) == len(commands) + 2
+
+
+# --------------------------------------------------------------------------- the driver against the fake
+
+
+def test_measure_is_the_true_reflector_within_its_reported_sigma(fake, cell):
+    sigma = _sigma_m(cell)
+    with EmsconTracker(_config(fake)) as tracker:
+        assert tracker.identity.server_version == "3.8.400"
+        assert tracker.reflector.name == "RRR 1.5in"
+        assert tracker.environment == (20.0, 1013.25, 50.0)  # read from the weather station
+        assert tracker.status() == "ready"
+        points = []
+        for i in range(15):
+            m = tracker.measure()
+            assert m.sequence == i + 1
+            assert np.allclose(m.sigma, sigma)
+            assert np.all(np.abs(m.p_world - cell.target_world()) < 5 * sigma)
+            points.append(m.p_world)
+    assert np.std(np.array(points) - cell.target_world()) > 0.3 * sigma  # the noise is there
+    assert fake.initialised  # the driver initialised the tracker it found uninitialised
+
+
+def test_extended_result_is_taken(cell):
+    fake = LeicaTrackerFake(cell, port=0, extended_result=True, initialised=True)
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            m = tracker.measure()
+        assert np.allclose(m.sigma, _sigma_m(cell))
+        assert np.all(np.abs(m.p_world - cell.target_world()) < 5 * _sigma_m(cell))
+    finally:
+        fake.stop()
+
+
+def test_measurement_follows_the_robot(fake, cell, truth):
+    with EmsconTracker(_config(fake)) as tracker:
+        first = tracker.measure()
+        cell.start_move(Q_POSE + 0.2, 1.0, 1.0)
+        second = tracker.measure()
+    expected = fk(truth, (Q_POSE + 0.2)[None])[0]
+    assert np.linalg.norm(second.p_world - (expected[:3, :3] @ REFLECTOR_TOOL + expected[:3, 3])) < 1e-4
+    assert np.linalg.norm(second.p_world - first.p_world) > 0.01
+
+
+def test_a_moving_reflector_gives_no_stationary_result(truth):
+    cell = SimCell(truth, q_home=Q_POSE, time_scale=1.0)
+    fake = LeicaTrackerFake(cell, port=0, initialised=True)
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            cell.start_move(Q_POSE + 0.5, 0.01, 0.1)
+            with pytest.raises(MeasurementError, match="reflector moving") as info:
+                tracker.measure()
+            assert info.value.code == P.ES_RS_NoStationaryResult
+            cell.stop()
+            assert np.linalg.norm(tracker.measure().p_world - cell.target_world()) < 1e-4
+    finally:
+        fake.stop()
+
+
+def test_configuration_errors_name_what_is_wrong(fake):
+    with pytest.raises(DeviceFaultError, match="no reflector named 'CCR'; the server lists 'RRR 1.5in'"):
+        EmsconTracker(_config(fake, reflector="CCR"))
+    fake.weather_station = False
+    with pytest.raises(DeviceFaultError, match="no weather station"):
+        EmsconTracker(_config(fake))
+    fake.weather_station = True
+    fake.coordinate_system = 6  # ES_CS_SCW: spherical
+    with pytest.raises(DeviceFaultError, match="coordinate system type is 6; Recal needs the right-handed cartesian"):
+        EmsconTracker(_config(fake))
+    fake.coordinate_system = 0
+    with EmsconTracker(_config(fake, environment="config", temperature_c=23.0)) as tracker:
+        assert tracker.environment == (23.0, 1013.25, 50.0)
+    assert fake.environment == (23.0, 1013.25, 50.0)
+    for bad, match in (({"port": 0}, "port"), ({"timeout_s": 0}, "timeout_s"), ({"environment": "sky"}, "environment"),
+                       ({"measure_time_s": 0}, "measure_time_s")):
+        with pytest.raises(ValueError, match=match):
+            EmsconConfig(host="h", **bad)
+    assert EmsconConfig.from_endpoint("10.0.0.5:7000").port == 7000
+    assert EmsconConfig.from_endpoint("10.0.0.5").port == 700
+
+
+# --------------------------------------------------------------------------- the beam
+
+
+def test_a_broken_beam_stays_broken_until_the_reflector_is_found(fake, cell):
+    cell.faults.beam_break_at = [2]
+    with EmsconTracker(_config(fake)) as tracker:
+        tracker.measure()
+        for _ in range(2):  # the tracker does not find the reflector by itself
+            with pytest.raises(MeasurementError, match="beam broken") as info:
+                tracker.measure()
+            assert info.value.code == P.ES_RS_MeasurementStatusNotReady
+        assert tracker.status() == "beam_broken"
+        with pytest.raises(MeasurementError):  # searched too far from the reflector
+            tracker.find_reflector(cell.target_world() + [0.3, 0.0, 0.0])
+        tracker.find_reflector(cell.target_world() + [0.02, -0.02, 0.01])
+        assert tracker.status() == "ready"
+        m = tracker.measure()
+    assert m.sequence == 2  # the failed measurements took no sequence number
+    assert np.all(np.abs(m.p_world - cell.target_world()) < 5 * m.sigma)
+
+
+def test_the_reflector_brought_back_into_the_beam_is_held_again(fake, cell):
+    cell.faults.beam_break_at = [1]
+    with EmsconTracker(_config(fake)) as tracker:
+        with pytest.raises(MeasurementError):
+            tracker.measure()
+        cell.start_move(Q_POSE + 0.1, 1.0, 1.0)  # away from the beam ...
+        assert tracker.status() == "beam_broken"
+        cell.start_move(Q_POSE, 1.0, 1.0)  # ... and back into it
+        assert tracker.status() == "ready"
+        assert np.all(np.abs(tracker.measure().p_world - cell.target_world()) < 1e-4)
+
+
+def test_a_reflector_facing_away_breaks_the_beam(truth):
+    cell = SimCell(truth, q_home=Q_POSE)
+    fake = LeicaTrackerFake(cell, port=0, initialised=True, reflector_axis_tool=(0.0, 0.0, 1.0), acceptance_deg=30.0)
+    p = cell.target_world()
+    z = cell.T_world_tool()[:3, 2]
+    angle = np.degrees(np.arccos(z @ (-p / np.linalg.norm(p))))
+    assert (fake.visible() is None) == (angle < 30.0)
+    fake.reflector_axis_tool = cell.T_world_tool()[:3, :3].T @ (-p / np.linalg.norm(p))  # aimed at the tracker
+    assert fake.visible() is None
+    fake.acceptance_deg = 10.0
+    tilted = Q_POSE.copy()
+    tilted[5] += 0.0
+    tilted[4] += np.radians(25.0)  # the wrist turns the reflector 25 degrees away
+    cell.start_move(tilted, 1.0, 1.0)
+    assert fake.visible() == "the reflector faces away"
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            assert tracker.status() == "beam_broken"
+            cell.start_move(Q_POSE, 1.0, 1.0)
+            with pytest.raises(MeasurementError):  # facing the tracker again, but nobody pointed at it
+                tracker.measure()
+            tracker.find_reflector(cell.target_world())
+            tracker.measure()
+    finally:
+        fake.stop()
+
+
+def test_the_arm_blocks_the_line_of_sight(truth):
+    """A pose where the forearm crosses the line from the tracker (the world origin) to the
+    reflector: blocked with capsules of 45 mm, clear with a thin arm."""
+    cell = SimCell(dataclasses.replace(truth, base=np.array([0.8, 0.0, 0.0, 0.0, 0.0, 0.0])), q_home=np.zeros(6))
+    # Upper arm straight up, forearm folded back towards the tracker, reflector beyond it.
+    cell.start_move(np.array([np.pi, -np.pi / 2, 0.3, 0.0, 0.0, 0.0]), 1.0, 1.0)
+    cell.start_move(np.array([0.0, -np.pi / 2, 0.0, 0.0, 0.0, 0.0]), 1.0, 1.0)
+    fake = LeicaTrackerFake(cell, port=0, initialised=True, arm_radius_m=0.045)
+    from fakes.leica_tracker import arm_segments, segment_distance
+
+    p = cell.target_world()
+    clearance = min(segment_distance(np.zeros(3), p * (1 - fake.reflector_clearance_m / np.linalg.norm(p)), a, b)
+                    for a, b in arm_segments(cell))
+    assert (fake.visible() == "the arm blocks the line of sight") == (clearance < 0.045)
+    fake.arm_radius_m = max(clearance - 0.01, 0.0)
+    assert fake.visible() is None
+    fake.arm_radius_m = clearance + 0.01
+    assert fake.visible() == "the arm blocks the line of sight"
+
+
+def test_segment_distance_against_a_dense_sampling():
+    rng = np.random.default_rng(0)
+    from fakes.leica_tracker import segment_distance
+
+    s = np.linspace(0, 1, 401)
+    for _ in range(20):
+        a0, a1, b0, b1 = rng.normal(size=(4, 3))
+        A = a0 + s[:, None] * (a1 - a0)
+        B = b0 + s[:, None] * (b1 - b0)
+        brute = np.min(np.linalg.norm(A[:, None] - B[None], axis=2))
+        assert segment_distance(a0, a1, b0, b1) == pytest.approx(brute, abs=5e-3)
+        assert segment_distance(a0, a1, b0, b1) <= brute + 1e-12
+
+
+# --------------------------------------------------------------------------- unsolicited and bad packets
+
+
+class Scripted(LeicaTrackerFake):
+    """The fake with extra packets sent before the answer to chosen commands."""
+
+    def __init__(self, cell, before: dict[int, bytes]):
+        super().__init__(cell, port=0, initialised=True)
+        self.before = before
+
+    def _answer(self, kind, command, packet):  # after the fake counted the command
+        extra = self.before.pop(command, None)
+        return ([extra] if extra else []) + super()._answer(kind, command, packet)
+
+
+def _result_packet(x_mm: float) -> bytes:
+    return struct.pack("<iIIIi17d", 156, 2, 0, 0, 0, x_mm, x_mm, x_mm, *([0.01] * 4), *([0.0] * 10))
+
+
+def test_an_unsolicited_result_is_never_returned(cell):
+    # a stale result waiting before the measurement: dropped, the fresh one returned
+    fake = Scripted(cell, {})
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            for c in fake.clients():
+                c.send_raw(_result_packet(99999.0))
+            assert select.select([tracker._sock], [], [], 5.0)[0]  # it has reached the driver's socket
+            m = tracker.measure()
+            assert np.linalg.norm(m.p_world - cell.target_world()) < 1e-4
+            # a result inside another command's exchange: a protocol error, then a clean reconnect
+            fake.before[122] = _result_packet(99999.0)
+            with pytest.raises(ProtocolError, match="unsolicited measurement result while waiting for command 122"):
+                tracker.status()
+            assert tracker.status() == "ready"
+            assert np.linalg.norm(tracker.measure().p_world - cell.target_world()) < 1e-4
+    finally:
+        fake.stop()
+
+
+@pytest.mark.parametrize("packet, match", [
+    (struct.pack("<iII", 12, 77, 0), "unknown type 77"),
+    (struct.pack("<iII", 20, 8, 25) + b"\0" * 8, "type 8 with a wrong size 20"),
+    (struct.pack("<iIII", 16, 0, 2, 0), "reply to command 2 while waiting for command 49"),
+])
+def test_wrong_packets_are_protocol_errors_then_a_full_reconnect(cell, packet, match):
+    fake = Scripted(cell, {49: packet})
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            with pytest.raises(ProtocolError, match=match):
+                tracker.measure()
+            before = cell.counters["emscon.request"]
+            m = tracker.measure()
+            assert cell.counters["emscon.request"] - before == 10  # full set-up (9 commands) and the measurement
+            assert m.sequence == 1 and np.linalg.norm(m.p_world - cell.target_world()) < 1e-4
+    finally:
+        fake.stop()
+
+
+def test_no_server_there(fake):
+    port = fake.port
+    fake.stop()
+    with pytest.raises(DeviceConnectionError, match="cannot connect"):
+        EmsconTracker(EmsconConfig(host="127.0.0.1", port=port, timeout_s=0.5))
+
+
+# --------------------------------------------------------------------------- faults across processes
+
+# The set-up of a tracker that is not yet initialised is commands 1-10 (GetSystemStatus,
+# GetTrackerStatus, Initialize, SetUnits, GetCoordinateSystemType, GetEnvironmentParams,
+# GetReflectors, SetReflector, SetMeasurementMode, SetStationaryModeParams); the first
+# StartMeasurement is 11, the second 12. A reconnect's set-up is 9 commands (no Initialize).
+FAULTS = {
+    "dropped": (("drop_connection_at=12",), None, None, "ready"),
+    "dropped-twice": (("drop_connection_at=12,13",), DeviceConnectionError,
+                      r"command 49 failed after one reconnect", "ready"),
+    "delay": (("delay_at=12", "delay_s=1.0"), DeviceTimeoutError, r"no answer to command 49 within 0\.6 s", "ready"),
+    "malformed": (("garble_at=12",), ProtocolError, r"reply to command 49 of 23 bytes; expected 16", "ready"),
+    "error-status": (("error_status_at=12",), DeviceFaultError, r"command 49: the server reports status 36 \(code 36\)",
+                     "ready"),
+    "beam-break": (("beam_break_at=2",), MeasurementError, r"no reflector locked \(beam broken\) \(code 10004\)",
+                   "beam_broken"),
+}
+
+
+@pytest.mark.parametrize("name", FAULTS)
+def test_faults_of_an_emscon_tracker_in_another_process(fault_cell, cell_truth, name):
+    """``recal fake-cell`` with one fault: the first measurement is good, the second fails with
+    the driver's error naming the tracker (or, a single dropped connection, is repaired by one
+    reconnect with the full set-up), and the driver goes on with fresh measurements."""
+    faults, error, match, status_after = FAULTS[name]
+    cell = fault_cell(only=("emscon",), faults=faults)
+    T = fk(cell_truth, np.zeros((1, 6)))[0]
+    expected = T[:3, :3] @ cell_truth.targets["smr1"] + T[:3, 3]
+    config = EmsconConfig.from_endpoint(cell.endpoint["emscon"], timeout_s=0.5, measure_time_s=0.1)
+    with EmsconTracker(config) as tracker:
+        assert np.linalg.norm(tracker.measure().p_world - expected) < 1e-4
+        if error is None:
+            assert np.linalg.norm(tracker.measure().p_world - expected) < 1e-4
+        else:
+            with pytest.raises(error, match=match) as info:
+                tracker.measure()
+            assert f"emScon tracker {cell.endpoint['emscon']}" in str(info.value)
+        assert tracker.status() == status_after
+        if status_after == "beam_broken":
+            tracker.find_reflector(expected)
+        m = tracker.measure()
+    assert m.sequence == (3 if error is None else 2)
+    assert np.all(np.abs(m.p_world - expected) < 5 * m.sigma)
+
+
+def test_a_result_with_a_bad_status_is_not_a_measurement(cell):
+    class BadResult(LeicaTrackerFake):
+        def _measure(self):
+            answer = super()._measure()
+            bad = bytearray(answer[1])
+            struct.pack_into("<I", bad, 8, P.ES_RS_NoStationaryResult)  # ReturnDataT.status
+            return [answer[0], bytes(bad)]
+
+    fake = BadResult(cell, port=0, initialised=True)
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            with pytest.raises(MeasurementError, match="no stationary result") as info:
+                tracker.measure()
+            assert info.value.code == P.ES_RS_NoStationaryResult
+    finally:
+        fake.stop()
+
+
+def test_status_changes_reach_every_client_and_a_closing_server_means_a_reconnect(cell):
+    fake = Scripted(cell, {})
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as a, EmsconTracker(_config(fake)) as b:
+            cell.faults.beam_break_at = [1]
+            with pytest.raises(MeasurementError):
+                a.measure()
+            assert a.beam_lost and not b.beam_lost
+            assert b.status() == "beam_broken" and b.beam_lost  # the status change, then the reply
+            b.find_reflector(cell.target_world())
+            assert not b.beam_lost
+            fake.before[122] = struct.pack("<iII", 12, 8, 998)  # ES_SSC_ServerClosing in the exchange
+            before = cell.counters["emscon.request"]
+            assert b.status() == "ready"
+            assert cell.counters["emscon.request"] - before == 11  # the status, a full set-up (9), the status again
+    finally:
+        fake.stop()
