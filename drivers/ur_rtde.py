@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.transforms import homogeneous, rotvec_to_matrix
 from drivers.base import Robot, RobotState
 from drivers.errors import (
     DeviceConnectionError,
@@ -180,6 +181,20 @@ class UrRtdeRobot(Robot):
                     device=self.name,
                 )
         self._wait_for_move(q_target, status_before, timeout_s)
+
+    def forward_kinematics(self, q: np.ndarray, tcp_offset: np.ndarray | None = None) -> np.ndarray:
+        """The controller's own forward kinematics: ``T_base_tcp`` (N, 4, 4) for readings ``q``
+        (N, 6) rad, from ``getForwardKinematics(q, tcp_offset)``, which the controller's script
+        answers with ``get_forward_kin``, through its factory calibration (not the published
+        DH table). ``tcp_offset``: a UR pose (m, rotation vector), default none (the flange).
+        Nothing moves."""
+        q = np.asarray(q, dtype=float).reshape(-1, N_JOINTS)
+        if not np.all(np.isfinite(q)):
+            raise ValueError("`q` must be finite joint angles (rad)")
+        tcp = [0.0] * 6 if tcp_offset is None else [float(v) for v in np.asarray(tcp_offset).reshape(6)]
+        poses = self._call("forward_kinematics", q.tolist(), tcp,
+                           timeout_s=self.config.command_timeout_s + 0.1 * len(q))
+        return ur_poses_to_matrices(np.asarray(poses, dtype=float))
 
     def stop(self) -> None:
         """``stopJ``: decelerate every joint to zero (at ``stop_decel_rad_s2``)."""
@@ -338,6 +353,12 @@ class UrRtdeRobot(Robot):
             )
 
 
+def ur_poses_to_matrices(poses: np.ndarray) -> np.ndarray:
+    """UR poses ``[x, y, z, rx, ry, rz]`` (N, 6) (m, rotation vector in rad) -> (N, 4, 4)."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 6)
+    return homogeneous(rotvec_to_matrix(poses[:, 3:]), poses[:, :3])
+
+
 def _protective(snap: dict) -> bool:
     return bool(snap["safety_status_bits"] & _PROTECTIVE_BITS) or (
         int(snap["safety_mode"]) in _PROTECTIVE_MODES
@@ -457,6 +478,23 @@ def probe_controller(host: str, timeout_s: float) -> str:
         pass
     _probe_rtde(host, timeout_s, device)
     return version
+
+
+def dashboard_query(host: str, command: str, timeout_s: float = 2.0) -> str:
+    """One dashboard command's answer line (e.g. ``get robot model`` -> ``UR5``)."""
+    device = f"UR {host}"
+    with _connect(host, DASHBOARD_PORT, timeout_s, device, "dashboard") as sock:
+        reader = sock.makefile("rb")
+        try:
+            reader.readline()  # greeting
+            sock.sendall(command.encode() + b"\n")
+            line = reader.readline()
+        except TimeoutError as exc:
+            raise DeviceTimeoutError(f"the dashboard did not answer {command!r} within {timeout_s:g} s",
+                                     device=device) from exc
+        except OSError as exc:
+            raise DeviceConnectionError(f"dashboard: {exc}", device=device) from exc
+    return line.decode("ascii", "replace").strip()
 
 
 def _connect(host: str, port: int, timeout_s: float, device: str, what: str) -> socket.socket:

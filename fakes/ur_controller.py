@@ -13,15 +13,22 @@ different loopback addresses (``127.0.0.2``, ``127.0.0.3``, ...).
 
 What it simulates:
 
-- ``actual_q`` / ``target_q`` are ``cell.joints()`` (rad); ``actual_TCP_pose`` is the true tool
-  pose ``cell.T_world_tool()`` as ``[x, y, z, rx, ry, rz]`` (m, rotation vector in rad);
+- ``actual_q`` / ``target_q`` are ``cell.joints()`` (rad); ``actual_TCP_pose`` is what a real
+  controller reports: its own forward kinematics of those joints, through its factory
+  calibration (``cell.controller_fk``, robot base frame, ``[x, y, z, rx, ry, rz]``: m and a
+  rotation vector in rad), not where the tool truly is (``cell.T_world_tool()``);
 - the control script that ``ur_rtde`` uploads: when a program arrives on the script port the
   controller starts "playing" it and emulates its register handshake (``input_int_register_0``
   is the command, ``output_int_register_0`` is 1 = ready, 2 = done; ``output_int_register_2`` is
   the script's encoded async-operation status: bit 15 running, bits 16-22 a write counter,
-  bits 24-30 an operation id). ``MOVEJ`` starts ``cell.start_move``; a blocking move reports
-  done when the simulated motion is over; ``STOPJ`` stops the robot; ``STOP_SCRIPT`` ends the
-  program;
+  bits 24-30 an operation id). ``MOVEJ`` starts ``cell.start_move``; ``MOVEJ_IK`` and
+  ``MOVEL`` (a pose target) first turn the pose into joints through the factory calibration,
+  nearest the current joints (``cell.controller_ik``; the end point is exact, the path is
+  joint-interpolated); a blocking move reports done when the simulated motion is over;
+  ``GET_FORWARD_KINEMATICS_*`` and ``GET_INVERSE_KINEMATICS_*`` (``getForwardKinematics``,
+  ``getInverseKinematics``) answer through the factory calibration in output double registers
+  0-5 (no solution: the script stops, as ``get_inverse_kin`` raising does); ``STOPJ`` stops the
+  robot; ``STOP_SCRIPT`` ends the program;
 - safety and power, as on a UR: ``safety_status_bits`` / ``safety_mode`` reflect
   ``cell.protective_stop`` and ``cell.emergency_stop``, ``robot_mode`` the arm's power
   (``POWER_OFF`` 3, ``IDLE`` 5: powered with the brakes on, ``RUNNING`` 7). A safety stop halts
@@ -43,8 +50,8 @@ delivers bytes intact or not at all; ``ur_rtde`` aborts its process on such a pa
 ``emergency_stop_at_move`` are applied by the cell itself.
 
 Not simulated: the primary/secondary interfaces (30001/30002), the real-time state stream out
-of 30003, script commands other than moveJ/stopJ/stopScript (the others report "done" and do
-nothing), deceleration (``stopJ`` stops at once).
+of 30003, script commands other than those above (the others report "done" and do nothing),
+deceleration (``stopJ`` stops at once), Cartesian (straight-line) paths.
 
 Run alone (tests, debugging)::
 
@@ -64,8 +71,7 @@ import time
 
 import numpy as np
 
-from calibration.transforms import matrix_to_rotvec
-from fakes.world import SimCell
+from fakes.world import SimCell, matrix_to_ur_pose, ur_pose_to_matrix
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
@@ -158,7 +164,9 @@ ROBOT_STATUS_POWER_ON = 1 << 0
 ROBOT_STATUS_PROGRAM_RUNNING = 1 << 1
 
 # ur_rtde's control-script commands (RTDE::RobotCommand::Type) that the fake executes.
-CMD_NO_CMD, CMD_MOVEJ, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 34, 255
+CMD_NO_CMD, CMD_MOVEJ, CMD_MOVEJ_IK, CMD_MOVEL, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 2, 3, 34, 255
+CMD_GET_INVERSE_KINEMATICS_ARGS, CMD_GET_INVERSE_KINEMATICS_DEFAULT = 30, 46
+CMD_GET_FORWARD_KINEMATICS_DEFAULT, CMD_GET_FORWARD_KINEMATICS_ARGS = 43, 44
 # "Real-time" commands that the script executes without reporting done.
 _CONTINUOUS_COMMANDS = {6, 9, 10, 11, 12, 24, 25, 26, 27, 38, 58}
 SCRIPT_READY, SCRIPT_DONE, SCRIPT_BUSY = 1, 2, 0
@@ -349,20 +357,29 @@ class UrControllerFake:
                 self._malformed += 1
             return
         if cmd == CMD_MOVEJ:
-            q = [float(regs[f"input_double_register_{i}"]) for i in range(6)]
-            speed = float(regs["input_double_register_6"])
-            accel = float(regs["input_double_register_7"])
-            asynchronous = int(regs["input_int_register_1"]) == 1
-            try:
-                cell.start_move(np.array(q), speed, accel)
-            except RuntimeError:  # stopped by safety: the program halts
-                self._halt_script()
+            self._start_move(np.array(self._doubles(0, 6)))
+        elif cmd in (CMD_MOVEJ_IK, CMD_MOVEL):
+            # A Cartesian target: the controller turns it into joints with its own
+            # (factory-calibrated) kinematics, nearest the joints it is at.
+            q = cell.controller_ik(ur_pose_to_matrix(self._doubles(0, 6)), cell.joints())
+            if q is None:
+                self._halt_script()  # URScript: "Inverse kinematics failed", the program stops
                 return
-            if asynchronous:
-                self._async_move = True
-                self._write_async_progress(0)
-            else:
-                self._blocking_move = True
+            self._start_move(q)
+        elif cmd == CMD_GET_FORWARD_KINEMATICS_DEFAULT:
+            self._write_doubles(matrix_to_ur_pose(cell.controller_fk()[0]))
+        elif cmd == CMD_GET_FORWARD_KINEMATICS_ARGS:
+            q = np.array(self._doubles(0, 6))
+            T = cell.controller_fk(q[None, :], np.array(self._doubles(6, 12)))[0]
+            self._write_doubles(matrix_to_ur_pose(T))
+        elif cmd in (CMD_GET_INVERSE_KINEMATICS_ARGS, CMD_GET_INVERSE_KINEMATICS_DEFAULT):
+            q_near = (np.array(self._doubles(6, 12)) if cmd == CMD_GET_INVERSE_KINEMATICS_ARGS
+                      else cell.joints())
+            q = cell.controller_ik(ur_pose_to_matrix(self._doubles(0, 6)), q_near)
+            if q is None:
+                self._halt_script()  # get_inverse_kin raises a runtime error: the script stops
+                return
+            self._write_doubles(list(q))
         elif cmd == CMD_STOPJ:
             cell.stop()
             if self._async_move:
@@ -370,6 +387,33 @@ class UrControllerFake:
                 self._write_async_progress(-1)
         elif cmd == CMD_STOP_SCRIPT:
             self._halt_script()
+
+    def _doubles(self, start: int, stop: int) -> list[float]:
+        """``input_double_register_start`` .. ``stop - 1``."""
+        return [float(self._registers[f"input_double_register_{i}"]) for i in range(start, stop)]
+
+    def _write_doubles(self, values) -> None:
+        """The script's ``pose_to_output_float_registers(0, ...)`` / ``q_to_output_...``."""
+        for i, v in enumerate(values):
+            self._registers[f"output_double_register_{i}"] = float(v)
+
+    def _start_move(self, q: np.ndarray) -> None:
+        """Start the move of MOVEJ / MOVEJ_IK / MOVEL: speed and acceleration in input double
+        registers 6 and 7, asynchronous when input int register 1 is 1."""
+        regs = self._registers
+        speed = float(regs["input_double_register_6"])
+        accel = float(regs["input_double_register_7"])
+        asynchronous = int(regs["input_int_register_1"]) == 1
+        try:
+            self.cell.start_move(q, speed, accel)
+        except RuntimeError:  # stopped by safety: the program halts
+            self._halt_script()
+            return
+        if asynchronous:
+            self._async_move = True
+            self._write_async_progress(0)
+        else:
+            self._blocking_move = True
 
     def _write_async_progress(self, value: int) -> None:
         """Encode the async status register as the control script does: ``value`` >= 0 is
@@ -476,8 +520,9 @@ class UrControllerFake:
         }
 
     def _tcp_pose(self) -> list[float]:
-        T = self.cell.T_world_tool()
-        return [*T[:3, 3], *matrix_to_rotvec(T[:3, :3])]
+        """``actual_TCP_pose``: the controller's forward kinematics of the joints it reads (its
+        factory calibration), not where the tool truly is."""
+        return matrix_to_ur_pose(self.cell.controller_fk()[0])
 
     # ----------------------------------------------------------------- RTDE server
 
@@ -602,8 +647,9 @@ class UrControllerFake:
                 return f"Version: {major}.{minor}.{bugfix}.{build}"
             if lower == "get serial number":
                 return "20185500000"
-            if lower == "get robot model":
-                return "UR5"
+            if lower == "get robot model":  # e-Series answer without the "e", e.g. "UR5"
+                published = cell.factory.published if cell.factory is not None else "ur5e"
+                return published.upper().rstrip("E")
             if lower == "is in remote control":
                 return "true"
             if lower == "running":
