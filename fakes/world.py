@@ -181,16 +181,22 @@ def draw_factory_calibration(
 
 
 def published_ur_for(truth: KinematicModel) -> str | None:
-    """The library UR whose published table the true robot is closest to (its chain, base
-    and tool left out; within 5 cm everywhere), or ``None`` when it is no UR arm."""
-    if truth.n_joints != 6 or truth.convention != "dh":
+    """The library UR whose published table the true robot is closest to, or ``None`` when it
+    is no UR arm (6 revolute joints, every relative flange displacement within 5 cm). The
+    comparison uses ``T(q_a)^-1 T(q_b)``, which the base frame (where the robot stands in the
+    world) does not change, so a truth of any convention and base placement is recognised."""
+    if truth.n_joints != 6 or any(not j.revolute for j in truth.joints):
         return None
-    chain = dataclasses.replace(truth, base=np.zeros(6), tool=np.zeros(6))
     q = np.random.default_rng(0).uniform(-np.pi, np.pi, (16, 6))
-    p = fk(chain, q)[:, :3, 3]
+
+    def relative(model: KinematicModel) -> np.ndarray:
+        T = fk(dataclasses.replace(model, tool=np.zeros(6)), q)
+        return np.einsum("nji,nj->ni", T[:-1, :3, :3], T[1:, :3, 3] - T[:-1, :3, 3])
+
+    p = relative(truth)
     best, best_err = None, 0.05
     for name in UR_MODELS:
-        err = float(np.max(np.linalg.norm(fk(nominal(name), q)[:, :3, 3] - p, axis=1)))
+        err = float(np.max(np.linalg.norm(relative(nominal(name)) - p, axis=1)))
         if err < best_err:
             best, best_err = name, err
     return best
