@@ -74,7 +74,8 @@ def read_controller_model(
         raise ControllerModelError(
             f"the fitted model reproduces {source}'s forward kinematics only to {worst_m * 1e6:.3g} um and "
             f"{worst_rad * 1e6:.3g} urad (tolerance {tolerance_m * 1e6:g}): this controller does not compute with "
-            f"a serial chain of revolute joints that Recal can fit; nothing written")
+            f"a serial chain of revolute joints that Recal can fit (or it is not a {reference.name.removesuffix('-nominal')}); "
+            f"nothing written")
     doc = model_to_dict(fit.model)
     doc[BLOCK] = {
         "source": source,
@@ -103,8 +104,9 @@ def reference_model(name: str | None, robot_model: str | None) -> KinematicModel
         model = robots.nominal(name)
     except KeyError as exc:
         raise ControllerModelError(str(exc.args[0])) from None
-    if model.n_joints != 6 or any(not j.revolute for j in model.joints):
-        raise ControllerModelError(f"{name}: a UR controller drives 6 revolute joints; this robot is no UR arm")
+    if name.lower() not in _DASHBOARD_MODELS.values():
+        raise ControllerModelError(f"{name}: no UR arm (a UR controller's published table is one of "
+                                   f"{', '.join(sorted(_DASHBOARD_MODELS.values()))})")
     return model
 
 

@@ -65,12 +65,23 @@ def factory_cell(cell_factory, truth_path, tmp_path_factory):
     return cell_factory("--seed", "5", truth=path)
 
 
+# The receive stream may lag the control interface that reported a move done: read the state
+# from a data package sampled at least 10 ms of controller time later.
+FRESH = textwrap.dedent("""
+    def fresh(get):
+        t = r.getTimestamp()
+        while r.getTimestamp() < t + 0.01:
+            pass
+        return list(get())
+    """)
+
+
 def run_ur_rtde(host: str, body: str) -> dict:
     """Run ``body`` (with ``c``, ``r``: control and receive interfaces) in a child process;
     it prints one JSON line."""
     script = "import json, rtde_control, rtde_receive\n" + \
         f"c = rtde_control.RTDEControlInterface({host!r})\nr = rtde_receive.RTDEReceiveInterface({host!r})\n" + \
-        textwrap.dedent(body) + "\nc.stopScript()\nc.disconnect(); r.disconnect()\n"
+        FRESH + textwrap.dedent(body) + "\nc.stopScript()\nc.disconnect(); r.disconnect()\n"
     ur_rtde.probe_controller(host, 1.0)
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
@@ -87,7 +98,7 @@ def test_forward_and_inverse_kinematics_and_tcp_pose_come_from_the_factory_calib
         fk_tcp = list(c.getForwardKinematics(qs[1], tcp))
         ik = [list(c.getInverseKinematics(p, [v + 0.05 for v in q])) for p, q in zip(fk, qs)]
         assert c.moveJ(qs[2], 1.0, 2.0)
-        actual = dict(q=list(r.getActualQ()), pose=list(r.getActualTCPPose()))
+        actual = dict(q=fresh(r.getActualQ), pose=fresh(r.getActualTCPPose))
         print(json.dumps(dict(fk=fk, fk_tcp=fk_tcp, ik=ik, actual=actual)))
         """)
     for q, pose in zip(qs, got["fk"]):
@@ -112,9 +123,9 @@ def test_pose_targets_of_movel_and_movej_ik_are_reached_through_the_factory_cali
     got = run_ur_rtde(factory_cell.host, f"""
         assert c.moveJ({home!r}, 1.0, 2.0)
         assert c.moveL({p1!r}, 0.25, 1.2)
-        after_movel = list(r.getActualQ())
+        after_movel = fresh(r.getActualQ)
         assert c.moveJ_IK({p2!r}, 1.0, 2.0)
-        after_movej_ik = list(r.getActualQ())
+        after_movej_ik = fresh(r.getActualQ)
         print(json.dumps(dict(movel=after_movel, movej_ik=after_movej_ik)))
         """)
     for q, T in ((got["movel"], T1), (got["movej_ik"], T2)):
