@@ -83,6 +83,9 @@ _ROBOT_MODE_NAMES = {
     4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
 }
 
+# The tool offset forward_kinematics sends when the caller wants none (m, rotation vector).
+FK_PROBE_TCP = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
+
 _WORKER = Path(__file__).with_name("ur_rtde_worker.py")
 _FRAME = struct.Struct(">I")
 
@@ -191,10 +194,16 @@ class UrRtdeRobot(Robot):
         q = np.asarray(q, dtype=float).reshape(-1, N_JOINTS)
         if not np.all(np.isfinite(q)):
             raise ValueError("`q` must be finite joint angles (rad)")
-        tcp = [0.0] * 6 if tcp_offset is None else [float(v) for v in np.asarray(tcp_offset).reshape(6)]
-        poses = self._call("forward_kinematics", q.tolist(), tcp,
+        tcp = np.zeros(6) if tcp_offset is None else np.asarray(tcp_offset, dtype=float).reshape(6)
+        # ur_rtde 1.6.5 does not send an all-zero tool offset (it sends q alone), and the control
+        # script then reads whatever the last command left in input registers 6-11 (a moveJ's
+        # speed and acceleration: metres of "offset"). A known offset is always sent instead,
+        # and taken off again.
+        sent = tcp if np.any(tcp != 0.0) else np.array(FK_PROBE_TCP)
+        poses = self._call("forward_kinematics", q.tolist(), [float(v) for v in sent],
                            timeout_s=self.config.command_timeout_s + 0.1 * len(q))
-        return ur_poses_to_matrices(np.asarray(poses, dtype=float))
+        T_sent, T_tcp = ur_poses_to_matrices(np.stack([sent, tcp]))
+        return ur_poses_to_matrices(np.asarray(poses, dtype=float)) @ np.linalg.inv(T_sent) @ T_tcp
 
     def stop(self) -> None:
         """``stopJ``: decelerate every joint to zero (at ``stop_decel_rad_s2``)."""

@@ -18,6 +18,7 @@ import numpy as np
 from calibration import robots
 from calibration.controller import fit_controller_model, pose_differences
 from calibration.model import KinematicModel, model_to_dict
+from calibration.transforms import matrix_to_rotvec
 
 BLOCK = "controller"  # the check figures' field in the model document
 DEFAULT_TOLERANCE_M = 1e-6  # "exact": the controller reproduced to 1 um (and 1 urad)
@@ -123,3 +124,116 @@ def models_differ(old: dict | None, new: dict, *, tolerance_m: float = DEFAULT_T
     q = probe_configurations(32, seed=1)
     d = float(np.max(np.linalg.norm(fk(a, q)[:, :3, 3] - fk(b, q)[:, :3, 3], axis=1)))
     return d if d > tolerance_m else None
+
+
+# --------------------------------------------------------------------------- the cell's copy
+
+# At a session's start fewer configurations do: 12 + 12 still over-determine the 30 parameters
+# sixfold, and the session waits for them.
+SESSION_POSES = 12
+# UR's TCP-pose registers resolve 0.1 mm and 1 mrad: a stored model that disagrees with them by
+# more than this has changed (or the TCP offset is not zero).
+MODBUS_POSITION_TOL_M = 0.5e-3
+MODBUS_ROTATION_TOL_RAD = 5e-3
+
+
+def controller_nominal(db, cell) -> dict:
+    """What the cell's controller computes with: its controller model (newest version) where one
+    was read, else the cell's nominal model. Targets mode, URScript pose targets and the
+    nominal model of compensation use it."""
+    from .store import current_controller_model
+
+    rec = current_controller_model(db, cell.id)
+    return rec.model if rec is not None else cell.model
+
+
+def refresh_on_session_start(db, run, cell, robot) -> dict | None:
+    """A session starts on the cell: read its controller's kinematics again (UR over RTDE) and
+    store a new version when it is the first or it changed, or, over Modbus, check the stored
+    one against UR's TCP-pose registers. What happened goes into ``run.plan_info`` under
+    ``controller_model`` (``version``, ``changed``, ``warning``) and, for a change, the audit
+    log. Never raises for the controller's sake: the session goes on with what is stored."""
+    from drivers.errors import DeviceError
+
+    from .store import add_controller_model, audit, current_controller_model
+
+    stored = current_controller_model(db, cell.id)
+    info: dict | None = None
+    try:
+        if hasattr(robot, "forward_kinematics"):
+            info = _read_again(db, run, cell, robot, stored)
+        elif hasattr(robot, "read_tcp_pose") and stored is not None:
+            info = _check_registers(robot, stored)
+    except (ControllerModelError, DeviceError, ValueError) as exc:
+        info = {"version": None if stored is None else stored.version, "changed": None,
+                "warning": f"the controller's kinematics could not be read: {exc}"}
+    if info is None:
+        return None
+    if info.pop("_store", False):
+        rec = add_controller_model(db, cell_id=cell.id, model=info.pop("_model"), session_id=run.id,
+                                   moved_m=info.get("moved_mm") and info["moved_mm"] * 1e-3)
+        info["version"] = rec.version
+        if info["changed"]:
+            audit(db, actor=f"session {run.id}", action="controller model changed", subject=f"cell {cell.id}",
+                  detail={"version": rec.version, "moved_mm": info["moved_mm"]})
+    run.plan_info = {**(run.plan_info or {}), "controller_model": info}
+    db.add(run)
+    db.commit()
+    db.refresh(run)
+    return info
+
+
+def _read_again(db, run, cell, robot, stored) -> dict:
+    from calibration.model import model_from_dict
+
+    reference = model_from_dict(cell.model)
+    doc = read_controller_model(robot, reference, source=f"session {run.id}", n_fit=SESSION_POSES,
+                                n_check=SESSION_POSES, seed=run.id or 0)
+    moved = models_differ(stored.model if stored is not None else None, doc)
+    if stored is not None and moved is None:
+        return {"version": stored.version, "changed": False, "warning": None}
+    info = {"_store": True, "_model": doc, "changed": stored is not None, "warning": None,
+            "moved_mm": None if moved is None else moved * 1e3}
+    if stored is not None:
+        info["warning"] = (f"the controller's kinematics changed since version {stored.version} (its flange moves "
+                           f"up to {moved * 1e3:.3g} mm): its factory calibration was replaced; the new version is "
+                           f"used from now on, earlier compensations used the old one")
+    return info
+
+
+def _check_registers(robot, stored) -> dict:
+    """Over Modbus: the stored model at the joints now against UR's TCP-pose registers."""
+    from calibration.kinematics import fk
+    from calibration.model import model_from_dict
+
+    q = robot.read_joints()
+    T_registers = robot.read_tcp_pose()
+    T_model = fk(model_from_dict(stored.model), q[None, :])[0]
+    dp = float(np.linalg.norm(T_model[:3, 3] - T_registers[:3, 3]))
+    dr = float(np.linalg.norm(matrix_to_rotvec(T_model[:3, :3].T @ T_registers[:3, :3])))
+    info = {"version": stored.version, "changed": None, "warning": None, "tcp_registers_mm": dp * 1e3}
+    if dp > MODBUS_POSITION_TOL_M or dr > MODBUS_ROTATION_TOL_RAD:
+        info["changed"] = True
+        info["warning"] = (f"UR's TCP-pose registers disagree with the stored controller model (version "
+                           f"{stored.version}) by {dp * 1e3:.3g} mm and {np.rad2deg(dr):.3g} deg: the controller's "
+                           f"kinematics (or its TCP offset) changed; read it again: recal controller-model --rtde HOST")
+    return info
+
+
+def controller_summary(db, cell) -> dict | None:
+    """The cell's controller model as the page shows it (``None``: never read)."""
+    from sqlmodel import func, select
+
+    from .models import ControllerModel
+    from .store import current_controller_model
+
+    rec = current_controller_model(db, cell.id)
+    if rec is None:
+        return None
+    block = (rec.model or {}).get(BLOCK) or {}
+    versions = db.exec(select(func.count(ControllerModel.id)).where(ControllerModel.cell_id == cell.id)).one()
+    return {"version": rec.version, "versions": int(versions), "name": rec.model.get("name"),
+            "source": block.get("source"), "read_at": block.get("read_at"), "session_id": rec.session_id,
+            "check_um": (block.get("check") or {}).get("position_max_um"),
+            "moved_mm": None if rec.moved_m is None else rec.moved_m * 1e3,
+            "created_at": rec.created_at.isoformat()}

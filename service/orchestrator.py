@@ -47,7 +47,7 @@ from sqlmodel import Session, select
 from calibration.model import model_from_dict
 from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedError
 
-from . import analysis
+from . import analysis, controller
 from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
@@ -283,6 +283,8 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
         control.devices = devices
         final, reason, stop = "completed", None, None
         try:
+            # a UR cell: the controller's own kinematics, read again (docs/devices/ur.md)
+            controller.refresh_on_session_start(db, run, cell, devices.robot)
             _measure_all(db, run, cell, devices, settings, control, owner)
             analysis.finish_session(db, run, cell, settings)
         except SessionStopped as exc:

@@ -23,6 +23,7 @@ from .models import (
     AuditEntry,
     Calibration,
     Cell,
+    ControllerModel,
     Measurement,
     RunSession,
     SchemaVersion,
@@ -94,7 +95,13 @@ def _v3(conn) -> None:
     conn.execute(text("UPDATE calibration SET nominal_version = 1 WHERE nominal_version IS NULL"))
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3]
+def _v4(conn) -> None:
+    """The UR controller's own kinematics of each cell, versioned (``controller_model``,
+    issue 16)."""
+    SQLModel.metadata.create_all(conn, tables=[ControllerModel.__table__])
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -245,3 +252,24 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
 
 def _aware(t: datetime) -> datetime:
     return t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)
+
+
+# --------------------------------------------------------------------------- controller models
+
+
+def current_controller_model(db: Session, cell_id: int) -> ControllerModel | None:
+    """The newest controller model read for the cell (``None``: never read)."""
+    return db.exec(select(ControllerModel).where(ControllerModel.cell_id == cell_id)
+                   .order_by(ControllerModel.version.desc())).first()
+
+
+def add_controller_model(db: Session, *, cell_id: int, model: dict, session_id: int | None = None,
+                         moved_m: float | None = None) -> ControllerModel:
+    """Store a new version of the cell's controller model."""
+    last = current_controller_model(db, cell_id)
+    rec = ControllerModel(cell_id=cell_id, version=1 if last is None else last.version + 1, model=model,
+                          session_id=session_id, moved_m=moved_m)
+    db.add(rec)
+    db.commit()
+    db.refresh(rec)
+    return rec

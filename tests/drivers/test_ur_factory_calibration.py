@@ -91,22 +91,24 @@ def run_ur_rtde(host: str, body: str) -> dict:
 @needs_ur_rtde
 def test_forward_and_inverse_kinematics_and_tcp_pose_come_from_the_factory_calibration(factory_cell):
     qs = [[float(v) for v in HOME + s] for s in (0.0, 0.2, -0.3, 0.5)]
+    flange = [[float(v) for v in (*dh_fk(q)[:3, 3], *matrix_to_rotvec(dh_fk(q)[:3, :3]))] for q in qs]
+    # A tool offset that is not all zero: ur_rtde 1.6.5 sends none otherwise, and the script
+    # reads whatever an earlier command left in input registers 6-11.
+    tcp = [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
     got = run_ur_rtde(factory_cell.host, f"""
         qs = {qs!r}
-        fk = [list(c.getForwardKinematics(q, [0.0] * 6)) for q in qs]
-        tcp = [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
-        fk_tcp = list(c.getForwardKinematics(qs[1], tcp))
-        ik = [list(c.getInverseKinematics(p, [v + 0.05 for v in q])) for p, q in zip(fk, qs)]
+        fk = [list(c.getForwardKinematics(q, {tcp!r})) for q in qs]
+        ik = [list(c.getInverseKinematics(p, [v + 0.05 for v in q])) for p, q in zip({flange!r}, qs)]
         assert c.moveJ(qs[2], 1.0, 2.0)
         actual = dict(q=fresh(r.getActualQ), pose=fresh(r.getActualTCPPose))
-        print(json.dumps(dict(fk=fk, fk_tcp=fk_tcp, ik=ik, actual=actual)))
+        print(json.dumps(dict(fk=fk, ik=ik, actual=actual)))
         """)
+    T_tcp = homogeneous(np.eye(3), tcp[:3])
     for q, pose in zip(qs, got["fk"]):
         T = as_matrix(pose)
-        np.testing.assert_allclose(T, dh_fk(q), atol=1e-9)
+        np.testing.assert_allclose(T, dh_fk(q) @ T_tcp, atol=1e-9)
         # millimetres away from what the published table says: the deltas are applied
-        assert np.linalg.norm(T[:3, 3] - dh_fk(q, ZERO)[:3, 3]) > 1e-3
-    np.testing.assert_allclose(as_matrix(got["fk_tcp"]), dh_fk(qs[1]) @ homogeneous(np.eye(3), [0, 0, 0.1]), atol=1e-9)
+        assert np.linalg.norm(T[:3, 3] - (dh_fk(q, ZERO) @ T_tcp)[:3, 3]) > 1e-3
     for q, q_ik in zip(qs, got["ik"]):
         np.testing.assert_allclose(q_ik, q, atol=1e-8)  # the branch nearest qnear, the same turns
     np.testing.assert_allclose(got["actual"]["q"], qs[2], atol=1e-12)
@@ -156,3 +158,20 @@ def test_modbus_tcp_registers_hold_the_controllers_forward_kinematics(factory_ce
     np.testing.assert_allclose(q, HOME + 0.3, atol=2e-3)
     np.testing.assert_allclose(T_driver[:3, 3], T[:3, 3], atol=0.6e-4 * math.sqrt(3))
     np.testing.assert_allclose(T_driver[:3, :3], T[:3, :3], atol=2e-3)
+
+
+@needs_ur_rtde
+def test_driver_forward_kinematics_after_a_move_is_still_the_flange(factory_cell):
+    """ur_rtde 1.6.5 sends no all-zero tool offset, so the control script would read the last
+    moveJ's speed and acceleration (input registers 6, 7) as one: the driver sends a known
+    offset and takes it off again."""
+    from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
+
+    with UrRtdeRobot(UrRtdeConfig(factory_cell.host)) as robot:
+        robot.move_joints(HOME + 0.1, speed_rad_s=0.5, accel_rad_s2=1.0)
+        q = np.stack([HOME, HOME + 0.2, HOME - 0.4])
+        T = robot.forward_kinematics(q)
+        T_tcp = robot.forward_kinematics(q, [0.0, 0.0, 0.05, 0.0, 0.0, 0.0])
+    for Ti, Ti_tcp, qi in zip(T, T_tcp, q):
+        np.testing.assert_allclose(Ti, dh_fk(qi), atol=1e-9)
+        np.testing.assert_allclose(Ti_tcp, dh_fk(qi) @ homogeneous(np.eye(3), [0, 0, 0.05]), atol=1e-9)

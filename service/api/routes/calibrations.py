@@ -49,7 +49,9 @@ async def compensate(calibration_id: int, request: Request, db: DbSession, tok: 
         raise HTTPException(422, {"field": "body", "message": "expected a task CSV or URScript program, got nothing"})
     from ...compensate import CompensationInputError, compensate_text
 
-    cell_model = db.get(Cell, cal.cell_id).model
+    from ...controller import controller_nominal
+
+    cell_model = controller_nominal(db, db.get(Cell, cal.cell_id))  # what the controller computes with
     try:
         output, report = compensate_text(body, name=name, model_doc=cal.model, nominal_doc=cell_model, mode=mode)
     except CompensationInputError as exc:
