@@ -133,8 +133,8 @@ def models_differ(old: dict | None, new: dict, *, tolerance_m: float = DEFAULT_T
 SESSION_POSES = 12
 # UR's TCP-pose registers resolve 0.1 mm and 1 mrad: a stored model that disagrees with them by
 # more than this has changed (or the TCP offset is not zero).
-MODBUS_POSITION_TOL_M = 0.5e-3
-MODBUS_ROTATION_TOL_RAD = 5e-3
+MODBUS_POSITION_TOL_M = 0.2e-3
+MODBUS_ROTATION_TOL_RAD = 2e-3
 
 
 def controller_nominal(db, cell) -> dict:
@@ -202,21 +202,34 @@ def _read_again(db, run, cell, robot, stored) -> dict:
 
 
 def _check_registers(robot, stored) -> dict:
-    """Over Modbus: the stored model at the joints now against UR's TCP-pose registers."""
+    """Over Modbus: the stored model at the joints now against UR's TCP-pose registers. The
+    tolerance is the registers' resolution (``MODBUS_*_TOL``, about twice it) plus what the
+    joint readings' own resolution moves the flange (``J · resolution / 2``, summed over the
+    joints): tight with the motion program's microradian joints (``UR_REGISTER_MAP_HIRES``),
+    about a millimetre with UR's milliradian joint registers."""
+    from calibration.ik import geometric_jacobian
     from calibration.kinematics import fk
     from calibration.model import model_from_dict
 
+    model = model_from_dict(stored.model)
     q = robot.read_joints()
     T_registers = robot.read_tcp_pose()
-    T_model = fk(model_from_dict(stored.model), q[None, :])[0]
+    T_model = fk(model, q[None, :])[0]
     dp = float(np.linalg.norm(T_model[:3, 3] - T_registers[:3, 3]))
     dr = float(np.linalg.norm(matrix_to_rotvec(T_model[:3, :3].T @ T_registers[:3, :3])))
-    info = {"version": stored.version, "changed": None, "warning": None, "tcp_registers_mm": dp * 1e3}
-    if dp > MODBUS_POSITION_TOL_M or dr > MODBUS_ROTATION_TOL_RAD:
+    m = robot.map
+    half_step = 0.5 * (1e-6 if m.joint_urad is not None else m.joint_angle_scale)
+    J = geometric_jacobian(model, q[None, :])[0]
+    tol_p = MODBUS_POSITION_TOL_M + half_step * float(np.sum(np.linalg.norm(J[:3], axis=0)))
+    tol_r = MODBUS_ROTATION_TOL_RAD + half_step * float(np.sum(np.linalg.norm(J[3:], axis=0)))
+    info = {"version": stored.version, "changed": None, "warning": None, "tcp_registers_mm": dp * 1e3,
+            "tolerance_mm": tol_p * 1e3}
+    if dp > tol_p or dr > tol_r:
         info["changed"] = True
         info["warning"] = (f"UR's TCP-pose registers disagree with the stored controller model (version "
-                           f"{stored.version}) by {dp * 1e3:.3g} mm and {np.rad2deg(dr):.3g} deg: the controller's "
-                           f"kinematics (or its TCP offset) changed; read it again: recal controller-model --rtde HOST")
+                           f"{stored.version}) by {dp * 1e3:.3g} mm and {np.rad2deg(dr):.3g} deg (tolerance "
+                           f"{tol_p * 1e3:.2g} mm): the controller's kinematics (or its TCP offset) changed; read it "
+                           f"again: recal controller-model --rtde HOST")
     return info
 
 

@@ -316,7 +316,11 @@ def upload_controller_model(cell_id: int, body: dict, db: DbSession, tok: CellEd
     from ...store import add_controller_model, current_controller_model
 
     cell = get_cell(db, cell_id)
-    _check_model(body)
+    try:
+        model_from_dict(body)
+    except ModelFormatError as exc:
+        raise HTTPException(422, {"field": f"body.{exc.field}" if exc.field else "body",
+                                  "message": str(exc).split(": ", 1)[-1]}) from None
     if not isinstance(body.get(BLOCK), dict):
         raise HTTPException(422, {"field": f"body.{BLOCK}", "message": "expected the check figures block "
                                   "`recal controller-model` writes"})
