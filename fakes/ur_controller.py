@@ -29,6 +29,11 @@ What it simulates:
   ``getInverseKinematics``) answer through the factory calibration in output double registers
   0-5 (no solution: the script stops, as ``get_inverse_kin`` raising does); ``STOPJ`` stops the
   robot; ``STOP_SCRIPT`` ends the program;
+- a user's program (anything else sent to the script port, e.g. a compensated task): its
+  ``movej``/``movel``/``movep`` to literal targets, variables holding one and
+  ``get_inverse_kin(pose, qnear)`` run one after the other (``fakes.urscript_program``), pose
+  targets through the factory calibration as on a real controller; the program plays
+  (``runtime_state``, ``robot_status_bits``, dashboard ``running``) until its last move ends;
 - safety and power, as on a UR: ``safety_status_bits`` / ``safety_mode`` reflect
   ``cell.protective_stop`` and ``cell.emergency_stop``, ``robot_mode`` the arm's power
   (``POWER_OFF`` 3, ``IDLE`` 5: powered with the brakes on, ``RUNNING`` 7). A safety stop halts
@@ -51,7 +56,8 @@ delivers bytes intact or not at all; ``ur_rtde`` aborts its process on such a pa
 
 Not simulated: the primary/secondary interfaces (30001/30002), the real-time state stream out
 of 30003, script commands other than those above (the others report "done" and do nothing),
-deceleration (``stopJ`` stops at once), Cartesian (straight-line) paths.
+anything in a user's program but its moves and ``set_tcp``, deceleration (``stopJ`` stops at
+once), Cartesian (straight-line) paths.
 
 Run alone (tests, debugging)::
 
@@ -71,6 +77,7 @@ import time
 
 import numpy as np
 
+from fakes.urscript_program import ProgramError, is_control_script, parse_program
 from fakes.world import SimCell, matrix_to_ur_pose, ur_pose_to_matrix
 
 RTDE_PORT = 30004
@@ -217,6 +224,9 @@ class UrControllerFake:
             if "_register_" in name
         }
         self._script_running = False
+        self._user_program = False  # the program playing is a user's, not ur_rtde's control script
+        self._program_id = 0  # counts programs started, so a replaced one's thread stops
+        self.last_program_error: str | None = None
         self._executing: int | None = None  # command being executed, None when idle
         self._command_done_at = 0.0  # monotonic time from which a command may report done
         self._blocking_move = False
@@ -315,6 +325,8 @@ class UrControllerFake:
         if cell.protective_stop or cell.emergency_stop or not cell.running:
             self._halt_script()  # a safety stop (or power off) halts the running program
             return
+        if self._user_program:
+            return  # a user's program runs in its own thread, not the register handshake
         regs = self._registers
         if self._async_move and not cell.is_moving():
             self._async_move = False
@@ -447,6 +459,7 @@ class UrControllerFake:
 
     def _halt_script(self) -> None:
         self._script_running = False
+        self._user_program = False
         self.cell.program_running = False
         self._executing = None
         self._async_move = False
@@ -714,8 +727,70 @@ class UrControllerFake:
                 return
             buffer += data
             if _PROGRAM_START.search(buffer) and _PROGRAM_END.search(buffer):
-                buffer = b""
-                self._start_script()
+                text, buffer = buffer.decode("utf-8", "replace"), b""
+                if is_control_script(text):
+                    self._start_script()
+                else:
+                    self._start_program(text)
+
+    # ----------------------------------------------------------------- a user's program
+
+    def _start_program(self, text: str) -> None:
+        """A program other than ``ur_rtde``'s control script arrived: run its moves
+        (``fakes.urscript_program``) in a thread of its own, replacing whatever program runs.
+        One the fake cannot evaluate does not start (``last_program_error`` says why, as a
+        real controller's pop-up would)."""
+        try:
+            steps = parse_program(text)
+        except ProgramError as exc:
+            self.last_program_error = str(exc)
+            return
+        with self._lock:
+            cell = self.cell
+            if cell.protective_stop or cell.emergency_stop or not cell.running:
+                return
+            self._halt_script()
+            self._program_id += 1
+            self._script_running = self._user_program = True
+            cell.program_running = True
+            self.last_program_error = None
+            thread = threading.Thread(target=self._run_program, args=(self._program_id, steps), daemon=True)
+        thread.start()
+
+    def _run_program(self, program_id: int, steps: list) -> None:
+        """Each move in turn: a pose target through the controller's own inverse kinematics
+        (its factory calibration; ``get_inverse_kin``'s ``qnear``, else nearest the joints the
+        robot is at, for the active TCP), then the simulated motion to its end."""
+        cell = self.cell
+        tcp = None
+        for step in steps:
+            with self._lock:
+                if program_id != self._program_id or not self._script_running:
+                    return  # stopped (dashboard, safety) or replaced
+                if step.kind == "set_tcp":
+                    tcp = np.array(step.pose)
+                    continue
+                if step.pose is not None:
+                    q_near = cell.joints() if step.qnear is None else np.array(step.qnear)
+                    q = cell.controller_ik(ur_pose_to_matrix(step.pose), q_near, tcp)
+                    if q is None:
+                        self.last_program_error = f"line {step.line}: inverse kinematics failed (no solution)"
+                        self._halt_script()
+                        return
+                else:
+                    q = np.array(step.joints)
+                try:
+                    cell.start_move(q, max(step.speed, 1e-3), max(step.accel, 1e-3))
+                except RuntimeError:  # stopped by safety: the program halts
+                    self._halt_script()
+                    return
+            while cell.is_moving():  # the move's simulated duration (instant at time scale 0)
+                if self._stopping.is_set() or program_id != self._program_id:
+                    return
+                time.sleep(0.001)
+        with self._lock:
+            if program_id == self._program_id and self._script_running:
+                self._halt_script()
 
 
 _ROBOT_MODE_NAMES = {

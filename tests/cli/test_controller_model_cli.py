@@ -154,6 +154,37 @@ def move_l(host: str, poses: list[list[float]]) -> np.ndarray:
     return np.array(json.loads(done.stdout.strip().splitlines()[-1]))
 
 
+def run_programs(host: str, programs: list[str]) -> np.ndarray:
+    """Send each URScript program to the controller's script port and wait (RTDE receive
+    interface, unmodified ur_rtde) until it has moved the robot and stopped; the joints then."""
+    script = textwrap.dedent(f"""
+        import json, socket, time, rtde_receive
+        r = rtde_receive.RTDEReceiveInterface({host!r}, -1.0, ["timestamp", "actual_q", "robot_status_bits"])
+        def fresh():  # a data package that arrived after this call began
+            t = r.getTimestamp()
+            while r.getTimestamp() <= t:
+                pass
+            return list(r.getActualQ()), r.getRobotStatus()
+        out = []
+        for program in {programs!r}:
+            q_before, _ = fresh()
+            with socket.create_connection(({host!r}, 30003)) as s:
+                s.sendall(program.encode())
+            deadline = time.monotonic() + 10.0
+            while True:  # moved, and the program no longer running (robot_status_bits bit 1)
+                q, status = fresh()
+                if q != q_before and not status & 2:
+                    break
+                assert time.monotonic() < deadline, "the program did not run"
+            out.append(q)
+        print(json.dumps(out))
+        r.disconnect()
+        """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    return np.array(json.loads(done.stdout.strip().splitlines()[-1]))
+
+
 def ur_pose(T: np.ndarray) -> list[float]:
     return [float(v) for v in (*T[:3, 3], *matrix_to_rotvec(T[:3, :3]))]
 
@@ -211,8 +242,9 @@ _P = re.compile(r"p\[([^\]]*)\]")
 @pytest.mark.parametrize("nominal, reaches", [("controller", True), ("ur5e", False)])
 def test_urscript_pose_targets_reach_their_targets_only_through_the_controllers_model(cell, controller_json, planned,
                                                                                        tmp_path, nominal, reaches):
-    """A URScript program with p[...] targets (base frame): compensated, its targets sent with
-    moveL; the true robot must reach the world pose each target means, T_nominal_world^-1 · P
+    """A URScript program with p[...] targets (base frame), compensated, then run by the
+    controller itself (each move as a program of its own, sent to the script port): the true
+    robot must reach the world pose each target means, T_nominal_world^-1 · B · P
     (docs/compensation.md §6, the frame from the command's report)."""
     q, truth, _ = planned
     P = [controller_fk(qi) for qi in q]  # poses an off-line program would hold (base frame)
@@ -228,9 +260,12 @@ def test_urscript_pose_targets_reach_their_targets_only_through_the_controllers_
     T_nw = pose_to_matrix(np.concatenate([frame[:3] * 1e-3, np.deg2rad(frame[3:])]))
     B = pose_to_matrix(load_model(str(nominal_arg)).base)
     targets = np.array([np.linalg.inv(T_nw) @ B @ T for T in P])  # the world poses the program means
-    poses = [[float(v) for v in m.split(",")] for m in _P.findall((tmp_path / "out.script").read_text())]
-    assert len(poses) == len(P)
-    q_reached = move_l(cell, poses)
+    compensated = (tmp_path / "out.script").read_text()
+    assert len(_P.findall(compensated)) == len(P)
+    # the compensated program itself, one move at a time, run by the controller (script port)
+    home = ", ".join(f"{v:.9f}" for v in HOME)
+    moves = [line for line in compensated.splitlines() if line.strip().startswith("movel(")]
+    q_reached = run_programs(cell, [f"def task():\n  movej([{home}])\n{m}\nend\n" for m in moves])
     dp, dr = pose_errors(fk(truth, q_reached), targets)
     if reaches:
         assert dp < 1e-6 and dr < 1e-6, (dp, dr)
