@@ -45,7 +45,8 @@ What it simulates:
   (simulator only: no UR controller knows these commands).
 
 Faults (``cell.faults``), counted per command the control script receives (counter
-``"ur.command"``): ``drop_connection_at`` loses that command and closes every open connection
+``"ur.command"``; the kinematics queries count too: a Recal session on a UR cell starts with 24
+``getForwardKinematics``, docs/devices/ur.md): ``drop_connection_at`` loses that command and closes every open connection
 of the controller (new connections are accepted again at once); ``garble_at`` /
 ``garble_rate`` lose that command and send, on every RTDE stream, one package whose header
 claims a size smaller than the header itself (a controller or gateway gone wrong: TCP itself

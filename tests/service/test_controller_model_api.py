@@ -1,6 +1,7 @@
 """The cell's copy of its UR controller's own kinematics (issue 16): uploaded and read through
 the API, used by compensation; over Modbus, a session's start checks it against UR's TCP-pose
-registers (our driver and pymodbus' server, the simulated controller's Modbus side)."""
+registers (our driver and pymodbus' server, the simulated controller's Modbus side, on
+NET.70 with a free port)."""
 
 from __future__ import annotations
 
