@@ -158,10 +158,10 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
     from .store import add_controller_model, audit, current_controller_model
 
     stored = current_controller_model(db, cell.id)
-    info: dict | None = None
+    info, new_doc = None, None
     try:
         if hasattr(robot, "forward_kinematics"):
-            info = _read_again(db, run, cell, robot, stored)
+            info, new_doc = _read_again(run, cell, robot, stored)
         elif hasattr(robot, "read_tcp_pose") and stored is not None:
             info = _check_registers(robot, stored)
     except (ControllerModelError, DeviceError, ValueError) as exc:
@@ -169,9 +169,9 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
                 "warning": f"the controller's kinematics could not be read: {exc}"}
     if info is None:
         return None
-    if info.pop("_store", False):
-        rec = add_controller_model(db, cell_id=cell.id, model=info.pop("_model"), session_id=run.id,
-                                   moved_m=info.get("moved_mm") and info["moved_mm"] * 1e-3)
+    if new_doc is not None:
+        moved_m = None if info["moved_mm"] is None else info["moved_mm"] * 1e-3
+        rec = add_controller_model(db, cell_id=cell.id, model=new_doc, session_id=run.id, moved_m=moved_m)
         info["version"] = rec.version
         if info["changed"]:
             audit(db, actor=f"session {run.id}", action="controller model changed", subject=f"cell {cell.id}",
@@ -183,7 +183,9 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
     return info
 
 
-def _read_again(db, run, cell, robot, stored) -> dict:
+def _read_again(run, cell, robot, stored) -> tuple[dict, dict | None]:
+    """Read the controller's model through the session's robot: (what happened, the document
+    to store as a new version, or ``None`` when it is the stored one)."""
     from calibration.model import model_from_dict
 
     reference = model_from_dict(cell.model)
@@ -191,14 +193,14 @@ def _read_again(db, run, cell, robot, stored) -> dict:
                                 n_check=SESSION_POSES, seed=run.id or 0)
     moved = models_differ(stored.model if stored is not None else None, doc)
     if stored is not None and moved is None:
-        return {"version": stored.version, "changed": False, "warning": None}
-    info = {"_store": True, "_model": doc, "changed": stored is not None, "warning": None,
+        return {"version": stored.version, "changed": False, "warning": None}, None
+    info = {"version": None, "changed": stored is not None, "warning": None,
             "moved_mm": None if moved is None else moved * 1e3}
     if stored is not None:
         info["warning"] = (f"the controller's kinematics changed since version {stored.version} (its flange moves "
                            f"up to {moved * 1e3:.3g} mm): its factory calibration was replaced; the new version is "
                            f"used from now on, earlier compensations used the old one")
-    return info
+    return info, doc
 
 
 def _check_registers(robot, stored) -> dict:
