@@ -34,7 +34,6 @@ from calibration.simulate import perturbed
 from calibration.transforms import homogeneous, matrix_to_rotvec, rotvec_to_matrix
 
 
-
 def ur_pose_to_matrix(pose: np.ndarray) -> np.ndarray:
     """A UR pose ``[x, y, z, rx, ry, rz]`` (m, rotation vector in rad) -> (4, 4)."""
     pose = np.asarray(pose, dtype=float).reshape(6)
@@ -105,7 +104,7 @@ class FactoryCalibration:
     chain puts them (the controller's base frame is defined by its own model). The parallel
     joints 2-4 come out "linearised" (``calibration_status`` 2): a twist of a fraction of a
     milliradian between nearly parallel axes moves their common normal metres away, so
-    ``delta_d`` of joints 2-4 are metres to hundreds of metres with a sum near zero. The chain
+    ``delta_d`` of joints 2-4 are metres to kilometres with a sum near zero. The chain
     is exact, only awkward to read.
     """
 
@@ -165,7 +164,9 @@ def draw_factory_calibration(
     """A factory calibration of the size real UR robots have: every joint axis of the
     published robot tilted (``angle_rad``) and shifted (``length_m``), every joint offset by
     ``offset_rad`` (standard deviations), written as a UR controller writes it: plain DH deltas
-    (no Hayati form), so that joints 2-4 come out in the linearised form."""
+    (no Hayati form), so that joints 2-4 come out in the linearised form. The controller's base
+    frame is its own first axis (where ``poe_to_dh`` puts frame 0), and its flange the last DH
+    frame: what the perturbation moves beyond those is the robot's mounting, not the controller's."""
     pub = nominal(published)
     physical = perturbed(pub, np.random.default_rng(seed), length_m=length_m, angle_rad=angle_rad,
                          offset_rad=offset_rad)
