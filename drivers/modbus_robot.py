@@ -18,6 +18,9 @@ Motion handshake (general-purpose registers, written by this driver unless noted
     command, sequence                                               (128, 129)
     status: ack, state, error, heartbeat   written by the program   (150-153)
 
+``read_tcp_pose`` reads UR's TCP-pose registers (400-405: the controller's own forward
+kinematics, through its factory calibration, to 0.1 mm and 1 mrad).
+
 1. the driver checks that the robot is not safety-stopped (``protective_stop``,
    ``emergency_stop``: UR 261, 262) and that no move is busy;
 2. it writes the target, speed and acceleration, then, in one more request, the command
@@ -41,6 +44,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from calibration.transforms import homogeneous, rotvec_to_matrix
 from drivers.base import Robot, RobotState
 from drivers.errors import (
     DeviceConnectionError,
@@ -78,6 +82,11 @@ class ModbusRegisterMap:
     accel: int = 143
     accel_scale: float = 1e-3  # rad/s^2 per count (uint16)
     status: int = 150  # ack, state, error, heartbeat
+    # UR's TCP pose (the controller's own forward kinematics, robot base frame): x, y, z then
+    # rx, ry, rz (rotation vector), int16; None where the controller has no such registers.
+    tcp_pose: int | None = 400
+    tcp_position_scale: float = 1e-4  # m per count (0.1 mm)
+    tcp_rotation_scale: float = 1e-3  # rad per count (mrad)
 
     def __post_init__(self):
         if self.n_joints < 1:
@@ -183,6 +192,18 @@ class ModbusRobot(Robot):
         raise ProtocolError(
             "joint revolution counters keep changing between reads", device=self.name
         )
+
+    def read_tcp_pose(self) -> np.ndarray:
+        """The TCP pose the controller itself computes, ``T_base_tcp`` (4, 4), from its TCP-pose
+        registers (UR: 400-405, 0.1 mm and mrad): a UR controller computes it with its factory
+        calibration, not the published DH table. ``ValueError`` when the map has none."""
+        m = self.map
+        if m.tcp_pose is None:
+            raise ValueError(f"{self.name}: this register map has no TCP-pose registers")
+        words = [_s16(w) for w in self._read(m.tcp_pose, 6)]
+        p = np.array(words[:3], dtype=float) * m.tcp_position_scale
+        rotvec = np.array(words[3:], dtype=float) * m.tcp_rotation_scale
+        return homogeneous(rotvec_to_matrix(rotvec), p)
 
     def state(self) -> RobotState:
         with self._lock:

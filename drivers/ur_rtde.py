@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.transforms import homogeneous, rotvec_to_matrix
 from drivers.base import Robot, RobotState
 from drivers.errors import (
     DeviceConnectionError,
@@ -81,6 +82,9 @@ _ROBOT_MODE_NAMES = {
     -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
     4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
 }
+
+# The tool offset forward_kinematics sends when the caller wants none (m, rotation vector).
+FK_PROBE_TCP = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
 
 _WORKER = Path(__file__).with_name("ur_rtde_worker.py")
 _FRAME = struct.Struct(">I")
@@ -180,6 +184,26 @@ class UrRtdeRobot(Robot):
                     device=self.name,
                 )
         self._wait_for_move(q_target, status_before, timeout_s)
+
+    def forward_kinematics(self, q: np.ndarray, tcp_offset: np.ndarray | None = None) -> np.ndarray:
+        """The controller's own forward kinematics: ``T_base_tcp`` (N, 4, 4) for readings ``q``
+        (N, 6) rad, from ``getForwardKinematics(q, tcp_offset)``, which the controller's script
+        answers with ``get_forward_kin``, through its factory calibration (not the published
+        DH table). ``tcp_offset``: a UR pose (m, rotation vector), default none (the flange).
+        Nothing moves."""
+        q = np.asarray(q, dtype=float).reshape(-1, N_JOINTS)
+        if not np.all(np.isfinite(q)):
+            raise ValueError("`q` must be finite joint angles (rad)")
+        tcp = np.zeros(6) if tcp_offset is None else np.asarray(tcp_offset, dtype=float).reshape(6)
+        # ur_rtde 1.6.5 does not send an all-zero tool offset (it sends q alone), and the control
+        # script then reads whatever the last command left in input registers 6-11 (a moveJ's
+        # speed and acceleration: metres of "offset"). A known offset is always sent instead,
+        # and taken off again.
+        sent = tcp if np.any(tcp != 0.0) else np.array(FK_PROBE_TCP)
+        poses = self._call("forward_kinematics", q.tolist(), [float(v) for v in sent],
+                           timeout_s=self.config.command_timeout_s + 0.1 * len(q))
+        T_sent, T_tcp = ur_poses_to_matrices(np.stack([sent, tcp]))
+        return ur_poses_to_matrices(np.asarray(poses, dtype=float)) @ np.linalg.inv(T_sent) @ T_tcp
 
     def stop(self) -> None:
         """``stopJ``: decelerate every joint to zero (at ``stop_decel_rad_s2``)."""
@@ -359,6 +383,12 @@ def not_running_message(mode_name: str) -> str:
     )
 
 
+def ur_poses_to_matrices(poses: np.ndarray) -> np.ndarray:
+    """UR poses ``[x, y, z, rx, ry, rz]`` (N, 6) (m, rotation vector in rad) -> (N, 4, 4)."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 6)
+    return homogeneous(rotvec_to_matrix(poses[:, 3:]), poses[:, :3])
+
+
 def _protective(snap: dict) -> bool:
     return bool(snap["safety_status_bits"] & _PROTECTIVE_BITS) or (
         int(snap["safety_mode"]) in _PROTECTIVE_MODES
@@ -478,6 +508,23 @@ def probe_controller(host: str, timeout_s: float) -> str:
         pass
     _probe_rtde(host, timeout_s, device)
     return version
+
+
+def dashboard_query(host: str, command: str, timeout_s: float = 2.0) -> str:
+    """One dashboard command's answer line (e.g. ``get robot model`` -> ``UR5``)."""
+    device = f"UR {host}"
+    with _connect(host, DASHBOARD_PORT, timeout_s, device, "dashboard") as sock:
+        reader = sock.makefile("rb")
+        try:
+            reader.readline()  # greeting
+            sock.sendall(command.encode() + b"\n")
+            line = reader.readline()
+        except TimeoutError as exc:
+            raise DeviceTimeoutError(f"the dashboard did not answer {command!r} within {timeout_s:g} s",
+                                     device=device) from exc
+        except OSError as exc:
+            raise DeviceConnectionError(f"dashboard: {exc}", device=device) from exc
+    return line.decode("ascii", "replace").strip()
 
 
 def _connect(host: str, port: int, timeout_s: float, device: str, what: str) -> socket.socket:

@@ -110,6 +110,16 @@ class _Session:
         before = self.control.getAsyncOperationProgressEx().value()
         return bool(self.control.moveJ(q, speed, accel, True)), before
 
+    def forward_kinematics(self, qs: list[list[float]], tcp_offset: list[float]) -> list[list[float]]:
+        """``getForwardKinematics(q, tcp_offset)`` for each q (the controller's own kinematics)."""
+        poses = []
+        for q in qs:
+            pose = list(self.control.getForwardKinematics(q, tcp_offset))
+            if len(pose) != 6:  # ur_rtde returns [] when its script did not answer
+                raise RuntimeError("getForwardKinematics got no answer (is the control script running?)")
+            poses.append(pose)
+        return poses
+
     def stop(self, accel: float) -> None:
         self.control.stopJ(accel, False)
 

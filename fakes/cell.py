@@ -27,6 +27,12 @@ the emScon server; ``--reflector-axis X,Y,Z`` (tool frame) and ``--arm-radius M`
 emScon tracker's beam geometry (the reflector's acceptance angle, the arm blocking the line of
 sight: fakes/leica_tracker.py).
 
+The UR controller's factory calibration (``fakes.world.FactoryCalibration``, docs/devices/ur.md):
+the truth file's ``ur_factory_calibration`` block (``published``, ``delta_theta``, ``delta_a``,
+``delta_d``, ``delta_alpha``: 6 values each, SI), else, when the truth is a UR arm (nearest
+published table within 5 cm), one drawn with ``--factory-seed N`` (default 0);
+``--no-factory-calibration`` makes the controller compute with the published table.
+
 The faults (``--help`` lists them too). Counts are 1-based and each device counts its own
 requests, so one fault may hit several devices: leave out the devices a test does not use.
 
@@ -59,7 +65,9 @@ import threading
 from pathlib import Path
 
 from calibration.model import KinematicModel, model_from_dict
-from fakes.world import Faults, Noise, SimCell
+from fakes.world import (
+    FactoryCalibration, Faults, Noise, SimCell, draw_factory_calibration, published_ur_for,
+)
 from calibration.errors import RecalError
 
 PROG = "recal fake-cell"
@@ -100,6 +108,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--noise", action="append", default=[], metavar="NAME=VALUE",
         help="instrument noise (a field of fakes.world.Noise, SI units); repeatable",
+    )
+    parser.add_argument(
+        "--factory-seed", type=int, default=0,
+        help="seed of the UR controller's factory calibration drawn when the truth file has no "
+             "ur_factory_calibration block (default 0)",
+    )
+    parser.add_argument(
+        "--no-factory-calibration", action="store_true",
+        help="the UR controller computes with the published DH table (all deltas zero)",
     )
     parser.add_argument(
         "--modbus-port", type=int, default=502,
@@ -155,6 +172,24 @@ def load_truth(path: str) -> KinematicModel:
         return model_from_dict(data)
     except (KeyError, TypeError, ValueError) as exc:
         raise CellError(f"{path}: {exc}") from exc
+
+
+def factory_calibration(truth: KinematicModel, args: argparse.Namespace) -> FactoryCalibration | None:
+    """The UR controller's factory calibration: the truth file's ``ur_factory_calibration``
+    block, else one drawn with ``--factory-seed`` for the published UR the truth is nearest
+    (``--no-factory-calibration``: zero deltas); ``None`` when the robot is no UR arm."""
+    block = truth.metadata.get("ur_factory_calibration")
+    if block is not None:
+        try:
+            return FactoryCalibration.from_dict(block)
+        except ValueError as exc:
+            raise CellError(f"{args.truth}: {exc}") from exc
+    published = published_ur_for(truth)
+    if published is None:
+        return None
+    if args.no_factory_calibration:
+        return FactoryCalibration(published, *([(0.0,) * 6] * 4))
+    return draw_factory_calibration(published, args.factory_seed)
 
 
 def parse_fields(items: list[str], cls, flag: str):
@@ -236,12 +271,14 @@ def main(argv: list[str] | None = None) -> int:
             if args.time_scale < 0:
                 raise CellError(f"--time-scale {args.time_scale}: must be >= 0")
             truth = load_truth(args.truth)
+            factory = factory_calibration(truth, args)
             cell = SimCell(
                 truth,
                 seed=args.seed,
                 time_scale=args.time_scale,
                 noise=parse_fields(args.noise, Noise, "--noise"),
                 faults=parse_fields(args.fault, Faults, "--fault"),
+                factory=factory,
             )
             fakes = start_fakes(cell, args)
         except CellError as exc:

@@ -23,7 +23,9 @@ Recal's motion handshake in the general-purpose registers 128..255 (what
     153  heartbeat, +1 per controller cycle (500 Hz) while the program runs
     160..171  joint readings, int32 urad (high word first), refreshed every cycle
 
-Simulation: joints from ``cell.joints()``, TCP pose from the truth FK, motion by
+Simulation: joints from ``cell.joints()``, TCP pose (400..405) from the controller's own
+forward kinematics (``cell.controller_fk``: the factory calibration, robot base frame, not the
+truth), motion by
 ``cell.start_move``; "done" when the simulated motion is over. A safety stop (for example
 ``cell.faults.protective_stop_at_move`` or ``emergency_stop_at_move``) halts the motion
 program: no acknowledgements, the heartbeat freezes, 261/262 report the stop (an emergency
@@ -258,7 +260,9 @@ class ModbusRobotFake:
         else:
             put(ROBOT_MODE, [ROBOT_MODE_IDLE if cell.powered else ROBOT_MODE_POWER_OFF])
         put(POWER_ON, [int(cell.powered), int(cell.protective_stop), int(cell.emergency_stop)])
-        T = cell.T_world_tool()
+        # UR's TCP registers hold the controller's own forward kinematics of these joints
+        # (its factory calibration, robot base frame), as actual_TCP_pose does.
+        T = cell.controller_fk(q[None, :])[0]
         rotvec = matrix_to_rotvec(T[:3, :3])
         position = [_u16(round(v * 1e4)) for v in T[:3, 3]]  # 0.1 mm
         put(TCP_POSE, position + [_u16(round(v * 1e3)) for v in rotvec])  # mrad

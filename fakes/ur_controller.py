@@ -13,16 +13,29 @@ different loopback addresses (``127.0.0.2``, ``127.0.0.3``, ...).
 
 What it simulates:
 
-- ``actual_q`` / ``target_q`` are ``cell.joints()`` (rad); ``actual_TCP_pose`` is the true tool
-  pose ``cell.T_world_tool()`` as ``[x, y, z, rx, ry, rz]`` (m, rotation vector in rad);
+- ``actual_q`` / ``target_q`` are ``cell.joints()`` (rad); ``actual_TCP_pose`` is what a real
+  controller reports: its own forward kinematics of those joints, through its factory
+  calibration (``cell.controller_fk``, robot base frame, ``[x, y, z, rx, ry, rz]``: m and a
+  rotation vector in rad), not where the tool truly is (``cell.T_world_tool()``);
 - the control script that ``ur_rtde`` uploads: when a program arrives on the script port the
   controller starts "playing" it and emulates its register handshake (``input_int_register_0``
   is the command, ``output_int_register_0`` is 1 = ready, 2 = done; ``output_int_register_2`` is
   the script's encoded async-operation status: bit 15 running, bits 16-22 a write counter,
-  bits 24-30 an operation id). ``MOVEJ`` starts ``cell.start_move``; a blocking move reports
-  done when the simulated motion is over; ``STOPJ`` stops the robot; ``STOP_SCRIPT`` ends the
-  program; ``SET_PAYLOAD`` (``setPayload``) tells the cell the mounted payload, under which a
-  truth with joint compliance sags (``payload``/``payload_cog`` outputs report it);
+  bits 24-30 an operation id). ``MOVEJ`` starts ``cell.start_move``; ``MOVEJ_IK`` and
+  ``MOVEL`` (a pose target) first turn the pose into joints through the factory calibration,
+  nearest the current joints (``cell.controller_ik``; the end point is exact, the path is
+  joint-interpolated); a blocking move reports done when the simulated motion is over;
+  ``GET_FORWARD_KINEMATICS_*`` and ``GET_INVERSE_KINEMATICS_*`` (``getForwardKinematics``,
+  ``getInverseKinematics``) answer through the factory calibration in output double registers
+  0-5 (no solution: the script stops, as ``get_inverse_kin`` raising does); ``STOPJ`` stops the
+  robot; ``STOP_SCRIPT`` ends the program; ``SET_PAYLOAD`` (``setPayload``) tells the cell the
+  mounted payload, under which a truth with joint compliance sags (``payload``/``payload_cog``
+  outputs report it);
+- a user's program (anything else sent to the script port, e.g. a compensated task): its
+  ``movej``/``movel``/``movep`` to literal targets, variables holding one and
+  ``get_inverse_kin(pose, qnear)`` run one after the other (``fakes.urscript_program``), pose
+  targets through the factory calibration as on a real controller; the program plays
+  (``runtime_state``, ``robot_status_bits``, dashboard ``running``) until its last move ends;
 - safety and power, as on a UR: ``safety_status_bits`` / ``safety_mode`` reflect
   ``cell.protective_stop`` and ``cell.emergency_stop``, ``robot_mode`` the arm's power
   (``POWER_OFF`` 3, ``IDLE`` 5: powered with the brakes on, ``RUNNING`` 7). A safety stop halts
@@ -34,7 +47,8 @@ What it simulates:
   (simulator only: no UR controller knows these commands).
 
 Faults (``cell.faults``), counted per command the control script receives (counter
-``"ur.command"``): ``drop_connection_at`` loses that command and closes every open connection
+``"ur.command"``; the kinematics queries count too: a Recal session on a UR cell starts with 24
+``getForwardKinematics``, docs/devices/ur.md): ``drop_connection_at`` loses that command and closes every open connection
 of the controller (new connections are accepted again at once); ``garble_at`` /
 ``garble_rate`` lose that command and send, on every RTDE stream, one package whose header
 claims a size smaller than the header itself (a controller or gateway gone wrong: TCP itself
@@ -44,8 +58,9 @@ delivers bytes intact or not at all; ``ur_rtde`` aborts its process on such a pa
 ``emergency_stop_at_move`` are applied by the cell itself.
 
 Not simulated: the primary/secondary interfaces (30001/30002), the real-time state stream out
-of 30003, script commands other than moveJ/stopJ/stopScript/setPayload (the others report "done" and
-do nothing), deceleration (``stopJ`` stops at once).
+of 30003, script commands other than those above (the others report "done" and do nothing),
+anything in a user's program but its moves and ``set_tcp``, deceleration (``stopJ`` stops at
+once), Cartesian (straight-line) paths.
 
 Run alone (tests, debugging)::
 
@@ -65,8 +80,8 @@ import time
 
 import numpy as np
 
-from calibration.transforms import matrix_to_rotvec
-from fakes.world import SimCell
+from fakes.urscript_program import ProgramError, is_control_script, parse_program
+from fakes.world import SimCell, matrix_to_ur_pose, ur_pose_to_matrix
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
@@ -159,7 +174,9 @@ ROBOT_STATUS_POWER_ON = 1 << 0
 ROBOT_STATUS_PROGRAM_RUNNING = 1 << 1
 
 # ur_rtde's control-script commands (RTDE::RobotCommand::Type) that the fake executes.
-CMD_NO_CMD, CMD_MOVEJ, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 34, 255
+CMD_NO_CMD, CMD_MOVEJ, CMD_MOVEJ_IK, CMD_MOVEL, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 2, 3, 34, 255
+CMD_GET_INVERSE_KINEMATICS_ARGS, CMD_GET_INVERSE_KINEMATICS_DEFAULT = 30, 46
+CMD_GET_FORWARD_KINEMATICS_DEFAULT, CMD_GET_FORWARD_KINEMATICS_ARGS = 43, 44
 CMD_SET_PAYLOAD = 17  # ur_rtde's setPayload: mass and centre of gravity (flange) in input_double_register_0..3
 # "Real-time" commands that the script executes without reporting done.
 _CONTINUOUS_COMMANDS = {6, 9, 10, 11, 12, 24, 25, 26, 27, 38, 58}
@@ -211,6 +228,9 @@ class UrControllerFake:
             if "_register_" in name
         }
         self._script_running = False
+        self._user_program = False  # the program playing is a user's, not ur_rtde's control script
+        self._program_id = 0  # counts programs started, so a replaced one's thread stops
+        self.last_program_error: str | None = None
         self._executing: int | None = None  # command being executed, None when idle
         self._command_done_at = 0.0  # monotonic time from which a command may report done
         self._blocking_move = False
@@ -310,6 +330,8 @@ class UrControllerFake:
         if cell.protective_stop or cell.emergency_stop or not cell.running:
             self._halt_script()  # a safety stop (or power off) halts the running program
             return
+        if self._user_program:
+            return  # a user's program runs in its own thread, not the register handshake
         regs = self._registers
         if self._async_move and not cell.is_moving():
             self._async_move = False
@@ -352,20 +374,29 @@ class UrControllerFake:
                 self._malformed += 1
             return
         if cmd == CMD_MOVEJ:
-            q = [float(regs[f"input_double_register_{i}"]) for i in range(6)]
-            speed = float(regs["input_double_register_6"])
-            accel = float(regs["input_double_register_7"])
-            asynchronous = int(regs["input_int_register_1"]) == 1
-            try:
-                cell.start_move(np.array(q), speed, accel)
-            except RuntimeError:  # stopped by safety: the program halts
-                self._halt_script()
+            self._start_move(np.array(self._doubles(0, 6)))
+        elif cmd in (CMD_MOVEJ_IK, CMD_MOVEL):
+            # A Cartesian target: the controller turns it into joints with its own
+            # (factory-calibrated) kinematics, nearest the joints it is at.
+            q = cell.controller_ik(ur_pose_to_matrix(self._doubles(0, 6)), cell.joints())
+            if q is None:
+                self._halt_script()  # URScript: "Inverse kinematics failed", the program stops
                 return
-            if asynchronous:
-                self._async_move = True
-                self._write_async_progress(0)
-            else:
-                self._blocking_move = True
+            self._start_move(q)
+        elif cmd == CMD_GET_FORWARD_KINEMATICS_DEFAULT:
+            self._write_doubles(matrix_to_ur_pose(cell.controller_fk()[0]))
+        elif cmd == CMD_GET_FORWARD_KINEMATICS_ARGS:
+            q = np.array(self._doubles(0, 6))
+            T = cell.controller_fk(q[None, :], np.array(self._doubles(6, 12)))[0]
+            self._write_doubles(matrix_to_ur_pose(T))
+        elif cmd in (CMD_GET_INVERSE_KINEMATICS_ARGS, CMD_GET_INVERSE_KINEMATICS_DEFAULT):
+            q_near = (np.array(self._doubles(6, 12)) if cmd == CMD_GET_INVERSE_KINEMATICS_ARGS
+                      else cell.joints())
+            q = cell.controller_ik(ur_pose_to_matrix(self._doubles(0, 6)), q_near)
+            if q is None:
+                self._halt_script()  # get_inverse_kin raises a runtime error: the script stops
+                return
+            self._write_doubles(list(q))
         elif cmd == CMD_STOPJ:
             cell.stop()
             if self._async_move:
@@ -380,6 +411,33 @@ class UrControllerFake:
                 cog = list(self._payload_cog_flange)
             self._payload_cog_flange = cog
             cell.set_payload(mass, cog)
+
+    def _doubles(self, start: int, stop: int) -> list[float]:
+        """``input_double_register_start`` .. ``stop - 1``."""
+        return [float(self._registers[f"input_double_register_{i}"]) for i in range(start, stop)]
+
+    def _write_doubles(self, values) -> None:
+        """The script's ``pose_to_output_float_registers(0, ...)`` / ``q_to_output_...``."""
+        for i, v in enumerate(values):
+            self._registers[f"output_double_register_{i}"] = float(v)
+
+    def _start_move(self, q: np.ndarray) -> None:
+        """Start the move of MOVEJ / MOVEJ_IK / MOVEL: speed and acceleration in input double
+        registers 6 and 7, asynchronous when input int register 1 is 1."""
+        regs = self._registers
+        speed = float(regs["input_double_register_6"])
+        accel = float(regs["input_double_register_7"])
+        asynchronous = int(regs["input_int_register_1"]) == 1
+        try:
+            self.cell.start_move(q, speed, accel)
+        except RuntimeError:  # stopped by safety: the program halts
+            self._halt_script()
+            return
+        if asynchronous:
+            self._async_move = True
+            self._write_async_progress(0)
+        else:
+            self._blocking_move = True
 
     def _write_async_progress(self, value: int) -> None:
         """Encode the async status register as the control script does: ``value`` >= 0 is
@@ -413,6 +471,7 @@ class UrControllerFake:
 
     def _halt_script(self) -> None:
         self._script_running = False
+        self._user_program = False
         self.cell.program_running = False
         self._executing = None
         self._async_move = False
@@ -488,8 +547,9 @@ class UrControllerFake:
         }
 
     def _tcp_pose(self) -> list[float]:
-        T = self.cell.T_world_tool()
-        return [*T[:3, 3], *matrix_to_rotvec(T[:3, :3])]
+        """``actual_TCP_pose``: the controller's forward kinematics of the joints it reads (its
+        factory calibration), not where the tool truly is."""
+        return matrix_to_ur_pose(self.cell.controller_fk()[0])
 
     # ----------------------------------------------------------------- RTDE server
 
@@ -614,8 +674,9 @@ class UrControllerFake:
                 return f"Version: {major}.{minor}.{bugfix}.{build}"
             if lower == "get serial number":
                 return "20185500000"
-            if lower == "get robot model":
-                return "UR5"
+            if lower == "get robot model":  # e-Series answer without the "e", e.g. "UR5"
+                published = cell.factory.published if cell.factory is not None else "ur5e"
+                return published.upper().rstrip("E")
             if lower == "is in remote control":
                 return "true"
             if lower == "running":
@@ -680,8 +741,70 @@ class UrControllerFake:
                 return
             buffer += data
             if _PROGRAM_START.search(buffer) and _PROGRAM_END.search(buffer):
-                buffer = b""
-                self._start_script()
+                text, buffer = buffer.decode("utf-8", "replace"), b""
+                if is_control_script(text):
+                    self._start_script()
+                else:
+                    self._start_program(text)
+
+    # ----------------------------------------------------------------- a user's program
+
+    def _start_program(self, text: str) -> None:
+        """A program other than ``ur_rtde``'s control script arrived: run its moves
+        (``fakes.urscript_program``) in a thread of its own, replacing whatever program runs.
+        One the fake cannot evaluate does not start (``last_program_error`` says why, as a
+        real controller's pop-up would)."""
+        try:
+            steps = parse_program(text)
+        except ProgramError as exc:
+            self.last_program_error = str(exc)
+            return
+        with self._lock:
+            cell = self.cell
+            if cell.protective_stop or cell.emergency_stop or not cell.running:
+                return
+            self._halt_script()
+            self._program_id += 1
+            self._script_running = self._user_program = True
+            cell.program_running = True
+            self.last_program_error = None
+            thread = threading.Thread(target=self._run_program, args=(self._program_id, steps), daemon=True)
+        thread.start()
+
+    def _run_program(self, program_id: int, steps: list) -> None:
+        """Each move in turn: a pose target through the controller's own inverse kinematics
+        (its factory calibration; ``get_inverse_kin``'s ``qnear``, else nearest the joints the
+        robot is at, for the active TCP), then the simulated motion to its end."""
+        cell = self.cell
+        tcp = None
+        for step in steps:
+            with self._lock:
+                if program_id != self._program_id or not self._script_running:
+                    return  # stopped (dashboard, safety) or replaced
+                if step.kind == "set_tcp":
+                    tcp = np.array(step.pose)
+                    continue
+                if step.pose is not None:
+                    q_near = cell.joints() if step.qnear is None else np.array(step.qnear)
+                    q = cell.controller_ik(ur_pose_to_matrix(step.pose), q_near, tcp)
+                    if q is None:
+                        self.last_program_error = f"line {step.line}: inverse kinematics failed (no solution)"
+                        self._halt_script()
+                        return
+                else:
+                    q = np.array(step.joints)
+                try:
+                    cell.start_move(q, max(step.speed, 1e-3), max(step.accel, 1e-3))
+                except RuntimeError:  # stopped by safety: the program halts
+                    self._halt_script()
+                    return
+            while cell.is_moving():  # the move's simulated duration (instant at time scale 0)
+                if self._stopping.is_set() or program_id != self._program_id:
+                    return
+                time.sleep(0.001)
+        with self._lock:
+            if program_id == self._program_id and self._script_running:
+                self._halt_script()
 
 
 _ROBOT_MODE_NAMES = {

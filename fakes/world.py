@@ -5,21 +5,49 @@ kinematics is the ``truth`` model, and the faults to inject. The device fakes (U
 Modbus server, tracker, CMM, CANopen encoder nodes) read and drive it; they never share state
 any other way. Everything is SI: metres, radians, seconds.
 
+A cell whose robot is a Universal Robots arm also has a *factory calibration*
+(:class:`FactoryCalibration`): the controller's own per-robot DH deltas to the published table,
+as ``calibration.conf`` keeps them on a real controller. The UR controller fake and the Modbus
+server compute everything Cartesian through that model (``SimCell.controller_fk`` /
+``controller_ik``), never through the truth: like a real controller, they know only their
+factory calibration.
+
 Simulated time: a motion that would take ``t`` seconds on the real robot takes
 ``t * time_scale`` seconds of wall time (``time_scale = 0``: instant).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from calibration.conventions import poe_to_dh
+from calibration.ik import solve_ik, ur_geometry, ur_ik_all
 from calibration.kinematics import fk, joint_variables
 from calibration.model import KinematicModel
-from calibration.transforms import pose_to_matrix
+from calibration.robots import nominal
+from calibration.simulate import perturbed
+from calibration.transforms import homogeneous, matrix_to_rotvec, pose_to_matrix, rotvec_to_matrix
+
+
+def ur_pose_to_matrix(pose: np.ndarray) -> np.ndarray:
+    """A UR pose ``[x, y, z, rx, ry, rz]`` (m, rotation vector in rad) -> (4, 4)."""
+    pose = np.asarray(pose, dtype=float).reshape(6)
+    return homogeneous(rotvec_to_matrix(pose[3:]), pose[:3])
+
+
+def matrix_to_ur_pose(T: np.ndarray) -> list[float]:
+    """(4, 4) -> a UR pose ``[x, y, z, rx, ry, rz]``."""
+    T = np.asarray(T, dtype=float)
+    return [*map(float, T[:3, 3]), *map(float, matrix_to_rotvec(T[:3, :3]))]
+
+
+# Library robots whose published DH table a UR controller starts from.
+UR_MODELS = ("ur3e", "ur5e", "ur10e", "ur16e")
 
 
 @dataclass
@@ -68,6 +96,116 @@ class Faults:
 
 
 @dataclass(frozen=True)
+class FactoryCalibration:
+    """A UR controller's factory calibration: its corrections to the published DH table of
+    ``published`` (a library robot, ``calibration.robots``), one value per joint, SI (rad, m),
+    as in the ``[mounting]`` section of a real controller's ``calibration.conf``.
+
+    The controller's model is ``theta_i + delta_theta_i``, ``a_i + delta_a_i``,
+    ``d_i + delta_d_i``, ``alpha_i + delta_alpha_i`` (standard DH), base and flange where the
+    chain puts them (the controller's base frame is defined by its own model). The parallel
+    joints 2-4 come out "linearised" (``calibration_status`` 2): a twist of a fraction of a
+    milliradian between nearly parallel axes moves their common normal metres away, so
+    ``delta_d`` of joints 2-4 are metres to kilometres with a sum near zero. The chain
+    is exact, only awkward to read.
+    """
+
+    published: str
+    delta_theta: tuple[float, ...]
+    delta_a: tuple[float, ...]
+    delta_d: tuple[float, ...]
+    delta_alpha: tuple[float, ...]
+    calibration_status: int = 2
+
+    FIELDS = ("delta_theta", "delta_a", "delta_d", "delta_alpha")
+
+    def model(self) -> KinematicModel:
+        """The controller's kinematic model: the published table plus the deltas."""
+        pub = nominal(self.published)
+        joints = tuple(
+            dataclasses.replace(j, theta=j.theta + dt, a=j.a + da, d=j.d + dd, alpha=j.alpha + dal)
+            for j, dt, da, dd, dal in zip(pub.joints, self.delta_theta, self.delta_a, self.delta_d,
+                                          self.delta_alpha)
+        )
+        return dataclasses.replace(pub, name=f"{self.published}-controller", joints=joints)
+
+    def to_dict(self) -> dict:
+        """The ``ur_factory_calibration`` block of a truth file (SI)."""
+        return {"published": self.published, "calibration_status": self.calibration_status,
+                **{f: list(getattr(self, f)) for f in self.FIELDS}}
+
+    @classmethod
+    def from_dict(cls, doc, where: str = "ur_factory_calibration") -> "FactoryCalibration":
+        """Read the block written by :meth:`to_dict`; ``ValueError`` names the field at fault."""
+        if not isinstance(doc, dict):
+            raise ValueError(f"{where}: expected an object with published, {', '.join(cls.FIELDS)}")
+        published = str(doc.get("published", "")).lower()
+        if published not in UR_MODELS:
+            raise ValueError(f"{where}.published: expected one of {', '.join(UR_MODELS)}, got {doc.get('published')!r}")
+        values = {}
+        for f in cls.FIELDS:
+            v = doc.get(f)
+            if (not isinstance(v, list) or len(v) != 6
+                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in v)):
+                raise ValueError(f"{where}.{f}: expected a list of 6 numbers (SI: rad or m), got {v!r}")
+            values[f] = tuple(float(x) for x in v)
+        status = doc.get("calibration_status", 2)
+        if status not in (0, 1, 2):
+            raise ValueError(f"{where}.calibration_status: expected 0, 1 or 2, got {status!r}")
+        return cls(published=published, calibration_status=int(status), **values)
+
+
+def draw_factory_calibration(
+    published: str,
+    seed: int = 0,
+    *,
+    length_m: float = 0.3e-3,
+    angle_rad: float = 0.3e-3,
+    offset_rad: float = 0.5e-3,
+) -> FactoryCalibration:
+    """A factory calibration of the size real UR robots have: every joint axis of the
+    published robot tilted (``angle_rad``) and shifted (``length_m``), every joint offset by
+    ``offset_rad`` (standard deviations), written as a UR controller writes it: plain DH deltas
+    (no Hayati form), so that joints 2-4 come out in the linearised form. The controller's base
+    frame is its own first axis (where ``poe_to_dh`` puts frame 0), and its flange the last DH
+    frame: what the perturbation moves beyond those is the robot's mounting, not the controller's."""
+    pub = nominal(published)
+    physical = perturbed(pub, np.random.default_rng(seed), length_m=length_m, angle_rad=angle_rad,
+                         offset_rad=offset_rad)
+    # parallel_tol_rad=0: never Hayati's beta, as on the controller.
+    dh = poe_to_dh(physical, reference=pub, parallel_tol_rad=0.0)
+    return FactoryCalibration(
+        published=published,
+        delta_theta=tuple(float(j.theta - p.theta) for j, p in zip(dh.joints, pub.joints)),
+        delta_a=tuple(float(j.a - p.a) for j, p in zip(dh.joints, pub.joints)),
+        delta_d=tuple(float(j.d - p.d) for j, p in zip(dh.joints, pub.joints)),
+        delta_alpha=tuple(float(j.alpha - p.alpha) for j, p in zip(dh.joints, pub.joints)),
+    )
+
+
+def published_ur_for(truth: KinematicModel) -> str | None:
+    """The library UR whose published table the true robot is closest to, or ``None`` when it
+    is no UR arm (6 revolute joints, every relative flange displacement within 5 cm). The
+    comparison uses ``T(q_a)^-1 T(q_b)``, which the base frame (where the robot stands in the
+    world) does not change, so a truth of any convention and base placement is recognised."""
+    if truth.n_joints != 6 or any(not j.revolute for j in truth.joints):
+        return None
+    q = np.random.default_rng(0).uniform(-np.pi, np.pi, (16, 6))
+
+    def relative(model: KinematicModel) -> np.ndarray:
+        T = fk(dataclasses.replace(model, tool=np.zeros(6)), q)
+        return np.einsum("nji,nj->ni", T[:-1, :3, :3], T[1:, :3, 3] - T[:-1, :3, 3])
+
+    p = relative(truth)
+    best, best_err = None, 0.05
+    for name in UR_MODELS:
+        err = float(np.max(np.linalg.norm(relative(nominal(name)) - p, axis=1)))
+        if err < best_err:
+            best, best_err = name, err
+    return best
+
+
+@dataclass(frozen=True)
 class Noise:
     """Standard deviations of the simulated instruments (SI)."""
 
@@ -100,8 +238,15 @@ class SimCell:
         cmm_volume_m: tuple[np.ndarray, np.ndarray] | None = None,
         balls_tool: dict[str, np.ndarray] | None = None,
         ball_radius_m: float = 0.0125,
+        factory: FactoryCalibration | None = None,
     ):
         self.truth = truth
+        # The controller's own kinematics (robot base frame, flange): the factory calibration's
+        # model; without one (not a UR cell) the controller computes with the truth, in the
+        # world frame, as this simulator always did.
+        self.factory = factory
+        self.controller = factory.model() if factory is not None else truth
+        self._published = nominal(factory.published) if factory is not None else None
         self.time_scale = float(time_scale)
         self.noise = noise or Noise()
         self.faults = faults or Faults()
@@ -262,6 +407,42 @@ class SimCell:
                 return False
             self.brakes_released = True
             return True
+
+    # ----------------------------------------------------------------- the controller's kinematics
+
+    def controller_fk(self, q: np.ndarray | None = None, tcp_offset: np.ndarray | None = None) -> np.ndarray:
+        """``get_forward_kin(q, tcp)``: the TCP pose (N, 4, 4) the controller computes for
+        readings ``q`` (N, 6) (default: the joints now, N = 1) and TCP offset ``tcp_offset``
+        (6,) (flange frame, UR pose: metres and a rotation vector; default none), through its
+        factory calibration, never the truth."""
+        q = self.joints()[None, :] if q is None else np.asarray(q, dtype=float).reshape(-1, self.truth.n_joints)
+        T = fk(self.controller, q)
+        if tcp_offset is not None:
+            T = T @ ur_pose_to_matrix(tcp_offset)
+        return T
+
+    def controller_ik(self, T_base_tcp: np.ndarray, q_near: np.ndarray | None = None,
+                      tcp_offset: np.ndarray | None = None) -> np.ndarray | None:
+        """``get_inverse_kin(x, qnear)``: the readings (6,) that put the TCP at ``T_base_tcp``
+        (4, 4) through the controller's model, on the branch nearest ``q_near`` (default: the
+        joints now), or ``None`` when the pose is out of reach. As a calibrated controller
+        does: the published table's closed form picks the branch, Newton on the calibrated
+        model finishes (to 1e-10 m and rad)."""
+        q_near = self.joints() if q_near is None else np.asarray(q_near, dtype=float).reshape(-1)
+        T = np.asarray(T_base_tcp, dtype=float)
+        if tcp_offset is not None:
+            T = T @ np.linalg.inv(ur_pose_to_matrix(tcp_offset))
+        closed = self._published if self._published is not None else self.controller
+        if ur_geometry(closed) is not None:
+            qs, oks, _ = ur_ik_all(closed, T[None], q_near[None])
+            if not np.any(oks):
+                return None
+            dist = np.sum((qs[0] - q_near) ** 2, axis=1) + np.where(oks[0], 0.0, 1e6)
+            q0 = qs[0, int(np.argmin(dist))]
+        else:
+            q0 = q_near
+        r = solve_ik(self.controller, T[None], q0[None], position_tol_m=1e-10, rotation_tol_rad=1e-10)
+        return r.q[0] if bool(r.converged[0]) else None
 
     # ----------------------------------------------------------------- truth
 

@@ -29,7 +29,7 @@ from .models import Calibration, Cell, Measurement, RunSession
 from .records import NoMeasurementsError, current_model, position_errors, registered_errors
 from .results import predicted_accuracy
 from .settings import Settings
-from .store import current_calibration
+from .store import current_calibration, current_controller_model
 from calibration.errors import RecalError
 
 # Allowance for what may have changed since the previous calibration (per parameter, 1 sigma):
@@ -126,6 +126,9 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q)
+    ctrl = current_controller_model(db, cell.id)
+    if ctrl is not None:  # a UR cell: what its controller computes with (targets mode, URScript need it)
+        block["controller"] = ctrl.model
     return _store(db, cell, run, "pose", model, report, cov, result.rms_m / L, {"identification": block})
 
 

@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "compensate": ("compensate", "compensated task files (CSV or URScript) for an identified robot"),
     "accuracy": ("accuracy", "ISO 9283 pose accuracy and repeatability of measurements against a model"),
     "model": ("model", "list library robots, or write one's nominal model"),
+    "controller-model": ("controller_model", "read a UR controller's own kinematics (factory calibration) over RTDE"),
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
     "serve": ("serve", "run the REST API (contracts §9)"),
     "token": ("token", "create API tokens"),

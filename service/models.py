@@ -6,7 +6,6 @@ documents (models, reports, endpoint lines) exactly as they were given.
 
 from __future__ import annotations
 
-import math
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
@@ -100,6 +99,21 @@ class Calibration(SQLModel, table=True):
     # Predicted accuracy over the workspace (the 95 % radius statistics /result shows), stored when the
     # calibration is made so that drift over hundreds of calibrations reads no reports (schema v3).
     predicted: dict | None = Field(default=None, sa_column=Column(JSON))
+
+
+class ControllerModel(SQLModel, table=True):
+    """A UR controller's own kinematics (its factory calibration), as read from the controller
+    (``service.controller``); one row per version, the newest is the cell's (schema v4)."""
+
+    __tablename__ = "controller_model"
+    __table_args__ = (UniqueConstraint("cell_id", "version", name="uq_controller_model_version"),)
+    id: int | None = Field(default=None, primary_key=True)
+    cell_id: int = Field(foreign_key="cell.id", index=True)
+    version: int = 1
+    model: dict = Field(sa_column=Column(JSON, nullable=False))  # recal.model/1 with its `controller` block
+    session_id: int | None = None  # the session that read it (None: uploaded)
+    moved_m: float | None = None  # how far it moved from the previous version (m, worst flange position)
+    created_at: datetime = Field(default_factory=utcnow)
 
 
 class Compensation(SQLModel, table=True):

@@ -51,7 +51,7 @@ from calibration.model import model_from_dict
 from drivers.base import SteerablePositionSensor
 from drivers.errors import DeviceError, DeviceUnavailableError, MeasurementError, RobotStoppedError
 
-from . import analysis, records
+from . import analysis, controller, records
 from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
@@ -282,6 +282,8 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
         control.devices = devices
         final, reason, stop = "completed", None, None
         try:
+            # a UR cell: the controller's own kinematics, read again (docs/devices/ur.md)
+            controller.refresh_on_session_start(db, run, cell, devices.robot)
             _measure_all(db, run, cell, devices, settings, control, owner)
             analysis.finish_session(db, run, cell, settings)
         except SessionStopped as exc:

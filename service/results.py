@@ -13,11 +13,9 @@ where said. Results of finished calibrations are cached in memory (they never ch
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import threading
 from collections import OrderedDict
-from datetime import datetime, timezone
 
 import numpy as np
 from sqlmodel import Session, select

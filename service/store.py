@@ -25,6 +25,7 @@ from .models import (
     AuditEntry,
     Calibration,
     Cell,
+    ControllerModel,
     Measurement,
     RunSession,
     SchemaVersion,
@@ -103,7 +104,13 @@ def _v4(conn) -> None:
         conn.execute(text("ALTER TABLE session ADD COLUMN beam_recoveries INTEGER NOT NULL DEFAULT 0"))
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4]
+def _v5(conn) -> None:
+    """The UR controller's own kinematics of each cell, versioned (``controller_model``,
+    issue 16)."""
+    SQLModel.metadata.create_all(conn, tables=[ControllerModel.__table__])
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -270,3 +277,24 @@ def held_by_other(run: RunSession, owner: str) -> bool:
     """Another process (``lease_owner``) holds this session's lease, and the lease runs."""
     return (run.lease_owner not in (None, owner) and run.lease_expires is not None
             and as_utc(run.lease_expires) > utcnow())
+
+
+# --------------------------------------------------------------------------- controller models
+
+
+def current_controller_model(db: Session, cell_id: int) -> ControllerModel | None:
+    """The newest controller model read for the cell (``None``: never read)."""
+    return db.exec(select(ControllerModel).where(ControllerModel.cell_id == cell_id)
+                   .order_by(ControllerModel.version.desc())).first()
+
+
+def add_controller_model(db: Session, *, cell_id: int, model: dict, session_id: int | None = None,
+                         moved_m: float | None = None) -> ControllerModel:
+    """Store a new version of the cell's controller model."""
+    last = current_controller_model(db, cell_id)
+    rec = ControllerModel(cell_id=cell_id, version=1 if last is None else last.version + 1, model=model,
+                          session_id=session_id, moved_m=moved_m)
+    db.add(rec)
+    db.commit()
+    db.refresh(rec)
+    return rec

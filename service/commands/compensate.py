@@ -16,7 +16,8 @@ Compensated task files (contracts §5), from an identified model:
   controller in their written configuration, joint targets as joint commands.
 
 The nominal model is ``--nominal`` or the one the identified model records
-(``identification.nominal``, written by ``recal identify``); in joints mode without one, rows
+(``identification.controller``, a UR cell's controller model, written by the service; else
+``identification.nominal``, written by ``recal identify``); in joints mode without one, rows
 without joints start from the identified model's own inverse kinematics. Robots without a
 closed-form inverse use the numerical one (``calibration.ik.numerical_ik``: from the row's joints
 or ``--qnear``, the previous row's solution, seeds over the joint limits). See
@@ -89,12 +90,16 @@ def _models(args):
     if args.nominal:
         nominal = load_model(args.nominal)
     else:
-        doc = (model.metadata.get("identification") or {}).get("nominal")
+        # a UR cell's calibration records its controller's own model (issue 16): that, not the
+        # published table, is what the controller computes with
+        ident = model.metadata.get("identification") or {}
+        key = "controller" if ident.get("controller") is not None else "nominal"
+        doc = ident.get(key)
         if doc is not None:
             try:
                 nominal = model_from_dict(doc)
             except ModelFormatError as exc:
-                raise Fail(f"{args.model}: field 'identification.nominal.{exc.field}': "
+                raise Fail(f"{args.model}: field 'identification.{key}.{exc.field}': "
                            f"{str(exc).split(': ', 1)[-1]}") from None
     taught = load_model(args.taught_on) if args.taught_on else None
     for m, what in ((nominal, args.nominal or "identification.nominal"), (taught, args.taught_on)):

@@ -152,17 +152,18 @@ def cell_truth():
 
 @pytest.fixture(scope="session")
 def cell_factory(truth_path):
-    """``start(*args) -> RunningCell`` on a free pool address; all stopped at session end."""
+    """``start(*args, truth=None) -> RunningCell`` on a free pool address (``truth``: another
+    truth file than the shared one); all stopped at session end."""
     started: list[RunningCell] = []
 
-    def start(*args: str) -> RunningCell:
+    def start(*args: str, truth: Path | None = None) -> RunningCell:
         in_use = {c.host for c in started if c.process.poll() is None}
         errors = []
         for host in POOL:
             if host in in_use or not host_is_free(host):
                 continue
             try:
-                cell = start_cell(truth_path, host, *args)
+                cell = start_cell(truth or truth_path, host, *args)
             except RuntimeError as exc:  # for example another test run holds this address
                 errors.append(str(exc))
                 continue

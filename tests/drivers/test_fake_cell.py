@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 # Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
@@ -91,3 +92,36 @@ def test_ur_controller_alone(truth_path, free_host):
         process.terminate()
         assert process.wait(timeout=10) == 0
         process.stdout.close()
+
+
+@pytest.mark.parametrize("block, expected", [
+    ({"published": "ur7e"}, "ur_factory_calibration.published: expected one of ur3e, ur5e, ur10e, ur16e"),
+    ({"published": "ur5e", "delta_theta": [0.0] * 5}, "ur_factory_calibration.delta_theta: expected a list of 6"),
+])
+def test_a_bad_factory_calibration_block_is_named(tmp_path, block, expected):
+    doc = json.loads(TRUTH_PATH.read_text())
+    doc["ur_factory_calibration"] = block
+    path = tmp_path / "truth.json"
+    path.write_text(json.dumps(doc))
+    done = run_cell("--truth", str(path), "--host", f"{NET}.19")
+    assert done.returncode != 0 and done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "truth.json" in lines[0] and expected in lines[0], done.stderr
+
+
+def test_factory_calibrations_round_trip_and_come_out_linearised():
+    """What --factory-seed draws: millimetres from the published table at the flange, joints
+    2-4 in the linearised form (large delta_d, sum near zero), the block readable again."""
+    from calibration.kinematics import fk
+    from calibration.robots import nominal
+    from fakes.world import FactoryCalibration, draw_factory_calibration
+
+    q = np.random.default_rng(0).uniform(-np.pi, np.pi, (200, 6))
+    for seed in range(3):
+        f = draw_factory_calibration("ur10e", seed)
+        again = FactoryCalibration.from_dict(json.loads(json.dumps(f.to_dict())))
+        assert again == f
+        d = np.linalg.norm(fk(f.model(), q)[:, :3, 3] - fk(nominal("ur10e"), q)[:, :3, 3], axis=1)
+        assert 0.3e-3 < d.max() < 10e-3, d.max()
+        assert min(abs(v) for v in f.delta_d[1:4]) > 1.0 and abs(sum(f.delta_d[1:4])) < 1e-3
+        assert max(abs(v) for v in (*f.delta_d[:1], *f.delta_d[4:])) < 5e-3

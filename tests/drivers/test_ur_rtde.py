@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calibration import robots
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 from calibration.transforms import rotvec_to_matrix
@@ -32,6 +33,7 @@ from drivers.errors import (
     ProtocolError,
 )
 from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
+from fakes.world import draw_factory_calibration
 from robot_contract import HOME, RobotContract
 
 # Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
@@ -65,9 +67,14 @@ def test_hundred_moves_at_time_scale_zero_take_well_under_ten_seconds(fake_cell)
 
 
 @needs_ur_rtde
-def test_unmodified_ur_rtde_reads_the_true_robot_with_its_default_recipe(fake_cell):
+def test_unmodified_ur_rtde_reads_the_robot_as_its_controller_computes_it_with_its_default_recipe(fake_cell):
     """The full default output recipe of RTDEReceiveInterface: a wrong type anywhere in the
-    fake's table would shift every later field. Run in a child process (GIL, hangs)."""
+    fake's table would shift every later field. Run in a child process (GIL, hangs).
+
+    ``actual_TCP_pose`` is the controller's own forward kinematics (its factory calibration,
+    here the one ``fakes.cell`` draws for the UR5e truth with --factory-seed 0, in the robot's
+    base frame), not the true pose in the world: this test assumed the latter until the fake
+    got a factory calibration, as a real controller has."""
     script = textwrap.dedent(
         f"""
         import json, rtde_receive, rtde_control
@@ -88,9 +95,11 @@ def test_unmodified_ur_rtde_reads_the_true_robot_with_its_default_recipe(fake_ce
     assert done.returncode == 0, done.stderr
     got = json.loads(done.stdout.strip().splitlines()[-1])
     np.testing.assert_allclose(got["q"], HOME + 0.3, atol=1e-12)
-    truth = model_from_dict(json.loads(TRUTH_PATH.read_text()))
-    T = fk(truth, (HOME + 0.3)[None, :])[0]
+    controller = draw_factory_calibration("ur5e", 0).model()
+    T = fk(controller, (HOME + 0.3)[None, :])[0]
     np.testing.assert_allclose(got["pose"][:3], T[:3, 3], atol=1e-9)
+    published = fk(model_from_dict(robots.nominal_document("ur5e")), (HOME + 0.3)[None, :])[0]
+    assert np.linalg.norm(published[:3, 3] - T[:3, 3]) > 0.2e-3  # not the published table
     np.testing.assert_allclose(rotvec_to_matrix(np.array(got["pose"][3:])), T[:3, :3], atol=1e-9)
     assert (got["mode"], got["safety"], got["bits"], got["runtime"]) == (7, 1, 1, 2)
     assert got["voltage"] == 48.0

@@ -294,6 +294,13 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     pdf = download("#download-pdf")
     assert pdf.read_bytes()[:4] == b"%PDF" and pdf.stat().st_size > 2000
 
+    # --- the cell page shows the UR controller's own kinematics, read when the sessions started
+    page.goto(f"{stack.url}/#/cells/{cell_id}")
+    controller_card = page.locator("section.card:has(h2:has-text('Controller kinematics'))")
+    controller_card.wait_for()
+    text = controller_card.inner_text()
+    assert "-controller, version 1" in text and "µm" in text and "first read" in text, text
+
     # --- a session interrupted by a crash of the service, resumed, paused and aborted from the page
     def plan_and_start(count: int) -> int:
         page.goto(f"{stack.url}/#/cells/{cell_id}/start")

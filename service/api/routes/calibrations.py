@@ -38,9 +38,13 @@ def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> d
 
 
 def _load_for_compensation(engine, calibration_id: int) -> tuple[dict, dict]:
+    """The calibration's model and the nominal its cell's controller computes with (a UR's own
+    kinematics where the cell keeps them, service.controller)."""
+    from ...controller import controller_nominal
+
     with Session(engine) as db:
         cal = get_calibration(db, calibration_id)
-        return cal.model, db.get(Cell, cal.cell_id).model
+        return cal.model, controller_nominal(db, db.get(Cell, cal.cell_id))
 
 
 def _store_compensation(engine, calibration_id: int, name: str, mode: str, output: str, report: dict,

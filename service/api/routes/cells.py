@@ -276,6 +276,7 @@ def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compens
     """Compensate every task file registered with the cell, with ``calibration_id`` (default the
     cell's last pose calibration); each result is stored."""
     from ...compensate import CompensationInputError, compensate_text
+    from ...controller import controller_nominal
 
     cell = get_cell(db, cell_id)
     cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
@@ -286,7 +287,8 @@ def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compens
     for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all():
         try:
             output, report = request.app.state.heavy.call(  # in a worker process: service.heavy
-                compensate_text, t.content, name=t.name, model_doc=cal.model, nominal_doc=cell.model, mode=t.mode)
+                compensate_text, t.content, name=t.name, model_doc=cal.model,
+                nominal_doc=controller_nominal(db, cell), mode=t.mode)  # what the controller computes with
         except CompensationInputError as exc:
             results.append({"task_id": t.id, "name": t.name, "error": str(exc)})
             continue
@@ -300,3 +302,49 @@ def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compens
     audit(db, actor=tok.name, action="compensate tasks", subject=f"cell {cell_id}",
           detail={"calibration": cal.id, "tasks": len(results)})
     return {"calibration_id": cal.id, "tasks": results}
+
+
+# --------------------------------------------------------------------------- the controller's model
+
+
+@router.get("/cells/{cell_id}/controller-model")
+def read_controller_model(cell_id: int, db: DbSession, tok: Reader) -> dict:
+    """The UR controller's own kinematics the cell keeps (newest version, ``recal.model/1`` with
+    its ``controller`` block) and every version's summary; 404 when none was read."""
+    from ...controller import controller_summary
+    from ...models import ControllerModel
+
+    cell = get_cell(db, cell_id)
+    summary = controller_summary(db, cell)
+    if summary is None:
+        raise HTTPException(404, f"cell {cell_id} has no controller model: a session on a UR cell over RTDE reads it, "
+                                 f"or upload the file `recal controller-model` writes")
+    rows = db.exec(select(ControllerModel).where(ControllerModel.cell_id == cell_id)
+                   .order_by(ControllerModel.version.desc())).all()
+    return {**summary, "model": rows[0].model,
+            "history": [{"version": r.version, "session_id": r.session_id, "created_at": r.created_at,
+                         "moved_mm": None if r.moved_m is None else r.moved_m * 1e3} for r in rows]}
+
+
+@router.put("/cells/{cell_id}/controller-model")
+def upload_controller_model(cell_id: int, body: dict, db: DbSession, tok: CellEditor) -> dict:
+    """Store a controller model written by ``recal controller-model`` as the cell's newest
+    version (its ``controller`` block, the check figures, is required)."""
+    from ...controller import BLOCK, controller_summary, models_differ
+    from ...store import add_controller_model, current_controller_model
+
+    cell = get_cell(db, cell_id)
+    try:
+        model_from_dict(body)
+    except ModelFormatError as exc:
+        raise HTTPException(422, {"field": f"body.{exc.field}" if exc.field else "body",
+                                  "message": str(exc).split(": ", 1)[-1]}) from None
+    if not isinstance(body.get(BLOCK), dict):
+        raise HTTPException(422, {"field": f"body.{BLOCK}", "message": "expected the check figures block "
+                                  "`recal controller-model` writes"})
+    last = current_controller_model(db, cell_id)
+    moved = models_differ(None if last is None else last.model, body)
+    rec = add_controller_model(db, cell_id=cell_id, model=body, moved_m=moved)
+    audit(db, actor=tok.name, action="upload controller model", subject=f"cell {cell_id}",
+          detail={"version": rec.version})
+    return controller_summary(db, cell)

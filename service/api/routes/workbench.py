@@ -118,8 +118,11 @@ def overview(db: DbSession, tok: Reader, site: str | None = None, limit: int = 2
 def cell_summary(cell_id: int, db: DbSession, tok: Reader) -> dict:
     """One cell as on the overview, with its devices document and allowed region."""
     cell = _cell(db, cell_id)
+    from ...controller import controller_summary
+
     return {**_summary(db, cell), "devices_doc": cell.devices, "allowed_region": cell.allowed_region,
-            "created_at": as_utc(cell.created_at).isoformat(), "model": cell.model}
+            "created_at": as_utc(cell.created_at).isoformat(), "model": cell.model,
+            "controller_model": controller_summary(db, cell)}
 
 
 @router.get("/cells/{cell_id}/history")

@@ -150,11 +150,24 @@ export async function detail(ctx, id) {
       c.accuracy && c.accuracy.calibration_id === c.last.id ? `; accuracy ${num(c.accuracy.rms, 3)} ${unit} RMS, `
         + `max ${num(c.accuracy.max, 3)} ${unit} on ${c.accuracy.n} fresh configurations` : "; not verified yet") : null);
 
+  // a UR controller computes with its own kinematics (factory calibration): the cell keeps a copy
+  const cm = c.controller_model;
+  const controllerCard = cm || (c.devices_doc || {}).rtde ? card("Controller kinematics", cm
+    ? kv([["Model", `${cm.name}, version ${cm.version}`], ["Read", `${when(cm.read_at || cm.created_at)}`
+          + (cm.session_id ? ` (session ${cm.session_id})` : " (uploaded)")],
+          ["Reproduces the controller", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm`],
+          ["Last change", cm.moved_mm == null ? (cm.version > 1 ? "none" : "first read")
+            : `the flange moved up to ${num(cm.moved_mm, 3)} mm`]])
+    : h("p", { class: "muted", id: "controller-model-none" }, "Not read yet: the next session reads it from the "
+        + "controller (nothing moves), or upload the file `recal controller-model` writes."),
+  h("p", { class: "muted small" }, "Targets mode, URScript pose targets and compensation use it, not the published "
+    + "DH table.")) : null;
+
   const sessionsBox = h("div", {});
   const calsBox = h("div", {});
   put(ctx.root, head, banner,
     h("div", { class: "two" }, robotCard, trendCard),
-    devCard,
+    devCard, controllerCard,
     h("div", { class: "two" }, card("Sessions", sessionsBox), card("Calibrations", calsBox)));
   pagedSessions(sessionsBox, id, 0);
   pagedCalibrations(calsBox, id, 0, unit);

@@ -149,6 +149,11 @@ export async function live(ctx, id) {
           ? h("div", { class: "small" }, "Nothing moves until someone resumes the session. Measurements taken so far are kept; "
             + "it continues with the first pose not yet measured.") : null));
     }
+    const controllerWarning = s.plan_info?.controller_model?.warning;
+    if (controllerWarning) {  // the UR controller's own kinematics changed (or could not be read)
+      add(banner, h("div", { class: "banner banner-warn", id: "controller-model-banner" },
+        h("strong", {}, "Controller kinematics: "), controllerWarning));
+    }
     clear(controls);
     if (can("run")) {
       if (s.state === "running" || s.state === "planned") {

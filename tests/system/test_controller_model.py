@@ -1,0 +1,66 @@
+"""The UR controller's own kinematics kept by the cell (issue 16): read when a session starts on
+a UR cell over RTDE, versioned, shown with the cell, recorded in the calibration, used as the
+nominal model of compensation; a changed factory calibration is a new version and a warning."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.kinematics import fk
+from calibration.model import model_from_dict
+from fakes.world import draw_factory_calibration
+from service.compensate import compensate_text
+from service.processes import start_fake_cell
+
+SCRIPT = """def task():
+  movel(p[0.400, -0.200, 0.350, 0.0, 3.1416, 0.0], a=1.2, v=0.25)
+  movel(p[0.450, -0.150, 0.300, 0.0, 3.1416, 0.0], a=1.2, v=0.25)
+end
+"""
+
+
+def _same_kinematics(doc: dict, factory_seed: int) -> float:
+    """Worst flange position difference (m) between ``doc`` and the fake's factory model."""
+    q = np.random.default_rng(2).uniform(-np.pi, np.pi, (100, 6))
+    expected = fk(draw_factory_calibration("ur5e", factory_seed).model(), q)
+    return float(np.max(np.linalg.norm(fk(model_from_dict(doc), q)[:, :3, 3] - expected[:, :3, 3], axis=1)))
+
+
+def test_sessions_read_keep_and_version_the_controllers_kinematics(stack, models, register):
+    cell, fake = register(fake_args=["--factory-seed", "3"])
+    api = stack.api()
+    s = api.wait_session(api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "pose", "count": 30})["id"], 120)
+    assert s["state"] == "completed", (s["state"], s.get("reason"))
+    assert s["plan_info"]["controller_model"] == {"version": 1, "changed": False, "warning": None, "moved_mm": None}
+    cm = api.call("GET", f"/cells/{cell['id']}/controller-model")
+    assert cm["version"] == 1 and cm["session_id"] == s["id"] and cm["check_um"] < 1.0
+    assert _same_kinematics(cm["model"], 3) < 1e-6
+    summary = api.call("GET", f"/cells/{cell['id']}/summary")
+    assert summary["controller_model"]["version"] == 1
+
+    # the calibration records what the controller computes with; compensation uses it
+    cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
+    assert cal["model"]["identification"]["controller"]["name"] == "ur5e-controller"
+    out = api.call("POST", f"/calibrations/{s['calibration_id']}/compensate?name=task.script", raw=SCRIPT)
+    through = {name: compensate_text(SCRIPT, name="task.script", model_doc=cal["model"], nominal_doc=doc)[0]
+               for name, doc in (("controller", cm["model"]), ("published", cell["model"]))}
+    assert out == through["controller"] and out != through["published"]
+
+    # the same controller: nothing new
+    s2 = api.wait_session(api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "verify", "count": 4})["id"], 60)
+    assert s2["state"] == "completed", (s2["state"], s2.get("reason"))
+    assert s2["plan_info"]["controller_model"]["changed"] is False, s2["plan_info"]["controller_model"]
+    assert api.call("GET", f"/cells/{cell['id']}/controller-model")["version"] == 1
+
+    # the controller's factory calibration replaced: a new version and a warning
+    host = fake.ready["rtde"]
+    fake.stop()
+    stack.cells.append(start_fake_cell(models["truth"], host, extra=["--factory-seed", "4"]))
+    s3 = api.wait_session(api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "verify", "count": 4})["id"], 60)
+    assert s3["state"] == "completed", (s3["state"], s3.get("reason"))
+    info = s3["plan_info"]["controller_model"]
+    assert info["version"] == 2 and info["changed"] is True and info["moved_mm"] > 0.1
+    assert "changed since version 1" in info["warning"]
+    cm = api.call("GET", f"/cells/{cell['id']}/controller-model")
+    assert cm["version"] == 2 and [h["version"] for h in cm["history"]] == [2, 1]
+    assert _same_kinematics(cm["model"], 4) < 1e-6
