@@ -19,7 +19,10 @@ flight). A move in progress when the connection drops is not re-sent.
 
 Safety and power: ``move_joints`` raises ``RobotStoppedError`` for a protective or emergency
 stop, a safety fault, and an arm that is not running (powered off or brakes on, as after an
-emergency stop), each message saying what releases it; the driver itself never does.
+emergency stop), each message saying what releases it; the driver itself never does. Connecting
+does too (the dashboard's ``safetystatus`` and ``robotmode``, asked before ``ur_rtde`` uploads
+its control script, which a stopped controller refuses with only "Failed to start control
+script").
 
 Before starting a worker the driver probes the controller with a timeout on each port (the
 dashboard greeting, the script port, an RTDE handshake up to the first data package), so an

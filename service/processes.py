@@ -52,18 +52,27 @@ def start_fake_cell(truth: str | Path, host: str, *, seed: int = 0, time_scale: 
                          stdout=subprocess.PIPE, stderr=err, text=True)
     deadline = time.monotonic() + timeout_s
     line = ""
-    while time.monotonic() < deadline:
-        line = p.stdout.readline()
-        if line.strip():
-            break
-        if p.poll() is not None:
-            raise RuntimeError(f"recal fake-cell exited with status {p.returncode} before it was ready")
     try:
+        while time.monotonic() < deadline:
+            line = p.stdout.readline()
+            if line.strip():
+                break
+            if p.poll() is not None:
+                raise RuntimeError(f"recal fake-cell exited with status {p.returncode} before it was ready")
         ready = json.loads(line)
     except json.JSONDecodeError:
         p.kill()
         raise RuntimeError(f"recal fake-cell printed {line!r} instead of its endpoint line") from None
+    except BaseException:  # Ctrl-C or SIGTERM (recal demo) while it starts: no orphan
+        _kill(p)
+        raise
     return Proc(p, ready, log_path)
+
+
+def _kill(p: subprocess.Popen) -> None:
+    if p.poll() is None:
+        p.kill()
+        p.wait(10)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -81,16 +90,20 @@ def start_service(home: Path, port: int, *, env: dict | None = None, timeout_s: 
                          env=e, stdout=out, stderr=subprocess.STDOUT)
     url = f"http://{host}:{port}"
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if p.poll() is not None:
-            raise RuntimeError(f"recal serve exited with status {p.returncode} before it was ready"
-                               + (f" (log: {log_path})" if log_path else ""))
-        try:
-            with urllib.request.urlopen(url + "/api/v1/health", timeout=1) as r:
-                if r.status == 200:
-                    return Proc(p, {"url": url}, log_path)
-        except OSError:
-            time.sleep(0.1)
+    try:
+        while time.monotonic() < deadline:
+            if p.poll() is not None:
+                raise RuntimeError(f"recal serve exited with status {p.returncode} before it was ready"
+                                   + (f" (log: {log_path})" if log_path else ""))
+            try:
+                with urllib.request.urlopen(url + "/api/v1/health", timeout=1) as r:
+                    if r.status == 200:
+                        return Proc(p, {"url": url}, log_path)
+            except OSError:
+                time.sleep(0.1)
+    except BaseException:  # Ctrl-C or SIGTERM (recal demo) while it starts: no orphan
+        _kill(p)
+        raise
     p.kill()
     raise RuntimeError(f"recal serve did not answer on {url} within {timeout_s} s")
 

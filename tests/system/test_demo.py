@@ -27,6 +27,30 @@ def _refused(host: str, port: int) -> bool:
         return True
 
 
+def _children(pid: int) -> set[int]:
+    """The process ids of ``pid``'s children (Linux /proc)."""
+    out = set()
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out |= {int(c) for c in f.read().split()}
+    return out
+
+
+def _gone(pids: set[int], timeout_s: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while any(os.path.exists(f"/proc/{p}") and _state(p) != "Z" for p in pids):
+        assert time.monotonic() < deadline, f"children of recal demo outlived it: {pids}"
+        time.sleep(0.1)
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "X"
+
+
 def _get(url: str, token: str) -> dict:
     req = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"})
     with urllib.request.urlopen(req, timeout=10) as r:
@@ -61,12 +85,36 @@ def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path)
         while not _get(f"{url}/api/v1/sessions/1", printed)["measured"]:
             assert time.monotonic() < deadline
             time.sleep(0.2)
+        children = _children(demo.pid)
+        assert len(children) == 2, children  # the service and the simulated cell
         demo.send_signal(signal.SIGTERM)
         assert demo.wait(30) == 0
+        _gone(children)
         deadline = time.monotonic() + 10  # its children are gone: nothing answers on their ports
         while not (_refused("127.0.0.1", port) and _refused(host, 29999) and _refused(host, 10001)):
             assert time.monotonic() < deadline, "the demo's service or simulated cell outlived it"
             time.sleep(0.1)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait(10)
+
+
+def test_sigterm_while_the_demo_starts_leaves_no_child(tmp_path):
+    # killed while its service is still starting (it takes seconds to answer): nothing is left running
+    demo = subprocess.Popen([sys.executable, "-m", "service.cli", "demo", "--dir", str(tmp_path / "demo"),
+                             "--host", next_host(), "--port", str(free_port())],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline, children = time.monotonic() + 30, set()
+        while len(children) < 2:  # the simulated cell is up and the service process started
+            assert time.monotonic() < deadline and demo.poll() is None
+            children = _children(demo.pid)
+            time.sleep(0.02)
+        demo.send_signal(signal.SIGTERM)
+        assert demo.wait(30) == 0
+        _gone(children)
+        assert "service ready" not in demo.stdout.read()  # it was stopped while starting
     finally:
         if demo.poll() is None:
             demo.kill()

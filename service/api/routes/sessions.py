@@ -81,8 +81,6 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
                                             RunSession.dry_run == False)).first()  # noqa: E712 - dry runs move nothing
     if busy is not None and not body.dry_run:
         raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
-    if body.dry_run:
-        forget_dry_runs(db, cell.id)
     info = {**({"joints": body.joints} if body.joints else {}), **({"repeats": body.repeats} if body.repeats > 1 else {})}
     if body.payloads:  # SI: kg, then the centre of gravity in the tool frame (m)
         L = model.units.length_m
@@ -96,6 +94,8 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
         db.rollback()
         raise HTTPException(409, "another session is already driving this cell") from None
     db.refresh(run)
+    if body.dry_run:  # after the new one has its id: on SQLite a deleted highest id would be given again
+        forget_dry_runs(db, cell.id, keep=run.id)
     audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
           detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run})
     if not queued:
@@ -103,12 +103,12 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     return public_session(db, run)
 
 
-def forget_dry_runs(db, cell_id: int) -> None:
-    """Delete the cell's finished dry runs. A dry run ("Show the plan") is a plan to confirm
-    (and to run, ``POST /sessions/{id}/run``, as often as wanted), not a session: only the
-    cell's latest is kept, and session lists leave it out. Dry runs have no measurements."""
+def forget_dry_runs(db, cell_id: int, *, keep: int) -> None:
+    """Delete the cell's finished dry runs but ``keep``. A dry run ("Show the plan") is a plan
+    to confirm (and to run, ``POST /sessions/{id}/run``, as often as wanted), not a session: only
+    the cell's latest is kept, and session lists leave it out. Dry runs have no measurements."""
     db.execute(delete(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == True,  # noqa: E712
-                                        RunSession.state.not_in(ACTIVE)))
+                                        RunSession.state.not_in(ACTIVE), RunSession.id != keep))
     db.commit()
 
 

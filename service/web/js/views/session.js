@@ -1,7 +1,7 @@
 // A session, live: progress from the server-sent events, residuals so far, device state, time
 // remaining; pause, resume and abort with a confirmation; the reason when it stops.
 
-import { can, get, post, sessionEvents } from "../api.js";
+import { can, download, get, post, sessionEvents } from "../api.js";
 import { COLORS, chart, sizes } from "../plots.js";
 import { add, address, badge, busy, card, clear, put, confirmDialog, duration, h, kv, notify, num, when, whenSeconds } from "../ui.js";
 
@@ -37,7 +37,11 @@ export async function live(ctx, id) {
     banner,
     card("Progress",
       h("div", { class: "bar", role: "progressbar", "aria-label": "poses measured" }, bar), progressText,
-      kv([["Time remaining", remaining], ["Pace", pace]]), controls),
+      kv([["Time remaining", remaining], ["Pace", pace]]), controls,
+      // the measurements so far, as the CSV `recal identify --data` reads (in the cell's units)
+      h("p", { class: "small" }, h("button", { class: "secondary", id: "download-measurements",
+        onclick: (e) => busy(e.target, () => download(`/sessions/${id}/measurements.csv`, `session-${id}-measurements.csv`)) },
+        "Download the measurements (CSV)"))),
     outcome,
     h("div", { class: "two wide-first" }, card("Residuals so far", resid), card("Devices", devices)));
 
