@@ -34,7 +34,12 @@ browser:
 test: $(STAMP) browser
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
+# The linter and the formatter (ruff, configured in pyproject.toml): clean on the whole tree.
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
 bench: $(STAMP)
 	$(BIN)/python bench/identify.py
 
-.PHONY: install demo test bench browser
+.PHONY: install demo test bench browser lint
