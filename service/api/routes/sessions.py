@@ -214,8 +214,12 @@ async def stream_reader(session_id: int, request: Request,
 
 
 @router.get("/sessions/{session_id}/events", response_class=StreamingResponse,
-            responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}},
-                             "description": "Server-sent events (`event: progress`, data: the session)"}})
+            responses={200: {"description": "Server-sent events (`event: progress`), each one's data the session",
+                             "content": {"text/event-stream": {"schema": {  # each event (OpenAPI 3.1: `schema`)
+                                 "type": "object", "required": ["event", "data"],
+                                 "properties": {"event": {"const": "progress"}, "data": {
+                                     "type": "string", "contentMediaType": "application/json",
+                                     "contentSchema": {"$ref": "#/components/schemas/SessionPublic"}}}}}}}})
 async def events(session_id: int, request: Request, tok: Annotated[Token, Depends(stream_reader)]):
     """Progress as server-sent events: an ``event: progress`` with the session's state,
     planned and measured counts and reason whenever one changes; ends when the session is
