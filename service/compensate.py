@@ -67,3 +67,38 @@ def _with_library(taskfiles, text: str, *, name: str, model_doc: dict, nominal_d
             return taskfiles.compensate_file(src, model=model, nominal=nominal, mode=mode)
         except ValueError as exc:
             raise CompensationInputError(str(exc).replace(str(src), name)) from None
+
+
+# Engines of a worker process (service.heavy), one per database URL, opened on its first job and
+# kept for the next: a worker serves one service, so this holds one engine.
+_ENGINES: dict = {}
+
+
+def compensate_and_store(database_url: str, calibration_id: int, text: str, *, name: str, mode: str,
+                         actor: str) -> tuple[int, str]:
+    """In a worker process: compensate ``text`` with calibration ``calibration_id`` and store the
+    result and its audit entry. Returns (the compensation's id, the compensated text). The
+    models are read and the per-point report written here, not in the API process: the report of
+    the largest allowed file is megabytes of JSON, and encoding it in the API process held the
+    GIL for a fifth of a second (bench/heavy.py)."""
+    from sqlmodel import Session
+
+    from .models import Calibration, Cell, Compensation
+    from .store import audit, make_engine
+
+    engine = _ENGINES.get(database_url)
+    if engine is None:
+        engine = _ENGINES[database_url] = make_engine(database_url)
+    with Session(engine) as db:
+        cal = db.get(Calibration, calibration_id)
+        if cal is None:
+            raise CompensationInputError(f"no calibration {calibration_id}")
+        nominal_doc = db.get(Cell, cal.cell_id).model
+        output, report = compensate_text(text, name=name, model_doc=cal.model, nominal_doc=nominal_doc, mode=mode)
+        rec = Compensation(calibration_id=calibration_id, name=name, mode=mode, output=output, report=report,
+                           created_by=actor)
+        db.add(rec)
+        db.commit()
+        audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
+              detail={"name": name, "mode": mode})
+        return rec.id, output

@@ -7,8 +7,7 @@ from fastapi.responses import PlainTextResponse
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
-from ...models import Calibration, CalibrationPublic, Cell, Compensation
-from ...store import audit
+from ...models import Calibration, CalibrationPublic, Compensation
 from ..deps import Compensator, DbSession, Reader
 
 router = APIRouter(tags=["calibrations"])
@@ -38,22 +37,9 @@ def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> d
             "nominal_versions": [a.nominal_version, b.nominal_version]}
 
 
-def _load_for_compensation(engine, calibration_id: int) -> tuple[dict, dict]:
+def _exists(engine, calibration_id: int) -> None:
     with Session(engine) as db:
-        cal = get_calibration(db, calibration_id)
-        return cal.model, db.get(Cell, cal.cell_id).model
-
-
-def _store_compensation(engine, calibration_id: int, name: str, mode: str, output: str, report: dict,
-                        actor: str) -> int:
-    with Session(engine) as db:
-        rec = Compensation(calibration_id=calibration_id, name=name, mode=mode, output=output, report=report,
-                           created_by=actor)
-        db.add(rec)
-        db.commit()
-        audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
-              detail={"name": name, "mode": mode})
-        return rec.id
+        get_calibration(db, calibration_id)
 
 
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
@@ -61,25 +47,24 @@ async def compensate(calibration_id: int, request: Request, tok: Compensator,
                      mode: str = "joints", name: str = "task.csv") -> PlainTextResponse:
     """A task CSV (or a URScript program) in the request body; the compensated file out
     (contracts §5). ``mode``: ``joints`` or ``targets``. The compensation runs in a worker
-    process (service.heavy): the service answers every other request meanwhile; the database
-    in the thread pool (a networked database may stall)."""
+    process (service.heavy), which also stores it: the service answers every other request
+    meanwhile."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
-    engine = request.app.state.engine
-    model_doc, cell_model = await run_in_threadpool(_load_for_compensation, engine, calibration_id)
+    await run_in_threadpool(_exists, request.app.state.engine, calibration_id)  # 404 before any work
     body = (await request.body()).decode("utf-8", errors="replace")
     if not body.strip():
         raise HTTPException(422, {"field": "body", "message": "expected a task CSV or URScript program, got nothing"})
     if "\x00" in body:
         raise HTTPException(422, {"field": "body", "message": "expected a text file, got NUL characters (binary data?)"})
-    from ...compensate import CompensationInputError, compensate_text
+    from ...compensate import CompensationInputError, compensate_and_store
 
     try:
-        output, report = await request.app.state.heavy.run(compensate_text, body, name=name, model_doc=model_doc,
-                                                           nominal_doc=cell_model, mode=mode)
+        rec_id, output = await request.app.state.heavy.run(
+            compensate_and_store, request.app.state.settings.effective_database_url, calibration_id, body,
+            name=name, mode=mode, actor=tok.name)
     except CompensationInputError as exc:
         raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
-    rec_id = await run_in_threadpool(_store_compensation, engine, calibration_id, name, mode, output, report, tok.name)
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
     return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec_id)})
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlalchemy import bindparam, func
 from sqlalchemy import select as sa_select
@@ -165,12 +166,17 @@ def pause(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrato
 
 
 @router.post("/sessions/{session_id}/abort", response_model=SessionPublic)
-def abort(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+    t0 = time.perf_counter()
     run = get_run(db, session_id)
     if run.state in TERMINAL:
         raise HTTPException(409, f"session {session_id} is {run.state} already")
+    stopping = orchestrator.abort(run.id)
+    # How long after the request reached this route the robot was told to stop (the answer
+    # itself waits for the session to have ended: the robot decelerating, at most ABORT_WAIT_S).
+    response.headers["Server-Timing"] = f"robot-stop;dur={(time.perf_counter() - t0) * 1e3:.1f}"
     audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
-    if orchestrator.abort(run.id):
+    if stopping:
         # It stops the robot at once and the session at its next step (while planning: within
         # 0.1 s); answer with the state it ends in when that is quick.
         orchestrator.wait(run.id, ABORT_WAIT_S)
