@@ -24,7 +24,7 @@ from ..store import interrupt_unfinished, make_engine, migrate
 from . import docs, metrics
 from .deps import current_token
 from .docs import allowed_methods, document_errors, needs_token
-from .middleware import BodyLimit, RequestLog
+from .middleware import BodyLimit, PageCache, RequestLog
 from .routes import calibrations, cells, results, sessions, system, web, workbench
 
 log = logging.getLogger("recal.api")
@@ -115,6 +115,7 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
                   description="Robot calibration service: cells, measurement sessions, calibrations, compensation.")
     # Outermost last: every request is logged and timed (413s included), then its body limited.
     app.add_middleware(BodyLimit, settings=settings)
+    app.add_middleware(PageCache)
     app.add_middleware(RequestLog, observe=metrics.install(app))
 
     @app.exception_handler(RequestValidationError)
