@@ -9,6 +9,7 @@ from starlette.concurrency import run_in_threadpool
 
 from ...models import Calibration, CalibrationPublic, Compensation
 from ..deps import Compensator, DbSession, Reader
+from ..schemas import Comparison
 
 router = APIRouter(tags=["calibrations"])
 
@@ -25,7 +26,7 @@ def read_calibration(calibration_id: int, db: DbSession, tok: Reader):
     return CalibrationPublic(**get_calibration(db, calibration_id).model_dump())
 
 
-@router.get("/calibrations/{calibration_id}/compare/{other_id}")
+@router.get("/calibrations/{calibration_id}/compare/{other_id}", response_model=Comparison)
 def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> dict:
     """Which parameters moved between two calibrations, in units of their combined standard
     uncertainty: every parameter, the base and tool frames included (the page's comparison,

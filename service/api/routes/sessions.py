@@ -18,7 +18,7 @@ from sqlmodel import Session, select
 from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
 from ...store import audit, measured_count, set_state_unless
 from ..deps import PERMISSIONS, DbSession, Orchestrator, Reader, Runner, current_token, quick_read, tickets
-from ..schemas import EventTicket
+from ..schemas import EventTicket, MeasurementOut
 
 router = APIRouter(tags=["sessions"])
 
@@ -186,7 +186,7 @@ def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orche
     return public_session(db, run)
 
 
-@router.get("/sessions/{session_id}/measurements")
+@router.get("/sessions/{session_id}/measurements", response_model=list[MeasurementOut])
 def measurements(session_id: int, db: DbSession, tok: Reader) -> list[dict]:
     get_run(db, session_id)
     rows = db.exec(select(Measurement).where(Measurement.session_id == session_id)
