@@ -177,7 +177,7 @@ def page_routes(api: Api, cell_id: int, session_id: int) -> list[str]:
     """What the page polls while a technician watches (service/web/js/views): the overview, the
     cell's summary, the session, its measurements and live residuals, its calibration's result."""
     cal = api.call("GET", f"/sessions/{session_id}")["calibration_id"]
-    return [f"/api/v1/overview?limit=50&offset=0", f"/api/v1/cells/{cell_id}/summary",
+    return ["/api/v1/overview?limit=50&offset=0", f"/api/v1/cells/{cell_id}/summary",
             f"/api/v1/sessions/{session_id}", f"/api/v1/sessions/{session_id}/measurements",
             f"/api/v1/sessions/{session_id}/live", f"/api/v1/calibrations/{cal}/result"]
 

@@ -75,9 +75,10 @@ _ENGINES: dict = {}
 
 
 def compensate_and_store(database_url: str, calibration_id: int, text: str, *, name: str, mode: str,
-                         actor: str) -> tuple[int, str]:
+                         actor: str, audited: bool = True) -> tuple[int, str, dict | None]:
     """In a worker process: compensate ``text`` with calibration ``calibration_id`` and store the
-    result and its audit entry. Returns (the compensation's id, the compensated text). The
+    result (and, ``audited``, its audit entry). Returns (the compensation's id, the compensated
+    text, the report's summary). The
     models are read and the per-point report written here, not in the API process: the report of
     the largest allowed file is megabytes of JSON, and encoding it in the API process held the
     GIL for a fifth of a second (bench/heavy.py)."""
@@ -99,6 +100,7 @@ def compensate_and_store(database_url: str, calibration_id: int, text: str, *, n
                            created_by=actor)
         db.add(rec)
         db.commit()
-        audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
-              detail={"name": name, "mode": mode})
-        return rec.id, output
+        if audited:
+            audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
+                  detail={"name": name, "mode": mode})
+        return rec.id, output, (report or {}).get("summary")

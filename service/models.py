@@ -6,7 +6,6 @@ documents (models, reports, endpoint lines) exactly as they were given.
 
 from __future__ import annotations
 
-import math
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 

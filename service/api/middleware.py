@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
@@ -181,8 +182,6 @@ class PageCache:
                 self._entries.clear()
         if scope["method"] != "GET" or not any(r.match(scope["path"]) for r in PAGE_ROUTES):
             return await self.app(scope, receive, send)
-        import asyncio
-
         from ..store import hash_token
         from .deps import PERMISSIONS, token_cache
 

@@ -61,7 +61,7 @@ async def compensate(calibration_id: int, request: Request, tok: Compensator,
     from ...compensate import CompensationInputError, compensate_and_store
 
     try:
-        rec_id, output = await request.app.state.heavy.run(
+        rec_id, output, _ = await request.app.state.heavy.run(
             compensate_and_store, request.app.state.settings.effective_database_url, calibration_id, body,
             name=name, mode=mode, actor=tok.name)
     except CompensationInputError as exc:

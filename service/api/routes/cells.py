@@ -12,7 +12,6 @@ from calibration.model import ModelFormatError, model_from_dict
 from ...models import (
     Calibration,
     Cell,
-    Compensation,
     CellCreate,
     CellPublic,
     CellUpdate,
@@ -261,7 +260,7 @@ def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compens
                      calibration_id: int | None = None) -> dict:
     """Compensate every task file registered with the cell, with ``calibration_id`` (default the
     cell's last pose calibration); each result is stored."""
-    from ...compensate import CompensationInputError, compensate_text
+    from ...compensate import CompensationInputError, compensate_and_store
 
     cell = get_cell(db, cell_id)
     cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
@@ -269,20 +268,15 @@ def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compens
         raise HTTPException(404, "no calibration to compensate with" if calibration_id is None
                             else f"no calibration {calibration_id} in cell {cell_id}")
     results = []
+    url = request.app.state.settings.effective_database_url
     for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all():
-        try:
-            output, report = request.app.state.heavy.call(  # in a worker process: service.heavy
-                compensate_text, t.content, name=t.name, model_doc=cal.model, nominal_doc=cell.model, mode=t.mode)
+        try:  # computed and stored in a worker process (service.heavy), as POST .../compensate
+            rec_id, _, summary = request.app.state.heavy.call(compensate_and_store, url, cal.id, t.content,
+                                                              name=t.name, mode=t.mode, actor=tok.name, audited=False)
         except CompensationInputError as exc:
             results.append({"task_id": t.id, "name": t.name, "error": str(exc)})
             continue
-        rec = Compensation(calibration_id=cal.id, name=t.name, mode=t.mode, output=output, report=report,
-                           created_by=tok.name)
-        db.add(rec)
-        db.commit()
-        db.refresh(rec)
-        results.append({"task_id": t.id, "name": t.name, "compensation_id": rec.id,
-                        "summary": (report or {}).get("summary")})
+        results.append({"task_id": t.id, "name": t.name, "compensation_id": rec_id, "summary": summary})
     audit(db, actor=tok.name, action="compensate tasks", subject=f"cell {cell_id}",
           detail={"calibration": cal.id, "tasks": len(results)})
     return {"calibration_id": cal.id, "tasks": results}
