@@ -103,15 +103,17 @@ def drivers_per_pose(endpoint: dict, configs: np.ndarray) -> list[float]:
 def _client(args) -> list[float]:
     """One client process: ``threads`` keep-alive clients, each ``requests`` GETs in turn."""
     host, port, path, token, threads, requests, start_at, interval_s = args
+    paths = path if isinstance(path, (list, tuple)) else [path]
     lat: list[float] = []
     lock = threading.Lock()
     headers = {"Authorization": f"Bearer {token}"} if token else {}
 
-    def run(phase_s: float):
+    def run(phase_s: float, first: int):
         conn = http.client.HTTPConnection(host, port, timeout=30)
         mine = []
         t_next = time.perf_counter() + phase_s
-        for _ in range(requests):
+        for k in range(requests):
+            path = paths[(first + k) % len(paths)]  # a page's polls: its routes in turn
             if interval_s:  # polling: one request per interval, whenever the last answer came
                 time.sleep(max(0.0, t_next - time.perf_counter()))
                 t_next += interval_s
@@ -119,7 +121,7 @@ def _client(args) -> list[float]:
             conn.request("GET", path, headers=headers)
             r = conn.getresponse()
             r.read()
-            mine.append(time.perf_counter() - t0)
+            mine.append((paths.index(path), time.perf_counter() - t0) if len(paths) > 1 else time.perf_counter() - t0)
             if r.status != 200:
                 raise RuntimeError(f"GET {path}: {r.status}")
         conn.close()
@@ -129,7 +131,8 @@ def _client(args) -> list[float]:
     while time.time() < start_at:  # every client starts together
         time.sleep(0.001)
     rng = random.Random(os.getpid())
-    ts = [threading.Thread(target=run, args=(rng.uniform(0, interval_s),)) for _ in range(threads)]
+    ts = [threading.Thread(target=run, args=(rng.uniform(0, interval_s), rng.randrange(len(paths))))
+          for _ in range(threads)]
     for t in ts:
         t.start()
     for t in ts:
@@ -151,6 +154,34 @@ def load(url: str, path: str, token: str | None, clients: int, procs: int, reque
             "p99": float(np.percentile(lat, 99)), "max": float(lat[-1]), "rps": lat.size / wall}
 
 
+def page_load(url: str, paths: list[str], token: str, clients: int, procs: int, requests: int,
+              interval_s: float) -> dict:
+    """``clients`` pages polling ``paths`` in turn; latency (ms) over all, and per path."""
+    host, port = url.split("//")[1].split(":")
+    per = [clients // procs + (i < clients % procs) for i in range(procs)]
+    start_at = time.time() + 1.0
+    t0 = time.perf_counter()
+    with multiprocessing.Pool(procs) as pool:
+        parts = pool.map(_client, [(host, int(port), paths, token, n, requests, start_at, interval_s) for n in per])
+    wall = time.perf_counter() - t0 - 1.0
+    rows = np.array([x for p in parts for x in p])
+    out = {}
+    for name, sel in [("all", np.ones(len(rows), bool))] + [(p, rows[:, 0] == k) for k, p in enumerate(paths)]:
+        lat = np.sort(rows[sel, 1]) * 1e3
+        out[name] = {"n": lat.size, "p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
+                     "p99": float(np.percentile(lat, 99)), "max": float(lat[-1]), "rps": lat.size / wall}
+    return out
+
+
+def page_routes(api: Api, cell_id: int, session_id: int) -> list[str]:
+    """What the page polls while a technician watches (service/web/js/views): the overview, the
+    cell's summary, the session, its measurements and live residuals, its calibration's result."""
+    cal = api.call("GET", f"/sessions/{session_id}")["calibration_id"]
+    return ["/api/v1/overview?limit=50&offset=0", f"/api/v1/cells/{cell_id}/summary",
+            f"/api/v1/sessions/{session_id}", f"/api/v1/sessions/{session_id}/measurements",
+            f"/api/v1/sessions/{session_id}/live", f"/api/v1/calibrations/{cal}/result"]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--poses", type=int, default=60)
@@ -159,6 +190,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--requests", type=int, default=100, help="requests per client")
     ap.add_argument("--interval", type=float, default=0.1, help="polling: seconds between a client's requests")
     ap.add_argument("--host", default="127.0.4.2", help="loopback address of the simulated cell")
+    ap.add_argument("--page-only", action="store_true",
+                    help="only the page's routes against the baseline (skip the per-pose and single-route loads)")
+    ap.add_argument("--page-requests", type=int, default=60, help="requests per page client")
     args = ap.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="recal-bench-service-") as tmp:
@@ -182,13 +216,19 @@ def main(argv: list[str] | None = None) -> int:
                 doc = json.loads((home / "nominal.json").read_text())
                 cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
                 session_id, session_dt, configs = session_per_pose(api, cell_id, args.poses)
-                driver_dt = drivers_per_pose(cell.ready, configs)
+                driver_dt = [] if args.page_only else drivers_per_pose(cell.ready, configs)
                 path = f"/api/v1/sessions/{session_id}"
                 loads = {}
-                for mode, interval in (("polling", args.interval), ("saturated", 0.0)):
+                for mode, interval in (() if args.page_only else (("polling", args.interval), ("saturated", 0.0))):
                     for name, p, tok in ((path, path, token), ("/api/v1/health", "/api/v1/health", None)):
                         loads[mode, name] = load(service.ready["url"], p, tok, args.clients, args.client_processes,
                                                  args.requests, interval)
+                # 3. The page's own routes, polled by 50 pages, and the baseline in the same run.
+                routes = page_routes(api, cell_id, session_id)
+                page = page_load(service.ready["url"], routes, token, args.clients, args.client_processes,
+                                 args.page_requests, args.interval)
+                page_base = load(service.ready["url"], "/api/v1/health", None, args.clients, args.client_processes,
+                                 args.page_requests, args.interval)
             finally:
                 service.stop()
         finally:
@@ -196,6 +236,17 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
           f"Python {platform.python_version()}, {platform.system()} {platform.release()}")
+    print(f"\n## The page's routes: {args.clients} pages each polling one every {args.interval:g} s, "
+          f"in turn ({args.page_requests} requests each; latency in ms)\n")
+    print("| request | requests | p50 | p95 | p99 | max |")
+    print("|---|---|---|---|---|---|")
+    for name, r in page.items():
+        what = "all the page's routes" if name == "all" else "GET " + name.split("?")[0]
+        print(f"| {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | {r['max']:.1f} |")
+    print(f"| GET /api/v1/health (baseline, same clients) | {page_base['n']} | {page_base['p50']:.1f} | "
+          f"{page_base['p95']:.1f} | {page_base['p99']:.1f} | {page_base['max']:.1f} |")
+    if args.page_only:
+        return 0
     print(f"\n## Per pose, {args.poses} poses, time scale 0 (ms)\n")
     print("| | mean | median | p95 |")
     print("|---|---|---|---|")

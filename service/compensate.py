@@ -16,7 +16,7 @@ from .compensation import CompensationInputError, CompensationRequest, calibrate
 from .files import InputError, parse_payload
 from .programs.frames import Frames
 
-__all__ = ["CompensationInputError", "compensate_text", "read_multipart"]
+__all__ = ["CompensationInputError", "compensate_and_store", "compensate_text", "read_multipart"]
 
 
 def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str = "joints",
@@ -102,3 +102,45 @@ def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str]]:
     if not files:
         raise CompensationInputError("expected at least one file in the multipart body")
     return files
+
+
+# Engines of a worker process (service.heavy), one per database URL, opened on its first job and
+# kept for the next: a worker serves one service, so this holds one engine.
+_ENGINES: dict = {}
+
+
+def compensate_and_store(database_url: str, calibration_id: int, text: str, *, name: str, mode: str, actor: str,
+                         companions: dict[str, str] | None = None, payload: str | None = None,
+                         audited: bool = True) -> tuple[int, str, dict | None, list]:
+    """In a worker process: compensate ``text`` (``compensate_text``'s arguments) with calibration
+    ``calibration_id``, against the nominal its cell's controller computes with (a UR's own
+    kinematics where the cell keeps them, service.controller), and store the result (and,
+    ``audited``, its audit entry). Returns (the compensation's id, the compensated text, the
+    report's summary, the companions' compensated texts). The models are read and the per-point
+    report written here, not in the API process: the report of the largest allowed file is
+    megabytes of JSON, and encoding it in the API process held the GIL for a fifth of a second
+    (bench/heavy.py)."""
+    from sqlmodel import Session
+
+    from .controller import controller_nominal
+    from .models import Calibration, Cell, Compensation
+    from .store import audit, make_engine
+
+    engine = _ENGINES.get(database_url)
+    if engine is None:
+        engine = _ENGINES[database_url] = make_engine(database_url)
+    with Session(engine) as db:
+        cal = db.get(Calibration, calibration_id)
+        if cal is None:
+            raise CompensationInputError(f"no calibration {calibration_id}")
+        nominal_doc = controller_nominal(db, db.get(Cell, cal.cell_id))
+        output, report = compensate_text(text, name=name, model_doc=cal.model, nominal_doc=nominal_doc, mode=mode,
+                                         companions=companions, payload=payload)
+        rec = Compensation(calibration_id=calibration_id, name=name, mode=mode, output=output, report=report,
+                           created_by=actor)
+        db.add(rec)
+        db.commit()
+        if audited:
+            audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
+                  detail={"name": name, "mode": mode, **({"payload": payload} if payload else {})})
+        return rec.id, output, (report or {}).get("summary"), (report or {}).get("files", [])

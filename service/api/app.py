@@ -10,6 +10,7 @@ from contextlib import asynccontextmanager
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from fastapi.routing import APIRoute
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
@@ -22,8 +23,9 @@ from ..store import database_unavailable
 from ..settings import Settings
 from ..store import interrupt_unfinished, make_engine, migrate
 from . import docs, metrics
-from .docs import document_errors
-from .middleware import BodyLimit, RequestLog
+from .deps import current_token
+from .docs import allowed_methods, document_errors, needs_token
+from .middleware import BodyLimit, PageCache, RequestLog
 from .routes import calibrations, cells, records, results, sessions, system, web, workbench
 
 log = logging.getLogger("recal.api")
@@ -47,6 +49,8 @@ async def bounded_numbers(request: Request) -> None:
     dependant = getattr(route, "dependant", None)
     if dependant is None:
         return
+    if needs_token(route):  # who is asking comes first: no token is a 401 whatever else is wrong
+        await current_token(request)
     errors = []
     for where, declared, given in (("path", dependant.path_params, request.path_params),
                                    ("query", dependant.query_params, request.query_params)):
@@ -112,10 +116,14 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
                   description="Robot calibration service: cells, measurement sessions, calibrations, compensation.")
     # Outermost last: every request is logged and timed (413s included), then its body limited.
     app.add_middleware(BodyLimit, settings=settings)
+    app.add_middleware(PageCache)
     app.add_middleware(RequestLog, observe=metrics.install(app))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
+        allowed = allowed_methods(app, request.url.path)
+        if allowed and request.method not in allowed:  # /cells/1/tasks/compensate read as task "compensate"
+            return JSONResponse({"detail": "Method Not Allowed"}, status_code=405, headers={"Allow": ", ".join(allowed)})
         # 422 naming each field at fault ("body.count: ...") instead of a nested structure only.
         errors = [{"field": _field(e["loc"]), "message": e["msg"]} for e in exc.errors()]
         return JSONResponse({"detail": "; ".join(f"{e['field']}: {e['message']}" for e in errors), "errors": errors},
@@ -138,6 +146,13 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
                     getattr(exc, "orig", None) or exc)
         return JSONResponse({"detail": "the database is unavailable or overloaded: try again shortly"},
                             status_code=503, headers={"Retry-After": "2"})
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:  # Allow: every method of the path (Starlette names only one route's)
+            headers["Allow"] = ", ".join(allowed_methods(app, request.url.path)) or headers.get("Allow", "")
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):

@@ -31,6 +31,7 @@ def install(app) -> None:
 
 
 ERRORS = {
+    400: "the body cannot be parsed as its Content-Type says",
     401: "no token, or an unknown or revoked one",
     403: "the token's role may not do this",
     404: "no such resource",
@@ -38,6 +39,16 @@ ERRORS = {
     413: "the request body is beyond the route's limit",
     422: "a request field at fault, named",
     503: "the database is unavailable or overloaded: try again shortly (Retry-After)",
+}
+
+
+# What the routes answering files send (a route's ``response_class`` alone says JSON or nothing).
+CONTENT = {
+    ("get", "/certificate.pdf"): ("application/pdf",),
+    ("get", "/download/{fmt}"): ("application/json", "application/xml", "text/csv", "text/markdown"),
+    ("get", "/compensations/{compensation_id}"): ("text/plain",),
+    ("post", "/calibrations/{calibration_id}/compensate"): ("text/csv", "text/plain"),
+    ("get", "/measurements.csv"): ("text/csv",),
 }
 
 
@@ -63,7 +74,23 @@ def document_errors(app) -> None:
         schemas.pop("ValidationError", None)
         for path, ops in doc.get("paths", {}).items():
             for method, op in ops.items():
+                _bound_integers(op)
+                if path.endswith("/events"):  # the bearer token, or a ticket (stream_reader)
+                    op["security"] = [{"bearer": []}]
+                if path.endswith("/compensate") and path.startswith("/api/v1/calibrations/"):
+                    op["requestBody"] = {"required": True, "description": "the task CSV or robot program (a KRL "
+                                         "program's .src and .dat: multipart/form-data, one part per file)",
+                                         "content": {m: {"schema": {"type": "string", "minLength": 1}}
+                                                     for m in ("text/csv", "text/plain")}}
+                if method == "post" and path.endswith("/measurements") and path.startswith("/api/v1/cells/"):
+                    op["requestBody"] = {"required": True, "description": "a measurement CSV (contracts §3)",
+                                         "content": {"text/csv": {"schema": {"type": "string", "minLength": 1}}}}
+                for (m, suffix), types in CONTENT.items():
+                    if method == m and path.endswith(suffix) and "200" in op.get("responses", {}):
+                        op["responses"]["200"]["content"] = {t: {"schema": {"type": "string"}} for t in types}
                 codes = [422, 503]
+                if "requestBody" in op:
+                    codes.append(400)  # a body that is not what its Content-Type says (JSON that does not parse)
                 if op.get("security"):
                     codes += [401, 403]
                 if "{" in path:
@@ -80,3 +107,52 @@ def document_errors(app) -> None:
         return doc
 
     app.openapi = openapi
+
+
+def _bound_integers(op: dict) -> None:
+    """The bounds ``app.bounded_numbers`` enforces, in the document: an id (``*_id``) is 1 to
+    2**63 - 1, any other integer parameter a 64-bit integer (what both databases store)."""
+    from ..models import MAX_ID
+
+    for param in op.get("parameters", []):
+        schema = param.get("schema", {})
+        options = schema.get("anyOf", [schema])
+        for option in options:
+            if option.get("type") != "integer":
+                continue
+            if param["name"].endswith("_id"):
+                option["minimum"] = max(option.get("minimum", 1), 1)
+                option["maximum"] = min(option.get("maximum", MAX_ID), MAX_ID)
+            else:
+                option["minimum"] = max(option.get("minimum", -MAX_ID - 1), -MAX_ID - 1)
+                option["maximum"] = min(option.get("maximum", MAX_ID), MAX_ID)
+
+
+def needs_token(route) -> bool:
+    """Whether ``route`` authenticates its caller with a bearer token (cached on the route)."""
+    cached = getattr(route, "_recal_needs_token", None)
+    if cached is None:
+        from .deps import current_token
+
+        cached, stack = False, [route.dependant]
+        while stack and not cached:
+            d = stack.pop()
+            cached = d.call is current_token
+            stack.extend(d.dependencies)
+        route._recal_needs_token = cached
+    return cached
+
+
+def allowed_methods(app, path: str) -> list[str]:
+    """The methods the OpenAPI document lists for the path template ``path`` matches."""
+    import re
+
+    patterns = getattr(app.state, "path_patterns", None)
+    if patterns is None:
+        patterns = app.state.path_patterns = [
+            (re.compile("^" + re.sub(r"\\{[^}]+\\}", "[^/]+", re.escape(p)) + "$"), p.count("{"),
+             sorted(m.upper() for m in ops))
+            for p, ops in app.openapi().get("paths", {}).items()]
+    # the most specific template first: /cells/{id}/tasks/compensate before /cells/{id}/tasks/{task_id}
+    matches = [(wildcards, methods) for pattern, wildcards, methods in patterns if pattern.match(path)]
+    return min(matches)[1] if matches else []

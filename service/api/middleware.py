@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
@@ -141,3 +142,114 @@ class RequestLog:
                     "method": scope["method"], "path": scope["path"], "query": query or None, "route": route,
                     "status": status, "duration_ms": round(elapsed * 1e3, 2),
                     "client": f"{client[0]}:{client[1]}" if client else None}, separators=(",", ":")))
+
+
+# The routes the technician's page polls (service/web/js/views) whose answers are computed from
+# several queries and the models (residuals, predicted accuracy): answered from a short-lived
+# cache. The session's own status (GET /sessions/{id}) is not here: it is one indexed read
+# already, and what jobs wait on.
+PAGE_ROUTES = tuple(re.compile(p) for p in (
+    r"^/api/v1/overview$", r"^/api/v1/cells/[^/]+/summary$", r"^/api/v1/cells/[^/]+/history$",
+    r"^/api/v1/cells/[^/]+/session-list$", r"^/api/v1/cells/[^/]+/drift$",
+    r"^/api/v1/sessions/[^/]+/measurements$", r"^/api/v1/sessions/[^/]+/live$",
+    r"^/api/v1/calibrations/[^/]+/result$", r"^/api/v1/calibrations/[^/]+/comparison$"))
+
+
+class PageCache:
+    """Answers of the page's polled routes (:data:`PAGE_ROUTES`), kept ``ttl_s`` seconds per
+    route and query, served to callers whose token the token cache verified in the last 2 s and
+    whose role may read (every reader sees the same answers, except the overview's ``me``: that
+    one is kept per token). A caller not in the token cache goes to the route, which checks it.
+
+    Why: 50 pages polling their routes asked the service for the same few answers hundreds of
+    times a second, each a dozen queries and some kinematics; the p99 was 2.8 s (issue 12). Now
+    each answer is computed at most once per ``ttl_s``: requests arriving while it is being
+    computed wait for that one computation instead of starting their own, and once it is older
+    than ``ttl_s`` (but not ``2 * ttl_s``) it is still answered while one background computation
+    replaces it. Any request that may
+    change something (not GET, HEAD or OPTIONS) empties the cache, before and after it, so what
+    a caller did is seen at once; what a running session commits is seen within ``ttl_s``."""
+
+    def __init__(self, app, ttl_s: float = 0.5):
+        self.app, self.ttl_s = app, ttl_s
+        self._entries: dict[tuple, tuple[float, list[dict]]] = {}
+        self._inflight: dict[tuple, "asyncio.Future"] = {}
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        if scope["method"] not in ("GET", "HEAD", "OPTIONS"):
+            self._entries.clear()
+            try:
+                return await self.app(scope, receive, send)
+            finally:
+                self._entries.clear()
+        if scope["method"] != "GET" or not any(r.match(scope["path"]) for r in PAGE_ROUTES):
+            return await self.app(scope, receive, send)
+        from ..store import hash_token
+        from .deps import PERMISSIONS, token_cache
+
+        auth = _header(scope, b"authorization") or ""
+        plain = auth[7:].strip() if auth.lower().startswith("bearer ") else ""
+        tok = token_cache(scope["app"]).get(hash_token(plain)) if plain else None
+        if tok is None or tok.role not in PERMISSIONS["read"]:
+            return await self.app(scope, receive, send)  # not known to be a reader yet: the routes decide
+        # Every reader gets the same answer, but the overview's, which says who is asking.
+        key = (scope["path"], scope.get("query_string", b""), tok.id if scope["path"].endswith("/overview") else None)
+        now = time.monotonic()
+        hit = self._entries.get(key)
+        if hit is not None and now < hit[0]:
+            return await _replay(send, hit[1])
+        running = self._inflight.get(key)
+        if hit is not None and now < hit[0] + self.ttl_s:
+            # Stale by less than ttl_s: answer it now and have it computed again once, in the
+            # background, rather than make every poll arriving meanwhile wait for the computation.
+            if running is None:
+                self._inflight[key] = asyncio.get_running_loop().create_future()
+                asyncio.get_running_loop().create_task(self._compute(dict(scope), key, _no_body, None))
+            return await _replay(send, hit[1])
+        if running is not None:  # the same answer is being computed: wait for it
+            messages = await asyncio.shield(running)
+            if messages is not None:
+                return await _replay(send, messages)
+            return await self.app(scope, receive, send)
+        self._inflight[key] = asyncio.get_running_loop().create_future()
+        await self._compute(scope, key, receive, send)
+
+    async def _compute(self, scope, key, receive, send) -> None:
+        """Run the route for ``key``'s future (already in ``_inflight``), forwarding its answer to
+        ``send`` (None: a background refresh) and keeping it when it is a 200."""
+        future = self._inflight[key]
+        messages: list[dict] = []
+
+        async def capture(message):
+            messages.append(message)
+            if send is not None:
+                await send(message)
+
+        ok = False
+        try:
+            await self.app(scope, receive, capture)
+            ok = bool(messages) and messages[0].get("status") == 200
+        except Exception:  # noqa: BLE001 - a background refresh has nobody to tell; a request re-raises
+            if send is not None:
+                raise
+        finally:
+            del self._inflight[key]
+            future.set_result(messages if ok else None)
+            if ok:
+                if len(self._entries) > 2000:  # drop the expired ones
+                    now = time.monotonic()
+                    self._entries = {k: v for k, v in self._entries.items() if v[0] + self.ttl_s > now}
+                self._entries[key] = (time.monotonic() + self.ttl_s, messages)
+            elif send is None:
+                self._entries.pop(key, None)  # the route now refuses (gone, or the caller): no stale answer
+
+
+async def _no_body():
+    return {"type": "http.request", "body": b"", "more_body": False}
+
+
+async def _replay(send, messages: list[dict]) -> None:
+    for message in messages:
+        await send(message)

@@ -5,9 +5,12 @@ against it)."""
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..models import SessionPublic
 
 
 class FieldProblem(BaseModel):
@@ -96,3 +99,234 @@ class Document(BaseModel):
     """A JSON document whose fields the route's description lists."""
 
     model_config = {"extra": "allow"}
+
+
+# --------------------------------------------------------------------------- cells, sessions, results
+# Shapes of the page's and the jobs' JSON answers. Nested documents the service computes in one
+# place (a calibration's report, the certificate's sections, a plan's preview) are typed as
+# objects here and described by the function that builds them; ``Open`` models keep any field
+# they do not list (added later by that function) instead of dropping it.
+
+Timestamp = datetime | str  # ISO 8601; some routes format it themselves (with the UTC offset)
+Number = float | None
+
+
+class Open(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+class CalibrationListItem(BaseModel):
+    id: int
+    kind: str
+    session_id: int | None
+    rms: Number
+    created_at: Timestamp
+    nominal_version: int | None = None
+    predicted: dict[str, Any] | None = None
+
+
+class DriftCalibration(BaseModel):
+    id: int
+    created_at: Timestamp
+    rms: Number
+    predicted: dict[str, Any] | None = None
+    nominal_version: int | None = None
+
+
+class DriftParameterPoint(BaseModel):
+    calibration_id: int
+    value: Number
+    std_error: Number = None
+    unit: str | None = None
+    change: Number = None
+    change_sigmas: Number = None
+
+
+class DriftVerify(BaseModel):
+    session_id: int
+    at: Timestamp
+    calibration_id: int | None = None
+    n: int | None = None
+    rms: Number = None
+    max: Number = None
+    p95: Number = None
+    unit: str | None = None
+    iso9283: dict[str, Any] | None = None
+
+
+class Drift(BaseModel):
+    calibrations: list[DriftCalibration]
+    parameters: dict[str, list[DriftParameterPoint]]
+    verify: list[DriftVerify]
+
+
+class TaskCompensation(BaseModel):
+    task_id: int
+    name: str
+    compensation_id: int | None = None
+    summary: dict[str, Any] | None = None
+    error: str | None = Field(default=None, description="why this task file could not be compensated")
+
+
+class TasksCompensated(BaseModel):
+    calibration_id: int
+    tasks: list[TaskCompensation]
+
+
+class MeasurementOut(BaseModel):
+    id: int
+    seq: int
+    target: str
+    joint: int | None = None
+    q: list[float]
+    x: float
+    y: float
+    z: float
+    qw: Number = None
+    qx: Number = None
+    qy: Number = None
+    qz: Number = None
+    sigma: Number = None
+    reference: Number = None
+    created_at: Timestamp
+
+
+class ComparedParameter(Open):
+    name: str
+    unit: str | None = None
+    group: str
+    from_: Number = Field(default=None, alias="from")
+    to: Number = None
+    change: Number = None
+    sigma: Number = None
+    change_sigmas: Number = None
+    moved: bool
+    status: str
+
+
+class Comparison(Open):
+    """From one calibration to another (``parameters`` null when there is no previous one)."""
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    from_: int | None = Field(default=None, alias="from")
+    to: int
+    rms_from: Number = None
+    rms_to: Number = None
+    parameters: list[ComparedParameter] | None = None
+    counts: dict[str, int] | None = None
+
+
+class CalibrationResult(Open):
+    """The result page's data (service.results.calibration_result)."""
+
+    id: int
+    kind: str
+    created_at: Timestamp
+    cell: dict[str, Any]
+    units: dict[str, str]
+    rms: Number = None
+    previous_id: int | None = None
+    report: dict[str, Any]
+
+
+class Certificate(Open):
+    """The calibration certificate's content (service.certificate.certificate_data)."""
+
+    title: str
+    number: str
+    issued_at: Timestamp
+    calibration: dict[str, Any]
+    cell: dict[str, Any]
+    units: dict[str, str]
+
+
+class CompensationReport(BaseModel):
+    id: int
+    calibration_id: int
+    name: str
+    mode: str
+    created_by: str
+    created_at: Timestamp
+    report: dict[str, Any]
+
+
+class CellSummary(Open):
+    id: int
+    name: str
+    site: str
+    robot: dict[str, Any]
+    devices: list[str]
+    unit: str | None = None
+    drift_threshold: Number = None
+    last: dict[str, Any] | None = None
+    trend: list[dict[str, Any]]
+    active_session: dict[str, Any] | None = None
+
+
+class Overview(BaseModel):
+    me: Me
+    total: int
+    cells: list[CellSummary]
+
+
+class HistoryItem(BaseModel):
+    id: int
+    kind: str
+    session_id: int | None
+    rms: Number
+    created_at: Timestamp
+
+
+class History(BaseModel):
+    total: int
+    offset: int
+    items: list[HistoryItem]
+
+
+class DeviceCheck(Open):
+    device: str
+    address: str | None = None
+    ok: bool | None = Field(description="null: not tried (a session drives the cell)")
+
+
+class DeviceTest(BaseModel):
+    cell_id: int
+    ok: bool
+    results: list[DeviceCheck]
+
+
+class LastDeviceTest(BaseModel):
+    cell_id: int
+    last: dict[str, Any] | None
+
+
+class LibraryRobot(Open):
+    name: str
+    convention: str | None = None
+    joints: int
+    units: dict[str, str] | None = None
+    targets: list[str]
+    model_name: str | None = None
+
+
+class PlanPreview(Open):
+    """A session's plan before anything moves (service.results.plan_preview)."""
+
+    session_id: int
+    state: str
+    kind: str
+
+
+class LiveSession(Open):
+    """A session's residuals so far and its pace (service.results.session_live)."""
+
+    session_id: int
+    state: str
+    planned: int
+    measured: int
+
+
+class SessionPage(BaseModel):
+    total: int
+    offset: int
+    items: list[SessionPublic]

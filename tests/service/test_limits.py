@@ -14,7 +14,6 @@ import time
 
 import pytest
 
-from .conftest import auth
 
 
 @pytest.fixture

@@ -93,3 +93,18 @@ def test_the_api_documentation_is_served_from_the_services_own_files(idle_app):
         assert {"200", "401", "403", "404", "409", "422", "503"} <= set(abort["responses"])
         assert abort["responses"]["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ValidationProblem")
         assert "HTTPValidationError" not in json.dumps(doc)
+
+
+def test_the_pages_cached_answers_follow_changes_and_refuse_unknown_callers(idle_app, tokens):
+    with idle_app() as client:
+        v = auth(tokens["viewer"])
+        assert client.get("/api/v1/overview", headers=v).json()["total"] == 0
+        register_cell(client, tokens["technician"], "new")  # a change: seen at once, not after the cache's time
+        assert client.get("/api/v1/overview", headers=v).json()["total"] == 1
+        assert client.get("/api/v1/overview", headers=auth("rc_unknown")).status_code == 401
+        assert client.get("/api/v1/cells/1/summary", headers=v).status_code == 200
+        assert client.get("/api/v1/cells/1/summary", headers=auth("rc_unknown")).status_code == 401
+        assert client.get("/api/v1/cells/1/summary").status_code == 401
+        # the overview says who asks, whatever another reader asked a moment before
+        assert client.get("/api/v1/overview", headers=auth(tokens["admin"])).json()["me"]["role"] == "admin"
+        assert client.get("/api/v1/overview", headers=v).json()["me"]["role"] == "viewer"

@@ -142,7 +142,9 @@ def test_server_sent_events_report_progress_to_the_end(stack, models, register):
     cell, _ = register(time_scale=0.05)
     api = stack.api()
     s = _start(api, cell, kind="verify", count=8)
-    url = f"{stack.service.ready['url']}/api/v1/sessions/{s['id']}/events?token={stack.tokens['viewer']}"
+    # as the page opens it: a single-use ticket in the URL, never the token (issue 12)
+    ticket = stack.api("viewer").call("POST", f"/sessions/{s['id']}/events/ticket")["ticket"]
+    url = f"{stack.service.ready['url']}/api/v1/sessions/{s['id']}/events?ticket={ticket}"
     events = []
     with urllib.request.urlopen(url, timeout=60) as resp:
         for raw in resp:

@@ -7,10 +7,10 @@ from fastapi.responses import PlainTextResponse
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
-from ...models import Calibration, CalibrationPublic, Cell, Compensation
+from ...models import Calibration, CalibrationPublic, Compensation
 from ...results import compare_calibrations
-from ...store import audit
 from ..deps import Compensator, DbSession, Reader
+from ..schemas import Comparison
 
 router = APIRouter(tags=["calibrations"])
 
@@ -27,7 +27,7 @@ def read_calibration(calibration_id: int, db: DbSession, tok: Reader):
     return CalibrationPublic(**get_calibration(db, calibration_id).model_dump())
 
 
-@router.get("/calibrations/{calibration_id}/compare/{other_id}")
+@router.get("/calibrations/{calibration_id}/compare/{other_id}", response_model=Comparison)
 def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> dict:
     """Which parameters moved between two calibrations, in units of their combined standard
     uncertainty: every parameter, the base and tool frames included (the page's comparison,
@@ -37,26 +37,9 @@ def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> d
             "nominal_versions": [a.nominal_version, b.nominal_version]}
 
 
-def _load_for_compensation(engine, calibration_id: int) -> tuple[dict, dict]:
-    """The calibration's model and the nominal its cell's controller computes with (a UR's own
-    kinematics where the cell keeps them, service.controller)."""
-    from ...controller import controller_nominal
-
+def _exists(engine, calibration_id: int) -> None:
     with Session(engine) as db:
-        cal = get_calibration(db, calibration_id)
-        return cal.model, controller_nominal(db, db.get(Cell, cal.cell_id))
-
-
-def _store_compensation(engine, calibration_id: int, name: str, mode: str, output: str, report: dict,
-                        actor: str, payload: str | None = None) -> int:
-    with Session(engine) as db:
-        rec = Compensation(calibration_id=calibration_id, name=name, mode=mode, output=output, report=report,
-                           created_by=actor)
-        db.add(rec)
-        db.commit()
-        audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
-              detail={"name": name, "mode": mode, **({"payload": payload} if payload else {})})
-        return rec.id
+        get_calibration(db, calibration_id)
 
 
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
@@ -68,14 +51,13 @@ async def compensate(calibration_id: int, request: Request, tok: Compensator,
     model's length unit), which a calibration with joint compliance sags under. A program of
     several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one part
     per file; the answer is then JSON ``{"files": [{"name", "text"}, ...]}``, the program first.
-    The compensation runs in a worker process (service.heavy): the service answers every other
-    request meanwhile; the database in the thread pool (a networked database may stall)."""
+    The compensation runs in a worker process (service.heavy), which also stores it: the service
+    answers every other request meanwhile."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
-    from ...compensate import CompensationInputError, compensate_text, read_multipart
+    from ...compensate import CompensationInputError, compensate_and_store, read_multipart
 
-    engine = request.app.state.engine
-    model_doc, cell_model = await run_in_threadpool(_load_for_compensation, engine, calibration_id)
+    await run_in_threadpool(_exists, request.app.state.engine, calibration_id)  # 404 before any work
     raw = await request.body()
     content_type = request.headers.get("content-type", "")
     companions = None
@@ -95,18 +77,16 @@ async def compensate(calibration_id: int, request: Request, tok: Compensator,
         raise HTTPException(422, {"field": "body", "message": "expected a text file, got NUL characters (binary data?)"})
 
     try:
-        output, report = await request.app.state.heavy.run(compensate_text, body, name=name, model_doc=model_doc,
-                                                           nominal_doc=cell_model, mode=mode, companions=companions,
-                                                           payload=payload)
+        rec_id, output, _, files = await request.app.state.heavy.run(
+            compensate_and_store, request.app.state.settings.effective_database_url, calibration_id, body,
+            name=name, mode=mode, actor=tok.name, companions=companions, payload=payload)
     except CompensationInputError as exc:
         field = "query.payload" if str(exc).startswith("--payload") else "body"
         raise HTTPException(422, {"field": field, "message": str(exc)}) from None
-    rec_id = await run_in_threadpool(_store_compensation, engine, calibration_id, name, mode, output, report, tok.name,
-                                     payload)
     if companions is not None:
         from fastapi.responses import JSONResponse
 
-        return JSONResponse({"files": [{"name": name, "text": output}] + report.get("files", [])},
+        return JSONResponse({"files": [{"name": name, "text": output}] + files},
                             headers={"X-Recal-Compensation": str(rec_id)})
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
     return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec_id)})

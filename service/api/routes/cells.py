@@ -13,7 +13,6 @@ from ...devices import DeviceConfigError, emscon_config
 from ...models import (
     Calibration,
     Cell,
-    Compensation,
     CellCreate,
     CellPublic,
     CellUpdate,
@@ -26,6 +25,7 @@ from ...models import (
 from ...plans import RegionError, check_region
 from ...store import audit, current_calibration
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
+from ..schemas import CalibrationListItem, Drift, TaskFileContent, TaskFileInfo, TasksCompensated
 from .sessions import ACTIVE, public_session, start_session
 
 router = APIRouter(tags=["cells"])
@@ -158,7 +158,7 @@ def list_sessions(cell_id: int, db: DbSession, tok: Reader, limit: int = 50, dry
     return [public_session(db, r) for r in rows]
 
 
-@router.get("/cells/{cell_id}/calibrations")
+@router.get("/cells/{cell_id}/calibrations", response_model=list[CalibrationListItem])
 def list_calibrations(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 100) -> list[dict]:
     """The cell's calibrations, newest first (``limit`` of them, at most 5000), without models
     and reports: the residual RMS, the predicted accuracy (``predicted``: 95 % radius over the
@@ -188,7 +188,7 @@ def change_in_sigmas(a: dict, b: dict) -> dict | None:
     return {"change": d, "change_sigmas": abs(d) / s if s > 0 else None, "moved": bool(s > 0 and abs(d) > 2 * s)}
 
 
-@router.get("/cells/{cell_id}/drift")
+@router.get("/cells/{cell_id}/drift", response_model=Drift, response_model_exclude_unset=True)
 def drift(cell_id: int, db: DbSession, tok: Reader) -> dict:
     """How the cell's robot changed over time, oldest first:
 
@@ -244,7 +244,8 @@ class TaskFileCreate(_In):
     mode: str = Field(default="joints", pattern="^(joints|targets)$")
 
 
-@router.post("/cells/{cell_id}/tasks", status_code=201)
+@router.post("/cells/{cell_id}/tasks", status_code=201, response_model=TaskFileInfo,
+             response_model_exclude_unset=True)
 def register_task(cell_id: int, body: TaskFileCreate, db: DbSession, tok: CellEditor) -> dict:
     get_cell(db, cell_id)
     t = TaskFile(cell_id=cell_id, name=body.name, content=body.content, mode=body.mode)
@@ -255,14 +256,14 @@ def register_task(cell_id: int, body: TaskFileCreate, db: DbSession, tok: CellEd
     return {"id": t.id, "name": t.name, "mode": t.mode}
 
 
-@router.get("/cells/{cell_id}/tasks")
+@router.get("/cells/{cell_id}/tasks", response_model=list[TaskFileInfo])
 def list_tasks(cell_id: int, db: DbSession, tok: Reader) -> list[dict]:
     get_cell(db, cell_id)
     return [{"id": t.id, "name": t.name, "mode": t.mode, "created_at": t.created_at}
             for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all()]
 
 
-@router.get("/cells/{cell_id}/tasks/{task_id}")
+@router.get("/cells/{cell_id}/tasks/{task_id}", response_model=TaskFileContent)
 def read_task(cell_id: int, task_id: int, db: DbSession, tok: Reader) -> dict:
     t = db.get(TaskFile, task_id)
     if t is None or t.cell_id != cell_id:
@@ -270,13 +271,12 @@ def read_task(cell_id: int, task_id: int, db: DbSession, tok: Reader) -> dict:
     return {"id": t.id, "name": t.name, "mode": t.mode, "content": t.content, "created_at": t.created_at}
 
 
-@router.post("/cells/{cell_id}/tasks/compensate")
+@router.post("/cells/{cell_id}/tasks/compensate", response_model=TasksCompensated, response_model_exclude_unset=True)
 def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compensator,
                      calibration_id: int | None = None) -> dict:
     """Compensate every task file registered with the cell, with ``calibration_id`` (default the
     cell's last pose calibration); each result is stored."""
-    from ...compensate import CompensationInputError, compensate_text
-    from ...controller import controller_nominal
+    from ...compensate import CompensationInputError, compensate_and_store
 
     cell = get_cell(db, cell_id)
     cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
@@ -284,21 +284,15 @@ def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compens
         raise HTTPException(404, "no calibration to compensate with" if calibration_id is None
                             else f"no calibration {calibration_id} in cell {cell_id}")
     results = []
+    url = request.app.state.settings.effective_database_url
     for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all():
-        try:
-            output, report = request.app.state.heavy.call(  # in a worker process: service.heavy
-                compensate_text, t.content, name=t.name, model_doc=cal.model,
-                nominal_doc=controller_nominal(db, cell), mode=t.mode)  # what the controller computes with
+        try:  # computed and stored in a worker process (service.heavy), as POST .../compensate
+            rec_id, _, summary, _ = request.app.state.heavy.call(compensate_and_store, url, cal.id, t.content,
+                                                              name=t.name, mode=t.mode, actor=tok.name, audited=False)
         except CompensationInputError as exc:
             results.append({"task_id": t.id, "name": t.name, "error": str(exc)})
             continue
-        rec = Compensation(calibration_id=cal.id, name=t.name, mode=t.mode, output=output, report=report,
-                           created_by=tok.name)
-        db.add(rec)
-        db.commit()
-        db.refresh(rec)
-        results.append({"task_id": t.id, "name": t.name, "compensation_id": rec.id,
-                        "summary": (report or {}).get("summary")})
+        results.append({"task_id": t.id, "name": t.name, "compensation_id": rec_id, "summary": summary})
     audit(db, actor=tok.name, action="compensate tasks", subject=f"cell {cell_id}",
           detail={"calibration": cal.id, "tasks": len(results)})
     return {"calibration_id": cal.id, "tasks": results}

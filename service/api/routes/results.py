@@ -16,6 +16,7 @@ from ...certificate import certificate_data, certificate_pdf
 from ...models import Calibration, Compensation
 from ...results import calibration_result, compare_calibrations, previous_calibration_id
 from ..deps import DbSession, Reader
+from ..schemas import CalibrationResult, Certificate, Comparison, CompensationReport
 
 router = APIRouter(tags=["results"])
 
@@ -39,7 +40,7 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-") or "robot"
 
 
-@router.get("/calibrations/{calibration_id}/result")
+@router.get("/calibrations/{calibration_id}/result", response_model=CalibrationResult)
 def result(calibration_id: int, db: DbSession, tok: Reader) -> dict:
     """The result page's data: the report's parameters (with standard errors) and the
     parameters the data could not determine (with the reason), per-pose position errors
@@ -49,7 +50,7 @@ def result(calibration_id: int, db: DbSession, tok: Reader) -> dict:
     return calibration_result(db, _get(db, calibration_id))
 
 
-@router.get("/calibrations/{calibration_id}/comparison")
+@router.get("/calibrations/{calibration_id}/comparison", response_model=Comparison)
 def comparison(calibration_id: int, db: DbSession, tok: Reader, previous: int | None = None) -> dict:
     """This calibration against ``previous`` (default: the cell's calibration of the same kind
     before it): every parameter, including those estimated in only one of them and the base
@@ -90,7 +91,7 @@ def download(calibration_id: int, fmt: str, db: DbSession, tok: Reader) -> Respo
     return Response(text, media_type=media, headers=headers)
 
 
-@router.get("/calibrations/{calibration_id}/certificate")
+@router.get("/calibrations/{calibration_id}/certificate", response_model=Certificate)
 def certificate(calibration_id: int, db: DbSession, tok: Reader) -> dict:
     """The calibration certificate's content (the web page prints it)."""
     return certificate_data(db, _get(db, calibration_id))
@@ -109,7 +110,7 @@ def certificate_as_pdf(calibration_id: int, request: Request, db: DbSession, tok
                     headers={"Content-Disposition": f'attachment; filename="{cert["number"]}.pdf"'})
 
 
-@router.get("/compensations/{compensation_id}/report")
+@router.get("/compensations/{compensation_id}/report", response_model=CompensationReport)
 def compensation_report(compensation_id: int, db: DbSession, tok: Reader) -> dict:
     """What the compensation reported per task point (flags, residuals, convergence)."""
     rec = db.get(Compensation, compensation_id)

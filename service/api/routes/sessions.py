@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlalchemy import bindparam, delete, func
 from sqlalchemy import select as sa_select
@@ -19,7 +20,7 @@ from ...models import Cell, Measurement, RunSession, SessionCreate, SessionPubli
 from ...runners import SessionRunner
 from ...store import audit, measured_count, set_state_unless
 from ..deps import PERMISSIONS, DbSession, Orchestrator, Reader, Runner, current_token, quick_read, tickets
-from ..schemas import EventTicket
+from ..schemas import EventTicket, MeasurementOut
 
 router = APIRouter(tags=["sessions"])
 
@@ -180,12 +181,17 @@ def pause(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrato
 
 
 @router.post("/sessions/{session_id}/abort", response_model=SessionPublic)
-def abort(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+    t0 = time.perf_counter()
     run = get_run(db, session_id)
     if run.state in TERMINAL:
         raise HTTPException(409, f"session {session_id} is {run.state} already")
+    stopping = orchestrator.abort(run.id)
+    # How long after the request reached this route the robot was told to stop (the answer
+    # itself waits for the session to have ended: the robot decelerating, at most ABORT_WAIT_S).
+    response.headers["Server-Timing"] = f"robot-stop;dur={(time.perf_counter() - t0) * 1e3:.1f}"
     audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
-    if orchestrator.abort(run.id):
+    if stopping:
         # It stops the robot at once and the session at its next step (while planning: within
         # 0.1 s); answer with the state it ends in when that is quick.
         orchestrator.wait(run.id, ABORT_WAIT_S)
@@ -195,7 +201,7 @@ def abort(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrato
     return public_session(db, run)
 
 
-@router.get("/sessions/{session_id}/measurements")
+@router.get("/sessions/{session_id}/measurements", response_model=list[MeasurementOut])
 def measurements(session_id: int, db: DbSession, tok: Reader) -> list[dict]:
     get_run(db, session_id)
     rows = db.exec(select(Measurement).where(Measurement.session_id == session_id)
@@ -229,8 +235,12 @@ async def stream_reader(session_id: int, request: Request,
 
 
 @router.get("/sessions/{session_id}/events", response_class=StreamingResponse,
-            responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}},
-                             "description": "Server-sent events (`event: progress`, data: the session)"}})
+            responses={200: {"description": "Server-sent events (`event: progress`), each one's data the session",
+                             "content": {"text/event-stream": {"schema": {  # each event (OpenAPI 3.1: `schema`)
+                                 "type": "object", "required": ["event", "data"],
+                                 "properties": {"event": {"const": "progress"}, "data": {
+                                     "type": "string", "contentMediaType": "application/json",
+                                     "contentSchema": {"$ref": "#/components/schemas/SessionPublic"}}}}}}}})
 async def events(session_id: int, request: Request, tok: Annotated[Token, Depends(stream_reader)]):
     """Progress as server-sent events: an ``event: progress`` with the session's state,
     planned and measured counts and reason whenever one changes; ends when the session is

@@ -9,6 +9,7 @@ import contextlib
 import math
 import threading
 import time
+from typing import Any
 
 from fastapi import APIRouter, HTTPException, Request
 from sqlalchemy import func
@@ -17,11 +18,13 @@ from sqlmodel import select
 
 from ...devices import describe
 from ...devicetest import test_devices
-from ...models import Calibration, Cell, RunSession
+from ...models import Calibration, Cell, RunSession, SessionPublic
 from ...results import plan_preview, session_live
 from ...store import as_utc
 from ...store import audit, measured_count
 from ..deps import DbSession, Orchestrator, Reader, Runner
+from ..schemas import (CellSummary, DeviceTest, History, LastDeviceTest, LibraryRobot, LiveSession, Overview,
+                       PlanPreview, SessionPage)
 from .sessions import ACTIVE, commit_planned, public_session
 
 router = APIRouter(tags=["workbench"])
@@ -101,7 +104,7 @@ def _summary(db, cell: Cell) -> dict:
             "active_session": _active(db, cell.id)}
 
 
-@router.get("/overview")
+@router.get("/overview", response_model=Overview)
 def overview(db: DbSession, tok: Reader, site: str | None = None, limit: int = 200, offset: int = 0) -> dict:
     """Every cell (a page of them) with its robot, devices, last pose calibration's RMS, the
     trend of the last 30, and the session driving it if any; and who is asking."""
@@ -114,7 +117,7 @@ def overview(db: DbSession, tok: Reader, site: str | None = None, limit: int = 2
             "cells": [_summary(db, c) for c in cells]}
 
 
-@router.get("/cells/{cell_id}/summary")
+@router.get("/cells/{cell_id}/summary", response_model=CellSummary)
 def cell_summary(cell_id: int, db: DbSession, tok: Reader) -> dict:
     """One cell as on the overview, with its devices document and allowed region."""
     cell = _cell(db, cell_id)
@@ -125,7 +128,7 @@ def cell_summary(cell_id: int, db: DbSession, tok: Reader) -> dict:
             "controller_model": controller_summary(db, cell)}
 
 
-@router.get("/cells/{cell_id}/history")
+@router.get("/cells/{cell_id}/history", response_model=History)
 def history(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 20,
             offset: int = 0) -> dict:
     """A page of the cell's calibrations, newest first (without their reports)."""
@@ -140,7 +143,7 @@ def history(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, l
                       for i, k, s, r, t in rows]}
 
 
-@router.get("/cells/{cell_id}/session-list")
+@router.get("/cells/{cell_id}/session-list", response_model=SessionPage)
 def session_list(cell_id: int, db: DbSession, tok: Reader, limit: int = 20, offset: int = 0,
                  dry_runs: bool = False) -> dict:
     """A page of the cell's sessions, newest first (dry runs left out unless asked for)."""
@@ -252,7 +255,7 @@ def _test_can_nodes(devices: dict, timeout_s: float, busy: str | None) -> list[d
             for r, (c, j) in zip(out, checks)]
 
 
-@router.post("/cells/{cell_id}/devices/test")
+@router.post("/cells/{cell_id}/devices/test", response_model=DeviceTest)
 def test_connections(cell_id: int, request: Request, db: DbSession, tok: Runner, timeout_s: float = 8.0) -> dict:
     """Open each device of the cell, ask it something harmless (nothing moves) and report what
     it answered, or the error, each within ``timeout_s``: the robot, the instrument, and each
@@ -284,7 +287,7 @@ def _has_can_nodes(devices: dict) -> bool:
     return bool(devices.get("can") and (devices.get("encoders") or devices.get("resolvers")))
 
 
-@router.get("/cells/{cell_id}/devices/test")
+@router.get("/cells/{cell_id}/devices/test", response_model=LastDeviceTest)
 def last_test(cell_id: int, db: DbSession, tok: Reader) -> dict:
     """The last connection test of the cell's devices (``null`` results when none was run)."""
     from ...certificate import last_device_test
@@ -296,7 +299,7 @@ def last_test(cell_id: int, db: DbSession, tok: Reader) -> dict:
 # --------------------------------------------------------------------------- robot library
 
 
-@router.get("/library/robots")
+@router.get("/library/robots", response_model=list[LibraryRobot])
 def library(tok: Reader) -> list[dict]:
     """The nominal robots Recal knows (name, joints, convention)."""
     from calibration import robots
@@ -309,7 +312,8 @@ def library(tok: Reader) -> list[dict]:
     return out
 
 
-@router.get("/library/robots/{name}")
+@router.get("/library/robots/{name}", response_model=dict[str, Any],
+            responses={200: {"description": "a recal.model/1 document (docs/formats.md)"}})
 def library_robot(name: str, tok: Reader) -> dict:
     """A library robot's nominal ``recal.model/1`` document."""
     from calibration import robots
@@ -323,7 +327,7 @@ def library_robot(name: str, tok: Reader) -> dict:
 # --------------------------------------------------------------------------- plans
 
 
-@router.get("/sessions/{session_id}/plan")
+@router.get("/sessions/{session_id}/plan", response_model=PlanPreview)
 def plan(session_id: int, request: Request, db: DbSession, tok: Reader) -> dict:
     """A session's plan, for confirmation before anything moves: configurations, the joint
     ranges they use against the allowed limits, the limit check, the accuracy identification
@@ -332,7 +336,7 @@ def plan(session_id: int, request: Request, db: DbSession, tok: Reader) -> dict:
     return plan_preview(db, run, _cell(db, run.cell_id), request.app.state.settings)
 
 
-@router.post("/sessions/{session_id}/run", status_code=201)
+@router.post("/sessions/{session_id}/run", status_code=201, response_model=SessionPublic)
 def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
     """Run the plan of a completed dry-run session for real: a new session measuring exactly
     the configurations that were shown and checked."""
@@ -364,7 +368,7 @@ def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestr
     return public_session(db, run)
 
 
-@router.get("/sessions/{session_id}/live")
+@router.get("/sessions/{session_id}/live", response_model=LiveSession)
 def live(session_id: int, db: DbSession, tok: Reader) -> dict:
     """A session's residuals so far (per pose, against the cell's current model), the last
     reading, seconds per pose and the time remaining."""
