@@ -1,23 +1,109 @@
-"""The identification report: a JSON-ready dict in the model's own units."""
+"""The identification's words and report: why a parameter is not identified (in any units), and
+the JSON-ready report in the model's own units.
+
+The calibration core computes; this module writes. :mod:`calibration.identify` takes its
+explanations from here, so it imports nothing of the core at import time (only for types).
+"""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .identify import IdentificationResult, explain, relation_coefficients
 from .model import KinematicModel, Units, model_to_dict
-from .uncertainty import Validation
+
+if TYPE_CHECKING:  # identify imports this module for its words: no import cycle at run time
+    from .identify import IdentificationResult, Unidentifiable
+    from .uncertainty import Validation
+
+
+# --------------------------------------------------------------------------- words
+
+def describe(name: str) -> str:
+    head, _, f = name.rpartition(".")
+    words = {"theta": "offset", "d": "d", "a": "a", "alpha": "twist alpha", "beta": "Hayati beta",
+             "gain": "gain", "tilt_x": "axis tilt x", "tilt_y": "axis tilt y", "shift_x": "axis shift x",
+             "shift_y": "axis shift y"}
+    if head in ("base", "tool", "home"):
+        kind = "translation" if f.startswith("t") else "rotation"
+        return f"{head} {kind} {f[1]} ({name})"
+    if head.startswith("target."):
+        return f"target {head[7:]} {f} ({name})"
+    return f"joint {head} {words.get(f, f)} ({name})"
+
+
+def unit_name(kind: str, units: Units | None) -> tuple[str, float]:
+    """(unit, SI per unit) of a parameter kind (``length``, ``angle``, ``scale``) in ``units``
+    (None: SI). The one place a parameter's unit is named: the reports, the relations and the
+    identification's notes all write units through it."""
+    if kind == "length":
+        return ("m", 1.0) if units is None else (units.length, units.length_m)
+    if kind == "angle":
+        return ("rad", 1.0) if units is None else (units.angle, units.angle_rad)
+    return ("", 1.0)
+
+
+def relation_coefficients(u: Unidentifiable, units=None) -> list[tuple[str, float, str]]:
+    """``u.relation`` in ``units`` (a :class:`calibration.model.Units`; None: SI): (name,
+    coefficient, unit of the coefficient such as ``mm/deg``) per related parameter."""
+    out = []
+    kinds = u.kinds or ("",) * (len(u.relation) + 1)
+    un, sn = unit_name(kinds[0], units)
+    for (name, c), kind in zip(u.relation, kinds[1:]):
+        uj, sj = unit_name(kind, units)
+        unit = uj if not un else (f"{uj}/{un}" if uj else f"1/{un}")
+        out.append((name, c * sn / sj, "1" if uj == un else unit))
+    return out
+
+
+def relation_text(u: Unidentifiable, units=None, *, terms: int = 6) -> str:
+    """The relation in words: ``1 mm of tool.ty ≡ +1.43 deg of j6.theta +1 mm of target.smr1.x``."""
+    kinds = u.kinds or ("",) * (len(u.relation) + 1)
+    un, _ = unit_name(kinds[0], units)
+    parts = []
+    for (name, c, _), kind in zip(relation_coefficients(u, units)[:terms], kinds[1:]):
+        uj, _ = unit_name(kind, units)
+        parts.append(f"{c:+.3g}{' ' + uj if uj else ''} of {name}")
+    more = " + …" if len(u.relation) > terms else ""
+    return f"1{' ' + un if un else ''} of {u.name} ≡ {' '.join(parts)}{more}"
+
+
+def explain(u: Unidentifiable, units=None) -> str:
+    """Why ``u`` is not identified, in words, with the relation's coefficients in ``units``
+    (a :class:`calibration.model.Units`; None: SI)."""
+    d = describe(u.name)
+    rel = relation_text(u, units) if u.relation else ""
+    if u.category == "tool_orientation":
+        return "tool orientation is unobservable from position-only data" + (f" ({rel})" if rel else "")
+    if u.category == "target_offsets":
+        return f"{d} moves the measured points exactly as the target offsets do ({rel})"
+    if u.category == "last_joint_offset":
+        joint = u.name.rpartition(".")[0]
+        what = ("the target offsets already describe" if any(n.startswith("target.") for n, _ in u.relation)
+                else "the tool translation already describes")
+        return (f"{d} only turns the measured points about the axis of joint {joint}, which {what}: "
+                f"position-only data cannot tell the two apart, so it keeps the model's value ({rel})")
+    if u.category == "weak":
+        return (f"{d} is redundant only at the nominal geometry (a target on an axis)"
+                + (f" where {rel}" if rel else "") + "; at the identified geometry the data determine it too "
+                "weakly to free it, so it keeps the model's value")
+    if u.category == "same_motion":
+        return f"{d} and {describe(u.relation[0][0])} are the same motion ({rel})"
+    if u.category == "combination":
+        return f"{d} moves the measured points as a combination of freed parameters does: {rel}"
+    return f"{d} has no effect on these measurements"
+
 
 
 def _unit(kind: str, units: Units) -> tuple[str, float]:
-    """(unit name, SI per unit) of a parameter kind."""
-    if kind == "length":
-        return units.length, units.length_m
-    if kind == "angle":
-        return units.angle, units.angle_rad
-    return "1", 1.0
+    """(unit name, SI per unit) of a parameter kind in a report (a gain's unit is ``1``)."""
+    name, si = unit_name(kind, units)
+    return name or "1", si
+
+
+# --------------------------------------------------------------------------- the report
 
 
 def _f(x: float, digits: int = 9) -> float | None:
