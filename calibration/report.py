@@ -106,6 +106,38 @@ def _unit(kind: str, units: Units) -> tuple[str, float]:
 # --------------------------------------------------------------------------- the report
 
 
+def expected_rms_m(result: IdentificationResult) -> float:
+    """The residual RMS (m) the stated uncertainty expects: the actual one over √(χ²/dof)."""
+    ratio = math.sqrt(result.chi2 / result.dof) if result.dof > 0 and result.chi2 > 0 else 1.0
+    return result.rms_m / ratio
+
+
+def consistency_text(result: IdentificationResult, units: Units) -> str:
+    """One line on whether the model explains the data (the χ² test of ``result.consistency``)."""
+    c = result.consistency or {}
+    L, u = units.length_m, units.length
+    level = f"{100 * c.get('level', 0.0):.3g} %"
+    if c.get("consistent", True):
+        return (f"the model explains the data: residual RMS {result.rms_m / L:.3g} {u}, "
+                f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level)")
+    return (f"the model does not explain the data: residual RMS {result.rms_m / L:.3g} {u} against "
+            f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level); see the report")
+
+
+def summary_line(result: IdentificationResult, units: Units, n_rows: int, validation: Validation | None = None) -> str:
+    """The one line ``recal identify`` prints."""
+    L, u = units.length_m, units.length
+    line = (f"identified {len(result.params)} parameters from {n_rows} rows: "
+            f"residual RMS {result.rms_m / L:.4g} {u}, max {result.max_m / L:.4g} {u}; "
+            f"{len(result.unidentifiable)} not identifiable; {result.message}")
+    if result.cross_validation is not None:
+        line += f"; cross-validated RMS {result.cross_validation['rms_m'] / L:.4g} {u}"
+    if validation is not None:
+        line += (f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
+                 f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound")
+    return line
+
+
 def _f(x: float, digits: int = 9) -> float | None:
     x = float(x)
     return None if not math.isfinite(x) else float(f"{x:.{digits}g}")
@@ -151,7 +183,23 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
             "rms_orientation": _f(result.rms_rad / units.angle_rad),
             "chi2": _f(result.chi2), "dof": result.dof,
             "sigma_scale": _f(result.sigma_scale),
+            "model_error_scale": _f(result.model_error_scale),
         },
+        "cross_validation": None if result.cross_validation is None else {
+            "folds": result.cross_validation["folds"],
+            "method": "linearised k-fold: each fold predicted by the fit without it (one Gauss-Newton step from "
+                      "the full fit)",
+            "rms": _f(result.cross_validation["rms_m"] / L), "in_sample_rms": _f(result.rms_m / L),
+            "chi2": _f(result.cross_validation["chi2"]), "expected_chi2": _f(result.cross_validation["expected_chi2"]),
+            "scale": _f(result.cross_validation["scale"]),
+        },
+        "consistency": None if result.consistency is None else {
+            **{k: (_f(v) if isinstance(v, float) else v) for k, v in result.consistency.items()},
+            "expected_rms": _f(expected_rms_m(result) / L),
+            "message": consistency_text(result, units),
+        },
+        "complete": result.completeness,
+        "warnings": list(result.warnings),
         "data_only": None if result.data_only is None else {
             "parameters": list(result.data_only["parameters"]),
             "condition_number": _f(result.data_only["condition_number"]),
@@ -197,7 +245,8 @@ def identification_block(result: IdentificationResult, units: Units, *, nominal:
     """
     full = identification_report(result, units)
     block = {k: full[k] for k in ("success", "message", "rows", "parameters", "unidentifiable", "condition_number",
-                                  "observability", "residuals", "notes")}
+                                  "observability", "residuals", "notes", "complete", "cross_validation",
+                                  "consistency", "warnings")}
     if full["data_only"] is not None:
         block["data_only"] = full["data_only"]
     block["identified_from"] = (nominal or result.start_model).name
@@ -206,6 +255,8 @@ def identification_block(result: IdentificationResult, units: Units, *, nominal:
         "names": list(result.param_names),
         "kinds": [p.kind for p in result.params],
         "matrix": [[float(v) for v in row] for row in result.covariance],
+        # predictions use matrix x model_error_scale² (calibration.uncertainty.prediction_covariance)
+        "model_error_scale": float(result.model_error_scale),
     }
     if nominal is not None:
         block["nominal"] = model_to_dict(nominal, units=units)

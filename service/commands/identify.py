@@ -1,4 +1,10 @@
-"""``recal identify --model NOMINAL.json --data MEAS.csv --out MODEL.json [--report R.json] [--validate VAL.csv]``"""
+"""``recal identify --model NOMINAL.json --data MEAS.csv --out MODEL.json [--report R.json] [--validate VAL.csv]``
+
+Exit status: 0 identified; 1 the solver did not converge; 2 bad input, or too few rows to check
+the fit (the message says how many are needed; nothing written); 3 the model and the report are
+written, but the residuals are not consistent with the stated uncertainty (the model does not
+explain the data: a chi-squared test, docs/formats.md §4).
+"""
 
 from __future__ import annotations
 
@@ -28,7 +34,7 @@ def add_parser(s) -> None:
 def run(args) -> int:
 
     from calibration.identify import identify
-    from calibration.report import identification_block, identification_report
+    from calibration.report import consistency_text, identification_block, identification_report, summary_line
     from calibration.uncertainty import validate
     from service.cli import Fail
     from service.files import check_output, load_model, read_measurements, save_model, write_atomic
@@ -64,15 +70,17 @@ def run(args) -> int:
     # knows, and the joint ranges the data covered (its "calibrated region")
     block = identification_block(result, model.units, nominal=model, q=data.q)
     save_model(args.out, result.model, {"identification": block})
-    u = model.units.length
-    line = (f"identified {len(result.params)} parameters from {len(data)} rows: "
-            f"residual RMS {result.rms_m / L:.4g} {u}, max {result.max_m / L:.4g} {u}; "
-            f"{len(result.unidentifiable)} not identifiable; {result.message}")
-    if validation is not None:
-        line += (f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
-                 f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound")
+    line = summary_line(result, model.units, len(data), validation)
     print(line)
     if result.outliers:
         rows = ", ".join(str(int(data.row[i])) for i in result.outliers[:10])
         print(f"warning: {len(result.outliers)} rows look like outliers (rows {rows}); see the report", file=sys.stderr)
-    return 0 if result.success else 1
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    if not result.success:
+        return 1
+    if result.consistency is not None and not result.consistency["consistent"]:
+        # the model and the report are written: a nightly job sees the status, a person the report
+        print(f"recal identify: {consistency_text(result, model.units)}", file=sys.stderr)
+        return 3
+    return 0
