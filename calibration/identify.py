@@ -485,6 +485,10 @@ class _Linearisation:
     def cost(self) -> float:
         return 0.5 * float(self.c.sum())
 
+    def restricted(self, idx: list[int]) -> _Linearisation:
+        """The same linearisation for the parameters ``idx`` only (no pass over the data)."""
+        return dataclasses.replace(self, G=self.G[:, idx][:, :, idx], g=self.g[:, idx], R=None)
+
     @property
     def gram(self) -> np.ndarray:
         return self.G.sum(axis=0)
@@ -1007,16 +1011,17 @@ MAX_SELECTION_ROUNDS = 4
 
 
 def _reselect(current: KinematicModel, prob: _Problem, cands: list[Parameter], sel: _Selection, *,
-              rank_rtol: float, position_only: bool) -> _Selection:
+              rank_rtol: float, position_only: bool) -> tuple[_Selection, _Linearisation]:
     """The selection again, at the converged model (book L876: the rank decides, and at the
     answer, not at the nominal): parameters redundant only at the nominal geometry are freed
-    where the data determine them (:data:`DETERMINED_RAD`)."""
+    where the data determine them (:data:`DETERMINED_RAD`, :data:`DETERMINED_M`). Returns the
+    selection and the candidates' linearisation there."""
     lin = _linearise(current, prob, cands)
     G = lin.gram
     new = _choose(cands, G, None, rank_rtol=rank_rtol, position_only=position_only)
     added = [k for k in new.kept if k not in sel.kept]
     if not added:
-        return new
+        return new, lin
     idx = new.kept
     Gk = G[np.ix_(idx, idx)]
     d = np.sqrt(np.maximum(np.diag(Gk), 1e-300))
@@ -1030,7 +1035,7 @@ def _reselect(current: KinematicModel, prob: _Problem, cands: list[Parameter], s
         if p.kind == "scale" or sd[idx.index(k)] > bound:
             loose.append(k)
     if not loose:
-        return new
+        return new, lin
     kept = [k for k in new.kept if k not in loose]
     dropped = list(new.dropped)
     before = {u.name: u for u in sel.dropped}
@@ -1040,7 +1045,7 @@ def _reselect(current: KinematicModel, prob: _Problem, cands: list[Parameter], s
         u = dataclasses.replace(u, category="weak")
         dropped.append(dataclasses.replace(u, reason=explain(u)))
     dropped.sort(key=lambda u: [p.name for p in cands].index(u.name))
-    return _Selection(kept, dropped, [], set(kept), new.sd_prior)
+    return _Selection(kept, dropped, [], set(kept), new.sd_prior), lin
 
 
 # --------------------------------------------------------------------------- step 4: the LM loop
@@ -1231,8 +1236,8 @@ def identify(
         if register == "always" or registration["applied"]:
             start = cand
             registration["applied"] = True
-    lin = _linearise(start, prob, cands)
-    sel = _choose(cands, lin.gram, prior, rank_rtol=rank_rtol, position_only=position_only)
+    lin_all = _linearise(start, prob, cands)
+    sel = _choose(cands, lin_all.gram, prior, rank_rtol=rank_rtol, position_only=position_only)
     if prior is None:
         _check_redundancy(prob, len(sel.kept), complete)
     at_nominal = set(sel.kept)
@@ -1246,7 +1251,10 @@ def identify(
     for _round in range(MAX_SELECTION_ROUNDS):
         params = [cands[k] for k in sel.kept]
         info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
-        lin_p = _linearise(current, prob, params, loss=loss, f_scale=f_scale)
+        # the candidates' linearisation at this model serves the freed ones when the weights are
+        # the same (no robust loss); else one more pass
+        lin_p = lin_all.restricted(sel.kept) if loss == "linear" else _linearise(current, prob, params, loss=loss,
+                                                                                 f_scale=f_scale)
         sol = _levenberg_marquardt(current, prob, params, lin_p, info, loss=loss, f_scale=f_scale,
                                    max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol)
         current = sol.model
@@ -1257,7 +1265,7 @@ def identify(
         history += list(sol.history)
         if prior is not None or not hayati:
             break
-        again = _reselect(current, prob, cands, sel, rank_rtol=rank_rtol, position_only=position_only)
+        again, lin_all = _reselect(current, prob, cands, sel, rank_rtol=rank_rtol, position_only=position_only)
         if again.kept == sel.kept:
             sel = dataclasses.replace(sel, dropped=again.dropped)
             break
