@@ -249,8 +249,9 @@ class AxisFit:
     (prismatic; NaN for revolute), ``out_of_plane_rms_m`` (revolute: distance from the plane of
     rotation, the joint's wobble; prismatic: distance from the line), ``circle_rms_m`` (radial
     residuals in the plane; NaN for prismatic), ``noise_m`` (per-axis noise estimated from the
-    residuals), ``direction_std_rad`` and ``point_std_m`` (standard uncertainty of the axis
-    direction and of its position perpendicular to it, from the residual scatter), ``scale``
+    residuals), ``direction_std_rad`` and ``point_std_m`` (standard uncertainty of the angle
+    between the fitted and the true axis, and of the distance between them across the axis: the
+    RMS of those two-dimensional errors, from the residual scatter), ``scale``
     (fitted motion per unit of joint variable: 1 when the joint's gain is right; NaN without
     varying readings), ``n_points``, ``method`` and ``warnings``.
     """
@@ -350,8 +351,11 @@ def fit_axis(
     cov = circ.covariance
     if np.all(np.isfinite(cov)):
         Pn = np.eye(3) - np.outer(n, n)
-        point_std = float(np.sqrt(max(np.linalg.eigvalsh(Pn @ cov[:3, :3] @ Pn)[-1], 0.0)))
-        direction_std = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:5, 3:5])[-1], 0.0)))
+        # the RMS of the angle (and of the distance across the axis) between the fitted and the
+        # true axis: both errors are two-dimensional, so the trace, not the largest principal
+        # variance, which made the angle's standard uncertainty up to √2 too small (issue 14)
+        point_std = float(np.sqrt(max(np.trace(Pn @ cov[:3, :3] @ Pn), 0.0)))
+        direction_std = float(np.sqrt(max(np.trace(cov[3:5, 3:5]), 0.0)))
     else:
         point_std = direction_std = float("nan")
     if arc < min_arc_rad:
