@@ -67,7 +67,7 @@ def _ur10e_case(rng, *, noise_m=SIGMA, sag_deg=0.0, n=200):
 
 
 def test_a_right_model_is_consistent_and_cross_validates_at_the_noise():
-    nom, data, hold = _ur10e_case(np.random.default_rng(1))
+    nom, data, _ = _ur10e_case(np.random.default_rng(1))
     result = identify(nom, data, sigma_m=SIGMA)
     assert result.consistency["consistent"] and result.consistency["p_value"] > 0.001
     cv = result.cross_validation
