@@ -1311,7 +1311,7 @@ def identify(
         what = "the tool origin" if t is None else f"target {t}"
         held = [u.name for u in dropped if u.category == "weak"]
         warnings.append(
-            f"{what} is nominally on the last joint's axis ({dist * 1e3:.3g} mm from it): what the last axes do "
+            f"{what} is nominally on the last joint's axis ({dist * 1e3:.2f} mm from it): what the last axes do "
             f"there is seen only through the real offset from the axis"
             + (f"; determined only at the identified geometry: {', '.join(answer_only)}" if answer_only else "")
             + (f"; not determined, kept at the model's value: {', '.join(held)} (the model may be biased "
