@@ -6,27 +6,42 @@ parameters freed with their standard errors and correlations, the ones the data 
 determine and why, conditioning and observability indices, residual statistics, rows
 down-weighted as outliers, and how the solver ended.
 
-Method (book §4.4.2, §4.3.3, §4.5.3):
+Method (book §4.4.2, §4.3.3, §4.5.3), in named steps (:func:`identify` calls them in order):
 
-1. Parallel consecutive axes in ``dh`` links become Hayati links (§2.6, §2.8.1.1); ``mdh`` is
-   converted to ``dh`` first (exact).
-2. When the base is unknown or far off, start from a rigid registration of the nominal
-   predictions onto the measurements (full-pose data: base and tool together, the
-   robot-world/hand-eye problem).
-3. Rows are weighted by their uncertainty (``sigma`` per row, or the instrument's).
-4. The identifiable set: a QR factorisation of the column-scaled, weighted Jacobian, in a fixed
-   order of preference (:func:`preference_order`); a column that adds (numerically) nothing to
-   the columns before it is not freed, keeps the model's value, and the report names what it
-   duplicates, compared in that dimensionless scaling (:func:`select_identifiable`).
-5. Levenberg–Marquardt with Marquardt's scaling (the damping is proportional to diag(JᵀWJ)),
-   analytic Jacobian (:mod:`calibration.jacobian`), optional robust loss by iteratively
-   reweighted rows (a bumped reflector does not ruin the fit; the rows it down-weights are
-   named).
-6. Covariance ``s²(JᵀWJ)⁻¹`` (book eq. 4.54/4.70 with W = Σ⁻¹), ``s² = max(1, χ²/dof)``: if the
-   residuals are larger than the stated uncertainty, the stated uncertainty was optimistic and
-   the covariance grows accordingly; it never shrinks below what the instrument states. With a
-   :class:`Prior` (book §4.3.2): ``s²(JᵀWJ + MᵀΣp⁻¹M)⁻¹`` (``M`` the combinations the prior
-   describes, :meth:`Prior.combinations`), the prior's term counted in χ².
+1. Validation (:func:`_check_input`).
+2. Convention rewrite (:func:`complete_form`): a complete, proportional parameterisation (book
+   §2.7): ``mdh`` -> ``dh`` (exact); parallel consecutive axes in Hayati links (§2.6,
+   §2.8.1.1), prismatic joints too; ``poe`` (§2.8.2) where ``dh`` cannot be complete (collinear
+   axes: the rank at generic configurations falls short of the ``poe`` form's) or
+   proportional. :func:`completeness` counts N = 4R + 2P + 6 (eq. 2.63) and what the
+   measurement can see.
+3. The candidates (:func:`_candidates`: THE place where the parameter list is assembled; their
+   Jacobian columns in :func:`_linearise`), a rigid registration of the nominal predictions onto
+   the measurements when the base is unknown or far off (full-pose data: base and tool, the
+   robot-world/hand-eye problem), and the identifiable set (:func:`_choose`): a Gram–Schmidt
+   selection on the column-scaled, weighted normal equations, in a fixed order of preference
+   (:func:`preference_order`); a column that adds (numerically) nothing to those before it is
+   not freed, keeps the model's value, and the report names what it duplicates
+   (:func:`select_identifiable`); with a :class:`Prior`, its share (§4.3.2). Too few equations
+   to check the fit: :class:`NotEnoughData`.
+4. Levenberg–Marquardt (:func:`_levenberg_marquardt`) with Marquardt's scaling, the analytic
+   Jacobian (:mod:`calibration.jacobian`), an optional robust loss by iteratively reweighted
+   rows (a bumped reflector does not ruin the fit; the rows it down-weights are named). Then the
+   selection again at the answer (:func:`_reselect`: parameters redundant only at the nominal
+   geometry, a target on an axis, are freed where the data determine them), until the freed
+   set is stable.
+5. Statistics (:func:`_statistics`): covariance ``s²(JᵀWJ)⁻¹`` (book eq. 4.54/4.70 with W =
+   Σ⁻¹), ``s² = max(1, χ²/dof)``: if the residuals are larger than the stated uncertainty, the
+   covariance grows accordingly; it never shrinks below what the instrument states. With a
+   :class:`Prior`: ``s²(JᵀWJ + MᵀΣp⁻¹M)⁻¹`` (``M`` the combinations the prior describes,
+   :meth:`Prior.combinations`), the prior's term counted in χ². A linearised k-fold
+   cross-validation (:func:`_cross_validation`) says whether the covariance predicts the
+   hold-out error (``model_error_scale``), and a χ² test (:func:`_consistency`) whether the
+   model explains the data at all.
+6. Merging (:func:`_merge_prior`): the parameters only the prior determines join the result.
+
+Rows are processed in chunks (:data:`CHUNK_ROWS`): the normal equations are accumulated per
+cross-validation fold, and no array of the size of the whole Jacobian is ever made.
 """
 
 from __future__ import annotations
@@ -242,6 +257,14 @@ class IdentificationResult:
 
     Residuals are measured minus predicted: ``residuals_m`` (N, 3) position, ``residuals_rad``
     (N, 3) orientation (zeros for position-only rows).
+
+    ``completeness``: :func:`completeness` of the form identified, with ``identified`` (what the
+    data determined); ``cross_validation``: :func:`_cross_validation` (``folds``, ``chi2``,
+    ``expected_chi2``, ``scale``, ``rms_m``, ``model_error_scale``; None with fewer than 10
+    poses); ``model_error_scale``: how much predictions grow beyond the covariance
+    (:func:`calibration.uncertainty.prediction_covariance`); ``consistency``: the χ² test
+    (:func:`_consistency`); ``warnings``: what the user should know (a target nominally on the
+    last axis).
     """
 
     model: KinematicModel

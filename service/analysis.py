@@ -19,7 +19,7 @@ import math
 import numpy as np
 from sqlmodel import Session, select
 
-from calibration.identify import Measurements, Prior, drift_scale, held_relations, identify
+from calibration.identify import Measurements, NotEnoughData, Prior, drift_scale, held_relations, identify
 from calibration.jacobian import predict
 from calibration.model import KinematicModel, model_from_dict, model_to_dict
 from calibration.report import identification_block, identification_report
@@ -124,7 +124,10 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
         scale = max(drift_scale(start, data, names, cov, drift, held=held), DRIFT_SCALE_MIN)
         prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
-    result = identify(start, data, prior=prior)
+    try:
+        result = identify(start, data, prior=prior)
+    except NotEnoughData as exc:  # too few poses to check the fit: say how many, as the CLI does
+        raise AnalysisError(str(exc)) from None
     if not result.success:
         raise AnalysisError(f"identification did not converge: {result.message}")
     units = nominal.units
