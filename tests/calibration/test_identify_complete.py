@@ -176,3 +176,19 @@ def test_two_rows_are_refused_with_the_rows_needed():
         identify(nom, data)
     assert exc.value.rows_needed > 10
     assert f"at least {exc.value.rows_needed} rows" in str(exc.value)
+
+
+def test_plan_predicts_what_identification_reaches_on_the_scara():
+    """`recal plan` on the SCARA predicted 0.016 mm for a model that reached 0.29 mm: it now plans
+    for the complete form identification fits, and the hold-out error is what it predicted."""
+    from calibration.planning import plan
+
+    nom = _robot("scara-rrpr")
+    rng = np.random.default_rng(12)
+    truth = _truth(nom, rng, "")
+    res = plan(nom, random_configurations(nom, 1000, rng), 40, targets=("smr",), sigma_m=SIGMA, rng=rng)
+    data = simulate_measurements(truth, res.q, rng, sigma_m=SIGMA, targets=("smr",))
+    result = identify(nom, data, sigma_m=SIGMA)
+    q = random_configurations(nom, 500, rng)
+    e = np.linalg.norm(target_positions(result.model, q, "smr") - target_positions(truth, q, "smr"), axis=1)
+    assert 0.5 < np.sqrt(np.mean(e**2)) / res.predicted_rms_m < 2.0, (np.sqrt(np.mean(e**2)), res.predicted_rms_m)
