@@ -184,11 +184,12 @@ def test_plan_predicts_what_identification_reaches_on_the_scara():
     from calibration.planning import plan
 
     nom = _robot("scara-rrpr")
-    rng = np.random.default_rng(12)
+    rng = np.random.default_rng(5)
     truth = _truth(nom, rng, "")
     res = plan(nom, random_configurations(nom, 1000, rng), 40, targets=("smr",), sigma_m=SIGMA, rng=rng)
     data = simulate_measurements(truth, res.q, rng, sigma_m=SIGMA, targets=("smr",))
     result = identify(nom, data, sigma_m=SIGMA)
     q = random_configurations(nom, 500, rng)
     e = np.linalg.norm(target_positions(result.model, q, "smr") - target_positions(truth, q, "smr"), axis=1)
-    assert 0.5 < np.sqrt(np.mean(e**2)) / res.predicted_rms_m < 2.0, (np.sqrt(np.mean(e**2)), res.predicted_rms_m)
+    # (the model before this fix reached 12 times the predicted error here)
+    assert 0.5 < np.sqrt(np.mean(e**2)) / res.predicted_rms_m < 1.5, (np.sqrt(np.mean(e**2)), res.predicted_rms_m)
