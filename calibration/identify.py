@@ -54,7 +54,7 @@ import numpy as np
 
 from .conventions import hayati_for_parallel_axes, mdh_to_dh, to_poe
 from .jacobian import Prediction, jacobian_from_walk, predict, record_keys, world_points
-from .kinematics import walk
+from .kinematics import program, walk
 from .model import KinematicModel
 from .parameters import Parameter, apply_step, candidate_parameters, parameter_values
 from .registration import register_points, register_poses
@@ -538,10 +538,11 @@ def _linearise(model: KinematicModel, prob: _Problem, params: list[Parameter], *
     R = None
     keys = record_keys(params)
     data = prob.data
+    ops = program(model)  # compiled once for every chunk
     for ch in prob.chunks:
         a, b, f = ch.a, ch.b, ch.fold
         q = data.q[a:b]
-        w = walk(model, q, keys)
+        w = walk(model, q, keys, ops=ops)
         pt = world_points(w, _p_tool(model, prob.p_tool_names[a:b], ch.targets))
         rpc = data.p_world[a:b] - pt
         rp[a:b] = rpc
@@ -913,7 +914,7 @@ def complete_form(model: KinematicModel, *, hayati: bool = True,
     notes += hn
     stiff = [j.name for j in start.joints[:-1]
              if not j.hayati and abs(np.sin(j.alpha)) < np.sin(parallel_tol_rad)]
-    poe = to_poe(start)
+    poe = to_poe(start)  # the complete form: what dh must match
     r_dh, r_poe = (_jacobian_rank(m, (None,), orientation=True) for m in (start, poe))
     if r_dh < r_poe:
         notes.append(f"the dh form cannot describe every deviation of this arm (rank {r_dh} of the complete "
