@@ -1278,7 +1278,6 @@ def identify(
     # 2. convention rewrite: a complete, proportional parameterisation
     start, notes = complete_form(model, hayati=hayati)
     complete = completeness(start, targets, orientation=not position_only)
-    warnings: list[str] = []
     on_axis = _targets_on_last_axis(start, targets)
     prob = _problem(data, sigma_m, sigma_rad)
 
@@ -1330,16 +1329,7 @@ def identify(
     status = sol.status
     lin = sol.lin
     P = len(params)
-    answer_only = [cands[k].name for k in kept if k not in at_nominal]
-    for t, dist in on_axis:
-        what = "the tool origin" if t is None else f"target {t}"
-        held = [u.name for u in dropped if u.category == "weak"]
-        warnings.append(
-            f"{what} is nominally on the last joint's axis ({dist * 1e3:.2f} mm from it): what the last axes do "
-            f"there is seen only through the real offset from the axis"
-            + (f"; determined only at the identified geometry: {', '.join(answer_only)}" if answer_only else "")
-            + (f"; not determined, kept at the model's value: {', '.join(held)} (the model may be biased "
-               f"by them; put the target 20 mm or more off the axis)" if held else ""))
+    warnings = _on_axis_warnings(on_axis, [cands[k].name for k in kept if k not in at_nominal], dropped)
 
     # 5. statistics at the solution
     stats = _statistics(current, prob, params, lin, steps, prior, sel, loss=loss, f_scale=f_scale, reach_m=reach,
@@ -1359,7 +1349,7 @@ def identify(
     complete["identified"] = len(sel.by_data)
 
     # 6. merging: the parameters the prior alone determines join the estimated ones
-    params, steps, cov, sources, prior_sd = _merge_prior(cands, sel, current, stats["covariance"], steps, prior)
+    params, steps, cov, sources, prior_sd = _merge_prior(cands, sel, stats["covariance"], steps, prior)
     values = parameter_values(current, params)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -1414,6 +1404,22 @@ def identify(
     )
 
 
+def _on_axis_warnings(on_axis: list, answer_only: list[str], dropped: list) -> list[str]:
+    """What a target nominally on the last axis cost: the parameters only the identified
+    geometry determined, and those it could not (category ``weak``)."""
+    held = [u.name for u in dropped if u.category == "weak"]
+    out = []
+    for t, dist in on_axis:
+        what = "the tool origin" if t is None else f"target {t}"
+        out.append(
+            f"{what} is nominally on the last joint's axis ({dist * 1e3:.2f} mm from it): what the last axes do "
+            f"there is seen only through the real offset from the axis"
+            + (f"; determined only at the identified geometry: {', '.join(answer_only)}" if answer_only else "")
+            + (f"; not determined, kept at the model's value: {', '.join(held)} (the model may be biased "
+               f"by them; put the target 20 mm or more off the axis)" if held else ""))
+    return out
+
+
 def _statistics(current: KinematicModel, prob: _Problem, params: list[Parameter], lin: _Linearisation,
                 steps: np.ndarray, prior: Prior | None, sel: _Selection, *, loss: str, f_scale: float,
                 reach_m: float, n_poses: int) -> dict:
@@ -1455,8 +1461,8 @@ def _statistics(current: KinematicModel, prob: _Problem, params: list[Parameter]
     return out
 
 
-def _merge_prior(cands: list[Parameter], sel: _Selection, current: KinematicModel, cov: np.ndarray,
-                 steps: np.ndarray, prior: Prior | None):
+def _merge_prior(cands: list[Parameter], sel: _Selection, cov: np.ndarray, steps: np.ndarray,
+                 prior: Prior | None):
     """The estimated parameters and those the prior alone determines (not estimated: the prior's
     value, the model's, and the prior's covariance), in the candidates' order. Returns params,
     steps, covariance, sources and the prior's standard errors (None without a prior)."""
