@@ -453,25 +453,6 @@ def _stack(prob: _Problem, rp, rr, Jp=None, Jr=None):
     return (r[0] if len(r) == 1 else np.concatenate(r)), (None if Jt is None else Jt.T)
 
 
-def _row_norms(prob: _Problem, r: np.ndarray) -> np.ndarray:
-    """Per-measurement-row norm of the weighted residual (position and orientation together)."""
-    N = len(prob.data)
-    pos = r[: 3 * N].reshape(3, N)
-    sq = pos[0] ** 2 + pos[1] ** 2 + pos[2] ** 2
-    if np.any(prob.has_rot):
-        rot = r[3 * N:].reshape(3, -1)
-        sq[prob.has_rot] += rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2
-    return np.sqrt(sq)
-
-
-def _expand_rows(prob: _Problem, w_row: np.ndarray) -> np.ndarray:
-    """Per-row weights -> per-residual weights, in the order of :func:`_stack`."""
-    parts = [np.tile(w_row, 3)]
-    if np.any(prob.has_rot):
-        parts.append(np.tile(w_row[prob.has_rot], 3))
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
-
-
 def _robust_weights(z: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
     """IRLS weights rho'(s) for row norms ``z`` (in sigma units); s = (z / f_scale)²."""
     s = (z / f_scale) ** 2
