@@ -95,3 +95,27 @@ def test_an_unmodelled_sag_is_not_hidden():
     assert not result.consistency["consistent"] and result.sigma_scale > 1.3
     assert result.cross_validation["rms_m"] > result.rms_m
     assert validate(result, hold).coverage_95 > 0.9
+
+
+def test_the_stored_covariance_grows_as_the_cross_validation_says():
+    """The model file keeps model_error_scale beside the covariance; what `recal predict
+    --uncertainty` propagates (covariance_from_block) is the covariance times its square."""
+    import pytest
+
+    from calibration.model import Units
+    from calibration.report import identification_block
+    from calibration.uncertainty import CovarianceError, covariance_from_block, prediction_covariance
+
+    nom, data, _ = _ur10e_case(np.random.default_rng(3), sag_deg=0.005)
+    result = identify(nom, data, sigma_m=SIGMA)
+    block = identification_block(result, Units("mm", "deg"))
+    block["covariance"]["model_error_scale"] = 1.7  # as if the cross-validation had said so
+    model = dataclasses.replace(result.model, metadata={"identification": block})
+    names, matrix = covariance_from_block(model)
+    assert [p.name for p in names] == list(result.param_names)
+    np.testing.assert_allclose(matrix, result.covariance * 1.7**2, rtol=1e-12)
+    np.testing.assert_allclose(prediction_covariance(dataclasses.replace(result, model_error_scale=1.7)), matrix)
+    block["covariance"]["model_error_scale"] = 0.5
+    with pytest.raises(CovarianceError, match="expected a number >= 1") as exc:
+        covariance_from_block(dataclasses.replace(result.model, metadata={"identification": block}))
+    assert exc.value.field == "identification.covariance.model_error_scale"
