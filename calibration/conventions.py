@@ -86,13 +86,16 @@ def to_poe(model: KinematicModel) -> KinematicModel:
 
 
 def hayati_for_parallel_axes(model: KinematicModel, *, parallel_tol_rad: float = np.deg2rad(5.0)) -> tuple[KinematicModel, list[str]]:
-    """Rewrite revolute ``dh`` links i < n whose next joint axis is (nearly) parallel
+    """Rewrite ``dh`` links i < n whose next joint axis is (nearly) parallel
     (``|sin alpha_i| < sin(parallel_tol_rad)``) in Hayati's form, exactly.
 
-    A link ``Rz(θ)Tz(d)Tx(a)Rx(α)`` with α = 0 or π equals ``Rz(θ)Tx(a)Rx(α)Ry(0)`` followed by
-    ``Tz(±d)``, which commutes with the next joint's rotation and joins the next link's ``d``
-    (``+d`` for α = 0, ``−d`` for α = π). A link whose α is near, but not exactly, 0 or π and
-    whose d is not 0 has no exact Hayati form: it is left as it is and reported.
+    A revolute link ``Rz(θ)Tz(d)Tx(a)Rx(α)`` with α = 0 or π equals ``Rz(θ)Tx(a)Rx(α)Ry(0)``
+    followed by ``Tz(±d)``, which commutes with the next joint's motion (a rotation about, or a
+    translation along, the same line) and joins the next link's ``d`` (``+d`` for α = 0, ``−d``
+    for α = π): a revolute next joint's offset along its axis, or a prismatic next joint's offset.
+    A prismatic link keeps its ``d`` (its joint offset) and gains ``beta = 0``
+    (``Rz(θ)Tz(d)Tx(a)Rx(α)Ry(β)``), exactly. A revolute link whose α is near, but not exactly, 0
+    or π and whose d is not 0 has no exact Hayati form: it is left as it is and reported.
     Returns the model and a note per link changed or left.
     """
     if model.convention != "dh":
@@ -101,9 +104,13 @@ def hayati_for_parallel_axes(model: KinematicModel, *, parallel_tol_rad: float =
     notes: list[str] = []
     for i in range(len(js) - 1):
         j = js[i]
-        if j.hayati or not j.revolute or abs(np.sin(j.alpha)) >= np.sin(parallel_tol_rad):
+        if j.hayati or abs(np.sin(j.alpha)) >= np.sin(parallel_tol_rad):
             continue
         exact = abs(np.sin(j.alpha)) < 1e-12
+        if not j.revolute:  # a prismatic link keeps d, its joint offset: Ry(0) is all it gains
+            js[i] = dataclasses.replace(j, beta=0.0)
+            notes.append(f"{j.name}: axes {i + 1} and {i + 2} are parallel: link rewritten in Hayati's form (beta)")
+            continue
         if j.d != 0.0 and not exact:
             notes.append(f"{j.name}: axes {i + 1} and {i + 2} are nearly parallel but the link has d != 0 and "
                          f"alpha is not exactly 0 or 180 deg, so it stays in plain DH form")
@@ -111,7 +118,7 @@ def hayati_for_parallel_axes(model: KinematicModel, *, parallel_tol_rad: float =
         if j.d != 0.0:
             nxt = js[i + 1]
             sign = 1.0 if np.cos(j.alpha) > 0 else -1.0
-            if nxt.hayati or not nxt.revolute:
+            if nxt.hayati and nxt.revolute:  # a revolute Hayati link has no d to take it
                 notes.append(f"{j.name}: cannot move d into {nxt.name}; left in plain DH form")
                 continue
             js[i + 1] = dataclasses.replace(nxt, d=nxt.d + sign * j.d)

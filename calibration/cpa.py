@@ -37,23 +37,27 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .conventions import mdh_to_dh, poe_to_dh
+from .geometry import (  # noqa: F401 (the generic fits live in geometry; these names stay importable here)
+    METHODS,
+    Circle,
+    _points,
+    fit_circle,
+    fit_line,
+    fit_plane,
+    kasa_circle,
+    plane_regression,
+)
 from .kinematics import check_q, fk, joint_variables, target_positions, walk
 from .model import KinematicModel
 from .registration import register_points
 from .transforms import homogeneous, invert, matrix_to_pose, pose_to_matrix, rot, rotvec_to_matrix
 from .errors import RecalError
 
-METHODS = ("geometric", "kasa")
-
 # Below this distance of the target from the last axis (in the measured or the nominal robot)
 # the target's direction is too uncertain to orient the tool about the last axis.
 _MIN_TARGET_RADIUS_M = 1e-3
-
-# Relative size under which centred points count as collinear (no circle through them).
-_DEGENERATE_RTOL = 1e-9
 
 
 class SweepError(RecalError, ValueError):
@@ -63,176 +67,6 @@ class SweepError(RecalError, ValueError):
     def __init__(self, message: str, *, row: int | None = None, column: str | None = None):
         self.row, self.column = row, column
         super().__init__(message)
-
-
-# --------------------------------------------------------------------------- plane, circle, line
-
-
-def _points(points: np.ndarray, minimum: int) -> np.ndarray:
-    P = np.asarray(points, dtype=float)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise ValueError(f"`points` must have shape (m, 3); got {P.shape}")
-    if not np.all(np.isfinite(P)):
-        raise ValueError("`points` contains NaN or infinite values")
-    if len(P) < minimum:
-        raise ValueError(f"at least {minimum} points are needed; got {len(P)}")
-    return P
-
-
-def fit_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Total-least-squares plane (book §4.6.2.1): ``(centroid (3,), unit normal (3,), rms)``.
-
-    The normal is the right singular vector of the centred points with the smallest singular
-    value; ``rms`` is the root mean square distance of the points from the plane. This is the
-    fixed point of Stone's iterated regression (eq. 4.288-4.295, ch4b §7.3), without the
-    iteration and without its breakdown for planes that contain the z direction.
-    """
-    P = _points(points, 3)
-    c = P.mean(axis=0)
-    _, s, vt = np.linalg.svd(P - c, full_matrices=False)
-    return c, vt[2], float(s[2] / np.sqrt(len(P)))
-
-
-def plane_regression(points: np.ndarray) -> tuple[float, float, float]:
-    """The book's plane regression ``z = E x + F y + G`` (eq. 4.249-4.262), with eq. 4.252
-    corrected: ``E = (σzx σyy − σzy σxy) / (σxx σyy − σxy²)`` (the printed numerator
-    ``σxx σyy − σzy σxy`` is wrong). Only z residuals are minimised, so it depends on the
-    frame; kept as the reference path, :func:`fit_plane` is what CPA uses.
-    """
-    P = _points(points, 3)
-    d = P - P.mean(axis=0)
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    sxx, syy, sxy, szx, szy = x @ x, y @ y, x @ y, z @ x, z @ y
-    det = sxx * syy - sxy**2
-    if not abs(det) > 1e-300:
-        raise ValueError("the plane contains the z direction: z = E x + F y + G cannot describe it")
-    E = (szx * syy - szy * sxy) / det  # eq. 4.252, corrected
-    F = (sxx * szy - sxy * szx) / det  # eq. 4.253
-    G = P[:, 2].mean() - E * P[:, 0].mean() - F * P[:, 1].mean()  # eq. 4.254
-    return float(E), float(F), float(G)
-
-
-def kasa_circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
-    """Algebraic (Kåsa) circle through plane points ``xy`` (m, 2): ``(centre (2,), radius)``.
-
-    Book eq. 4.263-4.271: ``w = x² + y² = A x + B y + C`` by linear regression, then (not
-    printed in the book) ``g = A/2, h = B/2, r = sqrt(C + g² + h²)``. Exact for exact points;
-    biased towards a smaller radius on short arcs with noise, and translation invariant (moving
-    the origin to the centre and solving again gives the same circle, ch4b §4).
-    """
-    xy = np.asarray(xy, dtype=float)
-    if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) < 3:
-        raise ValueError(f"`xy` must have shape (m >= 3, 2); got {xy.shape}")
-    m0 = xy.mean(axis=0)  # centred sums: same solution, better conditioned
-    x, y = (xy - m0).T
-    w = x**2 + y**2
-    dx, dy, dw = x - x.mean(), y - y.mean(), w - w.mean()
-    sxx, syy, sxy, swx, swy = dx @ dx, dy @ dy, dx @ dy, dw @ dx, dw @ dy
-    det = sxx * syy - sxy**2
-    if not det > 1e-300 * max(sxx * syy, 1e-300):
-        raise ValueError("the points are collinear: no circle passes through them")
-    A = (swx * syy - swy * sxy) / det  # eq. 4.266
-    B = (sxx * swy - sxy * swx) / det  # eq. 4.267
-    C = w.mean() - A * x.mean() - B * y.mean()  # eq. 4.268
-    g, h = A / 2.0, B / 2.0
-    return m0 + np.array([g, h]), float(np.sqrt(max(C + g * g + h * h, 0.0)))
-
-
-def fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """3D line by the principal-axis method (book §4.6.2.3, L3560): ``(centroid, unit
-    direction, rms)``; ``rms`` of the perpendicular distances. The book's two projected
-    regressions (eq. 4.273-4.280) minimise y and z residuals and fail for lines perpendicular
-    to x; the principal axis is the true perpendicular-distance fit."""
-    P = _points(points, 2)
-    c = P.mean(axis=0)
-    _, s, vt = np.linalg.svd(P - c, full_matrices=False)
-    if not s[0] > 0:
-        raise ValueError("the points coincide: no line through them")
-    off = (P - c) - np.outer((P - c) @ vt[0], vt[0])
-    return c, vt[0], float(np.sqrt(np.mean(np.sum(off**2, axis=1))))
-
-
-@dataclass(frozen=True, eq=False)
-class Circle:
-    """A circle in space. ``centre`` (3,) m, unit ``normal`` (3,) (sign arbitrary), ``radius``
-    m; per point ``out_of_plane`` and ``radial`` residuals (m,) m; ``covariance`` (6, 6) of
-    (centre x, y, z in m, tilt of the normal about two perpendicular axes in rad, radius in m)
-    from the residual scatter (NaN with too few points); ``method``: ``geometric`` or ``kasa``."""
-
-    centre: np.ndarray
-    normal: np.ndarray
-    radius: float
-    out_of_plane: np.ndarray
-    radial: np.ndarray
-    covariance: np.ndarray
-    method: str
-
-
-def _circle_residuals(Y, n0, u, w, x):
-    """Residuals (out of plane, radial) of scaled points ``Y`` for parameters ``x`` = (centre,
-    tilt a, tilt b, radius) with normal ``n0 + a u + b w`` normalised; and their Jacobian."""
-    c, a, b, r = x[:3], x[3], x[4], x[5]
-    mvec = n0 + a * u + b * w
-    nm = np.linalg.norm(mvec)
-    n = mvec / nm
-    d = Y - c
-    z = d @ n
-    e = d - np.outer(z, n)
-    rho = np.linalg.norm(e, axis=1)
-    e_hat = e / np.where(rho > 0, rho, 1.0)[:, None]
-    dn_da = (u - n * (n @ u)) / nm
-    dn_db = (w - n * (n @ w)) / nm
-    m = len(Y)
-    J = np.zeros((2 * m, 6))
-    J[:m, :3] = -n
-    J[:m, 3] = d @ dn_da
-    J[:m, 4] = d @ dn_db
-    J[m:, :3] = -e_hat
-    J[m:, 3] = -z * (e_hat @ dn_da)
-    J[m:, 4] = -z * (e_hat @ dn_db)
-    J[m:, 5] = -1.0
-    return np.concatenate([z, rho - r]), J
-
-
-def fit_circle(points: np.ndarray, *, method: str = "geometric", xtol: float = 1e-12) -> Circle:
-    """Circle through 3D points (m >= 3, not collinear): book §4.6.2, §4.6.4.
-
-    ``kasa``: the total-least-squares plane, then the algebraic circle in it (eq. 4.263-4.271):
-    the book's plane-plus-circle. ``geometric`` (default): from there, least squares on the true
-    distances of the points to the circle (out of the plane and radially, 2m residuals, 6
-    parameters), which removes the Kåsa fit's bias on short arcs.
-    """
-    if method not in METHODS:
-        raise ValueError(f"`method` must be one of {', '.join(METHODS)}; got {method!r}")
-    P = _points(points, 3)
-    c0 = P.mean(axis=0)
-    _, s, vt = np.linalg.svd(P - c0, full_matrices=False)
-    if not s[0] > 0 or s[1] <= _DEGENERATE_RTOL * s[0]:
-        raise ValueError("the points are collinear (or coincide): no circle passes through them")
-    u, w, n0 = vt
-    g2, r0 = kasa_circle(np.column_stack([(P - c0) @ u, (P - c0) @ w]))
-    centre = c0 + g2[0] * u + g2[1] * w
-    if not r0 > 0:
-        raise ValueError("the points are collinear (or coincide): no circle passes through them")
-    Y = (P - centre) / r0  # scaled: circle of radius ~1 about the origin
-    x = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
-    if method == "geometric":
-        sol = least_squares(lambda x_: _circle_residuals(Y, n0, u, w, x_)[0], x,
-                            jac=lambda x_: _circle_residuals(Y, n0, u, w, x_)[1],
-                            method="lm", xtol=xtol, ftol=xtol, gtol=xtol)
-        x = sol.x
-    res, J = _circle_residuals(Y, n0, u, w, x)
-    mvec = n0 + x[3] * u + x[4] * w
-    normal = mvec / np.linalg.norm(mvec)
-    m = len(P)
-    dof = 2 * m - 6
-    scale = np.array([r0, r0, r0, 1.0, 1.0, r0])
-    if dof > 0:
-        s2 = float(res @ res) / dof
-        cov = s2 * np.linalg.pinv(J.T @ J) * np.outer(scale, scale)
-    else:
-        cov = np.full((6, 6), np.nan)
-    return Circle(centre + r0 * x[:3], normal, float(r0 * x[5]), res[:m] * r0, res[m:] * r0, cov, method)
 
 
 # --------------------------------------------------------------------------- one joint axis
@@ -250,8 +84,9 @@ class AxisFit:
     (prismatic; NaN for revolute), ``out_of_plane_rms_m`` (revolute: distance from the plane of
     rotation, the joint's wobble; prismatic: distance from the line), ``circle_rms_m`` (radial
     residuals in the plane; NaN for prismatic), ``noise_m`` (per-axis noise estimated from the
-    residuals), ``direction_std_rad`` and ``point_std_m`` (standard uncertainty of the axis
-    direction and of its position perpendicular to it, from the residual scatter), ``scale``
+    residuals), ``direction_std_rad`` and ``point_std_m`` (standard uncertainty of the angle
+    between the fitted and the true axis, and of the distance between them across the axis: the
+    RMS of those two-dimensional errors, from the residual scatter), ``scale``
     (fitted motion per unit of joint variable: 1 when the joint's gain is right; NaN without
     varying readings), ``n_points``, ``method`` and ``warnings``.
     """
@@ -351,8 +186,11 @@ def fit_axis(
     cov = circ.covariance
     if np.all(np.isfinite(cov)):
         Pn = np.eye(3) - np.outer(n, n)
-        point_std = float(np.sqrt(max(np.linalg.eigvalsh(Pn @ cov[:3, :3] @ Pn)[-1], 0.0)))
-        direction_std = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:5, 3:5])[-1], 0.0)))
+        # the RMS of the angle (and of the distance across the axis) between the fitted and the
+        # true axis: both errors are two-dimensional, so the trace, not the largest principal
+        # variance, which made the angle's standard uncertainty up to √2 too small (issue 14)
+        point_std = float(np.sqrt(max(np.trace(Pn @ cov[:3, :3] @ Pn), 0.0)))
+        direction_std = float(np.sqrt(max(np.trace(cov[3:5, 3:5]), 0.0)))
     else:
         point_std = direction_std = float("nan")
     if arc < min_arc_rad:

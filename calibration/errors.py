@@ -8,7 +8,7 @@ imports nothing of ours (drivers/errors.py holds the device branch of the tree):
 
     RecalError
     ├── calibration: ModelFormatError (ValueError), SweepError (ValueError),
-    │                CovarianceError (ValueError)
+    │                CovarianceError (ValueError), NotEnoughData (ValueError)
     ├── drivers:     DeviceError and its branch (drivers/errors.py)
     ├── fakes:       CellError (ValueError), IppError, DropConnection
     └── service:     InputError, DeviceConfigError, SettingsError, UnsafePlan, RegionError,

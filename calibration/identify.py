@@ -6,27 +6,42 @@ parameters freed with their standard errors and correlations, the ones the data 
 determine and why, conditioning and observability indices, residual statistics, rows
 down-weighted as outliers, and how the solver ended.
 
-Method (book §4.4.2, §4.3.3, §4.5.3):
+Method (book §4.4.2, §4.3.3, §4.5.3), in named steps (:func:`identify` calls them in order):
 
-1. Parallel consecutive axes in ``dh`` links become Hayati links (§2.6, §2.8.1.1); ``mdh`` is
-   converted to ``dh`` first (exact).
-2. When the base is unknown or far off, start from a rigid registration of the nominal
-   predictions onto the measurements (full-pose data: base and tool together, the
-   robot-world/hand-eye problem).
-3. Rows are weighted by their uncertainty (``sigma`` per row, or the instrument's).
-4. The identifiable set: a QR factorisation of the column-scaled, weighted Jacobian, in a fixed
-   order of preference (:func:`preference_order`); a column that adds (numerically) nothing to
-   the columns before it is not freed, keeps the model's value, and the report names what it
-   duplicates, compared in that dimensionless scaling (:func:`select_identifiable`).
-5. Levenberg–Marquardt with Marquardt's scaling (the damping is proportional to diag(JᵀWJ)),
-   analytic Jacobian (:mod:`calibration.jacobian`), optional robust loss by iteratively
-   reweighted rows (a bumped reflector does not ruin the fit; the rows it down-weights are
-   named).
-6. Covariance ``s²(JᵀWJ)⁻¹`` (book eq. 4.54/4.70 with W = Σ⁻¹), ``s² = max(1, χ²/dof)``: if the
-   residuals are larger than the stated uncertainty, the stated uncertainty was optimistic and
-   the covariance grows accordingly; it never shrinks below what the instrument states. With a
-   :class:`Prior` (book §4.3.2): ``s²(JᵀWJ + MᵀΣp⁻¹M)⁻¹`` (``M`` the combinations the prior
-   describes, :meth:`Prior.combinations`), the prior's term counted in χ².
+1. Validation (:func:`_check_input`).
+2. Convention rewrite (:func:`complete_form`): a complete, proportional parameterisation (book
+   §2.7): ``mdh`` -> ``dh`` (exact); parallel consecutive axes in Hayati links (§2.6,
+   §2.8.1.1), prismatic joints too; ``poe`` (§2.8.2) where ``dh`` cannot be complete (collinear
+   axes: the rank at generic configurations falls short of the ``poe`` form's) or
+   proportional. :func:`completeness` counts N = 4R + 2P + 6 (eq. 2.63) and what the
+   measurement can see.
+3. The candidates (:func:`_candidates`: THE place where the parameter list is assembled; their
+   Jacobian columns in :func:`_linearise`), a rigid registration of the nominal predictions onto
+   the measurements when the base is unknown or far off (full-pose data: base and tool, the
+   robot-world/hand-eye problem), and the identifiable set (:func:`_choose`): a Gram–Schmidt
+   selection on the column-scaled, weighted normal equations, in a fixed order of preference
+   (:func:`preference_order`); a column that adds (numerically) nothing to those before it is
+   not freed, keeps the model's value, and the report names what it duplicates
+   (:func:`select_identifiable`); with a :class:`Prior`, its share (§4.3.2). Too few equations
+   to check the fit: :class:`NotEnoughData`.
+4. Levenberg–Marquardt (:func:`_levenberg_marquardt`) with Marquardt's scaling, the analytic
+   Jacobian (:mod:`calibration.jacobian`), an optional robust loss by iteratively reweighted
+   rows (a bumped reflector does not ruin the fit; the rows it down-weights are named). Then the
+   selection again at the answer (:func:`_reselect`: parameters redundant only at the nominal
+   geometry, a target on an axis, are freed where the data determine them), until the freed
+   set is stable.
+5. Statistics (:func:`_statistics`): covariance ``s²(JᵀWJ)⁻¹`` (book eq. 4.54/4.70 with W =
+   Σ⁻¹), ``s² = max(1, χ²/dof)``: if the residuals are larger than the stated uncertainty, the
+   covariance grows accordingly; it never shrinks below what the instrument states. With a
+   :class:`Prior`: ``s²(JᵀWJ + MᵀΣp⁻¹M)⁻¹`` (``M`` the combinations the prior describes,
+   :meth:`Prior.combinations`), the prior's term counted in χ². A linearised k-fold
+   cross-validation (:func:`_cross_validation`) says whether the covariance predicts the
+   hold-out error (``model_error_scale``), and a χ² test (:func:`_consistency`) whether the
+   model explains the data at all.
+6. Merging (:func:`_merge_prior`): the parameters only the prior determines join the result.
+
+Rows are processed in chunks (:data:`CHUNK_ROWS`): the normal equations are accumulated per
+cross-validation fold, and no array of the size of the whole Jacobian is ever made.
 """
 
 from __future__ import annotations
@@ -37,12 +52,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .conventions import hayati_for_parallel_axes, mdh_to_dh
-from .jacobian import Prediction, jacobian_from_walk, record_keys, world_points
-from .kinematics import Walk, walk
+from .conventions import hayati_for_parallel_axes, mdh_to_dh, to_poe
+from .errors import RecalError
+from .jacobian import Prediction, jacobian_from_walk, predict, record_keys, world_points
+from .kinematics import program, walk
 from .model import KinematicModel
 from .parameters import Parameter, apply_step, candidate_parameters, parameter_values
 from .registration import register_points, register_poses
+from .report import describe, explain, relation_coefficients, relation_text, unit_name  # noqa: F401 (re-exported)
 from .transforms import homogeneous, invert, matrix_to_pose, matrix_to_rotvec, pose_to_matrix, quat_to_matrix
 
 LOSSES = ("linear", "huber", "soft_l1", "cauchy")
@@ -245,6 +262,14 @@ class IdentificationResult:
 
     Residuals are measured minus predicted: ``residuals_m`` (N, 3) position, ``residuals_rad``
     (N, 3) orientation (zeros for position-only rows).
+
+    ``completeness``: :func:`completeness` of the form identified, with ``identified`` (what the
+    data determined); ``cross_validation``: :func:`_cross_validation` (``folds``, ``chi2``,
+    ``expected_chi2``, ``scale``, ``rms_m``, ``model_error_scale``; None with fewer than 10
+    poses); ``model_error_scale``: how much predictions grow beyond the covariance
+    (:func:`calibration.uncertainty.prediction_covariance`); ``consistency``: the χ² test
+    (:func:`_consistency`); ``warnings``: what the user should know (a target nominally on the
+    last axis).
     """
 
     model: KinematicModel
@@ -282,6 +307,11 @@ class IdentificationResult:
     prior_std_errors: np.ndarray | None = None
     chi2_prior: float = 0.0
     data_only: dict | None = None
+    completeness: dict | None = None
+    cross_validation: dict | None = None
+    consistency: dict | None = None
+    model_error_scale: float = 1.0
+    warnings: tuple[str, ...] = ()
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -294,9 +324,31 @@ class IdentificationResult:
 
 # --------------------------------------------------------------------------- residuals
 
+# Rows are processed in chunks of this many: the Jacobian of a chunk (3 rows per measurement, one
+# column per parameter) is the largest array identification makes, so memory does not grow with
+# the data beyond a few (N, 3) arrays, and each chunk's arrays stay in cache.
+CHUNK_ROWS = 8192
+
+# k of the k-fold cross-validation (:func:`_cross_validation`); data with fewer than 2k poses are
+# not cross-validated.
+CV_FOLDS = 5
+
+
+@dataclass(frozen=True, slots=True)
+class _Chunk:
+    a: int  # rows [a, b) of the (fold-ordered) data
+    b: int
+    fold: int
+    targets: dict  # target name -> (b - a,) bool, the rows of the chunk that measure it
+    rot: bool  # some row of the chunk carries an orientation
+
 
 @dataclass(frozen=True, eq=False)
 class _Problem:
+    """The data with their weights, in fold order: ``data`` is the caller's data with its rows
+    reordered by ``order`` (so that each cross-validation fold is a contiguous block of rows,
+    processed in ``chunks``)."""
+
     data: Measurements
     p_tool_names: np.ndarray  # (N,) object
     has_rot: np.ndarray  # (N,) bool
@@ -305,16 +357,45 @@ class _Problem:
     sigma_rot: float  # rad
     target_rows: dict = field(default_factory=dict)  # target name -> (N,) bool, the rows that measure it
     trig: dict = field(default_factory=dict)  # the joints' cos and sin over the data, for every walk (kinematics.walk)
+    order: np.ndarray | None = None  # (N,) the caller's row of each row here
+    chunks: tuple = ()
+    n_folds: int = 1
+
+    def original(self, a: np.ndarray) -> np.ndarray:
+        """Per-row values (N, ...) in this problem's order -> in the caller's order."""
+        if self.order is None:
+            return a
+        out = np.empty_like(a)
+        out[self.order] = a
+        return out
 
 
-def _problem(data: Measurements, sigma_m: float, sigma_rad: float | None) -> _Problem:
+def _problem(data: Measurements, sigma_m: float, sigma_rad: float | None, *, folds: int = CV_FOLDS) -> _Problem:
     """The data with their weights: ``sigma_m`` for rows without their own ``sigma``, ``sigma_rad``
-    for orientations (default ``sigma_m`` over 0.1 m)."""
+    for orientations (default ``sigma_m`` over 0.1 m); rows grouped into ``folds`` folds by pose
+    (every ``folds``-th pose in one fold), each fold cut into chunks of :data:`CHUNK_ROWS`."""
+    N = len(data)
+    key = data.pose_id if data.pose_id is not None else np.arange(N)
+    pose = np.unique(np.asarray(key), return_inverse=True)[1].reshape(N) if N else np.zeros(0, int)
+    k = folds if N and pose.max() + 1 >= 2 * folds else 1
+    fold = pose % k
+    order = None
+    if k > 1:
+        order = np.argsort(fold, kind="stable")
+        data = data.subset(order)
+        fold = fold[order]
     has_rot = data.has_orientation
     R_meas = quat_to_matrix(np.where(np.isfinite(data.quat), data.quat, [1, 0, 0, 0])) if data.quat is not None else None
     sigma_pos = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
     sigma_rot = float(sigma_rad) if sigma_rad is not None else sigma_m / 0.1
-    return _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot, _target_rows(data.target))
+    bounds = np.searchsorted(fold, np.arange(k + 1))
+    chunks = []
+    for f in range(k):
+        for a in range(int(bounds[f]), int(bounds[f + 1]), CHUNK_ROWS):
+            b = min(a + CHUNK_ROWS, int(bounds[f + 1]))
+            chunks.append(_Chunk(a, b, f, _target_rows(data.target[a:b]), bool(np.any(has_rot[a:b]))))
+    return _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot, _target_rows(data.target),
+                    order=order, chunks=tuple(chunks), n_folds=k)
 
 
 def _target_rows(names: np.ndarray) -> dict:
@@ -377,25 +458,6 @@ def _stack(prob: _Problem, rp, rr, Jp=None, Jr=None):
     return (r[0] if len(r) == 1 else np.concatenate(r)), (None if Jt is None else Jt.T)
 
 
-def _row_norms(prob: _Problem, r: np.ndarray) -> np.ndarray:
-    """Per-measurement-row norm of the weighted residual (position and orientation together)."""
-    N = len(prob.data)
-    pos = r[: 3 * N].reshape(3, N)
-    sq = pos[0] ** 2 + pos[1] ** 2 + pos[2] ** 2
-    if np.any(prob.has_rot):
-        rot = r[3 * N:].reshape(3, -1)
-        sq[prob.has_rot] += rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2
-    return np.sqrt(sq)
-
-
-def _expand_rows(prob: _Problem, w_row: np.ndarray) -> np.ndarray:
-    """Per-row weights -> per-residual weights, in the order of :func:`_stack`."""
-    parts = [np.tile(w_row, 3)]
-    if np.any(prob.has_rot):
-        parts.append(np.tile(w_row[prob.has_rot], 3))
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
-
-
 def _robust_weights(z: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
     """IRLS weights rho'(s) for row norms ``z`` (in sigma units); s = (z / f_scale)²."""
     s = (z / f_scale) ** 2
@@ -410,27 +472,107 @@ def _robust_weights(z: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
     raise ValueError(f"`loss` must be one of {', '.join(LOSSES)}; got {loss!r}")
 
 
+@dataclass(frozen=True, eq=False)
+class _Linearisation:
+    """The weighted least-squares problem at one model, accumulated over the rows chunk by chunk
+    (the Jacobian itself is never kept whole). Per fold ``k`` of the cross-validation:
+    ``G[k] = JₖᵀWJₖ``, ``g[k] = JₖᵀWrₖ``, ``c[k] = rₖᵀWrₖ`` and ``n[k]`` residuals (W: the rows'
+    1/σ² times their robust weights). ``R`` (with ``factor``): a triangular factor of ``ΣG``
+    from the rows themselves (better conditioned than a factor of G)."""
+
+    rp: np.ndarray  # (N, 3) m, measured minus predicted
+    rr: np.ndarray  # (N, 3) rad, zeros for rows without orientation
+    z2: np.ndarray  # (N,) the row's squared residual norm in units of its sigma
+    w_row: np.ndarray  # (N,) the robust weight each row carries in G, g, c
+    G: np.ndarray  # (K, P, P)
+    g: np.ndarray  # (K, P)
+    c: np.ndarray  # (K,)
+    n: np.ndarray  # (K,)
+    R: np.ndarray | None = None
+
+    @property
+    def cost(self) -> float:
+        return 0.5 * float(self.c.sum())
+
+    def restricted(self, idx: list[int]) -> _Linearisation:
+        """The same linearisation for the parameters ``idx`` only (no pass over the data)."""
+        return dataclasses.replace(self, G=self.G[:, idx][:, :, idx], g=self.g[:, idx], R=None)
+
+    @property
+    def gram(self) -> np.ndarray:
+        return self.G.sum(axis=0)
+
+    @property
+    def gradient(self) -> np.ndarray:
+        return self.g.sum(axis=0)
+
+
+def _linearise(model: KinematicModel, prob: _Problem, params: list[Parameter], *, loss: str = "linear",
+               f_scale: float = 3.0, factor: bool = False) -> _Linearisation:
+    """Residuals and the normal equations of ``params`` at ``model``, weighted (book §4.3.3: rows
+    scaled to equal variance; robust ``loss`` by iteratively reweighted rows), chunk by chunk.
+
+    THE place where the identification's Jacobian columns are assembled: the kinematic
+    parameters' columns come from the walk (:func:`calibration.jacobian.jacobian_from_walk`),
+    the compliance terms' too (a joint offset's column times the walk's regressor, which a
+    compliant model's walk keeps for each chunk's ``payload``); another block of parameters adds
+    its columns to ``Jt`` here, and its candidates in :func:`_candidates`.
+    """
+    N, P, K = len(prob.data), len(params), prob.n_folds
+    rp, rr = np.empty((N, 3)), np.zeros((N, 3))
+    z2, w_row = np.empty(N), np.ones(N)
+    G, g, c, n = np.zeros((K, P, P)), np.zeros((K, P)), np.zeros(K), np.zeros(K, dtype=int)
+    R = None
+    keys = record_keys(params)
+    data = prob.data
+    ops = program(model)  # compiled once for every chunk
+    for ch in prob.chunks:
+        a, b, f = ch.a, ch.b, ch.fold
+        q = data.q[a:b]
+        payload = None if data.payload is None else data.payload[a:b]  # a compliant model's (issue 17)
+        w = walk(model, q, keys, payload=payload, ops=ops)
+        pt = world_points(w, _p_tool(model, prob.p_tool_names[a:b], ch.targets))
+        rpc = data.p_world[a:b] - pt
+        rp[a:b] = rpc
+        wp = 1.0 / prob.sigma_pos[a:b]
+        zp = rpc * wp[:, None]
+        zz = np.einsum("ni,ni->n", zp, zp)
+        m = None
+        if ch.rot:
+            m = prob.has_rot[a:b]
+            rrc = matrix_to_rotvec(prob.R_meas[a:b][m] @ np.swapaxes(w.R[m], 1, 2))
+            rr[a:b][m] = rrc
+            zr = rrc / prob.sigma_rot
+            zz[m] += np.einsum("ni,ni->n", zr, zr)
+        z2[a:b] = zz
+        wr = _robust_weights(np.sqrt(zz), loss, f_scale)
+        w_row[a:b] = wr
+        c[f] += float(wr @ zz)
+        n[f] += 3 * (b - a) + (3 * int(np.count_nonzero(m)) if m is not None else 0)
+        if not P:
+            continue
+        Jp, Jr = jacobian_from_walk(w, pt, params, q, prob.p_tool_names[a:b], orientation=ch.rot)
+        sw = np.sqrt(wr)
+        JpT = Jp.transpose(2, 1, 0)  # (P, 3, n), contiguous: weighted in place
+        JpT *= wp * sw
+        cols, res = [JpT.reshape(P, -1)], [(zp.T * sw).reshape(-1)]
+        if m is not None:
+            cols.append((Jr.transpose(2, 1, 0)[:, :, m] * (sw[m] / prob.sigma_rot)).reshape(P, -1))
+            res.append((zr.T * sw[m]).reshape(-1))
+        Jt = cols[0] if len(cols) == 1 else np.concatenate(cols, axis=1)  # (P, rows of the chunk)
+        rv = res[0] if len(res) == 1 else np.concatenate(res)
+        G[f] += Jt @ Jt.T
+        g[f] += Jt @ rv
+        if factor:
+            R = np.linalg.qr(Jt.T if R is None else np.vstack([R, Jt.T]), mode="r")
+    return _Linearisation(rp, rr, z2, w_row, G, g, c, n, R)
+
+
 # --------------------------------------------------------------------------- parameter selection
 
 # How a parameter the data cannot determine relates to the freed ones (``Unidentifiable.category``).
-CATEGORIES = ("no_effect", "same_motion", "combination", "target_offsets", "tool_orientation", "last_joint_offset")
-
-
-def _describe(name: str) -> str:
-    if name.startswith("compliance."):  # joint compliance under gravity (calibration.compliance)
-        from .compliance import describe_term
-
-        return describe_term(name)
-    head, _, f = name.rpartition(".")
-    words = {"theta": "offset", "d": "d", "a": "a", "alpha": "twist alpha", "beta": "Hayati beta",
-             "gain": "gain", "tilt_x": "axis tilt x", "tilt_y": "axis tilt y", "shift_x": "axis shift x",
-             "shift_y": "axis shift y"}
-    if head in ("base", "tool", "home"):
-        kind = "translation" if f.startswith("t") else "rotation"
-        return f"{head} {kind} {f[1]} ({name})"
-    if head.startswith("target."):
-        return f"target {head[7:]} {f} ({name})"
-    return f"joint {head} {words.get(f, f)} ({name})"
+CATEGORIES = ("no_effect", "same_motion", "combination", "target_offsets", "tool_orientation", "last_joint_offset",
+              "weak")
 
 
 def _is_joint_parameter(name: str) -> bool:
@@ -493,66 +635,6 @@ class Unidentifiable:
     relation: tuple[tuple[str, float], ...] = ()
     category: str = "no_effect"
     kinds: tuple[str, ...] = ()
-
-
-def _unit_name(kind: str, units) -> tuple[str, float]:
-    """(unit, SI per unit) of a parameter kind; ``units`` None: SI."""
-    if kind == "length":
-        return ("m", 1.0) if units is None else (units.length, units.length_m)
-    if kind == "angle":
-        return ("rad", 1.0) if units is None else (units.angle, units.angle_rad)
-    if kind == "angle_per_length":  # compliance x mass terms (calibration.compliance)
-        return ("rad/m", 1.0) if units is None else (f"{units.angle}/{units.length}", units.angle_rad / units.length_m)
-    if kind == "angle_per_torque":  # a joint's compliance
-        return ("rad/(N·m)", 1.0) if units is None else (f"{units.angle}/(N·m)", units.angle_rad)
-    return ("", 1.0)
-
-
-def relation_coefficients(u: Unidentifiable, units=None) -> list[tuple[str, float, str]]:
-    """``u.relation`` in ``units`` (a :class:`calibration.model.Units`; None: SI): (name,
-    coefficient, unit of the coefficient such as ``mm/deg``) per related parameter."""
-    out = []
-    kinds = u.kinds or ("",) * (len(u.relation) + 1)
-    un, sn = _unit_name(kinds[0], units)
-    for (name, c), kind in zip(u.relation, kinds[1:]):
-        uj, sj = _unit_name(kind, units)
-        unit = uj if not un else (f"{uj}/{un}" if uj else f"1/{un}")
-        out.append((name, c * sn / sj, "1" if uj == un else unit))
-    return out
-
-
-def relation_text(u: Unidentifiable, units=None, *, terms: int = 6) -> str:
-    """The relation in words: ``1 mm of tool.ty ≡ +1.43 deg of j6.theta +1 mm of target.smr1.x``."""
-    kinds = u.kinds or ("",) * (len(u.relation) + 1)
-    un, _ = _unit_name(kinds[0], units)
-    parts = []
-    for (name, c, _), kind in zip(relation_coefficients(u, units)[:terms], kinds[1:]):
-        uj, _ = _unit_name(kind, units)
-        parts.append(f"{c:+.3g}{' ' + uj if uj else ''} of {name}")
-    more = " + …" if len(u.relation) > terms else ""
-    return f"1{' ' + un if un else ''} of {u.name} ≡ {' '.join(parts)}{more}"
-
-
-def explain(u: Unidentifiable, units=None) -> str:
-    """Why ``u`` is not identified, in words, with the relation's coefficients in ``units``
-    (a :class:`calibration.model.Units`; None: SI)."""
-    d = _describe(u.name)
-    rel = relation_text(u, units) if u.relation else ""
-    if u.category == "tool_orientation":
-        return "tool orientation is unobservable from position-only data" + (f" ({rel})" if rel else "")
-    if u.category == "target_offsets":
-        return f"{d} moves the measured points exactly as the target offsets do ({rel})"
-    if u.category == "last_joint_offset":
-        joint = u.name.rpartition(".")[0]
-        what = ("the target offsets already describe" if any(n.startswith("target.") for n, _ in u.relation)
-                else "the tool translation already describes")
-        return (f"{d} only turns the measured points about the axis of joint {joint}, which {what}: "
-                f"position-only data cannot tell the two apart, so it keeps the model's value ({rel})")
-    if u.category == "same_motion":
-        return f"{d} and {_describe(u.relation[0][0])} are the same motion ({rel})"
-    if u.category == "combination":
-        return f"{d} moves the measured points as a combination of freed parameters does: {rel}"
-    return f"{d} has no effect on these measurements"
 
 
 def _category(p: Parameter, relation: list[tuple[str, float]], pair: bool, position_only: bool,
@@ -668,13 +750,12 @@ def _select(J: np.ndarray, params: list[Parameter], *, rtol: float, position_onl
 # --------------------------------------------------------------------------- registration
 
 
-def _register(model: KinematicModel, prob: _Problem, record=frozenset()) -> tuple[KinematicModel, dict, Walk]:
+def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, dict]:
     """Try a rigid registration of the model's predictions onto the data; keep it if it fits
-    better than the model's own base. Also returns the walk of the chain in its base frame
-    (recording ``record``): one walk serves every base (:func:`_linearise_in_base_frame`)."""
+    better than the model's own base."""
     data = prob.data
     local = dataclasses.replace(model, base=np.zeros(6))
-    w = walk(local, data.q, record, prob.trig, data.payload)
+    w = walk(local, data.q, payload=data.payload)
 
     def rms(base: np.ndarray, p_local: np.ndarray) -> float:
         e = data.p_world - (p_local @ base[:3, :3].T + base[:3, 3])
@@ -706,30 +787,454 @@ def _register(model: KinematicModel, prob: _Problem, record=frozenset()) -> tupl
     after = rms(pose_to_matrix(candidate.base), p_local)
     info["rms_after_m"] = after
     info["applied"] = bool(after < before)
-    return (candidate if after < before else model), info, w
+    return (candidate if after < before else model), info
 
 
-def _linearise_in_base_frame(model: KinematicModel, prob: _Problem, params: list[Parameter], w_base: Walk):
-    """Position-only data: the weighted residuals and Jacobian of ``params`` at ``model`` from a
-    walk ``w_base`` of the same chain with the base frame at the identity (so no second walk
-    after the registration), and the residuals (N, 3) in the world frame.
+# --------------------------------------------------------------------------- step 1: validation
 
-    With ``B = (R, t)`` the model's base, a predicted point is ``R·p + t`` and every Jacobian
-    block ``R·J_i``: the measured points brought into the base frame, ``Rᵀ(m − t)``, give the
-    same residuals and Jacobian turned row by row by ``Rᵀ``, which changes no row norm, no
-    inner product JᵀJ or Jᵀr and no triangular factor: what the selection and the solver use."""
-    B = pose_to_matrix(model.base)
-    R, t = B[:3, :3], B[:3, 3]
-    pt = world_points(w_base, _p_tool(model, prob.p_tool_names, prob.target_rows))
-    rp_base = (prob.data.p_world - t) @ R - pt
-    Jp, _ = jacobian_from_walk(w_base, pt, params, prob.data.q, prob.p_tool_names, orientation=False)
-    r, J = _stack(prob, rp_base, None, Jp)
-    return r, J, rp_base @ R.T
+
+class NotEnoughData(RecalError, ValueError):
+    """Too few measurements to identify and check the fit: ``rows_needed`` would do."""
+
+    def __init__(self, message: str, rows_needed: int):
+        self.rows_needed = rows_needed
+        super().__init__(message)
+
+
+def _check_input(model: KinematicModel, data: Measurements, loss: str, register: str) -> None:
+    if loss not in LOSSES:
+        raise ValueError(f"`loss` must be one of {', '.join(LOSSES)}; got {loss!r}")
+    if register not in ("auto", "always", "never"):
+        raise ValueError(f"`register` must be auto, always or never; got {register!r}")
+    if data.q.shape[1] != model.n_joints:
+        raise ValueError(f"the data have {data.q.shape[1]} joint columns but the model has {model.n_joints} joints")
+    if not (np.all(np.isfinite(data.q)) and np.all(np.isfinite(data.p_world))):
+        raise ValueError("joint readings and positions must be finite")
+    for t in set(data.target) - {None}:
+        model.target(t)  # raises KeyError naming the unknown target
+
+
+# A fit must have this many more equations than freed parameters (at least
+# REDUNDANCY_MIN, and half the parameters): with fewer, the residuals cannot show whether the
+# model explains the data (two rows fit six parameters exactly, residual zero).
+REDUNDANCY_MIN = 10
+
+
+def redundancy_margin(n_params: int) -> int:
+    """The spare equations a fit of ``n_params`` parameters needs (docs/formats.md §4)."""
+    return max(REDUNDANCY_MIN, math.ceil(n_params / 2))
+
+
+def _check_redundancy(prob: _Problem, n_free: int, completeness: dict) -> None:
+    n_eq = 3 * len(prob.data) + 3 * int(np.count_nonzero(prob.has_rot))
+    if n_eq >= n_free + redundancy_margin(n_free):
+        return
+    per_row = 6 if np.all(prob.has_rot) and len(prob.data) else 3
+    full = max(completeness["measurable"], n_free)
+    need = math.ceil((full + redundancy_margin(full)) / per_row)
+    raise NotEnoughData(
+        f"{len(prob.data)} rows give {n_eq} equations for {n_free} parameters the data determine: no redundancy to "
+        f"check the fit against (at least {redundancy_margin(n_free)} spare equations are needed); measure at least "
+        f"{need} rows ({full} parameters of the complete model + {redundancy_margin(full)} spare equations, "
+        f"{per_row} per row)", need)
+
+
+# --------------------------------------------------------------------------- step 2: convention rewrite
+
+
+def _generic_configurations(model: KinematicModel, n: int = 40) -> np.ndarray:
+    """``n`` reproducible configurations spread over the joint limits (revolute ones clipped to
+    ±π): a generic place to compute ranks, away from special configurations."""
+    lim = model.joint_limits.copy()
+    for i, j in enumerate(model.joints):
+        if j.revolute:
+            lim[i] = np.clip(lim[i], -np.pi, np.pi)
+    return np.random.default_rng(0).uniform(lim[:, 0], lim[:, 1], size=(n, model.n_joints))
+
+
+def _rank(J: np.ndarray) -> int:
+    """Numerical rank of ``J`` with columns scaled to unit norm (round-off columns dropped)."""
+    norms = np.linalg.norm(J, axis=0)
+    live = norms > 1e-12 * max(norms.max(initial=0.0), 1e-300)
+    if not np.any(live):
+        return 0
+    s = np.linalg.svd(J[:, live] / norms[live], compute_uv=False)
+    return int(np.sum(s > 1e-8 * s[0]))
+
+
+def _jacobian_rank(model: KinematicModel, targets: tuple, *, orientation: bool) -> int:
+    """Rank of the Jacobian of every candidate parameter (base, links, tool, the ``targets``;
+    ``None``: the tool origin) at generic configurations: position rows of each target, and the
+    tool orientation's rows with ``orientation``."""
+    model = dataclasses.replace(model, compliance=None)  # the geometric count (compliance terms apart)
+    q = _generic_configurations(model)
+    names = tuple(t for t in targets if t is not None)
+    params = candidate_parameters(model, targets=names)
+    blocks = []
+    for i, t in enumerate(targets):
+        pred = predict(model, q, model.target(t), params, np.array([t] * len(q), dtype=object))
+        blocks.append(pred.Jp.reshape(-1, len(params)))
+        if orientation and i == 0:  # the tool's orientation: the same rows for every target
+            blocks.append(pred.Jr.reshape(-1, len(params)))
+    return _rank(np.vstack(blocks))
+
+
+def complete_form(model: KinematicModel, *, hayati: bool = True,
+                  parallel_tol_rad: float = np.deg2rad(5.0)) -> tuple[KinematicModel, list[str]]:
+    """The model rewritten, exactly, in a complete and proportional parameterisation (book §2.7):
+    ``mdh`` becomes ``dh``; in ``dh``, the links whose next axis is (nearly) parallel take Hayati's
+    form (§2.8.1.1, :func:`~calibration.conventions.hayati_for_parallel_axes`, prismatic links
+    too). Where that is still not complete, or not proportional, the whole model is written in
+    ``poe`` (the zero-reference model of §2.8.2, which every serial chain of revolute and
+    prismatic joints has): collinear consecutive revolute axes (a Hayati link with a = 0 cannot
+    describe a sideways shift of the next axis), a nearly parallel link with a d that cannot move.
+    Complete means what the book's independence check says (L876): the rank of the full-pose
+    Jacobian at generic configurations equals that of the ``poe`` form, which describes every
+    deviation of the axes (4 per revolute joint, 2 per prismatic one) and of the tool (6).
+    ``hayati`` False: only ``mdh`` -> ``dh``. Returns the model and notes saying what changed.
+
+    A compliant model (issue 17) is rewritten as its rigid chain; its compliance section is then
+    re-expressed in the new link and base frames (:func:`calibration.compliance.reexpress`), so
+    the rewritten model sags exactly as the given one."""
+    if model.compliance is not None:
+        rigid = dataclasses.replace(model, compliance=None)
+        form, notes = complete_form(rigid, hayati=hayati, parallel_tol_rad=parallel_tol_rad)
+        if form is rigid:
+            return model, notes
+        from .compliance import reexpress  # here: compliance imports identify
+
+        return reexpress(form, model), notes
+    notes: list[str] = []
+    start = model
+    if start.convention == "mdh" and not any(j.hayati for j in start.joints):
+        start = mdh_to_dh(start)
+        notes.append("mdh model converted to dh (exact) for identification")
+    if not hayati or start.convention != "dh":
+        return start, notes
+    start, hn = hayati_for_parallel_axes(start, parallel_tol_rad=parallel_tol_rad)
+    notes += hn
+    stiff = [j.name for j in start.joints[:-1]
+             if not j.hayati and abs(np.sin(j.alpha)) < np.sin(parallel_tol_rad)]
+    poe = to_poe(start)  # the complete form: what dh must match
+    r_dh, r_poe = (_jacobian_rank(m, (None,), orientation=True) for m in (start, poe))
+    if r_dh < r_poe:
+        notes.append(f"the dh form cannot describe every deviation of this arm (rank {r_dh} of the complete "
+                     f"{r_poe}: e.g. collinear consecutive axes): identified in poe form (the zero-reference "
+                     f"model, book §2.8.2), written in poe")
+        return poe, notes
+    if stiff:
+        notes.append(f"{', '.join(stiff)}: nearly parallel next axis in plain dh form (not proportional, book "
+                     f"§2.6): identified in poe form, written in poe")
+        return poe, notes
+    return start, notes
+
+
+def completeness(model: KinematicModel, targets: tuple, *, orientation: bool) -> dict:
+    """The book's complete count N = 4R + 2P + 6 (eq. 2.63) of ``model``, and how many of those
+    parameters the measurement can see (``measurable``: the rank of the complete ``poe``
+    model's Jacobian for the measured ``targets``, with orientation rows or not, at generic
+    configurations; position-only data of one point, for one, cannot see the tool's orientation;
+    several targets add their own offsets)."""
+    R = sum(j.revolute for j in model.joints)
+    P = model.n_joints - R
+    return {"rule": "4R + 2P + 6", "revolute": R, "prismatic": P, "count": 4 * R + 2 * P + 6,
+            "measurable": _jacobian_rank(to_poe(model), targets or (None,), orientation=orientation),
+            "convention": model.convention}
+
+
+# A target (or the tool origin) closer than this to the last joint's axis in the nominal model is
+# "on the axis": what the axis does there is not seen in the nominal, only in the real robot.
+ON_AXIS_M = 1e-3
+
+
+def _targets_on_last_axis(model: KinematicModel, targets: tuple) -> list[tuple[str | None, float]]:
+    """(target, distance m) of the measured ``targets`` that the model puts on its last joint's
+    axis (a revolute one)."""
+    last = model.joints[-1]
+    if not last.revolute:
+        return []
+    key = f"{last.name}.theta"
+    w = walk(model, np.zeros((1, model.n_joints)), {key})
+    u, o = (a[0] for a in w.axes[key])
+    out = []
+    for t in targets:
+        p = world_points(w, model.target(t))[0]
+        dist = float(np.linalg.norm(np.cross(p - o, u)))
+        if dist < ON_AXIS_M:
+            out.append((t, dist))
+    return out
+
+
+# --------------------------------------------------------------------------- step 3: the parameters
+
+
+def _candidates(start: KinematicModel, data: Measurements, prior: Prior | None, gains: bool,
+                fixed: tuple[str, ...]) -> list[Parameter]:
+    """Every parameter the identification may free, in the selection's order of preference: THE
+    place where the parameter list is assembled (a block of other parameters joins here, and
+    its Jacobian columns in :func:`_linearise`); a compliant model's terms come last
+    (:func:`calibration.parameters.candidate_parameters`), so the selection keeps geometry
+    first. The candidates depend on the model's structure, not on its base: the same after
+    registration."""
+    used_targets = tuple(sorted(set(data.target) - {None}))
+    prior_targets = () if prior is None else tuple(sorted(
+        {n.split(".")[1] for n in prior.names if n.startswith("target.")} & set(start.targets) - set(used_targets)))
+    with_gains = gains or (prior is not None and any(n.endswith(".gain") for n in prior.names))
+    cands = candidate_parameters(start, targets=used_targets + prior_targets, gains=with_gains)
+    return [p for p in cands if not _matches(p.name, fixed)]
+
+
+def _gram_root(G: np.ndarray) -> np.ndarray:
+    """A factor F (P, P) with FᵀF = G, from the eigen-decomposition of the column-scaled G. The
+    selection works on inner products only, so F serves as well as the Jacobian's own triangular
+    factor: column scaling keeps G's rounding near 1e-16 of unit columns, so an independent
+    component down to 1e-7 (below the selection's ``rank_rtol``, 1e-6) is still resolved."""
+    d = np.sqrt(np.maximum(np.diag(G), 0.0))
+    s = np.where(d > 0, d, 1.0)
+    return _sqrt_psd(G / np.outer(s, s)) * s
+
+
+@dataclass(frozen=True, eq=False)
+class _Selection:
+    kept: list  # indices into the candidates: what is estimated
+    dropped: list  # Unidentifiable
+    from_prior: list  # indices: not estimated, the prior's value and covariance
+    by_data: set  # indices the data alone determine
+    sd_prior: np.ndarray  # (C,) the prior's standard errors (NaN without one)
+
+
+def _choose(cands: list[Parameter], G: np.ndarray, prior: Prior | None, *, rank_rtol: float,
+            position_only: bool) -> _Selection:
+    """The identifiable set from the candidates' Gram matrix ``G`` (weighted JᵀJ): the data's
+    selection (:func:`select_identifiable`), then the prior's bookkeeping: parameters with a prior
+    that the data see are estimated, those the data cannot see keep the prior."""
+    F = _gram_root(G)
+    kept, dropped, _ = _select(F, cands, rtol=rank_rtol, position_only=position_only)
+    by_data = set(kept)
+    from_prior: list[int] = []
+    sd_prior = np.full(len(cands), np.nan)
+    if prior is not None:  # a prior determines what the data alone cannot
+        sd_prior = np.sqrt(np.maximum(np.diag(prior.covariance_of(cands)), 0.0))
+        has_prior = [k for k in range(len(cands)) if np.isfinite(sd_prior[k])]
+        seen = _seen_by_data(F, sd_prior)
+        # a held parameter the data determine moves those it was confused with: estimated too
+        released = {n for k in kept for n, _ in prior.held.get(cands[k].name, ())}
+        from_prior = [k for k in has_prior if not seen[k] and cands[k].name not in released]
+        kept = sorted((set(kept) | set(has_prior)) - set(from_prior))
+        named = {cands[k].name for k in has_prior}
+        dropped = [u for u in dropped if u.name not in named]
+    return _Selection(kept, dropped, from_prior, by_data, sd_prior)
+
+
+# A parameter that only the real geometry determines (redundant at the nominal: a target on an
+# axis) is freed at the converged model when the data determine it to these standard errors or
+# better: about what a real robot deviates from its drawing. A looser one would add more variance
+# than the bias it removes (what it does to the measured points is then as small as its effect).
+DETERMINED_RAD = 1e-3
+DETERMINED_M = 1e-3
+
+# The re-selection at the answer works on at most this many rows (evenly spread over the data).
+RESELECT_ROWS = 20000
+
+
+def _sample(prob: _Problem, n: int) -> tuple[_Problem, float]:
+    """At most ``n`` rows of ``prob`` evenly spread, as one fold, and the share of the rows taken."""
+    N = len(prob.data)
+    if N <= n:
+        return prob, 1.0
+    idx = np.linspace(0, N - 1, n).round().astype(int)
+    data = prob.data.subset(idx)
+    has_rot = prob.has_rot[idx]
+    chunks = tuple(_Chunk(a, min(a + CHUNK_ROWS, n), 0, _target_rows(data.target[a:a + CHUNK_ROWS]),
+                          bool(np.any(has_rot[a:a + CHUNK_ROWS]))) for a in range(0, n, CHUNK_ROWS))
+    sub = _Problem(data, data.target, has_rot, None if prob.R_meas is None else prob.R_meas[idx],
+                   prob.sigma_pos[idx], prob.sigma_rot, _target_rows(data.target), chunks=chunks, n_folds=1)
+    return sub, n / N
+
+
+# Rounds of "select at the answer, solve again" before the freed set is taken as it stands.
+MAX_SELECTION_ROUNDS = 4
+
+
+def _reselect(current: KinematicModel, prob: _Problem, cands: list[Parameter], sel: _Selection, *,
+              rank_rtol: float, position_only: bool) -> _Selection:
+    """The selection again, at the converged model (book L876: the rank decides, and at the
+    answer, not at the nominal): parameters redundant only at the nominal geometry are freed
+    where the data determine them (:data:`DETERMINED_RAD`, :data:`DETERMINED_M`). Decided on an
+    evenly spread sample of :data:`RESELECT_ROWS` rows at most (the information scaled to the whole
+    data's): a rank and a standard error need no million rows."""
+    sub, share = _sample(prob, RESELECT_ROWS)
+    lin = _linearise(current, sub, cands)
+    G = lin.gram / share  # the whole data's information, estimated from the sample
+    new = _choose(cands, G, None, rank_rtol=rank_rtol, position_only=position_only)
+    added = [k for k in new.kept if k not in sel.kept]
+    if not added:
+        return new
+    idx = new.kept
+    Gk = G[np.ix_(idx, idx)]
+    d = np.sqrt(np.maximum(np.diag(Gk), 1e-300))
+    cov = np.linalg.pinv(Gk / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
+    s2 = max(1.0, lin.c.sum() / max(lin.n.sum() - len(idx), 1))
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0) * s2)
+    loose = []
+    for k in added:
+        # only geometric lengths and angles have a scale of what a real robot deviates from its
+        # drawing; a gain and a compliance term (issue 17; a lump's moment is of kind ``angle``
+        # too) stay held: such a term redundant at the nominal (a lump's moment along its link's
+        # x, the same motion as its mass) is seen at the answer only through the identified
+        # tilts, and freeing it adds variance, not accuracy
+        geometric = not cands[k].name.startswith("compliance.")
+        bound = {"length": DETERMINED_M, "angle": DETERMINED_RAD}.get(cands[k].kind) if geometric else None
+        if bound is None or sd[idx.index(k)] > bound:
+            loose.append(k)
+    if not loose:
+        return new
+    kept = [k for k in new.kept if k not in loose]
+    dropped = list(new.dropped)
+    before = {u.name: u for u in sel.dropped}
+    for k in loose:
+        # it keeps the relation the nominal showed (what a prior made from this result needs)
+        u = before.get(cands[k].name) or Unidentifiable(cands[k].name, "", (), "weak", (cands[k].kind,))
+        u = dataclasses.replace(u, category="weak")
+        dropped.append(dataclasses.replace(u, reason=explain(u)))
+    dropped.sort(key=lambda u: [p.name for p in cands].index(u.name))
+    return _Selection(kept, dropped, [], set(kept), new.sd_prior)
+
+
+# --------------------------------------------------------------------------- step 4: the LM loop
+
+
+@dataclass(frozen=True, eq=False)
+class _Solution:
+    model: KinematicModel
+    lin: _Linearisation
+    steps: np.ndarray
+    status: int
+    iterations: int
+    nfev: int
+    history: tuple
+
+
+def _levenberg_marquardt(model: KinematicModel, prob: _Problem, params: list[Parameter], lin: _Linearisation,
+                         info: np.ndarray, *, loss: str, f_scale: float, max_iter: int, ftol: float, xtol: float,
+                         gtol: float) -> _Solution:
+    """Levenberg–Marquardt with Marquardt's scaling (the damping proportional to diag(JᵀWJ + I_p),
+    ``I_p`` the prior's information), from ``model`` whose linearisation is ``lin``; robust
+    weights recomputed at every trial (IRLS: a trial is compared with the current point under the
+    trial's weights). Stops as MINPACK does (``ftol``, ``xtol``, ``gtol``)."""
+    P = len(params)
+    steps = np.zeros(P)
+    if not P:
+        return _Solution(model, lin, steps, -1, 0, 1, (lin.cost,))
+    lam, nfev, status, it = 1e-3, 1, 0, 0
+    cost = lin.cost
+    history = [cost]
+    for it in range(1, max_iter + 1):
+        A = lin.gram + info
+        g = lin.gradient - info @ steps
+        D = np.maximum(np.diag(A), 1e-30)
+        if np.max(np.abs(g) / np.sqrt(D)) < gtol * max(1.0, math.sqrt(2 * cost)):
+            status = 3
+            break
+        improved = False
+        for _ in range(30):
+            try:
+                delta = np.linalg.solve(A + lam * np.diag(D), g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            predicted = float(delta @ g - 0.5 * delta @ A @ delta)
+            if lam <= 1e-3 and predicted <= ftol * cost:
+                # the (nearly Gauss-Newton) model predicts no relative reduction beyond ftol:
+                # converged, without spending a trial evaluation to confirm it
+                break
+            trial = apply_step(model, params, delta)
+            nfev += 1
+            tlin = _linearise(trial, prob, params, loss=loss, f_scale=f_scale)
+            tcost = tlin.cost + 0.5 * float((steps + delta) @ info @ (steps + delta))
+            # the current point's cost under the trial's weights (IRLS)
+            ref = 0.5 * float(tlin.w_row @ lin.z2) + 0.5 * float(steps @ info @ steps)
+            if tcost < ref or tcost <= cost:
+                improved = True
+                break
+            # at the rounding floor: neither the actual nor the predicted reduction exceeds
+            # ftol (MINPACK's test), so no damping will find a better point
+            if abs(cost - tcost) <= ftol * cost and predicted <= ftol * cost:
+                break
+            lam *= 10
+        if not improved:
+            status = 1
+            break
+        step_norm = float(np.linalg.norm(delta * np.sqrt(D)))
+        rel = (cost - tcost) / max(cost, 1e-300)
+        model, lin, cost = trial, tlin, tcost
+        steps = steps + delta
+        history.append(cost)
+        lam = max(lam / 10, 1e-12)
+        if 0 <= rel < ftol:
+            status = 1
+            break
+        if step_norm < xtol * (1.0 + float(np.linalg.norm(steps * np.sqrt(D)))):
+            status = 2
+            break
+    else:
+        status = 0
+    return _Solution(model, lin, steps, status, it, nfev, tuple(history))
+
+
+# --------------------------------------------------------------------------- step 5: statistics
+
+
+def _cross_validation(lin: _Linearisation, A: np.ndarray, rhs: np.ndarray) -> dict | None:
+    """k-fold cross-validation of the fit, linearised at the solution: leaving fold k out moves
+    the parameters by ``δₖ = (A − Gₖ)⁻¹(rhs − gₖ)`` (one Gauss–Newton step of the fit without
+    fold k, exact for a linear model), and fold k's prediction error is then
+    ``cₖ − 2δₖᵀgₖ + δₖᵀGₖδₖ`` (weighted). With a right model and the right noise its expectation
+    is ``nₖ + tr(Gₖ(A − Gₖ)⁻¹)`` (the noise plus the error of parameters fitted without the fold):
+    ``scale`` is the square root of the ratio, 1 when the covariance predicts the hold-out error,
+    more when the model's structure misses something the in-sample residuals hide."""
+    K = len(lin.c)
+    if K < 2 or not A.size:
+        return None
+    d = np.sqrt(np.maximum(np.diag(A), 1e-300))
+    chi2 = expected = 0.0
+    for k in range(K):
+        Ak = (A - lin.G[k]) / np.outer(d, d)
+        inv = np.linalg.pinv(Ak, rcond=1e-12, hermitian=True) / np.outer(d, d)
+        delta = inv @ (rhs - lin.g[k])
+        chi2 += float(lin.c[k] - 2 * delta @ lin.g[k] + delta @ lin.G[k] @ delta)
+        expected += float(lin.n[k] + np.trace(lin.G[k] @ inv))
+    return {"folds": K, "chi2": chi2, "expected_chi2": expected,
+            "scale": math.sqrt(max(chi2, 0.0) / expected) if expected > 0 else float("nan")}
+
+
+# The χ² test of the residuals against the stated uncertainty (:func:`_consistency`): the model is
+# said not to explain the data when χ² exceeds its upper CONSISTENCY_LEVEL quantile AND the
+# residuals are at least CONSISTENCY_MIN_SCALE times what the stated uncertainty expects (with a
+# million rows the test alone would flag a 0.3 % excess nobody should act on).
+CONSISTENCY_LEVEL = 0.001
+CONSISTENCY_MIN_SCALE = 1.1
+
+
+def chi2_upper_tail(chi2: float, dof: int) -> float:
+    """P(X ≥ ``chi2``) for X ~ χ²(``dof``), by the Wilson–Hilferty cube-root normal approximation
+    (absolute error below 1e-3 from 10 degrees of freedom on, which the redundancy check
+    guarantees; no scipy import, which costs ~0.2 s)."""
+    if dof <= 0:
+        return 0.0
+    h = 2.0 / (9.0 * dof)
+    z = ((max(chi2, 0.0) / dof) ** (1.0 / 3.0) - (1.0 - h)) / math.sqrt(h)
+    return 0.5 * math.erfc(z / math.sqrt(2.0))
+
+
+def _consistency(chi2: float, dof: int) -> dict:
+    ratio = math.sqrt(chi2 / dof) if dof > 0 else float("inf")
+    p = chi2_upper_tail(chi2, dof)
+    return {"test": "chi-squared", "level": CONSISTENCY_LEVEL, "min_scale": CONSISTENCY_MIN_SCALE,
+            "p_value": p, "ratio": ratio, "consistent": not (p < CONSISTENCY_LEVEL and ratio > CONSISTENCY_MIN_SCALE)}
 
 
 # --------------------------------------------------------------------------- the solver
-
-_START = object()  # marks a Gram matrix computed from the start's Jacobian (never taken as an array)
 
 
 def identify(
@@ -759,252 +1264,109 @@ def identify(
     the spacing of tooling balls); ``loss``: ``linear``, ``huber``, ``soft_l1`` or ``cauchy``,
     with ``f_scale`` in units of sigma; ``register``: ``auto`` (when it fits better), ``always``,
     ``never``; ``fixed``: parameter names (or prefixes ending in ``*``) not to free; ``gains``:
-    also free the joint gains; ``hayati``: rewrite parallel-axis ``dh`` links in Hayati's form;
-    ``prior``: minimum-variance estimation about ``model`` (book eq. 4.69-4.70): the cost gains
-    ``½ (Ms)ᵀ Σp⁻¹ (Ms)`` for the step ``s`` away from ``model`` (``M``: :meth:`Prior.combinations`,
-    the identity but for the prior's held parameters); parameters with a prior that the data see
-    are estimated (source ``data + prior``) even where the data alone cannot determine them, those
-    the data cannot see (:data:`SEEN_BY_DATA`) keep the prior's value and covariance (source
-    ``prior``) unless a held parameter the data determine was confused with them (a reflector's
-    offset and the tool orientation): then they move with it (source ``data + prior``); no
-    registration is done (the prior knows the base).
+    also free the joint gains; ``hayati``: rewrite the model in a complete form
+    (:func:`complete_form`: Hayati links for parallel axes, ``poe`` where ``dh`` cannot be
+    complete); ``prior``: minimum-variance estimation about ``model`` (book eq. 4.69-4.70): the
+    cost gains ``½ (Ms)ᵀ Σp⁻¹ (Ms)`` for the step ``s`` away from ``model`` (``M``:
+    :meth:`Prior.combinations`, the identity but for the prior's held parameters); parameters
+    with a prior that the data see are estimated (source ``data + prior``) even where the data
+    alone cannot determine them, those the data cannot see (:data:`SEEN_BY_DATA`) keep the
+    prior's value and covariance (source ``prior``) unless a held parameter the data determine
+    was confused with them (a reflector's offset and the tool orientation): then they move with
+    it (source ``data + prior``); no registration is done (the prior knows the base).
 
-    Raises ``ValueError`` for inconsistent input (shapes, unknown targets, non-finite values).
+    Raises ``ValueError`` for inconsistent input (shapes, unknown targets, non-finite values) and
+    :class:`NotEnoughData` (a ``ValueError``) when the data leave no redundancy to check the fit.
     """
-    if loss not in LOSSES:
-        raise ValueError(f"`loss` must be one of {', '.join(LOSSES)}; got {loss!r}")
-    if register not in ("auto", "always", "never"):
-        raise ValueError(f"`register` must be auto, always or never; got {register!r}")
-    if data.q.shape[1] != model.n_joints:
-        raise ValueError(f"the data have {data.q.shape[1]} joint columns but the model has {model.n_joints} joints")
-    if not (np.all(np.isfinite(data.q)) and np.all(np.isfinite(data.p_world))):
-        raise ValueError("joint readings and positions must be finite")
-    for t in set(data.target) - {None}:
-        model.target(t)  # raises KeyError naming the unknown target
-    notes: list[str] = []
-    start = model
-    if start.convention == "mdh":
-        start = mdh_to_dh(start) if not any(j.hayati for j in start.joints) else start
-        notes.append("mdh model converted to dh (exact) for identification")
-    if hayati and start.convention == "dh":
-        start, hn = hayati_for_parallel_axes(start)
-        notes += hn
-    if start is not model and model.compliance is not None:  # compliance (issue 17): lumps sit in link frames
-        from .compliance import reexpress
+    # 1. validation
+    _check_input(model, data, loss, register)
+    position_only = not np.any(data.has_orientation)
+    targets = tuple(sorted(set(data.target) - {None}, key=str)) + ((None,) if None in set(data.target) else ())
 
-        start = reexpress(start, model)
+    # 2. convention rewrite: a complete, proportional parameterisation
+    start, notes = complete_form(model, hayati=hayati)
+    complete = completeness(start, targets, orientation=not position_only)
+    on_axis = _targets_on_last_axis(start, targets)
     prob = _problem(data, sigma_m, sigma_rad)
-    has_rot, sigma_rot = prob.has_rot, prob.sigma_rot
 
-    used_targets = tuple(sorted(set(data.target) - {None}))
-    prior_targets = () if prior is None else tuple(sorted(
-        {n.split(".")[1] for n in prior.names if n.startswith("target.")} & set(start.targets) - set(used_targets)))
-    with_gains = gains or (prior is not None and any(n.endswith(".gain") for n in prior.names))
-    # the candidates depend on the model's structure, not on its base: the same after registration
-    cands = candidate_parameters(start, targets=used_targets + prior_targets, gains=with_gains)
-    cands = [p for p in cands if not _matches(p.name, fixed)]
-    position_only = not np.any(has_rot)
-
+    # 3. the parameters, the registration, what the data determine (and the prior's share)
+    cands = _candidates(start, data, prior, gains, fixed)
     registration = None
-    w_base = None
     if register != "never" and prior is None:
-        cand, registration, w_base = _register(start, prob, record_keys(cands) if position_only else frozenset())
+        cand, registration = _register(start, prob)
         if register == "always" or registration["applied"]:
             start = cand
             registration["applied"] = True
+    lin_all = _linearise(start, prob, cands)
+    sel = _choose(cands, lin_all.gram, prior, rank_rtol=rank_rtol, position_only=position_only)
+    if prior is None:
+        _check_redundancy(prob, len(sel.kept), complete)
+    at_nominal = set(sel.kept)
+    # the candidates' linearisation at the start serves the freed ones' first step when the
+    # weights are the same (no robust loss): no second pass over the data
+    lin_next = lin_all.restricted(sel.kept) if loss == "linear" else None
 
-    if w_base is not None and position_only:
-        r_start, J_cands, rp = _linearise_in_base_frame(start, prob, cands, w_base)
-        rr = np.zeros_like(rp)
-    else:
-        pred, rp, rr = _evaluate(start, prob, cands)
-        r_start, J_cands = _stack(prob, rp, rr, pred.Jp, pred.Jr)
-    del w_base
-    kept, dropped, R_cands = _select(J_cands, cands, rtol=rank_rtol, position_only=position_only)
-    by_data = set(kept)  # what the data alone determine
-    from_prior: list[int] = []
-    sd_prior = np.full(len(cands), np.nan)
-    if prior is not None:  # a prior determines what the data alone cannot
-        sd_prior = np.sqrt(np.maximum(np.diag(prior.covariance_of(cands)), 0.0))
-        has_prior = [k for k in range(len(cands)) if np.isfinite(sd_prior[k])]
-        seen = _seen_by_data(J_cands, sd_prior)
-        # a held parameter the data determine moves those it was confused with: estimated too
-        released = {n for k in kept for n, _ in prior.held.get(cands[k].name, ())}
-        from_prior = [k for k in has_prior if not seen[k] and cands[k].name not in released]
-        kept = sorted((set(kept) | set(has_prior)) - set(from_prior))
-        named = {cands[k].name for k in has_prior}
-        dropped = [u for u in dropped if u.name not in named]
-    params = [cands[k] for k in kept]
-    info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
-
-    # ---- Levenberg–Marquardt with Marquardt scaling and IRLS robust weights
+    # 4. Levenberg–Marquardt; then the selection again at the answer, until the freed set is stable
     current = start
-    P = len(params)
-    steps = np.zeros(P)
-    lam = 1e-3
-    status = 0 if P else -1
-    nfev = 1
-    it = 0
+    moved: dict[str, float] = {}
+    iterations = nfev = 0
     history: list[float] = []
-    gram = None
-    w_row = np.ones(len(data))
-    J = None  # the Jacobian over `params` at `current`; at the start: columns `kept` of J_cands, taken when needed
-    if P:
-        r = r_start
-        R_start = R_cands[:, kept]  # RᵀR = the start's JᵀJ: the selection's factor gives it without J
-        fresh = True  # r, J, rp, rr are those of `current`
-        keys = record_keys(params)  # trials record what the Jacobian needs: if accepted, no second walk
-        w_row = _robust_weights(_row_norms(prob, r), loss, f_scale)
-        w = _expand_rows(prob, w_row)
-        cost = 0.5 * float(np.sum(w * r**2))
-        history.append(cost)
-        for it in range(1, max_iter + 1):
-            unit = bool(np.all(w == 1.0))
-            if J is None and unit:  # the start, unit weights: JᵀJ and Jᵀr without taking J's columns
-                G, g = R_start.T @ R_start, (r @ J_cands)[kept]
-            else:
-                if J is None:
-                    J = J_cands[:, kept]
-                Jw, rw = (J, r) if unit else (J * np.sqrt(w)[:, None], r * np.sqrt(w))  # unit: skip the copies
-                G, g = Jw.T @ Jw, Jw.T @ rw
-            A = G + info
-            gram = (_START if J is None else J, w, G)  # G and what it was computed from, for the statistics
-            g = g - info @ steps
-            D = np.maximum(np.diag(A), 1e-30)
-            if np.max(np.abs(g) / np.sqrt(D)) < gtol * max(1.0, math.sqrt(2 * cost)):
-                status = 3
-                break
-            improved = False
-            for _ in range(30):
-                try:
-                    delta = np.linalg.solve(A + lam * np.diag(D), g)
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    continue
-                if lam <= 1e-3 and float(delta @ g - 0.5 * delta @ A @ delta) <= ftol * cost:
-                    # the (nearly Gauss-Newton) model predicts no relative reduction beyond ftol:
-                    # converged, without spending a trial evaluation to confirm it
-                    break
-                trial = apply_step(current, params, delta)
-                nfev += 1
-                t_walk, t_pt, trp, trr = _residuals(trial, prob, keys)
-                tr, _ = _stack(prob, trp, trr)
-                tw_row = _robust_weights(_row_norms(prob, tr), loss, f_scale)
-                tw = _expand_rows(prob, tw_row)
-                prior_cost = 0.5 * float((steps + delta) @ info @ (steps + delta))
-                tcost = 0.5 * float(np.sum(tw * tr**2)) + prior_cost
-                # compare with the cost of the current point under the same weights (IRLS)
-                ref = 0.5 * float(np.sum(tw * r**2)) + 0.5 * float(steps @ info @ steps)
-                if tcost < ref or tcost <= cost:
-                    improved = True
-                    break
-                # at the rounding floor: neither the actual nor the predicted reduction exceeds
-                # ftol (MINPACK's test), so no damping will find a better point
-                predicted = float(delta @ g - 0.5 * delta @ A @ delta)
-                if abs(cost - tcost) <= ftol * cost and predicted <= ftol * cost:
-                    break
-                lam *= 10
-            if not improved:
-                status = 1
-                break
-            step_norm = float(np.linalg.norm(delta * np.sqrt(D)))
-            rel = (cost - tcost) / max(cost, 1e-300)
-            current, r, w, w_row, cost = trial, tr, tw, tw_row, tcost
-            fresh = False
-            steps += delta
-            history.append(cost)
-            lam = max(lam / 10, 1e-12)
-            if 0 <= rel < ftol:
-                status = 1
-                break
-            if step_norm < xtol * (1.0 + float(np.linalg.norm(steps * np.sqrt(D)))):
-                status = 2
-                break
-            # the Jacobian only at accepted points, from the trial's own walk
-            rp, rr = trp, trr
-            r, J = _stack(prob, rp, rr, *jacobian_from_walk(t_walk, t_pt, params, data.q, prob.p_tool_names,
-                                                            orientation=bool(np.any(has_rot))))
-            J_cands = R_start = None  # only the start needed them
-            fresh = True
-        else:
-            status = 0
-
-    # ---- statistics at the solution (the last Jacobian, when it was computed there)
-    if not (P and fresh):
-        pred, rp, rr = _evaluate(current, prob, params if P else None)
-        r, J = _stack(prob, rp, rr, pred.Jp, pred.Jr) if P else (_stack(prob, rp, rr)[0], None)
-    z = _row_norms(prob, r)
-    w_row = _robust_weights(z, loss, f_scale)
-    w = _expand_rows(prob, w_row)
-    n_res = r.size
-    chi2_prior = float(steps @ info @ steps)
-    n_prior = int(np.count_nonzero(np.isfinite(sd_prior[kept])))  # estimated parameters with a prior
-    chi2 = float(np.sum(w * r**2)) + chi2_prior
-    dof = max(n_res + n_prior - P, 1)
-    sigma_scale = math.sqrt(max(1.0, chi2 / dof))
-    cov = np.zeros((P, P))
-    sv = np.zeros(0)
-    cond = float("inf") if P == 0 else 0.0
-    obs: dict = {}
-    data_only = None
     reach = _reach(start)
-    if P:
-        unit = bool(np.all(w == 1.0))
-        if gram is not None and gram[0] is (_START if J is None else J) and unit and np.all(gram[1] == 1.0):
-            G = gram[2]  # the last iteration's: the same Jacobian, unit weights
-        else:
-            if J is None:
-                J = J_cands[:, kept]
-            Jw = J if unit else J * np.sqrt(w)[:, None]
-            G = Jw.T @ Jw
-        # Σ = s² (JᵀWJ + MᵀΣp⁻¹M)⁻¹ (book eq. 4.54 / 4.70); pseudo-inverse on the column-scaled
-        # matrix for numerical safety.
-        A = G + info
-        dscale = np.sqrt(np.maximum(np.diag(A), 1e-300))
-        cov = np.linalg.pinv(A / np.outer(dscale, dscale), rcond=1e-14, hermitian=True) / np.outer(dscale, dscale)
-        cov *= sigma_scale**2
-        # A factor with the data's singular values and Gram matrix (RᵀR = JᵀWJ): from G when it
-        # is well conditioned, else the triangular factor of Jw = QR
-        Rw = _gram_factor(G)
-        if Rw is None:
-            if J is None:
-                J = J_cands[:, kept]
-            Jw = J if unit else J * np.sqrt(w)[:, None]
-            Rw = _r_factor(Jw) if Jw.shape[0] > P else Jw
-        # conditioning of what was estimated: with a prior, data and prior together (a factor
-        # whose Gram matrix is JᵀWJ + MᵀΣp⁻¹M)
-        Ra = Rw if prior is None else np.vstack([Rw, _sqrt_psd(info)])
-        sv, cond, obs = _conditioning(Ra, params, n_poses=len(data), reach_m=reach)
-        if prior is not None:
-            alone = [i for i, k in enumerate(kept) if k in by_data]
-            if alone:
-                _, c_data, o_data = _conditioning(Rw[:, alone], [params[i] for i in alone], n_poses=len(data),
-                                                  reach_m=reach)
-                data_only = {"parameters": [params[i].name for i in alone], "condition_number": c_data,
-                             "observability": o_data}
-    sources = ["data" if np.isnan(sd_prior[k]) else "data + prior" for k in kept]
+    for _round in range(MAX_SELECTION_ROUNDS):
+        params = [cands[k] for k in sel.kept]
+        info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
+        lin_p = lin_next or _linearise(current, prob, params, loss=loss, f_scale=f_scale)
+        sol = _levenberg_marquardt(current, prob, params, lin_p, info, loss=loss, f_scale=f_scale,
+                                   max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol)
+        current = sol.model
+        for p, s in zip(params, sol.steps):
+            moved[p.name] = moved.get(p.name, 0.0) + float(s)
+        iterations += sol.iterations
+        nfev += sol.nfev
+        history += list(sol.history)
+        if prior is not None or not hayati:
+            break
+        again = _reselect(current, prob, cands, sel, rank_rtol=rank_rtol, position_only=position_only)
+        if again.kept == sel.kept:
+            sel = dataclasses.replace(sel, dropped=again.dropped)
+            break
+        sel, lin_next = again, None
+    kept, dropped = sel.kept, sel.dropped
+    params = [cands[k] for k in kept]
+    steps = np.array([moved.get(p.name, 0.0) for p in params])
+    status = sol.status
+    lin = sol.lin
+    P = len(params)
+    warnings = _on_axis_warnings(on_axis, [cands[k].name for k in kept if k not in at_nominal], dropped)
+
+    # 5. statistics at the solution
+    stats = _statistics(current, prob, params, lin, steps, prior, sel, loss=loss, f_scale=f_scale, reach_m=reach,
+                        n_poses=len(data))
+    cv = stats.pop("cross_validation")
+    chi2_data = float(lin.c.sum())
+    rp = prob.original(lin.rp)
+    rr = prob.original(lin.rr)
+    rn = np.linalg.norm(rp, axis=1)
+    rms_m = float(np.sqrt(np.mean(rn**2))) if len(rn) else 0.0
+    mes = 1.0
+    if cv is not None:
+        cv["rms_m"] = rms_m * math.sqrt(max(cv["chi2"], 0.0) / chi2_data) if chi2_data > 0 else 0.0
+        mes = max(1.0, cv["scale"] / stats["sigma_scale"]) if math.isfinite(cv["scale"]) else 1.0
+        cv["model_error_scale"] = mes
+    consistency = _consistency(stats["chi2"], stats["dof"])
+    complete["identified"] = len(sel.by_data)
+
+    # 6. merging: the parameters the prior alone determines join the estimated ones
+    params, steps, cov, sources, prior_sd = _merge_prior(cands, sel, stats["covariance"], steps, prior)
     values = parameter_values(current, params)
-    if from_prior:  # not estimated: the prior's value (the model's) and the prior's covariance
-        order = sorted(kept + from_prior)
-        pos = {k: i for i, k in enumerate(order)}
-        full = np.zeros((len(order), len(order)))
-        est = [pos[k] for k in kept]
-        full[np.ix_(est, est)] = cov
-        fp = [pos[k] for k in from_prior]
-        full[np.ix_(fp, fp)] = prior.covariance_of([cands[k] for k in from_prior])
-        cov = full
-        params = [cands[k] for k in order]
-        sources = ["prior" if k in from_prior else sources[kept.index(k)] for k in order]
-        steps = np.array([0.0 if k in from_prior else steps[kept.index(k)] for k in order])
-        values = parameter_values(current, params)
-        kept = order
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
     corr = np.nan_to_num(corr)
-    rn = np.linalg.norm(rp, axis=1)
+    z = prob.original(np.sqrt(lin.z2))
+    w_row = prob.original(lin.w_row)
     outliers = tuple(int(i) for i in np.nonzero((z > outlier_sigma) | (w_row < 0.5))[0])
-    success = status > 0
+    has_rot = data.has_orientation
     return IdentificationResult(
         model=dataclasses.replace(current, metadata={}, name=identified_name(model.name)),
         start_model=start,
@@ -1015,34 +1377,121 @@ def identify(
         covariance=cov,
         correlation=corr,
         unidentifiable=tuple(dropped),
-        singular_values=sv,
-        condition_number=cond,
-        observability=obs,
+        singular_values=stats["singular_values"],
+        condition_number=stats["condition_number"],
+        observability=stats["observability"],
         residuals_m=rp,
         residuals_rad=rr,
-        rms_m=float(np.sqrt(np.mean(rn**2))),
+        rms_m=rms_m,
         max_m=float(rn.max(initial=0.0)),
         rms_rad=float(np.sqrt(np.mean(np.sum(rr[has_rot] ** 2, axis=1)))) if np.any(has_rot) else 0.0,
-        chi2=chi2,
-        dof=dof,
-        sigma_scale=sigma_scale,
+        chi2=stats["chi2"],
+        dof=stats["dof"],
+        sigma_scale=stats["sigma_scale"],
         row_weights=w_row,
         outliers=outliers,
-        success=success,
-        status=status,
-        message=TERMINATION_MESSAGES[status],
-        iterations=it,
+        success=status > 0 if P else False,
+        status=status if P else -1,
+        message=TERMINATION_MESSAGES[status if P else -1],
+        iterations=iterations,
         nfev=nfev,
         cost_history=tuple(history),
         registration=registration,
         notes=tuple(notes),
-        settings=dict(sigma_m=sigma_m, sigma_rad=sigma_rot, loss=loss, f_scale=f_scale, gains=gains,
+        settings=dict(sigma_m=sigma_m, sigma_rad=prob.sigma_rot, loss=loss, f_scale=f_scale, gains=gains,
                       rank_rtol=rank_rtol, fixed=list(fixed)),
         sources=tuple(sources),
-        prior_std_errors=None if prior is None else np.array([sd_prior[k] for k in kept]),
-        chi2_prior=chi2_prior,
-        data_only=data_only,
+        prior_std_errors=prior_sd,
+        chi2_prior=stats["chi2_prior"],
+        data_only=stats["data_only"],
+        completeness=complete,
+        cross_validation=cv,
+        consistency=consistency,
+        model_error_scale=mes,
+        warnings=tuple(warnings),
     )
+
+
+def _on_axis_warnings(on_axis: list, answer_only: list[str], dropped: list) -> list[str]:
+    """What a target nominally on the last axis cost: the parameters only the identified
+    geometry determined, and those it could not (category ``weak``)."""
+    held = [u.name for u in dropped if u.category == "weak"]
+    out = []
+    for t, dist in on_axis:
+        what = "the tool origin" if t is None else f"target {t}"
+        out.append(
+            f"{what} is nominally on the last joint's axis ({dist * 1e3:.2f} mm from it): what the last axes do "
+            f"there is seen only through the real offset from the axis"
+            + (f"; determined only at the identified geometry: {', '.join(answer_only)}" if answer_only else "")
+            + (f"; not determined, kept at the model's value: {', '.join(held)} (the model may be biased "
+               f"by them; put the target 20 mm or more off the axis)" if held else ""))
+    return out
+
+
+def _statistics(current: KinematicModel, prob: _Problem, params: list[Parameter], lin: _Linearisation,
+                steps: np.ndarray, prior: Prior | None, sel: _Selection, *, loss: str, f_scale: float,
+                reach_m: float, n_poses: int) -> dict:
+    """χ², the covariance ``s²(JᵀWJ + MᵀΣp⁻¹M)⁻¹`` (book eq. 4.54 / 4.70, ``s² = max(1, χ²/dof)``),
+    conditioning and observability of what was estimated, and the cross-validation."""
+    P = len(params)
+    info = prior.information(params) if prior is not None else np.zeros((P, P))
+    chi2_prior = float(steps @ info @ steps)
+    n_prior = int(np.count_nonzero(np.isfinite(sel.sd_prior[sel.kept]))) if P else 0
+    chi2 = float(lin.c.sum()) + chi2_prior
+    dof = max(int(lin.n.sum()) + n_prior - P, 1)
+    sigma_scale = math.sqrt(max(1.0, chi2 / dof))
+    out = {"chi2": chi2, "dof": dof, "sigma_scale": sigma_scale, "chi2_prior": chi2_prior, "data_only": None,
+           "covariance": np.zeros((P, P)), "singular_values": np.zeros(0),
+           "condition_number": float("inf") if P == 0 else 0.0, "observability": {}, "cross_validation": None}
+    if not P:
+        return out
+    G = lin.gram
+    A = G + info
+    dscale = np.sqrt(np.maximum(np.diag(A), 1e-300))
+    cov = np.linalg.pinv(A / np.outer(dscale, dscale), rcond=1e-14, hermitian=True) / np.outer(dscale, dscale)
+    out["covariance"] = cov * sigma_scale**2
+    # A factor with the data's singular values (RᵀR = JᵀWJ): from G when it is well conditioned,
+    # else the triangular factor of the weighted rows (one more pass over the data)
+    Rw = _gram_factor(G)
+    if Rw is None:
+        Rw = _linearise(current, prob, params, loss=loss, f_scale=f_scale, factor=True).R
+    Ra = Rw if prior is None else np.vstack([Rw, _sqrt_psd(info)])
+    out["singular_values"], out["condition_number"], out["observability"] = _conditioning(
+        Ra, params, n_poses=n_poses, reach_m=reach_m)
+    if prior is not None:
+        alone = [i for i, k in enumerate(sel.kept) if k in sel.by_data]
+        if alone:
+            _, c_data, o_data = _conditioning(Rw[:, alone], [params[i] for i in alone], n_poses=n_poses,
+                                              reach_m=reach_m)
+            out["data_only"] = {"parameters": [params[i].name for i in alone], "condition_number": c_data,
+                                "observability": o_data}
+    out["cross_validation"] = _cross_validation(lin, A, lin.gradient - info @ steps)
+    return out
+
+
+def _merge_prior(cands: list[Parameter], sel: _Selection, cov: np.ndarray, steps: np.ndarray,
+                 prior: Prior | None):
+    """The estimated parameters and those the prior alone determines (not estimated: the prior's
+    value, the model's, and the prior's covariance), in the candidates' order. Returns params,
+    steps, covariance, sources and the prior's standard errors (None without a prior)."""
+    kept = sel.kept
+    sources = ["data" if np.isnan(sel.sd_prior[k]) else "data + prior" for k in kept]
+    params = [cands[k] for k in kept]
+    if sel.from_prior:
+        order = sorted(kept + sel.from_prior)
+        pos = {k: i for i, k in enumerate(order)}
+        full = np.zeros((len(order), len(order)))
+        est = [pos[k] for k in kept]
+        full[np.ix_(est, est)] = cov
+        fp = [pos[k] for k in sel.from_prior]
+        full[np.ix_(fp, fp)] = prior.covariance_of([cands[k] for k in sel.from_prior])
+        cov = full
+        params = [cands[k] for k in order]
+        sources = ["prior" if k in sel.from_prior else sources[kept.index(k)] for k in order]
+        steps = np.array([0.0 if k in sel.from_prior else steps[kept.index(k)] for k in order])
+        kept = order
+    prior_sd = None if prior is None else np.array([sel.sd_prior[k] for k in kept])
+    return params, steps, cov, sources, prior_sd
 
 
 def identified_name(name: str) -> str:

@@ -151,11 +151,13 @@ def _cos_sin(trig: dict, joint: int, v: np.ndarray, const: float) -> tuple[np.nd
 
 
 def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str] = frozenset(),
-         trig: dict | None = None, payload: np.ndarray | None = None) -> Walk:
+         trig: dict | None = None, payload: np.ndarray | None = None,
+         ops: list[Op] | None = None) -> Walk:
     """Run ``model``'s program over readings ``q`` (N, n), recording the keys in ``record``.
 
     ``trig``: a dict kept by a caller that walks models of one structure over the same readings
-    many times (identification): the joints' cos and sin are computed once and reused.
+    many times (identification): the joints' cos and sin are computed once and reused. ``ops``:
+    ``program(model)``, when the caller walks the same model over many chunks of readings.
 
     A model with a ``compliance`` section is walked at its deflected configuration
     (:func:`calibration.compliance.deflections`; ``payload`` (N, 4) or (4,): kg and the centre of
@@ -182,7 +184,7 @@ def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str]
     p = np.zeros((3, N))
     axes: dict = {}
     frames: dict = {}
-    for op in program(model):
+    for op in program(model) if ops is None else ops:
         if op.kind == "fixed":
             M, t = op.T[:3, :3], op.T[:3, 3]
             if np.any(t):

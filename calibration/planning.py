@@ -52,8 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .conventions import hayati_for_parallel_axes, mdh_to_dh
-from .identify import Unidentifiable, _reach, observability_indices, select_identifiable
+from .identify import Unidentifiable, _reach, complete_form, observability_indices, select_identifiable
 from .jacobian import predict
 from .kinematics import program, walk
 from .model import KinematicModel
@@ -278,13 +277,11 @@ class _Design:
 
 
 def identification_form(model: KinematicModel, *, hayati: bool = True) -> KinematicModel:
-    """The model in the form :func:`calibration.identify.identify` identifies it: ``mdh`` as
-    ``dh`` (exact), parallel-axis ``dh`` links in Hayati's form."""
-    if model.convention == "mdh" and not any(j.hayati for j in model.joints):
-        model = mdh_to_dh(model)
-    if hayati and model.convention == "dh":
-        model, _ = hayati_for_parallel_axes(model)
-    return model
+    """The model in the form :func:`calibration.identify.identify` identifies it
+    (:func:`calibration.identify.complete_form`: ``mdh`` as ``dh``, parallel-axis ``dh`` links in
+    Hayati's form, ``poe`` where ``dh`` cannot be complete): the plan predicts the accuracy of the
+    model identification will fit."""
+    return complete_form(model, hayati=hayati)[0]
 
 
 def _jacobians(model: KinematicModel, q: np.ndarray, params: list[Parameter], targets) -> np.ndarray:

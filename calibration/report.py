@@ -1,29 +1,152 @@
-"""The identification report: a JSON-ready dict in the model's own units."""
+"""The identification's words and report: why a parameter is not identified (in any units), and
+the JSON-ready report in the model's own units.
+
+The calibration core computes; this module writes. :mod:`calibration.identify` takes its
+explanations from here, so it imports nothing of the core at import time (only for types).
+"""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .identify import IdentificationResult, explain, relation_coefficients
 from .model import KinematicModel, Units, model_to_dict
 from .parameters import LOCAL_6, parameter_values, parameters_by_name
 from .transforms import invert, matrix_to_pose, matrix_to_rotvec, pose_to_matrix
-from .uncertainty import Validation
+
+if TYPE_CHECKING:  # identify imports this module for its words: no import cycle at run time
+    from .identify import IdentificationResult, Unidentifiable
+    from .uncertainty import Validation
+
+
+# --------------------------------------------------------------------------- words
+
+def describe(name: str) -> str:
+    if name.startswith("compliance."):  # joint compliance under gravity (calibration.compliance)
+        from .compliance import describe_term  # here: compliance imports identify, which imports this
+
+        return describe_term(name)
+    head, _, f = name.rpartition(".")
+    words = {"theta": "offset", "d": "d", "a": "a", "alpha": "twist alpha", "beta": "Hayati beta",
+             "gain": "gain", "tilt_x": "axis tilt x", "tilt_y": "axis tilt y", "shift_x": "axis shift x",
+             "shift_y": "axis shift y"}
+    if head in ("base", "tool", "home"):
+        kind = "translation" if f.startswith("t") else "rotation"
+        return f"{head} {kind} {f[1]} ({name})"
+    if head.startswith("target."):
+        return f"target {head[7:]} {f} ({name})"
+    return f"joint {head} {words.get(f, f)} ({name})"
+
+
+def unit_name(kind: str, units: Units | None) -> tuple[str, float]:
+    """(unit, SI per unit) of a parameter kind (``length``, ``angle``, ``scale``, the compliance
+    terms' ``angle_per_length`` and ``angle_per_torque``) in ``units``
+    (None: SI). The one place a parameter's unit is named: the reports, the relations and the
+    identification's notes all write units through it."""
+    if kind == "length":
+        return ("m", 1.0) if units is None else (units.length, units.length_m)
+    if kind == "angle":
+        return ("rad", 1.0) if units is None else (units.angle, units.angle_rad)
+    if kind == "angle_per_length":  # compliance x mass terms (calibration.compliance)
+        return ("rad/m", 1.0) if units is None else (f"{units.angle}/{units.length}", units.angle_rad / units.length_m)
+    if kind == "angle_per_torque":  # a joint's compliance; torque stays N·m (the units have no force)
+        return ("rad/(N·m)", 1.0) if units is None else (f"{units.angle}/(N·m)", units.angle_rad)
+    return ("", 1.0)
+
+
+def relation_coefficients(u: Unidentifiable, units=None) -> list[tuple[str, float, str]]:
+    """``u.relation`` in ``units`` (a :class:`calibration.model.Units`; None: SI): (name,
+    coefficient, unit of the coefficient such as ``mm/deg``) per related parameter."""
+    out = []
+    kinds = u.kinds or ("",) * (len(u.relation) + 1)
+    un, sn = unit_name(kinds[0], units)
+    for (name, c), kind in zip(u.relation, kinds[1:]):
+        uj, sj = unit_name(kind, units)
+        unit = uj if not un else (f"{uj}/{un}" if uj else f"1/{un}")
+        out.append((name, c * sn / sj, "1" if uj == un else unit))
+    return out
+
+
+def relation_text(u: Unidentifiable, units=None, *, terms: int = 6) -> str:
+    """The relation in words: ``1 mm of tool.ty ≡ +1.43 deg of j6.theta +1 mm of target.smr1.x``."""
+    kinds = u.kinds or ("",) * (len(u.relation) + 1)
+    un, _ = unit_name(kinds[0], units)
+    parts = []
+    for (name, c, _), kind in zip(relation_coefficients(u, units)[:terms], kinds[1:]):
+        uj, _ = unit_name(kind, units)
+        parts.append(f"{c:+.3g}{' ' + uj if uj else ''} of {name}")
+    more = " + …" if len(u.relation) > terms else ""
+    return f"1{' ' + un if un else ''} of {u.name} ≡ {' '.join(parts)}{more}"
+
+
+def explain(u: Unidentifiable, units=None) -> str:
+    """Why ``u`` is not identified, in words, with the relation's coefficients in ``units``
+    (a :class:`calibration.model.Units`; None: SI)."""
+    d = describe(u.name)
+    rel = relation_text(u, units) if u.relation else ""
+    if u.category == "tool_orientation":
+        return "tool orientation is unobservable from position-only data" + (f" ({rel})" if rel else "")
+    if u.category == "target_offsets":
+        return f"{d} moves the measured points exactly as the target offsets do ({rel})"
+    if u.category == "last_joint_offset":
+        joint = u.name.rpartition(".")[0]
+        what = ("the target offsets already describe" if any(n.startswith("target.") for n, _ in u.relation)
+                else "the tool translation already describes")
+        return (f"{d} only turns the measured points about the axis of joint {joint}, which {what}: "
+                f"position-only data cannot tell the two apart, so it keeps the model's value ({rel})")
+    if u.category == "weak":
+        return (f"{d} is redundant only at the nominal geometry (a target on an axis)"
+                + (f" where {rel}" if rel else "") + "; at the identified geometry the data determine it too "
+                "weakly to free it, so it keeps the model's value")
+    if u.category == "same_motion":
+        return f"{d} and {describe(u.relation[0][0])} are the same motion ({rel})"
+    if u.category == "combination":
+        return f"{d} moves the measured points as a combination of freed parameters does: {rel}"
+    return f"{d} has no effect on these measurements"
+
 
 
 def _unit(kind: str, units: Units) -> tuple[str, float]:
-    """(unit name, SI per unit) of a parameter kind."""
-    if kind == "length":
-        return units.length, units.length_m
-    if kind == "angle":
-        return units.angle, units.angle_rad
-    if kind == "angle_per_length":  # compliance x mass terms (calibration.compliance)
-        return f"{units.angle}/{units.length}", units.angle_rad / units.length_m
-    if kind == "angle_per_torque":  # a joint's compliance; torque stays N·m (the units have no force)
-        return f"{units.angle}/(N·m)", units.angle_rad
-    return "1", 1.0
+    """(unit name, SI per unit) of a parameter kind in a report (a gain's unit is ``1``)."""
+    name, si = unit_name(kind, units)
+    return name or "1", si
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def expected_rms_m(result: IdentificationResult) -> float:
+    """The residual RMS (m) the stated uncertainty expects: the actual one over √(χ²/dof)."""
+    ratio = math.sqrt(result.chi2 / result.dof) if result.dof > 0 and result.chi2 > 0 else 1.0
+    return result.rms_m / ratio
+
+
+def consistency_text(result: IdentificationResult, units: Units) -> str:
+    """One line on whether the model explains the data (the χ² test of ``result.consistency``)."""
+    c = result.consistency or {}
+    L, u = units.length_m, units.length
+    level = f"{100 * c.get('level', 0.0):.3g} %"
+    if c.get("consistent", True):
+        return (f"the model explains the data: residual RMS {result.rms_m / L:.3g} {u}, "
+                f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level)")
+    return (f"the model does not explain the data: residual RMS {result.rms_m / L:.3g} {u} against "
+            f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level); see the report")
+
+
+def summary_line(result: IdentificationResult, units: Units, n_rows: int, validation: Validation | None = None) -> str:
+    """The one line ``recal identify`` prints."""
+    L, u = units.length_m, units.length
+    line = (f"identified {len(result.params)} parameters from {n_rows} rows: "
+            f"residual RMS {result.rms_m / L:.4g} {u}, max {result.max_m / L:.4g} {u}; "
+            f"{len(result.unidentifiable)} not identifiable; {result.message}")
+    if result.cross_validation is not None:
+        line += f"; cross-validated RMS {result.cross_validation['rms_m'] / L:.4g} {u}"
+    if validation is not None:
+        line += (f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
+                 f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound")
+    return line
 
 
 def _f(x: float, digits: int = 9) -> float | None:
@@ -71,7 +194,23 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
             "rms_orientation": _f(result.rms_rad / units.angle_rad),
             "chi2": _f(result.chi2), "dof": result.dof,
             "sigma_scale": _f(result.sigma_scale),
+            "model_error_scale": _f(result.model_error_scale),
         },
+        "cross_validation": None if result.cross_validation is None else {
+            "folds": result.cross_validation["folds"],
+            "method": "linearised k-fold: each fold predicted by the fit without it (one Gauss-Newton step from "
+                      "the full fit)",
+            "rms": _f(result.cross_validation["rms_m"] / L), "in_sample_rms": _f(result.rms_m / L),
+            "chi2": _f(result.cross_validation["chi2"]), "expected_chi2": _f(result.cross_validation["expected_chi2"]),
+            "scale": _f(result.cross_validation["scale"]),
+        },
+        "consistency": None if result.consistency is None else {
+            **{k: (_f(v) if isinstance(v, float) else v) for k, v in result.consistency.items()},
+            "expected_rms": _f(expected_rms_m(result) / L),
+            "message": consistency_text(result, units),
+        },
+        "complete": result.completeness,
+        "warnings": list(result.warnings),
         "data_only": None if result.data_only is None else {
             "parameters": list(result.data_only["parameters"]),
             "condition_number": _f(result.data_only["condition_number"]),
@@ -117,7 +256,8 @@ def identification_block(result: IdentificationResult, units: Units, *, nominal:
     """
     full = identification_report(result, units)
     block = {k: full[k] for k in ("success", "message", "rows", "parameters", "unidentifiable", "condition_number",
-                                  "observability", "residuals", "notes")}
+                                  "observability", "residuals", "notes", "complete", "cross_validation",
+                                  "consistency", "warnings")}
     if full["data_only"] is not None:
         block["data_only"] = full["data_only"]
     block["identified_from"] = (nominal or result.start_model).name
@@ -126,6 +266,8 @@ def identification_block(result: IdentificationResult, units: Units, *, nominal:
         "names": list(result.param_names),
         "kinds": [p.kind for p in result.params],
         "matrix": [[float(v) for v in row] for row in result.covariance],
+        # predictions use matrix x model_error_scale² (calibration.uncertainty.prediction_covariance)
+        "model_error_scale": float(result.model_error_scale),
     }
     if nominal is not None:
         block["nominal"] = model_to_dict(nominal, units=units)

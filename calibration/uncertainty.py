@@ -42,13 +42,29 @@ def propagate(model: KinematicModel, params: list[Parameter], covariance: np.nda
     return np.einsum("nip,pq,njq->nij", pred.Jp, covariance, pred.Jp)
 
 
+def prediction_covariance(result: IdentificationResult) -> np.ndarray:
+    """The parameters' covariance (P, P) SI for predictions: the identification's covariance
+    (already scaled by ``sigma_scale``) grown by ``model_error_scale`` squared, when the
+    cross-validated error exceeded what the covariance predicts (the model's structure misses
+    something the in-sample residuals hide)."""
+    return result.covariance * result.model_error_scale**2
+
+
+def noise_sigma(result: IdentificationResult, sigma_m: np.ndarray | float) -> np.ndarray | float:
+    """The noise a fresh measurement adds to the model's error, per axis (m), for stated
+    uncertainties ``sigma_m``: scaled as the covariance is (``sigma_scale``, the residuals'
+    own estimate when larger than the stated one, and ``model_error_scale``)."""
+    return np.asarray(sigma_m) * result.sigma_scale * result.model_error_scale
+
+
 def position_covariance(result: IdentificationResult, q: np.ndarray, target: str | None = None,
                         targets: np.ndarray | None = None, payload: np.ndarray | None = None) -> np.ndarray:
     """Covariance (N, 3, 3) m² of the predicted position of ``target`` (or per-row ``targets``)
-    at readings ``q`` (N, n), from the identified parameters' covariance."""
+    at readings ``q`` (N, n), from the identified parameters' covariance
+    (:func:`prediction_covariance`)."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     names = np.array([target] * len(q), dtype=object) if targets is None else np.asarray(targets, dtype=object)
-    return propagate(result.model, list(result.params), result.covariance, q, names, payload)
+    return propagate(result.model, list(result.params), prediction_covariance(result), q, names, payload)
 
 
 def radius_95(C: np.ndarray, level: float = 0.95) -> np.ndarray:
@@ -93,6 +109,10 @@ def covariance_from_block(model: KinematicModel) -> tuple[list[Parameter], np.nd
     if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
         raise CovarianceError("identification.covariance.matrix",
                               f"expected a {len(names)} x {len(names)} matrix of numbers")
+    grow = cov.get("model_error_scale", 1.0)
+    if isinstance(grow, bool) or not isinstance(grow, (int, float)) or not grow >= 1.0:
+        raise CovarianceError("identification.covariance.model_error_scale", f"expected a number >= 1, got {grow!r}")
+    matrix = matrix * float(grow) ** 2  # the bound grows as the cross-validation said (prediction_covariance)
     gains = any(n.endswith(".gain") for n in names)
     known = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets), gains=gains)}
     for i, n in enumerate(names):
@@ -106,7 +126,9 @@ class Validation:
     """Hold-out errors of a model on measurements it was not fitted to (m).
 
     ``coverage_95``: the fraction of rows whose error lies inside the predicted 95 % region
-    (model covariance plus instrument noise); close to 0.95 when the uncertainty is honest.
+    (the model's covariance for predictions plus the instrument's noise, both scaled as the
+    covariance is: :func:`prediction_covariance`, :func:`noise_sigma`); close to 0.95 when the
+    uncertainty is honest.
     ``before_*``: the same errors of the starting model, for comparison.
     """
 
@@ -135,7 +157,8 @@ def validate(result: IdentificationResult, holdout: Measurements) -> Validation:
     p = predict(result.model, holdout.q, _p_tool(result.model, names), payload=holdout.payload).p_world
     e_vec = holdout.p_world - p
     e = np.linalg.norm(e_vec, axis=1)
-    C = position_covariance(result, holdout.q, targets=names, payload=holdout.payload) + (sigma**2)[:, None, None] * np.eye(3)
+    C = (position_covariance(result, holdout.q, targets=names, payload=holdout.payload)
+         + (noise_sigma(result, sigma)**2)[:, None, None] * np.eye(3))
     d2 = np.einsum("ni,ni->n", e_vec, np.linalg.solve(C, e_vec[:, :, None])[:, :, 0])
     coverage = float(np.mean(d2 <= chi2_quantile(0.95, 3))) if len(e) else 0.0
     p0 = predict(result.start_model, holdout.q, _p_tool(result.start_model, names), payload=holdout.payload).p_world

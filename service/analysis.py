@@ -18,7 +18,7 @@ import dataclasses
 import numpy as np
 from sqlmodel import Session
 
-from calibration.identify import Measurements, Prior, drift_scale, held_relations, identify
+from calibration.identify import Measurements, NotEnoughData, Prior, drift_scale, held_relations, identify
 from calibration import metrics
 from calibration.geometry import fit_joint_harmonic
 from calibration.model import KinematicModel, model_from_dict, model_to_dict
@@ -108,7 +108,10 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
         scale = max(drift_scale(start, data, names, cov, drift, held=held), DRIFT_SCALE_MIN)
         prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
-    result = identify(start, data, prior=prior)
+    try:
+        result = identify(start, data, prior=prior)
+    except NotEnoughData as exc:  # too few poses to check the fit: say how many, as the CLI does
+        raise AnalysisError(str(exc)) from None
     if not result.success:
         raise AnalysisError(f"identification did not converge: {result.message}")
     units = nominal.units
@@ -117,9 +120,13 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     if start.compliance is not None:  # a compliant calibration: rigid against compliant, cross-validated
         from calibration.compliance import compare
 
-        cmp = compare(start, data)
-        report["compliance"] = {k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v)
-                                for k, v in cmp.items()}
+        try:
+            cmp = compare(start, data)
+        except NotEnoughData:  # each fold's share of the poses leaves no redundancy: nothing to compare
+            cmp = None
+        if cmp is not None:
+            report["compliance"] = {k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v)
+                                    for k, v in cmp.items()}
     cov = {"names": list(result.param_names), "kinds": [p.kind for p in result.params],
            "matrix": result.covariance.tolist(),
            "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()}}

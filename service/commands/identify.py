@@ -1,5 +1,11 @@
 """``recal identify --model NOMINAL.json --data MEAS.csv --out MODEL.json [--report R.json] [--validate VAL.csv]
-[--compliance gravity|auto] [--residual-map auto]``"""
+[--compliance gravity|auto] [--residual-map auto]``
+
+Exit status: 0 identified; 1 the solver did not converge; 2 bad input, or too few rows to check
+the fit (the message says how many are needed; nothing written); 3 the model and the report are
+written, but the residuals are not consistent with the stated uncertainty (the model does not
+explain the data: a chi-squared test, docs/formats.md §4).
+"""
 
 from __future__ import annotations
 
@@ -39,7 +45,7 @@ def add_parser(s) -> None:
 def run(args) -> int:
 
     from calibration.identify import identify
-    from calibration.report import identification_block, identification_report
+    from calibration.report import consistency_text, identification_block, identification_report, summary_line
     from calibration.uncertainty import validate
     from service.cli import Fail
     from service.files import check_output, load_model, read_measurements, save_model, write_atomic
@@ -68,7 +74,11 @@ def run(args) -> int:
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.data}: {exc}") from None
     validation = validate(result, holdout) if holdout is not None else None
-    rmap_doc, rmap_line = _residual_map(args, model, start, data, holdout, result, kw) if args.residual_map else (None, None)
+    try:  # the map's cross-validation identifies on each fold's share of the rows (NotEnoughData)
+        rmap_doc, rmap_line = (_residual_map(args, model, start, data, holdout, result, kw) if args.residual_map
+                               else (None, None))
+    except (ValueError, KeyError) as exc:
+        raise Fail(f"{args.data}: --residual-map: {exc}") from None
     report = identification_report(result, model.units, data_rows=data.row, validation=validation)
     if compliance is not None:
         report["compliance"] = compliance
@@ -82,12 +92,7 @@ def run(args) -> int:
     block = identification_block(result, model.units, nominal=model, q=data.q)
     save_model(args.out, result.model, {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})})
     u = model.units.length
-    line = (f"identified {len(result.params)} parameters from {len(data)} rows: "
-            f"residual RMS {result.rms_m / L:.4g} {u}, max {result.max_m / L:.4g} {u}; "
-            f"{len(result.unidentifiable)} not identifiable; {result.message}")
-    if validation is not None:
-        line += (f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
-                 f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound")
+    line = summary_line(result, model.units, len(data), validation)
     print(line)
     if compliance is not None and "cross_validation" in compliance:
         cv = compliance["cross_validation"]
@@ -100,7 +105,15 @@ def run(args) -> int:
     if result.outliers:
         rows = ", ".join(str(int(data.row[i])) for i in result.outliers[:10])
         print(f"warning: {len(result.outliers)} rows look like outliers (rows {rows}); see the report", file=sys.stderr)
-    return 0 if result.success else 1
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    if not result.success:
+        return 1
+    if result.consistency is not None and not result.consistency["consistent"]:
+        # the model and the report are written: a nightly job sees the status, a person the report
+        print(f"recal identify: {consistency_text(result, model.units)}", file=sys.stderr)
+        return 3
+    return 0
 
 
 def _with_compliance(args, model, data, kw):

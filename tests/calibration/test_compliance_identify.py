@@ -50,13 +50,21 @@ def test_compliant_model_reaches_the_noise_floor_and_its_bounds_are_honest(arm):
     train = _measure(nom, truth, rng, 200, payloads, sigma)
     holdout = _measure(nom, truth, rng, 2000, payloads, sigma)
     floor = np.sqrt(3.0) * sigma  # RMS length of the instrument's noise alone
-    rigid = validate(identify(nom, train, sigma_m=sigma), holdout)
+    rigid_result = identify(nom, train, sigma_m=sigma)
+    rigid = validate(rigid_result, holdout)
     result = identify(C.with_section(nom, C.default_section(nom)), train, sigma_m=sigma)
     compliant = validate(result, holdout)
     assert compliant.rms_m <= 1.10 * floor, (compliant.rms_m, floor)
     assert rigid.rms_m > 3.0 * floor, (rigid.rms_m, floor)
     assert 0.93 <= compliant.coverage_95 <= 0.97, compliant.coverage_95
-    assert rigid.coverage_95 < 0.5  # the rigid model's bounds are not: the sag is not in them
+    # the rigid model cannot explain the data (the sag is not in it) and says so: its residuals
+    # fail the chi-squared test against the instrument's sigma (issue 14; its bounds grow by the
+    # residuals' own scale instead of staying at the instrument's, so they are no longer too
+    # narrow), while the compliant model's pass with a scale near 1
+    assert not rigid_result.consistency["consistent"], rigid_result.consistency
+    assert rigid_result.sigma_scale > 3.0, rigid_result.sigma_scale
+    assert result.consistency["consistent"], result.consistency
+    assert result.sigma_scale < 1.2, result.sigma_scale
     # the joints' compliance (rad per N·m) is recovered, within its stated uncertainty
     names = list(result.param_names)
     for joint, c_true in SAGGING_ARMS[arm]["compliance"].items():
@@ -91,9 +99,16 @@ def test_identifiability_names_terms_the_arm_cannot_show():
     data = _measure(nom, truth, rng, 120, [(0.0, 0, 0, 0), SAGGING_ARMS["cobot"]["payload"]], SIGMA["cobot"])
     result = identify(C.with_section(nom, C.default_section(nom)), data, sigma_m=SIGMA["cobot"])
     dropped = {u.name: u for u in result.unidentifiable if u.name.startswith("compliance.")}
-    # link 2's DH z axis is joint 3's axis, parallel to joint 2's: a moment along it has no torque
-    assert dropped["compliance.j2.j2.z"].category == "no_effect"
-    assert "has no effect" in dropped["compliance.j2.j2.z"].reason
+    # link 2's DH z axis is joint 3's axis, parallel to joint 2's: a moment along it has no torque.
+    # At the nominal geometry exactly (no effect); identification decides at the identified
+    # geometry (issue 14), where the identified Hayati tilt between the axes leaves it a sliver
+    # of the link's mass and y moment: a combination with tiny coefficients, still dropped
+    u = dropped["compliance.j2.j2.z"]
+    assert u.category in ("no_effect", "combination"), u
+    if u.category == "no_effect":
+        assert "has no effect" in u.reason
+    else:
+        assert u.relation and all(abs(c) < 0.01 for _, c in u.relation), u.relation
     for u in dropped.values():
         assert u.reason and "compliance" in u.reason
     # every kept compliance term has a finite standard error in its own unit kind

@@ -103,7 +103,10 @@ def test_identify_auto_adds_compliance_and_reports_cross_validation(cell, auto):
 def test_identify_gravity_with_chosen_joints_runs_no_cross_validation(cell):
     proc = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "g.json",
                  "--compliance", "gravity", "--compliance-joints", "j2", cwd=cell.dir)
-    assert proc.returncode == 0, proc.stderr
+    # the cobot sags at j3 too: j2 alone cannot explain the data, and identify says so (exit 3,
+    # issue 14) after writing the model it was asked for
+    assert proc.returncode == 3, proc.stderr
+    assert "the model does not explain the data" in proc.stderr
     assert json.loads((cell.dir / "g.json").read_text())["compliance"]["joints"] == ["j2"]
     assert "cross-validation" not in proc.stdout
 
@@ -195,7 +198,11 @@ def mapped(tmp_path_factory):
 
 def test_identify_keeps_a_map_that_helps_and_predict_flags_outside(mapped):
     d, truth, q, proc = mapped
-    assert proc.returncode == 0, proc.stderr
+    # a rigid model of a sagging arm: even with the map, what is left (about 0.11 mm
+    # cross-validated) is far above the tracker's noise, so identify writes the model and the map
+    # and exits 3 (issue 14: the model does not explain the data)
+    assert proc.returncode == 3, proc.stderr
+    assert "the model does not explain the data" in proc.stderr
     line = next(x for x in proc.stdout.splitlines() if x.startswith("residual map (5-fold cross-validation)"))
     assert "kept" in line
     doc = json.loads((d / "id.json").read_text())
@@ -233,7 +240,7 @@ def test_compensate_aims_the_parametric_model_at_the_goal_minus_the_map(mapped):
     from calibration.residual_map import from_model
 
     d, truth, q, proc = mapped
-    assert proc.returncode == 0, proc.stderr
+    assert proc.returncode == 3, proc.stderr  # written, see test_identify_keeps_a_map_that_helps_...
     model = load_model(d / "id.json")
     goal = target_positions(truth, q, None, payload=np.array(PAYLOAD))  # tool origin: where the robot must go
     from calibration.kinematics import fk
@@ -272,7 +279,7 @@ def test_demo_shows_rigid_and_compliant_side_by_side(tmp_path):
 
 def test_accuracy_applies_the_residual_map(mapped):
     d, truth, _, proc = mapped
-    assert proc.returncode == 0, proc.stderr
+    assert proc.returncode == 3, proc.stderr  # written, see test_identify_keeps_a_map_that_helps_...
     rng = np.random.default_rng(12)
     nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
     held = simulate_measurements(truth, random_configurations(nominal, 150, rng, limits=REGION), rng, sigma_m=20e-6,

@@ -480,3 +480,35 @@ def test_help_does_not_import_the_web_stack(cell):
     seen = _modules_after("from service.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass",
                           cell.dir)
     assert seen["web"] == []
+
+
+# --------------------------------------------------------------------------- the model does not explain the data
+
+
+def test_identify_exits_3_when_the_model_does_not_explain_the_data(cell):
+    """A tracker five times noisier than stated (--sigma): the model and the report are written,
+    the status is 3 and one line says why."""
+    rng = np.random.default_rng(21)
+    noisy = simulate_measurements(cell.truth, random_configurations(cell.nominal, 60, rng), rng, sigma_m=100e-6,
+                                  targets=("smr",))
+    write_measurements(cell.dir / "noisy_mm.csv", cell.nominal, noisy, MM_DEG)
+    proc = recal("identify", "--model", "nominal_mm.json", "--data", "noisy_mm.csv", "--sigma", "0.02",
+                 "--out", "noisy_identified.json", "--report", "noisy_report.json", cwd=cell.dir)
+    assert proc.returncode == 3, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "the model does not explain the data: residual RMS" in last and "expected" in last, last
+    assert (cell.dir / "noisy_identified.json").exists()
+    report = json.loads((cell.dir / "noisy_report.json").read_text())
+    assert report["consistency"]["consistent"] is False and report["consistency"]["level"] == 0.001
+    assert report["cross_validation"]["folds"] == 5
+    assert report["complete"]["count"] == 30
+
+
+def test_identify_two_rows_exit_2_with_the_rows_needed(cell):
+    lines = (cell.dir / "meas_mm.csv").read_text().splitlines()
+    (cell.dir / "two_rows.csv").write_text("\n".join(lines[:4]) + "\n")  # comment, header, two rows
+    proc = recal("identify", "--model", "nominal_mm.json", "--data", "two_rows.csv", "--out", "two.json",
+                 cwd=cell.dir)
+    assert proc.returncode == 2, proc.stderr
+    assert "two_rows.csv" in proc.stderr and "no redundancy" in proc.stderr and "measure at least" in proc.stderr
+    assert not (cell.dir / "two.json").exists()

@@ -1,0 +1,223 @@
+"""Identification is right on every serial arm (issue 14): on robots built here (a SCARA, a
+Stanford-like arm, a KUKA KR-type 6R with its reflector on the flange axis, a 7-DOF arm, an arm
+with two consecutive revolute axes on one line), ``identify`` reaches the hold-out accuracy of a
+complete reference fit written in this file: every link of the nominal DH chain followed by its
+own 6-DOF error transform, fitted with ``scipy.optimize.least_squares`` (over-parameterised on
+purpose: whatever the real robot's deviations, this model can follow them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from calibration.identify import NotEnoughData, identify
+from calibration.kinematics import target_positions
+from calibration.model import model_from_dict
+from calibration.simulate import perturbed, random_configurations, simulate_measurements
+from sample_models import Rx, Rz, Tx, Tz, stanford_5r1p_doc
+
+SIGMA = 20e-6
+DEG = math.pi / 180
+
+
+def _doc(rows, *, prismatic=(), limits=None, target=(0.04, 0.0, 0.05), name="arm"):
+    """A dh model document in SI: rows of (d, a, alpha deg); ``prismatic``: joint indices."""
+    joints = []
+    for i, (d, a, alpha) in enumerate(rows):
+        lo, hi = (limits or {}).get(i, (0.0, 0.25) if i in prismatic else (-3.0, 3.0))
+        joints.append({"name": f"j{i + 1}", "type": "prismatic" if i in prismatic else "revolute",
+                       "theta": 0.0, "d": d, "a": a, "alpha": alpha * DEG, "lower": lo, "upper": hi})
+    return {"format": "recal.model/1", "name": name, "units": {"length": "m", "angle": "rad"}, "convention": "dh",
+            "joints": joints, "targets": {"smr": list(target)}}
+
+
+ROBOTS = {
+    # SCARA: RRPR, every axis vertical, the quill's rotation on the prismatic joint's line
+    "scara-rrpr": _doc([(0.40, 0.35, 0.0), (0.0, 0.30, 0.0), (0.0, 0.0, 0.0), (0.05, 0.0, 0.0)], prismatic=(2,)),
+    # a KUKA KR 16-like 6R, the reflector on the flange axis (the demo's set-up); the real one is
+    # about 1 mm off it (below)
+    "kr16-target-on-axis": _doc([(0.675, 0.26, -90.0), (0.0, 0.68, 0.0), (0.0, 0.035, 90.0), (0.67, 0.0, -90.0),
+                                 (0.0, 0.0, 90.0), (0.158, 0.0, 0.0)], target=(0.0, 0.0, 0.05)),
+    # a 7-DOF arm (iiwa-like: every pair of consecutive axes intersecting)
+    "7dof": _doc([(0.34, 0.0, -90.0), (0.0, 0.0, 90.0), (0.40, 0.0, 90.0), (0.0, 0.0, -90.0), (0.40, 0.0, -90.0),
+                  (0.0, 0.0, 90.0), (0.126, 0.0, 0.0)]),
+    # joints 3 and 4 turn about one line (a = 0, alpha = 0 on link 3)
+    "collinear": _doc([(0.30, 0.0, -90.0), (0.0, 0.40, 0.0), (0.0, 0.0, 0.0), (0.0, 0.30, -90.0), (0.0, 0.0, 90.0),
+                       (0.10, 0.0, 0.0)]),
+}
+
+
+def _stanford_si():
+    """The book's 5R1P (RRPRRR) in SI, with a reflector off the last axis."""
+    m = model_from_dict(stanford_5r1p_doc(5.0))
+    return dataclasses.replace(m, targets={"smr": np.array([0.03, 0.0, 0.02])})
+
+
+def _robot(name):
+    return _stanford_si() if name == "stanford-rrprrr" else model_from_dict(ROBOTS[name])
+
+
+# --------------------------------------------------------------------------- the complete reference
+
+
+def _exp6(x):
+    """A 6-DOF transform from (translation, rotation vector)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(x[3:]).as_matrix()
+    T[:3, 3] = x[:3]
+    return T
+
+
+def _dh_link(theta, d, a, alpha):
+    """``Rz(θ)·Tz(d)·Tx(a)·Rx(α)`` (contracts §2) for arrays θ, d (N,): the product written out."""
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), math.cos(alpha), math.sin(alpha)
+    A = np.zeros((len(theta), 4, 4))
+    A[:, 0] = np.stack([ct, -st * ca, st * sa, a * ct], axis=1)
+    A[:, 1] = np.stack([st, ct * ca, -ct * sa, a * st], axis=1)
+    A[:, 2, 1], A[:, 2, 2], A[:, 2, 3], A[:, 3, 3] = sa, ca, d, 1.0
+    return A
+
+
+def test_the_written_out_link_is_the_product_of_elementary_transforms():
+    A = _dh_link(np.array([0.3]), np.array([0.2]), 0.1, -0.7)[0]
+    np.testing.assert_allclose(A, Rz(0.3) @ Tz(0.2) @ Tx(0.1) @ Rx(-0.7), atol=1e-15)
+
+
+def _reference_points(model, x, q):
+    """``E0 · Π (Aᵢ(qᵢ) · Eᵢ) · target``: the nominal DH links (written from contracts §2) each
+    followed by a 6-DOF error Eᵢ, and the target's position; ``x`` = 6 per Eᵢ, then the target."""
+    n = model.n_joints
+    T = np.broadcast_to(_exp6(x[:6]), (len(q), 4, 4))
+    for i, j in enumerate(model.joints):
+        th = j.theta + (q[:, i] if j.revolute else 0.0)
+        d = j.d + (0.0 if j.revolute else q[:, i])
+        A = _dh_link(np.broadcast_to(th, len(q)), np.broadcast_to(d, len(q)), j.a, j.alpha)
+        T = T @ A @ _exp6(x[6 * (i + 1): 6 * (i + 2)])
+    p = x[6 * (n + 1):]
+    return T[:, :3, :3] @ p + T[:, :3, 3]
+
+
+def reference_fit(model, data):
+    """The complete model fitted to ``data`` (one target); returns a predictor of positions."""
+    n = model.n_joints
+    x0 = np.concatenate([np.zeros(6 * (n + 1)), model.targets["smr"]])
+    sol = least_squares(lambda x: (_reference_points(model, x, data.q) - data.p_world).ravel(), x0, method="lm",
+                        xtol=1e-12, ftol=1e-12)
+    return lambda q: _reference_points(model, sol.x, q)
+
+
+def _truth(nom, rng, name):
+    truth = perturbed(nom, rng)
+    off = np.array([0.8e-3, -0.6e-3, 0.0]) if name == "kr16-target-on-axis" else rng.normal(0, 0.5e-3, 3)
+    return dataclasses.replace(truth, targets={"smr": nom.targets["smr"] + off})
+
+
+@pytest.mark.parametrize("name", ["scara-rrpr", "stanford-rrprrr", "kr16-target-on-axis", "7dof", "collinear"])
+def test_identification_reaches_the_complete_fit(name):
+    nom = _robot(name)
+    rng = np.random.default_rng(5)
+    truth = _truth(nom, rng, name)
+    data = simulate_measurements(truth, random_configurations(nom, 150, rng), rng, sigma_m=SIGMA, targets=("smr",))
+    result = identify(nom, data)
+    assert result.success, result.message
+    q = random_configurations(nom, 500, rng)
+    true_p = target_positions(truth, q, "smr")
+    ours = np.sqrt(np.mean(np.sum((target_positions(result.model, q, "smr") - true_p) ** 2, axis=1)))
+    ref = np.sqrt(np.mean(np.sum((reference_fit(nom, data)(q) - true_p) ** 2, axis=1)))
+    assert ours <= 1.05 * ref + 1e-6, (name, ours, ref, result.notes)
+    # the model explains the data: residuals at the stated noise, no rows taken for outliers
+    assert result.consistency["consistent"] and not result.outliers, (result.sigma_scale, len(result.outliers))
+    c = result.completeness
+    assert c["count"] == 4 * c["revolute"] + 2 * c["prismatic"] + 6
+    # what the measurement can see at the nominal (one point: no tool orientation, plus the
+    # point's own offset); the identified geometry may show a little more (redundant only there)
+    assert c["measurable"] <= c["count"] and c["identified"] <= c["measurable"] + 3
+
+
+@pytest.mark.slow  # the reference fit of 500 rows: a few seconds
+def test_a_reflector_on_the_flange_axis_reaches_the_complete_fit_when_the_noise_is_low():
+    """The parameters the nominal's on-axis reflector hides (j5.a, j5.alpha of the KR 16) are
+    determined by the real reflector's 1 mm offset once the noise is low enough: selected again
+    at the identified model, they are freed, and the fit reaches the complete one (before: 1.8
+    times its hold-out error here)."""
+    nom = _robot("kr16-target-on-axis")
+    rng = np.random.default_rng(5)
+    truth = _truth(nom, rng, "kr16-target-on-axis")
+    data = simulate_measurements(truth, random_configurations(nom, 500, rng), rng, sigma_m=5e-6, targets=("smr",))
+    result = identify(nom, data, sigma_m=5e-6)
+    q = random_configurations(nom, 500, rng)
+    true_p = target_positions(truth, q, "smr")
+    ours = np.sqrt(np.mean(np.sum((target_positions(result.model, q, "smr") - true_p) ** 2, axis=1)))
+    ref = np.sqrt(np.mean(np.sum((reference_fit(nom, data)(q) - true_p) ** 2, axis=1)))
+    assert ours <= 1.05 * ref, (ours, ref)
+    freed_at_the_answer = [w for w in result.warnings if "determined only at the identified geometry" in w]
+    assert freed_at_the_answer and "j5" in freed_at_the_answer[0], result.warnings
+
+
+def test_scara_is_written_in_a_complete_form():
+    """The SCARA's prismatic joint sits between parallel axes: its links take Hayati's form (the
+    tilt between the parallel axes is a parameter), or the model goes to poe."""
+    result = identify(_robot("scara-rrpr"), simulate_measurements(
+        _truth(_robot("scara-rrpr"), np.random.default_rng(1), ""), random_configurations(
+            _robot("scara-rrpr"), 60, np.random.default_rng(2)), np.random.default_rng(3), targets=("smr",)))
+    assert not any("cannot move d" in n for n in result.notes), result.notes
+    assert result.model.convention == "poe" or any(j.hayati for j in result.model.joints[:3])
+
+
+def test_collinear_axes_go_to_poe():
+    """Axes 3 and 4 on one line (a = 0, alpha = 0 on link 3): a Hayati link cannot describe a
+    sideways shift of axis 4, so the model goes to poe, and reaches the complete fit."""
+    nom = _robot("collinear")
+    rng = np.random.default_rng(4)
+    truth = _truth(nom, rng, "")
+    data = simulate_measurements(truth, random_configurations(nom, 150, rng), rng, targets=("smr",))
+    result = identify(nom, data)
+    assert result.model.convention == "poe"
+    assert any("poe" in n for n in result.notes)
+    q = random_configurations(nom, 500, rng)
+    true_p = target_positions(truth, q, "smr")
+    ours = np.sqrt(np.mean(np.sum((target_positions(result.model, q, "smr") - true_p) ** 2, axis=1)))
+    ref = np.sqrt(np.mean(np.sum((reference_fit(nom, data)(q) - true_p) ** 2, axis=1)))
+    assert ours <= 1.05 * ref + 1e-6, (ours, ref)
+
+
+def test_a_target_on_the_last_axis_is_warned_about():
+    nom = _robot("kr16-target-on-axis")
+    rng = np.random.default_rng(7)
+    data = simulate_measurements(_truth(nom, rng, "kr16-target-on-axis"), random_configurations(nom, 150, rng), rng,
+                                 targets=("smr",))
+    result = identify(nom, data)
+    assert any("on the last joint's axis" in w for w in result.warnings), result.warnings
+
+
+def test_two_rows_are_refused_with_the_rows_needed():
+    nom = _robot("kr16-target-on-axis")
+    rng = np.random.default_rng(8)
+    data = simulate_measurements(_truth(nom, rng, ""), random_configurations(nom, 2, rng), rng, targets=("smr",))
+    with pytest.raises(NotEnoughData, match="no redundancy") as exc:
+        identify(nom, data)
+    assert exc.value.rows_needed > 10
+    assert f"at least {exc.value.rows_needed} rows" in str(exc.value)
+
+
+def test_plan_predicts_what_identification_reaches_on_the_scara():
+    """`recal plan` on the SCARA predicted 0.016 mm for a model that reached 0.29 mm: it now plans
+    for the complete form identification fits, and the hold-out error is what it predicted."""
+    from calibration.planning import plan
+
+    nom = _robot("scara-rrpr")
+    rng = np.random.default_rng(5)
+    truth = _truth(nom, rng, "")
+    res = plan(nom, random_configurations(nom, 1000, rng), 40, targets=("smr",), sigma_m=SIGMA, rng=rng)
+    data = simulate_measurements(truth, res.q, rng, sigma_m=SIGMA, targets=("smr",))
+    result = identify(nom, data, sigma_m=SIGMA)
+    q = random_configurations(nom, 500, rng)
+    e = np.linalg.norm(target_positions(result.model, q, "smr") - target_positions(truth, q, "smr"), axis=1)
+    # (the model before this fix reached 12 times the predicted error here)
+    assert 0.5 < np.sqrt(np.mean(e**2)) / res.predicted_rms_m < 1.5, (np.sqrt(np.mean(e**2)), res.predicted_rms_m)
