@@ -38,6 +38,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small BLAS calls: thr
 import numpy as np  # noqa: E402
 
 from calibration import compliance as C  # noqa: E402
+from calibration import compliance_fit  # noqa: E402
 from calibration.identify import identify  # noqa: E402
 from calibration.robots import nominal  # noqa: E402
 from calibration.simulate import (SAGGING_ARMS, heavy_arm_nominal, perturbed, random_configurations,  # noqa: E402
@@ -78,7 +79,7 @@ def run(arm: str, rows: int, payloads, repeat: int, seed: int) -> dict:
     start = C.with_section(nom, C.default_section(nom))
     rigid, t_rigid = timed(lambda: identify(nom, train, sigma_m=sigma), repeat)
     comp, t_comp = timed(lambda: identify(start, train, sigma_m=sigma), repeat)
-    cv, t_cv = timed(lambda: C.choose_compliance(nom, train, identify_kw={"sigma_m": sigma}), 1)
+    cv, t_cv = timed(lambda: compliance_fit.choose_compliance(nom, train, identify_kw={"sigma_m": sigma}), 1)
     vr, vc = validate(rigid, holdout), validate(comp, holdout)
     return dict(arm=arm, rows=rows, payloads=len(payloads), floor_mm=np.sqrt(3) * sigma * 1e3,
                 rigid_mm=vr.rms_m * 1e3, compliant_mm=vc.rms_m * 1e3, cov_rigid=vr.coverage_95,

@@ -12,11 +12,12 @@ parameter acts.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import KinematicModel
+from .model import STANDARD_GRAVITY, KinematicModel
 from .transforms import homogeneous, invert, pose_to_matrix
 
 
@@ -160,7 +161,7 @@ def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str]
     ``program(model)``, when the caller walks the same model over many chunks of readings.
 
     A model with a ``compliance`` section is walked at its deflected configuration
-    (:func:`calibration.compliance.deflections`; ``payload`` (N, 4) or (4,): kg and the centre of
+    (:func:`deflections`; ``payload`` (N, 4) or (4,): kg and the centre of
     gravity in the tool frame, m; ``None``: the section's own payload), and the walk keeps the
     compliance terms' regressors for the Jacobian.
 
@@ -174,7 +175,6 @@ def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str]
     v = joint_variables(model, q)
     regressors: dict = {}
     if model.compliance is not None:
-        from .compliance import deflections  # imported here: compliance walks the rigid chain with walk()
 
         dv, regressors = deflections(model, q, payload, trig)
         v = v + dv
@@ -234,3 +234,77 @@ def target_positions(model: KinematicModel, q: np.ndarray, target: str | None = 
                      payload: np.ndarray | None = None) -> np.ndarray:
     """World positions (N, 3) of the named target (``None``: the tool origin)."""
     return points_world(model, q, model.target(target), payload)
+
+
+# --------------------------------------------------------------------------- joint compliance under gravity
+# (book level 3; the model is calibration.model.GravityCompliance, its use calibration.compliance).
+# Here because walk() applies the deflections and the deflections walk the rigid chain.
+
+
+def payload_rows(payload, n_rows: int) -> np.ndarray | None:
+    """Payloads (N, 4) (kg, then the centre of gravity x, y, z in the tool frame, m) from ``None``,
+    one (4,) payload for every row, or (N, 4); NaN entries mean no payload (0 kg)."""
+    if payload is None:
+        return None
+    p = np.asarray(payload, dtype=float)
+    if p.ndim == 1:
+        p = np.broadcast_to(p.reshape(4), (n_rows, 4))
+    if p.shape != (n_rows, 4):
+        raise ValueError(f"`payload` must have shape (4,) or ({n_rows}, 4); got {p.shape}")
+    if np.any(p[:, 0] < 0):
+        raise ValueError("a payload mass must be >= 0 kg")
+    return np.nan_to_num(p, nan=0.0)
+
+
+def _triple(u: np.ndarray, a: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """u · (a × g) per row, (N,)."""
+    return np.einsum("ni,ni->n", u, np.cross(a, g))
+
+
+def regressors(model: KinematicModel, q: np.ndarray, payload=None, trig: dict | None = None) -> dict[str, np.ndarray]:
+    """The regressor (N,) of every term of the model's compliance section (eq. 1), keyed by the
+    parameter name ``compliance.<term>``, at the rigid configuration of readings ``q`` (N, n).
+    ``payload``: see :func:`payload_rows` (``None``: the section's own payload, if any)."""
+    c = model.compliance
+    q = check_q(model, q)
+    N = q.shape[0]
+    pay = payload_rows(payload if payload is not None else c.payload, N)
+    names = [j.name for j in model.joints]
+    pos = {n: i for i, n in enumerate(names)}
+    # the base frame is where gravity is given: walk the rigid chain from there
+    rigid = dataclasses.replace(model, compliance=None, base=np.zeros(6))
+    keys = {f"{j}.theta" for j in c.joints} | {f"{lump}.link" for lump in c.lumps}
+    w = walk(rigid, q, keys, trig)
+    g = np.broadcast_to(c.gravity, (N, 3))
+    out: dict[str, np.ndarray] = {}
+    for j in c.joints:
+        u, o = w.axes[f"{j}.theta"]
+        if pay is None:
+            out[f"compliance.{j}.k"] = np.zeros(N)
+        else:
+            p_cog = w.p + np.einsum("nij,nj->ni", w.R, pay[:, 1:])
+            out[f"compliance.{j}.k"] = pay[:, 0] * STANDARD_GRAVITY * _triple(u, p_cog - o, g)
+        for lump in c.lumps:
+            if pos[lump] < pos[j]:
+                continue
+            R, p = w.frames[f"{lump}.link"]
+            out[f"compliance.{j}.{lump}.m"] = _triple(u, p - o, g)
+            for a, s in enumerate("xyz"):
+                out[f"compliance.{j}.{lump}.{s}"] = _triple(u, R[:, :, a], g)
+    return out
+
+
+def deflections(model: KinematicModel, q: np.ndarray, payload=None, trig: dict | None = None
+                ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The joint deflections (N, n) rad under gravity (eq. 1; zero for joints that do not deflect)
+    and the terms' regressors (:func:`regressors`)."""
+    reg = regressors(model, q, payload, trig)
+    c = model.compliance
+    dv = np.zeros((len(reg[next(iter(reg))]) if reg else check_q(model, q).shape[0], model.n_joints))
+    index = {j.name: i for i, j in enumerate(model.joints)}
+    for name, phi in reg.items():
+        term = name[len("compliance."):]
+        value = c.values.get(term, 0.0)
+        if value:
+            dv[:, index[term.partition(".")[0]]] += value * phi
+    return dv, reg

@@ -12,12 +12,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .identification import IdentificationResult, Unidentifiable
 from .model import KinematicModel, Units, model_to_dict
 from .parameters import LOCAL_6, parameter_values, parameters_by_name
 from .transforms import invert, matrix_to_pose, matrix_to_rotvec, pose_to_matrix
 
-if TYPE_CHECKING:  # identify imports this module for its words: no import cycle at run time
-    from .identify import IdentificationResult, Unidentifiable
+if TYPE_CHECKING:  # uncertainty imports this module's words
     from .uncertainty import Validation
 
 

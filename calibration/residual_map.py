@@ -124,7 +124,7 @@ def choose_residual_map(start: KinematicModel, data, *, folds: int = 5, min_gain
     Returns the map fitted to ``final``'s residuals on all ``data`` (``final``: the model
     identified from all of them; default: identified here) when it lowers the cross-validated RMS
     by at least ``min_gain``, else None; and the figures either way (m)."""
-    from .compliance import fold_indices
+    from .compliance_fit import fold_indices
     from .identify import identify
 
     kw = dict(identify_kw or {})

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .identify import IdentificationResult, Measurements
+from .identification import IdentificationResult, Measurements
 from .jacobian import predict
 from .model import KinematicModel
 from .parameters import Parameter, candidate_parameters

@@ -118,7 +118,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     report = identification_report(result, units, data_rows=data.row)
     report["prior"] = None if prior is None else _prior_summary(result, prev, prior, scale, units)
     if start.compliance is not None:  # a compliant calibration: rigid against compliant, cross-validated
-        from calibration.compliance import compare
+        from calibration.compliance_fit import compare
 
         try:
             cmp = compare(start, data)

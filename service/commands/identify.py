@@ -120,6 +120,7 @@ def _with_compliance(args, model, data, kw):
     """The model identification starts from under ``--compliance`` (a section with every term 0,
     or the model's own), and the report's ``compliance`` entry (None without the flag)."""
     from calibration import compliance as comp
+    from calibration import compliance_fit
     from service.cli import Fail
 
     if args.compliance is None:
@@ -152,10 +153,10 @@ def _with_compliance(args, model, data, kw):
     if args.compliance == "gravity":
         start = comp.with_section(model, candidates)
     else:
-        cv = comp.choose_compliance(model, data, candidates=candidates, identify_kw=kw)
+        cv = compliance_fit.choose_compliance(model, data, candidates=candidates, identify_kw=kw)
         start = comp.with_section(model, cv.section)
         entry["cross_validation"] = {
-            "folds": cv.folds, "min_gain": comp.MIN_CV_GAIN,
+            "folds": cv.folds, "min_gain": compliance_fit.MIN_CV_GAIN,
             "rms_rigid": cv.rms_rigid_m / L, "rms_compliant": cv.rms_compliant_m / L,
             "candidates": list(candidates.joints),
             "tried": [{"joints": list(j), "rms": r / L} for j, r in cv.tried],

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from calibration import compliance as C
+from calibration import compliance_fit
 from calibration.identify import identify
 from calibration.robots import nominal
 from calibration.simulate import (SAGGING_ARMS, heavy_arm_nominal, perturbed, random_configurations, sagging,
@@ -122,11 +123,11 @@ def test_auto_leaves_a_rigid_arm_rigid_and_adds_compliance_to_a_sagging_one(arm)
     sigma = SIGMA[arm]
     payloads = [(0.0, 0, 0, 0), SAGGING_ARMS[arm]["payload"]]
     nom, truth, rng = _cell(arm, seed=21, sag=False)
-    cv = C.choose_compliance(nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma})
+    cv = compliance_fit.choose_compliance(nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma})
     assert cv.joints == () and cv.section is None
-    assert cv.rms_compliant_m > (1.0 - C.MIN_CV_GAIN) * cv.rms_rigid_m  # the figures are there either way
+    assert cv.rms_compliant_m > (1.0 - compliance_fit.MIN_CV_GAIN) * cv.rms_rigid_m  # the figures are there either way
     nom, truth, rng = _cell(arm, seed=21)
-    cv = C.choose_compliance(nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma})
+    cv = compliance_fit.choose_compliance(nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma})
     assert cv.joints == ("j2", "j3")
     assert cv.rms_chosen_m < 0.5 * cv.rms_rigid_m
     assert [j for j, _ in cv.tried][0] == ()
@@ -136,7 +137,7 @@ def test_folds_keep_a_configuration_together():
     nom, truth, rng = _cell("cobot", seed=2, sag=False)
     q = random_configurations(nom, 20, rng)
     data = simulate_measurements(truth, q, rng, targets=("smr", None))  # two rows per configuration
-    folds = C.fold_indices(data, 5)
+    folds = compliance_fit.fold_indices(data, 5)
     assert sorted(np.concatenate(folds).tolist()) == list(range(len(data)))
     for f in folds:
         others = np.setdiff1d(np.arange(len(data)), f)
