@@ -14,6 +14,7 @@ costs its time limit and no more, and never holds up the others.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -204,3 +205,123 @@ def test_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = No
         else:
             results.append({"device": label, "address": addr, "elapsed_ms": box.get("elapsed_ms"), **value})
     return results
+
+
+# --------------------------------------------------------------------------- the whole cell, CAN nodes included
+
+
+def test_cell_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = None) -> list[dict]:
+    """:func:`test_devices` for a cell's whole ``devices`` document: the robot and the instrument,
+    and alongside them each reference encoder and resolver reader on its own (a joint may have
+    both), each within its own time limit. ``busy``: why nothing may be opened now (a session
+    drives the cell): every device is then reported as not opened, with that reason."""
+    box: dict = {}
+    can_thread = threading.Thread(target=lambda: box.update(results=_test_can_nodes(devices, timeout_s, busy)),
+                                  name="devtest-can", daemon=True)
+    can_thread.start()
+    others = {k: v for k, v in devices.items() if k not in ("encoders", "resolvers")}
+    has_other = any(others.get(k) for k in ("rtde", "modbus", "emscon", "tracker", "cmm"))
+    results = test_devices(others, timeout_s=timeout_s, busy=busy) if has_other or not _has_can_nodes(devices) else []
+    can_thread.join()
+    return results + box.get("results", [])
+
+
+NODE_STATES = {
+    "operational": "operational: started and sending readings",
+    "pre-operational": "pre-operational: configured but not started (a session starts it)",
+    "stopped": "stopped: the node was told to stop (NMT); a session starts it again",
+    "no heartbeat": "no heartbeat: the node answered, but sent no periodic \"I am alive\" message within "
+                    "{timeout:g} s, so a node that drops out later goes unnoticed until a reading fails; "
+                    "set its producer heartbeat time (object 0x1017)",
+    "disconnected": "disconnected: the CAN link to the node is down",
+}
+
+
+def _node_state(status: str, timeout_s: float) -> str:
+    """What a CANopen node's state (the driver's ``status()``) means, for a technician."""
+    if status.startswith("fault"):
+        return f"{status}: the node reports an error (EMCY); readings fail until it clears"
+    return NODE_STATES.get(status, status).format(timeout=timeout_s)
+
+
+def _test_can_node(config, joint: int) -> dict:
+    """Open one reference encoder or resolver reader, read it once, and wait briefly for its
+    heartbeat (nodes send one every 100 ms or so; the first may not have come yet)."""
+    from drivers.canopen_encoder import CanopenEncoder
+
+    label = f"{'reference encoder' if config.kind == 'encoder' else 'resolver'}, joint {joint}"
+    t0 = time.monotonic()
+    base = {"device": label, "address": f"CANopen node {config.node_id} on {config.bus.describe()}"}
+    try:
+        enc = CanopenEncoder(config)
+    except Exception as exc:  # noqa: BLE001 - every failure is a result to show
+        return {**base, "ok": False, "error": f"{type(exc).__name__}: {exc}",
+                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
+    try:
+        reading = enc.read()
+        status = enc.status()
+        deadline = time.monotonic() + config.heartbeat_timeout_s + 0.2
+        while status == "no heartbeat" and time.monotonic() < deadline:
+            time.sleep(0.05)
+            status = enc.status()
+        angle = math.degrees(reading.angle_rad)
+        cpr, pairs = int(enc.counts_per_rev), int(enc.pole_pairs)
+        details = {"joint": joint, "kind": config.kind, "node_id": config.node_id, "angle_deg": angle,
+                   "counts": int(reading.counts), "counts_per_rev": cpr, "total_range": int(enc.total_range),
+                   "resolution_deg": 360.0 / (cpr * pairs) if cpr else None, "pole_pairs": pairs,
+                   "status": status, "state": _node_state(status, config.heartbeat_timeout_s)}
+        answer = f"reads {angle:.4f}°"  # the device's own zero, not the robot's
+        if enc.total_range <= cpr:
+            answer += f" (within one turn of {360.0 / pairs:g}°)"
+        return {**base, "ok": not status.startswith(("fault", "disconnected")), "name": enc.name,
+                "answer": f"{answer}; node {status}", "details": details,
+                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
+    except Exception as exc:  # noqa: BLE001
+        return {**base, "ok": False, "name": enc.name, "error": f"{type(exc).__name__}: {exc}",
+                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
+    finally:
+        with contextlib.suppress(Exception):
+            enc.close()
+
+
+def _can_node_checks(devices: dict, timeout_s: float) -> list[tuple]:
+    """(config, joint) of every reference encoder and every resolver reader (a joint may have
+    both: ``open_encoders`` prefers the encoder, the connection test opens each)."""
+    if not _has_can_nodes(devices):
+        return []
+    from drivers.canopen_encoder import configs_from_endpoint
+
+    configs = configs_from_endpoint(devices, timeout_s=min(timeout_s, 2.0))
+    return [(cfg, joint) for (kind, joint), cfg in sorted(configs.items(), key=lambda kv: (kv[0][1], kv[0][0]))]
+
+
+def _test_can_nodes(devices: dict, timeout_s: float, busy: str | None) -> list[dict]:
+    try:
+        checks = _can_node_checks(devices, timeout_s)
+    except (ValueError, TypeError, KeyError) as exc:
+        return [{"device": "CAN bus", "address": str(devices.get("can")), "ok": False,
+                 "error": f"devices.can: {exc}"}]
+    if busy:
+        return [{"device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, joint {j}",
+                 "address": f"CANopen node {c.node_id}", "ok": None, "skipped": True, "answer": f"not opened: {busy}"}
+                for c, j in checks]
+    out: list[dict | None] = [None] * len(checks)
+
+    def work(k: int, cfg, joint: int) -> None:
+        out[k] = _test_can_node(cfg, joint)
+
+    threads = [threading.Thread(target=work, args=(k, cfg, joint), name=f"devtest-can-{k}", daemon=True)
+               for k, (cfg, joint) in enumerate(checks)]
+    for th in threads:
+        th.start()
+    deadline = time.monotonic() + timeout_s + 2.0
+    for th in threads:
+        th.join(max(0.0, deadline - time.monotonic()))
+    return [r if r is not None else {"device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, "
+                                               f"joint {j}", "address": f"CANopen node {c.node_id}", "ok": False,
+                                     "error": f"no answer within {timeout_s + 2.0:.0f} s"}
+            for r, (c, j) in zip(out, checks)]
+
+
+def _has_can_nodes(devices: dict) -> bool:
+    return bool(devices.get("can") and (devices.get("encoders") or devices.get("resolvers")))

@@ -11,6 +11,9 @@
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
 import numpy as np
 from sqlmodel import Session, select
 
@@ -20,7 +23,8 @@ from calibration.identify import Measurements
 from calibration.model import KinematicModel, model_from_dict
 
 from .models import Calibration, Cell, Measurement, RunSession
-from .store import current_calibration
+from .problems import Invalid
+from .store import audit, current_calibration, delete_session_rows
 
 
 class NoMeasurementsError(RecalError, LookupError):
@@ -98,3 +102,86 @@ def current_model(db: Session, cell: Cell) -> tuple[KinematicModel, Calibration 
     nominal model."""
     cal = current_calibration(db, cell)
     return (model_from_dict(cal.model), cal) if cal is not None else (model_from_dict(cell.model), None)
+
+
+# --------------------------------------------------------------------------- measurements as CSV, in and out
+
+
+def measurements_csv(model, rows: list[Measurement]) -> str:
+    """The measurement CSV of contracts §3 (``recal identify --data``) in ``model``'s units:
+    ``q1..qN, x, y, z``, then ``qw, qx, qy, qz`` when a row has an orientation, ``target``,
+    ``sigma`` and ``pose_id`` (the configuration's index in the session's plan); joint sessions
+    add ``joint`` and ``reference`` (the reference encoder's reading), which identify ignores."""
+    from .files import format_csv
+
+    u = model.units
+    L = u.length_m
+    q_scale = np.array([u.angle_rad if j.revolute else L for j in model.joints])
+    has_quat = any(r.qw is not None for r in rows)
+    has_joint = any(r.joint is not None for r in rows)
+    has_ref = any(getattr(r, "reference", None) is not None for r in rows)
+    header = [f"q{i + 1}" for i in range(model.n_joints)] + ["x", "y", "z"]
+    header += ["qw", "qx", "qy", "qz"] if has_quat else []
+    header += ["target", "sigma", "pose_id"] + (["joint"] if has_joint else []) + (["reference"] if has_ref else [])
+
+    def blank(v, scale=1.0):
+        return "" if v is None else float(v) / scale
+
+    out = []
+    for r in rows:
+        row = [float(v) for v in np.asarray(r.q, dtype=float) / q_scale] + [r.x / L, r.y / L, r.z / L]
+        if has_quat:
+            row += [blank(r.qw), blank(r.qx), blank(r.qy), blank(r.qz)]
+        row += [r.target or "", blank(r.sigma, L), r.seq]
+        if has_joint:
+            row.append("" if r.joint is None else r.joint)
+        if has_ref:
+            row.append(blank(getattr(r, "reference", None), u.angle_rad))
+        out.append(row)
+    return format_csv(header, out)
+
+
+def import_measurements(db: Session, cell: Cell, body: bytes, *, kind: str, name: str, actor: str, settings) -> RunSession:
+    """Externally measured data (a measurement CSV, contracts §3, in the units of the cell's
+    nominal model) stored as a completed session of ``kind`` (``pose``: identified as a pose
+    session is; ``verify``: the cell's current model checked against it). Nothing is kept when
+    the data cannot conclude. Bad rows: :class:`~service.problems.Invalid` naming row and column."""
+    from . import analysis
+    from .files import InputError, read_measurements
+
+    model = model_from_dict(cell.model)
+    safe_name = Path(name).name or "measurements.csv"
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / safe_name
+        path.write_bytes(body)
+        try:
+            data = read_measurements(path, model)
+        except InputError as exc:
+            raise Invalid("body", str(exc).replace(str(path), safe_name)) from None
+    device = "cmm" if data.quat is not None and not np.all(np.isnan(data.quat)) else "tracker"
+    run = RunSession(cell_id=cell.id, kind=kind, state="completed", planned=len(data), device=device, target=None,
+                     plan=data.q.tolist(), created_by=actor,
+                     plan_info={"imported": {"name": safe_name, "rows": len(data)}, "nominal_version": cell.model_version})
+    db.add(run)
+    db.flush()
+    quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
+    for i in range(len(data)):
+        qw, qx, qy, qz = (None if np.isnan(v) else float(v) for v in quat[i])
+        sigma = None if not np.isfinite(data.sigma[i]) else float(data.sigma[i])
+        db.add(Measurement(session_id=run.id, seq=i, target=data.target[i] or "", q=[float(v) for v in data.q[i]],
+                           x=float(data.p_world[i, 0]), y=float(data.p_world[i, 1]), z=float(data.p_world[i, 2]),
+                           qw=qw, qx=qx, qy=qy, qz=qz, sigma=sigma))
+    db.commit()
+    db.refresh(run)
+    try:
+        analysis.finish_session(db, run, cell, settings)
+    except (analysis.AnalysisError, ValueError, np.linalg.LinAlgError) as exc:  # the data cannot conclude
+        db.rollback()
+        delete_session_rows(db, run.id)
+        db.commit()
+        raise Invalid("body", f"{safe_name}: {exc}") from None
+    db.refresh(run)
+    audit(db, actor=actor, action="import measurements", subject=f"session {run.id}",
+          detail={"cell": cell.id, "kind": kind, "name": safe_name, "rows": len(data),
+                  "calibration_id": run.calibration_id})
+    return run

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
-from sqlalchemy import event, func, inspect, text, update
+from sqlalchemy import delete, event, func, inspect, text, update
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
@@ -298,3 +298,11 @@ def add_controller_model(db: Session, *, cell_id: int, model: dict, session_id: 
     db.commit()
     db.refresh(rec)
     return rec
+
+
+def delete_session_rows(db: Session, session_id: int) -> int:
+    """Delete a session and its measurements (not committed); returns how many measurements went."""
+    n = db.exec(select(func.count()).select_from(Measurement).where(Measurement.session_id == session_id)).one()
+    db.execute(delete(Measurement).where(Measurement.session_id == session_id))
+    db.execute(delete(RunSession).where(RunSession.id == session_id))
+    return int(n)

@@ -80,3 +80,26 @@ def test_every_exception_joins_the_tree():
             if not issubclass(cls, RecalError):
                 outside.append(f"{module.__name__}.{name}")
     assert not outside, "exception classes outside RecalError: " + ", ".join(outside)
+
+
+def test_routes_are_http_only():
+    """A route parses the request, calls a use case and answers: no numpy (math belongs in
+    calibration/), no drivers (devices are opened by the use cases), no other route (what two
+    routes share is a use case of service/)."""
+    wrong = []
+    for path in sorted((REPO / "service" / "api" / "routes").glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level == 1:  # `from .x import`: another route
+                    wrong.append(f"{path.name} imports the route module .{node.module}")
+                    continue
+                names = [node.module or ""]
+            else:
+                continue
+            for n in names:
+                if n.split(".")[0] in ("numpy", "drivers"):
+                    wrong.append(f"{path.name} imports {n}")
+    assert not wrong, "routes that do more than HTTP:\n" + "\n".join(wrong)

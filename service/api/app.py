@@ -18,6 +18,7 @@ from sqlmodel import Session
 
 from ..heavy import HeavyPool
 from ..models import MAX_ID
+from ..problems import STATUS, Conflict, Invalid, NotFound, detail_of
 from ..runners import runner_class
 from ..store import database_unavailable
 from ..settings import Settings
@@ -146,6 +147,13 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
                     getattr(exc, "orig", None) or exc)
         return JSONResponse({"detail": "the database is unavailable or overloaded: try again shortly"},
                             status_code=503, headers={"Retry-After": "2"})
+
+    @app.exception_handler(NotFound)
+    @app.exception_handler(Conflict)
+    @app.exception_handler(Invalid)
+    async def _problem(request: Request, exc: NotFound | Conflict | Invalid):
+        # a use case's refusal (service/problems.py): the same body an HTTPException would give
+        return JSONResponse({"detail": detail_of(exc)}, status_code=STATUS[type(exc)])
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):

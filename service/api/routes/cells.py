@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
+import math
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
 from sqlmodel import select
@@ -26,7 +26,7 @@ from ...plans import RegionError, check_region
 from ...store import audit, current_calibration
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
 from ..schemas import CalibrationListItem, Drift, TaskFileContent, TaskFileInfo, TasksCompensated
-from .sessions import ACTIVE, public_session, start_session
+from ...sessions import ACTIVE, public_session, start_session
 
 router = APIRouter(tags=["cells"])
 
@@ -184,7 +184,7 @@ def change_in_sigmas(a: dict, b: dict) -> dict | None:
     if a.get("value") is None or b.get("value") is None:
         return None
     d = b["value"] - a["value"]
-    s = float(np.hypot(a.get("std_error") or 0.0, b.get("std_error") or 0.0))
+    s = math.hypot(a.get("std_error") or 0.0, b.get("std_error") or 0.0)
     return {"change": d, "change_sigmas": abs(d) / s if s > 0 else None, "moved": bool(s > 0 and abs(d) > 2 * s)}
 
 

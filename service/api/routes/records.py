@@ -5,19 +5,18 @@ and retention")."""
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
 
-import numpy as np
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import PlainTextResponse
 from sqlalchemy import delete, func
 from sqlmodel import select
 
 from ...models import Calibration, Cell, Compensation, Measurement, RunSession, SessionPublic, TaskFile
-from ...store import audit
+from ... import records
+from ...records import measurements_csv
+from ...store import audit, delete_session_rows
 from ..deps import Admin, CellEditor, DbSession, Reader
-from .sessions import ACTIVE, get_run, public_session
+from ...sessions import ACTIVE, get_run, public_session
 
 router = APIRouter(tags=["records"])
 
@@ -32,40 +31,6 @@ def _cell(db, cell_id: int) -> Cell:
 
 
 # --------------------------------------------------------------------------- measurements as CSV
-
-
-def measurements_csv(model, rows: list[Measurement]) -> str:
-    """The measurement CSV of contracts §3 (``recal identify --data``) in ``model``'s units:
-    ``q1..qN, x, y, z``, then ``qw, qx, qy, qz`` when a row has an orientation, ``target``,
-    ``sigma`` and ``pose_id`` (the configuration's index in the session's plan); joint sessions
-    add ``joint`` and ``reference`` (the reference encoder's reading), which identify ignores."""
-    from ...files import format_csv
-
-    u = model.units
-    L = u.length_m
-    q_scale = np.array([u.angle_rad if j.revolute else L for j in model.joints])
-    has_quat = any(r.qw is not None for r in rows)
-    has_joint = any(r.joint is not None for r in rows)
-    has_ref = any(getattr(r, "reference", None) is not None for r in rows)
-    header = [f"q{i + 1}" for i in range(model.n_joints)] + ["x", "y", "z"]
-    header += ["qw", "qx", "qy", "qz"] if has_quat else []
-    header += ["target", "sigma", "pose_id"] + (["joint"] if has_joint else []) + (["reference"] if has_ref else [])
-
-    def blank(v, scale=1.0):
-        return "" if v is None else float(v) / scale
-
-    out = []
-    for r in rows:
-        row = [float(v) for v in np.asarray(r.q, dtype=float) / q_scale] + [r.x / L, r.y / L, r.z / L]
-        if has_quat:
-            row += [blank(r.qw), blank(r.qx), blank(r.qy), blank(r.qz)]
-        row += [r.target or "", blank(r.sigma, L), r.seq]
-        if has_joint:
-            row.append("" if r.joint is None else r.joint)
-        if has_ref:
-            row.append(blank(getattr(r, "reference", None), u.angle_rad))
-        out.append(row)
-    return format_csv(header, out)
 
 
 @router.get("/sessions/{session_id}/measurements.csv", response_class=PlainTextResponse)
@@ -106,58 +71,12 @@ async def import_measurements(cell_id: int, request: Request, db: DbSession, tok
 
 
 def _import(db, cell_id: int, body: bytes, kind: str, name: str, tok, settings) -> SessionPublic:
-    from calibration.model import model_from_dict
-
-    from ... import analysis
-    from ...files import InputError, read_measurements
-
-    cell = _cell(db, cell_id)
-    model = model_from_dict(cell.model)
-    safe_name = Path(name).name or "measurements.csv"
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / safe_name
-        path.write_bytes(body)
-        try:
-            data = read_measurements(path, model)
-        except InputError as exc:
-            raise HTTPException(422, {"field": "body", "message": str(exc).replace(str(path), safe_name)}) from None
-    device = "cmm" if data.quat is not None and not np.all(np.isnan(data.quat)) else "tracker"
-    run = RunSession(cell_id=cell.id, kind=kind, state="completed", planned=len(data), device=device, target=None,
-                     plan=data.q.tolist(), created_by=tok.name,
-                     plan_info={"imported": {"name": safe_name, "rows": len(data)}, "nominal_version": cell.model_version})
-    db.add(run)
-    db.flush()
-    quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
-    for i in range(len(data)):
-        qw, qx, qy, qz = (None if np.isnan(v) else float(v) for v in quat[i])
-        sigma = None if not np.isfinite(data.sigma[i]) else float(data.sigma[i])
-        db.add(Measurement(session_id=run.id, seq=i, target=data.target[i] or "", q=[float(v) for v in data.q[i]],
-                           x=float(data.p_world[i, 0]), y=float(data.p_world[i, 1]), z=float(data.p_world[i, 2]),
-                           qw=qw, qx=qx, qy=qy, qz=qz, sigma=sigma))
-    db.commit()
-    db.refresh(run)
-    try:
-        analysis.finish_session(db, run, cell, settings)
-    except (analysis.AnalysisError, ValueError, np.linalg.LinAlgError) as exc:  # the data cannot conclude
-        db.rollback()
-        _delete_session_rows(db, run.id)
-        db.commit()
-        raise HTTPException(422, {"field": "body", "message": f"{safe_name}: {exc}"}) from None
-    db.refresh(run)
-    audit(db, actor=tok.name, action="import measurements", subject=f"session {run.id}",
-          detail={"cell": cell.id, "kind": kind, "name": safe_name, "rows": len(data),
-                  "calibration_id": run.calibration_id})
+    run = records.import_measurements(db, _cell(db, cell_id), body, kind=kind, name=name, actor=tok.name,
+                                      settings=settings)
     return public_session(db, run)
 
 
 # --------------------------------------------------------------------------- deletion (admin)
-
-
-def _delete_session_rows(db, session_id: int) -> int:
-    n = db.exec(select(func.count()).select_from(Measurement).where(Measurement.session_id == session_id)).one()
-    db.execute(delete(Measurement).where(Measurement.session_id == session_id))
-    db.execute(delete(RunSession).where(RunSession.id == session_id))
-    return int(n)
 
 
 @router.delete("/sessions/{session_id}")
@@ -173,7 +92,7 @@ def delete_session(session_id: int, db: DbSession, tok: Admin) -> dict:
         raise HTTPException(409, f"calibration {cal} was identified from session {session_id}: its measurements are "
                                  f"kept as long as the calibration (delete the cell to remove both)")
     detail = {"cell": run.cell_id, "kind": run.kind, "state": run.state, "dry_run": run.dry_run}
-    detail["measurements"] = _delete_session_rows(db, session_id)
+    detail["measurements"] = delete_session_rows(db, session_id)
     db.commit()
     audit(db, actor=tok.name, action="delete session", subject=f"session {session_id}", detail=detail)
     return {"deleted": f"session {session_id}", **detail}

@@ -5,10 +5,6 @@ anything moves and running exactly that plan, and a running session's residuals 
 
 from __future__ import annotations
 
-import contextlib
-import math
-import threading
-import time
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, Request
@@ -17,7 +13,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlmodel import select
 
 from ...devices import describe
-from ...devicetest import test_devices
+from ...devicetest import test_cell_devices
 from ...models import Calibration, Cell, RunSession, SessionPublic
 from ...results import plan_preview, session_live
 from ...store import as_utc
@@ -25,7 +21,7 @@ from ...store import audit, measured_count
 from ..deps import DbSession, Orchestrator, Reader, Runner
 from ..schemas import (CellSummary, DeviceTest, History, LastDeviceTest, LibraryRobot, LiveSession, Overview,
                        PlanPreview, SessionPage)
-from .sessions import ACTIVE, commit_planned, public_session
+from ...sessions import ACTIVE, commit_planned, public_session
 
 router = APIRouter(tags=["workbench"])
 
@@ -158,103 +154,6 @@ def session_list(cell_id: int, db: DbSession, tok: Reader, limit: int = 20, offs
 # --------------------------------------------------------------------------- devices
 
 
-NODE_STATES = {
-    "operational": "operational: started and sending readings",
-    "pre-operational": "pre-operational: configured but not started (a session starts it)",
-    "stopped": "stopped: the node was told to stop (NMT); a session starts it again",
-    "no heartbeat": "no heartbeat: the node answered, but sent no periodic \"I am alive\" message within "
-                    "{timeout:g} s, so a node that drops out later goes unnoticed until a reading fails; "
-                    "set its producer heartbeat time (object 0x1017)",
-    "disconnected": "disconnected: the CAN link to the node is down",
-}
-
-
-def _node_state(status: str, timeout_s: float) -> str:
-    """What a CANopen node's state (the driver's ``status()``) means, for a technician."""
-    if status.startswith("fault"):
-        return f"{status}: the node reports an error (EMCY); readings fail until it clears"
-    return NODE_STATES.get(status, status).format(timeout=timeout_s)
-
-
-def _test_can_node(config, joint: int) -> dict:
-    """Open one reference encoder or resolver reader, read it once, and wait briefly for its
-    heartbeat (nodes send one every 100 ms or so; the first may not have come yet)."""
-    from drivers.canopen_encoder import CanopenEncoder
-
-    label = f"{'reference encoder' if config.kind == 'encoder' else 'resolver'}, joint {joint}"
-    t0 = time.monotonic()
-    base = {"device": label, "address": f"CANopen node {config.node_id} on {config.bus.describe()}"}
-    try:
-        enc = CanopenEncoder(config)
-    except Exception as exc:  # noqa: BLE001 - every failure is a result to show
-        return {**base, "ok": False, "error": f"{type(exc).__name__}: {exc}",
-                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
-    try:
-        reading = enc.read()
-        status = enc.status()
-        deadline = time.monotonic() + config.heartbeat_timeout_s + 0.2
-        while status == "no heartbeat" and time.monotonic() < deadline:
-            time.sleep(0.05)
-            status = enc.status()
-        angle = math.degrees(reading.angle_rad)
-        cpr, pairs = int(enc.counts_per_rev), int(enc.pole_pairs)
-        details = {"joint": joint, "kind": config.kind, "node_id": config.node_id, "angle_deg": angle,
-                   "counts": int(reading.counts), "counts_per_rev": cpr, "total_range": int(enc.total_range),
-                   "resolution_deg": 360.0 / (cpr * pairs) if cpr else None, "pole_pairs": pairs,
-                   "status": status, "state": _node_state(status, config.heartbeat_timeout_s)}
-        answer = f"reads {angle:.4f}°"  # the device's own zero, not the robot's
-        if enc.total_range <= cpr:
-            answer += f" (within one turn of {360.0 / pairs:g}°)"
-        return {**base, "ok": not status.startswith(("fault", "disconnected")), "name": enc.name,
-                "answer": f"{answer}; node {status}", "details": details,
-                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
-    except Exception as exc:  # noqa: BLE001
-        return {**base, "ok": False, "name": enc.name, "error": f"{type(exc).__name__}: {exc}",
-                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
-    finally:
-        with contextlib.suppress(Exception):
-            enc.close()
-
-
-def _can_node_checks(devices: dict, timeout_s: float) -> list[tuple]:
-    """(config, joint) of every reference encoder and every resolver reader (a joint may have
-    both: ``open_encoders`` prefers the encoder, the connection test opens each)."""
-    if not _has_can_nodes(devices):
-        return []
-    from drivers.canopen_encoder import configs_from_endpoint
-
-    configs = configs_from_endpoint(devices, timeout_s=min(timeout_s, 2.0))
-    return [(cfg, joint) for (kind, joint), cfg in sorted(configs.items(), key=lambda kv: (kv[0][1], kv[0][0]))]
-
-
-def _test_can_nodes(devices: dict, timeout_s: float, busy: str | None) -> list[dict]:
-    try:
-        checks = _can_node_checks(devices, timeout_s)
-    except (ValueError, TypeError, KeyError) as exc:
-        return [{"device": "CAN bus", "address": str(devices.get("can")), "ok": False,
-                 "error": f"devices.can: {exc}"}]
-    if busy:
-        return [{"device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, joint {j}",
-                 "address": f"CANopen node {c.node_id}", "ok": None, "skipped": True, "answer": f"not opened: {busy}"}
-                for c, j in checks]
-    out: list[dict | None] = [None] * len(checks)
-
-    def work(k: int, cfg, joint: int) -> None:
-        out[k] = _test_can_node(cfg, joint)
-
-    threads = [threading.Thread(target=work, args=(k, cfg, joint), name=f"devtest-can-{k}", daemon=True)
-               for k, (cfg, joint) in enumerate(checks)]
-    for th in threads:
-        th.start()
-    deadline = time.monotonic() + timeout_s + 2.0
-    for th in threads:
-        th.join(max(0.0, deadline - time.monotonic()))
-    return [r if r is not None else {"device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, "
-                                               f"joint {j}", "address": f"CANopen node {c.node_id}", "ok": False,
-                                     "error": f"no answer within {timeout_s + 2.0:.0f} s"}
-            for r, (c, j) in zip(out, checks)]
-
-
 @router.post("/cells/{cell_id}/devices/test", response_model=DeviceTest)
 def test_connections(cell_id: int, request: Request, db: DbSession, tok: Runner, timeout_s: float = 8.0) -> dict:
     """Open each device of the cell, ask it something harmless (nothing moves) and report what
@@ -266,25 +165,11 @@ def test_connections(cell_id: int, request: Request, db: DbSession, tok: Runner,
     busy = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE),
                                             RunSession.dry_run == False)).first()  # noqa: E712
     reason = f"session {busy.id} is driving this cell ({busy.state}); test when it has stopped" if busy else None
-    timeout_s = max(0.5, min(float(timeout_s), 30.0))
-    devices = cell.devices or {}
-    box: dict = {}
-    can_thread = threading.Thread(target=lambda: box.update(results=_test_can_nodes(devices, timeout_s, reason)),
-                                  name="devtest-can", daemon=True)
-    can_thread.start()  # the CAN nodes alongside the other devices (each within its own time limit)
-    others = {k: v for k, v in devices.items() if k not in ("encoders", "resolvers")}
-    has_other = any(others.get(k) for k in ("rtde", "modbus", "emscon", "tracker", "cmm"))
-    results = test_devices(others, timeout_s=timeout_s, busy=reason) if has_other or not _has_can_nodes(devices) else []
-    can_thread.join()
-    results += box.get("results", [])
+    results = test_cell_devices(cell.devices or {}, timeout_s=max(0.5, min(float(timeout_s), 30.0)), busy=reason)
     ok = all(r.get("ok") for r in results)
     audit(db, actor=tok.name, action="test devices", subject=f"cell {cell_id}",
           detail={"ok": ok, "results": results})
     return {"cell_id": cell_id, "ok": ok, "results": results}
-
-
-def _has_can_nodes(devices: dict) -> bool:
-    return bool(devices.get("can") and (devices.get("encoders") or devices.get("resolvers")))
 
 
 @router.get("/cells/{cell_id}/devices/test", response_model=LastDeviceTest)

@@ -1,0 +1,121 @@
+"""Use cases of sessions, apart from HTTP: start one (checked before anything moves), the public
+view of a session (one query, polled by pages and jobs), and the rules every route shares (a
+session is active while planned or running; a cell runs one at a time). The routes
+(``service/api/routes``) call these; refusals are :mod:`service.problems`."""
+
+from __future__ import annotations
+
+from sqlalchemy import bindparam, delete, func
+from sqlalchemy import select as sa_select
+from sqlalchemy.exc import IntegrityError
+from sqlmodel import Session, select
+
+from calibration.model import model_from_dict
+
+from .devices import has_tracker
+from .models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token
+from .problems import Conflict, Invalid, NotFound
+from .runners import SessionRunner
+from .store import audit, measured_count
+
+ACTIVE = ("planned", "running")
+TERMINAL = ("completed", "failed", "aborted")
+
+
+def public_session(db, run: RunSession) -> SessionPublic:
+    info = dict(run.plan_info or {})
+    info.pop("swept_joint", None)
+    return SessionPublic(**run.model_dump(exclude={"plan", "plan_info", "lease_owner", "lease_expires"}),
+                         measured=measured_count(db, run.id), plan_info=info or None)
+
+
+# What GET /sessions/{id} and the progress events read: the public columns and the measured count
+# in one query, without the plan (every configuration of the session) or an ORM object. Pages and
+# nightly jobs poll this; bench/service.py measures it.
+_PUBLIC = [c for c in RunSession.__table__.columns if c.name in SessionPublic.model_fields]
+_MEASURED = (select(func.count(func.distinct(Measurement.seq))).where(Measurement.session_id == RunSession.id)
+             .correlate(RunSession).scalar_subquery().label("measured"))
+_READ_PUBLIC = sa_select(*_PUBLIC, _MEASURED).where(RunSession.id == bindparam("session_id"))  # built once
+
+
+def read_public_session(db, session_id: int) -> SessionPublic:
+    row = db.connection().execute(_READ_PUBLIC, {"session_id": session_id}).mappings().first()
+    if row is None:
+        raise NotFound(f"no session {session_id}")
+    doc = dict(row)
+    info = dict(doc.pop("plan_info") or {})
+    info.pop("swept_joint", None)
+    return SessionPublic(**doc, plan_info=info or None)
+
+
+def get_run(db, session_id: int) -> RunSession:
+    run = db.get(RunSession, session_id)
+    if run is None:
+        raise NotFound(f"no session {session_id}")
+    return run
+
+
+def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orchestrator) -> SessionPublic:
+    model = model_from_dict(cell.model)
+    if body.target is not None and body.target not in model.targets:
+        raise Invalid("body.target", f"unknown target {body.target!r}; the cell's model "
+                                     f"has: {', '.join(sorted(model.targets)) or 'none'}")
+    measuring = body.kind in ("pose", "verify", "circle") and not body.dry_run
+    if body.device == "cmm" and measuring and not cell.devices.get("cmm"):
+        raise Invalid("body.device", "this cell has no CMM")
+    if body.device == "tracker" and measuring and not has_tracker(cell.devices):
+        raise Invalid("body.device", "this cell has no laser tracker")
+    for i, j in enumerate(body.joints or []):
+        if not 1 <= j <= model.n_joints or j in body.joints[:i]:
+            raise Invalid(f"body.joints[{i}]", f"expected a joint number from 1 to {model.n_joints}, each once; got {j}")
+    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell.id, RunSession.state.in_(ACTIVE),
+                                            RunSession.dry_run == False)).first()  # noqa: E712 - dry runs move nothing
+    if busy is not None and not body.dry_run:
+        raise Conflict(f"session {busy.id} is already driving this cell ({busy.state})")
+    info = {**({"joints": body.joints} if body.joints else {}), **({"repeats": body.repeats} if body.repeats > 1 else {})}
+    if body.payloads:  # SI: kg, then the centre of gravity in the tool frame (m)
+        L = model.units.length_m
+        info["payloads"] = [[p[0], p[1] * L, p[2] * L, p[3] * L] for p in body.payloads]
+    run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
+                     target=body.target if body.target is not None else (_default_target(model, body)),
+                     dry_run=body.dry_run, created_by=tok.name, plan_info=info or None)
+    try:
+        queued = commit_planned(db, run, orchestrator)
+    except IntegrityError:  # another request (any API process) started one on this cell meanwhile
+        db.rollback()
+        raise Conflict("another session is already driving this cell") from None
+    db.refresh(run)
+    if body.dry_run:  # after the new one has its id: on SQLite a deleted highest id would be given again
+        forget_dry_runs(db, cell.id, keep=run.id)
+    audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
+          detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run})
+    if not queued:
+        orchestrator.start(run.id)
+    return public_session(db, run)
+
+
+def forget_dry_runs(db, cell_id: int, *, keep: int) -> None:
+    """Delete the cell's finished dry runs but ``keep``. A dry run ("Show the plan") is a plan
+    to confirm (and to run, ``POST /sessions/{id}/run``, as often as wanted), not a session: only
+    the cell's latest is kept, and session lists leave it out. Dry runs have no measurements."""
+    db.execute(delete(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == True,  # noqa: E712
+                                        RunSession.state.not_in(ACTIVE), RunSession.id != keep))
+    db.commit()
+
+
+def commit_planned(db, run: RunSession, orchestrator: SessionRunner) -> bool:
+    """Commit ``run``, planned. Where the runner queues sessions (the fleet), its job is queued in
+    the same transaction, so that no session is ever stored planned without one; True then. Else
+    (the embedded default) the caller starts it once committed."""
+    db.add(run)
+    db.flush()  # the id, for the job (and the one-active-session-per-cell index speaks here)
+    queued = orchestrator.queue(db, run)
+    db.commit()
+    return queued
+
+
+def _default_target(model, body) -> str | None:
+    if body.kind in ("joint",) or body.device == "cmm":
+        return None
+    names = [n for n in model.targets if not n.startswith("ball")]
+    return names[0] if names else None
