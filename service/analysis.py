@@ -14,6 +14,8 @@
 from __future__ import annotations
 
 import dataclasses
+import tempfile
+from pathlib import Path
 
 import numpy as np
 from sqlmodel import Session
@@ -29,7 +31,8 @@ from .models import Calibration, Cell, Measurement, RunSession
 from .records import NoMeasurementsError, current_model, position_errors, registered_errors
 from .results import predicted_accuracy
 from .settings import Settings
-from .store import current_calibration, current_controller_model
+from .problems import Invalid
+from .store import audit, current_calibration, current_controller_model, delete_session_rows
 from calibration.errors import RecalError
 
 # Allowance for what may have changed since the previous calibration (per parameter, 1 sigma):
@@ -240,3 +243,51 @@ def circle_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     report = cpa_report(res, nominal, sweeps)
     model = dataclasses.replace(res.model, units=nominal.units, name=f"{cell.name}-cpa")
     return _store(db, cell, run, "cpa", model, report, None, None)
+
+
+# --------------------------------------------------------------------------- measured elsewhere
+
+
+def import_measurements(db: Session, cell: Cell, body: bytes, *, kind: str, name: str, actor: str, settings) -> RunSession:
+    """Externally measured data (a measurement CSV, contracts §3, in the units of the cell's
+    nominal model) stored as a completed session of ``kind`` (``pose``: identified as a pose
+    session is; ``verify``: the cell's current model checked against it). Nothing is kept when
+    the data cannot conclude. Bad rows: :class:`~service.problems.Invalid` naming row and column."""
+    from .files import InputError, read_measurements
+
+    model = model_from_dict(cell.model)
+    safe_name = Path(name).name or "measurements.csv"
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / safe_name
+        path.write_bytes(body)
+        try:
+            data = read_measurements(path, model)
+        except InputError as exc:
+            raise Invalid("body", str(exc).replace(str(path), safe_name)) from None
+    device = "cmm" if data.quat is not None and not np.all(np.isnan(data.quat)) else "tracker"
+    run = RunSession(cell_id=cell.id, kind=kind, state="completed", planned=len(data), device=device, target=None,
+                     plan=data.q.tolist(), created_by=actor,
+                     plan_info={"imported": {"name": safe_name, "rows": len(data)}, "nominal_version": cell.model_version})
+    db.add(run)
+    db.flush()
+    quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
+    for i in range(len(data)):
+        qw, qx, qy, qz = (None if np.isnan(v) else float(v) for v in quat[i])
+        sigma = None if not np.isfinite(data.sigma[i]) else float(data.sigma[i])
+        db.add(Measurement(session_id=run.id, seq=i, target=data.target[i] or "", q=[float(v) for v in data.q[i]],
+                           x=float(data.p_world[i, 0]), y=float(data.p_world[i, 1]), z=float(data.p_world[i, 2]),
+                           qw=qw, qx=qx, qy=qy, qz=qz, sigma=sigma))
+    db.commit()
+    db.refresh(run)
+    try:
+        finish_session(db, run, cell, settings)
+    except (AnalysisError, ValueError, np.linalg.LinAlgError) as exc:  # the data cannot conclude
+        db.rollback()
+        delete_session_rows(db, run.id)
+        db.commit()
+        raise Invalid("body", f"{safe_name}: {exc}") from None
+    db.refresh(run)
+    audit(db, actor=actor, action="import measurements", subject=f"session {run.id}",
+          detail={"cell": cell.id, "kind": kind, "name": safe_name, "rows": len(data),
+                  "calibration_id": run.calibration_id})
+    return run

@@ -11,8 +11,6 @@
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
 
 import numpy as np
 from sqlmodel import Session, select
@@ -23,8 +21,7 @@ from calibration.identify import Measurements
 from calibration.model import KinematicModel, model_from_dict
 
 from .models import Calibration, Cell, Measurement, RunSession
-from .problems import Invalid
-from .store import audit, current_calibration, delete_session_rows
+from .store import current_calibration
 
 
 class NoMeasurementsError(RecalError, LookupError):
@@ -139,49 +136,3 @@ def measurements_csv(model, rows: list[Measurement]) -> str:
             row.append(blank(getattr(r, "reference", None), u.angle_rad))
         out.append(row)
     return format_csv(header, out)
-
-
-def import_measurements(db: Session, cell: Cell, body: bytes, *, kind: str, name: str, actor: str, settings) -> RunSession:
-    """Externally measured data (a measurement CSV, contracts §3, in the units of the cell's
-    nominal model) stored as a completed session of ``kind`` (``pose``: identified as a pose
-    session is; ``verify``: the cell's current model checked against it). Nothing is kept when
-    the data cannot conclude. Bad rows: :class:`~service.problems.Invalid` naming row and column."""
-    from . import analysis
-    from .files import InputError, read_measurements
-
-    model = model_from_dict(cell.model)
-    safe_name = Path(name).name or "measurements.csv"
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / safe_name
-        path.write_bytes(body)
-        try:
-            data = read_measurements(path, model)
-        except InputError as exc:
-            raise Invalid("body", str(exc).replace(str(path), safe_name)) from None
-    device = "cmm" if data.quat is not None and not np.all(np.isnan(data.quat)) else "tracker"
-    run = RunSession(cell_id=cell.id, kind=kind, state="completed", planned=len(data), device=device, target=None,
-                     plan=data.q.tolist(), created_by=actor,
-                     plan_info={"imported": {"name": safe_name, "rows": len(data)}, "nominal_version": cell.model_version})
-    db.add(run)
-    db.flush()
-    quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
-    for i in range(len(data)):
-        qw, qx, qy, qz = (None if np.isnan(v) else float(v) for v in quat[i])
-        sigma = None if not np.isfinite(data.sigma[i]) else float(data.sigma[i])
-        db.add(Measurement(session_id=run.id, seq=i, target=data.target[i] or "", q=[float(v) for v in data.q[i]],
-                           x=float(data.p_world[i, 0]), y=float(data.p_world[i, 1]), z=float(data.p_world[i, 2]),
-                           qw=qw, qx=qx, qy=qy, qz=qz, sigma=sigma))
-    db.commit()
-    db.refresh(run)
-    try:
-        analysis.finish_session(db, run, cell, settings)
-    except (analysis.AnalysisError, ValueError, np.linalg.LinAlgError) as exc:  # the data cannot conclude
-        db.rollback()
-        delete_session_rows(db, run.id)
-        db.commit()
-        raise Invalid("body", f"{safe_name}: {exc}") from None
-    db.refresh(run)
-    audit(db, actor=actor, action="import measurements", subject=f"session {run.id}",
-          detail={"cell": cell.id, "kind": kind, "name": safe_name, "rows": len(data),
-                  "calibration_id": run.calibration_id})
-    return run

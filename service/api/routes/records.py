@@ -12,7 +12,7 @@ from sqlalchemy import delete, func
 from sqlmodel import select
 
 from ...models import Calibration, Cell, Compensation, Measurement, RunSession, SessionPublic, TaskFile
-from ... import records
+from ... import analysis
 from ...records import measurements_csv
 from ...store import audit, delete_session_rows
 from ..deps import Admin, CellEditor, DbSession, Reader
@@ -71,7 +71,7 @@ async def import_measurements(cell_id: int, request: Request, db: DbSession, tok
 
 
 def _import(db, cell_id: int, body: bytes, kind: str, name: str, tok, settings) -> SessionPublic:
-    run = records.import_measurements(db, _cell(db, cell_id), body, kind=kind, name=name, actor=tok.name,
+    run = analysis.import_measurements(db, _cell(db, cell_id), body, kind=kind, name=name, actor=tok.name,
                                       settings=settings)
     return public_session(db, run)
 
