@@ -326,16 +326,16 @@ DATA_CASES = [
     ("text", _cell_value(4, "y", "abc"), ["row 4", "column 'y'", "expected a number", "'abc'"]),
     ("nan", _cell_value(2, "z", "NaN"), ["row 2", "column 'z'", "expected a finite number"]),
     ("inf", _cell_value(7, "q2", "inf"), ["row 7", "column 'q2'", "expected a finite number"]),
-    # beyond what the model can use (was "SVD did not converge" with no row named); the API's
-    # documents and task files answer the same (tests/service/test_limits.py)
-    ("huge", _cell_value(3, "x", "1e308"), ["row 3", "column 'x'", "expected a number from -1e+09 to 1e+09",
-                                           "'1e308'"]),
     ("q7", _add_q7, ["header", "column 'q7'", "6 joints", "expected joint columns q1..q6"]),
     ("no-q6", _drop("q6"), ["header", "column 'q6'", "expected q1..q6"]),
     ("unknown-target", _cell_value(5, "target", "ball9"), ["row 5", "column 'target'", "'ball9'", "expected one of"]),
     ("partial-quaternion", _partial_quaternion, ["row 3", "column 'qy'", "expected a number"]),
     ("empty", _empty, ["empty", "expected a header"]),
     ("missing-file", _missing, ["cannot read"]),
+    # beyond what the model can use (was "SVD did not converge" with no row named); the API's
+    # documents and task files answer the same (tests/service/test_limits.py)
+    ("huge", _cell_value(3, "x", "1e308"), ["row 3", "column 'x'", "expected a number from -1e+09 to 1e+09",
+                                           "'1e308'"]),
 ]
 
 
