@@ -173,6 +173,28 @@ def page_load(url: str, paths: list[str], token: str, clients: int, procs: int, 
     return out
 
 
+def over_50ms(url: str) -> dict[str, tuple[int, int]]:
+    """Per route, from the service's own request histogram (/metrics): (requests, of which
+    took more than 50 ms inside the service)."""
+    import urllib.request
+
+    from prometheus_client.parser import text_string_to_metric_families
+
+    with urllib.request.urlopen(url + "/metrics", timeout=30) as r:
+        text = r.read().decode()
+    out: dict[str, list[int]] = {}
+    for family in text_string_to_metric_families(text):
+        if family.name != "recal_request_duration_seconds":
+            continue
+        for sample in family.samples:
+            route = sample.labels.get("route")
+            if sample.name.endswith("_count"):
+                out.setdefault(route, [0, 0])[0] += int(sample.value)
+            elif sample.name.endswith("_bucket") and sample.labels["le"] == "0.05":
+                out.setdefault(route, [0, 0])[1] += int(sample.value)
+    return {k: (n, n - fast) for k, (n, fast) in out.items()}
+
+
 def page_routes(api: Api, cell_id: int, session_id: int) -> list[str]:
     """What the page polls while a technician watches (service/web/js/views): the overview, the
     cell's summary, the session, its measurements and live residuals, its calibration's result."""
@@ -227,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
                 routes = page_routes(api, cell_id, session_id)
                 page = page_load(service.ready["url"], routes, token, args.clients, args.client_processes,
                                  args.page_requests, args.interval)
+                server_side = over_50ms(service.ready["url"])
                 page_base = load(service.ready["url"], "/api/v1/health", None, args.clients, args.client_processes,
                                  args.page_requests, args.interval)
             finally:
@@ -245,6 +268,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | {r['max']:.1f} |")
     print(f"| GET /api/v1/health (baseline, same clients) | {page_base['n']} | {page_base['p50']:.1f} | "
           f"{page_base['p95']:.1f} | {page_base['p99']:.1f} | {page_base['max']:.1f} |")
+    print("\nInside the service (its /metrics histogram, every request of the run so far): requests over 50 ms")
+    for route, (n, slow) in sorted(server_side.items()):
+        if n >= 100:
+            print(f"- {route}: {slow} of {n}")
     if args.page_only:
         return 0
     print(f"\n## Per pose, {args.poses} poses, time scale 0 (ms)\n")

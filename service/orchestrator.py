@@ -40,6 +40,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -82,6 +83,7 @@ class Control:
     interrupt_reason: str = ""
     lease_valid_until: float = math.inf
     renew: Callable[[], object] | None = None
+    heavy: threading.Semaphore | None = None  # the process's slots for planning and identification
 
     def check(self) -> None:
         """Raise :class:`SessionStopped` when the session must not make another move."""
@@ -142,6 +144,24 @@ def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> Cel
         devs.close()
         raise
     return devs
+
+
+@contextmanager
+def heavy_slot(control: Control, *, stoppable: bool):
+    """One of the process's slots for heavy work (``control.heavy``: ``Settings.heavy_workers``
+    of them), held while a session plans or identifies, so that many sessions finishing at once
+    do not share the cores (and the API's GIL) all together. While it waits for a slot, a
+    ``stoppable`` phase (planning) still stops on abort, pause or interrupt."""
+    if control.heavy is None:
+        yield
+        return
+    while not control.heavy.acquire(timeout=0.1):
+        if stoppable:
+            control.check()
+    try:
+        yield
+    finally:
+        control.heavy.release()
 
 
 def _retry(fn: Callable, what: str, settings: Settings, control: Control, device: str = "robot"):
@@ -260,7 +280,8 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
             set_state(db, run, "paused", "another session is driving this cell")
             return "paused"
         try:
-            run = ensure_plan(db, run, cell, control)
+            with heavy_slot(control, stoppable=True):
+                run = ensure_plan(db, run, cell, control)
         except UnsafePlan as exc:
             _end(db, run, owner, "failed", f"unsafe plan: {exc}", None)
             return "failed"
@@ -285,7 +306,8 @@ def run_session(engine: Engine, settings: Settings, session_id: int, control: Co
             # a UR cell: the controller's own kinematics, read again (docs/devices/ur.md)
             controller.refresh_on_session_start(db, run, cell, devices.robot)
             _measure_all(db, run, cell, devices, settings, control, owner)
-            analysis.finish_session(db, run, cell, settings)
+            with heavy_slot(control, stoppable=False):  # every pose is measured: identify them
+                analysis.finish_session(db, run, cell, settings)
         except SessionStopped as exc:
             stop = exc
             final, reason = _stop_outcome(exc, control)
@@ -575,6 +597,7 @@ class Orchestrator:
         self._threads: dict[int, tuple[threading.Thread, Control]] = {}
         self._lock = threading.Lock()
         self._stopping = False
+        self._heavy = threading.BoundedSemaphore(settings.heavy_workers)
 
     def queue(self, db: Session, run: RunSession) -> bool:
         """Nothing to queue: the caller starts the session once it is committed."""
@@ -587,7 +610,7 @@ class Orchestrator:
                 t[0].join(15.0)  # a session that just paused may still be closing its devices
                 if t[0].is_alive():
                     return
-            control = Control()
+            control = Control(heavy=self._heavy)
             thread = threading.Thread(target=self._run, args=(session_id, control), name=f"session-{session_id}",
                                       daemon=True)
             self._threads[session_id] = (thread, control)

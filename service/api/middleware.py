@@ -28,7 +28,7 @@ access_log = logging.getLogger("recal.access")
 # Routes whose bodies are task files (a task CSV or URScript, raw or inside JSON), answered by
 # ``max_task_bytes``; any other body by ``max_body_bytes``.
 TASK_ROUTES = (re.compile(r"^/api/v1/calibrations/[^/]+/compensate$"), re.compile(r"^/api/v1/cells/[^/]+/tasks$"),
-               re.compile(r"^/api/v1/cells/[^/]+/measurements/import$"))
+               re.compile(r"^/api/v1/cells/[^/]+/measurements$"))  # the import of an external CSV
 SECRET_KEYS = {"token", "ticket", "access_token", "password", "secret", "key", "api_key"}
 
 
@@ -172,7 +172,7 @@ class PageCache:
 
     def __init__(self, app, ttl_s: float = 0.5):
         self.app, self.ttl_s = app, ttl_s
-        self._entries: dict[tuple, tuple[float, list[dict]]] = {}
+        self._entries: dict[tuple, tuple[float, list[dict], object]] = {}  # key: (fresh until, answer, route)
         self._inflight: dict[tuple, "asyncio.Future"] = {}
 
     async def __call__(self, scope, receive, send):
@@ -198,6 +198,8 @@ class PageCache:
         key = (scope["path"], scope.get("query_string", b""), tok.id if scope["path"].endswith("/overview") else None)
         now = time.monotonic()
         hit = self._entries.get(key)
+        if hit is not None:
+            scope["route"] = hit[2]  # for the request log and metrics, as if routed
         if hit is not None and now < hit[0]:
             return await _replay(send, hit[1])
         running = self._inflight.get(key)
@@ -241,7 +243,7 @@ class PageCache:
                 if len(self._entries) > 2000:  # drop the expired ones
                     now = time.monotonic()
                     self._entries = {k: v for k, v in self._entries.items() if v[0] + self.ttl_s > now}
-                self._entries[key] = (time.monotonic() + self.ttl_s, messages)
+                self._entries[key] = (time.monotonic() + self.ttl_s, messages, scope.get("route"))
             elif send is None:
                 self._entries.pop(key, None)  # the route now refuses (gone, or the caller): no stale answer
 

@@ -41,7 +41,7 @@ def test_health_and_status_are_answered_while_a_large_compensation_runs(idle_app
         cell = register_cell(client, tokens["technician"], "heavy")["id"]
         session, cal = stored_session(cell, seed=2)
         model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"])
-        text = task_csv(model, 12_000)
+        text = task_csv(model, 25_000)  # about 3.5 MB, under the 4 MiB limit
         done: dict = {}
 
         def compensate():
@@ -61,7 +61,7 @@ def test_health_and_status_are_answered_while_a_large_compensation_runs(idle_app
             latencies.append(time.monotonic() - t0)
         worker.join(5.0)
         assert done["response"].status_code == 200, done["response"].text
-        assert done["response"].text.count("\n") == 12_001
+        assert done["response"].text.count("\n") == 25_001
         # Many polls were answered while it ran, each promptly: well under the compensation's own
         # time, which a request queued behind it on the event loop would have waited (the bound
         # is relative, so that a fast machine's short compensation still tells the two apart).
@@ -69,3 +69,29 @@ def test_health_and_status_are_answered_while_a_large_compensation_runs(idle_app
         assert len(latencies) >= 5
         assert max(latencies) < bound_s, (f"health and status took up to {max(latencies):.2f} s during a "
                                           f"{done['elapsed_s']:.2f} s compensation")
+
+
+def test_a_session_waiting_for_a_heavy_work_slot_still_stops_on_abort():
+    """Planning and identification hold one of ``heavy_workers`` slots; a session waiting for
+    one while another plans is still aborted at once (planning waits are stoppable)."""
+    from service.orchestrator import Control, SessionStopped, heavy_slot
+
+    slots = threading.BoundedSemaphore(1)
+    busy, waiting = Control(heavy=slots), Control(heavy=slots)
+    outcome: dict = {}
+
+    def second():
+        try:
+            with heavy_slot(waiting, stoppable=True):
+                outcome["ran"] = True
+        except SessionStopped as exc:
+            outcome["stopped"] = exc.state
+
+    with heavy_slot(busy, stoppable=True):
+        t = threading.Thread(target=second)
+        t.start()
+        waiting.abort.set()
+        t.join(5.0)
+        assert not t.is_alive() and outcome == {"stopped": "aborted"}
+    with heavy_slot(waiting, stoppable=False):  # the slot was given back
+        assert slots.acquire(blocking=False) is False

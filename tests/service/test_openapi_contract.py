@@ -85,5 +85,7 @@ def test_the_api_keeps_its_openapi_contract_under_fuzzing(settings, tmp_path, st
     finally:
         server.should_exit = True
         thread.join(10)
-    assert r.returncode == 0, r.stdout[-8000:] + r.stderr[-2000:]
-    assert "No issues found" in r.stdout or " 0 failures" in r.stdout or "failures" not in r.stdout.split("SUMMARY")[-1]
+    assert r.returncode == 0, r.stdout[-8000:] + r.stderr[-2000:]  # st exits 1 on any failure
+    import re
+
+    assert re.search(r"Operations:\s+(\d+) selected / \1 total", r.stdout), r.stdout[:2000]  # every operation

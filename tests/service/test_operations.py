@@ -50,12 +50,14 @@ def test_metrics_count_requests_sessions_measurements_and_verified_accuracy(idle
         verify, _ = stored_session(cell, kind="verify", seed=3, n=12)
         for _ in range(3):
             assert client.get(f"/api/v1/sessions/{pose}", headers=auth(tokens["viewer"])).status_code == 200
+            assert client.get(f"/api/v1/sessions/{pose}/live", headers=auth(tokens["viewer"])).status_code == 200
         r = client.get("/metrics")
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
         m = _samples(r.text)
         counts = {lab["route"]: v for lab, v in m["recal_request_duration_seconds_count"]
                   if lab["method"] == "GET" and lab["status"] == "200"}
         assert counts["/api/v1/sessions/{session_id}"] == 3  # by route template, never by id
+        assert counts["/api/v1/sessions/{session_id}/live"] == 3  # the page cache's answers too
         assert dict((lab["state"], v) for lab, v in m["recal_sessions"]) == {"completed": 2}
         assert m["recal_measurements"][0][1] == 30 + 12
         v = client.get(f"/api/v1/sessions/{verify}", headers=auth(tokens["viewer"])).json()["plan_info"]["verify"]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
-from sqlmodel import select
+from sqlmodel import Session, select
+from starlette.concurrency import run_in_threadpool
 
 from calibration.model import ModelFormatError, model_from_dict
 
@@ -271,31 +272,51 @@ def read_task(cell_id: int, task_id: int, db: DbSession, tok: Reader) -> dict:
     return {"id": t.id, "name": t.name, "mode": t.mode, "content": t.content, "created_at": t.created_at}
 
 
+def _tasks_to_compensate(engine, cell_id: int, calibration_id: int | None) -> tuple[int, list[tuple]]:
+    with Session(engine) as db:
+        cell = get_cell(db, cell_id)
+        cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
+        if cal is None or cal.cell_id != cell_id:
+            raise HTTPException(404, "no calibration to compensate with" if calibration_id is None
+                                else f"no calibration {calibration_id} in cell {cell_id}")
+        tasks = db.exec(select(TaskFile.id, TaskFile.name, TaskFile.mode)
+                        .where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all()
+        return cal.id, [tuple(t) for t in tasks]
+
+
+def _task_content(engine, task_id: int) -> str:
+    with Session(engine) as db:
+        return db.get(TaskFile, task_id).content
+
+
+def _audit(engine, **kw) -> None:
+    with Session(engine) as db:
+        audit(db, **kw)
+
+
 @router.post("/cells/{cell_id}/tasks/compensate", response_model=TasksCompensated, response_model_exclude_unset=True)
-def compensate_tasks(cell_id: int, request: Request, db: DbSession, tok: Compensator,
-                     calibration_id: int | None = None) -> dict:
+async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, calibration_id: int | None = None):
     """Compensate every task file registered with the cell, with ``calibration_id`` (default the
-    cell's last pose calibration); each result is stored."""
+    cell's last pose calibration); each result is stored. Each is computed and stored in a
+    worker process (service.heavy), awaited: no request thread is held meanwhile."""
     from ...compensate import CompensationInputError, compensate_and_store
 
-    cell = get_cell(db, cell_id)
-    cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
-    if cal is None or cal.cell_id != cell_id:
-        raise HTTPException(404, "no calibration to compensate with" if calibration_id is None
-                            else f"no calibration {calibration_id} in cell {cell_id}")
-    results = []
+    engine, heavy = request.app.state.engine, request.app.state.heavy
+    cal_id, tasks = await run_in_threadpool(_tasks_to_compensate, engine, cell_id, calibration_id)
     url = request.app.state.settings.effective_database_url
-    for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all():
-        try:  # computed and stored in a worker process (service.heavy), as POST .../compensate
-            rec_id, _, summary, _ = request.app.state.heavy.call(compensate_and_store, url, cal.id, t.content,
-                                                              name=t.name, mode=t.mode, actor=tok.name, audited=False)
+    results = []
+    for task_id, name, mode in tasks:
+        content = await run_in_threadpool(_task_content, engine, task_id)
+        try:
+            rec_id, _, summary, _ = await heavy.run(compensate_and_store, url, cal_id, content, name=name, mode=mode,
+                                                 actor=tok.name, audited=False)
         except CompensationInputError as exc:
-            results.append({"task_id": t.id, "name": t.name, "error": str(exc)})
+            results.append({"task_id": task_id, "name": name, "error": str(exc)})
             continue
-        results.append({"task_id": t.id, "name": t.name, "compensation_id": rec_id, "summary": summary})
-    audit(db, actor=tok.name, action="compensate tasks", subject=f"cell {cell_id}",
-          detail={"calibration": cal.id, "tasks": len(results)})
-    return {"calibration_id": cal.id, "tasks": results}
+        results.append({"task_id": task_id, "name": name, "compensation_id": rec_id, "summary": summary})
+    await run_in_threadpool(_audit, engine, actor=tok.name, action="compensate tasks", subject=f"cell {cell_id}",
+                            detail={"calibration": cal_id, "tasks": len(results)})
+    return {"calibration_id": cal_id, "tasks": results}
 
 
 # --------------------------------------------------------------------------- the controller's model

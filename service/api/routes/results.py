@@ -10,6 +10,8 @@ import re
 
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import Response
+from sqlmodel import Session
+from starlette.concurrency import run_in_threadpool
 
 
 from ...certificate import certificate_data, certificate_pdf
@@ -97,12 +99,18 @@ def certificate(calibration_id: int, db: DbSession, tok: Reader) -> dict:
     return certificate_data(db, _get(db, calibration_id))
 
 
+def _certificate(engine, calibration_id: int) -> dict:
+    with Session(engine) as db:
+        return certificate_data(db, _get(db, calibration_id))
+
+
 @router.get("/calibrations/{calibration_id}/certificate.pdf")
-def certificate_as_pdf(calibration_id: int, request: Request, db: DbSession, tok: Reader) -> Response:
-    """The calibration certificate as a PDF (A4), rendered in a worker process (service.heavy)."""
-    cert = certificate_data(db, _get(db, calibration_id))
+async def certificate_as_pdf(calibration_id: int, request: Request, tok: Reader) -> Response:
+    """The calibration certificate as a PDF (A4), rendered in a worker process (service.heavy),
+    awaited: no request thread is held meanwhile (abort and pause need them)."""
+    cert = await run_in_threadpool(_certificate, request.app.state.engine, calibration_id)
     try:
-        pdf = request.app.state.heavy.call(certificate_pdf, cert)
+        pdf = await request.app.state.heavy.run(certificate_pdf, cert)
     except ImportError:
         raise HTTPException(501, "PDF output needs the reportlab package (pip install reportlab); print the "
                                  "certificate page to PDF instead") from None
