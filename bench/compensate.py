@@ -44,8 +44,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from calibration import robots  # noqa: E402
-from calibration.compensation import (FLAGS, compensate_joints, compensate_targets, frame_map,  # noqa: E402
-                                      inverse_jacobian_iteration, nominal_solution)
+from calibration.compensation import (  # noqa: E402
+    FLAGS,
+    compensate_joints,
+    compensate_targets,
+    frame_map,
+    inverse_jacobian_iteration,
+    nominal_solution,
+)
 from calibration.conventions import hayati_for_parallel_axes  # noqa: E402
 from calibration.ik import inverse_kinematics  # noqa: E402
 from calibration.kinematics import fk  # noqa: E402
@@ -62,8 +68,10 @@ def identified(robot: str, *, seed: int, base, q_range_rad: float):
     nominal = robots.nominal(robot)
     m, _ = hayati_for_parallel_axes(nominal)
     params = candidate_parameters(m, base=False, tool=False)
-    sig = [0.5e-3 if p.kind == "length" else np.deg2rad(0.1) if p.name.endswith(".theta") else np.deg2rad(0.05)
-           for p in params]
+    sig = [
+        0.5e-3 if p.kind == "length" else np.deg2rad(0.1) if p.name.endswith(".theta") else np.deg2rad(0.05)
+        for p in params
+    ]
     m = apply_step(m, params, rng.normal(0.0, sig))
     ident = dataclasses.replace(m, base=np.asarray(base, dtype=float), name=f"{robot}-identified")
     return nominal, ident, frame_map(ident, nominal, rng.uniform(-q_range_rad, q_range_rad, (256, 6)))
@@ -79,7 +87,7 @@ def identified_puma():
 
 
 def puma_configurations(kind: str, n: int, seed: int = 4) -> np.ndarray:
-    """"typical": a task region (shoulder bent, elbow bent 25-85° from stretched, wrist 20-90°
+    """ "typical": a task region (shoulder bent, elbow bent 25-85° from stretched, wrist 20-90°
     from its singularity: one elbow and one wrist branch); "anywhere": uniform within the joint
     limits (revolute joints within ±180°), singular zones included."""
     rng = np.random.default_rng(seed)
@@ -94,8 +102,10 @@ def puma_configurations(kind: str, n: int, seed: int = 4) -> np.ndarray:
 def run_puma(n: int, repeat: int) -> None:
     nominal, ident, M = identified_puma()
     print(f"### {n:,} task points, PUMA 560 (no closed-form inverse)\n")
-    print("| task rows | time (s) | converged | reached position (µm): median / max over converged | "
-          "iterations (nominal inverse), mean | the planned configuration found | flags |")
+    print(
+        "| task rows | time (s) | converged | reached position (µm): median / max over converged | "
+        "iterations (nominal inverse), mean | the planned configuration found | flags |"
+    )
     print("|---|---|---|---|---|---|---|")
     for kind in ("typical", "anywhere"):
         q = puma_configurations(kind, n)
@@ -107,16 +117,19 @@ def run_puma(n: int, repeat: int) -> None:
 
             def joints():
                 sol = nominal_solution(nominal, M @ X, start, keep_branch=keep)
-                return sol, compensate_joints(ident, X, sol.q, reachable=sol.reachable,
-                                              branch_changed=sol.branch_changed)
+                return sol, compensate_joints(
+                    ident, X, sol.q, reachable=sol.reachable, branch_changed=sol.branch_changed
+                )
 
             t, (sol, c) = best_of(repeat, joints)
             dp, _ = reach(ident, c.q, X)
             ok = c.converged
             same = np.mean(np.max(np.abs(sol.q - q), axis=1) < 1e-6)
             flags = ", ".join(f"{f} {c.count(f)}" for f in FLAGS if c.count(f))
-            print(f"| {kind}, {rows} | {t:.2f} | {ok.mean() * 100:.2f}% | {fmt_um(np.median(dp[ok]))} / "
-                  f"{fmt_um(dp[ok].max())} | {sol.iterations.mean():.1f} | {same * 100:.1f}% | {flags} |")
+            print(
+                f"| {kind}, {rows} | {t:.2f} | {ok.mean() * 100:.2f}% | {fmt_um(np.median(dp[ok]))} / "
+                f"{fmt_um(dp[ok].max())} | {sol.iterations.mean():.1f} | {same * 100:.1f}% | {flags} |"
+            )
     print()
 
 
@@ -183,24 +196,54 @@ def cli_time(n, nominal, ident, M, q, X):
     out = {}
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
-        save_model(d / "identified.json", dataclasses.replace(ident, units=nominal.units),
-                   {"identification": {"nominal": model_to_dict(nominal)}})
+        save_model(
+            d / "identified.json",
+            dataclasses.replace(ident, units=nominal.units),
+            {"identification": {"nominal": model_to_dict(nominal)}},
+        )
         quat = matrix_to_quat(X[:n, :3, :3])
         pos = X[:n, :3, 3] * 1000
         qd = np.degrees(q[:n])
         with open(d / "task.csv", "w") as f:
             f.write("x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6\n")
             for i in range(n):
-                f.write(",".join(f"{v:.6f}" for v in pos[i]) + "," + ",".join(f"{v:.12f}" for v in quat[i]) + ","
-                        + ",".join(f"{v:.8f}" for v in qd[i]) + "\n")
+                f.write(
+                    ",".join(f"{v:.6f}" for v in pos[i])
+                    + ","
+                    + ",".join(f"{v:.12f}" for v in quat[i])
+                    + ","
+                    + ",".join(f"{v:.8f}" for v in qd[i])
+                    + "\n"
+                )
         exe = Path(sys.executable).with_name("recal")
         cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "service.cli"]
         for mode in ("joints", "targets"):
             t = time.perf_counter()
-            r = subprocess.run([*cmd, "compensate", "--model", "identified.json", "--task", "task.csv", "--out",
-                                "out.csv", "--mode", mode, "--report", "r.json"], cwd=d, capture_output=True, text=True)
-            out[mode] = (time.perf_counter() - t, r.returncode, r.stdout.strip(),
-                         json.loads((d / "r.json").read_text())["summary"] if r.returncode == 0 else r.stderr)
+            r = subprocess.run(
+                [
+                    *cmd,
+                    "compensate",
+                    "--model",
+                    "identified.json",
+                    "--task",
+                    "task.csv",
+                    "--out",
+                    "out.csv",
+                    "--mode",
+                    mode,
+                    "--report",
+                    "r.json",
+                ],
+                cwd=d,
+                capture_output=True,
+                text=True,
+            )
+            out[mode] = (
+                time.perf_counter() - t,
+                r.returncode,
+                r.stdout.strip(),
+                json.loads((d / "r.json").read_text())["summary"] if r.returncode == 0 else r.stderr,
+            )
     return out
 
 
@@ -213,35 +256,47 @@ def main(argv=None) -> int:
     ap.add_argument("--no-ur", action="store_true", help="only the PUMA 560 section")
     args = ap.parse_args(argv)
     nominal, ident, M = identified_ur10e()
-    print(f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; Python "
-          f"{platform.python_version()}, numpy {np.__version__}.\n")
+    print(
+        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; Python "
+        f"{platform.python_version()}, numpy {np.__version__}.\n"
+    )
     cli_inputs = None
     for kind in () if args.no_ur else ("typical", "anywhere"):
         q, X, before, rows, alg_a = run_set(kind, args.points, args.repeat, nominal, ident, M)
         if kind == "typical":
             cli_inputs = (q, X)
         print(f"### {args.points:,} task points, {kind} configurations\n")
-        print(f"Before compensation the identified robot misses by median {np.median(before) * 1e3:.2f} mm, "
-              f"max {before.max() * 1e3:.2f} mm.\n")
-        print("| mode | time (s) | converged | reached position (µm): median / p99.9 / max over converged | "
-              "orientation max (µrad) | iterations median / max | flags |")
+        print(
+            f"Before compensation the identified robot misses by median {np.median(before) * 1e3:.2f} mm, "
+            f"max {before.max() * 1e3:.2f} mm.\n"
+        )
+        print(
+            "| mode | time (s) | converged | reached position (µm): median / p99.9 / max over converged | "
+            "orientation max (µrad) | iterations median / max | flags |"
+        )
         print("|---|---|---|---|---|---|---|")
         for name, t, c, dp, dr in rows:
             ok = c.converged
             flags = ", ".join(f"{f} {c.count(f)}" for f in FLAGS if c.count(f))
-            print(f"| {name} | {t:.2f} | {ok.mean() * 100:.2f}% | {fmt_um(np.median(dp[ok]))} / "
-                  f"{fmt_um(np.percentile(dp[ok], 99.9))} / {fmt_um(dp[ok].max())} | {dr[ok].max() * 1e6:.3g} | "
-                  f"{int(np.median(c.iterations))} / {int(c.iterations.max())} | {flags} |")
+            print(
+                f"| {name} | {t:.2f} | {ok.mean() * 100:.2f}% | {fmt_um(np.median(dp[ok]))} / "
+                f"{fmt_um(np.percentile(dp[ok], 99.9))} / {fmt_um(dp[ok].max())} | {dr[ok].max() * 1e6:.3g} | "
+                f"{int(np.median(c.iterations))} / {int(c.iterations.max())} | {flags} |"
+            )
         ta, qa, ia, conv_a, dp_a, dr_a = alg_a
         clean = rows[0][2].converged & conv_a & (rows[0][2].flags == 0)
         agree = np.degrees(np.abs(qa[clean] - rows[0][2].q[clean])).max()
         agree_b = np.degrees(np.abs(rows[1][2].q[clean] - rows[0][2].q[clean])).max()
-        print(f"| book Algorithm A (nominal Jacobian) | {ta:.2f} | {conv_a.mean() * 100:.2f}% | "
-              f"{fmt_um(np.median(dp_a[conv_a]))} / {fmt_um(np.percentile(dp_a[conv_a], 99.9))} / "
-              f"{fmt_um(dp_a[conv_a].max())} | {dr_a[conv_a].max() * 1e6:.3g} | "
-              f"{int(np.median(ia))} / {int(ia.max())} | |\n")
-        print(f"Cross-method agreement (T17) on the {clean.sum():,} unflagged points: Algorithm A vs Newton "
-              f"max {agree:.2g}°, Algorithm B vs Newton max {agree_b:.2g}°.\n")
+        print(
+            f"| book Algorithm A (nominal Jacobian) | {ta:.2f} | {conv_a.mean() * 100:.2f}% | "
+            f"{fmt_um(np.median(dp_a[conv_a]))} / {fmt_um(np.percentile(dp_a[conv_a], 99.9))} / "
+            f"{fmt_um(dp_a[conv_a].max())} | {dr_a[conv_a].max() * 1e6:.3g} | "
+            f"{int(np.median(ia))} / {int(ia.max())} | |\n"
+        )
+        print(
+            f"Cross-method agreement (T17) on the {clean.sum():,} unflagged points: Algorithm A vs Newton "
+            f"max {agree:.2g}°, Algorithm B vs Newton max {agree_b:.2g}°.\n"
+        )
     if args.puma_points:
         run_puma(args.puma_points, args.repeat)
     if args.cli_points and cli_inputs is not None:
@@ -251,8 +306,11 @@ def main(argv=None) -> int:
         print("| mode | wall time (s) | summary |")
         print("|---|---|---|")
         for mode, (t, rc, out, summary) in res.items():
-            s = summary if isinstance(summary, str) else (f"{summary['converged']:,} converged, residual max "
-                                                          f"{summary['residual_max']:.3g} mm")
+            s = (
+                summary
+                if isinstance(summary, str)
+                else (f"{summary['converged']:,} converged, residual max {summary['residual_max']:.3g} mm")
+            )
             print(f"| {mode} | {t:.1f} | {s} |")
     return 0
 

@@ -41,8 +41,14 @@ from calibration import compliance as C  # noqa: E402
 from calibration import compliance_fit  # noqa: E402
 from calibration.identify import identify  # noqa: E402
 from calibration.robots import nominal  # noqa: E402
-from calibration.simulate import (SAGGING_ARMS, heavy_arm_nominal, perturbed, random_configurations,  # noqa: E402
-                                  sagging, simulate_measurements)
+from calibration.simulate import (  # noqa: E402
+    SAGGING_ARMS,
+    heavy_arm_nominal,
+    perturbed,
+    random_configurations,
+    sagging,
+    simulate_measurements,
+)
 from calibration.uncertainty import validate  # noqa: E402
 
 SIGMA = {"cobot": 20e-6, "arm165": 30e-6}
@@ -81,11 +87,24 @@ def run(arm: str, rows: int, payloads, repeat: int, seed: int) -> dict:
     comp, t_comp = timed(lambda: identify(start, train, sigma_m=sigma), repeat)
     cv, t_cv = timed(lambda: compliance_fit.choose_compliance(nom, train, identify_kw={"sigma_m": sigma}), 1)
     vr, vc = validate(rigid, holdout), validate(comp, holdout)
-    return dict(arm=arm, rows=rows, payloads=len(payloads), floor_mm=np.sqrt(3) * sigma * 1e3,
-                rigid_mm=vr.rms_m * 1e3, compliant_mm=vc.rms_m * 1e3, cov_rigid=vr.coverage_95,
-                cov_compliant=vc.coverage_95, p_rigid=len(rigid.params), p_comp=len(comp.params),
-                t_rigid_ms=t_rigid * 1e3, t_comp_ms=t_comp * 1e3, t_cv_s=t_cv, cv_joints=",".join(cv.joints) or "-",
-                cv_rigid_mm=cv.rms_rigid_m * 1e3, cv_comp_mm=cv.rms_compliant_m * 1e3)
+    return dict(
+        arm=arm,
+        rows=rows,
+        payloads=len(payloads),
+        floor_mm=np.sqrt(3) * sigma * 1e3,
+        rigid_mm=vr.rms_m * 1e3,
+        compliant_mm=vc.rms_m * 1e3,
+        cov_rigid=vr.coverage_95,
+        cov_compliant=vc.coverage_95,
+        p_rigid=len(rigid.params),
+        p_comp=len(comp.params),
+        t_rigid_ms=t_rigid * 1e3,
+        t_comp_ms=t_comp * 1e3,
+        t_cv_s=t_cv,
+        cv_joints=",".join(cv.joints) or "-",
+        cv_rigid_mm=cv.rms_rigid_m * 1e3,
+        cv_comp_mm=cv.rms_compliant_m * 1e3,
+    )
 
 
 def main() -> None:
@@ -94,22 +113,28 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}, "
-          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
-    print("| arm | rows | payloads | noise floor | rigid hold-out | compliant hold-out | 95 % coverage rigid / "
-          "compliant | params rigid / compliant | identify rigid / compliant | auto: 5-fold CV rigid / compliant, "
-          "chosen, time |")
+    print(
+        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}, "
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}"
+    )
+    print(
+        "| arm | rows | payloads | noise floor | rigid hold-out | compliant hold-out | 95 % coverage rigid / "
+        "compliant | params rigid / compliant | identify rigid / compliant | auto: 5-fold CV rigid / compliant, "
+        "chosen, time |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for arm in ("cobot", "arm165"):
         rated = SAGGING_ARMS[arm]["payload"]
         for payloads in ([(0.0, 0, 0, 0), rated], [rated]):
             for rows in args.rows:
                 r = run(arm, rows, payloads, args.repeat, args.seed)
-                print(f"| {r['arm']} | {r['rows']} | {r['payloads']} | {r['floor_mm']:.4f} mm | {r['rigid_mm']:.4f} mm "
-                      f"| {r['compliant_mm']:.4f} mm | {100 * r['cov_rigid']:.1f} % / {100 * r['cov_compliant']:.1f} % "
-                      f"| {r['p_rigid']} / {r['p_comp']} | {r['t_rigid_ms']:.0f} / {r['t_comp_ms']:.0f} ms "
-                      f"| {r['cv_rigid_mm']:.4f} / {r['cv_comp_mm']:.4f} mm, {r['cv_joints']}, {r['t_cv_s']:.2f} s |",
-                      flush=True)
+                print(
+                    f"| {r['arm']} | {r['rows']} | {r['payloads']} | {r['floor_mm']:.4f} mm | {r['rigid_mm']:.4f} mm "
+                    f"| {r['compliant_mm']:.4f} mm | {100 * r['cov_rigid']:.1f} % / {100 * r['cov_compliant']:.1f} % "
+                    f"| {r['p_rigid']} / {r['p_comp']} | {r['t_rigid_ms']:.0f} / {r['t_comp_ms']:.0f} ms "
+                    f"| {r['cv_rigid_mm']:.4f} / {r['cv_comp_mm']:.4f} mm, {r['cv_joints']}, {r['t_cv_s']:.2f} s |",
+                    flush=True,
+                )
     print("\n| model | rows | CV RMS without / with map | kept | hold-out without / with map | inside | time |")
     print("|---|---|---|---|---|---|---|")
     for rows in args.rows:
@@ -125,8 +150,14 @@ def residual_maps(rows: int, seed: int) -> None:
     rated = np.array(SAGGING_ARMS["cobot"]["payload"])
 
     def measure(n):
-        return simulate_measurements(truth, random_configurations(nom, n, rng, limits=region), rng,
-                                     sigma_m=SIGMA["cobot"], targets=("smr",), payload=rated)
+        return simulate_measurements(
+            truth,
+            random_configurations(nom, n, rng, limits=region),
+            rng,
+            sigma_m=SIGMA["cobot"],
+            targets=("smr",),
+            payload=rated,
+        )
 
     train, holdout = measure(rows), measure(1000)
     for label, start in (("rigid", nom), ("compliant", C.with_section(nom, C.default_section(nom)))):
@@ -137,9 +168,12 @@ def residual_maps(rows: int, seed: int) -> None:
         r = RM.residuals(model, holdout)
         corr, inside = rmap.evaluate(holdout.q) if rmap is not None else (np.zeros_like(r), np.zeros(len(r), bool))
         rms = lambda e: float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) * 1e3  # noqa: E731
-        print(f"| {label} | {rows} | {fig['rms_without_m'] * 1e3:.4f} / {fig['rms_with_m'] * 1e3:.4f} mm | "
-              f"{'yes' if rmap is not None else 'no'} | {rms(r):.4f} / {rms(r - corr):.4f} mm | "
-              f"{100 * inside.mean():.0f} % | {elapsed:.2f} s |", flush=True)
+        print(
+            f"| {label} | {rows} | {fig['rms_without_m'] * 1e3:.4f} / {fig['rms_with_m'] * 1e3:.4f} mm | "
+            f"{'yes' if rmap is not None else 'no'} | {rms(r):.4f} / {rms(r - corr):.4f} mm | "
+            f"{100 * inside.mean():.0f} % | {elapsed:.2f} s |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

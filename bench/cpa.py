@@ -85,8 +85,9 @@ def axis_errors(trials: int):
             for seed in range(trials):
                 _, truth, rng = cell(1000 + seed)
                 nominal = dataclasses.replace(robots.nominal("ur10e"), targets=truth.targets)
-                sw = simulate_sweeps(truth, SIGNATURE, rng, sigma_m=noise * 1e-3, target="smr", points=24,
-                                     span_rad=np.deg2rad(span))
+                sw = simulate_sweeps(
+                    truth, SIGNATURE, rng, sigma_m=noise * 1e-3, target="smr", points=24, span_rad=np.deg2rad(span)
+                )
                 S, R = (a[0] for a in axis_lines(truth, SIGNATURE))
                 for method in acc:
                     res = circle_point_analysis(nominal, sw, method=method)
@@ -94,8 +95,10 @@ def axis_errors(trials: int):
                     dist = np.linalg.norm(np.cross(res.points - R, S), axis=1)
                     acc[method][0].extend(np.rad2deg(ang))
                     acc[method][1].extend(dist * 1e3)
-            out[span, noise] = {m: (float(np.sqrt(np.mean(np.square(a)))), float(np.sqrt(np.mean(np.square(d)))))
-                                for m, (a, d) in acc.items()}
+            out[span, noise] = {
+                m: (float(np.sqrt(np.mean(np.square(a)))), float(np.sqrt(np.mean(np.square(d)))))
+                for m, (a, d) in acc.items()
+            }
     return out
 
 
@@ -110,8 +113,10 @@ def machine() -> str:
         pass
     import scipy
 
-    return (f"{cpu}, {os.cpu_count()} cores; Python {platform.python_version()}, numpy {np.__version__}, "
-            f"scipy {scipy.__version__}; {platform.system()} {platform.release()}")
+    return (
+        f"{cpu}, {os.cpu_count()} cores; Python {platform.python_version()}, numpy {np.__version__}, "
+        f"scipy {scipy.__version__}; {platform.system()} {platform.release()}"
+    )
 
 
 def main(argv=None) -> int:
@@ -124,22 +129,33 @@ def main(argv=None) -> int:
     elapsed = time.perf_counter() - t0
 
     print(f"Machine: {machine()}. Whole benchmark: {elapsed:.1f} s (`python bench/cpa.py --trials {args.trials}`).\n")
-    print(f"Hold-out accuracy, UR10e, 24 points a joint over 200°, 0.02 mm noise, 200 random configurations, "
-          f"{args.trials} simulated robots (mm; median and worst over the robots):\n")
+    print(
+        f"Hold-out accuracy, UR10e, 24 points a joint over 200°, 0.02 mm noise, 200 random configurations, "
+        f"{args.trials} simulated robots (mm; median and worst over the robots):\n"
+    )
     print("| model | RMS (median) | RMS (worst) | max (median) | max (worst) |")
     print("|---|---|---|---|---|")
-    names = {"geometric": "CPA, geometric circle fit (Recal)", "kasa": "CPA, plane + Kåsa circle only (book)",
-             "nominal": "nominal model, registered",
-             "identified": "pose identification from the CPA model (50 more points)"}
+    names = {
+        "geometric": "CPA, geometric circle fit (Recal)",
+        "kasa": "CPA, plane + Kåsa circle only (book)",
+        "nominal": "nominal model, registered",
+        "identified": "pose identification from the CPA model (50 more points)",
+    }
     for k in ("geometric", "kasa", "nominal", "identified"):
         a = acc[k]
-        print(f"| {names[k]} | {np.median(a[:, 0]):.4f} | {a[:, 0].max():.4f} | {np.median(a[:, 1]):.4f} | "
-              f"{a[:, 1].max():.4f} |")
+        print(
+            f"| {names[k]} | {np.median(a[:, 0]):.4f} | {a[:, 0].max():.4f} | {np.median(a[:, 1]):.4f} | "
+            f"{a[:, 1].max():.4f} |"
+        )
     ratio = acc["geometric"][:, 0] / acc["kasa"][:, 0]
-    print(f"\nRMS ratio geometric / Kåsa, per robot: median {np.median(ratio):.3f}, worst {ratio.max():.3f}. "
-          f"One CPA (6 joints, 144 points): median {np.median(times) * 1e3:.1f} ms.\n")
-    print(f"Axis errors against arc span and noise ({max(args.trials // 2, 1)} robots, RMS over the 6 joints; "
-          f"direction in degrees / position in mm; geometric fit, Kåsa-only fit in brackets):\n")
+    print(
+        f"\nRMS ratio geometric / Kåsa, per robot: median {np.median(ratio):.3f}, worst {ratio.max():.3f}. "
+        f"One CPA (6 joints, 144 points): median {np.median(times) * 1e3:.1f} ms.\n"
+    )
+    print(
+        f"Axis errors against arc span and noise ({max(args.trials // 2, 1)} robots, RMS over the 6 joints; "
+        f"direction in degrees / position in mm; geometric fit, Kåsa-only fit in brackets):\n"
+    )
     print("| arc | " + " | ".join(f"σ = {s} mm" for s in NOISES_MM) + " |")
     print("|---|" + "---|" * len(NOISES_MM))
     for span in SPANS_DEG:

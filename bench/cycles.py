@@ -120,22 +120,31 @@ def main(argv: list[str] | None = None) -> int:
         save_model(Path(tmp) / "truth.json", perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0))
         cell = start_fake_cell(Path(tmp) / "truth.json", args.host, time_scale=0.0, log_path=Path(tmp) / "cell.log")
         try:
-            results = {"recal drivers": run_drivers(cell.ready, targets),
-                       "bare libraries": run_bare(cell.ready, targets)}
+            results = {
+                "recal drivers": run_drivers(cell.ready, targets),
+                "bare libraries": run_bare(cell.ready, targets),
+            }
         finally:
             cell.stop()
 
     print(f"# {args.cycles} move-and-measure cycles, RTDE + tracker, time scale 0")
-    print(f"# {platform.processor() or platform.machine()}, Python {platform.python_version()}, "
-          f"{platform.system()} {platform.release()}")
-    print("| client | connect (s) | 100 cycles (s) | per cycle median (ms) | per cycle p95 (ms) | worst arrival (rad) |"
-          .replace("100", str(args.cycles)))
+    print(
+        f"# {platform.processor() or platform.machine()}, Python {platform.python_version()}, "
+        f"{platform.system()} {platform.release()}"
+    )
+    print(
+        "| client | connect (s) | 100 cycles (s) | per cycle median (ms) | per cycle p95 (ms) | worst arrival (rad) |".replace(
+            "100", str(args.cycles)
+        )
+    )
     print("|---|---|---|---|---|---|")
     for name, r in results.items():
         c = sorted(r["cycles_s"])
         p95 = c[min(len(c) - 1, int(round(0.95 * (len(c) - 1))))]
-        print(f"| {name} | {r['connect_s']:.2f} | {sum(c):.3f} | {statistics.median(c) * 1e3:.2f} | "
-              f"{p95 * 1e3:.2f} | {r['worst_arrival_rad']:.1e} |")
+        print(
+            f"| {name} | {r['connect_s']:.2f} | {sum(c):.3f} | {statistics.median(c) * 1e3:.2f} | "
+            f"{p95 * 1e3:.2f} | {r['worst_arrival_rad']:.1e} |"
+        )
     return 0
 
 

@@ -96,8 +96,10 @@ class Database:
         eng.dispose()
 
     def drop(self):
-        self._admin(f"SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = '{self.name}'",
-                    f'DROP DATABASE IF EXISTS "{self.name}"')
+        self._admin(
+            f"SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = '{self.name}'",
+            f'DROP DATABASE IF EXISTS "{self.name}"',
+        )
 
 
 def session_stats(db_url: str, exclude=()) -> dict:
@@ -105,14 +107,19 @@ def session_stats(db_url: str, exclude=()) -> dict:
     eng = make_engine(db_url)
     with eng.connect() as conn:
         rows = conn.execute(text("SELECT kind, state, created_at, updated_at, id FROM session ORDER BY id")).all()
-        meas = conn.execute(text("SELECT count(*), (SELECT count(*) FROM (SELECT DISTINCT session_id, seq "
-                                 "FROM measurement) AS d) FROM measurement")).one()
+        meas = conn.execute(
+            text(
+                "SELECT count(*), (SELECT count(*) FROM (SELECT DISTINCT session_id, seq "
+                "FROM measurement) AS d) FROM measurement"
+            )
+        ).one()
     eng.dispose()
 
     def secs(r):
         a, b = r[2], r[3]
         if isinstance(a, str):  # SQLite hands back text
             from datetime import datetime
+
             a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
         return (b - a).total_seconds()
 
@@ -123,8 +130,7 @@ def session_stats(db_url: str, exclude=()) -> dict:
     for kind in ("verify", "pose"):
         t = [secs(r) for r in timed if r[0] == kind]
         if t:
-            out[kind] = {"n": len(t), "mean_s": statistics.fmean(t), "median_s": statistics.median(t),
-                         "max_s": max(t)}
+            out[kind] = {"n": len(t), "mean_s": statistics.fmean(t), "median_s": statistics.median(t), "max_s": max(t)}
     t = [secs(r) for r in timed]
     out["all"] = {"n": len(t), "mean_s": statistics.fmean(t), "median_s": statistics.median(t)} if t else {}
     return out
@@ -153,35 +159,85 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
         procs += apis
         if mode == "fleet":
             for i in range(args.workers):
-                procs.append(start_worker(home, ["a", "b"], env=env, name=f"w{i + 1}",
-                                          concurrency=fleet_concurrency(args, len(fakes)),
-                                          log_path=log_dir / f"{mode}-w{i + 1}.log"))
+                procs.append(
+                    start_worker(
+                        home,
+                        ["a", "b"],
+                        env=env,
+                        name=f"w{i + 1}",
+                        concurrency=fleet_concurrency(args, len(fakes)),
+                        log_path=log_dir / f"{mode}-w{i + 1}.log",
+                    )
+                )
         nominal = json.loads(mdl["nominal"].read_text())
         api = Api(apis[0].ready["url"], tokens["technician"])
-        cells = [api.call("POST", "/cells", {"name": f"cell{i:03d}", "site": "ab"[i % 2], "model": nominal,
-                                              "devices": f.ready, "drift_threshold": 0.1})
-                 for i, f in enumerate(fakes)]
+        cells = [
+            api.call(
+                "POST",
+                "/cells",
+                {
+                    "name": f"cell{i:03d}",
+                    "site": "ab"[i % 2],
+                    "model": nominal,
+                    "devices": f.ready,
+                    "drift_threshold": 0.1,
+                },
+            )
+            for i, f in enumerate(fakes)
+        ]
         # the nightly run of the whole fleet
         nenv = {**os.environ, "RECAL_TOKEN": tokens["job"]}
         common = ["--verify-count", str(args.verify_count), "--count", str(args.count), "--timeout", "1800"]
         if mode == "fleet":  # one nightly per site, half of the sessions at once each
-            cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--site", site,
-                     "--url", apis[i % n_api].ready["url"], "--parallel", str(-(-args.parallel // 2)), *common]
-                    for i, site in enumerate(("a", "b"))]
+            cmds = [
+                [
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "nightly",
+                    "--all",
+                    "--site",
+                    site,
+                    "--url",
+                    apis[i % n_api].ready["url"],
+                    "--parallel",
+                    str(-(-args.parallel // 2)),
+                    *common,
+                ]
+                for i, site in enumerate(("a", "b"))
+            ]
         else:
-            cmds = [[sys.executable, "-m", "service.cli", "nightly", "--all", "--url", apis[0].ready["url"],
-                     "--parallel", str(args.parallel), *common]]
+            cmds = [
+                [
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "nightly",
+                    "--all",
+                    "--url",
+                    apis[0].ready["url"],
+                    "--parallel",
+                    str(args.parallel),
+                    *common,
+                ]
+            ]
         t0 = time.monotonic()
-        runs = [subprocess.Popen(c, env=nenv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-                for c in cmds]
+        runs = [
+            subprocess.Popen(c, env=nenv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for c in cmds
+        ]
         outs = [r.communicate()[0] for r in runs]
         wall = time.monotonic() - t0
         (log_dir / f"{mode}-nightly.txt").write_text("\n\n".join(outs))
-        result = {"mode": mode, "cells": len(cells), "wall_s": wall, "parallel": args.parallel,
-                  "worker_concurrency": fleet_concurrency(args, len(fakes)) if mode == "fleet" else None,
-                  "nightly_exit": [r.returncode for r in runs],
-                  "summary": [next((ln for ln in o.splitlines() if " cells: " in ln), "") for o in outs],
-                  "concurrent": session_stats(db_url)}
+        result = {
+            "mode": mode,
+            "cells": len(cells),
+            "wall_s": wall,
+            "parallel": args.parallel,
+            "worker_concurrency": fleet_concurrency(args, len(fakes)) if mode == "fleet" else None,
+            "nightly_exit": [r.returncode for r in runs],
+            "summary": [next((ln for ln in o.splitlines() if " cells: " in ln), "") for o in outs],
+            "concurrent": session_stats(db_url),
+        }
         result["concurrent_incomplete"] = sum(v for k, v in result["concurrent"]["states"].items() if k != "completed")
         eng = make_engine(db_url)
         with eng.connect() as conn:
@@ -205,16 +261,24 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
         stats = session_stats(db_url)
         eng = make_engine(db_url)
         with eng.connect() as conn:
-            rows = [r for r in conn.execute(text(
-                "SELECT s.kind, s.created_at, s.updated_at, s.id, min(m.created_at), max(m.created_at) "
-                "FROM session s JOIN measurement m ON m.session_id = s.id WHERE s.cell_id = :c "
-                "GROUP BY s.id, s.kind, s.created_at, s.updated_at ORDER BY s.id"), {"c": cell["id"]}).all()
-                    if r[3] > nightly_last and r[3] not in resumed]
+            rows = [
+                r
+                for r in conn.execute(
+                    text(
+                        "SELECT s.kind, s.created_at, s.updated_at, s.id, min(m.created_at), max(m.created_at) "
+                        "FROM session s JOIN measurement m ON m.session_id = s.id WHERE s.cell_id = :c "
+                        "GROUP BY s.id, s.kind, s.created_at, s.updated_at ORDER BY s.id"
+                    ),
+                    {"c": cell["id"]},
+                ).all()
+                if r[3] > nightly_last and r[3] not in resumed
+            ]
         eng.dispose()
 
         def secs(a, b):
             if isinstance(a, str):
                 from datetime import datetime
+
                 a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
             return (b - a).total_seconds()
 
@@ -225,12 +289,18 @@ def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: P
             mine = [r for r in rows if r[0] == kind]
             t = [secs(r[1], r[2]) for r in mine]
             result.setdefault("sequential", {})[kind] = {
-                "n": len(t), "mean_s": statistics.fmean(t), "median_s": statistics.median(t),
+                "n": len(t),
+                "mean_s": statistics.fmean(t),
+                "median_s": statistics.median(t),
                 "to_first_measurement_s": statistics.median(secs(r[1], r[4]) for r in mine),
                 "measuring_s": statistics.median(secs(r[4], r[5]) for r in mine),
-                "after_last_measurement_s": statistics.median(secs(r[5], r[2]) for r in mine)}
-        result["checks"] = {"measurements": stats["measurements"], "distinct": stats["distinct_configurations"],
-                            "sequential_resumed": len(resumed)}
+                "after_last_measurement_s": statistics.median(secs(r[5], r[2]) for r in mine),
+            }
+        result["checks"] = {
+            "measurements": stats["measurements"],
+            "distinct": stats["distinct_configurations"],
+            "sequential_resumed": len(resumed),
+        }
         return result
     finally:
         for p in reversed(procs):
@@ -256,8 +326,12 @@ def machine() -> dict:
     info = {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "os": platform.platform()}
     try:
         import procrastinate
-        info["procrastinate"] = procrastinate.__version__ if hasattr(procrastinate, "__version__") else \
-            __import__("importlib.metadata").metadata.version("procrastinate")
+
+        info["procrastinate"] = (
+            procrastinate.__version__
+            if hasattr(procrastinate, "__version__")
+            else __import__("importlib.metadata").metadata.version("procrastinate")
+        )
     except ImportError:
         pass
     return info
@@ -271,13 +345,15 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=30)
     ap.add_argument("--sequential", type=int, default=10, help="rounds of verify + pose, one session at a time")
     ap.add_argument("--modes", default="embedded,embedded-pg,fleet")
-    ap.add_argument("--parallel", type=int, default=10,
-                    help="sessions at once in every set-up (0: every cell at once)")
-    ap.add_argument("--fleet-concurrency", type=int, default=0,
-                    help="each worker's concurrency (default: its share of --parallel)")
+    ap.add_argument("--parallel", type=int, default=10, help="sessions at once in every set-up (0: every cell at once)")
+    ap.add_argument(
+        "--fleet-concurrency", type=int, default=0, help="each worker's concurrency (default: its share of --parallel)"
+    )
     ap.add_argument("--host-prefix", default="127.0.3.")
-    ap.add_argument("--postgres", default=os.environ.get("RECAL_TEST_POSTGRES_URL",
-                                                         "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"))
+    ap.add_argument(
+        "--postgres",
+        default=os.environ.get("RECAL_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"),
+    )
     ap.add_argument("--out", help="write the results as JSON here")
     args = ap.parse_args(argv)
     log_dir = Path(tempfile.mkdtemp(prefix="recal-bench-fleet-"))
@@ -288,9 +364,19 @@ def main(argv=None) -> int:
         # Only the devices the sessions use (the UR and the tracker): fifty idle CMMs and CAN
         # buses (heartbeats every 0.1 s) would take a good share of the two cores from what is
         # measured.
-        fakes = list(pool.map(lambda h: start_fake_cell(mdl["truth"], h, time_scale=0.0, timeout_s=120,
-                                                        extra=["--no-can", "--no-cmm", "--no-modbus"],
-                                                        log_path=log_dir / f"cell-{h}.log"), hosts))
+        fakes = list(
+            pool.map(
+                lambda h: start_fake_cell(
+                    mdl["truth"],
+                    h,
+                    time_scale=0.0,
+                    timeout_s=120,
+                    extra=["--no-can", "--no-cmm", "--no-modbus"],
+                    log_path=log_dir / f"cell-{h}.log",
+                ),
+                hosts,
+            )
+        )
     results = {"machine": machine(), "args": vars(args), "setups": []}
     try:
         for mode in args.modes.split(","):
@@ -298,9 +384,13 @@ def main(argv=None) -> int:
             r = run_setup(mode, fakes, mdl, args, args.postgres, log_dir)
             results["setups"].append(r)
             c, s = r["concurrent"], r["sequential"]
-            print(f"  wall {r['wall_s']:.1f} s; per session (concurrent) verify {c['verify']['mean_s']:.3f} s, pose "
-                  f"{c['pose']['mean_s']:.3f} s; sequential verify {s['verify']['mean_s']:.3f} s, pose "
-                  f"{s['pose']['mean_s']:.3f} s; {r['summary']}", file=sys.stderr, flush=True)
+            print(
+                f"  wall {r['wall_s']:.1f} s; per session (concurrent) verify {c['verify']['mean_s']:.3f} s, pose "
+                f"{c['pose']['mean_s']:.3f} s; sequential verify {s['verify']['mean_s']:.3f} s, pose "
+                f"{s['pose']['mean_s']:.3f} s; {r['summary']}",
+                file=sys.stderr,
+                flush=True,
+            )
     finally:
         for f in fakes:
             f.stop()
@@ -319,11 +409,17 @@ def main(argv=None) -> int:
             out[f"sequential_{stat[:-2]}_per_session_s"] = seq_f - seq_b
             out[f"sequential_{stat[:-2]}_pct"] = 100 * (seq_f - seq_b) / seq_e
             for k in ("verify", "pose"):
-                out[f"sequential_{stat[:-2]}_{k}_pct"] = 100 * (f["sequential"][k][stat] - b["sequential"][k][stat]) \
-                    / e["sequential"][k][stat]
+                out[f"sequential_{stat[:-2]}_{k}_pct"] = (
+                    100 * (f["sequential"][k][stat] - b["sequential"][k][stat]) / e["sequential"][k][stat]
+                )
         con_b, con_f = b["concurrent"]["all"]["mean_s"], f["concurrent"]["all"]["mean_s"]
-        out.update({"concurrent_per_session_s": con_f - con_b, "concurrent_pct": 100 * (con_f - con_b) / con_b,
-                    "wall_pct": 100 * (f["wall_s"] - b["wall_s"]) / b["wall_s"]})
+        out.update(
+            {
+                "concurrent_per_session_s": con_f - con_b,
+                "concurrent_pct": 100 * (con_f - con_b) / con_b,
+                "wall_pct": 100 * (f["wall_s"] - b["wall_s"]) / b["wall_s"],
+            }
+        )
         results["overhead" if base == "embedded" else "overhead_vs_embedded_pg"] = out
     print(json.dumps(results, indent=2, default=str))
     if args.out:

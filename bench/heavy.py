@@ -55,14 +55,29 @@ def task_csv(model, max_bytes: int, seed: int = 4) -> str:
     """A task CSV of poses the robot reaches, as many rows as fit in ``max_bytes``."""
     rng = np.random.default_rng(seed)
     n = max_bytes // 150 + 1000
-    q = np.column_stack([rng.uniform(-150, 150, n), rng.uniform(-140, -40, n), rng.uniform(40, 140, n),
-                         rng.uniform(-150, 150, n), rng.uniform(40, 140, n), rng.uniform(-150, 150, n)])
+    q = np.column_stack(
+        [
+            rng.uniform(-150, 150, n),
+            rng.uniform(-140, -40, n),
+            rng.uniform(40, 140, n),
+            rng.uniform(-150, 150, n),
+            rng.uniform(40, 140, n),
+            rng.uniform(-150, 150, n),
+        ]
+    )
     T = fk(model, np.radians(q))
     quat = matrix_to_quat(T[:, :3, :3])
     out, size = ["name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6\n"], 0
     for i in range(n):
-        row = (f"P{i}," + ",".join(f"{v:.6f}" for v in T[i, :3, 3] * 1000) + ","
-               + ",".join(f"{v:.9f}" for v in quat[i]) + "," + ",".join(f"{v:.4f}" for v in q[i]) + "\n")
+        row = (
+            f"P{i},"
+            + ",".join(f"{v:.6f}" for v in T[i, :3, 3] * 1000)
+            + ","
+            + ",".join(f"{v:.9f}" for v in quat[i])
+            + ","
+            + ",".join(f"{v:.4f}" for v in q[i])
+            + "\n"
+        )
         if size + len(row) + len(out[0]) > max_bytes:
             break
         out.append(row)
@@ -80,8 +95,12 @@ def abort(api: Api, session_id: int) -> tuple[dict, float]:
     """POST .../abort; (the session it answers, when the route told the robot to stop, ms)."""
     import urllib.request
 
-    req = urllib.request.Request(f"{api.url}/api/v1/sessions/{session_id}/abort", data=b"{}", method="POST",
-                                 headers={"Authorization": f"Bearer {api.token}", "Content-Type": "application/json"})
+    req = urllib.request.Request(
+        f"{api.url}/api/v1/sessions/{session_id}/abort",
+        data=b"{}",
+        method="POST",
+        headers={"Authorization": f"Bearer {api.token}", "Content-Type": "application/json"},
+    )
     with urllib.request.urlopen(req, timeout=30) as r:
         timing = r.headers.get("Server-Timing", "")
         return json.loads(r.read()), float(timing.split("dur=")[1]) if "dur=" in timing else float("nan")
@@ -91,8 +110,9 @@ def probe(api: Api, viewer: Api, cell_id: int, begin, running) -> dict:
     """One run: a verify session moves the robot; once it measured 2 poses, ``begin()`` (the
     heavy work, or nothing); then health and status are polled every 50 ms, the session is
     aborted after 10 polls, and polling goes on while ``running()`` (at least 20 polls)."""
-    s = api.call("POST", f"/cells/{cell_id}/sessions", {"kind": "verify", "count": 200, "device": "tracker",
-                                                        "target": "smr"})
+    s = api.call(
+        "POST", f"/cells/{cell_id}/sessions", {"kind": "verify", "count": 200, "device": "tracker", "target": "smr"}
+    )
     deadline = time.monotonic() + 120
     while viewer.call("GET", f"/sessions/{s['id']}")["measured"] < 2:
         if time.monotonic() > deadline:
@@ -112,8 +132,15 @@ def probe(api: Api, viewer: Api, cell_id: int, begin, running) -> dict:
             after = api.wait_session(s["id"], 30, poll_s=0.05)["measured"] - at_abort
             abort_during = running()
         time.sleep(0.05)
-    return {"health": np.array(health) * 1e3, "status": np.array(status) * 1e3, "abort_ms": abort_s * 1e3,
-            "stop_ms": stop_ms, "after": after, "polls": len(health), "abort_during": abort_during}
+    return {
+        "health": np.array(health) * 1e3,
+        "status": np.array(status) * 1e3,
+        "abort_ms": abort_s * 1e3,
+        "stop_ms": stop_ms,
+        "after": after,
+        "polls": len(health),
+        "abort_during": abort_during,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,14 +164,21 @@ def main(argv: list[str] | None = None) -> int:
         engine.dispose()
         cell = start_fake_cell(home / "truth.json", args.host, time_scale=args.time_scale, log_path=home / "cell.log")
         try:
-            service = start_service(home, free_port(), env={"RECAL_SETTLE_S": "0", "OPENBLAS_NUM_THREADS": "1"},
-                                    log_path=home / "service.log")
+            service = start_service(
+                home,
+                free_port(),
+                env={"RECAL_SETTLE_S": "0", "OPENBLAS_NUM_THREADS": "1"},
+                log_path=home / "service.log",
+            )
             try:
                 api, viewer = Api(service.ready["url"], token, timeout_s=120), Api(service.ready["url"], viewer_token)
                 doc = json.loads((home / "nominal.json").read_text())
                 cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
-                s = api.call("POST", f"/cells/{cell_id}/sessions", {"kind": "pose", "count": 30, "device": "tracker",
-                                                                    "target": "smr"})
+                s = api.call(
+                    "POST",
+                    f"/cells/{cell_id}/sessions",
+                    {"kind": "pose", "count": 30, "device": "tracker", "target": "smr"},
+                )
                 s = api.wait_session(s["id"], 300, poll_s=0.5)
                 cal = s["calibration_id"]
                 model = model_from_dict(api.call("GET", f"/calibrations/{cal}")["model"])
@@ -168,17 +202,25 @@ def main(argv: list[str] | None = None) -> int:
             cell.stop()
 
     rows = task.count("\n") - 1
-    print(f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
-          f"Python {platform.python_version()}, {platform.system()} {platform.release()}")
-    print(f"\ncompensation: {len(task) / 2**20:.2f} MiB, {rows} points, answered in {box['s']:.1f} s; the abort "
-          f"{'was' if loaded['abort_during'] else 'was NOT'} answered while it ran\n")
-    print("| run | health p50 | health p99 | health max | status p99 | robot told to stop | abort answered | "
-          "poses after abort | polls |")
+    print(
+        f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
+        f"Python {platform.python_version()}, {platform.system()} {platform.release()}"
+    )
+    print(
+        f"\ncompensation: {len(task) / 2**20:.2f} MiB, {rows} points, answered in {box['s']:.1f} s; the abort "
+        f"{'was' if loaded['abort_during'] else 'was NOT'} answered while it ran\n"
+    )
+    print(
+        "| run | health p50 | health p99 | health max | status p99 | robot told to stop | abort answered | "
+        "poses after abort | polls |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for name, r in (("baseline (nothing heavy)", baseline), ("during the compensation", loaded)):
         h, st = r["health"], r["status"]
-        print(f"| {name} | {np.percentile(h, 50):.1f} ms | {np.percentile(h, 99):.1f} ms | {h.max():.1f} ms | "
-              f"{np.percentile(st, 99):.1f} ms | {r['stop_ms']:.1f} ms | {r['abort_ms']:.0f} ms | {r['after']} | {r['polls']} |")
+        print(
+            f"| {name} | {np.percentile(h, 50):.1f} ms | {np.percentile(h, 99):.1f} ms | {h.max():.1f} ms | "
+            f"{np.percentile(st, 99):.1f} ms | {r['stop_ms']:.1f} ms | {r['abort_ms']:.0f} ms | {r['after']} | {r['polls']} |"
+        )
     return 0
 
 

@@ -68,21 +68,31 @@ def machine() -> str:
     except OSError:
         pass
     try:
-        mem_kb = int(next(x for x in Path("/proc/meminfo").read_text().splitlines() if x.startswith("MemTotal")).split()[1])
+        mem_kb = int(
+            next(x for x in Path("/proc/meminfo").read_text().splitlines() if x.startswith("MemTotal")).split()[1]
+        )
         mem = f"{mem_kb / 2**20:.1f} GiB"
     except (OSError, StopIteration):
         mem = "?"
     blas = os.environ.get("OPENBLAS_NUM_THREADS", "default")
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    return (f"{os.cpu_count()} CPUs ({cpu}), {mem} RAM, Python {platform.python_version()}, numpy {np.__version__}, "
-            f"scipy {scipy.__version__}, OPENBLAS_NUM_THREADS={blas}; load average {load}")
+    return (
+        f"{os.cpu_count()} CPUs ({cpu}), {mem} RAM, Python {platform.python_version()}, numpy {np.__version__}, "
+        f"scipy {scipy.__version__}, OPENBLAS_NUM_THREADS={blas}; load average {load}"
+    )
 
 
 def scenario(seed: int = 7):
     rng = np.random.default_rng(seed)
     nominal = dataclasses.replace(robots.nominal("ur10e"), tool=TOOL)
-    truth = perturbed(nominal, rng, base_length_m=2e-3, base_angle_rad=np.deg2rad(0.1),
-                      tool_length_m=0.5e-3, tool_angle_rad=np.deg2rad(0.1))
+    truth = perturbed(
+        nominal,
+        rng,
+        base_length_m=2e-3,
+        base_angle_rad=np.deg2rad(0.1),
+        tool_length_m=0.5e-3,
+        tool_angle_rad=np.deg2rad(0.1),
+    )
     q_holdout = random_configurations(nominal, 2000, rng)
     return nominal, truth, rng, q_holdout, target_positions(truth, q_holdout)
 
@@ -136,8 +146,17 @@ def cli_wall_time(nominal, truth, rng, rows: int = 4000, repeat: int = 3) -> flo
         (d / "meas.csv").write_text("\n".join(lines) + "\n")
         exe = Path(sys.executable).with_name("recal")
         cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "service.cli"]
-        cmd += ["identify", "--model", str(d / "nominal.json"), "--data", str(d / "meas.csv"),
-                "--out", str(d / "out.json"), "--report", str(d / "report.json")]
+        cmd += [
+            "identify",
+            "--model",
+            str(d / "nominal.json"),
+            "--data",
+            str(d / "meas.csv"),
+            "--out",
+            str(d / "out.json"),
+            "--report",
+            str(d / "report.json"),
+        ]
         best = float("inf")
         for _ in range(repeat):
             t = time.perf_counter()
@@ -149,18 +168,28 @@ def cli_wall_time(nominal, truth, rng, rows: int = 4000, repeat: int = 3) -> flo
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
-    ap.add_argument("--repeat", type=int, default=3, help="rounds of interleaved timed runs per size (the best is reported)")
-    ap.add_argument("--baseline-max", type=int, default=100000,
-                    help="run the finite-difference baseline on at most this many rows (subsample above)")
+    ap.add_argument(
+        "--repeat", type=int, default=3, help="rounds of interleaved timed runs per size (the best is reported)"
+    )
+    ap.add_argument(
+        "--baseline-max",
+        type=int,
+        default=100000,
+        help="run the finite-difference baseline on at most this many rows (subsample above)",
+    )
     ap.add_argument("--no-fd-memory", action="store_true", help="skip the traced run of the baseline (saves its time)")
     args = ap.parse_args(argv)
 
     print(f"machine: {machine()}")
     nominal, truth, rng, q_holdout, p_true = scenario()
-    print(f"truth: {truth.name}; nominal hold-out error RMS {holdout_errors(nominal, q_holdout, p_true)[0] * 1e3:.3f} mm "
-          f"(before registration); noise {SIGMA_M * 1e6:.0f} um per axis; hold-out 2000 noise-free configurations")
-    head = (f"{'N':>7} | {'ours s':>7} {'us/row':>6} {'iter':>4} {'peak MB':>7} {'RMS um':>7} {'max um':>7} | "
-            f"{'FD s':>7} {'Jevals':>6} {'peak MB':>7} {'RMS um':>7} | {'speed-up':>8} | {'poe RMS um':>10} {'ratio':>5}")
+    print(
+        f"truth: {truth.name}; nominal hold-out error RMS {holdout_errors(nominal, q_holdout, p_true)[0] * 1e3:.3f} mm "
+        f"(before registration); noise {SIGMA_M * 1e6:.0f} um per axis; hold-out 2000 noise-free configurations"
+    )
+    head = (
+        f"{'N':>7} | {'ours s':>7} {'us/row':>6} {'iter':>4} {'peak MB':>7} {'RMS um':>7} {'max um':>7} | "
+        f"{'FD s':>7} {'Jevals':>6} {'peak MB':>7} {'RMS um':>7} | {'speed-up':>8} | {'poe RMS um':>10} {'ratio':>5}"
+    )
     rows = []
     for N in args.sizes:
         data = simulate_measurements(truth, random_configurations(nominal, N, rng), rng, sigma_m=SIGMA_M)
@@ -178,25 +207,47 @@ def main(argv=None) -> int:
         rms_fd, _ = holdout_errors(m_fd, q_holdout, p_true)
         poe = identify(to_poe(nominal), data, sigma_m=SIGMA_M)
         rms_poe, _ = holdout_errors(poe.model, q_holdout, p_true)
-        rows.append(dict(N=N, t=t_ours, it=res.iterations, mem=mem_ours, rms=rms, max=mx, P=len(res.params),
-                         t_fd=t_fd, njev=sol.njev, mem_fd=mem_fd, rms_fd=rms_fd, n_fd=len(sub), rms_poe=rms_poe))
+        rows.append(
+            dict(
+                N=N,
+                t=t_ours,
+                it=res.iterations,
+                mem=mem_ours,
+                rms=rms,
+                max=mx,
+                P=len(res.params),
+                t_fd=t_fd,
+                njev=sol.njev,
+                mem_fd=mem_fd,
+                rms_fd=rms_fd,
+                n_fd=len(sub),
+                rms_poe=rms_poe,
+            )
+        )
         r = rows[-1]
         if len(rows) == 1:
             print(f"free parameters: {r['P']} (ours and the baseline); {len(res.unidentifiable)} not identifiable")
             print(head)
             print("-" * len(head))
         fd_note = "" if r["n_fd"] == N else f"  (FD on the first {r['n_fd']} rows)"
-        print(f"{N:>7} | {r['t']:7.3f} {r['t'] / N * 1e6:6.1f} {r['it']:>4} {r['mem'] / 2**20:7.1f} {rms * 1e6:7.2f} "
-              f"{mx * 1e6:7.2f} | {t_fd:7.3f} {sol.njev:>6} {mem_fd / 2**20:7.1f} {rms_fd * 1e6:7.2f} | "
-              f"{t_fd / r['t'] * (N / r['n_fd']):7.1f}x | {rms_poe * 1e6:10.2f} {rms / rms_poe:5.2f}{fd_note}", flush=True)
+        print(
+            f"{N:>7} | {r['t']:7.3f} {r['t'] / N * 1e6:6.1f} {r['it']:>4} {r['mem'] / 2**20:7.1f} {rms * 1e6:7.2f} "
+            f"{mx * 1e6:7.2f} | {t_fd:7.3f} {sol.njev:>6} {mem_fd / 2**20:7.1f} {rms_fd * 1e6:7.2f} | "
+            f"{t_fd / r['t'] * (N / r['n_fd']):7.1f}x | {rms_poe * 1e6:10.2f} {rms / rms_poe:5.2f}{fd_note}",
+            flush=True,
+        )
     t_cli = cli_wall_time(nominal, truth, rng)
-    print(f"\n`recal identify` on 4,000 rows, whole process (start, read, identify, write model and report): {t_cli:.2f} s")
-    print("Notes: 'ours s' is the whole identify() call, 'FD s' the least_squares call alone, from our registered "
-          "start; both are the best of interleaved runs (up to N = 10,000: --repeat rounds of 3 of ours and 1 of the "
-          "baseline; above: 2 rounds of 1 and 1); 'speed-up' = FD time / ours "
-          "(scaled by N / FD rows when the baseline ran on a subsample); peak MB = tracemalloc peak of one call "
-          "(nan: not measured); RMS/max = hold-out position error against the noise-free truth; "
-          "'poe RMS' = identifying in the true (poe) parameterisation on the same data, 'ratio' = ours / poe.")
+    print(
+        f"\n`recal identify` on 4,000 rows, whole process (start, read, identify, write model and report): {t_cli:.2f} s"
+    )
+    print(
+        "Notes: 'ours s' is the whole identify() call, 'FD s' the least_squares call alone, from our registered "
+        "start; both are the best of interleaved runs (up to N = 10,000: --repeat rounds of 3 of ours and 1 of the "
+        "baseline; above: 2 rounds of 1 and 1); 'speed-up' = FD time / ours "
+        "(scaled by N / FD rows when the baseline ran on a subsample); peak MB = tracemalloc peak of one call "
+        "(nan: not measured); RMS/max = hold-out position error against the noise-free truth; "
+        "'poe RMS' = identifying in the true (poe) parameterisation on the same data, 'ratio' = ours / poe."
+    )
     return 0
 
 

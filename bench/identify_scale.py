@@ -61,6 +61,7 @@ def simulate(N: int, path: Path) -> None:
     import numpy as np
 
     from calibration.simulate import random_configurations, simulate_measurements
+
     sys.path.insert(0, str(ROOT / "bench"))
     from identify import SIGMA_M, scenario  # the benchmark robot of bench/identify.py
 
@@ -73,8 +74,9 @@ def run(pythonpath: Path, npz: Path) -> dict:
     env = {**os.environ, "PYTHONPATH": str(pythonpath)}
     # cwd: the data's directory, so that `-c` (which puts the working directory first on the path)
     # imports the calibration package of ``pythonpath``
-    out = subprocess.run([sys.executable, "-c", CHILD, str(npz)], env=env, capture_output=True, text=True, check=True,
-                         cwd=npz.parent)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, str(npz)], env=env, capture_output=True, text=True, check=True, cwd=npz.parent
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -88,16 +90,19 @@ def main(argv=None) -> int:
     from identify import machine
 
     print(f"machine: {machine()}")
-    print(f"{'N':>8} | {'impl':>8} | {'time s':>7} {'us/row':>7} | {'peak MB':>8} {'above data MB':>13} "
-          f"{'B/row':>7} | {'iter':>4} {'P':>3} {'RMS um':>7}")
+    print(
+        f"{'N':>8} | {'impl':>8} | {'time s':>7} {'us/row':>7} | {'peak MB':>8} {'above data MB':>13} "
+        f"{'B/row':>7} | {'iter':>4} {'P':>3} {'RMS um':>7}"
+    )
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
         impls = [("this", ROOT)]
         if not args.no_baseline:
             base = d / "baseline"
             base.mkdir()
-            archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.baseline_rev, "calibration"],
-                                     capture_output=True, check=True).stdout
+            archive = subprocess.run(
+                ["git", "-C", str(ROOT), "archive", args.baseline_rev, "calibration"], capture_output=True, check=True
+            ).stdout
             subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
             impls.append((args.baseline_rev, base))
         for N in args.sizes:
@@ -106,11 +111,16 @@ def main(argv=None) -> int:
             for name, path in impls:
                 r = run(path, npz)
                 above = r["peak_bytes"] - r["before_bytes"]
-                print(f"{N:>8} | {name:>8} | {r['time_s']:7.2f} {r['time_s'] / N * 1e6:7.2f} | "
-                      f"{r['peak_bytes'] / 2**20:8.0f} {above / 2**20:13.0f} {above / N:7.0f} | "
-                      f"{r['iterations']:>4} {r['parameters']:>3} {r['rms_m'] * 1e6:7.2f}", flush=True)
-    print("peak MB: the process's peak resident set (Python, numpy, scipy, the data and identification); above data: "
-          "that peak less the resident set before identify() (what identification takes); B/row: above data per row.")
+                print(
+                    f"{N:>8} | {name:>8} | {r['time_s']:7.2f} {r['time_s'] / N * 1e6:7.2f} | "
+                    f"{r['peak_bytes'] / 2**20:8.0f} {above / 2**20:13.0f} {above / N:7.0f} | "
+                    f"{r['iterations']:>4} {r['parameters']:>3} {r['rms_m'] * 1e6:7.2f}",
+                    flush=True,
+                )
+    print(
+        "peak MB: the process's peak resident set (Python, numpy, scipy, the data and identification); above data: "
+        "that peak less the resident set before identify() (what identification takes); B/row: above data per row."
+    )
     return 0
 
 

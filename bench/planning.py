@@ -58,8 +58,9 @@ K = 30
 
 
 def cell():
-    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": SMR},
-                                  base=np.array([2.5, 0.0, 0.0, 0.0, 0.0, np.pi]))
+    nominal = dataclasses.replace(
+        robots.nominal("ur10e"), targets={"smr": SMR}, base=np.array([2.5, 0.0, 0.0, 0.0, 0.0, np.pi])
+    )
     sight = planning.LineOfSight(cone_rad=np.deg2rad(30), clearance_m=0.05, near_target_m=0.1)
     box = planning.Volume.box([1.0, -1.5, 0.1], [4.0, 1.5, 2.0])
     return nominal, sight, box
@@ -79,8 +80,9 @@ def holdout_errors(nominal, truth, q, holdouts, rng, draws):
         fit = identify(nominal, data, sigma_m=SIGMA_M)
         row = []
         for q_hold in holdouts:
-            e = np.linalg.norm(target_positions(fit.model, q_hold, "smr") - target_positions(truth, q_hold, "smr"),
-                               axis=1)
+            e = np.linalg.norm(
+                target_positions(fit.model, q_hold, "smr") - target_positions(truth, q_hold, "smr"), axis=1
+            )
             row += [np.sqrt(np.mean(e**2)), np.percentile(e, 95), e.max()]
         out.append(row)
     return np.mean(out, axis=0)
@@ -89,8 +91,17 @@ def holdout_errors(nominal, truth, q, holdouts, rng, draws):
 def predicted_rms(nominal, q, rng, box, evaluation=None):
     """The predicted RMS of a given design: plan over exactly its poses (on ``evaluation`` when
     given: the expected hold-out RMS there)."""
-    return planning.plan(nominal, q, len(q), targets=("smr",), sigma_m=SIGMA_M, rng=rng, volume=box,
-                         evaluation=evaluation, exchange=False).predicted_rms_m
+    return planning.plan(
+        nominal,
+        q,
+        len(q),
+        targets=("smr",),
+        sigma_m=SIGMA_M,
+        rng=rng,
+        volume=box,
+        evaluation=evaluation,
+        exchange=False,
+    ).predicted_rms_m
 
 
 def fmt(values_m, digits=4):
@@ -110,8 +121,10 @@ def machine() -> str:
         pass
     import scipy
 
-    return (f"{cpu}, {os.cpu_count()} cores; Python {platform.python_version()}, numpy {np.__version__}, "
-            f"scipy {scipy.__version__}; {platform.system()} {platform.release()}")
+    return (
+        f"{cpu}, {os.cpu_count()} cores; Python {platform.python_version()}, numpy {np.__version__}, "
+        f"scipy {scipy.__version__}; {platform.system()} {platform.release()}"
+    )
 
 
 def poses_sweep(nominal, cand, box) -> None:
@@ -121,10 +134,25 @@ def poses_sweep(nominal, cand, box) -> None:
     print("| poses | planned (I) | planned (D, default) | random | random / planned (I) |")
     print("|---|---|---|---|---|")
     for k in (10, 12, 15, 20, 30, 60):
-        p = {c: planning.plan(nominal, cand, k, targets=("smr",), sigma_m=SIGMA_M, volume=box, criterion=c,
-                              rng=np.random.default_rng(1)).predicted_rms_m for c in ("I", "D")}
-        v = np.median([predicted_rms(nominal, cand[rng.choice(len(cand), k, replace=False)], np.random.default_rng(1),
-                                     box) for _ in range(10)])
+        p = {
+            c: planning.plan(
+                nominal,
+                cand,
+                k,
+                targets=("smr",),
+                sigma_m=SIGMA_M,
+                volume=box,
+                criterion=c,
+                rng=np.random.default_rng(1),
+            ).predicted_rms_m
+            for c in ("I", "D")
+        }
+        v = np.median(
+            [
+                predicted_rms(nominal, cand[rng.choice(len(cand), k, replace=False)], np.random.default_rng(1), box)
+                for _ in range(10)
+            ]
+        )
         print(f"| {k} | {p['I'] * 1e3:.4f} | {p['D'] * 1e3:.4f} | {v * 1e3:.4f} | {v / p['I']:.2f} |")
 
 
@@ -136,8 +164,10 @@ def ratio_line(label, planned, random_mean, random_each) -> str:
     often it beats a single random design."""
     ratio = planned / random_mean
     wins = int(np.sum(planned[:, None] < random_each))
-    return (f"| {label} | {np.median(ratio):.3f} | {ratio.min():.3f}–{ratio.max():.3f} | "
-            f"{int(np.sum(ratio < 1))} of {len(ratio)} | {wins} of {random_each.size} |")
+    return (
+        f"| {label} | {np.median(ratio):.3f} | {ratio.min():.3f}–{ratio.max():.3f} | "
+        f"{int(np.sum(ratio < 1))} of {len(ratio)} | {wins} of {random_each.size} |"
+    )
 
 
 def main(argv=None) -> int:
@@ -169,23 +199,43 @@ def main(argv=None) -> int:
         designs = {}
         for crit in CRITERIA:
             t0 = time.perf_counter()
-            designs[crit] = planning.plan(nominal, cand, K, targets=("smr",), sigma_m=SIGMA_M, criterion=crit,
-                                          volume=box, rng=np.random.default_rng(seed))
+            designs[crit] = planning.plan(
+                nominal,
+                cand,
+                K,
+                targets=("smr",),
+                sigma_m=SIGMA_M,
+                criterion=crit,
+                volume=box,
+                rng=np.random.default_rng(seed),
+            )
             t_plan[crit].append(time.perf_counter() - t0)
         for k in range(R):
-            designs[f"random{k}"] = planning.plan(nominal, cand[rng.choice(len(cand), K, replace=False)], K,
-                                                  targets=("smr",), sigma_m=SIGMA_M, volume=box,
-                                                  rng=np.random.default_rng(seed), exchange=False)
+            designs[f"random{k}"] = planning.plan(
+                nominal,
+                cand[rng.choice(len(cand), K, replace=False)],
+                K,
+                targets=("smr",),
+                sigma_m=SIGMA_M,
+                volume=box,
+                rng=np.random.default_rng(seed),
+                exchange=False,
+            )
         for name, r in designs.items():
             # the same noise draws for every design of a cell (common random numbers)
-            err[name].append(holdout_errors(nominal, truth, r.q, (q_work, q_seen), np.random.default_rng(5000 + seed),
-                                            args.draws))
+            err[name].append(
+                holdout_errors(nominal, truth, r.q, (q_work, q_seen), np.random.default_rng(5000 + seed), args.draws)
+            )
             pred[name].append((r.predicted_rms_m, r.predicted_p95_m, predicted_rms(nominal, r.q, None, box, q_work)))
         if seed == 0:
             keep = dict(cand=cand, res=designs["I"])
         rnd = np.mean([err[f"random{k}"][-1][0] for k in range(R)])
-        print(f"seed {seed}: " + ", ".join(f"{n} {err[n][-1][0] * 1e3:.4f}" for n in CRITERIA)
-              + f", random (mean of {R}) {rnd * 1e3:.4f} mm", file=sys.stderr)
+        print(
+            f"seed {seed}: "
+            + ", ".join(f"{n} {err[n][-1][0] * 1e3:.4f}" for n in CRITERIA)
+            + f", random (mean of {R}) {rnd * 1e3:.4f} mm",
+            file=sys.stderr,
+        )
     E = {n: np.array(v) for n, v in err.items()}
     PR = {n: np.array(v) for n, v in pred.items()}
     rand_E = np.stack([E[f"random{k}"] for k in range(R)], axis=0)  # (R, cells, 6)
@@ -193,41 +243,61 @@ def main(argv=None) -> int:
     E["random"], PR["random"] = rand_E.mean(axis=0), rand_PR.mean(axis=0)
 
     print(f"Machine: {machine()}.\n")
-    print(f"{args.seeds} cells; per cell {len(CRITERIA)} planned designs and {R} random designs of {K} poses, each "
-          f"measured {args.draws} times (the same noise draws for every design of a cell). Hold-out (noise-free, 1,000 "
-          "fresh configurations per cell): the working volume (reflector in the box, any orientation) and the "
-          "measurable region (in the box and in sight of the tracker: the candidates' distribution). Random: the "
-          "mean over the cell's random designs. Median (interquartile range) over the cells, mm.\n")
-    print("| 30 poses | working volume: RMS | p95 | max | measurable region: RMS | max | expected RMS (working volume) "
-          "| predicted RMS |")
+    print(
+        f"{args.seeds} cells; per cell {len(CRITERIA)} planned designs and {R} random designs of {K} poses, each "
+        f"measured {args.draws} times (the same noise draws for every design of a cell). Hold-out (noise-free, 1,000 "
+        "fresh configurations per cell): the working volume (reflector in the box, any orientation) and the "
+        "measurable region (in the box and in sight of the tracker: the candidates' distribution). Random: the "
+        "mean over the cell's random designs. Median (interquartile range) over the cells, mm.\n"
+    )
+    print(
+        "| 30 poses | working volume: RMS | p95 | max | measurable region: RMS | max | expected RMS (working volume) "
+        "| predicted RMS |"
+    )
     print("|---|---|---|---|---|---|---|---|")
-    for name, label in (("I", "planned (I)"), ("D", "planned (D, default)"),
-                        ("random", "random from the same candidates")):
+    for name, label in (
+        ("I", "planned (I)"),
+        ("D", "planned (D, default)"),
+        ("random", "random from the same candidates"),
+    ):
         e, p = E[name], PR[name]
-        print(f"| {label} | {fmt(e[:, 0])} | {fmt(e[:, 1])} | {fmt(e[:, 2])} | {fmt(e[:, 3])} | {fmt(e[:, 5])} | "
-              f"{fmt(p[:, 2])} | {fmt(p[:, 0])} |")
-    print("\nPlanned / random, per cell (planned against the mean of the cell's random designs; last column: "
-          "against each random design alone):\n")
+        print(
+            f"| {label} | {fmt(e[:, 0])} | {fmt(e[:, 1])} | {fmt(e[:, 2])} | {fmt(e[:, 3])} | {fmt(e[:, 5])} | "
+            f"{fmt(p[:, 2])} | {fmt(p[:, 0])} |"
+        )
+    print(
+        "\nPlanned / random, per cell (planned against the mean of the cell's random designs; last column: "
+        "against each random design alone):\n"
+    )
     print("| figure | median ratio | range | cells better | single random designs beaten |")
     print("|---|---|---|---|---|")
     for crit in ("I", "D"):
-        for label, col, src, rs in (("working volume, RMS", 0, E, rand_E), ("working volume, max", 2, E, rand_E),
-                                    ("measurable region, RMS", 3, E, rand_E),
-                                    ("expected RMS, working volume", 2, PR, rand_PR)):
+        for label, col, src, rs in (
+            ("working volume, RMS", 0, E, rand_E),
+            ("working volume, max", 2, E, rand_E),
+            ("measurable region, RMS", 3, E, rand_E),
+            ("expected RMS, working volume", 2, PR, rand_PR),
+        ):
             print(ratio_line(f"{crit}: {label}", src[crit][:, col], src["random"][:, col], rs[:, :, col].T))
-    print(f"\nPredicted/actual RMS over the working volume (medians): planned (I) "
-          f"{np.median(PR['I'][:, 0] / E['I'][:, 0]):.3f}, "
-          f"random {np.median(rand_PR[:, :, 0] / rand_E[:, :, 0]):.3f}.\n")
+    print(
+        f"\nPredicted/actual RMS over the working volume (medians): planned (I) "
+        f"{np.median(PR['I'][:, 0] / E['I'][:, 0]):.3f}, "
+        f"random {np.median(rand_PR[:, :, 0] / rand_E[:, :, 0]):.3f}.\n"
+    )
 
     print("Criteria (same cells, 30 poses; medians over the cells, mm; time: planning, median):\n")
-    print("| criterion | predicted RMS | predicted p95 | expected hold-out RMS | hold-out RMS (working volume) | "
-          "hold-out max | planning time (s) |")
+    print(
+        "| criterion | predicted RMS | predicted p95 | expected hold-out RMS | hold-out RMS (working volume) | "
+        "hold-out max | planning time (s) |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name in (*CRITERIA, "random"):
         tp = f"{np.median(t_plan[name]):.2f}" if name in t_plan else "–"
-        print(f"| {name} | {np.median(PR[name][:, 0]) * 1e3:.4f} | {np.median(PR[name][:, 1]) * 1e3:.4f} | "
-              f"{np.median(PR[name][:, 2]) * 1e3:.4f} | {np.median(E[name][:, 0]) * 1e3:.4f} | "
-              f"{np.median(E[name][:, 2]) * 1e3:.4f} | {tp} |")
+        print(
+            f"| {name} | {np.median(PR[name][:, 0]) * 1e3:.4f} | {np.median(PR[name][:, 1]) * 1e3:.4f} | "
+            f"{np.median(PR[name][:, 2]) * 1e3:.4f} | {np.median(E[name][:, 0]) * 1e3:.4f} | "
+            f"{np.median(E[name][:, 2]) * 1e3:.4f} | {tp} |"
+        )
     if args.quick:
         print(f"\nWhole benchmark {time.perf_counter() - t_start:.0f} s.")
         return 0
@@ -235,7 +305,9 @@ def main(argv=None) -> int:
     # how many random poses match 30 planned ones (predicted), on the first cell's candidates
     rng = np.random.default_rng(7)
     cand, res = keep["cand"], keep["res"]
-    print("\nRandom poses needed to match the predicted accuracy of 30 planned ones (first cell, median of 10 draws):\n")
+    print(
+        "\nRandom poses needed to match the predicted accuracy of 30 planned ones (first cell, median of 10 draws):\n"
+    )
     print("| random poses | predicted RMS (mm) |")
     print("|---|---|")
     for k in (30, 40, 50, 60, 80):
@@ -255,8 +327,10 @@ def main(argv=None) -> int:
             r = planning.plan(nominal, c, k, targets=("smr",), sigma_m=SIGMA_M, criterion=crit)
             cells.append(f"{time.perf_counter() - t0:.2f} | {r.swaps}")
         print(f"| {n_c} | {k} | {' | '.join(cells)} |")
-    print(f"\nCandidate generation with the line-of-sight and volume tests: median {np.median(t_gen):.2f} s "
-          f"for 2,000 candidates; whole benchmark {time.perf_counter() - t_start:.0f} s.")
+    print(
+        f"\nCandidate generation with the line-of-sight and volume tests: median {np.median(t_gen):.2f} s "
+        f"for 2,000 candidates; whole benchmark {time.perf_counter() - t_start:.0f} s."
+    )
     return 0
 
 

@@ -65,8 +65,9 @@ def _ts(v) -> float:
 
 def session_per_pose(api: Api, cell_id: int, poses: int) -> tuple[int, list[float], np.ndarray]:
     """Run a pose session; (its id, the intervals between consecutive commits (s), readings)."""
-    s = api.call("POST", f"/cells/{cell_id}/sessions", {"kind": "pose", "count": poses, "device": "tracker",
-                                                        "target": "smr"})
+    s = api.call(
+        "POST", f"/cells/{cell_id}/sessions", {"kind": "pose", "count": poses, "device": "tracker", "target": "smr"}
+    )
     s = api.wait_session(s["id"], 300, poll_s=0.5)
     if s["state"] != "completed":
         raise RuntimeError(f"the pose session ended {s['state']}: {s.get('reason')}")
@@ -87,8 +88,9 @@ def drivers_per_pose(endpoint: dict, configs: np.ndarray) -> list[float]:
     try:
         t_prev = time.time()
         for q in configs:
-            robot.move_joints(q, speed_rad_s=settings.max_joint_speed_rad_s,
-                              accel_rad_s2=settings.max_joint_accel_rad_s2)
+            robot.move_joints(
+                q, speed_rad_s=settings.max_joint_speed_rad_s, accel_rad_s2=settings.max_joint_accel_rad_s2
+            )
             robot.read_joints()
             tracker.measure()
             now = time.time()
@@ -131,8 +133,10 @@ def _client(args) -> list[float]:
     while time.time() < start_at:  # every client starts together
         time.sleep(0.001)
     rng = random.Random(os.getpid())
-    ts = [threading.Thread(target=run, args=(rng.uniform(0, interval_s), rng.randrange(len(paths))))
-          for _ in range(threads)]
+    ts = [
+        threading.Thread(target=run, args=(rng.uniform(0, interval_s), rng.randrange(len(paths))))
+        for _ in range(threads)
+    ]
     for t in ts:
         t.start()
     for t in ts:
@@ -140,8 +144,9 @@ def _client(args) -> list[float]:
     return lat
 
 
-def load(url: str, path: str, token: str | None, clients: int, procs: int, requests: int,
-         interval_s: float = 0.0) -> dict:
+def load(
+    url: str, path: str, token: str | None, clients: int, procs: int, requests: int, interval_s: float = 0.0
+) -> dict:
     host, port = url.split("//")[1].split(":")
     per = [clients // procs + (i < clients % procs) for i in range(procs)]
     start_at = time.time() + 1.0
@@ -150,12 +155,19 @@ def load(url: str, path: str, token: str | None, clients: int, procs: int, reque
         parts = pool.map(_client, [(host, int(port), path, token, n, requests, start_at, interval_s) for n in per])
     wall = time.perf_counter() - t0 - 1.0
     lat = np.sort(np.concatenate([np.array(p) for p in parts])) * 1e3
-    return {"n": lat.size, "p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
-            "p99": float(np.percentile(lat, 99)), "max": float(lat[-1]), "rps": lat.size / wall}
+    return {
+        "n": lat.size,
+        "p50": float(np.percentile(lat, 50)),
+        "p95": float(np.percentile(lat, 95)),
+        "p99": float(np.percentile(lat, 99)),
+        "max": float(lat[-1]),
+        "rps": lat.size / wall,
+    }
 
 
-def page_load(url: str, paths: list[str], token: str, clients: int, procs: int, requests: int,
-              interval_s: float) -> dict:
+def page_load(
+    url: str, paths: list[str], token: str, clients: int, procs: int, requests: int, interval_s: float
+) -> dict:
     """``clients`` pages polling ``paths`` in turn; latency (ms) over all, and per path."""
     host, port = url.split("//")[1].split(":")
     per = [clients // procs + (i < clients % procs) for i in range(procs)]
@@ -168,8 +180,14 @@ def page_load(url: str, paths: list[str], token: str, clients: int, procs: int, 
     out = {}
     for name, sel in [("all", np.ones(len(rows), bool))] + [(p, rows[:, 0] == k) for k, p in enumerate(paths)]:
         lat = np.sort(rows[sel, 1]) * 1e3
-        out[name] = {"n": lat.size, "p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
-                     "p99": float(np.percentile(lat, 99)), "max": float(lat[-1]), "rps": lat.size / wall}
+        out[name] = {
+            "n": lat.size,
+            "p50": float(np.percentile(lat, 50)),
+            "p95": float(np.percentile(lat, 95)),
+            "p99": float(np.percentile(lat, 99)),
+            "max": float(lat[-1]),
+            "rps": lat.size / wall,
+        }
     return out
 
 
@@ -199,9 +217,14 @@ def page_routes(api: Api, cell_id: int, session_id: int) -> list[str]:
     """What the page polls while a technician watches (service/web/js/views): the overview, the
     cell's summary, the session, its measurements and live residuals, its calibration's result."""
     cal = api.call("GET", f"/sessions/{session_id}")["calibration_id"]
-    return ["/api/v1/overview?limit=50&offset=0", f"/api/v1/cells/{cell_id}/summary",
-            f"/api/v1/sessions/{session_id}", f"/api/v1/sessions/{session_id}/measurements",
-            f"/api/v1/sessions/{session_id}/live", f"/api/v1/calibrations/{cal}/result"]
+    return [
+        "/api/v1/overview?limit=50&offset=0",
+        f"/api/v1/cells/{cell_id}/summary",
+        f"/api/v1/sessions/{session_id}",
+        f"/api/v1/sessions/{session_id}/measurements",
+        f"/api/v1/sessions/{session_id}/live",
+        f"/api/v1/calibrations/{cal}/result",
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -212,8 +235,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--requests", type=int, default=100, help="requests per client")
     ap.add_argument("--interval", type=float, default=0.1, help="polling: seconds between a client's requests")
     ap.add_argument("--host", default="127.0.4.2", help="loopback address of the simulated cell")
-    ap.add_argument("--page-only", action="store_true",
-                    help="only the page's routes against the baseline (skip the per-pose and single-route loads)")
+    ap.add_argument(
+        "--page-only",
+        action="store_true",
+        help="only the page's routes against the baseline (skip the per-pose and single-route loads)",
+    )
     ap.add_argument("--page-requests", type=int, default=60, help="requests per page client")
     args = ap.parse_args(argv)
 
@@ -231,8 +257,12 @@ def main(argv: list[str] | None = None) -> int:
         engine.dispose()
         cell = start_fake_cell(home / "truth.json", args.host, time_scale=0.0, log_path=home / "cell.log")
         try:
-            service = start_service(home, free_port(), env={"RECAL_SETTLE_S": "0", "OPENBLAS_NUM_THREADS": "1"},
-                                    log_path=home / "service.log")
+            service = start_service(
+                home,
+                free_port(),
+                env={"RECAL_SETTLE_S": "0", "OPENBLAS_NUM_THREADS": "1"},
+                log_path=home / "service.log",
+            )
             try:
                 api = Api(service.ready["url"], token)
                 doc = json.loads((home / "nominal.json").read_text())
@@ -241,33 +271,54 @@ def main(argv: list[str] | None = None) -> int:
                 driver_dt = [] if args.page_only else drivers_per_pose(cell.ready, configs)
                 path = f"/api/v1/sessions/{session_id}"
                 loads = {}
-                for mode, interval in (() if args.page_only else (("polling", args.interval), ("saturated", 0.0))):
+                for mode, interval in () if args.page_only else (("polling", args.interval), ("saturated", 0.0)):
                     for name, p, tok in ((path, path, token), ("/api/v1/health", "/api/v1/health", None)):
-                        loads[mode, name] = load(service.ready["url"], p, tok, args.clients, args.client_processes,
-                                                 args.requests, interval)
+                        loads[mode, name] = load(
+                            service.ready["url"], p, tok, args.clients, args.client_processes, args.requests, interval
+                        )
                 # 3. The page's own routes, polled by 50 pages, and the baseline in the same run.
                 routes = page_routes(api, cell_id, session_id)
-                page = page_load(service.ready["url"], routes, token, args.clients, args.client_processes,
-                                 args.page_requests, args.interval)
+                page = page_load(
+                    service.ready["url"],
+                    routes,
+                    token,
+                    args.clients,
+                    args.client_processes,
+                    args.page_requests,
+                    args.interval,
+                )
                 server_side = over_50ms(service.ready["url"])
-                page_base = load(service.ready["url"], "/api/v1/health", None, args.clients, args.client_processes,
-                                 args.page_requests, args.interval)
+                page_base = load(
+                    service.ready["url"],
+                    "/api/v1/health",
+                    None,
+                    args.clients,
+                    args.client_processes,
+                    args.page_requests,
+                    args.interval,
+                )
             finally:
                 service.stop()
         finally:
             cell.stop()
 
-    print(f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
-          f"Python {platform.python_version()}, {platform.system()} {platform.release()}")
-    print(f"\n## The page's routes: {args.clients} pages each polling one every {args.interval:g} s, "
-          f"in turn ({args.page_requests} requests each; latency in ms)\n")
+    print(
+        f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
+        f"Python {platform.python_version()}, {platform.system()} {platform.release()}"
+    )
+    print(
+        f"\n## The page's routes: {args.clients} pages each polling one every {args.interval:g} s, "
+        f"in turn ({args.page_requests} requests each; latency in ms)\n"
+    )
     print("| request | requests | p50 | p95 | p99 | max |")
     print("|---|---|---|---|---|---|")
     for name, r in page.items():
         what = "all the page's routes" if name == "all" else "GET " + name.split("?")[0]
         print(f"| {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | {r['max']:.1f} |")
-    print(f"| GET /api/v1/health (baseline, same clients) | {page_base['n']} | {page_base['p50']:.1f} | "
-          f"{page_base['p95']:.1f} | {page_base['p99']:.1f} | {page_base['max']:.1f} |")
+    print(
+        f"| GET /api/v1/health (baseline, same clients) | {page_base['n']} | {page_base['p50']:.1f} | "
+        f"{page_base['p95']:.1f} | {page_base['p99']:.1f} | {page_base['max']:.1f} |"
+    )
     print("\nInside the service (its /metrics histogram, every request of the run so far): requests over 50 ms")
     for route, (n, slow) in sorted(server_side.items()):
         if n >= 100:
@@ -277,8 +328,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n## Per pose, {args.poses} poses, time scale 0 (ms)\n")
     print("| | mean | median | p95 |")
     print("|---|---|---|---|")
-    for name, dt in (("pose session (orchestrator + drivers + store)", session_dt),
-                     ("drivers alone (baseline)", driver_dt)):
+    for name, dt in (
+        ("pose session (orchestrator + drivers + store)", session_dt),
+        ("drivers alone (baseline)", driver_dt),
+    ):
         d = np.array(dt) * 1e3
         print(f"| {name} | {d.mean():.2f} | {np.median(d):.2f} | {np.percentile(d, 95):.2f} |")
     over = (statistics.fmean(session_dt) - statistics.fmean(driver_dt)) * 1e3
@@ -288,10 +341,12 @@ def main(argv: list[str] | None = None) -> int:
     print("| load | request | requests | p50 | p95 | p99 | max | requests/s |")
     print("|---|---|---|---|---|---|---|---|")
     for (mode, name), r in loads.items():
-        what = ("GET /api/v1/sessions/{id}" if name != "/api/v1/health" else "GET /api/v1/health (baseline)")
+        what = "GET /api/v1/sessions/{id}" if name != "/api/v1/health" else "GET /api/v1/health (baseline)"
         load_name = f"polling every {args.interval:g} s" if mode == "polling" else "saturated"
-        print(f"| {load_name} | {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | "
-              f"{r['max']:.1f} | {r['rps']:.0f} |")
+        print(
+            f"| {load_name} | {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | "
+            f"{r['max']:.1f} | {r['rps']:.0f} |"
+        )
     return 0
 
 

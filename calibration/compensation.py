@@ -33,16 +33,34 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ik import (IKResult, _polish, characteristic_length, inverse_kinematics, pose_and_jacobian, pose_error,
-                 singular_values, solve_ik, ur_branch, ur_geometry, ur_ik)
+from .ik import (
+    IKResult,
+    _polish,
+    characteristic_length,
+    inverse_kinematics,
+    pose_and_jacobian,
+    pose_error,
+    singular_values,
+    solve_ik,
+    ur_branch,
+    ur_geometry,
+    ur_ik,
+)
 from .kinematics import check_q, fk, walk
 from .model import KinematicModel
 from .registration import kabsch
 from .simulate import random_configurations
 from .transforms import invert, rotvec_to_matrix
 
-FLAGS = ("joint_limit", "near_singular", "outside_calibrated_region", "no_convergence", "branch_change", "unreachable",
-         "outside_mapped_region")
+FLAGS = (
+    "joint_limit",
+    "near_singular",
+    "outside_calibrated_region",
+    "no_convergence",
+    "branch_change",
+    "unreachable",
+    "outside_mapped_region",
+)
 """Flag names, in bit order: ``joint_limit`` the command is outside the model's joint limits;
 ``near_singular`` the smallest dimensionless singular value of the identified robot's Jacobian
 at the command is below ``singular_tol``; ``outside_calibrated_region`` the command is outside
@@ -123,8 +141,14 @@ def frame_map(model_from: KinematicModel, model_to: KinematicModel, q_samples: n
     return kabsch(fk(model_from, q)[:, :3, 3], fk(model_to, q)[:, :3, 3])
 
 
-def nominal_world_frame(model: KinematicModel, nominal: KinematicModel, calibrated_range: np.ndarray | None = None,
-                        *, samples: int = 256, seed: int = 0) -> tuple[np.ndarray, float]:
+def nominal_world_frame(
+    model: KinematicModel,
+    nominal: KinematicModel,
+    calibrated_range: np.ndarray | None = None,
+    *,
+    samples: int = 256,
+    seed: int = 0,
+) -> tuple[np.ndarray, float]:
     """``T_nominal_world`` (4, 4) and the RMS (m) of its fit: where the nominal model's world (the
     controller's base frame) sits in the identified model's, from :func:`frame_map` over
     ``samples`` configurations drawn in ``calibrated_range`` (n, 2) (else the joint limits within
@@ -139,8 +163,9 @@ def nominal_world_frame(model: KinematicModel, nominal: KinematicModel, calibrat
     return M, rms
 
 
-def source_poses(q: np.ndarray, taught: KinematicModel | None, nominal: KinematicModel,
-                 T_nominal_world: np.ndarray) -> np.ndarray:
+def source_poses(
+    q: np.ndarray, taught: KinematicModel | None, nominal: KinematicModel, T_nominal_world: np.ndarray
+) -> np.ndarray:
     """World poses (N, 4, 4) that the joint vectors ``q`` gave the robot they were taught on
     (``taught``, an identified model in the world frame), or planned on (the ``nominal`` model,
     whose world is ``T_nominal_world`` away)."""
@@ -219,8 +244,13 @@ def assess(
 
 
 def nominal_solution(
-    nominal: KinematicModel, T_nominal_tool: np.ndarray, q_near: np.ndarray, *, keep_branch: bool | np.ndarray = True,
-    position_tol_m: float = 1e-9, rotation_tol_rad: float = 1e-9,
+    nominal: KinematicModel,
+    T_nominal_tool: np.ndarray,
+    q_near: np.ndarray,
+    *,
+    keep_branch: bool | np.ndarray = True,
+    position_tol_m: float = 1e-9,
+    rotation_tol_rad: float = 1e-9,
 ) -> IKResult:
     """The nominal controller's solution of poses in the nominal model's world (N, 4, 4): the
     closed form where the nominal has UR structure (branch of ``q_near``, or nearest to it), else
@@ -228,8 +258,14 @@ def nominal_solution(
     joint limits (:func:`calibration.ik.inverse_kinematics`, :func:`calibration.ik.numerical_ik`).
     ``keep_branch`` (a bool or one per point): ``q_near`` is the point's taught or planned
     configuration."""
-    return inverse_kinematics(nominal, _as_poses(T_nominal_tool), q_near, keep_branch=keep_branch,
-                              position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad)
+    return inverse_kinematics(
+        nominal,
+        _as_poses(T_nominal_tool),
+        q_near,
+        keep_branch=keep_branch,
+        position_tol_m=position_tol_m,
+        rotation_tol_rad=rotation_tol_rad,
+    )
 
 
 def _nominal_ik_fixed(nominal, X, q_prev, branch, kw) -> IKResult:
@@ -275,16 +311,42 @@ def compensate_joints(
     q_nominal = check_q(identified, q_nominal)
     if len(q_nominal) != len(T_desired):
         raise ValueError(f"{len(T_desired)} poses but {len(q_nominal)} nominal solutions")
-    r = solve_ik(identified, T_desired, q_nominal, position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad,
-                 max_iterations=max_iterations)
-    flags, smin = assess(identified, r.q, q_nominal, r.converged, reachable=reachable,
-                         branch_changed=branch_changed, calibrated_range=calibrated_range, singular_tol=singular_tol,
-                         max_correction_rad=max_correction_rad, max_correction_m=max_correction_m,
-                         J=r.jacobian, J_nominal=r.jacobian_start)
+    r = solve_ik(
+        identified,
+        T_desired,
+        q_nominal,
+        position_tol_m=position_tol_m,
+        rotation_tol_rad=rotation_tol_rad,
+        max_iterations=max_iterations,
+    )
+    flags, smin = assess(
+        identified,
+        r.q,
+        q_nominal,
+        r.converged,
+        reachable=reachable,
+        branch_changed=branch_changed,
+        calibrated_range=calibrated_range,
+        singular_tol=singular_tol,
+        max_correction_rad=max_correction_rad,
+        max_correction_m=max_correction_m,
+        J=r.jacobian,
+        J_nominal=r.jacobian_start,
+    )
     return Compensation(
-        q=r.q, T_command=T_desired, T_desired=T_desired, q_nominal=q_nominal, correction=r.q - q_nominal,
-        converged=r.converged, residual_m=r.residual_m, residual_rad=r.residual_rad, iterations=r.iterations,
-        sigma_min=smin, flags=flags, mode="joints", message=_message(r.converged, flags),
+        q=r.q,
+        T_command=T_desired,
+        T_desired=T_desired,
+        q_nominal=q_nominal,
+        correction=r.q - q_nominal,
+        converged=r.converged,
+        residual_m=r.residual_m,
+        residual_rad=r.residual_rad,
+        iterations=r.iterations,
+        sigma_min=smin,
+        flags=flags,
+        mode="joints",
+        message=_message(r.converged, flags),
     )
 
 
@@ -329,8 +391,14 @@ def compensate_targets(
     q_near = np.broadcast_to(check_q(nominal, np.asarray(q_near, dtype=float).reshape(-1, n)), (N, n)).copy()
     kw = dict(position_tol_m=position_tol_m * 1e-2, rotation_tol_rad=rotation_tol_rad * 1e-2, max_iterations=50)
     X = _apply(M, T_desired)
-    first = nominal_solution(nominal, X, q_near, keep_branch=keep_branch, position_tol_m=kw["position_tol_m"],
-                             rotation_tol_rad=kw["rotation_tol_rad"])
+    first = nominal_solution(
+        nominal,
+        X,
+        q_near,
+        keep_branch=keep_branch,
+        position_tol_m=kw["position_tol_m"],
+        rotation_tol_rad=kw["rotation_tol_rad"],
+    )
     q_nom = first.q
     reachable = first.reachable.copy()
     branch_changed = first.branch_changed
@@ -343,7 +411,8 @@ def compensate_targets(
 
     def done(err):
         return (np.linalg.norm(err[:, :3], axis=1) <= position_tol_m) & (
-            np.linalg.norm(err[:, 3:], axis=1) <= rotation_tol_rad)
+            np.linalg.norm(err[:, 3:], axis=1) <= rotation_tol_rad
+        )
 
     L = characteristic_length(identified)
     active = ~done(e) & ik_ok
@@ -368,14 +437,32 @@ def compensate_targets(
         iterations[idx] += 1
         active[idx] = ~done(e[idx]) & keep
     converged = done(e) & ik_ok
-    flags, smin = assess(identified, q, q_nom, converged, reachable=reachable, branch_changed=branch_changed,
-                         calibrated_range=calibrated_range,
-                         singular_tol=singular_tol, max_correction_rad=max_correction_rad,
-                         max_correction_m=max_correction_m)
+    flags, smin = assess(
+        identified,
+        q,
+        q_nom,
+        converged,
+        reachable=reachable,
+        branch_changed=branch_changed,
+        calibrated_range=calibrated_range,
+        singular_tol=singular_tol,
+        max_correction_rad=max_correction_rad,
+        max_correction_m=max_correction_m,
+    )
     return Compensation(
-        q=q, T_command=X, T_desired=T_desired, q_nominal=q_nom, correction=q - q_nom, converged=converged,
-        residual_m=np.linalg.norm(e[:, :3], axis=1), residual_rad=np.linalg.norm(e[:, 3:], axis=1),
-        iterations=iterations, sigma_min=smin, flags=flags, mode="targets", message=_message(converged, flags),
+        q=q,
+        T_command=X,
+        T_desired=T_desired,
+        q_nominal=q_nom,
+        correction=q - q_nom,
+        converged=converged,
+        residual_m=np.linalg.norm(e[:, :3], axis=1),
+        residual_rad=np.linalg.norm(e[:, 3:], axis=1),
+        iterations=iterations,
+        sigma_min=smin,
+        flags=flags,
+        mode="targets",
+        message=_message(converged, flags),
     )
 
 
@@ -440,8 +527,14 @@ def concatenate(parts: list[Compensation]) -> Compensation:
 
 def take(comp: Compensation, idx: np.ndarray) -> Compensation:
     """The points ``idx`` of a compensation, in that order."""
-    return dataclasses.replace(comp, **{f.name: getattr(comp, f.name)[idx] for f in dataclasses.fields(comp)
-                                        if isinstance(getattr(comp, f.name), np.ndarray)})
+    return dataclasses.replace(
+        comp,
+        **{
+            f.name: getattr(comp, f.name)[idx]
+            for f in dataclasses.fields(comp)
+            if isinstance(getattr(comp, f.name), np.ndarray)
+        },
+    )
 
 
 # ----------------------------------------------------------------------------- book Algorithm A
@@ -512,6 +605,16 @@ def error_table(dp_initial: np.ndarray, dp_compensated: np.ndarray) -> dict:
 
 
 __all__ = [
-    "FLAGS", "FLAG_BIT", "Compensation", "assess", "compensate_joints", "compensate_targets", "compensate_taught",
-    "error_table", "flag_names", "frame_map", "inverse_jacobian_iteration", "nominal_solution",
+    "FLAGS",
+    "FLAG_BIT",
+    "Compensation",
+    "assess",
+    "compensate_joints",
+    "compensate_targets",
+    "compensate_taught",
+    "error_table",
+    "flag_names",
+    "frame_map",
+    "inverse_jacobian_iteration",
+    "nominal_solution",
 ]

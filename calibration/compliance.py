@@ -37,8 +37,13 @@ from .kinematics import check_q, deflections, payload_rows, regressors, walk  # 
 from .model import STANDARD_GRAVITY, GravityCompliance, KinematicModel
 
 
-def gravity_torques(model: KinematicModel, q: np.ndarray, masses: Mapping[str, tuple[float, tuple]],
-                    payload=None, gravity=(0.0, 0.0, -1.0)) -> np.ndarray:
+def gravity_torques(
+    model: KinematicModel,
+    q: np.ndarray,
+    masses: Mapping[str, tuple[float, tuple]],
+    payload=None,
+    gravity=(0.0, 0.0, -1.0),
+) -> np.ndarray:
     """The gravity torque (N, n) N·m about every revolute joint's axis of lumped ``masses``
     (``{link joint: (kg, centre of gravity (3,) m in that link's frame)}``) and the payload, at
     the rigid configuration: the physical quantity the terms of eq. 1 are built from (for
@@ -54,7 +59,7 @@ def gravity_torques(model: KinematicModel, q: np.ndarray, masses: Mapping[str, t
     reg = regressors(probe, q, payload)
     out = np.zeros((check_q(model, q).shape[0], len(names)))
     for name, phi in reg.items():
-        term = name[len("compliance."):]
+        term = name[len("compliance.") :]
         j = term.partition(".")[0]
         if term.endswith(".k"):
             out[:, names.index(j)] += phi  # the payload's torque (its regressor is m_p g · lever)
@@ -63,8 +68,14 @@ def gravity_torques(model: KinematicModel, q: np.ndarray, masses: Mapping[str, t
     return out
 
 
-def physical_section(model: KinematicModel, compliance: Mapping[str, float], masses: Mapping[str, tuple[float, tuple]],
-                     *, gravity=(0.0, 0.0, -1.0), payload=None) -> GravityCompliance:
+def physical_section(
+    model: KinematicModel,
+    compliance: Mapping[str, float],
+    masses: Mapping[str, tuple[float, tuple]],
+    *,
+    gravity=(0.0, 0.0, -1.0),
+    payload=None,
+) -> GravityCompliance:
     """A compliance section from physical figures: ``compliance`` per deflecting joint (rad per
     N·m, the inverse of its stiffness), lumped ``masses`` ``{link joint: (kg, centre of gravity
     (3,) m in the link's frame)}``: the identifiable products of eq. 1."""
@@ -83,8 +94,13 @@ def physical_section(model: KinematicModel, compliance: Mapping[str, float], mas
     return dataclasses.replace(section, values=values)
 
 
-def default_section(model: KinematicModel, *, gravity=(0.0, 0.0, -1.0), joints: tuple[str, ...] | None = None,
-                    lumps: tuple[str, ...] | None = None) -> GravityCompliance:
+def default_section(
+    model: KinematicModel,
+    *,
+    gravity=(0.0, 0.0, -1.0),
+    joints: tuple[str, ...] | None = None,
+    lumps: tuple[str, ...] | None = None,
+) -> GravityCompliance:
     """The section ``recal identify --compliance`` starts from (every term 0): by default the
     joints that carry the arm, the revolute ones among the first three whose axis is not along
     gravity (a vertical first axis feels no gravity torque), and lumps on their links and on the
@@ -98,8 +114,13 @@ def default_section(model: KinematicModel, *, gravity=(0.0, 0.0, -1.0), joints: 
         q = rng.uniform(lim[:, 0], lim[:, 1], size=(16, model.n_joints))
         keys = {f"{j.name}.theta" for j in model.joints[:3] if j.revolute}
         w = walk(rigid, q, keys)
-        joints = tuple(j.name for j in model.joints[:3] if j.revolute and f"{j.name}.theta" in w.axes
-                       and np.max(np.linalg.norm(np.cross(w.axes[f"{j.name}.theta"][0], g), axis=1)) > 1e-6)
+        joints = tuple(
+            j.name
+            for j in model.joints[:3]
+            if j.revolute
+            and f"{j.name}.theta" in w.axes
+            and np.max(np.linalg.norm(np.cross(w.axes[f"{j.name}.theta"][0], g), axis=1)) > 1e-6
+        )
     if lumps is None:
         last = model.joints[-1].name
         lumps = tuple(dict.fromkeys([*joints, last]))
@@ -130,8 +151,9 @@ def describe_term(name: str) -> str:
     return f"joint {parts[0]} compliance x link {parts[1]} {what} ({name})"
 
 
-def lumps_in_frames_of(masses: Mapping[str, tuple[float, tuple]], source: KinematicModel, target: KinematicModel
-                       ) -> dict[str, tuple[float, tuple]]:
+def lumps_in_frames_of(
+    masses: Mapping[str, tuple[float, tuple]], source: KinematicModel, target: KinematicModel
+) -> dict[str, tuple[float, tuple]]:
     """Lumped ``masses`` whose centres of gravity are given in ``source``'s link frames, expressed
     in ``target``'s (the same robot in another convention: both frames are fixed on the same link,
     so one configuration, q = 0, relates them)."""
@@ -146,7 +168,6 @@ def lumps_in_frames_of(masses: Mapping[str, tuple[float, tuple]], source: Kinema
         p_base = ps[0] + Rs[0] @ np.asarray(r, dtype=float)
         out[lump] = (m, tuple(Rt[0].T @ (p_base - pt[0])))
     return out
-
 
 
 def reexpress(model: KinematicModel, source: KinematicModel) -> KinematicModel:

@@ -78,9 +78,16 @@ def cv_rms(model: KinematicModel, data, folds: list[np.ndarray], identify_kw: di
     return float(np.sqrt(sq / max(n, 1)))
 
 
-def choose_compliance(model: KinematicModel, data, *, candidates: GravityCompliance | None = None,
-                      folds: int = 5, min_gain: float = MIN_CV_GAIN, seed: int = 0,
-                      identify_kw: dict | None = None) -> CrossValidation:
+def choose_compliance(
+    model: KinematicModel,
+    data,
+    *,
+    candidates: GravityCompliance | None = None,
+    folds: int = 5,
+    min_gain: float = MIN_CV_GAIN,
+    seed: int = 0,
+    identify_kw: dict | None = None,
+) -> CrossValidation:
     """Which joints' compliance the data support (``recal identify --compliance auto``): forward
     selection by k-fold cross-validation over :func:`calibration.identify.identify`. Starting
     rigid, add the candidate joint whose compliance lowers the cross-validated RMS most, while it
@@ -133,8 +140,11 @@ def compare(model: KinematicModel, data, *, folds: int = 5, seed: int = 0, ident
     fresh = dataclasses.replace(model.compliance, values={})
     rigid = cv_rms(with_section(model, None), data, fidx, kw)
     compliant = cv_rms(with_section(model, fresh), data, fidx, kw)
-    return {"folds": folds, "joints": list(fresh.joints), "lumps": list(fresh.lumps),
-            "cv_rms_rigid_m": rigid, "cv_rms_compliant_m": compliant,
-            "gain": 1.0 - compliant / rigid if rigid > 0 else 0.0}
-
-
+    return {
+        "folds": folds,
+        "joints": list(fresh.joints),
+        "lumps": list(fresh.lumps),
+        "cv_rms_rigid_m": rigid,
+        "cv_rms_compliant_m": compliant,
+        "gain": 1.0 - compliant / rigid if rigid > 0 else 0.0,
+    }

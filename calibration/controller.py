@@ -62,8 +62,11 @@ def _fit_parameters(poe: KinematicModel) -> list:
     """Tilts and shifts of every axis and the home frame: no joint offsets, base or tool
     (each would duplicate the others)."""
     keep = ("tilt_x", "tilt_y", "shift_x", "shift_y")
-    return [p for p in candidate_parameters(poe, base=False, tool=False)
-            if p.name.startswith("home.") or p.name.rpartition(".")[2] in keep]
+    return [
+        p
+        for p in candidate_parameters(poe, base=False, tool=False)
+        if p.name.startswith("home.") or p.name.rpartition(".")[2] in keep
+    ]
 
 
 def fit_controller_model(
@@ -84,16 +87,22 @@ def fit_controller_model(
     q = np.asarray(q, dtype=float)
     T_base_flange = np.asarray(T_base_flange, dtype=float)
     if q.ndim != 2 or q.shape[1] != reference.n_joints or T_base_flange.shape != (len(q), 4, 4):
-        raise ValueError(f"expected q (N, {reference.n_joints}) and T_base_flange (N, 4, 4); "
-                         f"got {q.shape} and {T_base_flange.shape}")
+        raise ValueError(
+            f"expected q (N, {reference.n_joints}) and T_base_flange (N, 4, 4); got {q.shape} and {T_base_flange.shape}"
+        )
     n_params = 4 * reference.n_joints + 6
     if len(q) * 6 < n_params:
         raise ValueError(f"{len(q)} poses give {6 * len(q)} equations for {n_params} parameters")
     if any(not j.revolute for j in reference.joints):
         raise ValueError("fit_controller_model handles revolute joints only")
-    start = dataclasses.replace(reference, base=np.zeros(6), tool=np.zeros(6), coupling=None,
-                                joints=tuple(dataclasses.replace(j, gain=1.0, harmonic=None) for j in reference.joints),
-                                targets={})
+    start = dataclasses.replace(
+        reference,
+        base=np.zeros(6),
+        tool=np.zeros(6),
+        coupling=None,
+        joints=tuple(dataclasses.replace(j, gain=1.0, harmonic=None) for j in reference.joints),
+        targets={},
+    )
     poe = to_poe(start)
     params = _fit_parameters(poe)
     R_meas, p_meas = T_base_flange[:, :3, :3], T_base_flange[:, :3, 3]

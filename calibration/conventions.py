@@ -72,20 +72,28 @@ def to_poe(model: KinematicModel) -> KinematicModel:
     """
     if model.convention == "poe":
         return model
-    base_free = dataclasses.replace(model, base=np.zeros(6), tool=np.zeros(6), coupling=None,
-                                    joints=tuple(dataclasses.replace(j, gain=1.0, harmonic=None) for j in model.joints))
+    base_free = dataclasses.replace(
+        model,
+        base=np.zeros(6),
+        tool=np.zeros(6),
+        coupling=None,
+        joints=tuple(dataclasses.replace(j, gain=1.0, harmonic=None) for j in model.joints),
+    )
     keys = {f"{j.name}.theta" if j.revolute else f"{j.name}.d" for j in model.joints}
     w = walk(base_free, np.zeros((1, model.n_joints)), keys)
     joints = []
     for j in model.joints:
         u, o = w.axes[f"{j.name}.theta" if j.revolute else f"{j.name}.d"]
-        joints.append(dataclasses.replace(j, axis=u[0].copy(), point=o[0].copy(), theta=0.0, d=0.0,
-                                          a=0.0, alpha=0.0, beta=None))
+        joints.append(
+            dataclasses.replace(j, axis=u[0].copy(), point=o[0].copy(), theta=0.0, d=0.0, a=0.0, alpha=0.0, beta=None)
+        )
     home = matrix_to_pose(homogeneous(w.R[0], w.p[0]))
     return dataclasses.replace(model, convention="poe", joints=tuple(joints), home=home)
 
 
-def hayati_for_parallel_axes(model: KinematicModel, *, parallel_tol_rad: float = np.deg2rad(5.0)) -> tuple[KinematicModel, list[str]]:
+def hayati_for_parallel_axes(
+    model: KinematicModel, *, parallel_tol_rad: float = np.deg2rad(5.0)
+) -> tuple[KinematicModel, list[str]]:
     """Rewrite ``dh`` links i < n whose next joint axis is (nearly) parallel
     (``|sin alpha_i| < sin(parallel_tol_rad)``) in Hayati's form, exactly.
 
@@ -112,8 +120,10 @@ def hayati_for_parallel_axes(model: KinematicModel, *, parallel_tol_rad: float =
             notes.append(f"{j.name}: axes {i + 1} and {i + 2} are parallel: link rewritten in Hayati's form (beta)")
             continue
         if j.d != 0.0 and not exact:
-            notes.append(f"{j.name}: axes {i + 1} and {i + 2} are nearly parallel but the link has d != 0 and "
-                         f"alpha is not exactly 0 or 180 deg, so it stays in plain DH form")
+            notes.append(
+                f"{j.name}: axes {i + 1} and {i + 2} are nearly parallel but the link has d != 0 and "
+                f"alpha is not exactly 0 or 180 deg, so it stays in plain DH form"
+            )
             continue
         if j.d != 0.0:
             nxt = js[i + 1]
@@ -161,8 +171,13 @@ class CommonNormal:
 
 
 def common_normal(
-    s_j: np.ndarray, r_j: np.ndarray, s_k: np.ndarray, r_k: np.ndarray, *,
-    parallel_tol_rad: float = 1e-9, intersect_tol_m: float = 1e-12,
+    s_j: np.ndarray,
+    r_j: np.ndarray,
+    s_k: np.ndarray,
+    r_k: np.ndarray,
+    *,
+    parallel_tol_rad: float = 1e-9,
+    intersect_tol_m: float = 1e-12,
 ) -> CommonNormal:
     """Sklar's common normal between the lines (``r_j``, ``s_j``) and (``r_k``, ``s_k``)
     (book §4.6.5.2, eq. 4.327-4.355, with the corrected 4.338).
@@ -279,9 +294,11 @@ def _link_to_axis(R_f: np.ndarray, o_f: np.ndarray, s_next: np.ndarray, r_next: 
             alpha = float(np.arctan2(c @ x, s @ s_next))  # eq. 4.327-4.328
             candidates.append((x, d, a, alpha, None))
     if ref is not None:
+
         def cost(cand):
             _, _, a, alpha, _ = cand
             return abs(_wrap(alpha - ref.alpha)) + abs(a - ref.a) / max(abs(a), 1e-12)
+
         x, d, a, alpha, beta = min(candidates, key=cost)
     else:  # a >= 0; intersecting axes: twist in (0, π)
         first = candidates[0]
@@ -295,8 +312,9 @@ def _link_to_axis(R_f: np.ndarray, o_f: np.ndarray, s_next: np.ndarray, r_next: 
     return phi, d, a, alpha, beta, R_new, o_new
 
 
-def poe_to_dh(model: KinematicModel, *, reference: KinematicModel | None = None,
-              parallel_tol_rad: float = np.deg2rad(5.0)) -> KinematicModel:
+def poe_to_dh(
+    model: KinematicModel, *, reference: KinematicModel | None = None, parallel_tol_rad: float = np.deg2rad(5.0)
+) -> KinematicModel:
     """Any model -> ``dh``, same kinematics, from its joint-axis lines (Sklar's method, book
     §4.6.5.2; exact up to floating point).
 
@@ -337,8 +355,9 @@ def poe_to_dh(model: KinematicModel, *, reference: KinematicModel | None = None,
     for i, j in enumerate(poe.joints):
         offset = j.theta if j.revolute else j.d
         if i + 1 < n:
-            phi, d, a, alpha, beta, R_new, o_new = _link_to_axis(R, o, S[i + 1], P[i + 1],
-                                                                 None if ref is None else ref[i], parallel_tol_rad)
+            phi, d, a, alpha, beta, R_new, o_new = _link_to_axis(
+                R, o, S[i + 1], P[i + 1], None if ref is None else ref[i], parallel_tol_rad
+            )
         else:  # frame n on axis n, nearest the flange
             s = R[:, 2]
             o_new = o + s * (s @ (H[:3, 3] - o))
@@ -354,5 +373,6 @@ def poe_to_dh(model: KinematicModel, *, reference: KinematicModel | None = None,
         joints.append(dataclasses.replace(j, theta=theta, d=d_dh, a=a, alpha=alpha, beta=beta, axis=None, point=None))
         R, o = R_new, o_new
     tool = invert(homogeneous(R, o)) @ H @ pose_to_matrix(poe.tool)
-    return dataclasses.replace(poe, convention="dh", joints=tuple(joints), base=matrix_to_pose(base),
-                               tool=matrix_to_pose(tool), home=None)
+    return dataclasses.replace(
+        poe, convention="dh", joints=tuple(joints), base=matrix_to_pose(base), tool=matrix_to_pose(tool), home=None
+    )

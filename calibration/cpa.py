@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .conventions import mdh_to_dh, poe_to_dh
+from .errors import RecalError
 from .geometry import (  # noqa: F401 (the generic fits live in geometry; these names stay importable here)
     METHODS,
     Circle,
@@ -53,7 +54,6 @@ from .kinematics import check_q, fk, joint_variables, target_positions, walk
 from .model import KinematicModel
 from .registration import register_points
 from .transforms import homogeneous, invert, matrix_to_pose, pose_to_matrix, rot, rotvec_to_matrix
-from .errors import RecalError
 
 # Below this distance of the target from the last axis (in the measured or the nominal robot)
 # the target's direction is too uncertain to orient the tool about the last axis.
@@ -165,11 +165,27 @@ def fit_axis(
         travel = float(np.ptp(t))
         ref = max(noise, floor)
         if ref > 0 and travel < min_radius_to_noise * ref:
-            warnings.append(f"travel is only {travel / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
-                            f"wanted): the axis direction is poorly determined")
-        return AxisFit(True, s, c, float("nan"), float("nan"), travel, rms, float("nan"), noise,
-                       noise / spread if spread > 0 else float("inf"), noise / np.sqrt(m), slope, m, "line",
-                       tuple(warnings))
+            warnings.append(
+                f"travel is only {travel / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
+                f"wanted): the axis direction is poorly determined"
+            )
+        return AxisFit(
+            True,
+            s,
+            c,
+            float("nan"),
+            float("nan"),
+            travel,
+            rms,
+            float("nan"),
+            noise,
+            noise / spread if spread > 0 else float("inf"),
+            noise / np.sqrt(m),
+            slope,
+            m,
+            "line",
+            tuple(warnings),
+        )
     circ = fit_circle(P, method=method)
     n = circ.normal
     u = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
@@ -194,14 +210,33 @@ def fit_axis(
     else:
         point_std = direction_std = float("nan")
     if arc < min_arc_rad:
-        warnings.append(f"arc of {np.rad2deg(arc):.0f} deg is under {np.rad2deg(min_arc_rad):.0f} deg: the axis is "
-                        f"poorly determined (the book asks for at least half a circle, §4.6.3)")
+        warnings.append(
+            f"arc of {np.rad2deg(arc):.0f} deg is under {np.rad2deg(min_arc_rad):.0f} deg: the axis is "
+            f"poorly determined (the book asks for at least half a circle, §4.6.3)"
+        )
     ref = max(noise, floor)
     if ref > 0 and circ.radius < min_radius_to_noise * ref:
-        warnings.append(f"radius is only {circ.radius / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
-                        f"wanted): move the other joints so that the target swings wider")
-    return AxisFit(False, n, circ.centre, circ.radius, arc, float("nan"), _rms(circ.out_of_plane), _rms(circ.radial),
-                   noise, direction_std, point_std, slope, m, circ.method, tuple(warnings))
+        warnings.append(
+            f"radius is only {circ.radius / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
+            f"wanted): move the other joints so that the target swings wider"
+        )
+    return AxisFit(
+        False,
+        n,
+        circ.centre,
+        circ.radius,
+        arc,
+        float("nan"),
+        _rms(circ.out_of_plane),
+        _rms(circ.radial),
+        noise,
+        direction_std,
+        point_std,
+        slope,
+        m,
+        circ.method,
+        tuple(warnings),
+    )
 
 
 def combine_axes(fits: list[AxisFit]) -> AxisFit:
@@ -229,12 +264,21 @@ def combine_axes(fits: list[AxisFit]) -> AxisFit:
         return float(1.0 / np.sqrt(np.sum(1.0 / std**2))) if np.all(np.isfinite(std) & (std > 0)) else float("nan")
 
     return AxisFit(
-        fits[0].prismatic, s, point, min(f.radius_m for f in fits), min(f.arc_rad for f in fits),
-        min(f.travel_m for f in fits), max(f.out_of_plane_rms_m for f in fits), max(f.circle_rms_m for f in fits),
-        max(f.noise_m for f in fits), comb([f.direction_std_rad for f in fits]),
-        comb([f.point_std_m for f in fits]), float(np.nanmean([f.scale for f in fits])) if any(
-            np.isfinite(f.scale) for f in fits) else float("nan"),
-        sum(f.n_points for f in fits), fits[0].method, tuple(dict.fromkeys(w for f in fits for w in f.warnings)),
+        fits[0].prismatic,
+        s,
+        point,
+        min(f.radius_m for f in fits),
+        min(f.arc_rad for f in fits),
+        min(f.travel_m for f in fits),
+        max(f.out_of_plane_rms_m for f in fits),
+        max(f.circle_rms_m for f in fits),
+        max(f.noise_m for f in fits),
+        comb([f.direction_std_rad for f in fits]),
+        comb([f.point_std_m for f in fits]),
+        float(np.nanmean([f.scale for f in fits])) if any(np.isfinite(f.scale) for f in fits) else float("nan"),
+        sum(f.n_points for f in fits),
+        fits[0].method,
+        tuple(dict.fromkeys(w for f in fits for w in f.warnings)),
     )
 
 
@@ -243,8 +287,9 @@ def combine_axes(fits: list[AxisFit]) -> AxisFit:
 
 def _unit_readings(model: KinematicModel) -> KinematicModel:
     """The same robot with readings equal to joint variables (no coupling, gains, harmonics)."""
-    return dataclasses.replace(model, coupling=None,
-                               joints=tuple(dataclasses.replace(j, gain=1.0, harmonic=None) for j in model.joints))
+    return dataclasses.replace(
+        model, coupling=None, joints=tuple(dataclasses.replace(j, gain=1.0, harmonic=None) for j in model.joints)
+    )
 
 
 def _axis_key(j) -> str:
@@ -256,8 +301,10 @@ def axis_lines(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.nda
     (N, n, 3) in each joint's positive sense and a point on each (N, n, 3), m."""
     keys = [_axis_key(j) for j in model.joints]
     w = walk(model, check_q(model, q), set(keys))
-    return (np.stack([np.array(w.axes[k][0]) for k in keys], axis=1),
-            np.stack([np.array(w.axes[k][1]) for k in keys], axis=1))
+    return (
+        np.stack([np.array(w.axes[k][0]) for k in keys], axis=1),
+        np.stack([np.array(w.axes[k][1]) for k in keys], axis=1),
+    )
 
 
 def _screw(s: np.ndarray, r: np.ndarray, amount: float, prismatic: bool) -> np.ndarray:
@@ -409,8 +456,11 @@ def _check_sweeps(model: KinematicModel, sw: Sweeps, v: np.ndarray, tol: np.ndar
     bad = np.nonzero((sw.joint < 0) | (sw.joint >= n))[0]
     if len(bad):
         k = int(bad[0])
-        raise SweepError(f"joint {int(sw.joint[k]) + 1} does not exist: the model has joints 1..{n}",
-                         row=int(sw.row[k]), column="joint")
+        raise SweepError(
+            f"joint {int(sw.joint[k]) + 1} does not exist: the model has joints 1..{n}",
+            row=int(sw.row[k]),
+            column="joint",
+        )
     groups: dict[int, np.ndarray] = {}
     held: dict[int, np.ndarray] = {}
     for j in sorted(set(sw.joint.tolist())):
@@ -421,8 +471,12 @@ def _check_sweeps(model: KinematicModel, sw: Sweeps, v: np.ndarray, tol: np.ndar
             need = 2 if not model.joints[j].revolute else min_points
             if len(sub) < need:
                 what = f" of target {t!r}" if t is not None else ""
-                raise SweepError(f"the sweep of joint {j + 1} has {len(sub)} points{what} ({_rows_text(sw.row[sub])}); "
-                                 f"at least {need} are needed", row=int(sw.row[sub[0]]), column="joint")
+                raise SweepError(
+                    f"the sweep of joint {j + 1} has {len(sub)} points{what} ({_rows_text(sw.row[sub])}); "
+                    f"at least {need} are needed",
+                    row=int(sw.row[sub[0]]),
+                    column="joint",
+                )
         med = np.median(v[idx], axis=0)
         for k in range(n):
             if k == j:
@@ -430,12 +484,19 @@ def _check_sweeps(model: KinematicModel, sw: Sweeps, v: np.ndarray, tol: np.ndar
             dev = np.abs(v[idx, k] - med[k])
             if np.any(dev > tol[k]):
                 r = int(rows[int(np.argmax(dev > tol[k]))])
-                raise SweepError(f"joint {k + 1} moves during the sweep of joint {j + 1} ({_rows_text(rows)}): "
-                                 f"only the swept joint may move", row=r, column=f"q{k + 1}")
+                raise SweepError(
+                    f"joint {k + 1} moves during the sweep of joint {j + 1} ({_rows_text(rows)}): "
+                    f"only the swept joint may move",
+                    row=r,
+                    column=f"q{k + 1}",
+                )
         if not np.ptp(v[idx, j]) > tol[j]:
-            raise SweepError(f"the reading of joint {j + 1} does not change during its sweep ({_rows_text(rows)}): "
-                             f"the swept joint's readings are needed (contracts §4)", row=int(rows[0]),
-                             column=f"q{j + 1}")
+            raise SweepError(
+                f"the reading of joint {j + 1} does not change during its sweep ({_rows_text(rows)}): "
+                f"the swept joint's readings are needed (contracts §4)",
+                row=int(rows[0]),
+                column=f"q{j + 1}",
+            )
         groups[j], held[j] = idx, med
     return groups, held
 
@@ -486,16 +547,18 @@ def _fit_sweeps(nominal: KinematicModel, sweeps: Sweeps, groups: dict, v: np.nda
             try:
                 f = fit_axis(sweeps.p_world[sub], prismatic=not nominal.joints[j].revolute, v=v[sub, j], **fit_kw)
             except ValueError as exc:
-                raise SweepError(f"the sweep of joint {j + 1} ({_rows_text(sweeps.row[sub])}): {exc}",
-                                 row=int(sweeps.row[sub[0]])) from None
+                raise SweepError(
+                    f"the sweep of joint {j + 1} ({_rows_text(sweeps.row[sub])}): {exc}", row=int(sweeps.row[sub[0]])
+                ) from None
             fits[j][t] = f
             warnings += [f"joint {j + 1} ({name}){'' if t is None else f', target {t}'}: {w}" for w in f.warnings]
         measured[j] = combine_axes(list(fits[j].values()))
     return measured, fits, warnings
 
 
-def _axes_at_signature(nominal: KinematicModel, sweeps: Sweeps, groups: dict, held: dict, measured: dict,
-                       vs: np.ndarray, tol: np.ndarray):
+def _axes_at_signature(
+    nominal: KinematicModel, sweeps: Sweeps, groups: dict, held: dict, measured: dict, vs: np.ndarray, tol: np.ndarray
+):
     """Step 2: the measured axes (n, 3) directions and points at the signature, and per joint
     the transform that took its sweep there. Axis j measured with earlier joints away from the
     signature by Δ is moved back by ``[E_1(Δ_1)···E_(j−1)(Δ_(j−1))]⁻¹``, ``E_k`` the motion
@@ -511,13 +574,17 @@ def _axes_at_signature(nominal: KinematicModel, sweeps: Sweeps, groups: dict, he
             if abs(delta) <= tol[k]:
                 continue
             if k not in measured:
-                raise SweepError(f"joint {k + 1} was held away from the signature during the sweep of joint {j + 1}, "
-                                 f"and joint {k + 1} was not swept, so that axis cannot be moved back",
-                                 row=int(sweeps.row[groups[j][0]]), column=f"q{k + 1}")
+                raise SweepError(
+                    f"joint {k + 1} was held away from the signature during the sweep of joint {j + 1}, "
+                    f"and joint {k + 1} was not swept, so that axis cannot be moved back",
+                    row=int(sweeps.row[groups[j][0]]),
+                    column=f"q{k + 1}",
+                )
             T = T @ _screw(S[k], R[k], delta, not nominal.joints[k].revolute)
         if not np.array_equal(T, np.eye(4)):
-            notes.append(f"joint {j + 1}: measured with earlier joints away from the signature; "
-                         f"its axis was moved back")
+            notes.append(
+                f"joint {j + 1}: measured with earlier joints away from the signature; its axis was moved back"
+            )
         moved[j] = invert(T)
         S[j], R[j] = _move_line(moved[j], measured[j].direction, measured[j].point)
     return S, R, moved, notes
@@ -534,13 +601,16 @@ def _registration(nominal: KinematicModel, sweeps: Sweeps) -> tuple[np.ndarray, 
     return T_wb, float(np.sqrt(np.mean(np.sum((pred - sweeps.p_world) ** 2, axis=1))))
 
 
-def _target_at_signature(sweeps: Sweeps, rows: np.ndarray, fit: AxisFit, v: np.ndarray, j: int, vs_j: float,
-                         moved: np.ndarray) -> np.ndarray:
+def _target_at_signature(
+    sweeps: Sweeps, rows: np.ndarray, fit: AxisFit, v: np.ndarray, j: int, vs_j: float, moved: np.ndarray
+) -> np.ndarray:
     """Where the target of joint ``j``'s sweep ``rows`` is at the signature: every point taken
     along the fitted axis by ``vs_j − v_i`` (the readings), averaged, then moved with the
     axis to the signature."""
-    pts = [_screw(fit.direction, fit.point, vs_j - v[i, j], fit.prismatic)
-           @ np.append(sweeps.p_world[i], 1.0) for i in rows]
+    pts = [
+        _screw(fit.direction, fit.point, vs_j - v[i, j], fit.prismatic) @ np.append(sweeps.p_world[i], 1.0)
+        for i in rows
+    ]
     p = np.mean(pts, axis=0)[:3]
     return moved[:3, :3] @ p + moved[:3, 3]
 
@@ -561,15 +631,25 @@ def _flange_at_signature(nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb
     tool = pose_to_matrix(nominal.tool)
     targets = {k: np.array(p) for k, p in nominal.targets.items()}
     if last not in groups:
-        return T_wb @ T_fl_nom, tool, targets, {}, [], ["the last joint was not swept: the flange is the "
-                                                        "registered nominal one"]
-    seen = {t: _target_at_signature(sweeps, _rows_of(sweeps, groups[last], t), f, v, last, vs[last], moved[last])
-            for t, f in fits[last].items()}
+        return (
+            T_wb @ T_fl_nom,
+            tool,
+            targets,
+            {},
+            [],
+            ["the last joint was not swept: the flange is the registered nominal one"],
+        )
+    seen = {
+        t: _target_at_signature(sweeps, _rows_of(sweeps, groups[last], t), f, v, last, vs[last], moved[last])
+        for t, f in fits[last].items()
+    }
     revolute = nominal.joints[last].revolute
     primary = max(seen, key=lambda t: fits[last][t].radius_m if revolute else 0.0)
     p_nom = T_fl_nom[:3, :3] @ (tool[:3, :3] @ nominal.target(primary) + tool[:3, 3]) + T_fl_nom[:3, 3]
-    radii = (np.linalg.norm(np.cross(p_nom - R_nom[last], S_nom[last])),
-             np.linalg.norm(np.cross(seen[primary] - R[last], S[last])))
+    radii = (
+        np.linalg.norm(np.cross(p_nom - R_nom[last], S_nom[last])),
+        np.linalg.norm(np.cross(seen[primary] - R[last], S[last])),
+    )
     use_target = bool(revolute and min(radii) > _MIN_TARGET_RADIUS_M)
     F_nom = _frame_on_line(S_nom[last], R_nom[last], p_nom, T_fl_nom[:3, 0], use_target)
     F_cpa = _frame_on_line(S[last], R[last], seen[primary], T_wb[:3, :3] @ T_fl_nom[:3, 0], use_target)
@@ -598,12 +678,21 @@ def _zero_reference_model(nominal, S, R, vs, T_wb, T_fl, tool, targets) -> Kinem
     for k, j in enumerate(nominal.joints):
         s_b, r_b = _move_line(T_bw @ G, S[k], R[k])
         offset = dict(theta=offsets[k]) if j.revolute else dict(theta=0.0, d=offsets[k])
-        joints.append(dataclasses.replace(j, axis=s_b / np.linalg.norm(s_b), point=r_b, a=0.0, alpha=0.0, beta=None,
-                                          **offset))
+        joints.append(
+            dataclasses.replace(j, axis=s_b / np.linalg.norm(s_b), point=r_b, a=0.0, alpha=0.0, beta=None, **offset)
+        )
         G = G @ _screw(S[k], R[k], -offsets[k] - vs[k], not j.revolute)
-    return dataclasses.replace(nominal, name=f"{nominal.name}-cpa", convention="poe", joints=tuple(joints),
-                               base=matrix_to_pose(T_wb), home=matrix_to_pose(T_bw @ G @ T_fl),
-                               tool=matrix_to_pose(tool), targets=targets, metadata={})
+    return dataclasses.replace(
+        nominal,
+        name=f"{nominal.name}-cpa",
+        convention="poe",
+        joints=tuple(joints),
+        base=matrix_to_pose(T_wb),
+        home=matrix_to_pose(T_bw @ G @ T_fl),
+        tool=matrix_to_pose(tool),
+        targets=targets,
+        metadata={},
+    )
 
 
 def circle_point_analysis(
@@ -668,21 +757,36 @@ def circle_point_analysis(
     groups, held = _check_sweeps(nominal, sweeps, v, tol, min_points)
     vs = _signature(n, held, groups, v)
 
-    measured, fits, warnings = _fit_sweeps(nominal, sweeps, groups, v, method=method, sigma_m=sigma_m,
-                                           min_arc_rad=min_arc_rad, min_radius_to_noise=min_radius_to_noise)
+    measured, fits, warnings = _fit_sweeps(
+        nominal,
+        sweeps,
+        groups,
+        v,
+        method=method,
+        sigma_m=sigma_m,
+        min_arc_rad=min_arc_rad,
+        min_radius_to_noise=min_radius_to_noise,
+    )
     S, R, moved, notes = _axes_at_signature(nominal, sweeps, groups, held, measured, vs, tol)
     T_wb, reg_rms = _registration(nominal, sweeps)
-    S_nom, R_nom = (a[0] for a in axis_lines(dataclasses.replace(_unit_readings(nominal), base=matrix_to_pose(T_wb)),
-                                             vs))
+    S_nom, R_nom = (
+        a[0] for a in axis_lines(dataclasses.replace(_unit_readings(nominal), base=matrix_to_pose(T_wb)), vs)
+    )
     for j in sorted(set(range(n)) - set(measured)):
         S[j], R[j] = S_nom[j], R_nom[j]
-        warnings.append(f"joint {j + 1} ({nominal.joints[j].name}) was not swept: its axis is the registered "
-                        f"nominal one")
+        warnings.append(
+            f"joint {j + 1} ({nominal.joints[j].name}) was not swept: its axis is the registered nominal one"
+        )
     tilt = np.arctan2(np.linalg.norm(np.cross(S, S_nom), axis=1), np.sum(S * S_nom, axis=1))
-    offset = np.array([np.linalg.norm(np.cross(R[j] - R_nom[j], S_nom[j])) if j_.revolute else 0.0
-                       for j, j_ in enumerate(nominal.joints)])
+    offset = np.array(
+        [
+            np.linalg.norm(np.cross(R[j] - R_nom[j], S_nom[j])) if j_.revolute else 0.0
+            for j, j_ in enumerate(nominal.joints)
+        ]
+    )
     T_fl, tool, targets, changes, flange_notes, flange_warnings = _flange_at_signature(
-        nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb)
+        nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb
+    )
     notes += flange_notes
     warnings += flange_warnings
     model_poe = _zero_reference_model(nominal, S, R, vs, T_wb, T_fl, tool, targets)
@@ -695,16 +799,37 @@ def circle_point_analysis(
         if nominal.convention != "dh":
             notes.append(f"written in dh (the nominal model is {nominal.convention})")
     message = f"{len(measured)} of {n} axes identified from {len(sweeps)} points" + (
-        f"; {len(warnings)} warnings" if warnings else "")
+        f"; {len(warnings)} warnings" if warnings else ""
+    )
     return CPAResult(
-        model=model, model_poe=model_poe, axes=tuple(measured.get(j) for j in range(n)), fits=tuple(fits),
-        directions=S, points=R, signature_v=vs, signature_q=np.linalg.solve(nominal.coupling_matrix, vs),
-        T_world_base=T_wb, registration_rms_m=reg_rms, nominal_tilt_rad=tilt, nominal_offset_m=offset,
-        target_changes=changes, warnings=tuple(warnings), notes=tuple(notes), success=len(measured) == n,
+        model=model,
+        model_poe=model_poe,
+        axes=tuple(measured.get(j) for j in range(n)),
+        fits=tuple(fits),
+        directions=S,
+        points=R,
+        signature_v=vs,
+        signature_q=np.linalg.solve(nominal.coupling_matrix, vs),
+        T_world_base=T_wb,
+        registration_rms_m=reg_rms,
+        nominal_tilt_rad=tilt,
+        nominal_offset_m=offset,
+        target_changes=changes,
+        warnings=tuple(warnings),
+        notes=tuple(notes),
+        success=len(measured) == n,
         message=message,
-        settings=dict(method=method, convention=convention, sigma_m=sigma_m, min_arc_rad=min_arc_rad,
-                      min_radius_to_noise=min_radius_to_noise, min_points=min_points, held_tol_rad=held_tol_rad,
-                      held_tol_m=held_tol_m, parallel_tol_rad=parallel_tol_rad),
+        settings=dict(
+            method=method,
+            convention=convention,
+            sigma_m=sigma_m,
+            min_arc_rad=min_arc_rad,
+            min_radius_to_noise=min_radius_to_noise,
+            min_points=min_points,
+            held_tol_rad=held_tol_rad,
+            held_tol_m=held_tol_m,
+            parallel_tol_rad=parallel_tol_rad,
+        ),
     )
 
 
@@ -736,7 +861,7 @@ def simulate_sweeps(
     vs = C @ qs
     lim = truth.joint_limits
     rows_q, rows_j = [], []
-    for j in (range(truth.n_joints) if joints is None else joints):
+    for j in range(truth.n_joints) if joints is None else joints:
         half = (span_rad if truth.joints[j].revolute else travel_m) / 2.0
         lo, hi = vs[j] - half, vs[j] + half
         if C[j, j] != 0 and np.count_nonzero(C[j]) == 1:  # the swept reading alone: keep it in its limits
@@ -754,5 +879,9 @@ def simulate_sweeps(
         rows_j.append(np.full(points, j))
     q = np.concatenate(rows_q)
     p = target_positions(truth, q, target)
-    return Sweeps(q=q, p_world=p + rng.normal(0.0, sigma_m, p.shape), joint=np.concatenate(rows_j),
-                  target=np.array([target] * len(q), dtype=object))
+    return Sweeps(
+        q=q,
+        p_world=p + rng.normal(0.0, sigma_m, p.shape),
+        joint=np.concatenate(rows_j),
+        target=np.array([target] * len(q), dtype=object),
+    )

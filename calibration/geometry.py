@@ -399,8 +399,17 @@ def fit_joint_harmonic(q: np.ndarray, ref: np.ndarray, frequency: float | None) 
     if k4 and len(x) == 4:
         a, b = float(x[2]), float(x[3])  # a sin + b cos = k3 sin(k4 q + k5)
         k3, k5 = math.hypot(a, b), math.atan2(b, a)
-    return JointHarmonic(gain=float(x[0]), offset=float(x[1]), amplitude=k3, frequency=k4, phase=k5,
-                         residual_rms_rad=rms, points=int(len(q)))
+    return JointHarmonic(
+        gain=float(x[0]),
+        offset=float(x[1]),
+        amplitude=k3,
+        frequency=k4,
+        phase=k5,
+        residual_rms_rad=rms,
+        points=int(len(q)),
+    )
+
+
 # --------------------------------------------------------------------------- plane, circle, line
 
 
@@ -556,9 +565,15 @@ def fit_circle(points: np.ndarray, *, method: str = "geometric", xtol: float = 1
         # imported here: the drivers import this module, and scipy.optimize is slow to import
         from scipy.optimize import least_squares
 
-        sol = least_squares(lambda x_: _circle_residuals(Y, n0, u, w, x_)[0], x,
-                            jac=lambda x_: _circle_residuals(Y, n0, u, w, x_)[1],
-                            method="lm", xtol=xtol, ftol=xtol, gtol=xtol)
+        sol = least_squares(
+            lambda x_: _circle_residuals(Y, n0, u, w, x_)[0],
+            x,
+            jac=lambda x_: _circle_residuals(Y, n0, u, w, x_)[1],
+            method="lm",
+            xtol=xtol,
+            ftol=xtol,
+            gtol=xtol,
+        )
         x = sol.x
     res, J = _circle_residuals(Y, n0, u, w, x)
     mvec = n0 + x[3] * u + x[4] * w

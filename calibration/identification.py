@@ -63,8 +63,16 @@ class Measurements:
 
     def subset(self, idx) -> "Measurements":
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
-        return Measurements(self.q[idx], self.p_world[idx], pick(self.quat), self.target[idx], self.sigma[idx],
-                            pick(self.pose_id), self.row[idx], pick(self.payload))
+        return Measurements(
+            self.q[idx],
+            self.p_world[idx],
+            pick(self.quat),
+            self.target[idx],
+            self.sigma[idx],
+            pick(self.pose_id),
+            self.row[idx],
+            pick(self.payload),
+        )
 
 
 @dataclass(frozen=True, eq=False)

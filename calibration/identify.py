@@ -81,9 +81,18 @@ def held_relations(result: "IdentificationResult") -> dict:
     return {u.name: tuple(u.relation) for u in result.unidentifiable if u.relation}
 
 
-def drift_scale(model: KinematicModel, data: Measurements, names: tuple[str, ...], covariance: np.ndarray,
-                drift: np.ndarray, *, sigma_m: float = 20e-6, sigma_rad: float | None = None,
-                scales: np.ndarray | None = None, held: dict | None = None) -> float:
+def drift_scale(
+    model: KinematicModel,
+    data: Measurements,
+    names: tuple[str, ...],
+    covariance: np.ndarray,
+    drift: np.ndarray,
+    *,
+    sigma_m: float = 20e-6,
+    sigma_rad: float | None = None,
+    scales: np.ndarray | None = None,
+    held: dict | None = None,
+) -> float:
     """How much drift the new ``data`` show since the calibration that gave ``model`` and the
     ``covariance`` (P, P) SI of its parameters ``names``: the scale ``s`` of a drift allowance
     ``drift`` (P,) (1σ per parameter, SI) that makes the data most likely (type-II maximum
@@ -118,13 +127,13 @@ def drift_scale(model: KinematicModel, data: Measurements, names: tuple[str, ...
         # with the prior on z = s_p + H s_u (H: the held ones' relations), a step (s_p, s_u)
         # moves the points by J_p z + (J_u - J_p H) s_u: project the columns of the latter out
         M = Prior(tuple(names[i] for i in keep), cov, held or {}).combinations([cands[k] for k in cols + free])
-        U, sv, _ = np.linalg.svd(J_all[:, free] - J @ M[:, len(cols):], full_matrices=False)
+        U, sv, _ = np.linalg.svd(J_all[:, free] - J @ M[:, len(cols) :], full_matrices=False)
         basis = U[:, sv > 1e-9 * max(sv[0], 1e-300)]
         r = r - basis @ (basis.T @ r)
         J = J - basis @ (basis.T @ J)
     G, b = J.T @ J, J.T @ r
     best = (math.inf, 0.0)
-    for s in (np.concatenate([[0.0], np.geomspace(0.01, 100.0, 41)]) if scales is None else scales):
+    for s in np.concatenate([[0.0], np.geomspace(0.01, 100.0, 41)]) if scales is None else scales:
         # -log evidence, up to a constant, in the parameters' space (determinant lemma, Woodbury):
         # C = I + J Q Jᵀ, Q = L Lᵀ: log det C = log det K, rᵀC⁻¹r = rᵀr - cᵀK⁻¹c, K = I + LᵀGL, c = Lᵀb
         L = _sqrt_psd(cov + s * s * np.diag(d2)).T
@@ -194,7 +203,9 @@ def _problem(data: Measurements, sigma_m: float, sigma_rad: float | None, *, fol
         data = data.subset(order)
         fold = fold[order]
     has_rot = data.has_orientation
-    R_meas = quat_to_matrix(np.where(np.isfinite(data.quat), data.quat, [1, 0, 0, 0])) if data.quat is not None else None
+    R_meas = (
+        quat_to_matrix(np.where(np.isfinite(data.quat), data.quat, [1, 0, 0, 0])) if data.quat is not None else None
+    )
     sigma_pos = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
     sigma_rot = float(sigma_rad) if sigma_rad is not None else sigma_m / 0.1
     bounds = np.searchsorted(fold, np.arange(k + 1))
@@ -203,8 +214,18 @@ def _problem(data: Measurements, sigma_m: float, sigma_rad: float | None, *, fol
         for a in range(int(bounds[f]), int(bounds[f + 1]), CHUNK_ROWS):
             b = min(a + CHUNK_ROWS, int(bounds[f + 1]))
             chunks.append(_Chunk(a, b, f, _target_rows(data.target[a:b]), bool(np.any(has_rot[a:b]))))
-    return _Problem(data, data.target, has_rot, R_meas, sigma_pos, sigma_rot, _target_rows(data.target),
-                    order=order, chunks=tuple(chunks), n_folds=k)
+    return _Problem(
+        data,
+        data.target,
+        has_rot,
+        R_meas,
+        sigma_pos,
+        sigma_rot,
+        _target_rows(data.target),
+        order=order,
+        chunks=tuple(chunks),
+        n_folds=k,
+    )
 
 
 def _target_rows(names: np.ndarray) -> dict:
@@ -237,8 +258,7 @@ def _evaluate(model, prob: _Problem, params=None) -> tuple[Prediction, np.ndarra
     w, pt, rp, rr = _residuals(model, prob, record_keys(params))
     if not params:
         return Prediction(pt, w.R), rp, rr
-    Jp, Jr = jacobian_from_walk(w, pt, params, prob.data.q, prob.p_tool_names,
-                                orientation=bool(np.any(prob.has_rot)))
+    Jp, Jr = jacobian_from_walk(w, pt, params, prob.data.q, prob.p_tool_names, orientation=bool(np.any(prob.has_rot)))
     return Prediction(pt, w.R, Jp, Jr), rp, rr
 
 
@@ -316,8 +336,15 @@ class _Linearisation:
         return self.g.sum(axis=0)
 
 
-def _linearise(model: KinematicModel, prob: _Problem, params: list[Parameter], *, loss: str = "linear",
-               f_scale: float = 3.0, factor: bool = False) -> _Linearisation:
+def _linearise(
+    model: KinematicModel,
+    prob: _Problem,
+    params: list[Parameter],
+    *,
+    loss: str = "linear",
+    f_scale: float = 3.0,
+    factor: bool = False,
+) -> _Linearisation:
     """Residuals and the normal equations of ``params`` at ``model``, weighted (book §4.3.3: rows
     scaled to equal variance; robust ``loss`` by iteratively reweighted rows), chunk by chunk.
 
@@ -380,8 +407,15 @@ def _linearise(model: KinematicModel, prob: _Problem, params: list[Parameter], *
 # --------------------------------------------------------------------------- parameter selection
 
 # How a parameter the data cannot determine relates to the freed ones (``Unidentifiable.category``).
-CATEGORIES = ("no_effect", "same_motion", "combination", "target_offsets", "tool_orientation", "last_joint_offset",
-              "weak")
+CATEGORIES = (
+    "no_effect",
+    "same_motion",
+    "combination",
+    "target_offsets",
+    "tool_orientation",
+    "last_joint_offset",
+    "weak",
+)
 
 
 def _is_joint_parameter(name: str) -> bool:
@@ -427,8 +461,9 @@ def preference_order(params: list[Parameter], *, position_only: bool) -> list[in
     return order
 
 
-def _category(p: Parameter, relation: list[tuple[str, float]], pair: bool, position_only: bool,
-              last_offset: bool) -> str:
+def _category(
+    p: Parameter, relation: list[tuple[str, float]], pair: bool, position_only: bool, last_offset: bool
+) -> str:
     n = p.name
     if n.startswith("tool.r") and position_only:
         return "tool_orientation"
@@ -530,8 +565,13 @@ def _select(J: np.ndarray, params: list[Parameter], *, rtol: float, position_onl
             if order:
                 cos = float(Jn[:, k] @ Jn[:, kept[order[0]]])
                 pair = math.sqrt(max(0.0, 1.0 - cos * cos)) < SAME_MOTION_SINE
-        u = Unidentifiable(params[k].name, "", tuple(relation),
-                           _category(params[k], relation, pair, position_only, k == last), tuple(kinds))
+        u = Unidentifiable(
+            params[k].name,
+            "",
+            tuple(relation),
+            _category(params[k], relation, pair, position_only, k == last),
+            tuple(kinds),
+        )
         dropped.append(dataclasses.replace(u, reason=explain(u)))
     dropped.sort(key=lambda u: [p.name for p in params].index(u.name))
     return sorted(kept), dropped, factor
@@ -626,7 +666,9 @@ def _check_redundancy(prob: _Problem, n_free: int, completeness: dict) -> None:
         f"{len(prob.data)} rows give {n_eq} equations for {n_free} parameters the data determine: no redundancy to "
         f"check the fit against (at least {redundancy_margin(n_free)} spare equations are needed); measure at least "
         f"{need} rows ({full} parameters of the complete model + {redundancy_margin(full)} spare equations, "
-        f"{per_row} per row)", need)
+        f"{per_row} per row)",
+        need,
+    )
 
 
 # --------------------------------------------------------------------------- step 2: convention rewrite
@@ -669,8 +711,9 @@ def _jacobian_rank(model: KinematicModel, targets: tuple, *, orientation: bool) 
     return _rank(np.vstack(blocks))
 
 
-def complete_form(model: KinematicModel, *, hayati: bool = True,
-                  parallel_tol_rad: float = np.deg2rad(5.0)) -> tuple[KinematicModel, list[str]]:
+def complete_form(
+    model: KinematicModel, *, hayati: bool = True, parallel_tol_rad: float = np.deg2rad(5.0)
+) -> tuple[KinematicModel, list[str]]:
     """The model rewritten, exactly, in a complete and proportional parameterisation (book §2.7):
     ``mdh`` becomes ``dh``; in ``dh``, the links whose next axis is (nearly) parallel take Hayati's
     form (§2.8.1.1, :func:`~calibration.conventions.hayati_for_parallel_axes`, prismatic links
@@ -703,18 +746,21 @@ def complete_form(model: KinematicModel, *, hayati: bool = True,
         return start, notes
     start, hn = hayati_for_parallel_axes(start, parallel_tol_rad=parallel_tol_rad)
     notes += hn
-    stiff = [j.name for j in start.joints[:-1]
-             if not j.hayati and abs(np.sin(j.alpha)) < np.sin(parallel_tol_rad)]
+    stiff = [j.name for j in start.joints[:-1] if not j.hayati and abs(np.sin(j.alpha)) < np.sin(parallel_tol_rad)]
     poe = to_poe(start)  # the complete form: what dh must match
     r_dh, r_poe = (_jacobian_rank(m, (None,), orientation=True) for m in (start, poe))
     if r_dh < r_poe:
-        notes.append(f"the dh form cannot describe every deviation of this arm (rank {r_dh} of the complete "
-                     f"{r_poe}: e.g. collinear consecutive axes): identified in poe form (the zero-reference "
-                     f"model, book §2.8.2), written in poe")
+        notes.append(
+            f"the dh form cannot describe every deviation of this arm (rank {r_dh} of the complete "
+            f"{r_poe}: e.g. collinear consecutive axes): identified in poe form (the zero-reference "
+            f"model, book §2.8.2), written in poe"
+        )
         return poe, notes
     if stiff:
-        notes.append(f"{', '.join(stiff)}: nearly parallel next axis in plain dh form (not proportional, book "
-                     f"§2.6): identified in poe form, written in poe")
+        notes.append(
+            f"{', '.join(stiff)}: nearly parallel next axis in plain dh form (not proportional, book "
+            f"§2.6): identified in poe form, written in poe"
+        )
         return poe, notes
     return start, notes
 
@@ -727,9 +773,14 @@ def completeness(model: KinematicModel, targets: tuple, *, orientation: bool) ->
     several targets add their own offsets)."""
     R = sum(j.revolute for j in model.joints)
     P = model.n_joints - R
-    return {"rule": "4R + 2P + 6", "revolute": R, "prismatic": P, "count": 4 * R + 2 * P + 6,
-            "measurable": _jacobian_rank(to_poe(model), targets or (None,), orientation=orientation),
-            "convention": model.convention}
+    return {
+        "rule": "4R + 2P + 6",
+        "revolute": R,
+        "prismatic": P,
+        "count": 4 * R + 2 * P + 6,
+        "measurable": _jacobian_rank(to_poe(model), targets or (None,), orientation=orientation),
+        "convention": model.convention,
+    }
 
 
 # A target (or the tool origin) closer than this to the last joint's axis in the nominal model is
@@ -758,8 +809,9 @@ def _targets_on_last_axis(model: KinematicModel, targets: tuple) -> list[tuple[s
 # --------------------------------------------------------------------------- step 3: the parameters
 
 
-def _candidates(start: KinematicModel, data: Measurements, prior: Prior | None, gains: bool,
-                fixed: tuple[str, ...]) -> list[Parameter]:
+def _candidates(
+    start: KinematicModel, data: Measurements, prior: Prior | None, gains: bool, fixed: tuple[str, ...]
+) -> list[Parameter]:
     """Every parameter the identification may free, in the selection's order of preference: THE
     place where the parameter list is assembled (a block of other parameters joins here, and
     its Jacobian columns in :func:`_linearise`); a compliant model's terms come last
@@ -767,8 +819,16 @@ def _candidates(start: KinematicModel, data: Measurements, prior: Prior | None, 
     first. The candidates depend on the model's structure, not on its base: the same after
     registration."""
     used_targets = tuple(sorted(set(data.target) - {None}))
-    prior_targets = () if prior is None else tuple(sorted(
-        {n.split(".")[1] for n in prior.names if n.startswith("target.")} & set(start.targets) - set(used_targets)))
+    prior_targets = (
+        ()
+        if prior is None
+        else tuple(
+            sorted(
+                {n.split(".")[1] for n in prior.names if n.startswith("target.")}
+                & set(start.targets) - set(used_targets)
+            )
+        )
+    )
     with_gains = gains or (prior is not None and any(n.endswith(".gain") for n in prior.names))
     cands = candidate_parameters(start, targets=used_targets + prior_targets, gains=with_gains)
     return [p for p in cands if not _matches(p.name, fixed)]
@@ -793,8 +853,9 @@ class _Selection:
     sd_prior: np.ndarray  # (C,) the prior's standard errors (NaN without one)
 
 
-def _choose(cands: list[Parameter], G: np.ndarray, prior: Prior | None, *, rank_rtol: float,
-            position_only: bool) -> _Selection:
+def _choose(
+    cands: list[Parameter], G: np.ndarray, prior: Prior | None, *, rank_rtol: float, position_only: bool
+) -> _Selection:
     """The identifiable set from the candidates' Gram matrix ``G`` (weighted JᵀJ): the data's
     selection (:func:`select_identifiable`), then the prior's bookkeeping: parameters with a prior
     that the data see are estimated, those the data cannot see keep the prior."""
@@ -835,10 +896,27 @@ def _sample(prob: _Problem, n: int) -> tuple[_Problem, float]:
     idx = np.linspace(0, N - 1, n).round().astype(int)
     data = prob.data.subset(idx)
     has_rot = prob.has_rot[idx]
-    chunks = tuple(_Chunk(a, min(a + CHUNK_ROWS, n), 0, _target_rows(data.target[a:a + CHUNK_ROWS]),
-                          bool(np.any(has_rot[a:a + CHUNK_ROWS]))) for a in range(0, n, CHUNK_ROWS))
-    sub = _Problem(data, data.target, has_rot, None if prob.R_meas is None else prob.R_meas[idx],
-                   prob.sigma_pos[idx], prob.sigma_rot, _target_rows(data.target), chunks=chunks, n_folds=1)
+    chunks = tuple(
+        _Chunk(
+            a,
+            min(a + CHUNK_ROWS, n),
+            0,
+            _target_rows(data.target[a : a + CHUNK_ROWS]),
+            bool(np.any(has_rot[a : a + CHUNK_ROWS])),
+        )
+        for a in range(0, n, CHUNK_ROWS)
+    )
+    sub = _Problem(
+        data,
+        data.target,
+        has_rot,
+        None if prob.R_meas is None else prob.R_meas[idx],
+        prob.sigma_pos[idx],
+        prob.sigma_rot,
+        _target_rows(data.target),
+        chunks=chunks,
+        n_folds=1,
+    )
     return sub, n / N
 
 
@@ -846,8 +924,15 @@ def _sample(prob: _Problem, n: int) -> tuple[_Problem, float]:
 MAX_SELECTION_ROUNDS = 4
 
 
-def _reselect(current: KinematicModel, prob: _Problem, cands: list[Parameter], sel: _Selection, *,
-              rank_rtol: float, position_only: bool) -> _Selection:
+def _reselect(
+    current: KinematicModel,
+    prob: _Problem,
+    cands: list[Parameter],
+    sel: _Selection,
+    *,
+    rank_rtol: float,
+    position_only: bool,
+) -> _Selection:
     """The selection again, at the converged model (book L876: the rank decides, and at the
     answer, not at the nominal): parameters redundant only at the nominal geometry are freed
     where the data determine them (:data:`DETERMINED_RAD`, :data:`DETERMINED_M`). Decided on an
@@ -905,9 +990,20 @@ class _Solution:
     history: tuple
 
 
-def _levenberg_marquardt(model: KinematicModel, prob: _Problem, params: list[Parameter], lin: _Linearisation,
-                         info: np.ndarray, *, loss: str, f_scale: float, max_iter: int, ftol: float, xtol: float,
-                         gtol: float) -> _Solution:
+def _levenberg_marquardt(
+    model: KinematicModel,
+    prob: _Problem,
+    params: list[Parameter],
+    lin: _Linearisation,
+    info: np.ndarray,
+    *,
+    loss: str,
+    f_scale: float,
+    max_iter: int,
+    ftol: float,
+    xtol: float,
+    gtol: float,
+) -> _Solution:
     """Levenberg–Marquardt with Marquardt's scaling (the damping proportional to diag(JᵀWJ + I_p),
     ``I_p`` the prior's information), from ``model`` whose linearisation is ``lin``; robust
     weights recomputed at every trial (IRLS: a trial is compared with the current point under the
@@ -994,8 +1090,12 @@ def _cross_validation(lin: _Linearisation, A: np.ndarray, rhs: np.ndarray) -> di
         delta = inv @ (rhs - lin.g[k])
         chi2 += float(lin.c[k] - 2 * delta @ lin.g[k] + delta @ lin.G[k] @ delta)
         expected += float(lin.n[k] + np.trace(lin.G[k] @ inv))
-    return {"folds": K, "chi2": chi2, "expected_chi2": expected,
-            "scale": math.sqrt(max(chi2, 0.0) / expected) if expected > 0 else float("nan")}
+    return {
+        "folds": K,
+        "chi2": chi2,
+        "expected_chi2": expected,
+        "scale": math.sqrt(max(chi2, 0.0) / expected) if expected > 0 else float("nan"),
+    }
 
 
 # The χ² test of the residuals against the stated uncertainty (:func:`_consistency`): the model is
@@ -1020,8 +1120,14 @@ def chi2_upper_tail(chi2: float, dof: int) -> float:
 def _consistency(chi2: float, dof: int) -> dict:
     ratio = math.sqrt(chi2 / dof) if dof > 0 else float("inf")
     p = chi2_upper_tail(chi2, dof)
-    return {"test": "chi-squared", "level": CONSISTENCY_LEVEL, "min_scale": CONSISTENCY_MIN_SCALE,
-            "p_value": p, "ratio": ratio, "consistent": not (p < CONSISTENCY_LEVEL and ratio > CONSISTENCY_MIN_SCALE)}
+    return {
+        "test": "chi-squared",
+        "level": CONSISTENCY_LEVEL,
+        "min_scale": CONSISTENCY_MIN_SCALE,
+        "p_value": p,
+        "ratio": ratio,
+        "consistent": not (p < CONSISTENCY_LEVEL and ratio > CONSISTENCY_MIN_SCALE),
+    }
 
 
 # --------------------------------------------------------------------------- the solver
@@ -1106,8 +1212,19 @@ def identify(
         params = [cands[k] for k in sel.kept]
         info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
         lin_p = lin_next or _linearise(current, prob, params, loss=loss, f_scale=f_scale)
-        sol = _levenberg_marquardt(current, prob, params, lin_p, info, loss=loss, f_scale=f_scale,
-                                   max_iter=max_iter, ftol=ftol, xtol=xtol, gtol=gtol)
+        sol = _levenberg_marquardt(
+            current,
+            prob,
+            params,
+            lin_p,
+            info,
+            loss=loss,
+            f_scale=f_scale,
+            max_iter=max_iter,
+            ftol=ftol,
+            xtol=xtol,
+            gtol=gtol,
+        )
         current = sol.model
         for p, s in zip(params, sol.steps):
             moved[p.name] = moved.get(p.name, 0.0) + float(s)
@@ -1130,8 +1247,9 @@ def identify(
     warnings = _on_axis_warnings(on_axis, [cands[k].name for k in kept if k not in at_nominal], dropped)
 
     # 5. statistics at the solution
-    stats = _statistics(current, prob, params, lin, steps, prior, sel, loss=loss, f_scale=f_scale, reach_m=reach,
-                        n_poses=len(data))
+    stats = _statistics(
+        current, prob, params, lin, steps, prior, sel, loss=loss, f_scale=f_scale, reach_m=reach, n_poses=len(data)
+    )
     cv = stats.pop("cross_validation")
     chi2_data = float(lin.c.sum())
     rp = prob.original(lin.rp)
@@ -1188,8 +1306,15 @@ def identify(
         cost_history=tuple(history),
         registration=registration,
         notes=tuple(notes),
-        settings=dict(sigma_m=sigma_m, sigma_rad=prob.sigma_rot, loss=loss, f_scale=f_scale, gains=gains,
-                      rank_rtol=rank_rtol, fixed=list(fixed)),
+        settings=dict(
+            sigma_m=sigma_m,
+            sigma_rad=prob.sigma_rot,
+            loss=loss,
+            f_scale=f_scale,
+            gains=gains,
+            rank_rtol=rank_rtol,
+            fixed=list(fixed),
+        ),
         sources=tuple(sources),
         prior_std_errors=prior_sd,
         chi2_prior=stats["chi2_prior"],
@@ -1213,14 +1338,30 @@ def _on_axis_warnings(on_axis: list, answer_only: list[str], dropped: list) -> l
             f"{what} is nominally on the last joint's axis ({dist * 1e3:.2f} mm from it): what the last axes do "
             f"there is seen only through the real offset from the axis"
             + (f"; determined only at the identified geometry: {', '.join(answer_only)}" if answer_only else "")
-            + (f"; not determined, kept at the model's value: {', '.join(held)} (the model may be biased "
-               f"by them; put the target 20 mm or more off the axis)" if held else ""))
+            + (
+                f"; not determined, kept at the model's value: {', '.join(held)} (the model may be biased "
+                f"by them; put the target 20 mm or more off the axis)"
+                if held
+                else ""
+            )
+        )
     return out
 
 
-def _statistics(current: KinematicModel, prob: _Problem, params: list[Parameter], lin: _Linearisation,
-                steps: np.ndarray, prior: Prior | None, sel: _Selection, *, loss: str, f_scale: float,
-                reach_m: float, n_poses: int) -> dict:
+def _statistics(
+    current: KinematicModel,
+    prob: _Problem,
+    params: list[Parameter],
+    lin: _Linearisation,
+    steps: np.ndarray,
+    prior: Prior | None,
+    sel: _Selection,
+    *,
+    loss: str,
+    f_scale: float,
+    reach_m: float,
+    n_poses: int,
+) -> dict:
     """χ², the covariance ``s²(JᵀWJ + MᵀΣp⁻¹M)⁻¹`` (book eq. 4.54 / 4.70, ``s² = max(1, χ²/dof)``),
     conditioning and observability of what was estimated, and the cross-validation."""
     P = len(params)
@@ -1230,9 +1371,18 @@ def _statistics(current: KinematicModel, prob: _Problem, params: list[Parameter]
     chi2 = float(lin.c.sum()) + chi2_prior
     dof = max(int(lin.n.sum()) + n_prior - P, 1)
     sigma_scale = math.sqrt(max(1.0, chi2 / dof))
-    out = {"chi2": chi2, "dof": dof, "sigma_scale": sigma_scale, "chi2_prior": chi2_prior, "data_only": None,
-           "covariance": np.zeros((P, P)), "singular_values": np.zeros(0),
-           "condition_number": float("inf") if P == 0 else 0.0, "observability": {}, "cross_validation": None}
+    out = {
+        "chi2": chi2,
+        "dof": dof,
+        "sigma_scale": sigma_scale,
+        "chi2_prior": chi2_prior,
+        "data_only": None,
+        "covariance": np.zeros((P, P)),
+        "singular_values": np.zeros(0),
+        "condition_number": float("inf") if P == 0 else 0.0,
+        "observability": {},
+        "cross_validation": None,
+    }
     if not P:
         return out
     G = lin.gram
@@ -1247,20 +1397,24 @@ def _statistics(current: KinematicModel, prob: _Problem, params: list[Parameter]
         Rw = _linearise(current, prob, params, loss=loss, f_scale=f_scale, factor=True).R
     Ra = Rw if prior is None else np.vstack([Rw, _sqrt_psd(info)])
     out["singular_values"], out["condition_number"], out["observability"] = _conditioning(
-        Ra, params, n_poses=n_poses, reach_m=reach_m)
+        Ra, params, n_poses=n_poses, reach_m=reach_m
+    )
     if prior is not None:
         alone = [i for i, k in enumerate(sel.kept) if k in sel.by_data]
         if alone:
-            _, c_data, o_data = _conditioning(Rw[:, alone], [params[i] for i in alone], n_poses=n_poses,
-                                              reach_m=reach_m)
-            out["data_only"] = {"parameters": [params[i].name for i in alone], "condition_number": c_data,
-                                "observability": o_data}
+            _, c_data, o_data = _conditioning(
+                Rw[:, alone], [params[i] for i in alone], n_poses=n_poses, reach_m=reach_m
+            )
+            out["data_only"] = {
+                "parameters": [params[i].name for i in alone],
+                "condition_number": c_data,
+                "observability": o_data,
+            }
     out["cross_validation"] = _cross_validation(lin, A, lin.gradient - info @ steps)
     return out
 
 
-def _merge_prior(cands: list[Parameter], sel: _Selection, cov: np.ndarray, steps: np.ndarray,
-                 prior: Prior | None):
+def _merge_prior(cands: list[Parameter], sel: _Selection, cov: np.ndarray, steps: np.ndarray, prior: Prior | None):
     """The estimated parameters and those the prior alone determines (not estimated: the prior's
     value, the model's, and the prior's covariance), in the candidates' order. Returns params,
     steps, covariance, sources and the prior's standard errors (None without a prior)."""
@@ -1375,8 +1529,13 @@ def observability_indices(Jw: np.ndarray, params: list[Parameter], *, n_poses: i
     s = np.linalg.svd(Jw * scale, compute_uv=False)
     L = len(s)
     if L == 0 or s[-1] <= 0:
-        return {"O1_borm_menq": 0.0, "O2_inverse_condition": 0.0, "O3_min_singular": 0.0,
-                "O4_noise_amplification": 0.0, "condition_number_physical": float("inf")}
+        return {
+            "O1_borm_menq": 0.0,
+            "O2_inverse_condition": 0.0,
+            "O3_min_singular": 0.0,
+            "O4_noise_amplification": 0.0,
+            "condition_number_physical": float("inf"),
+        }
     return {
         "O1_borm_menq": float(np.exp(np.mean(np.log(s))) / math.sqrt(n_poses)),
         "O2_inverse_condition": float(s[-1] / s[0]),

@@ -165,8 +165,15 @@ def ur_geometry(model: KinematicModel, *, tol: float = 1e-9) -> URGeometry | Non
     if not (abs(js[1].a) > tol and abs(js[2].a) > tol and abs(js[5].d) > tol):
         return None
     return URGeometry(
-        d1=js[0].d, a2=js[1].a, a3=js[2].a, d4=js[1].d + js[2].d + js[3].d, d5=js[4].d, d6=js[5].d,
-        theta=np.array([j.theta for j in js]), T_base=pose_to_matrix(model.base), T_tool=pose_to_matrix(model.tool),
+        d1=js[0].d,
+        a2=js[1].a,
+        a3=js[2].a,
+        d4=js[1].d + js[2].d + js[3].d,
+        d5=js[4].d,
+        d6=js[5].d,
+        theta=np.array([j.theta for j in js]),
+        T_base=pose_to_matrix(model.base),
+        T_tool=pose_to_matrix(model.tool),
     )
 
 
@@ -199,7 +206,11 @@ def ur_branch(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 
 def ur_ik(
-    model: KinematicModel, T_world_tool: np.ndarray, branch: np.ndarray, q_near: np.ndarray, *,
+    model: KinematicModel,
+    T_world_tool: np.ndarray,
+    branch: np.ndarray,
+    q_near: np.ndarray,
+    *,
     singular_tol: float = 1e-10,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form inverse kinematics of a UR-structured model, one branch per point.
@@ -225,8 +236,11 @@ def ur_ik(
         T06 = T06[None]
     N = T06.shape[0]
     branch = np.broadcast_to(np.asarray(branch, dtype=float), (N, 3))
-    s_sh, s_el, s_wr = np.where(branch[:, 0] < 0, -1.0, 1.0), np.where(branch[:, 1] < 0, -1.0, 1.0), np.where(
-        branch[:, 2] < 0, -1.0, 1.0)
+    s_sh, s_el, s_wr = (
+        np.where(branch[:, 0] < 0, -1.0, 1.0),
+        np.where(branch[:, 1] < 0, -1.0, 1.0),
+        np.where(branch[:, 2] < 0, -1.0, 1.0),
+    )
     q_near = np.broadcast_to(np.asarray(q_near, dtype=float), (N, 6))
     th_near = _variables(model, q_near) + g.theta
     p06 = T06[:, :3, 3]
@@ -271,8 +285,9 @@ def ur_ik(
     return q, ok
 
 
-def ur_ik_all(model: KinematicModel, T_world_tool: np.ndarray, q_near: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ur_ik_all(
+    model: KinematicModel, T_world_tool: np.ndarray, q_near: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All 8 closed-form solutions: readings (N, 8, 6), ``reachable`` (N, 8) and the branch
     flags (8, 3) (index bits: shoulder, elbow, wrist; bit set = −1)."""
     T = np.asarray(T_world_tool, dtype=float)
@@ -353,7 +368,9 @@ def solve_ik(
     mu = np.full(N, 1e-12)
 
     def done(err):
-        return (np.linalg.norm(err[:, :3], axis=1) <= position_tol_m) & (np.linalg.norm(err[:, 3:], axis=1) <= rotation_tol_rad)
+        return (np.linalg.norm(err[:, :3], axis=1) <= position_tol_m) & (
+            np.linalg.norm(err[:, 3:], axis=1) <= rotation_tol_rad
+        )
 
     def scaled(err):
         return np.concatenate([err[:, :3] / L, err[:, 3:]], axis=1)
@@ -389,9 +406,14 @@ def solve_ik(
         stuck = (mu[idx] > 1e6) | (np.max(np.abs(dq) / cap, axis=1) < 1e-15)
         active[idx[now | stuck]] = False
     return IKResult(
-        q=q, converged=converged, residual_m=np.linalg.norm(e[:, :3], axis=1),
-        residual_rad=np.linalg.norm(e[:, 3:], axis=1), iterations=iterations, reachable=np.ones(N, dtype=bool),
-        jacobian=J, jacobian_start=J_start,
+        q=q,
+        converged=converged,
+        residual_m=np.linalg.norm(e[:, :3], axis=1),
+        residual_rad=np.linalg.norm(e[:, 3:], axis=1),
+        iterations=iterations,
+        reachable=np.ones(N, dtype=bool),
+        jacobian=J,
+        jacobian_start=J_start,
     )
 
 
@@ -541,26 +563,39 @@ def numerical_ik(
             idx = np.nonzero(rank > -2.0)[0]
             if idx.size == 0:
                 break
-            cols = order[idx, start:start + group]
+            cols = order[idx, start : start + group]
             S = cols.shape[1]
             r = solve_ik(model, np.repeat(T[idx], S, axis=0), seeds[cols.reshape(-1)], **kw)
             qw, sc = score(r, np.repeat(idx, S))
             qw, sc = qw.reshape(idx.size, S, n), sc.reshape(idx.size, S)
             near = np.sum((qw - seed[idx][:, None, :]) ** 2, axis=2)
-            best = np.argmin(np.where(sc == sc.min(axis=1, keepdims=True), np.where(sc < 0, near, 0.0), np.inf),
-                             axis=1)
+            best = np.argmin(np.where(sc == sc.min(axis=1, keepdims=True), np.where(sc < 0, near, 0.0), np.inf), axis=1)
             pick = np.arange(idx.size) * S + best
-            keep(idx, IKResult(q=r.q[pick], converged=r.converged[pick], residual_m=r.residual_m[pick],
-                               residual_rad=r.residual_rad[pick],
-                               iterations=r.iterations.reshape(idx.size, S).sum(axis=1),
-                               reachable=np.ones(idx.size, dtype=bool)))
+            keep(
+                idx,
+                IKResult(
+                    q=r.q[pick],
+                    converged=r.converged[pick],
+                    residual_m=r.residual_m[pick],
+                    residual_rad=r.residual_rad[pick],
+                    iterations=r.iterations.reshape(idx.size, S).sum(axis=1),
+                    reachable=np.ones(idx.size, dtype=bool),
+                ),
+            )
         chain()
     changed = taught & conv & ~own
     if np.any(changed):
         k = np.nonzero(changed)[0]
         changed[k] = _branch_sign(model, q[k]) != _branch_sign(model, seed[k])
-    return IKResult(q=q, converged=conv, residual_m=res_m, residual_rad=res_rad, iterations=iters,
-                    reachable=conv.copy(), branch_changed=changed)
+    return IKResult(
+        q=q,
+        converged=conv,
+        residual_m=res_m,
+        residual_rad=res_rad,
+        iterations=iters,
+        reachable=conv.copy(),
+        branch_changed=changed,
+    )
 
 
 def inverse_kinematics(
@@ -589,8 +624,9 @@ def inverse_kinematics(
     T = np.asarray(T_world_tool, dtype=float)
     T = T[None] if T.ndim == 2 else T
     N = T.shape[0]
-    q_near = np.broadcast_to(check_q(model, np.asarray(q_near, dtype=float).reshape(-1, model.n_joints)),
-                             (N, model.n_joints)).copy()
+    q_near = np.broadcast_to(
+        check_q(model, np.asarray(q_near, dtype=float).reshape(-1, model.n_joints)), (N, model.n_joints)
+    ).copy()
     kw = dict(position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations)
     if ur_geometry(model) is None:
         return numerical_ik(model, T, q_near, taught=keep_branch, **kw)
@@ -615,8 +651,20 @@ def _polish(model: KinematicModel, T: np.ndarray, q0: np.ndarray, ok: np.ndarray
     N = len(q0)
     if all(j.harmonic is None for j in model.joints):
         z = np.zeros(N)
-        return IKResult(q=q0, converged=ok.copy(), residual_m=z, residual_rad=z.copy(),
-                        iterations=np.zeros(N, dtype=int), reachable=ok)
+        return IKResult(
+            q=q0,
+            converged=ok.copy(),
+            residual_m=z,
+            residual_rad=z.copy(),
+            iterations=np.zeros(N, dtype=int),
+            reachable=ok,
+        )
     r = solve_ik(model, T, q0, **kw)
-    return IKResult(q=r.q, converged=r.converged & ok, residual_m=r.residual_m, residual_rad=r.residual_rad,
-                    iterations=r.iterations, reachable=ok)
+    return IKResult(
+        q=r.q,
+        converged=r.converged & ok,
+        residual_m=r.residual_m,
+        residual_rad=r.residual_rad,
+        iterations=r.iterations,
+        reachable=ok,
+    )

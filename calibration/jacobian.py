@@ -71,8 +71,13 @@ def record_keys(params: list[Parameter] | None) -> set[str]:
 
 
 def jacobian_from_walk(
-    w: Walk, p_world: np.ndarray, params: list[Parameter], q: np.ndarray, target_names: np.ndarray | None = None,
-    *, orientation: bool = True,
+    w: Walk,
+    p_world: np.ndarray,
+    params: list[Parameter],
+    q: np.ndarray,
+    target_names: np.ndarray | None = None,
+    *,
+    orientation: bool = True,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The Jacobian columns ``(Jp, Jr)``, each (N, 3, P), of ``params`` from a walk that recorded
     :func:`record_keys` (``p_world`` (N, 3): the measured points on that walk). Without

@@ -151,9 +151,14 @@ def _cos_sin(trig: dict, joint: int, v: np.ndarray, const: float) -> tuple[np.nd
     return hit[1] * ck - hit[2] * sk, hit[2] * ck + hit[1] * sk
 
 
-def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str] = frozenset(),
-         trig: dict | None = None, payload: np.ndarray | None = None,
-         ops: list[Op] | None = None) -> Walk:
+def walk(
+    model: KinematicModel,
+    q: np.ndarray,
+    record: frozenset[str] | set[str] = frozenset(),
+    trig: dict | None = None,
+    payload: np.ndarray | None = None,
+    ops: list[Op] | None = None,
+) -> Walk:
     """Run ``model``'s program over readings ``q`` (N, n), recording the keys in ``record``.
 
     ``trig``: a dict kept by a caller that walks models of one structure over the same readings
@@ -175,7 +180,6 @@ def walk(model: KinematicModel, q: np.ndarray, record: frozenset[str] | set[str]
     v = joint_variables(model, q)
     regressors: dict = {}
     if model.compliance is not None:
-
         dv, regressors = deflections(model, q, payload, trig)
         v = v + dv
     N = q.shape[0]
@@ -224,14 +228,17 @@ def fk(model: KinematicModel, q: np.ndarray, payload: np.ndarray | None = None) 
     return homogeneous(w.R, w.p)
 
 
-def points_world(model: KinematicModel, q: np.ndarray, p_tool: np.ndarray, payload: np.ndarray | None = None) -> np.ndarray:
+def points_world(
+    model: KinematicModel, q: np.ndarray, p_tool: np.ndarray, payload: np.ndarray | None = None
+) -> np.ndarray:
     """World positions (N, 3) of points given in the tool frame: ``p_tool`` (3,) or (N, 3)."""
     w = walk(model, q, payload=payload)
     return w.p + np.einsum("nij,nj->ni", w.R, np.broadcast_to(np.asarray(p_tool, float), w.p.shape))
 
 
-def target_positions(model: KinematicModel, q: np.ndarray, target: str | None = None,
-                     payload: np.ndarray | None = None) -> np.ndarray:
+def target_positions(
+    model: KinematicModel, q: np.ndarray, target: str | None = None, payload: np.ndarray | None = None
+) -> np.ndarray:
     """World positions (N, 3) of the named target (``None``: the tool origin)."""
     return points_world(model, q, model.target(target), payload)
 
@@ -294,8 +301,9 @@ def regressors(model: KinematicModel, q: np.ndarray, payload=None, trig: dict | 
     return out
 
 
-def deflections(model: KinematicModel, q: np.ndarray, payload=None, trig: dict | None = None
-                ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def deflections(
+    model: KinematicModel, q: np.ndarray, payload=None, trig: dict | None = None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The joint deflections (N, n) rad under gravity (eq. 1; zero for joints that do not deflect)
     and the terms' regressors (:func:`regressors`)."""
     reg = regressors(model, q, payload, trig)
@@ -303,7 +311,7 @@ def deflections(model: KinematicModel, q: np.ndarray, payload=None, trig: dict |
     dv = np.zeros((len(reg[next(iter(reg))]) if reg else check_q(model, q).shape[0], model.n_joints))
     index = {j.name: i for i, j in enumerate(model.joints)}
     for name, phi in reg.items():
-        term = name[len("compliance."):]
+        term = name[len("compliance.") :]
         value = c.values.get(term, 0.0)
         if value:
             dv[:, index[term.partition(".")[0]]] += value * phi

@@ -138,8 +138,14 @@ def _sample_std(x: np.ndarray, axis: int = 0) -> np.ndarray:
     return np.std(x, axis=axis, ddof=1)
 
 
-def pose_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, pose_id: np.ndarray, *,
-                    R_cmd: np.ndarray | None = None, R_meas: np.ndarray | None = None) -> PoseStatistics:
+def pose_statistics(
+    p_cmd: np.ndarray,
+    p_meas: np.ndarray,
+    pose_id: np.ndarray,
+    *,
+    R_cmd: np.ndarray | None = None,
+    R_meas: np.ndarray | None = None,
+) -> PoseStatistics:
     """ISO 9283 pose accuracy AP and repeatability RP (§7.2.1-7.2.2) of measurements ``p_meas``
     (N, 3) m of commands ``p_cmd`` (N, 3), grouped by ``pose_id`` (N,); orientations ``R_cmd``,
     ``R_meas`` (N, 3, 3) optional. The command of a pose is the mean of its rows' commands (they
@@ -171,9 +177,17 @@ def pose_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, pose_id: np.ndarray, 
             rp_abc[k] = 3.0 * _sample_std(d)
     ap_xyz = bary - cmd
     return PoseStatistics(
-        pose_ids=np.array(ids, dtype=object), n=n, command_m=cmd, barycentre_m=bary, AP_xyz_m=ap_xyz,
-        AP_m=np.linalg.norm(ap_xyz, axis=1), l_mean_m=l_mean, S_l_m=S_l, RP_m=l_mean + 3.0 * S_l,
-        AP_abc_rad=ap_abc, RP_abc_rad=rp_abc,
+        pose_ids=np.array(ids, dtype=object),
+        n=n,
+        command_m=cmd,
+        barycentre_m=bary,
+        AP_xyz_m=ap_xyz,
+        AP_m=np.linalg.norm(ap_xyz, axis=1),
+        l_mean_m=l_mean,
+        S_l_m=S_l,
+        RP_m=l_mean + 3.0 * S_l,
+        AP_abc_rad=ap_abc,
+        RP_abc_rad=rp_abc,
     )
 
 
@@ -214,12 +228,20 @@ class ErrorStatistics:
 def _scalar_stats(e: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
     mean = float(e.mean())
     std = float(_sample_std(e))
-    return (mean, std, 3.0 * std, mean + 3.0 * std, float(np.sqrt(np.mean(e**2))), float(np.percentile(e, 95)),
-            float(e.max()))
+    return (
+        mean,
+        std,
+        3.0 * std,
+        mean + 3.0 * std,
+        float(np.sqrt(np.mean(e**2))),
+        float(np.percentile(e, 95)),
+        float(e.max()),
+    )
 
 
-def error_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, *, R_cmd: np.ndarray | None = None,
-                     R_meas: np.ndarray | None = None) -> ErrorStatistics:
+def error_statistics(
+    p_cmd: np.ndarray, p_meas: np.ndarray, *, R_cmd: np.ndarray | None = None, R_meas: np.ndarray | None = None
+) -> ErrorStatistics:
     """Error statistics of single measurements ``p_meas`` (N, 3) m of commands ``p_cmd`` (N, 3),
     orientations ``R_cmd``, ``R_meas`` (N, 3, 3) optional (std and 3σ are NaN for N = 1)."""
     p_cmd, p_meas, delta = _check(p_cmd, p_meas, R_cmd, R_meas)
@@ -234,26 +256,43 @@ def error_statistics(p_cmd: np.ndarray, p_meas: np.ndarray, *, R_cmd: np.ndarray
     else:
         a, am, asd, a3, ab, arms, amx, bias_abc = None, nan, nan, nan, nan, nan, nan, None
     return ErrorStatistics(
-        n=len(e), errors_m=e, mean_m=mean, std_m=std, three_sigma_m=s3, mean_plus_3sigma_m=bound, rms_m=rms,
-        p95_m=p95, max_m=mx, bias_xyz_m=ev.mean(axis=0), std_xyz_m=_sample_std(ev),
-        errors_rad=a, mean_rad=am, std_rad=asd, three_sigma_rad=a3, mean_plus_3sigma_rad=ab, rms_rad=arms,
-        max_rad=amx, bias_abc_rad=bias_abc,
+        n=len(e),
+        errors_m=e,
+        mean_m=mean,
+        std_m=std,
+        three_sigma_m=s3,
+        mean_plus_3sigma_m=bound,
+        rms_m=rms,
+        p95_m=p95,
+        max_m=mx,
+        bias_xyz_m=ev.mean(axis=0),
+        std_xyz_m=_sample_std(ev),
+        errors_rad=a,
+        mean_rad=am,
+        std_rad=asd,
+        three_sigma_rad=a3,
+        mean_plus_3sigma_rad=ab,
+        rms_rad=arms,
+        max_rad=amx,
+        bias_abc_rad=bias_abc,
     )
 
 
 # --------------------------------------------------------------------------- a model's errors on data
 
 
-def position_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray,
-                    payload: np.ndarray | None = None) -> np.ndarray:
+def position_errors(
+    model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray, payload: np.ndarray | None = None
+) -> np.ndarray:
     """(N, 3) measured minus predicted positions, m: ``e = p_world − T_world_tool(q) · p_tool``
     (the book's position error, eq. 4.1 with the model as the estimate), ``p_tool`` (3,) or (N, 3);
     ``payload`` (N, 4) per row, which a compliant model sags under."""
     return np.asarray(p_world, float) - points_world(model, q, p_tool, payload)
 
 
-def registration(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray,
-                 payload: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def registration(
+    model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray, payload: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Where ``model``'s base fits the measured points best, ``T_world_base`` (4, 4), and one common
     tool-frame offset (3,) m of the measured point (``registration.register_points``, as the
     identification registers): a model placed on data whose instrument placement and reflector
@@ -263,8 +302,14 @@ def registration(model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_to
     return register_points(w.R, w.p, p_world, np.broadcast_to(np.asarray(p_tool, float), w.p.shape))
 
 
-def placed_points(model: KinematicModel, X: np.ndarray, c: np.ndarray, q: np.ndarray, p_tool: np.ndarray,
-                  payload: np.ndarray | None = None) -> np.ndarray:
+def placed_points(
+    model: KinematicModel,
+    X: np.ndarray,
+    c: np.ndarray,
+    q: np.ndarray,
+    p_tool: np.ndarray,
+    payload: np.ndarray | None = None,
+) -> np.ndarray:
     """(N, 3) world positions of the tool-frame points ``p_tool`` (3,) or (N, 3) at readings ``q``
     with ``model``'s base at ``X`` and the common offset ``c`` (:func:`registration`)."""
     w = walk(dataclasses.replace(model, base=np.zeros(6)), np.atleast_2d(q), payload=payload)
@@ -272,8 +317,9 @@ def placed_points(model: KinematicModel, X: np.ndarray, c: np.ndarray, q: np.nda
     return (w.p + np.einsum("nij,nj->ni", w.R, pt + c)) @ X[:3, :3].T + X[:3, 3]
 
 
-def registered_errors(model: KinematicModel, q: np.ndarray, p_world: np.ndarray,
-                      p_tool: np.ndarray, payload: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def registered_errors(
+    model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray, payload: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) errors, m, of ``model`` with its base placed where it fits the data best and one
     common tool-frame offset of the measured point absorbed (:func:`registration`), and that
     offset (3,), m.
@@ -304,5 +350,11 @@ def norm_statistics(e: np.ndarray) -> NormStatistics:
     if len(e) == 0:
         nan = float("nan")
         return NormStatistics(0, nan, nan, nan, nan, nan)
-    return NormStatistics(n=len(e), rms=float(np.sqrt(np.mean(e**2))), mean=float(e.mean()), max=float(e.max()),
-                          p95=float(np.percentile(e, 95)), std=float(_sample_std(e)) if len(e) > 1 else 0.0)
+    return NormStatistics(
+        n=len(e),
+        rms=float(np.sqrt(np.mean(e**2))),
+        mean=float(e.mean()),
+        max=float(e.max()),
+        p95=float(np.percentile(e, 95)),
+        std=float(_sample_std(e)) if len(e) > 1 else 0.0,
+    )

@@ -22,6 +22,7 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
+
 from .errors import RecalError
 
 FORMAT = "recal.model/1"
@@ -31,10 +32,36 @@ JOINT_TYPES = ("revolute", "prismatic")
 # "alpah" would otherwise silently default to 0 and give a wrong model); top-level sections
 # beyond MODEL_FIELDS are kept (an identified model's "identification", a library file's
 # "source", a compliant model's "compliance", ...) unless they look like a misspelt known one.
-MODEL_FIELDS = ("format", "name", "units", "convention", "base", "joints", "tool", "targets", "coupling", "home",
-                "compliance")
-JOINT_FIELDS = ("name", "type", "theta", "d", "a", "alpha", "beta", "gain", "lower", "upper", "axis", "point",
-                "harmonic", "velocity", "effort")
+MODEL_FIELDS = (
+    "format",
+    "name",
+    "units",
+    "convention",
+    "base",
+    "joints",
+    "tool",
+    "targets",
+    "coupling",
+    "home",
+    "compliance",
+)
+JOINT_FIELDS = (
+    "name",
+    "type",
+    "theta",
+    "d",
+    "a",
+    "alpha",
+    "beta",
+    "gain",
+    "lower",
+    "upper",
+    "axis",
+    "point",
+    "harmonic",
+    "velocity",
+    "effort",
+)
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "in": 0.0254}
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 
@@ -513,8 +540,11 @@ def _check_compliance(c: GravityCompliance, joints) -> None:
     allowed = set(c.term_names(tuple(by_name)))
     for k in c.values:
         if k not in allowed:
-            raise ModelFormatError(f"compliance.terms.{k}", "not a term of these joints and lumps (expected "
-                                   "<joint>.k or <joint>.<lump>.m|x|y|z with the lump's link at or after the joint)")
+            raise ModelFormatError(
+                f"compliance.terms.{k}",
+                "not a term of these joints and lumps (expected "
+                "<joint>.k or <joint>.<lump>.m|x|y|z with the lump's link at or after the joint)",
+            )
 
 
 def compliance_from_dict(d: Any, joints, units: Units) -> GravityCompliance:

@@ -191,7 +191,7 @@ def apply_step(model: KinematicModel, params: list[Parameter], delta: np.ndarray
         moved_targets[t] = p + d3
     changes["targets"] = moved_targets
     if model.compliance is not None:
-        terms = {n[len("compliance."):]: d for n, d in by_name.items() if n.startswith("compliance.")}
+        terms = {n[len("compliance.") :]: d for n, d in by_name.items() if n.startswith("compliance.")}
         if terms:
             values = dict(model.compliance.values)
             for t, d in terms.items():
@@ -208,7 +208,7 @@ def parameter_values(model: KinematicModel, params: list[Parameter]) -> np.ndarr
     for p in params:
         head, _, field = p.name.rpartition(".")
         if p.name.startswith("compliance."):
-            out.append(float(model.compliance.values.get(p.name[len("compliance."):], 0.0)))
+            out.append(float(model.compliance.values.get(p.name[len("compliance.") :], 0.0)))
         elif p.name.startswith("target."):
             t = p.name.split(".")[1]
             out.append(float(model.targets[t]["xyz".index(field)]))

@@ -89,8 +89,10 @@ class Volume:
         elif self.kind == "sphere":
             c = np.asarray(self.center, float).reshape(3)
             if not (np.all(np.isfinite(c)) and self.radius > 0 and 0 <= self.inner_radius < self.radius):
-                raise ValueError("a sphere volume needs a finite center and 0 <= inner_radius < radius; "
-                                 f"got {c}, {self.inner_radius}, {self.radius}")
+                raise ValueError(
+                    "a sphere volume needs a finite center and 0 <= inner_radius < radius; "
+                    f"got {c}, {self.inner_radius}, {self.radius}"
+                )
             object.__setattr__(self, "center", c)
         else:
             raise ValueError(f"`kind` must be box or sphere; got {self.kind!r}")
@@ -158,8 +160,9 @@ def stick_figure(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     return np.stack(pts, axis=1)
 
 
-def segment_distance(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray, *, eps: float = 1e-18,
-                     parallel_rtol: float = 1e-12) -> np.ndarray:
+def segment_distance(
+    a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray, *, eps: float = 1e-18, parallel_rtol: float = 1e-12
+) -> np.ndarray:
     """Shortest distance between segments ``a0-a1`` and ``b0-b1`` (..., 3), broadcast: (...,).
 
     The closest points of two segments (Ericson, *Real-Time Collision Detection*, §5.1.9),
@@ -205,8 +208,14 @@ def visible(model: KinematicModel, q: np.ndarray, sight: LineOfSight, target: st
     return ok
 
 
-def feasible(model: KinematicModel, q: np.ndarray, *, targets: tuple[str | None, ...] = (None,),
-             volume: Volume | None = None, sight: LineOfSight | None = None) -> np.ndarray:
+def feasible(
+    model: KinematicModel,
+    q: np.ndarray,
+    *,
+    targets: tuple[str | None, ...] = (None,),
+    volume: Volume | None = None,
+    sight: LineOfSight | None = None,
+) -> np.ndarray:
     """(N,) True where every target lies in ``volume`` and is ``visible``, and ``q`` is within the
     joint limits."""
     q = np.atleast_2d(np.asarray(q, float))
@@ -252,8 +261,10 @@ def generate_candidates(
         n_kept += len(q)
     out = np.concatenate(kept)[:count] if kept else np.zeros((0, model.n_joints))
     if len(out) == 0:
-        raise ValueError(f"none of {drawn} random configurations puts the target(s) inside the volume and in sight "
-                         "of the instrument: check the volume, the instrument position and the acceptance cone")
+        raise ValueError(
+            f"none of {drawn} random configurations puts the target(s) inside the volume and in sight "
+            "of the instrument: check the volume, the instrument position and the acceptance cone"
+        )
     return out
 
 
@@ -310,8 +321,9 @@ def _prepare(model, candidates, *, targets, sigma_m, gains, fixed, rank_rtol, ha
     cands = [p for p in cands if not any(p.name == f or (f.endswith("*") and p.name.startswith(f[:-1])) for f in fixed)]
     J_si = _jacobians(work, q, cands, targets)
     C, r, _ = J_si.shape
-    kept, dropped = select_identifiable((J_si / sigma_m).reshape(C * r, -1), cands, rtol=rank_rtol,
-                                        position_only=True, multi_target=len(used) > 1)
+    kept, dropped = select_identifiable(
+        (J_si / sigma_m).reshape(C * r, -1), cands, rtol=rank_rtol, position_only=True, multi_target=len(used) > 1
+    )
     params = tuple(cands[k] for k in kept)
     reach = _reach(work)
     S = np.array([1.0 / reach if p.kind == "angle" else 1.0 for p in params])
@@ -326,9 +338,11 @@ def _logdet(M: np.ndarray) -> np.ndarray:
     """log det of a stack of symmetric matrices (..., k, k); -inf where not positive definite.
     3x3 blocks (one target per pose) by the closed form, which is much faster than LAPACK."""
     if M.shape[-1] == 3:
-        d = (M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
-             - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
-             + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0]))
+        d = (
+            M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+            - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+            + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0])
+        )
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(d > 0, np.log(np.where(d > 0, d, 1.0)), -np.inf)
     sign, ld = np.linalg.slogdet(M)
@@ -414,8 +428,17 @@ def _greedy(J: np.ndarray, k: int, ridge: np.ndarray, on_step=None) -> tuple[lis
     return chosen, M
 
 
-def _exchange(J: np.ndarray, chosen: list[int], ridge: np.ndarray, criterion: str, W: np.ndarray | None, *,
-              max_sweeps: int, screen: int, tol: float) -> tuple[list[int], int, int]:
+def _exchange(
+    J: np.ndarray,
+    chosen: list[int],
+    ridge: np.ndarray,
+    criterion: str,
+    W: np.ndarray | None,
+    *,
+    max_sweeps: int,
+    screen: int,
+    tol: float,
+) -> tuple[list[int], int, int]:
     """Exchange (Fedorov; one design point at a time): for each chosen pose j, the best candidate
     to replace it; swap when the criterion improves by more than ``tol`` (log det units for D and
     O1, relative for the others). Sweeps until a sweep swaps nothing. Returns the design, the
@@ -609,8 +632,9 @@ def _check_count(design: _Design, count: int) -> None:
     C, r, P = design.J.shape
     k_min = max(1, math.ceil(P / r))
     if count < k_min:
-        raise ValueError(f"`count` must be at least {k_min}: {P} identifiable parameters need {P} equations and each "
-                         f"pose gives {r}")
+        raise ValueError(
+            f"`count` must be at least {k_min}: {P} identifiable parameters need {P} equations and each pose gives {r}"
+        )
     if count > C:
         raise ValueError(f"`count` ({count}) exceeds the number of candidates ({C})")
 
@@ -645,15 +669,29 @@ def _finish(design, ev, chosen, criterion, greedy_value, swaps, sweeps) -> PlanR
         msg = f"the {len(idx)} poses chosen do not determine all {P} identifiable parameters; choose more poses"
     Jw = design.J[idx].reshape(-1, P) / design.S  # σ-weighted SI Jacobian, as identify builds it
     return PlanResult(
-        indices=idx, q=design.q[idx],
-        criterion=criterion, value=criterion_value(M, criterion, n_rows=n_rows, W=ev.W),
-        greedy_value=greedy_value, log_det=float(_logdet(M)),
+        indices=idx,
+        q=design.q[idx],
+        criterion=criterion,
+        value=criterion_value(M, criterion, n_rows=n_rows, W=ev.W),
+        greedy_value=greedy_value,
+        log_det=float(_logdet(M)),
         observability=observability_indices(Jw, list(design.params), n_poses=n_rows, reach_m=design.reach_m),
-        params=design.params, unidentifiable=design.unidentifiable, covariance=cov,
+        params=design.params,
+        unidentifiable=design.unidentifiable,
+        covariance=cov,
         std_errors=np.sqrt(np.maximum(np.diag(cov), 0.0)) if ok else np.full(P, np.inf),
-        evaluation_q=ev.q, uncertainty_m=u, predicted_rms_m=rms, predicted_p95_m=p95, predicted_max_m=mx,
-        sigma_m=design.sigma_m, targets=design.targets, n_candidates=C, swaps=swaps, sweeps=sweeps,
-        success=ok, message=msg,
+        evaluation_q=ev.q,
+        uncertainty_m=u,
+        predicted_rms_m=rms,
+        predicted_p95_m=p95,
+        predicted_max_m=mx,
+        sigma_m=design.sigma_m,
+        targets=design.targets,
+        n_candidates=C,
+        swaps=swaps,
+        sweeps=sweeps,
+        success=ok,
+        message=msg,
     )
 
 
@@ -706,8 +744,9 @@ def _options(options: PlanOptions | None, overrides: dict) -> PlanOptions:
     return o
 
 
-def plan(model: KinematicModel, candidates: np.ndarray, count: int, options: PlanOptions | None = None,
-         **overrides) -> PlanResult:
+def plan(
+    model: KinematicModel, candidates: np.ndarray, count: int, options: PlanOptions | None = None, **overrides
+) -> PlanResult:
     """Choose ``count`` of the ``candidates`` (C, n) readings (SI) to measure at, for the best
     identification of ``model`` (see the module docstring for the method), as ``options`` say
     (:class:`PlanOptions`; keyword arguments override single fields).
@@ -716,24 +755,43 @@ def plan(model: KinematicModel, candidates: np.ndarray, count: int, options: Pla
     the identifiable parameters need or above the number of candidates, unknown criterion)."""
     o = _options(options, overrides)
     rng = np.random.default_rng(0) if o.rng is None else o.rng
-    design = _prepare(model, candidates, targets=o.targets, sigma_m=o.sigma_m, gains=o.gains, fixed=tuple(o.fixed),
-                      rank_rtol=o.rank_rtol, hayati=o.hayati)
+    design = _prepare(
+        model,
+        candidates,
+        targets=o.targets,
+        sigma_m=o.sigma_m,
+        gains=o.gains,
+        fixed=tuple(o.fixed),
+        rank_rtol=o.rank_rtol,
+        hayati=o.hayati,
+    )
     _check_count(design, count)
     ev = _evaluation(design, _evaluation_q(model, o.evaluation, o.n_evaluation, rng, o.volume, design.targets))
-    return _plan(design, ev, count, o.criterion, exchange=o.exchange, max_sweeps=o.max_sweeps, screen=o.screen,
-                 ridge=o.ridge, tol=o.tol)
+    return _plan(
+        design,
+        ev,
+        count,
+        o.criterion,
+        exchange=o.exchange,
+        max_sweeps=o.max_sweeps,
+        screen=o.screen,
+        ridge=o.ridge,
+        tol=o.tol,
+    )
 
 
-def _plan(design: _Design, ev: _Evaluation, count: int, criterion: str, *, exchange, max_sweeps, screen, ridge,
-          tol) -> PlanResult:
+def _plan(
+    design: _Design, ev: _Evaluation, count: int, criterion: str, *, exchange, max_sweeps, screen, ridge, tol
+) -> PlanResult:
     rdiag = _ridge(design.J, ridge)
     chosen, M = _greedy(design.J, count, rdiag)
     r = design.J.shape[1]
     greedy_value = criterion_value(M - np.diag(rdiag), criterion, n_rows=count * (r // 3), W=ev.W)
     swaps = sweeps = 0
     if exchange:
-        chosen, swaps, sweeps = _exchange(design.J, chosen, rdiag, criterion, ev.W, max_sweeps=max_sweeps,
-                                          screen=screen, tol=tol)
+        chosen, swaps, sweeps = _exchange(
+            design.J, chosen, rdiag, criterion, ev.W, max_sweeps=max_sweeps, screen=screen, tol=tol
+        )
     return _finish(design, ev, chosen, criterion, greedy_value, swaps, sweeps)
 
 
@@ -757,8 +815,16 @@ class AccuracyPlan:
     message: str
 
 
-def poses_for_accuracy(model: KinematicModel, candidates: np.ndarray, accuracy_m: float, *, statistic: str = "rms",
-                       k_max: int | None = None, options: PlanOptions | None = None, **overrides) -> AccuracyPlan:
+def poses_for_accuracy(
+    model: KinematicModel,
+    candidates: np.ndarray,
+    accuracy_m: float,
+    *,
+    statistic: str = "rms",
+    k_max: int | None = None,
+    options: PlanOptions | None = None,
+    **overrides,
+) -> AccuracyPlan:
     """The fewest poses (from ``candidates``) whose plan is predicted to reach ``accuracy_m`` (m) in
     ``statistic`` (``rms`` or ``p95`` of the predicted position error over the evaluation
     configurations), and that plan.
@@ -773,15 +839,25 @@ def poses_for_accuracy(model: KinematicModel, candidates: np.ndarray, accuracy_m
         raise ValueError(f"`accuracy_m` must be a positive number; got {accuracy_m}")
     o = _options(options, overrides)
     rng = np.random.default_rng(0) if o.rng is None else o.rng
-    design = _prepare(model, candidates, targets=o.targets, sigma_m=o.sigma_m, gains=o.gains, fixed=tuple(o.fixed),
-                      rank_rtol=o.rank_rtol, hayati=o.hayati)
+    design = _prepare(
+        model,
+        candidates,
+        targets=o.targets,
+        sigma_m=o.sigma_m,
+        gains=o.gains,
+        fixed=tuple(o.fixed),
+        rank_rtol=o.rank_rtol,
+        hayati=o.hayati,
+    )
     criterion = o.criterion
     C, r, P = design.J.shape
     k_min = max(1, math.ceil(P / r))
     k_max = min(C, 400) if k_max is None else min(int(k_max), C)
     if k_max < k_min:
-        raise ValueError(f"`k_max` ({k_max}) is below the {k_min} poses the {P} identifiable parameters need "
-                         f"(or there are too few candidates)")
+        raise ValueError(
+            f"`k_max` ({k_max}) is below the {k_min} poses the {P} identifiable parameters need "
+            f"(or there are too few candidates)"
+        )
     ev = _evaluation(design, _evaluation_q(model, o.evaluation, o.n_evaluation, rng, o.volume, design.targets))
     rdiag = _ridge(design.J, o.ridge)
     pick = 0 if statistic == "rms" else 1
@@ -805,22 +881,42 @@ def poses_for_accuracy(model: KinematicModel, candidates: np.ndarray, accuracy_m
         result = _plan(design, ev, k_max, criterion, **opts)
         got = result.predicted_rms_m if statistic == "rms" else result.predicted_p95_m
         if got <= accuracy_m:
-            return AccuracyPlan(k_max, result, accuracy_m, statistic, np.array(counts), np.array(values), True,
-                                f"{k_max} poses are predicted to give a {name} error of {got:.3g} m")
-        return AccuracyPlan(None, result, accuracy_m, statistic, np.array(counts), np.array(values), False,
-                            f"even {k_max} poses are predicted to give a {name} error of {got:.3g} m, above the "
-                            f"{accuracy_m:.3g} m wanted: allow more poses or candidates, or use a better instrument")
+            return AccuracyPlan(
+                k_max,
+                result,
+                accuracy_m,
+                statistic,
+                np.array(counts),
+                np.array(values),
+                True,
+                f"{k_max} poses are predicted to give a {name} error of {got:.3g} m",
+            )
+        return AccuracyPlan(
+            None,
+            result,
+            accuracy_m,
+            statistic,
+            np.array(counts),
+            np.array(values),
+            False,
+            f"even {k_max} poses are predicted to give a {name} error of {got:.3g} m, above the "
+            f"{accuracy_m:.3g} m wanted: allow more poses or candidates, or use a better instrument",
+        )
     k = counts[-1]
     while True:
         result = _plan(design, ev, k, criterion, **opts)
         got = result.predicted_rms_m if statistic == "rms" else result.predicted_p95_m
         if got <= accuracy_m or k >= k_max:
             ok = got <= accuracy_m
-            msg = (f"{k} poses are predicted to give a {name} error of {got:.3g} m (wanted {accuracy_m:.3g} m)"
-                   if ok else f"even {k} poses are predicted to give a {name} error of {got:.3g} m, above the "
-                              f"{accuracy_m:.3g} m wanted")
-            return AccuracyPlan(k if ok else None, result, accuracy_m, statistic, np.array(counts), np.array(values),
-                                ok, msg)
+            msg = (
+                f"{k} poses are predicted to give a {name} error of {got:.3g} m (wanted {accuracy_m:.3g} m)"
+                if ok
+                else f"even {k} poses are predicted to give a {name} error of {got:.3g} m, above the "
+                f"{accuracy_m:.3g} m wanted"
+            )
+            return AccuracyPlan(
+                k if ok else None, result, accuracy_m, statistic, np.array(counts), np.array(values), ok, msg
+            )
         k += 1
 
 

@@ -23,15 +23,25 @@ if TYPE_CHECKING:  # uncertainty imports this module's words
 
 # --------------------------------------------------------------------------- words
 
+
 def describe(name: str) -> str:
     if name.startswith("compliance."):  # joint compliance under gravity (calibration.compliance)
         from .compliance import describe_term  # here: compliance imports identify, which imports this
 
         return describe_term(name)
     head, _, f = name.rpartition(".")
-    words = {"theta": "offset", "d": "d", "a": "a", "alpha": "twist alpha", "beta": "Hayati beta",
-             "gain": "gain", "tilt_x": "axis tilt x", "tilt_y": "axis tilt y", "shift_x": "axis shift x",
-             "shift_y": "axis shift y"}
+    words = {
+        "theta": "offset",
+        "d": "d",
+        "a": "a",
+        "alpha": "twist alpha",
+        "beta": "Hayati beta",
+        "gain": "gain",
+        "tilt_x": "axis tilt x",
+        "tilt_y": "axis tilt y",
+        "shift_x": "axis shift x",
+        "shift_y": "axis shift y",
+    }
     if head in ("base", "tool", "home"):
         kind = "translation" if f.startswith("t") else "rotation"
         return f"{head} {kind} {f[1]} ({name})"
@@ -92,20 +102,27 @@ def explain(u: Unidentifiable, units=None) -> str:
         return f"{d} moves the measured points exactly as the target offsets do ({rel})"
     if u.category == "last_joint_offset":
         joint = u.name.rpartition(".")[0]
-        what = ("the target offsets already describe" if any(n.startswith("target.") for n, _ in u.relation)
-                else "the tool translation already describes")
-        return (f"{d} only turns the measured points about the axis of joint {joint}, which {what}: "
-                f"position-only data cannot tell the two apart, so it keeps the model's value ({rel})")
+        what = (
+            "the target offsets already describe"
+            if any(n.startswith("target.") for n, _ in u.relation)
+            else "the tool translation already describes"
+        )
+        return (
+            f"{d} only turns the measured points about the axis of joint {joint}, which {what}: "
+            f"position-only data cannot tell the two apart, so it keeps the model's value ({rel})"
+        )
     if u.category == "weak":
-        return (f"{d} is redundant only at the nominal geometry (a target on an axis)"
-                + (f" where {rel}" if rel else "") + "; at the identified geometry the data determine it too "
-                "weakly to free it, so it keeps the model's value")
+        return (
+            f"{d} is redundant only at the nominal geometry (a target on an axis)"
+            + (f" where {rel}" if rel else "")
+            + "; at the identified geometry the data determine it too "
+            "weakly to free it, so it keeps the model's value"
+        )
     if u.category == "same_motion":
         return f"{d} and {describe(u.relation[0][0])} are the same motion ({rel})"
     if u.category == "combination":
         return f"{d} moves the measured points as a combination of freed parameters does: {rel}"
     return f"{d} has no effect on these measurements"
-
 
 
 def _unit(kind: str, units: Units) -> tuple[str, float]:
@@ -129,23 +146,31 @@ def consistency_text(result: IdentificationResult, units: Units) -> str:
     L, u = units.length_m, units.length
     level = f"{100 * c.get('level', 0.0):.3g} %"
     if c.get("consistent", True):
-        return (f"the model explains the data: residual RMS {result.rms_m / L:.3g} {u}, "
-                f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level)")
-    return (f"the model does not explain the data: residual RMS {result.rms_m / L:.3g} {u} against "
-            f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level); see the report")
+        return (
+            f"the model explains the data: residual RMS {result.rms_m / L:.3g} {u}, "
+            f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level)"
+        )
+    return (
+        f"the model does not explain the data: residual RMS {result.rms_m / L:.3g} {u} against "
+        f"{expected_rms_m(result) / L:.3g} {u} expected (chi-squared test at the {level} level); see the report"
+    )
 
 
 def summary_line(result: IdentificationResult, units: Units, n_rows: int, validation: Validation | None = None) -> str:
     """The one line ``recal identify`` prints."""
     L, u = units.length_m, units.length
-    line = (f"identified {len(result.params)} parameters from {n_rows} rows: "
-            f"residual RMS {result.rms_m / L:.4g} {u}, max {result.max_m / L:.4g} {u}; "
-            f"{len(result.unidentifiable)} not identifiable; {result.message}")
+    line = (
+        f"identified {len(result.params)} parameters from {n_rows} rows: "
+        f"residual RMS {result.rms_m / L:.4g} {u}, max {result.max_m / L:.4g} {u}; "
+        f"{len(result.unidentifiable)} not identifiable; {result.message}"
+    )
     if result.cross_validation is not None:
         line += f"; cross-validated RMS {result.cross_validation['rms_m'] / L:.4g} {u}"
     if validation is not None:
-        line += (f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
-                 f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound")
+        line += (
+            f"; hold-out RMS {validation.rms_m / L:.4g} {u} (before {validation.before_rms_m / L:.4g}), "
+            f"{100 * validation.coverage_95:.1f}% inside the predicted 95% bound"
+        )
     return line
 
 
@@ -154,17 +179,27 @@ def _f(x: float, digits: int = 9) -> float | None:
     return None if not math.isfinite(x) else float(f"{x:.{digits}g}")
 
 
-def identification_report(result: IdentificationResult, units: Units, *, data_rows: np.ndarray | None = None,
-                          validation: Validation | None = None) -> dict:
+def identification_report(
+    result: IdentificationResult,
+    units: Units,
+    *,
+    data_rows: np.ndarray | None = None,
+    validation: Validation | None = None,
+) -> dict:
     """Everything a metrologist needs to judge the identification, in ``units``."""
     L = units.length_m
     rows = np.arange(1, result.n_rows + 1) if data_rows is None else np.asarray(data_rows)
     params = []
     for k, p in enumerate(result.params):
         uname, s = _unit(p.kind, units)
-        entry = {"name": p.name, "unit": uname, "value": _f(result.values[k] / s),
-                 "change": _f(result.steps[k] / s), "std_error": _f(result.std_errors[k] / s),
-                 "source": result.sources[k] if result.sources else "data"}
+        entry = {
+            "name": p.name,
+            "unit": uname,
+            "value": _f(result.values[k] / s),
+            "change": _f(result.steps[k] / s),
+            "std_error": _f(result.std_errors[k] / s),
+            "source": result.sources[k] if result.sources else "data",
+        }
         if result.prior_std_errors is not None and math.isfinite(result.prior_std_errors[k]):
             entry["prior_std_error"] = _f(result.prior_std_errors[k] / s)
         params.append(entry)
@@ -179,39 +214,57 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
         "rows": result.n_rows,
         "parameters": params,
         "unidentifiable": [
-            {"name": u.name, "reason": explain(u, units), "category": u.category,
-             "same_as": [{"name": n, "coefficient": _f(c), "unit": cu} for n, c, cu in relation_coefficients(u, units)]}
+            {
+                "name": u.name,
+                "reason": explain(u, units),
+                "category": u.category,
+                "same_as": [
+                    {"name": n, "coefficient": _f(c), "unit": cu} for n, c, cu in relation_coefficients(u, units)
+                ],
+            }
             for u in result.unidentifiable
         ],
-        "correlation": {"names": list(result.param_names),
-                        "matrix": [[_f(v, 4) for v in row] for row in result.correlation]},
+        "correlation": {
+            "names": list(result.param_names),
+            "matrix": [[_f(v, 4) for v in row] for row in result.correlation],
+        },
         "condition_number": _f(result.condition_number),
         "observability": {k: _f(v) for k, v in result.observability.items()},
         "residuals": {
-            "rms": _f(result.rms_m / L), "max": _f(result.max_m / L),
+            "rms": _f(result.rms_m / L),
+            "max": _f(result.max_m / L),
             "p95": _f(np.percentile(rn, 95) / L) if len(rn) else 0.0,
             "rms_per_axis": [_f(v / L) for v in np.sqrt(np.mean(result.residuals_m**2, axis=0))],
             "rms_orientation": _f(result.rms_rad / units.angle_rad),
-            "chi2": _f(result.chi2), "dof": result.dof,
+            "chi2": _f(result.chi2),
+            "dof": result.dof,
             "sigma_scale": _f(result.sigma_scale),
             "model_error_scale": _f(result.model_error_scale),
         },
-        "cross_validation": None if result.cross_validation is None else {
+        "cross_validation": None
+        if result.cross_validation is None
+        else {
             "folds": result.cross_validation["folds"],
             "method": "linearised k-fold: each fold predicted by the fit without it (one Gauss-Newton step from "
-                      "the full fit)",
-            "rms": _f(result.cross_validation["rms_m"] / L), "in_sample_rms": _f(result.rms_m / L),
-            "chi2": _f(result.cross_validation["chi2"]), "expected_chi2": _f(result.cross_validation["expected_chi2"]),
+            "the full fit)",
+            "rms": _f(result.cross_validation["rms_m"] / L),
+            "in_sample_rms": _f(result.rms_m / L),
+            "chi2": _f(result.cross_validation["chi2"]),
+            "expected_chi2": _f(result.cross_validation["expected_chi2"]),
             "scale": _f(result.cross_validation["scale"]),
         },
-        "consistency": None if result.consistency is None else {
+        "consistency": None
+        if result.consistency is None
+        else {
             **{k: (_f(v) if isinstance(v, float) else v) for k, v in result.consistency.items()},
             "expected_rms": _f(expected_rms_m(result) / L),
             "message": consistency_text(result, units),
         },
         "complete": result.completeness,
         "warnings": list(result.warnings),
-        "data_only": None if result.data_only is None else {
+        "data_only": None
+        if result.data_only is None
+        else {
             "parameters": list(result.data_only["parameters"]),
             "condition_number": _f(result.data_only["condition_number"]),
             "observability": {k: _f(v) for k, v in result.data_only["observability"].items()},
@@ -220,29 +273,41 @@ def identification_report(result: IdentificationResult, units: Units, *, data_ro
             {"row": int(rows[i]), "residual": _f(rn[i] / L), "weight": _f(result.row_weights[i], 4)}
             for i in result.outliers
         ],
-        "registration": None if result.registration is None else {
+        "registration": None
+        if result.registration is None
+        else {
             # SI in the result (rms_before_m); here in the length unit, so without the suffix
             (k.removesuffix("_m") if k.startswith("rms") else k): (_f(v / L) if k.startswith("rms") else v)
-            for k, v in result.registration.items() if k != "point_offset_correction_m"
+            for k, v in result.registration.items()
+            if k != "point_offset_correction_m"
         },
         "notes": list(result.notes),
-        "settings": {**{k: v for k, v in result.settings.items() if k not in ("sigma_m", "sigma_rad")},
-                     "sigma": _f(result.settings["sigma_m"] / L),
-                     "sigma_orientation": _f(result.settings["sigma_rad"] / units.angle_rad)},
+        "settings": {
+            **{k: v for k, v in result.settings.items() if k not in ("sigma_m", "sigma_rad")},
+            "sigma": _f(result.settings["sigma_m"] / L),
+            "sigma_orientation": _f(result.settings["sigma_rad"] / units.angle_rad),
+        },
     }
     if validation is not None:
         report["validation"] = {
-            "rows": validation.n, "rms": _f(validation.rms_m / L), "max": _f(validation.max_m / L),
-            "p95": _f(validation.p95_m / L), "mean": _f(validation.mean_m / L),
+            "rows": validation.n,
+            "rms": _f(validation.rms_m / L),
+            "max": _f(validation.max_m / L),
+            "p95": _f(validation.p95_m / L),
+            "mean": _f(validation.mean_m / L),
             "inside_predicted_95": _f(validation.coverage_95, 4),
-            "before": {"rms": _f(validation.before_rms_m / L), "max": _f(validation.before_max_m / L),
-                       "p95": _f(validation.before_p95_m / L)},
+            "before": {
+                "rms": _f(validation.before_rms_m / L),
+                "max": _f(validation.before_max_m / L),
+                "p95": _f(validation.before_p95_m / L),
+            },
         }
     return report
 
 
-def identification_block(result: IdentificationResult, units: Units, *, nominal: KinematicModel | None = None,
-                         q: np.ndarray | None = None) -> dict:
+def identification_block(
+    result: IdentificationResult, units: Units, *, nominal: KinematicModel | None = None, q: np.ndarray | None = None
+) -> dict:
     """The compact ``identification`` block written into an identified model file.
 
     With ``nominal``, the block also keeps the nominal model (what a controller that was never
@@ -255,9 +320,24 @@ def identification_block(result: IdentificationResult, units: Units, *, nominal:
     predict the position uncertainty anywhere (``recal predict --uncertainty``).
     """
     full = identification_report(result, units)
-    block = {k: full[k] for k in ("success", "message", "rows", "parameters", "unidentifiable", "condition_number",
-                                  "observability", "residuals", "notes", "complete", "cross_validation",
-                                  "consistency", "warnings")}
+    block = {
+        k: full[k]
+        for k in (
+            "success",
+            "message",
+            "rows",
+            "parameters",
+            "unidentifiable",
+            "condition_number",
+            "observability",
+            "residuals",
+            "notes",
+            "complete",
+            "cross_validation",
+            "consistency",
+            "warnings",
+        )
+    }
     if full["data_only"] is not None:
         block["data_only"] = full["data_only"]
     block["identified_from"] = (nominal or result.start_model).name
@@ -288,7 +368,8 @@ def _vec(v, scale: float = 1.0) -> list:
 def _plain(key: str) -> str:
     """A setting's name without its SI suffix (the report is in the model's units)."""
     return {"held_tol_rad": "held_tol_angle", "held_tol_m": "held_tol_length"}.get(
-        key, key.removesuffix("_rad").removesuffix("_m"))
+        key, key.removesuffix("_rad").removesuffix("_m")
+    )
 
 
 def _setting(key: str, value, L: float, A: float):
@@ -307,24 +388,40 @@ def cpa_report(result, nominal: KinematicModel, sweeps) -> dict:
     for j, jt in enumerate(nominal.joints):
         axis = result.axes[j]
         rows = sweeps.row[sweeps.joint == j]
-        entry = {"joint": j + 1, "name": jt.name, "type": jt.type, "swept": axis is not None,
-                 "axis": {"direction": _vec(result.directions[j]), "point": _vec(result.points[j], L)},
-                 "from_nominal": {"tilt": _f(result.nominal_tilt_rad[j] / A),
-                                  "offset": _f(result.nominal_offset_m[j] / L) if jt.revolute else None}}
+        entry = {
+            "joint": j + 1,
+            "name": jt.name,
+            "type": jt.type,
+            "swept": axis is not None,
+            "axis": {"direction": _vec(result.directions[j]), "point": _vec(result.points[j], L)},
+            "from_nominal": {
+                "tilt": _f(result.nominal_tilt_rad[j] / A),
+                "offset": _f(result.nominal_offset_m[j] / L) if jt.revolute else None,
+            },
+        }
         if axis is not None:
             entry["rows"] = [int(rows[0]), int(rows[-1])]
             entry["targets"] = [t for t in result.fits[j]]
             fits = []
             for t, f in result.fits[j].items():
-                fits.append({
-                    "target": t, "points": f.n_points, "method": f.method,
-                    "radius": _f(f.radius_m / L), "arc": _f(f.arc_rad / A), "travel": _f(f.travel_m / L),
-                    "out_of_plane_rms": _f(f.out_of_plane_rms_m / L), "circle_rms": _f(f.circle_rms_m / L),
-                    "noise": _f(f.noise_m / L), "direction_std": _f(f.direction_std_rad / A),
-                    "position_std": _f(f.point_std_m / L), "scale": _f(f.scale),
-                    "axis": {"direction": _vec(f.direction), "point": _vec(f.point, L)},
-                    "warnings": list(f.warnings),
-                })
+                fits.append(
+                    {
+                        "target": t,
+                        "points": f.n_points,
+                        "method": f.method,
+                        "radius": _f(f.radius_m / L),
+                        "arc": _f(f.arc_rad / A),
+                        "travel": _f(f.travel_m / L),
+                        "out_of_plane_rms": _f(f.out_of_plane_rms_m / L),
+                        "circle_rms": _f(f.circle_rms_m / L),
+                        "noise": _f(f.noise_m / L),
+                        "direction_std": _f(f.direction_std_rad / A),
+                        "position_std": _f(f.point_std_m / L),
+                        "scale": _f(f.scale),
+                        "axis": {"direction": _vec(f.direction), "point": _vec(f.point, L)},
+                        "warnings": list(f.warnings),
+                    }
+                )
             entry["fits"] = fits
         joints.append(entry)
     base = matrix_to_pose(result.T_world_base)
@@ -336,9 +433,11 @@ def cpa_report(result, nominal: KinematicModel, sweeps) -> dict:
         "rows": len(sweeps),
         "signature": {"q": [_f(v / (A if jt.revolute else L)) for v, jt in zip(result.signature_q, nominal.joints)]},
         "joints": joints,
-        "registration": {"base": _vec(np.concatenate([base[:3] / L, base[3:] / A])),
-                         "rms": _f(result.registration_rms_m / L),
-                         "method": "rigid point registration of the nominal model onto the sweeps (Kabsch)"},
+        "registration": {
+            "base": _vec(np.concatenate([base[:3] / L, base[3:] / A])),
+            "rms": _f(result.registration_rms_m / L),
+            "method": "rigid point registration of the nominal model onto the sweeps (Kabsch)",
+        },
         "target_changes": {("tool" if t is None else t): _vec(d, L) for t, d in result.target_changes.items()},
         "warnings": list(result.warnings),
         "notes": list(result.notes),
@@ -368,8 +467,9 @@ def _model_values(model: KinematicModel, names: list[str]) -> dict[str, float]:
     return dict(zip((p.name for p in params), parameter_values(model, params).tolist()))
 
 
-def compare_parameters(model_a: KinematicModel, params_a: list[dict], model_b: KinematicModel,
-                       params_b: list[dict]) -> list[dict]:
+def compare_parameters(
+    model_a: KinematicModel, params_a: list[dict], model_b: KinematicModel, params_b: list[dict]
+) -> list[dict]:
     """Every parameter of two calibrations, from ``a`` to ``b`` (``params_*``: the reports'
     ``parameters`` entries, in ``model_b``'s units): those estimated in both, in only one
     (``new``: estimated in ``b`` only; ``not estimated``: in ``a`` only, ``b`` kept its starting
@@ -398,9 +498,20 @@ def compare_parameters(model_a: KinematicModel, params_a: list[dict], model_b: K
         else:
             status = "both" if pa and pb else "new" if pb else "not estimated" if pa else "fixed"
         moved = bool(sigma and change is not None and abs(change) > 2 * sigma)
-        rows.append({"name": name, "unit": unit, "group": group, "from": x_from, "to": x_to, "change": change,
-                     "sigma": sigma, "change_sigmas": abs(change) / sigma if sigma and change is not None else None,
-                     "moved": moved, "status": status})
+        rows.append(
+            {
+                "name": name,
+                "unit": unit,
+                "group": group,
+                "from": x_from,
+                "to": x_to,
+                "change": change,
+                "sigma": sigma,
+                "change_sigmas": abs(change) / sigma if sigma and change is not None else None,
+                "moved": moved,
+                "status": status,
+            }
+        )
 
     for n in plain:
         unit = (rb.get(n) or ra.get(n))["unit"]

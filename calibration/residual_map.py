@@ -75,18 +75,31 @@ class ResidualMap:
         return corr, inside
 
 
-def fit(q: np.ndarray, residuals: np.ndarray, revolute: np.ndarray, length_scale: float, ridge: float,
-        cv: dict | None = None) -> ResidualMap:
+def fit(
+    q: np.ndarray,
+    residuals: np.ndarray,
+    revolute: np.ndarray,
+    length_scale: float,
+    ridge: float,
+    cv: dict | None = None,
+) -> ResidualMap:
     """Kernel ridge regression (eq. 5.4) of ``residuals`` (M, 3) m on readings ``q`` (M, n)."""
     F = features(q, revolute)
     K = np.exp(-_sqdist(F, F) / (2.0 * length_scale**2))
     alpha = np.linalg.solve(K + ridge * np.eye(len(K)), np.asarray(residuals, dtype=float))
-    return ResidualMap(np.array(q, dtype=float), alpha, float(length_scale), float(ridge),
-                       np.asarray(revolute, dtype=bool), dict(cv or {}))
+    return ResidualMap(
+        np.array(q, dtype=float),
+        alpha,
+        float(length_scale),
+        float(ridge),
+        np.asarray(revolute, dtype=bool),
+        dict(cv or {}),
+    )
 
 
-def select_smoothness(q: np.ndarray, residuals: np.ndarray, revolute: np.ndarray, folds: list[np.ndarray]
-                      ) -> tuple[float, float, float]:
+def select_smoothness(
+    q: np.ndarray, residuals: np.ndarray, revolute: np.ndarray, folds: list[np.ndarray]
+) -> tuple[float, float, float]:
     """The (ℓ, λ) of :data:`LENGTH_SCALES` x :data:`RIDGES` with the least held-out RMS over
     ``folds`` (row indices), and that RMS (m)."""
     F = features(q, revolute)
@@ -115,9 +128,16 @@ def residuals(model: KinematicModel, data) -> np.ndarray:
     return data.p_world - predict(model, data.q, p_tool, payload=data.payload).p_world
 
 
-def choose_residual_map(start: KinematicModel, data, *, folds: int = 5, min_gain: float = MIN_CV_GAIN, seed: int = 0,
-                        identify_kw: dict | None = None, final: KinematicModel | None = None
-                        ) -> tuple[ResidualMap | None, dict]:
+def choose_residual_map(
+    start: KinematicModel,
+    data,
+    *,
+    folds: int = 5,
+    min_gain: float = MIN_CV_GAIN,
+    seed: int = 0,
+    identify_kw: dict | None = None,
+    final: KinematicModel | None = None,
+) -> tuple[ResidualMap | None, dict]:
     """``recal identify --residual-map auto``: k-fold cross-validation of the whole procedure
     (identify ``start`` on the training folds, fit a map to its residuals with the smoothness
     chosen by an inner cross-validation, test on the held-out fold, with and without the map).
@@ -147,8 +167,15 @@ def choose_residual_map(start: KinematicModel, data, *, folds: int = 5, min_gain
     n = len(data)
     rms_without, rms_with = math.sqrt(sq_without / n), math.sqrt(sq_with / n)
     gain = 1.0 - rms_with / rms_without if rms_without > 0 else 0.0
-    figures = {"folds": folds, "rms_without_m": rms_without, "rms_with_m": rms_with, "gain": gain,
-               "min_gain": min_gain, "held_out_inside_share": float(np.mean(inside_share)), "kept": gain >= min_gain}
+    figures = {
+        "folds": folds,
+        "rms_without_m": rms_without,
+        "rms_with_m": rms_with,
+        "gain": gain,
+        "min_gain": min_gain,
+        "held_out_inside_share": float(np.mean(inside_share)),
+        "kept": gain >= min_gain,
+    }
     if gain < min_gain:
         return None, figures
     final = final if final is not None else identify(start, data, **kw).model
@@ -198,14 +225,27 @@ def from_model(model: KinematicModel) -> ResidualMap | None:
         A = np.array(d["coefficients"], dtype=float)
         ell, lam = float(d["length_scale"]), float(d["ridge"])
     except (KeyError, TypeError, ValueError) as exc:
-        raise ResidualMapError("residual_map", f"expected configurations, coefficients, length_scale and ridge ({exc})"
-                               ) from None
-    if Q.ndim != 2 or Q.shape[1] != n or A.shape != (len(Q), 3) or not (np.all(np.isfinite(Q)) and np.all(np.isfinite(A))):
-        raise ResidualMapError("residual_map.configurations", f"expected M rows of {n} joint values and M rows of 3 "
-                               "coefficients")
+        raise ResidualMapError(
+            "residual_map", f"expected configurations, coefficients, length_scale and ridge ({exc})"
+        ) from None
+    if (
+        Q.ndim != 2
+        or Q.shape[1] != n
+        or A.shape != (len(Q), 3)
+        or not (np.all(np.isfinite(Q)) and np.all(np.isfinite(A)))
+    ):
+        raise ResidualMapError(
+            "residual_map.configurations", f"expected M rows of {n} joint values and M rows of 3 coefficients"
+        )
     if not ell > 0:
         raise ResidualMapError("residual_map.length_scale", "expected a positive number")
     u = model.units
     scale = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
-    return ResidualMap(Q * scale, A * u.length_m, ell, lam, np.array([j.revolute for j in model.joints]),
-                       dict(d.get("cross_validation") or {}))
+    return ResidualMap(
+        Q * scale,
+        A * u.length_m,
+        ell,
+        lam,
+        np.array([j.revolute for j in model.joints]),
+        dict(d.get("cross_validation") or {}),
+    )

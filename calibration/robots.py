@@ -25,9 +25,11 @@ import numpy as np
 from .model import KinematicModel, Units, model_from_dict, model_to_dict
 from .urdf import ChainJoint, chain_to_model, origin
 
-_UR_SOURCE = ("Universal Robots, DH parameters for calculations of kinematics and dynamics (published table, "
-              "standard DH); speed and torque limits from Universal Robots' ur_description "
-              "(github.com/UniversalRobots/Universal_Robots_ROS2_Description, config/<type>/joint_limits.yaml)")
+_UR_SOURCE = (
+    "Universal Robots, DH parameters for calculations of kinematics and dynamics (published table, "
+    "standard DH); speed and torque limits from Universal Robots' ur_description "
+    "(github.com/UniversalRobots/Universal_Robots_ROS2_Description, config/<type>/joint_limits.yaml)"
+)
 
 # (deg/s, N·m) per joint, from ur_description's joint_limits.yaml of each type.
 _UR_LIMITS = {
@@ -58,8 +60,18 @@ def _ur(name: str) -> dict[str, Any]:
         "convention": "dh",
         "base": [0, 0, 0, 0, 0, 0],
         "joints": [
-            {"name": f"j{i + 1}", "type": "revolute", "theta": 0.0, "d": d, "a": a, "alpha": alpha,
-             "lower": -360.0, "upper": 360.0, "velocity": float(velocity[i]), "effort": float(effort[i])}
+            {
+                "name": f"j{i + 1}",
+                "type": "revolute",
+                "theta": 0.0,
+                "d": d,
+                "a": a,
+                "alpha": alpha,
+                "lower": -360.0,
+                "upper": 360.0,
+                "velocity": float(velocity[i]),
+                "effort": float(effort[i]),
+            }
             for i, (d, a, alpha) in enumerate(rows)
         ],
         "tool": [0, 0, 0, 0, 0, 0],
@@ -89,7 +101,7 @@ def _puma_dh() -> dict[str, Any]:
         "format": "recal.model/1",
         "name": "puma560-nominal",
         "source": "Mooring, Roth & Driels (1991), Fundamentals of Manipulator Calibration, Table 6.1; joint "
-                  "ranges as commonly published for the PUMA 560",
+        "ranges as commonly published for the PUMA 560",
         "units": {"length": "in", "angle": "deg"},
         "convention": "dh",
         "base": [-15.591, 0.0, 32.878, -90.0, 0.0, 0.0],
@@ -106,19 +118,32 @@ def _puma_zrp() -> dict[str, Any]:
     """Table 6.2 (u dimensionless, p in inches) with T0 of eq. 6.11 as ``home``:
     T0 = [[0,-1,0,1.2],[0,0,1,33.96],[-1,0,0,27.73]] = pose [1.2, 33.96, 27.73, 0, 90, 90]."""
     axes = [(0, 1, 0), (0, 0, -1), (0, 0, -1), (0, 1, 0), (0, 0, -1), (0, 1, 0)]
-    points = [(-15.00, 14.70, 33.60), (-15.00, 14.70, 27.73), (2.00, 14.70, 27.73),
-              (1.20, 31.75, 27.73), (1.20, 31.75, 27.73), (1.20, 31.75, 27.73)]
+    points = [
+        (-15.00, 14.70, 33.60),
+        (-15.00, 14.70, 27.73),
+        (2.00, 14.70, 27.73),
+        (1.20, 31.75, 27.73),
+        (1.20, 31.75, 27.73),
+        (1.20, 31.75, 27.73),
+    ]
     return {
         "format": "recal.model/1",
         "name": "puma560-zrp-nominal",
         "source": "Mooring, Roth & Driels (1991), Fundamentals of Manipulator Calibration, Table 6.2 and eq. 6.11; "
-                  "joint ranges as commonly published for the PUMA 560",
+        "joint ranges as commonly published for the PUMA 560",
         "units": {"length": "in", "angle": "deg"},
         "convention": "poe",
         "base": [0, 0, 0, 0, 0, 0],
         "joints": [
-            {"name": f"j{i + 1}", "type": "revolute", "axis": list(u), "point": list(p), "theta": 0.0,
-             "lower": lo, "upper": hi}
+            {
+                "name": f"j{i + 1}",
+                "type": "revolute",
+                "axis": list(u),
+                "point": list(p),
+                "theta": 0.0,
+                "lower": lo,
+                "upper": hi,
+            }
             for i, (u, p, (lo, hi)) in enumerate(zip(axes, points, _PUMA_LIMITS))
         ],
         "home": [1.2, 33.96, 27.73, 0.0, 90.0, 90.0],
@@ -154,8 +179,13 @@ _ROSI = "ROS-Industrial {repo} ({pkg}/urdf/{file}, commit {commit}): joint origi
 _ARMS: dict[str, dict[str, Any]] = {
     "kr16": {
         "description": "KUKA KR 16-2, 6-axis, 16 kg, 1.61 m reach",
-        "source": _ROSI.format(repo="kuka_experimental", pkg="kuka_kr16_support", file="kr16_2_macro.xacro",
-                               commit="e78bbd15edb2b39c9053ff3b963ef2947e10a531", extra=" and velocities"),
+        "source": _ROSI.format(
+            repo="kuka_experimental",
+            pkg="kuka_kr16_support",
+            file="kr16_2_macro.xacro",
+            commit="e78bbd15edb2b39c9053ff3b963ef2947e10a531",
+            extra=" and velocities",
+        ),
         "joints": [
             _j("joint_a1", (0, 0, 0.675), (0, 0, -1), -185, 185, 156),
             _j("joint_a2", (0.26, 0, 0), (0, 1, 0), -155, 35, 156),
@@ -168,9 +198,13 @@ _ARMS: dict[str, dict[str, Any]] = {
     },
     "kr210": {
         "description": "KUKA KR 210 L150 (KR 210-2 family), 6-axis, 150 kg, 3.1 m reach",
-        "source": _ROSI.format(repo="kuka_experimental", pkg="kuka_kr210_support", file="kr210l150_macro.xacro",
-                               commit="e78bbd15edb2b39c9053ff3b963ef2947e10a531",
-                               extra=" and velocities (CAD-derived origins, kept as published)"),
+        "source": _ROSI.format(
+            repo="kuka_experimental",
+            pkg="kuka_kr210_support",
+            file="kr210l150_macro.xacro",
+            commit="e78bbd15edb2b39c9053ff3b963ef2947e10a531",
+            extra=" and velocities (CAD-derived origins, kept as published)",
+        ),
         "joints": [
             _j("joint_a1", (-0.00262, 0.00097586, 0.33099), (0, 0, 1), -185, 185, 123),
             _j("joint_a2", (0.35277, -0.037476, 0.4192), (0, 1, 0), -45, 85, 115),
@@ -183,8 +217,13 @@ _ARMS: dict[str, dict[str, Any]] = {
     },
     "irb4600": {
         "description": "ABB IRB 4600-60/2.05, 6-axis, 60 kg, 2.05 m reach",
-        "source": _ROSI.format(repo="abb_experimental", pkg="abb_irb4600_support", file="irb4600_60_205_macro.xacro",
-                               commit="20b9cf86ad274e4f98540b9c9efe59f94245d2d1", extra=" and velocities"),
+        "source": _ROSI.format(
+            repo="abb_experimental",
+            pkg="abb_irb4600_support",
+            file="irb4600_60_205_macro.xacro",
+            commit="20b9cf86ad274e4f98540b9c9efe59f94245d2d1",
+            extra=" and velocities",
+        ),
         "joints": [
             _jr("joint_1", (0, 0, 0.495), (0, 0, 1), -3.141, 3.141, 3.054),
             _jr("joint_2", (0.175, 0, 0), (0, 1, 0), -1.570, 2.617, 3.054),
@@ -197,9 +236,13 @@ _ARMS: dict[str, dict[str, Any]] = {
     },
     "irb6700": {
         "description": "ABB IRB 6700-200/2.60, 6-axis, 200 kg, 2.60 m reach",
-        "source": _ROSI.format(repo="abb_experimental", pkg="abb_irb6700_support", file="irb6700_200_260_macro.xacro",
-                               commit="20b9cf86ad274e4f98540b9c9efe59f94245d2d1",
-                               extra=" and velocities (the balancing cylinder's joints are not on the chain)"),
+        "source": _ROSI.format(
+            repo="abb_experimental",
+            pkg="abb_irb6700_support",
+            file="irb6700_200_260_macro.xacro",
+            commit="20b9cf86ad274e4f98540b9c9efe59f94245d2d1",
+            extra=" and velocities (the balancing cylinder's joints are not on the chain)",
+        ),
         "joints": [
             _j("joint_1", (0, 0, 0.78), (0, 0, 1), -170, 170, 110),
             _j("joint_2", (0.32, 0, 0), (0, 1, 0), -65, 85, 110),
@@ -212,10 +255,14 @@ _ARMS: dict[str, dict[str, Any]] = {
     },
     "m20ia": {
         "description": "Fanuc M-20iA, 6-axis, 20 kg, 1.81 m reach; J3 read relative to the horizon (coupling)",
-        "source": _ROSI.format(repo="fanuc", pkg="fanuc_m20ia_support", file="m20ia_macro.xacro",
-                               commit="8fee5e30e535378758ace26dfdffb8ab0403e23c",
-                               extra=" and velocities; J2/J3 coupling: fanuc_driver's linkage_transform with "
-                                     "J23_factor 1 (robot_interface_streaming_m20ia.launch)"),
+        "source": _ROSI.format(
+            repo="fanuc",
+            pkg="fanuc_m20ia_support",
+            file="m20ia_macro.xacro",
+            commit="8fee5e30e535378758ace26dfdffb8ab0403e23c",
+            extra=" and velocities; J2/J3 coupling: fanuc_driver's linkage_transform with "
+            "J23_factor 1 (robot_interface_streaming_m20ia.launch)",
+        ),
         "joints": [
             _jr("joint_1", (0, 0, 0.525), (0, 0, 1), -2.967060, 2.967060, 3.403392),
             _jr("joint_2", (0.150, 0, 0), (0, 1, 0), -1.745329, 2.792527, 3.054326),
@@ -229,10 +276,14 @@ _ARMS: dict[str, dict[str, Any]] = {
     },
     "r2000ic": {
         "description": "Fanuc R-2000iC/165F, 6-axis, 165 kg, 2.66 m reach; J3 read relative to the horizon (coupling)",
-        "source": _ROSI.format(repo="fanuc_experimental", pkg="fanuc_r2000ic_support", file="r2000ic165f_macro.xacro",
-                               commit="39929f69abd6b4a5bdca414d3d9bdb71919011e3",
-                               extra=" and velocities; J2/J3 coupling: fanuc_driver's linkage_transform with "
-                                     "J23_factor 1 (robot_interface_streaming_r2000ic165f.launch)"),
+        "source": _ROSI.format(
+            repo="fanuc_experimental",
+            pkg="fanuc_r2000ic_support",
+            file="r2000ic165f_macro.xacro",
+            commit="39929f69abd6b4a5bdca414d3d9bdb71919011e3",
+            extra=" and velocities; J2/J3 coupling: fanuc_driver's linkage_transform with "
+            "J23_factor 1 (robot_interface_streaming_r2000ic165f.launch)",
+        ),
         "joints": [
             _j("joint_1", (0, 0, 0.670), (0, 0, 1), -185, 185, 130),
             _j("joint_2", (0.312, 0, 0), (0, 1, 0), -60, 76, 115),
@@ -247,8 +298,8 @@ _ARMS: dict[str, dict[str, Any]] = {
     "gp25": {
         "description": "Yaskawa Motoman GP25, 6-axis, 25 kg, 1.73 m reach",
         "source": "ROS-Industrial motoman (motoman_gp25_support/urdf/gp25_macro.xacro, commit "
-                  "433be15f6a27cb9a5715cc3887b1cd15ff33a8cb): joint origins, axes, limits, velocities and efforts "
-                  "(tool0 rpy 3.1415926 -1.570796 0 read as pi, -pi/2)",
+        "433be15f6a27cb9a5715cc3887b1cd15ff33a8cb): joint origins, axes, limits, velocities and efforts "
+        "(tool0 rpy 3.1415926 -1.570796 0 read as pi, -pi/2)",
         "joints": [
             _j("joint_1_s", (0, 0, 0.505), (0, 0, 1), -180, 180, 210, 3087.0),
             _j("joint_2_l", (0.150, 0, 0), (0, 1, 0), -105, 155, 210, 3087.0),
@@ -262,8 +313,8 @@ _ARMS: dict[str, dict[str, Any]] = {
     "tx2-90": {
         "description": "Staubli TX2-90, 6-axis, 14 kg, 1.0 m reach (floor mounted)",
         "source": "ROS-Industrial staubli_experimental (staubli_tx2_90_support/urdf/tx2_90_macro.xacro, commit "
-                  "256a71acea2161b64e12af1a6b925a7f26695007): joint origins, axes, limits, nominal velocities and "
-                  "efforts (floor mounted)",
+        "256a71acea2161b64e12af1a6b925a7f26695007): joint origins, axes, limits, nominal velocities and "
+        "efforts (floor mounted)",
         "joints": [
             _j("joint_1", (0, 0, 0.478), (0, 0, 1), -180, 180, 265, 318.0),
             _j("joint_2", (0.050, 0, 0), (0, 1, 0), -130, 147.5, 210, 166.0),
@@ -277,8 +328,8 @@ _ARMS: dict[str, dict[str, Any]] = {
     "fr3": {
         "description": "Franka Research 3, 7-axis, 3 kg; flange = fr3_link8 (no hand)",
         "source": "franka_description (frankaemika/franka_description, robots/fr3/kinematics.yaml and "
-                  "joint_limits.yaml, commit b299b39d9692bfae795184df32a98ce7778d56af): joint origins, limits, "
-                  "velocities and efforts; every axis is the joint frame's z",
+        "joint_limits.yaml, commit b299b39d9692bfae795184df32a98ce7778d56af): joint origins, limits, "
+        "velocities and efforts; every axis is the joint frame's z",
         "joints": [
             _jr("fr3_joint1", (0, 0, 0.333), (0, 0, 1), -2.7437, 2.7437, 2.62, 87.0),
             _jr("fr3_joint2", (0, 0, 0), (0, 0, 1), -1.7837, 1.7837, 2.62, 87.0, rpy=(-_PI / 2, 0, 0)),
@@ -292,9 +343,13 @@ _ARMS: dict[str, dict[str, Any]] = {
     },
     "iiwa14": {
         "description": "KUKA LBR iiwa 14 R820, 7-axis, 14 kg, 0.82 m reach",
-        "source": _ROSI.format(repo="kuka_experimental", pkg="kuka_lbr_iiwa_support",
-                               file="lbr_iiwa_14_r820_macro.xacro", commit="e78bbd15edb2b39c9053ff3b963ef2947e10a531",
-                               extra=" and velocities; efforts: KUKA LBR iiwa 14 R820 data sheet, maximum torques"),
+        "source": _ROSI.format(
+            repo="kuka_experimental",
+            pkg="kuka_lbr_iiwa_support",
+            file="lbr_iiwa_14_r820_macro.xacro",
+            commit="e78bbd15edb2b39c9053ff3b963ef2947e10a531",
+            extra=" and velocities; efforts: KUKA LBR iiwa 14 R820 data sheet, maximum torques",
+        ),
         "joints": [
             _jr("joint_a1", (0, 0, 0), (0, 0, 1), -2.9668, 2.9668, 1.4834, 320.0),
             _jr("joint_a2", (-0.00043624, 0, 0.36), (0, 1, 0), -2.0942, 2.0942, 1.4834, 320.0),
@@ -315,8 +370,11 @@ def arm_chain(name: str) -> list[ChainJoint]:
     chain, parent = [], "base_link"
     for k, (jname, xyz, rpy, axis, lo, hi, vel, eff) in enumerate(arm["joints"]):
         child = f"link_{k + 1}"
-        chain.append(ChainJoint(jname, "revolute", parent, child, origin(xyz, rpy), np.array(axis, dtype=float),
-                                lo, hi, vel, eff))
+        chain.append(
+            ChainJoint(
+                jname, "revolute", parent, child, origin(xyz, rpy), np.array(axis, dtype=float), lo, hi, vel, eff
+            )
+        )
         parent = child
     for k, (xyz, rpy) in enumerate(arm["tail"]):
         child = "tool0" if k == len(arm["tail"]) - 1 else f"fixed_{k + 1}"
@@ -336,8 +394,13 @@ def _arm(name: str) -> dict[str, Any]:
         C = np.eye(n)
         C[2, 1] = 1.0
         doc["coupling"] = C.tolist()
-    return {"format": doc.pop("format"), "name": doc.pop("name"), "source": arm["source"],
-            "description": arm["description"], **doc}
+    return {
+        "format": doc.pop("format"),
+        "name": doc.pop("name"),
+        "source": arm["source"],
+        "description": arm["description"],
+        **doc,
+    }
 
 
 _DESCRIPTIONS = {
@@ -350,8 +413,12 @@ _DESCRIPTIONS = {
     **{k: v["description"] for k, v in _ARMS.items()},
 }
 
-_LIBRARY = {**{name: (lambda n=name: _ur(n)) for name in _UR_DH}, "puma560": _puma_dh, "puma560-zrp": _puma_zrp,
-            **{name: (lambda n=name: _arm(n)) for name in _ARMS}}
+_LIBRARY = {
+    **{name: (lambda n=name: _ur(n)) for name in _UR_DH},
+    "puma560": _puma_dh,
+    "puma560-zrp": _puma_zrp,
+    **{name: (lambda n=name: _arm(n)) for name in _ARMS},
+}
 
 
 def describe(name: str) -> str:

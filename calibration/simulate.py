@@ -107,8 +107,11 @@ def simulate_measurements(
     order = np.argsort(np.concatenate(pose_id), kind="stable")
     cat = lambda a: np.concatenate(a)[order]  # noqa: E731
     return Measurements(
-        q=cat(rows_q), p_world=cat(rows_p), quat=cat(rows_quat) if full_pose else None,
-        target=np.array(rows_t, dtype=object)[order], pose_id=cat(pose_id),
+        q=cat(rows_q),
+        p_world=cat(rows_p),
+        quat=cat(rows_quat) if full_pose else None,
+        target=np.array(rows_t, dtype=object)[order],
+        pose_id=cat(pose_id),
         payload=None if pay is None else cat(rows_pay),
     )
 
@@ -118,8 +121,14 @@ def simulate_measurements(
 # A 165 kg-payload industrial arm: R-2000iC/165F-class dimensions (mm), standard DH, the
 # shoulder (j2) offset so that q = 0 holds the lower arm upright. Approximate figures for
 # simulation; not a vendor's published model.
-HEAVY_ARM_DH = ((670.0, 312.0, -90.0, 0.0), (0.0, 1075.0, 0.0, -90.0), (0.0, 225.0, -90.0, 0.0),
-                (1280.0, 0.0, 90.0, 0.0), (0.0, 0.0, -90.0, 0.0), (215.0, 0.0, 0.0, 0.0))  # d, a, alpha, theta
+HEAVY_ARM_DH = (
+    (670.0, 312.0, -90.0, 0.0),
+    (0.0, 1075.0, 0.0, -90.0),
+    (0.0, 225.0, -90.0, 0.0),
+    (1280.0, 0.0, 90.0, 0.0),
+    (0.0, 0.0, -90.0, 0.0),
+    (215.0, 0.0, 0.0, 0.0),
+)  # d, a, alpha, theta
 
 
 def heavy_arm_nominal() -> KinematicModel:
@@ -127,13 +136,30 @@ def heavy_arm_nominal() -> KinematicModel:
     from .model import model_from_dict
 
     limits = ((-180, 180), (-60, 75), (-80, 180), (-180, 180), (-125, 125), (-180, 180))
-    return model_from_dict({
-        "format": "recal.model/1", "name": "arm165-nominal", "units": {"length": "mm", "angle": "deg"},
-        "convention": "dh", "base": [0] * 6, "tool": [0] * 6, "targets": {},
-        "joints": [{"name": f"j{i + 1}", "type": "revolute", "d": d, "a": a, "alpha": al, "theta": th,
-                    "lower": lo, "upper": hi}
-                   for i, ((d, a, al, th), (lo, hi)) in enumerate(zip(HEAVY_ARM_DH, limits))],
-    })
+    return model_from_dict(
+        {
+            "format": "recal.model/1",
+            "name": "arm165-nominal",
+            "units": {"length": "mm", "angle": "deg"},
+            "convention": "dh",
+            "base": [0] * 6,
+            "tool": [0] * 6,
+            "targets": {},
+            "joints": [
+                {
+                    "name": f"j{i + 1}",
+                    "type": "revolute",
+                    "d": d,
+                    "a": a,
+                    "alpha": al,
+                    "theta": th,
+                    "lower": lo,
+                    "upper": hi,
+                }
+                for i, ((d, a, al, th), (lo, hi)) in enumerate(zip(HEAVY_ARM_DH, limits))
+            ],
+        }
+    )
 
 
 # Physical figures of two sagging arms (SI): joint compliance (rad per N·m = 1 / stiffness), lumped
@@ -151,14 +177,16 @@ def heavy_arm_nominal() -> KinematicModel:
 #   over the whole joint range with and without the payload: about 1.5 mm RMS (bench/compliance.py;
 #   the arm in issue 17, measured in a smaller region, left 0.5 mm).
 SAGGING_ARMS = {
-    "cobot": dict(compliance={"j2": 5e-6, "j3": 1e-5},
-                  masses={"j2": (13.0, (0.306, 0.0, 0.175)), "j3": (4.0, (0.286, 0.0, 0.05)),
-                          "j6": (4.7, (0.0, 0.0, -0.08))},
-                  payload=(10.0, 0.0, 0.0, 0.1)),
-    "arm165": dict(compliance={"j2": 2e-7, "j3": 5e-7},
-                   masses={"j2": (60.0, (-0.54, 0.0, 0.0)), "j3": (180.0, (0.0, -0.4, 0.0)),
-                           "j6": (50.0, (0.0, 0.0, -0.1))},
-                   payload=(165.0, 0.0, 0.0, 0.2)),
+    "cobot": dict(
+        compliance={"j2": 5e-6, "j3": 1e-5},
+        masses={"j2": (13.0, (0.306, 0.0, 0.175)), "j3": (4.0, (0.286, 0.0, 0.05)), "j6": (4.7, (0.0, 0.0, -0.08))},
+        payload=(10.0, 0.0, 0.0, 0.1),
+    ),
+    "arm165": dict(
+        compliance={"j2": 2e-7, "j3": 5e-7},
+        masses={"j2": (60.0, (-0.54, 0.0, 0.0)), "j3": (180.0, (0.0, -0.4, 0.0)), "j6": (50.0, (0.0, 0.0, -0.1))},
+        payload=(165.0, 0.0, 0.0, 0.2),
+    ),
 }
 
 

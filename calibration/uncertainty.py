@@ -12,11 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import RecalError
 from .identification import IdentificationResult, Measurements
 from .jacobian import predict
 from .model import KinematicModel
 from .parameters import Parameter, candidate_parameters
-from .errors import RecalError
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -30,8 +30,14 @@ def _p_tool(model, names) -> np.ndarray:
     return np.array([model.target(t) for t in names]) if len(names) else np.zeros((0, 3))
 
 
-def propagate(model: KinematicModel, params: list[Parameter], covariance: np.ndarray, q: np.ndarray,
-              targets: np.ndarray, payload: np.ndarray | None = None) -> np.ndarray:
+def propagate(
+    model: KinematicModel,
+    params: list[Parameter],
+    covariance: np.ndarray,
+    q: np.ndarray,
+    targets: np.ndarray,
+    payload: np.ndarray | None = None,
+) -> np.ndarray:
     """Covariance (N, 3, 3) m² of the positions of per-row ``targets`` (N,) (``None``: the tool
     origin) at readings ``q`` (N, n), from the covariance (P, P) SI of ``params`` of ``model``:
     ``J Σx Jᵀ`` (book eq. 4.70). ``payload`` (N, 4): per row, for a compliant model."""
@@ -57,8 +63,13 @@ def noise_sigma(result: IdentificationResult, sigma_m: np.ndarray | float) -> np
     return np.asarray(sigma_m) * result.sigma_scale * result.model_error_scale
 
 
-def position_covariance(result: IdentificationResult, q: np.ndarray, target: str | None = None,
-                        targets: np.ndarray | None = None, payload: np.ndarray | None = None) -> np.ndarray:
+def position_covariance(
+    result: IdentificationResult,
+    q: np.ndarray,
+    target: str | None = None,
+    targets: np.ndarray | None = None,
+    payload: np.ndarray | None = None,
+) -> np.ndarray:
     """Covariance (N, 3, 3) m² of the predicted position of ``target`` (or per-row ``targets``)
     at readings ``q`` (N, n), from the identified parameters' covariance
     (:func:`prediction_covariance`)."""
@@ -74,8 +85,9 @@ def radius_95(C: np.ndarray, level: float = 0.95) -> np.ndarray:
     return np.sqrt(chi2_quantile(level, 3) * np.maximum(lam, 0.0))
 
 
-def predicted_uncertainty(result: IdentificationResult, q: np.ndarray, target: str | None = None,
-                          *, level: float = 0.95) -> np.ndarray:
+def predicted_uncertainty(
+    result: IdentificationResult, q: np.ndarray, target: str | None = None, *, level: float = 0.95
+) -> np.ndarray:
     """A radius (N,) m that the model's position error at ``q`` stays within with probability
     ``level`` (conservative: the largest principal axis of the covariance, scaled by the χ²₃
     quantile). The measurement noise is not included."""
@@ -97,8 +109,10 @@ def covariance_from_block(model: KinematicModel) -> tuple[list[Parameter], np.nd
     block = model.metadata.get("identification")
     cov = block.get("covariance") if isinstance(block, dict) else None
     if not isinstance(cov, dict):
-        raise CovarianceError("identification.covariance", "this model stores no parameter covariance (a model "
-                              "written by `recal identify` does)")
+        raise CovarianceError(
+            "identification.covariance",
+            "this model stores no parameter covariance (a model written by `recal identify` does)",
+        )
     names = cov.get("names")
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise CovarianceError("identification.covariance.names", "expected a list of parameter names")
@@ -107,8 +121,9 @@ def covariance_from_block(model: KinematicModel) -> tuple[list[Parameter], np.nd
     except (TypeError, ValueError):
         matrix = np.zeros(0)
     if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
-        raise CovarianceError("identification.covariance.matrix",
-                              f"expected a {len(names)} x {len(names)} matrix of numbers")
+        raise CovarianceError(
+            "identification.covariance.matrix", f"expected a {len(names)} x {len(names)} matrix of numbers"
+        )
     grow = cov.get("model_error_scale", 1.0)
     if isinstance(grow, bool) or not isinstance(grow, (int, float)) or not grow >= 1.0:
         raise CovarianceError("identification.covariance.model_error_scale", f"expected a number >= 1, got {grow!r}")
@@ -157,8 +172,9 @@ def validate(result: IdentificationResult, holdout: Measurements) -> Validation:
     p = predict(result.model, holdout.q, _p_tool(result.model, names), payload=holdout.payload).p_world
     e_vec = holdout.p_world - p
     e = np.linalg.norm(e_vec, axis=1)
-    C = (position_covariance(result, holdout.q, targets=names, payload=holdout.payload)
-         + (noise_sigma(result, sigma)**2)[:, None, None] * np.eye(3))
+    C = position_covariance(result, holdout.q, targets=names, payload=holdout.payload) + (
+        noise_sigma(result, sigma) ** 2
+    )[:, None, None] * np.eye(3)
     d2 = np.einsum("ni,ni->n", e_vec, np.linalg.solve(C, e_vec[:, :, None])[:, :, 0])
     coverage = float(np.mean(d2 <= chi2_quantile(0.95, 3))) if len(e) else 0.0
     p0 = predict(result.start_model, holdout.q, _p_tool(result.start_model, names), payload=holdout.payload).p_world

@@ -140,15 +140,26 @@ def parse_urdf(text: str) -> tuple[str, list[str], list[ChainJoint]]:
             lower = upper = None  # URDF's "no limits" spelling (lower = upper = 0)
         if e.find("mimic") is not None and jtype in MOVING:
             raise UrdfError(f"{what}: <mimic> joints are not supported (a Recal joint is read on its own)")
-        joints.append(ChainJoint(name, jtype, ends["parent"], ends["child"], origin(xyz, rpy),
-                                 axis / (np.linalg.norm(axis) or 1.0), lower, upper,
-                                 velocity if velocity and velocity > 0 else None,
-                                 effort if effort and effort > 0 else None))
+        joints.append(
+            ChainJoint(
+                name,
+                jtype,
+                ends["parent"],
+                ends["child"],
+                origin(xyz, rpy),
+                axis / (np.linalg.norm(axis) or 1.0),
+                lower,
+                upper,
+                velocity if velocity and velocity > 0 else None,
+                effort if effort and effort > 0 else None,
+            )
+        )
     return root.get("name") or "robot", links, joints
 
 
-def serial_chain(links: list[str], joints: list[ChainJoint], base: str | None = None,
-                 tip: str | None = None) -> list[ChainJoint]:
+def serial_chain(
+    links: list[str], joints: list[ChainJoint], base: str | None = None, tip: str | None = None
+) -> list[ChainJoint]:
     """The joints from link ``base`` (default: the root link) to link ``tip`` (default: the only
     leaf below ``base``), in order."""
     by_child: dict[str, ChainJoint] = {}
@@ -161,8 +172,9 @@ def serial_chain(links: list[str], joints: list[ChainJoint], base: str | None = 
     if base is None:
         roots = [n for n in links if n not in by_child]
         if len(roots) != 1:
-            raise UrdfError(f"the robot has {len(roots)} root links ({', '.join(roots) or 'none'}); expected one "
-                            "(give --base LINK)")
+            raise UrdfError(
+                f"the robot has {len(roots)} root links ({', '.join(roots) or 'none'}); expected one (give --base LINK)"
+            )
         base = roots[0]
     elif base not in children:
         raise UrdfError(f"link {base!r} (the base) is not a <link> of the robot")
@@ -171,8 +183,10 @@ def serial_chain(links: list[str], joints: list[ChainJoint], base: str | None = 
         while children[link]:
             if len(children[link]) > 1:
                 leaves = sorted(_leaves(children, link))
-                raise UrdfError(f"link {link!r} branches ({', '.join(repr(j.name) for j in children[link])}; "
-                                f"leaves {', '.join(leaves)}): give --tip LINK")
+                raise UrdfError(
+                    f"link {link!r} branches ({', '.join(repr(j.name) for j in children[link])}; "
+                    f"leaves {', '.join(leaves)}): give --tip LINK"
+                )
             link = children[link][0].child
         tip = link
     elif tip not in children:
@@ -187,8 +201,10 @@ def serial_chain(links: list[str], joints: list[ChainJoint], base: str | None = 
     path.reverse()
     for j in path:
         if j.type in ("floating", "planar"):
-            raise UrdfError(f"joint {j.name!r}: type {j.type!r} is not a single-axis joint; Recal models revolute, "
-                            "continuous, prismatic and fixed joints")
+            raise UrdfError(
+                f"joint {j.name!r}: type {j.type!r} is not a single-axis joint; Recal models revolute, "
+                "continuous, prismatic and fixed joints"
+            )
     if not any(j.type in MOVING for j in path):
         raise UrdfError(f"no moving joint between link {base!r} and link {tip!r}")
     return path
@@ -219,13 +235,25 @@ def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = MM_DEG) -
             kw = {"lower": cj.lower, "upper": cj.upper}
         elif not rev:
             kw = {"lower": -10.0, "upper": 10.0}
-        joints.append(Joint(name=cj.name, type="revolute" if rev else "prismatic", axis=T[:3, :3] @ cj.axis,
-                            point=T[:3, 3].copy(), theta=0.0, d=0.0, velocity=cj.velocity, effort=cj.effort, **kw))
+        joints.append(
+            Joint(
+                name=cj.name,
+                type="revolute" if rev else "prismatic",
+                axis=T[:3, :3] @ cj.axis,
+                point=T[:3, 3].copy(),
+                theta=0.0,
+                d=0.0,
+                velocity=cj.velocity,
+                effort=cj.effort,
+                **kw,
+            )
+        )
     return KinematicModel(name=name, convention="poe", joints=tuple(joints), home=matrix_to_pose(T), units=units)
 
 
-def chain_to_model(name: str, chain: list[ChainJoint], *, convention: str = "auto",
-                   units: Units = MM_DEG) -> KinematicModel:
+def chain_to_model(
+    name: str, chain: list[ChainJoint], *, convention: str = "auto", units: Units = MM_DEG
+) -> KinematicModel:
     """The model of a serial chain, exact in every ``convention``:
 
     - ``poe``: :func:`chain_to_poe`;
@@ -269,13 +297,19 @@ def _flange_into_last_link(model: KinematicModel) -> KinematicModel | None:
     a = float(p @ x)
     if not (np.allclose(M, rot(0, alpha), atol=1e-12) and np.allclose(p, a * x + [0, 0, p[2]], atol=1e-12)):
         return None
-    joints = model.joints[:-1] + (dataclasses.replace(last, theta=last.theta + phi, d=last.d + p[2], a=a,
-                                                      alpha=alpha),)
+    joints = model.joints[:-1] + (dataclasses.replace(last, theta=last.theta + phi, d=last.d + p[2], a=a, alpha=alpha),)
     return dataclasses.replace(model, joints=joints, tool=np.zeros(6))
 
 
-def model_from_urdf(text: str, *, base: str | None = None, tip: str | None = None, convention: str = "auto",
-                    units: Units = MM_DEG, name: str | None = None) -> KinematicModel:
+def model_from_urdf(
+    text: str,
+    *,
+    base: str | None = None,
+    tip: str | None = None,
+    convention: str = "auto",
+    units: Units = MM_DEG,
+    name: str | None = None,
+) -> KinematicModel:
     """The model whose forward kinematics is the URDF chain's from link ``base`` to link ``tip``
     (defaults: the root link, and the only leaf) in ``convention`` (see :func:`chain_to_model`). Raises :class:`UrdfError` naming the element at
     fault: a branch without ``tip``, a link that does not exist, a ``floating`` or ``planar`` joint

@@ -217,8 +217,9 @@ def fanuc_config(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     front, up = arm_flags(model, q, "fanuc")
     q = check_q(model, q)
     c = joint_codes(q, "fanuc")
-    return np.stack([c[:, 4] % 2, up.astype(np.int64), front.astype(np.int64),
-                     c[:, 3] // 2, c[:, 4] // 2, c[:, 5] // 2], axis=1)
+    return np.stack(
+        [c[:, 4] % 2, up.astype(np.int64), front.astype(np.int64), c[:, 3] // 2, c[:, 4] // 2, c[:, 5] // 2], axis=1
+    )
 
 
 def configured_ik(
@@ -252,11 +253,15 @@ def configured_ik(
     T = np.asarray(T_world_tool, dtype=float).reshape(-1, 4, 4)
     N = len(T)
     q_near = np.broadcast_to(check_q(model, np.asarray(q_near, dtype=float).reshape(-1, 6)), (N, 6))
-    seeds = np.concatenate([q_near[:, None, :], np.broadcast_to(spread_seeds(model, n_seeds), (N, n_seeds, 6))],
-                           axis=1)
+    seeds = np.concatenate([q_near[:, None, :], np.broadcast_to(spread_seeds(model, n_seeds), (N, n_seeds, 6))], axis=1)
     K = seeds.shape[1]
-    r = solve_ik(model, np.repeat(T, K, axis=0), seeds.reshape(-1, 6), position_tol_m=position_tol_m,
-                 rotation_tol_rad=rotation_tol_rad)
+    r = solve_ik(
+        model,
+        np.repeat(T, K, axis=0),
+        seeds.reshape(-1, 6),
+        position_tol_m=position_tol_m,
+        rotation_tol_rad=rotation_tol_rad,
+    )
     q = r.q.reshape(N, K, 6)
     near = np.repeat(q_near, K, axis=0).reshape(N, K, 6)
     C = model.coupling_matrix
@@ -270,8 +275,9 @@ def configured_ik(
         # a reading on a code's boundary (0°, ±90°, ...) to rounding matches either side
         hit = np.broadcast_to(np.isnan(want), ok.shape).copy()
         for eps in (-1e-7, 0.0, 1e-7):
-            got = np.stack([joint_codes(cand[..., s].reshape(-1, 6) + eps, brand).reshape(N, K, 6) for s in range(5)],
-                           axis=-1)
+            got = np.stack(
+                [joint_codes(cand[..., s].reshape(-1, 6) + eps, brand).reshape(N, K, 6) for s in range(5)], axis=-1
+            )
             hit |= got == want
         ok &= hit
     dist = np.where(ok, np.abs(cand - near[..., None]), np.inf)

@@ -103,7 +103,10 @@ class LineLink:
                 if len(self._buffer) > self.max_line:
                     snippet = bytes(self._buffer[:40])
                     self._buffer.clear()
-                    raise ProtocolError(f"reply longer than {self.max_line} bytes without a line end: {snippet!r}...", device=self.device)
+                    raise ProtocolError(
+                        f"reply longer than {self.max_line} bytes without a line end: {snippet!r}...",
+                        device=self.device,
+                    )
                 if time.monotonic() >= deadline:
                     partial = f" (partial: {bytes(self._buffer)!r})" if self._buffer else ""
                     raise DeviceTimeoutError(f"no {expecting} within {limit:g} s{partial}", device=self.device)

@@ -82,9 +82,7 @@ class Robot(Device):
         """Fresh joint readings, shape ``(n,)``, rad (m for prismatic joints)."""
 
     @abc.abstractmethod
-    def move_joints(
-        self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0
-    ) -> None:
+    def move_joints(self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0) -> None:
         """Move to joint target ``q`` ``(n,)`` and return once it is reached.
 
         Raises ``RobotStoppedError`` if a protective or emergency stop interrupts the move,
@@ -186,9 +184,7 @@ class Cmm(Device):
         the approach direction). Raises ``MeasurementError`` on no touch.
         """
 
-    def measure_ball(
-        self, centre_world: np.ndarray, radius_m: float, *, n_points: int = 5
-    ) -> BallMeasurement:
+    def measure_ball(self, centre_world: np.ndarray, radius_m: float, *, n_points: int = 5) -> BallMeasurement:
         """Probe a tooling ball near its nominal centre and fit its centre.
 
         Points are spread over the upper hemisphere (seen from +z of the world frame); at least
@@ -237,9 +233,7 @@ def _hemisphere_directions(n: int) -> np.ndarray:
     ring = n - 1
     phi = 2 * np.pi * np.arange(ring) / ring
     tilt = np.pi / 4
-    ring_dirs = np.stack(
-        [np.sin(tilt) * np.cos(phi), np.sin(tilt) * np.sin(phi), np.full(ring, np.cos(tilt))], axis=1
-    )
+    ring_dirs = np.stack([np.sin(tilt) * np.cos(phi), np.sin(tilt) * np.sin(phi), np.full(ring, np.cos(tilt))], axis=1)
     return np.vstack([[0.0, 0.0, 1.0], ring_dirs])
 
 

@@ -92,8 +92,12 @@ RESOLVER_POLE_PAIRS = 0x2001
 SCALING_BIT = 0x0004
 PROFILE_406 = 406
 
-RESOLVER_FAULT_NAMES = {0x01: "LOS loss of signal", 0x02: "DOS degradation of signal",
-                        0x04: "LOT loss of tracking", 0x08: "configuration parity"}
+RESOLVER_FAULT_NAMES = {
+    0x01: "LOS loss of signal",
+    0x02: "DOS degradation of signal",
+    0x04: "LOT loss of tracking",
+    0x08: "configuration parity",
+}
 NMT_STATES = {0: "boot-up", 4: "stopped", 5: "operational", 127: "pre-operational"}
 
 # Abort codes that mean "the device cannot deliver now" rather than "this request does not fit
@@ -452,9 +456,7 @@ class CanopenEncoder(JointEncoder):
             with socket.create_connection((cfg.host, cfg.port), timeout=cfg.connect_timeout_s) as probe:
                 greeting = probe.recv(64)
                 if not greeting.startswith(b"< hi >"):
-                    raise ProtocolError(
-                        f"{where} greeted with {greeting[:32]!r}, expected '< hi >'", device=self.name
-                    )
+                    raise ProtocolError(f"{where} greeted with {greeting[:32]!r}, expected '< hi >'", device=self.name)
                 probe.sendall(f"< open {cfg.channel} >".encode("ascii"))
                 answer = probe.recv(128)
         except TimeoutError as exc:
@@ -503,9 +505,7 @@ class CanopenEncoder(JointEncoder):
             if self.config.kind == "encoder":
                 device_type = self._sdo_int(DEVICE_TYPE)
                 if device_type & 0xFFFF != PROFILE_406:
-                    raise ProtocolError(
-                        f"device type 0x{device_type:08X} is not a CiA 406 encoder", device=self.name
-                    )
+                    raise ProtocolError(f"device type 0x{device_type:08X} is not a CiA 406 encoder", device=self.name)
             self._read_scaling()
             if self.config.kind == "resolver":
                 self.pole_pairs = self._sdo_int(RESOLVER_POLE_PAIRS) or 1
@@ -602,8 +602,9 @@ class CanopenEncoder(JointEncoder):
         timestamp = time.time()
         self._check_faults(faults)
         self._sequence += 1
-        angle = counts_to_angle(counts, self.counts_per_rev, self.total_range,
-                                signed=self.config.signed_range, pole_pairs=self.pole_pairs)
+        angle = counts_to_angle(
+            counts, self.counts_per_rev, self.total_range, signed=self.config.signed_range, pole_pairs=self.pole_pairs
+        )
         return EncoderReading(angle_rad=angle, counts=counts, sequence=self._sequence, timestamp_s=timestamp)
 
     def _read_sdo(self) -> tuple[int, int]:
@@ -642,7 +643,7 @@ class CanopenEncoder(JointEncoder):
                     f"unexpected SDO answer 0x{command:02X} to the upload of 0x{index:04X}", device=self.name
                 )
             size = 4 - ((command >> 2) & 0x3) if command & 0x01 else 4
-            return answer[4:4 + size]
+            return answer[4 : 4 + size]
 
     def _read_pdo(self) -> tuple[int, int]:
         inbox = self._pdo
@@ -665,8 +666,11 @@ class CanopenEncoder(JointEncoder):
             trigger = "after SYNC" if self.config.pdo_trigger == "sync" else "(event timer)"
             message = f"no TPDO1 (COB-ID 0x{self._pdo_cob_id:03X}) within {self.config.timeout_s:g} s {trigger}"
             if active:
-                raise DeviceFaultError(f"{message}; the node reports {_emcy_text(active)}",
-                                       device=self.name, code=f"0x{active[-1].code:04X}")
+                raise DeviceFaultError(
+                    f"{message}; the node reports {_emcy_text(active)}",
+                    device=self.name,
+                    code=f"0x{active[-1].code:04X}",
+                )
             raise DeviceTimeoutError(message, device=self.name)
         return self._pdo_value(data, POSITION_VALUE, 4), self._pdo_value(data, RESOLVER_FAULTS, 1, default=0)
 
@@ -679,17 +683,17 @@ class CanopenEncoder(JointEncoder):
                 f"TPDO1 of {len(data)} bytes does not hold 0x{index:04X} ({size} bytes at byte {offset})",
                 device=self.name,
             )
-        return int.from_bytes(data[offset:offset + length], "little")
+        return int.from_bytes(data[offset : offset + length], "little")
 
     def _check_faults(self, fault_bits: int) -> None:
         if fault_bits:
             names = [text for bit, text in RESOLVER_FAULT_NAMES.items() if fault_bits & bit] or ["unknown fault"]
-            raise MeasurementError(f"resolver reports {', '.join(names)}", device=self.name,
-                                   code=f"0x{fault_bits:02X}")
+            raise MeasurementError(f"resolver reports {', '.join(names)}", device=self.name, code=f"0x{fault_bits:02X}")
         active = list(self._node.emcy.active)
         if active:
-            raise DeviceFaultError(f"the node reports {_emcy_text(active)}", device=self.name,
-                                   code=f"0x{active[-1].code:04X}")
+            raise DeviceFaultError(
+                f"the node reports {_emcy_text(active)}", device=self.name, code=f"0x{active[-1].code:04X}"
+            )
 
     # ------------------------------------------------------------------ errors
 
@@ -721,9 +725,16 @@ class CanopenEncoder(JointEncoder):
 
 # EMCY codes an encoder or resolver reader typically sends (CiA 301 / CiA 406); canopen's own
 # table only knows the code groups.
-EMCY_TEXT = {0x5000: "device hardware", 0x6000: "device software", 0x7300: "sensor",
-             0x7320: "position sensor", 0x8110: "CAN overrun", 0x8120: "CAN error passive",
-             0x8130: "life guard or heartbeat error", 0x8140: "recovered from bus off"}
+EMCY_TEXT = {
+    0x5000: "device hardware",
+    0x6000: "device software",
+    0x7300: "sensor",
+    0x7320: "position sensor",
+    0x8110: "CAN overrun",
+    0x8120: "CAN error passive",
+    0x8130: "life guard or heartbeat error",
+    0x8140: "recovered from bus off",
+}
 
 
 def _emcy_text(active) -> str:

@@ -81,7 +81,7 @@ _RESPONSE = re.compile(r"^(?P<tag>\d{5}|E\d{4}) (?P<kind>[&#%!])(?: (?P<body>.*)
 _ERROR = re.compile(
     r'^Error\(\s*(?P<sev>\d+)\s*,\s*(?P<num>\d{1,4})\s*,\s*(?P<method>"[^"]*"|[^,]*?)\s*,\s*"(?P<text>[^"]*)"\s*\)$'
 )
-_ITEM = re.compile(r'\s*(?P<name>[A-Za-z][A-Za-z0-9_.]*)\((?P<args>[^()]*)\)\s*(?:,|$)')
+_ITEM = re.compile(r"\s*(?P<name>[A-Za-z][A-Za-z0-9_.]*)\((?P<args>[^()]*)\)\s*(?:,|$)")
 
 
 @dataclass(frozen=True, slots=True)

@@ -97,8 +97,15 @@ RS_NO_STATIONARY_RESULT = 10009
 RS_SENSOR_NOT_STABLE = 10013
 RS_SYSTEM_NOT_READY_FOR_MEASUREMENT = 10014
 #: statuses meaning "this measurement cannot be taken now" (beam, reflector, warm-up)
-MEASUREMENT_STATUSES = frozenset({RS_MEASUREMENT_STATUS_NOT_READY, RS_ADM_STARTUP_BUSY, RS_NO_STATIONARY_RESULT,
-                                  RS_SENSOR_NOT_STABLE, RS_SYSTEM_NOT_READY_FOR_MEASUREMENT})
+MEASUREMENT_STATUSES = frozenset(
+    {
+        RS_MEASUREMENT_STATUS_NOT_READY,
+        RS_ADM_STARTUP_BUSY,
+        RS_NO_STATIONARY_RESULT,
+        RS_SENSOR_NOT_STABLE,
+        RS_SYSTEM_NOT_READY_FOR_MEASUREMENT,
+    }
+)
 #: statuses meaning "the server does not take what we sent": not implemented, wrong parameter 1..16,
 #: parameter out of range (NOK)
 PROTOCOL_STATUSES = frozenset({RS_NOT_IMPLEMENTED, *range(3, 11), *range(12, 23, 2), *range(47, 56)})
@@ -126,8 +133,14 @@ COMMAND = struct.Struct("<iII")  # BasicCommandCT: header, command
 REPLY = struct.Struct("<iIII")  # BasicCommandRT: header, command, status
 
 COMMAND_PARAMS = {
-    C_GET_SYSTEM_STATUS: "", C_GET_TRACKER_STATUS: "", C_INITIALIZE: "", C_GET_ENVIRONMENT_PARAMS: "",
-    C_GET_REFLECTORS: "", C_START_MEASUREMENT: "", C_GET_MEASUREMENT_STATUS_INFO: "", C_GET_COORDINATE_SYSTEM_TYPE: "",
+    C_GET_SYSTEM_STATUS: "",
+    C_GET_TRACKER_STATUS: "",
+    C_INITIALIZE: "",
+    C_GET_ENVIRONMENT_PARAMS: "",
+    C_GET_REFLECTORS: "",
+    C_START_MEASUREMENT: "",
+    C_GET_MEASUREMENT_STATUS_INFO: "",
+    C_GET_COORDINATE_SYSTEM_TYPE: "",
     C_SET_UNITS: "5I",  # SystemUnitsDataT: length, angle, temperature, pressure, humidity unit
     C_SET_ENVIRONMENT_PARAMS: "3d",  # EnvironmentDataT: temperature, pressure, humidity
     C_SET_MEASUREMENT_MODE: "I",  # ES_MeasMode
@@ -155,8 +168,11 @@ RESULT = {DT_SINGLE_MEAS_RESULT: struct.Struct("<iIIIi17d"), DT_SINGLE_MEAS_RESU
 APRIORI_STD_AT = {DT_SINGLE_MEAS_RESULT: 11, DT_SINGLE_MEAS_RESULT2: 14}  # index of dAprioriStd1 among the doubles
 STATUS_CHANGE = struct.Struct("<iII")  # SystemStatusChangeT: header, systemStatusChange
 ERROR = struct.Struct("<iIII")  # ErrorResponseT: header, command, status
-_FIXED_SIZES = {DT_SYSTEM_STATUS_CHANGE: STATUS_CHANGE.size, DT_ERROR: ERROR.size,
-                **{t: s.size for t, s in RESULT.items()}}
+_FIXED_SIZES = {
+    DT_SYSTEM_STATUS_CHANGE: STATUS_CHANGE.size,
+    DT_ERROR: ERROR.size,
+    **{t: s.size for t, s in RESULT.items()},
+}
 MAX_PACKET = 4096
 
 
@@ -281,15 +297,19 @@ class EmsconTracker(SteerablePositionSensor):
         std_mm = np.array(doubles[3:6])
         if not np.all(std_mm > 0):  # firmware that leaves the measured deviations empty: the a-priori ones
             k = APRIORI_STD_AT[kind]
-            std_mm = np.array(doubles[k:k + 3])
+            std_mm = np.array(doubles[k : k + 3])
         if not (np.all(np.isfinite(p_mm)) and np.all(np.isfinite(std_mm)) and np.all(std_mm >= 0)):
             self._drop_link()
-            raise ProtocolError(f"measurement result with non-finite values or negative deviations: "
-                                f"{p_mm.tolist()} ± {std_mm.tolist()} mm", device=self.name)
+            raise ProtocolError(
+                f"measurement result with non-finite values or negative deviations: "
+                f"{p_mm.tolist()} ± {std_mm.tolist()} mm",
+                device=self.name,
+            )
         self._sequence += 1
         self.beam_lost = False
-        return PointMeasurement(p_world=p_mm * MM_M, sigma=std_mm * MM_M, sequence=self._sequence,
-                                timestamp_s=time.time())
+        return PointMeasurement(
+            p_world=p_mm * MM_M, sigma=std_mm * MM_M, sequence=self._sequence, timestamp_s=time.time()
+        )
 
     def status(self) -> str:
         """``"ready"``, ``"beam_broken"`` (no reflector locked) or ``"not_initialised"``, from
@@ -342,22 +362,31 @@ class EmsconTracker(SteerablePositionSensor):
         self.identity = EmsconIdentity(f"{major}.{minor}.{build}", serial, weather)
         tracker_status = self._exchange(C_GET_TRACKER_STATUS)[4]
         if processor != TPS_INITIALIZED or tracker_status == TS_NOT_READY:
-            log.info("%s: initialising the tracker (processor status %d, tracker status %d)",
-                     self.name, processor, tracker_status)
+            log.info(
+                "%s: initialising the tracker (processor status %d, tracker status %d)",
+                self.name,
+                processor,
+                tracker_status,
+            )
             self._exchange(C_INITIALIZE, timeout_s=cfg.initialize_timeout_s)
         self._exchange(C_SET_UNITS, *UNITS_MM_DEG_C_MBAR_RH)
         system = self._exchange(C_GET_COORDINATE_SYSTEM_TYPE)[4]
         if system != CS_RHR:  # spherical or left-handed: dVal1..3 would not be x, y, z; Recal does not change it
-            raise DeviceFaultError(f"the tracker's coordinate system type is {system}; Recal needs the right-handed "
-                                   f"cartesian one (ES_CS_RHR, 0): set it in the tracker software", device=self.name)
+            raise DeviceFaultError(
+                f"the tracker's coordinate system type is {system}; Recal needs the right-handed "
+                f"cartesian one (ES_CS_RHR, 0): set it in the tracker software",
+                device=self.name,
+            )
         if cfg.environment == "config":
             self._exchange(C_SET_ENVIRONMENT_PARAMS, cfg.temperature_c, cfg.pressure_mbar, cfg.humidity_pct)
             self.environment = (cfg.temperature_c, cfg.pressure_mbar, cfg.humidity_pct)
         else:
             if weather == WMS_NOT_CONNECTED:
-                raise DeviceFaultError("environment 'meteo' but the tracker reports no weather station connected; "
-                                       "connect it or set environment 'config' with the room's values",
-                                       device=self.name)
+                raise DeviceFaultError(
+                    "environment 'meteo' but the tracker reports no weather station connected; "
+                    "connect it or set environment 'config' with the room's values",
+                    device=self.name,
+                )
             self.environment = tuple(self._exchange(C_GET_ENVIRONMENT_PARAMS)[4:7])
         reflectors = self._reflectors()
         wanted = next((r for r in reflectors if r.name == cfg.reflector), None)
@@ -368,8 +397,14 @@ class EmsconTracker(SteerablePositionSensor):
         self.reflector = wanted
         self._exchange(C_SET_MEASUREMENT_MODE, MM_STATIONARY)
         self._exchange(C_SET_STATIONARY_MODE_PARAMS, round(cfg.measure_time_s * 1000), int(cfg.use_adm))
-        log.info("%s: emScon %s, tracker %d, reflector %r, environment %s", self.name,
-                 self.identity.server_version, serial, wanted.name, self.environment)
+        log.info(
+            "%s: emScon %s, tracker %d, reflector %r, environment %s",
+            self.name,
+            self.identity.server_version,
+            serial,
+            wanted.name,
+            self.environment,
+        )
 
     def _reflectors(self) -> list[Reflector]:
         """``GetReflectors``: the server answers one reply per reflector it knows."""
@@ -448,7 +483,9 @@ class EmsconTracker(SteerablePositionSensor):
                         raise self._error(command, status)
                     expected = reply_struct(command)
                     if len(data) != expected.size:
-                        raise self._protocol(f"reply to command {command} of {len(data)} bytes; expected {expected.size}")
+                        raise self._protocol(
+                            f"reply to command {command} of {len(data)} bytes; expected {expected.size}"
+                        )
                     replies.append(expected.unpack(data))
                     if all_replies and replies[0][4] > len(replies):
                         continue  # GetReflectors: iTotalReflectors replies
@@ -486,8 +523,9 @@ class EmsconTracker(SteerablePositionSensor):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     partial = f" ({len(self._buffer)} bytes of a packet)" if self._buffer else ""
-                    raise DeviceTimeoutError(f"no answer to command {command} within {limit:g} s{partial}",
-                                             device=self.name)
+                    raise DeviceTimeoutError(
+                        f"no answer to command {command} within {limit:g} s{partial}", device=self.name
+                    )
                 ready, _, _ = select.select([sock], [], [], remaining)
                 if not ready:
                     continue
@@ -522,8 +560,13 @@ class EmsconTracker(SteerablePositionSensor):
             if kind == DT_SYSTEM_STATUS_CHANGE and size == STATUS_CHANGE.size:
                 self._status_change(data)
             else:
-                log.warning("%s: dropped an unsolicited packet of type %d (%d bytes) before command %d",
-                            self.name, kind, size, command)
+                log.warning(
+                    "%s: dropped an unsolicited packet of type %d (%d bytes) before command %d",
+                    self.name,
+                    kind,
+                    size,
+                    command,
+                )
 
     def _status_change(self, data: bytes) -> None:
         change = STATUS_CHANGE.unpack(data)[2]
@@ -543,15 +586,20 @@ class EmsconTracker(SteerablePositionSensor):
         """The exception for an emScon status other than ``ES_RS_AllOK`` (module docstring)."""
         if status in MEASUREMENT_STATUSES:
             self.beam_lost = status == RS_MEASUREMENT_STATUS_NOT_READY
-            what = {RS_MEASUREMENT_STATUS_NOT_READY: "no reflector locked (beam broken)",
-                    RS_ADM_STARTUP_BUSY: "the distance meter is warming up",
-                    RS_NO_STATIONARY_RESULT: "no stationary result (reflector moving)",
-                    RS_SENSOR_NOT_STABLE: "the tracker is not stable",
-                    RS_SYSTEM_NOT_READY_FOR_MEASUREMENT: "the tracker is not ready to measure"}[status]
+            what = {
+                RS_MEASUREMENT_STATUS_NOT_READY: "no reflector locked (beam broken)",
+                RS_ADM_STARTUP_BUSY: "the distance meter is warming up",
+                RS_NO_STATIONARY_RESULT: "no stationary result (reflector moving)",
+                RS_SENSOR_NOT_STABLE: "the tracker is not stable",
+                RS_SYSTEM_NOT_READY_FOR_MEASUREMENT: "the tracker is not ready to measure",
+            }[status]
             return MeasurementError(f"command {command}: cannot measure: {what}", device=self.name, code=status)
         if status in PROTOCOL_STATUSES:
-            return ProtocolError(f"command {command} rejected by the server (not implemented or a wrong parameter)",
-                                 device=self.name, code=status)
+            return ProtocolError(
+                f"command {command} rejected by the server (not implemented or a wrong parameter)",
+                device=self.name,
+                code=status,
+            )
         if status == RS_TRACKER_NOT_INITIALIZED:
             return DeviceFaultError(f"command {command}: the tracker is not initialised", device=self.name, code=status)
         return DeviceFaultError(f"command {command}: the server reports status {status}", device=self.name, code=status)

@@ -151,17 +151,18 @@ class ModbusRobot(Robot):
         self.map = config.register_map
         self.n_joints = self.map.n_joints
         if len(config.joint_limits_rad) != self.n_joints:
-            raise ValueError(
-                f"joint_limits_rad has {len(config.joint_limits_rad)} pairs for "
-                f"{self.n_joints} joints"
-            )
+            raise ValueError(f"joint_limits_rad has {len(config.joint_limits_rad)} pairs for {self.n_joints} joints")
         self.name = f"Modbus robot {config.host}:{config.port}"
         self.reconnects = 0  # how often a request had to reconnect (for diagnostics)
         self._lock = threading.RLock()
         self._closed = False
         self._client = ModbusTcpClient(
-            config.host, port=config.port, timeout=config.timeout_s, retries=0,
-            reconnect_delay=0, reconnect_delay_max=0,
+            config.host,
+            port=config.port,
+            timeout=config.timeout_s,
+            retries=0,
+            reconnect_delay=0,
+            reconnect_delay_max=0,
         )
         # last heartbeat seen, and when it last changed (None: it stands still)
         self._heartbeat: tuple[int, float | None] | None = None
@@ -189,9 +190,7 @@ class ModbusRobot(Robot):
             raw = self._read(m.joint_angle, n)
             if self._read(m.joint_turns, n) == turns:
                 return self._angles(raw) + _TWO_PI * np.array([_s16(t) for t in turns], dtype=float)
-        raise ProtocolError(
-            "joint revolution counters keep changing between reads", device=self.name
-        )
+        raise ProtocolError("joint revolution counters keep changing between reads", device=self.name)
 
     def read_tcp_pose(self) -> np.ndarray:
         """The TCP pose the controller itself computes, ``T_base_tcp`` (4, 4), from its TCP-pose
@@ -219,9 +218,7 @@ class ModbusRobot(Robot):
                 timestamp_s=time.time(),
             )
 
-    def move_joints(
-        self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0
-    ) -> None:
+    def move_joints(self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0) -> None:
         """MOVEJ through the handshake; returns once the program reports the move done and
         the joints read within ``arrival_tolerance_rad`` of ``q``."""
         q_target = self._check_move(q, speed_rad_s, accel_rad_s2)
@@ -236,9 +233,7 @@ class ModbusRobot(Robot):
                         "the arm on, release its brakes and start the program again",
                         device=self.name,
                     )
-                raise DeviceFaultError(
-                    "a move is still running on the controller; stop() it first", device=self.name
-                )
+                raise DeviceFaultError("a move is still running on the controller; stop() it first", device=self.name)
             counts = [round(v / m.target_scale) for v in q_target]
             words = [w for c in counts for w in _int32_words(c)]
             self._write(m.target, words)
@@ -311,9 +306,7 @@ class ModbusRobot(Robot):
                     device=self.name,
                 )
             if not self._program_alive(status):
-                raise RobotStoppedError(
-                    "the motion program stopped (no heartbeat)", device=self.name
-                )
+                raise RobotStoppedError("the motion program stopped (no heartbeat)", device=self.name)
             if time.monotonic() - start > timeout_s:
                 self.stop()
                 raise DeviceTimeoutError(
@@ -323,9 +316,7 @@ class ModbusRobot(Robot):
             time.sleep(self.config.poll_interval_s)
         error = float(np.max(np.abs(self.read_joints() - q_target)))
         if error > self.config.arrival_tolerance_rad:
-            raise RobotStoppedError(
-                f"the move ended {error:.3g} rad from its target", device=self.name
-            )
+            raise RobotStoppedError(f"the move ended {error:.3g} rad from its target", device=self.name)
 
     def _read_status(self) -> _Status:
         return _Status(*self._read(self.map.status, 4))
@@ -407,8 +398,7 @@ class ModbusRobot(Robot):
         if m.joint_turns is not None and np.any(q >= _TWO_PI + m.joint_angle_scale):
             j = int(np.argmax(q))
             raise ProtocolError(
-                f"joint {j + 1} angle register {m.joint_angle + j} holds {raw[j]}, more than one "
-                f"revolution",
+                f"joint {j + 1} angle register {m.joint_angle + j} holds {raw[j]}, more than one revolution",
                 device=self.name,
             )
         return q
@@ -420,8 +410,7 @@ class ModbusRobot(Robot):
             raise DeviceConnectionError("the connection is closed", device=self.name)
         if not self._client.connect():
             raise DeviceConnectionError(
-                f"cannot connect to {self.config.host}:{self.config.port} "
-                f"within {self.config.timeout_s:g} s",
+                f"cannot connect to {self.config.host}:{self.config.port} within {self.config.timeout_s:g} s",
                 device=self.name,
             )
 
@@ -430,15 +419,11 @@ class ModbusRobot(Robot):
             raise ValueError(f"cannot read {count} registers in one request")
         response = self._request(
             f"read {count} registers at {address}",
-            lambda: self._client.read_holding_registers(
-                address, count=count, device_id=self.config.device_id
-            ),
+            lambda: self._client.read_holding_registers(address, count=count, device_id=self.config.device_id),
         )
         registers = list(getattr(response, "registers", []))
         if len(registers) != count:
-            raise ProtocolError(
-                f"asked for {count} registers at {address}, got {len(registers)}", device=self.name
-            )
+            raise ProtocolError(f"asked for {count} registers at {address}, got {len(registers)}", device=self.name)
         return registers
 
     def _write(self, address: int, values: list[int]) -> None:
@@ -446,9 +431,7 @@ class ModbusRobot(Robot):
             raise ValueError(f"register values must be 0..65535; got {values}")
         self._request(
             f"write {len(values)} registers at {address}",
-            lambda: self._client.write_registers(
-                address, values, device_id=self.config.device_id
-            ),
+            lambda: self._client.write_registers(address, values, device_id=self.config.device_id),
         )
 
     def _request(self, what: str, call):
@@ -479,7 +462,8 @@ class ModbusRobot(Robot):
                     if response.isError():
                         code = getattr(response, "exception_code", None)
                         raise ProtocolError(
-                            f"{what}: the device answered with Modbus exception", device=self.name,
+                            f"{what}: the device answered with Modbus exception",
+                            device=self.name,
                             code=code,
                         )
                     return response

@@ -236,7 +236,9 @@ class LineTracker(PositionSensor):
         m = _ERR.match(reply)
         if not m:
             self._drop_link()
-            return ProtocolError(f"{command} replied a malformed error {reply!r}; expected 'ERR <code>,<text>'", device=self.name)
+            return ProtocolError(
+                f"{command} replied a malformed error {reply!r}; expected 'ERR <code>,<text>'", device=self.name
+            )
         code, text = int(m.group(1)), m.group(2).strip()
         if code in MEASUREMENT_ERR_CODES:
             return MeasurementError(f"{command}: cannot measure: {text}", device=self.name, code=code)
@@ -256,11 +258,15 @@ class LineTracker(PositionSensor):
                 raise ValueError
         except ValueError:
             self._drop_link()
-            raise ProtocolError(f"{command} replied {reply!r}; expected {count} finite numbers {shape}", device=self.name) from None
+            raise ProtocolError(
+                f"{command} replied {reply!r}; expected {count} finite numbers {shape}", device=self.name
+            ) from None
         return values
 
     def _parse_identity(self, reply: str) -> TrackerIdentity:
         parts = [p.strip() for p in reply.split(",")]
         if len(parts) != 4 or not parts[0]:
-            raise ProtocolError(f"*IDN? replied {reply!r}; expected '<maker>,<model>,<serial>,<firmware>'", device=self.name)
+            raise ProtocolError(
+                f"*IDN? replied {reply!r}; expected '<maker>,<model>,<serial>,<firmware>'", device=self.name
+            )
         return TrackerIdentity(*parts)

@@ -69,8 +69,14 @@ _TWO_PI = 2.0 * math.pi
 
 # What the receive interface subscribes to (a short recipe keeps both sides light).
 RECEIVE_VARIABLES = (
-    "timestamp", "actual_q", "actual_qd", "robot_mode", "safety_mode",
-    "safety_status_bits", "robot_status_bits", "runtime_state",
+    "timestamp",
+    "actual_q",
+    "actual_qd",
+    "robot_mode",
+    "safety_mode",
+    "safety_status_bits",
+    "robot_status_bits",
+    "runtime_state",
 )
 # safety_status_bits
 _PROTECTIVE_BITS = (1 << 2) | (1 << 4)  # protective stopped, safeguard stopped
@@ -82,8 +88,16 @@ _FAULT_MODES = {8, 9}  # violation, fault
 # robot_mode: the arm's power; only RUNNING (powered, brakes released) can move
 _ROBOT_MODE_RUNNING = 7
 _ROBOT_MODE_NAMES = {
-    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
+    -1: "NO_CONTROLLER",
+    0: "DISCONNECTED",
+    1: "CONFIRM_SAFETY",
+    2: "BOOTING",
+    3: "POWER_OFF",
+    4: "POWER_ON",
+    5: "IDLE",
+    6: "BACKDRIVE",
+    7: "RUNNING",
+    8: "UPDATING_FIRMWARE",
 }
 
 # The tool offset forward_kinematics sends when the caller wants none (m, rotation vector).
@@ -153,19 +167,14 @@ class UrRtdeRobot(Robot):
         snap = self._fresh_snapshot()
         return RobotState(
             q=snap["q"],
-            moving=bool(
-                (snap["program_running"] and snap["async_running"])
-                or np.max(np.abs(snap["qd"])) > 1e-4
-            ),
+            moving=bool((snap["program_running"] and snap["async_running"]) or np.max(np.abs(snap["qd"])) > 1e-4),
             protective_stop=_protective(snap),
             emergency_stop=_emergency(snap),
             program_running=bool(snap["program_running"]),
             timestamp_s=float(snap["timestamp_s"]),
         )
 
-    def move_joints(
-        self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0
-    ) -> None:
+    def move_joints(self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0) -> None:
         """``moveJ`` to ``q`` (6,) rad and wait until it is reached (see ``Robot``)."""
         q_target = self._check_move(q, speed_rad_s, accel_rad_s2)
         with self._lock:
@@ -203,8 +212,12 @@ class UrRtdeRobot(Robot):
         # speed and acceleration: metres of "offset"). A known offset is always sent instead,
         # and taken off again.
         sent = tcp if np.any(tcp != 0.0) else np.array(FK_PROBE_TCP)
-        poses = self._call("forward_kinematics", q.tolist(), [float(v) for v in sent],
-                           timeout_s=self.config.command_timeout_s + 0.1 * len(q))
+        poses = self._call(
+            "forward_kinematics",
+            q.tolist(),
+            [float(v) for v in sent],
+            timeout_s=self.config.command_timeout_s + 0.1 * len(q),
+        )
         T_sent, T_tcp = ur_poses_to_matrices(np.stack([sent, tcp]))
         return ur_poses_to_matrices(np.asarray(poses, dtype=float)) @ np.linalg.inv(T_sent) @ T_tcp
 
@@ -302,13 +315,9 @@ class UrRtdeRobot(Robot):
                 f"[{limits[j, 0]:.6g}, {limits[j, 1]:.6g}] rad"
             )
         if not 0.0 < speed_rad_s <= self.config.max_speed_rad_s:
-            raise ValueError(
-                f"speed_rad_s must be in (0, {self.config.max_speed_rad_s:g}]; got {speed_rad_s}"
-            )
+            raise ValueError(f"speed_rad_s must be in (0, {self.config.max_speed_rad_s:g}]; got {speed_rad_s}")
         if not 0.0 < accel_rad_s2 <= self.config.max_accel_rad_s2:
-            raise ValueError(
-                f"accel_rad_s2 must be in (0, {self.config.max_accel_rad_s2:g}]; got {accel_rad_s2}"
-            )
+            raise ValueError(f"accel_rad_s2 must be in (0, {self.config.max_accel_rad_s2:g}]; got {accel_rad_s2}")
         return q
 
     def _wait_for_move(self, q_target: np.ndarray, status_before: int, timeout_s: float) -> None:
@@ -320,9 +329,7 @@ class UrRtdeRobot(Robot):
             if not snap["program_running"]:
                 # The receive stream may lag the control stream: look at fresh safety data.
                 self._raise_if_stopped(self._fresh_snapshot())
-                raise RobotStoppedError(
-                    "the control script stopped during the move", device=self.name
-                )
+                raise RobotStoppedError("the control script stopped during the move", device=self.name)
             if snap["async_status"] != status_before and not snap["async_running"]:
                 break  # a new asynchronous operation has started and finished
             if time.monotonic() > deadline:
@@ -393,15 +400,11 @@ def ur_poses_to_matrices(poses: np.ndarray) -> np.ndarray:
 
 
 def _protective(snap: dict) -> bool:
-    return bool(snap["safety_status_bits"] & _PROTECTIVE_BITS) or (
-        int(snap["safety_mode"]) in _PROTECTIVE_MODES
-    )
+    return bool(snap["safety_status_bits"] & _PROTECTIVE_BITS) or (int(snap["safety_mode"]) in _PROTECTIVE_MODES)
 
 
 def _emergency(snap: dict) -> bool:
-    return bool(snap["safety_status_bits"] & _EMERGENCY_BITS) or (
-        int(snap["safety_mode"]) in _EMERGENCY_MODES
-    )
+    return bool(snap["safety_status_bits"] & _EMERGENCY_BITS) or (int(snap["safety_mode"]) in _EMERGENCY_MODES)
 
 
 # --------------------------------------------------------------------------- the worker
@@ -431,9 +434,7 @@ class _Worker:
         reply = pickle.loads(self._read(size, deadline, op, timeout_s))
         lost = reply[-1]
         if lost is not None:
-            raise DeviceConnectionError(
-                f"connection to the controller lost: {lost}", device=self.device
-            )
+            raise DeviceConnectionError(f"connection to the controller lost: {lost}", device=self.device)
         if reply[0] == "ok":
             return reply[1]
         _, kind, message, _ = reply
@@ -452,9 +453,7 @@ class _Worker:
             remaining = deadline - time.monotonic()
             ready, _, _ = select.select([fd], [], [], max(remaining, 0.0))
             if not ready:
-                raise DeviceTimeoutError(
-                    f"ur_rtde did not complete {op!r} within {timeout_s:g} s", device=self.device
-                )
+                raise DeviceTimeoutError(f"ur_rtde did not complete {op!r} within {timeout_s:g} s", device=self.device)
             chunk = os.read(fd, n - len(data))
             if not chunk:
                 raise DeviceConnectionError(self._ended(op), device=self.device)
@@ -468,8 +467,10 @@ class _Worker:
         except subprocess.TimeoutExpired:
             return f"the ur_rtde worker closed its pipes during {op!r}"
         if code == -signal.SIGABRT:
-            how = ("aborted (ur_rtde aborts its process on what it cannot handle, such as a "
-                   "malformed RTDE package from the controller)")
+            how = (
+                "aborted (ur_rtde aborts its process on what it cannot handle, such as a "
+                "malformed RTDE package from the controller)"
+            )
         elif code < 0:
             how = f"was killed by signal {-code} ({signal.strsignal(-code)})"
         else:
@@ -523,8 +524,9 @@ def dashboard_query(host: str, command: str, timeout_s: float = 2.0) -> str:
             sock.sendall(command.encode() + b"\n")
             line = reader.readline()
         except TimeoutError as exc:
-            raise DeviceTimeoutError(f"the dashboard did not answer {command!r} within {timeout_s:g} s",
-                                     device=device) from exc
+            raise DeviceTimeoutError(
+                f"the dashboard did not answer {command!r} within {timeout_s:g} s", device=device
+            ) from exc
         except OSError as exc:
             raise DeviceConnectionError(f"dashboard: {exc}", device=device) from exc
     return line.decode("ascii", "replace").strip()
@@ -556,8 +558,7 @@ def _probe_dashboard(host: str, timeout_s: float, device: str) -> str:
                 line = reader.readline()
             except TimeoutError as exc:
                 raise DeviceTimeoutError(
-                    f"the dashboard did not answer {command or 'the connection'!r} within "
-                    f"{timeout_s:g} s",
+                    f"the dashboard did not answer {command or 'the connection'!r} within {timeout_s:g} s",
                     device=device,
                 ) from exc
             except OSError as exc:
@@ -605,8 +606,12 @@ def dashboard_stop(host: str, timeout_s: float) -> RobotStoppedError | None:
         status = safety.partition(":")[2].strip().upper()
         if "EMERGENCY" in status:
             return RobotStoppedError(EMERGENCY_STOP_MESSAGE, device=device)
-        if status in ("PROTECTIVE_STOP", "SAFEGUARD_STOP", "AUTOMATIC_MODE_SAFEGUARD_STOP",
-                      "SYSTEM_THREE_POSITION_ENABLING_STOP"):
+        if status in (
+            "PROTECTIVE_STOP",
+            "SAFEGUARD_STOP",
+            "AUTOMATIC_MODE_SAFEGUARD_STOP",
+            "SYSTEM_THREE_POSITION_ENABLING_STOP",
+        ):
             return RobotStoppedError(PROTECTIVE_STOP_MESSAGE, device=device)
         if status in ("VIOLATION", "FAULT"):
             return RobotStoppedError("the robot's safety system reports a violation or fault", device=device)
@@ -633,9 +638,7 @@ def _probe_rtde(host: str, timeout_s: float, device: str) -> None:
                 if got == ord(kind):
                     return payload
                 if got not in (ord("M"), ord("U")):  # text messages and stray data may come
-                    raise ProtocolError(
-                        f"RTDE: expected a {kind!r} package, got type {got}", device=device
-                    )
+                    raise ProtocolError(f"RTDE: expected a {kind!r} package, got type {got}", device=device)
 
         send("V", struct.pack(">H", 2))
         if receive("V")[:1] != b"\x01":
@@ -656,14 +659,10 @@ def _recv_exact(sock: socket.socket, n: int, device: str, timeout_s: float) -> b
         try:
             chunk = sock.recv(n - len(data))
         except TimeoutError as exc:
-            raise DeviceTimeoutError(
-                f"RTDE handshake: no answer within {timeout_s:g} s", device=device
-            ) from exc
+            raise DeviceTimeoutError(f"RTDE handshake: no answer within {timeout_s:g} s", device=device) from exc
         except OSError as exc:
             raise DeviceConnectionError(f"RTDE handshake: {exc}", device=device) from exc
         if not chunk:
-            raise DeviceConnectionError(
-                "RTDE handshake: the controller closed the connection", device=device
-            )
+            raise DeviceConnectionError("RTDE handshake: the controller closed the connection", device=device)
         data += chunk
     return data

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import socket
 import threading
+
 from calibration.errors import RecalError
 
 log = logging.getLogger(__name__)
@@ -138,7 +139,9 @@ class LineServer:
             client = Client(sock, address)
             with self._lock:
                 self._clients.add(client)
-            t = threading.Thread(target=self._client_loop, args=(client,), name=f"{self.device_name}-client", daemon=True)
+            t = threading.Thread(
+                target=self._client_loop, args=(client,), name=f"{self.device_name}-client", daemon=True
+            )
             t.start()
             self._threads = [x for x in self._threads if x.is_alive()] + [t]
 

@@ -41,12 +41,22 @@ def build_parser(description: str, default_port: int) -> argparse.ArgumentParser
     src.add_argument("--truth", help="true robot model, a recal.model/1 JSON file")
     src.add_argument("--robot", default="ur5e", help="library robot used as the truth (default ur5e)")
     p.add_argument("--reflector", type=_vector, help="add a reflector target 'smr1' at x,y,z (m, tool frame)")
-    p.add_argument("--ball", type=_named_vector, action="append", default=[],
-                   help="add a tooling ball target NAME=x,y,z (m, tool frame); NAME should start with 'ball'")
-    p.add_argument("--q", type=lambda s: np.array([float(v) for v in s.split(",")]),
-                   help="initial joint readings, comma separated (rad)")
+    p.add_argument(
+        "--ball",
+        type=_named_vector,
+        action="append",
+        default=[],
+        help="add a tooling ball target NAME=x,y,z (m, tool frame); NAME should start with 'ball'",
+    )
+    p.add_argument(
+        "--q",
+        type=lambda s: np.array([float(v) for v in s.split(",")]),
+        help="initial joint readings, comma separated (rad)",
+    )
     p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=default_port, help=f"TCP port (default {default_port}; 0 = any free port)")
+    p.add_argument(
+        "--port", type=int, default=default_port, help=f"TCP port (default {default_port}; 0 = any free port)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--time-scale", type=float, default=0.0)
     return p

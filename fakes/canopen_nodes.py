@@ -313,8 +313,13 @@ class CanGatewayFake:
     def _add_node(self, joint: int, node_id: int, kind: str) -> None:
         eds = ENCODER_EDS if kind == "encoder" else RESOLVER_EDS
         local = self._dev_net.create_node(node_id, str(eds))
-        node = _Node(joint=int(joint), node_id=int(node_id), kind=kind, local=local,
-                     mount_offset_rad=self.mount_offset_rad(node_id))
+        node = _Node(
+            joint=int(joint),
+            node_id=int(node_id),
+            kind=kind,
+            local=local,
+            mount_offset_rad=self.mount_offset_rad(node_id),
+        )
         local.add_read_callback(functools.partial(self._on_read, node))
         local.add_write_callback(functools.partial(self._on_write, node))
         self._nodes[node.node_id] = node
@@ -337,6 +342,7 @@ class CanGatewayFake:
 
     def _store_constants(self, node: _Node) -> None:
         """Device constants that depend on this fake's configuration, not the EDS defaults."""
+
         def put(index: int, value: int) -> None:
             od = node.local.object_dictionary[index]
             node.local.data_store.setdefault(index, {})[0] = od.encode_raw(value)
@@ -638,7 +644,7 @@ def _parse_send(words: list[str]) -> can.Message | None:
     try:
         cob = words[1]
         length = int(words[2], 16)
-        data = bytes(int(b, 16) for b in words[3:3 + length])
+        data = bytes(int(b, 16) for b in words[3 : 3 + length])
         if len(data) != length or length > 8:
             return None
         return can.Message(arbitration_id=int(cob, 16), is_extended_id=len(cob) > 3, data=data)
@@ -719,11 +725,23 @@ def main(argv: list[str] | None = None) -> int:
 
     truth = _truth(args)
     q_home = np.array([float(v) for v in args.q.split(",")]) if args.q else None
-    faults = Faults(drop_connection_at=args.drop_at, delay_s=args.delay_s, garble_rate=args.garble_rate,
-                    garble_at=args.garble_at, silent_nodes=args.silent_node, sensor_fault_at=args.sensor_fault_at)
+    faults = Faults(
+        drop_connection_at=args.drop_at,
+        delay_s=args.delay_s,
+        garble_rate=args.garble_rate,
+        garble_at=args.garble_at,
+        silent_nodes=args.silent_node,
+        sensor_fault_at=args.sensor_fault_at,
+    )
     cell = SimCell(truth, seed=args.seed, time_scale=args.time_scale, faults=faults, q_home=q_home)
-    fake = CanGatewayFake(cell, args.host, args.port, _joint_map(args.encoders), _joint_map(args.resolvers),
-                          resolver_pole_pairs=args.pole_pairs)
+    fake = CanGatewayFake(
+        cell,
+        args.host,
+        args.port,
+        _joint_map(args.encoders),
+        _joint_map(args.resolvers),
+        resolver_pole_pairs=args.pole_pairs,
+    )
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -64,11 +64,16 @@ import sys
 import threading
 from pathlib import Path
 
+from calibration.errors import RecalError
 from calibration.model import KinematicModel, model_from_dict
 from fakes.world import (
-    FactoryCalibration, Faults, Noise, SimCell, draw_factory_calibration, published_ur_for,
+    FactoryCalibration,
+    Faults,
+    Noise,
+    SimCell,
+    draw_factory_calibration,
+    published_ur_for,
 )
-from calibration.errors import RecalError
 
 PROG = "recal fake-cell"
 
@@ -89,49 +94,70 @@ class CellError(RecalError, ValueError):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog=PROG, description="Run a simulated robot cell.", epilog=_faults_help(),
+        prog=PROG,
+        description="Run a simulated robot cell.",
+        epilog=_faults_help(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--truth", required=True, help="truth model (recal.model/1 JSON)")
-    parser.add_argument(
-        "--host", default="127.0.0.2", help="address to serve on (default 127.0.0.2)"
-    )
+    parser.add_argument("--host", default="127.0.0.2", help="address to serve on (default 127.0.0.2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the noise and faults")
     parser.add_argument(
-        "--time-scale", type=float, default=0.0,
+        "--time-scale",
+        type=float,
+        default=0.0,
         help="wall time per second of real robot motion (0: moves are instant)",
     )
     parser.add_argument(
-        "--fault", action="append", default=[], metavar="NAME=VALUE",
+        "--fault",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
         help="inject a fault (a field of fakes.world.Faults); repeatable",
     )
     parser.add_argument(
-        "--noise", action="append", default=[], metavar="NAME=VALUE",
+        "--noise",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
         help="instrument noise (a field of fakes.world.Noise, SI units); repeatable",
     )
     parser.add_argument(
-        "--factory-seed", type=int, default=0,
+        "--factory-seed",
+        type=int,
+        default=0,
         help="seed of the UR controller's factory calibration drawn when the truth file has no "
-             "ur_factory_calibration block (default 0)",
+        "ur_factory_calibration block (default 0)",
     )
     parser.add_argument(
-        "--no-factory-calibration", action="store_true",
+        "--no-factory-calibration",
+        action="store_true",
         help="the UR controller computes with the published DH table (all deltas zero)",
     )
     parser.add_argument(
-        "--modbus-port", type=int, default=502,
+        "--modbus-port",
+        type=int,
+        default=502,
         help="Modbus TCP port (default 502; a free port if that cannot be bound)",
     )
     parser.add_argument(
-        "--emscon-port", type=int, default=700,
+        "--emscon-port",
+        type=int,
+        default=700,
         help="emScon TPI port (default 700; a free port if that cannot be bound)",
     )
     parser.add_argument(
-        "--reflector-axis", type=_vector, default=None, metavar="X,Y,Z",
+        "--reflector-axis",
+        type=_vector,
+        default=None,
+        metavar="X,Y,Z",
         help="emScon tracker: the reflector faces along this tool-frame axis (default: no acceptance check)",
     )
     parser.add_argument(
-        "--arm-radius", type=float, default=0.0, metavar="M",
+        "--arm-radius",
+        type=float,
+        default=0.0,
+        metavar="M",
         help="emScon tracker: the arm's links block the beam within this radius (default 0: not checked)",
     )
     for key, _, _ in FAKES:
@@ -151,8 +177,7 @@ def _vector(text: str):
 
 def _faults_help() -> str:
     """The list of --fault names and what each injects (from ``Faults``' field metadata)."""
-    lines = ["faults (--fault NAME=VALUE; lists are comma-separated 1-based counts of each",
-             "device's own requests):"]
+    lines = ["faults (--fault NAME=VALUE; lists are comma-separated 1-based counts of each", "device's own requests):"]
     for f in dataclasses.fields(Faults):
         lines.append(f"  {f.name:<24} {f.metadata['help']}")
     return "\n".join(lines)
@@ -233,8 +258,11 @@ def start_fakes(cell: SimCell, args: argparse.Namespace) -> list:
             cls = getattr(module, class_name)
             kwargs = {"port": args.modbus_port} if key == "modbus" else {}
             if key == "emscon":
-                kwargs = {"port": args.emscon_port, "reflector_axis_tool": args.reflector_axis,
-                          "arm_radius_m": args.arm_radius}
+                kwargs = {
+                    "port": args.emscon_port,
+                    "reflector_axis_tool": args.reflector_axis,
+                    "arm_radius_m": args.arm_radius,
+                }
             try:
                 fake = cls(cell, host=args.host, **kwargs)
             except ValueError as exc:  # this device cannot simulate this robot

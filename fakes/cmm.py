@@ -46,14 +46,14 @@ import time
 
 import numpy as np
 
+from calibration.errors import RecalError
 from fakes._lineserver import Client, DropConnection, LineServer, garble
 from fakes.world import SimCell
-from calibration.errors import RecalError
 
 MM = 1e-3
 
 _COMMAND = re.compile(r"^(?P<tag>\d{5}|E\d{4}) (?P<method>[A-Za-z][A-Za-z0-9_]*)\((?P<args>.*)\)\s*$")
-_ITEM = re.compile(r'\s*(?P<name>[A-Za-z][A-Za-z0-9_.]*)\((?P<args>[^()]*)\)\s*(?:,|$)')
+_ITEM = re.compile(r"\s*(?P<name>[A-Za-z][A-Za-z0-9_.]*)\((?P<args>[^()]*)\)\s*(?:,|$)")
 _FAST = {"GetErrStatusE", "AbortE", "GetPropE"}
 _PROPS = {
     "Tool.PtMeasPar.Approach",
@@ -102,7 +102,7 @@ def _items(text: str) -> list[tuple[str, list]]:
 def _string_arg(text: str) -> str:
     m = re.fullmatch(r'\s*"([^"]*)"\s*', text)
     if not m:
-        raise IppError(3, 509, f'Bad argument: expected a quoted name, got {text!r}')
+        raise IppError(3, 509, f"Bad argument: expected a quoted name, got {text!r}")
     return m.group(1)
 
 
@@ -246,7 +246,9 @@ class IppCmmFake(LineServer):
 
     def _m_SetCoordSystem(self, client: Client, args: str) -> list[str]:
         if args.strip() != "MachineCsy":
-            raise IppError(3, 506, f"Argument not supported: this CMM measures in MachineCsy only, not {args.strip()!r}")
+            raise IppError(
+                3, 506, f"Argument not supported: this CMM measures in MachineCsy only, not {args.strip()!r}"
+            )
         return []
 
     def _m_IsHomed(self, client: Client, args: str) -> list[str]:

@@ -90,15 +90,41 @@ SSC_MEAS_NOT_READY, SSC_MEAS_READY = 25, 27
 
 # Layouts: what follows the command (BasicCommandCT: size, type, command) and what follows
 # the reply (BasicCommandRT: size, type, command, status); little-endian, packed.
-COMMANDS = {C_GET_SYSTEM_STATUS: "", C_GET_TRACKER_STATUS: "", C_SET_UNITS: "5I", C_GET_UNITS: "",
-            C_INITIALIZE: "", C_SET_ENV: "3d", C_GET_ENV: "", C_SET_MODE: "I", C_GET_MODE: "",
-            C_SET_STATIONARY: "2i", C_GET_STATIONARY: "", C_SET_REFLECTOR: "i", C_GET_REFLECTOR: "",
-            C_GET_REFLECTORS: "", C_START_MEASUREMENT: "", C_GO_BIRD_BATH: "", C_GO_POSITION: "3di",
-            C_FIND_REFLECTOR: "d", C_GET_MEAS_STATUS_INFO: "", C_SET_COORDINATE_SYSTEM: "I",
-            C_GET_COORDINATE_SYSTEM: ""}
-REPLIES = {C_GET_SYSTEM_STATUS: "4I3iIii", C_GET_TRACKER_STATUS: "I", C_GET_UNITS: "5I", C_GET_ENV: "3d",
-           C_GET_MODE: "I", C_GET_STATIONARY: "2i", C_GET_REFLECTOR: "i", C_GET_REFLECTORS: "iiId64s",
-           C_GET_MEAS_STATUS_INFO: "Ii", C_GET_COORDINATE_SYSTEM: "I"}
+COMMANDS = {
+    C_GET_SYSTEM_STATUS: "",
+    C_GET_TRACKER_STATUS: "",
+    C_SET_UNITS: "5I",
+    C_GET_UNITS: "",
+    C_INITIALIZE: "",
+    C_SET_ENV: "3d",
+    C_GET_ENV: "",
+    C_SET_MODE: "I",
+    C_GET_MODE: "",
+    C_SET_STATIONARY: "2i",
+    C_GET_STATIONARY: "",
+    C_SET_REFLECTOR: "i",
+    C_GET_REFLECTOR: "",
+    C_GET_REFLECTORS: "",
+    C_START_MEASUREMENT: "",
+    C_GO_BIRD_BATH: "",
+    C_GO_POSITION: "3di",
+    C_FIND_REFLECTOR: "d",
+    C_GET_MEAS_STATUS_INFO: "",
+    C_SET_COORDINATE_SYSTEM: "I",
+    C_GET_COORDINATE_SYSTEM: "",
+}
+REPLIES = {
+    C_GET_SYSTEM_STATUS: "4I3iIii",
+    C_GET_TRACKER_STATUS: "I",
+    C_GET_UNITS: "5I",
+    C_GET_ENV: "3d",
+    C_GET_MODE: "I",
+    C_GET_STATIONARY: "2i",
+    C_GET_REFLECTOR: "i",
+    C_GET_REFLECTORS: "iiId64s",
+    C_GET_MEAS_STATUS_INFO: "Ii",
+    C_GET_COORDINATE_SYSTEM: "I",
+}
 HEADER = struct.Struct("<iI")
 RESULT = struct.Struct("<iIIIi17d")  # ReturnDataT, measMode, bIsTryMode, 17 doubles
 RESULT2 = struct.Struct("<iIIIi23d")  # ... 23 doubles (with covariances)
@@ -175,11 +201,23 @@ class LeicaTrackerFake(LineServer):
 
     device_name = "emscon"
 
-    def __init__(self, cell: SimCell, host: str = "127.0.0.1", port: int = 700, *,
-                 reflector_axis_tool: np.ndarray | None = None, acceptance_deg: float = 30.0,
-                 arm_radius_m: float = 0.0, reflector_clearance_m: float = 0.08,
-                 search_radius_m: float = 0.1, capture_m: float = 0.002, initialised: bool = False,
-                 initialize_time_s: float = 1.0, extended_result: bool = False, weather_station: bool = True):
+    def __init__(
+        self,
+        cell: SimCell,
+        host: str = "127.0.0.1",
+        port: int = 700,
+        *,
+        reflector_axis_tool: np.ndarray | None = None,
+        acceptance_deg: float = 30.0,
+        arm_radius_m: float = 0.0,
+        reflector_clearance_m: float = 0.08,
+        search_radius_m: float = 0.1,
+        capture_m: float = 0.002,
+        initialised: bool = False,
+        initialize_time_s: float = 1.0,
+        extended_result: bool = False,
+        weather_station: bool = True,
+    ):
         super().__init__(host, port)
         self.cell = cell
         self.reflector_axis_tool = None if reflector_axis_tool is None else np.asarray(reflector_axis_tool, float)
@@ -299,8 +337,9 @@ class LeicaTrackerFake(LineServer):
     def _command(self, c: int, params: tuple) -> list[bytes]:
         ok = lambda *data: [pack_reply(c, RS_OK, *data)]  # noqa: E731
         if c == C_GET_SYSTEM_STATUS:
-            return ok(RS_OK, 5 if self.initialised else 4, 3, 2, *SERVER_VERSION, 2 if self.weather_station else 0,
-                      0, SERIAL)
+            return ok(
+                RS_OK, 5 if self.initialised else 4, 3, 2, *SERVER_VERSION, 2 if self.weather_station else 0, 0, SERIAL
+            )
         if c == C_GET_TRACKER_STATUS:
             return ok(2 if self.initialised else 0)
         if c == C_INITIALIZE:
@@ -346,8 +385,10 @@ class LeicaTrackerFake(LineServer):
         if c == C_GET_REFLECTOR:
             return ok(self.reflector_id)
         if c == C_GET_REFLECTORS:
-            return [pack_reply(c, RS_OK, len(REFLECTORS), rid, ttype, offset, name.encode("utf-16-le"))
-                    for rid, name, ttype, offset in REFLECTORS]
+            return [
+                pack_reply(c, RS_OK, len(REFLECTORS), rid, ttype, offset, name.encode("utf-16-le"))
+                for rid, name, ttype, offset in REFLECTORS
+            ]
         if c == C_GET_MEAS_STATUS_INFO:
             self._check_beam()
             info = MSI_TRACKER_FOUND | MSI_ADM_FOUND | (MSI_INITIALIZED if self.initialised else 0)
@@ -483,8 +524,12 @@ class LeicaTrackerFake(LineServer):
 def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 
-    return run_fake(lambda cell, host, port: LeicaTrackerFake(cell, host, port), default_port=700, argv=argv,
-                    description="Run a simulated Leica tracker's emScon server.")
+    return run_fake(
+        lambda cell, host, port: LeicaTrackerFake(cell, host, port),
+        default_port=700,
+        argv=argv,
+        description="Run a simulated Leica tracker's emScon server.",
+    )
 
 
 if __name__ == "__main__":

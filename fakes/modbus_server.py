@@ -111,10 +111,7 @@ class ModbusRobotFake:
 
     def __init__(self, cell: SimCell, host: str = "127.0.0.1", port: int = 502):
         if cell.truth.n_joints != N_JOINTS:
-            raise ValueError(
-                f"the UR Modbus map has {N_JOINTS} joints; "
-                f"the truth model has {cell.truth.n_joints}"
-            )
+            raise ValueError(f"the UR Modbus map has {N_JOINTS} joints; the truth model has {cell.truth.n_joints}")
         self.cell = cell
         self.host = host
         self.port = port
@@ -210,6 +207,7 @@ class ModbusRobotFake:
 
     def _on_command(self, registers: list[int], base: int) -> None:
         """The motion program sees a new sequence number: acknowledge and execute."""
+
         def reg(address: int) -> int:
             return registers[address - base]
 

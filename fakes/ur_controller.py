@@ -100,8 +100,16 @@ RTDE_CONTROL_PACKAGE_PAUSE = ord("P")
 
 # struct codes of the RTDE data types
 _TYPE_FORMAT = {
-    "BOOL": "?", "UINT8": "B", "UINT32": "I", "UINT64": "Q", "INT32": "i", "DOUBLE": "d",
-    "VECTOR3D": "3d", "VECTOR6D": "6d", "VECTOR6INT32": "6i", "VECTOR6UINT32": "6I",
+    "BOOL": "?",
+    "UINT8": "B",
+    "UINT32": "I",
+    "UINT64": "Q",
+    "INT32": "i",
+    "DOUBLE": "d",
+    "VECTOR3D": "3d",
+    "VECTOR6D": "6d",
+    "VECTOR6INT32": "6i",
+    "VECTOR6UINT32": "6I",
 }
 
 
@@ -110,41 +118,85 @@ def _variable_types() -> dict[str, str]:
     table, whatever the server answered, so every type here must be exactly UR's."""
     v6 = "VECTOR6D"
     types = {
-        "timestamp": "DOUBLE", "target_q": v6, "target_qd": v6, "target_qdd": v6,
-        "target_current": v6, "target_moment": v6, "actual_q": v6, "actual_qd": v6,
-        "actual_qdd": v6, "actual_current": v6, "actual_moment": v6, "joint_control_output": v6,
-        "actual_TCP_pose": v6, "actual_TCP_speed": v6, "actual_TCP_force": v6,
-        "target_TCP_pose": v6, "target_TCP_speed": v6, "actual_digital_input_bits": "UINT64",
-        "joint_temperatures": v6, "actual_execution_time": "DOUBLE", "robot_mode": "INT32",
-        "joint_mode": "VECTOR6INT32", "safety_mode": "INT32", "safety_status": "INT32",
-        "actual_tool_accelerometer": "VECTOR3D", "speed_scaling": "DOUBLE",
-        "target_speed_fraction": "DOUBLE", "actual_momentum": "DOUBLE",
-        "actual_main_voltage": "DOUBLE", "actual_robot_voltage": "DOUBLE",
-        "actual_robot_current": "DOUBLE", "actual_joint_voltage": v6,
-        "actual_digital_output_bits": "UINT64", "runtime_state": "UINT32",
-        "elbow_position": "VECTOR3D", "elbow_velocity": "VECTOR3D",
-        "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
-        "analog_io_types": "UINT32", "standard_analog_input0": "DOUBLE",
-        "standard_analog_input1": "DOUBLE", "standard_analog_output0": "DOUBLE",
-        "standard_analog_output1": "DOUBLE", "io_current": "DOUBLE",
-        "euromap67_input_bits": "UINT32", "euromap67_output_bits": "UINT32",
-        "euromap67_24V_voltage": "DOUBLE", "euromap67_24V_current": "DOUBLE",
-        "tool_mode": "UINT32", "tool_analog_input_types": "UINT32",
-        "tool_analog_input0": "DOUBLE", "tool_analog_input1": "DOUBLE",
-        "tool_output_voltage": "INT32", "tool_output_current": "DOUBLE",
-        "tool_temperature": "DOUBLE", "tcp_force_scalar": "DOUBLE",
-        "output_bit_registers0_to_31": "UINT32", "output_bit_registers32_to_63": "UINT32",
-        "input_bit_registers0_to_31": "UINT32", "input_bit_registers32_to_63": "UINT32",
-        "ft_raw_wrench": v6, "payload": "DOUBLE", "payload_cog": "VECTOR3D",
-        "payload_inertia": v6, "script_control_line": "UINT32",
+        "timestamp": "DOUBLE",
+        "target_q": v6,
+        "target_qd": v6,
+        "target_qdd": v6,
+        "target_current": v6,
+        "target_moment": v6,
+        "actual_q": v6,
+        "actual_qd": v6,
+        "actual_qdd": v6,
+        "actual_current": v6,
+        "actual_moment": v6,
+        "joint_control_output": v6,
+        "actual_TCP_pose": v6,
+        "actual_TCP_speed": v6,
+        "actual_TCP_force": v6,
+        "target_TCP_pose": v6,
+        "target_TCP_speed": v6,
+        "actual_digital_input_bits": "UINT64",
+        "joint_temperatures": v6,
+        "actual_execution_time": "DOUBLE",
+        "robot_mode": "INT32",
+        "joint_mode": "VECTOR6INT32",
+        "safety_mode": "INT32",
+        "safety_status": "INT32",
+        "actual_tool_accelerometer": "VECTOR3D",
+        "speed_scaling": "DOUBLE",
+        "target_speed_fraction": "DOUBLE",
+        "actual_momentum": "DOUBLE",
+        "actual_main_voltage": "DOUBLE",
+        "actual_robot_voltage": "DOUBLE",
+        "actual_robot_current": "DOUBLE",
+        "actual_joint_voltage": v6,
+        "actual_digital_output_bits": "UINT64",
+        "runtime_state": "UINT32",
+        "elbow_position": "VECTOR3D",
+        "elbow_velocity": "VECTOR3D",
+        "robot_status_bits": "UINT32",
+        "safety_status_bits": "UINT32",
+        "analog_io_types": "UINT32",
+        "standard_analog_input0": "DOUBLE",
+        "standard_analog_input1": "DOUBLE",
+        "standard_analog_output0": "DOUBLE",
+        "standard_analog_output1": "DOUBLE",
+        "io_current": "DOUBLE",
+        "euromap67_input_bits": "UINT32",
+        "euromap67_output_bits": "UINT32",
+        "euromap67_24V_voltage": "DOUBLE",
+        "euromap67_24V_current": "DOUBLE",
+        "tool_mode": "UINT32",
+        "tool_analog_input_types": "UINT32",
+        "tool_analog_input0": "DOUBLE",
+        "tool_analog_input1": "DOUBLE",
+        "tool_output_voltage": "INT32",
+        "tool_output_current": "DOUBLE",
+        "tool_temperature": "DOUBLE",
+        "tcp_force_scalar": "DOUBLE",
+        "output_bit_registers0_to_31": "UINT32",
+        "output_bit_registers32_to_63": "UINT32",
+        "input_bit_registers0_to_31": "UINT32",
+        "input_bit_registers32_to_63": "UINT32",
+        "ft_raw_wrench": v6,
+        "payload": "DOUBLE",
+        "payload_cog": "VECTOR3D",
+        "payload_inertia": v6,
+        "script_control_line": "UINT32",
         "external_force_torque": v6,
         # inputs written by clients
-        "speed_slider_mask": "UINT32", "speed_slider_fraction": "DOUBLE",
-        "standard_digital_output_mask": "UINT8", "standard_digital_output": "UINT8",
-        "configurable_digital_output_mask": "UINT8", "configurable_digital_output": "UINT8",
-        "tool_digital_output_mask": "UINT8", "tool_digital_output": "UINT8",
-        "standard_analog_output_mask": "UINT8", "standard_analog_output_type": "UINT8",
-        "standard_analog_output_0": "DOUBLE", "standard_analog_output_1": "DOUBLE",
+        "speed_slider_mask": "UINT32",
+        "speed_slider_fraction": "DOUBLE",
+        "standard_digital_output_mask": "UINT8",
+        "standard_digital_output": "UINT8",
+        "configurable_digital_output_mask": "UINT8",
+        "configurable_digital_output": "UINT8",
+        "tool_digital_output_mask": "UINT8",
+        "tool_digital_output": "UINT8",
+        "standard_analog_output_mask": "UINT8",
+        "standard_analog_output_type": "UINT8",
+        "standard_analog_output_0": "DOUBLE",
+        "standard_analog_output_1": "DOUBLE",
     }
     for i in range(48):
         for side in ("input", "output"):
@@ -205,9 +257,7 @@ class UrControllerFake:
         max_frequency_hz: float = 500.0,
     ):
         if cell.truth.n_joints != 6:
-            raise ValueError(
-                f"a UR controller drives 6 joints; the truth model has {cell.truth.n_joints}"
-            )
+            raise ValueError(f"a UR controller drives 6 joints; the truth model has {cell.truth.n_joints}")
         self.cell = cell
         self.host = host
         self.port = port
@@ -223,9 +273,7 @@ class UrControllerFake:
         self._t0 = time.monotonic()
         # The controller's register file and the emulated control script.
         self._registers: dict[str, float | int] = {
-            name: (0.0 if t == "DOUBLE" else 0)
-            for name, t in RTDE_TYPES.items()
-            if "_register_" in name
+            name: (0.0 if t == "DOUBLE" else 0) for name, t in RTDE_TYPES.items() if "_register_" in name
         }
         self._script_running = False
         self._user_program = False  # the program playing is a user's, not ur_rtde's control script
@@ -390,8 +438,7 @@ class UrControllerFake:
             T = cell.controller_fk(q[None, :], np.array(self._doubles(6, 12)))[0]
             self._write_doubles(matrix_to_ur_pose(T))
         elif cmd in (CMD_GET_INVERSE_KINEMATICS_ARGS, CMD_GET_INVERSE_KINEMATICS_DEFAULT):
-            q_near = (np.array(self._doubles(6, 12)) if cmd == CMD_GET_INVERSE_KINEMATICS_ARGS
-                      else cell.joints())
+            q_near = np.array(self._doubles(6, 12)) if cmd == CMD_GET_INVERSE_KINEMATICS_ARGS else cell.joints()
             q = cell.controller_ik(ur_pose_to_matrix(self._doubles(0, 6)), q_near)
             if q is None:
                 self._halt_script()  # get_inverse_kin raises a runtime error: the script stops
@@ -513,9 +560,7 @@ class UrControllerFake:
             safety_mode = SAFETY_MODE_PROTECTIVE_STOP
         if cell.emergency_stop:
             safety_bits = (
-                SAFETY_BIT_EMERGENCY_STOPPED
-                | SAFETY_BIT_ROBOT_EMERGENCY_STOPPED
-                | SAFETY_BIT_STOPPED_DUE_TO_SAFETY
+                SAFETY_BIT_EMERGENCY_STOPPED | SAFETY_BIT_ROBOT_EMERGENCY_STOPPED | SAFETY_BIT_STOPPED_DUE_TO_SAFETY
             )
             safety_mode = SAFETY_MODE_ROBOT_EMERGENCY_STOP
         status_bits = ROBOT_STATUS_POWER_ON if cell.powered else 0
@@ -585,10 +630,7 @@ class UrControllerFake:
                 send(kind, bytes([1 if ok else 0]) + ",".join(types).encode())
             elif kind == RTDE_CONTROL_PACKAGE_SETUP_INPUTS:
                 names = _csv(payload)
-                types = [
-                    RTDE_TYPES.get(n, "NOT_FOUND") if not n.startswith("output_") else "NOT_FOUND"
-                    for n in names
-                ]
+                types = [RTDE_TYPES.get(n, "NOT_FOUND") if not n.startswith("output_") else "NOT_FOUND" for n in names]
                 recipe_id = 0
                 if "NOT_FOUND" not in types:
                     recipe_id = len(inputs) + 1  # ur_rtde assumes ids 1, 2, ... per connection
@@ -600,9 +642,7 @@ class UrControllerFake:
                 send(kind, bytes([1 if ok else 0]))
                 if ok and not streaming.is_set():
                     streaming.set()
-                    threading.Thread(
-                        target=self._stream, args=(conn, send, output, streaming), daemon=True
-                    ).start()
+                    threading.Thread(target=self._stream, args=(conn, send, output, streaming), daemon=True).start()
             elif kind == RTDE_CONTROL_PACKAGE_PAUSE:
                 streaming.clear()
                 send(kind, b"\x01")
@@ -808,7 +848,9 @@ class UrControllerFake:
 
 
 _ROBOT_MODE_NAMES = {
-    ROBOT_MODE_POWER_OFF: "POWER_OFF", ROBOT_MODE_IDLE: "IDLE", ROBOT_MODE_RUNNING: "RUNNING",
+    ROBOT_MODE_POWER_OFF: "POWER_OFF",
+    ROBOT_MODE_IDLE: "IDLE",
+    ROBOT_MODE_RUNNING: "RUNNING",
 }
 
 

@@ -80,8 +80,10 @@ def _literal(text: str, variables: dict, line: int) -> tuple[str, tuple[float, .
         return variables[text]
     m = _LITERAL.match(text)
     if m is None:
-        raise ProgramError(f"line {line}: cannot evaluate the target {text!r} (the simulator runs literal targets "
-                           f"and variables assigned one)")
+        raise ProgramError(
+            f"line {line}: cannot evaluate the target {text!r} (the simulator runs literal targets "
+            f"and variables assigned one)"
+        )
     try:
         values = tuple(float(v) for v in m.group(2).split(","))
     except ValueError:

@@ -61,30 +61,42 @@ class Faults:
     means "the N-th request to that device"; each fake's docstring says what it counts.
     """
 
-    drop_connection_at: list[int] = field(default_factory=list, metadata={
-        "help": "requests whose connection is closed instead of answered"})
-    delay_s: float = field(default=0.0, metadata={
-        "help": "extra latency (s) before every reply, or only those of delay_at"})
-    delay_at: list[int] = field(default_factory=list, metadata={
-        "help": "requests whose reply alone waits delay_s (tracker, CMM, CAN, UR commands)"})
+    drop_connection_at: list[int] = field(
+        default_factory=list, metadata={"help": "requests whose connection is closed instead of answered"}
+    )
+    delay_s: float = field(
+        default=0.0, metadata={"help": "extra latency (s) before every reply, or only those of delay_at"}
+    )
+    delay_at: list[int] = field(
+        default_factory=list,
+        metadata={"help": "requests whose reply alone waits delay_s (tracker, CMM, CAN, UR commands)"},
+    )
     garble_rate: float = field(default=0.0, metadata={"help": "probability that a reply is garbled"})
     garble_at: list[int] = field(default_factory=list, metadata={"help": "requests whose reply is garbled"})
-    beam_break_rate: float = field(default=0.0, metadata={
-        "help": "tracker: probability that a measurement finds the beam broken"})
-    beam_break_at: list[int] = field(default_factory=list, metadata={
-        "help": "tracker: MEAS? (emScon: StartMeasurement) counts that find the beam broken"})
-    protective_stop_at_move: list[int] = field(default_factory=list, metadata={
-        "help": "robot: moves that stop halfway in a protective stop"})
-    emergency_stop_at_move: list[int] = field(default_factory=list, metadata={
-        "help": "robot: moves that stop halfway in an emergency stop (arm powered off)"})
-    no_touch_at: list[int] = field(default_factory=list, metadata={
-        "help": "CMM: PtMeas counts that touch nothing"})
-    silent_nodes: list[int] = field(default_factory=list, metadata={
-        "help": "CAN: node ids from which nothing reaches the bus"})
-    sensor_fault_at: list[int] = field(default_factory=list, metadata={
-        "help": "CAN: position requests answered with a sensor fault (EMCY)"})
-    error_status_at: list[int] = field(default_factory=list, metadata={
-        "help": "emScon tracker: commands answered with an error packet (ES_RS_Unknown)"})
+    beam_break_rate: float = field(
+        default=0.0, metadata={"help": "tracker: probability that a measurement finds the beam broken"}
+    )
+    beam_break_at: list[int] = field(
+        default_factory=list,
+        metadata={"help": "tracker: MEAS? (emScon: StartMeasurement) counts that find the beam broken"},
+    )
+    protective_stop_at_move: list[int] = field(
+        default_factory=list, metadata={"help": "robot: moves that stop halfway in a protective stop"}
+    )
+    emergency_stop_at_move: list[int] = field(
+        default_factory=list, metadata={"help": "robot: moves that stop halfway in an emergency stop (arm powered off)"}
+    )
+    no_touch_at: list[int] = field(default_factory=list, metadata={"help": "CMM: PtMeas counts that touch nothing"})
+    silent_nodes: list[int] = field(
+        default_factory=list, metadata={"help": "CAN: node ids from which nothing reaches the bus"}
+    )
+    sensor_fault_at: list[int] = field(
+        default_factory=list, metadata={"help": "CAN: position requests answered with a sensor fault (EMCY)"}
+    )
+    error_status_at: list[int] = field(
+        default_factory=list,
+        metadata={"help": "emScon tracker: commands answered with an error packet (ES_RS_Unknown)"},
+    )
 
     def reply_delay_s(self, n: int | None) -> float:
         """The delay before the reply to request ``n``: ``delay_s`` for every reply, or, when
@@ -124,15 +136,17 @@ class FactoryCalibration:
         pub = nominal(self.published)
         joints = tuple(
             dataclasses.replace(j, theta=j.theta + dt, a=j.a + da, d=j.d + dd, alpha=j.alpha + dal)
-            for j, dt, da, dd, dal in zip(pub.joints, self.delta_theta, self.delta_a, self.delta_d,
-                                          self.delta_alpha)
+            for j, dt, da, dd, dal in zip(pub.joints, self.delta_theta, self.delta_a, self.delta_d, self.delta_alpha)
         )
         return dataclasses.replace(pub, name=f"{self.published}-controller", joints=joints)
 
     def to_dict(self) -> dict:
         """The ``ur_factory_calibration`` block of a truth file (SI)."""
-        return {"published": self.published, "calibration_status": self.calibration_status,
-                **{f: list(getattr(self, f)) for f in self.FIELDS}}
+        return {
+            "published": self.published,
+            "calibration_status": self.calibration_status,
+            **{f: list(getattr(self, f)) for f in self.FIELDS},
+        }
 
     @classmethod
     def from_dict(cls, doc, where: str = "ur_factory_calibration") -> "FactoryCalibration":
@@ -145,8 +159,11 @@ class FactoryCalibration:
         values = {}
         for f in cls.FIELDS:
             v = doc.get(f)
-            if (not isinstance(v, list) or len(v) != 6
-                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in v)):
+            if (
+                not isinstance(v, list)
+                or len(v) != 6
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in v)
+            ):
                 raise ValueError(f"{where}.{f}: expected a list of 6 numbers (SI: rad or m), got {v!r}")
             values[f] = tuple(float(x) for x in v)
         status = doc.get("calibration_status", 2)
@@ -170,8 +187,9 @@ def draw_factory_calibration(
     frame is its own first axis (where ``poe_to_dh`` puts frame 0), and its flange the last DH
     frame: what the perturbation moves beyond those is the robot's mounting, not the controller's."""
     pub = nominal(published)
-    physical = perturbed(pub, np.random.default_rng(seed), length_m=length_m, angle_rad=angle_rad,
-                         offset_rad=offset_rad)
+    physical = perturbed(
+        pub, np.random.default_rng(seed), length_m=length_m, angle_rad=angle_rad, offset_rad=offset_rad
+    )
     # parallel_tol_rad=0: never Hayati's beta, as on the controller.
     dh = poe_to_dh(physical, reference=pub, parallel_tol_rad=0.0)
     return FactoryCalibration(
@@ -256,9 +274,11 @@ class SimCell:
         self.ball_radius_m = ball_radius_m
         # Tooling balls sit at the truth model's targets whose names start with "ball";
         # the reflector is every other target.
-        self.balls_tool = balls_tool if balls_tool is not None else {
-            name: p for name, p in truth.targets.items() if name.startswith("ball")
-        }
+        self.balls_tool = (
+            balls_tool
+            if balls_tool is not None
+            else {name: p for name, p in truth.targets.items() if name.startswith("ball")}
+        )
         self._lock = threading.RLock()
         n = truth.n_joints
         self._q_start = np.zeros(n) if q_home is None else np.asarray(q_home, float).copy()
@@ -272,9 +292,7 @@ class SimCell:
         self.program_running = False
         self.move_count = 0
         self.counters: dict[str, int] = {}
-        self.reflector: str | None = next(
-            (name for name in truth.targets if not name.startswith("ball")), None
-        )
+        self.reflector: str | None = next((name for name in truth.targets if not name.startswith("ball")), None)
         # The payload the controller was told it carries (kg, centre of gravity in the tool
         # frame, m): a truth with joint compliance under gravity sags under it.
         self.payload = np.zeros(4)
@@ -421,8 +439,9 @@ class SimCell:
             T = T @ ur_pose_to_matrix(tcp_offset)
         return T
 
-    def controller_ik(self, T_base_tcp: np.ndarray, q_near: np.ndarray | None = None,
-                      tcp_offset: np.ndarray | None = None) -> np.ndarray | None:
+    def controller_ik(
+        self, T_base_tcp: np.ndarray, q_near: np.ndarray | None = None, tcp_offset: np.ndarray | None = None
+    ) -> np.ndarray | None:
         """``get_inverse_kin(x, qnear)``: the readings (6,) that put the TCP at ``T_base_tcp``
         (4, 4) through the controller's model, on the branch nearest ``q_near`` (default: the
         joints now), or ``None`` when the pose is out of reach. As a calibrated controller

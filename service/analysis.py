@@ -20,20 +20,20 @@ from pathlib import Path
 import numpy as np
 from sqlmodel import Session
 
-from calibration.identify import Measurements, NotEnoughData, Prior, drift_scale, held_relations, identify
 from calibration import metrics
+from calibration.errors import RecalError
 from calibration.geometry import fit_joint_harmonic
+from calibration.identify import Measurements, NotEnoughData, Prior, drift_scale, held_relations, identify
 from calibration.model import KinematicModel, model_from_dict, model_to_dict
 from calibration.report import identification_block, identification_report
 
 from . import records
 from .models import Calibration, Cell, Measurement, RunSession
+from .problems import Invalid
 from .records import NoMeasurementsError, current_model, position_errors, registered_errors
 from .results import predicted_accuracy
 from .settings import Settings
-from .problems import Invalid
 from .store import audit, current_calibration, current_controller_model, delete_session_rows
-from calibration.errors import RecalError
 
 # Allowance for what may have changed since the previous calibration (per parameter, 1 sigma):
 # the prior's covariance is the previous one plus this allowance times a scale the new data show
@@ -81,13 +81,30 @@ def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings)
     db.refresh(run)
 
 
-def _store(db: Session, cell: Cell, run: RunSession, kind: str, model: KinematicModel, report: dict,
-           covariance: dict | None, rms: float | None, extra: dict | None = None) -> Calibration:
+def _store(
+    db: Session,
+    cell: Cell,
+    run: RunSession,
+    kind: str,
+    model: KinematicModel,
+    report: dict,
+    covariance: dict | None,
+    rms: float | None,
+    extra: dict | None = None,
+) -> Calibration:
     doc = model_to_dict(model)
     if extra:
         doc.update(extra)
-    cal = Calibration(cell_id=cell.id, session_id=run.id, kind=kind, model=doc, report=report,
-                      covariance=covariance, rms=rms, nominal_version=cell.model_version)
+    cal = Calibration(
+        cell_id=cell.id,
+        session_id=run.id,
+        kind=kind,
+        model=doc,
+        report=report,
+        covariance=covariance,
+        rms=rms,
+        nominal_version=cell.model_version,
+    )
     db.add(cal)
     db.commit()
     db.refresh(cal)
@@ -105,7 +122,9 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         names = tuple(prev.covariance["names"])
         cov = np.array(prev.covariance["matrix"], dtype=float)
         kinds = prev.covariance.get("kinds") or ["length"] * len(names)
-        drift = np.array([DRIFT_ANGLE_RAD if k == "angle" else DRIFT_LENGTH_M if k == "length" else 1e-4 for k in kinds])
+        drift = np.array(
+            [DRIFT_ANGLE_RAD if k == "angle" else DRIFT_LENGTH_M if k == "length" else 1e-4 for k in kinds]
+        )
         # what it held at the model's value, confused with what it estimated (e.g. the tool orientation
         # a tracker cannot see): new data that determine them move the combinations it measured
         held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
@@ -128,11 +147,15 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         except NotEnoughData:  # each fold's share of the poses leaves no redundancy: nothing to compare
             cmp = None
         if cmp is not None:
-            report["compliance"] = {k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v)
-                                    for k, v in cmp.items()}
-    cov = {"names": list(result.param_names), "kinds": [p.kind for p in result.params],
-           "matrix": result.covariance.tolist(),
-           "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()}}
+            report["compliance"] = {
+                k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v) for k, v in cmp.items()
+            }
+    cov = {
+        "names": list(result.param_names),
+        "kinds": [p.kind for p in result.params],
+        "matrix": result.covariance.tolist(),
+        "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()},
+    }
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q)
@@ -147,17 +170,23 @@ def _prior_summary(result, prev: Calibration, prior: Prior, scale: float, units)
     determined, the ones the new data cannot see (kept from the prior), the ones it held at the
     model's value that the new data determine (``released``, e.g. a tool orientation a tracker
     could not see, measured by a CMM), and the drift allowance with the scale the data showed."""
-    by = {s: [n for n, src in zip(result.param_names, result.sources) if src == s]
-          for s in ("data", "data + prior", "prior")}
+    by = {
+        s: [n for n, src in zip(result.param_names, result.sources) if src == s]
+        for s in ("data", "data + prior", "prior")
+    }
     return {
-        "calibration_id": prev.id, "parameters": len(prior.names),
+        "calibration_id": prev.id,
+        "parameters": len(prior.names),
         "determined_by": {s: len(names) for s, names in by.items()},
         "from_prior": by["prior"],
         "released": [n for n in result.param_names if n in prior.held],
-        "drift_allowance": {"length": DRIFT_LENGTH_M / units.length_m, "angle": DRIFT_ANGLE_RAD / units.angle_rad,
-                            "scale": scale,
-                            "note": "per parameter, 1 sigma, times scale (how far the new data show the robot moved; "
-                                    f"at least {DRIFT_SCALE_MIN}), added to the previous calibration's covariance"},
+        "drift_allowance": {
+            "length": DRIFT_LENGTH_M / units.length_m,
+            "angle": DRIFT_ANGLE_RAD / units.angle_rad,
+            "scale": scale,
+            "note": "per parameter, 1 sigma, times scale (how far the new data show the robot moved; "
+            f"at least {DRIFT_SCALE_MIN}), added to the previous calibration's covariance",
+        },
     }
 
 
@@ -169,7 +198,11 @@ def verify_session(db: Session, run: RunSession, cell: Cell) -> dict:
     st = metrics.norm_statistics(e / L)
     out = {
         "calibration_id": None if cal is None else cal.id,
-        "n": st.n, "rms": st.rms, "max": st.max, "p95": st.p95, "mean": st.mean,
+        "n": st.n,
+        "rms": st.rms,
+        "max": st.max,
+        "p95": st.p95,
+        "mean": st.mean,
         "unit": model.units.length,
     }
     if len(e) >= 3:
@@ -194,11 +227,15 @@ def pose_repeatability(model: KinematicModel, data: Measurements, repeats: int) 
     st = pose_statistics(p_cmd, data.p_world, data.pose_id // repeats)
     L = model.units.length_m
     return {
-        "repeats": repeats, "poses": int(len(st.pose_ids)), "unit": model.units.length,
+        "repeats": repeats,
+        "poses": int(len(st.pose_ids)),
+        "unit": model.units.length,
         "accuracy": {"mean": float(st.AP_m.mean() / L), "max": float(st.AP_m.max() / L)},
         "repeatability": {"mean": float(st.RP_m.mean() / L), "max": float(st.RP_m.max() / L)},
-        "per_pose": [{"pose": int(k) + 1, "visits": int(n), "AP": float(ap / L), "RP": float(rp / L)}
-                     for k, n, ap, rp in zip(st.pose_ids, st.n, st.AP_m, st.RP_m)],
+        "per_pose": [
+            {"pose": int(k) + 1, "visits": int(n), "AP": float(ap / L), "RP": float(rp / L)}
+            for k, n, ap, rp in zip(st.pose_ids, st.n, st.AP_m, st.RP_m)
+        ],
     }
 
 
@@ -218,11 +255,15 @@ def joint_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         results[str(j)] = fit
         if model.coupling is None:
             joints[j - 1] = dataclasses.replace(
-                joints[j - 1], gain=fit["gain"],
-                harmonic=(fit["amplitude"], fit["frequency"], fit["phase"]) if fit["amplitude"] > 0 else None)
+                joints[j - 1],
+                gain=fit["gain"],
+                harmonic=(fit["amplitude"], fit["frequency"], fit["phase"]) if fit["amplitude"] > 0 else None,
+            )
     new = dataclasses.replace(model, joints=tuple(joints))
-    report = {"joints": results, "note": "reference encoder offsets are the encoders' own zeros; joint offsets "
-                                         "come from pose calibration"}
+    report = {
+        "joints": results,
+        "note": "reference encoder offsets are the encoders' own zeros; joint offsets come from pose calibration",
+    }
     return _store(db, cell, run, "joint", new, report, None, None)
 
 
@@ -234,8 +275,13 @@ def circle_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
 
     data, rows = session_measurements(db, run)
     nominal = model_from_dict(cell.model)
-    sweeps = Sweeps(q=data.q, p_world=data.p_world, joint=np.array([(r.joint or 1) - 1 for r in rows]),
-                    target=data.target, row=data.row)
+    sweeps = Sweeps(
+        q=data.q,
+        p_world=data.p_world,
+        joint=np.array([(r.joint or 1) - 1 for r in rows]),
+        target=data.target,
+        row=data.row,
+    )
     try:
         res = circle_point_analysis(nominal, sweeps)
     except (SweepError, ValueError) as exc:
@@ -248,7 +294,9 @@ def circle_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
 # --------------------------------------------------------------------------- measured elsewhere
 
 
-def import_measurements(db: Session, cell: Cell, body: bytes, *, kind: str, name: str, actor: str, settings) -> RunSession:
+def import_measurements(
+    db: Session, cell: Cell, body: bytes, *, kind: str, name: str, actor: str, settings
+) -> RunSession:
     """Externally measured data (a measurement CSV, contracts §3, in the units of the cell's
     nominal model) stored as a completed session of ``kind`` (``pose``: identified as a pose
     session is; ``verify``: the cell's current model checked against it). Nothing is kept when
@@ -265,18 +313,39 @@ def import_measurements(db: Session, cell: Cell, body: bytes, *, kind: str, name
         except InputError as exc:
             raise Invalid("body", str(exc).replace(str(path), safe_name)) from None
     device = "cmm" if data.quat is not None and not np.all(np.isnan(data.quat)) else "tracker"
-    run = RunSession(cell_id=cell.id, kind=kind, state="completed", planned=len(data), device=device, target=None,
-                     plan=data.q.tolist(), created_by=actor,
-                     plan_info={"imported": {"name": safe_name, "rows": len(data)}, "nominal_version": cell.model_version})
+    run = RunSession(
+        cell_id=cell.id,
+        kind=kind,
+        state="completed",
+        planned=len(data),
+        device=device,
+        target=None,
+        plan=data.q.tolist(),
+        created_by=actor,
+        plan_info={"imported": {"name": safe_name, "rows": len(data)}, "nominal_version": cell.model_version},
+    )
     db.add(run)
     db.flush()
     quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
     for i in range(len(data)):
         qw, qx, qy, qz = (None if np.isnan(v) else float(v) for v in quat[i])
         sigma = None if not np.isfinite(data.sigma[i]) else float(data.sigma[i])
-        db.add(Measurement(session_id=run.id, seq=i, target=data.target[i] or "", q=[float(v) for v in data.q[i]],
-                           x=float(data.p_world[i, 0]), y=float(data.p_world[i, 1]), z=float(data.p_world[i, 2]),
-                           qw=qw, qx=qx, qy=qy, qz=qz, sigma=sigma))
+        db.add(
+            Measurement(
+                session_id=run.id,
+                seq=i,
+                target=data.target[i] or "",
+                q=[float(v) for v in data.q[i]],
+                x=float(data.p_world[i, 0]),
+                y=float(data.p_world[i, 1]),
+                z=float(data.p_world[i, 2]),
+                qw=qw,
+                qx=qx,
+                qy=qy,
+                qz=qz,
+                sigma=sigma,
+            )
+        )
     db.commit()
     db.refresh(run)
     try:
@@ -287,7 +356,17 @@ def import_measurements(db: Session, cell: Cell, body: bytes, *, kind: str, name
         db.commit()
         raise Invalid("body", f"{safe_name}: {exc}") from None
     db.refresh(run)
-    audit(db, actor=actor, action="import measurements", subject=f"session {run.id}",
-          detail={"cell": cell.id, "kind": kind, "name": safe_name, "rows": len(data),
-                  "calibration_id": run.calibration_id})
+    audit(
+        db,
+        actor=actor,
+        action="import measurements",
+        subject=f"session {run.id}",
+        detail={
+            "cell": cell.id,
+            "kind": kind,
+            "name": safe_name,
+            "rows": len(data),
+            "calibration_id": run.calibration_id,
+        },
+    )
     return run

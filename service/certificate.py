@@ -22,8 +22,8 @@ from sqlmodel import Session, select
 from calibration.metrics import error_statistics
 from calibration.model import model_from_dict
 
-from .records import position_errors, session_measurements
 from .models import AuditEntry, Calibration, Cell, RunSession
+from .records import position_errors, session_measurements
 from .results import _r, calibration_result
 from .store import as_utc
 
@@ -39,19 +39,36 @@ def _iso_figures(xyz: list | None, unit: str) -> dict | None:
     if len(e) == 0:
         return None
     s = error_statistics(np.zeros_like(e), e)
-    out = {"n": s.n, "mean": s.mean_m, "std": s.std_m, "mean_plus_3sigma": s.mean_plus_3sigma_m, "rms": s.rms_m,
-           "p95": s.p95_m, "max": s.max_m, "bias_xyz": [float(v) for v in s.bias_xyz_m]}
-    return {k: ([_r(x) for x in v] if isinstance(v, list) else _r(v) if k != "n" else v) for k, v in out.items()} \
-        | {"unit": unit}
+    out = {
+        "n": s.n,
+        "mean": s.mean_m,
+        "std": s.std_m,
+        "mean_plus_3sigma": s.mean_plus_3sigma_m,
+        "rms": s.rms_m,
+        "p95": s.p95_m,
+        "max": s.max_m,
+        "bias_xyz": [float(v) for v in s.bias_xyz_m],
+    }
+    return {k: ([_r(x) for x in v] if isinstance(v, list) else _r(v) if k != "n" else v) for k, v in out.items()} | {
+        "unit": unit
+    }
 
 
 def _verify_sessions(db: Session, cell_id: int, cal: Calibration) -> tuple[dict | None, dict | None]:
     """The hold-out checks around ``cal``: the last verify session before it and the first one
     after it that used it (their results, model units)."""
     before = after = None
-    rows = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.kind == "verify",
-                                            RunSession.state == "completed", RunSession.dry_run == False)  # noqa: E712
-                   .order_by(RunSession.id.desc()).limit(200)).all()
+    rows = db.exec(
+        select(RunSession)
+        .where(
+            RunSession.cell_id == cell_id,
+            RunSession.kind == "verify",
+            RunSession.state == "completed",
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+        .order_by(RunSession.id.desc())
+        .limit(200)
+    ).all()
     for s in rows:
         v = (s.plan_info or {}).get("verify")
         if not v:
@@ -77,8 +94,13 @@ def _holdout(db: Session, cal: Calibration, verify_after: dict | None, unit: str
     figures = _iso_figures((position_errors(model, data) / model.units.length_m).tolist(), unit)
     if figures is None:
         return None
-    return {**figures, "session_id": run.id, "operator": run.created_by, "date": as_utc(run.created_at).isoformat(),
-            "target": run.target}
+    return {
+        **figures,
+        "session_id": run.id,
+        "operator": run.created_by,
+        "date": as_utc(run.created_at).isoformat(),
+        "target": run.target,
+    }
 
 
 def last_device_test(db: Session, cell_id: int, until: datetime | None = None) -> dict | None:
@@ -124,18 +146,22 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
     checks = _checks(res, run, report, resid, settings, verify_after, cell, unit)
     not_run = [c["name"] for c in checks if c["passed"] is None]
     accuracy = {
-        "before": before, "before_model": (errors.get("before") or {}).get("model"),
-        "after": after, "after_model": (errors.get("after") or {}).get("model"),
+        "before": before,
+        "before_model": (errors.get("before") or {}).get("model"),
+        "after": after,
+        "after_model": (errors.get("after") or {}).get("model"),
         "after_kind": "in-sample: the identified model's residuals on the measurements it was fitted to "
-                      "(optimistic; the hold-out figures are the accuracy to quote)",
+        "(optimistic; the hold-out figures are the accuracy to quote)",
         "holdout": holdout,
-        "holdout_model": None if holdout is None else
-        f"the identified model as it stands on the {holdout['n']} fresh configurations of verify session "
+        "holdout_model": None
+        if holdout is None
+        else f"the identified model as it stands on the {holdout['n']} fresh configurations of verify session "
         f"{holdout['session_id']}, measured after the calibration",
-        "verify_before": verify_before, "verify_after": verify_after,
+        "verify_before": verify_before,
+        "verify_after": verify_after,
         "predicted_workspace": _predicted(ws),
         "note": "ISO 9283-style figures from one measurement per pose: mean position error, its standard "
-                "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
+        "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
     }
     accuracy["rows"] = [{"label": label, **f} for label, f in _accuracy_rows(accuracy)]
     issued = datetime.now(timezone.utc)
@@ -143,20 +169,37 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         "title": "Robot calibration certificate",
         "number": f"RECAL-{cell.id:04d}-{cal.id:06d}",
         "issued_at": issued.isoformat(),
-        "calibration": {"id": cal.id, "kind": cal.kind, "date": as_utc(cal.created_at).isoformat(),
-                        "session_id": cal.session_id, "method": "kinematic identification by weighted least squares "
-                                                                "(Levenberg-Marquardt), identifiable parameters only"},
+        "calibration": {
+            "id": cal.id,
+            "kind": cal.kind,
+            "date": as_utc(cal.created_at).isoformat(),
+            "session_id": cal.session_id,
+            "method": "kinematic identification by weighted least squares "
+            "(Levenberg-Marquardt), identifiable parameters only",
+        },
         "cell": {"id": cell.id, "name": cell.name, "site": cell.site},
-        "robot": {"model": nominal.name, "joints": nominal.n_joints, "convention": nominal.convention,
-                  "identified_convention": (cal.model or {}).get("convention")},
-        "instrument": {"kind": INSTRUMENTS.get(device, device), "device": device,
-                       "address": str((cell.devices or {}).get(device, "")), "identity": identity,
-                       "identity_checked_at": test["at"] if test else None,
-                       "noise": settings.get("sigma"), "target": run.target if run is not None else None},
+        "robot": {
+            "model": nominal.name,
+            "joints": nominal.n_joints,
+            "convention": nominal.convention,
+            "identified_convention": (cal.model or {}).get("convention"),
+        },
+        "instrument": {
+            "kind": INSTRUMENTS.get(device, device),
+            "device": device,
+            "address": str((cell.devices or {}).get(device, "")),
+            "identity": identity,
+            "identity_checked_at": test["at"] if test else None,
+            "noise": settings.get("sigma"),
+            "target": run.target if run is not None else None,
+        },
         "operator": run.created_by if run is not None else None,
-        "poses": {"planned": run.planned if run is not None else None, "measured": report.get("rows"),
-                  "outliers": len(report.get("outliers") or []),
-                  "plan_method": (run.plan_info or {}).get("method") if run is not None else None},
+        "poses": {
+            "planned": run.planned if run is not None else None,
+            "measured": report.get("rows"),
+            "outliers": len(report.get("outliers") or []),
+            "plan_method": (run.plan_info or {}).get("method") if run is not None else None,
+        },
         "units": res["units"],
         "accuracy": accuracy,
         "parameters": params,
@@ -184,10 +227,15 @@ def _predicted(ws: dict) -> dict | None:
     if not ws.get("available"):
         return None
     st = ws.get("stats_rms") or {}
-    return {"n": ws.get("samples"), "rms": st.get("rms"), "p95": st.get("p95"), "max": st.get("max"),
-            "what": "predicted position error of the calibrated model from its parameters' uncertainty (1 sigma, "
-                    f"3-D) at {ws.get('samples')} random configurations inside the allowed joint ranges; the "
-                    "instrument's own noise not included"}
+    return {
+        "n": ws.get("samples"),
+        "rms": st.get("rms"),
+        "p95": st.get("p95"),
+        "max": st.get("max"),
+        "what": "predicted position error of the calibrated model from its parameters' uncertainty (1 sigma, "
+        f"3-D) at {ws.get('samples')} random configurations inside the allowed joint ranges; the "
+        "instrument's own noise not included",
+    }
 
 
 def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list[dict]:
@@ -199,16 +247,25 @@ def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list
     add("identification converged", bool(report.get("success")), report.get("message") or "")
     if run is not None:
         measured = report.get("rows") or 0
-        add("every planned configuration measured", measured >= (run.planned or 0),
-            f"{measured} of {run.planned} configurations")
-        add("every configuration inside the joint limits and allowed region", bool((run.plan_info or {}).get(
-            "limits_checked")), "checked before each move")
+        add(
+            "every planned configuration measured",
+            measured >= (run.planned or 0),
+            f"{measured} of {run.planned} configurations",
+        )
+        add(
+            "every configuration inside the joint limits and allowed region",
+            bool((run.plan_info or {}).get("limits_checked")),
+            "checked before each move",
+        )
     sigma = settings.get("sigma")
     rms = resid.get("rms")
     if sigma and rms is not None and resid.get("dof"):
         chi = (resid.get("chi2") or 0) / max(resid["dof"], 1)
-        add("residuals consistent with the instrument's noise", 0.3 <= chi <= 3.0,
-            f"residual RMS {rms:.4g} {unit} for {sigma:.3g} {unit} per axis (chi2/dof = {chi:.2f})")
+        add(
+            "residuals consistent with the instrument's noise",
+            0.3 <= chi <= 3.0,
+            f"residual RMS {rms:.4g} {unit} for {sigma:.3g} {unit} per axis (chi2/dof = {chi:.2f})",
+        )
     outliers = len(report.get("outliers") or [])
     add("no outlying measurement", outliers == 0, f"{outliers} measurement(s) down-weighted as outliers")
     cond = report.get("condition_number")
@@ -216,14 +273,20 @@ def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list
         add("well-conditioned identification", cond < 1000, f"condition number {cond:.3g} (scaled Jacobian)")
     if verify_after is not None:
         ok = rms is None or verify_after["rms"] <= max(3 * rms, 1e-12)
-        add("hold-out verification on fresh configurations", ok,
+        add(
+            "hold-out verification on fresh configurations",
+            ok,
             f"session {verify_after['session_id']}: RMS {verify_after['rms']:.4g} {unit}, max "
-            f"{verify_after['max']:.4g} {unit} on {verify_after['n']} configurations")
+            f"{verify_after['max']:.4g} {unit} on {verify_after['n']} configurations",
+        )
     else:
         add("hold-out verification on fresh configurations", None, "not run yet (start a verify session)")
     if cell.drift_threshold and verify_after is not None:
-        add("within the cell's drift threshold", verify_after["max"] <= cell.drift_threshold,
-            f"max {verify_after['max']:.4g} {unit} against {cell.drift_threshold:.4g} {unit}")
+        add(
+            "within the cell's drift threshold",
+            verify_after["max"] <= cell.drift_threshold,
+            f"max {verify_after['max']:.4g} {unit} against {cell.drift_threshold:.4g} {unit}",
+        )
     return out
 
 
@@ -260,17 +323,40 @@ def certificate_pdf(cert: dict) -> bytes:
     from reportlab.platypus import Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
 
     buf = io.BytesIO()
-    doc = SimpleDocTemplate(buf, pagesize=A4, leftMargin=18 * mm, rightMargin=18 * mm, topMargin=16 * mm,
-                            bottomMargin=16 * mm, title=f"{cert['title']} {cert['number']}", author="Recal")
+    doc = SimpleDocTemplate(
+        buf,
+        pagesize=A4,
+        leftMargin=18 * mm,
+        rightMargin=18 * mm,
+        topMargin=16 * mm,
+        bottomMargin=16 * mm,
+        title=f"{cert['title']} {cert['number']}",
+        author="Recal",
+    )
     ss = getSampleStyleSheet()
-    h1, h2, body, small = ss["Title"], ss["Heading2"], ss["BodyText"], ss["BodyText"].clone("small", fontSize=8,
-                                                                                               leading=10)
+    h1, h2, body, small = (
+        ss["Title"],
+        ss["Heading2"],
+        ss["BodyText"],
+        ss["BodyText"].clone("small", fontSize=8, leading=10),
+    )
     unit = cert["units"]["length"]
-    grid = TableStyle([("GRID", (0, 0), (-1, -1), 0.4, colors.grey), ("FONTSIZE", (0, 0), (-1, -1), 8.5),
-                       ("BACKGROUND", (0, 0), (-1, 0), colors.HexColor("#e8eef5")),
-                       ("VALIGN", (0, 0), (-1, -1), "TOP")])
-    kv = TableStyle([("FONTSIZE", (0, 0), (-1, -1), 9), ("TEXTCOLOR", (0, 0), (0, -1), colors.HexColor("#445")),
-                     ("VALIGN", (0, 0), (-1, -1), "TOP"), ("LINEBELOW", (0, 0), (-1, -1), 0.25, colors.lightgrey)])
+    grid = TableStyle(
+        [
+            ("GRID", (0, 0), (-1, -1), 0.4, colors.grey),
+            ("FONTSIZE", (0, 0), (-1, -1), 8.5),
+            ("BACKGROUND", (0, 0), (-1, 0), colors.HexColor("#e8eef5")),
+            ("VALIGN", (0, 0), (-1, -1), "TOP"),
+        ]
+    )
+    kv = TableStyle(
+        [
+            ("FONTSIZE", (0, 0), (-1, -1), 9),
+            ("TEXTCOLOR", (0, 0), (0, -1), colors.HexColor("#445")),
+            ("VALIGN", (0, 0), (-1, -1), "TOP"),
+            ("LINEBELOW", (0, 0), (-1, -1), 0.25, colors.lightgrey),
+        ]
+    )
 
     def P(text, style=body):
         return Paragraph(str(text).replace("&", "&amp;").replace("<", "&lt;"), style)
@@ -282,38 +368,73 @@ def certificate_pdf(cert: dict) -> bytes:
     inst = cert["instrument"]
     rows = [
         ["Cell", f"{cert['cell']['name']} (site {cert['cell']['site']}, id {cert['cell']['id']})"],
-        ["Robot", f"{cert['robot']['model']}, {cert['robot']['joints']} joints, nominal convention "
-                  f"{cert['robot']['convention']}"],
-        ["Instrument", f"{inst['kind']} at {inst['address'] or '–'}"
-                       + (f"; identity {inst['identity']}" if inst.get("identity") else "")
-                       + (f"; noise {inst['noise']:.3g} {unit} per axis" if inst.get("noise") else "")],
+        [
+            "Robot",
+            f"{cert['robot']['model']}, {cert['robot']['joints']} joints, nominal convention "
+            f"{cert['robot']['convention']}",
+        ],
+        [
+            "Instrument",
+            f"{inst['kind']} at {inst['address'] or '–'}"
+            + (f"; identity {inst['identity']}" if inst.get("identity") else "")
+            + (f"; noise {inst['noise']:.3g} {unit} per axis" if inst.get("noise") else ""),
+        ],
         ["Date of calibration", cert["calibration"]["date"][:19].replace("T", " ") + " UTC"],
         ["Operator", cert.get("operator") or "–"],
-        ["Poses", f"{cert['poses']['measured']} measured of {cert['poses']['planned']} planned "
-                  f"({cert['poses']['plan_method'] or '–'}); {cert['poses']['outliers']} outlier(s)"],
+        [
+            "Poses",
+            f"{cert['poses']['measured']} measured of {cert['poses']['planned']} planned "
+            f"({cert['poses']['plan_method'] or '–'}); {cert['poses']['outliers']} outlier(s)",
+        ],
         ["Method", cert["calibration"]["method"]],
     ]
     s.append(Table([[P(a), P(b)] for a, b in rows], colWidths=[38 * mm, 136 * mm], style=kv, hAlign="LEFT"))
 
     s.append(Paragraph("Accuracy before and after calibration", h2))
     acc = cert["accuracy"]
-    figs = [("n", "poses"), ("mean", "mean error"), ("std", "std dev S"), ("mean_plus_3sigma", "mean + 3 S"),
-            ("rms", "RMS"), ("p95", "95th pct"), ("max", "max")]
+    figs = [
+        ("n", "poses"),
+        ("mean", "mean error"),
+        ("std", "std dev S"),
+        ("mean_plus_3sigma", "mean + 3 S"),
+        ("rms", "RMS"),
+        ("p95", "95th pct"),
+        ("max", "max"),
+    ]
     head = [P("", small), *[P(f"{label} ({unit})" if k != "n" else label, small) for k, label in figs]]
     data = [head]
     for label, f in _accuracy_rows(acc):
         data.append([label, *[str(f[k]) if k == "n" else _num(f.get(k), 4) for k, _ in figs]])
-    s.append(Table([[P(r[0], small), *r[1:]] if i else r for i, r in enumerate(data)],
-                   colWidths=[41 * mm] + [19 * mm] * 7, style=TableStyle(grid.getCommands() + [
-                       ("ALIGN", (1, 1), (-1, -1), "RIGHT")]), repeatRows=1, hAlign="LEFT"))
-    s.append(P(f"Before: {acc.get('before_model') or '–'}. After, {acc['after_kind']}. "
-               + (f"Hold-out: {acc['holdout_model']}. " if acc.get("holdout") else
-                  "No hold-out check yet: run a verify session on the cell to measure fresh configurations. ")
-               + f"{acc['note']}.", small))
+    s.append(
+        Table(
+            [[P(r[0], small), *r[1:]] if i else r for i, r in enumerate(data)],
+            colWidths=[41 * mm] + [19 * mm] * 7,
+            style=TableStyle(grid.getCommands() + [("ALIGN", (1, 1), (-1, -1), "RIGHT")]),
+            repeatRows=1,
+            hAlign="LEFT",
+        )
+    )
+    s.append(
+        P(
+            f"Before: {acc.get('before_model') or '–'}. After, {acc['after_kind']}. "
+            + (
+                f"Hold-out: {acc['holdout_model']}. "
+                if acc.get("holdout")
+                else "No hold-out check yet: run a verify session on the cell to measure fresh configurations. "
+            )
+            + f"{acc['note']}.",
+            small,
+        )
+    )
     if acc.get("predicted_workspace"):
         w = acc["predicted_workspace"]
-        s.append(P(f"Predicted: {w['what']}: RMS {_num(w['rms'], 3)} {unit}, 95th percentile {_num(w['p95'], 3)} "
-                   f"{unit}, max {_num(w['max'], 3)} {unit}.", small))
+        s.append(
+            P(
+                f"Predicted: {w['what']}: RMS {_num(w['rms'], 3)} {unit}, 95th percentile {_num(w['p95'], 3)} "
+                f"{unit}, max {_num(w['max'], 3)} {unit}.",
+                small,
+            )
+        )
 
     s.append(Paragraph("Checks", h2))
     data = [["Check", "Result", "Detail"]]
@@ -326,13 +447,32 @@ def certificate_pdf(cert: dict) -> bytes:
     data = [["Parameter", "Unit", "Value", "Change", "Std. unc. u", "U (k=2)"]]
     for p in cert["parameters"]:
         name = p["name"] + (" (from the prior)" if p.get("source") == "prior" else "")
-        data.append([name, p["unit"], _num(p["value"], 9), _num(p["change"], 4), _num(p["std_error"], 3),
-                     _num(p["expanded_uncertainty"], 3)])
-    s.append(Table(data, colWidths=[34 * mm, 14 * mm, 34 * mm, 28 * mm, 28 * mm, 28 * mm],
-                   style=TableStyle(grid.getCommands() + [("ALIGN", (2, 1), (-1, -1), "RIGHT")]), repeatRows=1,
-                   hAlign="LEFT"))
-    s.append(P("base.*, tool.* (and home.*) are small displacements of those frames about the calibrated model: "
-               "their value is 0 by definition, the change is what the calibration moved.", small))
+        data.append(
+            [
+                name,
+                p["unit"],
+                _num(p["value"], 9),
+                _num(p["change"], 4),
+                _num(p["std_error"], 3),
+                _num(p["expanded_uncertainty"], 3),
+            ]
+        )
+    s.append(
+        Table(
+            data,
+            colWidths=[34 * mm, 14 * mm, 34 * mm, 28 * mm, 28 * mm, 28 * mm],
+            style=TableStyle(grid.getCommands() + [("ALIGN", (2, 1), (-1, -1), "RIGHT")]),
+            repeatRows=1,
+            hAlign="LEFT",
+        )
+    )
+    s.append(
+        P(
+            "base.*, tool.* (and home.*) are small displacements of those frames about the calibrated model: "
+            "their value is 0 by definition, the change is what the calibration moved.",
+            small,
+        )
+    )
     if cert["unidentifiable"]:
         s.append(Paragraph("Parameters the data could not determine", h2))
         data = [["Parameter", "Reason"]] + [[u["name"], P(u["reason"], small)] for u in cert["unidentifiable"]]
@@ -340,10 +480,19 @@ def certificate_pdf(cert: dict) -> bytes:
     s.append(Spacer(1, 8 * mm))
     s.append(P(f"Overall: {cert['verdict']}."))
     s.append(Spacer(1, 14 * mm))
-    s.append(Table([["Operator signature", "", "Reviewed by", ""]], colWidths=[35 * mm, 52 * mm, 30 * mm, 57 * mm],
-                   style=TableStyle([("LINEBELOW", (1, 0), (1, 0), 0.5, colors.black),
-                                     ("LINEBELOW", (3, 0), (3, 0), 0.5, colors.black),
-                                     ("FONTSIZE", (0, 0), (-1, -1), 9)])))
+    s.append(
+        Table(
+            [["Operator signature", "", "Reviewed by", ""]],
+            colWidths=[35 * mm, 52 * mm, 30 * mm, 57 * mm],
+            style=TableStyle(
+                [
+                    ("LINEBELOW", (1, 0), (1, 0), 0.5, colors.black),
+                    ("LINEBELOW", (3, 0), (3, 0), 0.5, colors.black),
+                    ("FONTSIZE", (0, 0), (-1, -1), 9),
+                ]
+            ),
+        )
+    )
 
     def footer(canvas, doc_):
         canvas.saveState()

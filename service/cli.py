@@ -13,6 +13,7 @@ import argparse
 import importlib
 import os
 import sys
+
 from calibration.errors import RecalError
 
 # Recal's matrices are small (tens of parameters): on a shared machine a multithreaded BLAS
@@ -66,7 +67,9 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
             sp.set_defaults(func=mod.run)
         else:
             sub.add_parser(name, help=help_text, add_help=False)
-    sub.add_parser("fake-cell", help="run a simulated cell (contracts §7); see `recal fake-cell --help`", add_help=False)
+    sub.add_parser(
+        "fake-cell", help="run a simulated cell (contracts §7); see `recal fake-cell --help`", add_help=False
+    )
     return p
 
 

@@ -7,6 +7,7 @@ import json
 import time
 import urllib.error
 import urllib.request
+
 from calibration.errors import RecalError
 
 
@@ -35,8 +36,12 @@ class Api:
         (or text for a text answer)."""
         data = raw.encode() if raw is not None else (None if body is None else json.dumps(body).encode())
         ctype = "text/plain" if raw is not None else "application/json"
-        req = urllib.request.Request(self.url + "/api/v1" + path, data=data, method=method,
-                                     headers={"Authorization": f"Bearer {self.token}", "Content-Type": ctype})
+        req = urllib.request.Request(
+            self.url + "/api/v1" + path,
+            data=data,
+            method=method,
+            headers={"Authorization": f"Bearer {self.token}", "Content-Type": ctype},
+        )
         try:
             with urllib.request.urlopen(req, timeout=self.timeout_s) as resp:
                 payload = resp.read()
@@ -65,9 +70,17 @@ class Api:
             time.sleep(delay)
             delay = min(2 * delay, 10.0)
 
-    def wait_session(self, session_id: int, timeout_s: float, *, until=("completed", "failed", "aborted", "paused",
-                                                                         "interrupted"), measured: int | None = None,
-                     on_progress=None, poll_s: float = 0.2, patient: bool = False) -> dict:
+    def wait_session(
+        self,
+        session_id: int,
+        timeout_s: float,
+        *,
+        until=("completed", "failed", "aborted", "paused", "interrupted"),
+        measured: int | None = None,
+        on_progress=None,
+        poll_s: float = 0.2,
+        patient: bool = False,
+    ) -> dict:
         """Poll a session every ``poll_s`` until its state is in ``until``, or (``measured``) it
         has measured that many configurations (or the timeout: state ``timeout``). ``patient``:
         wait through a service that is briefly away or busy (:meth:`call_patiently`) instead of

@@ -19,8 +19,16 @@ from .programs.frames import Frames
 __all__ = ["CompensationInputError", "compensate_and_store", "compensate_text", "read_multipart"]
 
 
-def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict, mode: str = "joints",
-                    companions: dict[str, str] | None = None, payload: str | None = None) -> tuple[str, dict]:
+def compensate_text(
+    text: str,
+    *,
+    name: str,
+    model_doc: dict,
+    nominal_doc: dict,
+    mode: str = "joints",
+    companions: dict[str, str] | None = None,
+    payload: str | None = None,
+) -> tuple[str, dict]:
     """Compensate ``text`` (a task CSV or a robot program: URScript, RAPID, KRL, TP, told apart
     by ``name``) with the identified model ``model_doc``; ``nominal_doc`` is what the controller
     knows (targets mode, programs). ``companions``: the program's other files by name (a KRL
@@ -39,8 +47,9 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
         except ValueError as exc:
             raise CompensationInputError(str(exc)) from None
     if nominal.n_joints != model.n_joints:
-        raise CompensationInputError(f"the cell's nominal model has {nominal.n_joints} joints, the calibration "
-                                     f"{model.n_joints}")
+        raise CompensationInputError(
+            f"the cell's nominal model has {nominal.n_joints} joints, the calibration {model.n_joints}"
+        )
     suffix = Path(name).suffix or ".csv"
     companions = dict(companions or {})
     config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}
@@ -65,11 +74,22 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
 
         try:
             fmt = programs.format_of(str(src), None)
-            frames = Frames.from_options([], [], str(config_path) if config_path else None) \
-                if fmt not in ("csv", "urscript") else None
-            req = CompensationRequest(task=str(src), out=str(out), model_label="the calibration's model", fmt=fmt,
-                                      mode=mode, nominal=nominal, calibrated=calibrated_range_of(model),
-                                      frames=frames, report=True)
+            frames = (
+                Frames.from_options([], [], str(config_path) if config_path else None)
+                if fmt not in ("csv", "urscript")
+                else None
+            )
+            req = CompensationRequest(
+                task=str(src),
+                out=str(out),
+                model_label="the calibration's model",
+                fmt=fmt,
+                mode=mode,
+                nominal=nominal,
+                calibrated=calibrated_range_of(model),
+                frames=frames,
+                report=True,
+            )
             result = compensate_task(model, req)
         except (InputError, CompensationInputError, ValueError) as exc:
             raise CompensationInputError(ours(str(exc))) from None
@@ -78,8 +98,9 @@ def compensate_text(text: str, *, name: str, model_doc: dict, nominal_doc: dict,
         for point in doc.get("points", []) + doc.get("uninterpreted", []):
             if "file" in point:
                 point["file"] = names.get(str(d / Path(point["file"]).name), name)
-        texts = [data if isinstance(data, str) else data.decode("utf-8", errors="replace")
-                 for _, data in result.outputs]
+        texts = [
+            data if isinstance(data, str) else data.decode("utf-8", errors="replace") for _, data in result.outputs
+        ]
         if companions:
             doc["files"] = [{"name": o, "text": t} for o, t in zip(companions, texts[1:])]
         return texts[0], doc
@@ -98,7 +119,9 @@ def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str]]:
     for part in msg.iter_parts():
         filename = part.get_filename()
         if filename:
-            files.append((Path(filename).name, (part.get_payload(decode=True) or b"").decode("utf-8", errors="replace")))
+            files.append(
+                (Path(filename).name, (part.get_payload(decode=True) or b"").decode("utf-8", errors="replace"))
+            )
     if not files:
         raise CompensationInputError("expected at least one file in the multipart body")
     return files
@@ -109,9 +132,18 @@ def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str]]:
 _ENGINES: dict = {}
 
 
-def compensate_and_store(database_url: str, calibration_id: int, text: str, *, name: str, mode: str, actor: str,
-                         companions: dict[str, str] | None = None, payload: str | None = None,
-                         audited: bool = True) -> tuple[int, str, dict | None, list]:
+def compensate_and_store(
+    database_url: str,
+    calibration_id: int,
+    text: str,
+    *,
+    name: str,
+    mode: str,
+    actor: str,
+    companions: dict[str, str] | None = None,
+    payload: str | None = None,
+    audited: bool = True,
+) -> tuple[int, str, dict | None, list]:
     """In a worker process: compensate ``text`` (``compensate_text``'s arguments) with calibration
     ``calibration_id``, against the nominal its cell's controller computes with (a UR's own
     kinematics where the cell keeps them, service.controller), and store the result (and,
@@ -134,13 +166,26 @@ def compensate_and_store(database_url: str, calibration_id: int, text: str, *, n
         if cal is None:
             raise CompensationInputError(f"no calibration {calibration_id}")
         nominal_doc = controller_nominal(db, db.get(Cell, cal.cell_id))
-        output, report = compensate_text(text, name=name, model_doc=cal.model, nominal_doc=nominal_doc, mode=mode,
-                                         companions=companions, payload=payload)
-        rec = Compensation(calibration_id=calibration_id, name=name, mode=mode, output=output, report=report,
-                           created_by=actor)
+        output, report = compensate_text(
+            text,
+            name=name,
+            model_doc=cal.model,
+            nominal_doc=nominal_doc,
+            mode=mode,
+            companions=companions,
+            payload=payload,
+        )
+        rec = Compensation(
+            calibration_id=calibration_id, name=name, mode=mode, output=output, report=report, created_by=actor
+        )
         db.add(rec)
         db.commit()
         if audited:
-            audit(db, actor=actor, action="compensate", subject=f"calibration {calibration_id}",
-                  detail={"name": name, "mode": mode, **({"payload": payload} if payload else {})})
+            audit(
+                db,
+                actor=actor,
+                action="compensate",
+                subject=f"calibration {calibration_id}",
+                detail={"name": name, "mode": mode, **({"payload": payload} if payload else {})},
+            )
         return rec.id, output, (report or {}).get("summary"), (report or {}).get("files", [])

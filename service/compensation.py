@@ -44,8 +44,14 @@ from .programs.frames import Frames
 from .taskfiles import format_task, matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur, read_task
 
 CHUNK = 25_000
-FLAG_COUNTS = ("joint_limit", "near_singular", "outside_calibrated_region", "no_convergence", "branch_change",
-               "unreachable")
+FLAG_COUNTS = (
+    "joint_limit",
+    "near_singular",
+    "outside_calibrated_region",
+    "no_convergence",
+    "branch_change",
+    "unreachable",
+)
 
 
 class CompensationInputError(RecalError, ValueError):
@@ -134,13 +140,15 @@ def calibrated_range_of(model: KinematicModel) -> np.ndarray | None:
     try:
         r = np.asarray(ranges, dtype=float).reshape(model.n_joints, 2)
     except (TypeError, ValueError):
-        raise CompensationInputError(f"field 'identification.joint_ranges': expected {model.n_joints} pairs "
-                                     f"[lower, upper]") from None
+        raise CompensationInputError(
+            f"field 'identification.joint_ranges': expected {model.n_joints} pairs [lower, upper]"
+        ) from None
     return r * scale[:, None]
 
 
-def compensate_task(model: KinematicModel, req: CompensationRequest, *,
-                    progress: Callable[[str], None] | None = None) -> CompensationResult:
+def compensate_task(
+    model: KinematicModel, req: CompensationRequest, *, progress: Callable[[str], None] | None = None
+) -> CompensationResult:
     """Compensate the task ``req`` names with the identified ``model``; see the module docstring.
     Raises ``InputError`` (the file, row or line at fault) or :class:`CompensationInputError`."""
     t0 = time.perf_counter()
@@ -154,32 +162,54 @@ def compensate_task(model: KinematicModel, req: CompensationRequest, *,
     if comp.count("outside_mapped_region"):  # only a model with a residual map sets it
         counts["outside_mapped_region"] = comp.count("outside_mapped_region")
     summary = {
-        "points": len(comp), "converged": int(np.count_nonzero(comp.converged)),
+        "points": len(comp),
+        "converged": int(np.count_nonzero(comp.converged)),
         "residual_max": _f(comp.residual_m.max(initial=0.0) / L),
         "residual_angle_max": _f(comp.residual_rad.max(initial=0.0) / u.angle_rad),
         "correction_max": _f(np.abs(comp.correction).max(initial=0.0) / u.angle_rad),
         "flags": counts,
-        "notes": notes_for(model) + ([
-            "the model's residual map is applied to CSV tasks only; this program is compensated with the "
-            "parametric model"] if handler is not _csv and residual_map_of(model) is not None else []),
+        "notes": notes_for(model)
+        + (
+            [
+                "the model's residual map is applied to CSV tasks only; this program is compensated with the "
+                "parametric model"
+            ]
+            if handler is not _csv and residual_map_of(model) is not None
+            else []
+        ),
     }
     pose = matrix_to_pose(M)
     script = req.fmt != "csv"
     head = {
         "format": "recal.compensation-report/1",
-        "task": str(req.task), "model": model.name, "nominal": req.nominal.name if req.nominal is not None else None,
+        "task": str(req.task),
+        "model": model.name,
+        "nominal": req.nominal.name if req.nominal is not None else None,
         "mode": ("script" if req.fmt == "urscript" else req.fmt) if script else req.mode,
         "units": {"length": u.length, "angle": u.angle},
-        "frame": {"T_nominal_world": [_f(v / L) for v in pose[:3]] + [_f(v / u.angle_rad) for v in pose[3:]],
-                  "fit_rms": _f(fit_rms / L) if fit_rms is not None else None},
-        "calibrated_region": None if req.calibrated is None else [
-            [_f(v / (u.angle_rad if j.revolute else L)) for v in r] for r, j in zip(req.calibrated, model.joints)],
-        "summary": summary, "uninterpreted": skipped,
+        "frame": {
+            "T_nominal_world": [_f(v / L) for v in pose[:3]] + [_f(v / u.angle_rad) for v in pose[3:]],
+            "fit_rms": _f(fit_rms / L) if fit_rms is not None else None,
+        },
+        "calibrated_region": None
+        if req.calibrated is None
+        else [[_f(v / (u.angle_rad if j.revolute else L)) for v in r] for r, j in zip(req.calibrated, model.joints)],
+        "summary": summary,
+        "uninterpreted": skipped,
         "elapsed_s": round(time.perf_counter() - t0, 3),
     }
     outputs = output if isinstance(output, list) else [(req.out, output)]
-    return CompensationResult(outputs=outputs, comp=comp, prefixes=prefixes, skipped=skipped, T_nominal_world=M,
-                              fit_rms_m=fit_rms, summary=summary, report_head=head, model=model)
+    return CompensationResult(
+        outputs=outputs,
+        comp=comp,
+        prefixes=prefixes,
+        skipped=skipped,
+        T_nominal_world=M,
+        fit_rms_m=fit_rms,
+        summary=summary,
+        report_head=head,
+        model=model,
+    )
 
 
 def _chunked(N, fn, t0, progress):
@@ -193,7 +223,7 @@ def _chunked(N, fn, t0, progress):
 
 
 def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
-    
+
     task = read_task(req.task, model)
     N = len(task)
     nominal, taught, calibrated, kw, qnear = req.nominal, req.taught, req.calibrated, req.settings, req.qnear
@@ -201,20 +231,32 @@ def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
     only_q = task.has_q & ~task.has_pose
     if np.any(only_q) and taught is None and nominal is None:
         r = int(np.nonzero(only_q)[0][0])
-        raise CompensationInputError(f"{req.task}: row {r + 1} (line {task.table.lines[r]}) has only joints: give --nominal (they were "
-                   f"planned on it) or --taught-on MODEL (the robot they were taught on)")
+        raise CompensationInputError(
+            f"{req.task}: row {r + 1} (line {task.table.lines[r]}) has only joints: give --nominal (they were "
+            f"planned on it) or --taught-on MODEL (the robot they were taught on)"
+        )
     X = task.T_world_tool.copy()
     if np.any(only_q):
         X[only_q] = source_poses(task.q[only_q], taught, nominal, M)
     q_near = np.where(task.has_q[:, None], np.nan_to_num(task.q), qnear)
     if req.mode == "targets":
         if nominal is None:
-            raise CompensationInputError(f"{req.model_label}: targets mode needs the nominal model the controller uses: give --nominal "
-                       f"NOMINAL.json (this model does not record the one it was identified from)")
+            raise CompensationInputError(
+                f"{req.model_label}: targets mode needs the nominal model the controller uses: give --nominal "
+                f"NOMINAL.json (this model does not record the one it was identified from)"
+            )
 
         def run(sl):
-            return compensate_targets(model, nominal, X[sl], q_near[sl], T_nominal_world=M,
-                                      keep_branch=task.has_q[sl], calibrated_range=calibrated, **kw)
+            return compensate_targets(
+                model,
+                nominal,
+                X[sl],
+                q_near[sl],
+                T_nominal_world=M,
+                keep_branch=task.has_q[sl],
+                calibrated_range=calibrated,
+                **kw,
+            )
     else:
         # the correction starts from the nominal controller's solution; without a nominal model,
         # from the identified model's own inverse kinematics (numerical: calibration.ik.numerical_ik)
@@ -230,8 +272,9 @@ def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
                 q0[rows], reachable[rows] = sol.q, sol.reachable
                 if sol.branch_changed is not None:
                     changed[rows] = sol.branch_changed
-            return compensate_joints(model, X[sl], q0, reachable=reachable, branch_changed=changed,
-                                     calibrated_range=calibrated, **kw)
+            return compensate_joints(
+                model, X[sl], q0, reachable=reachable, branch_changed=changed, calibrated_range=calibrated, **kw
+            )
 
     comp = _chunked(N, run, t0, progress)
     rmap = residual_map_of(model)
@@ -267,12 +310,18 @@ def _point_lines(comp, model, prefixes: list[str]) -> list[str]:
     res, ang = comp.residual_m / u.length_m, comp.residual_rad / u.angle_rad
     corr = comp.correction / scales
     names = {int(b): json.dumps(flag_names(b)) for b in np.unique(comp.flags)}
-    return ["{" + prefixes[i]
-            + f'"converged":{"true" if comp.converged[i] else "false"},"iterations":{int(comp.iterations[i])},'
-            + f'"residual":{_g(res[i])},"residual_angle":{_g(ang[i])},'
-            + '"correction":[' + ",".join(_g(c) for c in corr[i]) + "],"
-            + f'"sigma_min":{_g(comp.sigma_min[i])},"flags":{names[int(comp.flags[i])]}' + "}"
-            for i in range(len(comp))]
+    return [
+        "{"
+        + prefixes[i]
+        + f'"converged":{"true" if comp.converged[i] else "false"},"iterations":{int(comp.iterations[i])},'
+        + f'"residual":{_g(res[i])},"residual_angle":{_g(ang[i])},'
+        + '"correction":['
+        + ",".join(_g(c) for c in corr[i])
+        + "],"
+        + f'"sigma_min":{_g(comp.sigma_min[i])},"flags":{names[int(comp.flags[i])]}'
+        + "}"
+        for i in range(len(comp))
+    ]
 
 
 def _f(x, digits=9):
@@ -286,8 +335,10 @@ def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress
     if not script.targets:
         _no_targets(req, model, script)
     if nominal is None:
-        raise CompensationInputError(f"{req.model_label}: a URScript program needs the nominal model its controller uses: give --nominal "
-                   f"NOMINAL.json (this model does not record the one it was identified from)")
+        raise CompensationInputError(
+            f"{req.model_label}: a URScript program needs the nominal model its controller uses: give --nominal "
+            f"NOMINAL.json (this model does not record the one it was identified from)"
+        )
     M, fit_rms = nominal_world_frame(model, nominal, calibrated)
     B = pose_to_matrix(nominal.base)
     n = model.n_joints
@@ -313,16 +364,23 @@ def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress
         X_nom = B @ pose_to_matrix_ur(P)
         seeds = np.array(pose_seed)
         X_d = np.linalg.inv(M) @ X_nom if taught is None else fk(taught, seeds)
-        cp = compensate_targets(model, nominal, X_d, seeds, T_nominal_world=M, keep_branch=True,
-                                calibrated_range=calibrated, **kw)
+        cp = compensate_targets(
+            model, nominal, X_d, seeds, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
+        )
         P_new = matrix_to_pose_ur(np.linalg.inv(B) @ cp.T_command, like=P)
         for i, t in enumerate(pose_t):
             replacements[id(t.pose)], literals[id(t.pose)] = P_new[i], t.pose
             if t.joints is not None:
                 replacements[id(t.joints)], literals[id(t.joints)] = cp.q[i], t.joints
-            head = {"line": t.line, "move": t.move, "kind": "pose", "variable": t.pose.name,
-                    "qnear_variable": t.joints.name if t.joints is not None else None,
-                    "original": [float(v) for v in P[i]], "compensated": [_f(v, 12) for v in P_new[i]]}
+            head = {
+                "line": t.line,
+                "move": t.move,
+                "kind": "pose",
+                "variable": t.pose.name,
+                "qnear_variable": t.joints.name if t.joints is not None else None,
+                "original": [float(v) for v in P[i]],
+                "compensated": [_f(v, 12) for v in P_new[i]],
+            }
             order.append(t.line)
             prefixes.append(json.dumps(head)[1:-1] + ",")
         comps.append(cp)
@@ -331,8 +389,14 @@ def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress
         cj = compensate_joints(model, source_poses(Q, taught, nominal, M), Q, calibrated_range=calibrated, **kw)
         for i, t in enumerate(joint_t):
             replacements[id(t.joints)], literals[id(t.joints)] = cj.q[i], t.joints
-            head = {"line": t.line, "move": t.move, "kind": "joints", "variable": t.joints.name,
-                    "original": [float(v) for v in Q[i]], "compensated": [_f(v, 12) for v in cj.q[i]]}
+            head = {
+                "line": t.line,
+                "move": t.move,
+                "kind": "joints",
+                "variable": t.joints.name,
+                "original": [float(v) for v in Q[i]],
+                "compensated": [_f(v, 12) for v in cj.q[i]],
+            }
             order.append(t.line)
             prefixes.append(json.dumps(head)[1:-1] + ",")
         comps.append(cj)
@@ -352,12 +416,16 @@ def _program(req: CompensationRequest, model: KinematicModel, t0: float, progres
     if not prog.targets:
         _no_targets(req, model, prog)
     if nominal is None:
-        raise CompensationInputError(f"{req.model_label}: a robot program needs the nominal model its controller uses: give --nominal "
-                   f"NOMINAL.json (this model does not record the one it was identified from)")
+        raise CompensationInputError(
+            f"{req.model_label}: a robot program needs the nominal model its controller uses: give --nominal "
+            f"NOMINAL.json (this model does not record the one it was identified from)"
+        )
     M, fit_rms = nominal_world_frame(model, nominal, calibrated)
     outputs, comp, prefixes = compensate_program(prog, model, nominal, taught, M, calibrated, kw)
-    skipped = [{"line": u.line, "text": u.text, "reason": u.reason} | ({"file": prog.paths[u.file]} if u.file else {})
-               for u in prog.uninterpreted]
+    skipped = [
+        {"line": u.line, "text": u.text, "reason": u.reason} | ({"file": prog.paths[u.file]} if u.file else {})
+        for u in prog.uninterpreted
+    ]
     paths = [req.out] + [companion_path(req.out, p) for p in prog.paths[1:]]
     return list(zip(paths, outputs)), comp, prefixes, skipped, M, fit_rms
 
@@ -376,38 +444,53 @@ def _no_targets(req: CompensationRequest, model: KinematicModel, script) -> None
     if not skipped:
         if hasattr(script, "brand"):
             raise InputError(req.task, "no move target found; expected a program with move targets to compensate")
-        raise InputError(req.task, "no movej/movel/movep/movec call found; expected a URScript program with move "
-                                    "targets to compensate")
+        raise InputError(
+            req.task,
+            "no movej/movel/movep/movec call found; expected a URScript program with move targets to compensate",
+        )
     first = skipped[0]
     lines = ", ".join(str(k.line) for k in skipped[:10])
     if len(skipped) > 10:
         lines += f" and {len(skipped) - 10} more"
     what = "move" if hasattr(script, "brand") else "movej/movel/movep/movec"
-    message = (f"no {what} target could be interpreted: {len(skipped)} line(s) left alone (line "
-               f"{lines}), the first because {first.reason}")
-    where = ("the report lists each with its text and reason" if req.report
-             else "--report R.json lists each with its text and reason")
+    message = (
+        f"no {what} target could be interpreted: {len(skipped)} line(s) left alone (line "
+        f"{lines}), the first because {first.reason}"
+    )
+    where = (
+        "the report lists each with its text and reason"
+        if req.report
+        else "--report R.json lists each with its text and reason"
+    )
     report = None
     if req.report:
         u = model.units
-        report = {"format": "recal.compensation-report/1", "task": str(req.task), "model": model.name,
-                  "mode": "script", "units": {"length": u.length, "angle": u.angle}, "error": message,
-                  "summary": {"points": 0, "converged": 0},
-                  "uninterpreted": [{"line": k.line, "text": k.text, "reason": k.reason} for k in skipped],
-                  "points": []}
+        report = {
+            "format": "recal.compensation-report/1",
+            "task": str(req.task),
+            "model": model.name,
+            "mode": "script",
+            "units": {"length": u.length, "angle": u.angle},
+            "error": message,
+            "summary": {"points": 0, "converged": 0},
+            "uninterpreted": [{"line": k.line, "text": k.text, "reason": k.reason} for k in skipped],
+            "points": [],
+        }
     raise NoTargetsError(req.task, f"{message}; {where}", line=first.line, report=report)
-
-
-
 
 
 def notes_for(model: KinematicModel) -> list[str]:
     """What the user of the compensated file must know about the model it came from: a tool
     orientation the calibration data could not determine (position-only data) stays the nominal
     one, so orientations are compensated only as far as the identified joints go."""
-    held = [u["name"] for u in (model.metadata.get("identification") or {}).get("unidentifiable", [])
-            if u.get("category") == "tool_orientation"]
+    held = [
+        u["name"]
+        for u in (model.metadata.get("identification") or {}).get("unidentifiable", [])
+        if u.get("category") == "tool_orientation"
+    ]
     if not held:
         return []
-    return [f"the calibration did not determine the tool orientation ({', '.join(held)}: position-only "
-            f"data); the compensated orientations keep the nominal tool frame's, positions are compensated fully"]
+    return [
+        f"the calibration did not determine the tool orientation ({', '.join(held)}: position-only "
+        f"data); the compensated orientations keep the nominal tool frame's, positions are compensated fully"
+    ]

@@ -35,8 +35,10 @@ def library_name(robot_model: str) -> str:
     """The library robot for a dashboard ``get robot model`` answer (``UR5`` -> ``ur5e``)."""
     key = robot_model.strip().upper().removesuffix("E")
     if key not in _DASHBOARD_MODELS:
-        raise ControllerModelError(f"the controller says it is a {robot_model.strip()!r}, which is no UR arm in the "
-                                   f"library ({', '.join(sorted(_DASHBOARD_MODELS))}): give --robot")
+        raise ControllerModelError(
+            f"the controller says it is a {robot_model.strip()!r}, which is no UR arm in the "
+            f"library ({', '.join(sorted(_DASHBOARD_MODELS))}): give --robot"
+        )
     return _DASHBOARD_MODELS[key]
 
 
@@ -77,7 +79,8 @@ def read_controller_model(
             f"the fitted model reproduces {source}'s forward kinematics only to {worst_m * 1e6:.3g} um and "
             f"{worst_rad * 1e6:.3g} urad (tolerance {tolerance_m * 1e6:g}): this controller does not compute with "
             f"a serial chain of revolute joints that Recal can fit (or it is not a {reference.name.removesuffix('-nominal')}); "
-            f"nothing written")
+            f"nothing written"
+        )
     doc = model_to_dict(fit.model)
     doc[BLOCK] = {
         "source": source,
@@ -87,10 +90,16 @@ def read_controller_model(
         "poses_fit": n_fit,
         "poses_check": n_check,
         "tolerance_um": tolerance_m * 1e6,
-        "fit": {"position_rms_um": fit.position_rms_m * 1e6, "position_max_um": fit.position_max_m * 1e6,
-                "rotation_max_urad": fit.rotation_max_rad * 1e6},
-        "check": {"position_rms_um": float(np.sqrt(np.mean(dp**2))) * 1e6, "position_max_um": float(dp.max()) * 1e6,
-                  "rotation_max_urad": float(dr.max()) * 1e6},
+        "fit": {
+            "position_rms_um": fit.position_rms_m * 1e6,
+            "position_max_um": fit.position_max_m * 1e6,
+            "rotation_max_urad": fit.rotation_max_rad * 1e6,
+        },
+        "check": {
+            "position_rms_um": float(np.sqrt(np.mean(dp**2))) * 1e6,
+            "position_max_um": float(dp.max()) * 1e6,
+            "rotation_max_urad": float(dr.max()) * 1e6,
+        },
     }
     return doc
 
@@ -107,8 +116,10 @@ def reference_model(name: str | None, robot_model: str | None) -> KinematicModel
     except KeyError as exc:
         raise ControllerModelError(str(exc.args[0])) from None
     if name.lower() not in _DASHBOARD_MODELS.values():
-        raise ControllerModelError(f"{name}: no UR arm (a UR controller's published table is one of "
-                                   f"{', '.join(sorted(_DASHBOARD_MODELS.values()))})")
+        raise ControllerModelError(
+            f"{name}: no UR arm (a UR controller's published table is one of "
+            f"{', '.join(sorted(_DASHBOARD_MODELS.values()))})"
+        )
     return model
 
 
@@ -166,8 +177,11 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
         elif hasattr(robot, "read_tcp_pose") and stored is not None:
             info = _check_registers(robot, stored)
     except (ControllerModelError, DeviceError, ValueError) as exc:
-        info = {"version": None if stored is None else stored.version, "changed": None,
-                "warning": f"the controller's kinematics could not be read: {exc}"}
+        info = {
+            "version": None if stored is None else stored.version,
+            "changed": None,
+            "warning": f"the controller's kinematics could not be read: {exc}",
+        }
     if info is None:
         return None
     if new_doc is not None:
@@ -175,8 +189,13 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
         rec = add_controller_model(db, cell_id=cell.id, model=new_doc, session_id=run.id, moved_m=moved_m)
         info["version"] = rec.version
         if info["changed"]:
-            audit(db, actor=f"session {run.id}", action="controller model changed", subject=f"cell {cell.id}",
-                  detail={"version": rec.version, "moved_mm": info["moved_mm"]})
+            audit(
+                db,
+                actor=f"session {run.id}",
+                action="controller model changed",
+                subject=f"cell {cell.id}",
+                detail={"version": rec.version, "moved_mm": info["moved_mm"]},
+            )
     run.plan_info = {**(run.plan_info or {}), "controller_model": info}
     db.add(run)
     db.commit()
@@ -190,17 +209,24 @@ def _read_again(run, cell, robot, stored) -> tuple[dict, dict | None]:
     from calibration.model import model_from_dict
 
     reference = model_from_dict(cell.model)
-    doc = read_controller_model(robot, reference, source=f"session {run.id}", n_fit=SESSION_POSES,
-                                n_check=SESSION_POSES, seed=run.id or 0)
+    doc = read_controller_model(
+        robot, reference, source=f"session {run.id}", n_fit=SESSION_POSES, n_check=SESSION_POSES, seed=run.id or 0
+    )
     moved = models_differ(stored.model if stored is not None else None, doc)
     if stored is not None and moved is None:
         return {"version": stored.version, "changed": False, "warning": None}, None
-    info = {"version": None, "changed": stored is not None, "warning": None,
-            "moved_mm": None if moved is None else moved * 1e3}
+    info = {
+        "version": None,
+        "changed": stored is not None,
+        "warning": None,
+        "moved_mm": None if moved is None else moved * 1e3,
+    }
     if stored is not None:
-        info["warning"] = (f"the controller's kinematics changed since version {stored.version} (its flange moves "
-                           f"up to {moved * 1e3:.3g} mm): its factory calibration was replaced; the new version is "
-                           f"used from now on, earlier compensations used the old one")
+        info["warning"] = (
+            f"the controller's kinematics changed since version {stored.version} (its flange moves "
+            f"up to {moved * 1e3:.3g} mm): its factory calibration was replaced; the new version is "
+            f"used from now on, earlier compensations used the old one"
+        )
     return info, doc
 
 
@@ -225,14 +251,21 @@ def _check_registers(robot, stored) -> dict:
     J = geometric_jacobian(model, q[None, :])[0]
     tol_p = MODBUS_POSITION_TOL_M + half_step * float(np.sum(np.linalg.norm(J[:3], axis=0)))
     tol_r = MODBUS_ROTATION_TOL_RAD + half_step * float(np.sum(np.linalg.norm(J[3:], axis=0)))
-    info = {"version": stored.version, "changed": None, "warning": None, "tcp_registers_mm": dp * 1e3,
-            "tolerance_mm": tol_p * 1e3}
+    info = {
+        "version": stored.version,
+        "changed": None,
+        "warning": None,
+        "tcp_registers_mm": dp * 1e3,
+        "tolerance_mm": tol_p * 1e3,
+    }
     if dp > tol_p or dr > tol_r:
         info["changed"] = True
-        info["warning"] = (f"UR's TCP-pose registers disagree with the stored controller model (version "
-                           f"{stored.version}) by {dp * 1e3:.3g} mm and {np.rad2deg(dr):.3g} deg (tolerance "
-                           f"{tol_p * 1e3:.2g} mm): the controller's kinematics (or its TCP offset) changed; read it "
-                           f"again: recal controller-model --rtde HOST")
+        info["warning"] = (
+            f"UR's TCP-pose registers disagree with the stored controller model (version "
+            f"{stored.version}) by {dp * 1e3:.3g} mm and {np.rad2deg(dr):.3g} deg (tolerance "
+            f"{tol_p * 1e3:.2g} mm): the controller's kinematics (or its TCP offset) changed; read it "
+            f"again: recal controller-model --rtde HOST"
+        )
     return info
 
 
@@ -248,8 +281,14 @@ def controller_summary(db, cell) -> dict | None:
         return None
     block = (rec.model or {}).get(BLOCK) or {}
     versions = db.exec(select(func.count(ControllerModel.id)).where(ControllerModel.cell_id == cell.id)).one()
-    return {"version": rec.version, "versions": int(versions), "name": rec.model.get("name"),
-            "source": block.get("source"), "read_at": block.get("read_at"), "session_id": rec.session_id,
-            "check_um": (block.get("check") or {}).get("position_max_um"),
-            "moved_mm": None if rec.moved_m is None else rec.moved_m * 1e3,
-            "created_at": rec.created_at.isoformat()}
+    return {
+        "version": rec.version,
+        "versions": int(versions),
+        "name": rec.model.get("name"),
+        "source": block.get("source"),
+        "read_at": block.get("read_at"),
+        "session_id": rec.session_id,
+        "check_um": (block.get("check") or {}).get("position_max_um"),
+        "moved_mm": None if rec.moved_m is None else rec.moved_m * 1e3,
+        "created_at": rec.created_at.isoformat(),
+    }

@@ -12,8 +12,8 @@ import contextlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivers.base import Cmm, JointEncoder, PositionSensor, Robot
 from calibration.errors import RecalError
+from drivers.base import Cmm, JointEncoder, PositionSensor, Robot
 
 
 class DeviceConfigError(RecalError, ValueError):
@@ -59,9 +59,18 @@ def open_robot(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Robot:
 
 
 #: Settings of an ``emscon`` entry given as an object (the fields of ``drivers.leica_emscon.EmsconConfig``).
-EMSCON_FIELDS = {"host": str, "port": int, "reflector": str, "measure_time_s": float, "use_adm": bool,
-                 "environment": str, "temperature_c": float, "pressure_mbar": float, "humidity_pct": float,
-                 "initialize_timeout_s": float}
+EMSCON_FIELDS = {
+    "host": str,
+    "port": int,
+    "reflector": str,
+    "measure_time_s": float,
+    "use_adm": bool,
+    "environment": str,
+    "temperature_c": float,
+    "pressure_mbar": float,
+    "humidity_pct": float,
+    "initialize_timeout_s": float,
+}
 
 
 def has_tracker(devices: dict[str, Any]) -> bool:
@@ -80,13 +89,14 @@ def emscon_config(value: Any, *, timeout_s: float = 10.0):
         if isinstance(value, str):
             return EmsconConfig.from_endpoint(value, timeout_s=timeout_s)
         if not isinstance(value, dict):
-            raise DeviceConfigError(f"devices.emscon: expected \"HOST:PORT\" or an object; got {value!r}")
+            raise DeviceConfigError(f'devices.emscon: expected "HOST:PORT" or an object; got {value!r}')
         kwargs: dict[str, Any] = {"timeout_s": timeout_s}
         for key, v in value.items():
             kind = EMSCON_FIELDS.get(key)
             if kind is None:
-                raise DeviceConfigError(f"devices.emscon.{key}: unknown setting; expected one of "
-                                        f"{', '.join(EMSCON_FIELDS)}")
+                raise DeviceConfigError(
+                    f"devices.emscon.{key}: unknown setting; expected one of {', '.join(EMSCON_FIELDS)}"
+                )
             ok = isinstance(v, kind) if kind in (str, bool) else isinstance(v, (int, float)) and not isinstance(v, bool)
             if not ok or (kind is int and v != int(v)):
                 raise DeviceConfigError(f"devices.emscon.{key}: expected {kind.__name__}; got {v!r}")
@@ -129,7 +139,9 @@ def open_cmm(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Cmm:
     return IppDmeCmm(IppDmeConfig(url=str(devices["cmm"]), timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
 
 
-def open_encoders(devices: dict[str, Any], joints: list[int] | None = None, *, timeout_s: float = 5.0) -> dict[int, JointEncoder]:
+def open_encoders(
+    devices: dict[str, Any], joints: list[int] | None = None, *, timeout_s: float = 5.0
+) -> dict[int, JointEncoder]:
     """Reference encoders (preferred) or resolver readers on the given joints (1-based)."""
     if not devices.get("can"):
         raise DeviceConfigError("devices.can: this cell has no CAN bus for reference encoders")

@@ -41,11 +41,18 @@ def _robot(devices: dict, key: str, timeout_s: float) -> dict:
             flags.append("protective stop")
         flags.append("moving" if st.moving else "standing still")
         flags.append("program running" if st.program_running else "no program running")
-        return {"ok": not st.stopped_by_safety, "name": robot.name,
-                "answer": f"joints [{', '.join(_fmt(v, 2) for v in q)}] deg; {', '.join(flags)}",
-                "details": {"q_deg": [float(v) for v in q], "moving": bool(st.moving),
-                            "protective_stop": bool(st.protective_stop), "emergency_stop": bool(st.emergency_stop),
-                            "program_running": bool(st.program_running)}}
+        return {
+            "ok": not st.stopped_by_safety,
+            "name": robot.name,
+            "answer": f"joints [{', '.join(_fmt(v, 2) for v in q)}] deg; {', '.join(flags)}",
+            "details": {
+                "q_deg": [float(v) for v in q],
+                "moving": bool(st.moving),
+                "protective_stop": bool(st.protective_stop),
+                "emergency_stop": bool(st.emergency_stop),
+                "program_running": bool(st.program_running),
+            },
+        }
     finally:
         robot.close()
 
@@ -58,11 +65,16 @@ def _emscon(devices: dict, timeout_s: float) -> dict:
         ident, refl, env = tr.identity, tr.reflector, tr.environment
         idn = f"Leica, emScon {ident.server_version}, tracker {ident.serial}"
         status = tr.status()
-        details: dict[str, Any] = {"identity": idn, "status": status, "reflector": refl.name,
-                                   "environment": {"temperature_c": env[0], "pressure_mbar": env[1],
-                                                   "humidity_pct": env[2]}}
-        answer = (f"{idn}; reflector {refl.name}; {env[0]:.1f} °C, {env[1]:.1f} mbar, {env[2]:.0f} %RH "
-                  f"({tr.config.environment}); {status.replace('_', ' ')}")
+        details: dict[str, Any] = {
+            "identity": idn,
+            "status": status,
+            "reflector": refl.name,
+            "environment": {"temperature_c": env[0], "pressure_mbar": env[1], "humidity_pct": env[2]},
+        }
+        answer = (
+            f"{idn}; reflector {refl.name}; {env[0]:.1f} °C, {env[1]:.1f} mbar, {env[2]:.0f} %RH "
+            f"({tr.config.environment}); {status.replace('_', ' ')}"
+        )
         ok = status == "ready"
         if ok:
             m = tr.measure()
@@ -103,9 +115,16 @@ def _cmm(devices: dict, timeout_s: float) -> dict:
         if pos is not None:
             answer += f"; probe at ({', '.join(_fmt(v, 3) for v in pos)}) mm"
         answer += "; error state" if err else "; no error"
-        return {"ok": not err, "name": cmm.name, "answer": answer,
-                "details": {"dme_version": version, "probe_mm": None if pos is None else [float(v) for v in pos],
-                            "error": bool(err)}}
+        return {
+            "ok": not err,
+            "name": cmm.name,
+            "answer": answer,
+            "details": {
+                "dme_version": version,
+                "probe_mm": None if pos is None else [float(v) for v in pos],
+                "error": bool(err),
+            },
+        }
     finally:
         cmm.close()
 
@@ -119,14 +138,31 @@ def _encoders(devices: dict, timeout_s: float) -> list[dict]:
             try:
                 reading = enc.read()
                 status = enc.status() if hasattr(enc, "status") else "?"
-                out.append({"device": f"reference encoder, joint {j}", "ok": True, "name": enc.name,
-                            "answer": f"{math.degrees(reading.angle_rad):.4f} deg ({reading.counts} counts); {status}",
-                            "details": {"joint": j, "angle_deg": math.degrees(reading.angle_rad),
-                                        "counts": int(reading.counts), "status": status},
-                            "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)})
+                out.append(
+                    {
+                        "device": f"reference encoder, joint {j}",
+                        "ok": True,
+                        "name": enc.name,
+                        "answer": f"{math.degrees(reading.angle_rad):.4f} deg ({reading.counts} counts); {status}",
+                        "details": {
+                            "joint": j,
+                            "angle_deg": math.degrees(reading.angle_rad),
+                            "counts": int(reading.counts),
+                            "status": status,
+                        },
+                        "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
+                    }
+                )
             except Exception as exc:  # noqa: BLE001 - reported, per node
-                out.append({"device": f"reference encoder, joint {j}", "ok": False, "name": enc.name,
-                            "error": f"{type(exc).__name__}: {exc}", "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)})
+                out.append(
+                    {
+                        "device": f"reference encoder, joint {j}",
+                        "ok": False,
+                        "name": enc.name,
+                        "error": f"{type(exc).__name__}: {exc}",
+                        "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
+                    }
+                )
     finally:
         for enc in encs.values():
             try:
@@ -153,8 +189,11 @@ def _checks(devices: dict) -> list[tuple[str, str, Callable[[float], Any]]]:
         checks.append(("CMM (I++ DME)", str(devices["cmm"]), lambda t: _cmm(devices, t)))
     if devices.get("can") and (devices.get("encoders") or devices.get("resolvers")):
         can = devices["can"]
-        addr = f"{can.get('interface', '?')} {can.get('channel', '')} {can.get('host', '')}:{can.get('port', '')}" \
-            if isinstance(can, dict) else str(can)
+        addr = (
+            f"{can.get('interface', '?')} {can.get('channel', '')} {can.get('host', '')}:{can.get('port', '')}"
+            if isinstance(can, dict)
+            else str(can)
+        )
         checks.append(("reference encoders (CANopen)", addr.strip(), lambda t: _encoders(devices, t)))
     return checks
 
@@ -167,11 +206,19 @@ def test_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = No
     results: list[dict] = []
     checks = _checks(devices or {})
     if not checks:
-        return [{"device": "devices", "address": "", "ok": False,
-                 "error": "the cell's devices document names no device (expected rtde, modbus, emscon, tracker, cmm or can)"}]
+        return [
+            {
+                "device": "devices",
+                "address": "",
+                "ok": False,
+                "error": "the cell's devices document names no device (expected rtde, modbus, emscon, tracker, cmm or can)",
+            }
+        ]
     if busy:
-        return [{"device": label, "address": addr, "ok": None, "skipped": True, "answer": f"not opened: {busy}"}
-                for label, addr, _ in checks]
+        return [
+            {"device": label, "address": addr, "ok": None, "skipped": True, "answer": f"not opened: {busy}"}
+            for label, addr, _ in checks
+        ]
     threads = []
     for label, addr, fn in checks:
         box: dict = {}
@@ -191,12 +238,20 @@ def test_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = No
     for label, addr, th, box in threads:
         th.join(max(0.0, deadline - time.monotonic()))
         if th.is_alive():
-            results.append({"device": label, "address": addr, "ok": False,
-                            "error": f"no answer within {timeout_s + 2.0:.0f} s"})
+            results.append(
+                {"device": label, "address": addr, "ok": False, "error": f"no answer within {timeout_s + 2.0:.0f} s"}
+            )
             continue
         if "error" in box:
-            results.append({"device": label, "address": addr, "ok": False, "error": box["error"],
-                            "elapsed_ms": box.get("elapsed_ms")})
+            results.append(
+                {
+                    "device": label,
+                    "address": addr,
+                    "ok": False,
+                    "error": box["error"],
+                    "elapsed_ms": box.get("elapsed_ms"),
+                }
+            )
             continue
         value = box.get("value")
         if isinstance(value, list):
@@ -216,8 +271,9 @@ def test_cell_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None
     both), each within its own time limit. ``busy``: why nothing may be opened now (a session
     drives the cell): every device is then reported as not opened, with that reason."""
     box: dict = {}
-    can_thread = threading.Thread(target=lambda: box.update(results=_test_can_nodes(devices, timeout_s, busy)),
-                                  name="devtest-can", daemon=True)
+    can_thread = threading.Thread(
+        target=lambda: box.update(results=_test_can_nodes(devices, timeout_s, busy)), name="devtest-can", daemon=True
+    )
     can_thread.start()
     others = {k: v for k, v in devices.items() if k not in ("encoders", "resolvers")}
     has_other = any(others.get(k) for k in ("rtde", "modbus", "emscon", "tracker", "cmm"))
@@ -230,9 +286,9 @@ NODE_STATES = {
     "operational": "operational: started and sending readings",
     "pre-operational": "pre-operational: configured but not started (a session starts it)",
     "stopped": "stopped: the node was told to stop (NMT); a session starts it again",
-    "no heartbeat": "no heartbeat: the node answered, but sent no periodic \"I am alive\" message within "
-                    "{timeout:g} s, so a node that drops out later goes unnoticed until a reading fails; "
-                    "set its producer heartbeat time (object 0x1017)",
+    "no heartbeat": 'no heartbeat: the node answered, but sent no periodic "I am alive" message within '
+    "{timeout:g} s, so a node that drops out later goes unnoticed until a reading fails; "
+    "set its producer heartbeat time (object 0x1017)",
     "disconnected": "disconnected: the CAN link to the node is down",
 }
 
@@ -255,8 +311,12 @@ def _test_can_node(config, joint: int) -> dict:
     try:
         enc = CanopenEncoder(config)
     except Exception as exc:  # noqa: BLE001 - every failure is a result to show
-        return {**base, "ok": False, "error": f"{type(exc).__name__}: {exc}",
-                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
+        return {
+            **base,
+            "ok": False,
+            "error": f"{type(exc).__name__}: {exc}",
+            "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
+        }
     try:
         reading = enc.read()
         status = enc.status()
@@ -266,19 +326,38 @@ def _test_can_node(config, joint: int) -> dict:
             status = enc.status()
         angle = math.degrees(reading.angle_rad)
         cpr, pairs = int(enc.counts_per_rev), int(enc.pole_pairs)
-        details = {"joint": joint, "kind": config.kind, "node_id": config.node_id, "angle_deg": angle,
-                   "counts": int(reading.counts), "counts_per_rev": cpr, "total_range": int(enc.total_range),
-                   "resolution_deg": 360.0 / (cpr * pairs) if cpr else None, "pole_pairs": pairs,
-                   "status": status, "state": _node_state(status, config.heartbeat_timeout_s)}
+        details = {
+            "joint": joint,
+            "kind": config.kind,
+            "node_id": config.node_id,
+            "angle_deg": angle,
+            "counts": int(reading.counts),
+            "counts_per_rev": cpr,
+            "total_range": int(enc.total_range),
+            "resolution_deg": 360.0 / (cpr * pairs) if cpr else None,
+            "pole_pairs": pairs,
+            "status": status,
+            "state": _node_state(status, config.heartbeat_timeout_s),
+        }
         answer = f"reads {angle:.4f}°"  # the device's own zero, not the robot's
         if enc.total_range <= cpr:
             answer += f" (within one turn of {360.0 / pairs:g}°)"
-        return {**base, "ok": not status.startswith(("fault", "disconnected")), "name": enc.name,
-                "answer": f"{answer}; node {status}", "details": details,
-                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
+        return {
+            **base,
+            "ok": not status.startswith(("fault", "disconnected")),
+            "name": enc.name,
+            "answer": f"{answer}; node {status}",
+            "details": details,
+            "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
+        }
     except Exception as exc:  # noqa: BLE001
-        return {**base, "ok": False, "name": enc.name, "error": f"{type(exc).__name__}: {exc}",
-                "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1)}
+        return {
+            **base,
+            "ok": False,
+            "name": enc.name,
+            "error": f"{type(exc).__name__}: {exc}",
+            "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
+        }
     finally:
         with contextlib.suppress(Exception):
             enc.close()
@@ -299,28 +378,43 @@ def _test_can_nodes(devices: dict, timeout_s: float, busy: str | None) -> list[d
     try:
         checks = _can_node_checks(devices, timeout_s)
     except (ValueError, TypeError, KeyError) as exc:
-        return [{"device": "CAN bus", "address": str(devices.get("can")), "ok": False,
-                 "error": f"devices.can: {exc}"}]
+        return [{"device": "CAN bus", "address": str(devices.get("can")), "ok": False, "error": f"devices.can: {exc}"}]
     if busy:
-        return [{"device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, joint {j}",
-                 "address": f"CANopen node {c.node_id}", "ok": None, "skipped": True, "answer": f"not opened: {busy}"}
-                for c, j in checks]
+        return [
+            {
+                "device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, joint {j}",
+                "address": f"CANopen node {c.node_id}",
+                "ok": None,
+                "skipped": True,
+                "answer": f"not opened: {busy}",
+            }
+            for c, j in checks
+        ]
     out: list[dict | None] = [None] * len(checks)
 
     def work(k: int, cfg, joint: int) -> None:
         out[k] = _test_can_node(cfg, joint)
 
-    threads = [threading.Thread(target=work, args=(k, cfg, joint), name=f"devtest-can-{k}", daemon=True)
-               for k, (cfg, joint) in enumerate(checks)]
+    threads = [
+        threading.Thread(target=work, args=(k, cfg, joint), name=f"devtest-can-{k}", daemon=True)
+        for k, (cfg, joint) in enumerate(checks)
+    ]
     for th in threads:
         th.start()
     deadline = time.monotonic() + timeout_s + 2.0
     for th in threads:
         th.join(max(0.0, deadline - time.monotonic()))
-    return [r if r is not None else {"device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, "
-                                               f"joint {j}", "address": f"CANopen node {c.node_id}", "ok": False,
-                                     "error": f"no answer within {timeout_s + 2.0:.0f} s"}
-            for r, (c, j) in zip(out, checks)]
+    return [
+        r
+        if r is not None
+        else {
+            "device": f"{'reference encoder' if c.kind == 'encoder' else 'resolver'}, joint {j}",
+            "address": f"CANopen node {c.node_id}",
+            "ok": False,
+            "error": f"no answer within {timeout_s + 2.0:.0f} s",
+        }
+        for r, (c, j) in zip(out, checks)
+    ]
 
 
 def _has_can_nodes(devices: dict) -> bool:

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.errors import RecalError
 from calibration.identify import Measurements
 from calibration.model import KinematicModel, ModelFormatError, model_from_dict, model_to_dict
-from calibration.errors import RecalError
 
 # The largest magnitude of any number in a JSON document the API takes (a model, a region, a
 # body field), checked before its units are known, in the document's own units. A robot cell's lengths are metres (1e3-1e4 in mm), its
@@ -54,8 +54,15 @@ class InputError(RecalError, ValueError):
     ``row`` is the 1-based data row, or ``"header"`` for the header line; ``line`` the line in
     the file (alone when there is no row to name)."""
 
-    def __init__(self, path: str | os.PathLike, message: str, *, row: int | str | None = None,
-                 line: int | None = None, column: str | None = None):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        message: str,
+        *,
+        row: int | str | None = None,
+        line: int | None = None,
+        column: str | None = None,
+    ):
         self.path, self.row, self.line, self.column = str(path), row, line, column
         where = [str(path)]
         if row is not None:
@@ -80,17 +87,23 @@ def load_model(spec: str | os.PathLike) -> KinematicModel:
         try:
             return robots.nominal(str(spec))
         except KeyError:
-            raise InputError(spec, f"no such file, and not a library robot (known: {', '.join(robots.names())})") from None
+            raise InputError(
+                spec, f"no such file, and not a library robot (known: {', '.join(robots.names())})"
+            ) from None
     text = read_text(spec, "a recal.model/1 JSON document")
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(spec, f"line {exc.lineno}, column {exc.colno}: invalid JSON ({exc.msg}); expected a "
-                               f"recal.model/1 JSON document") from None
+        raise InputError(
+            spec,
+            f"line {exc.lineno}, column {exc.colno}: invalid JSON ({exc.msg}); expected a recal.model/1 JSON document",
+        ) from None
     try:
         return model_from_dict(doc)
     except ModelFormatError as exc:
-        raise InputError(spec, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}" if exc.field else str(exc)) from None
+        raise InputError(
+            spec, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}" if exc.field else str(exc)
+        ) from None
 
 
 def read_text(path: str | os.PathLike, expected: str, *, encoding: str = "utf-8") -> str:
@@ -102,14 +115,20 @@ def read_text(path: str | os.PathLike, expected: str, *, encoding: str = "utf-8"
         raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
     nul = data.find(b"\x00")
     if nul >= 0:
-        raise InputError(path, f"is a binary file (a NUL byte at byte {nul + 1}); expected {expected} (UTF-8 text)",
-                         line=data.count(b"\n", 0, nul) + 1)
+        raise InputError(
+            path,
+            f"is a binary file (a NUL byte at byte {nul + 1}); expected {expected} (UTF-8 text)",
+            line=data.count(b"\n", 0, nul) + 1,
+        )
     try:
         return data.decode(encoding)
     except UnicodeDecodeError as exc:
-        raise InputError(path, f"byte {exc.start + 1} (0x{data[exc.start]:02x}) is not UTF-8 text; expected "
-                               f"{expected} in UTF-8 (save it as UTF-8)",
-                         line=data.count(b"\n", 0, exc.start) + 1) from None
+        raise InputError(
+            path,
+            f"byte {exc.start + 1} (0x{data[exc.start]:02x}) is not UTF-8 text; expected "
+            f"{expected} in UTF-8 (save it as UTF-8)",
+            line=data.count(b"\n", 0, exc.start) + 1,
+        ) from None
 
 
 def check_output(path: str | os.PathLike) -> None:
@@ -134,7 +153,7 @@ def write_atomic(path: str | os.PathLike, text: str | bytes) -> None:
     except OSError as exc:
         raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
     try:
-        with (os.fdopen(fd, "wb") if isinstance(text, bytes) else os.fdopen(fd, "w", encoding="utf-8", newline="")) as f:
+        with os.fdopen(fd, "wb") if isinstance(text, bytes) else os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             f.write(text)
         os.replace(tmp, path)
     except BaseException:
@@ -172,13 +191,19 @@ class Table:
     def index(self) -> dict[str, int]:
         return {name: i for i, name in enumerate(self.header)}
 
-    def numbers(self, column: str, *, scale: float = 1.0, required: bool = True, allow_empty: bool = False) -> np.ndarray:
+    def numbers(
+        self, column: str, *, scale: float = 1.0, required: bool = True, allow_empty: bool = False
+    ) -> np.ndarray:
         """Column as floats (times ``scale``); a bad cell raises ``InputError`` naming it."""
         if column not in self.index:
             if required:
-                raise InputError(self.path, f"missing column; expected a column {column!r} "
-                                            f"(the header has: {', '.join(self.header)})",
-                                 row="header", line=self.header_line, column=column)
+                raise InputError(
+                    self.path,
+                    f"missing column; expected a column {column!r} (the header has: {', '.join(self.header)})",
+                    row="header",
+                    line=self.header_line,
+                    column=column,
+                )
             return np.full(len(self.rows), np.nan)
         k = self.index[column]
         out = np.empty(len(self.rows))
@@ -190,13 +215,22 @@ class Table:
             try:
                 v = float(cell)
             except ValueError:
-                raise InputError(self.path, f"expected a number, got {cell!r}", row=r + 1, line=line, column=column) from None
+                raise InputError(
+                    self.path, f"expected a number, got {cell!r}", row=r + 1, line=line, column=column
+                ) from None
             if not math.isfinite(v):
-                raise InputError(self.path, f"expected a finite number, got {cell!r}", row=r + 1, line=line, column=column)
+                raise InputError(
+                    self.path, f"expected a finite number, got {cell!r}", row=r + 1, line=line, column=column
+                )
             if abs(v * scale) > MAX_MAGNITUDE_SI:
-                raise InputError(self.path, f"{cell} is beyond any robot cell; expected a magnitude of at most "
-                                            f"{MAX_MAGNITUDE_SI / scale:.6g} in the model's units",
-                                 row=r + 1, line=line, column=column)
+                raise InputError(
+                    self.path,
+                    f"{cell} is beyond any robot cell; expected a magnitude of at most "
+                    f"{MAX_MAGNITUDE_SI / scale:.6g} in the model's units",
+                    row=r + 1,
+                    line=line,
+                    column=column,
+                )
             out[r] = v * scale
         return out
 
@@ -220,12 +254,21 @@ def read_table(path: str | os.PathLike) -> Table:
             header, header_line = [h.strip() for h in row], lineno
             dup = {h for h in header if header.count(h) > 1 and h}
             if dup:
-                raise InputError(path, "duplicate column in the header; expected each column once",
-                                 row="header", line=lineno, column=sorted(dup)[0])
+                raise InputError(
+                    path,
+                    "duplicate column in the header; expected each column once",
+                    row="header",
+                    line=lineno,
+                    column=sorted(dup)[0],
+                )
             continue
-        if len(row) > len(header) and any(c.strip() for c in row[len(header):]):
-            raise InputError(path, f"has {len(row)} values; expected at most {len(header)}, one per header column",
-                             row=len(rows) + 1, line=lineno)
+        if len(row) > len(header) and any(c.strip() for c in row[len(header) :]):
+            raise InputError(
+                path,
+                f"has {len(row)} values; expected at most {len(header)}, one per header column",
+                row=len(rows) + 1,
+                line=lineno,
+            )
         rows.append(row)
         lines.append(lineno)
     if header is None:
@@ -241,13 +284,23 @@ def _joint_columns(table: Table, model: KinematicModel) -> None:
     qcols = sorted((h for h in table.header if h[:1] == "q" and h[1:].isdigit()), key=lambda h: int(h[1:]))
     extra = [h for h in qcols if int(h[1:]) > n or int(h[1:]) < 1]
     if extra:
-        raise InputError(table.path, f"the model has {n} joints, so expected joint columns q1..q{n} only "
-                                     f"(the data's joint count does not match the model)",
-                         row="header", line=table.header_line, column=extra[0])
+        raise InputError(
+            table.path,
+            f"the model has {n} joints, so expected joint columns q1..q{n} only "
+            f"(the data's joint count does not match the model)",
+            row="header",
+            line=table.header_line,
+            column=extra[0],
+        )
     for i in range(1, n + 1):
         if f"q{i}" not in table.index:
-            raise InputError(table.path, f"missing joint column 'q{i}': the model has {n} joints, so expected q1..q{n}",
-                             row="header", line=table.header_line, column=f"q{i}")
+            raise InputError(
+                table.path,
+                f"missing joint column 'q{i}': the model has {n} joints, so expected q1..q{n}",
+                row="header",
+                line=table.header_line,
+                column=f"q{i}",
+            )
 
 
 def read_joints(path: str | os.PathLike, model: KinematicModel, table: Table | None = None) -> np.ndarray:
@@ -255,7 +308,9 @@ def read_joints(path: str | os.PathLike, model: KinematicModel, table: Table | N
     table = table or read_table(path)
     _joint_columns(table, model)
     u = model.units
-    cols = [table.numbers(f"q{i + 1}", scale=u.angle_rad if j.revolute else u.length_m) for i, j in enumerate(model.joints)]
+    cols = [
+        table.numbers(f"q{i + 1}", scale=u.angle_rad if j.revolute else u.length_m) for i, j in enumerate(model.joints)
+    ]
     q = np.stack(cols, axis=1)
     check_joint_limits(table, model, q)
     return q
@@ -272,10 +327,15 @@ def check_joint_limits(table: Table, model: KinematicModel, q: np.ndarray, *, to
     j = model.joints[c]
     scale = model.units.angle_rad if j.revolute else model.units.length_m
     unit = model.units.angle if j.revolute else model.units.length
-    raise InputError(table.path, f"{q[r, c] / scale:.6g} is outside joint {j.name}'s limits "
-                                 f"[{j.lower / scale:.6g}, {j.upper / scale:.6g}] {unit}; expected a reading "
-                                 f"within the model's lower and upper", row=r + 1, line=table.lines[r],
-                     column=f"q{c + 1}")
+    raise InputError(
+        table.path,
+        f"{q[r, c] / scale:.6g} is outside joint {j.name}'s limits "
+        f"[{j.lower / scale:.6g}, {j.upper / scale:.6g}] {unit}; expected a reading "
+        f"within the model's lower and upper",
+        row=r + 1,
+        line=table.lines[r],
+        column=f"q{c + 1}",
+    )
 
 
 def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measurements:
@@ -290,35 +350,64 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
     if present:
         if len(present) != 4:
             missing = [c for c in qcols if c not in present]
-            raise InputError(path, "missing column; expected all of qw, qx, qy, qz for an orientation",
-                             row="header", line=table.header_line, column=missing[0])
+            raise InputError(
+                path,
+                "missing column; expected all of qw, qx, qy, qz for an orientation",
+                row="header",
+                line=table.header_line,
+                column=missing[0],
+            )
         quat = np.stack([table.numbers(c, allow_empty=True) for c in qcols], axis=1)
         partial = np.isnan(quat).any(axis=1) & ~np.isnan(quat).all(axis=1)
         if np.any(partial):
             r = int(np.nonzero(partial)[0][0])
             col = qcols[int(np.nonzero(np.isnan(quat[r]))[0][0])]
-            raise InputError(path, "expected a number (an orientation needs all four of qw, qx, qy, qz)",
-                             row=r + 1, line=table.lines[r], column=col)
+            raise InputError(
+                path,
+                "expected a number (an orientation needs all four of qw, qx, qy, qz)",
+                row=r + 1,
+                line=table.lines[r],
+                column=col,
+            )
         norms = np.linalg.norm(quat, axis=1)
         bad = np.isfinite(norms) & (np.abs(norms - 1.0) > 1e-3)
         if np.any(bad):
             r = int(np.nonzero(bad)[0][0])
-            raise InputError(path, f"the quaternion has norm {norms[r]:.6g}; expected a unit quaternion",
-                             row=r + 1, line=table.lines[r], column="qw")
+            raise InputError(
+                path,
+                f"the quaternion has norm {norms[r]:.6g}; expected a unit quaternion",
+                row=r + 1,
+                line=table.lines[r],
+                column="qw",
+            )
     targets = table.strings("target")
     for r, t in enumerate(targets):
         if t is not None and t not in model.targets:
             known = ", ".join(sorted(model.targets)) or "none"
-            raise InputError(path, f"unknown target {t!r}; expected one of the model's targets ({known})",
-                             row=r + 1, line=table.lines[r], column="target")
+            raise InputError(
+                path,
+                f"unknown target {t!r}; expected one of the model's targets ({known})",
+                row=r + 1,
+                line=table.lines[r],
+                column="target",
+            )
     sigma = table.numbers("sigma", scale=L, required=False, allow_empty=True)
     if np.any(sigma[np.isfinite(sigma)] <= 0):
         r = int(np.nonzero(np.isfinite(sigma) & (sigma <= 0))[0][0])
-        raise InputError(path, "expected a positive standard uncertainty", row=r + 1, line=table.lines[r], column="sigma")
+        raise InputError(
+            path, "expected a positive standard uncertainty", row=r + 1, line=table.lines[r], column="sigma"
+        )
     pose_id = table.strings("pose_id") if table.has("pose_id") else None
-    return Measurements(q=q, p_world=p, quat=quat, target=np.array(targets, dtype=object), sigma=sigma,
-                        pose_id=None if pose_id is None else np.array(pose_id, dtype=object),
-                        row=np.arange(1, len(table.rows) + 1), payload=read_payload(table, model))
+    return Measurements(
+        q=q,
+        p_world=p,
+        quat=quat,
+        target=np.array(targets, dtype=object),
+        sigma=sigma,
+        pose_id=None if pose_id is None else np.array(pose_id, dtype=object),
+        row=np.arange(1, len(table.rows) + 1),
+        payload=read_payload(table, model),
+    )
 
 
 PAYLOAD_COLUMNS = ("payload_kg", "payload_x", "payload_y", "payload_z")
@@ -331,16 +420,25 @@ def read_payload(table: Table, model: KinematicModel) -> np.ndarray | None:
     if not table.has("payload_kg"):
         for c in PAYLOAD_COLUMNS[1:]:
             if table.has(c):
-                raise InputError(table.path, "a payload's centre of gravity needs its mass; expected a column "
-                                             "'payload_kg'", row="header", line=table.header_line, column=c)
+                raise InputError(
+                    table.path,
+                    "a payload's centre of gravity needs its mass; expected a column 'payload_kg'",
+                    row="header",
+                    line=table.header_line,
+                    column=c,
+                )
         return None
     L = model.units.length_m
-    cols = [table.numbers(c, scale=1.0 if c == "payload_kg" else L, required=False, allow_empty=True)
-            for c in PAYLOAD_COLUMNS]
+    cols = [
+        table.numbers(c, scale=1.0 if c == "payload_kg" else L, required=False, allow_empty=True)
+        for c in PAYLOAD_COLUMNS
+    ]
     kg = cols[0]
     if np.any(kg[np.isfinite(kg)] < 0):
         r = int(np.nonzero(np.isfinite(kg) & (kg < 0))[0][0])
-        raise InputError(table.path, "expected a payload mass >= 0 kg", row=r + 1, line=table.lines[r], column="payload_kg")
+        raise InputError(
+            table.path, "expected a payload mass >= 0 kg", row=r + 1, line=table.lines[r], column="payload_kg"
+        )
     return np.nan_to_num(np.stack(cols, axis=1), nan=0.0)
 
 
@@ -353,8 +451,10 @@ def parse_payload(text: str, model: KinematicModel, flag: str = "--payload") -> 
     except ValueError:
         vals = []
     if len(vals) not in (1, 4) or not all(math.isfinite(v) for v in vals) or vals[0] < 0:
-        raise ValueError(f"{flag}: expected KG or KG,X,Y,Z (mass >= 0 kg, centre of gravity in the tool frame in "
-                         f"{model.units.length}), got {text!r}")
+        raise ValueError(
+            f"{flag}: expected KG or KG,X,Y,Z (mass >= 0 kg, centre of gravity in the tool frame in "
+            f"{model.units.length}), got {text!r}"
+        )
     vals += [0.0] * (4 - len(vals))
     L = model.units.length_m
     return (vals[0], vals[1] * L, vals[2] * L, vals[3] * L)

@@ -9,7 +9,8 @@ from __future__ import annotations
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field as PField, ValidationInfo, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationInfo, field_validator
+from pydantic import Field as PField
 from sqlalchemy import JSON, Column, UniqueConstraint
 from sqlmodel import Field, SQLModel
 
@@ -284,7 +285,9 @@ class SessionCreate(_In):
         if payloads is None:
             return None
         if info.data.get("kind") not in ("pose", "verify"):
-            raise ValueError(f"only pose and verify sessions carry payloads (this is a {info.data.get('kind')} session)")
+            raise ValueError(
+                f"only pose and verify sessions carry payloads (this is a {info.data.get('kind')} session)"
+            )
         for p in payloads:
             if len(p) not in (1, 4) or p[0] < 0:
                 raise ValueError(f"each payload is [kg] or [kg, x, y, z] with kg >= 0, got {p}")
@@ -305,8 +308,7 @@ class SessionCreate(_In):
         if repeats != 1 and kind != "verify":
             raise ValueError(f"only verify sessions repeat their configurations (this is a {kind} session)")
         if count is not None and count * repeats > MAX_COUNT["verify"]:
-            raise ValueError(f"count x repeats is at most {MAX_COUNT['verify']} measurements, got "
-                             f"{count} x {repeats}")
+            raise ValueError(f"count x repeats is at most {MAX_COUNT['verify']} measurements, got {count} x {repeats}")
         return repeats
 
 

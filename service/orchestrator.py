@@ -48,6 +48,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlmodel import Session, select
 
+from calibration.errors import RecalError
 from calibration.model import model_from_dict
 from drivers.base import SteerablePositionSensor
 from drivers.errors import DeviceError, DeviceUnavailableError, MeasurementError, RobotStoppedError
@@ -58,7 +59,6 @@ from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
 from .store import acquire_lease, database_unavailable, held_by_other, set_state
-from calibration.errors import RecalError
 
 log = logging.getLogger("recal.sessions")
 
@@ -94,8 +94,11 @@ class Control:
         if self.interrupt.is_set():
             raise SessionStopped("interrupted", self.interrupt_reason or "interrupted; resume it to continue")
         if time.monotonic() >= self.lease_valid_until:
-            raise SessionStopped("interrupted", "this worker's hold on the cell ran out before it was renewed; every "
-                                                "measurement reported is kept: resume the session to continue")
+            raise SessionStopped(
+                "interrupted",
+                "this worker's hold on the cell ran out before it was renewed; every "
+                "measurement reported is kept: resume the session to continue",
+            )
         if self.pause.is_set():
             raise SessionStopped("paused", "paused on request")
 
@@ -180,8 +183,9 @@ def _retry(fn: Callable, what: str, settings: Settings, control: Control, device
             last = exc
             log.warning("%s failed (attempt %d): %s", what, attempt + 1, exc)
             time.sleep(settings.retry_backoff_s * (attempt + 1))
-    raise SessionStopped("paused", f"{what} failed after {settings.device_retries + 1} attempts: {last}",
-                         device=device, cause=last)
+    raise SessionStopped(
+        "paused", f"{what} failed after {settings.device_retries + 1} attempts: {last}", device=device, cause=last
+    )
 
 
 def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | None = None) -> RunSession:
@@ -190,9 +194,17 @@ def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | Non
     model = model_from_dict(cell.model)
     if run.plan is None:
         info = run.plan_info or {}
-        plan = plan_session(run.kind, model, run.planned, region=cell.allowed_region, target=run.target,
-                            joints=info.get("joints"), seed=run.id or 0, repeats=int(info.get("repeats") or 1),
-                            between=None if control is None else control.check)
+        plan = plan_session(
+            run.kind,
+            model,
+            run.planned,
+            region=cell.allowed_region,
+            target=run.target,
+            joints=info.get("joints"),
+            seed=run.id or 0,
+            repeats=int(info.get("repeats") or 1),
+            between=None if control is None else control.check,
+        )
         run.plan = plan.q.tolist()
         run.plan_info = {**info, **plan.info, "swept_joint": plan.joint.tolist(), "nominal_version": cell.model_version}
         run.planned = len(plan.q)
@@ -214,8 +226,9 @@ def _device_state(what: str, detail: str) -> dict:
     return {"state": what, "detail": detail}
 
 
-def stopped_device_state(run: RunSession, devices: CellDevices | None, final: str, reason: str | None,
-                         exc: BaseException | None = None) -> dict:
+def stopped_device_state(
+    run: RunSession, devices: CellDevices | None, final: str, reason: str | None, exc: BaseException | None = None
+) -> dict:
     """``session.device_state`` when the session stops: what the robot and the instrument are
     doing, as far as this process knows (the robot is asked only after a safety stop)."""
     key = instrument_of(run)
@@ -264,8 +277,16 @@ def _safety_state(devices: CellDevices | None, exc: Exception) -> str:
     return "powered off" if "not running" in text else "protective stop"
 
 
-def run_session(engine: Engine, settings: Settings, session_id: int, control: Control | None = None, *,
-                owner: str = "embedded", open_devices=open_session_devices, leased: bool = False) -> str:
+def run_session(
+    engine: Engine,
+    settings: Settings,
+    session_id: int,
+    control: Control | None = None,
+    *,
+    owner: str = "embedded",
+    open_devices=open_session_devices,
+    leased: bool = False,
+) -> str:
     """Run (or continue) one session to its end, a pause, or a failure. Returns the final state.
     ``leased``: ``owner`` has just taken the cell's lease for this session (a fleet worker's
     claim), so it is not taken again here."""
@@ -362,8 +383,9 @@ def _end(db: Session, run: RunSession, owner: str, state: str, reason: str | Non
     set_state(db, run, state, reason)
 
 
-def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices, settings: Settings,
-                 control: Control, owner: str) -> None:
+def _measure_all(
+    db: Session, run: RunSession, cell: Cell, devices: CellDevices, settings: Settings, control: Control, owner: str
+) -> None:
     model = model_from_dict(cell.model)
     plan = np.asarray(run.plan, dtype=float)
     approach = approach_configurations(model, cell.allowed_region, plan) if _repeats(run) > 1 else None
@@ -378,8 +400,12 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
 
     def move(q):
         check_configurations(model, q[None, :], cell.allowed_region)
-        _retry(lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel, timeout_s=timeout_s),
-               "move", settings, control)
+        _retry(
+            lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel, timeout_s=timeout_s),
+            "move",
+            settings,
+            control,
+        )
 
     payloads = records.payload_of(run, np.arange(len(plan)))
     mounted = None  # set at the first configuration, also after a resume
@@ -397,10 +423,16 @@ def _measure_all(db: Session, run: RunSession, cell: Cell, devices: CellDevices,
         q_read = _retry(devices.robot.read_joints, "read joints", settings, control)
         rows = _measure_one(run, devices, settings, control, seq, q_read, int(swept[seq]), model, guide, db=db)
         following = todo[k + 1] if k + 1 < len(todo) else None
-        robot = (_device_state("moving", f"to configuration {following + 1} of {len(plan)}") if following is not None
-                 else _device_state("ready", f"at configuration {seq + 1} of {len(plan)}, the last"))
-        state = {"robot": robot, key: _device_state("ready", f"measured configuration {seq + 1}"),
-                 "at": utcnow().isoformat()}
+        robot = (
+            _device_state("moving", f"to configuration {following + 1} of {len(plan)}")
+            if following is not None
+            else _device_state("ready", f"at configuration {seq + 1} of {len(plan)}, the last")
+        )
+        state = {
+            "robot": robot,
+            key: _device_state("ready", f"measured configuration {seq + 1}"),
+            "at": utcnow().isoformat(),
+        }
         # before the next move, with the devices' state in the same transaction: a crash loses nothing reported
         _commit_measurements(db, rows, settings, control, run=run, device_state=state)
         if seq % 10 == 0 and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
@@ -419,12 +451,23 @@ def _set_payload(devices: CellDevices, model, payload: np.ndarray, settings: Set
     try:
         _retry(lambda: devices.robot.set_payload(float(payload[0]), cog_flange), "set payload", settings, control)
     except NotImplementedError as exc:
-        raise SessionStopped("failed", f"{exc}: a session with payloads needs a controller that takes one (UR)",
-                             device="robot", cause=exc) from None
+        raise SessionStopped(
+            "failed",
+            f"{exc}: a session with payloads needs a controller that takes one (UR)",
+            device="robot",
+            cause=exc,
+        ) from None
 
 
-def _commit_measurements(db: Session, rows: list[Measurement], settings: Settings, control: Control, *,
-                         run: RunSession | None = None, device_state: dict | None = None) -> None:
+def _commit_measurements(
+    db: Session,
+    rows: list[Measurement],
+    settings: Settings,
+    control: Control,
+    *,
+    run: RunSession | None = None,
+    device_state: dict | None = None,
+) -> None:
     """Commit one configuration's measurements (and ``run.device_state``, in the same
     transaction), retrying while the database is unreachable (at most until the lease would
     run out: meanwhile the robot does not move)."""
@@ -471,20 +514,29 @@ def _measure_one(run, devices, settings, control, seq, q_read, joint, model, gui
         if enc is None:
             raise SessionStopped("failed", f"no reference encoder on joint {joint}")
         reading = _retry(enc.read, f"read encoder on joint {joint}", settings, control, "encoder")
-        return [Measurement(session_id=run.id, seq=seq, joint=joint, q=qv, x=0.0, y=0.0, z=0.0,
-                            reference=float(reading.angle_rad))]
+        return [
+            Measurement(
+                session_id=run.id, seq=seq, joint=joint, q=qv, x=0.0, y=0.0, z=0.0, reference=float(reading.angle_rad)
+            )
+        ]
     if devices.cmm is not None:
         balls = {k: v for k, v in guide.targets.items() if k.startswith("ball")}
         if len(balls) < 3:
-            raise SessionStopped("failed", "a CMM session needs at least three tooling balls (targets named ball*) "
-                                           "in the cell's model")
+            raise SessionStopped(
+                "failed", "a CMM session needs at least three tooling balls (targets named ball*) in the cell's model"
+            )
         from calibration.kinematics import fk
         from calibration.transforms import matrix_to_quat
 
         T_nom = fk(guide, np.asarray(qv)[None, :])[0]
         names = sorted(balls)
-        pose = _retry(lambda: devices.cmm.measure_pose(np.array([balls[n] for n in names]), T_nom, 0.0125),
-                      "CMM pose", settings, control, "cmm")
+        pose = _retry(
+            lambda: devices.cmm.measure_pose(np.array([balls[n] for n in names]), T_nom, 0.0125),
+            "CMM pose",
+            settings,
+            control,
+            "cmm",
+        )
         T = pose.T_world_tool
         qw, qx, qy, qz = matrix_to_quat(T[:3, :3])
         # The row's uncertainty is the probing's (the probed points' scatter about each fitted ball),
@@ -493,16 +545,39 @@ def _measure_one(run, devices, settings, control, seq, q_read, joint, model, gui
         # positions is then the tool frame times a constant, which identification takes for the tool
         # frame (book eq. 6.12-6.15).
         probing_m = math.sqrt(float(np.mean([b.residual_rms_m**2 for b in pose.balls])))
-        return [Measurement(session_id=run.id, seq=seq, joint=joint or None, q=qv, x=float(T[0, 3]), y=float(T[1, 3]),
-                            z=float(T[2, 3]), qw=float(qw), qx=float(qx), qy=float(qy), qz=float(qz),
-                            sigma=max(probing_m, 5e-6))]
+        return [
+            Measurement(
+                session_id=run.id,
+                seq=seq,
+                joint=joint or None,
+                q=qv,
+                x=float(T[0, 3]),
+                y=float(T[1, 3]),
+                z=float(T[2, 3]),
+                qw=float(qw),
+                qx=float(qx),
+                qy=float(qy),
+                qz=float(qz),
+                sigma=max(probing_m, 5e-6),
+            )
+        ]
     if isinstance(devices.tracker, SteerablePositionSensor) and db is not None:
         m = _measure_recovering_the_beam(db, run, devices.tracker, settings, control, seq, q_read, guide)
     else:
         m = _retry(devices.tracker.measure, "tracker measurement", settings, control, "tracker")
-    return [Measurement(session_id=run.id, seq=seq, target=run.target or "", joint=joint or None, q=qv,
-                        x=float(m.p_world[0]), y=float(m.p_world[1]), z=float(m.p_world[2]),
-                        sigma=float(np.max(m.sigma)))]
+    return [
+        Measurement(
+            session_id=run.id,
+            seq=seq,
+            target=run.target or "",
+            joint=joint or None,
+            q=qv,
+            x=float(m.p_world[0]),
+            y=float(m.p_world[1]),
+            z=float(m.p_world[2]),
+            sigma=float(np.max(m.sigma)),
+        )
+    ]
 
 
 def _measure_recovering_the_beam(db, run, tracker: SteerablePositionSensor, settings, control, seq, q_read, guide):
@@ -538,9 +613,13 @@ def _measure_recovering_the_beam(db, run, tracker: SteerablePositionSensor, sett
                 continue
             except MeasurementError as exc:
                 where = ", ".join(f"{v * 1e3:.1f}" for v in p)
-                raise SessionStopped("paused", f"{what}: the beam broke and the tracker did not find the reflector "
-                                               f"where the model puts it ({where}) mm: {exc}",
-                                     device="tracker", cause=exc) from exc
+                raise SessionStopped(
+                    "paused",
+                    f"{what}: the beam broke and the tracker did not find the reflector "
+                    f"where the model puts it ({where}) mm: {exc}",
+                    device="tracker",
+                    cause=exc,
+                ) from exc
             except DeviceError as exc:
                 last = exc
         time.sleep(settings.retry_backoff_s * (attempt + 1))
@@ -591,8 +670,9 @@ class Orchestrator:
 
     distributed = False  # its sessions end with the process: its start interrupts what was left running
 
-    def __init__(self, engine: Engine, settings: Settings, *, owner: str = "embedded",
-                 open_devices=open_session_devices):
+    def __init__(
+        self, engine: Engine, settings: Settings, *, owner: str = "embedded", open_devices=open_session_devices
+    ):
         self.engine, self.settings, self.owner, self.open_devices = engine, settings, owner, open_devices
         self._threads: dict[int, tuple[threading.Thread, Control]] = {}
         self._lock = threading.Lock()
@@ -611,22 +691,26 @@ class Orchestrator:
                 if t[0].is_alive():
                     return
             control = Control(heavy=self._heavy)
-            thread = threading.Thread(target=self._run, args=(session_id, control), name=f"session-{session_id}",
-                                      daemon=True)
+            thread = threading.Thread(
+                target=self._run, args=(session_id, control), name=f"session-{session_id}", daemon=True
+            )
             self._threads[session_id] = (thread, control)
             thread.start()
 
     def _run(self, session_id: int, control: Control) -> None:
         try:
-            run_session(self.engine, self.settings, session_id, control, owner=self.owner,
-                        open_devices=self.open_devices)
+            run_session(
+                self.engine, self.settings, session_id, control, owner=self.owner, open_devices=self.open_devices
+            )
         except Exception as exc:  # noqa: BLE001
             log.error("session %s crashed:\n%s", session_id, traceback.format_exc())
             # Never leave it planned or running with nobody on it (that would hold the cell):
             # the store failing under it is not the session's fault (interrupted, resumable).
-            state, reason = (("interrupted", f"the database failed during the session ({type(exc).__name__}); "
-                                             f"resume it to continue") if database_unavailable(exc)
-                             else ("failed", f"internal error: {type(exc).__name__}: {exc}"))
+            state, reason = (
+                ("interrupted", f"the database failed during the session ({type(exc).__name__}); resume it to continue")
+                if database_unavailable(exc)
+                else ("failed", f"internal error: {type(exc).__name__}: {exc}")
+            )
             try:
                 with Session(self.engine) as db:
                     run = db.get(RunSession, session_id)

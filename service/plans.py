@@ -19,9 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.model import KinematicModel
 from calibration.errors import RecalError
-
+from calibration.model import KinematicModel
 
 # How far (rad, or m for a prismatic joint, per joint) a repeated verify visit backs away before it
 # approaches its configuration again: well beyond any backlash, small enough to stay near the pose.
@@ -68,8 +67,11 @@ def check_region(model: KinematicModel, region: list | None) -> None:
             raise RegionError(f"lower ({row[0]:g}) must be below upper ({row[1]:g})", i)
         s = model.units.angle_rad if j.revolute else model.units.length_m
         if row[1] * s <= lim[i, 0] or row[0] * s >= lim[i, 1]:
-            raise RegionError(f"[{row[0]:g}, {row[1]:g}] {unit} leaves joint {i + 1} no motion within its limits "
-                              f"[{lim[i, 0] / s:.6g}, {lim[i, 1] / s:.6g}] {unit}", i)
+            raise RegionError(
+                f"[{row[0]:g}, {row[1]:g}] {unit} leaves joint {i + 1} no motion within its limits "
+                f"[{lim[i, 0] / s:.6g}, {lim[i, 1] / s:.6g}] {unit}",
+                i,
+            )
 
 
 def allowed_limits(model: KinematicModel, region: list | None) -> np.ndarray:
@@ -111,9 +113,19 @@ def _random_inside(lim: np.ndarray, count: int, rng: np.random.Generator, model:
     return rng.uniform(lo, hi, size=(count, model.n_joints))
 
 
-def plan_session(kind: str, model: KinematicModel, count: int, *, region: list | None = None,
-                 target: str | None = None, joints: list[int] | None = None, seed: int = 0,
-                 sigma_m: float = 20e-6, repeats: int = 1, between: Callable[[], None] | None = None) -> Plan:
+def plan_session(
+    kind: str,
+    model: KinematicModel,
+    count: int,
+    *,
+    region: list | None = None,
+    target: str | None = None,
+    joints: list[int] | None = None,
+    seed: int = 0,
+    sigma_m: float = 20e-6,
+    repeats: int = 1,
+    between: Callable[[], None] | None = None,
+) -> Plan:
     """The configurations of a session of ``kind`` (see the module docstring). ``between()`` is
     called between the planning's phases, and every ``POLL_S`` during the observation planning
     (it raises to stop the planning: an abort, a pause, the process stopping)."""
@@ -145,8 +157,11 @@ def plan_session(kind: str, model: KinematicModel, count: int, *, region: list |
                 q[i] = v
                 rows.append(q)
                 swept.append(j)
-        plan = Plan(np.array(rows), np.array(swept), {"method": f"{kind} sweeps", "points_per_joint": per_joint,
-                                                      "joints": which})
+        plan = Plan(
+            np.array(rows),
+            np.array(swept),
+            {"method": f"{kind} sweeps", "points_per_joint": per_joint, "joints": which},
+        )
     else:
         raise ValueError(f"unknown session kind {kind!r}")
     between()
@@ -155,10 +170,16 @@ def plan_session(kind: str, model: KinematicModel, count: int, *, region: list |
         check_configurations(model, approach_configurations(model, region, plan.q), region)
     span = np.rad2deg(plan.q.max(axis=0) - plan.q.min(axis=0)) if len(plan.q) else np.zeros(n)
     info = dict(plan.info)
-    info.update({"configurations": int(len(plan.q)),
-                 "joint_ranges_deg": [[float(np.rad2deg(a)), float(np.rad2deg(b))]
-                                      for a, b in zip(plan.q.min(axis=0), plan.q.max(axis=0))],
-                 "joint_spans_deg": [float(s) for s in span], "limits_checked": True})
+    info.update(
+        {
+            "configurations": int(len(plan.q)),
+            "joint_ranges_deg": [
+                [float(np.rad2deg(a)), float(np.rad2deg(b))] for a, b in zip(plan.q.min(axis=0), plan.q.max(axis=0))
+            ],
+            "joint_spans_deg": [float(s) for s in span],
+            "limits_checked": True,
+        }
+    )
     return Plan(plan.q, plan.joint, info)
 
 
@@ -168,8 +189,13 @@ def _repeated(q: np.ndarray, repeats: int) -> Plan:
     steps = np.repeat(np.arange(len(q)), max(int(repeats), 1))
     info = {"method": "random"}
     if repeats > 1:
-        info.update({"repeats": int(repeats), "poses": int(len(q)),
-                     "approach": "every visit from the same approach configuration (ISO 9283)"})
+        info.update(
+            {
+                "repeats": int(repeats),
+                "poses": int(len(q)),
+                "approach": "every visit from the same approach configuration (ISO 9283)",
+            }
+        )
     return Plan(q[steps], np.zeros(len(steps), int), info)
 
 
@@ -194,13 +220,17 @@ def _planned_poses(model, lim, count, rng, target, sigma_m, between) -> Plan:
     candidates = _random_inside(lim, max(20 * count, 1000), rng, model)
     between()
     try:
-        res = _checking(lambda: planning.plan(model, candidates, count, targets=(target,), sigma_m=sigma_m, rng=rng),
-                        between)
+        res = _checking(
+            lambda: planning.plan(model, candidates, count, targets=(target,), sigma_m=sigma_m, rng=rng), between
+        )
     except ValueError as exc:
         # Too few poses to determine every parameter from the data alone: a short session that
         # updates a previous calibration (its prior) needs no more. Spread them at random.
-        return Plan(candidates[:count], np.zeros(count, int),
-                    {"method": "random (too few poses to plan for a full identification)", "note": str(exc)})
+        return Plan(
+            candidates[:count],
+            np.zeros(count, int),
+            {"method": "random (too few poses to plan for a full identification)", "note": str(exc)},
+        )
     between()
     q = res.q[planning.measurement_order(res.q)]
     info = {

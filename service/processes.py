@@ -43,13 +43,36 @@ def _recal() -> list[str]:
     return [sys.executable, "-m", "service.cli"]
 
 
-def start_fake_cell(truth: str | Path, host: str, *, seed: int = 0, time_scale: float = 0.0,
-                    extra: list[str] | None = None, timeout_s: float = 30.0, log_path: Path | None = None) -> Proc:
+def start_fake_cell(
+    truth: str | Path,
+    host: str,
+    *,
+    seed: int = 0,
+    time_scale: float = 0.0,
+    extra: list[str] | None = None,
+    timeout_s: float = 30.0,
+    log_path: Path | None = None,
+) -> Proc:
     """``recal fake-cell`` in its own process; returns once it printed its endpoint line."""
     err = open(log_path, "ab") if log_path else subprocess.DEVNULL
-    p = subprocess.Popen(_recal() + ["fake-cell", "--truth", str(truth), "--host", host, "--seed", str(seed),
-                                     "--time-scale", str(time_scale), *(extra or [])],
-                         stdout=subprocess.PIPE, stderr=err, text=True)
+    p = subprocess.Popen(
+        _recal()
+        + [
+            "fake-cell",
+            "--truth",
+            str(truth),
+            "--host",
+            host,
+            "--seed",
+            str(seed),
+            "--time-scale",
+            str(time_scale),
+            *(extra or []),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=err,
+        text=True,
+    )
     deadline = time.monotonic() + timeout_s
     line = ""
     try:
@@ -81,20 +104,34 @@ def free_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
-def start_service(home: Path, port: int, *, env: dict | None = None, timeout_s: float = 30.0,
-                  log_path: Path | None = None, host: str = "127.0.0.1", log_level: str = "warning") -> Proc:
+def start_service(
+    home: Path,
+    port: int,
+    *,
+    env: dict | None = None,
+    timeout_s: float = 30.0,
+    log_path: Path | None = None,
+    host: str = "127.0.0.1",
+    log_level: str = "warning",
+) -> Proc:
     """``recal serve`` in its own process with ``RECAL_HOME=home``; returns once /health answers."""
     e = {**os.environ, "RECAL_HOME": str(home), **(env or {})}
     out = open(log_path, "ab") if log_path else subprocess.DEVNULL
-    p = subprocess.Popen(_recal() + ["serve", "--host", host, "--port", str(port), "--log-level", log_level],
-                         env=e, stdout=out, stderr=subprocess.STDOUT)
+    p = subprocess.Popen(
+        _recal() + ["serve", "--host", host, "--port", str(port), "--log-level", log_level],
+        env=e,
+        stdout=out,
+        stderr=subprocess.STDOUT,
+    )
     url = f"http://{host}:{port}"
     deadline = time.monotonic() + timeout_s
     try:
         while time.monotonic() < deadline:
             if p.poll() is not None:
-                raise RuntimeError(f"recal serve exited with status {p.returncode} before it was ready"
-                                   + (f" (log: {log_path})" if log_path else ""))
+                raise RuntimeError(
+                    f"recal serve exited with status {p.returncode} before it was ready"
+                    + (f" (log: {log_path})" if log_path else "")
+                )
             try:
                 with urllib.request.urlopen(url + "/api/v1/health", timeout=1) as r:
                     if r.status == 200:
@@ -108,15 +145,28 @@ def start_service(home: Path, port: int, *, env: dict | None = None, timeout_s: 
     raise RuntimeError(f"recal serve did not answer on {url} within {timeout_s} s")
 
 
-def start_worker(home: Path, sites: list[str] | None, *, env: dict | None = None, name: str = "worker",
-                 concurrency: int = 8, timeout_s: float = 60.0, log_path: Path | None = None) -> Proc:
+def start_worker(
+    home: Path,
+    sites: list[str] | None,
+    *,
+    env: dict | None = None,
+    name: str = "worker",
+    concurrency: int = 8,
+    timeout_s: float = 60.0,
+    log_path: Path | None = None,
+) -> Proc:
     """``recal worker`` (the fleet, docs/fleet.md) in its own process; returns once it printed
     its ready line (``ready`` holds it: ``owner``, ``pid``...)."""
     e = {**os.environ, "RECAL_HOME": str(home), "RECAL_ENGINE": "procrastinate", **(env or {})}
     err = open(log_path, "ab") if log_path else subprocess.DEVNULL
     site_args = ["--all-sites"] if sites is None else [a for s in sites for a in ("--site", s)]
-    p = subprocess.Popen(_recal() + ["worker", *site_args, "--name", name, "--concurrency", str(concurrency)],
-                         env=e, stdout=subprocess.PIPE, stderr=err, text=True)
+    p = subprocess.Popen(
+        _recal() + ["worker", *site_args, "--name", name, "--concurrency", str(concurrency)],
+        env=e,
+        stdout=subprocess.PIPE,
+        stderr=err,
+        text=True,
+    )
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         line = p.stdout.readline()
@@ -127,8 +177,9 @@ def start_worker(home: Path, sites: list[str] | None, *, env: dict | None = None
                 p.kill()
                 raise RuntimeError(f"recal worker printed {line!r} instead of its ready line") from None
         if p.poll() is not None:
-            raise RuntimeError(f"recal worker exited with status {p.returncode} before it was ready"
-                               + (f" (log: {log_path})" if log_path else ""))
+            raise RuntimeError(
+                f"recal worker exited with status {p.returncode} before it was ready"
+                + (f" (log: {log_path})" if log_path else "")
+            )
     p.kill()
     raise RuntimeError(f"recal worker was not ready within {timeout_s} s")
-

@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 from sqlmodel import Session, select
 
@@ -30,8 +29,11 @@ class NoMeasurementsError(RecalError, LookupError):
 
 def stored_rows(db: Session, run: RunSession) -> list[Measurement]:
     """The session's measurement rows, in the order they were taken."""
-    return list(db.exec(select(Measurement).where(Measurement.session_id == run.id)
-                        .order_by(Measurement.seq, Measurement.id)).all())
+    return list(
+        db.exec(
+            select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq, Measurement.id)
+        ).all()
+    )
 
 
 def payload_of(run: RunSession, seq: np.ndarray) -> np.ndarray | None:
@@ -51,8 +53,11 @@ def measurements_of(rows: list[Measurement], run: RunSession | None = None) -> M
     if not rows:
         raise NoMeasurementsError("the session has no measurements")
     has_quat = [r.qw is not None for r in rows]
-    quat = (np.array([[r.qw, r.qx, r.qy, r.qz] if h else [np.nan] * 4 for r, h in zip(rows, has_quat)])
-            if any(has_quat) else None)
+    quat = (
+        np.array([[r.qw, r.qx, r.qy, r.qz] if h else [np.nan] * 4 for r, h in zip(rows, has_quat)])
+        if any(has_quat)
+        else None
+    )
     return Measurements(
         q=np.array([r.q for r in rows], dtype=float),
         p_world=np.array([[r.x, r.y, r.z] for r in rows]),

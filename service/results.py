@@ -21,16 +21,16 @@ import numpy as np
 from sqlmodel import Session, select
 
 from calibration.jacobian import predict
+from calibration.metrics import norm_statistics
 from calibration.model import KinematicModel, model_from_dict
 from calibration.parameters import parameters_by_name
 from calibration.report import COMPARISON_STATUSES, compare_parameters
-from calibration.metrics import norm_statistics
 from calibration.uncertainty import chi2_quantile
 
-from .store import as_utc
-from .records import current_model, position_errors, registered_errors, session_measurements
 from .models import Calibration, Cell, Measurement, RunSession
 from .plans import UnsafePlan, allowed_limits, check_configurations
+from .records import current_model, position_errors, registered_errors, session_measurements
+from .store import as_utc
 
 WORKSPACE_SAMPLES = 400
 
@@ -47,6 +47,7 @@ def _r(x, digits: int = 6):
 
 def _rl(a, digits: int = 6):
     """An array as nested lists of rounded floats."""
+
     def conv(v):
         return [conv(x) for x in v] if isinstance(v, list) else _r(v, digits)
 
@@ -80,8 +81,11 @@ def _cached(key, compute) -> dict:
 
 def previous_calibration_id(db: Session, cal: Calibration) -> int | None:
     """The cell's calibration of the same kind just before ``cal`` (id only)."""
-    return db.exec(select(Calibration.id).where(Calibration.cell_id == cal.cell_id, Calibration.kind == cal.kind,
-                                                Calibration.id < cal.id).order_by(Calibration.id.desc())).first()
+    return db.exec(
+        select(Calibration.id)
+        .where(Calibration.cell_id == cal.cell_id, Calibration.kind == cal.kind, Calibration.id < cal.id)
+        .order_by(Calibration.id.desc())
+    ).first()
 
 
 def start_model_of(db: Session, cal: Calibration, cell: Cell) -> tuple[KinematicModel, str]:
@@ -134,11 +138,16 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
     rms = np.sqrt(np.maximum(np.trace(C, axis1=1, axis2=2), 0.0)) / L
     p = pred.p_world / L
     return {
-        "available": True, "samples": int(samples), "target": target,
-        "radius95": _rl(radius, 4), "rms": _rl(rms, 4), "points": _rl(p, 5),
-        "stats95": _stats(radius), "stats_rms": _stats(rms),
+        "available": True,
+        "samples": int(samples),
+        "target": target,
+        "radius95": _rl(radius, 4),
+        "rms": _rl(rms, 4),
+        "points": _rl(p, 5),
+        "stats95": _stats(radius),
+        "stats_rms": _stats(rms),
         "note": "95 % radius of the position the model predicts, from the identified parameters' covariance; "
-                "the instrument's own noise is not included",
+        "the instrument's own noise is not included",
     }
 
 
@@ -150,8 +159,14 @@ def predicted_accuracy(cal: Calibration, cell: Cell, target: str | None) -> dict
     if not ws.get("available"):
         return None
     st = ws["stats95"]
-    return {"radius95_mean": st["mean"], "radius95_p95": st["p95"], "radius95_max": st["max"],
-            "samples": ws["samples"], "target": ws["target"], "unit": model_from_dict(cal.model).units.length}
+    return {
+        "radius95_mean": st["mean"],
+        "radius95_p95": st["p95"],
+        "radius95_max": st["max"],
+        "samples": ws["samples"],
+        "target": ws["target"],
+        "unit": model_from_dict(cal.model).units.length,
+    }
 
 
 def calibration_result(db: Session, cal: Calibration) -> dict:
@@ -167,21 +182,49 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
     model = model_from_dict(cal.model)
     L = model.units.length_m
     out: dict = {
-        "id": cal.id, "kind": cal.kind, "created_at": as_utc(cal.created_at).isoformat(),
+        "id": cal.id,
+        "kind": cal.kind,
+        "created_at": as_utc(cal.created_at).isoformat(),
         "cell": {"id": cell.id, "name": cell.name, "site": cell.site},
         "robot": model_from_dict(cell.model).name,
-        "session": None if run is None else {
-            "id": run.id, "kind": run.kind, "device": run.device, "target": run.target, "planned": run.planned,
-            "created_by": run.created_by, "created_at": as_utc(run.created_at).isoformat(),
-            "plan_method": (run.plan_info or {}).get("method")},
+        "session": None
+        if run is None
+        else {
+            "id": run.id,
+            "kind": run.kind,
+            "device": run.device,
+            "target": run.target,
+            "planned": run.planned,
+            "created_by": run.created_by,
+            "created_at": as_utc(run.created_at).isoformat(),
+            "plan_method": (run.plan_info or {}).get("method"),
+        },
         "units": {"length": model.units.length, "angle": model.units.angle},
         "rms": cal.rms,
         "previous_id": previous_calibration_id(db, cal),
-        "report": {k: report.get(k) for k in ("success", "message", "rows", "parameters", "unidentifiable",
-                                              "condition_number", "observability", "residuals", "outliers",
-                                              "registration", "notes", "prior", "settings", "joints", "note",
-                                              "compliance")},
-        "errors": None, "workspace": None,
+        "report": {
+            k: report.get(k)
+            for k in (
+                "success",
+                "message",
+                "rows",
+                "parameters",
+                "unidentifiable",
+                "condition_number",
+                "observability",
+                "residuals",
+                "outliers",
+                "registration",
+                "notes",
+                "prior",
+                "settings",
+                "joints",
+                "note",
+                "compliance",
+            )
+        },
+        "errors": None,
+        "workspace": None,
     }
     if cal.kind != "pose" or run is None:
         return out
@@ -204,10 +247,19 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         "pose": [int(r.seq) + 1 for r in rows],
         "target": [r.target or "" for r in rows],
         "q_deg": _rl(np.rad2deg(data.q), 5),
-        "before": {"norm": _rl(nb / L), "xyz": _rl(e_before / L), "stats": _stats(nb / L), "model": before_how,
-                   "raw_rms": _r(np.sqrt(np.mean(raw_before**2)) / L)},
-        "after": {"norm": _rl(na / L), "xyz": _rl(e_after / L), "stats": _stats(na / L),
-                  "model": "the identified model (in-sample: the same measurements it was fitted to)"},
+        "before": {
+            "norm": _rl(nb / L),
+            "xyz": _rl(e_before / L),
+            "stats": _stats(nb / L),
+            "model": before_how,
+            "raw_rms": _r(np.sqrt(np.mean(raw_before**2)) / L),
+        },
+        "after": {
+            "norm": _rl(na / L),
+            "xyz": _rl(e_after / L),
+            "stats": _stats(na / L),
+            "model": "the identified model (in-sample: the same measurements it was fitted to)",
+        },
         "outlier_poses": [int(o["row"]) for o in report.get("outliers") or []],
     }
     out["workspace"] = workspace_accuracy(cal, cell, run.target)
@@ -217,12 +269,21 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
 def compare_calibrations(a: Calibration, b: Calibration) -> dict:
     """Every parameter of two calibrations of a cell, from ``a`` to ``b``
     (``calibration.report.compare_parameters``), with their ids and residuals."""
-    rows = compare_parameters(model_from_dict(a.model), (a.report or {}).get("parameters") or [],
-                              model_from_dict(b.model), (b.report or {}).get("parameters") or [])
-    return {"from": a.id, "to": b.id, "rms_from": a.rms, "rms_to": b.rms, "parameters": rows,
-            "counts": {k: sum(r["status"] == k for r in rows)
-                       for k in COMPARISON_STATUSES}
-            | {"moved": sum(r["moved"] for r in rows)}}
+    rows = compare_parameters(
+        model_from_dict(a.model),
+        (a.report or {}).get("parameters") or [],
+        model_from_dict(b.model),
+        (b.report or {}).get("parameters") or [],
+    )
+    return {
+        "from": a.id,
+        "to": b.id,
+        "rms_from": a.rms,
+        "rms_to": b.rms,
+        "parameters": rows,
+        "counts": {k: sum(r["status"] == k for r in rows) for k in COMPARISON_STATUSES}
+        | {"moved": sum(r["moved"] for r in rows)},
+    }
 
 
 # --------------------------------------------------------------------------- plan preview
@@ -245,11 +306,22 @@ def _move_time_s(q: np.ndarray, q0: np.ndarray | None, speed: float, accel: floa
 def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
     """A session's plan before anything moves (see the module docstring)."""
     nominal = model_from_dict(cell.model)
-    out: dict = {"session_id": run.id, "state": run.state, "reason": run.reason, "kind": run.kind,
-                 "device": run.device, "target": run.target, "dry_run": run.dry_run,
-                 "method": (run.plan_info or {}).get("method"), "configurations": 0, "joints": [],
-                 "check": None, "predicted": None, "estimated_duration_s": None,
-                 "units": {"length": nominal.units.length, "angle": "deg"}}
+    out: dict = {
+        "session_id": run.id,
+        "state": run.state,
+        "reason": run.reason,
+        "kind": run.kind,
+        "device": run.device,
+        "target": run.target,
+        "dry_run": run.dry_run,
+        "method": (run.plan_info or {}).get("method"),
+        "configurations": 0,
+        "joints": [],
+        "check": None,
+        "predicted": None,
+        "estimated_duration_s": None,
+        "units": {"length": nominal.units.length, "angle": "deg"},
+    }
     if run.plan is None:
         out["check"] = {"ok": False, "message": run.reason or "not planned yet"}
         return out
@@ -265,19 +337,32 @@ def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
         s = math.pi / 180 if j.revolute else nominal.units.length_m
         unit = "deg" if j.revolute else nominal.units.length
         used = q[:, i] / s if len(q) else np.zeros(1)
-        joints.append({"name": j.name, "unit": unit, "limit": [_r(lim[i, 0] / s), _r(lim[i, 1] / s)],
-                       "model_limit": [_r(j.lower / s), _r(j.upper / s)],
-                       "used": [_r(used.min()), _r(used.max())], "values": _rl(used, 5)})
+        joints.append(
+            {
+                "name": j.name,
+                "unit": unit,
+                "limit": [_r(lim[i, 0] / s), _r(lim[i, 1] / s)],
+                "model_limit": [_r(j.lower / s), _r(j.upper / s)],
+                "used": [_r(used.min()), _r(used.max())],
+                "values": _rl(used, 5),
+            }
+        )
     out["joints"] = joints
     try:
         check_configurations(nominal, q, cell.allowed_region)
-        out["check"] = {"ok": True, "message": f"all {len(q)} configurations are inside the joint limits"
-                                               + (" and the cell's allowed region" if cell.allowed_region else "")}
+        out["check"] = {
+            "ok": True,
+            "message": f"all {len(q)} configurations are inside the joint limits"
+            + (" and the cell's allowed region" if cell.allowed_region else ""),
+        }
     except UnsafePlan as exc:
         out["check"] = {"ok": False, "message": str(exc)}
     speed, accel = settings.max_joint_speed_rad_s, settings.max_joint_accel_rad_s2
     out["estimated_duration_s"] = _r(_move_time_s(q, None, speed, accel) + len(q) * (settings.settle_s + 0.05), 3)
-    out["speed_caps"] = {"joint_speed_deg_s": _r(math.degrees(speed), 4), "joint_accel_deg_s2": _r(math.degrees(accel), 4)}
+    out["speed_caps"] = {
+        "joint_speed_deg_s": _r(math.degrees(speed), 4),
+        "joint_accel_deg_s2": _r(math.degrees(accel), 4),
+    }
     if run.kind == "pose":
         out["predicted"] = _predicted_pose_accuracy(db, cell, q, run)
     return out
@@ -289,15 +374,23 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
     info = run.plan_info or {}
     L = model_from_dict(cell.model).units.length_m
     sigma_m = 20e-6
-    note = (f"RMS position error of the identified model over random configurations, predicted for an "
-            f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis")
+    note = (
+        f"RMS position error of the identified model over random configurations, predicted for an "
+        f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis"
+    )
     if "predicted_rms_m" in info:
         un = info.get("unidentifiable")
-        return {"available": True, "rms": _r(info["predicted_rms_m"] / L),
-                "p95": _r(info.get("predicted_p95_m", float("nan")) / L),
-                "max": _r(info.get("predicted_max_m", float("nan")) / L), "sigma": _r(sigma_m / L),
-                "unidentifiable": len(un) if isinstance(un, list) else None,
-                "unidentifiable_names": un if isinstance(un, list) else None, "source": "planner", "note": note}
+        return {
+            "available": True,
+            "rms": _r(info["predicted_rms_m"] / L),
+            "p95": _r(info.get("predicted_p95_m", float("nan")) / L),
+            "max": _r(info.get("predicted_max_m", float("nan")) / L),
+            "sigma": _r(sigma_m / L),
+            "unidentifiable": len(un) if isinstance(un, list) else None,
+            "unidentifiable_names": un if isinstance(un, list) else None,
+            "source": "planner",
+            "note": note,
+        }
     try:
         from calibration import planning
     except ImportError:  # pragma: no cover
@@ -305,14 +398,23 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
     model, _ = current_model(db, cell)
     target = run.target if run.device != "cmm" else None
     try:
-        res = planning.plan(model, q, len(q), targets=(target,), sigma_m=sigma_m, exchange=False,
-                            rng=np.random.default_rng(7))
+        res = planning.plan(
+            model, q, len(q), targets=(target,), sigma_m=sigma_m, exchange=False, rng=np.random.default_rng(7)
+        )
     except ValueError as exc:
         return {"available": False, "reason": str(exc)}
-    return {"available": bool(res.success), "rms": _r(res.predicted_rms_m / L), "p95": _r(res.predicted_p95_m / L),
-            "max": _r(res.predicted_max_m / L), "sigma": _r(sigma_m / L), "identifiable": len(res.params),
-            "unidentifiable": len(res.unidentifiable), "message": res.message, "source": "these configurations",
-            "note": note}
+    return {
+        "available": bool(res.success),
+        "rms": _r(res.predicted_rms_m / L),
+        "p95": _r(res.predicted_p95_m / L),
+        "max": _r(res.predicted_max_m / L),
+        "sigma": _r(sigma_m / L),
+        "identifiable": len(res.params),
+        "unidentifiable": len(res.unidentifiable),
+        "message": res.message,
+        "source": "these configurations",
+        "note": note,
+    }
 
 
 # --------------------------------------------------------------------------- live session
@@ -320,14 +422,25 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
 
 def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
     """The residuals measured so far and the pace of a session."""
-    rows = db.exec(select(Measurement).where(Measurement.session_id == run.id)
-                   .order_by(Measurement.seq, Measurement.id)).all()
+    rows = db.exec(
+        select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq, Measurement.id)
+    ).all()
     nominal = model_from_dict(cell.model)
     L = nominal.units.length_m
     seqs = sorted({r.seq for r in rows})
-    out: dict = {"session_id": run.id, "state": run.state, "reason": run.reason, "planned": run.planned,
-                 "measured": len(seqs), "units": {"length": nominal.units.length}, "residuals": None,
-                 "elapsed_s": None, "seconds_per_pose": None, "remaining_s": None, "last": None}
+    out: dict = {
+        "session_id": run.id,
+        "state": run.state,
+        "reason": run.reason,
+        "planned": run.planned,
+        "measured": len(seqs),
+        "units": {"length": nominal.units.length},
+        "residuals": None,
+        "elapsed_s": None,
+        "seconds_per_pose": None,
+        "remaining_s": None,
+        "last": None,
+    }
     if not rows:
         return out
     times = {}
@@ -342,11 +455,14 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         if run.state in ("running", "planned", "paused", "interrupted"):
             out["remaining_s"] = _r(max(run.planned - len(seqs), 0) * per, 3)
     last = rows[-1]
-    out["last"] = {"pose": int(last.seq) + 1, "at": as_utc(last.created_at).isoformat(),
-                   "q_deg": _rl(np.rad2deg(np.asarray(last.q, dtype=float)), 5),
-                   "position": [_r(last.x / L), _r(last.y / L), _r(last.z / L)],
-                   "sigma": _r(last.sigma / L) if last.sigma else None,
-                   "reference_deg": _r(math.degrees(last.reference)) if last.reference is not None else None}
+    out["last"] = {
+        "pose": int(last.seq) + 1,
+        "at": as_utc(last.created_at).isoformat(),
+        "q_deg": _rl(np.rad2deg(np.asarray(last.q, dtype=float)), 5),
+        "position": [_r(last.x / L), _r(last.y / L), _r(last.z / L)],
+        "sigma": _r(last.sigma / L) if last.sigma else None,
+        "reference_deg": _r(math.degrees(last.reference)) if last.reference is not None else None,
+    }
     if run.kind in ("pose", "verify"):
         data, _ = session_measurements(db, run)
         model, cal = current_model(db, cell)
@@ -360,8 +476,12 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
             e, how = None, "shown from the fourth pose on (the instrument's placement is fitted first)"
         if e is not None:
             n = np.linalg.norm(e, axis=1) / L
-            out["residuals"] = {"pose": [int(s) + 1 for s in data.pose_id], "norm": _rl(n), "stats": _stats(n),
-                                "model": how}
+            out["residuals"] = {
+                "pose": [int(s) + 1 for s in data.pose_id],
+                "norm": _rl(n),
+                "stats": _stats(n),
+                "model": how,
+            }
         else:
             out["residuals"] = {"pose": [], "norm": [], "stats": _stats(np.zeros(0)), "model": how}
     elif run.kind == "joint":
@@ -369,7 +489,11 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         if sel:
             d = np.array([math.degrees(r.reference - r.q[r.joint - 1]) for r in sel])
             d = (d + 180.0) % 360.0 - 180.0
-            out["residuals"] = {"pose": [int(r.seq) + 1 for r in sel], "norm": _rl(d - d.mean()),
-                                "stats": _stats(np.abs(d - d.mean())), "unit": "deg",
-                                "model": "reference encoder minus controller reading (mean removed), deg"}
+            out["residuals"] = {
+                "pose": [int(r.seq) + 1 for r in sel],
+                "norm": _rl(d - d.mean()),
+                "stats": _stats(np.abs(d - d.mean())),
+                "unit": "deg",
+                "model": "reference encoder minus controller reading (mean removed), deg",
+            }
     return out

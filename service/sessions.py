@@ -25,16 +25,24 @@ TERMINAL = ("completed", "failed", "aborted")
 def public_session(db, run: RunSession) -> SessionPublic:
     info = dict(run.plan_info or {})
     info.pop("swept_joint", None)
-    return SessionPublic(**run.model_dump(exclude={"plan", "plan_info", "lease_owner", "lease_expires"}),
-                         measured=measured_count(db, run.id), plan_info=info or None)
+    return SessionPublic(
+        **run.model_dump(exclude={"plan", "plan_info", "lease_owner", "lease_expires"}),
+        measured=measured_count(db, run.id),
+        plan_info=info or None,
+    )
 
 
 # What GET /sessions/{id} and the progress events read: the public columns and the measured count
 # in one query, without the plan (every configuration of the session) or an ORM object. Pages and
 # nightly jobs poll this; bench/service.py measures it.
 _PUBLIC = [c for c in RunSession.__table__.columns if c.name in SessionPublic.model_fields]
-_MEASURED = (select(func.count(func.distinct(Measurement.seq))).where(Measurement.session_id == RunSession.id)
-             .correlate(RunSession).scalar_subquery().label("measured"))
+_MEASURED = (
+    select(func.count(func.distinct(Measurement.seq)))
+    .where(Measurement.session_id == RunSession.id)
+    .correlate(RunSession)
+    .scalar_subquery()
+    .label("measured")
+)
 _READ_PUBLIC = sa_select(*_PUBLIC, _MEASURED).where(RunSession.id == bindparam("session_id"))  # built once
 
 
@@ -58,8 +66,10 @@ def get_run(db, session_id: int) -> RunSession:
 def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orchestrator) -> SessionPublic:
     model = model_from_dict(cell.model)
     if body.target is not None and body.target not in model.targets:
-        raise Invalid("body.target", f"unknown target {body.target!r}; the cell's model "
-                                     f"has: {', '.join(sorted(model.targets)) or 'none'}")
+        raise Invalid(
+            "body.target",
+            f"unknown target {body.target!r}; the cell's model has: {', '.join(sorted(model.targets)) or 'none'}",
+        )
     measuring = body.kind in ("pose", "verify", "circle") and not body.dry_run
     if body.device == "cmm" and measuring and not cell.devices.get("cmm"):
         raise Invalid("body.device", "this cell has no CMM")
@@ -67,18 +77,35 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
         raise Invalid("body.device", "this cell has no laser tracker")
     for i, j in enumerate(body.joints or []):
         if not 1 <= j <= model.n_joints or j in body.joints[:i]:
-            raise Invalid(f"body.joints[{i}]", f"expected a joint number from 1 to {model.n_joints}, each once; got {j}")
-    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell.id, RunSession.state.in_(ACTIVE),
-                                            RunSession.dry_run == False)).first()  # noqa: E712 - dry runs move nothing
+            raise Invalid(
+                f"body.joints[{i}]", f"expected a joint number from 1 to {model.n_joints}, each once; got {j}"
+            )
+    busy = db.exec(
+        select(RunSession).where(
+            RunSession.cell_id == cell.id,
+            RunSession.state.in_(ACTIVE),
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+    ).first()  # noqa: E712 - dry runs move nothing
     if busy is not None and not body.dry_run:
         raise Conflict(f"session {busy.id} is already driving this cell ({busy.state})")
-    info = {**({"joints": body.joints} if body.joints else {}), **({"repeats": body.repeats} if body.repeats > 1 else {})}
+    info = {
+        **({"joints": body.joints} if body.joints else {}),
+        **({"repeats": body.repeats} if body.repeats > 1 else {}),
+    }
     if body.payloads:  # SI: kg, then the centre of gravity in the tool frame (m)
         L = model.units.length_m
         info["payloads"] = [[p[0], p[1] * L, p[2] * L, p[3] * L] for p in body.payloads]
-    run = RunSession(cell_id=cell.id, kind=body.kind, planned=body.count, device=body.device,
-                     target=body.target if body.target is not None else (_default_target(model, body)),
-                     dry_run=body.dry_run, created_by=tok.name, plan_info=info or None)
+    run = RunSession(
+        cell_id=cell.id,
+        kind=body.kind,
+        planned=body.count,
+        device=body.device,
+        target=body.target if body.target is not None else (_default_target(model, body)),
+        dry_run=body.dry_run,
+        created_by=tok.name,
+        plan_info=info or None,
+    )
     try:
         queued = commit_planned(db, run, orchestrator)
     except IntegrityError:  # another request (any API process) started one on this cell meanwhile
@@ -87,8 +114,13 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     db.refresh(run)
     if body.dry_run:  # after the new one has its id: on SQLite a deleted highest id would be given again
         forget_dry_runs(db, cell.id, keep=run.id)
-    audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
-          detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run})
+    audit(
+        db,
+        actor=tok.name,
+        action="start session",
+        subject=f"session {run.id}",
+        detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run},
+    )
     if not queued:
         orchestrator.start(run.id)
     return public_session(db, run)
@@ -98,8 +130,14 @@ def forget_dry_runs(db, cell_id: int, *, keep: int) -> None:
     """Delete the cell's finished dry runs but ``keep``. A dry run ("Show the plan") is a plan
     to confirm (and to run, ``POST /sessions/{id}/run``, as often as wanted), not a session: only
     the cell's latest is kept, and session lists leave it out. Dry runs have no measurements."""
-    db.execute(delete(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == True,  # noqa: E712
-                                        RunSession.state.not_in(ACTIVE), RunSession.id != keep))
+    db.execute(
+        delete(RunSession).where(
+            RunSession.cell_id == cell_id,
+            RunSession.dry_run == True,  # noqa: E712
+            RunSession.state.not_in(ACTIVE),
+            RunSession.id != keep,
+        )
+    )
     db.commit()
 
 

@@ -7,6 +7,7 @@ import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+
 from calibration.errors import RecalError
 
 ENGINES = ("embedded", "procrastinate")
@@ -79,7 +80,9 @@ class Settings:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
                 raise SettingsError(f"environment variable {env}: expected {lo:g} to {hi:g} {unit}, got {value!r}")
         if self.engine not in ENGINES:
-            raise SettingsError(f"environment variable RECAL_ENGINE: expected one of {', '.join(ENGINES)}, got {self.engine!r}")
+            raise SettingsError(
+                f"environment variable RECAL_ENGINE: expected one of {', '.join(ENGINES)}, got {self.engine!r}"
+            )
 
     @property
     def effective_lease_ttl_s(self) -> float:
@@ -117,16 +120,22 @@ def _with_password(url: str | None, password_file: str) -> str:
     """``url`` with the password read from ``password_file`` (a Docker or systemd secret, so the
     password is in no environment variable, compose file or process listing)."""
     if not url:
-        raise SettingsError("environment variable RECAL_DATABASE_PASSWORD_FILE: expected RECAL_DATABASE_URL too "
-                            "(the database the password is for)")
+        raise SettingsError(
+            "environment variable RECAL_DATABASE_PASSWORD_FILE: expected RECAL_DATABASE_URL too "
+            "(the database the password is for)"
+        )
     try:
         password = Path(password_file).read_text(encoding="utf-8").rstrip("\r\n")
     except (OSError, UnicodeDecodeError) as exc:
-        raise SettingsError(f"environment variable RECAL_DATABASE_PASSWORD_FILE: cannot read {password_file}: "
-                            f"{getattr(exc, 'strerror', None) or exc}") from None
+        raise SettingsError(
+            f"environment variable RECAL_DATABASE_PASSWORD_FILE: cannot read {password_file}: "
+            f"{getattr(exc, 'strerror', None) or exc}"
+        ) from None
     if not password:
-        raise SettingsError(f"environment variable RECAL_DATABASE_PASSWORD_FILE: {password_file} is empty; "
-                            f"expected the database password")
+        raise SettingsError(
+            f"environment variable RECAL_DATABASE_PASSWORD_FILE: {password_file} is empty; "
+            f"expected the database password"
+        )
     from sqlalchemy.engine import make_url
 
     try:
@@ -151,7 +160,9 @@ def worker_concurrency(env: dict[str, str] | None = None) -> int:
         try:
             value = int(raw)
         except ValueError:
-            raise SettingsError(f"environment variable RECAL_WORKER_CONCURRENCY: expected a whole number, got {raw!r}") from None
+            raise SettingsError(
+                f"environment variable RECAL_WORKER_CONCURRENCY: expected a whole number, got {raw!r}"
+            ) from None
         if value < 1:
             raise SettingsError(f"environment variable RECAL_WORKER_CONCURRENCY: expected at least 1, got {value}")
         return value

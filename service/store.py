@@ -43,8 +43,9 @@ def make_engine(url: str) -> Engine:
         # Pool as many connections as the server's threads may want at once (anyio's 40 request
         # threads and the sessions' own): an SQLite connection costs a file handle, but opening
         # one per request beyond a small pool (and its PRAGMAs) was a fifth of a polled GET's cost.
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30},
-                               pool_size=48, max_overflow=16)
+        engine = create_engine(
+            url, connect_args={"check_same_thread": False, "timeout": 30}, pool_size=48, max_overflow=16
+        )
 
         @event.listens_for(engine, "connect")
         def _pragmas(dbapi_conn, _record):  # noqa: ANN001
@@ -62,6 +63,7 @@ def make_engine(url: str) -> Engine:
 
 # --------------------------------------------------------------------------- migrations
 
+
 # Each migration takes a connection and brings the schema from version i to i + 1. Never edit
 # a released migration: add a new one.
 def _v1(conn) -> None:
@@ -75,10 +77,17 @@ def _v2(conn) -> None:
     if "requested" not in {c["name"] for c in inspect(conn).get_columns("session")}:
         conn.execute(text("ALTER TABLE session ADD COLUMN requested VARCHAR"))
     active = "state IN ('planned', 'running') AND NOT dry_run"
-    dupes = conn.execute(text(f"SELECT cell_id, MAX(id) FROM session WHERE {active} GROUP BY cell_id HAVING COUNT(*) > 1"))
+    dupes = conn.execute(
+        text(f"SELECT cell_id, MAX(id) FROM session WHERE {active} GROUP BY cell_id HAVING COUNT(*) > 1")
+    )
     for cell_id, keep in dupes.all():  # cannot happen through the API; a damaged store could have them
-        conn.execute(text(f"UPDATE session SET state = 'interrupted', reason = 'another session was driving this cell' "
-                          f"WHERE cell_id = :c AND id <> :k AND {active}"), {"c": cell_id, "k": keep})
+        conn.execute(
+            text(
+                f"UPDATE session SET state = 'interrupted', reason = 'another session was driving this cell' "
+                f"WHERE cell_id = :c AND id <> :k AND {active}"
+            ),
+            {"c": cell_id, "k": keep},
+        )
     conn.execute(text(f"CREATE UNIQUE INDEX IF NOT EXISTS uq_session_active_cell ON session (cell_id) WHERE {active}"))
 
 
@@ -87,11 +96,15 @@ def _v3(conn) -> None:
     models that can be replaced (``cell.model_version``, and ``calibration.nominal_version``: the
     one each calibration was identified from; every existing one was made from version 1); the
     predicted accuracy of each calibration, stored with it (``calibration.predicted``)."""
-    columns = {table: {c["name"] for c in inspect(conn).get_columns(table)} for table in ("session", "cell", "calibration")}
-    for table, column, ddl in (("session", "device_state", "JSON"),
-                               ("cell", "model_version", "INTEGER NOT NULL DEFAULT 1"),
-                               ("calibration", "nominal_version", "INTEGER"),
-                               ("calibration", "predicted", "JSON")):
+    columns = {
+        table: {c["name"] for c in inspect(conn).get_columns(table)} for table in ("session", "cell", "calibration")
+    }
+    for table, column, ddl in (
+        ("session", "device_state", "JSON"),
+        ("cell", "model_version", "INTEGER NOT NULL DEFAULT 1"),
+        ("calibration", "nominal_version", "INTEGER"),
+        ("calibration", "predicted", "JSON"),
+    ):
         if column not in columns[table]:
             conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {ddl}"))
     conn.execute(text("UPDATE calibration SET nominal_version = 1 WHERE nominal_version IS NULL"))
@@ -169,7 +182,9 @@ def audit(db: Session, *, actor: str, action: str, subject: str, detail: dict | 
 
 def measured_count(db: Session, session_id: int) -> int:
     """How many planned configurations have been measured (distinct ``seq``)."""
-    return int(db.exec(select(func.count(func.distinct(Measurement.seq))).where(Measurement.session_id == session_id)).one())
+    return int(
+        db.exec(select(func.count(func.distinct(Measurement.seq))).where(Measurement.session_id == session_id)).one()
+    )
 
 
 def set_state(db: Session, run: RunSession, state: str, reason: str | None = None) -> RunSession:
@@ -185,8 +200,11 @@ def set_state(db: Session, run: RunSession, state: str, reason: str | None = Non
 def set_state_unless(db: Session, run: RunSession, final: tuple[str, ...], state: str, reason: str | None) -> bool:
     """``set_state`` in one conditional update, unless the session reached one of ``final``
     meanwhile (a session that just completed is not then marked aborted). True if it changed."""
-    res = db.exec(update(RunSession).where(RunSession.id == run.id, RunSession.state.not_in(final))
-                  .values(state=state, reason=reason, updated_at=utcnow()))
+    res = db.exec(
+        update(RunSession)
+        .where(RunSession.id == run.id, RunSession.state.not_in(final))
+        .values(state=state, reason=reason, updated_at=utcnow())
+    )
     db.commit()
     db.refresh(run)
     return res.rowcount > 0
@@ -206,17 +224,28 @@ def interrupt_unfinished(db: Session, *, owner: str | None = None) -> list[int]:
     ids = []
     for run in db.exec(q).all():
         # nobody holds the devices any more: whatever the last pose said of them is history
-        run.device_state = {**{k: {"state": "not connected", "detail": "the service stopped"}
-                               for k in (run.device_state or {}) if k != "at"},
-                            "at": utcnow().isoformat()} if run.device_state else None
-        set_state(db, run, "interrupted", f"the service stopped while this session was {run.state}; resume it to "
-                                          f"continue")
+        run.device_state = (
+            {
+                **{
+                    k: {"state": "not connected", "detail": "the service stopped"}
+                    for k in (run.device_state or {})
+                    if k != "at"
+                },
+                "at": utcnow().isoformat(),
+            }
+            if run.device_state
+            else None
+        )
+        set_state(
+            db, run, "interrupted", f"the service stopped while this session was {run.state}; resume it to continue"
+        )
         ids.append(run.id)
     return ids
 
 
-def last_calibration(db: Session, cell_id: int, *, kind: str | None = None,
-                     nominal_version: int | None = None) -> Calibration | None:
+def last_calibration(
+    db: Session, cell_id: int, *, kind: str | None = None, nominal_version: int | None = None
+) -> Calibration | None:
     """The cell's newest calibration (of ``kind``; identified from nominal model ``nominal_version``)."""
     q = select(Calibration).where(Calibration.cell_id == cell_id)
     if kind is not None:
@@ -239,17 +268,21 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
     db.exec(select(Cell.id).where(Cell.id == run.cell_id).with_for_update()).first()
     now = utcnow()
     others = db.exec(
-        select(RunSession).where(RunSession.cell_id == run.cell_id, RunSession.id != run.id,
-                                 RunSession.state.in_(("planned", "running")),
-                                 (RunSession.state == "running") | (RunSession.dry_run == False))  # noqa: E712
+        select(RunSession).where(
+            RunSession.cell_id == run.cell_id,
+            RunSession.id != run.id,
+            RunSession.state.in_(("planned", "running")),
+            (RunSession.state == "running") | (RunSession.dry_run == False),  # noqa: E712 (SQL)
+        )
     ).all()
     for other in others:
         if other.lease_expires is not None and as_utc(other.lease_expires) > now:
             db.rollback()
             return False
     db.refresh(run)
-    if (run.lease_owner not in (None, owner) and run.lease_expires is not None
-            and as_utc(run.lease_expires) > now):  # another process holds this very session
+    if (
+        run.lease_owner not in (None, owner) and run.lease_expires is not None and as_utc(run.lease_expires) > now
+    ):  # another process holds this very session
         db.rollback()
         return False
     run.lease_owner = owner
@@ -270,13 +303,15 @@ def database_unavailable(exc: BaseException) -> bool:
     """The store cannot be reached (connection refused or lost, or no pooled connection free in
     time: a loaded machine), as opposed to a bad query."""
     return isinstance(exc, (OperationalError, InterfaceError, PoolTimeout)) or (
-        isinstance(exc, DBAPIError) and bool(exc.connection_invalidated))
+        isinstance(exc, DBAPIError) and bool(exc.connection_invalidated)
+    )
 
 
 def held_by_other(run: RunSession, owner: str) -> bool:
     """Another process (``lease_owner``) holds this session's lease, and the lease runs."""
-    return (run.lease_owner not in (None, owner) and run.lease_expires is not None
-            and as_utc(run.lease_expires) > utcnow())
+    return (
+        run.lease_owner not in (None, owner) and run.lease_expires is not None and as_utc(run.lease_expires) > utcnow()
+    )
 
 
 # --------------------------------------------------------------------------- controller models
@@ -284,16 +319,23 @@ def held_by_other(run: RunSession, owner: str) -> bool:
 
 def current_controller_model(db: Session, cell_id: int) -> ControllerModel | None:
     """The newest controller model read for the cell (``None``: never read)."""
-    return db.exec(select(ControllerModel).where(ControllerModel.cell_id == cell_id)
-                   .order_by(ControllerModel.version.desc())).first()
+    return db.exec(
+        select(ControllerModel).where(ControllerModel.cell_id == cell_id).order_by(ControllerModel.version.desc())
+    ).first()
 
 
-def add_controller_model(db: Session, *, cell_id: int, model: dict, session_id: int | None = None,
-                         moved_m: float | None = None) -> ControllerModel:
+def add_controller_model(
+    db: Session, *, cell_id: int, model: dict, session_id: int | None = None, moved_m: float | None = None
+) -> ControllerModel:
     """Store a new version of the cell's controller model."""
     last = current_controller_model(db, cell_id)
-    rec = ControllerModel(cell_id=cell_id, version=1 if last is None else last.version + 1, model=model,
-                          session_id=session_id, moved_m=moved_m)
+    rec = ControllerModel(
+        cell_id=cell_id,
+        version=1 if last is None else last.version + 1,
+        model=model,
+        session_id=session_id,
+        moved_m=moved_m,
+    )
     db.add(rec)
     db.commit()
     db.refresh(rec)

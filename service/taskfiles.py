@@ -80,8 +80,13 @@ def _group(table: Table, names: list[str], scales: list[float], what: str) -> tu
     if np.any(partial):
         r = int(np.nonzero(partial)[0][0])
         col = names[int(np.nonzero(empty[r])[0][0])]
-        raise InputError(table.path, f"expected a number ({what} needs all of {', '.join(names)}, or none of them)",
-                         row=r + 1, line=table.lines[r], column=col)
+        raise InputError(
+            table.path,
+            f"expected a number ({what} needs all of {', '.join(names)}, or none of them)",
+            row=r + 1,
+            line=table.lines[r],
+            column=col,
+        )
     return vals, ~empty.any(axis=1)
 
 
@@ -102,8 +107,11 @@ def read_task(path: str | os.PathLike, model: KinematicModel) -> Task:
         missing = [f"q{i}" for i in range(1, n + 1) if f"q{i}" not in qcols]
         raise InputError(path, f"missing joint column {missing[0]!r}: the model has {n} joints (q1..q{n})")
     if not present and not qcols:
-        raise InputError(path, f"expected the columns {', '.join(POSE_COLUMNS)} (desired tool pose) and/or "
-                               f"q1..q{n} (taught or planned joints); the header has: {', '.join(table.header)}")
+        raise InputError(
+            path,
+            f"expected the columns {', '.join(POSE_COLUMNS)} (desired tool pose) and/or "
+            f"q1..q{n} (taught or planned joints); the header has: {', '.join(table.header)}",
+        )
     N = len(table.rows)
     if present:
         L = u.length_m
@@ -113,8 +121,13 @@ def read_task(path: str | os.PathLike, model: KinematicModel) -> Task:
         off = has_pose & (np.abs(norms - 1.0) > 1e-3)
         if np.any(off):
             r = int(np.nonzero(off)[0][0])
-            raise InputError(path, f"the quaternion has norm {norms[r]:.6g}; expected a unit quaternion",
-                             row=r + 1, line=table.lines[r], column="qw")
+            raise InputError(
+                path,
+                f"the quaternion has norm {norms[r]:.6g}; expected a unit quaternion",
+                row=r + 1,
+                line=table.lines[r],
+                column="qw",
+            )
         T = np.broadcast_to(np.eye(4), (N, 4, 4)).copy()
         T[has_pose] = homogeneous(quat_to_matrix(quat[has_pose]), vals[has_pose, :3])
     else:
@@ -130,8 +143,9 @@ def read_task(path: str | os.PathLike, model: KinematicModel) -> Task:
     if np.any(empty):
         r = int(np.nonzero(empty)[0][0])
         col = "x" if present else "q1"
-        raise InputError(path, "the row has neither a desired pose nor joints", row=r + 1, line=table.lines[r],
-                         column=col)
+        raise InputError(
+            path, "the row has neither a desired pose nor joints", row=r + 1, line=table.lines[r], column=col
+        )
     return Task(str(path), table, T, has_pose, quat, q, has_q)
 
 
@@ -181,8 +195,12 @@ def format_task(
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(out_header)
-    w.writerows([[made[i] if made is not None else (row[k] if k < len(row) else "") for made, k in getters]
-                 for i, row in enumerate(task.table.rows)])
+    w.writerows(
+        [
+            [made[i] if made is not None else (row[k] if k < len(row) else "") for made, k in getters]
+            for i, row in enumerate(task.table.rows)
+        ]
+    )
     return buf.getvalue()
 
 
@@ -332,7 +350,7 @@ def _literal(code: str, s: int, e: int, offset: int, line: int, name: str | None
     if kind is None:
         return None
     spans = tuple((offset + s + n.start(), offset + s + n.end()) for n in _NUM_RE.finditer(text))
-    values = np.array([float(code[a - offset:b - offset]) for a, b in spans])
+    values = np.array([float(code[a - offset : b - offset]) for a, b in spans])
     return Literal(kind, line, spans, values, name)
 
 
@@ -364,8 +382,13 @@ def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | Non
         for mv in _MOVE_RE.finditer(code):
             fn = mv.group(1)
             if fn == "set_tcp":
-                skipped.append(Uninterpreted(ln, raw.strip(), "set_tcp changes the TCP: targets are compensated for "
-                                                              "the model's tool, which must be this TCP"))
+                skipped.append(
+                    Uninterpreted(
+                        ln,
+                        raw.strip(),
+                        "set_tcp changes the TCP: targets are compensated for the model's tool, which must be this TCP",
+                    )
+                )
                 continue
             if fn not in _TARGET_MOVES:
                 skipped.append(Uninterpreted(ln, raw.strip(), f"{fn} targets are not compensated"))
@@ -395,13 +418,18 @@ def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | Non
         if not entries:
             reason = f"target variable {name} is not assigned in this file"
         elif len(entries) > 1:
-            reason = f"target variable {name} is assigned more than once (lines {', '.join(str(e[0]) for e in entries)})"
+            reason = (
+                f"target variable {name} is assigned more than once (lines {', '.join(str(e[0]) for e in entries)})"
+            )
         elif entries[0][1] is None:
             reason = f"target variable {name} is computed by an expression (line {entries[0][0]})"
             a_ln = entries[0][0]
             if not any(u.line == a_ln for u in skipped):
-                skipped.append(Uninterpreted(a_ln, _line(text, lines, a_ln), f"{name}: a target computed by an "
-                                                                              f"expression is not compensated"))
+                skipped.append(
+                    Uninterpreted(
+                        a_ln, _line(text, lines, a_ln), f"{name}: a target computed by an expression is not compensated"
+                    )
+                )
         else:
             lit = entries[0][1]
             if lit.kind == "joints" and len(lit.values) != n_joints:
@@ -456,17 +484,25 @@ def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | Non
     for ln, (ls, code) in enumerate(codes, start=1):
         for m in _IDENT_RE.finditer(code):
             if m.group() in names and (ls + m.start(), ls + m.end()) not in expected:
-                skipped.append(Uninterpreted(ln, _line(text, lines, ln),
-                                             f"uses target variable {m.group()} in an expression: this use sees the "
-                                             f"compensated value and is not itself compensated"))
+                skipped.append(
+                    Uninterpreted(
+                        ln,
+                        _line(text, lines, ln),
+                        f"uses target variable {m.group()} in an expression: this use sees the "
+                        f"compensated value and is not itself compensated",
+                    )
+                )
                 break
     for t in targets:  # numbers no robot cell can have (1e308) are a slip: named, never compensated
         for lit in (t.pose, t.joints):
             if lit is not None and np.any(np.abs(lit.values) > MAX_MAGNITUDE_SI):
                 v = float(lit.values[np.argmax(np.abs(lit.values))])
-                raise InputError(path, f"{_line(text, lines, lit.line).strip()}: {v:g} is beyond any robot cell; expected "
-                                       f"a magnitude of at most {MAX_MAGNITUDE_SI:g} (URScript: metres, radians)",
-                                 line=lit.line)
+                raise InputError(
+                    path,
+                    f"{_line(text, lines, lit.line).strip()}: {v:g} is beyond any robot cell; expected "
+                    f"a magnitude of at most {MAX_MAGNITUDE_SI:g} (URScript: metres, radians)",
+                    line=lit.line,
+                )
     skipped.sort(key=lambda u: u.line)
     dedup, seen = [], set()
     for u in skipped:

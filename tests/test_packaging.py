@@ -52,7 +52,8 @@ def test_the_lock_pins_every_dependency_within_its_range():
         name = canonicalize_name(req.name)
         assert name in pins, f"{req.name} is not in docker/requirements.lock: run bash docker/lock.sh"
         assert req.specifier.contains(pins[name], prereleases=True), (
-            f"docker/requirements.lock pins {req.name}=={pins[name]}, outside {req.specifier}: run bash docker/lock.sh")
+            f"docker/requirements.lock pins {req.name}=={pins[name]}, outside {req.specifier}: run bash docker/lock.sh"
+        )
 
 
 def test_the_image_installs_the_lock_and_runs_as_a_user_with_a_healthcheck():

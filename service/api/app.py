@@ -10,19 +10,18 @@ from contextlib import asynccontextmanager
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from starlette.exceptions import HTTPException as StarletteHTTPException
 from fastapi.routing import APIRoute
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ..heavy import HeavyPool
 from ..models import MAX_ID
 from ..problems import STATUS, Conflict, Invalid, NotFound, detail_of
 from ..runners import runner_class
-from ..store import database_unavailable
 from ..settings import Settings
-from ..store import interrupt_unfinished, make_engine, migrate
+from ..store import database_unavailable, interrupt_unfinished, make_engine, migrate
 from . import docs, metrics
 from .deps import current_token
 from .docs import allowed_methods, document_errors, needs_token
@@ -53,13 +52,16 @@ async def bounded_numbers(request: Request) -> None:
     if needs_token(route):  # who is asking comes first: no token is a 401 whatever else is wrong
         await current_token(request)
     errors = []
-    for where, declared, given in (("path", dependant.path_params, request.path_params),
-                                   ("query", dependant.query_params, request.query_params)):
+    for where, declared, given in (
+        ("path", dependant.path_params, request.path_params),
+        ("query", dependant.query_params, request.query_params),
+    ):
         for param in declared:
             value = given.get(param.alias or param.name)
             if isinstance(value, str) and "\x00" in value:  # no database stores NUL in text (PostgreSQL: a 500)
-                errors.append({"loc": (where, param.name), "msg": "expected text without NUL characters",
-                               "type": "value_error"})
+                errors.append(
+                    {"loc": (where, param.name), "msg": "expected text without NUL characters", "type": "value_error"}
+                )
                 continue
             if value is None or not _declares_int(param.field_info.annotation):
                 continue
@@ -68,11 +70,21 @@ async def bounded_numbers(request: Request) -> None:
             except ValueError:
                 continue  # not an integer: the route's own validation answers
             if param.name.endswith("_id") and not 1 <= v <= MAX_ID:
-                errors.append({"loc": (where, param.name), "msg": f"expected an id from 1 to {MAX_ID}, got {value}",
-                               "type": "value_error"})
+                errors.append(
+                    {
+                        "loc": (where, param.name),
+                        "msg": f"expected an id from 1 to {MAX_ID}, got {value}",
+                        "type": "value_error",
+                    }
+                )
             elif not -MAX_ID - 1 <= v <= MAX_ID:
-                errors.append({"loc": (where, param.name), "msg": f"expected a 64-bit integer, got {value}",
-                               "type": "value_error"})
+                errors.append(
+                    {
+                        "loc": (where, param.name),
+                        "msg": f"expected a 64-bit integer, got {value}",
+                        "type": "value_error",
+                    }
+                )
     if errors:
         raise RequestValidationError(errors)
 
@@ -111,10 +123,17 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
                 interrupt_unfinished(db, owner=app.state.orchestrator.owner)
             engine.dispose()
 
-    app = FastAPI(title="Recal", version="0.1.0", lifespan=lifespan, generate_unique_id_function=_operation_id,
-                  dependencies=[Depends(bounded_numbers)], docs_url=None, redoc_url=None,
-                  swagger_ui_oauth2_redirect_url=None,
-                  description="Robot calibration service: cells, measurement sessions, calibrations, compensation.")
+    app = FastAPI(
+        title="Recal",
+        version="0.1.0",
+        lifespan=lifespan,
+        generate_unique_id_function=_operation_id,
+        dependencies=[Depends(bounded_numbers)],
+        docs_url=None,
+        redoc_url=None,
+        swagger_ui_oauth2_redirect_url=None,
+        description="Robot calibration service: cells, measurement sessions, calibrations, compensation.",
+    )
     # Outermost last: every request is logged and timed (413s included), then its body limited.
     app.add_middleware(BodyLimit, settings=settings)
     app.add_middleware(PageCache)
@@ -124,16 +143,20 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
     async def _validation(request: Request, exc: RequestValidationError):
         allowed = allowed_methods(app, request.url.path)
         if allowed and request.method not in allowed:  # /cells/1/tasks/compensate read as task "compensate"
-            return JSONResponse({"detail": "Method Not Allowed"}, status_code=405, headers={"Allow": ", ".join(allowed)})
+            return JSONResponse(
+                {"detail": "Method Not Allowed"}, status_code=405, headers={"Allow": ", ".join(allowed)}
+            )
         # 422 naming each field at fault ("body.count: ...") instead of a nested structure only.
         errors = [{"field": _field(e["loc"]), "message": e["msg"]} for e in exc.errors()]
-        return JSONResponse({"detail": "; ".join(f"{e['field']}: {e['message']}" for e in errors), "errors": errors},
-                            status_code=422)
+        return JSONResponse(
+            {"detail": "; ".join(f"{e['field']}: {e['message']}" for e in errors), "errors": errors}, status_code=422
+        )
 
     def _internal_error(request: Request, exc: Exception) -> JSONResponse:
         log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
-        return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the service log has the details"},
-                            status_code=500)
+        return JSONResponse(
+            {"detail": f"internal error ({type(exc).__name__}); the service log has the details"}, status_code=500
+        )
 
     # The store's errors get a handler of their own (not only the catch-all below, after which
     # Starlette re-raises, and the server logs a traceback for what is only a busy database).
@@ -143,10 +166,14 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
         if not database_unavailable(exc):
             return _internal_error(request, exc)
         # Nothing wrong with the request: the database is away or out of connections.
-        log.warning("database unavailable on %s %s: %s", request.method, request.url.path,
-                    getattr(exc, "orig", None) or exc)
-        return JSONResponse({"detail": "the database is unavailable or overloaded: try again shortly"},
-                            status_code=503, headers={"Retry-After": "2"})
+        log.warning(
+            "database unavailable on %s %s: %s", request.method, request.url.path, getattr(exc, "orig", None) or exc
+        )
+        return JSONResponse(
+            {"detail": "the database is unavailable or overloaded: try again shortly"},
+            status_code=503,
+            headers={"Retry-After": "2"},
+        )
 
     @app.exception_handler(NotFound)
     @app.exception_handler(Conflict)

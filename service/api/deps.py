@@ -36,8 +36,11 @@ Orchestrator = Annotated[SessionRunner, Depends(get_orchestrator)]
 # its message). A token is only ever taken from the Authorization header, never from a URL (URLs
 # end up in access logs, proxies' logs and browser history): the page's event stream, which
 # cannot send headers, uses a short-lived single-use ticket instead (:class:`Tickets`).
-bearer_scheme = HTTPBearer(auto_error=False, scheme_name="bearer",
-                           description="An API token (`recal token create`), as `Authorization: Bearer <token>`.")
+bearer_scheme = HTTPBearer(
+    auto_error=False,
+    scheme_name="bearer",
+    description="An API token (`recal token create`), as `Authorization: Bearer <token>`.",
+)
 
 
 def _bearer(request: Request) -> str | None:
@@ -108,8 +111,9 @@ async def current_token(request: Request, _scheme: Annotated[object, Depends(bea
     # thread hop plus a query per request was most of the cost of a polled GET (bench/service.py).
     plain = _bearer(request)
     if not plain:
-        raise HTTPException(401, "missing token: send `Authorization: Bearer <token>`",
-                            headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(
+            401, "missing token: send `Authorization: Bearer <token>`", headers={"WWW-Authenticate": "Bearer"}
+        )
     cache, key = token_cache(request.app), hash_token(plain)
     tok = cache.get(key)
     if tok is None:

@@ -25,9 +25,13 @@ def install(app) -> None:
 
     @app.get("/docs", include_in_schema=False)
     def swagger_ui():
-        return get_swagger_ui_html(openapi_url=app.openapi_url, title="Recal API", swagger_js_url=f"{ASSETS}/swagger-ui-bundle.js",
-                                   swagger_css_url=f"{ASSETS}/swagger-ui.css",
-                                   swagger_favicon_url=f"{ASSETS}/favicon-32x32.png")
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url,
+            title="Recal API",
+            swagger_js_url=f"{ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{ASSETS}/favicon-32x32.png",
+        )
 
 
 ERRORS = {
@@ -78,13 +82,20 @@ def document_errors(app) -> None:
                 if path.endswith("/events"):  # the bearer token, or a ticket (stream_reader)
                     op["security"] = [{"bearer": []}]
                 if path.endswith("/compensate") and path.startswith("/api/v1/calibrations/"):
-                    op["requestBody"] = {"required": True, "description": "the task CSV or robot program (a KRL "
-                                         "program's .src and .dat: multipart/form-data, one part per file)",
-                                         "content": {m: {"schema": {"type": "string", "minLength": 1}}
-                                                     for m in ("text/csv", "text/plain")}}
+                    op["requestBody"] = {
+                        "required": True,
+                        "description": "the task CSV or robot program (a KRL "
+                        "program's .src and .dat: multipart/form-data, one part per file)",
+                        "content": {
+                            m: {"schema": {"type": "string", "minLength": 1}} for m in ("text/csv", "text/plain")
+                        },
+                    }
                 if method == "post" and path.endswith("/measurements") and path.startswith("/api/v1/cells/"):
-                    op["requestBody"] = {"required": True, "description": "a measurement CSV (contracts §3)",
-                                         "content": {"text/csv": {"schema": {"type": "string", "minLength": 1}}}}
+                    op["requestBody"] = {
+                        "required": True,
+                        "description": "a measurement CSV (contracts §3)",
+                        "content": {"text/csv": {"schema": {"type": "string", "minLength": 1}}},
+                    }
                 for (m, suffix), types in CONTENT.items():
                     if method == m and path.endswith(suffix) and "200" in op.get("responses", {}):
                         op["responses"]["200"]["content"] = {t: {"schema": {"type": "string"}} for t in types}
@@ -101,8 +112,10 @@ def document_errors(app) -> None:
                 for code in codes:
                     model = "ValidationProblem" if code == 422 else "Problem"
                     if code == 422 or str(code) not in responses:
-                        responses[str(code)] = {"description": ERRORS[code], "content": {"application/json": {
-                            "schema": {"$ref": f"#/components/schemas/{model}"}}}}
+                        responses[str(code)] = {
+                            "description": ERRORS[code],
+                            "content": {"application/json": {"schema": {"$ref": f"#/components/schemas/{model}"}}},
+                        }
         app.openapi_schema = doc
         return doc
 
@@ -150,9 +163,13 @@ def allowed_methods(app, path: str) -> list[str]:
     patterns = getattr(app.state, "path_patterns", None)
     if patterns is None:
         patterns = app.state.path_patterns = [
-            (re.compile("^" + re.sub(r"\\{[^}]+\\}", "[^/]+", re.escape(p)) + "$"), p.count("{"),
-             sorted(m.upper() for m in ops))
-            for p, ops in app.openapi().get("paths", {}).items()]
+            (
+                re.compile("^" + re.sub(r"\\{[^}]+\\}", "[^/]+", re.escape(p)) + "$"),
+                p.count("{"),
+                sorted(m.upper() for m in ops),
+            )
+            for p, ops in app.openapi().get("paths", {}).items()
+        ]
     # the most specific template first: /cells/{id}/tasks/compensate before /cells/{id}/tasks/{task_id}
     matches = [(wildcards, methods) for pattern, wildcards, methods in patterns if pattern.match(path)]
     return min(matches)[1] if matches else []

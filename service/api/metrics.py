@@ -44,10 +44,11 @@ class StoreCollector:
             states = db.exec(select(RunSession.state, func.count()).group_by(RunSession.state)).all()
             n_meas = db.exec(select(func.count(Measurement.id))).one()
             cells = db.exec(select(Cell.id, Cell.name, Cell.model["units"], Cell.drift_threshold)).all()
-            verifies = db.exec(select(RunSession.cell_id, RunSession.plan_info)
-                               .where(RunSession.kind == "verify", RunSession.state == "completed",
-                                      RunSession.dry_run == False)  # noqa: E712
-                               .order_by(RunSession.id)).all()
+            verifies = db.exec(
+                select(RunSession.cell_id, RunSession.plan_info)
+                .where(RunSession.kind == "verify", RunSession.state == "completed", RunSession.dry_run == False)  # noqa: E712
+                .order_by(RunSession.id)
+            ).all()
         g = GaugeMetricFamily("recal_sessions", "Sessions by state", labels=["state"])
         for state, n in states:
             g.add_metric([state], n)
@@ -58,13 +59,18 @@ class StoreCollector:
             v = (info or {}).get("verify")
             if v and v.get("max") is not None:
                 last[cell_id] = v
-        rms = GaugeMetricFamily("recal_cell_verified_rms", "Last verify session's measured RMS position error",
-                                labels=["cell", "unit"])
-        mx = GaugeMetricFamily("recal_cell_verified_max", "Last verify session's measured max position error",
-                               labels=["cell", "unit"])
+        rms = GaugeMetricFamily(
+            "recal_cell_verified_rms", "Last verify session's measured RMS position error", labels=["cell", "unit"]
+        )
+        mx = GaugeMetricFamily(
+            "recal_cell_verified_max", "Last verify session's measured max position error", labels=["cell", "unit"]
+        )
         thr = GaugeMetricFamily("recal_cell_drift_threshold", "The cell's drift threshold", labels=["cell", "unit"])
-        ratio = GaugeMetricFamily("recal_cell_drift_ratio", "Last verified max error over the drift threshold "
-                                                            "(above 1: drifted)", labels=["cell"])
+        ratio = GaugeMetricFamily(
+            "recal_cell_drift_ratio",
+            "Last verified max error over the drift threshold (above 1: drifted)",
+            labels=["cell"],
+        )
         for cell_id, name, units, threshold in cells:
             unit = (units or {}).get("length") or "?"
             v = last.get(cell_id)
@@ -83,8 +89,13 @@ def install(app) -> callable:
     """The app's registry, with its request histogram and the store's figures; returns the
     function :class:`.middleware.RequestLog` calls with each request's latency."""
     registry = CollectorRegistry(auto_describe=True)
-    latency = Histogram("recal_request_duration_seconds", "Request latency at the service", ["method", "route", "status"],
-                        buckets=BUCKETS_S, registry=registry)
+    latency = Histogram(
+        "recal_request_duration_seconds",
+        "Request latency at the service",
+        ["method", "route", "status"],
+        buckets=BUCKETS_S,
+        registry=registry,
+    )
     registry.register(StoreCollector(app))
     app.state.metrics_registry = registry
 

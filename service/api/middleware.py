@@ -27,8 +27,11 @@ access_log = logging.getLogger("recal.access")
 
 # Routes whose bodies are task files (a task CSV or URScript, raw or inside JSON), answered by
 # ``max_task_bytes``; any other body by ``max_body_bytes``.
-TASK_ROUTES = (re.compile(r"^/api/v1/calibrations/[^/]+/compensate$"), re.compile(r"^/api/v1/cells/[^/]+/tasks$"),
-               re.compile(r"^/api/v1/cells/[^/]+/measurements$"))  # the import of an external CSV
+TASK_ROUTES = (
+    re.compile(r"^/api/v1/calibrations/[^/]+/compensate$"),
+    re.compile(r"^/api/v1/cells/[^/]+/tasks$"),
+    re.compile(r"^/api/v1/cells/[^/]+/measurements$"),
+)  # the import of an external CSV
 SECRET_KEYS = {"token", "ticket", "access_token", "password", "secret", "key", "api_key"}
 
 
@@ -36,8 +39,11 @@ class BodyTooLarge(RecalError, HTTPException):
     """A request body beyond its route's limit: answered 413."""
 
     def __init__(self, limit: int, setting: str):
-        super().__init__(413, f"request body too large: at most {limit} bytes on this route (the service's "
-                              f"{setting} setting)", headers={"Connection": "close"})
+        super().__init__(
+            413,
+            f"request body too large: at most {limit} bytes on this route (the service's {setting} setting)",
+            headers={"Connection": "close"},
+        )
 
 
 def _header(scope, name: bytes) -> str | None:
@@ -62,8 +68,9 @@ class BodyLimit:
         limit, setting = self.limit_for(scope["path"])
         declared = _header(scope, b"content-length")
         if declared is not None and declared.strip().isdigit() and int(declared) > limit:
-            return await _send_json(send, 413, {"detail": BodyTooLarge(limit, setting).detail},
-                                    extra=[(b"connection", b"close")])
+            return await _send_json(
+                send, 413, {"detail": BodyTooLarge(limit, setting).detail}, extra=[(b"connection", b"close")]
+            )
         seen = 0
 
         async def limited():
@@ -80,9 +87,17 @@ class BodyLimit:
 
 async def _send_json(send, status: int, doc: dict, extra: list | None = None) -> None:
     body = json.dumps(doc).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            *(extra or [])]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                *(extra or []),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": body})
 
 
@@ -138,21 +153,40 @@ class RequestLog:
             if access_log.isEnabledFor(logging.INFO):
                 client = scope.get("client")
                 query = redacted_query(scope.get("query_string", b"").decode("latin-1"))
-                access_log.info(json.dumps({
-                    "method": scope["method"], "path": scope["path"], "query": query or None, "route": route,
-                    "status": status, "duration_ms": round(elapsed * 1e3, 2),
-                    "client": f"{client[0]}:{client[1]}" if client else None}, separators=(",", ":")))
+                access_log.info(
+                    json.dumps(
+                        {
+                            "method": scope["method"],
+                            "path": scope["path"],
+                            "query": query or None,
+                            "route": route,
+                            "status": status,
+                            "duration_ms": round(elapsed * 1e3, 2),
+                            "client": f"{client[0]}:{client[1]}" if client else None,
+                        },
+                        separators=(",", ":"),
+                    )
+                )
 
 
 # The routes the technician's page polls (service/web/js/views) whose answers are computed from
 # several queries and the models (residuals, predicted accuracy): answered from a short-lived
 # cache. The session's own status (GET /sessions/{id}) is not here: it is one indexed read
 # already, and what jobs wait on.
-PAGE_ROUTES = tuple(re.compile(p) for p in (
-    r"^/api/v1/overview$", r"^/api/v1/cells/[^/]+/summary$", r"^/api/v1/cells/[^/]+/history$",
-    r"^/api/v1/cells/[^/]+/session-list$", r"^/api/v1/cells/[^/]+/drift$",
-    r"^/api/v1/sessions/[^/]+/measurements$", r"^/api/v1/sessions/[^/]+/live$",
-    r"^/api/v1/calibrations/[^/]+/result$", r"^/api/v1/calibrations/[^/]+/comparison$"))
+PAGE_ROUTES = tuple(
+    re.compile(p)
+    for p in (
+        r"^/api/v1/overview$",
+        r"^/api/v1/cells/[^/]+/summary$",
+        r"^/api/v1/cells/[^/]+/history$",
+        r"^/api/v1/cells/[^/]+/session-list$",
+        r"^/api/v1/cells/[^/]+/drift$",
+        r"^/api/v1/sessions/[^/]+/measurements$",
+        r"^/api/v1/sessions/[^/]+/live$",
+        r"^/api/v1/calibrations/[^/]+/result$",
+        r"^/api/v1/calibrations/[^/]+/comparison$",
+    )
+)
 
 
 class PageCache:

@@ -20,15 +20,24 @@ DEFAULT_JOINT_TOL = 0.05  # degrees (or mm for prismatic joints)
 
 
 def add_parser(s) -> None:
-    s.add_argument("--model", required=True, help="model file (recal.model/1) or a library robot name; its world "
-                   "frame must be the instrument's (an identified model's is)")
-    s.add_argument("--data", required=True, help="measurement CSV (contracts §3); repeated configurations give the "
-                   "repeatability")
+    s.add_argument(
+        "--model",
+        required=True,
+        help="model file (recal.model/1) or a library robot name; its world "
+        "frame must be the instrument's (an identified model's is)",
+    )
+    s.add_argument(
+        "--data", required=True, help="measurement CSV (contracts §3); repeated configurations give the repeatability"
+    )
     s.add_argument("--target", help="the target measured by rows that name none (default the tool origin)")
     s.add_argument("--out", help="JSON report to write (every figure, per pose and overall)")
-    s.add_argument("--joint-tol", type=float, help="rows without a pose_id are the same pose when every joint "
-                   "reading agrees within this, model angle unit (length unit for prismatic joints); default "
-                   "0.05 degrees (0.05 mm)")
+    s.add_argument(
+        "--joint-tol",
+        type=float,
+        help="rows without a pose_id are the same pose when every joint "
+        "reading agrees within this, model angle unit (length unit for prismatic joints); default "
+        "0.05 degrees (0.05 mm)",
+    )
 
 
 def _labels(args, model, data, table):
@@ -41,8 +50,13 @@ def _labels(args, model, data, table):
         labels = table.strings(column)
         for r, v in enumerate(labels):
             if v is None:
-                raise InputError(args.data, f"expected a pose label (the file has a {column!r} column, so every row "
-                                            f"needs one)", row=r + 1, line=table.lines[r], column=column)
+                raise InputError(
+                    args.data,
+                    f"expected a pose label (the file has a {column!r} column, so every row needs one)",
+                    row=r + 1,
+                    line=table.lines[r],
+                    column=column,
+                )
         return np.array(labels, dtype=object), f"by the {column!r} column"
     u = model.units
     if args.joint_tol is not None:
@@ -50,10 +64,12 @@ def _labels(args, model, data, table):
         tol_si = np.array([tol * (u.angle_rad if j.revolute else u.length_m) for j in model.joints])
         said = f"{tol:g} {u.angle}" + ("" if all(j.revolute for j in model.joints) else f" ({tol:g} {u.length})")
     else:
-        tol_si = np.array([math.radians(DEFAULT_JOINT_TOL) if j.revolute else DEFAULT_JOINT_TOL * 1e-3
-                           for j in model.joints])
-        said = f"{DEFAULT_JOINT_TOL:g} deg" + ("" if all(j.revolute for j in model.joints)
-                                               else f" ({DEFAULT_JOINT_TOL:g} mm)")
+        tol_si = np.array(
+            [math.radians(DEFAULT_JOINT_TOL) if j.revolute else DEFAULT_JOINT_TOL * 1e-3 for j in model.joints]
+        )
+        said = f"{DEFAULT_JOINT_TOL:g} deg" + (
+            "" if all(j.revolute for j in model.joints) else f" ({DEFAULT_JOINT_TOL:g} mm)"
+        )
     ids = group_configurations(data.q, tol_si)
     return np.array([str(k + 1) for k in ids], dtype=object), f"by joint readings within {said}"
 
@@ -102,8 +118,9 @@ def run(args) -> int:
     model = load_model(args.model)
     if args.target is not None and args.target not in model.targets:
         known = f"one of {', '.join(sorted(model.targets))}" if model.targets else "a target, but the model has none"
-        raise InputError(args.model, f"field 'targets': no target {args.target!r} (asked for by --target); "
-                                     f"expected {known}")
+        raise InputError(
+            args.model, f"field 'targets': no target {args.target!r} (asked for by --target); expected {known}"
+        )
     data = read_measurements(args.data, model)
     labels, grouping = _labels(args, model, data, read_table(args.data))
     names, p_cmd, (R_cmd, R_meas) = _commands(model, data, args.target)
@@ -126,12 +143,18 @@ def _report(args, model, data, grouping, keys, pose, st, err) -> dict:
     per_pose = []
     for k, (label, target) in enumerate(keys):
         entry = {
-            "pose": label, "target": target, "n": int(st.n[k]), "rows": [int(r) for r in data.row[pose == k]],
+            "pose": label,
+            "target": target,
+            "n": int(st.n[k]),
+            "rows": [int(r) for r in data.row[pose == k]],
             "command": [_f(v / L, 9) for v in st.command_m[k]],
             "barycentre": [_f(v / L, 9) for v in st.barycentre_m[k]],
-            "AP": _f(st.AP_m[k] / L), "AP_xyz": [_f(v / L) for v in st.AP_xyz_m[k]],
+            "AP": _f(st.AP_m[k] / L),
+            "AP_xyz": [_f(v / L) for v in st.AP_xyz_m[k]],
             "l_mean": _f(st.l_mean_m[k] / L) if repeated[k] else None,
-            "S_l": _f(st.S_l_m[k] / L), "three_S_l": _f(3.0 * st.S_l_m[k] / L), "RP": _f(st.RP_m[k] / L),
+            "S_l": _f(st.S_l_m[k] / L),
+            "three_S_l": _f(3.0 * st.S_l_m[k] / L),
+            "RP": _f(st.RP_m[k] / L),
         }
         if st.AP_abc_rad is not None:
             entry["AP_abc"] = [_f(v / A) for v in st.AP_abc_rad[k]]
@@ -139,32 +162,52 @@ def _report(args, model, data, grouping, keys, pose, st, err) -> dict:
         per_pose.append(entry)
     rp = st.RP_m[repeated]
     overall = {
-        "poses": len(keys), "repeated_poses": int(repeated.sum()),
+        "poses": len(keys),
+        "repeated_poses": int(repeated.sum()),
         "AP": {"mean": _f(st.AP_m.mean() / L), "max": _f(st.AP_m.max() / L)},
         "RP": {"mean": _f(rp.mean() / L), "max": _f(rp.max() / L)} if rp.size else None,
     }
     if st.AP_abc_rad is not None:
         overall["AP_abc_max"] = [_f(v / A) for v in np.abs(st.AP_abc_rad).max(axis=0)]
-        overall["RP_abc_max"] = ([_f(v / A) for v in st.RP_abc_rad[repeated].max(axis=0)] if rp.size else None)
+        overall["RP_abc_max"] = [_f(v / A) for v in st.RP_abc_rad[repeated].max(axis=0)] if rp.size else None
     errors = {
-        "n": err.n, "mean": _f(err.mean_m / L), "std": _f(err.std_m / L), "three_sigma": _f(err.three_sigma_m / L),
-        "mean_plus_3sigma": _f(err.mean_plus_3sigma_m / L), "rms": _f(err.rms_m / L), "p95": _f(err.p95_m / L),
-        "max": _f(err.max_m / L), "bias_xyz": [_f(v / L) for v in err.bias_xyz_m],
+        "n": err.n,
+        "mean": _f(err.mean_m / L),
+        "std": _f(err.std_m / L),
+        "three_sigma": _f(err.three_sigma_m / L),
+        "mean_plus_3sigma": _f(err.mean_plus_3sigma_m / L),
+        "rms": _f(err.rms_m / L),
+        "p95": _f(err.p95_m / L),
+        "max": _f(err.max_m / L),
+        "bias_xyz": [_f(v / L) for v in err.bias_xyz_m],
     }
     if err.errors_rad is not None:
-        errors["angle"] = {"mean": _f(err.mean_rad / A), "three_sigma": _f(err.three_sigma_rad / A),
-                           "mean_plus_3sigma": _f(err.mean_plus_3sigma_rad / A), "max": _f(err.max_rad / A)}
+        errors["angle"] = {
+            "mean": _f(err.mean_rad / A),
+            "three_sigma": _f(err.three_sigma_rad / A),
+            "mean_plus_3sigma": _f(err.mean_plus_3sigma_rad / A),
+            "max": _f(err.max_rad / A),
+        }
     single = len(keys) - int(repeated.sum())
     note = None
     if not rp.size:
-        note = ("every pose was measured once: these are accuracy figures only; the repeatability RP needs each "
-                "configuration measured at least twice (ISO 9283: 30 times)")
+        note = (
+            "every pose was measured once: these are accuracy figures only; the repeatability RP needs each "
+            "configuration measured at least twice (ISO 9283: 30 times)"
+        )
     elif single:
         note = f"{single} of {len(keys)} poses were measured once: they have an AP but no RP"
     return {
-        "format": "recal.accuracy-report/1", "model": model.name, "data": str(args.data),
-        "units": {"length": u.length, "angle": u.angle}, "grouping": grouping, "measurements": int(len(data)),
-        "per_pose": per_pose, "overall": overall, "errors": errors, "note": note,
+        "format": "recal.accuracy-report/1",
+        "model": model.name,
+        "data": str(args.data),
+        "units": {"length": u.length, "angle": u.angle},
+        "grouping": grouping,
+        "measurements": int(len(data)),
+        "per_pose": per_pose,
+        "overall": overall,
+        "errors": errors,
+        "note": note,
     }
 
 
@@ -175,16 +218,27 @@ def _num(v) -> str:
 def _print(rep: dict) -> None:
     lu, au = rep["units"]["length"], rep["units"]["angle"]
     o, e = rep["overall"], rep["errors"]
-    print(f"ISO 9283 pose accuracy (AP) and repeatability (RP) of {rep['model']} on {rep['data']}: "
-          f"{rep['measurements']} measurements of {o['poses']} poses (grouped {rep['grouping']}); {lu}, {au}")
+    print(
+        f"ISO 9283 pose accuracy (AP) and repeatability (RP) of {rep['model']} on {rep['data']}: "
+        f"{rep['measurements']} measurements of {o['poses']} poses (grouped {rep['grouping']}); {lu}, {au}"
+    )
     orient = "AP_abc" in (rep["per_pose"][0] if rep["per_pose"] else {})
     head = ["pose", "target", "n", "AP", "AP_x", "AP_y", "AP_z", "l_mean", "S_l", "3S_l", "RP"]
     if orient:
         head += ["AP_a", "AP_b", "AP_c", "RP_a", "RP_b", "RP_c"]
     rows = []
     for p in rep["per_pose"]:
-        row = [p["pose"], p["target"] or "-", str(p["n"]), _num(p["AP"]), *map(_num, p["AP_xyz"]), _num(p["l_mean"]),
-               _num(p["S_l"]), _num(p["three_S_l"]), _num(p["RP"])]
+        row = [
+            p["pose"],
+            p["target"] or "-",
+            str(p["n"]),
+            _num(p["AP"]),
+            *map(_num, p["AP_xyz"]),
+            _num(p["l_mean"]),
+            _num(p["S_l"]),
+            _num(p["three_S_l"]),
+            _num(p["RP"]),
+        ]
         if orient:
             row += [*map(_num, p["AP_abc"]), *map(_num, p["RP_abc"])]
         rows.append(row)
@@ -193,12 +247,16 @@ def _print(rep: dict) -> None:
         print("  ".join(c.rjust(w) if i >= 2 else c.ljust(w) for i, (c, w) in enumerate(zip(r, width))).rstrip())
     line = f"overall: AP mean {_num(o['AP']['mean'])}, max {_num(o['AP']['max'])} {lu}"
     if o["RP"] is not None:
-        line += (f"; RP mean {_num(o['RP']['mean'])}, max {_num(o['RP']['max'])} {lu} "
-                 f"({o['repeated_poses']} poses measured more than once)")
+        line += (
+            f"; RP mean {_num(o['RP']['mean'])}, max {_num(o['RP']['max'])} {lu} "
+            f"({o['repeated_poses']} poses measured more than once)"
+        )
     print(line)
-    line = (f"position error of the {e['n']} measurements: mean {_num(e['mean'])}, 3σ {_num(e['three_sigma'])}, "
-            f"mean + 3σ {_num(e['mean_plus_3sigma'])}, RMS {_num(e['rms'])}, p95 {_num(e['p95'])}, "
-            f"max {_num(e['max'])} {lu}")
+    line = (
+        f"position error of the {e['n']} measurements: mean {_num(e['mean'])}, 3σ {_num(e['three_sigma'])}, "
+        f"mean + 3σ {_num(e['mean_plus_3sigma'])}, RMS {_num(e['rms'])}, p95 {_num(e['p95'])}, "
+        f"max {_num(e['max'])} {lu}"
+    )
     if "angle" in e:
         line += f"; orientation error mean {_num(e['angle']['mean'])}, max {_num(e['angle']['max'])} {au}"
     print(line)

@@ -30,9 +30,11 @@ def run(args) -> int:
     settings = Settings.from_env()
     url = make_url(settings.effective_database_url)
     if not url.drivername.startswith("sqlite"):
-        raise Fail(f"the store is {url.drivername.split('+')[0]} ({url.render_as_string(hide_password=True)}): back it "
-                   f"up with pg_dump (docs/service.md, 'Backup and retention'); recal backup copies the embedded "
-                   f"SQLite store")
+        raise Fail(
+            f"the store is {url.drivername.split('+')[0]} ({url.render_as_string(hide_password=True)}): back it "
+            f"up with pg_dump (docs/service.md, 'Backup and retention'); recal backup copies the embedded "
+            f"SQLite store"
+        )
     source = Path(url.database or "")
     if not source.is_file():
         raise Fail(f"no database at {source} (RECAL_HOME={settings.home}); expected the service's recal.db")

@@ -32,41 +32,86 @@ import sys
 import numpy as np
 
 
-
 def add_parser(s) -> None:
     s.add_argument("--model", required=True, help="identified model (recal.model/1)")
-    s.add_argument("--task", required=True, help="task CSV (contracts §5) or robot program: URScript (.script, "
-                   ".urscript), ABB RAPID (.mod, .modx, .prg), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls)")
-    s.add_argument("--format", choices=["csv", "urscript", "rapid", "krl", "fanuc-tp"],
-                   help="the task file's format (default: from its extension)")
-    s.add_argument("--tool-frame", action="append", metavar="[N=]X,Y,Z,A,B,C", help="KRL/TP: a tool frame in the "
-                   "flange (mm; KUKA A,B,C or Fanuc W,P,R in degrees); N= numbers it (TOOL_DATA[N], UT N), without "
-                   "it the tool active when the program starts (KRL) or of every target (TP). Repeatable")
-    s.add_argument("--base-frame", action="append", metavar="[N=]X,Y,Z,A,B,C", help="KRL/TP: a base (user) frame "
-                   "in the robot's base frame, as --tool-frame (BASE_DATA[N], UF N). Repeatable")
-    s.add_argument("--config-dat", metavar="$config.dat", help="KRL: the controller's $config.dat, whose "
-                   "TOOL_DATA[N] and BASE_DATA[N] give the frames the program selects")
+    s.add_argument(
+        "--task",
+        required=True,
+        help="task CSV (contracts §5) or robot program: URScript (.script, "
+        ".urscript), ABB RAPID (.mod, .modx, .prg), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls)",
+    )
+    s.add_argument(
+        "--format",
+        choices=["csv", "urscript", "rapid", "krl", "fanuc-tp"],
+        help="the task file's format (default: from its extension)",
+    )
+    s.add_argument(
+        "--tool-frame",
+        action="append",
+        metavar="[N=]X,Y,Z,A,B,C",
+        help="KRL/TP: a tool frame in the "
+        "flange (mm; KUKA A,B,C or Fanuc W,P,R in degrees); N= numbers it (TOOL_DATA[N], UT N), without "
+        "it the tool active when the program starts (KRL) or of every target (TP). Repeatable",
+    )
+    s.add_argument(
+        "--base-frame",
+        action="append",
+        metavar="[N=]X,Y,Z,A,B,C",
+        help="KRL/TP: a base (user) frame in the robot's base frame, as --tool-frame (BASE_DATA[N], UF N). Repeatable",
+    )
+    s.add_argument(
+        "--config-dat",
+        metavar="$config.dat",
+        help="KRL: the controller's $config.dat, whose "
+        "TOOL_DATA[N] and BASE_DATA[N] give the frames the program selects",
+    )
     s.add_argument("--out", required=True, help="compensated task file to write")
-    s.add_argument("--mode", choices=["joints", "targets"], default="joints",
-                   help="CSV: replace q1..qN (joints, default) or x..qz for a nominal controller (targets)")
-    s.add_argument("--nominal", help="the nominal model the controller uses (default: the one the identified model "
-                   "records)")
-    s.add_argument("--taught-on", metavar="MODEL", help="identified model of the robot the task's joint vectors were "
-                   "taught on, same world frame (default: they were planned on the nominal model)")
+    s.add_argument(
+        "--mode",
+        choices=["joints", "targets"],
+        default="joints",
+        help="CSV: replace q1..qN (joints, default) or x..qz for a nominal controller (targets)",
+    )
+    s.add_argument(
+        "--nominal", help="the nominal model the controller uses (default: the one the identified model records)"
+    )
+    s.add_argument(
+        "--taught-on",
+        metavar="MODEL",
+        help="identified model of the robot the task's joint vectors were "
+        "taught on, same world frame (default: they were planned on the nominal model)",
+    )
     s.add_argument("--report", help="per-point report to write (JSON)")
-    s.add_argument("--payload", metavar="KG[,X,Y,Z]",
-                   help="the task's payload, for a compliant model: mass (kg) and centre of gravity in the tool frame "
-                        "(model length unit)")
-    s.add_argument("--calibration-data", metavar="MEAS.csv", help="the identification measurements: their joint "
-                   "ranges are the calibrated region (default: the ranges the identified model records)")
-    s.add_argument("--qnear", help="comma-separated joints (model units) that choose the branch of rows without "
-                   "q1..qN (default: all zero): the solution nearest it is taken, as UR's get_inverse_kin does; "
-                   "for robots without a closed form it is also where the numerical inverse kinematics starts")
+    s.add_argument(
+        "--payload",
+        metavar="KG[,X,Y,Z]",
+        help="the task's payload, for a compliant model: mass (kg) and centre of gravity in the tool frame "
+        "(model length unit)",
+    )
+    s.add_argument(
+        "--calibration-data",
+        metavar="MEAS.csv",
+        help="the identification measurements: their joint "
+        "ranges are the calibrated region (default: the ranges the identified model records)",
+    )
+    s.add_argument(
+        "--qnear",
+        help="comma-separated joints (model units) that choose the branch of rows without "
+        "q1..qN (default: all zero): the solution nearest it is taken, as UR's get_inverse_kin does; "
+        "for robots without a closed form it is also where the numerical inverse kinematics starts",
+    )
     s.add_argument("--tolerance", type=float, help="position residual to reach, model length unit (default 1e-9 m)")
-    s.add_argument("--singular-tol", type=float, default=0.02, help="near_singular below this smallest "
-                   "dimensionless singular value of the Jacobian (default 0.02)")
-    s.add_argument("--max-correction", type=float, help="branch_change above this joint correction, model angle "
-                   "unit (default 5 degrees)")
+    s.add_argument(
+        "--singular-tol",
+        type=float,
+        default=0.02,
+        help="near_singular below this smallest dimensionless singular value of the Jacobian (default 0.02)",
+    )
+    s.add_argument(
+        "--max-correction",
+        type=float,
+        help="branch_change above this joint correction, model angle unit (default 5 degrees)",
+    )
 
 
 # ----------------------------------------------------------------------------- models
@@ -99,8 +144,9 @@ def _models(args):
             try:
                 nominal = model_from_dict(doc)
             except ModelFormatError as exc:
-                raise Fail(f"{args.model}: field 'identification.{key}.{exc.field}': "
-                           f"{str(exc).split(': ', 1)[-1]}") from None
+                raise Fail(
+                    f"{args.model}: field 'identification.{key}.{exc.field}': {str(exc).split(': ', 1)[-1]}"
+                ) from None
     taught = load_model(args.taught_on) if args.taught_on else None
     for m, what in ((nominal, args.nominal or "identification.nominal"), (taught, args.taught_on)):
         if m is not None and m.n_joints != model.n_joints:
@@ -172,17 +218,30 @@ def run(args) -> int:
 
     fmt = format_of(args.task, getattr(args, "format", None))
     if fmt == "csv" and str(args.task).lower().endswith(".dat"):
-        raise InputError(args.task, "a KRL program is compensated from its .src (the .dat beside it is read and "
-                                    "written with it): give --task PROGRAM.src")
+        raise InputError(
+            args.task,
+            "a KRL program is compensated from its .src (the .dat beside it is read and "
+            "written with it): give --task PROGRAM.src",
+        )
     for path in (args.out, args.report):  # before any work: a run never ends unable to write
         if path:
             check_output(path)
     model, nominal, taught = _models(args)
     kw, qnear = _settings(args, model)
-    req = CompensationRequest(task=args.task, out=args.out, model_label=args.model, fmt=fmt, mode=args.mode,
-                              nominal=nominal, taught=taught, calibrated=_calibrated_range(args, model), settings=kw,
-                              qnear=qnear, frames=_frames(args) if fmt not in ("csv", "urscript") else None,
-                              report=bool(args.report))
+    req = CompensationRequest(
+        task=args.task,
+        out=args.out,
+        model_label=args.model,
+        fmt=fmt,
+        mode=args.mode,
+        nominal=nominal,
+        taught=taught,
+        calibrated=_calibrated_range(args, model),
+        settings=kw,
+        qnear=qnear,
+        frames=_frames(args) if fmt not in ("csv", "urscript") else None,
+        report=bool(args.report),
+    )
     try:
         result = compensate_task(model, req, progress=progress)
     except NoTargetsError as exc:
@@ -194,17 +253,21 @@ def run(args) -> int:
     for path, data in result.outputs:
         write_atomic(path, data)
     for s in result.skipped:
-        print(f"warning: {s.get('file', args.task)}, line {s['line']}: not compensated ({s['reason']}): {s['text']}",
-              file=sys.stderr)
+        print(
+            f"warning: {s.get('file', args.task)}, line {s['line']}: not compensated ({s['reason']}): {s['text']}",
+            file=sys.stderr,
+        )
     summary = result.summary
     for note in summary["notes"]:
         print(f"note: {note}", file=sys.stderr)
     flagged = ", ".join(f"{k} {v}" for k, v in summary["flags"].items() if v)
     label = {"urscript": "URScript", "rapid": "RAPID", "krl": "KRL", "fanuc-tp": "Fanuc TP"}.get(fmt)
-    print(f"compensated {len(result.comp)} points ({label or args.mode + ' mode'}): "
-          f"{summary['converged']} converged, residual max {_shown(summary['residual_max'])} {model.units.length}"
-          + (f"; flagged: {flagged}" if flagged else "")
-          + f"; wrote {', '.join(str(p) for p, _ in result.outputs)}")
+    print(
+        f"compensated {len(result.comp)} points ({label or args.mode + ' mode'}): "
+        f"{summary['converged']} converged, residual max {_shown(summary['residual_max'])} {model.units.length}"
+        + (f"; flagged: {flagged}" if flagged else "")
+        + f"; wrote {', '.join(str(p) for p, _ in result.outputs)}"
+    )
     return 0
 
 

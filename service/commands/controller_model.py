@@ -17,13 +17,24 @@ import json
 def add_parser(s) -> None:
     s.add_argument("--rtde", required=True, metavar="HOST", help="the UR controller's address")
     s.add_argument("--out", required=True, help="model file to write (recal.model/1)")
-    s.add_argument("--robot", help="library robot whose published table the fit starts from and whose names, "
-                   "limits and units it keeps (default: from the dashboard's `get robot model`, e.g. UR5 -> ur5e)")
-    s.add_argument("--poses", type=int, default=48, help="configurations for the fit, as many again for the "
-                   "check (default 48; at least 5)")
+    s.add_argument(
+        "--robot",
+        help="library robot whose published table the fit starts from and whose names, "
+        "limits and units it keeps (default: from the dashboard's `get robot model`, e.g. UR5 -> ur5e)",
+    )
+    s.add_argument(
+        "--poses",
+        type=int,
+        default=48,
+        help="configurations for the fit, as many again for the check (default 48; at least 5)",
+    )
     s.add_argument("--seed", type=int, default=0, help="seed of the configurations (default 0)")
-    s.add_argument("--tolerance", type=float, default=1.0, help="largest position difference to the controller, "
-                   "um (and urad in rotation) (default 1)")
+    s.add_argument(
+        "--tolerance",
+        type=float,
+        default=1.0,
+        help="largest position difference to the controller, um (and urad in rotation) (default 1)",
+    )
 
 
 def run(args) -> int:
@@ -44,14 +55,23 @@ def run(args) -> int:
         reference = reference_model(args.robot, answer)
         progress(f"asking {args.rtde} for its forward kinematics at {2 * args.poses} configurations")
         with UrRtdeRobot(UrRtdeConfig(host=args.rtde)) as robot:
-            doc = read_controller_model(robot, reference, source=f"UR controller {args.rtde}", n_fit=args.poses,
-                                        n_check=args.poses, seed=args.seed, tolerance_m=args.tolerance * 1e-6)
+            doc = read_controller_model(
+                robot,
+                reference,
+                source=f"UR controller {args.rtde}",
+                n_fit=args.poses,
+                n_check=args.poses,
+                seed=args.seed,
+                tolerance_m=args.tolerance * 1e-6,
+            )
     except ControllerModelError as exc:
         raise Fail(str(exc)) from None
     except DeviceError as exc:
         raise Fail(str(exc)) from None
     write_atomic(args.out, json.dumps(doc, indent=2) + "\n")
     check = doc["controller"]["check"]
-    print(f"{args.out}: {doc['name']}, reproduces the controller to {check['position_max_um']:.2g} um and "
-          f"{check['rotation_max_urad']:.2g} urad at {args.poses} check configurations")
+    print(
+        f"{args.out}: {doc['name']}, reproduces the controller to {check['position_max_um']:.2g} um and "
+        f"{check['rotation_max_urad']:.2g} urad at {args.poses} check configurations"
+    )
     return 0

@@ -23,14 +23,26 @@ def add_parser(s) -> None:
     s.add_argument("--data", required=True, help="circle-point CSV (contracts §4): measurements plus a `joint` column")
     s.add_argument("--out", required=True, help="model file to write")
     s.add_argument("--report", help="JSON report to write (per-joint fits and diagnostics)")
-    s.add_argument("--convention", choices=["dh", "poe"],
-                   help="convention of the written model (default: poe for a poe nominal model, else dh)")
-    s.add_argument("--method", default="geometric", choices=["geometric", "kasa"],
-                   help="circle fit: geometric least squares (default) or the algebraic Kåsa fit alone")
-    s.add_argument("--sigma", type=float, help="instrument standard uncertainty per axis, in the model's length "
-                   "unit, for the small-radius warnings (default: estimated from the residuals)")
-    s.add_argument("--min-arc", type=float, help="warn for arcs under this, in the model's angle unit "
-                   "(default: half a circle)")
+    s.add_argument(
+        "--convention",
+        choices=["dh", "poe"],
+        help="convention of the written model (default: poe for a poe nominal model, else dh)",
+    )
+    s.add_argument(
+        "--method",
+        default="geometric",
+        choices=["geometric", "kasa"],
+        help="circle fit: geometric least squares (default) or the algebraic Kåsa fit alone",
+    )
+    s.add_argument(
+        "--sigma",
+        type=float,
+        help="instrument standard uncertainty per axis, in the model's length "
+        "unit, for the small-radius warnings (default: estimated from the residuals)",
+    )
+    s.add_argument(
+        "--min-arc", type=float, help="warn for arcs under this, in the model's angle unit (default: half a circle)"
+    )
 
 
 def read_sweeps(path: str | os.PathLike, model):
@@ -41,16 +53,24 @@ def read_sweeps(path: str | os.PathLike, model):
 
     table = read_table(path)
     if not table.has("joint"):
-        raise InputError(path, f"missing required column 'joint' (the swept joint, 1..{model.n_joints}; "
-                               f"header has: {', '.join(table.header)})")
+        raise InputError(
+            path,
+            f"missing required column 'joint' (the swept joint, 1..{model.n_joints}; "
+            f"header has: {', '.join(table.header)})",
+        )
     data = read_measurements(path, model)
     raw = table.numbers("joint")
     joint = np.empty(len(raw), dtype=int)
     for r, x in enumerate(raw):
         if x != math.floor(x) or not 1 <= x <= model.n_joints:
             cell = table.rows[r][table.index["joint"]].strip()
-            raise InputError(path, f"expected a joint number 1..{model.n_joints}, got {cell!r}",
-                             row=r + 1, line=table.lines[r], column="joint")
+            raise InputError(
+                path,
+                f"expected a joint number 1..{model.n_joints}, got {cell!r}",
+                row=r + 1,
+                line=table.lines[r],
+                column="joint",
+            )
         joint[r] = int(x) - 1
     return Sweeps(q=data.q, p_world=data.p_world, joint=joint, target=data.target, row=data.row), table
 
@@ -72,8 +92,14 @@ def run(args) -> int:
     if args.min_arc is not None:
         kw["min_arc_rad"] = args.min_arc * A
     try:
-        result = circle_point_analysis(model, sweeps, method=args.method, convention=args.convention,
-                                       sigma_m=args.sigma * L if args.sigma is not None else None, **kw)
+        result = circle_point_analysis(
+            model,
+            sweeps,
+            method=args.method,
+            convention=args.convention,
+            sigma_m=args.sigma * L if args.sigma is not None else None,
+            **kw,
+        )
     except SweepError as exc:
         line = None
         if exc.row is not None and 1 <= exc.row <= len(table.lines):
@@ -85,13 +111,17 @@ def run(args) -> int:
     rep["elapsed_s"] = round(time.perf_counter() - t0, 3)
     if args.report:
         write_atomic(args.report, json.dumps(rep, indent=2) + "\n")
-    block = {k: rep[k] for k in ("success", "message", "rows", "signature", "registration", "target_changes",
-                                 "warnings", "notes")}
+    block = {
+        k: rep[k]
+        for k in ("success", "message", "rows", "signature", "registration", "target_changes", "warnings", "notes")
+    }
     block["axes"] = [{"joint": e["joint"], "swept": e["swept"], **e["axis"]} for e in rep["joints"]]
     save_model(args.out, result.model, {"cpa": block})
     worst = max((a.out_of_plane_rms_m for a in result.axes if a is not None), default=float("nan"))
-    print(f"circle-point analysis: {result.message}; worst out-of-plane RMS {worst / L:.4g} {model.units.length}; "
-          f"wrote a {result.model.convention} model to {args.out}")
+    print(
+        f"circle-point analysis: {result.message}; worst out-of-plane RMS {worst / L:.4g} {model.units.length}; "
+        f"wrote a {result.model.convention} model to {args.out}"
+    )
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
     return 0 if result.success else 1

@@ -50,21 +50,34 @@ def add_parser(s) -> None:
     s.add_argument("--robot", default="ur10e", help="library robot to simulate (default ur10e)")
     s.add_argument("--poses", type=int, default=40, help="configurations of the pose session (default 40)")
     s.add_argument("--seed", type=int, default=1)
-    s.add_argument("--dir", default=None,
-                   help="the demo's RECAL_HOME: its database, logs, tokens and files (default $RECAL_HOME if set, "
-                        "else demo-output)")
-    s.add_argument("--time-scale", type=float, default=DEMO_TIME_SCALE,
-                   help=f"the simulated cell's speed: a fraction of real time (default {DEMO_TIME_SCALE:g}, about one "
-                        f"pose a second; 0: as fast as possible)")
+    s.add_argument(
+        "--dir",
+        default=None,
+        help="the demo's RECAL_HOME: its database, logs, tokens and files (default $RECAL_HOME if set, "
+        "else demo-output)",
+    )
+    s.add_argument(
+        "--time-scale",
+        type=float,
+        default=DEMO_TIME_SCALE,
+        help=f"the simulated cell's speed: a fraction of real time (default {DEMO_TIME_SCALE:g}, about one "
+        f"pose a second; 0: as fast as possible)",
+    )
     s.add_argument("--host", default="127.0.0.2", help="loopback address of the simulated cell")
     s.add_argument("--port", type=int, default=8000, help="port of the service")
     s.add_argument("--exit", action="store_true", help="stop the service and the cell when done")
     s.add_argument("--offline", action="store_true", help="no service: files and `recal identify` only")
-    s.add_argument("--sag", choices=["cobot", "arm165"],
-                   help="the true robot sags under gravity (joint compliance of a cobot or a 165 kg-payload arm); "
-                        "offline, half the poses carry the rated payload and rigid and compliant are compared")
-    s.add_argument("--models-only", action="store_true",
-                   help="write nominal.json and truth.json (the simulated robot) into --dir, then stop")
+    s.add_argument(
+        "--sag",
+        choices=["cobot", "arm165"],
+        help="the true robot sags under gravity (joint compliance of a cobot or a 165 kg-payload arm); "
+        "offline, half the poses carry the rated payload and rigid and compliant are compared",
+    )
+    s.add_argument(
+        "--models-only",
+        action="store_true",
+        help="write nominal.json and truth.json (the simulated robot) into --dir, then stop",
+    )
 
 
 def _truth_and_nominal(args):
@@ -116,18 +129,21 @@ def _models_only(args) -> int:
     nominal, truth, _ = _truth_and_nominal(args)
     save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
-    print(f"recal demo: {out / 'nominal.json'} (register the cell with it) and {out / 'truth.json'} "
-          f"(the simulated {args.robot}, for recal fake-cell --truth)")
+    print(
+        f"recal demo: {out / 'nominal.json'} (register the cell with it) and {out / 'truth.json'} "
+        f"(the simulated {args.robot}, for recal fake-cell --truth)"
+    )
     return 0
 
 
 def _live(args) -> int:
+    from sqlmodel import Session
+
     from service.client import Api
     from service.files import save_model
     from service.processes import start_fake_cell, start_service
     from service.settings import Settings
     from service.store import create_token, make_engine, migrate
-    from sqlmodel import Session
 
     out = Path(args.dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -154,28 +170,40 @@ def _live(args) -> int:
         raise KeyboardInterrupt
 
     previous = signal.signal(signal.SIGTERM, terminate)
-    say(f"RECAL_HOME={out}   (the demo's database, logs and tokens; `RECAL_HOME={out} recal token create "
-        f"--role technician` makes another token for this service)")
+    say(
+        f"RECAL_HOME={out}   (the demo's database, logs and tokens; `RECAL_HOME={out} recal token create "
+        f"--role technician` makes another token for this service)"
+    )
     say(f"technician token: {tech}   (admin: {admin}; both in {out / 'tokens.txt'})")
     cell = service = None
     try:
-        cell = start_fake_cell(out / "truth.json", args.host, seed=args.seed, time_scale=args.time_scale,
-                               log_path=out / "fake-cell.log")
+        cell = start_fake_cell(
+            out / "truth.json", args.host, seed=args.seed, time_scale=args.time_scale, log_path=out / "fake-cell.log"
+        )
         say(f"simulated cell ready on {args.host}: {', '.join(k for k in cell.ready if k != 'ready')}")
         service = start_service(out, args.port, env={"RECAL_SETTLE_S": "0"}, log_path=out / "service.log")
         url = service.ready["url"]
         say(f"service ready at {url} (SQLite: {db_file})")
         api = Api(url, tech)
-        c = api.call("POST", "/cells", {"name": f"demo-{args.robot}", "model": json.loads((out / "nominal.json").read_text()),
-                                        "devices": cell.ready, "drift_threshold": 0.1})
+        c = api.call(
+            "POST",
+            "/cells",
+            {
+                "name": f"demo-{args.robot}",
+                "model": json.loads((out / "nominal.json").read_text()),
+                "devices": cell.ready,
+                "drift_threshold": 0.1,
+            },
+        )
         cid = c["id"]
         tty = sys.stdout.isatty()
 
         def show(s):
             if tty or s["state"] not in ("planned", "running"):
                 end = "" if tty and s["state"] in ("planned", "running") else "\n"
-                sys.stdout.write(f"\r  {s['kind']} session {s['id']}: {s['state']}, "
-                                 f"{s['measured']}/{s['planned']} measured   {end}")
+                sys.stdout.write(
+                    f"\r  {s['kind']} session {s['id']}: {s['state']}, {s['measured']}/{s['planned']} measured   {end}"
+                )
                 sys.stdout.flush()
 
         def session(kind, count, **kw):
@@ -191,12 +219,16 @@ def _live(args) -> int:
         t0 = time.monotonic()
         pose = session("pose", args.poses)
         cal = api.call("GET", f"/calibrations/{pose['calibration_id']}")
-        say(f"  identified {len(cal['report']['parameters'])} parameters in {time.monotonic() - t0:.1f} s; "
-            f"residual RMS {cal['rms']:.4f} mm")
+        say(
+            f"  identified {len(cal['report']['parameters'])} parameters in {time.monotonic() - t0:.1f} s; "
+            f"residual RMS {cal['rms']:.4f} mm"
+        )
         comp = cal["report"].get("compliance")
         if comp:  # --sag: the cell's model is compliant; the service compared it with the rigid one
-            say(f"  rigid against compliant ({comp['folds']}-fold cross-validation on the session's data): RMS "
-                f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)")
+            say(
+                f"  rigid against compliant ({comp['folds']}-fold cross-validation on the session's data): RMS "
+                f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)"
+            )
         say("verifying the calibrated model (20 fresh configurations)...")
         after = session("verify", 20)["plan_info"]["verify"]
         (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
@@ -204,13 +236,17 @@ def _live(args) -> int:
         say("")
         reg = before.get("registered")
         if reg:  # the robot's own inaccuracy first; where the tracker stands is not the robot's error
-            say(f"accuracy before: RMS {reg['rms']:.3f} mm, max {reg['max']:.3f} mm (the nominal model, with the "
+            say(
+                f"accuracy before: RMS {reg['rms']:.3f} mm, max {reg['max']:.3f} mm (the nominal model, with the "
                 f"robot placed where it fits the tracker best; {before['rms']:.0f} mm RMS before the tracker's "
-                f"placement is known)")
+                f"placement is known)"
+            )
         else:
             say(f"accuracy before: RMS {before['rms']:.3f} mm, max {before['max']:.3f} mm (the nominal model)")
-        say(f"accuracy after:  RMS {after['rms']:.4f} mm, max {after['max']:.4f} mm (the calibrated model, "
-            f"on {after['n']} fresh configurations)")
+        say(
+            f"accuracy after:  RMS {after['rms']:.4f} mm, max {after['max']:.4f} mm (the calibrated model, "
+            f"on {after['n']} fresh configurations)"
+        )
         say("parameters the data cannot determine (and why):")
         undetermined = cal["report"]["unidentifiable"]
         for u in undetermined[:SHOWN]:
@@ -241,10 +277,14 @@ def _write_measurements(path: Path, model, data) -> None:
     from service.files import format_csv, write_atomic
 
     u = model.units
-    qs = np.array([[v / (u.angle_rad if j.revolute else u.length_m) for v, j in zip(row, model.joints)] for row in data.q])
+    qs = np.array(
+        [[v / (u.angle_rad if j.revolute else u.length_m) for v, j in zip(row, model.joints)] for row in data.q]
+    )
     header = [f"q{i + 1}" for i in range(model.n_joints)] + ["x", "y", "z", "target", "pose_id"]
-    rows = [list(qr) + list(p / u.length_m) + [t or "", pid]
-            for qr, p, t, pid in zip(qs, data.p_world, data.target, data.pose_id)]
+    rows = [
+        list(qr) + list(p / u.length_m) + [t or "", pid]
+        for qr, p, t, pid in zip(qs, data.p_world, data.target, data.pose_id)
+    ]
     if data.payload is not None:  # the payload each pose was measured with (kg, centre of gravity in mm)
         header += ["payload_kg", "payload_x", "payload_y", "payload_z"]
         rows = [r + [pl[0], *(pl[1:] / u.length_m)] for r, pl in zip(rows, data.payload)]
@@ -265,33 +305,75 @@ def _offline(args) -> int:
 
         rated = np.array(SAGGING_ARMS[args.sag]["payload"])
         payload = lambda n: np.array([rated if i % 2 else np.zeros(4) for i in range(n)])  # noqa: E731
-    data = simulate_measurements(truth, random_configurations(nominal, args.poses, rng), rng, sigma_m=20e-6,
-                                 targets=("smr",), payload=payload(args.poses) if payload else None)
-    holdout = simulate_measurements(truth, random_configurations(nominal, 200, rng), rng, sigma_m=20e-6,
-                                    targets=("smr",), payload=payload(200) if payload else None)
+    data = simulate_measurements(
+        truth,
+        random_configurations(nominal, args.poses, rng),
+        rng,
+        sigma_m=20e-6,
+        targets=("smr",),
+        payload=payload(args.poses) if payload else None,
+    )
+    holdout = simulate_measurements(
+        truth,
+        random_configurations(nominal, 200, rng),
+        rng,
+        sigma_m=20e-6,
+        targets=("smr",),
+        payload=payload(200) if payload else None,
+    )
     _write_measurements(out / "measurements.csv", nominal, data)
     _write_measurements(out / "holdout.csv", nominal, holdout)
     print(f"recal demo: simulated {args.robot} measured at {args.poses} configurations; files in {out}/")
-    status = recal(["identify", "--model", str(out / "nominal.json"), "--data", str(out / "measurements.csv"),
-                    "--validate", str(out / "holdout.csv"), "--out", str(out / "identified.json"),
-                    "--report", str(out / "report.json")])
+    status = recal(
+        [
+            "identify",
+            "--model",
+            str(out / "nominal.json"),
+            "--data",
+            str(out / "measurements.csv"),
+            "--validate",
+            str(out / "holdout.csv"),
+            "--out",
+            str(out / "identified.json"),
+            "--report",
+            str(out / "report.json"),
+        ]
+    )
     # a sagging arm: the rigid model cannot explain the data and `recal identify` says so with
     # exit 3 (model and report written); the compliant identification below is the answer
     if status != 0 and not (args.sag and status == 3):
         return status
     report = json.loads((out / "report.json").read_text())
     v = report["validation"]
-    print(f"accuracy on 200 fresh configurations: RMS {v['rms']:.4f} mm, max {v['max']:.4f} mm "
-          f"(nominal model after registration: RMS {v['before']['rms']:.3f} mm, max {v['before']['max']:.3f} mm)")
+    print(
+        f"accuracy on 200 fresh configurations: RMS {v['rms']:.4f} mm, max {v['max']:.4f} mm "
+        f"(nominal model after registration: RMS {v['before']['rms']:.3f} mm, max {v['before']['max']:.3f} mm)"
+    )
     print(f"identified model: {out / 'identified.json'}   full report: {out / 'report.json'}")
     if args.sag:
-        status = recal(["identify", "--model", str(out / "nominal.json"), "--data", str(out / "measurements.csv"),
-                        "--validate", str(out / "holdout.csv"), "--out", str(out / "identified-compliant.json"),
-                        "--report", str(out / "report-compliant.json"), "--compliance", "auto"])
+        status = recal(
+            [
+                "identify",
+                "--model",
+                str(out / "nominal.json"),
+                "--data",
+                str(out / "measurements.csv"),
+                "--validate",
+                str(out / "holdout.csv"),
+                "--out",
+                str(out / "identified-compliant.json"),
+                "--report",
+                str(out / "report-compliant.json"),
+                "--compliance",
+                "auto",
+            ]
+        )
         if status != 0:
             return status
         c = json.loads((out / "report-compliant.json").read_text())
-        print(f"rigid against compliant on 200 fresh configurations: RMS {v['rms']:.4f} mm against "
-              f"{c['validation']['rms']:.4f} mm; inside the predicted 95 % bound {100 * v['inside_predicted_95']:.1f} % "
-              f"against {100 * c['validation']['inside_predicted_95']:.1f} % (noise floor {np.sqrt(3) * 0.02:.4f} mm)")
+        print(
+            f"rigid against compliant on 200 fresh configurations: RMS {v['rms']:.4f} mm against "
+            f"{c['validation']['rms']:.4f} mm; inside the predicted 95 % bound {100 * v['inside_predicted_95']:.1f} % "
+            f"against {100 * c['validation']['inside_predicted_95']:.1f} % (noise floor {np.sqrt(3) * 0.02:.4f} mm)"
+        )
     return 0

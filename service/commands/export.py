@@ -20,15 +20,25 @@ def add_parser(s) -> None:
     s.add_argument("--out", required=True, help="file to write")
     s.add_argument("--name", help="URDF robot name (default: the model's name)")
     s.add_argument("--prefix", default="", help="prefix for every URDF link and joint name")
-    s.add_argument("--names", default="auto", choices=list(NAMINGS),
-                   help="URDF link and joint names: ur (UR's), ros (ROS-Industrial's), recal; "
-                        "auto: ur for UR arms, ros otherwise")
-    s.add_argument("--velocity", type=float, metavar="RAD_PER_S",
-                   help="URDF velocity limit of every joint, rad/s (m/s for prismatic joints); "
-                        "default: the model's or the library's")
-    s.add_argument("--effort", type=float, metavar="NM",
-                   help="URDF effort limit of every joint, N·m (N for prismatic joints); "
-                        "default: the model's or the library's")
+    s.add_argument(
+        "--names",
+        default="auto",
+        choices=list(NAMINGS),
+        help="URDF link and joint names: ur (UR's), ros (ROS-Industrial's), recal; auto: ur for UR arms, ros otherwise",
+    )
+    s.add_argument(
+        "--velocity",
+        type=float,
+        metavar="RAD_PER_S",
+        help="URDF velocity limit of every joint, rad/s (m/s for prismatic joints); "
+        "default: the model's or the library's",
+    )
+    s.add_argument(
+        "--effort",
+        type=float,
+        metavar="NM",
+        help="URDF effort limit of every joint, N·m (N for prismatic joints); default: the model's or the library's",
+    )
 
 
 def run(args) -> int:
@@ -39,8 +49,13 @@ def run(args) -> int:
     model = load_model(args.model)
     kw = {}
     if args.format == "urdf":
-        kw = {"name": args.name, "prefix": args.prefix, "names": args.names, "velocity": args.velocity,
-              "effort": args.effort}
+        kw = {
+            "name": args.name,
+            "prefix": args.prefix,
+            "names": args.names,
+            "velocity": args.velocity,
+            "effort": args.effort,
+        }
     try:
         text = export(model, args.format, **kw)
     except ValueError as exc:

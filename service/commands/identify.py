@@ -20,26 +20,49 @@ def add_parser(s) -> None:
     s.add_argument("--out", required=True, help="identified model file to write")
     s.add_argument("--report", help="JSON report to write")
     s.add_argument("--validate", help="hold-out measurement CSV to test the identified model on")
-    s.add_argument("--sigma", type=float, help="instrument standard uncertainty per axis, in the model's length "
-                   "unit, for rows without a sigma column (default 0.02 mm)")
+    s.add_argument(
+        "--sigma",
+        type=float,
+        help="instrument standard uncertainty per axis, in the model's length "
+        "unit, for rows without a sigma column (default 0.02 mm)",
+    )
     s.add_argument("--sigma-angle", type=float, help="orientation uncertainty of full-pose rows, model angle unit")
-    s.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
-                   help="robust loss against bad rows (default linear)")
+    s.add_argument(
+        "--loss",
+        default="linear",
+        choices=["linear", "huber", "soft_l1", "cauchy"],
+        help="robust loss against bad rows (default linear)",
+    )
     s.add_argument("--f-scale", type=float, default=3.0, help="robust loss scale, in sigmas (default 3)")
-    s.add_argument("--register", default="auto", choices=["auto", "always", "never"],
-                   help="start from a rigid registration of the base (default auto: when it fits better)")
+    s.add_argument(
+        "--register",
+        default="auto",
+        choices=["auto", "always", "never"],
+        help="start from a rigid registration of the base (default auto: when it fits better)",
+    )
     s.add_argument("--gains", action="store_true", help="also identify joint gains")
-    s.add_argument("--fix", action="append", metavar="NAME", help="keep a parameter fixed (repeatable; prefix* allowed)")
-    s.add_argument("--compliance", choices=["gravity", "auto"],
-                   help="add joint compliance under gravity (level 3): 'gravity' always, 'auto' only for the joints "
-                        "where 5-fold cross-validation on the data shows a gain (the figures are reported either way)")
-    s.add_argument("--compliance-joints", metavar="J2,J3",
-                   help="the joints that may deflect (default: the revolute ones among the first three whose axis "
-                        "is not along gravity)")
+    s.add_argument(
+        "--fix", action="append", metavar="NAME", help="keep a parameter fixed (repeatable; prefix* allowed)"
+    )
+    s.add_argument(
+        "--compliance",
+        choices=["gravity", "auto"],
+        help="add joint compliance under gravity (level 3): 'gravity' always, 'auto' only for the joints "
+        "where 5-fold cross-validation on the data shows a gain (the figures are reported either way)",
+    )
+    s.add_argument(
+        "--compliance-joints",
+        metavar="J2,J3",
+        help="the joints that may deflect (default: the revolute ones among the first three whose axis "
+        "is not along gravity)",
+    )
     s.add_argument("--gravity", metavar="X,Y,Z", help="gravity's direction in the robot base frame (default 0,0,-1)")
-    s.add_argument("--residual-map", choices=["auto"],
-                   help="add a smooth correction of what the model leaves, as a function of the joints (book §5.4), "
-                        "where 5-fold cross-validation shows a gain; applied only inside the measured region")
+    s.add_argument(
+        "--residual-map",
+        choices=["auto"],
+        help="add a smooth correction of what the model leaves, as a function of the joints (book §5.4), "
+        "where 5-fold cross-validation shows a gain; applied only inside the measured region",
+    )
 
 
 def run(args) -> int:
@@ -65,7 +88,10 @@ def run(args) -> int:
     kw = dict(
         sigma_m=args.sigma * L if args.sigma is not None else 20e-6,
         sigma_rad=args.sigma_angle * model.units.angle_rad if args.sigma_angle is not None else None,
-        loss=args.loss, f_scale=args.f_scale, register=args.register, gains=args.gains,
+        loss=args.loss,
+        f_scale=args.f_scale,
+        register=args.register,
+        gains=args.gains,
         fixed=tuple(args.fix or ()),
     )
     try:
@@ -75,8 +101,9 @@ def run(args) -> int:
         raise Fail(f"{args.data}: {exc}") from None
     validation = validate(result, holdout) if holdout is not None else None
     try:  # the map's cross-validation identifies on each fold's share of the rows (NotEnoughData)
-        rmap_doc, rmap_line = (_residual_map(args, model, start, data, holdout, result, kw) if args.residual_map
-                               else (None, None))
+        rmap_doc, rmap_line = (
+            _residual_map(args, model, start, data, holdout, result, kw) if args.residual_map else (None, None)
+        )
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.data}: --residual-map: {exc}") from None
     report = identification_report(result, model.units, data_rows=data.row, validation=validation)
@@ -96,10 +123,15 @@ def run(args) -> int:
     print(line)
     if compliance is not None and "cross_validation" in compliance:
         cv = compliance["cross_validation"]
-        verdict = (f"compliance of {', '.join(compliance['joints'])} added" if compliance["joints"]
-                   else "no gain: the model stays rigid")
-        print(f"compliance ({cv['folds']}-fold cross-validation): RMS rigid {cv['rms_rigid']:.4g} {u}, "
-              f"compliant {cv['rms_compliant']:.4g} {u}; {verdict}")
+        verdict = (
+            f"compliance of {', '.join(compliance['joints'])} added"
+            if compliance["joints"]
+            else "no gain: the model stays rigid"
+        )
+        print(
+            f"compliance ({cv['folds']}-fold cross-validation): RMS rigid {cv['rms_rigid']:.4g} {u}, "
+            f"compliant {cv['rms_compliant']:.4g} {u}; {verdict}"
+        )
     if rmap_line is not None:
         print(rmap_line[0])
     if result.outliers:
@@ -156,8 +188,10 @@ def _with_compliance(args, model, data, kw):
         cv = compliance_fit.choose_compliance(model, data, candidates=candidates, identify_kw=kw)
         start = comp.with_section(model, cv.section)
         entry["cross_validation"] = {
-            "folds": cv.folds, "min_gain": compliance_fit.MIN_CV_GAIN,
-            "rms_rigid": cv.rms_rigid_m / L, "rms_compliant": cv.rms_compliant_m / L,
+            "folds": cv.folds,
+            "min_gain": compliance_fit.MIN_CV_GAIN,
+            "rms_rigid": cv.rms_rigid_m / L,
+            "rms_compliant": cv.rms_compliant_m / L,
             "candidates": list(candidates.joints),
             "tried": [{"joints": list(j), "rms": r / L} for j, r in cv.tried],
         }
@@ -179,8 +213,10 @@ def _residual_map(args, model, start, data, holdout, result, kw):
     u = model.units.length
     rmap, fig = rm.choose_residual_map(start, data, identify_kw=kw, final=result.model)
     figures = {k.removesuffix("_m"): (v / L if k.endswith("_m") else v) for k, v in fig.items()}
-    line = (f"residual map ({fig['folds']}-fold cross-validation): RMS without {fig['rms_without_m'] / L:.4g} {u}, "
-            f"with {fig['rms_with_m'] / L:.4g} {u}; ")
+    line = (
+        f"residual map ({fig['folds']}-fold cross-validation): RMS without {fig['rms_without_m'] / L:.4g} {u}, "
+        f"with {fig['rms_with_m'] / L:.4g} {u}; "
+    )
     if rmap is None:
         line += f"no gain of {100 * fig['min_gain']:.0f} % or more: left out"
         return None, (line, figures)

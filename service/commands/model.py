@@ -9,17 +9,26 @@ import sys
 
 
 def add_parser(s) -> None:
-    s.add_argument("name", nargs="?", help="library robot name (e.g. ur10e, kr16, irb4600, fr3); "
-                                           "without it, the library is listed")
+    s.add_argument(
+        "name", nargs="?", help="library robot name (e.g. ur10e, kr16, irb4600, fr3); without it, the library is listed"
+    )
     s.add_argument("--out", help="file to write (default: stdout)")
     s.add_argument("--from-urdf", metavar="FILE", help="read the model from a URDF robot description")
     s.add_argument("--base", metavar="LINK", help="with --from-urdf: the chain's first link (default: the root link)")
-    s.add_argument("--tip", metavar="LINK", help="with --from-urdf: the chain's last link, the model's flange "
-                                                 "(default: the only leaf; required where the tree branches)")
-    s.add_argument("--convention", choices=["auto", "dh", "poe"], default="auto",
-                   help="with --from-urdf: standard DH (Hayati links for parallel axes; what the links cannot "
-                        "hold goes to base and tool) or product of exponentials, both exact; auto (default): DH "
-                        "when it starts on the base link and ends on the tip, else POE")
+    s.add_argument(
+        "--tip",
+        metavar="LINK",
+        help="with --from-urdf: the chain's last link, the model's flange "
+        "(default: the only leaf; required where the tree branches)",
+    )
+    s.add_argument(
+        "--convention",
+        choices=["auto", "dh", "poe"],
+        default="auto",
+        help="with --from-urdf: standard DH (Hayati links for parallel axes; what the links cannot "
+        "hold goes to base and tool) or product of exponentials, both exact; auto (default): DH "
+        "when it starts on the base link and ends on the tip, else POE",
+    )
 
 
 def run(args) -> int:
@@ -43,8 +52,12 @@ def run(args) -> int:
         except UrdfError as exc:
             raise Fail(f"{args.from_urdf}: {exc}") from None
         doc = model_to_dict(model)
-        doc = {"format": doc.pop("format"), "name": doc.pop("name"),
-               "source": f"URDF {args.from_urdf}, chain {args.base or '(root)'} -> {args.tip or '(leaf)'}", **doc}
+        doc = {
+            "format": doc.pop("format"),
+            "name": doc.pop("name"),
+            "source": f"URDF {args.from_urdf}, chain {args.base or '(root)'} -> {args.tip or '(leaf)'}",
+            **doc,
+        }
     elif args.base or args.tip or args.convention != "auto":
         raise Fail("--base, --tip and --convention go with --from-urdf FILE")
     elif args.name is None:

@@ -38,16 +38,29 @@ def add_parser(s) -> None:
     which = s.add_mutually_exclusive_group()
     which.add_argument("--cell", help="cell id or name")
     which.add_argument("--all", action="store_true", help="every cell (of the --site sites, if given)")
-    s.add_argument("--site", action="append", default=[], metavar="SITE",
-                   help="with --all (or alone): only the cells of this site (repeatable)")
-    s.add_argument("--parallel", type=int, default=0, help="with --all: at most this many cells at once "
-                   "(default: every cell at once; the workers' concurrency is the real limit)")
+    s.add_argument(
+        "--site",
+        action="append",
+        default=[],
+        metavar="SITE",
+        help="with --all (or alone): only the cells of this site (repeatable)",
+    )
+    s.add_argument(
+        "--parallel",
+        type=int,
+        default=0,
+        help="with --all: at most this many cells at once "
+        "(default: every cell at once; the workers' concurrency is the real limit)",
+    )
     s.add_argument("--url", default=os.environ.get("RECAL_URL", "http://127.0.0.1:8000"), help="service URL")
     s.add_argument("--token-file", help="file holding the job token (default: $RECAL_TOKEN)")
     s.add_argument("--verify-count", type=int, default=12, help="configurations of the verify session")
     s.add_argument("--count", type=int, default=30, help="configurations of the recalibration session")
-    s.add_argument("--threshold", type=float, help="RMS error (model length unit) beyond which to recalibrate "
-                   "(default: the cell's drift_threshold)")
+    s.add_argument(
+        "--threshold",
+        type=float,
+        help="RMS error (model length unit) beyond which to recalibrate (default: the cell's drift_threshold)",
+    )
     s.add_argument("--timeout", type=float, default=3600.0, help="seconds to wait for each session")
     s.add_argument("--device", default="tracker", choices=["tracker", "cmm"])
 
@@ -61,23 +74,47 @@ def _find_cell(api: Api, ref: str) -> dict:
     raise ApiError(404, f"no cell named {ref!r}", "find cell")
 
 
-def nightly(api: Api, cell_ref: str, *, verify_count: int, count: int, threshold: float | None, timeout_s: float,
-            device: str) -> tuple[int, str]:
+def nightly(
+    api: Api, cell_ref: str, *, verify_count: int, count: int, threshold: float | None, timeout_s: float, device: str
+) -> tuple[int, str]:
     """Run the nightly check of one cell; returns (exit status, one-line summary)."""
-    r = check_cell(api, _find_cell(api, cell_ref), verify_count=verify_count, count=count, threshold=threshold,
-                   timeout_s=timeout_s, device=device)
+    r = check_cell(
+        api,
+        _find_cell(api, cell_ref),
+        verify_count=verify_count,
+        count=count,
+        threshold=threshold,
+        timeout_s=timeout_s,
+        device=device,
+    )
     return r["status"], r["line"]
 
 
-def check_cell(api: Api, cell: dict, *, verify_count: int, count: int, threshold: float | None, timeout_s: float,
-               device: str, poll_s: float = 0.2) -> dict:
+def check_cell(
+    api: Api,
+    cell: dict,
+    *,
+    verify_count: int,
+    count: int,
+    threshold: float | None,
+    timeout_s: float,
+    device: str,
+    poll_s: float = 0.2,
+) -> dict:
     """The nightly check of one cell: ``{"status", "line", "result", "verify_rms", "unit",
     "threshold", "calibration_id", "tasks"}``."""
     name = cell["name"]
     unit = cell["model"].get("units", {}).get("length", "")
     limit = threshold if threshold is not None else cell.get("drift_threshold")
-    out = {"cell": name, "site": cell.get("site", ""), "unit": unit, "threshold": limit, "verify_rms": None,
-           "calibration_id": None, "tasks": None}
+    out = {
+        "cell": name,
+        "site": cell.get("site", ""),
+        "unit": unit,
+        "threshold": limit,
+        "verify_rms": None,
+        "calibration_id": None,
+        "tasks": None,
+    }
 
     def done(status: int, result: str, line: str) -> dict:
         return {**out, "status": status, "result": result, "line": line}
@@ -85,8 +122,11 @@ def check_cell(api: Api, cell: dict, *, verify_count: int, count: int, threshold
     v = start_session(api, cell["id"], {"kind": "verify", "count": verify_count, "device": device}, timeout_s)
     v = api.wait_session(v["id"], timeout_s, poll_s=poll_s, patient=True)
     if v["state"] != "completed":
-        return done(EXIT_FAILED, f"verify {v['state']}",
-                    f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip())
+        return done(
+            EXIT_FAILED,
+            f"verify {v['state']}",
+            f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip(),
+        )
     rms = out["verify_rms"] = v["plan_info"]["verify"]["rms"]
     if limit is None or rms <= limit:
         lim = "no threshold set" if limit is None else f"threshold {limit:g} {unit}"
@@ -94,20 +134,30 @@ def check_cell(api: Api, cell: dict, *, verify_count: int, count: int, threshold
     p = start_session(api, cell["id"], {"kind": "pose", "count": count, "device": device}, timeout_s)
     p = api.wait_session(p["id"], timeout_s, poll_s=poll_s, patient=True)
     if p["state"] != "completed" or p.get("calibration_id") is None:
-        return done(EXIT_FAILED, f"drifted, recalibration {p['state']}",
-                    (f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}); recalibration session "
-                     f"{p['id']} {p['state']}: {p.get('reason') or ''}").strip())
+        return done(
+            EXIT_FAILED,
+            f"drifted, recalibration {p['state']}",
+            (
+                f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}); recalibration session "
+                f"{p['id']} {p['state']}: {p.get('reason') or ''}"
+            ).strip(),
+        )
     cal = api.call_patiently("GET", f"/calibrations/{p['calibration_id']}", deadline=time.monotonic() + timeout_s)
     # Not repeated: each call stores a compensation of every task file (a failure needs a person).
     out["calibration_id"] = cal["id"]
     tasks = api.call("POST", f"/cells/{cell['id']}/tasks/compensate?calibration_id={cal['id']}")
     failed = [t for t in tasks["tasks"] if "error" in t]
     out["tasks"] = len(tasks["tasks"]) - len(failed)
-    msg = (f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}) -> recalibrated: calibration {cal['id']}, "
-           f"residual RMS {cal['rms']:.4g} {unit}; {len(tasks['tasks']) - len(failed)} task files compensated")
+    msg = (
+        f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}) -> recalibrated: calibration {cal['id']}, "
+        f"residual RMS {cal['rms']:.4g} {unit}; {len(tasks['tasks']) - len(failed)} task files compensated"
+    )
     if failed:
-        return done(EXIT_FAILED, f"recalibrated, {len(failed)} task files failed",
-                    msg + f", {len(failed)} failed ({failed[0]['name']}: {failed[0]['error']})")
+        return done(
+            EXIT_FAILED,
+            f"recalibrated, {len(failed)} task files failed",
+            msg + f", {len(failed)} failed ({failed[0]['name']}: {failed[0]['error']})",
+        )
     return done(EXIT_RECALIBRATED, f"recalibrated (RMS {cal['rms']:.4g} {unit})", msg)
 
 
@@ -131,8 +181,11 @@ def start_session(api: Api, cell_id: int, body: dict, timeout_s: float) -> dict:
                 raise
             else:
                 lost = True
-        mine = [s for s in api.call_patiently("GET", f"{path}?limit=5", deadline=deadline)
-                if s["id"] > before and s["kind"] == body["kind"]]
+        mine = [
+            s
+            for s in api.call_patiently("GET", f"{path}?limit=5", deadline=deadline)
+            if s["id"] > before and s["kind"] == body["kind"]
+        ]
         if mine:
             return mine[-1]  # newest first: the first one after ours was sent
         if busy is not None:
@@ -156,14 +209,32 @@ def nightly_fleet(api: Api, sites: list[str], *, parallel: int, **kw) -> tuple[i
         try:
             r = check_cell(api, cell, **kw)
         except ServiceError as exc:
-            r = {"cell": cell["name"], "site": cell.get("site", ""), "status": EXIT_SERVICE, "result": "service error",
-                 "line": f"{cell['name']}: {exc}", "verify_rms": None, "unit": "", "threshold": None,
-                 "calibration_id": None, "tasks": None}
+            r = {
+                "cell": cell["name"],
+                "site": cell.get("site", ""),
+                "status": EXIT_SERVICE,
+                "result": "service error",
+                "line": f"{cell['name']}: {exc}",
+                "verify_rms": None,
+                "unit": "",
+                "threshold": None,
+                "calibration_id": None,
+                "tasks": None,
+            }
         except ApiError as exc:
             what = "busy" if exc.status == 409 else f"error {exc.status}"
-            r = {"cell": cell["name"], "site": cell.get("site", ""), "status": EXIT_FAILED, "result": what,
-                 "line": f"{cell['name']}: {exc}", "verify_rms": None, "unit": "", "threshold": None,
-                 "calibration_id": None, "tasks": None}
+            r = {
+                "cell": cell["name"],
+                "site": cell.get("site", ""),
+                "status": EXIT_FAILED,
+                "result": what,
+                "line": f"{cell['name']}: {exc}",
+                "verify_rms": None,
+                "unit": "",
+                "threshold": None,
+                "calibration_id": None,
+                "tasks": None,
+            }
         r["seconds"] = time.monotonic() - t0
         return r
 
@@ -171,8 +242,15 @@ def nightly_fleet(api: Api, sites: list[str], *, parallel: int, **kw) -> tuple[i
     with ThreadPoolExecutor(max_workers=min(width, 512), thread_name_prefix="nightly") as pool:
         results = list(pool.map(one, cells))
     statuses = {r["status"] for r in results}
-    status = (EXIT_SERVICE if EXIT_SERVICE in statuses else EXIT_FAILED if EXIT_FAILED in statuses
-              else EXIT_RECALIBRATED if EXIT_RECALIBRATED in statuses else EXIT_OK)
+    status = (
+        EXIT_SERVICE
+        if EXIT_SERVICE in statuses
+        else EXIT_FAILED
+        if EXIT_FAILED in statuses
+        else EXIT_RECALIBRATED
+        if EXIT_RECALIBRATED in statuses
+        else EXIT_OK
+    )
     return status, _report(results)
 
 
@@ -188,15 +266,27 @@ def _report(results: list[dict]) -> str:
 
     rows = [("cell", "site", "verify RMS", "threshold", "result", "calibration", "tasks", "time")]
     for r in results:
-        rows.append((r["cell"], r["site"], fmt(r["verify_rms"], r["unit"]), fmt(r["threshold"]), r["result"],
-                     fmt(r["calibration_id"]), fmt(r["tasks"]), f"{r['seconds']:.1f} s"))
+        rows.append(
+            (
+                r["cell"],
+                r["site"],
+                fmt(r["verify_rms"], r["unit"]),
+                fmt(r["threshold"]),
+                r["result"],
+                fmt(r["calibration_id"]),
+                fmt(r["tasks"]),
+                f"{r['seconds']:.1f} s",
+            )
+        )
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
     n = {k: sum(r["status"] == k for r in results) for k in (EXIT_OK, EXIT_RECALIBRATED, EXIT_FAILED, EXIT_SERVICE)}
     lines.append("")
-    lines.append(f"{len(results)} cells: {n[EXIT_OK]} accurate, {n[EXIT_RECALIBRATED]} recalibrated, "
-                 f"{n[EXIT_FAILED] + n[EXIT_SERVICE]} need a person")
+    lines.append(
+        f"{len(results)} cells: {n[EXIT_OK]} accurate, {n[EXIT_RECALIBRATED]} recalibrated, "
+        f"{n[EXIT_FAILED] + n[EXIT_SERVICE]} need a person"
+    )
     for r in results:
         if r["status"] in (EXIT_FAILED, EXIT_SERVICE):
             lines.append("  " + r["line"])
@@ -223,12 +313,26 @@ def run(args) -> int:
             if args.site:
                 print("recal nightly: --site goes with --all, not --cell", file=sys.stderr)
                 return EXIT_USAGE
-            status, line = nightly(api, args.cell, verify_count=args.verify_count, count=args.count,
-                                   threshold=args.threshold, timeout_s=args.timeout, device=args.device)
+            status, line = nightly(
+                api,
+                args.cell,
+                verify_count=args.verify_count,
+                count=args.count,
+                threshold=args.threshold,
+                timeout_s=args.timeout,
+                device=args.device,
+            )
         else:
-            status, line = nightly_fleet(api, args.site, parallel=args.parallel, verify_count=args.verify_count,
-                                         count=args.count, threshold=args.threshold, timeout_s=args.timeout,
-                                         device=args.device)
+            status, line = nightly_fleet(
+                api,
+                args.site,
+                parallel=args.parallel,
+                verify_count=args.verify_count,
+                count=args.count,
+                threshold=args.threshold,
+                timeout_s=args.timeout,
+                device=args.device,
+            )
     except ServiceError as exc:
         print(f"recal nightly: {exc}", file=sys.stderr)
         return EXIT_SERVICE

@@ -19,44 +19,96 @@ def add_parser(s) -> None:
     s.add_argument("--count", type=int, help="number of poses to choose (with --accuracy: the most allowed)")
     s.add_argument("--out", required=True, help="CSV of the chosen configurations to write (q1..qN)")
     s.add_argument("--candidates", help="CSV with q1..qN: choose among these rows (default: draw candidates)")
-    s.add_argument("--target", action="append", metavar="NAME",
-                   help="the model's target that is measured (repeatable; default the tool origin)")
-    s.add_argument("--criterion", default="D", choices=["D", "I", "O1", "O3", "O4", "condition"],
-                   help="D (log det, default), I (least mean predicted position error over the evaluation "
-                        "configurations: 4-5 %% better on average, 3-7 times slower), O1 (Borm-Menq), "
-                        "O3 (min singular value), O4 (noise amplification) or condition (condition number)")
-    s.add_argument("--sigma", type=float, help="instrument standard uncertainty per axis, model length unit "
-                   "(default 0.02 mm)")
+    s.add_argument(
+        "--target",
+        action="append",
+        metavar="NAME",
+        help="the model's target that is measured (repeatable; default the tool origin)",
+    )
+    s.add_argument(
+        "--criterion",
+        default="D",
+        choices=["D", "I", "O1", "O3", "O4", "condition"],
+        help="D (log det, default), I (least mean predicted position error over the evaluation "
+        "configurations: 4-5 %% better on average, 3-7 times slower), O1 (Borm-Menq), "
+        "O3 (min singular value), O4 (noise amplification) or condition (condition number)",
+    )
+    s.add_argument(
+        "--sigma", type=float, help="instrument standard uncertainty per axis, model length unit (default 0.02 mm)"
+    )
     s.add_argument("--seed", type=int, default=0, help="seed for drawn candidates and evaluation configurations")
-    s.add_argument("--candidates-count", type=int, default=2000, help="candidates to draw without --candidates "
-                   "(default 2000)")
-    s.add_argument("--volume-box", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
-                   help="the instrument's measuring volume, a box in the world frame (model length unit)")
-    s.add_argument("--volume-sphere", type=float, nargs="+", metavar="V",
-                   help="the measuring volume as a sphere: X Y Z RADIUS [MIN_RADIUS] (world frame, model length unit)")
-    s.add_argument("--instrument", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                   help="instrument position in the world frame, for the line-of-sight tests (default 0 0 0)")
-    s.add_argument("--normal", type=float, nargs=3, metavar=("X", "Y", "Z"), default=[0.0, 0.0, 1.0],
-                   help="direction the target faces, tool frame (default 0 0 1)")
-    s.add_argument("--cone", type=float, help="acceptance half-angle of the target (model angle unit): the target "
-                   "must face the instrument within it")
-    s.add_argument("--clearance", type=float, help="the beam must pass at least this far from the robot's links "
-                   "(model length unit)")
-    s.add_argument("--near-target", type=float, help="beam length before the target not tested for clearance "
-                   "(model length unit; default 100 mm)")
-    s.add_argument("--evaluation", help="CSV with q1..qN where the predicted accuracy is evaluated "
-                   "(default: random configurations)")
+    s.add_argument(
+        "--candidates-count", type=int, default=2000, help="candidates to draw without --candidates (default 2000)"
+    )
+    s.add_argument(
+        "--volume-box",
+        type=float,
+        nargs=6,
+        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+        help="the instrument's measuring volume, a box in the world frame (model length unit)",
+    )
+    s.add_argument(
+        "--volume-sphere",
+        type=float,
+        nargs="+",
+        metavar="V",
+        help="the measuring volume as a sphere: X Y Z RADIUS [MIN_RADIUS] (world frame, model length unit)",
+    )
+    s.add_argument(
+        "--instrument",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="instrument position in the world frame, for the line-of-sight tests (default 0 0 0)",
+    )
+    s.add_argument(
+        "--normal",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        default=[0.0, 0.0, 1.0],
+        help="direction the target faces, tool frame (default 0 0 1)",
+    )
+    s.add_argument(
+        "--cone",
+        type=float,
+        help="acceptance half-angle of the target (model angle unit): the target must face the instrument within it",
+    )
+    s.add_argument(
+        "--clearance",
+        type=float,
+        help="the beam must pass at least this far from the robot's links (model length unit)",
+    )
+    s.add_argument(
+        "--near-target",
+        type=float,
+        help="beam length before the target not tested for clearance (model length unit; default 100 mm)",
+    )
+    s.add_argument(
+        "--evaluation",
+        help="CSV with q1..qN where the predicted accuracy is evaluated (default: random configurations)",
+    )
     s.add_argument("--evaluation-count", type=int, default=300, help="random evaluation configurations (default 300)")
-    s.add_argument("--accuracy", type=float, help="wanted accuracy (model length unit): choose the fewest poses "
-                   "predicted to reach it")
-    s.add_argument("--statistic", default="rms", choices=["rms", "p95"],
-                   help="which predicted figure --accuracy applies to (default rms)")
+    s.add_argument(
+        "--accuracy",
+        type=float,
+        help="wanted accuracy (model length unit): choose the fewest poses predicted to reach it",
+    )
+    s.add_argument(
+        "--statistic",
+        default="rms",
+        choices=["rms", "p95"],
+        help="which predicted figure --accuracy applies to (default rms)",
+    )
     s.add_argument("--gains", action="store_true", help="plan for identifying joint gains too")
     s.add_argument("--fix", action="append", metavar="NAME", help="a parameter kept fixed (repeatable; prefix*)")
     s.add_argument("--report", help="JSON report to write")
-    s.add_argument("--compliance", choices=["gravity"],
-                   help="plan for joint compliance under gravity too (configurations that excite the gravity torques "
-                        "of the joints that carry the arm; a model with a compliance section plans for it anyway)")
+    s.add_argument(
+        "--compliance",
+        choices=["gravity"],
+        help="plan for joint compliance under gravity too (configurations that excite the gravity torques "
+        "of the joints that carry the arm; a model with a compliance section plans for it anyway)",
+    )
 
 
 def _positive(name: str, v, allow_zero: bool = False) -> None:
@@ -115,10 +167,12 @@ def run(args) -> int:
         sight = None
         if args.cone is not None or args.clearance is not None:
             sight = planning.LineOfSight(
-                instrument_m=np.array(args.instrument or [0, 0, 0]) * L, normal_tool=np.array(args.normal),
+                instrument_m=np.array(args.instrument or [0, 0, 0]) * L,
+                normal_tool=np.array(args.normal),
                 cone_rad=None if args.cone is None else args.cone * A,
                 clearance_m=None if args.clearance is None else args.clearance * L,
-                near_target_m=0.1 if args.near_target is None else args.near_target * L)
+                near_target_m=0.1 if args.near_target is None else args.near_target * L,
+            )
     except ValueError as exc:
         raise Fail(f"volume / line of sight: {exc}") from None
 
@@ -130,28 +184,40 @@ def run(args) -> int:
         if volume is not None or sight is not None:
             ok = planning.feasible(model, cand, targets=targets, volume=volume, sight=sight)
             if not ok.any():
-                raise Fail(f"{args.candidates}: no candidate puts the target(s) inside the volume and in sight "
-                           "of the instrument")
+                raise Fail(
+                    f"{args.candidates}: no candidate puts the target(s) inside the volume and in sight "
+                    "of the instrument"
+                )
             cand, rows = cand[ok], rows[ok]
     else:
         progress(f"drawing {args.candidates_count} candidate configurations ...")
         try:
-            cand = planning.generate_candidates(model, args.candidates_count, rng, targets=targets, volume=volume,
-                                                sight=sight)
+            cand = planning.generate_candidates(
+                model, args.candidates_count, rng, targets=targets, volume=volume, sight=sight
+            )
         except ValueError as exc:
             raise Fail(str(exc)) from None
         rows = np.arange(1, len(cand) + 1)
     evaluation = read_joints(args.evaluation, model) if args.evaluation else None
     sigma_m = args.sigma * L if args.sigma is not None else 20e-6
-    options = planning.PlanOptions(targets=targets, criterion=args.criterion, sigma_m=sigma_m, evaluation=evaluation,
-                                   n_evaluation=args.evaluation_count, volume=volume, rng=rng, gains=args.gains,
-                                   fixed=tuple(args.fix or ()))
+    options = planning.PlanOptions(
+        targets=targets,
+        criterion=args.criterion,
+        sigma_m=sigma_m,
+        evaluation=evaluation,
+        n_evaluation=args.evaluation_count,
+        volume=volume,
+        rng=rng,
+        gains=args.gains,
+        fixed=tuple(args.fix or ()),
+    )
     progress(f"planning among {len(cand)} candidates ...")
     curve = None
     try:
         if args.accuracy is not None:
-            acc = planning.poses_for_accuracy(model, cand, args.accuracy * L, statistic=args.statistic,
-                                              k_max=args.count, options=options)
+            acc = planning.poses_for_accuracy(
+                model, cand, args.accuracy * L, statistic=args.statistic, k_max=args.count, options=options
+            )
             result, curve = acc.plan, acc
         else:
             result = planning.plan(model, cand, args.count, options)
@@ -163,25 +229,34 @@ def run(args) -> int:
         write_atomic(args.report, json.dumps(report, indent=2) + "\n")
     unit = u.length
     if curve is not None and not curve.success:
-        raise Fail(f"even {len(result.indices)} poses are predicted to give a {args.statistic} error of "
-                   f"{(result.predicted_rms_m if args.statistic == 'rms' else result.predicted_p95_m) / L:.4g} {unit}, "
-                   f"above the {args.accuracy:g} {unit} wanted: allow more poses (--count), more candidates, "
-                   "or use a better instrument")
+        raise Fail(
+            f"even {len(result.indices)} poses are predicted to give a {args.statistic} error of "
+            f"{(result.predicted_rms_m if args.statistic == 'rms' else result.predicted_p95_m) / L:.4g} {unit}, "
+            f"above the {args.accuracy:g} {unit} wanted: allow more poses (--count), more candidates, "
+            "or use a better instrument"
+        )
     order = planning.measurement_order(result.q)
     q_out = result.q[order] / np.array([A if j.revolute else L for j in model.joints])
     header = [f"q{i + 1}" for i in range(model.n_joints)] + ["candidate"]
-    text = (f"# recal plan: {len(order)} poses, criterion {result.criterion}, predicted RMS "
-            f"{result.predicted_rms_m / L:.4g} {unit} (sigma {sigma_m / L:.4g} {unit})\n"
-            + format_csv(header, [list(map(float, qr)) + [int(rows[result.indices[k]])] for qr, k in zip(q_out, order)]))
+    text = (
+        f"# recal plan: {len(order)} poses, criterion {result.criterion}, predicted RMS "
+        f"{result.predicted_rms_m / L:.4g} {unit} (sigma {sigma_m / L:.4g} {unit})\n"
+        + format_csv(header, [list(map(float, qr)) + [int(rows[result.indices[k]])] for qr, k in zip(q_out, order)])
+    )
     write_atomic(args.out, text)
-    lead = (f"{len(order)} poses are needed for a predicted {args.statistic} error of at most {args.accuracy:g} {unit}"
-            if curve is not None else f"planned {len(order)} poses")
+    lead = (
+        f"{len(order)} poses are needed for a predicted {args.statistic} error of at most {args.accuracy:g} {unit}"
+        if curve is not None
+        else f"planned {len(order)} poses"
+    )
     # the I criterion's value is the predicted RMS printed next
     crit = result.criterion if result.criterion == "I" else f"{result.criterion} = {result.value:.6g}"
-    print(f"{lead} (from {len(cand)} candidates, criterion {crit}): predicted "
-          f"accuracy over {len(result.evaluation_q)} configurations RMS {result.predicted_rms_m / L:.4g} {unit}, "
-          f"95th percentile {result.predicted_p95_m / L:.4g} {unit}, max {result.predicted_max_m / L:.4g} {unit}; "
-          f"{len(result.params)} parameters identifiable, {len(result.unidentifiable)} not")
+    print(
+        f"{lead} (from {len(cand)} candidates, criterion {crit}): predicted "
+        f"accuracy over {len(result.evaluation_q)} configurations RMS {result.predicted_rms_m / L:.4g} {unit}, "
+        f"95th percentile {result.predicted_p95_m / L:.4g} {unit}, max {result.predicted_max_m / L:.4g} {unit}; "
+        f"{len(result.params)} parameters identifiable, {len(result.unidentifiable)} not"
+    )
     if not result.success:
         print(f"warning: {result.message}", file=sys.stderr)
     return 0
@@ -195,7 +270,9 @@ def _report(result, curve, model, n_candidates: int, args, elapsed_s: float) -> 
         return None if not math.isfinite(x) else float(f"{x:.{digits}g}")
 
     def unit(kind):
-        return (model.units.length, L) if kind == "length" else (model.units.angle, A) if kind == "angle" else ("1", 1.0)
+        return (
+            (model.units.length, L) if kind == "length" else (model.units.angle, A) if kind == "angle" else ("1", 1.0)
+        )
 
     rep = {
         "poses": len(result.indices),
@@ -209,10 +286,16 @@ def _report(result, curve, model, n_candidates: int, args, elapsed_s: float) -> 
         "units": {"length": model.units.length, "angle": model.units.angle},
         "sigma": f(result.sigma_m / L),
         "targets": [t or "" for t in result.targets],
-        "predicted": {"rms": f(result.predicted_rms_m / L), "p95": f(result.predicted_p95_m / L),
-                      "max": f(result.predicted_max_m / L), "configurations": len(result.evaluation_q)},
-        "parameters": [{"name": p.name, "unit": unit(p.kind)[0], "predicted_std_error": f(s / unit(p.kind)[1])}
-                       for p, s in zip(result.params, result.std_errors)],
+        "predicted": {
+            "rms": f(result.predicted_rms_m / L),
+            "p95": f(result.predicted_p95_m / L),
+            "max": f(result.predicted_max_m / L),
+            "configurations": len(result.evaluation_q),
+        },
+        "parameters": [
+            {"name": p.name, "unit": unit(p.kind)[0], "predicted_std_error": f(s / unit(p.kind)[1])}
+            for p, s in zip(result.params, result.std_errors)
+        ],
         "unidentifiable": [{"name": d.name, "reason": d.reason} for d in result.unidentifiable],
         "success": result.success,
         "message": result.message,
@@ -220,8 +303,11 @@ def _report(result, curve, model, n_candidates: int, args, elapsed_s: float) -> 
         "elapsed_s": round(elapsed_s, 3),
     }
     if curve is not None:
-        rep["accuracy"] = {"wanted": f(curve.accuracy_m / L), "statistic": curve.statistic, "count": curve.count,
-                           "success": curve.success,
-                           "greedy_curve": [{"poses": int(k), "predicted": f(v / L)}
-                                            for k, v in zip(curve.counts, curve.predicted_m)]}
+        rep["accuracy"] = {
+            "wanted": f(curve.accuracy_m / L),
+            "statistic": curve.statistic,
+            "count": curve.count,
+            "success": curve.success,
+            "greedy_curve": [{"poses": int(k), "predicted": f(v / L)} for k, v in zip(curve.counts, curve.predicted_m)],
+        }
     return rep

@@ -10,31 +10,47 @@ def add_parser(s) -> None:
     s.add_argument("--joints", required=True, help="CSV with q1..qN")
     s.add_argument("--target", help="write x, y, z of this target instead of the tool pose")
     s.add_argument("--out", required=True)
-    s.add_argument("--payload", metavar="KG[,X,Y,Z]",
-                   help="the task's payload for a compliant model: mass (kg) and centre of gravity in the tool frame "
-                        "(model length unit); rows of JOINTS.csv with payload_kg columns carry their own")
-    s.add_argument("--uncertainty", action="store_true",
-                   help="append sigma_x, sigma_y, sigma_z (standard uncertainty per axis) and u95 (95 %% radius) of "
-                        "the predicted position, in the model's length unit, from the covariance an identified "
-                        "model stores (the model's own uncertainty; the instrument's noise is not included)")
+    s.add_argument(
+        "--payload",
+        metavar="KG[,X,Y,Z]",
+        help="the task's payload for a compliant model: mass (kg) and centre of gravity in the tool frame "
+        "(model length unit); rows of JOINTS.csv with payload_kg columns carry their own",
+    )
+    s.add_argument(
+        "--uncertainty",
+        action="store_true",
+        help="append sigma_x, sigma_y, sigma_z (standard uncertainty per axis) and u95 (95 %% radius) of "
+        "the predicted position, in the model's length unit, from the covariance an identified "
+        "model stores (the model's own uncertainty; the instrument's noise is not included)",
+    )
 
 
 def run(args) -> int:
     import numpy as np
 
+    from calibration.compliance import with_payload
     from calibration.kinematics import fk
     from calibration.transforms import matrix_to_quat
-    from calibration.compliance import with_payload
     from service.cli import Fail
-    from service.files import (InputError, check_output, format_csv, load_model, parse_payload, read_joints,
-                               read_payload, read_table, write_atomic)
+    from service.files import (
+        InputError,
+        check_output,
+        format_csv,
+        load_model,
+        parse_payload,
+        read_joints,
+        read_payload,
+        read_table,
+        write_atomic,
+    )
 
     check_output(args.out)
     model = load_model(args.model)
     if args.target is not None and args.target not in model.targets:
         known = f"one of {', '.join(sorted(model.targets))}" if model.targets else "a target, but the model has none"
-        raise InputError(args.model, f"field 'targets': no target {args.target!r} (asked for by --target); "
-                                     f"expected {known}")
+        raise InputError(
+            args.model, f"field 'targets': no target {args.target!r} (asked for by --target); expected {known}"
+        )
     covariance = _stored_covariance(args.model, model) if args.uncertainty else None
     if args.payload is not None:
         try:
@@ -54,8 +70,10 @@ def run(args) -> int:
         quat = matrix_to_quat(T[:, :3, :3])
         header, rows = ["x", "y", "z", "qw", "qx", "qy", "qz"], np.hstack([T[:, :3, 3] / L, quat])
     if covariance is not None:
-        header, rows = header + UNCERTAINTY_COLUMNS, np.hstack([rows, _uncertainty(model, covariance, q, args.target,
-                                                                                   payload)])
+        header, rows = (
+            header + UNCERTAINTY_COLUMNS,
+            np.hstack([rows, _uncertainty(model, covariance, q, args.target, payload)]),
+        )
     rows = rows.tolist()
     if flags is not None:  # a model with a residual map says where it applied
         header, rows = header + ["flags"], [r + [f] for r, f in zip(rows, flags)]

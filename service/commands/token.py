@@ -21,8 +21,13 @@ def run(args) -> int:
     migrate(engine)
     with Session(engine) as db:
         tok, plain = create_token(db, role=args.role, name=args.name)
-        audit(db, actor="recal token (local)", action="create token", subject=f"token {tok.id}",
-              detail={"role": tok.role, "name": tok.name})
+        audit(
+            db,
+            actor="recal token (local)",
+            action="create token",
+            subject=f"token {tok.id}",
+            detail={"role": tok.role, "name": tok.name},
+        )
     engine.dispose()
     print(plain)
     return 0

@@ -16,14 +16,22 @@ import socket
 
 
 def add_parser(s) -> None:
-    s.add_argument("--site", action="append", default=[], metavar="SITE",
-                   help="a site whose cells this worker drives (repeatable)")
+    s.add_argument(
+        "--site", action="append", default=[], metavar="SITE", help="a site whose cells this worker drives (repeatable)"
+    )
     s.add_argument("--all-sites", action="store_true", help="drive the cells of every site (a one-worker fleet)")
-    s.add_argument("--name", default=os.environ.get("RECAL_WORKER_NAME") or socket.gethostname(),
-                   help="this worker's name in logs and leases (default: $RECAL_WORKER_NAME or the host name)")
-    s.add_argument("--concurrency", type=int, default=None,
-                   help="sessions run at once (one thread and one database connection each; default "
-                        "$RECAL_WORKER_CONCURRENCY, else four per CPU core); more wait in the queue")
+    s.add_argument(
+        "--name",
+        default=os.environ.get("RECAL_WORKER_NAME") or socket.gethostname(),
+        help="this worker's name in logs and leases (default: $RECAL_WORKER_NAME or the host name)",
+    )
+    s.add_argument(
+        "--concurrency",
+        type=int,
+        default=None,
+        help="sessions run at once (one thread and one database connection each; default "
+        "$RECAL_WORKER_CONCURRENCY, else four per CPU core); more wait in the queue",
+    )
     s.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
 
 
@@ -60,5 +68,6 @@ def run(args) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.log_level != "debug":
         logging.getLogger("procrastinate").setLevel(logging.WARNING)
-    return run_worker(settings, name=args.name, sites=None if args.all_sites else sorted(set(args.site)),
-                      concurrency=concurrency)
+    return run_worker(
+        settings, name=args.name, sites=None if args.all_sites else sorted(set(args.site)), concurrency=concurrency
+    )

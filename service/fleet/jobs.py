@@ -28,9 +28,10 @@ from sqlalchemy import text
 from sqlalchemy.engine import Engine, make_url
 from sqlmodel import Session
 
+from calibration.errors import RecalError
+
 from ..models import Cell, RunSession
 from ..settings import Settings
-from calibration.errors import RecalError
 
 log = logging.getLogger("recal.fleet")
 
@@ -56,8 +57,10 @@ def queue_for_site(site: str) -> str:
 def libpq_url(settings: Settings) -> str:
     """The store's URL as libpq (psycopg) takes it; the fleet needs PostgreSQL."""
     if not settings.database_url or not settings.database_url.startswith("postgresql"):
-        raise FleetConfigError("RECAL_ENGINE=procrastinate needs RECAL_DATABASE_URL=postgresql+psycopg://... "
-                               "(the queue lives in the fleet's PostgreSQL store)")
+        raise FleetConfigError(
+            "RECAL_ENGINE=procrastinate needs RECAL_DATABASE_URL=postgresql+psycopg://... "
+            "(the queue lives in the fleet's PostgreSQL store)"
+        )
     return make_url(settings.database_url).set(drivername="postgresql").render_as_string(hide_password=False)
 
 
@@ -73,8 +76,11 @@ def ensure_schema(engine: Engine) -> None:
 
 def sync_app(settings: Settings, *, max_size: int = 4) -> App:
     """A Procrastinate app for synchronous use (API processes, reapers), opened."""
-    app = App(connector=SyncPsycopgConnector(conninfo=libpq_url(settings), min_size=1, max_size=max_size,
-                                             kwargs={"connect_timeout": CONNECT_TIMEOUT_S}))
+    app = App(
+        connector=SyncPsycopgConnector(
+            conninfo=libpq_url(settings), min_size=1, max_size=max_size, kwargs={"connect_timeout": CONNECT_TIMEOUT_S}
+        )
+    )
     app.open()
     return app
 
@@ -138,15 +144,23 @@ class ResilientConnector(PsycopgConnector):
 
 def worker_app(settings: Settings, *, max_size: int) -> App:
     """The asyncio Procrastinate app a worker runs (open it with ``open_async``)."""
-    return App(connector=ResilientConnector(conninfo=libpq_url(settings), min_size=2, max_size=max_size,
-                                            kwargs={"connect_timeout": CONNECT_TIMEOUT_S}))
+    return App(
+        connector=ResilientConnector(
+            conninfo=libpq_url(settings), min_size=2, max_size=max_size, kwargs={"connect_timeout": CONNECT_TIMEOUT_S}
+        )
+    )
 
 
 def defer_session(db: Session, app: App, run: RunSession, cell: Cell) -> int | None:
     """Queue ``run`` for a worker of its cell's site, in ``db``'s transaction (the caller
     commits). Returns the job id, or None when a job for the session is waiting already."""
-    job = Job(queue=queue_for_site(cell.site), lock=f"cell:{cell.id}", queueing_lock=f"session:{run.id}",
-              task_name=TASK, task_kwargs={"session_id": run.id})
+    job = Job(
+        queue=queue_for_site(cell.site),
+        lock=f"cell:{cell.id}",
+        queueing_lock=f"session:{run.id}",
+        task_name=TASK,
+        task_kwargs={"session_id": run.id},
+    )
     try:
         with db.begin_nested():  # a refused duplicate rolls back to here, not the whole transaction
             conn = db.connection().connection.driver_connection  # psycopg's, inside the SAVEPOINT

@@ -19,8 +19,8 @@ from sqlalchemy import text, update
 from sqlmodel import Session
 
 from ..models import Cell, RunSession
-from ..store import held_by_other
 from ..settings import Settings
+from ..store import held_by_other
 from . import jobs
 from .reaper import Reaper
 
@@ -72,9 +72,11 @@ class FleetOrchestrator:
         """Record ``what`` for the session; False when nothing will act on it (the route then
         records the state itself)."""
         with Session(self.engine) as db:
-            res = db.exec(update(RunSession).where(RunSession.id == session_id,
-                                                   RunSession.state.in_(("planned", "running")))
-                          .values(requested=what))
+            res = db.exec(
+                update(RunSession)
+                .where(RunSession.id == session_id, RunSession.state.in_(("planned", "running")))
+                .values(requested=what)
+            )
             if res.rowcount:
                 db.exec(text("SELECT pg_notify(:c, :p)"), params={"c": CONTROL_CHANNEL, "p": f"{session_id}:{what}"})
             db.commit()

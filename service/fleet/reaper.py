@@ -57,13 +57,22 @@ class Reaper:
         cutoff = now - timedelta(seconds=self.grace_s)
         out: list[int] = []
         with Session(self.engine) as db:
-            res = db.exec(update(RunSession)
-                          .where(RunSession.state.in_(ACTIVE), RunSession.lease_expires.is_not(None),
-                                 RunSession.lease_expires < cutoff)
-                          .values(state="interrupted", updated_at=now, requested=None,
-                                  reason="its worker stopped renewing its hold on the cell (the worker died or lost "
-                                         "the database); every measurement it reported is kept: resume it to continue")
-                          .returning(RunSession.id))
+            res = db.exec(
+                update(RunSession)
+                .where(
+                    RunSession.state.in_(ACTIVE),
+                    RunSession.lease_expires.is_not(None),
+                    RunSession.lease_expires < cutoff,
+                )
+                .values(
+                    state="interrupted",
+                    updated_at=now,
+                    requested=None,
+                    reason="its worker stopped renewing its hold on the cell (the worker died or lost "
+                    "the database); every measurement it reported is kept: resume it to continue",
+                )
+                .returning(RunSession.id)
+            )
             out += list(res.scalars().all())
             db.commit()
         if out:
@@ -81,24 +90,36 @@ class Reaper:
         if not doing:
             return
         with Session(self.engine) as db:
-            alive = set(db.exec(text("SELECT id FROM procrastinate_workers WHERE last_heartbeat > now() - "
-                                     "make_interval(secs => :s)"), params={"s": self.ttl_s}).scalars().all())
+            alive = set(
+                db.exec(
+                    text(
+                        "SELECT id FROM procrastinate_workers WHERE last_heartbeat > now() - make_interval(secs => :s)"
+                    ),
+                    params={"s": self.ttl_s},
+                )
+                .scalars()
+                .all()
+            )
             for sid, job in doing.items():
                 if job.worker_id in alive:
                     continue
                 run = db.get(RunSession, sid)
-                if (run is not None and run.state in ACTIVE and run.lease_expires is not None
-                        and as_utc(run.lease_expires) >= cutoff):
+                if (
+                    run is not None
+                    and run.state in ACTIVE
+                    and run.lease_expires is not None
+                    and as_utc(run.lease_expires) >= cutoff
+                ):
                     continue  # its lease is live: pass 1 decides when it runs out
                 if jobs.fail_job(self.app, job.id):
-                    log.warning("%s: job %s of session %s: its worker is gone; ended as failed", self.name, job.id,
-                                sid)
+                    log.warning("%s: job %s of session %s: its worker is gone; ended as failed", self.name, job.id, sid)
 
     def _requeue_unclaimed(self) -> None:
         mono = time.monotonic()
         with Session(self.engine) as db:
-            planned = db.exec(select(RunSession.id).where(RunSession.state == "planned",
-                                                          RunSession.lease_expires.is_(None))).all()
+            planned = db.exec(
+                select(RunSession.id).where(RunSession.state == "planned", RunSession.lease_expires.is_(None))
+            ).all()
         if not planned:
             self._suspect_planned = {}
             return
@@ -108,8 +129,12 @@ class Reaper:
             if mono - since >= self.ttl_s:
                 self._suspect_planned.pop(sid, None)
                 if self._requeue(sid):
-                    log.warning("%s: session %s was planned with no job for a worker for %.0f s: queued it again",
-                                self.name, sid, mono - since)
+                    log.warning(
+                        "%s: session %s was planned with no job for a worker for %.0f s: queued it again",
+                        self.name,
+                        sid,
+                        mono - since,
+                    )
 
     def _requeue(self, sid: int) -> bool:
         with Session(self.engine) as db:
@@ -135,7 +160,9 @@ class Reaper:
                 failing = False
             except Exception as exc:  # noqa: BLE001 - the reaper must outlive a database restart
                 if not failing:
-                    level = logging.WARNING if database_unavailable(exc) or "connect" in str(exc).lower() else logging.ERROR
+                    level = (
+                        logging.WARNING if database_unavailable(exc) or "connect" in str(exc).lower() else logging.ERROR
+                    )
                     log.log(level, "%s: pass failed: %s", self.name, exc, exc_info=level == logging.ERROR)
                 failing = True
 

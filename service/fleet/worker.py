@@ -42,9 +42,8 @@ from sqlmodel import Session
 
 from ..models import RunSession, utcnow
 from ..orchestrator import Control, run_session
-from ..store import database_unavailable, held_by_other
 from ..settings import Settings
-from ..store import acquire_lease, migrate, set_state
+from ..store import acquire_lease, database_unavailable, held_by_other, migrate, set_state
 from . import jobs
 from .orchestrator import CONTROL_CHANNEL
 from .reaper import Reaper
@@ -89,11 +88,14 @@ class Monitor:
             return set()
         t0 = time.monotonic()
         with Session(self.engine) as db:
-            res = db.exec(update(RunSession)
-                          .where(RunSession.id.in_(list(sids)), RunSession.lease_owner == self.owner,
-                                 RunSession.state.in_(ACTIVE))
-                          .values(lease_expires=utcnow() + timedelta(seconds=self.ttl_s))
-                          .returning(RunSession.id))
+            res = db.exec(
+                update(RunSession)
+                .where(
+                    RunSession.id.in_(list(sids)), RunSession.lease_owner == self.owner, RunSession.state.in_(ACTIVE)
+                )
+                .values(lease_expires=utcnow() + timedelta(seconds=self.ttl_s))
+                .returning(RunSession.id)
+            )
             renewed = set(res.scalars().all())
             db.commit()
         controls = self.snapshot()
@@ -104,8 +106,10 @@ class Monitor:
             if sid in renewed:
                 c.lease_valid_until = self.valid_until(t0)
             else:  # reaped or taken over: never move again
-                c.interrupt_reason = ("this worker's hold on the cell ran out before it was renewed and the cell was "
-                                      "released; every measurement reported is kept: resume the session to continue")
+                c.interrupt_reason = (
+                    "this worker's hold on the cell ran out before it was renewed and the cell was "
+                    "released; every measurement reported is kept: resume the session to continue"
+                )
                 c.interrupt.set()
         return renewed
 
@@ -141,8 +145,9 @@ class Monitor:
                 continue
             try:
                 with Session(self.engine) as db:
-                    rows = db.exec(text("SELECT id, requested FROM session WHERE id = ANY(:ids)"),
-                                   params={"ids": list(controls)}).all()
+                    rows = db.exec(
+                        text("SELECT id, requested FROM session WHERE id = ANY(:ids)"), params={"ids": list(controls)}
+                    ).all()
                 for sid, req in rows:
                     c = controls.get(sid)
                     if c is not None and req:
@@ -187,12 +192,22 @@ class WorkerRuntime:
         # One connection per running session (run_session holds one between its commits), one
         # for claiming the next, a few for bursts; no more: PostgreSQL's connections are few
         # (docs/fleet.md, sizing), and a server out of them refuses everyone.
-        self.engine = create_engine(settings.database_url, pool_pre_ping=True, pool_size=concurrency + 1,
-                                    max_overflow=4, connect_args={"connect_timeout": jobs.CONNECT_TIMEOUT_S})
+        self.engine = create_engine(
+            settings.database_url,
+            pool_pre_ping=True,
+            pool_size=concurrency + 1,
+            max_overflow=4,
+            connect_args={"connect_timeout": jobs.CONNECT_TIMEOUT_S},
+        )
         # The monitor and the reaper on connections of their own: however busy the sessions, the
         # leases are renewed on time. (A session renewing its own late lease uses these too.)
-        self.control_engine = create_engine(settings.database_url, pool_pre_ping=True, pool_size=2,
-                                            max_overflow=2, connect_args={"connect_timeout": jobs.CONNECT_TIMEOUT_S})
+        self.control_engine = create_engine(
+            settings.database_url,
+            pool_pre_ping=True,
+            pool_size=2,
+            max_overflow=2,
+            connect_args={"connect_timeout": jobs.CONNECT_TIMEOUT_S},
+        )
         migrate(self.engine)
         jobs.ensure_schema(self.engine)
         self.monitor = Monitor(self.control_engine, conninfo, self.owner, self.ttl_s)
@@ -230,13 +245,17 @@ class WorkerRuntime:
             except Exception as exc:  # noqa: BLE001
                 if not database_unavailable(exc):
                     log.error("session %s: %s", sid, traceback.format_exc())
-                    self._end_if_ours(sid, "failed", f"internal error in the worker: {type(exc).__name__}: {exc}",
-                                      claiming=True)
+                    self._end_if_ours(
+                        sid, "failed", f"internal error in the worker: {type(exc).__name__}: {exc}", claiming=True
+                    )
                     return "failed"
                 if self.stopping.is_set() or time.monotonic() + delay > deadline:
                     raise
-                log.warning("session %s: cannot claim it yet, the database is unreachable or slow (%s); retrying",
-                            sid, getattr(exc, "orig", None) or exc)
+                log.warning(
+                    "session %s: cannot claim it yet, the database is unreachable or slow (%s); retrying",
+                    sid,
+                    getattr(exc, "orig", None) or exc,
+                )
                 time.sleep(delay)
                 delay = min(2 * delay, 5.0)
 
@@ -280,8 +299,12 @@ class WorkerRuntime:
                 if attempts > 5 or not self._wait_for_database(sid, control):
                     break
                 log.info("session %s: the database is back and the cell still ours; continuing", sid)
-        self._end_if_ours(sid, "interrupted", "the database was unreachable for longer than the lease; every "
-                                              "measurement reported is kept: resume the session to continue")
+        self._end_if_ours(
+            sid,
+            "interrupted",
+            "the database was unreachable for longer than the lease; every "
+            "measurement reported is kept: resume the session to continue",
+        )
         return "interrupted"
 
     def _wait_for_database(self, sid: int, control: Control) -> bool:
@@ -305,8 +328,11 @@ class WorkerRuntime:
         while True:
             try:
                 with Session(self.engine) as db:
-                    db.exec(update(RunSession).where(RunSession.id == sid, ours, RunSession.state.in_(ACTIVE))
-                            .values(state=state, reason=reason, updated_at=utcnow(), lease_expires=utcnow()))
+                    db.exec(
+                        update(RunSession)
+                        .where(RunSession.id == sid, ours, RunSession.state.in_(ACTIVE))
+                        .values(state=state, reason=reason, updated_at=utcnow(), lease_expires=utcnow())
+                    )
                     db.commit()
                 return
             except Exception:  # noqa: BLE001
@@ -335,18 +361,28 @@ class WorkerRuntime:
             if on_ready is not None:
                 on_ready()
             while not stop.is_set():
-                worker = asyncio.create_task(self.app.run_worker_async(
-                    queues=self.queues, name=self.name, concurrency=self.concurrency, install_signal_handlers=False,
-                    listen_notify=True, fetch_job_polling_interval=1.0, delete_jobs="successful",
-                    update_heartbeat_interval=max(1.0, self.ttl_s / 3), stalled_worker_timeout=max(3.0, self.ttl_s),
-                    shutdown_graceful_timeout=None))
+                worker = asyncio.create_task(
+                    self.app.run_worker_async(
+                        queues=self.queues,
+                        name=self.name,
+                        concurrency=self.concurrency,
+                        install_signal_handlers=False,
+                        listen_notify=True,
+                        fetch_job_polling_interval=1.0,
+                        delete_jobs="successful",
+                        update_heartbeat_interval=max(1.0, self.ttl_s / 3),
+                        stalled_worker_timeout=max(3.0, self.ttl_s),
+                        shutdown_graceful_timeout=None,
+                    )
+                )
                 stopper = asyncio.create_task(stop.wait())
                 done, _ = await asyncio.wait({worker, stopper}, return_when=asyncio.FIRST_COMPLETED)
                 if stopper in done:
                     log.info("stopping: running sessions stop between two steps, as interrupted")
                     self.stopping.set()
-                    self.interrupt_all("the worker was stopped; every measurement reported is kept: resume the "
-                                       "session to continue")
+                    self.interrupt_all(
+                        "the worker was stopped; every measurement reported is kept: resume the session to continue"
+                    )
                     worker.cancel()
                     try:
                         await worker
@@ -368,8 +404,20 @@ def run_worker(settings: Settings, *, name: str, sites: list[str] | None, concur
     rt = WorkerRuntime(settings, name=name, sites=sites, concurrency=concurrency)
 
     def ready():
-        print(json.dumps({"ready": True, "worker": name, "owner": rt.owner, "pid": os.getpid(),
-                          "sites": sites, "queues": rt.queues, "concurrency": concurrency}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "ready": True,
+                    "worker": name,
+                    "owner": rt.owner,
+                    "pid": os.getpid(),
+                    "sites": sites,
+                    "queues": rt.queues,
+                    "concurrency": concurrency,
+                }
+            ),
+            flush=True,
+        )
 
     asyncio.run(rt.serve(on_ready=ready))
     return 0

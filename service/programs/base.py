@@ -92,8 +92,10 @@ class Program:
     def rewrite(self, edits: list[tuple[Number, str]]) -> list[bytes]:
         """Each file with the numbers of ``edits`` replaced by their new text, every other
         character as it was; bytes as read."""
-        return [replace_spans(text, [(n.start, n.end, t) for n, t in edits if n.file == k])
-                for k, text in enumerate(self.texts)]
+        return [
+            replace_spans(text, [(n.start, n.end, t) for n, t in edits if n.file == k])
+            for k, text in enumerate(self.texts)
+        ]
 
 
 def replace_spans(text: str, edits: list[tuple[int, int, str]]) -> bytes:

@@ -137,8 +137,9 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
                 nan = float("nan")
                 fr = np.array([nan if d[0] is None else float(d[0]) for d, s in zip(dec, stated) if s])
                 up = np.array([nan if d[1] is None else float(d[1]) for d, s in zip(dec, stated) if s])
-                codes = np.array([np.full(6, nan) if d[2] is None else d[2].astype(float)
-                                  for d, s in zip(dec, stated) if s])
+                codes = np.array(
+                    [np.full(6, nan) if d[2] is None else d[2].astype(float) for d, s in zip(dec, stated) if s]
+                )
                 q_s, f_s = vendors.configured_ik(nom, X_nom[stated], brand, fr, up, codes, ref)
                 q_nom[stated], found[stated] = q_s, f_s
             if not np.all(stated):
@@ -153,12 +154,16 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
                 r = numerical_ik(nom, X_nom[free], near[free])
                 q_nom[free], found[free] = r.q, r.converged
             X_d = np.linalg.inv(M) @ X_nom if tau is None else fk(tau, q_nom)
-            cp = compensate_targets(ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True,
-                                    calibrated_range=calibrated, **kw)
+            cp = compensate_targets(
+                ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
+            )
             sol = configuration(brand, nom, cp.q)
             changed = np.array([t.config is not None and not same(brand, t.config, s) for t, s in zip(ts, sol)])
-            flags = cp.flags | np.where(changed, FLAG_BIT["branch_change"], 0) \
+            flags = (
+                cp.flags
+                | np.where(changed, FLAG_BIT["branch_change"], 0)
                 | np.where(~found, FLAG_BIT["unreachable"] | FLAG_BIT["branch_change"], 0)
+            )
             cp = dataclasses.replace(cp, flags=flags, converged=cp.converged & found)
             P_new = np.linalg.inv(np.array([B @ t.T_work for t in ts])) @ cp.T_command
             for k, t in enumerate(ts):
@@ -172,13 +177,20 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
                 else:
                     new_rot = np.degrees(vendors.matrix_to_fanuc_wpr(P_new[k, :3, :3], np.radians(orig_rot))[0])
                     unit = "deg"
-                texts = [written(n, v, "mm") for n, v in zip(t.position, new_pos)] + \
-                        [written(n, v, unit) for n, v in zip(t.orientation, new_rot)]
+                texts = [written(n, v, "mm") for n, v in zip(t.position, new_pos)] + [
+                    written(n, v, unit) for n, v in zip(t.orientation, new_rot)
+                ]
                 if found[k]:
                     edits += list(zip(t.position + t.orientation, texts))
-                heads.append(_head(prog, t, [n.text for n in t.position + t.orientation],
-                                   texts if found[k] else None,
-                                   {"written": show(brand, t.config), "solution": show(brand, sol[k])}))
+                heads.append(
+                    _head(
+                        prog,
+                        t,
+                        [n.text for n in t.position + t.orientation],
+                        texts if found[k] else None,
+                        {"written": show(brand, t.config), "solution": show(brand, sol[k])},
+                    )
+                )
                 order.append((t.file, t.line))
             parts.append(cp)
         if joints:
@@ -199,8 +211,16 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
 
 
 def _head(prog: Program, t: Target, original, compensated, config) -> str:
-    head = {"file": prog.paths[t.file], "line": t.line, "move": t.move, "kind": t.kind, "variable": t.name,
-            "frames": t.frames, "original": original, "compensated": compensated}
+    head = {
+        "file": prog.paths[t.file],
+        "line": t.line,
+        "move": t.move,
+        "kind": t.kind,
+        "variable": t.name,
+        "frames": t.frames,
+        "original": original,
+        "compensated": compensated,
+    }
     if config is not None:
         head["configuration"] = config
     return json.dumps(head)[1:-1] + ","

@@ -36,7 +36,9 @@ _P_RE = re.compile(r'P\[\s*(\d+)\s*(?::\s*"([^"\r\n]*)")?\s*\]\s*\{(.*?)\}\s*;',
 _GP_RE = re.compile(r"GP(\d+)\s*:")
 _FRAME_RE = re.compile(r"\b(UF|UT)\s*:\s*([^\s,]+)")
 _CONFIG_RE = re.compile(r"CONFIG\s*:\s*'([^']*)'")
-_CONF_VALUE_RE = re.compile(r"^\s*([NF])\s*([UD])\s*([TB])\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*$", re.IGNORECASE)
+_CONF_VALUE_RE = re.compile(
+    r"^\s*([NF])\s*([UD])\s*([TB])\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*$", re.IGNORECASE
+)
 _COMP_RE = re.compile(rf"\b([XYZWPR]|J[1-9]|E[1-9])\s*=\s*({NUM})\s*(mm|deg)?")
 
 
@@ -95,8 +97,20 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
             if missing:
                 fail(seg_s, f"{label}: expected component {missing[0]}")
             nums = tuple(comps[k] for k in need)
-            out.append(Target("joints", 0, ln, label, "P", q=np.radians([n.value for n in nums]), joints=nums,
-                              T_work=T_work, T_tool=T_tool, frames=names))
+            out.append(
+                Target(
+                    "joints",
+                    0,
+                    ln,
+                    label,
+                    "P",
+                    q=np.radians([n.value for n in nums]),
+                    joints=nums,
+                    T_work=T_work,
+                    T_tool=T_tool,
+                    frames=names,
+                )
+            )
             continue
         need = list("XYZWPR")
         missing = [k for k in need if k not in comps]
@@ -107,14 +121,37 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
             fail(seg_s, f"{label}: expected CONFIG : 'N U T, 0, 0, 0' in a Cartesian position")
         cv = _CONF_VALUE_RE.match(cm.group(1))
         if cv is None:
-            fail(seg_s + cm.start(1), f"{label}: CONFIG: expected 'F|N U|D T|B, turn4, turn5, turn6', got "
-                                      f"{cm.group(1)!r}")
-        config = (int(cv.group(1).upper() == "F"), int(cv.group(2).upper() == "U"), int(cv.group(3).upper() == "T"),
-                  int(cv.group(4)), int(cv.group(5)), int(cv.group(6)))
+            fail(
+                seg_s + cm.start(1),
+                f"{label}: CONFIG: expected 'F|N U|D T|B, turn4, turn5, turn6', got {cm.group(1)!r}",
+            )
+        config = (
+            int(cv.group(1).upper() == "F"),
+            int(cv.group(2).upper() == "U"),
+            int(cv.group(3).upper() == "T"),
+            int(cv.group(4)),
+            int(cv.group(5)),
+            int(cv.group(6)),
+        )
         v = [comps[k].value for k in need]
-        out.append(Target("pose", 0, ln, label, "P", P=_frame(v), rotation="fanuc_wpr",
-                          position=tuple(comps[k] for k in "XYZ"), orientation=tuple(comps[k] for k in "WPR"),
-                          config=config, config_text=cm.group(1), T_work=T_work, T_tool=T_tool, frames=names))
+        out.append(
+            Target(
+                "pose",
+                0,
+                ln,
+                label,
+                "P",
+                P=_frame(v),
+                rotation="fanuc_wpr",
+                position=tuple(comps[k] for k in "XYZ"),
+                orientation=tuple(comps[k] for k in "WPR"),
+                config=config,
+                config_text=cm.group(1),
+                T_work=T_work,
+                T_tool=T_tool,
+                frames=names,
+            )
+        )
     return Program((str(path),), (text,), "fanuc", out, [])
 
 

@@ -44,11 +44,13 @@ from .frames import Frames
 
 POSE_TYPES = ("e6pos", "pos", "frame")
 AXIS_TYPES = ("e6axis", "axis")
-_DECL_RE = re.compile(r"^[ \t]*(?:decl\s+)?(?:global\s+)?(?:decl\s+)?(e6pos|pos|frame|e6axis|axis|fdat)\s+(.*)$",
-                      re.IGNORECASE)
+_DECL_RE = re.compile(
+    r"^[ \t]*(?:decl\s+)?(?:global\s+)?(?:decl\s+)?(e6pos|pos|frame|e6axis|axis|fdat)\s+(.*)$", re.IGNORECASE
+)
 _ELEM_RE = re.compile(r"^[ \t]*([a-z_$]\w*)\s*\[\s*(\d+)\s*\]\s*=\s*(\{.*)$", re.IGNORECASE)
-_MOVE_RE = re.compile(r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|spl|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$",
-                      re.IGNORECASE)
+_MOVE_RE = re.compile(
+    r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|spl|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$", re.IGNORECASE
+)
 _FRAME_SET_RE = re.compile(r"^[ \t]*\$(tool|base)\s*=\s*(.*?)\s*$", re.IGNORECASE)
 _DATA_RE = re.compile(r"^(tool|base)_data\s*\[\s*(\d+)\s*\]$", re.IGNORECASE)
 _BAS_RE = re.compile(r"^[ \t]*bas\s*\(\s*#(tool|base)\s*,\s*(\d+)\s*\)", re.IGNORECASE)
@@ -102,12 +104,12 @@ def _aggregate(f: _File, code: str, i: int, base: int, what: str):
     j = code.find("}", i)
     if j < 0:
         f.fail(base + i, f"{what}: expected '}}' closing the aggregate on this line")
-    body = code[i + 1:j]
+    body = code[i + 1 : j]
     colon = re.match(r"\s*[a-z_]\w*\s*:", body, re.IGNORECASE)
     off = i + 1 + (colon.end() if colon else 0)
     items = {}
     pos = off
-    for piece in body[off - i - 1:].split(","):
+    for piece in body[off - i - 1 :].split(","):
         s = pos
         pos += len(piece) + 1
         m = re.match(r"(\s*)([a-z_]\w*)(\s+)(\S.*?)\s*$", piece, re.IGNORECASE)
@@ -115,7 +117,7 @@ def _aggregate(f: _File, code: str, i: int, base: int, what: str):
             continue  # a component that is not NAME value (FDAT's POINT2[] " "): not a target's
         vs = s + m.start(4)
         ve = s + m.end(4)
-        items[m.group(2).lower()] = Number(f.index, base + vs, base + ve, f.text[base + vs:base + ve])
+        items[m.group(2).lower()] = Number(f.index, base + vs, base + ve, f.text[base + vs : base + ve])
     return items, j + 1
 
 
@@ -150,8 +152,9 @@ def _config_frames(path) -> dict:
     return out
 
 
-def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames | None = None,
-          dat_data: bytes | None = None) -> Program:
+def parse(
+    path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames | None = None, dat_data: bytes | None = None
+) -> Program:
     """Parse a ``.src`` and the ``.dat`` beside it (``dat_data``: its bytes, when given)."""
     if n_joints != 6:
         raise InputError(path, f"KRL programs are compensated for six-axis arms; the model has {n_joints} joints")
@@ -192,9 +195,13 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
                 base_name = m.group(1).lower()
                 items, _ = _aggregate(f, code, m.start(3), s, f"{m.group(1)}[{m.group(2)}]")
                 typ = "e6axis" if any(k.startswith("a") and k[1:].isdigit() for k in items) else "e6pos"
-                decls[f"{base_name}[{int(m.group(2))}]"] = {"type": typ, "items": items, "file": f,
-                                                            "offset": s + m.start(1),
-                                                            "name": f"{m.group(1)}[{m.group(2)}]"}
+                decls[f"{base_name}[{int(m.group(2))}]"] = {
+                    "type": typ,
+                    "items": items,
+                    "file": f,
+                    "offset": s + m.start(1),
+                    "name": f"{m.group(1)}[{m.group(2)}]",
+                }
     # the .src in program order: frames and moves
     state = {"tool": ("opt", None), "base": ("opt", None)}
     out, skipped, uses, expected = [], [], {}, set()
@@ -212,12 +219,18 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
                 return _frame(vals), f"{kind.upper()}_DATA[{n}] (--{kind}-frame)"
             if (kind, n) in config:
                 return _frame(config[(kind, n)]), f"{kind.upper()}_DATA[{n}] ($config.dat)"
-            src.fail(offset, f"{kind.upper()}_DATA[{n}] is selected here but not given: pass --{kind}-frame "
-                             f"{n}=X,Y,Z,A,B,C or --config-dat $config.dat")
+            src.fail(
+                offset,
+                f"{kind.upper()}_DATA[{n}] is selected here but not given: pass --{kind}-frame "
+                f"{n}=X,Y,Z,A,B,C or --config-dat $config.dat",
+            )
         if how == "lit":
             return _frame(n), f"${kind.upper()} literal"
-        src.fail(offset, f"${kind.upper()} = {n}: Recal cannot resolve this {kind} frame (use TOOL_DATA[n]/"
-                         f"BASE_DATA[n], BAS(#{kind.upper()}, n) or an inline FDAT)")
+        src.fail(
+            offset,
+            f"${kind.upper()} = {n}: Recal cannot resolve this {kind} frame (use TOOL_DATA[n]/"
+            f"BASE_DATA[n], BAS(#{kind.upper()}, n) or an inline FDAT)",
+        )
 
     for ln, s, code in src.lines():
         m = _FRAME_SET_RE.match(code)
@@ -230,8 +243,10 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
                 state[kind] = ("null", None)
             elif val.startswith("{"):
                 items, _ = _aggregate(src, code, code.index("{"), s, f"${kind.upper()}")
-                state[kind] = ("lit", tuple(_value(src, items[k], f"${kind.upper()}", k) if k in items else 0.0
-                                            for k in "xyzabc"))
+                state[kind] = (
+                    "lit",
+                    tuple(_value(src, items[k], f"${kind.upper()}", k) if k in items else 0.0 for k in "xyzabc"),
+                )
             else:
                 state[kind] = ("bad", val)
             continue
@@ -262,23 +277,23 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
             continue
         args_at = m.start(2)
         targets = []  # (start, end) in the line's code
-        if code[args_at:args_at + 1] == "{":
+        if code[args_at : args_at + 1] == "{":
             j = code.find("}", args_at)
             targets.append((args_at, j + 1 if j >= 0 else len(code)))
-            rest = code[targets[-1][1]:]
+            rest = code[targets[-1][1] :]
         else:
             t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[args_at:], re.IGNORECASE)
             if not t:
                 skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
                 continue
             targets.append((args_at, args_at + t.end()))
-            rest = code[args_at + t.end():]
+            rest = code[args_at + t.end() :]
         if mv in ("CIRC", "SCIRC"):
             c = re.match(r"\s*,\s*", rest)
             if not c:
                 src.fail(s + targets[0][1], f"{mv}: expected ', target' after the auxiliary point")
             a2 = targets[0][1] + c.end()
-            if code[a2:a2 + 1] == "{":
+            if code[a2 : a2 + 1] == "{":
                 j = code.find("}", a2)
                 targets.append((a2, j + 1 if j >= 0 else len(code)))
             else:
@@ -313,13 +328,26 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
         us = uses.get(key, [])
         if not us:
             if dd["type"] in POSE_TYPES + AXIS_TYPES:
-                skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), f"{dd['type'].upper()} "
-                               f"{dd['name']} is not the target of a move in this program: its frames are unknown",
-                               f.index))
+                skipped.append(
+                    Uninterpreted(
+                        ln,
+                        line_text(f.text, f.starts, ln),
+                        f"{dd['type'].upper()} "
+                        f"{dd['name']} is not the target of a move in this program: its frames are unknown",
+                        f.index,
+                    )
+                )
             continue
         if len({(u[2][1], u[3][1]) for u in us}) > 1 and dd["type"] in POSE_TYPES:
-            skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), f"{dd['name']} is used with different "
-                           f"tools or bases (lines {', '.join(str(u[0]) for u in us)}): not compensated", f.index))
+            skipped.append(
+                Uninterpreted(
+                    ln,
+                    line_text(f.text, f.starts, ln),
+                    f"{dd['name']} is used with different "
+                    f"tools or bases (lines {', '.join(str(u[0]) for u in us)}): not compensated",
+                    f.index,
+                )
+            )
             continue
         _, mv, tool, base = us[0]
         t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base)
@@ -331,18 +359,27 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
     for key, us in uses.items():
         if key not in decls:
             for u in us:
-                skipped.append(Uninterpreted(u[0], line_text(src.text, src.starts, u[0]),
-                                             f"{key.upper()} is not declared in this program's .src or .dat: not "
-                                             f"compensated"))
+                skipped.append(
+                    Uninterpreted(
+                        u[0],
+                        line_text(src.text, src.starts, u[0]),
+                        f"{key.upper()} is not declared in this program's .src or .dat: not compensated",
+                    )
+                )
     # other uses of a target's name in the .src (e.g. XP1.Z = ...): they see the new value
     for ln, s, code in src.lines():
         if _DECL_RE.match(code) or _ELEM_RE.match(code):
             continue
         for m in _IDENT_RE.finditer(code):
             if m.group().lower() in names_done and (0, s + m.start()) not in expected:
-                skipped.append(Uninterpreted(ln, line_text(src.text, src.starts, ln),
-                                             f"uses target {m.group()} in an expression: this use sees the "
-                                             f"compensated value and is not itself compensated"))
+                skipped.append(
+                    Uninterpreted(
+                        ln,
+                        line_text(src.text, src.starts, ln),
+                        f"uses target {m.group()} in an expression: this use sees the "
+                        f"compensated value and is not itself compensated",
+                    )
+                )
                 break
     out.sort(key=lambda t: (t.file, t.line))
     seen, dedup = set(), []
@@ -381,14 +418,33 @@ def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
     missing = [k for k in need if k not in items]
     if missing:
         if inline:
-            return f"{what}: X, Y, Z, A, B, C not all given (missing ones come from where the robot is): not compensated"
+            return (
+                f"{what}: X, Y, Z, A, B, C not all given (missing ones come from where the robot is): not compensated"
+            )
         f.fail(offset, f"{what}: expected component {missing[0].upper()}")
     v = [_value(f, items[k], what, k) for k in need]
     P = _frame(v)
     S = int(_value(f, items["s"], what, "s")) if "s" in items else None
     T = int(_value(f, items["t"], what, "t")) if "t" in items else None
     config = None if S is None and T is None else (S, T)
-    ctext = None if config is None else f"S {items['s'].text if S is not None else '-'}, T {items['t'].text if T is not None else '-'}"
-    return Target("pose", f.index, ln, name, mv, P=P, rotation="kuka_abc", position=tuple(items[k] for k in "xyz"),
-                  orientation=tuple(items[k] for k in "abc"), config=config, config_text=ctext, T_work=base[0],
-                  T_tool=tool[0], frames=frames)
+    ctext = (
+        None
+        if config is None
+        else f"S {items['s'].text if S is not None else '-'}, T {items['t'].text if T is not None else '-'}"
+    )
+    return Target(
+        "pose",
+        f.index,
+        ln,
+        name,
+        mv,
+        P=P,
+        rotation="kuka_abc",
+        position=tuple(items[k] for k in "xyz"),
+        orientation=tuple(items[k] for k in "abc"),
+        config=config,
+        config_text=ctext,
+        T_work=base[0],
+        T_tool=tool[0],
+        frames=frames,
+    )

@@ -40,14 +40,28 @@ from .base import (
 )
 
 # instruction -> (number of targets, index of the tool among the positional arguments; -1: the last)
-MOVES = {"movej": (1, 3), "movel": (1, 3), "movec": (2, 4), "moveabsj": (1, 3),
-         "movejdo": (1, 3), "moveldo": (1, 3), "movecdo": (2, 4),
-         "movejsync": (1, 3), "movelsync": (1, 3), "movecsync": (2, 4),
-         "triggj": (1, -1), "triggl": (1, -1), "triggc": (2, -1), "arcl": (1, -1), "arcc": (2, -1)}
-_MOVE_RE = re.compile(r"(?<![\w\\])(" + "|".join(sorted(MOVES, key=len, reverse=True)) + r")(?=[\s\\,])",
-                      re.IGNORECASE)
-_DECL_RE = re.compile(r"^[ \t]*(?:(local|task)\s+)?(const|pers|var)\s+([a-z_]\w*)\s+([a-z_]\w*)\s*(\{[^}]*\})?\s*",
-                      re.IGNORECASE | re.MULTILINE)
+MOVES = {
+    "movej": (1, 3),
+    "movel": (1, 3),
+    "movec": (2, 4),
+    "moveabsj": (1, 3),
+    "movejdo": (1, 3),
+    "moveldo": (1, 3),
+    "movecdo": (2, 4),
+    "movejsync": (1, 3),
+    "movelsync": (1, 3),
+    "movecsync": (2, 4),
+    "triggj": (1, -1),
+    "triggl": (1, -1),
+    "triggc": (2, -1),
+    "arcl": (1, -1),
+    "arcc": (2, -1),
+}
+_MOVE_RE = re.compile(r"(?<![\w\\])(" + "|".join(sorted(MOVES, key=len, reverse=True)) + r")(?=[\s\\,])", re.IGNORECASE)
+_DECL_RE = re.compile(
+    r"^[ \t]*(?:(local|task)\s+)?(const|pers|var)\s+([a-z_]\w*)\s+([a-z_]\w*)\s*(\{[^}]*\})?\s*",
+    re.IGNORECASE | re.MULTILINE,
+)
 _IDENT_RE = re.compile(r"[A-Za-z_]\w*")
 _REF_RE = re.compile(r"([A-Za-z_]\w*)\s*(?:\{\s*(\d+)\s*\})?")
 TYPES = ("robtarget", "jointtarget", "tooldata", "wobjdata")
@@ -180,14 +194,14 @@ class _Reader:
 
     def numbers(self, node, count, what, offset):
         if not isinstance(node, list):
-            self.fail(offset, f"{what}: expected [{count} numbers], got {self.code[node[0]:node[1]]!r}")
+            self.fail(offset, f"{what}: expected [{count} numbers], got {self.code[node[0] : node[1]]!r}")
         if len(node) != count:
             self.fail(offset, f"{what}: expected {count} values, got {len(node)}")
         out = []
         for leaf in node:
             if isinstance(leaf, list):
                 self.fail(offset, f"{what}: expected a number, got an aggregate")
-            t = self.text[leaf[0]:leaf[1]]
+            t = self.text[leaf[0] : leaf[1]]
             try:
                 float(t)
             except ValueError:
@@ -247,7 +261,12 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
                 if not isinstance(node, list):
                     r.fail(after, f"{typ} {name}: expected an array aggregate")
                 for k, el in enumerate(node, start=1):
-                    decls[f"{name.lower()}{{{k}}}"] = {"type": typ, "node": el, "offset": after, "name": f"{name}{{{k}}}"}
+                    decls[f"{name.lower()}{{{k}}}"] = {
+                        "type": typ,
+                        "node": el,
+                        "offset": after,
+                        "name": f"{name}{{{k}}}",
+                    }
             else:
                 decls[name.lower()] = {"type": typ, "node": node, "offset": after, "name": name}
             continue
@@ -256,24 +275,27 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
             continue
         mv = m.group(1)
         start = s0 + m.end()
-        args = [a for a in _split_args(code, start, stmt_end) if not code[a[0]:a[1]].startswith("\\")]
+        args = [a for a in _split_args(code, start, stmt_end) if not code[a[0] : a[1]].startswith("\\")]
         n_t, tool_i = MOVES[mv.lower()]
         need = max(tool_i + 1, n_t + 2)
         if len(args) < need:
-            r.fail(s0 + m.start(), f"{mv}: expected at least {need} arguments (target(s), speed, zone, tool), "
-                                   f"got {len(args)}")
+            r.fail(
+                s0 + m.start(),
+                f"{mv}: expected at least {need} arguments (target(s), speed, zone, tool), got {len(args)}",
+            )
         tool_i = tool_i if tool_i >= 0 else len(args) - 1
         tool_main, _ = _options(code, *args[tool_i])
         opts = {}
         for a in args:
             opts.update(_options(code, *a)[1])
-        tool = code[tool_main[0]:tool_main[1]]
+        tool = code[tool_main[0] : tool_main[1]]
         wobj = opts.get("wobj")
         targets = []
         for k in range(n_t):
             (a, b), _ = _options(code, *args[k])
             targets.append((a, b))
         moves.append((s0 + m.start(), mv, targets, tool, wobj))
+
     # frames
     def frame(name, typ, offset, mv):
         if name is None or name.lower() in (("tool0",) if typ == "tooldata" else ("wobj0",)):
@@ -282,11 +304,13 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
             r.fail(offset, f"{mv}: {typ} {name!r} is an expression; Recal resolves only {typ} declared in this file")
         dd = decls.get(name.lower())
         if dd is None or dd["type"] != typ:
-            r.fail(offset, f"{mv}: {typ} {name} is not declared in this file; Recal cannot resolve it (declare it "
-                           f"in this module)")
+            r.fail(
+                offset,
+                f"{mv}: {typ} {name} is not declared in this file; Recal cannot resolve it (declare it in this module)",
+            )
         node = dd["node"]
         hold = node[0] if isinstance(node, list) and node else None
-        held = isinstance(hold, tuple) and text[hold[0]:hold[1]].strip().upper() == "TRUE"
+        held = isinstance(hold, tuple) and text[hold[0] : hold[1]].strip().upper() == "TRUE"
         if typ == "tooldata":
             if not held:
                 r.fail(dd["offset"], f"tooldata {name}: a stationary tool (robhold FALSE) is not supported")
@@ -296,10 +320,12 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
             r.fail(dd["offset"], f"wobjdata {name}: a work object held by the robot (robhold TRUE) is not supported")
         if len(node) < 5:
             r.fail(dd["offset"], f"wobjdata {name}: expected [robhold, ufprog, ufmec, uframe, oframe]")
-        ufprog = text[node[1][0]:node[1][1]].strip().upper() if isinstance(node[1], tuple) else ""
+        ufprog = text[node[1][0] : node[1][1]].strip().upper() if isinstance(node[1], tuple) else ""
         if ufprog == "FALSE":
-            r.fail(dd["offset"], f"wobjdata {name}: a user frame moved by a mechanical unit (ufprog FALSE) is not "
-                                 f"supported")
+            r.fail(
+                dd["offset"],
+                f"wobjdata {name}: a user frame moved by a mechanical unit (ufprog FALSE) is not supported",
+            )
         U, _, _ = r.pose(node[3], "wobjdata", name, dd["offset"])
         O, _, _ = r.pose(node[4], "wobjdata", name, dd["offset"])
         return U @ O
@@ -329,8 +355,11 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
                 expected.add(a)
                 uses.setdefault(key, []).append((ln, mv, kind, T_tool, T_work, fr, tool, wobj))
                 continue
-            skipped.append(Uninterpreted(ln, line_text(text, r.starts, ln),
-                                         f"the {mv} target is computed by an expression: not compensated"))
+            skipped.append(
+                Uninterpreted(
+                    ln, line_text(text, r.starts, ln), f"the {mv} target is computed by an expression: not compensated"
+                )
+            )
     names_done = set()
     for key, dd in decls.items():
         if dd["type"] not in ("robtarget", "jointtarget"):
@@ -338,15 +367,25 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         ln = r.line(dd["offset"])
         us = uses.get(key, [])
         if not us:
-            skipped.append(Uninterpreted(ln, line_text(text, r.starts, ln),
-                                         f"{dd['type']} {dd['name']} is not the target of a move in this file: its "
-                                         f"tool and work object are unknown"))
+            skipped.append(
+                Uninterpreted(
+                    ln,
+                    line_text(text, r.starts, ln),
+                    f"{dd['type']} {dd['name']} is not the target of a move in this file: its "
+                    f"tool and work object are unknown",
+                )
+            )
             continue
         combos = {(u[6] or "tool0").lower() + "|" + (u[7] or "wobj0").lower() for u in us}
         if dd["type"] == "robtarget" and len(combos) > 1:
-            skipped.append(Uninterpreted(ln, line_text(text, r.starts, ln),
-                                         f"robtarget {dd['name']} is used with different tools or work objects "
-                                         f"(lines {', '.join(str(u[0]) for u in us)}): not compensated"))
+            skipped.append(
+                Uninterpreted(
+                    ln,
+                    line_text(text, r.starts, ln),
+                    f"robtarget {dd['name']} is used with different tools or work objects "
+                    f"(lines {', '.join(str(u[0]) for u in us)}): not compensated",
+                )
+            )
             continue
         if us[0][2] != dd["type"]:
             r.fail(dd["offset"], f"{dd['type']} {dd['name']}: used as a {us[0][2]} by {us[0][1]} (line {us[0][0]})")
@@ -357,15 +396,23 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
     for key, us in uses.items():
         if key not in decls:
             for u in us:
-                skipped.append(Uninterpreted(u[0], line_text(text, r.starts, u[0]),
-                                             f"{key} is not declared in this file: not compensated"))
+                skipped.append(
+                    Uninterpreted(
+                        u[0], line_text(text, r.starts, u[0]), f"{key} is not declared in this file: not compensated"
+                    )
+                )
     # other uses of a compensated target's name (Offs(p10, ...)): they see the new value
     for m in _IDENT_RE.finditer(code):
         if m.group().lower() in names_done and m.start() not in expected:
             ln = r.line(m.start())
-            skipped.append(Uninterpreted(ln, line_text(text, r.starts, ln),
-                                         f"uses target {m.group()} in an expression: this use sees the compensated "
-                                         f"value and is not itself compensated"))
+            skipped.append(
+                Uninterpreted(
+                    ln,
+                    line_text(text, r.starts, ln),
+                    f"uses target {m.group()} in an expression: this use sees the compensated "
+                    f"value and is not itself compensated",
+                )
+            )
     out.sort(key=lambda t: t.line)
     seen, dedup = set(), []
     for u in sorted(skipped, key=lambda u: u.line):
@@ -397,5 +444,19 @@ def _target(r: _Reader, kind, node, name, mv, offset, T_tool, T_work, frames) ->
     if not 0 <= cv[3] <= 7:
         r.fail(conf[3].start, f"{label}: cfx: expected 0..7, got {cv[3]}")
     ctext = "[" + ",".join(n.text for n in conf) + "]"
-    return Target("pose", 0, ln, name, mv, P=P, rotation="quat", position=p, orientation=q, config=tuple(cv),
-                  config_text=ctext, T_work=T_work, T_tool=T_tool, frames=frames)
+    return Target(
+        "pose",
+        0,
+        ln,
+        name,
+        mv,
+        P=P,
+        rotation="quat",
+        position=p,
+        orientation=q,
+        config=tuple(cv),
+        config_text=ctext,
+        T_work=T_work,
+        T_tool=T_tool,
+        frames=frames,
+    )

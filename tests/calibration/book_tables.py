@@ -71,29 +71,50 @@ TABLE_6_11 = [  # used in the accuracy test: the average of 6.5 and 6.6
 T0 = np.array([[0, -1, 0, 1.2], [0, 0, 1, 33.96], [-1, 0, 0, 27.73], [0, 0, 0, 1.0]])  # eq. 6.11, inches
 
 TABLE_6_2 = {  # nominal
-    "axes": [(0, 1, 0, -15.00, 14.70, 33.60), (0, 0, -1, -15.00, 14.70, 27.73), (0, 0, -1, 2.00, 14.70, 27.73),
-             (0, 1, 0, 1.20, 31.75, 27.73), (0, 0, -1, 1.20, 31.75, 27.73), (0, 1, 0, 1.20, 31.75, 27.73)],
+    "axes": [
+        (0, 1, 0, -15.00, 14.70, 33.60),
+        (0, 0, -1, -15.00, 14.70, 27.73),
+        (0, 0, -1, 2.00, 14.70, 27.73),
+        (0, 1, 0, 1.20, 31.75, 27.73),
+        (0, 0, -1, 1.20, 31.75, 27.73),
+        (0, 1, 0, 1.20, 31.75, 27.73),
+    ],
     "offsets": (0, 0, 0, 0, 0, 0),
 }
 
 TABLE_6_7 = {  # identified from data file 1
-    "axes": [(-0.001, 1.000, -0.002, -15.044, 14.70, 33.601), (-0.003, -0.002, -1.000, -15.063, 14.014, 27.73),
-             (-0.010, -0.001, -1.000, 1.926, 14.690, 27.73), (0.006, 1.000, 0.006, 1.229, 31.75, 27.716),
-             (0.407, 0.002, -0.913, 1.228, 31.752, 27.73), (0.000, 1.000, 0.002, 1.224, 31.75, 27.729)],
+    "axes": [
+        (-0.001, 1.000, -0.002, -15.044, 14.70, 33.601),
+        (-0.003, -0.002, -1.000, -15.063, 14.014, 27.73),
+        (-0.010, -0.001, -1.000, 1.926, 14.690, 27.73),
+        (0.006, 1.000, 0.006, 1.229, 31.75, 27.716),
+        (0.407, 0.002, -0.913, 1.228, 31.752, 27.73),
+        (0.000, 1.000, 0.002, 1.224, 31.75, 27.729),
+    ],
     "offsets": (1.773, 2.061, -1.889, 24.054, -1.040, -26.122),
 }
 
 TABLE_6_8 = {  # identified from data file 2 (u5: the book prints "-0.987j"; it is k)
-    "axes": [(-0.002, 1.000, -0.002, -15.048, 14.70, 33.601), (-0.004, -0.002, -1.000, -15.067, 14.010, 27.73),
-             (-0.010, -0.001, -1.000, 1.919, 14.691, 27.73), (0.006, 1.000, 0.004, 1.224, 31.75, 27.707),
-             (0.158, 0.004, -0.987, 1.224, 31.751, 27.73), (0.000, 1.000, 0.004, 1.220, 31.75, 27.721)],
+    "axes": [
+        (-0.002, 1.000, -0.002, -15.048, 14.70, 33.601),
+        (-0.004, -0.002, -1.000, -15.067, 14.010, 27.73),
+        (-0.010, -0.001, -1.000, 1.919, 14.691, 27.73),
+        (0.006, 1.000, 0.004, 1.224, 31.75, 27.707),
+        (0.158, 0.004, -0.987, 1.224, 31.751, 27.73),
+        (0.000, 1.000, 0.004, 1.220, 31.75, 27.721),
+    ],
     "offsets": (1.747, 2.073, -1.921, 9.138, -1.104, -11.209),
 }
 
 TABLE_6_12 = {  # used in the accuracy test (offset 6 printed with two decimals)
-    "axes": [(-0.002, 1.000, -0.002, -15.046, 14.70, 33.601), (-0.004, -0.002, -1.000, -15.065, 14.012, 27.73),
-             (-0.010, -0.001, -1.000, 1.923, 14.691, 27.73), (0.006, 1.000, 0.005, 1.227, 31.75, 27.712),
-             (0.087, 0.003, -0.996, 1.226, 31.752, 27.73), (0.000, 1.000, 0.003, 1.222, 31.75, 27.725)],
+    "axes": [
+        (-0.002, 1.000, -0.002, -15.046, 14.70, 33.601),
+        (-0.004, -0.002, -1.000, -15.065, 14.012, 27.73),
+        (-0.010, -0.001, -1.000, 1.923, 14.691, 27.73),
+        (0.006, 1.000, 0.005, 1.227, 31.75, 27.712),
+        (0.087, 0.003, -0.996, 1.226, 31.752, 27.73),
+        (0.000, 1.000, 0.003, 1.222, 31.75, 27.725),
+    ],
     "offsets": (1.760, 2.067, -1.905, 5.000, -1.072, -7.07),
 }
 
@@ -123,8 +144,10 @@ def dh_document(table, name: str) -> dict:
     b = table[0]
     base = matrix_to_pose(_harden(b[0], b[1], b[2], b[3]))
     base = [*base[:3], *np.degrees(base[3:])]
-    joints = [{"name": "j1", "theta": table[1][3], "d": table[1][0], "a": table[1][1], "alpha": table[1][2]},
-              {"name": "j2", "theta": table[2][3], "a": table[2][0], "alpha": table[2][1], "beta": table[2][2]}]
+    joints = [
+        {"name": "j1", "theta": table[1][3], "d": table[1][0], "a": table[1][1], "alpha": table[1][2]},
+        {"name": "j2", "theta": table[2][3], "a": table[2][0], "alpha": table[2][1], "beta": table[2][2]},
+    ]
     for k in (3, 4, 5):
         r, l, alpha, dtheta = table[k]
         joints.append({"name": f"j{k}", "theta": dtheta, "d": r, "a": l, "alpha": alpha})
@@ -134,8 +157,16 @@ def dh_document(table, name: str) -> dict:
     cb, sb = math.cos(math.radians(ty)), math.sin(math.radians(ty))
     R = np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]]) @ np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
     t = R @ np.array([dx, dy, dz])
-    return {"format": "recal.model/1", "name": name, "units": {"length": "in", "angle": "deg"}, "convention": "dh",
-            "base": [float(v) for v in base], "joints": joints, "tool": [*t.tolist(), tx, ty, 0.0], "targets": {}}
+    return {
+        "format": "recal.model/1",
+        "name": name,
+        "units": {"length": "in", "angle": "deg"},
+        "convention": "dh",
+        "base": [float(v) for v in base],
+        "joints": joints,
+        "tool": [*t.tolist(), tx, ty, 0.0],
+        "targets": {},
+    }
 
 
 def unit_axis(row, joint: int) -> np.ndarray:
@@ -153,8 +184,22 @@ def zrp_document(table, name: str) -> dict:
     home = matrix_to_pose(T0)
     joints = []
     for i, row in enumerate(table["axes"]):
-        joints.append({"name": f"j{i + 1}", "axis": unit_axis(row, i).tolist(), "point": list(row[3:]),
-                       "theta": table["offsets"][i]})
-    return {"format": "recal.model/1", "name": name, "units": {"length": "in", "angle": "deg"}, "convention": "poe",
-            "base": [0, 0, 0, 0, 0, 0], "joints": joints,
-            "home": [*home[:3].tolist(), *np.degrees(home[3:]).tolist()], "tool": [0, 0, 0, 0, 0, 0], "targets": {}}
+        joints.append(
+            {
+                "name": f"j{i + 1}",
+                "axis": unit_axis(row, i).tolist(),
+                "point": list(row[3:]),
+                "theta": table["offsets"][i],
+            }
+        )
+    return {
+        "format": "recal.model/1",
+        "name": name,
+        "units": {"length": "in", "angle": "deg"},
+        "convention": "poe",
+        "base": [0, 0, 0, 0, 0, 0],
+        "joints": joints,
+        "home": [*home[:3].tolist(), *np.degrees(home[3:]).tolist()],
+        "tool": [0, 0, 0, 0, 0, 0],
+        "targets": {},
+    }

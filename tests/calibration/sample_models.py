@@ -126,17 +126,45 @@ def reference_fk(doc: dict, q_file: np.ndarray) -> np.ndarray:
 def fanuc_r2000ic_doc() -> dict:
     """A Fanuc R-2000iC-like arm with the coupling matrix of contracts §2 (J3 reported relative to
     the horizon: the DH angle of joint 3 is -(J2 + J3); J4-J6 reversed)."""
-    rows = [(670.0, 312.0, -90.0), (0.0, 1075.0, 0.0), (0.0, 225.0, -90.0), (1280.0, 0.0, 90.0),
-            (0.0, 0.0, -90.0), (215.0, 0.0, 0.0)]
+    rows = [
+        (670.0, 312.0, -90.0),
+        (0.0, 1075.0, 0.0),
+        (0.0, 225.0, -90.0),
+        (1280.0, 0.0, 90.0),
+        (0.0, 0.0, -90.0),
+        (215.0, 0.0, 0.0),
+    ]
     theta = [0, -90, 0, 0, 0, 0]
-    C = [[1, 0, 0, 0, 0, 0], [0, 1, 0, 0, 0, 0], [0, -1, -1, 0, 0, 0], [0, 0, 0, -1, 0, 0], [0, 0, 0, 0, -1, 0],
-         [0, 0, 0, 0, 0, -1]]
+    C = [
+        [1, 0, 0, 0, 0, 0],
+        [0, 1, 0, 0, 0, 0],
+        [0, -1, -1, 0, 0, 0],
+        [0, 0, 0, -1, 0, 0],
+        [0, 0, 0, 0, -1, 0],
+        [0, 0, 0, 0, 0, -1],
+    ]
     return {
-        "format": "recal.model/1", "name": "fanuc-r2000ic", "units": {"length": "mm", "angle": "deg"},
-        "convention": "dh", "base": [0, 0, 0, 0, 0, 0],
-        "joints": [{"name": f"j{i + 1}", "type": "revolute", "theta": theta[i], "d": d, "a": a, "alpha": al,
-                    "lower": -180, "upper": 180} for i, (d, a, al) in enumerate(rows)],
-        "tool": [0, 0, 150, 0, 0, 0], "targets": {"smr1": [0, 30, 60]}, "coupling": C,
+        "format": "recal.model/1",
+        "name": "fanuc-r2000ic",
+        "units": {"length": "mm", "angle": "deg"},
+        "convention": "dh",
+        "base": [0, 0, 0, 0, 0, 0],
+        "joints": [
+            {
+                "name": f"j{i + 1}",
+                "type": "revolute",
+                "theta": theta[i],
+                "d": d,
+                "a": a,
+                "alpha": al,
+                "lower": -180,
+                "upper": 180,
+            }
+            for i, (d, a, al) in enumerate(rows)
+        ],
+        "tool": [0, 0, 150, 0, 0, 0],
+        "targets": {"smr1": [0, 30, 60]},
+        "coupling": C,
     }
 
 
@@ -144,10 +172,14 @@ def craig_puma_mdh_doc() -> dict:
     """Craig's modified-DH PUMA 560 (alpha, a of the preceding link), mm and degrees."""
     rows = [(0, 0, 0), (-90, 0, 0), (0, 431.8, 149.09), (-90, -20.32, 433.07), (90, 0, 0), (-90, 0, 0)]
     return {
-        "format": "recal.model/1", "name": "puma-craig", "units": {"length": "mm", "angle": "deg"},
-        "convention": "mdh", "base": [100, -50, 660, 0, 0, 30],
+        "format": "recal.model/1",
+        "name": "puma-craig",
+        "units": {"length": "mm", "angle": "deg"},
+        "convention": "mdh",
+        "base": [100, -50, 660, 0, 0, 30],
         "joints": [{"name": f"j{i + 1}", "theta": 0, "d": d, "a": a, "alpha": al} for i, (al, a, d) in enumerate(rows)],
-        "tool": [0, 0, 56.25, 0, 0, 0], "targets": {"ball": [20, 0, 40]},
+        "tool": [0, 0, 56.25, 0, 0, 0],
+        "targets": {"ball": [20, 0, 40]},
     }
 
 
@@ -176,9 +208,14 @@ def prismatic_doc(convention: str) -> dict:
         else:
             j.update(lower=-3.0, upper=3.0)
     return {
-        "format": "recal.model/1", "name": f"rprr-{convention}", "units": {"length": "m", "angle": "rad"},
-        "convention": convention, "base": [0.2, -0.1, 0.05, 0.1, 0.2, -0.3], "joints": joints,
-        "tool": [0.01, 0.02, 0.1, 0.3, -0.1, 0.2], "targets": {"t1": [0.0, 0.05, 0.02], "t2": [-0.04, 0.0, 0.06]},
+        "format": "recal.model/1",
+        "name": f"rprr-{convention}",
+        "units": {"length": "m", "angle": "rad"},
+        "convention": convention,
+        "base": [0.2, -0.1, 0.05, 0.1, 0.2, -0.3],
+        "joints": joints,
+        "tool": [0.01, 0.02, 0.1, 0.3, -0.1, 0.2],
+        "targets": {"t1": [0.0, 0.05, 0.02], "t2": [-0.04, 0.0, 0.06]},
         **extra,
     }
 
@@ -188,17 +225,35 @@ def stanford_5r1p_doc(lever_in: float = 10.0) -> dict:
     Link 3 is prismatic (r_3 the variable); l_6 = r_6 = ``lever_in`` (the tool distance from the
     wrist); joint ranges "N" of Table 4.7."""
     rows = [  # alpha, l, r
-        (-90.0, 0.0, 6.0), (90.0, 0.0, 12.0), (30.0, 0.0, 0.0), (-90.0, 0.0, 0.0), (90.0, 0.0, 0.0),
-        (0.0, lever_in, lever_in)]
+        (-90.0, 0.0, 6.0),
+        (90.0, 0.0, 12.0),
+        (30.0, 0.0, 0.0),
+        (-90.0, 0.0, 0.0),
+        (90.0, 0.0, 0.0),
+        (0.0, lever_in, lever_in),
+    ]
     ranges = [(0, 300), (-120, 120), (12, 48), (0, 360), (-120, 120), (0, 360)]
     joints = []
     for i, ((alpha, l, r), (lo, hi)) in enumerate(zip(rows, ranges)):
-        j = {"name": f"j{i + 1}", "type": "prismatic" if i == 2 else "revolute", "theta": 0.0, "d": r, "a": l,
-             "alpha": alpha, "lower": lo, "upper": hi}
+        j = {
+            "name": f"j{i + 1}",
+            "type": "prismatic" if i == 2 else "revolute",
+            "theta": 0.0,
+            "d": r,
+            "a": l,
+            "alpha": alpha,
+            "lower": lo,
+            "upper": hi,
+        }
         joints.append(j)
     return {
-        "format": "recal.model/1", "name": "5r1p", "units": {"length": "in", "angle": "deg"},
-        "convention": "dh", "base": [0, 0, 0, 0, 0, 0], "joints": joints, "tool": [0, 0, 0, 0, 0, 0],
+        "format": "recal.model/1",
+        "name": "5r1p",
+        "units": {"length": "in", "angle": "deg"},
+        "convention": "dh",
+        "base": [0, 0, 0, 0, 0, 0],
+        "joints": joints,
+        "tool": [0, 0, 0, 0, 0, 0],
         "targets": {},
     }
 
@@ -253,6 +308,10 @@ def random_readings(doc: dict, n: int, rng: np.random.Generator) -> np.ndarray:
 
 def si_readings(doc: dict, q_file: np.ndarray) -> np.ndarray:
     """Readings in the document's units -> SI (rad, m)."""
-    scale = np.array([LENGTH[doc["units"]["length"]] if j.get("type", "revolute") == "prismatic"
-                      else ANGLE[doc["units"]["angle"]] for j in doc["joints"]])
+    scale = np.array(
+        [
+            LENGTH[doc["units"]["length"]] if j.get("type", "revolute") == "prismatic" else ANGLE[doc["units"]["angle"]]
+            for j in doc["joints"]
+        ]
+    )
     return np.asarray(q_file, float) * scale

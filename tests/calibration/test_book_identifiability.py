@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from sample_models import craig_puma_mdh_doc, stanford_5r1p_doc
 
 from calibration.conventions import hayati_for_parallel_axes, to_poe
 from calibration.identify import Measurements, identify
@@ -23,7 +24,6 @@ from calibration.model import model_from_dict
 from calibration.parameters import Parameter, apply_step, candidate_parameters, parameter_values
 from calibration.robots import nominal
 from calibration.simulate import random_configurations
-from sample_models import craig_puma_mdh_doc, stanford_5r1p_doc
 
 IN = 0.0254
 DEG = math.pi / 180
@@ -45,25 +45,41 @@ def _rank(model, *, full_pose: bool, n: int = 40, seed: int = 0, p_tool=np.zeros
 
 
 def _one_joint(joint_type: str):
-    return model_from_dict({
-        "format": "recal.model/1", "units": {"length": "m", "angle": "rad"}, "convention": "dh",
-        "joints": [{"type": joint_type, "d": 0.1, "a": 0.2, "alpha": 0.3,
+    return model_from_dict(
+        {
+            "format": "recal.model/1",
+            "units": {"length": "m", "angle": "rad"},
+            "convention": "dh",
+            "joints": [
+                {
+                    "type": joint_type,
+                    "d": 0.1,
+                    "a": 0.2,
+                    "alpha": 0.3,
                     "lower": 0.0 if joint_type == "prismatic" else -3.0,
-                    "upper": 0.5 if joint_type == "prismatic" else 3.0}]})
+                    "upper": 0.5 if joint_type == "prismatic" else 3.0,
+                }
+            ],
+        }
+    )
 
 
 # --------------------------------------------------------------------------- completeness
 
 
-@pytest.mark.parametrize("name,model,expected", [
-    ("PUMA 560 (DH + Hayati, Table 6.1)", nominal("puma560"), 30),
-    ("PUMA 560 ZRP (Table 6.2)", nominal("puma560-zrp"), 30),
-    ("UR10e with Hayati links", hayati_for_parallel_axes(nominal("ur10e"))[0], 30),
-    ("UR10e in poe", to_poe(nominal("ur10e")), 30),
-    ("5R1P of Table 4.1 (Stanford-like)", model_from_dict(stanford_5r1p_doc()), 28),
-    ("single revolute joint", _one_joint("revolute"), 10),
-    ("single prismatic joint", _one_joint("prismatic"), 8),
-], ids=lambda v: v if isinstance(v, str) else "")
+@pytest.mark.parametrize(
+    "name,model,expected",
+    [
+        ("PUMA 560 (DH + Hayati, Table 6.1)", nominal("puma560"), 30),
+        ("PUMA 560 ZRP (Table 6.2)", nominal("puma560-zrp"), 30),
+        ("UR10e with Hayati links", hayati_for_parallel_axes(nominal("ur10e"))[0], 30),
+        ("UR10e in poe", to_poe(nominal("ur10e")), 30),
+        ("5R1P of Table 4.1 (Stanford-like)", model_from_dict(stanford_5r1p_doc()), 28),
+        ("single revolute joint", _one_joint("revolute"), 10),
+        ("single prismatic joint", _one_joint("prismatic"), 8),
+    ],
+    ids=lambda v: v if isinstance(v, str) else "",
+)
 def test_completeness_count_is_the_rank_with_full_pose_data(name, model, expected):
     """N = 4R + 2P + 6 (eq. 2.63): PUMA 560 -> 30, Stanford arm (5R1P) -> 28, one revolute joint
     -> 10, one prismatic joint -> 8 (book L868-L876). With the base free as well, the rank of the
@@ -76,10 +92,14 @@ def test_completeness_count_is_the_rank_with_full_pose_data(name, model, expecte
     assert rank == expected
 
 
-@pytest.mark.parametrize("model,parallel_pairs", [
-    (nominal("ur10e"), 2),
-    (model_from_dict(craig_puma_mdh_doc()), 1),
-], ids=["ur10e-dh", "puma-mdh"])
+@pytest.mark.parametrize(
+    "model,parallel_pairs",
+    [
+        (nominal("ur10e"), 2),
+        (model_from_dict(craig_puma_mdh_doc()), 1),
+    ],
+    ids=["ur10e-dh", "puma-mdh"],
+)
 def test_plain_dh_with_parallel_axes_is_not_complete(model, parallel_pairs):
     """Book §2.6: standard (and Craig's) DH cannot describe a tilt of the second of two parallel
     axes about the common normal's perpendicular; each parallel pair costs one rank. Hayati's
@@ -116,15 +136,17 @@ RANGES_DEG_IN = {  # Table 4.7 (theta in deg, r_3 in inches); the wrist always i
 
 
 def _limits(R: str) -> np.ndarray:
-    return np.array([(lo * IN, hi * IN) if i == 2 else (lo * DEG, hi * DEG)
-                     for i, (lo, hi) in enumerate(RANGES_DEG_IN[R])])
+    return np.array(
+        [(lo * IN, hi * IN) if i == 2 else (lo * DEG, hi * DEG) for i, (lo, hi) in enumerate(RANGES_DEG_IN[R])]
+    )
 
 
 def _params_21(model, extra: tuple[str, ...] = ()) -> list[Parameter]:
     """The book's identified set: every link parameter of Table 4.1 except l_3, r_4 and alpha_6
     (the base frame is the measurement frame, the tool is link 6)."""
-    return [p for p in candidate_parameters(model, base=False, tool=False)
-            if p.name not in FIXED_5R1P or p.name in extra]
+    return [
+        p for p in candidate_parameters(model, base=False, tool=False) if p.name not in FIXED_5R1P or p.name in extra
+    ]
 
 
 def _jacobian_in_inch_rad(model, q, params) -> np.ndarray:
@@ -208,8 +230,10 @@ def test_5r1p_condition_number_grows_as_the_joint_range_shrinks():
     range F to the eighth range E (book 239 / 501 / 1696 / 4804)."""
     model = model_from_dict(stanford_5r1p_doc(5.0))
     params = _params_21(model)
-    k = {R: float(np.median([_kappa(model, _strategy(4, R, 36, np.random.default_rng(s)), params)
-                             for s in range(7)])) for R in "FHQE"}
+    k = {
+        R: float(np.median([_kappa(model, _strategy(4, R, 36, np.random.default_rng(s)), params) for s in range(7)]))
+        for R in "FHQE"
+    }
     assert k["F"] < k["H"] < k["Q"] < k["E"]
     assert k["E"] > 10 * k["F"]
 
@@ -226,8 +250,13 @@ def _identify_5r1p(lever_in: float, seed: int) -> tuple[float, float]:
     q = _strategy(4, "N", 36, rng)
     p_meas = target_positions(truth, q) + rng.uniform(-0.001, 0.001, (36, 3)) * IN
     q_read = q + rng.uniform(-0.001, 0.001, q.shape) * np.where(np.arange(6) == 2, IN, DEG)
-    result = identify(nominal_model, Measurements(q_read, p_meas), sigma_m=0.001 / math.sqrt(3) * IN,
-                      fixed=("base.*", "tool.*") + FIXED_5R1P, register="never")
+    result = identify(
+        nominal_model,
+        Measurements(q_read, p_meas),
+        sigma_m=0.001 / math.sqrt(3) * IN,
+        fixed=("base.*", "tool.*") + FIXED_5R1P,
+        register="never",
+    )
     assert result.success and len(result.params) == 21
     err = parameter_values(result.model, params) - parameter_values(truth, params)
     angle = np.array([p.kind == "angle" for p in params])
@@ -247,8 +276,19 @@ def test_5r1p_accuracy_degrades_as_the_tool_lever_arm_shrinks():
     assert angle[1.0] > 2 * angle[10.0]
     assert angle[0.5] > 3 * angle[10.0]
     assert all(v < 0.001 for v in length.values())  # book ≈ 0.0002 in for every lever arm
-    kappa = {L: float(np.median([_kappa(model_from_dict(stanford_5r1p_doc(L)),
-                                        _strategy(4, "N", 36, np.random.default_rng(s)),
-                                        _params_21(model_from_dict(stanford_5r1p_doc(L)))) for s in range(5)]))
-             for L in (10.0, 0.1)}
+    kappa = {
+        L: float(
+            np.median(
+                [
+                    _kappa(
+                        model_from_dict(stanford_5r1p_doc(L)),
+                        _strategy(4, "N", 36, np.random.default_rng(s)),
+                        _params_21(model_from_dict(stanford_5r1p_doc(L))),
+                    )
+                    for s in range(5)
+                ]
+            )
+        )
+        for L in (10.0, 0.1)
+    }
     assert kappa[0.1] > 4 * kappa[10.0]

@@ -12,7 +12,6 @@ import math
 
 import numpy as np
 import pytest
-
 from book_tables import (
     SIGMA_ORIENTATION_RAD,
     SIGMA_POSITION_MM,
@@ -29,6 +28,7 @@ from book_tables import (
     unit_axis,
     zrp_document,
 )
+
 from calibration.identify import identify
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
@@ -142,25 +142,34 @@ def test_table_6_2_document_is_the_library_zrp_puma():
 
 def test_dh_6_11_at_zero_matches_extraction():
     T = fk(_dh(TABLE_6_11), np.zeros(6))[0]
-    np.testing.assert_allclose(T[:3, :3], [[0.005496, -0.999855, -0.016128], [0.002608, -0.016114, 0.999867],
-                                           [-0.999981, -0.005537, 0.002519]], atol=1e-6)
+    np.testing.assert_allclose(
+        T[:3, :3],
+        [[0.005496, -0.999855, -0.016128], [0.002608, -0.016114, 0.999867], [-0.999981, -0.005537, 0.002519]],
+        atol=1e-6,
+    )
     np.testing.assert_allclose(T[:3, 3] / IN, [1.039492, 33.348865, 27.24162], atol=2e-6)
 
 
-@pytest.mark.parametrize("which,expected", [
-    ("second", [3.323635, 38.00839, 24.768413]),
-    ("third", [-22.344346, 42.201787, 20.102834]),
-])
+@pytest.mark.parametrize(
+    "which,expected",
+    [
+        ("second", [3.323635, 38.00839, 24.768413]),
+        ("third", [-22.344346, 42.201787, 20.102834]),
+    ],
+)
 def test_dh_6_11_regression_positions(which, expected):
     T = fk(_dh(TABLE_6_11), np.radians(THETAS[which]))[0]
     np.testing.assert_allclose(T[:3, 3] / IN, expected, atol=2e-6)
 
 
-@pytest.mark.parametrize("which,expected", [
-    ("zero", [1.040836, 33.346653, 27.237321]),
-    ("second", [3.321417, 38.007756, 24.760696]),
-    ("third", [-22.349144, 42.206492, 20.119038]),
-])
+@pytest.mark.parametrize(
+    "which,expected",
+    [
+        ("zero", [1.040836, 33.346653, 27.237321]),
+        ("second", [3.321417, 38.007756, 24.760696]),
+        ("third", [-22.349144, 42.206492, 20.119038]),
+    ],
+)
 def test_zrp_6_12_regression_positions(which, expected):
     T = fk(_zrp(TABLE_6_12), np.radians(THETAS[which]))[0]
     np.testing.assert_allclose(T[:3, 3] / IN, expected, atol=2e-6)
@@ -177,12 +186,16 @@ def test_dh_and_zrp_differ_by_rounding_at_the_regression_poses(which, dp_in, dr_
 # --------------------------------------------------------------------------- same robot (§5 B1)
 
 
-@pytest.mark.parametrize("dh_table,zrp_table,max_in,max_deg", [
-    # the extraction's maxima over its samples (0.05/0.17, 0.057/0.17, 0.037/0.13), +10 %
-    (TABLE_6_11, TABLE_6_12, 0.055, 0.18),
-    (TABLE_6_5, TABLE_6_7, 0.063, 0.19),
-    (TABLE_6_6, TABLE_6_8, 0.041, 0.145),
-], ids=["6.11-vs-6.12", "6.5-vs-6.7", "6.6-vs-6.8"])
+@pytest.mark.parametrize(
+    "dh_table,zrp_table,max_in,max_deg",
+    [
+        # the extraction's maxima over its samples (0.05/0.17, 0.057/0.17, 0.037/0.13), +10 %
+        (TABLE_6_11, TABLE_6_12, 0.055, 0.18),
+        (TABLE_6_5, TABLE_6_7, 0.063, 0.19),
+        (TABLE_6_6, TABLE_6_8, 0.041, 0.145),
+    ],
+    ids=["6.11-vs-6.12", "6.5-vs-6.7", "6.6-vs-6.8"],
+)
 def test_identified_dh_and_zrp_tables_describe_the_same_robot(dh_table, zrp_table, max_in, max_deg):
     """The DH and ZRP models identified from the same data agree within the book's rounding
     (u printed to 3 decimals) over random joint vectors in ±120 deg; the nominal models do not."""

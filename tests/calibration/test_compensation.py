@@ -12,25 +12,54 @@ import math
 
 import numpy as np
 import pytest
+from sample_models import all_convention_docs, random_readings, si_readings, stanford_5r1p_doc
 
 from calibration import robots
-from calibration.compensation import (FLAG_BIT, FLAGS, assess, compensate_joints, compensate_taught,
-                                      compensate_targets, error_table, flag_names, frame_map,
-                                      inverse_jacobian_iteration, nominal_solution)
+from calibration.compensation import (
+    FLAG_BIT,
+    FLAGS,
+    assess,
+    compensate_joints,
+    compensate_targets,
+    compensate_taught,
+    error_table,
+    flag_names,
+    frame_map,
+    inverse_jacobian_iteration,
+    nominal_solution,
+)
 from calibration.conventions import hayati_for_parallel_axes
-from calibration.ik import (geometric_jacobian, inverse_kinematics, numerical_ik, pose_error, singular_values, solve_ik,
-                            spread_seeds, ur_branch, ur_geometry, ur_ik, ur_ik_all, wrap_into_limits)
+from calibration.ik import (
+    geometric_jacobian,
+    inverse_kinematics,
+    numerical_ik,
+    pose_error,
+    singular_values,
+    solve_ik,
+    spread_seeds,
+    ur_branch,
+    ur_geometry,
+    ur_ik,
+    ur_ik_all,
+    wrap_into_limits,
+)
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 from calibration.parameters import apply_step, candidate_parameters
 from calibration.transforms import matrix_to_rotvec
-from sample_models import all_convention_docs, random_readings, si_readings, stanford_5r1p_doc
 
 UM = 1e-6
 
 
-def identified_like(nominal, rng, *, base=(1.8, -0.6, 0.3, 0.002, -0.004, math.radians(130.0)), length_m=0.5e-3,
-                    angle_rad=math.radians(0.05), offset_rad=math.radians(0.1)):
+def identified_like(
+    nominal,
+    rng,
+    *,
+    base=(1.8, -0.6, 0.3, 0.002, -0.004, math.radians(130.0)),
+    length_m=0.5e-3,
+    angle_rad=math.radians(0.05),
+    offset_rad=math.radians(0.1),
+):
     """A robot as identification describes it: Hayati links on parallel axes, every link
     parameter off by a little, the base where the instrument sees it."""
     m, _ = hayati_for_parallel_axes(nominal)
@@ -73,8 +102,9 @@ def orientation_error(model, q, X):
 # ----------------------------------------------------------------------------- Jacobian
 
 
-@pytest.mark.parametrize("key", ["dh", "dh_gain", "dh_harmonic", "dh_hayati", "dh_coupling", "mdh", "poe",
-                                 "dh_prismatic", "poe_prismatic"])
+@pytest.mark.parametrize(
+    "key", ["dh", "dh_gain", "dh_harmonic", "dh_hayati", "dh_coupling", "mdh", "poe", "dh_prismatic", "poe_prismatic"]
+)
 def test_geometric_jacobian_matches_central_differences_of_the_readings(key):
     doc = all_convention_docs()[key]
     model = model_from_dict(doc)
@@ -161,9 +191,11 @@ def test_non_ur_models_are_recognised_and_solved_by_newton_from_the_taught_joint
 
 
 def no_closed_form_models():
-    return {"puma560 (dh, Hayati)": robots.nominal("puma560"),
-            "5r1p (dh, prismatic joint 3)": model_from_dict(stanford_5r1p_doc()),
-            "puma560-zrp (poe)": robots.nominal("puma560-zrp")}
+    return {
+        "puma560 (dh, Hayati)": robots.nominal("puma560"),
+        "5r1p (dh, prismatic joint 3)": model_from_dict(stanford_5r1p_doc()),
+        "puma560-zrp (poe)": robots.nominal("puma560-zrp"),
+    }
 
 
 def inside_limits(model, q):
@@ -212,8 +244,9 @@ def test_numerical_ik_keeps_taught_branches_and_flags_a_changed_one():
     flip = solve_ik(puma, T, q_a + np.radians([0, 0, 0, 180, -100, 180])).q  # the other wrist solution
     assert position_error(puma, flip, T)[0] < 1e-9 and not inside_limits(puma, wrap_into_limits(puma, flip))[0]
     path = fk(puma, q_a + np.radians(np.outer(np.arange(5), [3, -2, 2, 1, 2, -3])))
-    r = numerical_ik(puma, np.concatenate([T, T, path]), np.concatenate([q_a, flip, q_a + 0.03 * np.ones((5, 6))]),
-                     taught=True)
+    r = numerical_ik(
+        puma, np.concatenate([T, T, path]), np.concatenate([q_a, flip, q_a + 0.03 * np.ones((5, 6))]), taught=True
+    )
     assert r.success
     np.testing.assert_allclose(r.q[0], q_a[0], atol=1e-9)  # taught and inside: kept as taught
     np.testing.assert_allclose(r.q[1], q_a[0], atol=1e-9)  # taught outside the limits: the other wrist
@@ -384,7 +417,8 @@ def test_every_flag_is_triggered_by_a_constructed_case(cell):
     # outside_calibrated_region: joint 1 outside the measured range
     cr = np.array([[q1[0, 0] + 0.1, q1[0, 0] + 0.5]] + [[-np.pi, np.pi]] * 5)
     assert flag_names(compensate_joints(identified, X1, q1, calibrated_range=cr).flags[0]) == [
-        "outside_calibrated_region"]
+        "outside_calibrated_region"
+    ]
 
     # no_convergence: one Newton iteration is not enough for 1e-9 m
     c = compensate_joints(identified, X1, q1, max_iterations=1)
@@ -409,8 +443,15 @@ def test_every_flag_is_triggered_by_a_constructed_case(cell):
     assert {"unreachable", "no_convergence"} <= set(t.flags_of(0))
     # outside_mapped_region is set by `recal compensate` for a model with a residual map
     # (tests/cli/test_compliance_cli.py triggers it)
-    assert set(FLAGS) == {"joint_limit", "near_singular", "outside_calibrated_region", "no_convergence",
-                          "branch_change", "unreachable", "outside_mapped_region"}
+    assert set(FLAGS) == {
+        "joint_limit",
+        "near_singular",
+        "outside_calibrated_region",
+        "no_convergence",
+        "branch_change",
+        "unreachable",
+        "outside_mapped_region",
+    }
 
 
 def test_bad_arguments_are_clear_value_errors(cell):

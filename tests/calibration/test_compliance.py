@@ -79,8 +79,11 @@ def _reference(model, q, compliance, masses, payload, gravity):
 
 
 def test_compliant_fk_matches_first_principles_reference():
-    model = dataclasses.replace(nominal("ur10e"), base=np.array([0.3, -0.2, 0.1, 0.2, -0.1, 0.4]),
-                                tool=np.array([0.01, 0.02, 0.1, 0.1, 0.0, 0.2]))
+    model = dataclasses.replace(
+        nominal("ur10e"),
+        base=np.array([0.3, -0.2, 0.1, 0.2, -0.1, 0.4]),
+        tool=np.array([0.01, 0.02, 0.1, 0.1, 0.0, 0.2]),
+    )
     fig = SAGGING_ARMS["cobot"]
     gravity = (0.1, -0.2, -1.0)  # not along the base z: the section's gravity is in the base frame
     section = C.physical_section(model, fig["compliance"], fig["masses"], gravity=gravity)
@@ -152,8 +155,9 @@ def test_compliance_jacobian_columns_match_finite_differences(convention):
         assert np.abs(pred.Jp[:, :, k] - fd).max() < 1e-6 * scale, par.name
     # the step moves the term's value, and parameter_values reads it back
     moved = apply_step(model, params, np.arange(len(params)) * 1e-9)
-    assert np.allclose(parameter_values(moved, params) - parameter_values(model, params),
-                       np.arange(len(params)) * 1e-9, atol=1e-15)
+    assert np.allclose(
+        parameter_values(moved, params) - parameter_values(model, params), np.arange(len(params)) * 1e-9, atol=1e-15
+    )
 
 
 def test_rigid_model_is_untouched_by_a_payload():
@@ -188,14 +192,17 @@ def test_model_file_round_trip_in_file_units():
         assert back.compliance.values[k] == pytest.approx(v, rel=1e-10)
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"joints": ["j9"]}, "compliance.joints[0]"),
-    ({"lumps": ["j2", "nope"]}, "compliance.lumps[1]"),
-    ({"terms": {"j3.j2.m": 1.0}}, "compliance.terms.j3.j2.m"),
-    ({"terms": {"j2.k": "x"}}, "compliance.terms.j2.k"),
-    ({"gravity": [0, 0, 0]}, "compliance.gravity"),
-    ({"payload": [-1, 0, 0, 0]}, "compliance.payload[0]"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"joints": ["j9"]}, "compliance.joints[0]"),
+        ({"lumps": ["j2", "nope"]}, "compliance.lumps[1]"),
+        ({"terms": {"j3.j2.m": 1.0}}, "compliance.terms.j3.j2.m"),
+        ({"terms": {"j2.k": "x"}}, "compliance.terms.j2.k"),
+        ({"gravity": [0, 0, 0]}, "compliance.gravity"),
+        ({"payload": [-1, 0, 0, 0]}, "compliance.payload[0]"),
+    ],
+)
 def test_bad_compliance_section_names_the_field(change, field):
     doc = nominal_document("ur10e")
     doc["compliance"] = {"joints": ["j2"], "lumps": ["j2", "j6"], "terms": {}, **change}
@@ -227,8 +234,11 @@ def test_converting_the_convention_keeps_the_sag(convert):
     links before it starts)."""
     from calibration.conventions import dh_to_mdh, hayati_for_parallel_axes, mdh_to_dh
 
-    base = dataclasses.replace(nominal("ur10e"), base=np.array([0.2, 0.1, 0.3, 0.3, -0.2, 1.0]),
-                               tool=np.array([0.0, 0.01, 0.12, 0.0, 0.1, 0.0]))
+    base = dataclasses.replace(
+        nominal("ur10e"),
+        base=np.array([0.2, 0.1, 0.3, 0.3, -0.2, 1.0]),
+        tool=np.array([0.0, 0.01, 0.12, 0.0, 0.1, 0.0]),
+    )
     if convert == "mdh":
         source = sagging(dh_to_mdh(base), "cobot")
         converted = mdh_to_dh(dataclasses.replace(source, compliance=None))

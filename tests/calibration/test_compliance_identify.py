@@ -15,8 +15,14 @@ from calibration import compliance as C
 from calibration import compliance_fit
 from calibration.identify import identify
 from calibration.robots import nominal
-from calibration.simulate import (SAGGING_ARMS, heavy_arm_nominal, perturbed, random_configurations, sagging,
-                                  simulate_measurements)
+from calibration.simulate import (
+    SAGGING_ARMS,
+    heavy_arm_nominal,
+    perturbed,
+    random_configurations,
+    sagging,
+    simulate_measurements,
+)
 from calibration.uncertainty import validate
 
 SIGMA = {"cobot": 20e-6, "arm165": 30e-6}  # tracker noise per axis: a cobot near, a big arm farther away
@@ -85,8 +91,9 @@ def test_two_payloads_separate_the_arm_weight_from_the_payload():
     assert held["compliance.j2.k"].category == "combination"
     assert any(n.startswith("compliance.j2.j6.") for n, _ in held["compliance.j2.k"].relation)
     # two payloads: the compliance itself is determined
-    two = identify(start, _measure(nom, truth, rng, 150, [(0.0, 0, 0, 0), (10.0, 0.0, 0.02, 0.1)], sigma),
-                   sigma_m=sigma)
+    two = identify(
+        start, _measure(nom, truth, rng, 150, [(0.0, 0, 0, 0), (10.0, 0.0, 0.02, 0.1)], sigma), sigma_m=sigma
+    )
     assert "compliance.j2.k" in two.param_names and "compliance.j3.k" in two.param_names
     k = two.param_names.index("compliance.j2.k")
     assert abs(two.values[k] / SAGGING_ARMS["cobot"]["compliance"]["j2"] - 1.0) < 0.05
@@ -123,11 +130,15 @@ def test_auto_leaves_a_rigid_arm_rigid_and_adds_compliance_to_a_sagging_one(arm)
     sigma = SIGMA[arm]
     payloads = [(0.0, 0, 0, 0), SAGGING_ARMS[arm]["payload"]]
     nom, truth, rng = _cell(arm, seed=21, sag=False)
-    cv = compliance_fit.choose_compliance(nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma})
+    cv = compliance_fit.choose_compliance(
+        nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma}
+    )
     assert cv.joints == () and cv.section is None
     assert cv.rms_compliant_m > (1.0 - compliance_fit.MIN_CV_GAIN) * cv.rms_rigid_m  # the figures are there either way
     nom, truth, rng = _cell(arm, seed=21)
-    cv = compliance_fit.choose_compliance(nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma})
+    cv = compliance_fit.choose_compliance(
+        nom, _measure(nom, truth, rng, 120, payloads, sigma), identify_kw={"sigma_m": sigma}
+    )
     assert cv.joints == ("j2", "j3")
     assert cv.rms_chosen_m < 0.5 * cv.rms_rigid_m
     assert [j for j, _ in cv.tried][0] == ()

@@ -34,10 +34,14 @@ def controller_fk(q: np.ndarray) -> np.ndarray:
             th = qi + DELTA_THETA[i]
             d, a, al = D[i] + DELTA_D[i], A[i] + DELTA_A[i], ALPHA[i] + DELTA_ALPHA[i]
             ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(al), math.sin(al)
-            T = T @ np.array([[ct, -st * ca, st * sa, a * ct],
-                              [st, ct * ca, -ct * sa, a * st],
-                              [0.0, sa, ca, d],
-                              [0.0, 0.0, 0.0, 1.0]])
+            T = T @ np.array(
+                [
+                    [ct, -st * ca, st * sa, a * ct],
+                    [st, ct * ca, -ct * sa, a * st],
+                    [0.0, sa, ca, d],
+                    [0.0, 0.0, 0.0, 1.0],
+                ]
+            )
         out.append(T)
     return np.array(out)
 

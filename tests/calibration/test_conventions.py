@@ -6,13 +6,13 @@ import copy
 
 import numpy as np
 import pytest
+from sample_models import all_convention_docs, random_readings, si_readings
 
 from calibration.conventions import dh_to_mdh, hayati_for_parallel_axes, mdh_to_dh, to_poe
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 from calibration.robots import nominal, nominal_document
 from calibration.transforms import pose_to_matrix
-from sample_models import all_convention_docs, random_readings, si_readings
 
 DOCS = all_convention_docs()
 PLAIN_DH = ["dh", "dh_gain", "dh_harmonic", "dh_coupling", "dh_prismatic", "5r1p"]

@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from sample_models import fanuc_r2000ic_doc, prismatic_doc, stanford_5r1p_doc
 
 from calibration import robots
 from calibration.cpa import (
@@ -33,7 +34,6 @@ from calibration.kinematics import target_positions
 from calibration.model import model_from_dict
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
 from calibration.transforms import homogeneous, rot
-from sample_models import fanuc_r2000ic_doc, prismatic_doc, stanford_5r1p_doc
 
 SIGNATURE_UR = np.deg2rad([10.0, -80.0, 70.0, -60.0, 45.0, 20.0])
 
@@ -280,8 +280,9 @@ def test_exact_recovery_noise_free_ur10e(convention):
         assert [j.hayati for j in res.model.joints] == [False, True, True, False, False, False]
 
 
-@pytest.mark.parametrize("doc", [stanford_5r1p_doc(), prismatic_doc("poe"), fanuc_r2000ic_doc()],
-                         ids=["5r1p", "rprr-poe", "fanuc-coupled"])
+@pytest.mark.parametrize(
+    "doc", [stanford_5r1p_doc(), prismatic_doc("poe"), fanuc_r2000ic_doc()], ids=["5r1p", "rprr-poe", "fanuc-coupled"]
+)
 def test_exact_recovery_noise_free_other_robots(doc):
     """A prismatic joint (the book's 5R1P, and an R-P-R-R arm written in poe), and a robot
     whose controller couples joints 2 and 3 (the sweep moves one joint variable)."""
@@ -290,11 +291,13 @@ def test_exact_recovery_noise_free_other_robots(doc):
     if not nominal.targets:
         nominal = dataclasses.replace(nominal, targets={"t": np.array([0.05, 0.03, 0.08])})
     target = sorted(nominal.targets)[0]
-    truth = dataclasses.replace(perturbed(nominal, rng), base=np.array([0.7, -0.2, 0.1, 0.01, 0.02, 0.5]),
-                                coupling=nominal.coupling)
+    truth = dataclasses.replace(
+        perturbed(nominal, rng), base=np.array([0.7, -0.2, 0.1, 0.01, 0.02, 0.5]), coupling=nominal.coupling
+    )
     lim = nominal.joint_limits
-    qs = np.array([0.3 * (lo + hi) / 2 + 0.2 if j.revolute else lo + 0.4 * (hi - lo)
-                   for j, (lo, hi) in zip(nominal.joints, lim)])
+    qs = np.array(
+        [0.3 * (lo + hi) / 2 + 0.2 if j.revolute else lo + 0.4 * (hi - lo) for j, (lo, hi) in zip(nominal.joints, lim)]
+    )
     sw = simulate_sweeps(truth, qs, rng, sigma_m=0.0, target=target, travel_m=0.1)
     res = circle_point_analysis(nominal, sw)
     assert res.success
@@ -309,8 +312,9 @@ def test_exact_recovery_noise_free_other_robots(doc):
 def test_sweeps_away_from_the_signature_and_several_targets():
     """Sequence B (book §4.6.3): earlier joints left somewhere else for each sweep, two targets
     measured at every step; the axes are moved back to the signature and both targets match."""
-    nominal = dataclasses.replace(robots.nominal("ur10e"),
-                                  targets={"a": np.array([0.06, 0.0, 0.05]), "b": np.array([-0.03, 0.05, 0.1])})
+    nominal = dataclasses.replace(
+        robots.nominal("ur10e"), targets={"a": np.array([0.06, 0.0, 0.05]), "b": np.array([-0.03, 0.05, 0.1])}
+    )
     rng = np.random.default_rng(9)
     truth = dataclasses.replace(perturbed(nominal, rng), base=np.array([1.0, 0.5, -0.2, 0.0, 0.01, 2.0]))
     parts = []
@@ -427,8 +431,17 @@ def test_bad_sweeps_name_the_row_and_column():
     assert (e.value.row, e.value.column) == (6, "joint")
     keep = np.r_[0:120, 141:144]  # joint 6 with 3 points
     with pytest.raises(SweepError, match="joint 6 has 3 points") as e:
-        circle_point_analysis(nominal, _replace(sw, q=sw.q[keep], p_world=sw.p_world[keep], joint=sw.joint[keep],
-                                                 target=sw.target[keep], row=np.arange(1, len(keep) + 1)))
+        circle_point_analysis(
+            nominal,
+            _replace(
+                sw,
+                q=sw.q[keep],
+                p_world=sw.p_world[keep],
+                joint=sw.joint[keep],
+                target=sw.target[keep],
+                row=np.arange(1, len(keep) + 1),
+            ),
+        )
     assert e.value.column == "joint"
     p = sw.p_world.copy()
     p[120:144] = p[120]  # the reflector did not move: no circle

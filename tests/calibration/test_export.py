@@ -9,17 +9,20 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
+from sample_models import all_convention_docs, random_readings, si_readings
 
 from calibration.export import dh_table, export, export_warnings, to_dh_csv, to_dh_markdown, to_urdf
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 from calibration.robots import nominal
 from calibration.simulate import perturbed
-from sample_models import all_convention_docs, random_readings, si_readings
 
 DOCS = all_convention_docs()
-EXACT = [k for k, d in DOCS.items()
-         if d.get("coupling") is None and not any("gain" in j or "harmonic" in j for j in d["joints"])]
+EXACT = [
+    k
+    for k, d in DOCS.items()
+    if d.get("coupling") is None and not any("gain" in j or "harmonic" in j for j in d["joints"])
+]
 
 
 # --------------------------------------------------------------------------- a tiny URDF reader
@@ -135,8 +138,15 @@ def _read_dh_csv(text: str, units: dict) -> dict:
     nums = lambda s: [float(v) for v in s.split(",")]  # noqa: E731
     joints = []
     for r in rows:
-        j = {"name": r["joint"], "type": r["type"], "theta": float(r["theta"]), "a": float(r["a"]),
-             "alpha": float(r["alpha"]), "lower": float(r["lower"]), "upper": float(r["upper"])}
+        j = {
+            "name": r["joint"],
+            "type": r["type"],
+            "theta": float(r["theta"]),
+            "a": float(r["a"]),
+            "alpha": float(r["alpha"]),
+            "lower": float(r["lower"]),
+            "upper": float(r["upper"]),
+        }
         if r.get("beta"):
             j["beta"] = float(r["beta"])
             if r["type"] == "prismatic":
@@ -145,8 +155,15 @@ def _read_dh_csv(text: str, units: dict) -> dict:
             j["d"] = float(r["d"])
         joints.append(j)
     targets = {k[7:]: nums(v) for k, v in comments.items() if k.startswith("target ")}
-    return {"format": "recal.model/1", "units": units, "convention": comments["convention"],
-            "base": nums(comments["base"]), "tool": nums(comments["tool"]), "joints": joints, "targets": targets}
+    return {
+        "format": "recal.model/1",
+        "units": units,
+        "convention": comments["convention"],
+        "base": nums(comments["base"]),
+        "tool": nums(comments["tool"]),
+        "joints": joints,
+        "targets": targets,
+    }
 
 
 @pytest.mark.parametrize("doc_id", EXACT)

@@ -7,10 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
-from calibration.kinematics import fk, joint_variables, points_world, target_positions, walk
-from calibration.model import model_from_dict
-from calibration.robots import nominal
 from sample_models import (
     Pose,
     Rx,
@@ -25,6 +21,10 @@ from sample_models import (
     screw,
     si_readings,
 )
+
+from calibration.kinematics import fk, joint_variables, points_world, target_positions, walk
+from calibration.model import model_from_dict
+from calibration.robots import nominal
 
 DOCS = all_convention_docs()
 IN = 0.0254
@@ -47,69 +47,135 @@ def test_fk_matches_contract_products(doc_id):
 
 def test_dh_link_written_out():
     """Two standard DH links, base and tool, written out by hand."""
-    doc = {"format": "recal.model/1", "units": {"length": "m", "angle": "rad"}, "convention": "dh",
-           "base": [0.1, 0.2, 0.3, 0.1, 0.2, 0.3],
-           "joints": [{"theta": 0.1, "d": 0.4, "a": 0.05, "alpha": -1.2},
-                      {"theta": -0.3, "d": 0.02, "a": 0.5, "alpha": 0.4}],
-           "tool": [0, 0.01, 0.2, 0.5, 0, 0]}
+    doc = {
+        "format": "recal.model/1",
+        "units": {"length": "m", "angle": "rad"},
+        "convention": "dh",
+        "base": [0.1, 0.2, 0.3, 0.1, 0.2, 0.3],
+        "joints": [
+            {"theta": 0.1, "d": 0.4, "a": 0.05, "alpha": -1.2},
+            {"theta": -0.3, "d": 0.02, "a": 0.5, "alpha": 0.4},
+        ],
+        "tool": [0, 0.01, 0.2, 0.5, 0, 0],
+    }
     q = np.array([0.7, -1.1])
-    expected = (Trans(0.1, 0.2, 0.3) @ Rz(0.3) @ Ry(0.2) @ Rx(0.1)
-                @ Rz(0.1 + 0.7) @ Tz(0.4) @ Tx(0.05) @ Rx(-1.2)
-                @ Rz(-0.3 - 1.1) @ Tz(0.02) @ Tx(0.5) @ Rx(0.4)
-                @ Trans(0, 0.01, 0.2) @ Rx(0.5))
+    expected = (
+        Trans(0.1, 0.2, 0.3)
+        @ Rz(0.3)
+        @ Ry(0.2)
+        @ Rx(0.1)
+        @ Rz(0.1 + 0.7)
+        @ Tz(0.4)
+        @ Tx(0.05)
+        @ Rx(-1.2)
+        @ Rz(-0.3 - 1.1)
+        @ Tz(0.02)
+        @ Tx(0.5)
+        @ Rx(0.4)
+        @ Trans(0, 0.01, 0.2)
+        @ Rx(0.5)
+    )
     np.testing.assert_allclose(fk(model_from_dict(doc), q)[0], expected, atol=1e-14)
 
 
 def test_hayati_link_written_out():
     """dh with beta: Rz(theta + q)·Tx(a)·Rx(alpha)·Ry(beta), no d."""
-    doc = {"format": "recal.model/1", "units": {"length": "mm", "angle": "deg"}, "convention": "dh",
-           "joints": [{"theta": 0, "d": 100, "a": 0, "alpha": 90}, {"theta": 5, "a": 400, "alpha": 0.2, "beta": -0.3},
-                      {"theta": 0, "d": 10, "a": 300, "alpha": 0}]}
+    doc = {
+        "format": "recal.model/1",
+        "units": {"length": "mm", "angle": "deg"},
+        "convention": "dh",
+        "joints": [
+            {"theta": 0, "d": 100, "a": 0, "alpha": 90},
+            {"theta": 5, "a": 400, "alpha": 0.2, "beta": -0.3},
+            {"theta": 0, "d": 10, "a": 300, "alpha": 0},
+        ],
+    }
     q = np.array([20.0, -30.0, 45.0]) * DEG
-    expected = (Rz(20 * DEG) @ Tz(0.1) @ Rx(90 * DEG)
-                @ Rz(-25 * DEG) @ Tx(0.4) @ Rx(0.2 * DEG) @ Ry(-0.3 * DEG)
-                @ Rz(45 * DEG) @ Tz(0.01) @ Tx(0.3))
+    expected = (
+        Rz(20 * DEG)
+        @ Tz(0.1)
+        @ Rx(90 * DEG)
+        @ Rz(-25 * DEG)
+        @ Tx(0.4)
+        @ Rx(0.2 * DEG)
+        @ Ry(-0.3 * DEG)
+        @ Rz(45 * DEG)
+        @ Tz(0.01)
+        @ Tx(0.3)
+    )
     np.testing.assert_allclose(fk(model_from_dict(doc), q)[0], expected, atol=1e-14)
 
 
 def test_mdh_link_written_out():
     """mdh: Rx(alpha)·Tx(a)·Rz(theta + q)·Tz(d); prismatic: Tz(d + q)."""
-    doc = {"format": "recal.model/1", "units": {"length": "m", "angle": "rad"}, "convention": "mdh",
-           "joints": [{"theta": 0.2, "d": 0.3, "a": 0.0, "alpha": 0.0},
-                      {"type": "prismatic", "theta": 0.1, "d": 0.05, "a": 0.2, "alpha": -1.5},
-                      {"theta": -0.4, "d": 0.0, "a": 0.1, "alpha": 0.7}],
-           "tool": [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]}
+    doc = {
+        "format": "recal.model/1",
+        "units": {"length": "m", "angle": "rad"},
+        "convention": "mdh",
+        "joints": [
+            {"theta": 0.2, "d": 0.3, "a": 0.0, "alpha": 0.0},
+            {"type": "prismatic", "theta": 0.1, "d": 0.05, "a": 0.2, "alpha": -1.5},
+            {"theta": -0.4, "d": 0.0, "a": 0.1, "alpha": 0.7},
+        ],
+        "tool": [0.0, 0.0, 0.1, 0.0, 0.0, 0.0],
+    }
     q = np.array([0.5, 0.25, -0.9])
-    expected = (Rz(0.2 + 0.5) @ Tz(0.3)
-                @ Rx(-1.5) @ Tx(0.2) @ Rz(0.1) @ Tz(0.05 + 0.25)
-                @ Rx(0.7) @ Tx(0.1) @ Rz(-0.4 - 0.9)
-                @ Tz(0.1))
+    expected = (
+        Rz(0.2 + 0.5)
+        @ Tz(0.3)
+        @ Rx(-1.5)
+        @ Tx(0.2)
+        @ Rz(0.1)
+        @ Tz(0.05 + 0.25)
+        @ Rx(0.7)
+        @ Tx(0.1)
+        @ Rz(-0.4 - 0.9)
+        @ Tz(0.1)
+    )
     np.testing.assert_allclose(fk(model_from_dict(doc), q)[0], expected, atol=1e-14)
 
 
 def test_poe_written_out():
     """poe: rotation by theta + q about axis through point; prismatic: translation (d + q)·axis;
     then home, then tool."""
-    doc = {"format": "recal.model/1", "units": {"length": "m", "angle": "rad"}, "convention": "poe",
-           "base": [1, 0, 0, 0, 0, 0.5],
-           "joints": [{"axis": [0, 0, 1], "point": [0, 0, 0], "theta": 0.1},
-                      {"type": "prismatic", "axis": [0, 0.6, 0.8], "point": [9, 9, 9], "d": 0.02},
-                      {"axis": [1, 0, 0], "point": [0.3, 0.1, 0.5], "theta": 0.0}],
-           "home": [0.4, 0.1, 0.5, 0, 0.3, 0], "tool": [0, 0, 0.05, 0, 0, 0]}
+    doc = {
+        "format": "recal.model/1",
+        "units": {"length": "m", "angle": "rad"},
+        "convention": "poe",
+        "base": [1, 0, 0, 0, 0, 0.5],
+        "joints": [
+            {"axis": [0, 0, 1], "point": [0, 0, 0], "theta": 0.1},
+            {"type": "prismatic", "axis": [0, 0.6, 0.8], "point": [9, 9, 9], "d": 0.02},
+            {"axis": [1, 0, 0], "point": [0.3, 0.1, 0.5], "theta": 0.0},
+        ],
+        "home": [0.4, 0.1, 0.5, 0, 0.3, 0],
+        "tool": [0, 0, 0.05, 0, 0, 0],
+    }
     q = np.array([0.4, 0.1, -0.6])
-    expected = (Trans(1, 0, 0) @ Rz(0.5)
-                @ Rz(0.5)  # 0.1 + 0.4 about z through the origin
-                @ Trans(0, 0.6 * 0.12, 0.8 * 0.12)
-                @ screw([1, 0, 0], [0.3, 0.1, 0.5], -0.6)
-                @ Trans(0.4, 0.1, 0.5) @ Ry(0.3) @ Tz(0.05))
+    expected = (
+        Trans(1, 0, 0)
+        @ Rz(0.5)
+        @ Rz(0.5)  # 0.1 + 0.4 about z through the origin
+        @ Trans(0, 0.6 * 0.12, 0.8 * 0.12)
+        @ screw([1, 0, 0], [0.3, 0.1, 0.5], -0.6)
+        @ Trans(0.4, 0.1, 0.5)
+        @ Ry(0.3)
+        @ Tz(0.05)
+    )
     np.testing.assert_allclose(fk(model_from_dict(doc), q)[0], expected, atol=1e-14)
 
 
 def test_prismatic_dh_written_out():
     """dh prismatic: Rz(theta)·Tz(d + q)·Tx(a)·Rx(alpha); gains scale the reading (d + gain·q)."""
-    doc = {"format": "recal.model/1", "units": {"length": "mm", "angle": "deg"}, "convention": "dh",
-           "joints": [{"type": "prismatic", "theta": 10, "d": 100, "a": 20, "alpha": -90, "gain": 1.01},
-                      {"theta": 0, "d": 0, "a": 50, "alpha": 0, "gain": 0.99}]}
+    doc = {
+        "format": "recal.model/1",
+        "units": {"length": "mm", "angle": "deg"},
+        "convention": "dh",
+        "joints": [
+            {"type": "prismatic", "theta": 10, "d": 100, "a": 20, "alpha": -90, "gain": 1.01},
+            {"theta": 0, "d": 0, "a": 50, "alpha": 0, "gain": 0.99},
+        ],
+    }
     q = np.array([0.250, 30 * DEG])  # 250 mm, 30 deg
     expected = Rz(10 * DEG) @ Tz(0.1 + 1.01 * 0.25) @ Tx(0.02) @ Rx(-90 * DEG) @ Rz(0.99 * 30 * DEG) @ Tx(0.05)
     np.testing.assert_allclose(fk(model_from_dict(doc), q)[0], expected, atol=1e-14)
@@ -171,8 +237,9 @@ def test_targets_and_points():
     np.testing.assert_allclose(p, T[:, :3, 3] + T[:, :3, :3] @ np.array([0.04, 0.0, 0.03]), atol=1e-14)
     np.testing.assert_allclose(target_positions(m, q), T[:, :3, 3], atol=1e-15)
     per_row = rng.normal(size=(9, 3))
-    np.testing.assert_allclose(points_world(m, q, per_row),
-                               T[:, :3, 3] + np.einsum("nij,nj->ni", T[:, :3, :3], per_row))
+    np.testing.assert_allclose(
+        points_world(m, q, per_row), T[:, :3, 3] + np.einsum("nij,nj->ni", T[:, :3, :3], per_row)
+    )
     w = walk(m, q)
     np.testing.assert_allclose(w.R, T[:, :3, :3])
     with pytest.raises(KeyError, match="unknown target"):
@@ -206,8 +273,11 @@ def test_puma_dh_table_6_1_at_second_pose():
     """Θ = (10, −20, 30, −40, 50, −60) deg: p = (2.953577, 38.600605, 24.754036) in and R as printed."""
     T = fk(nominal("puma560"), np.radians([10, -20, 30, -40, 50, -60]))[0]
     np.testing.assert_allclose(_in(T), [2.953577, 38.600605, 24.754036], atol=2e-6)
-    np.testing.assert_allclose(T[:3, :3], [[0.607452, 0.215533, 0.764557], [-0.783194, 0.323291, 0.531121],
-                                           [-0.1327, -0.921427, 0.365188]], atol=2e-6)
+    np.testing.assert_allclose(
+        T[:3, :3],
+        [[0.607452, 0.215533, 0.764557], [-0.783194, 0.323291, 0.531121], [-0.1327, -0.921427, 0.365188]],
+        atol=2e-6,
+    )
 
 
 def test_puma_dh_table_6_1_at_third_pose():

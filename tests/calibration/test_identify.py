@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from sample_models import fanuc_r2000ic_doc, stanford_5r1p_doc
 
 from calibration.conventions import to_poe
 from calibration.identify import IdentificationResult, Measurements, identify
@@ -24,7 +25,6 @@ from calibration.robots import nominal
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
 from calibration.transforms import matrix_to_rotvec
 from calibration.uncertainty import position_covariance, predicted_uncertainty, validate
-from sample_models import fanuc_r2000ic_doc, stanford_5r1p_doc
 
 SIGMA = 20e-6  # m, per axis
 # The hold-out RMS 3D error of a model identified to the noise floor: about SIGMA·sqrt(3P/M)
@@ -108,11 +108,15 @@ def test_full_pose_base_and_tool_far_off(ur10e):
     """Full-pose data with base AND tool far off: robot-world/hand-eye registration gives both,
     then the refinement reaches the noise floor in position and orientation."""
     rng = np.random.default_rng(1)
-    truth = _far(perturbed(ur10e, rng), base=[2.5, 1.5, -0.3, 0.1, -0.05, -2.0],
-                 tool=np.array([0.05, -0.08, 0.15, 1.2, -0.4, 2.2]))
+    truth = _far(
+        perturbed(ur10e, rng),
+        base=[2.5, 1.5, -0.3, 0.1, -0.05, -2.0],
+        tool=np.array([0.05, -0.08, 0.15, 1.2, -0.4, 2.2]),
+    )
     sigma_rad = 2e-4
-    data = simulate_measurements(truth, random_configurations(ur10e, 40, rng), rng, sigma_m=SIGMA,
-                                 full_pose=True, sigma_rad=sigma_rad)
+    data = simulate_measurements(
+        truth, random_configurations(ur10e, 40, rng), rng, sigma_m=SIGMA, full_pose=True, sigma_rad=sigma_rad
+    )
     result = identify(ur10e, data, sigma_rad=sigma_rad)
     assert result.success
     assert "hand-eye" in result.registration["method"] and result.registration["applied"]
@@ -135,8 +139,9 @@ def test_full_pose_tool_aligned_with_the_last_link_is_well_conditioned(ur10e, se
     iterations."""
     rng = np.random.default_rng(seed)
     truth = _far(perturbed(ur10e, rng), tool=np.array([0.0, 0.0, 0.1, 0.0, 0.0, 0.0]))
-    data = simulate_measurements(truth, random_configurations(ur10e, 40, rng), rng, sigma_m=SIGMA,
-                                 full_pose=True, sigma_rad=1e-4)
+    data = simulate_measurements(
+        truth, random_configurations(ur10e, 40, rng), rng, sigma_m=SIGMA, full_pose=True, sigma_rad=1e-4
+    )
     result = identify(ur10e, data, sigma_rad=1e-4)
     assert result.success and result.iterations < 20
     assert result.condition_number < 1e3
@@ -148,8 +153,9 @@ def test_full_pose_tool_aligned_with_the_last_link_is_well_conditioned(ur10e, se
 def test_rows_without_orientation_are_position_rows(ur10e):
     rng = np.random.default_rng(2)
     truth = _far(perturbed(ur10e, rng), tool=np.array([0.0, 0.0, 0.1, 0.3, 0.0, 0.0]))
-    data = simulate_measurements(truth, random_configurations(ur10e, 40, rng), rng, sigma_m=SIGMA,
-                                 full_pose=True, sigma_rad=1e-4)
+    data = simulate_measurements(
+        truth, random_configurations(ur10e, 40, rng), rng, sigma_m=SIGMA, full_pose=True, sigma_rad=1e-4
+    )
     quat = data.quat.copy()
     quat[::2] = np.nan  # every other row has no orientation
     data = dataclasses.replace(data, quat=quat)
@@ -171,8 +177,9 @@ def test_three_reflectors_with_their_own_offsets(ur10e):
     rng = np.random.default_rng(7)
     true_targets = {k: np.asarray(v) + rng.normal(0, 1e-3, 3) for k, v in design.items()}
     truth = dataclasses.replace(_far(perturbed(nom, rng)), targets=true_targets)
-    data = simulate_measurements(truth, random_configurations(nom, 40, rng), rng, sigma_m=SIGMA,
-                                 targets=("r1", "r2", "r3"))
+    data = simulate_measurements(
+        truth, random_configurations(nom, 40, rng), rng, sigma_m=SIGMA, targets=("r1", "r2", "r3")
+    )
     assert len(data) == 120 and list(data.target[:3]) == ["r1", "r2", "r3"]
     result = identify(nom, data)
     assert result.success
@@ -331,7 +338,8 @@ def test_gains_identified(ur10e):
     true_gains = np.array([1.0008, 0.9994, 1.0005, 0.9990, 1.0012, 0.9997])
     truth = _far(perturbed(ur10e, rng))
     truth = dataclasses.replace(
-        truth, joints=tuple(dataclasses.replace(j, gain=g) for j, g in zip(truth.joints, true_gains)))
+        truth, joints=tuple(dataclasses.replace(j, gain=g) for j, g in zip(truth.joints, true_gains))
+    )
     data = simulate_measurements(truth, random_configurations(ur10e, 80, rng), rng, sigma_m=SIGMA)
     q = random_configurations(ur10e, 200, rng)
     with_gains = identify(ur10e, data, gains=True)

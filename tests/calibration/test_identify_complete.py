@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import pytest
+from sample_models import Rx, Rz, Tx, Tz, stanford_5r1p_doc
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -20,7 +21,6 @@ from calibration.identify import NotEnoughData, identify
 from calibration.kinematics import target_positions
 from calibration.model import model_from_dict
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
-from sample_models import Rx, Rz, Tx, Tz, stanford_5r1p_doc
 
 SIGMA = 20e-6
 DEG = math.pi / 180
@@ -31,10 +31,26 @@ def _doc(rows, *, prismatic=(), limits=None, target=(0.04, 0.0, 0.05), name="arm
     joints = []
     for i, (d, a, alpha) in enumerate(rows):
         lo, hi = (limits or {}).get(i, (0.0, 0.25) if i in prismatic else (-3.0, 3.0))
-        joints.append({"name": f"j{i + 1}", "type": "prismatic" if i in prismatic else "revolute",
-                       "theta": 0.0, "d": d, "a": a, "alpha": alpha * DEG, "lower": lo, "upper": hi})
-    return {"format": "recal.model/1", "name": name, "units": {"length": "m", "angle": "rad"}, "convention": "dh",
-            "joints": joints, "targets": {"smr": list(target)}}
+        joints.append(
+            {
+                "name": f"j{i + 1}",
+                "type": "prismatic" if i in prismatic else "revolute",
+                "theta": 0.0,
+                "d": d,
+                "a": a,
+                "alpha": alpha * DEG,
+                "lower": lo,
+                "upper": hi,
+            }
+        )
+    return {
+        "format": "recal.model/1",
+        "name": name,
+        "units": {"length": "m", "angle": "rad"},
+        "convention": "dh",
+        "joints": joints,
+        "targets": {"smr": list(target)},
+    }
 
 
 ROBOTS = {
@@ -42,14 +58,33 @@ ROBOTS = {
     "scara-rrpr": _doc([(0.40, 0.35, 0.0), (0.0, 0.30, 0.0), (0.0, 0.0, 0.0), (0.05, 0.0, 0.0)], prismatic=(2,)),
     # a KUKA KR 16-like 6R, the reflector on the flange axis (the demo's set-up); the real one is
     # about 1 mm off it (below)
-    "kr16-target-on-axis": _doc([(0.675, 0.26, -90.0), (0.0, 0.68, 0.0), (0.0, 0.035, 90.0), (0.67, 0.0, -90.0),
-                                 (0.0, 0.0, 90.0), (0.158, 0.0, 0.0)], target=(0.0, 0.0, 0.05)),
+    "kr16-target-on-axis": _doc(
+        [
+            (0.675, 0.26, -90.0),
+            (0.0, 0.68, 0.0),
+            (0.0, 0.035, 90.0),
+            (0.67, 0.0, -90.0),
+            (0.0, 0.0, 90.0),
+            (0.158, 0.0, 0.0),
+        ],
+        target=(0.0, 0.0, 0.05),
+    ),
     # a 7-DOF arm (iiwa-like: every pair of consecutive axes intersecting)
-    "7dof": _doc([(0.34, 0.0, -90.0), (0.0, 0.0, 90.0), (0.40, 0.0, 90.0), (0.0, 0.0, -90.0), (0.40, 0.0, -90.0),
-                  (0.0, 0.0, 90.0), (0.126, 0.0, 0.0)]),
+    "7dof": _doc(
+        [
+            (0.34, 0.0, -90.0),
+            (0.0, 0.0, 90.0),
+            (0.40, 0.0, 90.0),
+            (0.0, 0.0, -90.0),
+            (0.40, 0.0, -90.0),
+            (0.0, 0.0, 90.0),
+            (0.126, 0.0, 0.0),
+        ]
+    ),
     # joints 3 and 4 turn about one line (a = 0, alpha = 0 on link 3)
-    "collinear": _doc([(0.30, 0.0, -90.0), (0.0, 0.40, 0.0), (0.0, 0.0, 0.0), (0.0, 0.30, -90.0), (0.0, 0.0, 90.0),
-                       (0.10, 0.0, 0.0)]),
+    "collinear": _doc(
+        [(0.30, 0.0, -90.0), (0.0, 0.40, 0.0), (0.0, 0.0, 0.0), (0.0, 0.30, -90.0), (0.0, 0.0, 90.0), (0.10, 0.0, 0.0)]
+    ),
 }
 
 
@@ -98,8 +133,8 @@ def _reference_points(model, x, q):
         th = j.theta + (q[:, i] if j.revolute else 0.0)
         d = j.d + (0.0 if j.revolute else q[:, i])
         A = _dh_link(np.broadcast_to(th, len(q)), np.broadcast_to(d, len(q)), j.a, j.alpha)
-        T = T @ A @ _exp6(x[6 * (i + 1): 6 * (i + 2)])
-    p = x[6 * (n + 1):]
+        T = T @ A @ _exp6(x[6 * (i + 1) : 6 * (i + 2)])
+    p = x[6 * (n + 1) :]
     return T[:, :3, :3] @ p + T[:, :3, 3]
 
 
@@ -107,8 +142,9 @@ def reference_fit(model, data):
     """The complete model fitted to ``data`` (one target); returns a predictor of positions."""
     n = model.n_joints
     x0 = np.concatenate([np.zeros(6 * (n + 1)), model.targets["smr"]])
-    sol = least_squares(lambda x: (_reference_points(model, x, data.q) - data.p_world).ravel(), x0, method="lm",
-                        xtol=1e-12, ftol=1e-12)
+    sol = least_squares(
+        lambda x: (_reference_points(model, x, data.q) - data.p_world).ravel(), x0, method="lm", xtol=1e-12, ftol=1e-12
+    )
     return lambda q: _reference_points(model, sol.x, q)
 
 
@@ -163,9 +199,15 @@ def test_a_reflector_on_the_flange_axis_reaches_the_complete_fit_when_the_noise_
 def test_scara_is_written_in_a_complete_form():
     """The SCARA's prismatic joint sits between parallel axes: its links take Hayati's form (the
     tilt between the parallel axes is a parameter), or the model goes to poe."""
-    result = identify(_robot("scara-rrpr"), simulate_measurements(
-        _truth(_robot("scara-rrpr"), np.random.default_rng(1), ""), random_configurations(
-            _robot("scara-rrpr"), 60, np.random.default_rng(2)), np.random.default_rng(3), targets=("smr",)))
+    result = identify(
+        _robot("scara-rrpr"),
+        simulate_measurements(
+            _truth(_robot("scara-rrpr"), np.random.default_rng(1), ""),
+            random_configurations(_robot("scara-rrpr"), 60, np.random.default_rng(2)),
+            np.random.default_rng(3),
+            targets=("smr",),
+        ),
+    )
     assert not any("cannot move d" in n for n in result.notes), result.notes
     assert result.model.convention == "poe" or any(j.hayati for j in result.model.joints[:3])
 
@@ -190,8 +232,9 @@ def test_collinear_axes_go_to_poe():
 def test_a_target_on_the_last_axis_is_warned_about():
     nom = _robot("kr16-target-on-axis")
     rng = np.random.default_rng(7)
-    data = simulate_measurements(_truth(nom, rng, "kr16-target-on-axis"), random_configurations(nom, 150, rng), rng,
-                                 targets=("smr",))
+    data = simulate_measurements(
+        _truth(nom, rng, "kr16-target-on-axis"), random_configurations(nom, 150, rng), rng, targets=("smr",)
+    )
     result = identify(nom, data)
     assert any("on the last joint's axis" in w for w in result.warnings), result.warnings
 

@@ -83,8 +83,9 @@ def test_relations_are_written_with_units(flange_case):
     # 1 deg of tool.rx moves the reflector as target offsets of about 1 mm do (0.06 m * pi / 180)
     rx = {s["name"]: s for s in un["tool.rx"]["same_as"]}
     assert rx["target.smr1.y"]["unit"] == "mm/deg"
-    assert rx["target.smr1.y"]["coefficient"] == pytest.approx(-result.model.targets["smr1"][2] * np.pi / 0.180,
-                                                              rel=0.05)
+    assert rx["target.smr1.y"]["coefficient"] == pytest.approx(
+        -result.model.targets["smr1"][2] * np.pi / 0.180, rel=0.05
+    )
     assert "deg of tool.rx" in un["tool.rx"]["reason"] and "mm of target.smr1.y" in un["tool.rx"]["reason"]
     assert un["j1.theta"]["same_as"][0]["unit"] == "1"
 
@@ -117,8 +118,11 @@ def _truth_of_two_sessions():
     targets = {"smr": np.array([0.0, 0.0, 0.05]), "ball1": np.array([0.06, 0.0, 0.04])}
     nom = dataclasses.replace(nominal("ur5e"), targets=targets)
     truth = perturbed(nom, rng)
-    truth = dataclasses.replace(truth, base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
-                                targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in targets.items()})
+    truth = dataclasses.replace(
+        truth,
+        base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
+        targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in targets.items()},
+    )
     return nom, truth, rng
 
 
@@ -128,8 +132,9 @@ def two_sessions():
     measured; the second, 16 poses of `smr` only, with the first as its prior (the previous
     covariance plus the full drift allowance)."""
     nom, truth, rng = _truth_of_two_sessions()
-    first = identify(nom, simulate_measurements(truth, random_configurations(nom, 24, rng), rng,
-                                                targets=("smr", "ball1")))
+    first = identify(
+        nom, simulate_measurements(truth, random_configurations(nom, 24, rng), rng, targets=("smr", "ball1"))
+    )
     drift = np.array([np.deg2rad(0.005) if p.kind == "angle" else 0.05e-3 for p in first.params])
     prior = Prior(first.param_names, first.covariance + np.diag(drift**2), held_relations(first))
     data2 = simulate_measurements(truth, random_configurations(nom, 16, rng), rng, targets=("smr",))
@@ -197,8 +202,9 @@ def test_drift_scale_follows_what_the_data_show():
     cands = candidate_parameters(truth)
     moved_by = np.array([rng.normal(0, 3 * (np.deg2rad(0.005) if p.kind == "angle" else 0.05e-3)) for p in cands])
     moved = dataclasses.replace(apply_step(truth, cands, moved_by), targets=truth.targets)
-    s_moved = drift_scale(first.model, simulate_measurements(moved, q2, rng, targets=("smr",)), first.param_names,
-                          first.covariance, drift)
+    s_moved = drift_scale(
+        first.model, simulate_measurements(moved, q2, rng, targets=("smr",)), first.param_names, first.covariance, drift
+    )
     assert s_same < 0.3 and s_moved > 1.0, (s_same, s_moved)
 
     q = random_configurations(nom, 300, np.random.default_rng(9))
@@ -233,13 +239,22 @@ def tracker_then_cmm():
     targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}
     nom = dataclasses.replace(nominal("ur5e"), targets=targets)
     truth = perturbed(nom, rng)
-    truth = dataclasses.replace(truth, base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
-                                targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in targets.items()})
+    truth = dataclasses.replace(
+        truth,
+        base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
+        targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in targets.items()},
+    )
     first = identify(nom, simulate_measurements(truth, random_configurations(nom, 24, rng), rng, targets=("smr",)))
     X, misfit = pose_from_points(np.array(list(BALLS.values())), np.array([truth.targets[k] for k in BALLS]))
     seen_by_cmm = dataclasses.replace(truth, tool=matrix_to_pose(pose_to_matrix(truth.tool) @ X))
-    cmm = simulate_measurements(seen_by_cmm, random_configurations(nom, 16, rng), rng, sigma_m=CMM_SIGMA_M,
-                                full_pose=True, sigma_rad=CMM_SIGMA_RAD)
+    cmm = simulate_measurements(
+        seen_by_cmm,
+        random_configurations(nom, 16, rng),
+        rng,
+        sigma_m=CMM_SIGMA_M,
+        full_pose=True,
+        sigma_rad=CMM_SIGMA_RAD,
+    )
     held = held_relations(first)
     kw = dict(sigma_m=CMM_SIGMA_M, sigma_rad=CMM_SIGMA_RAD)
     drift = _drift(first.params)
@@ -280,6 +295,7 @@ def test_without_its_held_relations_the_tracker_prior_holds_the_cmm_off(tracker_
     model's value (its j5.theta stands in for j5.a as well): taken for the parameters themselves,
     it fights the CMM's data."""
     truth, seen_by_cmm, misfit, first, cmm, scale, prior, second = tracker_then_cmm
-    naive = identify(first.model, cmm, prior=Prior(prior.names, prior.covariance), sigma_m=CMM_SIGMA_M,
-                     sigma_rad=CMM_SIGMA_RAD)
+    naive = identify(
+        first.model, cmm, prior=Prior(prior.names, prior.covariance), sigma_m=CMM_SIGMA_M, sigma_rad=CMM_SIGMA_RAD
+    )
     assert naive.chi2 / naive.dof > 5 * second.chi2 / second.dof, (naive.chi2 / naive.dof, second.chi2 / second.dof)

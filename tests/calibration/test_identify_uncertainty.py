@@ -25,13 +25,27 @@ def random_arm(rng, *, on_axis: bool):
     the last axis, or 40 mm off it."""
     joints = []
     for i in range(6):
-        joints.append({"name": f"j{i + 1}", "theta": 0.0, "lower": -3.0, "upper": 3.0,
-                       "d": float(rng.choice([0.0, rng.uniform(0.1, 0.5)])),
-                       "a": float(rng.choice([0.0, rng.uniform(0.1, 0.5)])) if i < 5 else 0.0,
-                       "alpha": float(np.deg2rad(rng.choice([0.0, 90.0, -90.0]))) if i < 5 else 0.0})
+        joints.append(
+            {
+                "name": f"j{i + 1}",
+                "theta": 0.0,
+                "lower": -3.0,
+                "upper": 3.0,
+                "d": float(rng.choice([0.0, rng.uniform(0.1, 0.5)])),
+                "a": float(rng.choice([0.0, rng.uniform(0.1, 0.5)])) if i < 5 else 0.0,
+                "alpha": float(np.deg2rad(rng.choice([0.0, 90.0, -90.0]))) if i < 5 else 0.0,
+            }
+        )
     target = [0.0, 0.0, 0.05] if on_axis else [0.04, 0.01, 0.05]
-    return model_from_dict({"format": "recal.model/1", "units": {"length": "m", "angle": "rad"}, "convention": "dh",
-                            "joints": joints, "targets": {"smr": target}})
+    return model_from_dict(
+        {
+            "format": "recal.model/1",
+            "units": {"length": "m", "angle": "rad"},
+            "convention": "dh",
+            "joints": joints,
+            "targets": {"smr": target},
+        }
+    )
 
 
 def test_the_95_percent_bounds_cover_95_percent_on_random_arms():

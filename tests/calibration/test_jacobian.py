@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sample_models import all_convention_docs, random_readings, si_readings
 
 from calibration.jacobian import predict
 from calibration.kinematics import walk
 from calibration.model import model_from_dict
 from calibration.parameters import apply_step, candidate_parameters, parameter_values
 from calibration.transforms import matrix_to_rotvec
-from sample_models import all_convention_docs, random_readings, si_readings
 
 DOCS = all_convention_docs()
 
@@ -97,8 +97,9 @@ def test_gain_column_is_offset_column_times_reading():
     pred = predict(model, q, _p_tool(model, names), params, names)
     idx = {p.name: k for k, p in enumerate(params)}
     for j in range(6):
-        np.testing.assert_allclose(pred.Jp[:, :, idx[f"j{j + 1}.gain"]],
-                                   pred.Jp[:, :, idx[f"j{j + 1}.theta"]] * q[:, j, None], atol=1e-15)
+        np.testing.assert_allclose(
+            pred.Jp[:, :, idx[f"j{j + 1}.gain"]], pred.Jp[:, :, idx[f"j{j + 1}.theta"]] * q[:, j, None], atol=1e-15
+        )
 
 
 def test_prediction_without_params_is_fk():

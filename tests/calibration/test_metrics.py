@@ -19,9 +19,12 @@ def test_pose_accuracy_and_repeatability_by_hand():
     B: (1, 0, 0), (3, 0, 0) mm -> barycentre (2, 0, 0), AP 2 mm; l = 1, 1 -> RP = 1 mm.
     C: (0, 0, 0), (0, 0, 3), (0, 0, 0) mm -> barycentre (0, 0, 1), AP 1 mm; l = 1, 2, 1,
        l̄ = 4/3, S_l = √(((1/3)²·2 + (2/3)²)/2) = √(1/3) -> RP = 4/3 + √3 mm."""
-    meas = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0],
-                     [1, 0, 0], [3, 0, 0],
-                     [0, 0, 0], [0, 0, 3], [0, 0, 0]], float) * MM
+    meas = (
+        np.array(
+            [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [1, 0, 0], [3, 0, 0], [0, 0, 0], [0, 0, 3], [0, 0, 0]], float
+        )
+        * MM
+    )
     ids = ["A"] * 4 + ["B"] * 2 + ["C"] * 3
     # rows interleaved, as a session that cycles through the poses records them
     order = [0, 4, 6, 1, 5, 7, 2, 8, 3]
@@ -184,8 +187,10 @@ def test_compare_parameters_flags_what_moved_beyond_twice_its_uncertainty():
     b = dataclasses.replace(a, joints=tuple(joints), base=np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
     name = f"{joints[1].name}.a"
     pa = [{"name": name, "unit": "m", "value": joints[1].a - 0.3e-3, "std_error": 0.1e-3 / math.sqrt(2)}]
-    pb = [{"name": name, "unit": "m", "value": joints[1].a, "std_error": 0.1e-3 / math.sqrt(2)},
-          {"name": "j3.d", "unit": "m", "value": 0.0, "std_error": 1e-3, "source": "prior"}]
+    pb = [
+        {"name": name, "unit": "m", "value": joints[1].a, "std_error": 0.1e-3 / math.sqrt(2)},
+        {"name": "j3.d", "unit": "m", "value": 0.0, "std_error": 1e-3, "source": "prior"},
+    ]
     rows = {r["name"]: r for r in compare_parameters(a, pa, b, pb)}
     assert rows[name]["moved"] and rows[name]["status"] == "both"
     assert rows[name]["change"] == pytest.approx(0.3e-3, abs=1e-12)

@@ -8,9 +8,6 @@ import math
 
 import numpy as np
 import pytest
-
-from calibration.kinematics import fk
-from calibration.model import KinematicModel, ModelFormatError, Units, model_from_dict, model_to_dict
 from sample_models import (
     LENGTH,
     all_convention_docs,
@@ -19,6 +16,9 @@ from sample_models import (
     random_readings,
     si_readings,
 )
+
+from calibration.kinematics import fk
+from calibration.model import KinematicModel, ModelFormatError, Units, model_from_dict, model_to_dict
 
 DOCS = all_convention_docs()
 UNIT_SYSTEMS = [Units(length, angle) for length in ("mm", "m", "in") for angle in ("deg", "rad")]
@@ -172,8 +172,12 @@ def test_identification_block_and_unknown_fields_are_kept():
 
 
 def test_defaults_for_optional_fields():
-    doc = {"format": "recal.model/1", "units": {"length": "mm", "angle": "deg"}, "convention": "dh",
-           "joints": [{"d": 100}, {"type": "prismatic", "alpha": 90}]}
+    doc = {
+        "format": "recal.model/1",
+        "units": {"length": "mm", "angle": "deg"},
+        "convention": "dh",
+        "joints": [{"d": 100}, {"type": "prismatic", "alpha": 90}],
+    }
     m = model_from_dict(doc)
     assert [j.name for j in m.joints] == ["j1", "j2"]
     assert m.joints[0].revolute and not m.joints[1].revolute

@@ -114,8 +114,9 @@ def test_d_optimal_plan_admits_no_improving_swap(ur):
     cand = random_configurations(ur, 80, rng)
     res = planning.plan(ur, cand, 12, targets=("smr",), criterion="D", n_evaluation=20)
     assert res.success and res.value == pytest.approx(res.log_det) and res.value >= res.greedy_value
-    design = planning._prepare(ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6,
-                               hayati=True)
+    design = planning._prepare(
+        ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6, hayati=True
+    )
     J = design.J
     info = lambda idx: np.einsum("krp,krq->pq", J[idx], J[idx])  # noqa: E731
     best = np.linalg.slogdet(info(res.indices))[1]
@@ -135,8 +136,9 @@ def test_i_optimal_plan_admits_no_improving_swap(ur):
     cand = random_configurations(ur, 80, rng)
     res = planning.plan(ur, cand, 12, targets=("smr",), criterion="I", n_evaluation=20)
     assert res.criterion == "I" and res.success and res.swaps > 0 and res.value <= res.greedy_value
-    design = planning._prepare(ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6,
-                               hayati=True)
+    design = planning._prepare(
+        ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6, hayati=True
+    )
     W = planning._evaluation(design, res.evaluation_q).W
     J = design.J
     trace = lambda idx: np.trace(np.linalg.solve(np.einsum("krp,krq->pq", J[idx], J[idx]), W))  # noqa: E731
@@ -156,8 +158,9 @@ def test_plan_beats_random_designs(ur, cand):
     res = planning.plan(ur, cand, 30, targets=("smr",), criterion="I", n_evaluation=100)
     res_d = planning.plan(ur, cand, 30, targets=("smr",), n_evaluation=100)
     rng = np.random.default_rng(5)
-    design = planning._prepare(ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6,
-                               hayati=True)
+    design = planning._prepare(
+        ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6, hayati=True
+    )
     logdets, rms = [], []
     ev = planning._evaluation(design, res.evaluation_q)
     for _ in range(20):
@@ -205,8 +208,9 @@ def test_each_criterion_improves_its_own_index(ur, cand, criterion):
 
 def test_observability_matches_identify_indices(ur, cand):
     res = planning.plan(ur, cand, 20, targets=("smr",), criterion="O1", n_evaluation=50)
-    design = planning._prepare(ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6,
-                               hayati=True)
+    design = planning._prepare(
+        ur, cand, targets=("smr",), sigma_m=20e-6, gains=False, fixed=(), rank_rtol=1e-6, hayati=True
+    )
     Jw = design.J[res.indices].reshape(-1, len(res.params)) / design.S
     obs = observability_indices(Jw, list(res.params), n_poses=20, reach_m=design.reach_m)
     assert res.value == pytest.approx(obs["O1_borm_menq"], rel=1e-9)

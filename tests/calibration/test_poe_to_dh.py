@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from sample_models import all_convention_docs, random_readings, si_readings
 
 from calibration.conventions import common_normal, joint_angle, mutual_moment, poe_to_dh, to_poe
 from calibration.kinematics import fk
@@ -15,7 +16,6 @@ from calibration.model import model_from_dict
 from calibration.robots import nominal
 from calibration.simulate import perturbed
 from calibration.transforms import homogeneous, rot
-from sample_models import all_convention_docs, random_readings, si_readings
 
 DOCS = all_convention_docs()
 

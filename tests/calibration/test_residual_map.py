@@ -52,8 +52,9 @@ def _sagging_cell(seed=3):
 
     def measure(n):
         q = random_configurations(nom, n, rng, limits=REGION)
-        return simulate_measurements(truth, q, rng, sigma_m=20e-6, targets=("smr",),
-                                     payload=np.array(SAGGING_ARMS["cobot"]["payload"]))
+        return simulate_measurements(
+            truth, q, rng, sigma_m=20e-6, targets=("smr",), payload=np.array(SAGGING_ARMS["cobot"]["payload"])
+        )
 
     return nom, measure
 

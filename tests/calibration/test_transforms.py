@@ -61,8 +61,14 @@ def test_pose_is_trans_rz_ry_rx():
 def test_pose_round_trip_batched():
     rng = np.random.default_rng(0)
     poses = np.concatenate(
-        [rng.uniform(-2, 2, (200, 3)), rng.uniform(-np.pi, np.pi, (200, 1)),
-         rng.uniform(-np.pi / 2 + 1e-3, np.pi / 2 - 1e-3, (200, 1)), rng.uniform(-np.pi, np.pi, (200, 1))], axis=1)
+        [
+            rng.uniform(-2, 2, (200, 3)),
+            rng.uniform(-np.pi, np.pi, (200, 1)),
+            rng.uniform(-np.pi / 2 + 1e-3, np.pi / 2 - 1e-3, (200, 1)),
+            rng.uniform(-np.pi, np.pi, (200, 1)),
+        ],
+        axis=1,
+    )
     T = pose_to_matrix(poses)
     assert T.shape == (200, 4, 4)
     back = matrix_to_pose(T)

@@ -81,8 +81,9 @@ def test_per_joint_rules():
     assert f[1, 3:].tolist() == [1, 1, -1]
 
 
-@pytest.mark.parametrize("brand, ref", [("abb", [0, 0, 0, 0, 30, 0]), ("kuka", [0, -90, 90, 0, 30, 0]),
-                                        ("fanuc", [0, 0, 0, 0, -30, 0])])
+@pytest.mark.parametrize(
+    "brand, ref", [("abb", [0, 0, 0, 0, 30, 0]), ("kuka", [0, -90, 90, 0, 30, 0]), ("fanuc", [0, 0, 0, 0, -30, 0])]
+)
 def test_geometric_flags_turn_with_the_arm(brand, ref):
     m = arm(brand)
     q = np.radians([ref])

@@ -53,8 +53,20 @@ def test_repeated_configurations_are_grouped_by_their_joint_readings(robot, tmp_
         rows.append([*q, *(smr_mm(model, Q_A)[0] + off), "smr"])
     rows.insert(1, [*Q_B, *(smr_mm(model, Q_B)[0] + [0.3, 0.4, 0.0]), "smr"])  # interleaved, as sessions record
     write(tmp_path / "meas.csv", [*Q, "x", "y", "z", "target"], rows)
-    assert recal(["accuracy", "--model", str(d / "ur.json"), "--data", str(tmp_path / "meas.csv"),
-                  "--out", str(tmp_path / "acc.json")]) == 0
+    assert (
+        recal(
+            [
+                "accuracy",
+                "--model",
+                str(d / "ur.json"),
+                "--data",
+                str(tmp_path / "meas.csv"),
+                "--out",
+                str(tmp_path / "acc.json"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     rep = json.loads((tmp_path / "acc.json").read_text())
     assert rep["grouping"] == "by joint readings within 0.05 deg" and rep["measurements"] == 4
@@ -94,8 +106,20 @@ def test_pose_labels_and_orientations(robot, tmp_path, capsys):
         rows.append([*Q_A, *(T[:3, 3] * 1e3), *quat, "p1"])
     rows.append([*Q_A, *(T[:3, 3] * 1e3 + [0, 0.2, 0]), *matrix_to_quat(T[None, :3, :3])[0], "p2"])
     write(tmp_path / "pose.csv", [*Q, "x", "y", "z", "qw", "qx", "qy", "qz", "pose_id"], rows)
-    assert recal(["accuracy", "--model", str(d / "ur.json"), "--data", str(tmp_path / "pose.csv"),
-                  "--out", str(tmp_path / "acc.json")]) == 0
+    assert (
+        recal(
+            [
+                "accuracy",
+                "--model",
+                str(d / "ur.json"),
+                "--data",
+                str(tmp_path / "pose.csv"),
+                "--out",
+                str(tmp_path / "acc.json"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     rep = json.loads((tmp_path / "acc.json").read_text())
     assert rep["grouping"] == "by the 'pose_id' column"
@@ -114,34 +138,62 @@ def test_one_measurement_per_pose_gives_accuracy_and_says_repeatability_needs_re
     qs = [Q_A, Q_B, Q_A + 20]
     rows = [[*q, *(smr_mm(model, q)[0] + off)] for q, off in zip(qs, offsets)]
     write(tmp_path / "once.csv", [*Q, "x", "y", "z"], rows)
-    assert recal(["accuracy", "--model", str(d / "ur.json"), "--data", str(tmp_path / "once.csv"),
-                  "--target", "smr"]) == 0
+    assert (
+        recal(["accuracy", "--model", str(d / "ur.json"), "--data", str(tmp_path / "once.csv"), "--target", "smr"]) == 0
+    )
     out = capsys.readouterr().out
     assert "mean 4, 3σ 3, mean + 3σ 7" in out and "max 5 mm" in out
     assert "overall: AP mean 4, max 5 mm\n" in out and "RP mean" not in out
     assert "note: every pose was measured once" in out and "needs each configuration measured at least twice" in out
 
 
-@pytest.mark.parametrize("content, args, match", [
-    ("q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,2,3\n0,0,0,0,0,0,1,oops,3\n", [],
-     r"bad\.csv, row 2 \(line 3\), column 'y': expected a number, got 'oops'"),
-    ("q1,q2,q3,q4,q5,x,y,z\n0,0,0,0,0,1,2,3\n", [], r"bad\.csv, header \(line 1\), column 'q6': missing joint column"),
-    ("q1,q2,q3,q4,q5,q6,x,y,z,pose_id\n0,0,0,0,0,0,1,2,3,a\n0,0,0,0,0,0,1,2,3,\n", [],
-     r"bad\.csv, row 2 \(line 3\), column 'pose_id': expected a pose label"),
-    ("q1,q2,q3,q4,q5,q6,x,y,z,target\n0,0,0,0,0,0,1,2,3,ball\n", [],
-     r"bad\.csv, row 1 \(line 2\), column 'target': unknown target 'ball'"),
-    ("q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,2,3\n", ["--target", "ball"],
-     r"ur\.json: field 'targets': no target 'ball'"),
-    ("q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,2,3\n", ["--joint-tol", "-1"], r"--joint-tol: expected a positive number"),
-])
+@pytest.mark.parametrize(
+    "content, args, match",
+    [
+        (
+            "q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,2,3\n0,0,0,0,0,0,1,oops,3\n",
+            [],
+            r"bad\.csv, row 2 \(line 3\), column 'y': expected a number, got 'oops'",
+        ),
+        (
+            "q1,q2,q3,q4,q5,x,y,z\n0,0,0,0,0,1,2,3\n",
+            [],
+            r"bad\.csv, header \(line 1\), column 'q6': missing joint column",
+        ),
+        (
+            "q1,q2,q3,q4,q5,q6,x,y,z,pose_id\n0,0,0,0,0,0,1,2,3,a\n0,0,0,0,0,0,1,2,3,\n",
+            [],
+            r"bad\.csv, row 2 \(line 3\), column 'pose_id': expected a pose label",
+        ),
+        (
+            "q1,q2,q3,q4,q5,q6,x,y,z,target\n0,0,0,0,0,0,1,2,3,ball\n",
+            [],
+            r"bad\.csv, row 1 \(line 2\), column 'target': unknown target 'ball'",
+        ),
+        (
+            "q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,2,3\n",
+            ["--target", "ball"],
+            r"ur\.json: field 'targets': no target 'ball'",
+        ),
+        (
+            "q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,2,3\n",
+            ["--joint-tol", "-1"],
+            r"--joint-tol: expected a positive number",
+        ),
+    ],
+)
 def test_bad_input_is_one_line_and_no_output_file(robot, tmp_path, capsys, content, args, match):
     import re
 
     d, _ = robot
     (tmp_path / "bad.csv").write_text(content)
     out = tmp_path / "acc.json"
-    assert recal(["accuracy", "--model", str(d / "ur.json"), "--data", str(tmp_path / "bad.csv"), "--out", str(out),
-                  *args]) == 2
+    assert (
+        recal(
+            ["accuracy", "--model", str(d / "ur.json"), "--data", str(tmp_path / "bad.csv"), "--out", str(out), *args]
+        )
+        == 2
+    )
     captured = capsys.readouterr()
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("recal accuracy: ") and re.search(match, lines[0]), lines

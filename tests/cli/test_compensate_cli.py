@@ -65,8 +65,9 @@ def files(tmp_path_factory):
     ident = identified_like(nominal, 1)
     ranges = [[-175.0, 175.0], [-155.0, -25.0], [-155.0, 155.0], [-175.0, 175.0], [-155.0, 155.0], [-175.0, 175.0]]
     save_model(d / "nominal.json", nominal)
-    save_model(d / "identified.json", ident,
-               {"identification": {"nominal": model_to_dict(nominal), "joint_ranges": ranges}})
+    save_model(
+        d / "identified.json", ident, {"identification": {"nominal": model_to_dict(nominal), "joint_ranges": ranges}}
+    )
     save_model(d / "bare.json", ident)  # records nothing
     save_model(d / "robot_a.json", identified_like(nominal, 2))
     rng = np.random.default_rng(3)
@@ -80,11 +81,18 @@ def files(tmp_path_factory):
     lines = ["# planned off line", "name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6"]
     for i in range(len(q)):
         joints = ",".join(f"{v:.10f}" for v in q[i]) if i % 4 else ",,,,,"  # every 4th: pose only
-        lines.append(f"P{i}," + ",".join(f"{v:.10f}" for v in X[i, :3, 3] / MM) + ","
-                     + ",".join(f"{v:.15f}" for v in quat[i]) + "," + joints)
+        lines.append(
+            f"P{i},"
+            + ",".join(f"{v:.10f}" for v in X[i, :3, 3] / MM)
+            + ","
+            + ",".join(f"{v:.15f}" for v in quat[i])
+            + ","
+            + joints
+        )
     (d / "task.csv").write_text("\n".join(lines) + "\n")
-    (d / "taught.csv").write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(f"{v:.10f}" for v in r) for r in q[:10])
-                                  + "\n")
+    (d / "taught.csv").write_text(
+        "q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(f"{v:.10f}" for v in r) for r in q[:10]) + "\n"
+    )
     return d, nominal, ident, q, X, M
 
 
@@ -104,8 +112,18 @@ POSE = ["x", "y", "z", "qw", "qx", "qy", "qz"]
 
 def test_joints_mode_commands_reach_the_task_poses(files):
     d, nominal, ident, q, X, M = files
-    r = recal("compensate", "--model", "identified.json", "--task", "task.csv", "--out", "out.csv",
-              "--report", "rep.json", cwd=d)
+    r = recal(
+        "compensate",
+        "--model",
+        "identified.json",
+        "--task",
+        "task.csv",
+        "--out",
+        "out.csv",
+        "--report",
+        "rep.json",
+        cwd=d,
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("compensated 40 points (joints mode): 40 converged")
     header, rows = read_out(d / "out.csv")
@@ -135,8 +153,9 @@ def test_targets_mode_through_the_nominal_controller(files):
     """No --nominal: the identified model records the one it came from. The corrected targets,
     given to the nominal closed form (the controller), bring the identified robot to the task."""
     d, nominal, ident, q, X, M = files
-    r = recal("compensate", "--model", "identified.json", "--task", "task.csv", "--out", "tgt.csv",
-              "--mode", "targets", cwd=d)
+    r = recal(
+        "compensate", "--model", "identified.json", "--task", "task.csv", "--out", "tgt.csv", "--mode", "targets", cwd=d
+    )
     assert r.returncode == 0, r.stderr
     header, rows = read_out(d / "tgt.csv")
     assert header == ["name", *POSE, *Q, "converged", "residual", "flags"]
@@ -155,8 +174,18 @@ def test_targets_mode_through_the_nominal_controller(files):
 
 def test_taught_joints_replayed_on_another_robot(files):
     d, nominal, ident, q, X, M = files
-    r = recal("compensate", "--model", "identified.json", "--task", "taught.csv", "--out", "taught_out.csv",
-              "--taught-on", "robot_a.json", cwd=d)
+    r = recal(
+        "compensate",
+        "--model",
+        "identified.json",
+        "--task",
+        "taught.csv",
+        "--out",
+        "taught_out.csv",
+        "--taught-on",
+        "robot_a.json",
+        cwd=d,
+    )
     assert r.returncode == 0, r.stderr
     header, rows = read_out(d / "taught_out.csv")
     assert header == [*Q, "converged", "residual", "flags"]
@@ -180,17 +209,29 @@ def test_urscript_program_is_rewritten_byte_for_byte_except_its_targets(files):
     d, nominal, ident, q, X, M = files
     p0 = [0.55, -0.35, 0.42, 0.01, 3.12, 0.03]
     q0 = (np.radians([-40, -100, 90, -80, -90, 10])).tolist()
-    prog = ("def job():\r\n"
-            "  # approach   (2 targets below)\r\n"
-            f"  global Waypoint_1_p=p[{p0[0]}, {p0[1]},{p0[2]}, {p0[3]}, {p0[4]}, {p0[5]}]\r\n"
-            f"  global Waypoint_1_q=[{', '.join(f'{v:.6f}' for v in q0)}]\r\n"
-            "  movej(get_inverse_kin(Waypoint_1_p, qnear=Waypoint_1_q), a=1.39, v=1.04)\r\n"
-            f"  movej([{','.join(f'{v:.5f}' for v in q0)}],  a=1.4, v=1.05, r=0)\r\n"
-            "  movel(pose_trans(Waypoint_1_p, p[0, 0, -0.05, 0, 0, 0]), a=1.2, v=0.25)\r\n"
-            "end\r\n").encode()
+    prog = (
+        "def job():\r\n"
+        "  # approach   (2 targets below)\r\n"
+        f"  global Waypoint_1_p=p[{p0[0]}, {p0[1]},{p0[2]}, {p0[3]}, {p0[4]}, {p0[5]}]\r\n"
+        f"  global Waypoint_1_q=[{', '.join(f'{v:.6f}' for v in q0)}]\r\n"
+        "  movej(get_inverse_kin(Waypoint_1_p, qnear=Waypoint_1_q), a=1.39, v=1.04)\r\n"
+        f"  movej([{','.join(f'{v:.5f}' for v in q0)}],  a=1.4, v=1.05, r=0)\r\n"
+        "  movel(pose_trans(Waypoint_1_p, p[0, 0, -0.05, 0, 0, 0]), a=1.2, v=0.25)\r\n"
+        "end\r\n"
+    ).encode()
     (d / "job.script").write_bytes(prog)
-    r = recal("compensate", "--model", "identified.json", "--task", "job.script", "--out", "job_out.script",
-              "--report", "job.json", cwd=d)
+    r = recal(
+        "compensate",
+        "--model",
+        "identified.json",
+        "--task",
+        "job.script",
+        "--out",
+        "job_out.script",
+        "--report",
+        "job.json",
+        cwd=d,
+    )
     assert r.returncode == 0, r.stderr
     out = (d / "job_out.script").read_bytes()
     a, b = prog.split(b"\r\n"), out.split(b"\r\n")
@@ -205,7 +246,7 @@ def test_urscript_program_is_rewritten_byte_for_byte_except_its_targets(files):
     # the new pose, given to the nominal controller in the waypoint's branch, brings the identified
     # robot where the program meant (the pose in the base frame, through the fitted frame)
     line3 = out.split(b"\r\n")[2].decode()
-    new = np.array([float(v) for v in line3[line3.index("p[") + 2:line3.index("]")].split(",")])
+    new = np.array([float(v) for v in line3[line3.index("p[") + 2 : line3.index("]")].split(",")])
     new_q = np.array([float(v) for v in out.split(b"\r\n")[3].decode().split("[")[1].rstrip("]").split(",")])
     X_meant = np.linalg.inv(M) @ pose_to_matrix(nominal.base) @ pose_to_matrix_ur(p0)
     ctrl = inverse_kinematics(nominal, pose_to_matrix(nominal.base) @ pose_to_matrix_ur(new)[None], np.array(q0))
@@ -213,26 +254,50 @@ def test_urscript_program_is_rewritten_byte_for_byte_except_its_targets(files):
     assert np.linalg.norm(fk(ident, ctrl.q)[0, :3, 3] - X_meant[:3, 3]) < 1e-6
     # the joint target: the identified robot reaches where the nominal would have been
     line6 = out.split(b"\r\n")[5].decode()
-    qj = np.array([float(v) for v in line6[line6.index("[") + 1:line6.index("]")].split(",")])
+    qj = np.array([float(v) for v in line6[line6.index("[") + 1 : line6.index("]")].split(",")])
     meant = np.linalg.inv(M) @ fk(nominal, np.round(np.array(q0), 5))
     assert np.linalg.norm(fk(ident, qj)[0, :3, 3] - meant[0, :3, 3]) < 1e-6
 
 
-@pytest.mark.parametrize("name, content, args, match", [
-    ("bad.csv", "x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1,2,oops,1,0,0,0\n", [],
-     r"bad\.csv, row 2 \(line 3\), column 'z': expected a number, got 'oops'"),
-    ("short.csv", "x,y,z,qw,qx,qy\n1,2,3,1,0,0\n", [], r"short\.csv: missing column 'qz'"),
-    # was a traceback, and the output written all the same
-    ("huge.csv", "x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1e308,2,3,1,0,0,0\n", [],
-     r"huge\.csv, row 2 \(line 3\), column 'x': 1e308 is beyond any robot cell"),
-    ("empty.script", "def f():\n  textmsg(\"hello\")\n  movel(pose_trans(a, b))\nend\n", [],
-     r"empty\.script, line 3: no movej/movel/movep/movec target could be interpreted: 1 line\(s\) left alone \(line "
-     r"3\), the first because the target is computed by an expression; --report R\.json lists each with its text"),
-    ("nomove.script", "def f():\n  textmsg(\"hello\")\nend\n", [], r"nomove\.script: no movej/movel/movep/movec call "
-     r"found"),
-    ("ok.csv", "x,y,z,qw,qx,qy,qz\n800,100,500,0,1,0,0\n", ["--mode", "targets", "--model", "bare.json"],
-     r"bare\.json: targets mode needs the nominal model the controller uses: give --nominal"),
-])
+@pytest.mark.parametrize(
+    "name, content, args, match",
+    [
+        (
+            "bad.csv",
+            "x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1,2,oops,1,0,0,0\n",
+            [],
+            r"bad\.csv, row 2 \(line 3\), column 'z': expected a number, got 'oops'",
+        ),
+        ("short.csv", "x,y,z,qw,qx,qy\n1,2,3,1,0,0\n", [], r"short\.csv: missing column 'qz'"),
+        # was a traceback, and the output written all the same
+        (
+            "huge.csv",
+            "x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1e308,2,3,1,0,0,0\n",
+            [],
+            r"huge\.csv, row 2 \(line 3\), column 'x': 1e308 is beyond any robot cell",
+        ),
+        (
+            "empty.script",
+            'def f():\n  textmsg("hello")\n  movel(pose_trans(a, b))\nend\n',
+            [],
+            r"empty\.script, line 3: no movej/movel/movep/movec target could be interpreted: 1 line\(s\) left alone \(line "
+            r"3\), the first because the target is computed by an expression; --report R\.json lists each with its text",
+        ),
+        (
+            "nomove.script",
+            'def f():\n  textmsg("hello")\nend\n',
+            [],
+            r"nomove\.script: no movej/movel/movep/movec call "
+            r"found",
+        ),
+        (
+            "ok.csv",
+            "x,y,z,qw,qx,qy,qz\n800,100,500,0,1,0,0\n",
+            ["--mode", "targets", "--model", "bare.json"],
+            r"bare\.json: targets mode needs the nominal model the controller uses: give --nominal",
+        ),
+    ],
+)
 def test_bad_input_is_one_line_and_no_output_file(files, name, content, args, match):
     d, *_ = files
     (d / name).write_text(content)
@@ -255,25 +320,40 @@ def test_identify_then_compensate_uses_what_identify_recorded(tmp_path):
 
     rng = np.random.default_rng(8)
     nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
-    truth = dataclasses.replace(perturbed(nominal, rng), base=np.array([1.5, 0.4, 0.2, 0.0, 0.0, 2.0]),
-                                targets={"smr": np.array([0.0, 0.0, 0.05])})
+    truth = dataclasses.replace(
+        perturbed(nominal, rng),
+        base=np.array([1.5, 0.4, 0.2, 0.0, 0.0, 2.0]),
+        targets={"smr": np.array([0.0, 0.0, 0.05])},
+    )
     q = np.radians(task_q(rng, 50))
     q[:, 0] = rng.uniform(-1.5, 1.5, 50)  # joint 1 measured over ±86° only
     data = simulate_measurements(truth, q, rng, sigma_m=10e-6, targets=("smr",))
     save_model(tmp_path / "nominal.json", nominal)
     rows = ["q1,q2,q3,q4,q5,q6,x,y,z,target"] + [
         ",".join(f"{v:.9f}" for v in np.degrees(qi)) + "," + ",".join(f"{v:.6f}" for v in p / MM) + ",smr"
-        for qi, p in zip(data.q, data.p_world)]
+        for qi, p in zip(data.q, data.p_world)
+    ]
     (tmp_path / "meas.csv").write_text("\n".join(rows) + "\n")
     r = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "ident.json", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     doc = json.loads((tmp_path / "ident.json").read_text())
     assert doc["identification"]["nominal"]["name"] == "ur10e-nominal"
-    np.testing.assert_allclose(doc["identification"]["joint_ranges"][0],
-                               np.degrees([data.q[:, 0].min(), data.q[:, 0].max()]), atol=1e-6)
+    np.testing.assert_allclose(
+        doc["identification"]["joint_ranges"][0], np.degrees([data.q[:, 0].min(), data.q[:, 0].max()]), atol=1e-6
+    )
     (tmp_path / "task.csv").write_text("q1,q2,q3,q4,q5,q6\n10,-90,80,-80,90,0\n150,-90,80,-80,90,0\n")
-    r = recal("compensate", "--model", "ident.json", "--task", "task.csv", "--out", "out.csv", "--mode", "targets",
-              cwd=tmp_path)
+    r = recal(
+        "compensate",
+        "--model",
+        "ident.json",
+        "--task",
+        "task.csv",
+        "--out",
+        "out.csv",
+        "--mode",
+        "targets",
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     # position-only data: the tool orientation stayed nominal, and the user is told so
     assert "note: the calibration did not determine the tool orientation (tool.rx" in r.stderr
@@ -297,26 +377,42 @@ def test_an_output_that_cannot_be_written_fails_before_any_work(files):
     r = recal("compensate", "--model", "identified.json", "--task", "task.csv", "--out", "no/such/dir/out.csv", cwd=d)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [
-        "recal compensate: no/such/dir/out.csv: cannot write: the folder 'no/such/dir' does not exist"]
+        "recal compensate: no/such/dir/out.csv: cannot write: the folder 'no/such/dir' does not exist"
+    ]
 
 
 def test_a_program_without_targets_still_gets_the_report_its_error_points_to(files):
     """The hint of "no target could be interpreted" can be followed: with --report the lines left
     alone are listed there with their numbers; the compensated program is not written."""
     d, *_ = files
-    (d / "calc.script").write_text("def f():\n  p = get_actual_tcp_pose()\n  movel(pose_trans(p, t))\n"
-                                   "  movej(get_inverse_kin(p))\nend\n")
-    r = recal("compensate", "--model", "identified.json", "--task", "calc.script", "--out", "calc.out.script",
-              "--report", "calc.json", cwd=d)
+    (d / "calc.script").write_text(
+        "def f():\n  p = get_actual_tcp_pose()\n  movel(pose_trans(p, t))\n  movej(get_inverse_kin(p))\nend\n"
+    )
+    r = recal(
+        "compensate",
+        "--model",
+        "identified.json",
+        "--task",
+        "calc.script",
+        "--out",
+        "calc.out.script",
+        "--report",
+        "calc.json",
+        cwd=d,
+    )
     assert r.returncode == 2 and not (d / "calc.out.script").exists()
     assert r.stderr.strip().splitlines() == [
         "recal compensate: calc.script, line 2: no movej/movel/movep/movec target could be interpreted: 3 line(s) left "
         "alone (line 2, 3, 4), the first because p: a target computed by an expression is not compensated; the "
-        "report lists each with its text and reason"]
+        "report lists each with its text and reason"
+    ]
     report = json.loads((d / "calc.json").read_text())
     assert report["summary"]["points"] == 0 and report["points"] == []
     assert [(u["line"], u["text"]) for u in report["uninterpreted"]] == [
-        (2, "p = get_actual_tcp_pose()"), (3, "movel(pose_trans(p, t))"), (4, "movej(get_inverse_kin(p))")]
+        (2, "p = get_actual_tcp_pose()"),
+        (3, "movel(pose_trans(p, t))"),
+        (4, "movej(get_inverse_kin(p))"),
+    ]
     assert all(u["reason"] for u in report["uninterpreted"])
 
 
@@ -340,11 +436,26 @@ def test_pose_only_rows_on_a_robot_without_a_closed_form(tmp_path):
     X = fk(ident, np.radians(q))
     IN = 0.0254
     quat = matrix_to_quat(X[:, :3, :3])
-    (tmp_path / "task.csv").write_text("x,y,z,qw,qx,qy,qz\n" + "\n".join(
-        ",".join(f"{v:.10f}" for v in X[i, :3, 3] / IN) + "," + ",".join(f"{v:.15f}" for v in quat[i])
-        for i in range(len(q))) + "\n")
-    r = recal("compensate", "--model", "ident.json", "--task", "task.csv", "--out", "out.csv",
-              "--qnear", "0,-45,180,0,45,0", cwd=tmp_path)
+    (tmp_path / "task.csv").write_text(
+        "x,y,z,qw,qx,qy,qz\n"
+        + "\n".join(
+            ",".join(f"{v:.10f}" for v in X[i, :3, 3] / IN) + "," + ",".join(f"{v:.15f}" for v in quat[i])
+            for i in range(len(q))
+        )
+        + "\n"
+    )
+    r = recal(
+        "compensate",
+        "--model",
+        "ident.json",
+        "--task",
+        "task.csv",
+        "--out",
+        "out.csv",
+        "--qnear",
+        "0,-45,180,0,45,0",
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("compensated 30 points (joints mode): 30 converged")
     header, rows = read_out(tmp_path / "out.csv")
@@ -354,8 +465,20 @@ def test_pose_only_rows_on_a_robot_without_a_closed_form(tmp_path):
     assert np.abs(reached[:, :3, 3] - X[:, :3, 3]).max() < 1e-6  # 1 µm
     np.testing.assert_allclose(reached[:, :3, :3], X[:, :3, :3], atol=1e-8)
     assert not any("joint_limit" in row[-1] or "unreachable" in row[-1] for row in rows)
-    r = recal("compensate", "--model", "ident.json", "--task", "task.csv", "--out", "targets.csv", "--mode", "targets",
-              "--qnear", "0,-45,180,0,45,0", cwd=tmp_path)
+    r = recal(
+        "compensate",
+        "--model",
+        "ident.json",
+        "--task",
+        "task.csv",
+        "--out",
+        "targets.csv",
+        "--mode",
+        "targets",
+        "--qnear",
+        "0,-45,180,0,45,0",
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     header, rows = read_out(tmp_path / "targets.csv")
     assert all(row[header.index("converged")] == "1" for row in rows)

@@ -77,8 +77,22 @@ def cell(tmp_path_factory) -> Cell:
 
 @pytest.fixture(scope="module")
 def auto(cell):
-    return recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--validate", "holdout.csv",
-                 "--out", "id.json", "--report", "report.json", "--compliance", "auto", cwd=cell.dir)
+    return recal(
+        "identify",
+        "--model",
+        "nominal.json",
+        "--data",
+        "meas.csv",
+        "--validate",
+        "holdout.csv",
+        "--out",
+        "id.json",
+        "--report",
+        "report.json",
+        "--compliance",
+        "auto",
+        cwd=cell.dir,
+    )
 
 
 def test_identify_auto_adds_compliance_and_reports_cross_validation(cell, auto):
@@ -101,8 +115,20 @@ def test_identify_auto_adds_compliance_and_reports_cross_validation(cell, auto):
 
 
 def test_identify_gravity_with_chosen_joints_runs_no_cross_validation(cell):
-    proc = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "g.json",
-                 "--compliance", "gravity", "--compliance-joints", "j2", cwd=cell.dir)
+    proc = recal(
+        "identify",
+        "--model",
+        "nominal.json",
+        "--data",
+        "meas.csv",
+        "--out",
+        "g.json",
+        "--compliance",
+        "gravity",
+        "--compliance-joints",
+        "j2",
+        cwd=cell.dir,
+    )
     # the cobot sags at j3 too: j2 alone cannot explain the data, and identify says so (exit 3,
     # issue 14) after writing the model it was asked for
     assert proc.returncode == 3, proc.stderr
@@ -115,8 +141,19 @@ def test_predict_and_compensate_take_the_task_payload(cell, auto):
     assert auto.returncode == 0, auto.stderr
     model = load_model(cell.dir / "id.json")
     for args, payload in (([], None), (["--payload", "10,0,0,100"], np.array(PAYLOAD))):
-        proc = recal("predict", "--model", "id.json", "--joints", "joints.csv", "--target", "smr",
-                     "--out", "pred.csv", *args, cwd=cell.dir)
+        proc = recal(
+            "predict",
+            "--model",
+            "id.json",
+            "--joints",
+            "joints.csv",
+            "--target",
+            "smr",
+            "--out",
+            "pred.csv",
+            *args,
+            cwd=cell.dir,
+        )
         assert proc.returncode == 0, proc.stderr
         rows = np.array(list(csv.reader((cell.dir / "pred.csv").open()))[1:], dtype=float) * 1e-3
         truth = target_positions(cell.truth, cell.q, "smr", payload=payload)
@@ -144,14 +181,47 @@ def test_export_urdf_says_compliance_is_left_out(cell, auto):
     assert (cell.dir / "id.urdf").read_text().count("<joint ") >= 6
 
 
-@pytest.mark.parametrize("args, expected", [
-    (["predict", "--model", "id.json", "--joints", "joints.csv", "--out", "bad.csv", "--payload", "10,1"],
-     "--payload: expected KG or KG,X,Y,Z"),
-    (["identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "bad.csv", "--compliance", "gravity",
-      "--compliance-joints", "j9"], "--compliance-joints: no joint 'j9'"),
-    (["identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "bad.csv", "--compliance", "auto",
-      "--gravity", "0,0"], "--gravity: expected three numbers"),
-])
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (
+            ["predict", "--model", "id.json", "--joints", "joints.csv", "--out", "bad.csv", "--payload", "10,1"],
+            "--payload: expected KG or KG,X,Y,Z",
+        ),
+        (
+            [
+                "identify",
+                "--model",
+                "nominal.json",
+                "--data",
+                "meas.csv",
+                "--out",
+                "bad.csv",
+                "--compliance",
+                "gravity",
+                "--compliance-joints",
+                "j9",
+            ],
+            "--compliance-joints: no joint 'j9'",
+        ),
+        (
+            [
+                "identify",
+                "--model",
+                "nominal.json",
+                "--data",
+                "meas.csv",
+                "--out",
+                "bad.csv",
+                "--compliance",
+                "auto",
+                "--gravity",
+                "0,0",
+            ],
+            "--gravity: expected three numbers",
+        ),
+    ],
+)
 def test_bad_payload_and_compliance_flags_fail_in_one_line(cell, auto, args, expected):
     proc = recal(*args, cwd=cell.dir)
     assert proc.returncode == 2
@@ -187,11 +257,18 @@ def mapped(tmp_path_factory):
     nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
     truth = sagging(perturbed(nominal, rng, base_length_m=0.5, base_angle_rad=0.3), "cobot", frames_of=nominal)
     (d / "nominal.json").write_text(json.dumps(model_to_dict(nominal, units=MM_DEG)))
-    data = simulate_measurements(truth, random_configurations(nominal, 200, rng, limits=REGION), rng, sigma_m=20e-6,
-                                 targets=("smr",), payload=np.array(PAYLOAD))
+    data = simulate_measurements(
+        truth,
+        random_configurations(nominal, 200, rng, limits=REGION),
+        rng,
+        sigma_m=20e-6,
+        targets=("smr",),
+        payload=np.array(PAYLOAD),
+    )
     write_measurements(d / "meas.csv", data)
-    proc = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "id.json",
-                 "--residual-map", "auto", cwd=d)
+    proc = recal(
+        "identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "id.json", "--residual-map", "auto", cwd=d
+    )
     q = np.vstack([random_configurations(nominal, 6, rng, limits=REGION), CENTRE + np.deg2rad([150, 0, 0, 0, 0, 0])])
     return d, truth, q, proc
 
@@ -223,14 +300,27 @@ def test_identify_keeps_a_map_that_helps_and_predict_flags_outside(mapped):
     inside = np.array([f == "" for f in flags])
     # inside, the map brings the prediction closer to where the robot really is; outside it does nothing
     assert np.mean(np.linalg.norm(xyz - true, axis=1)[inside]) < 0.7 * np.mean(
-        np.linalg.norm(parametric - true, axis=1)[inside])
+        np.linalg.norm(parametric - true, axis=1)[inside]
+    )
     assert np.allclose(xyz[~inside], parametric[~inside], atol=1e-9)
 
 
 def test_identify_leaves_out_a_map_that_does_not_help(mapped):
     d = mapped[0]
-    proc = recal("identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "idc.json",
-                 "--compliance", "gravity", "--residual-map", "auto", cwd=d)
+    proc = recal(
+        "identify",
+        "--model",
+        "nominal.json",
+        "--data",
+        "meas.csv",
+        "--out",
+        "idc.json",
+        "--compliance",
+        "gravity",
+        "--residual-map",
+        "auto",
+        cwd=d,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "no gain of 5 % or more: left out" in proc.stdout
     assert "residual_map" not in json.loads((d / "idc.json").read_text())
@@ -282,8 +372,14 @@ def test_accuracy_applies_the_residual_map(mapped):
     assert proc.returncode == 3, proc.stderr  # written, see test_identify_keeps_a_map_that_helps_...
     rng = np.random.default_rng(12)
     nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
-    held = simulate_measurements(truth, random_configurations(nominal, 150, rng, limits=REGION), rng, sigma_m=20e-6,
-                                 targets=("smr",), payload=np.array(PAYLOAD))
+    held = simulate_measurements(
+        truth,
+        random_configurations(nominal, 150, rng, limits=REGION),
+        rng,
+        sigma_m=20e-6,
+        targets=("smr",),
+        payload=np.array(PAYLOAD),
+    )
     write_measurements(d / "held.csv", held)
     doc = json.loads((d / "id.json").read_text())
     (d / "nomap.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "residual_map"}))

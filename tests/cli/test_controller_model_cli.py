@@ -59,8 +59,9 @@ def controller_fk(q) -> np.ndarray:
         th = qi + FACTORY["delta_theta"][i]
         d, a, al = D[i] + FACTORY["delta_d"][i], A[i] + FACTORY["delta_a"][i], ALPHA[i] + FACTORY["delta_alpha"][i]
         ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(al), math.sin(al)
-        T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
-                          [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]])
+        T = T @ np.array(
+            [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]]
+        )
     return T
 
 
@@ -106,15 +107,20 @@ def test_controller_model_reproduces_the_controllers_forward_kinematics_to_a_mic
 def test_a_fit_that_does_not_reproduce_the_controller_is_refused_without_a_file(cell, tmp_path):
     done = recal("controller-model", "--rtde", cell, "--out", tmp_path / "c.json", "--tolerance", "1e-9", cwd=tmp_path)
     assert done.returncode == 2
-    assert done.stderr.count("\n") == 1 and "reproduces UR controller" in done.stderr and "nothing written" in done.stderr
+    assert (
+        done.stderr.count("\n") == 1 and "reproduces UR controller" in done.stderr and "nothing written" in done.stderr
+    )
     assert not (tmp_path / "c.json").exists()
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--robot", "puma560"], "no UR arm"),
-    (["--robot", "kr99"], "unknown robot 'kr99'"),  # (kr16 is a library arm, but no UR: the case above)
-    (["--poses", "3"], "--poses 3: expected at least 5"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--robot", "puma560"], "no UR arm"),
+        (["--robot", "kr99"], "unknown robot 'kr99'"),  # (kr16 is a library arm, but no UR: the case above)
+        (["--poses", "3"], "--poses 3: expected at least 5"),
+    ],
+)
 def test_bad_arguments_get_one_line(cell, tmp_path, args, message):
     done = recal("controller-model", "--rtde", cell, "--out", tmp_path / "c.json", *args, cwd=tmp_path)
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and message in done.stderr, done.stderr
@@ -122,7 +128,9 @@ def test_bad_arguments_get_one_line(cell, tmp_path, args, message):
 
 
 def test_an_absent_controller_gets_one_line(tmp_path):
-    done = recal("controller-model", "--rtde", f"{NET}.64", "--out", tmp_path / "c.json", "--robot", "ur5e", cwd=tmp_path)
+    done = recal(
+        "controller-model", "--rtde", f"{NET}.64", "--out", tmp_path / "c.json", "--robot", "ur5e", cwd=tmp_path
+    )
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "cannot connect" in done.stderr, done.stderr
 
 
@@ -204,8 +212,9 @@ def planned():
 
 
 @pytest.mark.parametrize("nominal, reaches", [("controller", True), ("ur5e", False)])
-def test_targets_mode_reaches_the_targets_only_through_the_controllers_model(cell, controller_json, planned, tmp_path,
-                                                                              nominal, reaches):
+def test_targets_mode_reaches_the_targets_only_through_the_controllers_model(
+    cell, controller_json, planned, tmp_path, nominal, reaches
+):
     """Targets mode: desired world poses -> targets for the controller, sent with moveL."""
     q, truth, T_desired = planned
     rows = []
@@ -217,8 +226,20 @@ def test_targets_mode_reaches_the_targets_only_through_the_controllers_model(cel
         w.writerow(["x", "y", "z", "qw", "qx", "qy", "qz", "q1", "q2", "q3", "q4", "q5", "q6"])
         w.writerows([[repr(float(v)) for v in r] for r in rows])
     nominal_arg = controller_json if nominal == "controller" else nominal
-    done = recal("compensate", "--model", TRUTH, "--nominal", nominal_arg, "--task", tmp_path / "task.csv",
-                 "--out", tmp_path / "out.csv", "--mode", "targets", cwd=tmp_path)
+    done = recal(
+        "compensate",
+        "--model",
+        TRUTH,
+        "--nominal",
+        nominal_arg,
+        "--task",
+        tmp_path / "task.csv",
+        "--out",
+        tmp_path / "out.csv",
+        "--mode",
+        "targets",
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr
     with open(tmp_path / "out.csv", newline="") as f:
         out = list(csv.DictReader(f))
@@ -240,8 +261,9 @@ _P = re.compile(r"p\[([^\]]*)\]")
 
 
 @pytest.mark.parametrize("nominal, reaches", [("controller", True), ("ur5e", False)])
-def test_urscript_pose_targets_reach_their_targets_only_through_the_controllers_model(cell, controller_json, planned,
-                                                                                       tmp_path, nominal, reaches):
+def test_urscript_pose_targets_reach_their_targets_only_through_the_controllers_model(
+    cell, controller_json, planned, tmp_path, nominal, reaches
+):
     """A URScript program with p[...] targets (base frame), compensated, then run by the
     controller itself (each move as a program of its own, sent to the script port): the true
     robot must reach the world pose each target means, T_nominal_world^-1 · B · P
@@ -252,8 +274,22 @@ def test_urscript_pose_targets_reach_their_targets_only_through_the_controllers_
     (tmp_path / "task.script").write_text("\n".join(lines + ["end", ""]))
     nominal_arg = controller_json if nominal == "controller" else nominal
     qnear = ",".join(f"{v:.6f}" for v in np.rad2deg(HOME))  # the branch the robot is in, as get_inverse_kin
-    done = recal("compensate", "--model", TRUTH, "--nominal", nominal_arg, "--task", tmp_path / "task.script",
-                 "--out", tmp_path / "out.script", "--report", tmp_path / "report.json", "--qnear", qnear, cwd=tmp_path)
+    done = recal(
+        "compensate",
+        "--model",
+        TRUTH,
+        "--nominal",
+        nominal_arg,
+        "--task",
+        tmp_path / "task.script",
+        "--out",
+        tmp_path / "out.script",
+        "--report",
+        tmp_path / "report.json",
+        "--qnear",
+        qnear,
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr
     report = json.loads((tmp_path / "report.json").read_text())
     frame = np.array(report["frame"]["T_nominal_world"], dtype=float)  # mm and degrees (the truth file's units)

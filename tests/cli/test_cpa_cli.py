@@ -28,12 +28,16 @@ def cell(tmp_path_factory):
     d = tmp_path_factory.mktemp("cpa")
     rng = np.random.default_rng(30)
     nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.06, 0.04, 0.09])})
-    truth = dataclasses.replace(perturbed(nominal, rng), base=np.array([1.8, -0.6, 0.3, 0.002, -0.004, 2.2]),
-                                targets={"smr": np.array([0.0608, 0.0388, 0.0912])})
+    truth = dataclasses.replace(
+        perturbed(nominal, rng),
+        base=np.array([1.8, -0.6, 0.3, 0.002, -0.004, 2.2]),
+        targets={"smr": np.array([0.0608, 0.0388, 0.0912])},
+    )
     save_model(d / "nominal.json", nominal)
     sw = simulate_sweeps(truth, np.deg2rad(SIGNATURE_DEG), rng, sigma_m=20e-6, target="smr")
-    rows = [list(np.rad2deg(q)) + list(p * 1e3) + [t, j + 1]
-            for q, p, t, j in zip(sw.q, sw.p_world, sw.target, sw.joint)]
+    rows = [
+        list(np.rad2deg(q)) + list(p * 1e3) + [t, j + 1] for q, p, t, j in zip(sw.q, sw.p_world, sw.target, sw.joint)
+    ]
     write_atomic(d / "cpa.csv", "# circle-point sweeps, one joint at a time\n" + format_csv(HEADER, rows))
     data = simulate_measurements(truth, random_configurations(nominal, 50, rng), rng, targets=("smr",))
     rows = [list(np.rad2deg(q)) + list(p * 1e3) + [t] for q, p, t in zip(data.q, data.p_world, data.target)]
@@ -43,8 +47,22 @@ def cell(tmp_path_factory):
 
 def test_cpa_writes_a_model_that_predict_and_identify_accept(cell, tmp_path, capsys):
     out, rep = tmp_path / "cpa.json", tmp_path / "report.json"
-    assert recal(["cpa", "--model", str(cell / "nominal.json"), "--data", str(cell / "cpa.csv"),
-                  "--out", str(out), "--report", str(rep)]) == 0
+    assert (
+        recal(
+            [
+                "cpa",
+                "--model",
+                str(cell / "nominal.json"),
+                "--data",
+                str(cell / "cpa.csv"),
+                "--out",
+                str(out),
+                "--report",
+                str(rep),
+            ]
+        )
+        == 0
+    )
     assert "6 of 6 axes identified from 144 points" in capsys.readouterr().out
     model = load_model(out)
     assert model.convention == "dh" and model.units.length == "mm" and "cpa" in model.metadata
@@ -56,18 +74,60 @@ def test_cpa_writes_a_model_that_predict_and_identify_accept(cell, tmp_path, cap
     assert report["signature"]["q"] == pytest.approx(SIGNATURE_DEG)
 
     (tmp_path / "joints.csv").write_text("q1,q2,q3,q4,q5,q6\n0,-90,90,0,45,0\n")
-    assert recal(["predict", "--model", str(out), "--joints", str(tmp_path / "joints.csv"), "--target", "smr",
-                  "--out", str(tmp_path / "pred.csv")]) == 0
+    assert (
+        recal(
+            [
+                "predict",
+                "--model",
+                str(out),
+                "--joints",
+                str(tmp_path / "joints.csv"),
+                "--target",
+                "smr",
+                "--out",
+                str(tmp_path / "pred.csv"),
+            ]
+        )
+        == 0
+    )
     assert len((tmp_path / "pred.csv").read_text().splitlines()) == 2
-    assert recal(["identify", "--model", str(out), "--data", str(cell / "poses.csv"),
-                  "--out", str(tmp_path / "identified.json")]) == 0
+    assert (
+        recal(
+            [
+                "identify",
+                "--model",
+                str(out),
+                "--data",
+                str(cell / "poses.csv"),
+                "--out",
+                str(tmp_path / "identified.json"),
+            ]
+        )
+        == 0
+    )
     assert load_model(tmp_path / "identified.json").metadata["identification"]["success"]
 
 
 def test_cpa_poe_output(cell, tmp_path):
     out = tmp_path / "cpa_poe.json"
-    assert recal(["cpa", "--model", str(cell / "nominal.json"), "--data", str(cell / "cpa.csv"), "--out", str(out),
-                  "--convention", "poe", "--method", "kasa"]) == 0
+    assert (
+        recal(
+            [
+                "cpa",
+                "--model",
+                str(cell / "nominal.json"),
+                "--data",
+                str(cell / "cpa.csv"),
+                "--out",
+                str(out),
+                "--convention",
+                "poe",
+                "--method",
+                "kasa",
+            ]
+        )
+        == 0
+    )
     doc = json.loads(out.read_text())
     assert doc["convention"] == "poe" and len(doc["home"]) == 6
     assert all(abs(np.linalg.norm(j["axis"]) - 1) < 1e-9 for j in doc["joints"])
@@ -94,7 +154,7 @@ def _still(line: str, first: str) -> str:
 # line 1 is a comment, line 2 the header, data row r is on line r + 2 (list index r + 1)
 def _at(row: int, column: str, value: str):
     """An edit that puts ``value`` into ``column`` of data row ``row``."""
-    return lambda ls: ls[: row + 1] + [_cell(ls[row + 1], column, value)] + ls[row + 2:]
+    return lambda ls: ls[: row + 1] + [_cell(ls[row + 1], column, value)] + ls[row + 2 :]
 
 
 BAD = {
@@ -104,12 +164,18 @@ BAD = {
     "joint not a number": (_at(6, "joint", "six"), "row 6 (line 8), column 'joint'"),
     "bad coordinate": (_at(3, "y", "1.2.3"), "row 3 (line 5), column 'y'"),
     "unknown target": (_at(3, "target", "smr9"), "row 3 (line 5), column 'target'"),
-    "other joint moves": (_at(31, "q1", "11.5"),
-                          "row 31 (line 33), column 'q1': joint 1 moves during the sweep of joint 2"),
-    "too few points": (lambda ls: ls[:123] + ls[144:],
-                       "row 121 (line 123), column 'joint': the sweep of joint 6 has 3"),
-    "reflector still": (lambda ls: ls[:122] + [_still(l, ls[122]) for l in ls[122:]],
-                        "row 121 (line 123): the sweep of joint 6 (rows 121-144): the points are collinear"),
+    "other joint moves": (
+        _at(31, "q1", "11.5"),
+        "row 31 (line 33), column 'q1': joint 1 moves during the sweep of joint 2",
+    ),
+    "too few points": (
+        lambda ls: ls[:123] + ls[144:],
+        "row 121 (line 123), column 'joint': the sweep of joint 6 has 3",
+    ),
+    "reflector still": (
+        lambda ls: ls[:122] + [_still(l, ls[122]) for l in ls[122:]],
+        "row 121 (line 123): the sweep of joint 6 (rows 121-144): the points are collinear",
+    ),
 }
 
 

@@ -85,8 +85,9 @@ def cell(tmp_path_factory) -> Cell:
     truth = perturbed(nominal, rng, base_length_m=3e-3, base_angle_rad=np.deg2rad(0.2))
     truth = dataclasses.replace(truth, targets={"smr": np.array([0.0304, 0.0006, 0.0797])})
     data = simulate_measurements(truth, random_configurations(nominal, 60, rng), rng, sigma_m=20e-6, targets=("smr",))
-    holdout = simulate_measurements(truth, random_configurations(nominal, 100, rng), rng, sigma_m=20e-6,
-                                    targets=("smr",))
+    holdout = simulate_measurements(
+        truth, random_configurations(nominal, 100, rng), rng, sigma_m=20e-6, targets=("smr",)
+    )
     for units, tag in ((MM_DEG, "mm"), (M_RAD, "m")):
         write_model(d / f"nominal_{tag}.json", nominal, units)
         write_measurements(d / f"meas_{tag}.csv", nominal, data, units)
@@ -99,9 +100,20 @@ def identified(cell) -> dict:
     """`recal identify` with --report and --validate, once per unit system."""
     out = {}
     for tag in ("mm", "m"):
-        proc = recal("identify", "--model", f"nominal_{tag}.json", "--data", f"meas_{tag}.csv",
-                     "--validate", f"holdout_{tag}.csv", "--out", f"identified_{tag}.json",
-                     "--report", f"report_{tag}.json", cwd=cell.dir)
+        proc = recal(
+            "identify",
+            "--model",
+            f"nominal_{tag}.json",
+            "--data",
+            f"meas_{tag}.csv",
+            "--validate",
+            f"holdout_{tag}.csv",
+            "--out",
+            f"identified_{tag}.json",
+            "--report",
+            f"report_{tag}.json",
+            cwd=cell.dir,
+        )
         out[tag] = proc
     return out
 
@@ -126,8 +138,9 @@ def test_identify_writes_model_in_input_units_and_report(cell, identified, tag, 
     # the simulated errors, whatever the convention identification chose
     assert abs(abs(doc["joints"][1]["a"]) * L - 0.6127) < 0.01
     # ... and the model is the identified robot: the reflector where the truth puts it
-    err = np.linalg.norm(target_positions(model, cell.q_check, "smr") - target_positions(cell.truth, cell.q_check, "smr"),
-                         axis=1)
+    err = np.linalg.norm(
+        target_positions(model, cell.q_check, "smr") - target_positions(cell.truth, cell.q_check, "smr"), axis=1
+    )
     assert np.sqrt(np.mean(err**2)) < 60e-6
     assert "identification" in doc and doc["identification"]["parameters"]
 
@@ -158,7 +171,9 @@ def test_identify_writes_model_in_input_units_and_report(cell, identified, tag, 
     for k in ("O1_borm_menq", "O2_inverse_condition", "O3_min_singular", "O4_noise_amplification"):
         assert obs[k] > 0, k
     assert obs["O2_inverse_condition"] <= 1.0
-    assert obs["O4_noise_amplification"] == pytest.approx(obs["O3_min_singular"] * obs["O2_inverse_condition"], rel=1e-6)
+    assert obs["O4_noise_amplification"] == pytest.approx(
+        obs["O3_min_singular"] * obs["O2_inverse_condition"], rel=1e-6
+    )
 
     res = rep["residuals"]
     # 3-D residual of 0.02 mm per axis noise: about sqrt(3 (1 - P/M)) * 0.02 mm
@@ -207,8 +222,9 @@ def test_predict_tool_pose_and_target_equal_fk(cell, identified, model_file):
     assert np.allclose(np.linalg.norm(vals[:, 3:], axis=1), 1.0, atol=1e-8)
     assert np.allclose(quat_to_matrix(vals[:, 3:]), T[:, :3, :3], atol=1e-8)
 
-    proc = recal("predict", "--model", model_file, "--joints", "joints.csv", "--target", "smr", "--out", "smr.csv",
-                 cwd=cell.dir)
+    proc = recal(
+        "predict", "--model", model_file, "--joints", "joints.csv", "--target", "smr", "--out", "smr.csv", cwd=cell.dir
+    )
     assert proc.returncode == 0, proc.stderr
     header, vals = read_csv(cell.dir / "smr.csv")
     assert header == ["x", "y", "z"]
@@ -245,8 +261,19 @@ def test_predict_uncertainty_columns_are_honest(cell, identified):
     for tag in ("mm", "m"):
         model = load_model(cell.dir / f"identified_{tag}.json")
         q_si = _joints_file(cell, model, f"joints_u_{tag}.csv")
-        proc = recal("predict", "--model", f"identified_{tag}.json", "--joints", f"joints_u_{tag}.csv", "--target",
-                     "smr", "--uncertainty", "--out", f"pred_u_{tag}.csv", cwd=cell.dir)
+        proc = recal(
+            "predict",
+            "--model",
+            f"identified_{tag}.json",
+            "--joints",
+            f"joints_u_{tag}.csv",
+            "--target",
+            "smr",
+            "--uncertainty",
+            "--out",
+            f"pred_u_{tag}.csv",
+            cwd=cell.dir,
+        )
         assert proc.returncode == 0 and proc.stderr == "", proc.stderr
         header, vals = read_csv(cell.dir / f"pred_u_{tag}.csv")
         assert header == ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "u95"]
@@ -260,8 +287,17 @@ def test_predict_uncertainty_columns_are_honest(cell, identified):
     err = np.linalg.norm(mm[:, :3] - target_positions(cell.truth, q_si, "smr"), axis=1)
     assert np.mean(err <= u95) >= 0.85, np.mean(err <= u95)
 
-    proc = recal("predict", "--model", "identified_mm.json", "--joints", "joints_u_mm.csv", "--uncertainty",
-                 "--out", "pose_u.csv", cwd=cell.dir)
+    proc = recal(
+        "predict",
+        "--model",
+        "identified_mm.json",
+        "--joints",
+        "joints_u_mm.csv",
+        "--uncertainty",
+        "--out",
+        "pose_u.csv",
+        cwd=cell.dir,
+    )
     assert proc.returncode == 0, proc.stderr
     header, vals = read_csv(cell.dir / "pose_u.csv")
     assert header == ["x", "y", "z", "qw", "qx", "qy", "qz", "sigma_x", "sigma_y", "sigma_z", "u95"]
@@ -287,7 +323,8 @@ def _drop(column):
     def make(cell, path):
         header, rows = _table(cell)
         k = header.index(column)
-        _write(path, header[:k] + header[k + 1:], [r[:k] + r[k + 1:] for r in rows])
+        _write(path, header[:k] + header[k + 1 :], [r[:k] + r[k + 1 :] for r in rows])
+
     return make
 
 
@@ -296,6 +333,7 @@ def _cell_value(row, column, value):
         header, rows = _table(cell)
         rows[row - 1][header.index(column)] = value
         _write(path, header, rows)
+
     return make
 
 
@@ -356,16 +394,36 @@ def test_identify_bad_data(cell, case, make, expected):
     bad = cell.dir / f"bad_{case}.csv"
     make(cell, bad)
     out = f"out_{case}.json"
-    proc = recal("identify", "--model", "nominal_mm.json", "--data", bad.name, "--out", out,
-                 "--report", f"report_{case}.json", cwd=cell.dir)
+    proc = recal(
+        "identify",
+        "--model",
+        "nominal_mm.json",
+        "--data",
+        bad.name,
+        "--out",
+        out,
+        "--report",
+        f"report_{case}.json",
+        cwd=cell.dir,
+    )
     check_failure(proc, cell, bad.name, expected, out)
     assert not (cell.dir / f"report_{case}.json").exists()
 
 
 def test_identify_bad_validation_file_names_it(cell):
     _cell_value(9, "x", "1.2.3")(cell, cell.dir / "bad_holdout.csv")
-    proc = recal("identify", "--model", "nominal_mm.json", "--data", "meas_mm.csv", "--validate", "bad_holdout.csv",
-                 "--out", "out_val.json", cwd=cell.dir)
+    proc = recal(
+        "identify",
+        "--model",
+        "nominal_mm.json",
+        "--data",
+        "meas_mm.csv",
+        "--validate",
+        "bad_holdout.csv",
+        "--out",
+        "out_val.json",
+        cwd=cell.dir,
+    )
     check_failure(proc, cell, "bad_holdout.csv", ["row 9", "column 'x'", "expected a number"], "out_val.json")
 
 
@@ -374,8 +432,11 @@ def _model_doc(cell) -> dict:
 
 
 MODEL_CASES = [
-    ("bad-alpha", lambda d: d["joints"][2].__setitem__("alpha", "ninety"),
-     ["field 'joints[2].alpha'", "expected a finite number", "'ninety'"]),
+    (
+        "bad-alpha",
+        lambda d: d["joints"][2].__setitem__("alpha", "ninety"),
+        ["field 'joints[2].alpha'", "expected a finite number", "'ninety'"],
+    ),
     ("short-base", lambda d: d.__setitem__("base", [0, 0, 0]), ["field 'base'", "expected a list of 6 numbers"]),
     ("no-format", lambda d: d.pop("format"), ["field 'format'", "expected 'recal.model/1'"]),
     ("bad-units", lambda d: d["units"].__setitem__("length", "cm"), ["field 'units.length'", "expected one of"]),
@@ -400,13 +461,25 @@ def test_identify_invalid_json_names_line_and_column(cell):
 
 
 def test_identify_missing_model_file(cell):
-    proc = recal("identify", "--model", "absent.json", "--data", "meas_mm.csv", "--out", "out_absent.json", cwd=cell.dir)
+    proc = recal(
+        "identify", "--model", "absent.json", "--data", "meas_mm.csv", "--out", "out_absent.json", cwd=cell.dir
+    )
     check_failure(proc, cell, "absent.json", ["cannot read"], "out_absent.json")
 
 
 def test_identify_unwritable_output_fails_before_work(cell):
-    proc = recal("identify", "--model", "nominal_mm.json", "--data", "meas_mm.csv", "--out", "no/such/dir/m.json",
-                 "--report", "rep_unwritable.json", cwd=cell.dir)
+    proc = recal(
+        "identify",
+        "--model",
+        "nominal_mm.json",
+        "--data",
+        "meas_mm.csv",
+        "--out",
+        "no/such/dir/m.json",
+        "--report",
+        "rep_unwritable.json",
+        cwd=cell.dir,
+    )
     assert proc.returncode != 0
     assert proc.stderr.count("\n") == 1 and "no/such/dir/m.json" in proc.stderr and "does not exist" in proc.stderr
     assert not (cell.dir / "rep_unwritable.json").exists()
@@ -415,19 +488,43 @@ def test_identify_unwritable_output_fails_before_work(cell):
 def test_predict_unknown_target_names_the_model_field(cell):
     header, rows = _table(cell)
     _write(cell.dir / "joints_only.csv", header[:6], [r[:6] for r in rows])
-    proc = recal("predict", "--model", "nominal_mm.json", "--joints", "joints_only.csv", "--target", "ball9",
-                 "--out", "pred_t.csv", cwd=cell.dir)
+    proc = recal(
+        "predict",
+        "--model",
+        "nominal_mm.json",
+        "--joints",
+        "joints_only.csv",
+        "--target",
+        "ball9",
+        "--out",
+        "pred_t.csv",
+        cwd=cell.dir,
+    )
     check_failure(proc, cell, "nominal_mm.json", ["field 'targets'", "'ball9'", "expected one of smr"], "pred_t.csv")
 
 
 def test_predict_uncertainty_needs_a_stored_covariance(cell):
     header, rows = _table(cell)
     _write(cell.dir / "joints_only2.csv", header[:6], [r[:6] for r in rows])
-    proc = recal("predict", "--model", "nominal_mm.json", "--joints", "joints_only2.csv", "--uncertainty",
-                 "--out", "pred_nocov.csv", cwd=cell.dir)
+    proc = recal(
+        "predict",
+        "--model",
+        "nominal_mm.json",
+        "--joints",
+        "joints_only2.csv",
+        "--uncertainty",
+        "--out",
+        "pred_nocov.csv",
+        cwd=cell.dir,
+    )
     assert proc.returncode == 2
-    check_failure(proc, cell, "nominal_mm.json", ["field 'identification.covariance'", "no parameter covariance",
-                                                  "--uncertainty"], "pred_nocov.csv")
+    check_failure(
+        proc,
+        cell,
+        "nominal_mm.json",
+        ["field 'identification.covariance'", "no parameter covariance", "--uncertainty"],
+        "pred_nocov.csv",
+    )
 
 
 JOINT_CASES = [c for c in DATA_CASES if c[0] in ("no-q3", "inf", "q7", "empty")]
@@ -437,7 +534,9 @@ JOINT_CASES = [c for c in DATA_CASES if c[0] in ("no-q3", "inf", "q7", "empty")]
 def test_predict_bad_joints(cell, case, make, expected):
     bad = cell.dir / f"badjoints_{case}.csv"
     make(cell, bad)
-    proc = recal("predict", "--model", "nominal_mm.json", "--joints", bad.name, "--out", f"pred_{case}.csv", cwd=cell.dir)
+    proc = recal(
+        "predict", "--model", "nominal_mm.json", "--joints", bad.name, "--out", f"pred_{case}.csv", cwd=cell.dir
+    )
     check_failure(proc, cell, bad.name, expected, f"pred_{case}.csv")
 
 
@@ -477,8 +576,9 @@ def test_math_verbs_do_not_import_the_web_stack(cell):
 
 
 def test_help_does_not_import_the_web_stack(cell):
-    seen = _modules_after("from service.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass",
-                          cell.dir)
+    seen = _modules_after(
+        "from service.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass", cell.dir
+    )
     assert seen["web"] == []
 
 
@@ -489,11 +589,24 @@ def test_identify_exits_3_when_the_model_does_not_explain_the_data(cell):
     """A tracker five times noisier than stated (--sigma): the model and the report are written,
     the status is 3 and one line says why."""
     rng = np.random.default_rng(21)
-    noisy = simulate_measurements(cell.truth, random_configurations(cell.nominal, 60, rng), rng, sigma_m=100e-6,
-                                  targets=("smr",))
+    noisy = simulate_measurements(
+        cell.truth, random_configurations(cell.nominal, 60, rng), rng, sigma_m=100e-6, targets=("smr",)
+    )
     write_measurements(cell.dir / "noisy_mm.csv", cell.nominal, noisy, MM_DEG)
-    proc = recal("identify", "--model", "nominal_mm.json", "--data", "noisy_mm.csv", "--sigma", "0.02",
-                 "--out", "noisy_identified.json", "--report", "noisy_report.json", cwd=cell.dir)
+    proc = recal(
+        "identify",
+        "--model",
+        "nominal_mm.json",
+        "--data",
+        "noisy_mm.csv",
+        "--sigma",
+        "0.02",
+        "--out",
+        "noisy_identified.json",
+        "--report",
+        "noisy_report.json",
+        cwd=cell.dir,
+    )
     assert proc.returncode == 3, proc.stderr
     last = proc.stderr.strip().splitlines()[-1]
     assert "the model does not explain the data: residual RMS" in last and "expected" in last, last
@@ -507,8 +620,7 @@ def test_identify_exits_3_when_the_model_does_not_explain_the_data(cell):
 def test_identify_two_rows_exit_2_with_the_rows_needed(cell):
     lines = (cell.dir / "meas_mm.csv").read_text().splitlines()
     (cell.dir / "two_rows.csv").write_text("\n".join(lines[:4]) + "\n")  # comment, header, two rows
-    proc = recal("identify", "--model", "nominal_mm.json", "--data", "two_rows.csv", "--out", "two.json",
-                 cwd=cell.dir)
+    proc = recal("identify", "--model", "nominal_mm.json", "--data", "two_rows.csv", "--out", "two.json", cwd=cell.dir)
     assert proc.returncode == 2, proc.stderr
     assert "two_rows.csv" in proc.stderr and "no redundancy" in proc.stderr and "measure at least" in proc.stderr
     assert not (cell.dir / "two.json").exists()

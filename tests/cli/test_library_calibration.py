@@ -41,14 +41,33 @@ def test_library_arm_calibrates_end_to_end(name, tmp_path, capsys):
     nominal = model_from_dict(doc)
     rng = np.random.default_rng(5)
     truth = perturbed(nominal, rng, base_length_m=0.005, base_angle_rad=0.005)
-    data = simulate_measurements(truth, random_configurations(nominal, 90, rng), rng, sigma_m=SIGMA_MM * 1e-3,
-                                 targets=("smr",))
+    data = simulate_measurements(
+        truth, random_configurations(nominal, 90, rng), rng, sigma_m=SIGMA_MM * 1e-3, targets=("smr",)
+    )
     ident, check = tmp_path / "id.csv", tmp_path / "check.csv"
     _write_measurements(ident, nominal, data.subset(np.arange(60)))
     _write_measurements(check, nominal, data.subset(np.arange(60, 90)))
     out, report = tmp_path / "identified.json", tmp_path / "report.json"
-    assert recal(["identify", "--model", str(nominal_path), "--data", str(ident), "--validate", str(check),
-                  "--sigma", str(SIGMA_MM), "--out", str(out), "--report", str(report)]) == 0
+    assert (
+        recal(
+            [
+                "identify",
+                "--model",
+                str(nominal_path),
+                "--data",
+                str(ident),
+                "--validate",
+                str(check),
+                "--sigma",
+                str(SIGMA_MM),
+                "--out",
+                str(out),
+                "--report",
+                str(report),
+            ]
+        )
+        == 0
+    )
     assert "hold-out RMS" in capsys.readouterr().out
     v = json.loads(report.read_text())["validation"]
     noise_rms = SIGMA_MM * np.sqrt(3)  # 3-D RMS of the tracker's noise
@@ -91,14 +110,30 @@ def test_a_gantry_read_from_its_urdf_calibrates_end_to_end(tmp_path):
     nominal = model_from_dict(doc)
     rng = np.random.default_rng(6)
     truth = perturbed(nominal, rng, base_length_m=0.005, base_angle_rad=0.005)
-    data = simulate_measurements(truth, random_configurations(nominal, 90, rng), rng, sigma_m=SIGMA_MM * 1e-3,
-                                 targets=("smr",))
+    data = simulate_measurements(
+        truth, random_configurations(nominal, 90, rng), rng, sigma_m=SIGMA_MM * 1e-3, targets=("smr",)
+    )
     ident, check = tmp_path / "id.csv", tmp_path / "check.csv"
     _write_measurements(ident, nominal, data.subset(np.arange(60)))
     _write_measurements(check, nominal, data.subset(np.arange(60, 90)))
     out, report = tmp_path / "identified.json", tmp_path / "report.json"
-    rc = recal(["identify", "--model", str(nominal_path), "--data", str(ident), "--validate", str(check),
-                "--sigma", str(SIGMA_MM), "--out", str(out), "--report", str(report)])
+    rc = recal(
+        [
+            "identify",
+            "--model",
+            str(nominal_path),
+            "--data",
+            str(ident),
+            "--validate",
+            str(check),
+            "--sigma",
+            str(SIGMA_MM),
+            "--out",
+            str(out),
+            "--report",
+            str(report),
+        ]
+    )
     assert rc == 0
     v = json.loads(report.read_text())["validation"]
     assert v["before"]["rms"] > 1.0 and v["rms"] < 1.35 * SIGMA_MM * np.sqrt(3), v

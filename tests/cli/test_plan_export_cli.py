@@ -24,8 +24,9 @@ def cell(tmp_path_factory):
     """A UR10e (mm, degrees) 2.5 m in front of a tracker, a reflector on the flange, and a file of
     candidate configurations."""
     d = tmp_path_factory.mktemp("plan")
-    model = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.03, 0.0, 0.08])},
-                                base=np.array([2.5, 0, 0, 0, 0, np.pi]))
+    model = dataclasses.replace(
+        robots.nominal("ur10e"), targets={"smr": np.array([0.03, 0.0, 0.08])}, base=np.array([2.5, 0, 0, 0, 0, np.pi])
+    )
     save_model(d / "ur.json", model)
     q = np.rad2deg(random_configurations(model, 300, np.random.default_rng(11)))
     (d / "cand.csv").write_text("# candidates\n" + format_csv([f"q{i}" for i in range(1, 7)], q.tolist()))
@@ -38,9 +39,28 @@ def _rows(path):
 
 def test_plan_from_a_candidate_file(cell, tmp_path, capsys):
     out, rep = tmp_path / "poses.csv", tmp_path / "plan.json"
-    assert recal(["plan", "--model", str(cell / "ur.json"), "--count", "25", "--out", str(out),
-                  "--candidates", str(cell / "cand.csv"), "--target", "smr", "--report", str(rep),
-                  "--evaluation-count", "60"]) == 0
+    assert (
+        recal(
+            [
+                "plan",
+                "--model",
+                str(cell / "ur.json"),
+                "--count",
+                "25",
+                "--out",
+                str(out),
+                "--candidates",
+                str(cell / "cand.csv"),
+                "--target",
+                "smr",
+                "--report",
+                str(rep),
+                "--evaluation-count",
+                "60",
+            ]
+        )
+        == 0
+    )
     line = capsys.readouterr().out
     assert line.startswith("planned 25 poses (from 300 candidates, criterion D = ") and "RMS" in line
     rows = _rows(out)
@@ -59,17 +79,62 @@ def test_plan_from_a_candidate_file(cell, tmp_path, capsys):
     names = [p["name"] for p in report["parameters"]]
     assert "j2.theta" in names and all(p["predicted_std_error"] > 0 for p in report["parameters"])
     # the poses file is a joints file for `recal predict`
-    assert recal(["predict", "--model", str(cell / "ur.json"), "--joints", str(out), "--target", "smr",
-                  "--out", str(tmp_path / "pred.csv")]) == 0
+    assert (
+        recal(
+            [
+                "predict",
+                "--model",
+                str(cell / "ur.json"),
+                "--joints",
+                str(out),
+                "--target",
+                "smr",
+                "--out",
+                str(tmp_path / "pred.csv"),
+            ]
+        )
+        == 0
+    )
     assert len(_rows(tmp_path / "pred.csv")) == 25
 
 
 def test_plan_with_drawn_candidates_and_line_of_sight(cell, tmp_path, capsys):
     out = tmp_path / "poses.csv"
-    assert recal(["plan", "--model", str(cell / "ur.json"), "--count", "20", "--out", str(out), "--target", "smr",
-                  "--candidates-count", "400", "--cone", "30", "--clearance", "50",
-                  "--volume-box", "1000", "-1500", "100", "4000", "1500", "2000", "--criterion", "O3",
-                  "--evaluation-count", "50", "--seed", "4"]) == 0
+    assert (
+        recal(
+            [
+                "plan",
+                "--model",
+                str(cell / "ur.json"),
+                "--count",
+                "20",
+                "--out",
+                str(out),
+                "--target",
+                "smr",
+                "--candidates-count",
+                "400",
+                "--cone",
+                "30",
+                "--clearance",
+                "50",
+                "--volume-box",
+                "1000",
+                "-1500",
+                "100",
+                "4000",
+                "1500",
+                "2000",
+                "--criterion",
+                "O3",
+                "--evaluation-count",
+                "50",
+                "--seed",
+                "4",
+            ]
+        )
+        == 0
+    )
     assert "criterion O3" in capsys.readouterr().out
     q = np.deg2rad(np.array([[float(r[f"q{i}"]) for i in range(1, 7)] for r in _rows(out)]))
     model = load_model(cell / "ur.json")
@@ -82,9 +147,28 @@ def test_plan_with_drawn_candidates_and_line_of_sight(cell, tmp_path, capsys):
 
 def test_plan_for_a_wanted_accuracy(cell, tmp_path, capsys):
     out, rep = tmp_path / "poses.csv", tmp_path / "r.json"
-    assert recal(["plan", "--model", str(cell / "ur.json"), "--accuracy", "0.02", "--out", str(out),
-                  "--candidates", str(cell / "cand.csv"), "--target", "smr", "--report", str(rep),
-                  "--evaluation-count", "60"]) == 0
+    assert (
+        recal(
+            [
+                "plan",
+                "--model",
+                str(cell / "ur.json"),
+                "--accuracy",
+                "0.02",
+                "--out",
+                str(out),
+                "--candidates",
+                str(cell / "cand.csv"),
+                "--target",
+                "smr",
+                "--report",
+                str(rep),
+                "--evaluation-count",
+                "60",
+            ]
+        )
+        == 0
+    )
     line = capsys.readouterr().out
     report = json.loads(rep.read_text())
     k = report["accuracy"]["count"]
@@ -94,38 +178,75 @@ def test_plan_for_a_wanted_accuracy(cell, tmp_path, capsys):
     assert curve[-1]["poses"] >= k - 1 and all(c["predicted"] > 0.02 for c in curve if c["poses"] < k)
     # unreachable: exit non-zero, one line, no poses file
     out2 = tmp_path / "none.csv"
-    assert recal(["plan", "--model", str(cell / "ur.json"), "--accuracy", "0.001", "--count", "40",
-                  "--out", str(out2), "--candidates", str(cell / "cand.csv"), "--target", "smr",
-                  "--evaluation-count", "30"]) == 2
+    assert (
+        recal(
+            [
+                "plan",
+                "--model",
+                str(cell / "ur.json"),
+                "--accuracy",
+                "0.001",
+                "--count",
+                "40",
+                "--out",
+                str(out2),
+                "--candidates",
+                str(cell / "cand.csv"),
+                "--target",
+                "smr",
+                "--evaluation-count",
+                "30",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "even 40 poses" in err and not out2.exists()
 
 
-@pytest.mark.parametrize("content, expect", [
-    ("q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0\n0,0,0,0,0,0\n0,abc,0,0,0,0\n", "row 3 (line 4), column 'q2': expected a number"),
-    ("q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0\n0,0,0,0,400,0\n", "row 2 (line 3), column 'q5': 400 is outside joint j5's limits"),
-    ("q1,q2,q3,q4,q5\n0,0,0,0,0\n", "missing joint column 'q6'"),
-])
+@pytest.mark.parametrize(
+    "content, expect",
+    [
+        (
+            "q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0\n0,0,0,0,0,0\n0,abc,0,0,0,0\n",
+            "row 3 (line 4), column 'q2': expected a number",
+        ),
+        (
+            "q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0\n0,0,0,0,400,0\n",
+            "row 2 (line 3), column 'q5': 400 is outside joint j5's limits",
+        ),
+        ("q1,q2,q3,q4,q5\n0,0,0,0,0\n", "missing joint column 'q6'"),
+    ],
+)
 def test_plan_bad_candidates_name_file_row_column(cell, tmp_path, capsys, content, expect):
     bad, out = tmp_path / "bad.csv", tmp_path / "poses.csv"
     bad.write_text(content)
-    assert recal(["plan", "--model", str(cell / "ur.json"), "--count", "10", "--out", str(out),
-                  "--candidates", str(bad)]) == 2
+    assert (
+        recal(["plan", "--model", str(cell / "ur.json"), "--count", "10", "--out", str(out), "--candidates", str(bad)])
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(bad) in err and expect in err
     assert not out.exists()
 
 
-@pytest.mark.parametrize("argv, expect", [
-    (["--count", "3", "--target", "smr"], "`count` must be at least"),
-    (["--count", "10", "--target", "ball"], "unknown target 'ball'"),
-    (["--count", "10", "--sigma", "-1"], "--sigma: expected a positive number"),
-    ([], "give --count K"),
-])
+@pytest.mark.parametrize(
+    "argv, expect",
+    [
+        (["--count", "3", "--target", "smr"], "`count` must be at least"),
+        (["--count", "10", "--target", "ball"], "unknown target 'ball'"),
+        (["--count", "10", "--sigma", "-1"], "--sigma: expected a positive number"),
+        ([], "give --count K"),
+    ],
+)
 def test_plan_bad_arguments(cell, tmp_path, capsys, argv, expect):
     out = tmp_path / "poses.csv"
-    assert recal(["plan", "--model", str(cell / "ur.json"), "--out", str(out), "--candidates",
-                  str(cell / "cand.csv"), *argv]) == 2
+    assert (
+        recal(
+            ["plan", "--model", str(cell / "ur.json"), "--out", str(out), "--candidates", str(cell / "cand.csv"), *argv]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and expect in err and not out.exists()
 
@@ -141,7 +262,13 @@ def test_export_urdf_dh_csv_and_markdown(cell, tmp_path, capsys):
     assert root.get("name") == "cell1"
     # a UR arm gets UR's names (ur_description), the model's base before base_link
     assert [j.get("name") for j in root.findall("joint") if j.get("type") == "revolute"] == [
-        "shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
+        "shoulder_pan_joint",
+        "shoulder_lift_joint",
+        "elbow_joint",
+        "wrist_1_joint",
+        "wrist_2_joint",
+        "wrist_3_joint",
+    ]
     assert root.find("joint[@name='base_joint']/origin").get("xyz") == "2.5 0 0"
     assert all(float(lim.get("velocity")) > 0 and float(lim.get("effort")) > 0 for lim in root.iter("limit"))
     assert recal(["export", "--model", str(model), "--format", "dh-csv", "--out", str(dhcsv)]) == 0
@@ -157,8 +284,10 @@ def test_export_warns_about_what_urdf_cannot_hold(tmp_path, capsys):
     doc = robots.nominal_document("ur10e")
     doc["joints"][1]["gain"] = 1.001
     (tmp_path / "g.json").write_text(json.dumps(doc))
-    assert recal(["export", "--model", str(tmp_path / "g.json"), "--format", "urdf", "--out",
-                  str(tmp_path / "g.urdf")]) == 0
+    assert (
+        recal(["export", "--model", str(tmp_path / "g.json"), "--format", "urdf", "--out", str(tmp_path / "g.urdf")])
+        == 0
+    )
     assert "gain 1.001 is not representable in URDF" in capsys.readouterr().err
 
 

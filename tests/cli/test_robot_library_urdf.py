@@ -105,8 +105,14 @@ def test_library_documents_name_their_source_and_limits(name, tmp_path):
 # direction of tool0's z axis (out of the flange).
 ZERO_POSE = {
     "kr16": ((0.26 + 0.68 + 0.67 + 0.158, 0, 0.675 - 0.035), (1, 0, 0)),
-    "kr210": ((-0.00262 + 0.35277 - 9.8483e-05 + 0.95795 + 0.542 + 0.1925 + 0.0375,
-               0.00097586 - 0.037476 - 0.1475 + 0.184, 0.33099 + 0.4192 + 1.2499 - 0.055059 - 0.00023924), (1, 0, 0)),
+    "kr210": (
+        (
+            -0.00262 + 0.35277 - 9.8483e-05 + 0.95795 + 0.542 + 0.1925 + 0.0375,
+            0.00097586 - 0.037476 - 0.1475 + 0.184,
+            0.33099 + 0.4192 + 1.2499 - 0.055059 - 0.00023924,
+        ),
+        (1, 0, 0),
+    ),
     "irb4600": ((0.175 + 0.96 + 0.135, 0, 0.495 + 0.9 + 0.175), (1, 0, 0)),
     "irb6700": ((0.32 + 1.1425 + 0.2, 0, 0.78 + 1.125 + 0.2), (1, 0, 0)),
     "m20ia": ((0.15 + 0.835 + 0.1, 0, 0.525 + 0.79 + 0.25), (1, 0, 0)),
@@ -147,27 +153,42 @@ def test_fanuc_j3_reading_is_relative_to_the_horizon(name, tmp_path):
 @pytest.mark.parametrize("name", ARMS + UR)
 def test_exported_urdf_parses_with_yourdfpy_and_matches_predict(name, tmp_path, capsys):
     urdf = tmp_path / f"{name}.urdf"
-    assert recal(["export", "--model", name, "--format", "urdf", "--out", str(urdf), "--effort", "500"]
-                 if name in ("kr16", "kr210", "irb4600", "irb6700", "m20ia", "r2000ic") else
-                 ["export", "--model", name, "--format", "urdf", "--out", str(urdf)]) == 0
+    assert (
+        recal(
+            ["export", "--model", name, "--format", "urdf", "--out", str(urdf), "--effort", "500"]
+            if name in ("kr16", "kr210", "irb4600", "irb6700", "m20ia", "r2000ic")
+            else ["export", "--model", name, "--format", "urdf", "--out", str(urdf)]
+        )
+        == 0
+    )
     err = capsys.readouterr().err
     assert ("coupling" in err) == (name in COUPLED)
     robot = yourdfpy.URDF.load(str(urdf), load_meshes=False, build_scene_graph=True)
     model = robots.nominal(name)
     assert robot.actuated_joint_names == (
         ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
-        if name in UR else [j.name for j in model.joints])
+        if name in UR
+        else [j.name for j in model.joints]
+    )
     for jn in robot.actuated_joint_names:
         lim = robot.joint_map[jn].limit
         assert lim.velocity > 0 and lim.effort > 0
     lib_velocity = [j.velocity for j in model.joints]
-    np.testing.assert_allclose([robot.joint_map[jn].limit.velocity for jn in robot.actuated_joint_names],
-                               lib_velocity, rtol=1e-12)
+    np.testing.assert_allclose(
+        [robot.joint_map[jn].limit.velocity for jn in robot.actuated_joint_names], lib_velocity, rtol=1e-12
+    )
     links = set(robot.link_map)
     assert {"world", "base_link", "base", "flange", "tool0", "tcp"} <= links
     if name in UR:
-        assert {"shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link",
-                "base_link_inertia"} <= links
+        assert {
+            "shoulder_link",
+            "upper_arm_link",
+            "forearm_link",
+            "wrist_1_link",
+            "wrist_2_link",
+            "wrist_3_link",
+            "base_link_inertia",
+        } <= links
     else:
         assert {f"link_{i + 1}" for i in range(model.n_joints)} <= links
     q = _readings(name, 25, 2)
@@ -188,8 +209,9 @@ def test_export_of_an_identified_ur_keeps_ur_names_tool_and_targets(tmp_path):
     from calibration.simulate import perturbed
 
     nominal = robots.nominal("ur5e")
-    truth = perturbed(nominal, np.random.default_rng(3), base_length_m=0.2, base_angle_rad=0.3,
-                      tool_length_m=0.05, tool_angle_rad=0.2)
+    truth = perturbed(
+        nominal, np.random.default_rng(3), base_length_m=0.2, base_angle_rad=0.3, tool_length_m=0.05, tool_angle_rad=0.2
+    )
     import dataclasses
 
     model = dataclasses.replace(truth, name="ur5e-identified", targets={"smr": np.array([0.01, 0.02, 0.05])})
@@ -198,8 +220,24 @@ def test_export_of_an_identified_ur_keeps_ur_names_tool_and_targets(tmp_path):
 
     path.write_text(json.dumps(model_to_dict(model, units=Units("mm", "deg"))))
     urdf = tmp_path / "id.urdf"
-    assert recal(["export", "--model", str(path), "--format", "urdf", "--out", str(urdf), "--prefix", "r1_",
-                  "--velocity", "1.5"]) == 0
+    assert (
+        recal(
+            [
+                "export",
+                "--model",
+                str(path),
+                "--format",
+                "urdf",
+                "--out",
+                str(urdf),
+                "--prefix",
+                "r1_",
+                "--velocity",
+                "1.5",
+            ]
+        )
+        == 0
+    )
     robot = yourdfpy.URDF.load(str(urdf), load_meshes=False, build_scene_graph=True)
     assert robot.actuated_joint_names[0] == "r1_shoulder_pan_joint"
     assert all(robot.joint_map[j].limit.velocity == 1.5 for j in robot.actuated_joint_names)
@@ -219,11 +257,31 @@ def test_export_without_a_velocity_limit_fails_in_one_line(tmp_path, capsys):
     assert not out.exists()
     assert recal(["export", "--model", "kr16", "--format", "urdf", "--out", str(out)]) == 2
     assert "no effort limit" in capsys.readouterr().err and not out.exists()
-    assert recal(["export", "--model", "puma560", "--format", "urdf", "--out", str(out), "--velocity", "2",
-                  "--effort", "100", "--names", "recal"]) == 0
+    assert (
+        recal(
+            [
+                "export",
+                "--model",
+                "puma560",
+                "--format",
+                "urdf",
+                "--out",
+                str(out),
+                "--velocity",
+                "2",
+                "--effort",
+                "100",
+                "--names",
+                "recal",
+            ]
+        )
+        == 0
+    )
     root = ET.parse(out).getroot()
     assert {lim.get("velocity") for lim in root.iter("limit")} == {"2.0"}
-    assert [j.get("name") for j in root.findall("joint") if j.get("type") == "revolute"] == [f"j{i}" for i in range(1, 7)]
+    assert [j.get("name") for j in root.findall("joint") if j.get("type") == "revolute"] == [
+        f"j{i}" for i in range(1, 7)
+    ]
 
 
 # --------------------------------------------------------------------------- URDF import
@@ -234,8 +292,10 @@ def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     """export -> recal model --from-urdf -> the same forward kinematics (readings: the URDF's joint
     positions; the coupling of the Fanuc arms is not in a URDF)."""
     urdf, back = tmp_path / "a.urdf", tmp_path / "back.json"
-    assert recal(["export", "--model", name, "--format", "urdf", "--out", str(urdf), "--velocity", "1",
-                  "--effort", "1"]) == 0
+    assert (
+        recal(["export", "--model", name, "--format", "urdf", "--out", str(urdf), "--velocity", "1", "--effort", "1"])
+        == 0
+    )
     assert recal(["model", "--from-urdf", str(urdf), "--tip", "tcp", "--out", str(back)]) == 0
     doc = json.loads(back.read_text())
     model = robots.nominal(name)
@@ -252,8 +312,9 @@ def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     inside = np.all((q_serial >= lim[:, 0]) & (q_serial <= lim[:, 1]), axis=1)
     q, q_serial = q[inside][:20], q_serial[inside][:20]
     assert len(q) == 20
-    np.testing.assert_allclose(_predict(tmp_path, str(back), np.rad2deg(q_serial)),
-                               _predict(tmp_path, name, np.rad2deg(q)), atol=1e-9)
+    np.testing.assert_allclose(
+        _predict(tmp_path, str(back), np.rad2deg(q_serial)), _predict(tmp_path, name, np.rad2deg(q)), atol=1e-9
+    )
     np.testing.assert_allclose([j["lower"] for j in doc["joints"]], np.rad2deg(model.joint_limits[:, 0]), atol=1e-9)
 
 
@@ -304,8 +365,10 @@ HAND_URDF = """<?xml version="1.0"?>
 def test_urdf_import_matches_yourdfpy(tmp_path, convention, capsys):
     urdf, out = tmp_path / "hand.urdf", tmp_path / "m.json"
     urdf.write_text(HAND_URDF)
-    assert recal(["model", "--from-urdf", str(urdf), "--tip", "flange", "--convention", convention,
-                  "--out", str(out)]) == 0
+    assert (
+        recal(["model", "--from-urdf", str(urdf), "--tip", "flange", "--convention", convention, "--out", str(out)])
+        == 0
+    )
     doc = json.loads(out.read_text())
     # the rail's offset and the prismatic joint's axis off the floor's z: DH needs a base transform,
     # so auto writes poe (the floor link is the robot base, the flange the tip)
@@ -313,22 +376,30 @@ def test_urdf_import_matches_yourdfpy(tmp_path, convention, capsys):
     assert (doc["base"] != [0.0] * 6) == (doc["tool"] != [0.0] * 6) == (convention == "dh")
     assert doc["units"] == {"length": "mm", "angle": "deg"}
     assert [(j["name"], j["type"]) for j in doc["joints"]] == [
-        ("slide", "prismatic"), ("j1", "revolute"), ("j2", "revolute"), ("j3", "revolute"), ("j4", "revolute")]
+        ("slide", "prismatic"),
+        ("j1", "revolute"),
+        ("j2", "revolute"),
+        ("j3", "revolute"),
+        ("j4", "revolute"),
+    ]
     assert doc["joints"][0]["lower"] == pytest.approx(-500) and doc["joints"][0]["velocity"] == pytest.approx(500)
     assert doc["joints"][1]["upper"] == pytest.approx(np.rad2deg(3)) and doc["joints"][1]["effort"] == 100
     rng = np.random.default_rng(8)
     # inside every joint's limits (j4: -1 to 2.5 rad)
     q = np.column_stack([rng.uniform(-0.5, 1.5, 30), rng.uniform(-2, 2, (30, 3)), rng.uniform(-1, 2, 30)])
     q_file = np.column_stack([q[:, 0] * 1e3, np.rad2deg(q[:, 1:])])
-    np.testing.assert_allclose(_predict(tmp_path, str(out), q_file), _yourdfpy_fk(urdf, q, "flange", "floor"),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        _predict(tmp_path, str(out), q_file), _yourdfpy_fk(urdf, q, "flange", "floor"), atol=1e-9
+    )
     # --base: the chain from a link inside the tree
     assert recal(["model", "--from-urdf", str(urdf), "--base", "l1", "--tip", "flange", "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert [j["name"] for j in doc["joints"]] == ["j2", "j3", "j4"]
-    np.testing.assert_allclose(_predict(tmp_path, str(out), np.rad2deg(q[:, 2:])),
-                               _yourdfpy_fk(urdf, np.column_stack([np.zeros((30, 2)), q[:, 2:]]), "flange", "l1"),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        _predict(tmp_path, str(out), np.rad2deg(q[:, 2:])),
+        _yourdfpy_fk(urdf, np.column_stack([np.zeros((30, 2)), q[:, 2:]]), "flange", "l1"),
+        atol=1e-9,
+    )
 
 
 def _broken(**edits) -> str:
@@ -339,20 +410,35 @@ def _broken(**edits) -> str:
     return text
 
 
-@pytest.mark.parametrize("text, argv, expect", [
-    (HAND_URDF, [], "link 'l1' branches ('j2', 'l1-camera'; leaves camera, flange): give --tip LINK"),
-    (HAND_URDF, ["--tip", "gripper"], "link 'gripper' (the tip) is not a <link> of the robot"),
-    (HAND_URDF, ["--base", "camera", "--tip", "flange"], "link 'flange' (the tip) is not below link 'camera'"),
-    (_broken(a=('<child link="l3"/>', '<child link="l3x"/>')), ["--tip", "flange"],
-     "joint 'j3': child link 'l3x' is not a <link> of the robot"),
-    (_broken(a=('name="j2" type="revolute"', 'name="j2" type="floating"')), ["--tip", "flange"],
-     "joint 'j2': type 'floating' is not a single-axis joint"),
-    (_broken(a=('name="j4" type="revolute"', 'name="j4" type="planar"')), ["--tip", "flange"],
-     "joint 'j4': type 'planar' is not a single-axis joint"),
-    (_broken(a=('xyz="0.1 0.05 -0.03"', 'xyz="0.1 abc -0.03"')), ["--tip", "flange"],
-     "joint 'j4' <origin xyz>: expected 3 numbers, got '0.1 abc -0.03'"),
-    ("<robot name='x'><link name='a'/>", ["--tip", "a"], "not well-formed XML"),
-])
+@pytest.mark.parametrize(
+    "text, argv, expect",
+    [
+        (HAND_URDF, [], "link 'l1' branches ('j2', 'l1-camera'; leaves camera, flange): give --tip LINK"),
+        (HAND_URDF, ["--tip", "gripper"], "link 'gripper' (the tip) is not a <link> of the robot"),
+        (HAND_URDF, ["--base", "camera", "--tip", "flange"], "link 'flange' (the tip) is not below link 'camera'"),
+        (
+            _broken(a=('<child link="l3"/>', '<child link="l3x"/>')),
+            ["--tip", "flange"],
+            "joint 'j3': child link 'l3x' is not a <link> of the robot",
+        ),
+        (
+            _broken(a=('name="j2" type="revolute"', 'name="j2" type="floating"')),
+            ["--tip", "flange"],
+            "joint 'j2': type 'floating' is not a single-axis joint",
+        ),
+        (
+            _broken(a=('name="j4" type="revolute"', 'name="j4" type="planar"')),
+            ["--tip", "flange"],
+            "joint 'j4': type 'planar' is not a single-axis joint",
+        ),
+        (
+            _broken(a=('xyz="0.1 0.05 -0.03"', 'xyz="0.1 abc -0.03"')),
+            ["--tip", "flange"],
+            "joint 'j4' <origin xyz>: expected 3 numbers, got '0.1 abc -0.03'",
+        ),
+        ("<robot name='x'><link name='a'/>", ["--tip", "a"], "not well-formed XML"),
+    ],
+)
 def test_bad_urdf_gets_one_line_naming_the_element(tmp_path, capsys, text, argv, expect):
     urdf, out = tmp_path / "bad.urdf", tmp_path / "m.json"
     urdf.write_text(text)

@@ -73,16 +73,20 @@ def _model(files: Path, tmp_path: Path, edit) -> Path:
 def _edit_joint(i: int, old: str, new: str):
     def edit(doc):
         doc["joints"][i][new] = doc["joints"][i].pop(old)
+
     return edit
 
 
-@pytest.mark.parametrize("edit, field, guess", [
-    (_edit_joint(1, "alpha", "alpah"), "joints[1].alpah", "'alpha'"),
-    (_edit_joint(2, "a", "aa"), "joints[2].aa", "'a'"),
-    (_edit_joint(0, "theta", "Theta"), "joints[0].Theta", "'theta'"),
-    (lambda doc: doc.update(tagets=doc.pop("targets")), "tagets", "'targets'"),
-    (lambda doc: doc.update(tools=doc.pop("tool")), "tools", "'tool'"),
-])
+@pytest.mark.parametrize(
+    "edit, field, guess",
+    [
+        (_edit_joint(1, "alpha", "alpah"), "joints[1].alpah", "'alpha'"),
+        (_edit_joint(2, "a", "aa"), "joints[2].aa", "'a'"),
+        (_edit_joint(0, "theta", "Theta"), "joints[0].Theta", "'theta'"),
+        (lambda doc: doc.update(tagets=doc.pop("targets")), "tagets", "'targets'"),
+        (lambda doc: doc.update(tools=doc.pop("tool")), "tools", "'tool'"),
+    ],
+)
 def test_a_misspelt_model_field_is_refused_with_a_did_you_mean(files, tmp_path, capsys, edit, field, guess):
     model = _model(files, tmp_path, edit)
     out = tmp_path / "out.json"
@@ -122,10 +126,13 @@ def test_joint_readings_beyond_the_limits_name_row_and_column(files, tmp_path, c
     assert not out.exists()
 
 
-@pytest.mark.parametrize("content, expect", [
-    (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR" + bytes(range(256)), "binary file"),
-    ("q1,q2\n# caf\xe9\n".encode("latin-1"), "not UTF-8"),
-])
+@pytest.mark.parametrize(
+    "content, expect",
+    [
+        (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR" + bytes(range(256)), "binary file"),
+        ("q1,q2\n# caf\xe9\n".encode("latin-1"), "not UTF-8"),
+    ],
+)
 @pytest.mark.parametrize("role", ["data", "model"])
 def test_a_binary_or_non_utf8_file_is_one_clean_line(files, tmp_path, capsys, content, expect, role):
     bad = tmp_path / ("bad.json" if role == "model" else "bad.csv")
@@ -161,8 +168,10 @@ def test_1e308_in_a_task_row_is_named_and_compensate_writes_nothing(files, tmp_p
 
 def test_1e308_in_a_urscript_target_is_named_and_compensate_writes_nothing(files, tmp_path, capsys):
     prog = tmp_path / "prog.script"
-    prog.write_text("def prog():\n  movej([0.1, -1.2, 1.3, -1.6, -1.5, 0.2], a=1.2, v=0.5)\n"
-                    "  movej([0.1, -1.2, 1.3, -1.6, -1.5, 1e308], a=1.2, v=0.5)\nend\n")
+    prog.write_text(
+        "def prog():\n  movej([0.1, -1.2, 1.3, -1.6, -1.5, 0.2], a=1.2, v=0.5)\n"
+        "  movej([0.1, -1.2, 1.3, -1.6, -1.5, 1e308], a=1.2, v=0.5)\nend\n"
+    )
     out = tmp_path / "out.script"
     status, err = _run(capsys, "compensate", "--model", files / "nominal.json", "--task", prog, "--out", out)
     _one_line(status, err, str(prog), "line 3", "1e+308")

@@ -109,9 +109,7 @@ class RobotContract:
             self.move(robot, target)
         np.testing.assert_allclose(robot.read_joints(), HOME, atol=self.tolerance_rad)
 
-    @pytest.mark.parametrize(
-        "speed, accel", [(0.0, 1.0), (-1.0, 1.0), (50.0, 1.0), (1.0, 0.0), (1.0, 500.0)]
-    )
+    @pytest.mark.parametrize("speed, accel", [(0.0, 1.0), (-1.0, 1.0), (50.0, 1.0), (1.0, 0.0), (1.0, 500.0)])
     def test_speed_and_acceleration_outside_the_limits_are_refused(self, robot, speed, accel):
         with pytest.raises(ValueError, match="speed_rad_s|accel_rad_s2"):
             robot.move_joints(HOME + 0.1, speed_rad_s=speed, accel_rad_s2=accel)

@@ -119,8 +119,13 @@ def test_configs_come_from_the_endpoint_line(fake):
     assert sorted(configs) == [("encoder", 1), ("encoder", 2), ("resolver", 1)]
     enc = configs[("encoder", 2)]
     assert (enc.node_id, enc.kind, enc.use_pdo) == (18, "encoder", True)
-    assert enc.bus.bus_kwargs() == {"interface": "socketcand", "channel": "vcan0", "host": "127.0.0.1",
-                                    "port": fake.port, "tcp_tune": True}
+    assert enc.bus.bus_kwargs() == {
+        "interface": "socketcand",
+        "channel": "vcan0",
+        "host": "127.0.0.1",
+        "port": fake.port,
+        "tcp_tune": True,
+    }
     with pytest.raises(ValueError, match="unknown keys in the `can` endpoint: bogus"):
         CanBusConfig.from_endpoint({**fake.endpoint()["can"], "bogus": 1})
     with pytest.raises(ValueError, match="node_id"):
@@ -205,7 +210,11 @@ def start_fake_process(*args: str) -> tuple[subprocess.Popen, dict]:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "fakes.canopen_nodes", "--host", "127.0.0.1", "--port", "0", *args],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     ready, _, _ = select.select([proc.stdout], [], [], 30)
     line = proc.stdout.readline() if ready else ""
@@ -217,16 +226,17 @@ def start_fake_process(*args: str) -> tuple[subprocess.Popen, dict]:
 
 def test_other_process_gateway_serves_sdo_and_pdo_reads():
     q = [0.25, -1.1, 0.7, 0.0, 0.0, 0.0]
-    proc, endpoint = start_fake_process("--q", ",".join(map(str, q)), "--resolvers", "1:33,3:34",
-                                        "--silent-node", "34")
+    proc, endpoint = start_fake_process("--q", ",".join(map(str, q)), "--resolvers", "1:33,3:34", "--silent-node", "34")
     try:
         assert endpoint["ready"] is True
         assert endpoint["can"]["interface"] == "socketcand" and endpoint["can"]["channel"] == "vcan0"
         assert endpoint["encoders"] == {"1": 17, "2": 18}
         configs = configs_from_endpoint(endpoint, timeout_s=TIMEOUT_S)
-        with CanopenEncoder(configs[("encoder", 1)]) as e1, \
-                CanopenEncoder(dataclasses.replace(configs[("encoder", 2)], use_pdo=True)) as e2, \
-                CanopenEncoder(configs[("resolver", 1)]) as r1:
+        with (
+            CanopenEncoder(configs[("encoder", 1)]) as e1,
+            CanopenEncoder(dataclasses.replace(configs[("encoder", 2)], use_pdo=True)) as e2,
+            CanopenEncoder(configs[("resolver", 1)]) as r1,
+        ):
             for enc, joint, node_id, tol in ((e1, 1, 17, 3 * STEP_RAD), (e2, 2, 18, 3 * STEP_RAD)):
                 first, second = enc.read(), enc.read()
                 assert second.sequence == first.sequence + 1
@@ -250,12 +260,22 @@ def test_other_process_gateway_serves_sdo_and_pdo_reads():
 @pytest.mark.parametrize(
     "fault, node_id, use_pdo, error, match, status",
     [
-        ("sensor_fault_at=2", 17, False, DeviceFaultError,
-         r"SDO abort .*hardware error.*EMCY 0x7320 \(position sensor\) \(code 0x06060000\)",
-         "fault: EMCY 0x7320 (position sensor)"),
-        ("sensor_fault_at=2", 33, True, MeasurementError,
-         r"resolver reports LOS loss of signal, LOT loss of tracking \(code 0x05\)",
-         "fault: EMCY 0x7300 (sensor)"),
+        (
+            "sensor_fault_at=2",
+            17,
+            False,
+            DeviceFaultError,
+            r"SDO abort .*hardware error.*EMCY 0x7320 \(position sensor\) \(code 0x06060000\)",
+            "fault: EMCY 0x7320 (position sensor)",
+        ),
+        (
+            "sensor_fault_at=2",
+            33,
+            True,
+            MeasurementError,
+            r"resolver reports LOS loss of signal, LOT loss of tracking \(code 0x05\)",
+            "fault: EMCY 0x7300 (sensor)",
+        ),
         ("garble_at=2", 17, False, ProtocolError, "unexpected SDO answer 0xBC", "operational"),
         ("garble_at=2", 18, True, ProtocolError, "TPDO1 of 2 bytes does not hold 0x6004", "operational"),
     ],
@@ -269,8 +289,9 @@ def test_faults_of_a_node_in_another_process(fault_cell, fault, node_id, use_pdo
     cell = fault_cell(only=("can",), faults=(fault,))
     kind = "resolver" if node_id == 33 else "encoder"
     bus = CanBusConfig.from_endpoint(cell.endpoint["can"])
-    with CanopenEncoder(CanopenEncoderConfig(bus=bus, node_id=node_id, kind=kind, use_pdo=use_pdo,
-                                             timeout_s=TIMEOUT_S)) as enc:
+    with CanopenEncoder(
+        CanopenEncoderConfig(bus=bus, node_id=node_id, kind=kind, use_pdo=use_pdo, timeout_s=TIMEOUT_S)
+    ) as enc:
         first = enc.read()
         with pytest.raises(error, match=match) as info:
             enc.read()

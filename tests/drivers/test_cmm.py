@@ -146,7 +146,9 @@ def test_probing_empty_space_is_no_touch(fake, truth):
 
 
 def test_out_of_machine_volume(truth):
-    cell = SimCell(truth, q_home=Q_POSE, ball_radius_m=R_BALL, cmm_volume_m=(np.array([-2.0, -2, 0.5]), np.array([2.0, 2, 2])))
+    cell = SimCell(
+        truth, q_home=Q_POSE, ball_radius_m=R_BALL, cmm_volume_m=(np.array([-2.0, -2, 0.5]), np.array([2.0, 2, 2]))
+    )
     fake = IppCmmFake(cell, port=0)
     fake.start()
     try:
@@ -333,7 +335,7 @@ def test_warnings_and_foreign_lines_are_tolerated():
         "00001 %",  # a late line of some finished transaction
         "{tag} &",
         '{tag} ! Error(1, 0504, "PtMeas", "Argument out of range")',
-        "E0000 # KeyPress(\"F2\")",
+        'E0000 # KeyPress("F2")',
         "{tag} # X(10.0), Y(20.0), Z(30.0), IJK(0,0,1)",
         "{tag} %",
     ]
@@ -367,8 +369,19 @@ def test_parsers():
 
 def test_across_processes(truth):
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    args = [sys.executable, "-m", "fakes.cmm", "--port", "0", "--robot", "ur5e", "--seed", "3",
-            "--q", ",".join(str(v) for v in Q_POSE)]
+    args = [
+        sys.executable,
+        "-m",
+        "fakes.cmm",
+        "--port",
+        "0",
+        "--robot",
+        "ur5e",
+        "--seed",
+        "3",
+        "--q",
+        ",".join(str(v) for v in Q_POSE),
+    ]
     for name, p in BALLS_TOOL.items():
         args += ["--ball", f"{name}={p[0]},{p[1]},{p[2]}"]
     proc = subprocess.Popen(args, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

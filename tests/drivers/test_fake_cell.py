@@ -30,7 +30,11 @@ def subprocess_env() -> dict:
 def run_cell(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "fakes.cell", *args],
-        capture_output=True, text=True, timeout=timeout_s, cwd=REPO, env=subprocess_env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        cwd=REPO,
+        env=subprocess_env(),
     )
 
 
@@ -82,9 +86,11 @@ def test_unreadable_truth_file_is_named(tmp_path):
 
 def test_ur_controller_alone(truth_path, free_host):
     process = subprocess.Popen(
-        [sys.executable, "-m", "fakes.ur_controller", "--truth", str(truth_path),
-         "--host", free_host],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=REPO, env=subprocess_env(),
+        [sys.executable, "-m", "fakes.ur_controller", "--truth", str(truth_path), "--host", free_host],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        cwd=REPO,
+        env=subprocess_env(),
     )
     try:
         assert json.loads(process.stdout.readline()) == {"ready": True, "rtde": free_host}
@@ -94,10 +100,13 @@ def test_ur_controller_alone(truth_path, free_host):
         process.stdout.close()
 
 
-@pytest.mark.parametrize("block, expected", [
-    ({"published": "ur7e"}, "ur_factory_calibration.published: expected one of ur3e, ur5e, ur10e, ur16e"),
-    ({"published": "ur5e", "delta_theta": [0.0] * 5}, "ur_factory_calibration.delta_theta: expected a list of 6"),
-])
+@pytest.mark.parametrize(
+    "block, expected",
+    [
+        ({"published": "ur7e"}, "ur_factory_calibration.published: expected one of ur3e, ur5e, ur10e, ur16e"),
+        ({"published": "ur5e", "delta_theta": [0.0] * 5}, "ur_factory_calibration.delta_theta: expected a list of 6"),
+    ],
+)
 def test_a_bad_factory_calibration_block_is_named(tmp_path, block, expected):
     doc = json.loads(TRUTH_PATH.read_text())
     doc["ur_factory_calibration"] = block

@@ -99,7 +99,9 @@ CASES = {
     # session: commands 1-10 (with Home); the second PtMeas is 12
     "cmm": Late("cmm", 12, _cmm, 1e-5, r"no acknowledgement of 00012 PtMeas\(.* within 0\.4 s"),
     # position requests: SDO uploads of 0x6004 or SYNCs; the set-up reads other objects
-    "encoder-sdo": Late("can", 2, _encoder(False), 3e-4, r"no SDO answer reading the position value 0x6004 within 0\.4 s"),
+    "encoder-sdo": Late(
+        "can", 2, _encoder(False), 3e-4, r"no SDO answer reading the position value 0x6004 within 0\.4 s"
+    ),
     "encoder-pdo": Late("can", 2, _encoder(True), 3e-4, r"no TPDO1 \(COB-ID 0x191\) within 0\.4 s after SYNC"),
 }
 

@@ -187,9 +187,19 @@ def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
     packs back to the same bytes; every answer the fake sends parses with cesapi too."""
     proxy = Proxy(fake.port)
     try:
-        with EmsconTracker(EmsconConfig(host="127.0.0.1", port=proxy.port, timeout_s=1.0, measure_time_s=0.25,
-                                        environment="config", temperature_c=19.5, pressure_mbar=1001.0,
-                                        humidity_pct=35.0, reflector="RRR 0.5in")) as tracker:
+        with EmsconTracker(
+            EmsconConfig(
+                host="127.0.0.1",
+                port=proxy.port,
+                timeout_s=1.0,
+                measure_time_s=0.25,
+                environment="config",
+                temperature_c=19.5,
+                pressure_mbar=1001.0,
+                humidity_pct=35.0,
+                reflector="RRR 0.5in",
+            )
+        ) as tracker:
             tracker.measure()
             target = cell.target_world()
             tracker.find_reflector(target)
@@ -201,14 +211,31 @@ def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
     for raw, packet in zip(_split(bytes(proxy.to_server)), sent):
         assert packet.pack() == raw
     commands = [p.packetInfo.command for p in sent]
-    assert commands == [P.ES_C_GetSystemStatus, P.ES_C_GetTrackerStatus, P.ES_C_Initialize, P.ES_C_SetUnits,
-                        P.ES_C_GetCoordinateSystemType, P.ES_C_SetEnvironmentParams, P.ES_C_GetReflectors, P.ES_C_SetReflector,
-                        P.ES_C_SetMeasurementMode, P.ES_C_SetStationaryModeParams, P.ES_C_StartMeasurement,
-                        P.ES_C_GoPosition, P.ES_C_FindReflector, P.ES_C_GetMeasurementStatusInfo]
+    assert commands == [
+        P.ES_C_GetSystemStatus,
+        P.ES_C_GetTrackerStatus,
+        P.ES_C_Initialize,
+        P.ES_C_SetUnits,
+        P.ES_C_GetCoordinateSystemType,
+        P.ES_C_SetEnvironmentParams,
+        P.ES_C_GetReflectors,
+        P.ES_C_SetReflector,
+        P.ES_C_SetMeasurementMode,
+        P.ES_C_SetStationaryModeParams,
+        P.ES_C_StartMeasurement,
+        P.ES_C_GoPosition,
+        P.ES_C_FindReflector,
+        P.ES_C_GetMeasurementStatusInfo,
+    ]
     by = dict(zip(commands, sent))
     u = by[P.ES_C_SetUnits].unitsSettings
     assert (u.lenUnitType, u.angUnitType, u.tempUnitType, u.pressUnitType, u.humUnitType) == (
-        P.ES_LU_Millimeter, P.ES_AU_Degree, P.ES_TU_Celsius, P.ES_PU_Mbar, P.ES_HU_RH)
+        P.ES_LU_Millimeter,
+        P.ES_AU_Degree,
+        P.ES_TU_Celsius,
+        P.ES_PU_Mbar,
+        P.ES_HU_RH,
+    )
     e = by[P.ES_C_SetEnvironmentParams].environmentData
     assert (e.dTemperature, e.dPressure, e.dHumidity) == (19.5, 1001.0, 35.0)
     assert by[P.ES_C_SetReflector].iInternalReflectorId == 1
@@ -299,8 +326,12 @@ def test_configuration_errors_name_what_is_wrong(fake):
     with EmsconTracker(_config(fake, environment="config", temperature_c=23.0)) as tracker:
         assert tracker.environment == (23.0, 1013.25, 50.0)
     assert fake.environment == (23.0, 1013.25, 50.0)
-    for bad, match in (({"port": 0}, "port"), ({"timeout_s": 0}, "timeout_s"), ({"environment": "sky"}, "environment"),
-                       ({"measure_time_s": 0}, "measure_time_s")):
+    for bad, match in (
+        ({"port": 0}, "port"),
+        ({"timeout_s": 0}, "timeout_s"),
+        ({"environment": "sky"}, "environment"),
+        ({"measure_time_s": 0}, "measure_time_s"),
+    ):
         with pytest.raises(ValueError, match=match):
             EmsconConfig(host="h", **bad)
     assert EmsconConfig.from_endpoint("10.0.0.5:7000").port == 7000
@@ -379,8 +410,10 @@ def test_the_arm_blocks_the_line_of_sight(truth):
     from fakes.leica_tracker import arm_segments, segment_distance
 
     p = cell.target_world()
-    clearance = min(segment_distance(np.zeros(3), p * (1 - fake.reflector_clearance_m / np.linalg.norm(p)), a, b)
-                    for a, b in arm_segments(cell))
+    clearance = min(
+        segment_distance(np.zeros(3), p * (1 - fake.reflector_clearance_m / np.linalg.norm(p)), a, b)
+        for a, b in arm_segments(cell)
+    )
     assert (fake.visible() == "the arm blocks the line of sight") == (clearance < 0.045)
     fake.arm_radius_m = max(clearance - 0.01, 0.0)
     assert fake.visible() is None
@@ -442,11 +475,14 @@ def test_an_unsolicited_result_is_never_returned(cell):
         fake.stop()
 
 
-@pytest.mark.parametrize("packet, match", [
-    (struct.pack("<iII", 12, 77, 0), "unknown type 77"),
-    (struct.pack("<iII", 20, 8, 25) + b"\0" * 8, "type 8 with a wrong size 20"),
-    (struct.pack("<iIII", 16, 0, 2, 0), "reply to command 2 while waiting for command 49"),
-])
+@pytest.mark.parametrize(
+    "packet, match",
+    [
+        (struct.pack("<iII", 12, 77, 0), "unknown type 77"),
+        (struct.pack("<iII", 20, 8, 25) + b"\0" * 8, "type 8 with a wrong size 20"),
+        (struct.pack("<iIII", 16, 0, 2, 0), "reply to command 2 while waiting for command 49"),
+    ],
+)
 def test_wrong_packets_are_protocol_errors_then_a_full_reconnect(cell, packet, match):
     fake = Scripted(cell, {49: packet})
     fake.start()
@@ -477,14 +513,26 @@ def test_no_server_there(fake):
 # StartMeasurement is 11, the second 12. A reconnect's set-up is 9 commands (no Initialize).
 FAULTS = {
     "dropped": (("drop_connection_at=12",), None, None, "ready"),
-    "dropped-twice": (("drop_connection_at=12,13",), DeviceConnectionError,
-                      r"command 49 failed after one reconnect", "ready"),
+    "dropped-twice": (
+        ("drop_connection_at=12,13",),
+        DeviceConnectionError,
+        r"command 49 failed after one reconnect",
+        "ready",
+    ),
     "delay": (("delay_at=12", "delay_s=1.0"), DeviceTimeoutError, r"no answer to command 49 within 0\.6 s", "ready"),
     "malformed": (("garble_at=12",), ProtocolError, r"reply to command 49 of 23 bytes; expected 16", "ready"),
-    "error-status": (("error_status_at=12",), DeviceFaultError, r"command 49: the server reports status 36 \(code 36\)",
-                     "ready"),
-    "beam-break": (("beam_break_at=2",), MeasurementError, r"no reflector locked \(beam broken\) \(code 10004\)",
-                   "beam_broken"),
+    "error-status": (
+        ("error_status_at=12",),
+        DeviceFaultError,
+        r"command 49: the server reports status 36 \(code 36\)",
+        "ready",
+    ),
+    "beam-break": (
+        ("beam_break_at=2",),
+        MeasurementError,
+        r"no reflector locked \(beam broken\) \(code 10004\)",
+        "beam_broken",
+    ),
 }
 
 

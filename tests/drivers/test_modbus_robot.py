@@ -3,8 +3,8 @@ server in another process, and the server's own behaviour in this one."""
 
 from __future__ import annotations
 
-import os
 import json
+import os
 import time
 from pathlib import Path
 
@@ -47,9 +47,10 @@ class TestModbusRobot(RobotContract):
 
 def test_microradian_registers_of_the_motion_program_agree_with_ur_registers(fake_cell):
     target = np.array([-4.0, -1.2, 5.0, -1.6, -1.5, 0.0004])
-    with connect(fake_cell.endpoint) as native, connect(
-        fake_cell.endpoint, register_map=UR_REGISTER_MAP_HIRES
-    ) as hires:
+    with (
+        connect(fake_cell.endpoint) as native,
+        connect(fake_cell.endpoint, register_map=UR_REGISTER_MAP_HIRES) as hires,
+    ):
         hires.move_joints(target, speed_rad_s=1.0, accel_rad_s2=2.0)
         np.testing.assert_allclose(hires.read_joints(), target, atol=1e-6)
         np.testing.assert_allclose(native.read_joints(), target, atol=5e-4)

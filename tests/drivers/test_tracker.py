@@ -169,8 +169,7 @@ def test_measurement_while_the_robot_moves_is_refused(truth):
         # and the resent MEAS? (8) repair it. The second (9) and its resend (13) are dropped.
         ("drop_connection_at=4,9,13", DeviceConnectionError, r"MEAS\? failed after one reconnect", "ready"),
         ("garble_at=5", ProtocolError, "garbled reply", "ready"),
-        ("beam_break_at=2", MeasurementError, r"MEAS\?: cannot measure: beam broken \(code 20\)",
-         "beam_broken"),
+        ("beam_break_at=2", MeasurementError, r"MEAS\?: cannot measure: beam broken \(code 20\)", "beam_broken"),
     ],
     ids=["dropped", "garbled", "beam-break"],
 )
@@ -364,7 +363,11 @@ def _spawn_fake(module: str, *args: str) -> tuple[subprocess.Popen, dict]:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     proc = subprocess.Popen(
         [sys.executable, "-m", module, "--port", "0", *args],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     ready, _, _ = select.select([proc.stdout], [], [], 30)
     if not ready:

@@ -15,15 +15,13 @@ import textwrap
 
 import numpy as np
 import pytest
+from robot_contract import HOME
 
 from calibration.transforms import homogeneous, matrix_to_rotvec, rotvec_to_matrix
 from drivers import ur_rtde
 from drivers.modbus_robot import ModbusRobot, ModbusRobotConfig
-from robot_contract import HOME
 
-needs_ur_rtde = pytest.mark.skipif(
-    importlib.util.find_spec("rtde_control") is None, reason="ur_rtde is not installed"
-)
+needs_ur_rtde = pytest.mark.skipif(importlib.util.find_spec("rtde_control") is None, reason="ur_rtde is not installed")
 
 D = (0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996)
 A = (0.0, -0.425, -0.3922, 0.0, 0.0, 0.0)
@@ -46,8 +44,9 @@ def dh_fk(q, deltas=FACTORY) -> np.ndarray:
         th = qi + deltas["delta_theta"][i]
         d, a, al = D[i] + deltas["delta_d"][i], A[i] + deltas["delta_a"][i], ALPHA[i] + deltas["delta_alpha"][i]
         ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(al), math.sin(al)
-        T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
-                          [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]])
+        T = T @ np.array(
+            [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]]
+        )
     return T
 
 
@@ -79,9 +78,13 @@ FRESH = textwrap.dedent("""
 def run_ur_rtde(host: str, body: str) -> dict:
     """Run ``body`` (with ``c``, ``r``: control and receive interfaces) in a child process;
     it prints one JSON line."""
-    script = "import json, rtde_control, rtde_receive\n" + \
-        f"c = rtde_control.RTDEControlInterface({host!r})\nr = rtde_receive.RTDEReceiveInterface({host!r})\n" + \
-        FRESH + textwrap.dedent(body) + "\nc.stopScript()\nc.disconnect(); r.disconnect()\n"
+    script = (
+        "import json, rtde_control, rtde_receive\n"
+        + f"c = rtde_control.RTDEControlInterface({host!r})\nr = rtde_receive.RTDEReceiveInterface({host!r})\n"
+        + FRESH
+        + textwrap.dedent(body)
+        + "\nc.stopScript()\nc.disconnect(); r.disconnect()\n"
+    )
     ur_rtde.probe_controller(host, 1.0)
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
@@ -95,14 +98,17 @@ def test_forward_and_inverse_kinematics_and_tcp_pose_come_from_the_factory_calib
     # A tool offset that is not all zero: ur_rtde 1.6.5 sends none otherwise, and the script
     # reads whatever an earlier command left in input registers 6-11.
     tcp = [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
-    got = run_ur_rtde(factory_cell.host, f"""
+    got = run_ur_rtde(
+        factory_cell.host,
+        f"""
         qs = {qs!r}
         fk = [list(c.getForwardKinematics(q, {tcp!r})) for q in qs]
         ik = [list(c.getInverseKinematics(p, [v + 0.05 for v in q])) for p, q in zip({flange!r}, qs)]
         assert c.moveJ(qs[2], 1.0, 2.0)
         actual = dict(q=fresh(r.getActualQ), pose=fresh(r.getActualTCPPose))
         print(json.dumps(dict(fk=fk, ik=ik, actual=actual)))
-        """)
+        """,
+    )
     T_tcp = homogeneous(np.eye(3), tcp[:3])
     for q, pose in zip(qs, got["fk"]):
         T = as_matrix(pose)
@@ -122,14 +128,17 @@ def test_pose_targets_of_movel_and_movej_ik_are_reached_through_the_factory_cali
     p1 = [float(v) for v in (*T1[:3, 3], *matrix_to_rotvec(T1[:3, :3]))]
     p2 = [float(v) for v in (*T2[:3, 3], *matrix_to_rotvec(T2[:3, :3]))]
     home = [float(v) for v in HOME]
-    got = run_ur_rtde(factory_cell.host, f"""
+    got = run_ur_rtde(
+        factory_cell.host,
+        f"""
         assert c.moveJ({home!r}, 1.0, 2.0)
         assert c.moveL({p1!r}, 0.25, 1.2)
         after_movel = fresh(r.getActualQ)
         assert c.moveJ_IK({p2!r}, 1.0, 2.0)
         after_movej_ik = fresh(r.getActualQ)
         print(json.dumps(dict(movel=after_movel, movej_ik=after_movej_ik)))
-        """)
+        """,
+    )
     for q, T in ((got["movel"], T1), (got["movej_ik"], T2)):
         np.testing.assert_allclose(dh_fk(q), T, atol=1e-9)  # the controller's model puts the tool there
         assert np.linalg.norm(dh_fk(q, ZERO)[:3, 3] - T[:3, 3]) > 1e-3  # the published table would not

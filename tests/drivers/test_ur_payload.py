@@ -13,14 +13,13 @@ import textwrap
 
 import numpy as np
 import pytest
+from robot_contract import HOME
 
 from calibration.kinematics import points_world
 from calibration.model import model_from_dict, model_to_dict
 from calibration.simulate import sagging
 from calibration.transforms import pose_to_matrix
 from drivers import ur_rtde
-from robot_contract import HOME
-
 
 needs_ur_rtde = pytest.mark.skipif(importlib.util.find_spec("rtde_control") is None, reason="ur_rtde is not installed")
 
@@ -62,8 +61,9 @@ def test_set_payload_through_ur_rtde_makes_the_true_robot_sag(sagging_cell):
         """
     )
     ur_rtde.probe_controller(cell.host, 1.0)
-    child = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+    child = subprocess.Popen(
+        [sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     seen = {}
     try:
         with LineTracker(TrackerConfig(url=cell.endpoint["tracker"], timeout_s=5.0)) as tracker:

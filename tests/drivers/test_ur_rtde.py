@@ -6,9 +6,9 @@ constructors hold the GIL while they wait, so it never runs in the test process 
 
 from __future__ import annotations
 
-import os
 import importlib.util
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from robot_contract import HOME, RobotContract
 
 from calibration import robots
 from calibration.kinematics import fk
@@ -34,16 +35,13 @@ from drivers.errors import (
 )
 from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
 from fakes.world import draw_factory_calibration
-from robot_contract import HOME, RobotContract
 
 # Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
 # use disjoint addresses (the UR controller's ports are fixed per address).
 NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 TRUTH_PATH = Path(__file__).with_name("ur5e_truth.json")  # the cells' truth (conftest.py)
-needs_ur_rtde = pytest.mark.skipif(
-    importlib.util.find_spec("rtde_control") is None, reason="ur_rtde is not installed"
-)
+needs_ur_rtde = pytest.mark.skipif(importlib.util.find_spec("rtde_control") is None, reason="ur_rtde is not installed")
 
 
 @needs_ur_rtde
@@ -89,9 +87,7 @@ def test_unmodified_ur_rtde_reads_the_robot_as_its_controller_computes_it_with_i
         """
     )
     ur_rtde.probe_controller(fake_cell.host, 1.0)  # never start ur_rtde on a broken fake
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=30
-    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
     assert done.returncode == 0, done.stderr
     got = json.loads(done.stdout.strip().splitlines()[-1])
     np.testing.assert_allclose(got["q"], HOME + 0.3, atol=1e-12)

@@ -71,8 +71,11 @@ def fleet_models(tmp_path_factory):
     rng = np.random.default_rng(11)
     nominal = dataclasses.replace(robots.nominal("ur5e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
     truth = perturbed(nominal, rng, tool_length_m=0.0)
-    truth = dataclasses.replace(truth, base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
-                                targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in nominal.targets.items()})
+    truth = dataclasses.replace(
+        truth,
+        base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
+        targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in nominal.targets.items()},
+    )
     save_model(d / "nominal.json", nominal)
     save_model(d / "truth.json", truth)
     return {"nominal": d / "nominal.json", "truth": d / "truth.json"}
@@ -83,14 +86,21 @@ class Fleet:
 
     def __init__(self, home: Path, db_url: str, models, *, ttl_s: float):
         self.home, self.db_url, self.models = home, db_url, models
-        self.env = {"RECAL_DATABASE_URL": db_url, "RECAL_ENGINE": "procrastinate", "RECAL_SETTLE_S": "0",
-                    "RECAL_RETRY_BACKOFF_S": "0.05", "RECAL_DEVICE_RETRIES": "2", "RECAL_LEASE_TTL_S": str(ttl_s)}
+        self.env = {
+            "RECAL_DATABASE_URL": db_url,
+            "RECAL_ENGINE": "procrastinate",
+            "RECAL_SETTLE_S": "0",
+            "RECAL_RETRY_BACKOFF_S": "0.05",
+            "RECAL_DEVICE_RETRIES": "2",
+            "RECAL_LEASE_TTL_S": str(ttl_s),
+        }
         self.ttl_s = ttl_s
         engine = make_engine(db_url)
         migrate(engine)
         with Session(engine) as db:
-            self.tokens = {r: create_token(db, role=r, name=f"{r}-user")[1]
-                           for r in ("viewer", "technician", "job", "admin")}
+            self.tokens = {
+                r: create_token(db, role=r, name=f"{r}-user")[1] for r in ("viewer", "technician", "job", "admin")
+            }
         engine.dispose()
         self.engine = make_engine(db_url)
         self.apis: list = []
@@ -104,8 +114,9 @@ class Fleet:
         return self.apis[-1]
 
     def start_worker(self, name: str, sites: list[str], concurrency: int = 4):
-        self.workers[name] = start_worker(self.home, sites, env=self.env, name=name, concurrency=concurrency,
-                                          log_path=self.home / f"{name}.log")
+        self.workers[name] = start_worker(
+            self.home, sites, env=self.env, name=name, concurrency=concurrency, log_path=self.home / f"{name}.log"
+        )
         self.workers[name].sites = sites
         return self.workers[name]
 
@@ -117,16 +128,28 @@ class Fleet:
         hosts = [next_host() for _ in sites]
 
         def one(host):
-            return start_fake_cell(self.models["truth"], host, time_scale=time_scale,
-                                   log_path=self.home / f"cell-{host}.log")
+            return start_fake_cell(
+                self.models["truth"], host, time_scale=time_scale, log_path=self.home / f"cell-{host}.log"
+            )
 
         with ThreadPoolExecutor(len(hosts)) as pool:
             fakes = list(pool.map(one, hosts))
         self.cells += fakes
         model = json.loads(self.models["nominal"].read_text())
-        return [self.api(0).call("POST", "/cells", {"name": f"cell-{host}", "site": site, "model": model,
-                                                      "devices": fake.ready, "drift_threshold": threshold})
-                for host, site, fake in zip(hosts, sites, fakes)]
+        return [
+            self.api(0).call(
+                "POST",
+                "/cells",
+                {
+                    "name": f"cell-{host}",
+                    "site": site,
+                    "model": model,
+                    "devices": fake.ready,
+                    "drift_threshold": threshold,
+                },
+            )
+            for host, site, fake in zip(hosts, sites, fakes)
+        ]
 
     # the store, read directly
     def session_row(self, sid: int) -> RunSession:

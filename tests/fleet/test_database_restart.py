@@ -29,12 +29,15 @@ def _cluster() -> list[str] | None:
 
 
 def _pg(action: str, cluster: list[str]) -> None:
-    subprocess.run(["pg_ctlcluster", "--skip-systemctl-redirect", *cluster, action], check=True, timeout=120,
-                   capture_output=True)
+    subprocess.run(
+        ["pg_ctlcluster", "--skip-systemctl-redirect", *cluster, action], check=True, timeout=120, capture_output=True
+    )
 
 
 def _ready() -> bool:
-    return subprocess.run(["pg_isready", "-h", "127.0.0.1", "-p", "5432", "-t", "2"], capture_output=True).returncode == 0
+    return (
+        subprocess.run(["pg_isready", "-h", "127.0.0.1", "-p", "5432", "-t", "2"], capture_output=True).returncode == 0
+    )
 
 
 def _get(api, sid):
@@ -67,8 +70,10 @@ def test_database_restart_mid_run_loses_and_duplicates_no_measurement(make_fleet
     try:
         _pg("restart", cluster)
         with Session(f.engine) as db:  # measurements the service reported before and during the restart
-            before = {(m.session_id, m.seq, m.target): (m.id, m.x, m.y, m.z)
-                      for m in db.exec(select(Measurement).where(Measurement.session_id.in_(ids))).all()}
+            before = {
+                (m.session_id, m.seq, m.target): (m.id, m.x, m.y, m.z)
+                for m in db.exec(select(Measurement).where(Measurement.session_id.in_(ids))).all()
+            }
         mid = {s: max((k[1] for k in before if k[0] == s), default=-1) for s in ids}
         deadline = time.monotonic() + 180
         while True:

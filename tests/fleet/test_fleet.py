@@ -76,9 +76,25 @@ def test_a_session_left_planned_without_a_job_is_queued_again_and_runs(fleet):
 def test_nightly_all_checks_every_cell_of_a_site_and_prints_a_summary(fleet):
     fresh = fleet.add_cells(["south", "south"])  # never calibrated: the verify finds them off
     env = {**os.environ, "RECAL_TOKEN": fleet.tokens["job"]}
-    r = subprocess.run([sys.executable, "-m", "service.cli", "nightly", "--all", "--site", "south",
-                        "--url", fleet.apis[1].ready["url"], "--timeout", "120"],
-                       env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "nightly",
+            "--all",
+            "--site",
+            "south",
+            "--url",
+            fleet.apis[1].ready["url"],
+            "--timeout",
+            "120",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     print(r.stdout, r.stderr)
     south = [c for c in fleet.api().call("GET", "/cells?site=south")]
     assert r.returncode == 10, r
@@ -100,8 +116,13 @@ def test_nightly_waits_through_a_restart_of_the_api_replica_it_talks_to(fleet):
     cells = fleet.add_cells(["east"], time_scale=0.02)  # slow enough to be mid-run when the replica stops
     env = {**os.environ, "RECAL_TOKEN": fleet.tokens["job"]}
     url = fleet.apis[1].ready["url"]
-    job = subprocess.Popen([sys.executable, "-m", "service.cli", "nightly", "--all", "--site", "east", "--url", url,
-                            "--timeout", "120"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    job = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "nightly", "--all", "--site", "east", "--url", url, "--timeout", "120"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 60
         while not fleet.sql("SELECT id FROM session WHERE cell_id = :c AND kind = 'verify'", c=cells[0]["id"]):
@@ -109,8 +130,9 @@ def test_nightly_waits_through_a_restart_of_the_api_replica_it_talks_to(fleet):
             time.sleep(0.1)
         fleet.apis[1].stop()
         time.sleep(3)  # the job's polls are refused meanwhile
-        fleet.apis[1] = start_service(fleet.home, int(url.rsplit(":", 1)[1]), env=fleet.env,
-                                      log_path=fleet.home / "api1-restarted.log")
+        fleet.apis[1] = start_service(
+            fleet.home, int(url.rsplit(":", 1)[1]), env=fleet.env, log_path=fleet.home / "api1-restarted.log"
+        )
         out, err = job.communicate(timeout=240)
     finally:
         if job.poll() is None:

@@ -29,8 +29,13 @@ def test_a_late_lease_is_renewed_by_the_session_and_a_lost_one_stops_it(make_fle
         cell = Cell(name="c", model={}, devices={})
         db.add(cell)
         db.commit()
-        run = RunSession(cell_id=cell.id, kind="verify", state="running", lease_owner=OWNER,
-                         lease_expires=utcnow() + timedelta(seconds=1))
+        run = RunSession(
+            cell_id=cell.id,
+            kind="verify",
+            state="running",
+            lease_owner=OWNER,
+            lease_expires=utcnow() + timedelta(seconds=1),
+        )
         db.add(run)
         db.commit()
         sid = run.id

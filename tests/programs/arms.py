@@ -26,32 +26,73 @@ DEG = math.pi / 180
 
 
 def _joint(name, theta, d, a, alpha, lo, hi, **kw):
-    return {"name": name, "type": "revolute", "theta": theta, "d": d, "a": a, "alpha": alpha, "lower": lo,
-            "upper": hi, **kw}
+    return {
+        "name": name,
+        "type": "revolute",
+        "theta": theta,
+        "d": d,
+        "a": a,
+        "alpha": alpha,
+        "lower": lo,
+        "upper": hi,
+        **kw,
+    }
 
 
 def arm(brand: str):
     if brand == "abb":
-        joints = [_joint("j1", 0, 495, 175, -90, -180, 180), _joint("j2", -90, 0, 900, 0, -90, 150),
-                  _joint("j3", 0, 0, 175, -90, -180, 75), _joint("j4", 0, 960, 0, 90, -400, 400),
-                  _joint("j5", 0, 0, 0, -90, -125, 125), _joint("j6", 0, 135, 0, 0, -400, 400)]
+        joints = [
+            _joint("j1", 0, 495, 175, -90, -180, 180),
+            _joint("j2", -90, 0, 900, 0, -90, 150),
+            _joint("j3", 0, 0, 175, -90, -180, 75),
+            _joint("j4", 0, 960, 0, 90, -400, 400),
+            _joint("j5", 0, 0, 0, -90, -125, 125),
+            _joint("j6", 0, 135, 0, 0, -400, 400),
+        ]
         extra = {}
     elif brand == "kuka":
-        joints = [_joint("a1", 0, 675, 260, -90, -185, 185, gain=-1), _joint("a2", 0, 0, 680, 0, -140, -5),
-                  _joint("a3", -90, 0, 35, -90, -120, 158), _joint("a4", 0, 670, 0, 90, -350, 350, gain=-1),
-                  _joint("a5", 0, 0, 0, -90, -122.5, 122.5), _joint("a6", 0, 115, 0, 0, -350, 350, gain=-1)]
+        joints = [
+            _joint("a1", 0, 675, 260, -90, -185, 185, gain=-1),
+            _joint("a2", 0, 0, 680, 0, -140, -5),
+            _joint("a3", -90, 0, 35, -90, -120, 158),
+            _joint("a4", 0, 670, 0, 90, -350, 350, gain=-1),
+            _joint("a5", 0, 0, 0, -90, -122.5, 122.5),
+            _joint("a6", 0, 115, 0, 0, -350, 350, gain=-1),
+        ]
         extra = {}
     elif brand == "fanuc":
-        joints = [_joint("j1", 0, 525, 150, -90, -170, 170), _joint("j2", -90, 0, 790, 0, -100, 160),
-                  _joint("j3", 0, 0, 150, -90, -170, 270), _joint("j4", 0, 860, 0, 90, -200, 200),
-                  _joint("j5", 0, 0, 0, -90, -140, 140), _joint("j6", 0, 100, 0, 0, -450, 450)]
-        extra = {"coupling": [[1, 0, 0, 0, 0, 0], [0, 1, 0, 0, 0, 0], [0, -1, -1, 0, 0, 0], [0, 0, 0, -1, 0, 0],
-                              [0, 0, 0, 0, -1, 0], [0, 0, 0, 0, 0, -1]]}
+        joints = [
+            _joint("j1", 0, 525, 150, -90, -170, 170),
+            _joint("j2", -90, 0, 790, 0, -100, 160),
+            _joint("j3", 0, 0, 150, -90, -170, 270),
+            _joint("j4", 0, 860, 0, 90, -200, 200),
+            _joint("j5", 0, 0, 0, -90, -140, 140),
+            _joint("j6", 0, 100, 0, 0, -450, 450),
+        ]
+        extra = {
+            "coupling": [
+                [1, 0, 0, 0, 0, 0],
+                [0, 1, 0, 0, 0, 0],
+                [0, -1, -1, 0, 0, 0],
+                [0, 0, 0, -1, 0, 0],
+                [0, 0, 0, 0, -1, 0],
+                [0, 0, 0, 0, 0, -1],
+            ]
+        }
     else:
         raise ValueError(brand)
-    return model_from_dict({"format": "recal.model/1", "name": f"{brand}-like", "units": {"length": "mm", "angle": "deg"},
-                            "convention": "dh", "base": [0, 0, 0, 0, 0, 0], "tool": [0, 0, 0, 0, 0, 0],
-                            "joints": joints, **extra})
+    return model_from_dict(
+        {
+            "format": "recal.model/1",
+            "name": f"{brand}-like",
+            "units": {"length": "mm", "angle": "deg"},
+            "convention": "dh",
+            "base": [0, 0, 0, 0, 0, 0],
+            "tool": [0, 0, 0, 0, 0, 0],
+            "joints": joints,
+            **extra,
+        }
+    )
 
 
 def true_robot(nominal, seed: int, base=(2000.0, -500.0, 150.0, 0.2, -0.1, 25.0)):

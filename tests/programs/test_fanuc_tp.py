@@ -58,9 +58,11 @@ def config(q_deg):
 def cartesian(T, q, uf, ut):
     x, y, z = T[:3, 3] * 1e3
     w, p, r = wpr(T[:3, :3])
-    return [f"\tUF : {uf}, UT : {ut},\t\tCONFIG : '{config(q)}',",
-            f"\tX = {x:9.3f}  mm,\tY = {y:9.3f}  mm,\tZ = {z:9.3f}  mm,",
-            f"\tW = {w:9.3f} deg,\tP = {p:9.3f} deg,\tR = {r:9.3f} deg"]
+    return [
+        f"\tUF : {uf}, UT : {ut},\t\tCONFIG : '{config(q)}',",
+        f"\tX = {x:9.3f}  mm,\tY = {y:9.3f}  mm,\tZ = {z:9.3f}  mm,",
+        f"\tW = {w:9.3f} deg,\tP = {p:9.3f} deg,\tR = {r:9.3f} deg",
+    ]
 
 
 def program(nominal):
@@ -74,7 +76,7 @@ def program(nominal):
         "/PROG  RECAL_TEST",
         "/ATTR",
         "OWNER\t\t= MNEDITOR;",
-        "COMMENT\t\t= \"written for Recal\";",
+        'COMMENT\t\t= "written for Recal";',
         "DEFAULT_GROUP\t= 1,1,*,*,*;",
         "/MN",
         "   1:  UFRAME_NUM=1 ;",
@@ -90,7 +92,7 @@ def program(nominal):
         "   GP1:",
         *cartesian(P1, Q[1], 1, 1),
         "};",
-        "P[2:\"approach\"]{",
+        'P[2:"approach"]{',
         "   GP1:",
         *cartesian(P2, Q[2], 1, 1),
         "   GP2:",
@@ -120,9 +122,22 @@ def run(tmp_path_factory):
     nominal, true = models(d, "fanuc")
     data = program(nominal)
     (d / "recal_test.ls").write_bytes(data)
-    r = recal("compensate", "--model", "identified.json", "--task", "recal_test.ls", "--out", "out.ls",
-              "--base-frame", "1=" + ",".join(map(str, UF1)), "--tool-frame", "1=" + ",".join(map(str, UT1)),
-              "--report", "rep.json", cwd=d)
+    r = recal(
+        "compensate",
+        "--model",
+        "identified.json",
+        "--task",
+        "recal_test.ls",
+        "--out",
+        "out.ls",
+        "--base-frame",
+        "1=" + ",".join(map(str, UF1)),
+        "--tool-frame",
+        "1=" + ",".join(map(str, UT1)),
+        "--report",
+        "rep.json",
+        cwd=d,
+    )
     return d, nominal, true, data, r
 
 
@@ -186,14 +201,26 @@ def test_report(run):
     assert rows["P[1]"]["frames"] == "UF 1, UT 1"
 
 
-@pytest.mark.parametrize("body, message", [
-    ("\tUF : 0, UT : 0,\t\tCONFIG : 'N U T, 0, 0, 0',\r\n\tX = 1.0 mm, Y = 2.0 mm, Z = 3.0 mm,\r\n"
-     "\tW = 0.0 deg, P = 0.0 deg\r\n", r"prog\.ls, line 7: P\[1\]: expected component R"),
-    ("\tUF : 2, UT : 1,\t\tCONFIG : 'N U T, 0, 0, 0',\r\n\tX = 1.0 mm, Y = 2.0 mm, Z = 3.0 mm,\r\n"
-     "\tW = 0.0 deg, P = 0.0 deg, R = 0.0 deg\r\n", r"prog\.ls, line 5: P\[1\]: UF 2 is not given: pass --base-frame 2="),
-    ("\tUF : 0, UT : 0,\t\tCONFIG : 'N X T, 0, 0, 0',\r\n\tX = 1.0 mm, Y = 2.0 mm, Z = 3.0 mm,\r\n"
-     "\tW = 0.0 deg, P = 0.0 deg, R = 0.0 deg\r\n", r"line 5: P\[1\]: CONFIG: expected 'F\|N U\|D T\|B"),
-])
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        (
+            "\tUF : 0, UT : 0,\t\tCONFIG : 'N U T, 0, 0, 0',\r\n\tX = 1.0 mm, Y = 2.0 mm, Z = 3.0 mm,\r\n"
+            "\tW = 0.0 deg, P = 0.0 deg\r\n",
+            r"prog\.ls, line 7: P\[1\]: expected component R",
+        ),
+        (
+            "\tUF : 2, UT : 1,\t\tCONFIG : 'N U T, 0, 0, 0',\r\n\tX = 1.0 mm, Y = 2.0 mm, Z = 3.0 mm,\r\n"
+            "\tW = 0.0 deg, P = 0.0 deg, R = 0.0 deg\r\n",
+            r"prog\.ls, line 5: P\[1\]: UF 2 is not given: pass --base-frame 2=",
+        ),
+        (
+            "\tUF : 0, UT : 0,\t\tCONFIG : 'N X T, 0, 0, 0',\r\n\tX = 1.0 mm, Y = 2.0 mm, Z = 3.0 mm,\r\n"
+            "\tW = 0.0 deg, P = 0.0 deg, R = 0.0 deg\r\n",
+            r"line 5: P\[1\]: CONFIG: expected 'F\|N U\|D T\|B",
+        ),
+    ],
+)
 def test_bad_programs_name_file_line_and_token(tmp_path, body, message):
     p = tmp_path / "prog.ls"
     p.write_bytes(("/PROG X\r\n/POS\r\nP[1]{\r\n   GP1:\r\n" + body + "};\r\n/END\r\n").encode())

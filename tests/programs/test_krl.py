@@ -31,7 +31,7 @@ Q = {  # planned joints (deg)
     "inline1": [-20, -85, 110, 10, 50, 0.5],
     "inline2": [-35, -95, 120, -60, 70, 30],
 }
-TOOL1 = (5.0, -2.0, 180.0, 0.0, 30.0, 0.0)   # X, Y, Z, A, B, C
+TOOL1 = (5.0, -2.0, 180.0, 0.0, 30.0, 0.0)  # X, Y, Z, A, B, C
 BASE2 = (1000.0, -500.0, 200.0, 30.0, 0.0, 0.0)
 
 
@@ -60,8 +60,12 @@ def status_turn(q_deg):
 def e6pos(T, q):
     S, Tb = status_turn(q)
     p, a = T[:3, 3] * 1e3, abc(T[:3, :3])
-    return ("{X %.3f,Y %.3f,Z %.3f,A %.4f,B %.4f,C %.4f,S %d,T %d,E1 0.0,E2 0.0,E3 0.0,E4 0.0,E5 0.0,E6 0.0}"
-            % (*p, *a, S, Tb))
+    return "{X %.3f,Y %.3f,Z %.3f,A %.4f,B %.4f,C %.4f,S %d,T %d,E1 0.0,E2 0.0,E3 0.0,E4 0.0,E5 0.0,E6 0.0}" % (
+        *p,
+        *a,
+        S,
+        Tb,
+    )
 
 
 def program(nominal):
@@ -75,51 +79,58 @@ def program(nominal):
         else:
             pos[name] = np.linalg.inv(B) @ fk(nom_t, np.radians([q]))[0]
     inline = {k: e6pos(pos[k], Q[k]).split(",S ")[0].replace(",", ", ") + "}" for k in ("inline1", "inline2")}
-    src = "\n".join([
-        "&ACCESS RVP",
-        "&REL 3",
-        "DEF recal_test( )",
-        "; written for Recal's tests. Not a move: LIN {X 1, Y 2, Z 3, A 0, B 0, C 0}",
-        ";FOLD INI;%{PE}",
-        "  ;FOLD BASISTECH INI",
-        "    BAS (#INITMOV,0 )",
-        "  ;ENDFOLD",
-        ";ENDFOLD",
-        "PTP XHOME1",
-        ";FOLD PTP P1 Vel=100 % PDAT1 Tool[1] Base[2];%{PE}%R 8.3.31,%MKUKATPBASIS,%CMOVE,%VPTP,%P 1:PTP, 2:P1",
-        "$BWDSTART=FALSE",
-        "PDAT_ACT=PPDAT1",
-        "FDAT_ACT=FP1",
-        "BAS(#PTP_PARAMS,100)",
-        "PTP XP1 ",
-        ";ENDFOLD",
-        "LIN XP2 C_DIS",
-        "CIRC XP3, XP4[2] C_DIS\t; arc",
-        f"LIN {inline['inline1']} C_DIS ; inline, TOOL_DATA[1] and BASE_DATA[2]",
-        "$TOOL = $NULLFRAME",
-        "$BASE=$NULLFRAME",
-        f"LIN {inline['inline2']}",
-        "LIN_REL {Z 10}",
-        "XP2.Z = XP2.Z + 10",
-        "END",
-    ]) + "\n"
-    dat = "\r\n".join([
-        "&ACCESS RVP",
-        "&REL 3",
-        "DEFDAT recal_test",
-        ";FOLD EXTERNAL DECLARATIONS;%{PE}%V3.2.0,%MKUKATPBASIS,%CEXT,%VCOMMON,%P",
-        ";ENDFOLD (EXTERNAL DECLARATIONS)",
-        "; DECL E6POS XOLD={X 1,Y 2,Z 3,A 0,B 0,C 0,S 2,T 2} (a comment)",
-        "DECL E6AXIS XHOME1={A1 0.0,A2 -90.0,A3 90.0,A4 0.0,A5 30.0,A6 0.0,E1 0.0,E2 0.0,E3 0.0,E4 0.0,E5 0.0,E6 0.0}",
-        f"DECL E6POS XP1={e6pos(pos['XP1'], Q['XP1'])}",
-        "DECL FDAT FP1={TOOL_NO 1,BASE_NO 2,IPO_FRAME #BASE,POINT2[] \" \",TQ_STATE FALSE}",
-        "DECL PDAT PPDAT1={VEL 100.000,ACC 100.000,APO_DIST 100.000,APO_MODE #CDIS}",
-        f"DECL E6POS XP2={e6pos(pos['XP2'], Q['XP2'])},XP3={e6pos(pos['XP3'], Q['XP3'])}",
-        "DECL E6POS XP4[3]",
-        f"XP4[2]={e6pos(pos['XP4[2]'], Q['XP4[2]'])}",
-        "ENDDAT",
-        "",
-    ])
+    src = (
+        "\n".join(
+            [
+                "&ACCESS RVP",
+                "&REL 3",
+                "DEF recal_test( )",
+                "; written for Recal's tests. Not a move: LIN {X 1, Y 2, Z 3, A 0, B 0, C 0}",
+                ";FOLD INI;%{PE}",
+                "  ;FOLD BASISTECH INI",
+                "    BAS (#INITMOV,0 )",
+                "  ;ENDFOLD",
+                ";ENDFOLD",
+                "PTP XHOME1",
+                ";FOLD PTP P1 Vel=100 % PDAT1 Tool[1] Base[2];%{PE}%R 8.3.31,%MKUKATPBASIS,%CMOVE,%VPTP,%P 1:PTP, 2:P1",
+                "$BWDSTART=FALSE",
+                "PDAT_ACT=PPDAT1",
+                "FDAT_ACT=FP1",
+                "BAS(#PTP_PARAMS,100)",
+                "PTP XP1 ",
+                ";ENDFOLD",
+                "LIN XP2 C_DIS",
+                "CIRC XP3, XP4[2] C_DIS\t; arc",
+                f"LIN {inline['inline1']} C_DIS ; inline, TOOL_DATA[1] and BASE_DATA[2]",
+                "$TOOL = $NULLFRAME",
+                "$BASE=$NULLFRAME",
+                f"LIN {inline['inline2']}",
+                "LIN_REL {Z 10}",
+                "XP2.Z = XP2.Z + 10",
+                "END",
+            ]
+        )
+        + "\n"
+    )
+    dat = "\r\n".join(
+        [
+            "&ACCESS RVP",
+            "&REL 3",
+            "DEFDAT recal_test",
+            ";FOLD EXTERNAL DECLARATIONS;%{PE}%V3.2.0,%MKUKATPBASIS,%CEXT,%VCOMMON,%P",
+            ";ENDFOLD (EXTERNAL DECLARATIONS)",
+            "; DECL E6POS XOLD={X 1,Y 2,Z 3,A 0,B 0,C 0,S 2,T 2} (a comment)",
+            "DECL E6AXIS XHOME1={A1 0.0,A2 -90.0,A3 90.0,A4 0.0,A5 30.0,A6 0.0,E1 0.0,E2 0.0,E3 0.0,E4 0.0,E5 0.0,E6 0.0}",
+            f"DECL E6POS XP1={e6pos(pos['XP1'], Q['XP1'])}",
+            'DECL FDAT FP1={TOOL_NO 1,BASE_NO 2,IPO_FRAME #BASE,POINT2[] " ",TQ_STATE FALSE}',
+            "DECL PDAT PPDAT1={VEL 100.000,ACC 100.000,APO_DIST 100.000,APO_MODE #CDIS}",
+            f"DECL E6POS XP2={e6pos(pos['XP2'], Q['XP2'])},XP3={e6pos(pos['XP3'], Q['XP3'])}",
+            "DECL E6POS XP4[3]",
+            f"XP4[2]={e6pos(pos['XP4[2]'], Q['XP4[2]'])}",
+            "ENDDAT",
+            "",
+        ]
+    )
     return src.encode(), dat.encode()
 
 
@@ -130,11 +141,25 @@ def run(tmp_path_factory):
     src, dat = program(nominal)
     (d / "recal_test.src").write_bytes(src)
     (d / "recal_test.dat").write_bytes(dat)
-    (d / "config.dat").write_text("DEFDAT $CONFIG\nDECL FRAME BASE_DATA[32]\n"
-                                  "BASE_DATA[2]={X %s,Y %s,Z %s,A %s,B %s,C %s}\nENDDAT\n" % BASE2)
-    r = recal("compensate", "--model", "identified.json", "--task", "recal_test.src", "--out", "out.src",
-              "--config-dat", "config.dat", "--tool-frame", "1=" + ",".join(map(str, TOOL1)), "--report", "rep.json",
-              cwd=d)
+    (d / "config.dat").write_text(
+        "DEFDAT $CONFIG\nDECL FRAME BASE_DATA[32]\nBASE_DATA[2]={X %s,Y %s,Z %s,A %s,B %s,C %s}\nENDDAT\n" % BASE2
+    )
+    r = recal(
+        "compensate",
+        "--model",
+        "identified.json",
+        "--task",
+        "recal_test.src",
+        "--out",
+        "out.src",
+        "--config-dat",
+        "config.dat",
+        "--tool-frame",
+        "1=" + ",".join(map(str, TOOL1)),
+        "--report",
+        "rep.json",
+        cwd=d,
+    )
     return d, nominal, true, src, dat, r
 
 
@@ -204,16 +229,31 @@ def test_report_and_configuration(run):
     assert xp1["frames"] == "tool TOOL_DATA[1] (--tool-frame), base BASE_DATA[2] ($config.dat)"
 
 
-@pytest.mark.parametrize("src, dat, message", [
-    ("DEF t( )\n$TOOL = TOOL_DATA[3]\nLIN XP1\nEND\n", "DEFDAT t\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0,C 0}\nENDDAT\n",
-     r"t\.src, line 3: TOOL_DATA\[3\] is selected here but not given: pass --tool-frame 3=X,Y,Z,A,B,C"),
-    ("DEF t( )\nLIN XP1\nEND\n", "DEFDAT t\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0}\nENDDAT\n",
-     r"t\.dat, line 2: E6POS XP1: expected component C"),
-    ("DEF t( )\nPTP XA\nEND\n", "DEFDAT t\nDECL E6AXIS XA={A1 0,A2 -90,A3 9O,A4 0,A5 0,A6 0}\nENDDAT\n",
-     r"t\.dat, line 2: E6AXIS XA: component A3: expected a number, got '9O'"),
-    ("DEF t( )\n$TOOL = MYTOOL\nLIN XP1\nEND\n", "DEFDAT t\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0,C 0}\nENDDAT\n",
-     r"t\.src, line 3: \$TOOL = MYTOOL: Recal cannot resolve this tool frame"),
-])
+@pytest.mark.parametrize(
+    "src, dat, message",
+    [
+        (
+            "DEF t( )\n$TOOL = TOOL_DATA[3]\nLIN XP1\nEND\n",
+            "DEFDAT t\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0,C 0}\nENDDAT\n",
+            r"t\.src, line 3: TOOL_DATA\[3\] is selected here but not given: pass --tool-frame 3=X,Y,Z,A,B,C",
+        ),
+        (
+            "DEF t( )\nLIN XP1\nEND\n",
+            "DEFDAT t\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0}\nENDDAT\n",
+            r"t\.dat, line 2: E6POS XP1: expected component C",
+        ),
+        (
+            "DEF t( )\nPTP XA\nEND\n",
+            "DEFDAT t\nDECL E6AXIS XA={A1 0,A2 -90,A3 9O,A4 0,A5 0,A6 0}\nENDDAT\n",
+            r"t\.dat, line 2: E6AXIS XA: component A3: expected a number, got '9O'",
+        ),
+        (
+            "DEF t( )\n$TOOL = MYTOOL\nLIN XP1\nEND\n",
+            "DEFDAT t\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0,C 0}\nENDDAT\n",
+            r"t\.src, line 3: \$TOOL = MYTOOL: Recal cannot resolve this tool frame",
+        ),
+    ],
+)
 def test_bad_programs_name_file_line_and_token(tmp_path, src, dat, message):
     (tmp_path / "t.src").write_text(src)
     (tmp_path / "t.dat").write_text(dat)

@@ -65,8 +65,15 @@ def confdata(q_deg):
 def robtarget(T, conf, digits=(2, 7)):
     p = T[:3, 3] * 1e3
     quat = matrix_to_quat(T[:3, :3])
-    return ("[[" + ",".join(f"{v:.{digits[0]}f}" for v in p) + "],[" + ",".join(f"{v:.{digits[1]}f}" for v in quat)
-            + "],[" + ",".join(str(c) for c in conf) + "],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]]")
+    return (
+        "[["
+        + ",".join(f"{v:.{digits[0]}f}" for v in p)
+        + "],["
+        + ",".join(f"{v:.{digits[1]}f}" for v in quat)
+        + "],["
+        + ",".join(str(c) for c in conf)
+        + "],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]]"
+    )
 
 
 def program(nominal):
@@ -92,7 +99,7 @@ def program(nominal):
         "  ! written for Recal's tests; not a target: MoveL [[1,2,3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]], v1, fine, tool0;",
         "  ! Gr\xfc\xdfe: a Latin-1 byte follows \udce9",
         "  PERS tooldata tGun:=[TRUE,[[10.5,-3,150],[0.9961947,0,0.0871557,0]],[2.5,[0,0,80],[1,0,0,0],0,0,0]];",
-        "  TASK PERS wobjdata wTable:=[FALSE,TRUE,\"\",[[900,-250,320],[0.9659258,0,0,0.2588190]],[[0,0,0],[1,0,0,0]]];",
+        '  TASK PERS wobjdata wTable:=[FALSE,TRUE,"",[[900,-250,320],[0.9659258,0,0,0.2588190]],[[0,0,0],[1,0,0,0]]];',
         f"  CONST robtarget pApp:={rt['pApp']};",
         f"  LOCAL CONST robtarget pWeld:={weld[0]}],",
         f"      [{weld[1]}],   ! orientation on its own line",
@@ -125,8 +132,18 @@ def run(tmp_path_factory):
     nominal, true = models(d, "abb")
     data = program(nominal)
     (d / "prog.mod").write_bytes(data)
-    r = recal("compensate", "--model", "identified.json", "--task", "prog.mod", "--out", "out.mod",
-              "--report", "rep.json", cwd=d)
+    r = recal(
+        "compensate",
+        "--model",
+        "identified.json",
+        "--task",
+        "prog.mod",
+        "--out",
+        "out.mod",
+        "--report",
+        "rep.json",
+        cwd=d,
+    )
     return d, nominal, true, data, r
 
 
@@ -141,8 +158,13 @@ def test_every_byte_but_the_targets_numbers_is_unchanged(run):
     changed = [(a, b) for a, b in zip(numbers(data), numbers(out)) if a != b]
     assert 7 * 6 <= len(changed) <= 7 * 7  # positions, orientations and joints; nothing else
     for line_in, line_out in zip(data.split(b"\r\n"), out.split(b"\r\n")):
-        if line_in.strip().startswith(b"!") or b"tooldata" in line_in or b"wobjdata" in line_in or b"pSpare" in line_in \
-                or b"Offs" in line_in:
+        if (
+            line_in.strip().startswith(b"!")
+            or b"tooldata" in line_in
+            or b"wobjdata" in line_in
+            or b"pSpare" in line_in
+            or b"Offs" in line_in
+        ):
             assert line_in == line_out
     # configurations and external axes as written
     conf = re.compile(rb"\],\s*\[(-?\d+,-?\d+,-?\d+,\d)\],\s*\[9E\+09")
@@ -212,19 +234,31 @@ def test_report_rows(run):
     assert all(p["flags"] == [] or "branch_change" not in p["flags"] for p in rep["points"])
 
 
-@pytest.mark.parametrize("text, message", [
-    ("MODULE m\n  CONST robtarget p20:=[[1,2,3],[1,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
-     "  PROC main()\n    MoveL p20, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n",
-     r"prog\.mod, line 2: robtarget p20: expected 4 quaternion values, got 3"),
-    ("MODULE m\n  PROC main()\n    MoveL [[1,2,3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]], v100, fine,\n"
-     "      tGlue;\n  ENDPROC\nENDMODULE\n",
-     r"prog\.mod, line 3: MoveL: tooldata tGlue is not declared in this file; Recal cannot resolve it"),
-    ("MODULE m\n  PROC main()\n    MoveJ [[1,2,3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]], v100, fine, tool0"
-     "\\WObj:=wMoving;\n  ENDPROC\nENDMODULE\n", r"line 3: MoveJ: wobjdata wMoving is not declared"),
-    ("MODULE m\n  CONST robtarget p1:=[[1,2,x3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
-     "  PROC main()\n    MoveL p1, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n",
-     r"line 2: robtarget p1: position: expected a number, got 'x3'"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (
+            "MODULE m\n  CONST robtarget p20:=[[1,2,3],[1,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
+            "  PROC main()\n    MoveL p20, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n",
+            r"prog\.mod, line 2: robtarget p20: expected 4 quaternion values, got 3",
+        ),
+        (
+            "MODULE m\n  PROC main()\n    MoveL [[1,2,3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]], v100, fine,\n"
+            "      tGlue;\n  ENDPROC\nENDMODULE\n",
+            r"prog\.mod, line 3: MoveL: tooldata tGlue is not declared in this file; Recal cannot resolve it",
+        ),
+        (
+            "MODULE m\n  PROC main()\n    MoveJ [[1,2,3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]], v100, fine, tool0"
+            "\\WObj:=wMoving;\n  ENDPROC\nENDMODULE\n",
+            r"line 3: MoveJ: wobjdata wMoving is not declared",
+        ),
+        (
+            "MODULE m\n  CONST robtarget p1:=[[1,2,x3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
+            "  PROC main()\n    MoveL p1, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n",
+            r"line 2: robtarget p1: position: expected a number, got 'x3'",
+        ),
+    ],
+)
 def test_bad_programs_name_file_line_and_token(tmp_path, text, message):
     p = tmp_path / "prog.mod"
     p.write_text(text)
@@ -234,19 +268,24 @@ def test_bad_programs_name_file_line_and_token(tmp_path, text, message):
 
 def test_bad_program_on_the_command_line_exits_2_without_output(run, tmp_path):
     d, *_ = run
-    (tmp_path / "prog.mod").write_text("MODULE m\n  CONST robtarget p20:=[[1,2,3],[1,0,0],[0,0,0,0],[9E9]];\n"
-                                       "  PROC main()\n    MoveL p20, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n")
+    (tmp_path / "prog.mod").write_text(
+        "MODULE m\n  CONST robtarget p20:=[[1,2,3],[1,0,0],[0,0,0,0],[9E9]];\n"
+        "  PROC main()\n    MoveL p20, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n"
+    )
     r = recal("compensate", "--model", d / "identified.json", "--task", "prog.mod", "--out", "out.mod", cwd=tmp_path)
     assert r.returncode == 2
-    assert r.stderr.strip().splitlines()[-1] == ("recal compensate: prog.mod, line 2: robtarget p20: expected 4 "
-                                                 "quaternion values, got 3")
+    assert r.stderr.strip().splitlines()[-1] == (
+        "recal compensate: prog.mod, line 2: robtarget p20: expected 4 quaternion values, got 3"
+    )
     assert not (tmp_path / "out.mod").exists()
 
 
 def _one_target_module(nominal, q, conf):
     T = fk(nominal, np.radians([q]))[0]
-    return ("MODULE m\n  CONST robtarget p1:=" + robtarget(T, conf, (3, 8)) + ";\n  PROC main()\n"
-            "    MoveL p1, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n")
+    return (
+        "MODULE m\n  CONST robtarget p1:=" + robtarget(T, conf, (3, 8)) + ";\n  PROC main()\n"
+        "    MoveL p1, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n"
+    )
 
 
 def test_a_configuration_the_compensation_leaves_is_flagged_not_rewritten(run, tmp_path):
@@ -262,8 +301,18 @@ def test_a_configuration_the_compensation_leaves_is_flagged_not_rewritten(run, t
         conf = confdata(q)
         conf[1] = cf4
         (tmp_path / f"q{cf4}.mod").write_text(_one_target_module(nominal, q, conf))
-        r = recal("compensate", "--model", d / "identified.json", "--task", f"q{cf4}.mod", "--out", f"o{cf4}.mod",
-                  "--report", f"r{cf4}.json", cwd=tmp_path)
+        r = recal(
+            "compensate",
+            "--model",
+            d / "identified.json",
+            "--task",
+            f"q{cf4}.mod",
+            "--out",
+            f"o{cf4}.mod",
+            "--report",
+            f"r{cf4}.json",
+            cwd=tmp_path,
+        )
         assert r.returncode == 0, r.stderr
         assert f"[0,{cf4},-1,0]" in (tmp_path / f"o{cf4}.mod").read_text()
         row = json.loads((tmp_path / f"r{cf4}.json").read_text())["points"][0]
@@ -287,11 +336,14 @@ def test_a_target_out_of_reach_in_its_written_configuration_is_left_as_written(r
 
 def test_a_target_used_with_two_tools_is_left_alone_and_reported(tmp_path):
     p = tmp_path / "m.mod"
-    p.write_text("MODULE m\n  PERS tooldata tA:=[TRUE,[[0,0,100],[1,0,0,0]],[1,[0,0,1],[1,0,0,0],0,0,0]];\n"
-                 "  CONST robtarget p1:=[[900,0,900],[0,0,1,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
-                 "  PROC main()\n    MoveL p1, v100, fine, tool0;\n    MoveL p1, v100, fine, tA;\n  ENDPROC\n"
-                 "ENDMODULE\n")
+    p.write_text(
+        "MODULE m\n  PERS tooldata tA:=[TRUE,[[0,0,100],[1,0,0,0]],[1,[0,0,1],[1,0,0,0],0,0,0]];\n"
+        "  CONST robtarget p1:=[[900,0,900],[0,0,1,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
+        "  PROC main()\n    MoveL p1, v100, fine, tool0;\n    MoveL p1, v100, fine, tA;\n  ENDPROC\n"
+        "ENDMODULE\n"
+    )
     prog = rapid.parse(p)
     assert prog.targets == []
     assert [(u.line, u.reason) for u in prog.uninterpreted] == [
-        (3, "robtarget p1 is used with different tools or work objects (lines 5, 6): not compensated")]
+        (3, "robtarget p1 is used with different tools or work objects (lines 5, 6): not compensated")
+    ]

@@ -31,8 +31,14 @@ def database_url(request, tmp_path: Path):
 
 @pytest.fixture
 def settings(database_url, tmp_path) -> Settings:
-    return Settings(home=tmp_path, database_url=database_url, settle_s=0.0, retry_backoff_s=0.01, device_retries=1,
-                    device_timeout_s=5.0)
+    return Settings(
+        home=tmp_path,
+        database_url=database_url,
+        settle_s=0.0,
+        retry_backoff_s=0.01,
+        device_retries=1,
+        device_timeout_s=5.0,
+    )
 
 
 @pytest.fixture
@@ -112,8 +118,17 @@ def stored_session(settings):
     return lambda cell_id, **kw: store_session(settings, cell_id, **kw)
 
 
-def store_session(settings: Settings, cell_id: int, *, kind: str = "pose", seed: int = 0, n: int = 30,
-                  repeats: int = 1, truth_seed: int = 1, sag: str | None = None) -> tuple[int, int | None]:
+def store_session(
+    settings: Settings,
+    cell_id: int,
+    *,
+    kind: str = "pose",
+    seed: int = 0,
+    n: int = 30,
+    repeats: int = 1,
+    truth_seed: int = 1,
+    sag: str | None = None,
+) -> tuple[int, int | None]:
     """A completed session of the cell stored as the orchestrator stores one: simulated tracker
     measurements (reflector ``smr``) of a robot near the cell's nominal model (link errors from
     ``truth_seed``), then the analysis (identification for ``pose``, accuracy for ``verify``,
@@ -134,8 +149,10 @@ def store_session(settings: Settings, cell_id: int, *, kind: str = "pose", seed:
             cell = db.get(Cell, cell_id)
             nominal = model_from_dict(cell.model)
             rng = np.random.default_rng(seed)
-            truth = dataclasses.replace(perturbed(nominal, np.random.default_rng(truth_seed), tool_length_m=0.0),
-                                        base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]))
+            truth = dataclasses.replace(
+                perturbed(nominal, np.random.default_rng(truth_seed), tool_length_m=0.0),
+                base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]),
+            )
             if sag is not None:
                 from calibration.simulate import sagging
 
@@ -143,15 +160,32 @@ def store_session(settings: Settings, cell_id: int, *, kind: str = "pose", seed:
             q = np.repeat(random_configurations(nominal, n, rng), repeats, axis=0)
             data = simulate_measurements(truth, q, rng, targets=("smr",))
             info = {"method": "random", "limits_checked": True, **({"repeats": repeats} if repeats > 1 else {})}
-            run = RunSession(cell_id=cell_id, kind=kind, state="running", planned=len(q), target="smr",
-                             created_by="technician-user", plan=q.tolist(), plan_info=info)
+            run = RunSession(
+                cell_id=cell_id,
+                kind=kind,
+                state="running",
+                planned=len(q),
+                target="smr",
+                created_by="technician-user",
+                plan=q.tolist(),
+                plan_info=info,
+            )
             db.add(run)
             db.commit()
             db.refresh(run)
             for k in range(len(q)):
-                db.add(Measurement(session_id=run.id, seq=k, target="smr", q=data.q[k].tolist(),
-                                   x=float(data.p_world[k, 0]), y=float(data.p_world[k, 1]),
-                                   z=float(data.p_world[k, 2]), sigma=20e-6))
+                db.add(
+                    Measurement(
+                        session_id=run.id,
+                        seq=k,
+                        target="smr",
+                        q=data.q[k].tolist(),
+                        x=float(data.p_world[k, 0]),
+                        y=float(data.p_world[k, 1]),
+                        z=float(data.p_world[k, 2]),
+                        sigma=20e-6,
+                    )
+                )
             db.commit()
             analysis.finish_session(db, run, cell, settings)
             run.state = "completed"

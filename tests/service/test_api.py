@@ -109,14 +109,17 @@ def test_a_bad_model_names_the_field(client, tokens):
     assert r.json()["detail"]["field"] == "body.model.joints[2].alpha"
 
 
-@pytest.mark.parametrize("body,field", [
-    ({"kind": "dance"}, "body.kind"),
-    ({"kind": "pose", "count": "many"}, "body.count"),
-    ({"kind": "pose", "count": 0}, "body.count"),
-    ({"kind": "pose", "device": "laser"}, "body.device"),
-    ({"kind": "pose", "surprise": 1}, "body.surprise"),
-    ({"kind": "pose", "target": "nope"}, "body.target"),
-])
+@pytest.mark.parametrize(
+    "body,field",
+    [
+        ({"kind": "dance"}, "body.kind"),
+        ({"kind": "pose", "count": "many"}, "body.count"),
+        ({"kind": "pose", "count": 0}, "body.count"),
+        ({"kind": "pose", "device": "laser"}, "body.device"),
+        ({"kind": "pose", "surprise": 1}, "body.surprise"),
+        ({"kind": "pose", "target": "nope"}, "body.target"),
+    ],
+)
 def test_session_request_validation_names_the_field(client, tokens, body, field):
     cell = _cell(client, tokens)
     r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json=body, headers=auth(tokens["technician"]))
@@ -126,14 +129,22 @@ def test_session_request_validation_names_the_field(client, tokens, body, field)
 
 def test_unknown_resources_are_404(client, tokens):
     h = auth(tokens["viewer"])
-    for path in ("/api/v1/cells/99", "/api/v1/sessions/99", "/api/v1/calibrations/99", "/api/v1/sessions/99/measurements"):
+    for path in (
+        "/api/v1/cells/99",
+        "/api/v1/sessions/99",
+        "/api/v1/calibrations/99",
+        "/api/v1/sessions/99/measurements",
+    ):
         assert client.get(path, headers=h).status_code == 404
 
 
 def test_dry_run_plans_and_checks_without_devices(client, tokens):
     cell = _cell(client, tokens)
-    r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 12, "dry_run": True},
-                    headers=auth(tokens["technician"]))
+    r = client.post(
+        f"/api/v1/cells/{cell['id']}/sessions",
+        json={"kind": "pose", "count": 12, "dry_run": True},
+        headers=auth(tokens["technician"]),
+    )
     assert r.status_code == 201
     s = _wait_state(client, tokens, r.json()["id"], ("completed", "failed"))
     assert s["state"] == "completed" and s["measured"] == 0
@@ -144,8 +155,11 @@ def test_dry_run_plans_and_checks_without_devices(client, tokens):
 def test_allowed_region_is_enforced_in_the_plan(client, tokens):
     region = [[-90, 90], [-120, -30], [-100, 100], [-180, 0], [-90, 90], [-180, 180]]
     cell = _cell(client, tokens, allowed_region=region)
-    r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 20, "dry_run": True},
-                    headers=auth(tokens["technician"]))
+    r = client.post(
+        f"/api/v1/cells/{cell['id']}/sessions",
+        json={"kind": "pose", "count": 20, "dry_run": True},
+        headers=auth(tokens["technician"]),
+    )
     s = _wait_state(client, tokens, r.json()["id"], ("completed", "failed"))
     for (lo, hi), (a, b) in zip(region, s["plan_info"]["joint_ranges_deg"]):
         assert lo - 1e-9 <= a and b <= hi + 1e-9
@@ -154,8 +168,9 @@ def test_allowed_region_is_enforced_in_the_plan(client, tokens):
 def test_device_fault_at_open_pauses_with_the_reason(client, tokens):
     # The cell's devices point at addresses where nothing listens: the session pauses, says why.
     cell = _cell(client, tokens)
-    r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 5},
-                    headers=auth(tokens["technician"]))
+    r = client.post(
+        f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 5}, headers=auth(tokens["technician"])
+    )
     s = _wait_state(client, tokens, r.json()["id"], ("paused", "failed"), timeout_s=30)
     assert s["state"] == "paused" and "devices" in s["reason"]
     # a second session cannot start while... the first is paused, so it may; but not while running
@@ -174,19 +189,29 @@ def test_tokens_created_by_admin_work_and_can_be_revoked(client, tokens):
 
 def test_openapi_document_lists_the_contract_paths(client):
     paths = client.get("/openapi.json").json()["paths"]
-    for p in ("/api/v1/health", "/api/v1/cells", "/api/v1/cells/{cell_id}/sessions", "/api/v1/sessions/{session_id}",
-              "/api/v1/sessions/{session_id}/resume", "/api/v1/sessions/{session_id}/measurements",
-              "/api/v1/sessions/{session_id}/events", "/api/v1/calibrations/{calibration_id}",
-              "/api/v1/calibrations/{calibration_id}/compensate"):
+    for p in (
+        "/api/v1/health",
+        "/api/v1/cells",
+        "/api/v1/cells/{cell_id}/sessions",
+        "/api/v1/sessions/{session_id}",
+        "/api/v1/sessions/{session_id}/resume",
+        "/api/v1/sessions/{session_id}/measurements",
+        "/api/v1/sessions/{session_id}/events",
+        "/api/v1/calibrations/{calibration_id}",
+        "/api/v1/calibrations/{calibration_id}/compensate",
+    ):
         assert p in paths
 
 
-@pytest.mark.parametrize("env,needle", [
-    ({"RECAL_MAX_JOINT_SPEED": "30"}, "RECAL_MAX_JOINT_SPEED: expected 0.001 to 3.14 rad/s, got 30.0"),
-    ({"RECAL_MAX_JOINT_ACCEL": "nan"}, "RECAL_MAX_JOINT_ACCEL"),
-    ({"RECAL_MAX_JOINT_SPEED": "-1"}, "RECAL_MAX_JOINT_SPEED"),
-    ({"RECAL_SETTLE_S": "fast"}, "RECAL_SETTLE_S: expected a number"),
-])
+@pytest.mark.parametrize(
+    "env,needle",
+    [
+        ({"RECAL_MAX_JOINT_SPEED": "30"}, "RECAL_MAX_JOINT_SPEED: expected 0.001 to 3.14 rad/s, got 30.0"),
+        ({"RECAL_MAX_JOINT_ACCEL": "nan"}, "RECAL_MAX_JOINT_ACCEL"),
+        ({"RECAL_MAX_JOINT_SPEED": "-1"}, "RECAL_MAX_JOINT_SPEED"),
+        ({"RECAL_SETTLE_S": "fast"}, "RECAL_SETTLE_S: expected a number"),
+    ],
+)
 def test_absurd_settings_stop_the_service_at_startup(monkeypatch, capsys, tmp_path, env, needle):
     from service.cli import main
 

@@ -32,15 +32,29 @@ def _task(model, n=8, seed=4) -> tuple[str, np.ndarray, np.ndarray]:
     """A task CSV: poses the identified robot reaches at ``q_goal`` (deg), taught at ``q_taught``
     a few tenths of a degree away (which picks the inverse-kinematics branch)."""
     rng = np.random.default_rng(seed)
-    q_taught = np.column_stack([rng.uniform(-150, 150, n), rng.uniform(-140, -40, n), rng.uniform(40, 140, n),
-                                rng.uniform(-150, 150, n), rng.uniform(40, 140, n), rng.uniform(-150, 150, n)])
+    q_taught = np.column_stack(
+        [
+            rng.uniform(-150, 150, n),
+            rng.uniform(-140, -40, n),
+            rng.uniform(40, 140, n),
+            rng.uniform(-150, 150, n),
+            rng.uniform(40, 140, n),
+            rng.uniform(-150, 150, n),
+        ]
+    )
     q_goal = q_taught + rng.uniform(-0.3, 0.3, q_taught.shape)
     T = fk(model, np.radians(q_goal))
     quat = matrix_to_quat(T[:, :3, :3])
     lines = ["name,x,y,z,qw,qx,qy,qz," + ",".join(Q)]
     for i in range(n):
-        lines.append(f"P{i}," + ",".join(f"{v:.10f}" for v in T[i, :3, 3] * 1000) + ","
-                     + ",".join(f"{v:.15f}" for v in quat[i]) + "," + ",".join(f"{v:.6f}" for v in q_taught[i]))
+        lines.append(
+            f"P{i},"
+            + ",".join(f"{v:.10f}" for v in T[i, :3, 3] * 1000)
+            + ","
+            + ",".join(f"{v:.15f}" for v in quat[i])
+            + ","
+            + ",".join(f"{v:.6f}" for v in q_taught[i])
+        )
     return "\n".join(lines) + "\n", q_taught, q_goal
 
 
@@ -48,8 +62,9 @@ def test_the_compensate_endpoint_answers_commands_that_reach_the_poses(calibrate
     client, _, cal = calibrated
     model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"])
     text, q_taught, q_goal = _task(model)
-    r = client.post(f"/api/v1/calibrations/{cal}/compensate?mode=joints&name=weld.csv", content=text,
-                    headers=auth(tokens["job"]))
+    r = client.post(
+        f"/api/v1/calibrations/{cal}/compensate?mode=joints&name=weld.csv", content=text, headers=auth(tokens["job"])
+    )
     assert r.status_code == 200, r.text
     assert r.headers["content-type"].startswith("text/csv")
     rows = list(csv.DictReader(io.StringIO(r.text)))
@@ -68,8 +83,10 @@ def test_the_compensate_endpoint_answers_commands_that_reach_the_poses(calibrate
     # bad input names the line; a viewer may not compensate
     bad = client.post(f"/api/v1/calibrations/{cal}/compensate", content="x,y\n1,2\n", headers=auth(tokens["job"]))
     assert bad.status_code == 422 and bad.json()["detail"]["field"] == "body"
-    assert client.post(f"/api/v1/calibrations/{cal}/compensate", content=text,
-                       headers=auth(tokens["viewer"])).status_code == 403
+    assert (
+        client.post(f"/api/v1/calibrations/{cal}/compensate", content=text, headers=auth(tokens["viewer"])).status_code
+        == 403
+    )
 
 
 def test_registered_task_files_are_compensated_again(calibrated, tokens, stored_session):
@@ -78,8 +95,10 @@ def test_registered_task_files_are_compensated_again(calibrated, tokens, stored_
     model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=t).json()["model"])
     text, _, q_goal = _task(model, n=4)
     for name, content in (("weld.csv", text), ("broken.csv", "q1,q2\nnot,numbers\n")):
-        assert client.post(f"/api/v1/cells/{cell}/tasks", json={"name": name, "content": content},
-                           headers=t).status_code == 201
+        assert (
+            client.post(f"/api/v1/cells/{cell}/tasks", json={"name": name, "content": content}, headers=t).status_code
+            == 201
+        )
     r = client.post(f"/api/v1/cells/{cell}/tasks/compensate", headers=auth(tokens["job"]))
     assert r.status_code == 200, r.text
     out = r.json()
@@ -87,14 +106,17 @@ def test_registered_task_files_are_compensated_again(calibrated, tokens, stored_
     good, broken = out["tasks"]
     assert good["name"] == "weld.csv" and good["summary"]["converged"] == 4
     assert broken["name"] == "broken.csv" and "broken.csv" in broken["error"] and "compensation_id" not in broken
-    rows = list(csv.DictReader(io.StringIO(client.get(f"/api/v1/compensations/{good['compensation_id']}",
-                                                      headers=t).text)))
+    rows = list(
+        csv.DictReader(io.StringIO(client.get(f"/api/v1/compensations/{good['compensation_id']}", headers=t).text))
+    )
     np.testing.assert_allclose([[float(row[c]) for c in Q] for row in rows], q_goal, atol=1e-4)
     # after a recalibration, the newest calibration is the default
     newer = stored_session(cell, seed=3)[1]
     assert client.post(f"/api/v1/cells/{cell}/tasks/compensate", headers=t).json()["calibration_id"] == newer
-    assert client.post(f"/api/v1/cells/{cell}/tasks/compensate?calibration_id={cal}",
-                       headers=t).json()["calibration_id"] == cal
+    assert (
+        client.post(f"/api/v1/cells/{cell}/tasks/compensate?calibration_id={cal}", headers=t).json()["calibration_id"]
+        == cal
+    )
     assert client.post(f"/api/v1/cells/{cell}/tasks/compensate?calibration_id=999", headers=t).status_code == 404
 
 

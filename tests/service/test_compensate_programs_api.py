@@ -17,8 +17,10 @@ from .conftest import auth, register_cell
 
 NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 SRC = "DEF job( )\n; PTP {A1 1, A2 2} is a comment\nPTP XHOME\nPTP XP1\nEND\n"
-DAT = ("DEFDAT job\r\nDECL E6AXIS XHOME={A1 10.0,A2 -80.0,A3 90.0,A4 -100.0,A5 70.0,A6 20.0,E1 0.0}\r\n"
-       "DECL E6AXIS XP1={A1 -30.0,A2 -100.0,A3 60.0,A4 -50.0,A5 -80.0,A6 0.0,E1 12.5}\r\nENDDAT\r\n")
+DAT = (
+    "DEFDAT job\r\nDECL E6AXIS XHOME={A1 10.0,A2 -80.0,A3 90.0,A4 -100.0,A5 70.0,A6 20.0,E1 0.0}\r\n"
+    "DECL E6AXIS XP1={A1 -30.0,A2 -100.0,A3 60.0,A4 -50.0,A5 -80.0,A6 0.0,E1 12.5}\r\nENDDAT\r\n"
+)
 
 
 @pytest.fixture
@@ -45,31 +47,35 @@ def test_a_krl_program_and_its_dat_as_multipart(calibrated, tokens):
     nominal = model_from_dict(client.get(f"/api/v1/cells/{cell}", headers=auth(tokens["viewer"])).json()["model"])
     import dataclasses
 
-    from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
     from calibration.compensation import nominal_world_frame
+    from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
     from service.compensation import calibrated_range_of
 
     M = nominal_world_frame(model, nominal, calibrated_range_of(model))[0]
     # no $TOOL in the program: the flange ($NULLFRAME), with the identified tool's correction kept
     flange = dataclasses.replace(nominal, tool=np.zeros(6))
-    model = dataclasses.replace(model, tool=matrix_to_pose(pose_to_matrix(model.tool) @ invert(
-        pose_to_matrix(nominal.tool))))
+    model = dataclasses.replace(
+        model, tool=matrix_to_pose(pose_to_matrix(model.tool) @ invert(pose_to_matrix(nominal.tool)))
+    )
     q_old = np.radians([[float(v) for v in re.findall(r"A\d (-?[\d.]+)", line)[:6]] for line in DAT.splitlines()[1:3]])
     q_new = np.radians([[float(v) for v in re.findall(r"A\d (-?[\d.]+)", line)[:6]] for line in dat.splitlines()[1:3]])
     X_d = np.linalg.inv(M) @ fk(flange, q_old)
     assert np.abs(fk(model, q_new)[:, :3, 3] - X_d[:, :3, 3]).max() < 2e-6
     assert np.abs(q_new - q_old).max() > 1e-5  # corrected
-    report = client.get(f"/api/v1/compensations/{r.headers['x-recal-compensation']}/report",
-                        headers=auth(tokens["viewer"])).json()["report"]
+    report = client.get(
+        f"/api/v1/compensations/{r.headers['x-recal-compensation']}/report", headers=auth(tokens["viewer"])
+    ).json()["report"]
     assert {p["file"] for p in report["points"]} == {"job.dat"}
     assert report["files"][0]["name"] == "job.dat"
 
 
 def test_a_rapid_module_as_the_body_and_a_bad_one(calibrated, tokens):
     client, _, cal = calibrated
-    mod = ("MODULE m\n  ! MoveAbsJ [[1,2,3,4,5,6],[9E9,9E9,9E9,9E9,9E9,9E9]], v1, fine, tool0;\n  PROC main()\n"
-           "    MoveAbsJ [[10,-80,90,-100,70,20],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, fine, tool0;\n"
-           "  ENDPROC\nENDMODULE\n")
+    mod = (
+        "MODULE m\n  ! MoveAbsJ [[1,2,3,4,5,6],[9E9,9E9,9E9,9E9,9E9,9E9]], v1, fine, tool0;\n  PROC main()\n"
+        "    MoveAbsJ [[10,-80,90,-100,70,20],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, fine, tool0;\n"
+        "  ENDPROC\nENDMODULE\n"
+    )
     r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=m.mod", content=mod, headers=auth(tokens["job"]))
     assert r.status_code == 200, r.text
     assert r.headers["content-type"].startswith("text/plain")
@@ -77,4 +83,6 @@ def test_a_rapid_module_as_the_body_and_a_bad_one(calibrated, tokens):
     bad = mod.replace("[[10,-80,90,-100,70,20]", "[[10,-80,90,-100,70]")
     r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=m.mod", content=bad, headers=auth(tokens["job"]))
     assert r.status_code == 422
-    assert r.json()["detail"]["message"].startswith("m.mod, line 4: jointtarget (inline): robot axes: expected 6 values")
+    assert r.json()["detail"]["message"].startswith(
+        "m.mod, line 4: jointtarget (inline): robot axes: expected 6 values"
+    )

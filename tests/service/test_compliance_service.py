@@ -14,8 +14,9 @@ def test_compliant_cell_result_shows_rigid_against_compliant(idle_app, tokens, s
     doc["targets"] = {"smr": [0, 0, 50]}
     doc["compliance"] = {"joints": ["j2", "j3"], "lumps": ["j2", "j3", "j6"]}  # every term from 0
     with idle_app() as client:
-        r = client.post("/api/v1/cells", json={"name": "sagging", "model": doc, "devices": {}},
-                        headers=auth(tokens["technician"]))
+        r = client.post(
+            "/api/v1/cells", json={"name": "sagging", "model": doc, "devices": {}}, headers=auth(tokens["technician"])
+        )
         assert r.status_code == 201, r.text
         _, cal = stored_session(r.json()["id"], n=60, sag="cobot")
         res = client.get(f"/api/v1/calibrations/{cal}/result", headers=auth(tokens["viewer"]))

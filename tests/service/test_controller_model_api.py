@@ -76,10 +76,13 @@ def test_uploaded_controller_model_is_versioned_and_used_by_compensation(calibra
     assert after.text == expected and after.text != before.text
 
 
-@pytest.mark.parametrize("body, field", [
-    ({"format": "recal.model/1"}, "body.units"),
-    ("nominal", "body.controller"),
-])
+@pytest.mark.parametrize(
+    "body, field",
+    [
+        ({"format": "recal.model/1"}, "body.units"),
+        ("nominal", "body.controller"),
+    ],
+)
 def test_a_bad_upload_names_the_field(calibrated, tokens, body, field):
     client, cell, _ = calibrated
     if body == "nominal":
@@ -88,8 +91,14 @@ def test_a_bad_upload_names_the_field(calibrated, tokens, body, field):
         body = nominal_document("ur10e")
     r = client.put(f"/api/v1/cells/{cell['id']}/controller-model", json=body, headers=auth(tokens["technician"]))
     assert r.status_code == 422 and r.json()["detail"]["field"] == field, r.text
-    assert client.put(f"/api/v1/cells/{cell['id']}/controller-model", json=controller_doc("ur10e", 1),
-                      headers=auth(tokens["viewer"])).status_code == 403
+    assert (
+        client.put(
+            f"/api/v1/cells/{cell['id']}/controller-model",
+            json=controller_doc("ur10e", 1),
+            headers=auth(tokens["viewer"]),
+        ).status_code
+        == 403
+    )
 
 
 @pytest.fixture
@@ -99,7 +108,9 @@ def modbus_controller():
     import dataclasses
 
     truth = dataclasses.replace(nominal("ur10e"), base=np.array([1.5, -0.3, 0.2, 0.0, 0.0, 0.5]))
-    cell = SimCell(truth, factory=draw_factory_calibration("ur10e", 4), q_home=np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.2]))
+    cell = SimCell(
+        truth, factory=draw_factory_calibration("ur10e", 4), q_home=np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.2])
+    )
     fake = ModbusRobotFake(cell, host=f"{NET}.70", port=0)
     fake.start()
     host, port = fake.endpoint()["modbus"].rsplit(":", 1)
@@ -111,8 +122,9 @@ def modbus_controller():
 
 
 @pytest.mark.parametrize("stored, warns", [("factory", False), ("published", True)])
-def test_over_modbus_a_session_checks_the_stored_model_against_the_tcp_registers(settings, tokens, modbus_controller,
-                                                                                 stored, warns):
+def test_over_modbus_a_session_checks_the_stored_model_against_the_tcp_registers(
+    settings, tokens, modbus_controller, stored, warns
+):
     from calibration.robots import nominal_document
 
     engine = make_engine(settings.effective_database_url)

@@ -26,10 +26,10 @@ def admin():
 @pytest.mark.parametrize("database_url", ["postgres"], indirect=True)
 def test_a_database_out_of_connections_gives_503_then_recovers(settings, admin, caplog):
     from fastapi.testclient import TestClient
+    from sqlmodel import Session
 
     from service.api.app import create_app
     from service.store import create_token, make_engine
-    from sqlmodel import Session
 
     name = settings.database_url.rpartition("/")[2]
     with TestClient(create_app(settings)) as client:
@@ -45,8 +45,9 @@ def test_a_database_out_of_connections_gives_503_then_recovers(settings, admin, 
         caplog.clear()
         try:
             with caplog.at_level(logging.WARNING):
-                r = client.post("/api/v1/cells", headers=auth(token),
-                                json={"name": "c", "model": model_to_dict(nominal("ur5e"))})
+                r = client.post(
+                    "/api/v1/cells", headers=auth(token), json={"name": "c", "model": model_to_dict(nominal("ur5e"))}
+                )
                 listed = client.get("/api/v1/cells", headers=auth(token))
         finally:
             with admin.connect() as conn:

@@ -26,32 +26,52 @@ def client(idle_app, tokens):
         yield c
 
 
-@pytest.mark.parametrize("emscon, field, message", [
-    ("10.0.0.5:port", "body.devices.emscon", "expected HOST:PORT"),
-    ({"host": "10.0.0.5", "port": "700"}, "body.devices.emscon.port", "expected int"),
-    ({"port": 700}, "body.devices.emscon.host", "missing"),
-    ({"host": "10.0.0.5", "reflektor": "RRR 1.5in"}, "body.devices.emscon.reflektor", "unknown setting"),
-    ({"host": "10.0.0.5", "environment": "outside"}, "body.devices.emscon", "environment must be"),
-    (["10.0.0.5"], "body.devices.emscon", "expected \"HOST:PORT\" or an object"),
-])
+@pytest.mark.parametrize(
+    "emscon, field, message",
+    [
+        ("10.0.0.5:port", "body.devices.emscon", "expected HOST:PORT"),
+        ({"host": "10.0.0.5", "port": "700"}, "body.devices.emscon.port", "expected int"),
+        ({"port": 700}, "body.devices.emscon.host", "missing"),
+        ({"host": "10.0.0.5", "reflektor": "RRR 1.5in"}, "body.devices.emscon.reflektor", "unknown setting"),
+        ({"host": "10.0.0.5", "environment": "outside"}, "body.devices.emscon", "environment must be"),
+        (["10.0.0.5"], "body.devices.emscon", 'expected "HOST:PORT" or an object'),
+    ],
+)
 def test_a_bad_emscon_entry_is_refused_naming_the_field(client, tokens, emscon, field, message):
     cell = register_cell(client, tokens["technician"], "leica")
-    r = client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": {"emscon": emscon}},
-                     headers=auth(tokens["technician"]))
+    r = client.patch(
+        f"/api/v1/cells/{cell['id']}", json={"devices": {"emscon": emscon}}, headers=auth(tokens["technician"])
+    )
     assert r.status_code == 422, r.text
     detail = r.json()["detail"]
     assert detail["field"] == field and message in detail["message"], detail
 
 
 def test_emscon_entries_make_tracker_configurations():
-    c = emscon_config({"host": "10.0.0.5", "reflector": "RRR 0.5in", "environment": "config", "temperature_c": 21,
-                       "measure_time_s": 1.0}, timeout_s=3.0)
+    c = emscon_config(
+        {
+            "host": "10.0.0.5",
+            "reflector": "RRR 0.5in",
+            "environment": "config",
+            "temperature_c": 21,
+            "measure_time_s": 1.0,
+        },
+        timeout_s=3.0,
+    )
     assert (c.host, c.port, c.reflector, c.environment, c.temperature_c, c.timeout_s) == (
-        "10.0.0.5", 700, "RRR 0.5in", "config", 21.0, 3.0)
+        "10.0.0.5",
+        700,
+        "RRR 0.5in",
+        "config",
+        21.0,
+        3.0,
+    )
     assert emscon_config("10.0.0.5:7000").port == 7000
     with pytest.raises(DeviceConfigError, match="devices.emscon.use_adm: expected bool"):
         emscon_config({"host": "h", "use_adm": 1})
-    assert has_tracker({"emscon": "h:700"}) and has_tracker({"tracker": "socket://h:1"}) and not has_tracker({"cmm": "x"})
+    assert (
+        has_tracker({"emscon": "h:700"}) and has_tracker({"tracker": "socket://h:1"}) and not has_tracker({"cmm": "x"})
+    )
 
 
 def test_connection_test_reports_the_emscon_tracker(client, tokens):
@@ -61,14 +81,20 @@ def test_connection_test_reports_the_emscon_tracker(client, tokens):
     try:
         cell = register_cell(client, tokens["technician"], "leica")
         t = auth(tokens["technician"])
-        r = client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": {"emscon": f"127.0.0.1:{fake.port}"}}, headers=t)
+        r = client.patch(
+            f"/api/v1/cells/{cell['id']}", json={"devices": {"emscon": f"127.0.0.1:{fake.port}"}}, headers=t
+        )
         assert r.status_code == 200, r.text
         res = client.post(f"/api/v1/cells/{cell['id']}/devices/test?timeout_s=5", headers=t).json()
         (tracker,) = res["results"]
         assert tracker["device"] == "laser tracker" and tracker["ok"], tracker
         assert "Leica, emScon 3.8.400, tracker 750123" in tracker["answer"]
         assert "reflector RRR 1.5in" in tracker["answer"] and "ready" in tracker["answer"]
-        assert tracker["details"]["environment"] == {"temperature_c": 20.0, "pressure_mbar": 1013.25, "humidity_pct": 50.0}
+        assert tracker["details"]["environment"] == {
+            "temperature_c": 20.0,
+            "pressure_mbar": 1013.25,
+            "humidity_pct": 50.0,
+        }
         assert len(tracker["details"]["position_mm"]) == 3
         # a tracker session is accepted on a cell whose only tracker is on emScon
         r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 5}, headers=t)
@@ -84,11 +110,19 @@ def test_version_3_store_gets_beam_recoveries(database_url):
     with engine.begin() as conn:
         conn.execute(text("ALTER TABLE session DROP COLUMN beam_recoveries"))
         conn.execute(text("UPDATE schema_version SET version = 3"))
-        conn.execute(text("INSERT INTO cell (name, site, model, devices, created_at) "
-                          "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP)"))
-        conn.execute(text("INSERT INTO session (cell_id, kind, state, planned, device, dry_run, created_by, "
-                          "created_at, updated_at) VALUES (1, 'pose', 'completed', 5, 'tracker', false, '', "
-                          "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"))
+        conn.execute(
+            text(
+                "INSERT INTO cell (name, site, model, devices, created_at) "
+                "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP)"
+            )
+        )
+        conn.execute(
+            text(
+                "INSERT INTO session (cell_id, kind, state, planned, device, dry_run, created_by, "
+                "created_at, updated_at) VALUES (1, 'pose', 'completed', 5, 'tracker', false, '', "
+                "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"
+            )
+        )
     assert migrate(engine) == SCHEMA_VERSION >= 4
     assert "beam_recoveries" in {c["name"] for c in inspect(engine).get_columns("session")}
     with Session(engine) as db:

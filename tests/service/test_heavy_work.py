@@ -24,13 +24,28 @@ PROMPT_S = 1.0
 def task_csv(model, n: int, seed: int = 4) -> str:
     """A task CSV of ``n`` points the robot reaches (pose and taught joints), about 140 bytes a row."""
     rng = np.random.default_rng(seed)
-    q = np.column_stack([rng.uniform(-150, 150, n), rng.uniform(-140, -40, n), rng.uniform(40, 140, n),
-                         rng.uniform(-150, 150, n), rng.uniform(40, 140, n), rng.uniform(-150, 150, n)])
+    q = np.column_stack(
+        [
+            rng.uniform(-150, 150, n),
+            rng.uniform(-140, -40, n),
+            rng.uniform(40, 140, n),
+            rng.uniform(-150, 150, n),
+            rng.uniform(40, 140, n),
+            rng.uniform(-150, 150, n),
+        ]
+    )
     T = fk(model, np.radians(q))
     quat = matrix_to_quat(T[:, :3, :3])
     rows = ["name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6"]
-    rows += [f"P{i}," + ",".join(f"{v:.6f}" for v in T[i, :3, 3] * 1000) + ","
-             + ",".join(f"{v:.9f}" for v in quat[i]) + "," + ",".join(f"{v:.4f}" for v in q[i]) for i in range(n)]
+    rows += [
+        f"P{i},"
+        + ",".join(f"{v:.6f}" for v in T[i, :3, 3] * 1000)
+        + ","
+        + ",".join(f"{v:.9f}" for v in quat[i])
+        + ","
+        + ",".join(f"{v:.4f}" for v in q[i])
+        for i in range(n)
+    ]
     return "\n".join(rows) + "\n"
 
 
@@ -40,14 +55,17 @@ def test_health_and_status_are_answered_while_a_large_compensation_runs(idle_app
     with idle_app() as client:
         cell = register_cell(client, tokens["technician"], "heavy")["id"]
         session, cal = stored_session(cell, seed=2)
-        model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"])
+        model = model_from_dict(
+            client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"]
+        )
         text = task_csv(model, 25_000)  # about 3.5 MB, under the 4 MiB limit
         done: dict = {}
 
         def compensate():
             t0 = time.monotonic()
-            done["response"] = client.post(f"/api/v1/calibrations/{cal}/compensate", content=text,
-                                           headers=auth(tokens["job"]))
+            done["response"] = client.post(
+                f"/api/v1/calibrations/{cal}/compensate", content=text, headers=auth(tokens["job"])
+            )
             done["elapsed_s"] = time.monotonic() - t0
 
         worker = threading.Thread(target=compensate)
@@ -67,8 +85,9 @@ def test_health_and_status_are_answered_while_a_large_compensation_runs(idle_app
         # is relative, so that a fast machine's short compensation still tells the two apart).
         bound_s = min(PROMPT_S, done["elapsed_s"] / 3)
         assert len(latencies) >= 5
-        assert max(latencies) < bound_s, (f"health and status took up to {max(latencies):.2f} s during a "
-                                          f"{done['elapsed_s']:.2f} s compensation")
+        assert max(latencies) < bound_s, (
+            f"health and status took up to {max(latencies):.2f} s during a {done['elapsed_s']:.2f} s compensation"
+        )
 
 
 def test_a_session_waiting_for_a_heavy_work_slot_still_stops_on_abort():

@@ -15,7 +15,6 @@ import time
 import pytest
 
 
-
 @pytest.fixture
 def live(settings, tokens):
     """(host, port) of the service on ``settings`` (small body limits), served by uvicorn in a
@@ -57,7 +56,11 @@ class Conn:
         data = r.read()
         same = self.sock is None or self.c.sock is self.sock
         self.sock = self.c.sock
-        return r.status, (json.loads(data) if r.getheader("content-type", "").startswith("application/json") else data), same
+        return (
+            r.status,
+            (json.loads(data) if r.getheader("content-type", "").startswith("application/json") else data),
+            same,
+        )
 
 
 def _model(target_z):
@@ -76,11 +79,18 @@ def test_numbers_beyond_the_model_and_nul_text_get_422_on_one_keep_alive_connect
         assert body["errors"][0]["field"] == "body.model"
         assert "model.targets.smr[2]: expected a number from -1e+09 to 1e+09" in body["detail"], body
     # inf is not JSON; the text a client may send anyway
-    status, body, same = c.request("POST", "/api/v1/cells", b'{"name": "i", "model": {"a": Infinity}}',
-                                   headers={"Content-Type": "application/json"})
+    status, body, same = c.request(
+        "POST",
+        "/api/v1/cells",
+        b'{"name": "i", "model": {"a": Infinity}}',
+        headers={"Content-Type": "application/json"},
+    )
     assert status == 422 and same, body
-    for doc in ({"name": "a\x00b", "model": _model(50)}, {"name": "ok", "site": "s\x00", "model": _model(50)},
-                {"name": "ok", "model": {**_model(50), "name": "ur\x00"}}):
+    for doc in (
+        {"name": "a\x00b", "model": _model(50)},
+        {"name": "ok", "site": "s\x00", "model": _model(50)},
+        {"name": "ok", "model": {**_model(50), "name": "ur\x00"}},
+    ):
         status, body, same = c.request("POST", "/api/v1/cells", json_body=doc)
         assert status == 422 and same, body
         assert "NUL" in body["detail"]
@@ -106,9 +116,12 @@ def test_a_compensation_row_beyond_the_model_names_row_and_column(live, tokens, 
     status, body, same = c.request("POST", f"/api/v1/calibrations/{cal}/compensate?name=weld.csv", task.encode())
     assert status == 422 and same, body
     # the message recal compensate gives for the same file (tests/cli/test_compensate_cli.py)
-    assert body["detail"] == {"field": "body", "message": "weld.csv, row 2 (line 3), column 'x': 1e308 is beyond any "
-                                                          "robot cell; expected a magnitude of at most 1e+08 in the "
-                                                          "model's units"}
+    assert body["detail"] == {
+        "field": "body",
+        "message": "weld.csv, row 2 (line 3), column 'x': 1e308 is beyond any "
+        "robot cell; expected a magnitude of at most 1e+08 in the "
+        "model's units",
+    }
     status, body, same = c.request("POST", f"/api/v1/calibrations/{cal}/compensate", b"x,y\n\x00\n")
     assert status == 422 and same and "NUL" in body["detail"]["message"]
 
@@ -118,8 +131,9 @@ def test_bodies_beyond_the_routes_limit_get_413_with_a_message(live, tokens):
     big_doc = {"name": "big", "model": _model(50), "devices": {"note": "x" * 70_000}}
     status, body, _ = c.request("POST", "/api/v1/cells", json_body=big_doc)
     assert status == 413
-    assert body["detail"] == ("request body too large: at most 65536 bytes on this route (the service's "
-                              "RECAL_MAX_BODY_BYTES setting)")
+    assert body["detail"] == (
+        "request body too large: at most 65536 bytes on this route (the service's RECAL_MAX_BODY_BYTES setting)"
+    )
     c = Conn(*live, tokens["technician"])
     status, body, _ = c.request("POST", "/api/v1/cells", json_body={"name": "small", "model": _model(50)})
     assert status == 201
@@ -142,7 +156,7 @@ def test_bodies_beyond_the_routes_limit_get_413_with_a_message(live, tokens):
     doc = json.dumps({"name": "t.csv", "content": huge}).encode()
     try:
         for k in range(0, len(doc), 16384):
-            chunk = doc[k:k + 16384]
+            chunk = doc[k : k + 16384]
             c.c.send(b"%x\r\n%s\r\n" % (len(chunk), chunk))
         c.c.send(b"0\r\n\r\n")
     except (BrokenPipeError, ConnectionResetError):

@@ -11,8 +11,12 @@ from sqlmodel import Session
 from service.models import Cell, RunSession
 from service.store import SCHEMA_VERSION, make_engine, migrate
 
-V3_COLUMNS = [("session", "device_state"), ("cell", "model_version"), ("calibration", "nominal_version"),
-              ("calibration", "predicted")]
+V3_COLUMNS = [
+    ("session", "device_state"),
+    ("cell", "model_version"),
+    ("calibration", "nominal_version"),
+    ("calibration", "predicted"),
+]
 
 
 def test_version_1_store_is_upgraded(database_url):
@@ -24,12 +28,21 @@ def test_version_1_store_is_upgraded(database_url):
         conn.execute(text("DROP INDEX uq_session_active_cell"))
         conn.execute(text("ALTER TABLE session DROP COLUMN requested"))
         conn.execute(text("UPDATE schema_version SET version = 1"))
-        conn.execute(text("INSERT INTO cell (name, site, model, devices, created_at) "
-                          "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP)"))
+        conn.execute(
+            text(
+                "INSERT INTO cell (name, site, model, devices, created_at) "
+                "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP)"
+            )
+        )
         for state in ("running", "planned", "completed"):
-            conn.execute(text("INSERT INTO session (cell_id, kind, state, planned, device, dry_run, created_by, "
-                              "created_at, updated_at) VALUES (1, 'pose', :s, 5, 'tracker', false, '', "
-                              "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"), {"s": state})
+            conn.execute(
+                text(
+                    "INSERT INTO session (cell_id, kind, state, planned, device, dry_run, created_by, "
+                    "created_at, updated_at) VALUES (1, 'pose', :s, 5, 'tracker', false, '', "
+                    "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"
+                ),
+                {"s": state},
+            )
     assert migrate(engine) == SCHEMA_VERSION >= 2
     assert "requested" in {c["name"] for c in inspect(engine).get_columns("session")}
     with Session(engine) as db:

@@ -10,8 +10,12 @@ from sqlmodel import Session
 from service.models import Calibration, Cell, RunSession
 from service.store import SCHEMA_VERSION, current_calibration, make_engine, migrate
 
-V3_COLUMNS = [("session", "device_state"), ("cell", "model_version"), ("calibration", "nominal_version"),
-              ("calibration", "predicted")]
+V3_COLUMNS = [
+    ("session", "device_state"),
+    ("cell", "model_version"),
+    ("calibration", "nominal_version"),
+    ("calibration", "predicted"),
+]
 
 
 def test_version_2_store_is_upgraded(database_url):
@@ -21,13 +25,25 @@ def test_version_2_store_is_upgraded(database_url):
         for table, column in V3_COLUMNS:
             conn.execute(text(f"ALTER TABLE {table} DROP COLUMN {column}"))
         conn.execute(text("UPDATE schema_version SET version = 2"))
-        conn.execute(text("INSERT INTO cell (name, site, model, devices, created_at) "
-                          "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP)"))
-        conn.execute(text("INSERT INTO session (cell_id, kind, state, planned, device, dry_run, created_by, "
-                          "created_at, updated_at) VALUES (1, 'pose', 'completed', 5, 'tracker', false, '', "
-                          "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"))
-        conn.execute(text("INSERT INTO calibration (cell_id, session_id, kind, model, report, created_at) "
-                          "VALUES (1, 1, 'pose', '{}', '{}', CURRENT_TIMESTAMP)"))
+        conn.execute(
+            text(
+                "INSERT INTO cell (name, site, model, devices, created_at) "
+                "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP)"
+            )
+        )
+        conn.execute(
+            text(
+                "INSERT INTO session (cell_id, kind, state, planned, device, dry_run, created_by, "
+                "created_at, updated_at) VALUES (1, 'pose', 'completed', 5, 'tracker', false, '', "
+                "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"
+            )
+        )
+        conn.execute(
+            text(
+                "INSERT INTO calibration (cell_id, session_id, kind, model, report, created_at) "
+                "VALUES (1, 1, 'pose', '{}', '{}', CURRENT_TIMESTAMP)"
+            )
+        )
     assert migrate(engine) == SCHEMA_VERSION >= 3
     for table, column in V3_COLUMNS:
         assert column in {c["name"] for c in inspect(engine).get_columns(table)}

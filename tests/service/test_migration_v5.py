@@ -16,8 +16,12 @@ def test_version_4_store_is_upgraded_and_keeps_versions_per_cell(database_url):
     with engine.begin() as conn:  # back to what version 4 made, with a cell
         conn.execute(text("DROP TABLE controller_model"))
         conn.execute(text("UPDATE schema_version SET version = 4"))
-        conn.execute(text("INSERT INTO cell (name, site, model, devices, created_at, model_version) "
-                          "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP, 1)"))
+        conn.execute(
+            text(
+                "INSERT INTO cell (name, site, model, devices, created_at, model_version) "
+                "VALUES ('c', 'default', '{}', '{}', CURRENT_TIMESTAMP, 1)"
+            )
+        )
     assert migrate(engine) == SCHEMA_VERSION >= 5
     assert inspect(engine).has_table("controller_model")
     with Session(engine) as db:

@@ -26,15 +26,23 @@ from .conftest import NoMotion, auth, register_cell
 
 SEED = 1
 MAX_EXAMPLES = 10  # about half a minute on a quiet 2-core machine
-SEMANTIC_BODIES = ("POST /api/v1/cells", "PATCH /api/v1/cells/{cell_id}", "POST /api/v1/cells/{cell_id}/sessions",
-                   "POST /api/v1/calibrations/{calibration_id}/compensate", "POST /api/v1/cells/{cell_id}/measurements",
-                   "PUT /api/v1/cells/{cell_id}/controller-model")
+SEMANTIC_BODIES = (
+    "POST /api/v1/cells",
+    "PATCH /api/v1/cells/{cell_id}",
+    "POST /api/v1/cells/{cell_id}/sessions",
+    "POST /api/v1/calibrations/{calibration_id}/compensate",
+    "POST /api/v1/cells/{cell_id}/measurements",
+    "PUT /api/v1/cells/{cell_id}/controller-model",
+)
 
-CONFIG = "\n".join(f'''
+CONFIG = "\n".join(
+    f'''
 [[operations]]
 include-name = "{name}"
 checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "404", "409", "422"]
-''' for name in SEMANTIC_BODIES)
+'''
+    for name in SEMANTIC_BODIES
+)
 
 
 @pytest.mark.slow
@@ -61,12 +69,23 @@ def test_the_api_keeps_its_openapi_contract_under_fuzzing(settings, tmp_path, st
         cell = register_cell(client, token, "fuzzed")["id"]
         stored_session(cell, seed=2)
         task = "name,q1,q2,q3,q4,q5,q6\nP,10,-80,90,0,90,0\n"
-        assert client.post(f"/api/v1/cells/{cell}/tasks", json={"name": "t.csv", "content": task},
-                           headers=auth(token)).status_code == 201
+        assert (
+            client.post(
+                f"/api/v1/cells/{cell}/tasks", json={"name": "t.csv", "content": task}, headers=auth(token)
+            ).status_code
+            == 201
+        )
         assert client.post("/api/v1/calibrations/1/compensate", content=task, headers=auth(token)).status_code == 200
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(settings, orchestrator_factory=NoMotion), host="127.0.0.1",
-                                           port=port, log_level="warning", access_log=False))
+    server = uvicorn.Server(
+        uvicorn.Config(
+            create_app(settings, orchestrator_factory=NoMotion),
+            host="127.0.0.1",
+            port=port,
+            log_level="warning",
+            access_log=False,
+        )
+    )
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
@@ -77,11 +96,31 @@ def test_the_api_keeps_its_openapi_contract_under_fuzzing(settings, tmp_path, st
         (tmp_path / "schemathesis.toml").write_text(CONFIG)
         st = Path(sys.executable).with_name("st")
         r = subprocess.run(
-            [str(st), "--config-file", str(tmp_path / "schemathesis.toml"), "run",
-             f"http://127.0.0.1:{port}/openapi.json", "--checks", "all", "--seed", str(SEED),
-             "--max-examples", str(MAX_EXAMPLES), "--workers", "1", "--phases", "examples,coverage,fuzzing",
-             "-H", f"Authorization: Bearer {token}", "--no-color"],
-            capture_output=True, text=True, timeout=600, cwd=tmp_path)
+            [
+                str(st),
+                "--config-file",
+                str(tmp_path / "schemathesis.toml"),
+                "run",
+                f"http://127.0.0.1:{port}/openapi.json",
+                "--checks",
+                "all",
+                "--seed",
+                str(SEED),
+                "--max-examples",
+                str(MAX_EXAMPLES),
+                "--workers",
+                "1",
+                "--phases",
+                "examples,coverage,fuzzing",
+                "-H",
+                f"Authorization: Bearer {token}",
+                "--no-color",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            cwd=tmp_path,
+        )
     finally:
         server.should_exit = True
         thread.join(10)

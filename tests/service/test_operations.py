@@ -54,14 +54,17 @@ def test_metrics_count_requests_sessions_measurements_and_verified_accuracy(idle
         r = client.get("/metrics")
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
         m = _samples(r.text)
-        counts = {lab["route"]: v for lab, v in m["recal_request_duration_seconds_count"]
-                  if lab["method"] == "GET" and lab["status"] == "200"}
+        counts = {
+            lab["route"]: v
+            for lab, v in m["recal_request_duration_seconds_count"]
+            if lab["method"] == "GET" and lab["status"] == "200"
+        }
         assert counts["/api/v1/sessions/{session_id}"] == 3  # by route template, never by id
         assert counts["/api/v1/sessions/{session_id}/live"] == 3  # the page cache's answers too
         assert dict((lab["state"], v) for lab, v in m["recal_sessions"]) == {"completed": 2}
         assert m["recal_measurements"][0][1] == 30 + 12
         v = client.get(f"/api/v1/sessions/{verify}", headers=auth(tokens["viewer"])).json()["plan_info"]["verify"]
-        (labels, vmax), = m["recal_cell_verified_max"]
+        ((labels, vmax),) = m["recal_cell_verified_max"]
         assert labels == {"cell": "metered", "unit": "mm"} and vmax == v["max"]
         assert m["recal_cell_verified_rms"][0][1] == v["rms"]
         assert m["recal_cell_drift_ratio"][0][1] == v["max"] / 0.05
@@ -73,8 +76,10 @@ def test_one_structured_log_line_per_request_without_secrets(idle_app, tokens, c
         client.get("/api/v1/me", headers=auth(tokens["viewer"]))
         client.get(f"/api/v1/cells?token={tokens['admin']}&site=x")  # a token in a URL is refused, and not logged
         lines = [json.loads(r.getMessage()) for r in caplog.records if r.name == "recal.access"]
-    assert [(x["method"], x["route"], x["status"]) for x in lines] == [("GET", "/api/v1/me", 200),
-                                                                       ("GET", "/api/v1/cells", 401)]
+    assert [(x["method"], x["route"], x["status"]) for x in lines] == [
+        ("GET", "/api/v1/me", 200),
+        ("GET", "/api/v1/cells", 401),
+    ]
     assert lines[1]["query"] == "token=%2A%2A%2A&site=x" and lines[0]["duration_ms"] >= 0
     assert not any(t in caplog.text for t in tokens.values())
 
@@ -89,7 +94,10 @@ def test_the_api_documentation_is_served_from_the_services_own_files(idle_app):
             assert client.get(f"/docs/assets/{asset}").status_code == 200
         doc = client.get("/openapi.json").json()
         assert doc["components"]["securitySchemes"]["bearer"] == {
-            "type": "http", "scheme": "bearer", "description": doc["components"]["securitySchemes"]["bearer"]["description"]}
+            "type": "http",
+            "scheme": "bearer",
+            "description": doc["components"]["securitySchemes"]["bearer"]["description"],
+        }
         abort = doc["paths"]["/api/v1/sessions/{session_id}/abort"]["post"]
         assert abort["security"] == [{"bearer": []}]
         assert {"200", "401", "403", "404", "409", "422", "503"} <= set(abort["responses"])

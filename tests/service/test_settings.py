@@ -36,15 +36,23 @@ def test_a_bad_number_in_the_environment_names_the_variable():
 def test_the_database_password_comes_from_a_secret_file(tmp_path):
     secret = tmp_path / "db_password"
     secret.write_text("s3cr/t:@x\n")  # characters a URL must escape; the file's newline is not part of it
-    s = Settings.from_env({"RECAL_DATABASE_URL": "postgresql+psycopg://recal@db:5432/recal",
-                           "RECAL_DATABASE_PASSWORD_FILE": str(secret)})
+    s = Settings.from_env(
+        {"RECAL_DATABASE_URL": "postgresql+psycopg://recal@db:5432/recal", "RECAL_DATABASE_PASSWORD_FILE": str(secret)}
+    )
     from sqlalchemy.engine import make_url
 
     url = make_url(s.effective_database_url)
     assert url.password == "s3cr/t:@x" and url.username == "recal" and url.host == "db" and url.database == "recal"
-    for env, expected in (({"RECAL_DATABASE_PASSWORD_FILE": str(secret)}, "expected RECAL_DATABASE_URL too"),
-                          ({"RECAL_DATABASE_URL": "postgresql+psycopg://recal@db/recal",
-                            "RECAL_DATABASE_PASSWORD_FILE": str(tmp_path / "missing")}, "cannot read")):
+    for env, expected in (
+        ({"RECAL_DATABASE_PASSWORD_FILE": str(secret)}, "expected RECAL_DATABASE_URL too"),
+        (
+            {
+                "RECAL_DATABASE_URL": "postgresql+psycopg://recal@db/recal",
+                "RECAL_DATABASE_PASSWORD_FILE": str(tmp_path / "missing"),
+            },
+            "cannot read",
+        ),
+    ):
         with pytest.raises(SettingsError) as err:
             Settings.from_env(env)
         assert "RECAL_DATABASE_PASSWORD_FILE" in str(err.value) and expected in str(err.value)

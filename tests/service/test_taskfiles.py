@@ -15,8 +15,7 @@ from calibration import robots
 from calibration.kinematics import fk
 from calibration.transforms import matrix_to_quat, rotvec_to_matrix
 from service.files import InputError
-from service.taskfiles import (format_task, is_script, matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur,
-                               read_task)
+from service.taskfiles import format_task, is_script, matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur, read_task
 
 UR = robots.nominal("ur10e")  # mm and degrees
 
@@ -36,8 +35,14 @@ def test_read_task_poses_and_taught_rows_in_si(tmp_path):
     quat = matrix_to_quat(T[:, :3, :3])
     rows = ["name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6"]
     for i in range(2):
-        rows.append(f"P{i}," + ",".join(f"{v:.9f}" for v in T[i, :3, 3] * 1000) + ","
-                    + ",".join(f"{v:.12f}" for v in quat[i]) + "," + ",".join(f"{v:.6f}" for v in np.degrees(q[i])))
+        rows.append(
+            f"P{i},"
+            + ",".join(f"{v:.9f}" for v in T[i, :3, 3] * 1000)
+            + ","
+            + ",".join(f"{v:.12f}" for v in quat[i])
+            + ","
+            + ",".join(f"{v:.6f}" for v in np.degrees(q[i]))
+        )
     rows.append("taught,,,,,,,," + ",".join(f"{v:.6f}" for v in np.degrees(q[0])))
     task = read_task(write(tmp_path, "# a comment\n" + "\n".join(rows) + "\n"), UR)
     assert len(task) == 3
@@ -48,17 +53,26 @@ def test_read_task_poses_and_taught_rows_in_si(tmp_path):
     assert task.where(2) == {"row": 3, "line": 5}
 
 
-@pytest.mark.parametrize("text, match", [
-    ("x,y,z,qw,qx,qy\n1,2,3,1,0,0\n", r"task\.csv: missing column 'qz'"),
-    ("x,y,z,qw,qx,qy,qz\n1,2,3,1,0,,0\n", r"task\.csv, row 1 \(line 2\), column 'qy': expected a number"),
-    ("x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1,2,abc,1,0,0,0\n", r"row 2 \(line 3\), column 'z': expected a number, got 'abc'"),
-    ("x,y,z,qw,qx,qy,qz\n1,2,3,0.5,0,0,0\n", r"row 1 \(line 2\), column 'qw': the quaternion has norm 0.5"),
-    ("q1,q2,q3,q4,q5,q6,q7\n1,2,3,4,5,6,7\n", r"column 'q7': the model has 6 joints"),
-    ("q1,q2,q4,q5,q6\n1,2,3,4,5\n", r"missing joint column 'q3'"),
-    ("name,speed\nA,1\n", r"expected the columns x, y, z, qw, qx, qy, qz .* and/or q1\.\.q6"),
-    ("name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6\nA,,,,,,,,,,,,,\n", r"row 1 \(line 2\), column 'x': the row has neither"),
-    ("x,y,z,qw,qx,qy,qz\n", r"has a header but no data rows"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("x,y,z,qw,qx,qy\n1,2,3,1,0,0\n", r"task\.csv: missing column 'qz'"),
+        ("x,y,z,qw,qx,qy,qz\n1,2,3,1,0,,0\n", r"task\.csv, row 1 \(line 2\), column 'qy': expected a number"),
+        (
+            "x,y,z,qw,qx,qy,qz\n1,2,3,1,0,0,0\n1,2,abc,1,0,0,0\n",
+            r"row 2 \(line 3\), column 'z': expected a number, got 'abc'",
+        ),
+        ("x,y,z,qw,qx,qy,qz\n1,2,3,0.5,0,0,0\n", r"row 1 \(line 2\), column 'qw': the quaternion has norm 0.5"),
+        ("q1,q2,q3,q4,q5,q6,q7\n1,2,3,4,5,6,7\n", r"column 'q7': the model has 6 joints"),
+        ("q1,q2,q4,q5,q6\n1,2,3,4,5\n", r"missing joint column 'q3'"),
+        ("name,speed\nA,1\n", r"expected the columns x, y, z, qw, qx, qy, qz .* and/or q1\.\.q6"),
+        (
+            "name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6\nA,,,,,,,,,,,,,\n",
+            r"row 1 \(line 2\), column 'x': the row has neither",
+        ),
+        ("x,y,z,qw,qx,qy,qz\n", r"has a header but no data rows"),
+    ],
+)
 def test_bad_task_files_name_file_row_and_column(tmp_path, text, match):
     with pytest.raises(InputError, match=match):
         read_task(write(tmp_path, text), UR)
@@ -87,8 +101,24 @@ def test_format_task_appends_the_columns_a_taught_task_lacks(tmp_path):
     T = fk(UR, np.radians([[1, 2, 3, 4, 5, 6]]))
     out = format_task(task, UR, "targets", task.q, T, np.array([True]), np.array([0.0]), [""])
     header = out.splitlines()[0].split(",")
-    assert header == ["q1", "q2", "q3", "q4", "q5", "q6", "x", "y", "z", "qw", "qx", "qy", "qz", "converged",
-                      "residual", "flags"]
+    assert header == [
+        "q1",
+        "q2",
+        "q3",
+        "q4",
+        "q5",
+        "q6",
+        "x",
+        "y",
+        "z",
+        "qw",
+        "qx",
+        "qy",
+        "qz",
+        "converged",
+        "residual",
+        "flags",
+    ]
 
 
 # =============================================================================== URScript
@@ -106,7 +136,7 @@ PROGRAM = (
     b"  movel(p[0.4,  -0.2,0.3,0,3.14159,0], a=1.2, v=0.25)   # odd spacing\r\n"
     b"  movep([0.1,-1.5,1.4,-1.5,-1.6,0.2], a=1, v=0.1, r=0.002)\r\n"
     b"  movel(pose_trans(Waypoint_1_p, p[0,0,-0.05,0,0,0]), a=1, v=0.1)\r\n"
-    b"  textmsg(\"movel(p[9,9,9,9,9,9]) # not code\")\r\n"
+    b'  textmsg("movel(p[9,9,9,9,9,9]) # not code")\r\n'
     b"  movej([1,2,3], a=1)\r\n"
     b"  movel(Nowhere)\r\n"
     b"  movec(p[0.3,0.1,0.3,0,3.14,0], p[0.3,0.2,0.3,0,3.14,0], a=1, v=0.1, r=0)\r\n"
@@ -118,8 +148,16 @@ def test_urscript_targets_are_found_with_their_lines(tmp_path):
     path = tmp_path / "prog.script"
     path.write_bytes(PROGRAM)
     s = parse_urscript(path)
-    got = [(t.line, t.move, t.pose.name if t.pose else None, t.joints.name if t.joints else None,
-            "pose" if t.pose else "joints") for t in s.targets]
+    got = [
+        (
+            t.line,
+            t.move,
+            t.pose.name if t.pose else None,
+            t.joints.name if t.joints else None,
+            "pose" if t.pose else "joints",
+        )
+        for t in s.targets
+    ]
     assert got == [
         (6, "movej", "Waypoint_1_p", "Waypoint_1_q", "pose"),  # get_inverse_kin: pose and its qnear
         (8, "movej", None, "Home_q", "joints"),

@@ -55,6 +55,7 @@ def _fill(path: str, ids: dict[str, str], override: dict[str, str] | None = None
     def value(m):
         name = m.group(1)
         return (override or {}).get(name, ids.get(name, "1"))
+
     return re.sub(r"\{([^}]+)\}", value, path)
 
 
@@ -62,16 +63,29 @@ def test_no_request_gives_a_500(quiet_client, tokens, stored_session):
     c, h = quiet_client, auth(tokens["admin"])
     cell = _register(c, tokens, allowed_region=[[-170, 170]] * 6)
     _, cal = stored_session(cell["id"], seed=2, n=25)
-    task = c.post(f"/api/v1/cells/{cell['id']}/tasks", headers=h,
-                  json={"name": "t.csv", "content": "q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n"}).json()
-    comp = c.post(f"/api/v1/calibrations/{cal}/compensate", headers=h,
-                  content="q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n").headers["x-recal-compensation"]
-    session = c.post(f"/api/v1/cells/{cell['id']}/sessions", headers=h,
-                     json={"kind": "verify", "count": 3, "dry_run": True}).json()
+    task = c.post(
+        f"/api/v1/cells/{cell['id']}/tasks",
+        headers=h,
+        json={"name": "t.csv", "content": "q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n"},
+    ).json()
+    comp = c.post(
+        f"/api/v1/calibrations/{cal}/compensate", headers=h, content="q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n"
+    ).headers["x-recal-compensation"]
+    session = c.post(
+        f"/api/v1/cells/{cell['id']}/sessions", headers=h, json={"kind": "verify", "count": 3, "dry_run": True}
+    ).json()
     spare = c.post("/api/v1/tokens", headers=h, json={"role": "viewer"}).json()
-    ids = {"cell_id": str(cell["id"]), "session_id": str(session["id"]), "calibration_id": str(cal),
-           "other_id": str(cal), "compensation_id": comp, "task_id": str(task["id"]), "token_id": str(spare["id"]),
-           "fmt": "model", "name": "ur5e"}
+    ids = {
+        "cell_id": str(cell["id"]),
+        "session_id": str(session["id"]),
+        "calibration_id": str(cal),
+        "other_id": str(cal),
+        "compensation_id": comp,
+        "task_id": str(task["id"]),
+        "token_id": str(spare["id"]),
+        "fmt": "model",
+        "name": "ur5e",
+    }
     paths = c.get("/openapi.json").json()["paths"]
     assert "/api/v1/cells/{cell_id}/devices/test" in paths and "/api/v1/sessions/{session_id}/run" in paths
     failures = []
@@ -104,16 +118,19 @@ def test_no_request_gives_a_500(quiet_client, tokens, stored_session):
     assert not failures, "\n".join(failures)
 
 
-@pytest.mark.parametrize("extra,field", [
-    ({"allowed_region": [[-90, 90]] * 5}, "body.allowed_region"),
-    ({"allowed_region": [[-90, 90]] * 2 + [[30, -30]] + [[-90, 90]] * 3}, "body.allowed_region[2]"),
-    ({"allowed_region": [[-90, 90, 0]] + [[-90, 90]] * 5}, "body.allowed_region[0]"),
-    ({"allowed_region": [[400, 500]] + [[-90, 90]] * 5}, "body.allowed_region[0]"),
-    ({"site": ""}, "body.site"),
-    ({"site": "  "}, "body.site"),
-    ({"name": " padded"}, "body.name"),
-    ({"drift_threshold": 0}, "body.drift_threshold"),
-])
+@pytest.mark.parametrize(
+    "extra,field",
+    [
+        ({"allowed_region": [[-90, 90]] * 5}, "body.allowed_region"),
+        ({"allowed_region": [[-90, 90]] * 2 + [[30, -30]] + [[-90, 90]] * 3}, "body.allowed_region[2]"),
+        ({"allowed_region": [[-90, 90, 0]] + [[-90, 90]] * 5}, "body.allowed_region[0]"),
+        ({"allowed_region": [[400, 500]] + [[-90, 90]] * 5}, "body.allowed_region[0]"),
+        ({"site": ""}, "body.site"),
+        ({"site": "  "}, "body.site"),
+        ({"name": " padded"}, "body.name"),
+        ({"drift_threshold": 0}, "body.drift_threshold"),
+    ],
+)
 def test_cell_fields_are_validated_naming_the_field(quiet_client, tokens, extra, field):
     body = {"name": "c", "model": _model(), "devices": {}, **extra}
     r = quiet_client.post("/api/v1/cells", json=body, headers=auth(tokens["technician"]))
@@ -126,18 +143,24 @@ def test_cell_fields_are_validated_naming_the_field(quiet_client, tokens, extra,
     assert r.status_code == 422, r.text
 
 
-@pytest.mark.parametrize("raw,field", [
-    ('"allowed_region": [[-90, NaN], [-90, 90], [-90, 90], [-90, 90], [-90, 90], [-90, 90]]',
-     "body.allowed_region[0][1]"),
-    ('"drift_threshold": Infinity', "body.drift_threshold"),
-    ('"devices": {"tracker": NaN}', "body.devices"),
-])
+@pytest.mark.parametrize(
+    "raw,field",
+    [
+        (
+            '"allowed_region": [[-90, NaN], [-90, 90], [-90, 90], [-90, 90], [-90, 90], [-90, 90]]',
+            "body.allowed_region[0][1]",
+        ),
+        ('"drift_threshold": Infinity', "body.drift_threshold"),
+        ('"devices": {"tracker": NaN}', "body.devices"),
+    ],
+)
 def test_non_finite_numbers_are_refused(quiet_client, tokens, raw, field):
     import json
 
     body = '{"name": "c", "model": ' + json.dumps(_model()) + ", " + raw + "}"
-    r = quiet_client.post("/api/v1/cells", content=body,
-                          headers={**auth(tokens["technician"]), "Content-Type": "application/json"})
+    r = quiet_client.post(
+        "/api/v1/cells", content=body, headers={**auth(tokens["technician"]), "Content-Type": "application/json"}
+    )
     assert r.status_code == 422, r.text
     assert r.json()["detail"].startswith(field + ":"), r.json()["detail"]
 
@@ -150,23 +173,29 @@ def test_patch_refuses_nulls_and_a_taken_name(quiet_client, tokens):
         r = quiet_client.patch(f"/api/v1/cells/{a['id']}", json={field: None}, headers=t)
         assert r.status_code == 422 and f"body.{field}" in r.text, r.text
     assert quiet_client.patch(f"/api/v1/cells/{a['id']}", json={"name": "b"}, headers=t).status_code == 409
-    r = quiet_client.patch(f"/api/v1/cells/{a['id']}", json={"allowed_region": None, "drift_threshold": None}, headers=t)
+    r = quiet_client.patch(
+        f"/api/v1/cells/{a['id']}", json={"allowed_region": None, "drift_threshold": None}, headers=t
+    )
     assert r.status_code == 200 and r.json()["allowed_region"] is None
 
 
-@pytest.mark.parametrize("body,field", [
-    ({"kind": "pose", "count": 100000}, "body.count"),
-    ({"kind": "pose", "count": MAX_COUNT["pose"] + 1}, "body.count"),
-    ({"kind": "circle", "count": MAX_COUNT["circle"] + 1}, "body.count"),
-    ({"kind": "verify", "count": 50, "repeats": 11}, "body.repeats"),
-    ({"kind": "pose", "repeats": 3}, "body.repeats"),
-    ({"kind": "joint", "joints": [1, 7]}, "body.joints[1]"),
-    ({"kind": "circle", "joints": [2, 2]}, "body.joints[1]"),
-])
+@pytest.mark.parametrize(
+    "body,field",
+    [
+        ({"kind": "pose", "count": 100000}, "body.count"),
+        ({"kind": "pose", "count": MAX_COUNT["pose"] + 1}, "body.count"),
+        ({"kind": "circle", "count": MAX_COUNT["circle"] + 1}, "body.count"),
+        ({"kind": "verify", "count": 50, "repeats": 11}, "body.repeats"),
+        ({"kind": "pose", "repeats": 3}, "body.repeats"),
+        ({"kind": "joint", "joints": [1, 7]}, "body.joints[1]"),
+        ({"kind": "circle", "joints": [2, 2]}, "body.joints[1]"),
+    ],
+)
 def test_session_counts_are_capped(quiet_client, tokens, body, field):
     cell = _register(quiet_client, tokens)
-    r = quiet_client.post(f"/api/v1/cells/{cell['id']}/sessions", json={**body, "dry_run": True},
-                          headers=auth(tokens["technician"]))
+    r = quiet_client.post(
+        f"/api/v1/cells/{cell['id']}/sessions", json={**body, "dry_run": True}, headers=auth(tokens["technician"])
+    )
     assert r.status_code == 422, r.text
     assert field in str(r.json()["detail"])
 
@@ -176,8 +205,9 @@ def test_abort_while_planning_ends_the_session_aborted(client, tokens):
     # planning (before, planning ran to its end and the session never became aborted).
     cell = _register(client, tokens)
     t = auth(tokens["technician"])
-    s = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": MAX_COUNT["pose"]},
-                    headers=t).json()
+    s = client.post(
+        f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": MAX_COUNT["pose"]}, headers=t
+    ).json()
     t0 = time.monotonic()
     r = client.post(f"/api/v1/sessions/{s['id']}/abort", headers=t)
     assert r.status_code == 200
@@ -189,8 +219,9 @@ def test_abort_while_planning_ends_the_session_aborted(client, tokens):
     assert got["planned"] == MAX_COUNT["pose"] and got["plan_info"] is None  # stopped before its plan was stored
     print(f"aborted while planning, {time.monotonic() - t0:.1f} s after the request")
     # the cell is free again
-    r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 3, "dry_run": True},
-                    headers=t)
+    r = client.post(
+        f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 3, "dry_run": True}, headers=t
+    )
     assert r.status_code == 201
 
 
@@ -200,8 +231,10 @@ def test_a_session_left_planned_by_a_stop_does_not_hold_its_cell(idle_app, setti
         t = auth(tokens["technician"])
         left = c.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 3}, headers=t).json()
         assert left["state"] == "planned"  # nobody runs it (the process "stops" during planning)
-        assert c.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 3},
-                      headers=t).status_code == 409
+        assert (
+            c.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 3}, headers=t).status_code
+            == 409
+        )
     with idle_app() as c:  # the next start
         got = c.get(f"/api/v1/sessions/{left['id']}", headers=t).json()
         assert got["state"] == "interrupted" and "planned" in got["reason"]
@@ -242,8 +275,11 @@ def test_replacing_the_nominal_model(quiet_client, settings, tokens, stored_sess
     assert "identified from (version 1)" in before["model"]
     engine = make_engine(settings.effective_database_url)
     with Session(engine) as db:
-        edits = [a for a in db.exec(select(AuditEntry).where(AuditEntry.action == "edit cell")).all()
-                 if "old_model" in (a.detail or {})]
+        edits = [
+            a
+            for a in db.exec(select(AuditEntry).where(AuditEntry.action == "edit cell")).all()
+            if "old_model" in (a.detail or {})
+        ]
     engine.dispose()
     assert len(edits) == 1 and edits[0].detail["old_model"]["name"] == _model()["name"]
     assert edits[0].detail["old_model_version"] == 1

@@ -70,14 +70,22 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
     checks = {c["name"]: c["passed"] for c in cert["checks"]}
     assert checks["identification converged"] and checks["every planned configuration measured"]
     assert checks["hold-out verification on fresh configurations"] is None  # none run
-    assert all(p["expanded_uncertainty"] == pytest.approx(2 * p["std_error"], rel=1e-3)
-               for p in cert["parameters"] if p["std_error"])
+    assert all(
+        p["expanded_uncertainty"] == pytest.approx(2 * p["std_error"], rel=1e-3)
+        for p in cert["parameters"]
+        if p["std_error"]
+    )
     pdf = client.get(f"/api/v1/calibrations/{second}/certificate.pdf", headers=v)
     assert pdf.status_code == 200 and pdf.content[:4] == b"%PDF"
     assert cert["number"] in pdf.headers["content-disposition"]
 
-    for fmt, needle in (("model", '"format": "recal.model/1"'), ("urdf", "<robot"), ("dh-csv", "theta"),
-                        ("dh-md", "|"), ("ur-calibration", "  wrist_3:\n")):
+    for fmt, needle in (
+        ("model", '"format": "recal.model/1"'),
+        ("urdf", "<robot"),
+        ("dh-csv", "theta"),
+        ("dh-md", "|"),
+        ("ur-calibration", "  wrist_3:\n"),
+    ):
         d = client.get(f"/api/v1/calibrations/{second}/download/{fmt}", headers=v)
         assert d.status_code == 200, (fmt, d.text)
         assert needle in d.text and "attachment" in d.headers["content-disposition"]
@@ -95,8 +103,9 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
 def test_plan_of_a_dry_run_then_run_exactly_that_plan(client, settings, tokens):
     cell = _cell(client, tokens, "plan-cell")
     t = auth(tokens["technician"])
-    r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 25, "dry_run": True},
-                    headers=t)
+    r = client.post(
+        f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 25, "dry_run": True}, headers=t
+    )
     dry = r.json()
     # the stub orchestrator moves nothing: run the dry run the way the orchestrator does
     from service.orchestrator import run_session
@@ -112,8 +121,9 @@ def test_plan_of_a_dry_run_then_run_exactly_that_plan(client, settings, tokens):
     assert client.post(f"/api/v1/sessions/{dry['id']}/run", headers=auth(tokens["viewer"])).status_code == 403
     r = client.post(f"/api/v1/sessions/{dry['id']}/run", headers=t)
     assert r.status_code == 422 and "tracker" in r.text
-    client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": {"tracker": "socket://127.0.0.1:9", "rtde": "x"}},
-                 headers=t)
+    client.patch(
+        f"/api/v1/cells/{cell['id']}", json={"devices": {"tracker": "socket://127.0.0.1:9", "rtde": "x"}}, headers=t
+    )
     engine = make_engine(settings.effective_database_url)
     with Session(engine) as db:
         shown = db.get(RunSession, dry["id"]).plan
@@ -137,8 +147,11 @@ def test_plan_of_a_dry_run_then_run_exactly_that_plan(client, settings, tokens):
 def test_connection_test_reports_each_device_and_its_error(client, tokens):
     cell = _cell(client, tokens, "unreachable")
     t = auth(tokens["technician"])
-    client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": {"tracker": "socket://127.0.0.1:9",
-                                                                  "modbus": "127.0.0.1:9"}}, headers=t)
+    client.patch(
+        f"/api/v1/cells/{cell['id']}",
+        json={"devices": {"tracker": "socket://127.0.0.1:9", "modbus": "127.0.0.1:9"}},
+        headers=t,
+    )
     assert client.post(f"/api/v1/cells/{cell['id']}/devices/test", headers=auth(tokens["viewer"])).status_code == 403
     r = client.post(f"/api/v1/cells/{cell['id']}/devices/test?timeout_s=2", headers=t)
     assert r.status_code == 200
@@ -168,8 +181,9 @@ def test_showing_the_plan_stores_no_session(client, settings, tokens):
     engine = make_engine(settings.effective_database_url)
     ids = []
     for _ in range(3):
-        dry = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 5, "dry_run": True},
-                          headers=t).json()
+        dry = client.post(
+            f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 5, "dry_run": True}, headers=t
+        ).json()
         assert run_session(engine, settings, dry["id"]) == "completed"
         ids.append(dry["id"])
     with Session(engine) as db:

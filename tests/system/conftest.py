@@ -47,8 +47,11 @@ def models(tmp_path_factory):
     targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}
     nominal = dataclasses.replace(robots.nominal("ur5e"), targets=targets)
     truth = perturbed(nominal, rng, tool_length_m=0.0)
-    truth = dataclasses.replace(truth, base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
-                                targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in targets.items()})
+    truth = dataclasses.replace(
+        truth,
+        base=np.array([1.2, 0.4, -0.2, 0.003, 0.002, np.deg2rad(-60)]),
+        targets={k: v + rng.normal(0, 0.5e-3, 3) for k, v in targets.items()},
+    )
     save_model(d / "nominal.json", nominal)
     save_model(d / "truth.json", truth)
     return {"nominal": d / "nominal.json", "truth": d / "truth.json", "truth_model": truth}
@@ -82,7 +85,9 @@ class Stack:
         engine = make_engine(settings.effective_database_url)
         migrate(engine)
         with Session(engine) as db:
-            self.tokens = {r: create_token(db, role=r, name=f"{r}-user")[1] for r in ("viewer", "technician", "job", "admin")}
+            self.tokens = {
+                r: create_token(db, role=r, name=f"{r}-user")[1] for r in ("viewer", "technician", "job", "admin")
+            }
         engine.dispose()
         self.cells = []
 
@@ -112,8 +117,11 @@ def stack_env() -> dict:
 
 @pytest.fixture
 def stack(tmp_path, db_url, stack_env):
-    s = Stack(tmp_path, db_url, {"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05", "RECAL_DEVICE_RETRIES": "2",
-                                 **stack_env})
+    s = Stack(
+        tmp_path,
+        db_url,
+        {"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05", "RECAL_DEVICE_RETRIES": "2", **stack_env},
+    )
     s.start()
     yield s
     s.stop()
@@ -131,10 +139,22 @@ def _register(stack: Stack, models, *, fake_args=None, time_scale=0.0, name=None
     """Start a simulated cell (truth: ``truth`` or the session's) and register it with the
     service; returns (cell, fake process)."""
     host = next_host()
-    fake = start_fake_cell(truth or models["truth"], host, time_scale=time_scale, extra=fake_args or [],
-                           log_path=stack.home / f"cell-{host}.log")
+    fake = start_fake_cell(
+        truth or models["truth"],
+        host,
+        time_scale=time_scale,
+        extra=fake_args or [],
+        log_path=stack.home / f"cell-{host}.log",
+    )
     stack.cells.append(fake)
-    cell = stack.api("technician").call("POST", "/cells", {
-        "name": name or f"cell-{host}", "model": json.loads(models["nominal"].read_text()), "devices": fake.ready,
-        "drift_threshold": 0.1})
+    cell = stack.api("technician").call(
+        "POST",
+        "/cells",
+        {
+            "name": name or f"cell-{host}",
+            "model": json.loads(models["nominal"].read_text()),
+            "devices": fake.ready,
+            "drift_threshold": 0.1,
+        },
+    )
     return cell, fake

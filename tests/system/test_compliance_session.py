@@ -31,8 +31,9 @@ def test_pose_session_with_two_payloads_identifies_the_joint_compliance(stack, m
     api = stack.api("technician")
     doc = model_to_dict(with_section(nominal, default_section(nominal)))
     cell = api.call("POST", "/cells", {"name": "sagging", "model": doc, "devices": fake.ready})
-    s = api.call("POST", f"/cells/{cell['id']}/sessions",
-                 {"kind": "pose", "count": 60, "payloads": [[0], [10, 0, 0, 100]]})  # kg, mm in the tool frame
+    s = api.call(
+        "POST", f"/cells/{cell['id']}/sessions", {"kind": "pose", "count": 60, "payloads": [[0], [10, 0, 0, 100]]}
+    )  # kg, mm in the tool frame
     s = api.wait_session(s["id"], 240)
     assert s["state"] == "completed", (s["state"], s.get("reason"))
     cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
@@ -48,8 +49,9 @@ def test_pose_session_with_two_payloads_identifies_the_joint_compliance(stack, m
 
 def test_payloads_only_for_pose_and_verify_sessions(stack, models):
     api = stack.api("technician")
-    cell = api.call("POST", "/cells", {"name": "plain", "model": json.loads(models["nominal"].read_text()),
-                                       "devices": {}})
+    cell = api.call(
+        "POST", "/cells", {"name": "plain", "model": json.loads(models["nominal"].read_text()), "devices": {}}
+    )
     with pytest.raises(ApiError) as exc:
         api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "circle", "count": 12, "payloads": [[5]]})
     assert exc.value.status == 422

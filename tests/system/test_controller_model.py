@@ -42,8 +42,10 @@ def test_sessions_read_keep_and_version_the_controllers_kinematics(stack, models
     cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
     assert cal["model"]["identification"]["controller"]["name"] == "ur5e-controller"
     out = api.call("POST", f"/calibrations/{s['calibration_id']}/compensate?name=task.script", raw=SCRIPT)
-    through = {name: compensate_text(SCRIPT, name="task.script", model_doc=cal["model"], nominal_doc=doc)[0]
-               for name, doc in (("controller", cm["model"]), ("published", cell["model"]))}
+    through = {
+        name: compensate_text(SCRIPT, name="task.script", model_doc=cal["model"], nominal_doc=doc)[0]
+        for name, doc in (("controller", cm["model"]), ("published", cell["model"]))
+    }
     assert out == through["controller"] and out != through["published"]
 
     # the same controller: nothing new

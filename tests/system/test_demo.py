@@ -60,9 +60,13 @@ def _get(url: str, token: str) -> dict:
 def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path):
     home, host, port = tmp_path / "demo", next_host(), free_port()
     env = {**os.environ, "RECAL_HOME": str(home)}  # the demo takes RECAL_HOME as its folder
-    demo = subprocess.Popen([sys.executable, "-m", "service.cli", "demo", "--host", host, "--port", str(port),
-                             "--time-scale", "0.2"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=env)
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "demo", "--host", host, "--port", str(port), "--time-scale", "0.2"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     try:
         lines, url, deadline = [], None, time.monotonic() + 60
         while url is None:
@@ -76,8 +80,13 @@ def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path)
         printed = re.search(r"technician token: (rc_\S+)", text).group(1)
         assert _get(f"{url}/api/v1/me", printed)["role"] == "technician"
         # a token made the way the README says works with the demo's service
-        made = subprocess.run([sys.executable, "-m", "service.cli", "token", "create", "--role", "viewer"],
-                              capture_output=True, text=True, env=env, timeout=60)
+        made = subprocess.run(
+            [sys.executable, "-m", "service.cli", "token", "create", "--role", "viewer"],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=60,
+        )
         assert made.returncode == 0, made.stderr
         assert _get(f"{url}/api/v1/me", made.stdout.strip())["role"] == "viewer"
         # a session is under way (time scale 0.2: about a pose a second); then `kill`
@@ -102,9 +111,23 @@ def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path)
 
 def test_sigterm_while_the_demo_starts_leaves_no_child(tmp_path):
     # killed while its service is still starting (it takes seconds to answer): nothing is left running
-    demo = subprocess.Popen([sys.executable, "-m", "service.cli", "demo", "--dir", str(tmp_path / "demo"),
-                             "--host", next_host(), "--port", str(free_port())],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    demo = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "demo",
+            "--dir",
+            str(tmp_path / "demo"),
+            "--host",
+            next_host(),
+            "--port",
+            str(free_port()),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         deadline, children = time.monotonic() + 30, set()
         while len(children) < 2:  # the simulated cell is up and the service process started

@@ -4,8 +4,8 @@ complete), 2 (bad arguments), 3 (service unreachable, or the token refused)."""
 
 from __future__ import annotations
 
-import os
 import json
+import os
 
 from service.cli import main
 from service.processes import free_port
@@ -44,9 +44,16 @@ def test_nightly_exit_statuses(stack, models, register, monkeypatch, capsys):
     assert out.startswith("weld-3: accurate, verify RMS") and "threshold 0.1 mm" in out
 
     # a cell whose devices do not answer: the verify session pauses, a person must look
-    stack.api().call("POST", "/cells", {"name": "dark", "model": json.loads(models["nominal"].read_text()),
-                                        "devices": {"rtde": f"{NET}.19", "tracker": f"socket://{NET}.19:9"},
-                                        "drift_threshold": 0.1})
+    stack.api().call(
+        "POST",
+        "/cells",
+        {
+            "name": "dark",
+            "model": json.loads(models["nominal"].read_text()),
+            "devices": {"rtde": f"{NET}.19", "tracker": f"socket://{NET}.19:9"},
+            "drift_threshold": 0.1,
+        },
+    )
     status, out, err = nightly(monkeypatch, capsys, "--cell", "dark", "--url", url, token=job)
     assert status == 1, (out, err)
     assert out.startswith("dark: verify session") and "paused" in out and "devices" in out
@@ -54,8 +61,9 @@ def test_nightly_exit_statuses(stack, models, register, monkeypatch, capsys):
     # bad arguments
     status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", url)
     assert status == 2 and "no token" in err
-    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", url, "--token-file",
-                               str(stack.home / "missing.token"))
+    status, out, err = nightly(
+        monkeypatch, capsys, "--cell", "weld-3", "--url", url, "--token-file", str(stack.home / "missing.token")
+    )
     assert status == 2 and "missing.token" in err
     status, out, err = nightly(monkeypatch, capsys, "--url", url, token=job)
     assert status == 2 and "--cell" in err

@@ -14,8 +14,6 @@ from calibration.model import model_from_dict
 from service.settings import Settings
 from service.store import make_engine
 
-
-
 BOTH_DATABASES = pytest.mark.parametrize("db_url", ["sqlite", "postgres"], indirect=True)
 
 
@@ -106,10 +104,13 @@ def _dashboard(host: str, command: str) -> str:
         return reader.readline().decode().strip()
 
 
-@pytest.mark.parametrize("stop, release", [
-    ("protective", ["unlock protective stop"]),
-    ("emergency", ["sim emergency stop release", "power on", "brake release"]),
-])
+@pytest.mark.parametrize(
+    "stop, release",
+    [
+        ("protective", ["unlock protective stop"]),
+        ("emergency", ["sim emergency stop release", "power on", "brake release"]),
+    ],
+)
 def test_a_safety_stop_is_still_named_on_resume_until_it_is_released(stack, models, register, stop, release):
     # Recal never releases a safety stop. Resumed before the technician has, the session pauses
     # again saying which stop holds the robot and what releases it (not "cannot open the cell's
@@ -337,8 +338,16 @@ def test_cmm_pose_session_after_a_tracker_calibration_on_the_demo_cell(stack, tm
     fake = start_fake_cell(tmp_path / "truth.json", host, seed=1, log_path=stack.home / "cell-demo.log")
     stack.cells.append(fake)
     api = stack.api()
-    cell = api.call("POST", "/cells", {"name": "demo-ur10e", "model": json.loads((tmp_path / "nominal.json").read_text()),
-                                       "devices": fake.ready, "drift_threshold": 0.1})
+    cell = api.call(
+        "POST",
+        "/cells",
+        {
+            "name": "demo-ur10e",
+            "model": json.loads((tmp_path / "nominal.json").read_text()),
+            "devices": fake.ready,
+            "drift_threshold": 0.1,
+        },
+    )
     first = api.wait_session(_start(api, cell, kind="pose", count=40)["id"], 180)
     assert first["state"] == "completed", first["reason"]
     s = api.wait_session(_start(api, cell, kind="pose", count=15, device="cmm")["id"], 180)

@@ -29,8 +29,14 @@ from service.store import create_token, make_engine, migrate
 NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 CHROMIUM = os.environ.get("RECAL_CHROMIUM", "/usr/bin/chromium")
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync"]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 SHOTS = Path(__file__).resolve().parent / "screenshots"
 TABLET = {"width": 1024, "height": 768}  # a 10-inch tablet in landscape
 
@@ -135,8 +141,11 @@ def stack(tmp_path_factory, browser):
     targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}
     nominal = dataclasses.replace(robots.nominal("ur10e"), targets=targets)
     truth = perturbed(nominal, rng, tool_length_m=0.0)
-    truth = dataclasses.replace(truth, base=np.array([1.6, -0.5, 0.25, 0.002, -0.003, np.deg2rad(120.0)]),
-                                targets={k: v + rng.normal(0, 0.6e-3, 3) for k, v in targets.items()})
+    truth = dataclasses.replace(
+        truth,
+        base=np.array([1.6, -0.5, 0.25, 0.002, -0.003, np.deg2rad(120.0)]),
+        targets={k: v + rng.normal(0, 0.6e-3, 3) for k, v in targets.items()},
+    )
     crashed = longer_link(truth, 2, 0.4e-3)  # the robot after a crash (the next calibration must see it)
     save_model(home / "nominal.json", nominal)
     save_model(home / "truth.json", truth)
@@ -150,10 +159,25 @@ def stack(tmp_path_factory, browser):
     engine.dispose()
     host = f"{NET}.81"
     with ThreadPoolExecutor(2) as pool:  # both simulated cells start at once
-        starting = [pool.submit(start_fake_cell, home / "truth.json", host, seed=5, time_scale=0.03,
-                                extra=["--fault", "protective_stop_at_move=6"], log_path=home / "fake-cell.log"),
-                    pool.submit(start_fake_cell, home / "crashed.json", f"{NET}.82", seed=6, time_scale=0.03,
-                                log_path=home / "fake-cell-2.log")]
+        starting = [
+            pool.submit(
+                start_fake_cell,
+                home / "truth.json",
+                host,
+                seed=5,
+                time_scale=0.03,
+                extra=["--fault", "protective_stop_at_move=6"],
+                log_path=home / "fake-cell.log",
+            ),
+            pool.submit(
+                start_fake_cell,
+                home / "crashed.json",
+                f"{NET}.82",
+                seed=6,
+                time_scale=0.03,
+                log_path=home / "fake-cell-2.log",
+            ),
+        ]
     cells = [f.result() for f in starting if f.exception() is None]
     if len(cells) < len(starting):
         for c in cells:

@@ -9,8 +9,8 @@ with a thousand stored calibrations and page through many cells; a portrait tabl
 
 from __future__ import annotations
 
-import os
 import json
+import os
 import re
 import socket
 import time
@@ -121,8 +121,14 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.locator("table.device-test tbody tr").first.wait_for()
     text = page.inner_text("table.device-test")
     assert "ERROR" not in text, text
-    for what in ("robot (UR RTDE)", "laser tracker", "CMM (I++ DME)", "reference encoder, joint 1",
-                 "reference encoder, joint 2", "resolver, joint 1"):
+    for what in (
+        "robot (UR RTDE)",
+        "laser tracker",
+        "CMM (I++ DME)",
+        "reference encoder, joint 1",
+        "reference encoder, joint 2",
+        "resolver, joint 1",
+    ):
         assert what in text, what
     assert "SIM-LT" in text  # the line-protocol tracker's *IDN? answer
     assert "Leica, emScon 3.8.400" in text  # the emScon server's GetSystemStatus
@@ -169,8 +175,11 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.click("#resume")
     confirm(page, "Resume the session?")
     page.wait_for_function("document.querySelector('#state').innerText.trim() !== 'paused'")
-    page.wait_for_function("(() => { const m = /(\\d+) of (\\d+)/.exec(document.querySelector('#progress').innerText);"
-                           " return m && +m[1] >= 8 && +m[1] < +m[2]; })()", timeout=60_000)
+    page.wait_for_function(
+        "(() => { const m = /(\\d+) of (\\d+)/.exec(document.querySelector('#progress').innerText);"
+        " return m && +m[1] >= 8 && +m[1] < +m[2]; })()",
+        timeout=60_000,
+    )
     shot(page, "07-session-running")
     page.wait_for_selector("#open-result", timeout=90_000)
     assert "24 of 24" in page.inner_text("#progress")
@@ -183,11 +192,17 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     summary = page.inner_text("#summary")
     for label in ("Before", "After (fitted poses)", "Predicted error", "95th percentile at random configurations"):
         assert label in summary, summary
-    for label in ("histogram of errors before", "histogram of errors after", "per-pose errors before and after",
-                  "residuals against pose", "workspace map from above"):
+    for label in (
+        "histogram of errors before",
+        "histogram of errors after",
+        "per-pose errors before and after",
+        "residuals against pose",
+        "workspace map from above",
+    ):
         assert page.locator(f"svg[aria-label='{label}']").count() == 1, label
-    bins = page.eval_on_selector_all("svg[aria-label='histogram of errors before'] rect title",
-                                     "ts => ts.map(t => +t.textContent.split(': ').pop())")
+    bins = page.eval_on_selector_all(
+        "svg[aria-label='histogram of errors before'] rect title", "ts => ts.map(t => +t.textContent.split(': ').pop())"
+    )
     assert bins[0] > 0 and bins[-1] > 0 and sum(bins) == 24, bins  # no empty bar at either end
     assert page.locator("table.params tbody tr").count() > 10
     assert "same motion" in page.inner_text("table.unidentifiable")
@@ -232,7 +247,11 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.wait_for_selector("#compensated:has-text('job-compensated.src')", timeout=30_000)
     assert download("#download-compensated").name == "job-compensated.src"
     out_dat = download("#download-compensated-1")
-    assert out_dat.name == "job-compensated.dat" and out_dat.read_text() != dat and "DECL E6AXIS XP1={" in out_dat.read_text()
+    assert (
+        out_dat.name == "job-compensated.dat"
+        and out_dat.read_text() != dat
+        and "DECL E6AXIS XP1={" in out_dat.read_text()
+    )
 
     # --- a task CSV with a point outside the calibrated joint ranges and one at a wrist singularity
     ranges = model["identification"]["joint_ranges"]
@@ -263,16 +282,30 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.wait_for_selector("#certificate")
     cert = page.inner_text("#certificate")
     # the instrument that measured: the Leica tracker on emScon (the simulated cell's default)
-    for what in ("line 3 UR10e", "ur10e", "laser tracker", "emScon 3.8.400", "technician-anna", "Before calibration",
-                 "After calibration, in-sample", "identification converged", "j2.a", "No hold-out check yet"):
+    for what in (
+        "line 3 UR10e",
+        "ur10e",
+        "laser tracker",
+        "emScon 3.8.400",
+        "technician-anna",
+        "Before calibration",
+        "After calibration, in-sample",
+        "identification converged",
+        "j2.a",
+        "No hold-out check yet",
+    ):
         assert what in cert, what
     verdict = page.inner_text("#verdict")
     assert "Not run: hold-out verification" in verdict and "All checks passed" not in verdict, verdict
 
     # ... a verify session after the calibration (through the API, as the nightly job would): the
     # certificate quotes its fresh configurations as the hold-out accuracy
-    verify = api(stack, "POST", f"/cells/{cell_id}/sessions", {"kind": "verify", "count": 8, "device": "tracker",
-                                                               "target": "smr"})
+    verify = api(
+        stack,
+        "POST",
+        f"/cells/{cell_id}/sessions",
+        {"kind": "verify", "count": 8, "device": "tracker", "target": "smr"},
+    )
     deadline = time.monotonic() + 90
     while (v := api(stack, "GET", f"/sessions/{verify['id']}"))["state"] not in ("completed", "failed", "aborted"):
         assert time.monotonic() < deadline, v
@@ -364,7 +397,7 @@ def test_viewer_cannot_start_a_session(page, stack, web):
     assert page.inner_text("#role") == "viewer"
     assert page.locator("#register-cell").count() == 0
     page.goto(f"{stack.url}/#/cells/{cell_id}")
-    page.wait_for_selector("h1:has-text(\"viewer's view\")")
+    page.wait_for_selector('h1:has-text("viewer\'s view")')
     assert page.locator("#start-session").count() == 0
     assert page.locator("#test-devices").count() == 0
     assert page.locator("#edit-cell").count() == 0
@@ -373,9 +406,12 @@ def test_viewer_cannot_start_a_session(page, stack, web):
     page.wait_for_selector("#no-start")
     assert page.locator("#plan").count() == 0
     # ... and the API refuses a viewer anyway
-    status = page.evaluate("""async ([id, token]) => (await fetch(`/api/v1/cells/${id}/sessions`, {method: 'POST',
+    status = page.evaluate(
+        """async ([id, token]) => (await fetch(`/api/v1/cells/${id}/sessions`, {method: 'POST',
         headers: {Authorization: `Bearer ${token}`, 'Content-Type': 'application/json'},
-        body: JSON.stringify({kind: 'pose', count: 10})})).status""", [cell_id, stack.tokens["viewer"]])
+        body: JSON.stringify({kind: 'pose', count: 10})})).status""",
+        [cell_id, stack.tokens["viewer"]],
+    )
     assert status == 403
 
 
@@ -391,10 +427,15 @@ def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     shot, sign_in, register_cell_by_api = web.shot, web.sign_in, web.register_cell_by_api
     cell_id = register_cell_by_api(stack, "busy cell")
     names = [f"j{i}.{f}" for i in range(1, 7) for f in ("theta", "d", "a", "alpha")]
-    report = {"success": True, "rows": 40, "message": "converged",
-              "parameters": [{"name": n, "unit": "mm", "value": 1.0, "change": 0.01, "std_error": 0.001} for n in names],
-              "unidentifiable": [], "correlation": {"names": names, "matrix": [[0.1] * len(names)] * len(names)},
-              "residuals": {"rms": 0.03, "max": 0.06}}
+    report = {
+        "success": True,
+        "rows": 40,
+        "message": "converged",
+        "parameters": [{"name": n, "unit": "mm", "value": 1.0, "change": 0.01, "std_error": 0.001} for n in names],
+        "unidentifiable": [],
+        "correlation": {"names": names, "matrix": [[0.1] * len(names)] * len(names)},
+        "residuals": {"rms": 0.03, "max": 0.06},
+    }
     model = json.loads(stack.nominal_path.read_text())
     engine = make_engine(Settings(home=stack.home).effective_database_url)
     with Session(engine) as db:
@@ -471,7 +512,12 @@ def test_page_fits_a_portrait_tablet(page, stack, web):
 
 def _wait_done(api, stack, session_id: int, timeout_s: float = 90) -> dict:
     deadline = time.monotonic() + timeout_s
-    while (s := api(stack, "GET", f"/sessions/{session_id}"))["state"] not in ("completed", "failed", "aborted", "paused"):
+    while (s := api(stack, "GET", f"/sessions/{session_id}"))["state"] not in (
+        "completed",
+        "failed",
+        "aborted",
+        "paused",
+    ):
         assert time.monotonic() < deadline, s
         time.sleep(0.2)
     assert s["state"] == "completed", s
@@ -500,10 +546,14 @@ def test_figures_and_banners_say_what_happened_in_a_technicians_words(page, stac
     shot, sign_in, api = web.shot, web.sign_in, web.api
     doc = json.loads(stack.nominal_path.read_text())
     # the second simulated cell (no injected fault) under a name of its own
-    cell_id = api(stack, "POST", "/cells", {"name": "words and figures", "model": doc,
-                                            "devices": stack.crashed_cell_ready})["id"]
-    nominal = _wait_done(api, stack, api(stack, "POST", f"/cells/{cell_id}/sessions",
-                                         {"kind": "verify", "count": 6, "target": "smr"})["id"])
+    cell_id = api(
+        stack, "POST", "/cells", {"name": "words and figures", "model": doc, "devices": stack.crashed_cell_ready}
+    )["id"]
+    nominal = _wait_done(
+        api,
+        stack,
+        api(stack, "POST", f"/cells/{cell_id}/sessions", {"kind": "verify", "count": 6, "target": "smr"})["id"],
+    )
     v = nominal["plan_info"]["verify"]
     sign_in(page, stack)
     page.goto(f"{stack.url}/#/sessions/{nominal['id']}")
@@ -560,8 +610,11 @@ def test_figures_and_banners_say_what_happened_in_a_technicians_words(page, stac
     assert text.startswith("bad-task.csv, row 1") and "column 'q2'" in text and not text.startswith("body"), text
 
     # after a verify session, the cell card's accuracy is its result (fresh configurations)
-    check = _wait_done(api, stack, api(stack, "POST", f"/cells/{cell_id}/sessions",
-                                       {"kind": "verify", "count": 6, "target": "smr"})["id"])
+    check = _wait_done(
+        api,
+        stack,
+        api(stack, "POST", f"/cells/{cell_id}/sessions", {"kind": "verify", "count": 6, "target": "smr"})["id"],
+    )
     rms = check["plan_info"]["verify"]["rms"]
     summary = api(stack, "GET", f"/cells/{cell_id}/summary")
     assert summary["accuracy"]["session_id"] == check["id"] and summary["accuracy"]["rms"] == rms

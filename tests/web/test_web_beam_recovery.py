@@ -14,8 +14,13 @@ NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 def test_live_page_counts_the_beam_recoveries(page, stack, web):
     # StartMeasurement 4 and 8 break the beam (poses 4 and 7, each measured again after the search)
-    cell = start_fake_cell(stack.truth_path, f"{NET}.83", seed=8, extra=["--fault", "beam_break_at=4,8"],
-                           log_path=stack.home / "fake-cell-3.log")
+    cell = start_fake_cell(
+        stack.truth_path,
+        f"{NET}.83",
+        seed=8,
+        extra=["--fault", "beam_break_at=4,8"],
+        log_path=stack.home / "fake-cell-3.log",
+    )
     try:
         model = json.loads(stack.nominal_path.read_text())
         doc = web.api(stack, "POST", "/cells", {"name": "beam breaks", "model": model, "devices": cell.ready})

@@ -35,23 +35,42 @@ def compliant_result(tmp_path, browser):
     try:
         nom = dataclasses.replace(nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
         doc = model_to_dict(with_section(nom, default_section(nom)))
-        cell_id = Api(service.ready["url"], token).call("POST", "/cells", {"name": "sagging", "model": doc,
-                                                                            "devices": {}})["id"]
+        cell_id = Api(service.ready["url"], token).call(
+            "POST", "/cells", {"name": "sagging", "model": doc, "devices": {}}
+        )["id"]
         rng = np.random.default_rng(3)
-        truth = sagging(dataclasses.replace(perturbed(nom, rng), base=np.array([1.5, -0.4, 0.2, 0, 0, 1.0])),
-                        "cobot", frames_of=nom)
+        truth = sagging(
+            dataclasses.replace(perturbed(nom, rng), base=np.array([1.5, -0.4, 0.2, 0, 0, 1.0])), "cobot", frames_of=nom
+        )
         data = simulate_measurements(truth, random_configurations(nom, 60, rng), rng, targets=("smr",))
         with Session(engine) as db:
             cell = db.get(Cell, cell_id)
-            run = RunSession(cell_id=cell_id, kind="pose", state="running", planned=60, target="smr",
-                             created_by="technician-anna", plan=data.q.tolist(), plan_info={"method": "random"})
+            run = RunSession(
+                cell_id=cell_id,
+                kind="pose",
+                state="running",
+                planned=60,
+                target="smr",
+                created_by="technician-anna",
+                plan=data.q.tolist(),
+                plan_info={"method": "random"},
+            )
             db.add(run)
             db.commit()
             db.refresh(run)
             for k in range(len(data)):
-                db.add(Measurement(session_id=run.id, seq=k, target="smr", q=data.q[k].tolist(),
-                                   x=float(data.p_world[k, 0]), y=float(data.p_world[k, 1]),
-                                   z=float(data.p_world[k, 2]), sigma=20e-6))
+                db.add(
+                    Measurement(
+                        session_id=run.id,
+                        seq=k,
+                        target="smr",
+                        q=data.q[k].tolist(),
+                        x=float(data.p_world[k, 0]),
+                        y=float(data.p_world[k, 1]),
+                        z=float(data.p_world[k, 2]),
+                        sigma=20e-6,
+                    )
+                )
             db.commit()
             analysis.finish_session(db, run, cell, settings)
             run.state = "completed"

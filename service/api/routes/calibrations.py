@@ -33,8 +33,12 @@ def compare(calibration_id: int, other_id: int, db: DbSession, tok: Reader) -> d
     uncertainty: every parameter, the base and tool frames included (the page's comparison,
     :func:`service.results.compare_calibrations`), with the predicted accuracy of both."""
     a, b = get_calibration(db, calibration_id), get_calibration(db, other_id)
-    return {**compare_calibrations(a, b), "predicted_from": a.predicted, "predicted_to": b.predicted,
-            "nominal_versions": [a.nominal_version, b.nominal_version]}
+    return {
+        **compare_calibrations(a, b),
+        "predicted_from": a.predicted,
+        "predicted_to": b.predicted,
+        "nominal_versions": [a.nominal_version, b.nominal_version],
+    }
 
 
 def _exists(engine, calibration_id: int) -> None:
@@ -43,8 +47,14 @@ def _exists(engine, calibration_id: int) -> None:
 
 
 @router.post("/calibrations/{calibration_id}/compensate", response_class=PlainTextResponse)
-async def compensate(calibration_id: int, request: Request, tok: Compensator,
-                     mode: str = "joints", name: str = "task.csv", payload: str | None = None) -> PlainTextResponse:
+async def compensate(
+    calibration_id: int,
+    request: Request,
+    tok: Compensator,
+    mode: str = "joints",
+    name: str = "task.csv",
+    payload: str | None = None,
+) -> PlainTextResponse:
     """A task CSV or a robot program (URScript, RAPID, TP; ``name`` tells which) in the request
     body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``;
     ``payload``: the task's payload ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the
@@ -74,20 +84,31 @@ async def compensate(calibration_id: int, request: Request, tok: Compensator,
     if not body.strip():
         raise HTTPException(422, {"field": "body", "message": "expected a task CSV or robot program, got nothing"})
     if any("\x00" in text for text in [body, *(companions or {}).values()]):
-        raise HTTPException(422, {"field": "body", "message": "expected a text file, got NUL characters (binary data?)"})
+        raise HTTPException(
+            422, {"field": "body", "message": "expected a text file, got NUL characters (binary data?)"}
+        )
 
     try:
         rec_id, output, _, files = await request.app.state.heavy.run(
-            compensate_and_store, request.app.state.settings.effective_database_url, calibration_id, body,
-            name=name, mode=mode, actor=tok.name, companions=companions, payload=payload)
+            compensate_and_store,
+            request.app.state.settings.effective_database_url,
+            calibration_id,
+            body,
+            name=name,
+            mode=mode,
+            actor=tok.name,
+            companions=companions,
+            payload=payload,
+        )
     except CompensationInputError as exc:
         field = "query.payload" if str(exc).startswith("--payload") else "body"
         raise HTTPException(422, {"field": field, "message": str(exc)}) from None
     if companions is not None:
         from fastapi.responses import JSONResponse
 
-        return JSONResponse({"files": [{"name": name, "text": output}] + files},
-                            headers={"X-Recal-Compensation": str(rec_id)})
+        return JSONResponse(
+            {"files": [{"name": name, "text": output}] + files}, headers={"X-Recal-Compensation": str(rec_id)}
+        )
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
     return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec_id)})
 

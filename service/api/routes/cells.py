@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
 from sqlmodel import Session, select
@@ -24,10 +25,10 @@ from ...models import (
     _In,
 )
 from ...plans import RegionError, check_region
+from ...sessions import ACTIVE, public_session, start_session
 from ...store import audit, current_calibration
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
 from ..schemas import CalibrationListItem, Drift, TaskFileContent, TaskFileInfo, TasksCompensated
-from ...sessions import ACTIVE, public_session, start_session
 
 router = APIRouter(tags=["cells"])
 
@@ -60,8 +61,12 @@ def _check_region(model, region: list | None, *, sent: bool = True) -> None:
         check_region(model, region)
     except RegionError as exc:
         field = "body.allowed_region" + (f"[{exc.row}]" if exc.row is not None else "")
-        message = str(exc) if sent else f"the cell's allowed region does not fit the new model: {exc}; send an " \
-                                          f"allowed_region for it with the model"
+        message = (
+            str(exc)
+            if sent
+            else f"the cell's allowed region does not fit the new model: {exc}; send an "
+            f"allowed_region for it with the model"
+        )
         raise HTTPException(422, {"field": field, "message": message}) from None
 
 
@@ -127,10 +132,12 @@ def update_cell(cell_id: int, body: CellUpdate, db: DbSession, tok: CellEditor):
         _check_region(model, changes.get("allowed_region", cell.allowed_region), sent="allowed_region" in changes)
         busy = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE))).first()
         if busy is not None:
-            raise HTTPException(409, f"session {busy.id} is driving this cell ({busy.state}); replace the model when "
-                                     f"it has stopped")
-        detail.update({"old_model": cell.model, "old_model_version": cell.model_version,
-                       "model_version": cell.model_version + 1})
+            raise HTTPException(
+                409, f"session {busy.id} is driving this cell ({busy.state}); replace the model when it has stopped"
+            )
+        detail.update(
+            {"old_model": cell.model, "old_model_version": cell.model_version, "model_version": cell.model_version + 1}
+        )
         cell.model_version += 1
     elif changes.get("allowed_region") is not None:
         _check_region(model_from_dict(cell.model), changes["allowed_region"])
@@ -154,24 +161,36 @@ def list_sessions(cell_id: int, db: DbSession, tok: Reader, limit: int = 50, dry
     """The cell's sessions, newest first; dry runs (plans shown, nothing measured) only if asked."""
     get_cell(db, cell_id)
     where = [RunSession.cell_id == cell_id] + ([] if dry_runs else [RunSession.dry_run == False])  # noqa: E712
-    rows = db.exec(select(RunSession).where(*where).order_by(RunSession.id.desc())
-                   .limit(max(1, min(limit, 1000)))).all()
+    rows = db.exec(
+        select(RunSession).where(*where).order_by(RunSession.id.desc()).limit(max(1, min(limit, 1000)))
+    ).all()
     return [public_session(db, r) for r in rows]
 
 
 @router.get("/cells/{cell_id}/calibrations", response_model=list[CalibrationListItem])
-def list_calibrations(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 100) -> list[dict]:
+def list_calibrations(
+    cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 100
+) -> list[dict]:
     """The cell's calibrations, newest first (``limit`` of them, at most 5000), without models
     and reports: the residual RMS, the predicted accuracy (``predicted``: 95 % radius over the
     workspace) and the nominal model version each was identified from."""
     get_cell(db, cell_id)
-    q = select(Calibration.id, Calibration.kind, Calibration.session_id, Calibration.rms, Calibration.created_at,
-               Calibration.nominal_version, Calibration.predicted).where(Calibration.cell_id == cell_id)
+    q = select(
+        Calibration.id,
+        Calibration.kind,
+        Calibration.session_id,
+        Calibration.rms,
+        Calibration.created_at,
+        Calibration.nominal_version,
+        Calibration.predicted,
+    ).where(Calibration.cell_id == cell_id)
     if kind:
         q = q.where(Calibration.kind == kind)
     rows = db.exec(q.order_by(Calibration.id.desc()).limit(max(1, min(limit, 5000)))).all()
-    return [{"id": i, "kind": k, "session_id": s, "rms": r, "created_at": t, "nominal_version": v, "predicted": p}
-            for i, k, s, r, t, v, p in rows]
+    return [
+        {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": t, "nominal_version": v, "predicted": p}
+        for i, k, s, r, t, v, p in rows
+    ]
 
 
 def comparable_parameter(name: str) -> bool:
@@ -204,9 +223,18 @@ def drift(cell_id: int, db: DbSession, tok: Reader) -> dict:
       time and the calibration it checked.
     """
     get_cell(db, cell_id)
-    cals = db.exec(select(Calibration.id, Calibration.created_at, Calibration.rms, Calibration.predicted,
-                          Calibration.nominal_version, Calibration.report["parameters"])  # not whole reports
-                   .where(Calibration.cell_id == cell_id, Calibration.kind == "pose").order_by(Calibration.id)).all()
+    cals = db.exec(
+        select(
+            Calibration.id,
+            Calibration.created_at,
+            Calibration.rms,
+            Calibration.predicted,
+            Calibration.nominal_version,
+            Calibration.report["parameters"],
+        )  # not whole reports
+        .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
+        .order_by(Calibration.id)
+    ).all()
     series: dict[str, list] = {}
     history = []
     prev: dict[str, dict] = {}
@@ -222,20 +250,43 @@ def drift(cell_id: int, db: DbSession, tok: Reader) -> dict:
                     entry.update({"change": moved["change"], "change_sigmas": moved["change_sigmas"]})
             series.setdefault(name, []).append(entry)
         prev, prev_version = params, version
-    runs = db.exec(select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
-                   .where(RunSession.cell_id == cell_id, RunSession.kind == "verify", RunSession.state == "completed",
-                          RunSession.dry_run == False).order_by(RunSession.id)).all()  # noqa: E712
+    runs = db.exec(
+        select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
+        .where(
+            RunSession.cell_id == cell_id,
+            RunSession.kind == "verify",
+            RunSession.state == "completed",
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+        .order_by(RunSession.id)
+    ).all()  # noqa: E712
     verify = []
     for sid, at, info in runs:
         v = (info or {}).get("verify")
         if not v:
             continue
         iso = v.get("iso9283")
-        verify.append({"session_id": sid, "at": at, "calibration_id": v.get("calibration_id"), "n": v.get("n"),
-                       "rms": v.get("rms"), "max": v.get("max"), "p95": v.get("p95"), "unit": v.get("unit"),
-                       "iso9283": None if not iso else {
-                           "repeats": iso["repeats"], "AP_mean": iso["accuracy"]["mean"], "AP_max": iso["accuracy"]["max"],
-                           "RP_mean": iso["repeatability"]["mean"], "RP_max": iso["repeatability"]["max"]}})
+        verify.append(
+            {
+                "session_id": sid,
+                "at": at,
+                "calibration_id": v.get("calibration_id"),
+                "n": v.get("n"),
+                "rms": v.get("rms"),
+                "max": v.get("max"),
+                "p95": v.get("p95"),
+                "unit": v.get("unit"),
+                "iso9283": None
+                if not iso
+                else {
+                    "repeats": iso["repeats"],
+                    "AP_mean": iso["accuracy"]["mean"],
+                    "AP_max": iso["accuracy"]["max"],
+                    "RP_mean": iso["repeatability"]["mean"],
+                    "RP_max": iso["repeatability"]["max"],
+                },
+            }
+        )
     return {"calibrations": history, "parameters": series, "verify": verify}
 
 
@@ -245,8 +296,7 @@ class TaskFileCreate(_In):
     mode: str = Field(default="joints", pattern="^(joints|targets)$")
 
 
-@router.post("/cells/{cell_id}/tasks", status_code=201, response_model=TaskFileInfo,
-             response_model_exclude_unset=True)
+@router.post("/cells/{cell_id}/tasks", status_code=201, response_model=TaskFileInfo, response_model_exclude_unset=True)
 def register_task(cell_id: int, body: TaskFileCreate, db: DbSession, tok: CellEditor) -> dict:
     get_cell(db, cell_id)
     t = TaskFile(cell_id=cell_id, name=body.name, content=body.content, mode=body.mode)
@@ -260,8 +310,10 @@ def register_task(cell_id: int, body: TaskFileCreate, db: DbSession, tok: CellEd
 @router.get("/cells/{cell_id}/tasks", response_model=list[TaskFileInfo])
 def list_tasks(cell_id: int, db: DbSession, tok: Reader) -> list[dict]:
     get_cell(db, cell_id)
-    return [{"id": t.id, "name": t.name, "mode": t.mode, "created_at": t.created_at}
-            for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all()]
+    return [
+        {"id": t.id, "name": t.name, "mode": t.mode, "created_at": t.created_at}
+        for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all()
+    ]
 
 
 @router.get("/cells/{cell_id}/tasks/{task_id}", response_model=TaskFileContent)
@@ -277,10 +329,15 @@ def _tasks_to_compensate(engine, cell_id: int, calibration_id: int | None) -> tu
         cell = get_cell(db, cell_id)
         cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
         if cal is None or cal.cell_id != cell_id:
-            raise HTTPException(404, "no calibration to compensate with" if calibration_id is None
-                                else f"no calibration {calibration_id} in cell {cell_id}")
-        tasks = db.exec(select(TaskFile.id, TaskFile.name, TaskFile.mode)
-                        .where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all()
+            raise HTTPException(
+                404,
+                "no calibration to compensate with"
+                if calibration_id is None
+                else f"no calibration {calibration_id} in cell {cell_id}",
+            )
+        tasks = db.exec(
+            select(TaskFile.id, TaskFile.name, TaskFile.mode).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)
+        ).all()
         return cal.id, [tuple(t) for t in tasks]
 
 
@@ -308,14 +365,21 @@ async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, cal
     for task_id, name, mode in tasks:
         content = await run_in_threadpool(_task_content, engine, task_id)
         try:
-            rec_id, _, summary, _ = await heavy.run(compensate_and_store, url, cal_id, content, name=name, mode=mode,
-                                                 actor=tok.name, audited=False)
+            rec_id, _, summary, _ = await heavy.run(
+                compensate_and_store, url, cal_id, content, name=name, mode=mode, actor=tok.name, audited=False
+            )
         except CompensationInputError as exc:
             results.append({"task_id": task_id, "name": name, "error": str(exc)})
             continue
         results.append({"task_id": task_id, "name": name, "compensation_id": rec_id, "summary": summary})
-    await run_in_threadpool(_audit, engine, actor=tok.name, action="compensate tasks", subject=f"cell {cell_id}",
-                            detail={"calibration": cal_id, "tasks": len(results)})
+    await run_in_threadpool(
+        _audit,
+        engine,
+        actor=tok.name,
+        action="compensate tasks",
+        subject=f"cell {cell_id}",
+        detail={"calibration": cal_id, "tasks": len(results)},
+    )
     return {"calibration_id": cal_id, "tasks": results}
 
 
@@ -332,13 +396,27 @@ def read_controller_model(cell_id: int, db: DbSession, tok: Reader) -> dict:
     cell = get_cell(db, cell_id)
     summary = controller_summary(db, cell)
     if summary is None:
-        raise HTTPException(404, f"cell {cell_id} has no controller model: a session on a UR cell over RTDE reads it, "
-                                 f"or upload the file `recal controller-model` writes")
-    rows = db.exec(select(ControllerModel).where(ControllerModel.cell_id == cell_id)
-                   .order_by(ControllerModel.version.desc())).all()
-    return {**summary, "model": rows[0].model,
-            "history": [{"version": r.version, "session_id": r.session_id, "created_at": r.created_at,
-                         "moved_mm": None if r.moved_m is None else r.moved_m * 1e3} for r in rows]}
+        raise HTTPException(
+            404,
+            f"cell {cell_id} has no controller model: a session on a UR cell over RTDE reads it, "
+            f"or upload the file `recal controller-model` writes",
+        )
+    rows = db.exec(
+        select(ControllerModel).where(ControllerModel.cell_id == cell_id).order_by(ControllerModel.version.desc())
+    ).all()
+    return {
+        **summary,
+        "model": rows[0].model,
+        "history": [
+            {
+                "version": r.version,
+                "session_id": r.session_id,
+                "created_at": r.created_at,
+                "moved_mm": None if r.moved_m is None else r.moved_m * 1e3,
+            }
+            for r in rows
+        ],
+    }
 
 
 @router.put("/cells/{cell_id}/controller-model")
@@ -352,14 +430,18 @@ def upload_controller_model(cell_id: int, body: dict, db: DbSession, tok: CellEd
     try:
         model_from_dict(body)
     except ModelFormatError as exc:
-        raise HTTPException(422, {"field": f"body.{exc.field}" if exc.field else "body",
-                                  "message": str(exc).split(": ", 1)[-1]}) from None
+        raise HTTPException(
+            422, {"field": f"body.{exc.field}" if exc.field else "body", "message": str(exc).split(": ", 1)[-1]}
+        ) from None
     if not isinstance(body.get(BLOCK), dict):
-        raise HTTPException(422, {"field": f"body.{BLOCK}", "message": "expected the check figures block "
-                                  "`recal controller-model` writes"})
+        raise HTTPException(
+            422,
+            {"field": f"body.{BLOCK}", "message": "expected the check figures block `recal controller-model` writes"},
+        )
     last = current_controller_model(db, cell_id)
     moved = models_differ(None if last is None else last.model, body)
     rec = add_controller_model(db, cell_id=cell_id, model=body, moved_m=moved)
-    audit(db, actor=tok.name, action="upload controller model", subject=f"cell {cell_id}",
-          detail={"version": rec.version})
+    audit(
+        db, actor=tok.name, action="upload controller model", subject=f"cell {cell_id}", detail={"version": rec.version}
+    )
     return controller_summary(db, cell)

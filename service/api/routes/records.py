@@ -5,18 +5,17 @@ and retention")."""
 
 from __future__ import annotations
 
-
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import PlainTextResponse
 from sqlalchemy import delete, func
 from sqlmodel import select
 
-from ...models import Calibration, Cell, Compensation, Measurement, RunSession, SessionPublic, TaskFile
 from ... import analysis
+from ...models import Calibration, Cell, Compensation, Measurement, RunSession, SessionPublic, TaskFile
 from ...records import measurements_csv
+from ...sessions import ACTIVE, get_run, public_session
 from ...store import audit, delete_session_rows
 from ..deps import Admin, CellEditor, DbSession, Reader
-from ...sessions import ACTIVE, get_run, public_session
 
 router = APIRouter(tags=["records"])
 
@@ -41,26 +40,35 @@ def read_measurements_csv(session_id: int, db: DbSession, tok: Reader) -> PlainT
 
     run = get_run(db, session_id)
     model = model_from_dict(_cell(db, run.cell_id).model)
-    rows = db.exec(select(Measurement).where(Measurement.session_id == session_id)
-                   .order_by(Measurement.seq, Measurement.id)).all()
-    text = f"# session {run.id} ({run.kind}, {run.state}) of cell {run.cell_id}, units {model.units.length}/" \
-           f"{model.units.angle}\n" + measurements_csv(model, rows)
-    return PlainTextResponse(text, media_type="text/csv",
-                             headers={"Content-Disposition": f'attachment; filename="session-{run.id}-measurements.csv"'})
+    rows = db.exec(
+        select(Measurement).where(Measurement.session_id == session_id).order_by(Measurement.seq, Measurement.id)
+    ).all()
+    text = (
+        f"# session {run.id} ({run.kind}, {run.state}) of cell {run.cell_id}, units {model.units.length}/"
+        f"{model.units.angle}\n" + measurements_csv(model, rows)
+    )
+    return PlainTextResponse(
+        text,
+        media_type="text/csv",
+        headers={"Content-Disposition": f'attachment; filename="session-{run.id}-measurements.csv"'},
+    )
 
 
 # --------------------------------------------------------------------------- import
 
 
 @router.post("/cells/{cell_id}/measurements", status_code=201, response_model=SessionPublic)
-async def import_measurements(cell_id: int, request: Request, db: DbSession, tok: CellEditor,
-                              kind: str = "pose", name: str = "measurements.csv"):
+async def import_measurements(
+    cell_id: int, request: Request, db: DbSession, tok: CellEditor, kind: str = "pose", name: str = "measurements.csv"
+):
     """Externally measured data (a measurement CSV, contracts §3, in the units of the cell's
     nominal model) into the cell's history, as a completed session: ``kind=pose`` identifies a
     calibration from it (as a pose session does), ``kind=verify`` checks the cell's current
     model against it. Nothing moves. Bad rows: 422 naming the row and column."""
     if kind not in IMPORT_KINDS:
-        raise HTTPException(422, {"field": "query.kind", "message": f"expected one of {', '.join(IMPORT_KINDS)}, got {kind!r}"})
+        raise HTTPException(
+            422, {"field": "query.kind", "message": f"expected one of {', '.join(IMPORT_KINDS)}, got {kind!r}"}
+        )
     body = await request.body()
     if not body.strip():
         raise HTTPException(422, {"field": "body", "message": "expected a measurement CSV, got nothing"})
@@ -71,8 +79,9 @@ async def import_measurements(cell_id: int, request: Request, db: DbSession, tok
 
 
 def _import(db, cell_id: int, body: bytes, kind: str, name: str, tok, settings) -> SessionPublic:
-    run = analysis.import_measurements(db, _cell(db, cell_id), body, kind=kind, name=name, actor=tok.name,
-                                      settings=settings)
+    run = analysis.import_measurements(
+        db, _cell(db, cell_id), body, kind=kind, name=name, actor=tok.name, settings=settings
+    )
     return public_session(db, run)
 
 
@@ -89,8 +98,11 @@ def delete_session(session_id: int, db: DbSession, tok: Admin) -> dict:
         raise HTTPException(409, f"session {session_id} is {run.state}: abort it before deleting it")
     cal = db.exec(select(Calibration.id).where(Calibration.session_id == session_id)).first()
     if cal is not None:
-        raise HTTPException(409, f"calibration {cal} was identified from session {session_id}: its measurements are "
-                                 f"kept as long as the calibration (delete the cell to remove both)")
+        raise HTTPException(
+            409,
+            f"calibration {cal} was identified from session {session_id}: its measurements are "
+            f"kept as long as the calibration (delete the cell to remove both)",
+        )
     detail = {"cell": run.cell_id, "kind": run.kind, "state": run.state, "dry_run": run.dry_run}
     detail["measurements"] = delete_session_rows(db, session_id)
     db.commit()
@@ -110,8 +122,11 @@ def delete_cell(cell_id: int, db: DbSession, tok: Admin) -> dict:
     session_ids = list(db.exec(select(RunSession.id).where(RunSession.cell_id == cell_id)).all())
     cal_ids = list(db.exec(select(Calibration.id).where(Calibration.cell_id == cell_id)).all())
     counts = {"sessions": len(session_ids), "calibrations": len(cal_ids)}
-    counts["measurements"] = int(db.exec(select(func.count()).select_from(Measurement)
-                                         .where(Measurement.session_id.in_(session_ids))).one()) if session_ids else 0
+    counts["measurements"] = (
+        int(db.exec(select(func.count()).select_from(Measurement).where(Measurement.session_id.in_(session_ids))).one())
+        if session_ids
+        else 0
+    )
     if cal_ids:
         db.execute(delete(Compensation).where(Compensation.calibration_id.in_(cal_ids)))
         db.execute(delete(Calibration).where(Calibration.id.in_(cal_ids)))

@@ -13,7 +13,6 @@ from fastapi.responses import Response
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
-
 from ...certificate import certificate_data, certificate_pdf
 from ...models import Calibration, Compensation
 from ...results import calibration_result, compare_calibrations, previous_calibration_id
@@ -112,10 +111,15 @@ async def certificate_as_pdf(calibration_id: int, request: Request, tok: Reader)
     try:
         pdf = await request.app.state.heavy.run(certificate_pdf, cert)
     except ImportError:
-        raise HTTPException(501, "PDF output needs the reportlab package (pip install reportlab); print the "
-                                 "certificate page to PDF instead") from None
-    return Response(pdf, media_type="application/pdf",
-                    headers={"Content-Disposition": f'attachment; filename="{cert["number"]}.pdf"'})
+        raise HTTPException(
+            501,
+            "PDF output needs the reportlab package (pip install reportlab); print the certificate page to PDF instead",
+        ) from None
+    return Response(
+        pdf,
+        media_type="application/pdf",
+        headers={"Content-Disposition": f'attachment; filename="{cert["number"]}.pdf"'},
+    )
 
 
 @router.get("/compensations/{compensation_id}/report", response_model=CompensationReport)
@@ -124,5 +128,12 @@ def compensation_report(compensation_id: int, db: DbSession, tok: Reader) -> dic
     rec = db.get(Compensation, compensation_id)
     if rec is None:
         raise HTTPException(404, f"no compensation {compensation_id}")
-    return {"id": rec.id, "calibration_id": rec.calibration_id, "name": rec.name, "mode": rec.mode,
-            "created_by": rec.created_by, "created_at": rec.created_at, "report": rec.report or {}}
+    return {
+        "id": rec.id,
+        "calibration_id": rec.calibration_id,
+        "name": rec.name,
+        "mode": rec.mode,
+        "created_by": rec.created_by,
+        "created_at": rec.created_at,
+        "report": rec.report or {},
+    }

@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
@@ -45,14 +44,22 @@ async def read_session(session_id: int, request: Request, tok: Reader):
 def resume(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
     run = get_run(db, session_id)
     if run.state not in ("paused", "interrupted", "planned"):
-        raise HTTPException(409, f"session {session_id} is {run.state}; only a paused or interrupted session can resume")
+        raise HTTPException(
+            409, f"session {session_id} is {run.state}; only a paused or interrupted session can resume"
+        )
     planned_for = (run.plan_info or {}).get("nominal_version")
     cell = db.get(Cell, run.cell_id)
     if run.plan is not None and planned_for is not None and planned_for != cell.model_version:
-        raise HTTPException(409, f"session {session_id} was planned for the cell's nominal model version {planned_for}; "
-                                 f"it has been replaced (version {cell.model_version}): start a new session")
-    busy = db.exec(select(RunSession).where(RunSession.cell_id == run.cell_id, RunSession.id != run.id,
-                                            RunSession.state.in_(ACTIVE))).first()
+        raise HTTPException(
+            409,
+            f"session {session_id} was planned for the cell's nominal model version {planned_for}; "
+            f"it has been replaced (version {cell.model_version}): start a new session",
+        )
+    busy = db.exec(
+        select(RunSession).where(
+            RunSession.cell_id == run.cell_id, RunSession.id != run.id, RunSession.state.in_(ACTIVE)
+        )
+    ).first()
     if busy is not None:
         raise HTTPException(409, f"session {busy.id} is driving this cell")
     run.state, run.reason, run.updated_at = "planned", None, utcnow()
@@ -104,8 +111,9 @@ def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orche
 @router.get("/sessions/{session_id}/measurements", response_model=list[MeasurementOut])
 def measurements(session_id: int, db: DbSession, tok: Reader) -> list[dict]:
     get_run(db, session_id)
-    rows = db.exec(select(Measurement).where(Measurement.session_id == session_id)
-                   .order_by(Measurement.seq, Measurement.id)).all()
+    rows = db.exec(
+        select(Measurement).where(Measurement.session_id == session_id).order_by(Measurement.seq, Measurement.id)
+    ).all()
     return [r.model_dump(exclude={"session_id"}) for r in rows]
 
 
@@ -119,14 +127,16 @@ async def events_ticket(session_id: int, request: Request, tok: Reader):
     return EventTicket(ticket=store.issue(tok, f"events:{session_id}"), expires_in_s=store.ttl_s)
 
 
-async def stream_reader(session_id: int, request: Request,
-                        ticket: Annotated[str | None, Query(max_length=200)] = None) -> Token:
+async def stream_reader(
+    session_id: int, request: Request, ticket: Annotated[str | None, Query(max_length=200)] = None
+) -> Token:
     """The event stream's caller: a ticket (single use, this session's), else the bearer token."""
     if ticket is not None:
         tok = tickets(request.app).redeem(ticket, f"events:{session_id}")
         if tok is None:
-            raise HTTPException(401, "unknown, used or expired ticket: ask for a new one "
-                                     "(POST /api/v1/sessions/{id}/events/ticket)")
+            raise HTTPException(
+                401, "unknown, used or expired ticket: ask for a new one (POST /api/v1/sessions/{id}/events/ticket)"
+            )
         return tok
     tok = await current_token(request)
     if tok.role not in PERMISSIONS["read"]:
@@ -134,13 +144,31 @@ async def stream_reader(session_id: int, request: Request,
     return tok
 
 
-@router.get("/sessions/{session_id}/events", response_class=StreamingResponse,
-            responses={200: {"description": "Server-sent events (`event: progress`), each one's data the session",
-                             "content": {"text/event-stream": {"schema": {  # each event (OpenAPI 3.1: `schema`)
-                                 "type": "object", "required": ["event", "data"],
-                                 "properties": {"event": {"const": "progress"}, "data": {
-                                     "type": "string", "contentMediaType": "application/json",
-                                     "contentSchema": {"$ref": "#/components/schemas/SessionPublic"}}}}}}}})
+@router.get(
+    "/sessions/{session_id}/events",
+    response_class=StreamingResponse,
+    responses={
+        200: {
+            "description": "Server-sent events (`event: progress`), each one's data the session",
+            "content": {
+                "text/event-stream": {
+                    "schema": {  # each event (OpenAPI 3.1: `schema`)
+                        "type": "object",
+                        "required": ["event", "data"],
+                        "properties": {
+                            "event": {"const": "progress"},
+                            "data": {
+                                "type": "string",
+                                "contentMediaType": "application/json",
+                                "contentSchema": {"$ref": "#/components/schemas/SessionPublic"},
+                            },
+                        },
+                    }
+                }
+            },
+        }
+    },
+)
 async def events(session_id: int, request: Request, tok: Annotated[Token, Depends(stream_reader)]):
     """Progress as server-sent events: an ``event: progress`` with the session's state,
     planned and measured counts and reason whenever one changes; ends when the session is
@@ -172,5 +200,6 @@ async def events(session_id: int, request: Request, tok: Annotated[Token, Depend
                     yield ": keep-alive\n\n"
             await asyncio.sleep(0.25)
 
-    return StreamingResponse(stream(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+    return StreamingResponse(
+        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+    )

@@ -54,14 +54,22 @@ def me(tok: CurrentToken):
 @router.post("/tokens", status_code=201, response_model=TokenCreated)
 def create(body: TokenCreate, db: DbSession, tok: Admin):
     new, plain = create_token(db, role=body.role, name=body.name)
-    audit(db, actor=tok.name, action="create token", subject=f"token {new.id}", detail={"role": new.role, "name": new.name})
+    audit(
+        db,
+        actor=tok.name,
+        action="create token",
+        subject=f"token {new.id}",
+        detail={"role": new.role, "name": new.name},
+    )
     return {"id": new.id, "name": new.name, "role": new.role, "token": plain}
 
 
 @router.get("/tokens", response_model=list[TokenInfo])
 def list_tokens(db: DbSession, tok: Admin):
-    return [{"id": t.id, "name": t.name, "role": t.role, "revoked": t.revoked, "created_at": t.created_at}
-            for t in db.exec(select(Token).order_by(Token.id)).all()]
+    return [
+        {"id": t.id, "name": t.name, "role": t.role, "revoked": t.revoked, "created_at": t.created_at}
+        for t in db.exec(select(Token).order_by(Token.id)).all()
+    ]
 
 
 @router.delete("/tokens/{token_id}", response_model=TokenRevoked)

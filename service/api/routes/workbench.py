@@ -16,12 +16,20 @@ from ...devices import describe
 from ...devicetest import test_cell_devices
 from ...models import Calibration, Cell, RunSession, SessionPublic
 from ...results import plan_preview, session_live
-from ...store import as_utc
-from ...store import audit, measured_count
-from ..deps import DbSession, Orchestrator, Reader, Runner
-from ..schemas import (CellSummary, DeviceTest, History, LastDeviceTest, LibraryRobot, LiveSession, Overview,
-                       PlanPreview, SessionPage)
 from ...sessions import ACTIVE, commit_planned, public_session
+from ...store import as_utc, audit, measured_count
+from ..deps import DbSession, Orchestrator, Reader, Runner
+from ..schemas import (
+    CellSummary,
+    DeviceTest,
+    History,
+    LastDeviceTest,
+    LibraryRobot,
+    LiveSession,
+    Overview,
+    PlanPreview,
+    SessionPage,
+)
 
 router = APIRouter(tags=["workbench"])
 
@@ -44,15 +52,23 @@ def _run(db, session_id: int) -> RunSession:
 
 def _robot(model_doc: dict) -> dict:
     joints = model_doc.get("joints") or []
-    return {"name": model_doc.get("name") or "?", "convention": model_doc.get("convention"), "joints": len(joints),
-            "units": model_doc.get("units"), "targets": sorted((model_doc.get("targets") or {}).keys())}
+    return {
+        "name": model_doc.get("name") or "?",
+        "convention": model_doc.get("convention"),
+        "joints": len(joints),
+        "units": model_doc.get("units"),
+        "targets": sorted((model_doc.get("targets") or {}).keys()),
+    }
 
 
 def _trend(db, cell_id: int, limit: int = TREND) -> list[dict]:
     """The last ``limit`` pose calibrations' RMS, oldest first (columns only, no reports)."""
-    rows = db.exec(select(Calibration.id, Calibration.rms, Calibration.created_at)
-                   .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
-                   .order_by(Calibration.id.desc()).limit(limit)).all()
+    rows = db.exec(
+        select(Calibration.id, Calibration.rms, Calibration.created_at)
+        .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
+        .order_by(Calibration.id.desc())
+        .limit(limit)
+    ).all()
     return [{"id": i, "rms": r, "created_at": as_utc(t).isoformat()} for i, r, t in reversed(rows)]
 
 
@@ -62,28 +78,55 @@ def _verified(db, cell_id: int, limit: int = TREND) -> list[dict]:
     sessions, with the calibration it checked and its RMS and max error on fresh
     configurations. This, not a calibration's residual (how well the model fits the data it was
     identified from), is the cell's accuracy."""
-    rows = db.exec(select(RunSession.id, RunSession.plan_info, RunSession.updated_at)
-                   .where(RunSession.cell_id == cell_id, RunSession.kind == "verify", RunSession.state == "completed",
-                          RunSession.dry_run == False)  # noqa: E712
-                   .order_by(RunSession.id.desc()).limit(limit)).all()
+    rows = db.exec(
+        select(RunSession.id, RunSession.plan_info, RunSession.updated_at)
+        .where(
+            RunSession.cell_id == cell_id,
+            RunSession.kind == "verify",
+            RunSession.state == "completed",
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+        .order_by(RunSession.id.desc())
+        .limit(limit)
+    ).all()
     out = []
     for sid, info, t in reversed(rows):
         v = (info or {}).get("verify") or {}
         if v.get("calibration_id") is None or v.get("rms") is None:
             continue
-        out.append({"session_id": sid, "calibration_id": v["calibration_id"], "rms": v["rms"], "max": v.get("max"),
-                    "n": v.get("n"), "created_at": as_utc(t).isoformat()})
+        out.append(
+            {
+                "session_id": sid,
+                "calibration_id": v["calibration_id"],
+                "rms": v["rms"],
+                "max": v.get("max"),
+                "n": v.get("n"),
+                "created_at": as_utc(t).isoformat(),
+            }
+        )
     return out
 
 
 def _active(db, cell_id: int) -> dict | None:
-    run = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.dry_run == False,  # noqa: E712
-                                           RunSession.state.in_(("planned", "running", "paused", "interrupted")))
-                  .order_by(RunSession.id.desc())).first()
+    run = db.exec(
+        select(RunSession)
+        .where(
+            RunSession.cell_id == cell_id,
+            RunSession.dry_run == False,  # noqa: E712
+            RunSession.state.in_(("planned", "running", "paused", "interrupted")),
+        )
+        .order_by(RunSession.id.desc())
+    ).first()
     if run is None:
         return None
-    return {"id": run.id, "kind": run.kind, "state": run.state, "planned": run.planned,
-            "measured": measured_count(db, run.id), "reason": run.reason}
+    return {
+        "id": run.id,
+        "kind": run.kind,
+        "state": run.state,
+        "planned": run.planned,
+        "measured": measured_count(db, run.id),
+        "reason": run.reason,
+    }
 
 
 def _summary(db, cell: Cell) -> dict:
@@ -93,11 +136,20 @@ def _summary(db, cell: Cell) -> dict:
     last = trend[-1] if trend else None
     # the cell's accuracy: the last verification of its current calibration (None until verified)
     accuracy = verified[-1] if verified and last and verified[-1]["calibration_id"] == last["id"] else None
-    return {"id": cell.id, "name": cell.name, "site": cell.site, "robot": _robot(cell.model),
-            "devices": describe(cell.devices or {}),
-            "unit": unit, "drift_threshold": cell.drift_threshold,
-            "last": last, "trend": trend, "verified": verified, "accuracy": accuracy,
-            "active_session": _active(db, cell.id)}
+    return {
+        "id": cell.id,
+        "name": cell.name,
+        "site": cell.site,
+        "robot": _robot(cell.model),
+        "devices": describe(cell.devices or {}),
+        "unit": unit,
+        "drift_threshold": cell.drift_threshold,
+        "last": last,
+        "trend": trend,
+        "verified": verified,
+        "accuracy": accuracy,
+        "active_session": _active(db, cell.id),
+    }
 
 
 @router.get("/overview", response_model=Overview)
@@ -109,8 +161,7 @@ def overview(db: DbSession, tok: Reader, site: str | None = None, limit: int = 2
         q = q.where(Cell.site == site)
     total = db.exec(select(func.count()).select_from(q.subquery())).one()
     cells = db.exec(q.offset(max(0, offset)).limit(max(1, min(limit, 500)))).all()
-    return {"me": {"name": tok.name, "role": tok.role}, "total": int(total),
-            "cells": [_summary(db, c) for c in cells]}
+    return {"me": {"name": tok.name, "role": tok.role}, "total": int(total), "cells": [_summary(db, c) for c in cells]}
 
 
 @router.get("/cells/{cell_id}/summary", response_model=CellSummary)
@@ -119,35 +170,56 @@ def cell_summary(cell_id: int, db: DbSession, tok: Reader) -> dict:
     cell = _cell(db, cell_id)
     from ...controller import controller_summary
 
-    return {**_summary(db, cell), "devices_doc": cell.devices, "allowed_region": cell.allowed_region,
-            "created_at": as_utc(cell.created_at).isoformat(), "model": cell.model,
-            "controller_model": controller_summary(db, cell)}
+    return {
+        **_summary(db, cell),
+        "devices_doc": cell.devices,
+        "allowed_region": cell.allowed_region,
+        "created_at": as_utc(cell.created_at).isoformat(),
+        "model": cell.model,
+        "controller_model": controller_summary(db, cell),
+    }
 
 
 @router.get("/cells/{cell_id}/history", response_model=History)
-def history(cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 20,
-            offset: int = 0) -> dict:
+def history(
+    cell_id: int, db: DbSession, tok: Reader, kind: str | None = None, limit: int = 20, offset: int = 0
+) -> dict:
     """A page of the cell's calibrations, newest first (without their reports)."""
     _cell(db, cell_id)
     where = [Calibration.cell_id == cell_id] + ([Calibration.kind == kind] if kind else [])
     total = db.exec(select(func.count(Calibration.id)).where(*where)).one()
-    rows = db.exec(select(Calibration.id, Calibration.kind, Calibration.session_id, Calibration.rms,
-                          Calibration.created_at).where(*where).order_by(Calibration.id.desc())
-                   .offset(max(0, offset)).limit(max(1, min(limit, 200)))).all()
-    return {"total": int(total), "offset": offset,
-            "items": [{"id": i, "kind": k, "session_id": s, "rms": r, "created_at": as_utc(t).isoformat()}
-                      for i, k, s, r, t in rows]}
+    rows = db.exec(
+        select(Calibration.id, Calibration.kind, Calibration.session_id, Calibration.rms, Calibration.created_at)
+        .where(*where)
+        .order_by(Calibration.id.desc())
+        .offset(max(0, offset))
+        .limit(max(1, min(limit, 200)))
+    ).all()
+    return {
+        "total": int(total),
+        "offset": offset,
+        "items": [
+            {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": as_utc(t).isoformat()}
+            for i, k, s, r, t in rows
+        ],
+    }
 
 
 @router.get("/cells/{cell_id}/session-list", response_model=SessionPage)
-def session_list(cell_id: int, db: DbSession, tok: Reader, limit: int = 20, offset: int = 0,
-                 dry_runs: bool = False) -> dict:
+def session_list(
+    cell_id: int, db: DbSession, tok: Reader, limit: int = 20, offset: int = 0, dry_runs: bool = False
+) -> dict:
     """A page of the cell's sessions, newest first (dry runs left out unless asked for)."""
     _cell(db, cell_id)
     where = [RunSession.cell_id == cell_id] + ([] if dry_runs else [RunSession.dry_run == False])  # noqa: E712
     total = db.exec(select(func.count(RunSession.id)).where(*where)).one()
-    rows = db.exec(select(RunSession).where(*where).order_by(RunSession.id.desc())
-                   .offset(max(0, offset)).limit(max(1, min(limit, 200)))).all()
+    rows = db.exec(
+        select(RunSession)
+        .where(*where)
+        .order_by(RunSession.id.desc())
+        .offset(max(0, offset))
+        .limit(max(1, min(limit, 200)))
+    ).all()
     return {"total": int(total), "offset": offset, "items": [public_session(db, r) for r in rows]}
 
 
@@ -162,13 +234,17 @@ def test_connections(cell_id: int, request: Request, db: DbSession, tok: Runner,
     drives the cell its devices are not opened. The result is kept in the audit log (the
     certificate quotes the instrument's identity from it)."""
     cell = _cell(db, cell_id)
-    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE),
-                                            RunSession.dry_run == False)).first()  # noqa: E712
+    busy = db.exec(
+        select(RunSession).where(
+            RunSession.cell_id == cell_id,
+            RunSession.state.in_(ACTIVE),
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+    ).first()  # noqa: E712
     reason = f"session {busy.id} is driving this cell ({busy.state}); test when it has stopped" if busy else None
     results = test_cell_devices(cell.devices or {}, timeout_s=max(0.5, min(float(timeout_s), 30.0)), busy=reason)
     ok = all(r.get("ok") for r in results)
-    audit(db, actor=tok.name, action="test devices", subject=f"cell {cell_id}",
-          detail={"ok": ok, "results": results})
+    audit(db, actor=tok.name, action="test devices", subject=f"cell {cell_id}", detail={"ok": ok, "results": results})
     return {"cell_id": cell_id, "ok": ok, "results": results}
 
 
@@ -192,13 +268,23 @@ def library(tok: Reader) -> list[dict]:
     out = []
     for name in robots.names():
         doc = robots.nominal_document(name)
-        out.append({**_robot(doc), "name": name, "model_name": doc.get("name"), "description": doc.get("description"),
-                    "source": doc.get("source")})
+        out.append(
+            {
+                **_robot(doc),
+                "name": name,
+                "model_name": doc.get("name"),
+                "description": doc.get("description"),
+                "source": doc.get("source"),
+            }
+        )
     return out
 
 
-@router.get("/library/robots/{name}", response_model=dict[str, Any],
-            responses={200: {"description": "a recal.model/1 document (docs/formats.md)"}})
+@router.get(
+    "/library/robots/{name}",
+    response_model=dict[str, Any],
+    responses={200: {"description": "a recal.model/1 document (docs/formats.md)"}},
+)
 def library_robot(name: str, tok: Reader) -> dict:
     """A library robot's nominal ``recal.model/1`` document."""
     from calibration import robots
@@ -227,27 +313,49 @@ def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestr
     the configurations that were shown and checked."""
     dry = _run(db, session_id)
     if not dry.dry_run or dry.state != "completed" or not dry.plan:
-        raise HTTPException(409, f"session {session_id} is not a completed dry run with a plan "
-                                 f"(state {dry.state}{', ' + dry.reason if dry.reason else ''})")
+        raise HTTPException(
+            409,
+            f"session {session_id} is not a completed dry run with a plan "
+            f"(state {dry.state}{', ' + dry.reason if dry.reason else ''})",
+        )
     cell = _cell(db, dry.cell_id)
     if dry.kind in ("pose", "verify", "circle") and not (cell.devices or {}).get(dry.device):
         raise HTTPException(422, {"field": "device", "message": f"this cell has no {dry.device}"})
-    busy = db.exec(select(RunSession).where(RunSession.cell_id == cell.id, RunSession.state.in_(ACTIVE),
-                                            RunSession.dry_run == False)).first()  # noqa: E712
+    busy = db.exec(
+        select(RunSession).where(
+            RunSession.cell_id == cell.id,
+            RunSession.state.in_(ACTIVE),
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+    ).first()  # noqa: E712
     if busy is not None:
         raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
     info = {k: v for k, v in (dry.plan_info or {}).items() if k != "dry_run"}
     info["from_dry_run"] = dry.id
-    run = RunSession(cell_id=cell.id, kind=dry.kind, planned=len(dry.plan), device=dry.device, target=dry.target,
-                     dry_run=False, created_by=tok.name, plan=dry.plan, plan_info=info)
+    run = RunSession(
+        cell_id=cell.id,
+        kind=dry.kind,
+        planned=len(dry.plan),
+        device=dry.device,
+        target=dry.target,
+        dry_run=False,
+        created_by=tok.name,
+        plan=dry.plan,
+        plan_info=info,
+    )
     try:
         queued = commit_planned(db, run, orchestrator)
     except IntegrityError:  # another request (any API process) started one on this cell meanwhile
         db.rollback()
         raise HTTPException(409, "another session is already driving this cell") from None
     db.refresh(run)
-    audit(db, actor=tok.name, action="start session", subject=f"session {run.id}",
-          detail={"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id})
+    audit(
+        db,
+        actor=tok.name,
+        action="start session",
+        subject=f"session {run.id}",
+        detail={"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id},
+    )
     if not queued:
         orchestrator.start(run.id)
     return public_session(db, run)
