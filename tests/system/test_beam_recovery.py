@@ -81,7 +81,7 @@ def test_the_line_protocol_tracker_still_drives_sessions(stack, models, register
     cell, fake = register(fake_args=["--no-emscon", "--fault", "beam_break_at=3,7"])
     assert "emscon" not in fake.ready
     api = stack.api()
-    s = api.wait_session(_start(api, cell, kind="pose", count=10)["id"], 60)
+    s = api.wait_session(_start(api, cell, kind="pose", count=14)["id"], 60)
     assert s["state"] == "completed", (s["state"], s.get("reason"))
     assert s["beam_recoveries"] == 0
     assert api.call("GET", f"/sessions/{s['id']}/measurements")[0]["sigma"] == 20e-6

@@ -39,7 +39,7 @@ def test_a_whole_session_with_its_event_stream_leaves_no_secret_in_the_log(stack
     cell, _ = register()
     api = stack.api("technician")
     url = stack.service.ready["url"]
-    s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "pose", "count": 12})
+    s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "pose", "count": 14})
     # the page's way: a ticket for this session's stream, in the stream's URL
     ticket = api.call("POST", f"/sessions/{s['id']}/events/ticket")["ticket"]
     conn, r = _stream(url, f"/api/v1/sessions/{s['id']}/events?ticket={ticket}")

@@ -24,7 +24,7 @@ def test_live_page_counts_the_beam_recoveries(page, stack, web):
     try:
         model = json.loads(stack.nominal_path.read_text())
         doc = web.api(stack, "POST", "/cells", {"name": "beam breaks", "model": model, "devices": cell.ready})
-        s = web.api(stack, "POST", f"/cells/{doc['id']}/sessions", {"kind": "pose", "count": 8})
+        s = web.api(stack, "POST", f"/cells/{doc['id']}/sessions", {"kind": "pose", "count": 14})
         deadline = time.monotonic() + 60
         while (s := web.api(stack, "GET", f"/sessions/{s['id']}"))["state"] in ("planned", "running"):
             assert time.monotonic() < deadline, s
