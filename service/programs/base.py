@@ -152,3 +152,26 @@ def written(number: Number, value: float, unit: str) -> str:
     if t.startswith("+") and not s.startswith("-"):
         s = "+" + s
     return s
+
+
+def mask_code(text: str, comment: str) -> str:
+    """``text`` with comments (``comment`` to the end of the line: KRL ``;``, RAPID ``!``) and
+    string contents blanked, same length and line breaks: what a parser reads, so that offsets
+    are the file's."""
+    out = list(text)
+    i, n = 0, len(text)
+    while i < n:
+        ch = text[i]
+        if ch == '"':
+            j = i + 1
+            while j < n and text[j] != '"' and text[j] not in "\r\n":
+                out[j] = " "
+                j += 1
+            i = j + 1
+        elif ch == comment:
+            while i < n and text[i] not in "\r\n":
+                out[i] = " "
+                i += 1
+        else:
+            i += 1
+    return "".join(out)

@@ -38,6 +38,7 @@ from .base import (
     line_of,
     line_starts,
     line_text,
+    mask_code,
     read_text,
 )
 from .frames import Frames
@@ -59,30 +60,9 @@ _REF_RE = re.compile(r"([a-z_]\w*)(?:\s*\[\s*(\d+)\s*\])?$", re.IGNORECASE)
 _IDENT_RE = re.compile(r"[A-Za-z_]\w*")
 
 
-def _mask(text: str) -> str:
-    """Comments (``;`` to the end of the line) and string contents blanked, same length."""
-    out = list(text)
-    i, n = 0, len(text)
-    while i < n:
-        ch = text[i]
-        if ch == '"':
-            j = i + 1
-            while j < n and text[j] != '"' and text[j] not in "\r\n":
-                out[j] = " "
-                j += 1
-            i = j + 1
-        elif ch == ";":
-            while i < n and text[i] not in "\r\n":
-                out[i] = " "
-                i += 1
-        else:
-            i += 1
-    return "".join(out)
-
-
 class _File:
     def __init__(self, index, path, text):
-        self.index, self.path, self.text, self.code = index, str(path), text, _mask(text)
+        self.index, self.path, self.text, self.code = index, str(path), text, mask_code(text, ";")
         self.starts = line_starts(text)
 
     def lines(self):

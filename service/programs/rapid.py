@@ -36,6 +36,7 @@ from .base import (
     line_of,
     line_starts,
     line_text,
+    mask_code,
     read_text,
 )
 
@@ -65,28 +66,6 @@ _DECL_RE = re.compile(
 _IDENT_RE = re.compile(r"[A-Za-z_]\w*")
 _REF_RE = re.compile(r"([A-Za-z_]\w*)\s*(?:\{\s*(\d+)\s*\})?")
 TYPES = ("robtarget", "jointtarget", "tooldata", "wobjdata")
-
-
-def _mask(text: str) -> str:
-    """``text`` with comments (``!`` to the end of the line) and string contents blanked, same
-    length and line breaks: what the parser reads, so offsets are the file's."""
-    out = list(text)
-    i, n = 0, len(text)
-    while i < n:
-        ch = text[i]
-        if ch == '"':
-            j = i + 1
-            while j < n and text[j] != '"' and text[j] not in "\r\n":
-                out[j] = " "
-                j += 1
-            i = j + 1
-        elif ch == "!":
-            while i < n and text[i] not in "\r\n":
-                out[i] = " "
-                i += 1
-        else:
-            i += 1
-    return "".join(out)
 
 
 class _Bad(RecalError, ValueError):
@@ -183,7 +162,7 @@ def _options(code: str, s: int, e: int) -> tuple[tuple[int, int], dict[str, str]
 
 class _Reader:
     def __init__(self, path, text):
-        self.path, self.text, self.code = path, text, _mask(text)
+        self.path, self.text, self.code = path, text, mask_code(text, "!")
         self.starts = line_starts(text)
 
     def line(self, offset):
