@@ -20,14 +20,20 @@ class DeviceConfigError(RecalError, ValueError):
     """A cell's ``devices`` document cannot be used: names the field at fault."""
 
 
+# The tooling balls' radius when the cell does not give one: the common 25 mm ball.
+DEFAULT_BALL_RADIUS_M = 0.0125
+
+
 @dataclass
 class CellDevices:
-    """The open devices of one cell. Closing closes every one (idempotent)."""
+    """The open devices of one cell. Closing closes every one (idempotent). ``cmm_ball_radius_m``:
+    the radius of the tooling balls the CMM probes (:func:`cmm_ball_radius_m`)."""
 
     robot: Robot | None = None
     tracker: PositionSensor | None = None
     cmm: Cmm | None = None
     encoders: dict[int, JointEncoder] = field(default_factory=dict)
+    cmm_ball_radius_m: float = DEFAULT_BALL_RADIUS_M
 
     def close(self) -> None:
         for dev in [self.robot, self.tracker, self.cmm, *self.encoders.values()]:
@@ -137,6 +143,18 @@ def open_cmm(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Cmm:
     # touch"). Start 10 mm off the nominal surface and search 15 mm past it, as CMM programs
     # probing a part that is not yet aligned do (each point then takes a little longer).
     return IppDmeCmm(IppDmeConfig(url=str(devices["cmm"]), timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
+
+
+def cmm_ball_radius_m(devices: dict[str, Any]) -> float:
+    """``devices.cmm_ball_radius_m``: the radius of the tool's tooling balls (m) that the CMM
+    probes (every ball alike), default :data:`DEFAULT_BALL_RADIUS_M`. Raises
+    ``DeviceConfigError`` naming the field unless it is a radius a tooling ball can have."""
+    value = (devices or {}).get("cmm_ball_radius_m", DEFAULT_BALL_RADIUS_M)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0005 <= value <= 0.1:
+        raise DeviceConfigError(
+            f"devices.cmm_ball_radius_m: expected a tooling ball's radius in metres, 0.0005 to 0.1, got {value!r}"
+        )
+    return float(value)
 
 
 def open_encoders(

@@ -54,7 +54,15 @@ from drivers.base import SteerablePositionSensor
 from drivers.errors import DeviceError, DeviceUnavailableError, MeasurementError, RobotStoppedError
 
 from . import analysis, controller, records
-from .devices import CellDevices, DeviceConfigError, open_cmm, open_encoders, open_robot, open_tracker
+from .devices import (
+    CellDevices,
+    DeviceConfigError,
+    cmm_ball_radius_m,
+    open_cmm,
+    open_encoders,
+    open_robot,
+    open_tracker,
+)
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
@@ -137,6 +145,7 @@ def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> Cel
             joints = (run.plan_info or {}).get("joints")
             devs.encoders = open_encoders(cell.devices, joints, timeout_s=settings.device_timeout_s)
         elif run.device == "cmm":
+            devs.cmm_ball_radius_m = cmm_ball_radius_m(cell.devices)  # a bad value stops it before anything moves
             devs.cmm = open_cmm(cell.devices, timeout_s=settings.device_timeout_s)
         else:
             devs.tracker = open_tracker(cell.devices, timeout_s=settings.device_timeout_s)
@@ -531,7 +540,7 @@ def _measure_one(run, devices, settings, control, seq, q_read, joint, model, gui
         T_nom = fk(guide, np.asarray(qv)[None, :])[0]
         names = sorted(balls)
         pose = _retry(
-            lambda: devices.cmm.measure_pose(np.array([balls[n] for n in names]), T_nom, 0.0125),
+            lambda: devices.cmm.measure_pose(np.array([balls[n] for n in names]), T_nom, devices.cmm_ball_radius_m),
             "CMM pose",
             settings,
             control,

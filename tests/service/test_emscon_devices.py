@@ -129,3 +129,22 @@ def test_version_3_store_gets_beam_recoveries(database_url):
         assert db.get(RunSession, 1).beam_recoveries == 0
     assert migrate(engine) == SCHEMA_VERSION  # idempotent
     engine.dispose()
+
+
+@pytest.mark.parametrize("radius", [0.0, -0.0125, 12.5, "12.5mm", True])
+def test_a_cmm_ball_radius_that_no_tooling_ball_has_is_refused(client, tokens, radius):
+    cell = register_cell(client, tokens["technician"], "cmm-balls")
+    r = client.patch(
+        f"/api/v1/cells/{cell['id']}",
+        json={"devices": {"cmm": "socket://127.0.0.1:1294", "cmm_ball_radius_m": radius}},
+        headers=auth(tokens["technician"]),
+    )
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"]["field"] == "body.devices.cmm_ball_radius_m", r.json()
+
+
+def test_the_cmm_ball_radius_comes_from_the_cells_devices():
+    from service.devices import DEFAULT_BALL_RADIUS_M, cmm_ball_radius_m
+
+    assert cmm_ball_radius_m({"cmm": "socket://127.0.0.1:1294"}) == DEFAULT_BALL_RADIUS_M == 0.0125
+    assert cmm_ball_radius_m({"cmm": "socket://127.0.0.1:1294", "cmm_ball_radius_m": 0.01}) == 0.01

@@ -11,7 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from calibration.model import ModelFormatError, model_from_dict
 
-from ...devices import DeviceConfigError, emscon_config
+from ...devices import DeviceConfigError, cmm_ball_radius_m, emscon_config
 from ...models import (
     Calibration,
     Cell,
@@ -71,14 +71,15 @@ def _check_region(model, region: list | None, *, sent: bool = True) -> None:
 
 
 def _check_devices(devices: dict | None) -> None:
-    """An ``emscon`` entry must make a tracker configuration (the other entries are checked
-    when they are opened)."""
-    if devices and devices.get("emscon") is not None:
-        try:
+    """An ``emscon`` entry must make a tracker configuration and a CMM ball radius must be one
+    (the other entries are checked when they are opened)."""
+    try:
+        if devices and devices.get("emscon") is not None:
             emscon_config(devices["emscon"])
-        except DeviceConfigError as exc:
-            where, _, message = str(exc).partition(": ")
-            raise HTTPException(422, {"field": f"body.{where}", "message": message}) from None
+        cmm_ball_radius_m(devices or {})
+    except DeviceConfigError as exc:
+        where, _, message = str(exc).partition(": ")
+        raise HTTPException(422, {"field": f"body.{where}", "message": message}) from None
 
 
 def _name_free(db, name: str, cell_id: int | None = None) -> None:
