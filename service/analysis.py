@@ -326,26 +326,7 @@ def import_measurements(
     )
     db.add(run)
     db.flush()
-    quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
-    for i in range(len(data)):
-        qw, qx, qy, qz = (None if np.isnan(v) else float(v) for v in quat[i])
-        sigma = None if not np.isfinite(data.sigma[i]) else float(data.sigma[i])
-        db.add(
-            Measurement(
-                session_id=run.id,
-                seq=i,
-                target=data.target[i] or "",
-                q=[float(v) for v in data.q[i]],
-                x=float(data.p_world[i, 0]),
-                y=float(data.p_world[i, 1]),
-                z=float(data.p_world[i, 2]),
-                qw=qw,
-                qx=qx,
-                qy=qy,
-                qz=qz,
-                sigma=sigma,
-            )
-        )
+    db.add_all(records.measurement_rows(run.id, data))
     db.commit()
     db.refresh(run)
     try:

@@ -3,6 +3,7 @@
 - :func:`measurements_of`: a session's stored ``Measurement`` rows as ``calibration``'s
   :class:`~calibration.identify.Measurements` (SI, one row each, the row number being the
   session's pose number);
+- :func:`measurement_rows`: the other way, arrays as rows to store;
 - :func:`position_errors`, :func:`registered_errors`: a model's errors on those measurements
   (``calibration.metrics``, the one definition);
 - :func:`current_model`: the cell's best model (its last pose calibration, else its nominal
@@ -68,6 +69,33 @@ def measurements_of(rows: list[Measurement], run: RunSession | None = None) -> M
         row=np.array([r.seq + 1 for r in rows]),
         payload=None if run is None else payload_of(run, np.array([r.seq for r in rows])),
     )
+
+
+def measurement_rows(session_id: int, data: Measurements) -> list[Measurement]:
+    """The other way: :class:`Measurements` as rows of session ``session_id``, one per row, the
+    row's index its pose number (``seq``); NaN orientations and uncertainties are stored empty."""
+    quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
+    rows = []
+    for i in range(len(data)):
+        qw, qx, qy, qz = (None if np.isnan(v) else float(v) for v in quat[i])
+        sigma = None if not np.isfinite(data.sigma[i]) else float(data.sigma[i])
+        rows.append(
+            Measurement(
+                session_id=session_id,
+                seq=i,
+                target=data.target[i] or "",
+                q=[float(v) for v in data.q[i]],
+                x=float(data.p_world[i, 0]),
+                y=float(data.p_world[i, 1]),
+                z=float(data.p_world[i, 2]),
+                qw=qw,
+                qx=qx,
+                qy=qy,
+                qz=qz,
+                sigma=sigma,
+            )
+        )
+    return rows
 
 
 def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, list[Measurement]]:

@@ -140,8 +140,8 @@ def store_session(
 
     from calibration.model import model_from_dict
     from calibration.simulate import perturbed, random_configurations, simulate_measurements
-    from service import analysis
-    from service.models import Cell, Measurement, RunSession
+    from service import analysis, records
+    from service.models import Cell, RunSession
 
     engine = make_engine(settings.effective_database_url)
     try:
@@ -173,19 +173,8 @@ def store_session(
             db.add(run)
             db.commit()
             db.refresh(run)
-            for k in range(len(q)):
-                db.add(
-                    Measurement(
-                        session_id=run.id,
-                        seq=k,
-                        target="smr",
-                        q=data.q[k].tolist(),
-                        x=float(data.p_world[k, 0]),
-                        y=float(data.p_world[k, 1]),
-                        z=float(data.p_world[k, 2]),
-                        sigma=20e-6,
-                    )
-                )
+            # the tracker's stated uncertainty on every row, as a session stores it
+            db.add_all(records.measurement_rows(run.id, dataclasses.replace(data, sigma=np.full(len(data), 20e-6))))
             db.commit()
             analysis.finish_session(db, run, cell, settings)
             run.state = "completed"

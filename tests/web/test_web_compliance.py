@@ -19,9 +19,9 @@ def compliant_result(tmp_path, browser):
     from calibration.model import model_to_dict
     from calibration.robots import nominal
     from calibration.simulate import perturbed, random_configurations, sagging, simulate_measurements
-    from service import analysis
+    from service import analysis, records
     from service.client import Api
-    from service.models import Cell, Measurement, RunSession
+    from service.models import Cell, RunSession
     from service.processes import free_port, start_service
     from service.settings import Settings
     from service.store import create_token, make_engine, migrate
@@ -58,19 +58,8 @@ def compliant_result(tmp_path, browser):
             db.add(run)
             db.commit()
             db.refresh(run)
-            for k in range(len(data)):
-                db.add(
-                    Measurement(
-                        session_id=run.id,
-                        seq=k,
-                        target="smr",
-                        q=data.q[k].tolist(),
-                        x=float(data.p_world[k, 0]),
-                        y=float(data.p_world[k, 1]),
-                        z=float(data.p_world[k, 2]),
-                        sigma=20e-6,
-                    )
-                )
+            # the tracker's stated uncertainty on every row, as a session stores it
+            db.add_all(records.measurement_rows(run.id, dataclasses.replace(data, sigma=np.full(len(data), 20e-6))))
             db.commit()
             analysis.finish_session(db, run, cell, settings)
             run.state = "completed"
