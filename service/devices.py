@@ -157,6 +157,18 @@ def cmm_ball_radius_m(devices: dict[str, Any]) -> float:
     return float(value)
 
 
+def encoder_nodes(devices: dict[str, Any]) -> dict[int, tuple[int, str]]:
+    """The cell's reference encoders and resolvers: joint (1-based) -> (CANopen node, ``encoder``
+    or ``resolver``); where a joint has both, the encoder (the better reference)."""
+    if not devices.get("can"):
+        return {}
+    nodes: dict[int, tuple[int, str]] = {}
+    for kind, key in (("resolver", "resolvers"), ("encoder", "encoders")):  # encoders win
+        for j, node in (devices.get(key) or {}).items():
+            nodes[int(j)] = (int(node), kind)
+    return nodes
+
+
 def open_encoders(
     devices: dict[str, Any], joints: list[int] | None = None, *, timeout_s: float = 5.0
 ) -> dict[int, JointEncoder]:
@@ -166,10 +178,7 @@ def open_encoders(
     from drivers.canopen_encoder import CanBusConfig, CanopenEncoder, CanopenEncoderConfig
 
     bus = CanBusConfig.from_endpoint(devices["can"])
-    nodes: dict[int, tuple[int, str]] = {}
-    for kind, key in (("resolver", "resolvers"), ("encoder", "encoders")):  # encoders win
-        for j, node in (devices.get(key) or {}).items():
-            nodes[int(j)] = (int(node), kind)
+    nodes = encoder_nodes(devices)
     wanted = sorted(nodes) if joints is None else joints
     out: dict[int, JointEncoder] = {}
     try:

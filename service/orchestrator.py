@@ -35,120 +35,43 @@ raises and the process running it decides (the session ends ``interrupted``, nev
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 import traceback
-from collections.abc import Callable
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 
 import numpy as np
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlmodel import Session, select
 
-from calibration.errors import RecalError
 from calibration.model import model_from_dict
-from drivers.base import SteerablePositionSensor
-from drivers.errors import DeviceError, DeviceUnavailableError, MeasurementError, RobotStoppedError
+from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedError
 
 from . import analysis, controller, records
-from .devices import (
-    CellDevices,
-    DeviceConfigError,
-    cmm_ball_radius_m,
-    open_cmm,
-    open_encoders,
-    open_robot,
-    open_tracker,
-)
+from .control import Control, DeviceOpenError, SessionStopped, heavy_slot, retry
+from .devices import CellDevices, DeviceConfigError, open_robot
+from .kinds import Step, finish_session, kind_of
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
 from .store import acquire_lease, database_unavailable, held_by_other, set_state
 
+__all__ = ["Control", "DeviceOpenError", "Orchestrator", "SessionStopped", "open_session_devices", "run_session"]
+
 log = logging.getLogger("recal.sessions")
 
 
-@dataclass
-class Control:
-    """Requests from outside a running session (API threads, or a fleet worker's monitor).
-
-    ``interrupt``: the process running the session is stopping (the session ends
-    ``interrupted`` with ``interrupt_reason``); ``lease_valid_until`` (``time.monotonic()``):
-    the moment after which this process may no longer be sure it alone holds the cell, so no
-    further move is commanded (a fleet worker renews it; the embedded default never expires).
-    ``renew``: called when that moment has come before the next move (a fleet worker's monitor
-    thread was late, e.g. on a loaded machine): renews the hold in the store if this process
-    still has it (moving ``lease_valid_until`` on), else sets ``interrupt``; a store that
-    cannot be reached raises (the worker waits for it, module docstring)."""
-
-    pause: threading.Event = field(default_factory=threading.Event)
-    abort: threading.Event = field(default_factory=threading.Event)
-    devices: CellDevices | None = None
-    interrupt: threading.Event = field(default_factory=threading.Event)
-    interrupt_reason: str = ""
-    lease_valid_until: float = math.inf
-    renew: Callable[[], object] | None = None
-    heavy: threading.Semaphore | None = None  # the process's slots for planning and identification
-
-    def check(self) -> None:
-        """Raise :class:`SessionStopped` when the session must not make another move."""
-        if self.abort.is_set():
-            raise SessionStopped("aborted", "aborted on request")
-        if time.monotonic() >= self.lease_valid_until and self.renew is not None and not self.interrupt.is_set():
-            self.renew()  # the robot stands still meanwhile: slower, never two drivers
-        if self.interrupt.is_set():
-            raise SessionStopped("interrupted", self.interrupt_reason or "interrupted; resume it to continue")
-        if time.monotonic() >= self.lease_valid_until:
-            raise SessionStopped(
-                "interrupted",
-                "this worker's hold on the cell ran out before it was renewed; every "
-                "measurement reported is kept: resume the session to continue",
-            )
-        if self.pause.is_set():
-            raise SessionStopped("paused", "paused on request")
-
-
-class SessionStopped(RecalError):
-    """The session stops here: ``state`` and ``reason`` say how; ``device`` which device's fault
-    (``robot``, ``tracker``, ``cmm``, ``encoder``) stopped it, if one did, and ``cause`` the error."""
-
-    def __init__(self, state: str, reason: str, *, device: str | None = None, cause: Exception | None = None):
-        self.state, self.reason, self.device, self.cause = state, reason, device, cause
-        super().__init__(reason)
-
-
-class DeviceOpenError(RecalError, ConnectionError):
-    """One of the session's devices (``device``) could not be opened."""
-
-    def __init__(self, device: str, cause: Exception):
-        self.device, self.cause = device, cause
-        super().__init__(str(cause))
-
-
-def instrument_of(run: RunSession) -> str:
-    """The session's measuring device: ``encoder`` (joint sessions), ``cmm`` or ``tracker``."""
-    return "encoder" if run.kind == "joint" else "cmm" if run.device == "cmm" else "tracker"
-
-
 def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> CellDevices:
-    """The devices a session needs (opened in the worker, closed when it ends). Raises
-    :class:`DeviceOpenError` naming the device that could not be opened."""
+    """The devices a session needs: the robot, then its kind's instrument (opened in the worker,
+    closed when it ends). Raises :class:`DeviceOpenError` naming the device that could not be
+    opened."""
+    kind = kind_of(run.kind)
     devs = CellDevices()
     device = "robot"
     try:
         devs.robot = open_robot(cell.devices, timeout_s=settings.device_timeout_s)
-        device = instrument_of(run)
-        if run.kind == "joint":
-            joints = (run.plan_info or {}).get("joints")
-            devs.encoders = open_encoders(cell.devices, joints, timeout_s=settings.device_timeout_s)
-        elif run.device == "cmm":
-            devs.cmm_ball_radius_m = cmm_ball_radius_m(cell.devices)  # a bad value stops it before anything moves
-            devs.cmm = open_cmm(cell.devices, timeout_s=settings.device_timeout_s)
-        else:
-            devs.tracker = open_tracker(cell.devices, timeout_s=settings.device_timeout_s)
+        device = kind.instrument(run)
+        kind.open_instrument(devs, cell, run, settings)
     except (DeviceError, DeviceConfigError, OSError) as exc:
         devs.close()
         raise DeviceOpenError(device, exc) from exc
@@ -158,45 +81,6 @@ def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> Cel
     return devs
 
 
-@contextmanager
-def heavy_slot(control: Control, *, stoppable: bool):
-    """One of the process's slots for heavy work (``control.heavy``: ``Settings.heavy_workers``
-    of them), held while a session plans or identifies, so that many sessions finishing at once
-    do not share the cores (and the API's GIL) all together. While it waits for a slot, a
-    ``stoppable`` phase (planning) still stops on abort, pause or interrupt."""
-    if control.heavy is None:
-        yield
-        return
-    while not control.heavy.acquire(timeout=0.1):
-        if stoppable:
-            control.check()
-    try:
-        yield
-    finally:
-        control.heavy.release()
-
-
-def _retry(fn: Callable, what: str, settings: Settings, control: Control, device: str = "robot"):
-    """Call ``fn`` on ``device``; on a device fault call it again ``device_retries`` times with
-    back-off (the drivers reconnect on that call where it is safe: module docstring), then give
-    up by pausing the session. Protective and emergency stops are not retried."""
-    last: Exception | None = None
-    for attempt in range(settings.device_retries + 1):
-        if control.abort.is_set():
-            raise SessionStopped("aborted", "aborted on request")
-        try:
-            return fn()
-        except RobotStoppedError as exc:
-            raise SessionStopped("paused", f"{what}: {exc}", device=device, cause=exc) from exc
-        except DeviceError as exc:
-            last = exc
-            log.warning("%s failed (attempt %d): %s", what, attempt + 1, exc)
-            time.sleep(settings.retry_backoff_s * (attempt + 1))
-    raise SessionStopped(
-        "paused", f"{what} failed after {settings.device_retries + 1} attempts: {last}", device=device, cause=last
-    )
-
-
 def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | None = None) -> RunSession:
     """Plan the session once (a resumed session keeps its plan) and check it. Between the
     planning's phases ``control.check()`` stops it (abort, pause, the process stopping)."""
@@ -204,7 +88,7 @@ def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | Non
     if run.plan is None:
         info = run.plan_info or {}
         plan = plan_session(
-            run.kind,
+            kind_of(run.kind).plan,
             model,
             run.planned,
             region=cell.allowed_region,
@@ -240,7 +124,7 @@ def stopped_device_state(
 ) -> dict:
     """``session.device_state`` when the session stops: what the robot and the instrument are
     doing, as far as this process knows (the robot is asked only after a safety stop)."""
-    key = instrument_of(run)
+    key = kind_of(run.kind).instrument(run)
     connected = devices is not None and devices.robot is not None
     robot = _device_state("ready" if connected else "not connected", reason or final)
     instrument = _device_state("ready" if connected else "not connected", reason or final)
@@ -337,7 +221,7 @@ def run_session(
             controller.refresh_on_session_start(db, run, cell, devices.robot)
             _measure_all(db, run, cell, devices, settings, control, owner)
             with heavy_slot(control, stoppable=False):  # every pose is measured: identify them
-                analysis.finish_session(db, run, cell, settings)
+                finish_session(db, run, cell, settings)
         except SessionStopped as exc:
             stop = exc
             final, reason = _stop_outcome(exc, control)
@@ -404,18 +288,20 @@ def _measure_all(
     speed = settings.max_joint_speed_rad_s
     accel = settings.max_joint_accel_rad_s2
     timeout_s = max(60.0, settings.device_timeout_s)
-    key = instrument_of(run)
-    guide = analysis.guide_model(db, cell)  # where the CMM should look for the balls
+    kind = kind_of(run.kind)
+    key = kind.instrument(run)
+    guide = analysis.guide_model(db, cell)  # where the CMM should look for the balls, the tracker for the reflector
 
     def move(q):
         check_configurations(model, q[None, :], cell.allowed_region)
-        _retry(
+        retry(
             lambda: devices.robot.move_joints(q, speed_rad_s=speed, accel_rad_s2=accel, timeout_s=timeout_s),
             "move",
             settings,
             control,
         )
 
+    step = Step(db=db, run=run, devices=devices, settings=settings, control=control, guide=guide)
     payloads = records.payload_of(run, np.arange(len(plan)))
     mounted = None  # set at the first configuration, also after a resume
 
@@ -429,8 +315,8 @@ def _measure_all(
         move(plan[seq])
         if settings.settle_s > 0:
             time.sleep(settings.settle_s)
-        q_read = _retry(devices.robot.read_joints, "read joints", settings, control)
-        rows = _measure_one(run, devices, settings, control, seq, q_read, int(swept[seq]), model, guide, db=db)
+        q_read = retry(devices.robot.read_joints, "read joints", settings, control)
+        rows = kind.measure_one(step, seq, q_read, int(swept[seq]))
         following = todo[k + 1] if k + 1 < len(todo) else None
         robot = (
             _device_state("moving", f"to configuration {following + 1} of {len(plan)}")
@@ -458,7 +344,7 @@ def _set_payload(devices: CellDevices, model, payload: np.ndarray, settings: Set
     F = pose_to_matrix(model.tool)
     cog_flange = F[:3, :3] @ payload[1:] + F[:3, 3]
     try:
-        _retry(lambda: devices.robot.set_payload(float(payload[0]), cog_flange), "set payload", settings, control)
+        retry(lambda: devices.robot.set_payload(float(payload[0]), cog_flange), "set payload", settings, control)
     except NotImplementedError as exc:
         raise SessionStopped(
             "failed",
@@ -514,163 +400,6 @@ def _rollback(db: Session) -> None:
         db.rollback()
     except Exception:  # noqa: BLE001 - a dead connection cannot roll back; the pool replaces it
         pass
-
-
-def _measure_one(run, devices, settings, control, seq, q_read, joint, model, guide, *, db=None) -> list[Measurement]:
-    qv = [float(v) for v in q_read]
-    if run.kind == "joint":
-        enc = devices.encoders.get(joint)
-        if enc is None:
-            raise SessionStopped("failed", f"no reference encoder on joint {joint}")
-        reading = _retry(enc.read, f"read encoder on joint {joint}", settings, control, "encoder")
-        return [
-            Measurement(
-                session_id=run.id, seq=seq, joint=joint, q=qv, x=0.0, y=0.0, z=0.0, reference=float(reading.angle_rad)
-            )
-        ]
-    if devices.cmm is not None:
-        balls = {k: v for k, v in guide.targets.items() if k.startswith("ball")}
-        if len(balls) < 3:
-            raise SessionStopped(
-                "failed", "a CMM session needs at least three tooling balls (targets named ball*) in the cell's model"
-            )
-        from calibration.kinematics import fk
-        from calibration.transforms import matrix_to_quat
-
-        T_nom = fk(guide, np.asarray(qv)[None, :])[0]
-        names = sorted(balls)
-        pose = _retry(
-            lambda: devices.cmm.measure_pose(np.array([balls[n] for n in names]), T_nom, devices.cmm_ball_radius_m),
-            "CMM pose",
-            settings,
-            control,
-            "cmm",
-        )
-        T = pose.T_world_tool
-        qw, qx, qy, qz = matrix_to_quat(T[:3, :3])
-        # The row's uncertainty is the probing's (the probed points' scatter about each fitted ball),
-        # not how far the centres lie from the drawn layout (pose.residual_rms_m): balls mounted off
-        # their drawing leave the same misfit at every pose, and the frame fitted to their drawn
-        # positions is then the tool frame times a constant, which identification takes for the tool
-        # frame (book eq. 6.12-6.15).
-        probing_m = math.sqrt(float(np.mean([b.residual_rms_m**2 for b in pose.balls])))
-        return [
-            Measurement(
-                session_id=run.id,
-                seq=seq,
-                joint=joint or None,
-                q=qv,
-                x=float(T[0, 3]),
-                y=float(T[1, 3]),
-                z=float(T[2, 3]),
-                qw=float(qw),
-                qx=float(qx),
-                qy=float(qy),
-                qz=float(qz),
-                sigma=max(probing_m, 5e-6),
-            )
-        ]
-    if isinstance(devices.tracker, SteerablePositionSensor) and db is not None:
-        m = _measure_recovering_the_beam(db, run, devices.tracker, settings, control, seq, q_read, guide)
-    else:
-        m = _retry(devices.tracker.measure, "tracker measurement", settings, control, "tracker")
-    return [
-        Measurement(
-            session_id=run.id,
-            seq=seq,
-            target=run.target or "",
-            joint=joint or None,
-            q=qv,
-            x=float(m.p_world[0]),
-            y=float(m.p_world[1]),
-            z=float(m.p_world[2]),
-            sigma=float(np.max(m.sigma)),
-        )
-    ]
-
-
-def _measure_recovering_the_beam(db, run, tracker: SteerablePositionSensor, settings, control, seq, q_read, guide):
-    """A tracker measurement at configuration ``seq``: as :func:`_retry` (``device_retries``
-    more attempts), except that when the tracker says it lost the reflector it is first pointed
-    at where the reflector is (:func:`_where_the_reflector_is`) and searches there. A reflector
-    not found there pauses the session at once with the reason; a measurement that succeeds
-    after a search counts as a recovery (``run.beam_recoveries``, committed with the row)."""
-    what = f"tracker measurement at configuration {seq + 1}"
-    attempts = settings.device_retries + 1
-    recovered, last = False, None
-    for attempt in range(attempts):
-        if control.abort.is_set():
-            raise SessionStopped("aborted", "aborted on request")
-        try:
-            m = tracker.measure()
-            if recovered:
-                run.beam_recoveries = (run.beam_recoveries or 0) + 1
-                log.info("session %s: %s: beam recovered", run.id, what)
-            return m
-        except DeviceError as exc:
-            last = exc
-            log.warning("%s failed (attempt %d): %s", what, attempt + 1, exc)
-        if attempt + 1 == attempts:
-            break
-        if isinstance(last, MeasurementError) and _status(tracker) == "beam_broken":
-            if control.abort.is_set():  # pointing moves the tracker: not after an abort
-                raise SessionStopped("aborted", "aborted on request")
-            p = _where_the_reflector_is(db, run, guide, q_read)
-            try:
-                tracker.find_reflector(p)
-                recovered = True
-                continue
-            except MeasurementError as exc:
-                where = ", ".join(f"{v * 1e3:.1f}" for v in p)
-                raise SessionStopped(
-                    "paused",
-                    f"{what}: the beam broke and the tracker did not find the reflector "
-                    f"where the model puts it ({where}) mm: {exc}",
-                    device="tracker",
-                    cause=exc,
-                ) from exc
-            except DeviceError as exc:
-                last = exc
-        time.sleep(settings.retry_backoff_s * (attempt + 1))
-    raise SessionStopped("paused", f"{what} failed after {attempts} attempts: {last}", device="tracker", cause=last)
-
-
-def _status(tracker) -> str | None:
-    try:
-        return tracker.status()
-    except DeviceError:
-        return None
-
-
-def _where_the_reflector_is(db, run, guide, q_read) -> np.ndarray:
-    """Where the reflector is now, (3,) m, tracker frame: the current model (``guide``) at the
-    joint readings, placed where it fits this session's measurements so far. From four of them
-    on, its base and the reflector's mounting are fitted as the identification registers them;
-    with one to three, a shift and a turn about the vertical (the tracker stands levelled, the
-    robot on the floor); with none, the model as it is (right once the cell is calibrated)."""
-    from calibration.kinematics import target_positions
-    from calibration.registration import kabsch_levelled
-
-    q = np.asarray(q_read, dtype=float)[None, :]
-    try:
-        data, rows = analysis.session_measurements(db, run)
-    except analysis.AnalysisError:  # nothing measured yet
-        rows = []
-    if len(rows) >= 4:  # the rows' own target: the fitted common offset carries the reflector's mounting
-        return records.registered_points(guide, data, q, guide.target(run.target)[None, :])[0]
-    target = run.target or _reflector_target(guide)
-    p_model = target_positions(guide, q, target)[0]
-    if not rows:
-        return p_model
-    T = kabsch_levelled(target_positions(guide, data.q, target), data.p_world)
-    return T[:3, :3] @ p_model + T[:3, 3]
-
-
-def _reflector_target(model) -> str | None:
-    """The model's reflector when the session names none: its one target that is not a tooling
-    ball (what the cell's tracker follows), else the tool origin."""
-    names = [k for k in model.targets if not k.startswith("ball")]
-    return names[0] if len(names) == 1 else None
 
 
 class Orchestrator:

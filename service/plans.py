@@ -105,16 +105,26 @@ def check_configurations(model: KinematicModel, q: np.ndarray, region: list | No
         )
 
 
-def _random_inside(lim: np.ndarray, count: int, rng: np.random.Generator, model: KinematicModel) -> np.ndarray:
-    lo, hi = lim[:, 0].copy(), lim[:, 1].copy()
-    for i, j in enumerate(model.joints):  # one turn either way is enough for measuring
-        if j.revolute:
-            lo[i], hi[i] = max(lo[i], -np.pi), min(hi[i], np.pi)
-    return rng.uniform(lo, hi, size=(count, model.n_joints))
+@dataclass(frozen=True)
+class PlanRequest:
+    """What a session kind plans from (``SessionKind.plan``): ``count`` configurations inside
+    ``lim`` (n, 2) (the joint limits and the cell's allowed region, SI), with the session's
+    ``target``, ``joints`` (1-based) and ``repeats``; ``between()`` is called between the phases
+    of a long planning (it raises to stop it: an abort, a pause, the process stopping)."""
+
+    model: KinematicModel
+    lim: np.ndarray
+    count: int
+    rng: np.random.Generator
+    target: str | None = None
+    joints: list[int] | None = None
+    repeats: int = 1
+    sigma_m: float = 20e-6
+    between: Callable[[], None] = lambda: None
 
 
 def plan_session(
-    kind: str,
+    plan_kind: Callable[[PlanRequest], Plan],
     model: KinematicModel,
     count: int,
     *,
@@ -126,44 +136,14 @@ def plan_session(
     repeats: int = 1,
     between: Callable[[], None] | None = None,
 ) -> Plan:
-    """The configurations of a session of ``kind`` (see the module docstring). ``between()`` is
-    called between the planning's phases, and every ``POLL_S`` during the observation planning
-    (it raises to stop the planning: an abort, a pause, the process stopping)."""
+    """The configurations of a session, planned by its kind (``plan_kind``, the kind's
+    ``SessionKind.plan``: see the module docstring), checked against the joint limits and the
+    allowed ``region``, with what they span. ``between()``: as :class:`PlanRequest`."""
     between = between or (lambda: None)
-    rng = np.random.default_rng(seed)
     lim = allowed_limits(model, region)
     n = model.n_joints
-    if kind in ("pose", "verify"):
-        if kind == "pose":
-            plan = _planned_poses(model, lim, count, rng, target, sigma_m, between)
-        else:
-            plan = _repeated(_random_inside(lim, count, rng, model), repeats)
-    elif kind in ("circle", "joint"):
-        which = joints or list(range(1, n + 1))
-        for j in which:
-            if not 1 <= j <= n:
-                raise UnsafePlan(f"joints: {j} is not a joint of this {n}-joint model")
-        mid = 0.5 * (lim[:, 0] + lim[:, 1])
-        signature = np.clip(np.zeros(n), lim[:, 0], lim[:, 1])
-        signature = np.where((signature <= lim[:, 0]) | (signature >= lim[:, 1]), mid, signature)
-        rows, swept = [], []
-        per_joint = max(int(count), 3)
-        for j in which:
-            i = j - 1
-            span = min(lim[i, 1] - lim[i, 0], np.deg2rad(300.0)) if model.joints[i].revolute else lim[i, 1] - lim[i, 0]
-            centre = np.clip(signature[i], lim[i, 0] + span / 2, lim[i, 1] - span / 2)
-            for v in np.linspace(centre - span / 2, centre + span / 2, per_joint):
-                q = signature.copy()
-                q[i] = v
-                rows.append(q)
-                swept.append(j)
-        plan = Plan(
-            np.array(rows),
-            np.array(swept),
-            {"method": f"{kind} sweeps", "points_per_joint": per_joint, "joints": which},
-        )
-    else:
-        raise ValueError(f"unknown session kind {kind!r}")
+    req = PlanRequest(model, lim, count, np.random.default_rng(seed), target, joints, repeats, sigma_m, between)
+    plan = plan_kind(req)
     between()
     check_configurations(model, plan.q, region)
     if repeats > 1:
@@ -183,7 +163,43 @@ def plan_session(
     return Plan(plan.q, plan.joint, info)
 
 
-def _repeated(q: np.ndarray, repeats: int) -> Plan:
+def joint_sweeps(req: PlanRequest, method: str) -> Plan:
+    """Each of ``req.joints`` (default: every joint) swept over as much of its allowed range as
+    it has (up to 300 deg), ``req.count`` points (at least 3), the others held at a signature
+    configuration (zero, or the middle of a range that excludes it): book §4.6.3, sequence A."""
+    model, lim = req.model, req.lim
+    n = model.n_joints
+    which = req.joints or list(range(1, n + 1))
+    for j in which:
+        if not 1 <= j <= n:
+            raise UnsafePlan(f"joints: {j} is not a joint of this {n}-joint model")
+    mid = 0.5 * (lim[:, 0] + lim[:, 1])
+    signature = np.clip(np.zeros(n), lim[:, 0], lim[:, 1])
+    signature = np.where((signature <= lim[:, 0]) | (signature >= lim[:, 1]), mid, signature)
+    rows, swept = [], []
+    per_joint = max(int(req.count), 3)
+    for j in which:
+        i = j - 1
+        span = min(lim[i, 1] - lim[i, 0], np.deg2rad(300.0)) if model.joints[i].revolute else lim[i, 1] - lim[i, 0]
+        centre = np.clip(signature[i], lim[i, 0] + span / 2, lim[i, 1] - span / 2)
+        for v in np.linspace(centre - span / 2, centre + span / 2, per_joint):
+            q = signature.copy()
+            q[i] = v
+            rows.append(q)
+            swept.append(j)
+    return Plan(np.array(rows), np.array(swept), {"method": method, "points_per_joint": per_joint, "joints": which})
+
+
+def random_inside(lim: np.ndarray, count: int, rng: np.random.Generator, model: KinematicModel) -> np.ndarray:
+    """(count, n) configurations drawn uniformly inside ``lim``, revolute joints within one turn."""
+    lo, hi = lim[:, 0].copy(), lim[:, 1].copy()
+    for i, j in enumerate(model.joints):  # one turn either way is enough for measuring
+        if j.revolute:
+            lo[i], hi[i] = max(lo[i], -np.pi), min(hi[i], np.pi)
+    return rng.uniform(lo, hi, size=(count, model.n_joints))
+
+
+def repeated(q: np.ndarray, repeats: int) -> Plan:
     """Verify configurations ``q`` (K, n), each visited ``repeats`` times in a row: step ``s``
     visits configuration ``s // repeats`` (see :func:`approach_configurations`)."""
     steps = np.repeat(np.arange(len(q)), max(int(repeats), 1))
@@ -209,7 +225,7 @@ def approach_configurations(model: KinematicModel, region: list | None, q: np.nd
     return np.where(q - step >= lim[:, 0], q - step, np.minimum(q + step, lim[:, 1]))
 
 
-def _planned_poses(model, lim, count, rng, target, sigma_m, between) -> Plan:
+def planned_poses(req: PlanRequest) -> Plan:
     """Planned poses (``calibration.planning``: greedy start and exchange) from random
     candidates inside the allowed region, in a short measurement order, with the accuracy
     they are predicted to give. (The line-of-sight test of the planner needs to know where the
@@ -217,7 +233,9 @@ def _planned_poses(model, lim, count, rng, target, sigma_m, between) -> Plan:
     relies on the retry policy for the occasional blocked beam.)"""
     from calibration import planning
 
-    candidates = _random_inside(lim, max(20 * count, 1000), rng, model)
+    model, count, rng, between = req.model, req.count, req.rng, req.between
+    target, sigma_m = req.target, req.sigma_m
+    candidates = random_inside(req.lim, max(20 * count, 1000), rng, model)
     between()
     try:
         res = _checking(

@@ -12,7 +12,7 @@ from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
 
-from .devices import has_tracker
+from .kinds import kind_of
 from .models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token
 from .problems import Conflict, Invalid, NotFound
 from .runners import SessionRunner
@@ -70,25 +70,15 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
             "body.target",
             f"unknown target {body.target!r}; the cell's model has: {', '.join(sorted(model.targets)) or 'none'}",
         )
-    measuring = body.kind in ("pose", "verify", "circle") and not body.dry_run
-    if body.device == "cmm" and measuring and not cell.devices.get("cmm"):
-        raise Invalid("body.device", "this cell has no CMM")
-    if body.device == "tracker" and measuring and not has_tracker(cell.devices):
-        raise Invalid("body.device", "this cell has no laser tracker")
     for i, j in enumerate(body.joints or []):
         if not 1 <= j <= model.n_joints or j in body.joints[:i]:
             raise Invalid(
                 f"body.joints[{i}]", f"expected a joint number from 1 to {model.n_joints}, each once; got {j}"
             )
-    busy = db.exec(
-        select(RunSession).where(
-            RunSession.cell_id == cell.id,
-            RunSession.state.in_(ACTIVE),
-            RunSession.dry_run == False,  # noqa: E712 (SQL)
-        )
-    ).first()  # noqa: E712 - dry runs move nothing
-    if busy is not None and not body.dry_run:
-        raise Conflict(f"session {busy.id} is already driving this cell ({busy.state})")
+    kind = kind_of(body.kind)
+    if not body.dry_run:  # a dry run moves and measures nothing: any cell can show a plan
+        kind.check(cell, model, device=body.device, joints=body.joints, payloads=body.payloads)
+        refuse_if_busy(db, cell.id)
     info = {
         **({"joints": body.joints} if body.joints else {}),
         **({"repeats": body.repeats} if body.repeats > 1 else {}),
@@ -101,29 +91,73 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
         kind=body.kind,
         planned=body.count,
         device=body.device,
-        target=body.target if body.target is not None else (_default_target(model, body)),
+        target=body.target if body.target is not None else kind.default_target(model, body.device),
         dry_run=body.dry_run,
         created_by=tok.name,
         plan_info=info or None,
     )
+    detail = {"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run}
+    return _commit_and_start(db, run, orchestrator, tok, detail)
+
+
+def _commit_and_start(db: Session, run: RunSession, orchestrator, tok: Token, detail: dict) -> SessionPublic:
+    """Store ``run`` planned, audited, and start it (or queue it: :func:`commit_planned`)."""
     try:
         queued = commit_planned(db, run, orchestrator)
     except IntegrityError:  # another request (any API process) started one on this cell meanwhile
         db.rollback()
         raise Conflict("another session is already driving this cell") from None
     db.refresh(run)
-    if body.dry_run:  # after the new one has its id: on SQLite a deleted highest id would be given again
-        forget_dry_runs(db, cell.id, keep=run.id)
-    audit(
-        db,
-        actor=tok.name,
-        action="start session",
-        subject=f"session {run.id}",
-        detail={"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run},
-    )
+    if run.dry_run:  # after the new one has its id: on SQLite a deleted highest id would be given again
+        forget_dry_runs(db, run.cell_id, keep=run.id)
+    audit(db, actor=tok.name, action="start session", subject=f"session {run.id}", detail=detail)
     if not queued:
         orchestrator.start(run.id)
     return public_session(db, run)
+
+
+def refuse_if_busy(db: Session, cell_id: int) -> None:
+    """:class:`Conflict` when a session is driving the cell (planned or running; dry runs move
+    nothing). The store's one-active-session-per-cell index has the last word (:func:`commit_planned`)."""
+    busy = db.exec(
+        select(RunSession).where(
+            RunSession.cell_id == cell_id,
+            RunSession.state.in_(ACTIVE),
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+    ).first()
+    if busy is not None:
+        raise Conflict(f"session {busy.id} is already driving this cell ({busy.state})")
+
+
+def run_dry_plan(db: Session, dry: RunSession, cell: Cell, tok: Token, orchestrator) -> SessionPublic:
+    """Run the plan of a completed dry run for real: a new session measuring exactly the
+    configurations that were shown and checked, after the same checks as any start."""
+    if not dry.dry_run or dry.state != "completed" or not dry.plan:
+        raise Conflict(
+            f"session {dry.id} is not a completed dry run with a plan "
+            f"(state {dry.state}{', ' + dry.reason if dry.reason else ''})"
+        )
+    info = {k: v for k, v in (dry.plan_info or {}).items() if k != "dry_run"}
+    kind_of(dry.kind).check(
+        cell, model_from_dict(cell.model), device=dry.device, joints=info.get("joints"), payloads=info.get("payloads")
+    )
+    refuse_if_busy(db, cell.id)
+    info["from_dry_run"] = dry.id
+    run = RunSession(
+        cell_id=cell.id,
+        kind=dry.kind,
+        planned=len(dry.plan),
+        device=dry.device,
+        target=dry.target,
+        dry_run=False,
+        created_by=tok.name,
+        plan=dry.plan,
+        plan_info=info,
+    )
+    return _commit_and_start(
+        db, run, orchestrator, tok, {"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id}
+    )
 
 
 def forget_dry_runs(db, cell_id: int, *, keep: int) -> None:
@@ -150,10 +184,3 @@ def commit_planned(db, run: RunSession, orchestrator: SessionRunner) -> bool:
     queued = orchestrator.queue(db, run)
     db.commit()
     return queued
-
-
-def _default_target(model, body) -> str | None:
-    if body.kind in ("joint",) or body.device == "cmm":
-        return None
-    names = [n for n in model.targets if not n.startswith("ball")]
-    return names[0] if names else None

@@ -140,7 +140,7 @@ def store_session(
 
     from calibration.model import model_from_dict
     from calibration.simulate import perturbed, random_configurations, simulate_measurements
-    from service import analysis, records
+    from service import kinds, records
     from service.models import Cell, RunSession
 
     engine = make_engine(settings.effective_database_url)
@@ -176,7 +176,7 @@ def store_session(
             # the tracker's stated uncertainty on every row, as a session stores it
             db.add_all(records.measurement_rows(run.id, dataclasses.replace(data, sigma=np.full(len(data), 20e-6))))
             db.commit()
-            analysis.finish_session(db, run, cell, settings)
+            kinds.finish_session(db, run, cell, settings)
             run.state = "completed"
             db.add(run)
             db.commit()

@@ -201,7 +201,16 @@ def test_moves_run_at_the_capped_speed_and_abort_stops_the_robot_short_of_its_ta
     watcher.start()
     s = _start(api, cell, kind="verify", count=12)
     wait_measured(api, s["id"], 2)
-    while np.abs(samples[-1][1] - samples[-3][1]).max() < 2e-3:  # abort while it moves
+    engine = make_engine(Settings(home=stack.home).effective_database_url)
+    with Session(engine) as db:
+        plan = np.array(db.get(RunSession, s["id"]).plan)
+    engine.dispose()
+    # Abort while it moves and is still far (0.2 rad) from every configuration of the plan: it
+    # brakes within v²/2a = 0.04 rad, so reaching a target after that would be a missed abort.
+    # (Aborting at any moment once failed by chance: a move caught in its last 0.02 rad.)
+    deadline = time.monotonic() + 60
+    while np.abs(samples[-1][1] - samples[-3][1]).max() < 2e-3 or np.abs(plan - samples[-1][1]).max(axis=1).min() < 0.2:
+        assert time.monotonic() < deadline, "the robot never moved far from its targets"
         time.sleep(0.01)
     a = api.call("POST", f"/sessions/{s['id']}/abort")
     time.sleep(0.5)
@@ -214,18 +223,16 @@ def test_moves_run_at_the_capped_speed_and_abort_stops_the_robot_short_of_its_ta
     time.sleep(0.5)
     assert np.abs(robot.read_joints() - still).max() <= 1e-3
     robot.close()
-    engine = make_engine(Settings(home=stack.home).effective_database_url)
-    with Session(engine) as db:
-        plan = np.array(db.get(RunSession, s["id"]).plan)
-    engine.dispose()
     assert np.abs(plan - still).max(axis=1).min() > 0.02, "the robot reached a target after the abort"
-    # the speed of every joint, over windows of 0.4 s of wall time (1.6 s of the robot's)
+    # the speed of every joint, over windows of 0.4 s of wall time (1.6 s of the robot's); the
+    # samples' times are the reads' midpoints, so a loaded machine (a late read at one end of a
+    # window) can add a few per cent: 10 % still tells the cap from the default (0.5 rad/s, +25 %)
     t = np.array([x[0] for x in samples])
     q = np.array([x[1] for x in samples])
     ends = np.searchsorted(t, t + 0.4)
     ok = ends < len(t)
     speeds = np.abs(q[ends[ok]] - q[ok]).max(axis=1) / (t[ends[ok]] - t[ok]) * scale
-    assert 0.75 * CAP < speeds.max() <= 1.05 * CAP, speeds.max()  # the default cap (0.5 rad/s) is above
+    assert 0.75 * CAP < speeds.max() <= 1.10 * CAP, speeds.max()
 
 
 def test_cmm_pose_session_calibrates_from_full_poses(stack, models, register):

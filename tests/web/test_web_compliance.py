@@ -19,7 +19,7 @@ def compliant_result(tmp_path, browser):
     from calibration.model import model_to_dict
     from calibration.robots import nominal
     from calibration.simulate import perturbed, random_configurations, sagging, simulate_measurements
-    from service import analysis, records
+    from service import kinds, records
     from service.client import Api
     from service.models import Cell, RunSession
     from service.processes import free_port, start_service
@@ -61,7 +61,7 @@ def compliant_result(tmp_path, browser):
             # the tracker's stated uncertainty on every row, as a session stores it
             db.add_all(records.measurement_rows(run.id, dataclasses.replace(data, sigma=np.full(len(data), 20e-6))))
             db.commit()
-            analysis.finish_session(db, run, cell, settings)
+            kinds.finish_session(db, run, cell, settings)
             run.state = "completed"
             db.add(run)
             db.commit()

@@ -10,7 +10,7 @@ from fastapi.responses import PlainTextResponse
 from sqlalchemy import delete, func
 from sqlmodel import select
 
-from ... import analysis
+from ... import external
 from ...models import Calibration, Cell, Compensation, Measurement, RunSession, SessionPublic, TaskFile
 from ...records import measurements_csv
 from ...sessions import ACTIVE, get_run, public_session
@@ -79,7 +79,7 @@ async def import_measurements(
 
 
 def _import(db, cell_id: int, body: bytes, kind: str, name: str, tok, settings) -> SessionPublic:
-    run = analysis.import_measurements(
+    run = external.import_measurements(
         db, _cell(db, cell_id), body, kind=kind, name=name, actor=tok.name, settings=settings
     )
     return public_session(db, run)

@@ -9,14 +9,13 @@ from typing import Any
 
 from fastapi import APIRouter, HTTPException, Request
 from sqlalchemy import func
-from sqlalchemy.exc import IntegrityError
 from sqlmodel import select
 
 from ...devices import describe
 from ...devicetest import test_cell_devices
 from ...models import Calibration, Cell, RunSession, SessionPublic
 from ...results import plan_preview, session_live
-from ...sessions import ACTIVE, commit_planned, public_session
+from ...sessions import ACTIVE, public_session, run_dry_plan
 from ...store import as_utc, audit, measured_count
 from ..deps import DbSession, Orchestrator, Reader, Runner
 from ..schemas import (
@@ -312,53 +311,7 @@ def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestr
     """Run the plan of a completed dry-run session for real: a new session measuring exactly
     the configurations that were shown and checked."""
     dry = _run(db, session_id)
-    if not dry.dry_run or dry.state != "completed" or not dry.plan:
-        raise HTTPException(
-            409,
-            f"session {session_id} is not a completed dry run with a plan "
-            f"(state {dry.state}{', ' + dry.reason if dry.reason else ''})",
-        )
-    cell = _cell(db, dry.cell_id)
-    if dry.kind in ("pose", "verify", "circle") and not (cell.devices or {}).get(dry.device):
-        raise HTTPException(422, {"field": "device", "message": f"this cell has no {dry.device}"})
-    busy = db.exec(
-        select(RunSession).where(
-            RunSession.cell_id == cell.id,
-            RunSession.state.in_(ACTIVE),
-            RunSession.dry_run == False,  # noqa: E712 (SQL)
-        )
-    ).first()  # noqa: E712
-    if busy is not None:
-        raise HTTPException(409, f"session {busy.id} is already driving this cell ({busy.state})")
-    info = {k: v for k, v in (dry.plan_info or {}).items() if k != "dry_run"}
-    info["from_dry_run"] = dry.id
-    run = RunSession(
-        cell_id=cell.id,
-        kind=dry.kind,
-        planned=len(dry.plan),
-        device=dry.device,
-        target=dry.target,
-        dry_run=False,
-        created_by=tok.name,
-        plan=dry.plan,
-        plan_info=info,
-    )
-    try:
-        queued = commit_planned(db, run, orchestrator)
-    except IntegrityError:  # another request (any API process) started one on this cell meanwhile
-        db.rollback()
-        raise HTTPException(409, "another session is already driving this cell") from None
-    db.refresh(run)
-    audit(
-        db,
-        actor=tok.name,
-        action="start session",
-        subject=f"session {run.id}",
-        detail={"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id},
-    )
-    if not queued:
-        orchestrator.start(run.id)
-    return public_session(db, run)
+    return run_dry_plan(db, dry, _cell(db, dry.cell_id), tok, orchestrator)
 
 
 @router.get("/sessions/{session_id}/live", response_model=LiveSession)

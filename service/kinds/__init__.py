@@ -1,0 +1,42 @@
+"""The table of session kinds: one module per kind, each saying how it plans, which instrument it
+opens, how it measures one configuration and what it makes of the measurements
+(:class:`~service.kinds.base.SessionKind`). The orchestrator, the start of a session and the
+import of external measurements look the kind up here and run any kind the same way (the pages
+show each kind's result: ``service.results``).
+
+- ``pose`` (:mod:`.pose`): planned poses, identification;
+- ``verify`` (:mod:`.verify`): fresh configurations, the current calibration's errors;
+- ``circle`` (:mod:`.circle`): joint sweeps, circle-point analysis;
+- ``joint`` (:mod:`.joint`): joint sweeps against reference encoders, gains and harmonics.
+"""
+
+from __future__ import annotations
+
+from sqlmodel import Session
+
+from ..models import Cell, RunSession
+from ..settings import Settings
+from . import circle, joint, pose, verify
+from .base import SessionKind, Step
+
+KINDS: dict[str, SessionKind] = {k.name: k for k in (pose.KIND, verify.KIND, circle.KIND, joint.KIND)}
+
+
+def kind_of(name: str) -> SessionKind:
+    """The session kind called ``name`` (the request's ``kind`` is checked against this table's
+    names by ``SessionCreate``; a stored session always names one)."""
+    try:
+        return KINDS[name]
+    except KeyError:
+        raise ValueError(f"unknown session kind {name!r}; expected one of {', '.join(KINDS)}") from None
+
+
+def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings) -> None:
+    """The session's last step (its kind's ``finish``), committed with the session."""
+    kind_of(run.kind).finish(db, run, cell, settings)
+    db.add(run)
+    db.commit()
+    db.refresh(run)
+
+
+__all__ = ["KINDS", "SessionKind", "Step", "finish_session", "kind_of"]

@@ -1,0 +1,71 @@
+"""What every session kind says: how it plans, which instrument it opens, how it measures one
+configuration, and what it makes of the measurements at the end (:class:`SessionKind`). The
+orchestrator runs any kind the same way; :mod:`service.kinds` holds the table."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+from sqlmodel import Session
+
+from calibration.model import KinematicModel
+
+from ..control import Control
+from ..devices import CellDevices
+from ..models import Cell, Measurement, RunSession
+from ..plans import Plan, PlanRequest
+from ..settings import Settings
+
+
+@dataclass(frozen=True)
+class Step:
+    """What measuring one configuration needs: the session, its open devices, the cell's
+    current model (``guide``: where the instrument should look), and the database (for the
+    measurements so far)."""
+
+    db: Session
+    run: RunSession
+    devices: CellDevices
+    settings: Settings
+    control: Control
+    guide: KinematicModel
+
+
+class SessionKind(ABC):
+    """One kind of session (``pose``, ``verify``, ``circle``, ``joint``)."""
+
+    name: str
+
+    @abstractmethod
+    def check(self, cell: Cell, model: KinematicModel, *, device: str, joints: list[int] | None, payloads) -> None:
+        """Refuse a session the cell cannot run (:class:`service.problems.Invalid` naming the
+        request field), before anything is stored or moves: a configuration error is never
+        found half-way through a session."""
+
+    def default_target(self, model: KinematicModel, device: str) -> str | None:
+        """The model target the session measures when the request names none."""
+        return None
+
+    @abstractmethod
+    def instrument(self, run: RunSession) -> str:
+        """The measuring device's key in ``session.device_state``: ``tracker``, ``cmm``, ``encoder``."""
+
+    @abstractmethod
+    def plan(self, req: PlanRequest) -> Plan:
+        """The session's configurations (checked against the limits by the caller)."""
+
+    @abstractmethod
+    def open_instrument(self, devices: CellDevices, cell: Cell, run: RunSession, settings: Settings) -> None:
+        """Open the measuring device(s) into ``devices`` (the robot is open already). Raises
+        ``DeviceError``, ``DeviceConfigError`` or ``OSError``."""
+
+    @abstractmethod
+    def measure_one(self, step: Step, seq: int, q_read: np.ndarray, joint: int) -> list[Measurement]:
+        """The measurements at configuration ``seq`` (readings ``q_read``, swept ``joint`` or 0)."""
+
+    @abstractmethod
+    def finish(self, db: Session, run: RunSession, cell: Cell, settings: Settings) -> None:
+        """What the measured session gives (a calibration, a verification), on ``run`` and in the
+        store; the caller commits ``run``. Raises :class:`service.analysis.AnalysisError`."""

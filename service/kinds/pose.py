@@ -1,0 +1,127 @@
+"""``pose``: observation planning over candidates inside the allowed region, then
+identification, with the cell's previous calibration as a prior when it has one
+(minimum-variance estimation, book §4.3.2), so that a short nightly session updates a
+calibration instead of replacing it; stored as a new calibration of kind ``pose``."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from sqlmodel import Session
+
+from calibration.identify import NotEnoughData, Prior, drift_scale, held_relations, identify
+from calibration.model import model_from_dict
+from calibration.report import identification_block, identification_report
+
+from ..analysis import AnalysisError, session_measurements, store_calibration
+from ..models import Calibration, Cell, RunSession
+from ..plans import Plan, PlanRequest, planned_poses
+from ..results import predicted_accuracy
+from ..store import current_calibration, current_controller_model
+from .positions import PositionKind
+
+# Allowance for what may have changed since the previous calibration (per parameter, 1 sigma):
+# the prior's covariance is the previous one plus this allowance times a scale the new data show
+# (calibration.identify.drift_scale: about 1 when the parameters moved by this much, 0 when the
+# data fit the previous model), so the new data can move the model as far as they say it moved,
+# and a robot that did not move is not made to look less certain than it was.
+DRIFT_LENGTH_M = 0.05e-3
+DRIFT_ANGLE_RAD = np.deg2rad(0.005)
+# The scale never goes below this: a short session cannot rule out a little drift.
+DRIFT_SCALE_MIN = 0.1
+
+
+class Pose(PositionKind):
+    name = "pose"
+
+    def plan(self, req: PlanRequest) -> Plan:
+        return planned_poses(req)
+
+    def finish(self, db, run, cell, settings) -> None:
+        cal = identify_session(db, run, cell)
+        cal.predicted = predicted_accuracy(cal, cell, run.target)  # stored with it: drift lists it without reports
+        db.add(cal)
+        run.calibration_id = cal.id
+
+
+def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
+    data, _ = session_measurements(db, run)
+    nominal = model_from_dict(cell.model)
+    prev = current_calibration(db, cell)
+    prior = None
+    start = nominal
+    if prev is not None and prev.covariance:
+        start = model_from_dict(prev.model)
+        names = tuple(prev.covariance["names"])
+        cov = np.array(prev.covariance["matrix"], dtype=float)
+        kinds = prev.covariance.get("kinds") or ["length"] * len(names)
+        drift = np.array(
+            [DRIFT_ANGLE_RAD if k == "angle" else DRIFT_LENGTH_M if k == "length" else 1e-4 for k in kinds]
+        )
+        # what it held at the model's value, confused with what it estimated (e.g. the tool orientation
+        # a tracker cannot see): new data that determine them move the combinations it measured
+        held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
+        scale = max(drift_scale(start, data, names, cov, drift, held=held), DRIFT_SCALE_MIN)
+        prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
+    try:
+        result = identify(start, data, prior=prior)
+    except NotEnoughData as exc:  # too few poses to check the fit: say how many, as the CLI does
+        raise AnalysisError(str(exc)) from None
+    if not result.success:
+        raise AnalysisError(f"identification did not converge: {result.message}")
+    units = nominal.units
+    report = identification_report(result, units, data_rows=data.row)
+    report["prior"] = None if prior is None else _prior_summary(result, prev, prior, scale, units)
+    if start.compliance is not None:  # a compliant calibration: rigid against compliant, cross-validated
+        from calibration.compliance_fit import compare
+
+        try:
+            cmp = compare(start, data)
+        except NotEnoughData:  # each fold's share of the poses leaves no redundancy: nothing to compare
+            cmp = None
+        if cmp is not None:
+            report["compliance"] = {
+                k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v) for k, v in cmp.items()
+            }
+    cov = {
+        "names": list(result.param_names),
+        "kinds": [p.kind for p in result.params],
+        "matrix": result.covariance.tolist(),
+        "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()},
+    }
+    model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
+    L = units.length_m
+    block = identification_block(result, units, nominal=nominal, q=data.q)
+    ctrl = current_controller_model(db, cell.id)
+    if ctrl is not None:  # a UR cell: what its controller computes with (targets mode, URScript need it)
+        block["controller"] = ctrl.model
+    return store_calibration(db, cell, run, "pose", model, report, cov, result.rms_m / L, {"identification": block})
+
+
+def _prior_summary(result, prev: Calibration, prior: Prior, scale: float, units) -> dict:
+    """What the prior (the previous calibration) contributed: how many parameters each source
+    determined, the ones the new data cannot see (kept from the prior), the ones it held at the
+    model's value that the new data determine (``released``, e.g. a tool orientation a tracker
+    could not see, measured by a CMM), and the drift allowance with the scale the data showed."""
+    by = {
+        s: [n for n, src in zip(result.param_names, result.sources) if src == s]
+        for s in ("data", "data + prior", "prior")
+    }
+    return {
+        "calibration_id": prev.id,
+        "parameters": len(prior.names),
+        "determined_by": {s: len(names) for s, names in by.items()},
+        "from_prior": by["prior"],
+        "released": [n for n in result.param_names if n in prior.held],
+        "drift_allowance": {
+            "length": DRIFT_LENGTH_M / units.length_m,
+            "angle": DRIFT_ANGLE_RAD / units.angle_rad,
+            "scale": scale,
+            "note": "per parameter, 1 sigma, times scale (how far the new data show the robot moved; "
+            f"at least {DRIFT_SCALE_MIN}), added to the previous calibration's covariance",
+        },
+    }
+
+
+KIND = Pose()

@@ -1,0 +1,80 @@
+"""``verify``: the current calibration's errors on fresh random configurations (not the planned
+ones); the model is not changed. With ``repeats`` > 1 each configuration is visited that many
+times in a row, every visit from the same approach configuration: ISO 9283 pose accuracy and
+repeatability (§7.2.1-7.2.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration import metrics
+from calibration.identification import Measurements
+from calibration.model import KinematicModel
+
+from ..analysis import session_measurements
+from ..plans import Plan, PlanRequest, random_inside, repeated
+from ..records import current_model, position_errors, registered_errors
+from .positions import PositionKind
+
+
+class Verify(PositionKind):
+    name = "verify"
+
+    def plan(self, req: PlanRequest) -> Plan:
+        return repeated(random_inside(req.lim, req.count, req.rng, req.model), req.repeats)
+
+    def finish(self, db, run, cell, settings) -> None:
+        run.plan_info = {**(run.plan_info or {}), "verify": verify_session(db, run, cell)}
+
+
+def verify_session(db, run, cell) -> dict:
+    """The current model's position errors on the session's measurements (statistics in the
+    model's length unit), also with the base placed where it fits best, and the ISO 9283 figures
+    of a repeated session."""
+    data, _ = session_measurements(db, run)
+    model, cal = current_model(db, cell)
+    e = np.linalg.norm(position_errors(model, data), axis=1)
+    L = model.units.length_m
+    st = metrics.norm_statistics(e / L)
+    out = {
+        "calibration_id": None if cal is None else cal.id,
+        "n": st.n,
+        "rms": st.rms,
+        "max": st.max,
+        "p95": st.p95,
+        "mean": st.mean,
+        "unit": model.units.length,
+    }
+    if len(e) >= 3:
+        # Also with the base placed where it fits best (book Table 1.1 does the same): the robot's
+        # own inaccuracy, apart from where the instrument stands; the same figure as the result
+        # page's "before" (one definition, calibration.metrics.registered_errors).
+        reg = metrics.norm_statistics(np.linalg.norm(registered_errors(model, data), axis=1) / L)
+        out["registered"] = {"rms": reg.rms, "max": reg.max}
+    repeats = int((run.plan_info or {}).get("repeats") or 1)
+    if repeats > 1:
+        out["iso9283"] = pose_repeatability(model, data, repeats)
+    return out
+
+
+def pose_repeatability(model: KinematicModel, data: Measurements, repeats: int) -> dict:
+    """ISO 9283 pose accuracy AP and repeatability RP (§7.2.1-7.2.2, ``calibration.metrics``) of
+    a verify session that visited each configuration ``repeats`` times (step ``s`` visits
+    configuration ``s // repeats``); the command is where the current model puts the target."""
+    p_cmd = data.p_world - position_errors(model, data)
+    st = metrics.pose_statistics(p_cmd, data.p_world, data.pose_id // repeats)
+    L = model.units.length_m
+    return {
+        "repeats": repeats,
+        "poses": int(len(st.pose_ids)),
+        "unit": model.units.length,
+        "accuracy": {"mean": float(st.AP_m.mean() / L), "max": float(st.AP_m.max() / L)},
+        "repeatability": {"mean": float(st.RP_m.mean() / L), "max": float(st.RP_m.max() / L)},
+        "per_pose": [
+            {"pose": int(k) + 1, "visits": int(n), "AP": float(ap / L), "RP": float(rp / L)}
+            for k, n, ap, rp in zip(st.pose_ids, st.n, st.AP_m, st.RP_m)
+        ],
+    }
+
+
+KIND = Verify()
