@@ -31,8 +31,11 @@ browser:
 # The PostgreSQL tests run when RECAL_TEST_POSTGRES_URL names a server where they may create and
 # drop databases (`make test RECAL_TEST_POSTGRES_URL=postgresql+psycopg://postgres@127.0.0.1:5432/postgres`;
 # .ci/run sets it); without it they are skipped, and pytest's summary says so.
+# Two workers (pytest-xdist: the simulated cells mostly wait on sockets and simulated time), then
+# the few tests marked `serial` (one restarts PostgreSQL) alone.
 test: $(STAMP) browser
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 -m "not serial" $(PYTEST_ARGS)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m serial $(PYTEST_ARGS)
 
 # The linter and the formatter (ruff, configured in pyproject.toml): clean on the whole tree.
 lint: $(STAMP)

@@ -468,3 +468,17 @@ def format_csv(header: list[str], rows) -> str:
     for row in rows:
         w.writerow([f"{v:.10g}" if isinstance(v, (float, np.floating)) else v for v in row])
     return out.getvalue()
+
+
+def replace_spans(text: str, edits: list[tuple[int, int, str]]) -> bytes:
+    """``text`` with each ``(start, end)`` character span replaced by its new text, every other
+    character as it was, encoded back to the bytes it was read from (UTF-8, undecodable bytes
+    kept as surrogates): the rewrite every program format shares (URScript's included)."""
+    parts, pos = [], 0
+    for s, e, t in sorted(edits):
+        if s < pos:
+            raise ValueError(f"overlapping edits at character {s}")
+        parts += [text[pos:s], t]
+        pos = e
+    parts.append(text[pos:])
+    return "".join(parts).encode("utf-8", "surrogateescape")

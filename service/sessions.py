@@ -56,6 +56,13 @@ def read_public_session(db, session_id: int) -> SessionPublic:
     return SessionPublic(**doc, plan_info=info or None)
 
 
+def get_cell(db, cell_id: int) -> Cell:
+    cell = db.get(Cell, cell_id)
+    if cell is None:
+        raise NotFound(f"no cell {cell_id}")
+    return cell
+
+
 def get_run(db, session_id: int) -> RunSession:
     run = db.get(RunSession, session_id)
     if run is None:
@@ -116,16 +123,19 @@ def _commit_and_start(db: Session, run: RunSession, orchestrator, tok: Token, de
     return public_session(db, run)
 
 
+def driving_session(db: Session, cell_id: int, *, dry_runs: bool = False) -> RunSession | None:
+    """The session driving the cell (planned or running), if any; dry runs (which move nothing)
+    only if ``dry_runs``."""
+    where = [RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE)]
+    if not dry_runs:
+        where.append(RunSession.dry_run == False)  # noqa: E712 (SQL)
+    return db.exec(select(RunSession).where(*where)).first()
+
+
 def refuse_if_busy(db: Session, cell_id: int) -> None:
-    """:class:`Conflict` when a session is driving the cell (planned or running; dry runs move
-    nothing). The store's one-active-session-per-cell index has the last word (:func:`commit_planned`)."""
-    busy = db.exec(
-        select(RunSession).where(
-            RunSession.cell_id == cell_id,
-            RunSession.state.in_(ACTIVE),
-            RunSession.dry_run == False,  # noqa: E712 (SQL)
-        )
-    ).first()
+    """:class:`Conflict` when a session is driving the cell. The store's
+    one-active-session-per-cell index has the last word (:func:`commit_planned`)."""
+    busy = driving_session(db, cell_id)
     if busy is not None:
         raise Conflict(f"session {busy.id} is already driving this cell ({busy.state})")
 

@@ -34,7 +34,7 @@ import numpy as np
 from calibration.model import KinematicModel
 from calibration.transforms import homogeneous, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, rotvec_to_matrix
 
-from .files import MAX_MAGNITUDE_SI, InputError, Table, read_table
+from .files import MAX_MAGNITUDE_SI, InputError, Table, read_table, replace_spans
 
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 RESULT_COLUMNS = ("converged", "residual", "flags")
@@ -275,8 +275,6 @@ class Script:
             if len(values) != len(lit.spans):
                 raise ValueError(f"line {lit.line}: {len(lit.spans)} numbers, {len(values)} replacements")
             edits += [(s, e, _fixed(v)) for (s, e), v in zip(lit.spans, values)]
-        from .programs.base import replace_spans
-
         return replace_spans(self.text, edits)
 
 

@@ -18,6 +18,15 @@ _TESTS = str(Path(__file__).resolve().parent)
 if _TESTS not in sys.path:
     sys.path.insert(0, _TESTS)
 
+# `make test` runs the suite in two pytest-xdist workers (the simulated cells and services mostly
+# wait on sockets and simulated time, so two workers use both cores). Each worker gets its own
+# loopback network for its simulated cells (RECAL_TEST_NET, read by the folders' conftests), so
+# that the two never take each other's addresses; PostgreSQL databases are unique per test anyway.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _WORKER.startswith("gw"):
+    _a, _b, _c = os.environ.get("RECAL_TEST_NET", "127.0.0").split(".")
+    os.environ["RECAL_TEST_NET"] = f"{_a}.{_b}.{(int(_c) + 100 + int(_WORKER[2:])) % 256}"
+
 POSTGRES_URL = os.environ.get("RECAL_TEST_POSTGRES_URL")
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import InputError
+from ..files import InputError, replace_spans
 
 NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 NUM_RE = re.compile(NUM)
@@ -96,20 +96,6 @@ class Program:
             replace_spans(text, [(n.start, n.end, t) for n, t in edits if n.file == k])
             for k, text in enumerate(self.texts)
         ]
-
-
-def replace_spans(text: str, edits: list[tuple[int, int, str]]) -> bytes:
-    """``text`` with each ``(start, end)`` character span replaced by its new text, every other
-    character as it was, encoded back to the bytes it was read from (UTF-8, undecodable bytes
-    kept as surrogates): the rewrite every program format shares (URScript's included)."""
-    parts, pos = [], 0
-    for s, e, t in sorted(edits):
-        if s < pos:
-            raise ValueError(f"overlapping edits at character {s}")
-        parts += [text[pos:s], t]
-        pos = e
-    parts.append(text[pos:])
-    return "".join(parts).encode("utf-8", "surrogateescape")
 
 
 def read_text(path, data: bytes | None = None) -> str:

@@ -51,6 +51,7 @@ def _get(api, sid):
             time.sleep(0.2)
 
 
+@pytest.mark.serial  # it restarts PostgreSQL under every other test: `make test` runs it alone
 def test_database_restart_mid_run_loses_and_duplicates_no_measurement(make_fleet):
     cluster = _cluster()
     if cluster is None:
