@@ -1133,6 +1133,79 @@ def _consistency(chi2: float, dof: int) -> dict:
 # --------------------------------------------------------------------------- the solver
 
 
+@dataclasses.dataclass(frozen=True)
+class _Fit:
+    """What :func:`_fit_and_reselect` ends with: the model, the final selection, the last
+    Levenberg–Marquardt solution, each freed parameter's total step, and the counts."""
+
+    model: KinematicModel
+    selection: object
+    solution: object
+    moved: dict
+    iterations: int
+    nfev: int
+    history: list
+
+
+def _fit_and_reselect(
+    start,
+    prob,
+    cands,
+    sel,
+    lin_next,
+    prior,
+    *,
+    loss,
+    f_scale,
+    max_iter,
+    ftol,
+    xtol,
+    gtol,
+    rank_rtol,
+    position_only,
+    reselect,
+) -> _Fit:
+    """Levenberg–Marquardt on the selected parameters (``lin_next``: their linearisation at
+    ``start`` when it can be reused); then, when ``reselect``, the selection again at the answer
+    (a parameter redundant only at the nominal geometry, e.g. on a reflector nominally on the
+    flange axis, is freed where the data show it), and again, until the freed set is stable."""
+    current = start
+    moved: dict[str, float] = {}
+    iterations = nfev = 0
+    history: list[float] = []
+    for _round in range(MAX_SELECTION_ROUNDS):
+        params = [cands[k] for k in sel.kept]
+        info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
+        lin_p = lin_next or _linearise(current, prob, params, loss=loss, f_scale=f_scale)
+        sol = _levenberg_marquardt(
+            current,
+            prob,
+            params,
+            lin_p,
+            info,
+            loss=loss,
+            f_scale=f_scale,
+            max_iter=max_iter,
+            ftol=ftol,
+            xtol=xtol,
+            gtol=gtol,
+        )
+        current = sol.model
+        for p, s in zip(params, sol.steps):
+            moved[p.name] = moved.get(p.name, 0.0) + float(s)
+        iterations += sol.iterations
+        nfev += sol.nfev
+        history += list(sol.history)
+        if not reselect:
+            break
+        again = _reselect(current, prob, cands, sel, rank_rtol=rank_rtol, position_only=position_only)
+        if again.kept == sel.kept:
+            sel = dataclasses.replace(sel, dropped=again.dropped)
+            break
+        sel, lin_next = again, None
+    return _Fit(current, sel, sol, moved, iterations, nfev, history)
+
+
 def identify(
     model: KinematicModel,
     data: Measurements,
@@ -1203,41 +1276,26 @@ def identify(
     lin_next = lin_all.restricted(sel.kept) if loss == "linear" else None
 
     # 4. Levenberg–Marquardt; then the selection again at the answer, until the freed set is stable
-    current = start
-    moved: dict[str, float] = {}
-    iterations = nfev = 0
-    history: list[float] = []
+    fit = _fit_and_reselect(
+        start,
+        prob,
+        cands,
+        sel,
+        lin_next,
+        prior,
+        loss=loss,
+        f_scale=f_scale,
+        max_iter=max_iter,
+        ftol=ftol,
+        xtol=xtol,
+        gtol=gtol,
+        rank_rtol=rank_rtol,
+        position_only=position_only,
+        reselect=prior is None and hayati,
+    )
+    current, sel, sol, moved = fit.model, fit.selection, fit.solution, fit.moved
+    iterations, nfev, history = fit.iterations, fit.nfev, fit.history
     reach = _reach(start)
-    for _round in range(MAX_SELECTION_ROUNDS):
-        params = [cands[k] for k in sel.kept]
-        info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
-        lin_p = lin_next or _linearise(current, prob, params, loss=loss, f_scale=f_scale)
-        sol = _levenberg_marquardt(
-            current,
-            prob,
-            params,
-            lin_p,
-            info,
-            loss=loss,
-            f_scale=f_scale,
-            max_iter=max_iter,
-            ftol=ftol,
-            xtol=xtol,
-            gtol=gtol,
-        )
-        current = sol.model
-        for p, s in zip(params, sol.steps):
-            moved[p.name] = moved.get(p.name, 0.0) + float(s)
-        iterations += sol.iterations
-        nfev += sol.nfev
-        history += list(sol.history)
-        if prior is not None or not hayati:
-            break
-        again = _reselect(current, prob, cands, sel, rank_rtol=rank_rtol, position_only=position_only)
-        if again.kept == sel.kept:
-            sel = dataclasses.replace(sel, dropped=again.dropped)
-            break
-        sel, lin_next = again, None
     kept, dropped = sel.kept, sel.dropped
     params = [cands[k] for k in kept]
     steps = np.array([moved.get(p.name, 0.0) for p in params])
