@@ -467,6 +467,29 @@ def _model_values(model: KinematicModel, names: list[str]) -> dict[str, float]:
     return dict(zip((p.name for p in params), parameter_values(model, params).tolist()))
 
 
+def comparable_parameter(name: str) -> bool:
+    """Whether a parameter's value means the same in two calibrations: not the base, tool and
+    home frames' local steps, nor a Hayati link's tilt or shift (each is a step from its own
+    calibration's model, not a value; :func:`compare_parameters` compares the frames apart)."""
+    return name.split(".")[0] not in FRAMES and ".tilt_" not in name and ".shift_" not in name
+
+
+def change_in_sigmas(change: float | None, sd_a: float | None, sd_b: float | None) -> dict:
+    """A parameter's ``change`` from one calibration to another against its uncertainty:
+    ``sigma``, the two standard uncertainties combined (``sqrt(σa² + σb²)``, or the one that is
+    known), ``change_sigmas`` = ``|change| / sigma``, and ``moved``: beyond twice ``sigma``
+    (None and False where it cannot be said). The drift page and the comparison of two
+    calibrations both show this."""
+    known = [s for s in (sd_a, sd_b) if s is not None]
+    sigma = float(np.sqrt(sum(s * s for s in known))) if known else None
+    ok = bool(sigma) and change is not None
+    return {
+        "sigma": sigma,
+        "change_sigmas": abs(change) / sigma if ok else None,
+        "moved": bool(ok and abs(change) > 2 * sigma),
+    }
+
+
 def compare_parameters(
     model_a: KinematicModel, params_a: list[dict], model_b: KinematicModel, params_b: list[dict]
 ) -> list[dict]:
@@ -481,36 +504,23 @@ def compare_parameters(
     ra = {p["name"]: p for p in params_a}
     rb = {p["name"]: p for p in params_b}
     names = list(dict.fromkeys([*ra, *rb]))
-    plain = [n for n in names if n.split(".")[0] not in FRAMES and ".tilt_" not in n and ".shift_" not in n]
+    plain = [n for n in names if comparable_parameter(n)]
     va, vb = _model_values(model_a, plain), _model_values(model_b, plain)
     rows = []
 
     def add(name, unit, x_from, x_to, group, change=None):
         pa, pb = ra.get(name), rb.get(name)
-        sa = pa.get("std_error") if pa else None
-        sb = pb.get("std_error") if pb else None
-        sig = [s for s in (sa, sb) if s is not None]
-        sigma = float(np.sqrt(sum(s * s for s in sig))) if sig else None
         if change is None and x_from is not None and x_to is not None:
             change = x_to - x_from
         if pb and pb.get("source") == "prior":
             status = "from the prior"  # in b, but kept from a: these measurements did not determine it
         else:
             status = "both" if pa and pb else "new" if pb else "not estimated" if pa else "fixed"
-        moved = bool(sigma and change is not None and abs(change) > 2 * sigma)
+        moved = change_in_sigmas(change, pa.get("std_error") if pa else None, pb.get("std_error") if pb else None)
         rows.append(
-            {
-                "name": name,
-                "unit": unit,
-                "group": group,
-                "from": x_from,
-                "to": x_to,
-                "change": change,
-                "sigma": sigma,
-                "change_sigmas": abs(change) / sigma if sigma and change is not None else None,
-                "moved": moved,
-                "status": status,
-            }
+            {"name": name, "unit": unit, "group": group, "from": x_from, "to": x_to, "change": change}
+            | moved
+            | {"status": status}
         )
 
     for n in plain:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import Field
 from sqlmodel import Session, select
@@ -12,6 +10,7 @@ from starlette.concurrency import run_in_threadpool
 from calibration.model import ModelFormatError, model_from_dict
 
 from ...devices import DeviceConfigError, cmm_ball_radius_m, emscon_config
+from ...drift import cell_drift
 from ...models import (
     Calibration,
     Cell,
@@ -194,21 +193,6 @@ def list_calibrations(
     ]
 
 
-def comparable_parameter(name: str) -> bool:
-    """Parameters whose values mean the same in two calibrations (local steps do not)."""
-    return not (name.startswith(("base.", "tool.", "home.")) or ".tilt_" in name or ".shift_" in name)
-
-
-def change_in_sigmas(a: dict, b: dict) -> dict | None:
-    """The change of one parameter from report entry ``a`` to ``b``, and in units of their
-    combined standard uncertainty ``|Δ| / sqrt(σa² + σb²)`` (None where it cannot be said)."""
-    if a.get("value") is None or b.get("value") is None:
-        return None
-    d = b["value"] - a["value"]
-    s = math.hypot(a.get("std_error") or 0.0, b.get("std_error") or 0.0)
-    return {"change": d, "change_sigmas": abs(d) / s if s > 0 else None, "moved": bool(s > 0 and abs(d) > 2 * s)}
-
-
 @router.get("/cells/{cell_id}/drift", response_model=Drift, response_model_exclude_unset=True)
 def drift(cell_id: int, db: DbSession, tok: Reader) -> dict:
     """How the cell's robot changed over time, oldest first:
@@ -224,71 +208,7 @@ def drift(cell_id: int, db: DbSession, tok: Reader) -> dict:
       time and the calibration it checked.
     """
     get_cell(db, cell_id)
-    cals = db.exec(
-        select(
-            Calibration.id,
-            Calibration.created_at,
-            Calibration.rms,
-            Calibration.predicted,
-            Calibration.nominal_version,
-            Calibration.report["parameters"],
-        )  # not whole reports
-        .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
-        .order_by(Calibration.id)
-    ).all()
-    series: dict[str, list] = {}
-    history = []
-    prev: dict[str, dict] = {}
-    prev_version = None
-    for cid, at, rms, predicted, version, parameters in cals:
-        history.append({"id": cid, "created_at": at, "rms": rms, "predicted": predicted, "nominal_version": version})
-        params = {p["name"]: p for p in parameters or []}
-        for name, p in params.items():
-            entry = {"calibration_id": cid, "value": p["value"], "std_error": p["std_error"], "unit": p["unit"]}
-            if name in prev and version == prev_version and comparable_parameter(name):
-                moved = change_in_sigmas(prev[name], p)
-                if moved is not None:
-                    entry.update({"change": moved["change"], "change_sigmas": moved["change_sigmas"]})
-            series.setdefault(name, []).append(entry)
-        prev, prev_version = params, version
-    runs = db.exec(
-        select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
-        .where(
-            RunSession.cell_id == cell_id,
-            RunSession.kind == "verify",
-            RunSession.state == "completed",
-            RunSession.dry_run == False,  # noqa: E712 (SQL)
-        )
-        .order_by(RunSession.id)
-    ).all()  # noqa: E712
-    verify = []
-    for sid, at, info in runs:
-        v = (info or {}).get("verify")
-        if not v:
-            continue
-        iso = v.get("iso9283")
-        verify.append(
-            {
-                "session_id": sid,
-                "at": at,
-                "calibration_id": v.get("calibration_id"),
-                "n": v.get("n"),
-                "rms": v.get("rms"),
-                "max": v.get("max"),
-                "p95": v.get("p95"),
-                "unit": v.get("unit"),
-                "iso9283": None
-                if not iso
-                else {
-                    "repeats": iso["repeats"],
-                    "AP_mean": iso["accuracy"]["mean"],
-                    "AP_max": iso["accuracy"]["max"],
-                    "RP_mean": iso["repeatability"]["mean"],
-                    "RP_max": iso["repeatability"]["max"],
-                },
-            }
-        )
-    return {"calibrations": history, "parameters": series, "verify": verify}
+    return cell_drift(db, cell_id)
 
 
 class TaskFileCreate(_In):
