@@ -217,11 +217,15 @@ class WorkerRuntime:
         self.app.task(name=jobs.TASK, pass_context=True)(self.run_job)
         self.queues = None if sites is None else [jobs.queue_for_site(s) for s in sites]
         self.stopping = threading.Event()
+        # As the embedded runner: planning and identification of this worker's sessions take at
+        # most heavy_workers cores at once (service.control.heavy_slot), so that many sessions
+        # finishing together do not starve the ones still moving (their pause, abort, renewals).
+        self.heavy = threading.BoundedSemaphore(settings.heavy_workers)
 
     # ------------------------------------------------------------------ one job
 
     def run_job(self, context, session_id: int) -> str:
-        control = Control(renew=lambda: self.monitor.renew({session_id}))
+        control = Control(renew=lambda: self.monitor.renew({session_id}), heavy=self.heavy)
         outcome = self._claim_patiently(session_id, control)
         if outcome is not None:
             log.info("session %s: %s", session_id, outcome)
