@@ -56,7 +56,15 @@ from .plans import UnsafePlan, approach_configurations, check_configurations, pl
 from .settings import Settings
 from .store import acquire_lease, database_unavailable, held_by_other, set_state
 
-__all__ = ["Control", "DeviceOpenError", "Orchestrator", "SessionStopped", "open_session_devices", "run_session"]
+__all__ = [
+    "Control",
+    "DeviceOpenError",
+    "Orchestrator",
+    "SessionStopped",
+    "commit_measurements",
+    "open_session_devices",
+    "run_session",
+]
 
 log = logging.getLogger("recal.sessions")
 
@@ -329,7 +337,7 @@ def _measure_all(
             "at": utcnow().isoformat(),
         }
         # before the next move, with the devices' state in the same transaction: a crash loses nothing reported
-        _commit_measurements(db, rows, settings, control, run=run, device_state=state)
+        commit_measurements(db, rows, settings, control, run=run, device_state=state)
         if seq % 10 == 0 and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
             raise SessionStopped("interrupted", "another process holds this cell now; resume the session to continue")
 
@@ -354,7 +362,7 @@ def _set_payload(devices: CellDevices, model, payload: np.ndarray, settings: Set
         ) from None
 
 
-def _commit_measurements(
+def commit_measurements(
     db: Session,
     rows: list[Measurement],
     settings: Settings,

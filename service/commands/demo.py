@@ -80,7 +80,10 @@ def add_parser(s) -> None:
     )
 
 
-def _truth_and_nominal(args):
+def truth_and_nominal(args):
+    """The demo's nominal model (``args.robot`` with a reflector and three tooling balls), the
+    simulated robot's truth (every link a little off, placed where a tracker happens to see it)
+    and the random generator that drew it (``args.seed``)."""
     rng = np.random.default_rng(args.seed)
     targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}
     nominal = dataclasses.replace(robots.nominal(args.robot), targets=targets)
@@ -126,7 +129,7 @@ def _models_only(args) -> int:
 
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
-    nominal, truth, _ = _truth_and_nominal(args)
+    nominal, truth, _ = truth_and_nominal(args)
     save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
     print(
@@ -147,7 +150,7 @@ def _live(args) -> int:
 
     out = Path(args.dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    nominal, truth, _ = _truth_and_nominal(args)
+    nominal, truth, _ = truth_and_nominal(args)
     save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
     db_file = out / "recal.db"
@@ -297,7 +300,7 @@ def _offline(args) -> int:
 
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
-    nominal, truth, rng = _truth_and_nominal(args)
+    nominal, truth, rng = truth_and_nominal(args)
     save_model(out / "nominal.json", nominal)
     payload = None
     if args.sag:  # every other pose with the rated payload: two payloads separate the arm's weight from it

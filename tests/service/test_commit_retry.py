@@ -9,7 +9,7 @@ from sqlalchemy.exc import OperationalError
 from sqlmodel import Session, select
 
 from service.models import Cell, Measurement, RunSession
-from service.orchestrator import Control, _commit_measurements
+from service.orchestrator import Control, commit_measurements
 from service.settings import Settings
 from service.store import make_engine, migrate
 
@@ -54,9 +54,9 @@ def test_a_measurement_commit_survives_a_database_blip_exactly_once(store, plan)
     settings = Settings(lease_ttl_s=10.0)
     with FlakySession(engine) as db:
         db.plan = list(plan)
-        _commit_measurements(db, [_row(sid, 0)], settings, Control())
+        commit_measurements(db, [_row(sid, 0)], settings, Control())
         db.plan = []
-        _commit_measurements(db, [_row(sid, 1)], settings, Control())
+        commit_measurements(db, [_row(sid, 1)], settings, Control())
     with Session(engine) as db:
         rows = db.exec(select(Measurement).where(Measurement.session_id == sid)).all()
     assert sorted(r.seq for r in rows) == [0, 1]
@@ -67,9 +67,9 @@ def test_a_real_duplicate_is_still_an_error(store):
 
     engine, sid = store
     with Session(engine) as db:
-        _commit_measurements(db, [_row(sid, 0)], Settings(), Control())
+        commit_measurements(db, [_row(sid, 0)], Settings(), Control())
         with pytest.raises(IntegrityError):
-            _commit_measurements(db, [_row(sid, 0)], Settings(), Control())
+            commit_measurements(db, [_row(sid, 0)], Settings(), Control())
 
 
 def test_the_retry_gives_up_when_the_lease_would_run_out(store):
@@ -81,4 +81,4 @@ def test_the_retry_gives_up_when_the_lease_would_run_out(store):
     with FlakySession(engine) as db:
         db.plan = ["before"] * 20
         with pytest.raises(OperationalError):
-            _commit_measurements(db, [_row(sid, 0)], Settings(lease_ttl_s=10.0), control)
+            commit_measurements(db, [_row(sid, 0)], Settings(lease_ttl_s=10.0), control)

@@ -332,12 +332,12 @@ def test_cmm_pose_session_after_a_tracker_calibration_on_the_demo_cell(stack, tm
     import argparse
     import json
 
-    from service.commands.demo import _truth_and_nominal
+    from service.commands.demo import truth_and_nominal
     from service.processes import start_fake_cell
 
     from .conftest import next_host
 
-    nominal, truth, _ = _truth_and_nominal(argparse.Namespace(seed=1, robot="ur10e"))
+    nominal, truth, _ = truth_and_nominal(argparse.Namespace(seed=1, robot="ur10e"))
     from service.files import save_model
 
     save_model(tmp_path / "nominal.json", nominal)
