@@ -292,3 +292,59 @@ def controller_summary(db, cell) -> dict | None:
         "moved_mm": None if rec.moved_m is None else rec.moved_m * 1e3,
         "created_at": rec.created_at.isoformat(),
     }
+
+
+def controller_document(db, cell) -> dict:
+    """The controller model the cell keeps, as ``GET /cells/{id}/controller-model`` answers: the
+    newest version's ``recal.model/1`` document with its summary, and every version's summary.
+    :class:`~service.problems.NotFound` when none was read or uploaded."""
+    from sqlmodel import select
+
+    from .models import ControllerModel
+    from .problems import NotFound
+
+    summary = controller_summary(db, cell)
+    if summary is None:
+        raise NotFound(
+            f"cell {cell.id} has no controller model: a session on a UR cell over RTDE reads it, "
+            f"or upload the file `recal controller-model` writes"
+        )
+    rows = db.exec(
+        select(ControllerModel).where(ControllerModel.cell_id == cell.id).order_by(ControllerModel.version.desc())
+    ).all()
+    return {
+        **summary,
+        "model": rows[0].model,
+        "history": [
+            {
+                "version": r.version,
+                "session_id": r.session_id,
+                "created_at": r.created_at,
+                "moved_mm": None if r.moved_m is None else r.moved_m * 1e3,
+            }
+            for r in rows
+        ],
+    }
+
+
+def store_controller_document(db, cell, doc: dict, *, actor: str) -> dict:
+    """Store a controller model written by ``recal controller-model`` as the cell's newest
+    version (audited); its summary. :class:`~service.problems.Invalid` naming the field when it
+    is not a model or lacks the check figures block."""
+    from calibration.model import ModelFormatError, model_from_dict
+
+    from .problems import Invalid
+    from .store import add_controller_model, audit, current_controller_model
+
+    try:
+        model_from_dict(doc)
+    except ModelFormatError as exc:
+        raise Invalid(f"body.{exc.field}" if exc.field else "body", str(exc).split(": ", 1)[-1]) from None
+    if not isinstance(doc.get(BLOCK), dict):
+        raise Invalid(f"body.{BLOCK}", "expected the check figures block `recal controller-model` writes")
+    last = current_controller_model(db, cell.id)
+    rec = add_controller_model(
+        db, cell_id=cell.id, model=doc, moved_m=models_differ(None if last is None else last.model, doc)
+    )
+    audit(db, actor=actor, action="upload controller model", subject=f"cell {cell.id}", detail={"version": rec.version})
+    return controller_summary(db, cell)

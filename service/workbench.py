@@ -168,8 +168,9 @@ def calibration_page(db: Session, cell_id: int, kind: str | None, limit: int, of
     }
 
 
-def session_page(db: Session, cell_id: int, limit: int, offset: int, dry_runs: bool) -> dict:
-    """A page of the cell's sessions, newest first (dry runs left out unless asked for)."""
+def session_page(db: Session, cell_id: int, limit: int, offset: int, dry_runs: bool, *, max_limit: int = 200) -> dict:
+    """A page of the cell's sessions, newest first (dry runs left out unless asked for), at most
+    ``max_limit`` of them."""
     where = [RunSession.cell_id == cell_id] + ([] if dry_runs else [RunSession.dry_run == False])  # noqa: E712 (SQL)
     total = db.exec(select(func.count(RunSession.id)).where(*where)).one()
     rows = db.exec(
@@ -177,9 +178,30 @@ def session_page(db: Session, cell_id: int, limit: int, offset: int, dry_runs: b
         .where(*where)
         .order_by(RunSession.id.desc())
         .offset(max(0, offset))
-        .limit(max(1, min(limit, 200)))
+        .limit(max(1, min(limit, max_limit)))
     ).all()
     return {"total": int(total), "offset": offset, "items": [public_session(db, r) for r in rows]}
+
+
+def calibration_list(db: Session, cell_id: int, kind: str | None, limit: int) -> list[dict]:
+    """The cell's calibrations, newest first (at most ``limit``, 5000), without models and
+    reports: residual RMS, predicted accuracy and the nominal model version of each."""
+    q = select(
+        Calibration.id,
+        Calibration.kind,
+        Calibration.session_id,
+        Calibration.rms,
+        Calibration.created_at,
+        Calibration.nominal_version,
+        Calibration.predicted,
+    ).where(Calibration.cell_id == cell_id)
+    if kind:
+        q = q.where(Calibration.kind == kind)
+    rows = db.exec(q.order_by(Calibration.id.desc()).limit(max(1, min(limit, 5000)))).all()
+    return [
+        {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": t, "nominal_version": v, "predicted": p}
+        for i, k, s, r, t, v, p in rows
+    ]
 
 
 def test_devices(db: Session, cell: Cell, tok: Token, timeout_s: float) -> dict:

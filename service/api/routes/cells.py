@@ -9,10 +9,11 @@ from starlette.concurrency import run_in_threadpool
 
 from calibration.model import ModelFormatError, model_from_dict
 
+from ... import tasks, workbench
+from ...controller import controller_document, store_controller_document
 from ...devices import DeviceConfigError, cmm_ball_radius_m, emscon_config
 from ...drift import cell_drift
 from ...models import (
-    Calibration,
     Cell,
     CellCreate,
     CellPublic,
@@ -20,11 +21,10 @@ from ...models import (
     RunSession,
     SessionCreate,
     SessionPublic,
-    TaskFile,
     _In,
 )
 from ...plans import RegionError, check_region
-from ...sessions import ACTIVE, public_session, start_session
+from ...sessions import ACTIVE, get_cell, start_session
 from ...store import audit, current_calibration
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
 from ..schemas import CalibrationListItem, Drift, TaskFileContent, TaskFileInfo, TasksCompensated
@@ -35,13 +35,6 @@ router = APIRouter(tags=["cells"])
 def _public(db, cell: Cell) -> CellPublic:
     last = current_calibration(db, cell)
     return CellPublic(**cell.model_dump(), last_calibration_id=None if last is None else last.id)
-
-
-def get_cell(db, cell_id: int) -> Cell:
-    cell = db.get(Cell, cell_id)
-    if cell is None:
-        raise HTTPException(404, f"no cell {cell_id}")
-    return cell
 
 
 def _check_model(doc: dict):
@@ -160,11 +153,7 @@ def create_session(cell_id: int, body: SessionCreate, db: DbSession, tok: Runner
 def list_sessions(cell_id: int, db: DbSession, tok: Reader, limit: int = 50, dry_runs: bool = False):
     """The cell's sessions, newest first; dry runs (plans shown, nothing measured) only if asked."""
     get_cell(db, cell_id)
-    where = [RunSession.cell_id == cell_id] + ([] if dry_runs else [RunSession.dry_run == False])  # noqa: E712
-    rows = db.exec(
-        select(RunSession).where(*where).order_by(RunSession.id.desc()).limit(max(1, min(limit, 1000)))
-    ).all()
-    return [public_session(db, r) for r in rows]
+    return workbench.session_page(db, cell_id, limit, 0, dry_runs, max_limit=1000)["items"]
 
 
 @router.get("/cells/{cell_id}/calibrations", response_model=list[CalibrationListItem])
@@ -175,22 +164,7 @@ def list_calibrations(
     and reports: the residual RMS, the predicted accuracy (``predicted``: 95 % radius over the
     workspace) and the nominal model version each was identified from."""
     get_cell(db, cell_id)
-    q = select(
-        Calibration.id,
-        Calibration.kind,
-        Calibration.session_id,
-        Calibration.rms,
-        Calibration.created_at,
-        Calibration.nominal_version,
-        Calibration.predicted,
-    ).where(Calibration.cell_id == cell_id)
-    if kind:
-        q = q.where(Calibration.kind == kind)
-    rows = db.exec(q.order_by(Calibration.id.desc()).limit(max(1, min(limit, 5000)))).all()
-    return [
-        {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": t, "nominal_version": v, "predicted": p}
-        for i, k, s, r, t, v, p in rows
-    ]
+    return workbench.calibration_list(db, cell_id, kind, limit)
 
 
 @router.get("/cells/{cell_id}/drift", response_model=Drift, response_model_exclude_unset=True)
@@ -219,52 +193,30 @@ class TaskFileCreate(_In):
 
 @router.post("/cells/{cell_id}/tasks", status_code=201, response_model=TaskFileInfo, response_model_exclude_unset=True)
 def register_task(cell_id: int, body: TaskFileCreate, db: DbSession, tok: CellEditor) -> dict:
-    get_cell(db, cell_id)
-    t = TaskFile(cell_id=cell_id, name=body.name, content=body.content, mode=body.mode)
-    db.add(t)
-    db.commit()
-    db.refresh(t)
-    audit(db, actor=tok.name, action="register task file", subject=f"cell {cell_id}", detail={"name": body.name})
-    return {"id": t.id, "name": t.name, "mode": t.mode}
+    return tasks.register_task(
+        db, get_cell(db, cell_id), name=body.name, content=body.content, mode=body.mode, actor=tok.name
+    )
 
 
 @router.get("/cells/{cell_id}/tasks", response_model=list[TaskFileInfo])
 def list_tasks(cell_id: int, db: DbSession, tok: Reader) -> list[dict]:
     get_cell(db, cell_id)
-    return [
-        {"id": t.id, "name": t.name, "mode": t.mode, "created_at": t.created_at}
-        for t in db.exec(select(TaskFile).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)).all()
-    ]
+    return tasks.list_tasks(db, cell_id)
 
 
 @router.get("/cells/{cell_id}/tasks/{task_id}", response_model=TaskFileContent)
 def read_task(cell_id: int, task_id: int, db: DbSession, tok: Reader) -> dict:
-    t = db.get(TaskFile, task_id)
-    if t is None or t.cell_id != cell_id:
-        raise HTTPException(404, f"no task file {task_id} in cell {cell_id}")
-    return {"id": t.id, "name": t.name, "mode": t.mode, "content": t.content, "created_at": t.created_at}
+    return tasks.read_task(db, cell_id, task_id)
 
 
 def _tasks_to_compensate(engine, cell_id: int, calibration_id: int | None) -> tuple[int, list[tuple]]:
     with Session(engine) as db:
-        cell = get_cell(db, cell_id)
-        cal = db.get(Calibration, calibration_id) if calibration_id is not None else current_calibration(db, cell)
-        if cal is None or cal.cell_id != cell_id:
-            raise HTTPException(
-                404,
-                "no calibration to compensate with"
-                if calibration_id is None
-                else f"no calibration {calibration_id} in cell {cell_id}",
-            )
-        tasks = db.exec(
-            select(TaskFile.id, TaskFile.name, TaskFile.mode).where(TaskFile.cell_id == cell_id).order_by(TaskFile.id)
-        ).all()
-        return cal.id, [tuple(t) for t in tasks]
+        return tasks.tasks_to_compensate(db, get_cell(db, cell_id), calibration_id)
 
 
 def _task_content(engine, task_id: int) -> str:
     with Session(engine) as db:
-        return db.get(TaskFile, task_id).content
+        return tasks.task_content(db, task_id)
 
 
 def _audit(engine, **kw) -> None:
@@ -280,10 +232,10 @@ async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, cal
     from ...compensate import CompensationInputError, compensate_and_store
 
     engine, heavy = request.app.state.engine, request.app.state.heavy
-    cal_id, tasks = await run_in_threadpool(_tasks_to_compensate, engine, cell_id, calibration_id)
+    cal_id, todo = await run_in_threadpool(_tasks_to_compensate, engine, cell_id, calibration_id)
     url = request.app.state.settings.effective_database_url
     results = []
-    for task_id, name, mode in tasks:
+    for task_id, name, mode in todo:
         content = await run_in_threadpool(_task_content, engine, task_id)
         try:
             rec_id, _, summary, _ = await heavy.run(
@@ -311,58 +263,11 @@ async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, cal
 def read_controller_model(cell_id: int, db: DbSession, tok: Reader) -> dict:
     """The UR controller's own kinematics the cell keeps (newest version, ``recal.model/1`` with
     its ``controller`` block) and every version's summary; 404 when none was read."""
-    from ...controller import controller_summary
-    from ...models import ControllerModel
-
-    cell = get_cell(db, cell_id)
-    summary = controller_summary(db, cell)
-    if summary is None:
-        raise HTTPException(
-            404,
-            f"cell {cell_id} has no controller model: a session on a UR cell over RTDE reads it, "
-            f"or upload the file `recal controller-model` writes",
-        )
-    rows = db.exec(
-        select(ControllerModel).where(ControllerModel.cell_id == cell_id).order_by(ControllerModel.version.desc())
-    ).all()
-    return {
-        **summary,
-        "model": rows[0].model,
-        "history": [
-            {
-                "version": r.version,
-                "session_id": r.session_id,
-                "created_at": r.created_at,
-                "moved_mm": None if r.moved_m is None else r.moved_m * 1e3,
-            }
-            for r in rows
-        ],
-    }
+    return controller_document(db, get_cell(db, cell_id))
 
 
 @router.put("/cells/{cell_id}/controller-model")
 def upload_controller_model(cell_id: int, body: dict, db: DbSession, tok: CellEditor) -> dict:
     """Store a controller model written by ``recal controller-model`` as the cell's newest
     version (its ``controller`` block, the check figures, is required)."""
-    from ...controller import BLOCK, controller_summary, models_differ
-    from ...store import add_controller_model, current_controller_model
-
-    cell = get_cell(db, cell_id)
-    try:
-        model_from_dict(body)
-    except ModelFormatError as exc:
-        raise HTTPException(
-            422, {"field": f"body.{exc.field}" if exc.field else "body", "message": str(exc).split(": ", 1)[-1]}
-        ) from None
-    if not isinstance(body.get(BLOCK), dict):
-        raise HTTPException(
-            422,
-            {"field": f"body.{BLOCK}", "message": "expected the check figures block `recal controller-model` writes"},
-        )
-    last = current_controller_model(db, cell_id)
-    moved = models_differ(None if last is None else last.model, body)
-    rec = add_controller_model(db, cell_id=cell_id, model=body, moved_m=moved)
-    audit(
-        db, actor=tok.name, action="upload controller model", subject=f"cell {cell_id}", detail={"version": rec.version}
-    )
-    return controller_summary(db, cell)
+    return store_controller_document(db, get_cell(db, cell_id), body, actor=tok.name)
