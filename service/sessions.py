@@ -13,10 +13,10 @@ from sqlmodel import Session, select
 from calibration.model import model_from_dict
 
 from .kinds import kind_of
-from .models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token
+from .models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
 from .problems import Conflict, Invalid, NotFound
 from .runners import SessionRunner
-from .store import audit, measured_count
+from .store import audit, measured_count, set_state_unless
 
 ACTIVE = ("planned", "running")
 TERMINAL = ("completed", "failed", "aborted")
@@ -107,7 +107,9 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     return _commit_and_start(db, run, orchestrator, tok, detail)
 
 
-def _commit_and_start(db: Session, run: RunSession, orchestrator, tok: Token, detail: dict) -> SessionPublic:
+def _commit_and_start(
+    db: Session, run: RunSession, orchestrator, tok: Token, detail: dict | None, action: str = "start session"
+) -> SessionPublic:
     """Store ``run`` planned, audited, and start it (or queue it: :func:`commit_planned`)."""
     try:
         queued = commit_planned(db, run, orchestrator)
@@ -117,19 +119,57 @@ def _commit_and_start(db: Session, run: RunSession, orchestrator, tok: Token, de
     db.refresh(run)
     if run.dry_run:  # after the new one has its id: on SQLite a deleted highest id would be given again
         forget_dry_runs(db, run.cell_id, keep=run.id)
-    audit(db, actor=tok.name, action="start session", subject=f"session {run.id}", detail=detail)
+    audit(db, actor=tok.name, action=action, subject=f"session {run.id}", detail=detail)
     if not queued:
         orchestrator.start(run.id)
     return public_session(db, run)
 
 
-def driving_session(db: Session, cell_id: int, *, dry_runs: bool = False) -> RunSession | None:
+def driving_session(
+    db: Session, cell_id: int, *, dry_runs: bool = False, other_than: int | None = None
+) -> RunSession | None:
     """The session driving the cell (planned or running), if any; dry runs (which move nothing)
-    only if ``dry_runs``."""
+    only if ``dry_runs``; never session ``other_than``."""
     where = [RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE)]
     if not dry_runs:
         where.append(RunSession.dry_run == False)  # noqa: E712 (SQL)
+    if other_than is not None:
+        where.append(RunSession.id != other_than)
     return db.exec(select(RunSession).where(*where)).first()
+
+
+RESUMABLE = ("paused", "interrupted", "planned")
+
+
+def resume_session(db: Session, run: RunSession, tok: Token, orchestrator) -> SessionPublic:
+    """Continue a paused or interrupted session (or one left planned) with the first
+    configuration not yet measured. Refused (:class:`Conflict`) when the cell's nominal model
+    was replaced since it was planned, or another session drives the cell."""
+    if run.state not in RESUMABLE:
+        raise Conflict(f"session {run.id} is {run.state}; only a paused or interrupted session can resume")
+    planned_for = (run.plan_info or {}).get("nominal_version")
+    cell = get_cell(db, run.cell_id)
+    if run.plan is not None and planned_for is not None and planned_for != cell.model_version:
+        raise Conflict(
+            f"session {run.id} was planned for the cell's nominal model version {planned_for}; "
+            f"it has been replaced (version {cell.model_version}): start a new session"
+        )
+    busy = driving_session(db, run.cell_id, dry_runs=True, other_than=run.id)
+    if busy is not None:
+        raise Conflict(f"session {busy.id} is driving this cell")
+    run.state, run.reason, run.updated_at = "planned", None, utcnow()
+    return _commit_and_start(db, run, orchestrator, tok, None, action="resume session")
+
+
+def pause_session(db: Session, run: RunSession, tok: Token, orchestrator) -> SessionPublic:
+    """Pause a running session at its next step (a session nothing runs is paused here)."""
+    if run.state not in ACTIVE:
+        raise Conflict(f"session {run.id} is {run.state}; only a running session can pause")
+    audit(db, actor=tok.name, action="pause session", subject=f"session {run.id}")
+    if not orchestrator.pause(run.id):  # nothing runs it: paused here
+        set_state_unless(db, run, TERMINAL + ("paused", "interrupted"), "paused", "paused on request")
+    db.refresh(run)
+    return public_session(db, run)
 
 
 def refuse_if_busy(db: Session, cell_id: int) -> None:

@@ -9,17 +9,16 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
-from sqlalchemy.exc import IntegrityError
 from sqlmodel import Session, select
 
-from ...models import Cell, Measurement, RunSession, SessionPublic, Token, utcnow
+from ...models import Measurement, SessionPublic, Token
 from ...sessions import (
-    ACTIVE,
     TERMINAL,
-    commit_planned,
     get_run,
+    pause_session,
     public_session,
     read_public_session,
+    resume_session,
 )
 from ...store import audit, set_state_unless
 from ..deps import PERMISSIONS, DbSession, Orchestrator, Reader, Runner, current_token, quick_read, tickets
@@ -42,49 +41,14 @@ async def read_session(session_id: int, request: Request, tok: Reader):
 
 @router.post("/sessions/{session_id}/resume", response_model=SessionPublic)
 def resume(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
-    run = get_run(db, session_id)
-    if run.state not in ("paused", "interrupted", "planned"):
-        raise HTTPException(
-            409, f"session {session_id} is {run.state}; only a paused or interrupted session can resume"
-        )
-    planned_for = (run.plan_info or {}).get("nominal_version")
-    cell = db.get(Cell, run.cell_id)
-    if run.plan is not None and planned_for is not None and planned_for != cell.model_version:
-        raise HTTPException(
-            409,
-            f"session {session_id} was planned for the cell's nominal model version {planned_for}; "
-            f"it has been replaced (version {cell.model_version}): start a new session",
-        )
-    busy = db.exec(
-        select(RunSession).where(
-            RunSession.cell_id == run.cell_id, RunSession.id != run.id, RunSession.state.in_(ACTIVE)
-        )
-    ).first()
-    if busy is not None:
-        raise HTTPException(409, f"session {busy.id} is driving this cell")
-    run.state, run.reason, run.updated_at = "planned", None, utcnow()
-    try:
-        queued = commit_planned(db, run, orchestrator)
-    except IntegrityError:
-        db.rollback()
-        raise HTTPException(409, "another session is driving this cell") from None
-    db.refresh(run)
-    audit(db, actor=tok.name, action="resume session", subject=f"session {session_id}")
-    if not queued:
-        orchestrator.start(run.id)
-    return public_session(db, run)
+    """Continue a paused or interrupted session with the first configuration not yet measured."""
+    return resume_session(db, get_run(db, session_id), tok, orchestrator)
 
 
 @router.post("/sessions/{session_id}/pause", response_model=SessionPublic)
 def pause(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
-    run = get_run(db, session_id)
-    if run.state not in ACTIVE:
-        raise HTTPException(409, f"session {session_id} is {run.state}; only a running session can pause")
-    audit(db, actor=tok.name, action="pause session", subject=f"session {session_id}")
-    if not orchestrator.pause(run.id):  # nothing runs it: paused here
-        set_state_unless(db, run, TERMINAL + ("paused", "interrupted"), "paused", "paused on request")
-    db.refresh(run)
-    return public_session(db, run)
+    """Pause a running session at its next step."""
+    return pause_session(db, get_run(db, session_id), tok, orchestrator)
 
 
 @router.post("/sessions/{session_id}/abort", response_model=SessionPublic)
