@@ -22,6 +22,7 @@ from sqlmodel import Session, select
 from calibration.metrics import error_statistics
 from calibration.model import model_from_dict
 
+from .device_config import DeviceConfigError, stored_devices
 from .models import AuditEntry, Calibration, Cell, RunSession
 from .records import position_errors, session_measurements
 from .results import _r, calibration_result
@@ -101,6 +102,15 @@ def _holdout(db: Session, cal: Calibration, verify_after: dict | None, unit: str
         "date": as_utc(run.created_at).isoformat(),
         "target": run.target,
     }
+
+
+def _instrument_address(cell: Cell, device: str) -> str:
+    """Where the session's instrument is (the Leica on emScon for a tracker, when the cell has
+    one: sessions measure with it); empty when the stored devices cannot be read."""
+    try:
+        return stored_devices(cell.devices).instrument_address(device)
+    except DeviceConfigError:
+        return ""
 
 
 def last_device_test(db: Session, cell_id: int, until: datetime | None = None) -> dict | None:
@@ -187,7 +197,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         "instrument": {
             "kind": INSTRUMENTS.get(device, device),
             "device": device,
-            "address": str((cell.devices or {}).get(device, "")),
+            "address": _instrument_address(cell, device),
             "identity": identity,
             "identity_checked_at": test["at"] if test else None,
             "noise": settings.get("sigma"),

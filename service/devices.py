@@ -1,5 +1,5 @@
-"""Opening a cell's devices from its ``devices`` document (the fake cell's endpoint line,
-contracts §7, or the same shape for real equipment).
+"""Opening a cell's devices from its typed configuration (:class:`DevicesConfig`, parsed from
+the ``devices`` document by :func:`service.device_config.parse_devices`).
 
 This is the one place that names concrete drivers (after python-can's backend table): the
 orchestrator only sees the interfaces of ``drivers.base``. Drivers are imported when a cell
@@ -12,22 +12,39 @@ import contextlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from calibration.errors import RecalError
 from drivers.base import Cmm, JointEncoder, PositionSensor, Robot
 
+from .device_config import (
+    DEFAULT_BALL_RADIUS_M,
+    DeviceConfigError,
+    DevicesConfig,
+    EmsconSettings,
+    parse_devices,
+    stored_devices,
+)
 
-class DeviceConfigError(RecalError, ValueError):
-    """A cell's ``devices`` document cannot be used: names the field at fault."""
-
-
-# The tooling balls' radius when the cell does not give one: the common 25 mm ball.
-DEFAULT_BALL_RADIUS_M = 0.0125
+__all__ = [
+    "DEFAULT_BALL_RADIUS_M",
+    "CellDevices",
+    "DeviceConfigError",
+    "DevicesConfig",
+    "describe",
+    "emscon_config",
+    "encoder_nodes",
+    "open_cmm",
+    "open_encoders",
+    "open_line_tracker",
+    "open_robot",
+    "open_tracker",
+    "parse_devices",
+    "stored_devices",
+]
 
 
 @dataclass
 class CellDevices:
     """The open devices of one cell. Closing closes every one (idempotent). ``cmm_ball_radius_m``:
-    the radius of the tooling balls the CMM probes (:func:`cmm_ball_radius_m`)."""
+    the radius of the tooling balls the CMM probes (``DevicesConfig.cmm_ball_radius_m``)."""
 
     robot: Robot | None = None
     tracker: PositionSensor | None = None
@@ -48,92 +65,61 @@ class CellDevices:
         self.close()
 
 
-def open_robot(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Robot:
-    """The cell's robot: UR over RTDE when ``rtde`` is given, else Modbus TCP (``modbus``)."""
-    if devices.get("rtde"):
+def open_robot(config: DevicesConfig, *, timeout_s: float = 10.0) -> Robot:
+    """The cell's robot: UR over RTDE when ``rtde`` is given, else Modbus TCP (``modbus``).
+    ``timeout_s`` bounds each request (RTDE: each probe of the controller and each call; its
+    connection, which uploads ``ur_rtde``'s control script, gets at least the driver's 15 s)."""
+    if config.rtde:
         from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
 
-        return UrRtdeRobot(UrRtdeConfig(host=str(devices["rtde"])))
-    if devices.get("modbus"):
+        connect_s = max(UrRtdeConfig.__dataclass_fields__["connect_timeout_s"].default, timeout_s)
+        return UrRtdeRobot(
+            UrRtdeConfig(
+                host=config.rtde, probe_timeout_s=timeout_s, command_timeout_s=timeout_s, connect_timeout_s=connect_s
+            )
+        )
+    if config.modbus:
         from drivers.modbus_robot import ModbusRobot, ModbusRobotConfig
 
-        host, _, port = str(devices["modbus"]).rpartition(":")
-        if not host or not port.isdigit():
-            raise DeviceConfigError(f"devices.modbus: expected HOST:PORT, got {devices['modbus']!r}")
-        return ModbusRobot(ModbusRobotConfig(host=host, port=int(port), timeout_s=timeout_s))
-    raise DeviceConfigError("devices: no robot (expected an `rtde` host or a `modbus` HOST:PORT)")
+        host, _, port = config.modbus.rpartition(":")
+        return ModbusRobot(ModbusRobotConfig(host=host.strip("[]"), port=int(port), timeout_s=timeout_s))
+    raise DeviceConfigError("devices", "no robot (expected an `rtde` host or a `modbus` HOST:PORT)")
 
 
-#: Settings of an ``emscon`` entry given as an object (the fields of ``drivers.leica_emscon.EmsconConfig``).
-EMSCON_FIELDS = {
-    "host": str,
-    "port": int,
-    "reflector": str,
-    "measure_time_s": float,
-    "use_adm": bool,
-    "environment": str,
-    "temperature_c": float,
-    "pressure_mbar": float,
-    "humidity_pct": float,
-    "initialize_timeout_s": float,
-}
-
-
-def has_tracker(devices: dict[str, Any]) -> bool:
-    """The cell has a laser tracker: a Leica on emScon (``emscon``) or one on the line protocol
-    (``tracker``, directly or through a bridge)."""
-    return bool(devices.get("emscon") or devices.get("tracker"))
-
-
-def emscon_config(value: Any, *, timeout_s: float = 10.0):
-    """``devices.emscon``: ``"HOST:PORT"`` (the endpoint line, contracts §7), ``"HOST"`` (port
-    700), or an object with ``host`` and any of :data:`EMSCON_FIELDS`. Raises
-    ``DeviceConfigError`` naming the field."""
+def emscon_config(settings: EmsconSettings, *, timeout_s: float = 10.0):
+    """The driver's configuration of ``devices.emscon`` (:attr:`DevicesConfig.emscon_settings`).
+    What the driver still refuses is named as the entry's fault."""
     from drivers.leica_emscon import EmsconConfig
 
     try:
-        if isinstance(value, str):
-            return EmsconConfig.from_endpoint(value, timeout_s=timeout_s)
-        if not isinstance(value, dict):
-            raise DeviceConfigError(f'devices.emscon: expected "HOST:PORT" or an object; got {value!r}')
-        kwargs: dict[str, Any] = {"timeout_s": timeout_s}
-        for key, v in value.items():
-            kind = EMSCON_FIELDS.get(key)
-            if kind is None:
-                raise DeviceConfigError(
-                    f"devices.emscon.{key}: unknown setting; expected one of {', '.join(EMSCON_FIELDS)}"
-                )
-            ok = isinstance(v, kind) if kind in (str, bool) else isinstance(v, (int, float)) and not isinstance(v, bool)
-            if not ok or (kind is int and v != int(v)):
-                raise DeviceConfigError(f"devices.emscon.{key}: expected {kind.__name__}; got {v!r}")
-            kwargs[key] = kind(v)
-        if "host" not in kwargs:
-            raise DeviceConfigError("devices.emscon.host: missing; the emScon server's address")
-        return EmsconConfig(**kwargs)
+        return EmsconConfig(**settings.driver_kwargs(), timeout_s=timeout_s)
     except ValueError as exc:
-        if isinstance(exc, DeviceConfigError):
-            raise
-        raise DeviceConfigError(f"devices.emscon: {exc}") from exc
+        raise DeviceConfigError("devices.emscon", str(exc)) from exc
 
 
-def open_tracker(devices: dict[str, Any], *, timeout_s: float = 10.0) -> PositionSensor:
+def open_tracker(config: DevicesConfig, *, timeout_s: float = 10.0) -> PositionSensor:
     """The cell's laser tracker: a Leica through its emScon server when ``emscon`` is given (the
     simulated cell names both: sessions use emScon), else the line protocol of ``tracker``."""
-    if devices.get("emscon"):
-        config = emscon_config(devices["emscon"], timeout_s=timeout_s)
+    if config.emscon is not None:
+        settings = emscon_config(config.emscon_settings, timeout_s=timeout_s)
         from drivers.leica_emscon import EmsconTracker
 
-        return EmsconTracker(config)
-    if not devices.get("tracker"):
-        raise DeviceConfigError("devices.tracker: this cell has no laser tracker (expected `emscon` or `tracker`)")
+        return EmsconTracker(settings)
+    return open_line_tracker(config, timeout_s=timeout_s)
+
+
+def open_line_tracker(config: DevicesConfig, *, timeout_s: float = 10.0) -> PositionSensor:
+    """The laser tracker on the line protocol (``tracker``: directly or through a bridge)."""
+    if not config.tracker:
+        raise DeviceConfigError("devices.tracker", "this cell has no laser tracker (expected `emscon` or `tracker`)")
     from drivers.tracker import LineTracker, TrackerConfig
 
-    return LineTracker(TrackerConfig(url=str(devices["tracker"]), timeout_s=timeout_s))
+    return LineTracker(TrackerConfig(url=config.tracker, timeout_s=timeout_s))
 
 
-def open_cmm(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Cmm:
-    if not devices.get("cmm"):
-        raise DeviceConfigError("devices.cmm: this cell has no CMM")
+def open_cmm(config: DevicesConfig, *, timeout_s: float = 10.0) -> Cmm:
+    if not config.cmm:
+        raise DeviceConfigError("devices.cmm", "this cell has no CMM")
     from drivers.ippdme import IppDmeCmm, IppDmeConfig
 
     # The session finds the tooling balls where the cell's current model puts them. After a
@@ -142,51 +128,63 @@ def open_cmm(devices: dict[str, Any], *, timeout_s: float = 10.0) -> Cmm:
     # driver's default 3 mm approach the probe then starts inside a ball (I++ 1001 "Illegal
     # touch"). Start 10 mm off the nominal surface and search 15 mm past it, as CMM programs
     # probing a part that is not yet aligned do (each point then takes a little longer).
-    return IppDmeCmm(IppDmeConfig(url=str(devices["cmm"]), timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
+    return IppDmeCmm(IppDmeConfig(url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
 
 
-def cmm_ball_radius_m(devices: dict[str, Any]) -> float:
-    """``devices.cmm_ball_radius_m``: the radius of the tool's tooling balls (m) that the CMM
-    probes (every ball alike), default :data:`DEFAULT_BALL_RADIUS_M`. Raises
-    ``DeviceConfigError`` naming the field unless it is a radius a tooling ball can have."""
-    value = (devices or {}).get("cmm_ball_radius_m", DEFAULT_BALL_RADIUS_M)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0005 <= value <= 0.1:
-        raise DeviceConfigError(
-            f"devices.cmm_ball_radius_m: expected a tooling ball's radius in metres, 0.0005 to 0.1, got {value!r}"
-        )
-    return float(value)
+def can_bus_config(config: DevicesConfig):
+    """The driver's configuration of ``devices.can``."""
+    if config.can is None:
+        raise DeviceConfigError("devices.can", "this cell has no CAN bus for reference encoders")
+    from drivers.canopen_encoder import CanBusConfig
+
+    try:
+        return CanBusConfig(**config.can.driver_kwargs())
+    except ValueError as exc:
+        raise DeviceConfigError("devices.can", str(exc)) from exc
 
 
-def encoder_nodes(devices: dict[str, Any]) -> dict[int, tuple[int, str]]:
+def can_node_configs(config: DevicesConfig, *, timeout_s: float = 0.5) -> list[tuple[int, Any]]:
+    """``(joint, CanopenEncoderConfig)`` of every reference encoder and resolver reader, by joint
+    then encoder first (a joint may have both)."""
+    from drivers.canopen_encoder import CanopenEncoderConfig
+
+    bus = can_bus_config(config)
+    out = []
+    for key, kind in (("encoders", "encoder"), ("resolvers", "resolver")):
+        for joint, node in getattr(config, key).items():
+            out.append((int(joint), CanopenEncoderConfig(bus=bus, node_id=node, kind=kind, timeout_s=timeout_s)))
+    return sorted(out, key=lambda jc: (jc[0], jc[1].kind))
+
+
+def encoder_nodes(config: DevicesConfig) -> dict[int, tuple[int, str]]:
     """The cell's reference encoders and resolvers: joint (1-based) -> (CANopen node, ``encoder``
-    or ``resolver``); where a joint has both, the encoder (the better reference)."""
-    if not devices.get("can"):
+    or ``resolver``); where a joint has both, the encoder (the better reference). None without
+    the CAN bus they are on."""
+    if config.can is None:
         return {}
     nodes: dict[int, tuple[int, str]] = {}
     for kind, key in (("resolver", "resolvers"), ("encoder", "encoders")):  # encoders win
-        for j, node in (devices.get(key) or {}).items():
-            nodes[int(j)] = (int(node), kind)
+        for j, node in getattr(config, key).items():
+            nodes[int(j)] = (node, kind)
     return nodes
 
 
 def open_encoders(
-    devices: dict[str, Any], joints: list[int] | None = None, *, timeout_s: float = 5.0
+    config: DevicesConfig, joints: list[int] | None = None, *, timeout_s: float = 5.0
 ) -> dict[int, JointEncoder]:
     """Reference encoders (preferred) or resolver readers on the given joints (1-based)."""
-    if not devices.get("can"):
-        raise DeviceConfigError("devices.can: this cell has no CAN bus for reference encoders")
-    from drivers.canopen_encoder import CanBusConfig, CanopenEncoder, CanopenEncoderConfig
+    from drivers.canopen_encoder import CanopenEncoder
 
-    bus = CanBusConfig.from_endpoint(devices["can"])
-    nodes = encoder_nodes(devices)
+    nodes = {}
+    for j, node in reversed(can_node_configs(config, timeout_s=timeout_s)):  # the encoder wins
+        nodes[j] = node
     wanted = sorted(nodes) if joints is None else joints
     out: dict[int, JointEncoder] = {}
     try:
         for j in wanted:
             if j not in nodes:
-                raise DeviceConfigError(f"devices: no reference encoder or resolver on joint {j}")
-            node, kind = nodes[j]
-            out[j] = CanopenEncoder(CanopenEncoderConfig(bus=bus, node_id=node, kind=kind, timeout_s=timeout_s))
+                raise DeviceConfigError("devices", f"no reference encoder or resolver on joint {j}")
+            out[j] = CanopenEncoder(nodes[j])
     except BaseException:
         for e in out.values():
             with contextlib.suppress(Exception):
@@ -195,6 +193,10 @@ def open_encoders(
     return out
 
 
-def describe(devices: dict[str, Any]) -> list[str]:
-    """The kinds of device a document names (for listings)."""
-    return [k for k in ("rtde", "modbus", "emscon", "tracker", "cmm", "can") if devices.get(k)]
+def describe(doc: Any) -> tuple[list[str], str | None]:
+    """The kinds of device a cell's stored document names (for listings), and what is wrong
+    with the document when it cannot be read (no kinds then)."""
+    try:
+        return stored_devices(doc).kinds(), None
+    except DeviceConfigError as exc:
+        return [], str(exc)

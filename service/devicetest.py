@@ -1,4 +1,4 @@
-"""``Test connection``: open each device a cell's ``devices`` document names, ask it something
+"""``Test connection``: open each device a cell's devices configuration names, ask it something
 harmless, and report what it answered (or the error), each within a time limit.
 
 - robot over RTDE or Modbus: its state (joint readings, safety stops, program running);
@@ -22,15 +22,24 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .devices import emscon_config, open_cmm, open_encoders, open_robot, open_tracker
+from .devices import (
+    DeviceConfigError,
+    DevicesConfig,
+    can_node_configs,
+    emscon_config,
+    open_cmm,
+    open_line_tracker,
+    open_robot,
+    stored_devices,
+)
 
 
 def _fmt(v: float, digits: int = 4) -> str:
     return f"{v:.{digits}f}"
 
 
-def _robot(devices: dict, key: str, timeout_s: float) -> dict:
-    robot = open_robot({key: devices[key]}, timeout_s=timeout_s)
+def _robot(robot_only: DevicesConfig, timeout_s: float) -> dict:
+    robot = open_robot(robot_only, timeout_s=timeout_s)
     try:
         st = robot.state()
         q = np.rad2deg(np.asarray(st.q, dtype=float))
@@ -57,10 +66,10 @@ def _robot(devices: dict, key: str, timeout_s: float) -> dict:
         robot.close()
 
 
-def _emscon(devices: dict, timeout_s: float) -> dict:
+def _emscon(config: DevicesConfig, timeout_s: float) -> dict:
     from drivers.leica_emscon import EmsconTracker
 
-    tr = EmsconTracker(emscon_config(devices["emscon"], timeout_s=timeout_s))
+    tr = EmsconTracker(emscon_config(config.emscon_settings, timeout_s=timeout_s))
     try:
         ident, refl, env = tr.identity, tr.reflector, tr.environment
         idn = f"Leica, emScon {ident.server_version}, tracker {ident.serial}"
@@ -86,8 +95,8 @@ def _emscon(devices: dict, timeout_s: float) -> dict:
         tr.close()
 
 
-def _tracker(devices: dict, timeout_s: float) -> dict:
-    tr = open_tracker({"tracker": devices["tracker"]}, timeout_s=timeout_s)
+def _tracker(config: DevicesConfig, timeout_s: float) -> dict:
+    tr = open_line_tracker(config, timeout_s=timeout_s)
     try:
         ident = getattr(tr, "identity", None)
         idn = ", ".join([ident.maker, ident.model, ident.serial, ident.firmware]) if ident else "?"
@@ -105,8 +114,8 @@ def _tracker(devices: dict, timeout_s: float) -> dict:
         tr.close()
 
 
-def _cmm(devices: dict, timeout_s: float) -> dict:
-    cmm = open_cmm(devices, timeout_s=timeout_s)
+def _cmm(config: DevicesConfig, timeout_s: float) -> dict:
+    cmm = open_cmm(config, timeout_s=timeout_s)
     try:
         version = getattr(cmm, "dme_version", None)
         pos = cmm.position() * 1e3 if hasattr(cmm, "position") else None
@@ -129,82 +138,33 @@ def _cmm(devices: dict, timeout_s: float) -> dict:
         cmm.close()
 
 
-def _encoders(devices: dict, timeout_s: float) -> list[dict]:
-    encs = open_encoders(devices, timeout_s=timeout_s)
-    out = []
-    try:
-        for j, enc in sorted(encs.items()):
-            t0 = time.monotonic()
-            try:
-                reading = enc.read()
-                status = enc.status() if hasattr(enc, "status") else "?"
-                out.append(
-                    {
-                        "device": f"reference encoder, joint {j}",
-                        "ok": True,
-                        "name": enc.name,
-                        "answer": f"{math.degrees(reading.angle_rad):.4f} deg ({reading.counts} counts); {status}",
-                        "details": {
-                            "joint": j,
-                            "angle_deg": math.degrees(reading.angle_rad),
-                            "counts": int(reading.counts),
-                            "status": status,
-                        },
-                        "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
-                    }
-                )
-            except Exception as exc:  # noqa: BLE001 - reported, per node
-                out.append(
-                    {
-                        "device": f"reference encoder, joint {j}",
-                        "ok": False,
-                        "name": enc.name,
-                        "error": f"{type(exc).__name__}: {exc}",
-                        "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
-                    }
-                )
-    finally:
-        for enc in encs.values():
-            try:
-                enc.close()
-            except Exception:  # noqa: BLE001
-                pass
-    return out
-
-
-def _checks(devices: dict) -> list[tuple[str, str, Callable[[float], Any]]]:
-    """(device label, address, check) for each device the document names."""
+def _checks(config: DevicesConfig) -> list[tuple[str, str, Callable[[float], Any]]]:
+    """(device label, address, check) for the robot and each instrument the configuration names
+    (the reference encoders and resolvers are tested node by node: :func:`_test_can_nodes`)."""
     checks = []
-    if devices.get("rtde"):
-        checks.append(("robot (UR RTDE)", str(devices["rtde"]), lambda t: _robot(devices, "rtde", t)))
-    if devices.get("modbus"):
-        checks.append(("robot (Modbus TCP)", str(devices["modbus"]), lambda t: _robot(devices, "modbus", t)))
-    if devices.get("emscon"):
-        address = devices["emscon"] if isinstance(devices["emscon"], str) else str(devices["emscon"].get("host", "?"))
-        checks.append(("laser tracker", address, lambda t: _emscon(devices, t)))
-    if devices.get("tracker"):
-        label = "laser tracker (line protocol)" if devices.get("emscon") else "laser tracker"
-        checks.append((label, str(devices["tracker"]), lambda t: _tracker(devices, t)))
-    if devices.get("cmm"):
-        checks.append(("CMM (I++ DME)", str(devices["cmm"]), lambda t: _cmm(devices, t)))
-    if devices.get("can") and (devices.get("encoders") or devices.get("resolvers")):
-        can = devices["can"]
-        addr = (
-            f"{can.get('interface', '?')} {can.get('channel', '')} {can.get('host', '')}:{can.get('port', '')}"
-            if isinstance(can, dict)
-            else str(can)
-        )
-        checks.append(("reference encoders (CANopen)", addr.strip(), lambda t: _encoders(devices, t)))
+    if config.rtde:
+        robot = DevicesConfig(rtde=config.rtde)
+        checks.append(("robot (UR RTDE)", config.address("rtde"), lambda t: _robot(robot, t)))
+    if config.modbus:
+        robot = DevicesConfig(modbus=config.modbus)
+        checks.append(("robot (Modbus TCP)", config.address("modbus"), lambda t: _robot(robot, t)))
+    if config.emscon is not None:
+        checks.append(("laser tracker", config.address("emscon"), lambda t: _emscon(config, t)))
+    if config.tracker:
+        label = "laser tracker (line protocol)" if config.emscon is not None else "laser tracker"
+        checks.append((label, config.address("tracker"), lambda t: _tracker(config, t)))
+    if config.cmm:
+        checks.append(("CMM (I++ DME)", config.address("cmm"), lambda t: _cmm(config, t)))
     return checks
 
 
-def test_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = None) -> list[dict]:
-    """Test every device of a ``devices`` document; one result per device (encoders: per node).
+def test_devices(config: DevicesConfig, *, timeout_s: float = 8.0, busy: str | None = None) -> list[dict]:
+    """Test the robot and each instrument of a cell; one result per device.
 
     ``busy``: why the devices must not be opened now (a session is driving the cell); each is
     then reported as skipped with that reason."""
     results: list[dict] = []
-    checks = _checks(devices or {})
+    checks = _checks(config)
     if not checks:
         return [
             {
@@ -265,19 +225,23 @@ def test_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = No
 # --------------------------------------------------------------------------- the whole cell, CAN nodes included
 
 
-def test_cell_devices(devices: dict, *, timeout_s: float = 8.0, busy: str | None = None) -> list[dict]:
-    """:func:`test_devices` for a cell's whole ``devices`` document: the robot and the instrument,
-    and alongside them each reference encoder and resolver reader on its own (a joint may have
-    both), each within its own time limit. ``busy``: why nothing may be opened now (a session
-    drives the cell): every device is then reported as not opened, with that reason."""
+def test_cell_devices(doc: dict, *, timeout_s: float = 8.0, busy: str | None = None) -> list[dict]:
+    """:func:`test_devices` for a cell's whole stored ``devices`` document: the robot and the
+    instrument, and alongside them each reference encoder and resolver reader on its own (a
+    joint may have both), each within its own time limit. ``busy``: why nothing may be opened
+    now (a session drives the cell): every device is then reported as not opened, with that
+    reason. A document that cannot be read is one failed result naming the field."""
+    try:
+        config = stored_devices(doc)
+    except DeviceConfigError as exc:
+        return [{"device": "devices", "address": "", "ok": False, "error": str(exc)}]
     box: dict = {}
     can_thread = threading.Thread(
-        target=lambda: box.update(results=_test_can_nodes(devices, timeout_s, busy)), name="devtest-can", daemon=True
+        target=lambda: box.update(results=_test_can_nodes(config, timeout_s, busy)), name="devtest-can", daemon=True
     )
     can_thread.start()
-    others = {k: v for k, v in devices.items() if k not in ("encoders", "resolvers")}
-    has_other = any(others.get(k) for k in ("rtde", "modbus", "emscon", "tracker", "cmm"))
-    results = test_devices(others, timeout_s=timeout_s, busy=busy) if has_other or not _has_can_nodes(devices) else []
+    has_other = any(getattr(config, k) is not None for k in ("rtde", "modbus", "emscon", "tracker", "cmm"))
+    results = test_devices(config, timeout_s=timeout_s, busy=busy) if has_other or not _has_can_nodes(config) else []
     can_thread.join()
     return results + box.get("results", [])
 
@@ -363,22 +327,19 @@ def _test_can_node(config, joint: int) -> dict:
             enc.close()
 
 
-def _can_node_checks(devices: dict, timeout_s: float) -> list[tuple]:
+def _can_node_checks(config: DevicesConfig, timeout_s: float) -> list[tuple]:
     """(config, joint) of every reference encoder and every resolver reader (a joint may have
     both: ``open_encoders`` prefers the encoder, the connection test opens each)."""
-    if not _has_can_nodes(devices):
+    if not _has_can_nodes(config):
         return []
-    from drivers.canopen_encoder import configs_from_endpoint
-
-    configs = configs_from_endpoint(devices, timeout_s=min(timeout_s, 2.0))
-    return [(cfg, joint) for (kind, joint), cfg in sorted(configs.items(), key=lambda kv: (kv[0][1], kv[0][0]))]
+    return [(cfg, joint) for joint, cfg in can_node_configs(config, timeout_s=min(timeout_s, 2.0))]
 
 
-def _test_can_nodes(devices: dict, timeout_s: float, busy: str | None) -> list[dict]:
+def _test_can_nodes(config: DevicesConfig, timeout_s: float, busy: str | None) -> list[dict]:
     try:
-        checks = _can_node_checks(devices, timeout_s)
-    except (ValueError, TypeError, KeyError) as exc:
-        return [{"device": "CAN bus", "address": str(devices.get("can")), "ok": False, "error": f"devices.can: {exc}"}]
+        checks = _can_node_checks(config, timeout_s)
+    except DeviceConfigError as exc:
+        return [{"device": "CAN bus", "address": config.address("can"), "ok": False, "error": str(exc)}]
     if busy:
         return [
             {
@@ -417,5 +378,5 @@ def _test_can_nodes(devices: dict, timeout_s: float, busy: str | None) -> list[d
     ]
 
 
-def _has_can_nodes(devices: dict) -> bool:
-    return bool(devices.get("can") and (devices.get("encoders") or devices.get("resolvers")))
+def _has_can_nodes(config: DevicesConfig) -> bool:
+    return config.has("encoder")

@@ -226,10 +226,16 @@ class _In(BaseModel):
         return value
 
 
+DEVICES_DOC = (
+    "the cell's devices: the simulated cell's endpoint line (contracts §7) or the same shape for real "
+    "equipment; its JSON Schema is GET /api/v1/schemas/devices (checked by the route, stored as sent)"
+)
+
+
 class CellCreate(_In):
     name: Name
     model: dict[str, Any]
-    devices: dict[str, Any] = PField(default_factory=dict)
+    devices: dict[str, Any] = PField(default_factory=dict, description=DEVICES_DOC)
     site: Name = "default"
     allowed_region: list[list[float]] | None = None  # per joint [lower, upper], model units (checked by the route)
     drift_threshold: float | None = PField(default=None, gt=0)
@@ -241,7 +247,7 @@ class CellUpdate(_In):
 
     name: Name | None = None
     model: dict[str, Any] | None = None
-    devices: dict[str, Any] | None = None
+    devices: dict[str, Any] | None = PField(None, description=DEVICES_DOC)
     site: Name | None = None
     allowed_region: list[list[float]] | None = None  # null: no region beyond the model's joint limits
     drift_threshold: float | None = PField(default=None, gt=0)  # null: no threshold

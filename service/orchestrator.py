@@ -49,7 +49,7 @@ from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedErro
 
 from . import analysis, controller, records
 from .control import Control, DeviceOpenError, SessionStopped, heavy_slot, retry
-from .devices import CellDevices, DeviceConfigError, open_robot
+from .devices import CellDevices, DeviceConfigError, open_robot, stored_devices
 from .kinds import Step, finish_session, kind_of
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
@@ -77,7 +77,7 @@ def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> Cel
     devs = CellDevices()
     device = "robot"
     try:
-        devs.robot = open_robot(cell.devices, timeout_s=settings.device_timeout_s)
+        devs.robot = open_robot(stored_devices(cell.devices), timeout_s=settings.device_timeout_s)
         device = kind.instrument(run)
         kind.open_instrument(devs, cell, run, settings)
     except (DeviceError, DeviceConfigError, OSError) as exc:

@@ -104,6 +104,7 @@ def summary(db, cell: Cell) -> dict:
     verified = _verified(db, cell.id)
     unit = (cell.model.get("units") or {}).get("length")
     last = trend[-1] if trend else None
+    kinds, devices_error = describe(cell.devices)
     # the cell's accuracy: the last verification of its current calibration (None until verified)
     accuracy = verified[-1] if verified and last and verified[-1]["calibration_id"] == last["id"] else None
     return {
@@ -111,7 +112,8 @@ def summary(db, cell: Cell) -> dict:
         "name": cell.name,
         "site": cell.site,
         "robot": _robot(cell.model),
-        "devices": describe(cell.devices or {}),
+        "devices": kinds,
+        "devices_error": devices_error,
         "unit": unit,
         "drift_threshold": cell.drift_threshold,
         "last": last,
@@ -210,7 +212,7 @@ def test_devices(db: Session, cell: Cell, tok: Token, timeout_s: float) -> dict:
     certificate quotes the instrument's identity from it)."""
     busy = driving_session(db, cell.id)
     reason = f"session {busy.id} is driving this cell ({busy.state}); test when it has stopped" if busy else None
-    results = test_cell_devices(cell.devices or {}, timeout_s=max(0.5, min(float(timeout_s), 30.0)), busy=reason)
+    results = test_cell_devices(cell.devices, timeout_s=max(0.5, min(float(timeout_s), 30.0)), busy=reason)
     ok = all(r.get("ok") for r in results)
     audit(db, actor=tok.name, action="test devices", subject=f"cell {cell.id}", detail={"ok": ok, "results": results})
     return {"cell_id": cell.id, "ok": ok, "results": results}

@@ -255,7 +255,10 @@ class CellSummary(Open):
     name: str
     site: str
     robot: dict[str, Any]
-    devices: list[str]
+    devices: list[str] = Field(description="the kinds of device the cell has: rtde, modbus, emscon, tracker, cmm, can")
+    devices_error: str | None = Field(
+        None, description="why the cell's stored devices document cannot be used (no devices listed then)"
+    )
     unit: str | None = None
     drift_threshold: Number = None
     last: dict[str, Any] | None = None
@@ -293,6 +296,19 @@ class DeviceTest(BaseModel):
     cell_id: int
     ok: bool
     results: list[DeviceCheck]
+
+
+class JsonSchema(BaseModel):
+    """A JSON Schema document (draft 2020-12): an object's ``properties``, with ``$defs`` for the
+    objects inside it. Keywords beyond the ones named here are kept (``pattern``,
+    ``x-expected``: the words of the error when a value does not match, ...)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    title: str
+    type: str
+    properties: dict[str, Any]
+    additionalProperties: bool
 
 
 class LastDeviceTest(BaseModel):

@@ -13,9 +13,10 @@ from sqlmodel import Session
 from calibration.model import KinematicModel
 
 from ..control import Control
-from ..devices import CellDevices
+from ..devices import CellDevices, DeviceConfigError, DevicesConfig, stored_devices
 from ..models import Cell, Measurement, RunSession
 from ..plans import Plan, PlanRequest
+from ..problems import Invalid
 from ..settings import Settings
 
 
@@ -31,6 +32,15 @@ class Step:
     settings: Settings
     control: Control
     guide: KinematicModel
+
+
+def cell_devices(cell: Cell, *, field: str) -> DevicesConfig:
+    """The cell's devices for a kind's ``check``: a stored document that cannot be used is
+    refused naming ``field`` (the request's choice that needs it) and the document's field."""
+    try:
+        return stored_devices(cell.devices)
+    except DeviceConfigError as exc:
+        raise Invalid(field, f"the cell's devices: {exc}") from None
 
 
 class SessionKind(ABC):

@@ -14,19 +14,19 @@ from calibration.geometry import fit_joint_harmonic
 from .. import records
 from ..analysis import AnalysisError, store_calibration
 from ..control import SessionStopped, retry
-from ..devices import encoder_nodes, open_encoders
+from ..devices import encoder_nodes, open_encoders, stored_devices
 from ..models import Measurement
 from ..plans import Plan, PlanRequest, joint_sweeps
 from ..problems import Invalid
 from ..records import current_model
-from .base import SessionKind, Step
+from .base import SessionKind, Step, cell_devices
 
 
 class Joint(SessionKind):
     name = "joint"
 
     def check(self, cell, model, *, device, joints, payloads) -> None:
-        have = sorted(encoder_nodes(cell.devices or {}))
+        have = sorted(encoder_nodes(cell_devices(cell, field="body.kind")))
         if not have:
             raise Invalid("body.kind", "this cell has no reference encoders or resolvers (devices.can)")
         wanted = joints or list(range(1, model.n_joints + 1))
@@ -46,7 +46,7 @@ class Joint(SessionKind):
 
     def open_instrument(self, devices, cell, run, settings) -> None:
         joints = (run.plan_info or {}).get("joints")
-        devices.encoders = open_encoders(cell.devices, joints, timeout_s=settings.device_timeout_s)
+        devices.encoders = open_encoders(stored_devices(cell.devices), joints, timeout_s=settings.device_timeout_s)
 
     def measure_one(self, step: Step, seq, q_read, joint) -> list[Measurement]:
         enc = step.devices.encoders.get(joint)

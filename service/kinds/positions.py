@@ -16,10 +16,10 @@ from drivers.errors import DeviceError, MeasurementError
 
 from .. import analysis, records
 from ..control import SessionStopped, retry
-from ..devices import DeviceConfigError, cmm_ball_radius_m, has_tracker, open_cmm, open_tracker
+from ..devices import open_cmm, open_tracker, stored_devices
 from ..models import Measurement
 from ..problems import Invalid
-from .base import SessionKind, Step
+from .base import SessionKind, Step, cell_devices
 
 log = logging.getLogger("recal.sessions")
 
@@ -40,22 +40,18 @@ class PositionKind(SessionKind):
     """A session measured by the cell's tracker or CMM (``run.device``)."""
 
     def check(self, cell, model, *, device, joints, payloads) -> None:
-        devices = cell.devices or {}
+        devices = cell_devices(cell, field="body.device")  # the CMM's ball radius included
         if device == "cmm":
-            if not devices.get("cmm"):
+            if devices.cmm is None:
                 raise Invalid("body.device", "this cell has no CMM")
             if len(tooling_balls(model)) < 3:
                 raise Invalid(
                     "body.device",
                     "a CMM session needs at least three tooling balls (targets named ball*) in the cell's model",
                 )
-            try:
-                cmm_ball_radius_m(devices)
-            except DeviceConfigError as exc:
-                raise Invalid("body.device", f"the cell's devices: {exc}") from None
-        elif not has_tracker(devices):
+        elif not devices.has_tracker:
             raise Invalid("body.device", "this cell has no laser tracker")
-        if payloads and not devices.get("rtde"):
+        if payloads and not devices.rtde:
             # only a controller that takes a payload (UR's set_payload) can be told what is mounted
             raise Invalid("body.payloads", "a session with payloads needs a controller that takes one (UR, `rtde`)")
 
@@ -69,11 +65,12 @@ class PositionKind(SessionKind):
         return "cmm" if run.device == "cmm" else "tracker"
 
     def open_instrument(self, devices, cell, run, settings) -> None:
+        config = stored_devices(cell.devices)  # a bad document stops it before anything moves
         if run.device == "cmm":
-            devices.cmm_ball_radius_m = cmm_ball_radius_m(cell.devices)  # a bad value stops it before anything moves
-            devices.cmm = open_cmm(cell.devices, timeout_s=settings.device_timeout_s)
+            devices.cmm_ball_radius_m = config.cmm_ball_radius_m
+            devices.cmm = open_cmm(config, timeout_s=settings.device_timeout_s)
         else:
-            devices.tracker = open_tracker(cell.devices, timeout_s=settings.device_timeout_s)
+            devices.tracker = open_tracker(config, timeout_s=settings.device_timeout_s)
 
     def measure_one(self, step: Step, seq, q_read, joint) -> list[Measurement]:
         if step.devices.cmm is not None:

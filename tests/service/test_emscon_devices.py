@@ -13,7 +13,7 @@ from sqlmodel import Session
 from calibration.robots import nominal
 from fakes.leica_tracker import LeicaTrackerFake
 from fakes.world import SimCell
-from service.devices import DeviceConfigError, emscon_config, has_tracker
+from service.devices import DeviceConfigError, emscon_config, parse_devices
 from service.models import RunSession
 from service.store import SCHEMA_VERSION, make_engine, migrate
 
@@ -30,10 +30,10 @@ def client(idle_app, tokens):
     "emscon, field, message",
     [
         ("10.0.0.5:port", "body.devices.emscon", "expected HOST:PORT"),
-        ({"host": "10.0.0.5", "port": "700"}, "body.devices.emscon.port", "expected int"),
+        ({"host": "10.0.0.5", "port": "700"}, "body.devices.emscon.port", "expected an integer"),
         ({"port": 700}, "body.devices.emscon.host", "missing"),
-        ({"host": "10.0.0.5", "reflektor": "RRR 1.5in"}, "body.devices.emscon.reflektor", "unknown setting"),
-        ({"host": "10.0.0.5", "environment": "outside"}, "body.devices.emscon", "environment must be"),
+        ({"host": "10.0.0.5", "reflektor": "RRR 1.5in"}, "body.devices.emscon.reflektor", "did you mean 'reflector'"),
+        ({"host": "10.0.0.5", "environment": "outside"}, "body.devices.emscon.environment", "'meteo' or 'config'"),
         (["10.0.0.5"], "body.devices.emscon", 'expected "HOST:PORT" or an object'),
     ],
 )
@@ -48,7 +48,10 @@ def test_a_bad_emscon_entry_is_refused_naming_the_field(client, tokens, emscon, 
 
 
 def test_emscon_entries_make_tracker_configurations():
-    c = emscon_config(
+    def emscon(entry, **kw):
+        return emscon_config(parse_devices({"emscon": entry}).emscon_settings, **kw)
+
+    c = emscon(
         {
             "host": "10.0.0.5",
             "reflector": "RRR 0.5in",
@@ -66,11 +69,14 @@ def test_emscon_entries_make_tracker_configurations():
         21.0,
         3.0,
     )
-    assert emscon_config("10.0.0.5:7000").port == 7000
-    with pytest.raises(DeviceConfigError, match="devices.emscon.use_adm: expected bool"):
-        emscon_config({"host": "h", "use_adm": 1})
+    assert emscon("10.0.0.5:7000").port == 7000
+    assert (emscon("10.0.0.5").host, emscon("10.0.0.5").port) == ("10.0.0.5", 700)
+    with pytest.raises(DeviceConfigError, match="devices.emscon.use_adm: expected true or false"):
+        parse_devices({"emscon": {"host": "h", "use_adm": 1}})
     assert (
-        has_tracker({"emscon": "h:700"}) and has_tracker({"tracker": "socket://h:1"}) and not has_tracker({"cmm": "x"})
+        parse_devices({"emscon": "h:700"}).has_tracker
+        and parse_devices({"tracker": "socket://h:1"}).has_tracker
+        and not parse_devices({"cmm": "socket://h:1294"}).has_tracker
     )
 
 
@@ -144,7 +150,7 @@ def test_a_cmm_ball_radius_that_no_tooling_ball_has_is_refused(client, tokens, r
 
 
 def test_the_cmm_ball_radius_comes_from_the_cells_devices():
-    from service.devices import DEFAULT_BALL_RADIUS_M, cmm_ball_radius_m
+    from service.devices import DEFAULT_BALL_RADIUS_M
 
-    assert cmm_ball_radius_m({"cmm": "socket://127.0.0.1:1294"}) == DEFAULT_BALL_RADIUS_M == 0.0125
-    assert cmm_ball_radius_m({"cmm": "socket://127.0.0.1:1294", "cmm_ball_radius_m": 0.01}) == 0.01
+    assert parse_devices({"cmm": "socket://127.0.0.1:1294"}).cmm_ball_radius_m == DEFAULT_BALL_RADIUS_M == 0.0125
+    assert parse_devices({"cmm": "socket://127.0.0.1:1294", "cmm_ball_radius_m": 0.01}).cmm_ball_radius_m == 0.01

@@ -415,6 +415,50 @@ def test_viewer_cannot_start_a_session(page, stack, web):
     assert status == 403
 
 
+def test_the_cell_form_describes_and_checks_devices_with_the_services_schema(page, stack, web):
+    """The device fields are labelled, explained and checked from GET /schemas/devices: a wrong
+    value is refused in the service's words; a stored document with a key from before the
+    service checked them says it is left out, and saving it registers what the schema allows."""
+    from sqlmodel import Session
+
+    from service.models import Cell
+    from service.settings import Settings
+    from service.store import make_engine
+
+    schema = web.api(stack, "GET", "/schemas/devices")
+    props = schema["properties"]
+    web.sign_in(page, stack)
+    page.goto(f"{stack.url}/#/cells/new")
+    page.wait_for_selector("#dev-modbus")
+    assert page.inner_text("label[for=dev-cmm-ball]") == props["cmm_ball_radius_m"]["title"]
+    assert page.get_attribute("#dev-cmm-ball", "placeholder") == str(props["cmm_ball_radius_m"]["default"])
+    page.fill("#dev-modbus", "robot-7")
+    page.fill("#dev-cmm-ball", "12.5")  # millimetres where metres are asked for
+    page.fill("#dev-tracker", "tracker-pc:10001")
+    page.click("#save-cell")
+    assert page.inner_text("#dev-modbus-error") == "expected " + props["modbus"]["anyOf"][0]["x-expected"]
+    assert "(0.0005–0.1)" in page.inner_text("#dev-cmm-ball-error")
+    assert "socket://HOST:PORT" in page.inner_text("#dev-tracker-error")
+    web.shot(page, "05-register-cell-schema-checks")
+
+    model = json.loads(stack.nominal_path.read_text())
+    engine = make_engine(Settings(home=stack.home).effective_database_url)
+    with Session(engine) as db:  # registered before the service checked the keys
+        old = Cell(name="old devices", model=model, devices={"rtde": f"{NET}.89", "note": "line 3"})
+        db.add(old)
+        db.commit()
+        cell_id = old.id
+    engine.dispose()
+    page.goto(f"{stack.url}/#/cells/{cell_id}/edit")
+    page.wait_for_selector("#devices-unknown")
+    assert "note" in page.inner_text("#devices-unknown")
+    page.fill("#dev-cmm-ball", "0.01")
+    page.click("#save-cell")
+    page.wait_for_url(re.compile(rf"#/cells/{cell_id}$"))
+    page.wait_for_selector("#test-devices")
+    assert web.api(stack, "GET", f"/cells/{cell_id}")["devices"] == {"rtde": f"{NET}.89", "cmm_ball_radius_m": 0.01}
+
+
 def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     """A cell with 1000 stored calibrations (reports of full size): the overview and the cell's
     page load quickly (they never load all the reports); the overview shows the cells page by page."""

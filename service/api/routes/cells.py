@@ -11,7 +11,7 @@ from calibration.model import ModelFormatError, model_from_dict
 
 from ... import tasks, workbench
 from ...controller import controller_document, store_controller_document
-from ...devices import DeviceConfigError, cmm_ball_radius_m, emscon_config
+from ...device_config import DeviceConfigError, devices_json_schema, parse_devices
 from ...drift import cell_drift
 from ...models import (
     Cell,
@@ -24,10 +24,11 @@ from ...models import (
     _In,
 )
 from ...plans import RegionError, check_region
+from ...problems import Invalid
 from ...sessions import ACTIVE, get_cell, start_session
 from ...store import audit, current_calibration
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
-from ..schemas import CalibrationListItem, Drift, TaskFileContent, TaskFileInfo, TasksCompensated
+from ..schemas import CalibrationListItem, Drift, JsonSchema, TaskFileContent, TaskFileInfo, TasksCompensated
 
 router = APIRouter(tags=["cells"])
 
@@ -63,21 +64,28 @@ def _check_region(model, region: list | None, *, sent: bool = True) -> None:
 
 
 def _check_devices(devices: dict | None) -> None:
-    """An ``emscon`` entry must make a tracker configuration and a CMM ball radius must be one
-    (the other entries are checked when they are opened)."""
+    """422 naming the field of ``body.devices`` at fault (an unknown key with the nearest known
+    one); the document is stored as it was sent."""
+    if devices is None:
+        return
     try:
-        if devices and devices.get("emscon") is not None:
-            emscon_config(devices["emscon"])
-        cmm_ball_radius_m(devices or {})
+        parse_devices(devices)
     except DeviceConfigError as exc:
-        where, _, message = str(exc).partition(": ")
-        raise HTTPException(422, {"field": f"body.{where}", "message": message}) from None
+        raise Invalid(f"body.{exc.field}", exc.message) from None
 
 
 def _name_free(db, name: str, cell_id: int | None = None) -> None:
     other = db.exec(select(Cell.id).where(Cell.name == name)).first()
     if other is not None and other != cell_id:
         raise HTTPException(409, f"a cell named {name!r} exists already")
+
+
+@router.get("/schemas/devices", response_model=JsonSchema)
+def devices_schema(tok: Reader) -> dict:
+    """The JSON Schema of a cell's ``devices`` document (the fake cell's endpoint line, contracts
+    §7, or the same shape for real equipment): every key, its type, pattern and range. A cell
+    registered or edited with a document it refuses gets 422 naming the field."""
+    return devices_json_schema()
 
 
 @router.post("/cells", status_code=201, response_model=CellPublic)

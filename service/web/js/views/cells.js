@@ -8,7 +8,8 @@ import { address, badge, busy, card, put, confirmDialog, duration, epochMs, h, k
 
 const DEVICE_NAMES = { rtde: "robot (UR RTDE)", modbus: "robot (Modbus TCP)", emscon: "laser tracker (Leica emScon)",
                        tracker: "laser tracker (line protocol)",
-                       cmm: "CMM (I++ DME)", can: "CAN bus", encoders: "reference encoders", resolvers: "resolvers" };
+                       cmm: "CMM (I++ DME)", can: "CAN bus", encoders: "reference encoders", resolvers: "resolvers",
+                       cmm_ball_radius_m: "CMM tooling ball radius (m)" };
 
 function robotLine(r) {
   return `${r.name} · ${r.joints} joints · ${r.convention}`;
@@ -122,7 +123,9 @@ export async function detail(ctx, id) {
   const testBtn = can("run") ? h("button", { class: "primary", id: "test-devices" }, "Test connections") : null;
   const devRows = Object.entries(c.devices_doc || {}).filter(([k]) => k !== "ready")
     .map(([k, v]) => [DEVICE_NAMES[k] || k, describeAddress(k, v)]);
-  const devCard = card("Devices", table(["Device", "Address"], devRows),
+  const devCard = card("Devices", c.devices_error ? h("p", { class: "error-text", id: "devices-error" },
+      `This cell's devices cannot be used: ${c.devices_error}. Edit the cell to correct them.`) : null,
+    table(["Device", "Address"], devRows),
     h("p", { class: "muted small" }, "The test opens each device, asks it something harmless and shows what it "
       + "answered. Nothing moves."), testBtn, results);
   if (testBtn) testBtn.addEventListener("click", () => busy(testBtn, async () => {
@@ -238,15 +241,53 @@ function pager(total, offset, size, go) {
 
 // --------------------------------------------------------------------------- register / edit
 
-// The devices document's keys the form has fields for (contracts §7); other keys are kept.
-const FORM_KEYS = ["rtde", "modbus", "emscon", "tracker", "cmm", "can", "encoders", "resolvers", "ready"];
+// The devices document is described by its JSON Schema (GET /schemas/devices, the service's
+// one parser): the form's labels, help, placeholders and checks come from it, so a field is
+// refused here with the words the service would use.
 const CAN_KEYS = ["interface", "channel", "host", "port"];
+let deviceSchemaPromise = null;
 
-const HOST_RE = /^(?:[A-Za-z0-9](?:[A-Za-z0-9-]*[A-Za-z0-9])?(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]*[A-Za-z0-9])?)*|\[[0-9A-Fa-f:.]+\])$/;
-const INSTRUMENT_RE = /^(?:(?:socket|rfc2217):\/\/\S+:\d+|\/dev\/\S+|COM\d+|loop:\/\/)$/i;
+export function deviceSchema() {
+  deviceSchemaPromise ||= get("/schemas/devices").catch((e) => { deviceSchemaPromise = null; throw e; });
+  return deviceSchemaPromise;
+}
 
-function port(text) {
-  return /^\d+$/.test(text) && +text >= 1 && +text <= 65535;
+// The schema of `name` in `obj` (an object's schema): references followed, and of an optional
+// field (anyOf [..., null]) the branch that is not null; of a string-or-object field (emscon)
+// the branch of `type` when asked for.
+function schemaOf(root, obj, name, type) {
+  const resolve = (s) => (s && s.$ref ? root.$defs[s.$ref.split("/").pop()] : s);
+  let s = resolve(obj?.properties?.[name]) || {};
+  const meta = { title: s.title, description: s.description, default: s.default };
+  for (let k = 0; k < 3 && (s.anyOf || s.oneOf); k++) {
+    const branches = (s.anyOf || s.oneOf).map(resolve).filter((b) => b.type !== "null");
+    s = branches.find((b) => !type || b.type === type) || branches[0] || {};
+  }
+  return { ...s, ...Object.fromEntries(Object.entries(meta).filter(([, v]) => v !== undefined)),
+           description: meta.description ?? s.description };
+}
+
+// What is wrong with `text` for a field of schema `s` ("" when nothing): the service's words
+// ("expected ...") from the schema's x-expected, pattern and range.
+function schemaCheck(s) {
+  const re = s.pattern ? new RegExp(s.pattern) : null;
+  return (text) => {
+    if (!text) return "";
+    if (s.type === "integer" || s.type === "number") {
+      const v = Number(text);
+      const ok = text.trim() !== "" && Number.isFinite(v) && (s.type === "number" || Number.isInteger(v))
+        && (s.minimum === undefined || v >= s.minimum) && (s.maximum === undefined || v <= s.maximum)
+        && (s.exclusiveMinimum === undefined || v > s.exclusiveMinimum);
+      const range = s.minimum !== undefined && s.maximum !== undefined ? ` (${s.minimum}–${s.maximum})` : "";
+      return ok ? "" : `expected ${s.type === "integer" ? "a whole number" : "a number"}${range}`;
+    }
+    return !re || re.test(text) ? "" : `expected ${s["x-expected"] || `text matching ${s.pattern}`}`;
+  };
+}
+
+function placeholderOf(s) {
+  if (s.examples?.length) return `e.g. ${s.examples[0]}`;
+  return s.default != null ? String(s.default) : "";
 }
 
 // One input with its label, help and the place for its error message.
@@ -256,6 +297,11 @@ function field(label, input, help) {
   const err = h("p", { class: "field-error", id: `${id}-error`, role: "alert" });
   input.setAttribute("aria-describedby", `${id}-error`);
   return h("div", { class: "field" }, h("label", { for: id }, label), input, help ? h("p", { class: "help" }, help) : null, err);
+}
+
+// A field labelled and explained by its schema (title, description).
+function schemaField(input, s) {
+  return field(s.title || input.id, input, s.description);
 }
 
 // Show (or clear) an input's error message; returns whether it is valid.
@@ -273,21 +319,27 @@ function mark(input, message) {
 // ranges; a shortcut that fills them from the endpoint line `recal fake-cell` prints; checks
 // each field as it is left and all of them on `read()` (which returns {devices, allowed_region}
 // or null when a field is wrong, with the messages shown at the fields).
-function deviceForm(doc, region) {
+function deviceForm(doc, region, schema) {
   doc = doc || {};
   const can = typeof doc.can === "object" && doc.can ? doc.can : {};
-  const input = (id, value, attrs = {}) => h("input", { id, value: value ?? "", spellcheck: "false", autocomplete: "off", ...attrs });
-  const rtde = input("dev-rtde", doc.rtde, { placeholder: "e.g. 192.168.1.10" });
-  const modbus = input("dev-modbus", doc.modbus, { placeholder: "e.g. 192.168.1.10:502" });
+  const canSchema = schemaOf(schema, schema, "can");
+  const prop = (name, type) => schemaOf(schema, schema, name, type);
+  const canProp = (name) => schemaOf(schema, canSchema, name);
+  const input = (id, value, s, attrs = {}) => h("input", { id, value: value ?? "", spellcheck: "false", autocomplete: "off",
+                                                           placeholder: placeholderOf(s), ...attrs });
+  const rtde = input("dev-rtde", doc.rtde, prop("rtde"));
+  const modbus = input("dev-modbus", doc.modbus, prop("modbus"));
   // emScon as "HOST:PORT" has a field; an object (host, reflector, environment, …) is kept as it is
-  const emscon = input("dev-emscon", typeof doc.emscon === "string" ? doc.emscon : "",
-                       { placeholder: typeof doc.emscon === "object" && doc.emscon ? `${doc.emscon.host} (settings kept)` : "e.g. 192.168.0.1:700" });
-  const tracker = input("dev-tracker", doc.tracker, { placeholder: "e.g. socket://192.168.1.20:10001" });
-  const cmm = input("dev-cmm", doc.cmm, { placeholder: "e.g. socket://192.168.1.30:1294" });
-  const canIf = input("dev-can-interface", can.interface, { placeholder: "socketcand", list: "can-interfaces" });
-  const canCh = input("dev-can-channel", can.channel, { placeholder: "e.g. vcan0, can0" });
-  const canHost = input("dev-can-host", can.host, { placeholder: "socketcand only" });
-  const canPort = input("dev-can-port", can.port, { placeholder: "e.g. 29536", inputmode: "numeric" });
+  const emscon = input("dev-emscon", typeof doc.emscon === "string" ? doc.emscon : "", prop("emscon", "string"),
+                       typeof doc.emscon === "object" && doc.emscon ? { placeholder: `${doc.emscon.host} (settings kept)` } : {});
+  const tracker = input("dev-tracker", doc.tracker, prop("tracker"));
+  const cmm = input("dev-cmm", doc.cmm, prop("cmm"));
+  const ball = input("dev-cmm-ball", doc.cmm_ball_radius_m, prop("cmm_ball_radius_m"), { inputmode: "decimal" });
+  const canIf = input("dev-can-interface", can.interface, canProp("interface"), { placeholder: canProp("interface").default, list: "can-interfaces" });
+  const canCh = input("dev-can-channel", can.channel, canProp("channel"), { placeholder: "e.g. vcan0, can0" });
+  const canHost = input("dev-can-host", can.host, canProp("host"), { placeholder: "socketcand only" });
+  const canPort = input("dev-can-port", can.port, canProp("port"), { placeholder: "e.g. 29536", inputmode: "numeric" });
+  const nodeSchema = Object.values(prop("encoders").patternProperties || {})[0] || { type: "integer", minimum: 1, maximum: 127 };
   const line = h("textarea", { id: "endpoint-line", rows: 3, spellcheck: "false",
                                placeholder: '{"ready": true, "rtde": "127.0.0.2", "modbus": "127.0.0.2:502", "tracker": "socket://127.0.0.2:10001", …}' });
   const fill = h("button", { type: "button", class: "secondary", id: "fill-from-line" }, "Fill in the fields");
@@ -299,34 +351,36 @@ function deviceForm(doc, region) {
   let units = { length: "mm", angle: "deg" };
   let nodes = { encoders: { ...(doc.encoders || {}) }, resolvers: { ...(doc.resolvers || {}) } };
   let regionRows = Array.isArray(region) ? region.map((r) => [...r]) : [];
-  const extra = Object.fromEntries(Object.entries(doc).filter(([k, v]) => !FORM_KEYS.includes(k)
-    || (k === "emscon" && v && typeof v === "object")));
+  // The document's keys: those the schema knows and the form has no field for (an emScon object)
+  // are kept as they are; keys it does not know (registered before the service checked them) are
+  // left out when saved, and said so.
+  const known = Object.keys(schema.properties);
+  const FORM_KEYS = ["rtde", "modbus", "emscon", "tracker", "cmm", "cmm_ball_radius_m", "can", "encoders", "resolvers", "ready"];
+  const extra = Object.fromEntries(Object.entries(doc).filter(([k, v]) => known.includes(k) && (!FORM_KEYS.includes(k)
+    || (k === "emscon" && v && typeof v === "object"))));
+  const unknown = Object.keys(doc).filter((k) => !known.includes(k));
+  const unknownNote = unknown.length ? h("p", { class: "help", id: "devices-unknown" }, `Not device settings, left out `
+    + `when saved: ${unknown.join(", ")} (the service knows ${known.filter((k) => k !== "ready").join(", ")}).`) : null;
   const canExtra = Object.fromEntries(Object.entries(can).filter(([k]) => !CAN_KEYS.includes(k)));
   const nodeInputs = [], regionInputs = [];
+  const checkNode = schemaCheck(nodeSchema);
 
   const checks = [
-    [rtde, (v) => !v || HOST_RE.test(v) ? "" : "expected the controller's host name or IP address, e.g. 192.168.1.10 (no port: RTDE uses 30004)"],
-    [modbus, (v) => {
-      if (!v) return "";
-      const m = /^(.+):(\d+)$/.exec(v);
-      return m && HOST_RE.test(m[1]) && port(m[2]) ? "" : "expected HOST:PORT, e.g. 192.168.1.10:502";
-    }],
-    [emscon, (v) => {
-      if (!v) return "";
-      const m = /^(.+?)(?::(\d+))?$/.exec(v);
-      return m && HOST_RE.test(m[1]) && (m[2] === undefined || port(m[2])) ? "" : "expected HOST:PORT of the emScon server, e.g. 192.168.0.1:700";
-    }],
-    [tracker, (v) => !v || INSTRUMENT_RE.test(v) ? "" : "expected socket://HOST:PORT or a serial port (/dev/ttyUSB0, COM3)"],
-    [cmm, (v) => !v || INSTRUMENT_RE.test(v) ? "" : "expected socket://HOST:PORT (the I++ DME server)"],
+    [rtde, schemaCheck(prop("rtde"))],
+    [modbus, schemaCheck(prop("modbus"))],
+    [emscon, schemaCheck(prop("emscon", "string"))],
+    [tracker, schemaCheck(prop("tracker"))],
+    [cmm, schemaCheck(prop("cmm"))],
+    [ball, schemaCheck(prop("cmm_ball_radius_m"))],
     [canIf, (v) => !v && usesCan() ? "the reference encoders and resolvers need the CAN interface (socketcand, socketcan, pcan, …)" : ""],
     [canCh, (v) => !v && (canIf.value.trim() || usesCan()) ? "expected the CAN channel, e.g. vcan0 or can0" : ""],
     [canHost, (v) => {
-      if (canIf.value.trim() !== "socketcand") return v && !HOST_RE.test(v) ? "expected a host name or IP address" : "";
-      return v && HOST_RE.test(v) ? "" : "socketcand needs the host of the socketcand server";
+      if (canIf.value.trim() !== "socketcand") return schemaCheck(canProp("host"))(v);
+      return v ? schemaCheck(canProp("host"))(v) : "socketcand needs the host of the socketcand server";
     }],
     [canPort, (v) => {
       if (canIf.value.trim() !== "socketcand" && !v) return "";
-      return port(v) ? "" : "expected a port number (1–65535), e.g. 29536";
+      return v ? schemaCheck(canProp("port"))(v) : "socketcand needs the port of the socketcand server, e.g. 29536";
     }],
   ];
   const checkOne = (inp) => {
@@ -345,7 +399,7 @@ function deviceForm(doc, region) {
     for (const inp of nodeInputs) {
       const v = inp.value.trim();
       let msg = "";
-      if (v && !(/^\d+$/.test(v) && +v >= 1 && +v <= 127)) msg = "expected a CANopen node id, 1–127";
+      if (v && checkNode(v)) msg = `${checkNode(v)}: a CANopen node id`;
       else if (v && seen[v]) msg = `node ${v} is already the ${seen[v]}`;
       if (v && !msg) seen[v] = inp.dataset.what;
       ok = mark(inp, msg) && ok;
@@ -445,12 +499,13 @@ function deviceForm(doc, region) {
       lineErr.textContent = `Not an endpoint line: ${e.message}. Paste the one line of JSON that recal fake-cell printed.`;
       return;
     }
-    const known = Object.keys(d).filter((k) => FORM_KEYS.includes(k) && k !== "ready");
-    if (!known.length) {
-      lineErr.textContent = "This JSON names no device (expected rtde, modbus, emscon, tracker, cmm, can, encoders, resolvers).";
+    const named = Object.keys(d).filter((k) => known.includes(k) && k !== "ready");
+    if (!named.length) {
+      lineErr.textContent = `This JSON names no device (expected ${known.filter((k) => k !== "ready").join(", ")}).`;
       return;
     }
     rtde.value = d.rtde ?? ""; modbus.value = d.modbus ?? ""; tracker.value = d.tracker ?? ""; cmm.value = d.cmm ?? "";
+    ball.value = d.cmm_ball_radius_m ?? "";
     emscon.value = typeof d.emscon === "string" ? d.emscon : "";
     const c = d.can && typeof d.can === "object" ? d.can : {};
     canIf.value = c.interface ?? ""; canCh.value = c.channel ?? ""; canHost.value = c.host ?? ""; canPort.value = c.port ?? "";
@@ -462,7 +517,7 @@ function deviceForm(doc, region) {
     const missing = Object.keys(d.encoders || {}).concat(Object.keys(d.resolvers || {})).filter((n) => +n > joints.length);
     if (missing.length) lineErr.textContent = `The line names joint(s) ${missing.join(", ")}, which this robot does not have.`;
     read(true);
-    lineOk.textContent = `Filled in from the line: ${known.join(", ")}. Check the fields below, then save.`;
+    lineOk.textContent = `Filled in from the line: ${named.join(", ")}. Check the fields below, then save.`;
   });
 
   // {devices, allowed_region} from the fields, or null (the errors shown at the fields).
@@ -482,6 +537,7 @@ function deviceForm(doc, region) {
     if (v(emscon)) devices.emscon = v(emscon);
     if (v(tracker)) devices.tracker = v(tracker);
     if (v(cmm)) devices.cmm = v(cmm);
+    if (v(ball)) devices.cmm_ball_radius_m = Number(v(ball));
     if (v(canIf)) {
       devices.can = { interface: v(canIf), channel: v(canCh), ...canExtra };
       if (v(canHost)) devices.can.host = v(canHost);
@@ -506,26 +562,17 @@ function deviceForm(doc, region) {
           " prints once its devices are ready; the fields below are filled from it."),
         line, h("div", { class: "actions wrap" }, fill), lineErr, lineOk),
       h("h3", {}, "Robot controller"),
-      h("div", { class: "pair" },
-        field("UR controller (RTDE) host", rtde, "Universal Robots: the controller's address (RTDE on port 30004)"),
-        field("Modbus TCP host:port", modbus, "a robot read over Modbus TCP (UR register map)")),
+      h("div", { class: "pair" }, schemaField(rtde, prop("rtde")), schemaField(modbus, prop("modbus"))),
       h("h3", {}, "Instrument"),
-      h("div", { class: "pair" },
-        field("Leica laser tracker (emScon)", emscon, "HOST:PORT of the tracker's emScon server (port 700); sessions use it "
-          + "when it is given"),
-        field("Laser tracker (line protocol)", tracker, "socket://HOST:PORT, or the serial port it is plugged into "
-          + "(a bridge for FARO and API trackers)")),
-      h("div", { class: "pair" },
-        field("CMM (I++ DME)", cmm, "socket://HOST:PORT of the I++ DME server")),
+      h("div", { class: "pair" }, schemaField(emscon, prop("emscon")), schemaField(tracker, prop("tracker"))),
+      h("div", { class: "pair" }, schemaField(cmm, prop("cmm")), schemaField(ball, prop("cmm_ball_radius_m"))),
       h("h3", {}, "CAN bus (reference encoders and resolvers)"),
-      h("datalist", { id: "can-interfaces" }, ["socketcand", "socketcan", "pcan", "kvaser", "slcan"].map((x) => h("option", { value: x }))),
-      h("div", { class: "pair" }, field("Interface", canIf, "python-can interface: socketcand, socketcan, pcan, …"),
-        field("Channel", canCh, "e.g. vcan0, can0, PCAN_USBBUS1")),
-      h("div", { class: "pair" }, field("Host", canHost, "socketcand: the server's address"),
-        field("Port", canPort, "socketcand: the server's port")),
+      h("datalist", { id: "can-interfaces" }, (canProp("interface").examples || []).map((x) => h("option", { value: x }))),
+      h("div", { class: "pair" }, schemaField(canIf, canProp("interface")), schemaField(canCh, canProp("channel"))),
+      h("div", { class: "pair" }, schemaField(canHost, canProp("host")), schemaField(canPort, canProp("port"))),
       h("p", { class: "help" }, "CANopen node id (1–127) of the reference encoder and of the resolver on each joint; "
         + "leave empty where there is none."),
-      jointsBox),
+      jointsBox, unknownNote),
     h("fieldset", {}, h("legend", {}, "Allowed region"),
       h("p", { class: "help" }, "The joint ranges sessions may use, in the model's units; empty: the joint's limits "
         + "(shown greyed)."), regionBox));
@@ -550,7 +597,7 @@ export async function register(ctx) {
   const file = h("input", { type: "file", id: "model-file", accept: ".json,application/json" });
   const fileRow = h("div", { class: "field", hidden: true }, h("label", { for: "model-file" }, "Model file"), file);
   const modelInfo = h("p", { class: "muted small", id: "model-info" });
-  const devs = deviceForm({}, null);
+  const devs = deviceForm({}, null, await deviceSchema());
   async function model() {
     if (src.value === "file") return fileModel;
     const key = src.value.slice(4);
@@ -620,7 +667,7 @@ export async function register(ctx) {
 }
 
 export async function edit(ctx, id) {
-  const c = await get(`/cells/${id}/summary`);
+  const [c, schema] = await Promise.all([get(`/cells/${id}/summary`), deviceSchema()]);
   if (!ctx.alive()) return;
   ctx.crumbs([["Cells", "#/"], [c.name, `#/cells/${id}`], ["Edit", null]]);
   if (!can("cells")) {
@@ -629,7 +676,7 @@ export async function edit(ctx, id) {
   }
   const name = h("input", { id: "cell-name", value: c.name, required: true });
   const site = h("input", { id: "cell-site", value: c.site });
-  const devs = deviceForm(c.devices_doc, c.allowed_region);
+  const devs = deviceForm(c.devices_doc, c.allowed_region, schema);
   devs.setJoints(c.model.joints, c.model.units);
   const drift = h("input", { id: "cell-drift", type: "number", step: "any", min: "0", value: c.drift_threshold ?? "" });
   const submit = h("button", { type: "submit", class: "primary", id: "save-cell" }, "Save");
