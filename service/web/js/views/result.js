@@ -285,16 +285,20 @@ function compensationCard(id, r) {
   const mode = h("select", { id: "comp-mode" },
     h("option", { value: "joints" }, "joints — new joint commands"),
     h("option", { value: "targets" }, "targets — corrected poses (for a nominal controller)"));
+  // a model with joint compliance sags under the task's payload (the route's ?payload=KG[,X,Y,Z])
+  const payload = r.compliant ? h("input", { type: "text", id: "comp-payload", placeholder: "e.g. 10,0,0,100" }) : null;
   const go = h("button", { class: "primary", id: "compensate" }, "Compensate");
   go.addEventListener("click", () => busy(go, async () => {
     const chosen = [...file.files];
     if (!chosen.length) throw new Error("choose a task file (CSV) or a robot program first");
     let name, text, extras = [], compId;
+    const query = `mode=${mode.value}`
+      + (payload && payload.value.trim() ? `&payload=${encodeURIComponent(payload.value.replace(/\s+/g, ""))}` : "");
     if (chosen.length > 1) {
       // a program of several files (KUKA: the .src and its .dat): one multipart request
       const form = new FormData();
       chosen.forEach((f) => form.append("file", f, f.name));
-      const resp = await api("POST", `/calibrations/${id}/compensate?mode=${mode.value}`, form, { raw: true });
+      const resp = await api("POST", `/calibrations/${id}/compensate?${query}`, form, { raw: true });
       compId = resp.headers.get("x-recal-compensation");
       const files = (await resp.json()).files || [];
       ({ name, text } = files[0]);
@@ -303,7 +307,7 @@ function compensationCard(id, r) {
       const f = chosen[0];
       name = f.name;
       if (name.toLowerCase().endsWith(".src")) throw new Error("a KUKA program needs its .src and its .dat: choose both");
-      const resp = await api("POST", `/calibrations/${id}/compensate?mode=${mode.value}&name=${encodeURIComponent(name)}`, await f.text());
+      const resp = await api("POST", `/calibrations/${id}/compensate?${query}&name=${encodeURIComponent(name)}`, await f.text());
       compId = resp.headers.get("x-recal-compensation");
       text = resp.text;
     }
@@ -319,7 +323,12 @@ function compensationCard(id, r) {
       + "add $config.dat for the TOOL_DATA and BASE_DATA it selects). Download it with every point corrected for "
       + "this robot's real geometry, every other character as it was."),
     h("div", { class: "row" }, h("div", { class: "field" }, h("label", { for: "task-file" }, "Task file"), file),
-      h("div", { class: "field" }, h("label", { for: "comp-mode" }, "Mode"), mode), go),
+      h("div", { class: "field" }, h("label", { for: "comp-mode" }, "Mode"), mode),
+      payload ? h("div", { class: "field" }, h("label", { for: "comp-payload" }, "Payload (optional)"), payload) : null,
+      go),
+    payload ? h("p", { class: "help" }, `Payload: kg, or kg,x,y,z with its centre of gravity in the tool frame `
+      + `(${r.units.length}), what the robot carries during the task. This calibration has joint compliance: the arm `
+      + "sags under the payload, and the points are corrected for it. Empty: no payload.") : null,
     box);
 }
 
@@ -358,6 +367,9 @@ function showCompensation(box, name, text, report, unit, extras = []) {
       h("strong", {}, "Compensated. "), `${summary.points ?? points.length} point(s), ${summary.converged ?? "?"} converged, `
         + `${flagged.length} flagged${skipped.length ? `, ${skipped.length} line(s) left unchanged` : ""}. `, save,
       ...saveExtras),
+    report.payload ? h("p", { class: "small", id: "compensated-payload" }, `Corrected for a payload of `
+      + `${num(report.payload[0], 4)} kg at ${report.payload.slice(1).map((v) => num(v, 4)).join(", ")} ${unit} `
+      + "(centre of gravity in the tool frame): the sag of the arm's joints under it is in the correction.") : null,
     h("p", { class: "small muted" }, `Largest remaining error ${num(summary.residual_max, 3)} ${unit}; largest joint `
       + `correction ${num(summary.correction_max, 3)} ${angle}`
       + (counts.length ? `; flags: ${counts.map(([k, v]) => `${k.replace(/_/g, " ")} ${v}`).join(", ")}` : "; no flags") + "."),
