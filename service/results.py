@@ -223,6 +223,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
                 "joints",
                 "note",
                 "compliance",
+                "residual_map",
             )
         },
         "errors": None,

@@ -76,7 +76,7 @@ def compliant_result(tmp_path, browser):
         engine.dispose()
 
 
-def test_result_page_shows_rigid_against_compliant(page, compliant_result):
+def test_result_page_shows_rigid_against_compliant(page, compliant_result, web):
     url, token, calibration_id, _ = compliant_result
     page.goto(url + "/")
     page.fill("#token", token)
@@ -90,6 +90,11 @@ def test_result_page_shows_rigid_against_compliant(page, compliant_result):
     assert compliant < 0.2 * rigid  # mm: the arm sags; the compliant model knows it
     assert "j2, j3" in rows[1].inner_text()
     assert "lower error than rigid" in page.inner_text("body")
+    # the residual map was tried on the session's data and left out (only the tracker's noise remains)
+    note = page.locator(".card", has=page.locator("#rigid-compliant")).locator("#residual-map").inner_text()
+    assert "5-fold cross-validated" in note and "Left out" in note, note
+    page.evaluate("document.querySelector('#rigid-compliant').closest('.card').scrollIntoView()")
+    web.shot(page, "61-rigid-against-compliant", full_page=False)
 
 
 def test_session_form_sends_the_payloads(page, compliant_result):

@@ -104,6 +104,16 @@ export async function show(ctx, id) {
 
   // joint compliance under gravity: the rigid and the compliant model, cross-validated on the same data
   const comp = rep.compliance;
+  // the residual map (book §5.4): a smooth correction of what the model leaves, kept where it helps
+  const rmap = rep.residual_map;
+  const mapNote = rmap && rmap.rms_without != null ? h("p", { class: "small", id: "residual-map" },
+    h("strong", {}, "Residual map: "), `a smooth correction of what the model leaves, as a function of the joints, `
+      + `${rmap.folds}-fold cross-validated: RMS ${num(rmap.rms_without, 4)} ${unit} without it, `
+      + `${num(rmap.rms_with, 4)} ${unit} with it. `
+      + (rmap.kept ? "Kept: stored with this calibration and applied when compensating task files (CSV), inside the "
+        + "joint region this session measured; outside it, and in robot programs, the model alone."
+        : `Left out: it did not lower the error by ${num(100 * rmap.min_gain, 2)} % or more (what remains is noise, `
+          + "or too sparse to map).")) : null;
   if (comp && comp.cv_rms_rigid != null) {
     parts.push(card("Rigid against compliant",
       table(["Model", `Cross-validated RMS (${unit})`],
@@ -112,7 +122,10 @@ export async function show(ctx, id) {
         { class: "compliance", id: "rigid-compliant" }),
       h("p", { class: "small muted" }, `${comp.folds}-fold cross-validation: each model identified on all folds but `
         + "one and tested on that one. This calibration is the compliant model"
-        + (comp.gain > 0 ? `: ${num(100 * comp.gain, 3)} % lower error than rigid.` : "; here it does no better than rigid."))));
+        + (comp.gain > 0 ? `: ${num(100 * comp.gain, 3)} % lower error than rigid.` : "; here it does no better than rigid.")),
+      mapNote));
+  } else if (mapNote && rmap.kept) {  // a rigid model with a map: worth a card; one left out is no news
+    parts.push(card("Beyond the geometric model", mapNote));
   }
 
   // parameters
