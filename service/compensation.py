@@ -187,6 +187,12 @@ def compensate_task(
         "nominal": req.nominal.name if req.nominal is not None else None,
         "mode": ("script" if req.fmt == "urscript" else req.fmt) if script else req.mode,
         "units": {"length": u.length, "angle": u.angle},
+        # the payload a compliant model sagged under (kg, centre of gravity in the tool frame in the
+        # length unit): the task's (--payload, the service's ?payload=) or the model's own; None for
+        # a rigid model, which has no use for one
+        "payload": None
+        if model.compliance is None or model.compliance.payload is None
+        else [_f(model.compliance.payload[0])] + [_f(v / L) for v in model.compliance.payload[1:]],
         "frame": {
             "T_nominal_world": [_f(v / L) for v in pose[:3]] + [_f(v / u.angle_rad) for v in pose[3:]],
             "fit_rms": _f(fit_rms / L) if fit_rms is not None else None,

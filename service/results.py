@@ -200,6 +200,8 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
             "plan_method": (run.plan_info or {}).get("method"),
         },
         "units": {"length": model.units.length, "angle": model.units.angle},
+        # a model with joint compliance sags under a task's payload: the page asks for it when compensating
+        "compliant": model.compliance is not None,
         "rms": cal.rms,
         "previous_id": previous_calibration_id(db, cal),
         "report": {
@@ -221,6 +223,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
                 "joints",
                 "note",
                 "compliance",
+                "residual_map",
             )
         },
         "errors": None,

@@ -1,7 +1,8 @@
 """``pose``: observation planning over candidates inside the allowed region, then
 identification, with the cell's previous calibration as a prior when it has one
 (minimum-variance estimation, book §4.3.2), so that a short nightly session updates a
-calibration instead of replacing it; stored as a new calibration of kind ``pose``."""
+calibration instead of replacing it; then, as ``recal identify --residual-map auto``, a residual
+map where cross-validation shows it helps; stored as a new calibration of kind ``pose``."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import dataclasses
 import numpy as np
 from sqlmodel import Session
 
-from calibration.identify import NotEnoughData, Prior, drift_scale, held_relations, identify
-from calibration.model import model_from_dict
+from calibration.identify import Measurements, NotEnoughData, Prior, drift_scale, held_relations, identify
+from calibration.model import KinematicModel, model_from_dict
 from calibration.report import identification_block, identification_report
 
 from ..analysis import AnalysisError, session_measurements, store_calibration
@@ -91,12 +92,34 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()},
     }
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
+    rmap_doc, report["residual_map"] = _residual_map(start, data, prior, result.model, model)
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q)
     ctrl = current_controller_model(db, cell.id)
     if ctrl is not None:  # a UR cell: what its controller computes with (targets mode, URScript need it)
         block["controller"] = ctrl.model
-    return store_calibration(db, cell, run, "pose", model, report, cov, result.rms_m / L, {"identification": block})
+    extra = {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})}
+    return store_calibration(db, cell, run, "pose", model, report, cov, result.rms_m / L, extra)
+
+
+def _residual_map(
+    start: KinematicModel, data: Measurements, prior: Prior | None, identified: KinematicModel, model: KinematicModel
+) -> tuple[dict | None, dict | None]:
+    """What ``recal identify --residual-map auto`` does (book §5.4): a smooth correction of what the
+    identified model leaves, kept only where k-fold cross-validation of the whole procedure (the
+    identification from ``start``, with the session's ``prior``, then the map) shows a gain.
+    Returns the model file's ``residual_map`` section (None when it is left out), which the
+    service's compensation applies inside the measured region, and the cross-validation's
+    figures in ``model``'s units either way (None when the folds leave too few poses to tell)."""
+    from calibration import residual_map as rm
+
+    try:
+        rmap, fig = rm.choose_residual_map(start, data, identify_kw={"prior": prior}, final=identified)
+    except NotEnoughData:
+        return None, None
+    L = model.units.length_m
+    figures = {k.removesuffix("_m"): (v / L if k.endswith("_m") else v) for k, v in fig.items()}
+    return (None if rmap is None else rm.to_dict(rmap, model)), figures
 
 
 def _prior_summary(result, prev: Calibration, prior: Prior, scale: float, units) -> dict:

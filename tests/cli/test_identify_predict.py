@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from calibration import robots
+from calibration.identify import excess_scale
 from calibration.kinematics import fk, target_positions
 from calibration.model import Units, model_to_dict
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
@@ -181,7 +182,8 @@ def test_identify_writes_model_in_input_units_and_report(cell, identified, tag, 
     assert res["rms"] <= res["p95"] <= res["max"]
     assert res["dof"] == 3 * len(cell.data) - len(rep["parameters"])
     assert 0.5 < res["chi2"] / res["dof"] < 1.6
-    assert res["sigma_scale"] == pytest.approx(math.sqrt(max(1.0, res["chi2"] / res["dof"])), rel=1e-6)
+    # the residuals' own scale only where chi-squared is significantly above dof, else 1
+    assert res["sigma_scale"] == pytest.approx(excess_scale(res["chi2"], res["dof"]), rel=1e-6)
     assert rep["outliers"] == []
     reg = rep["registration"]  # the base error simulated is 3 mm and 0.2 deg: registration helps
     assert reg["applied"] is True and reg["method"]

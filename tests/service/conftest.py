@@ -118,6 +118,10 @@ def stored_session(settings):
     return lambda cell_id, **kw: store_session(settings, cell_id, **kw)
 
 
+# The configuration a session measured around with ``region_deg`` (a 6-joint arm's working pose), degrees.
+REGION_CENTRE_DEG = [0.0, -60.0, 90.0, -120.0, -90.0, 0.0]
+
+
 def store_session(
     settings: Settings,
     cell_id: int,
@@ -128,12 +132,15 @@ def store_session(
     repeats: int = 1,
     truth_seed: int = 1,
     sag: str | None = None,
+    region_deg: float | None = None,
 ) -> tuple[int, int | None]:
     """A completed session of the cell stored as the orchestrator stores one: simulated tracker
     measurements (reflector ``smr``) of a robot near the cell's nominal model (link errors from
     ``truth_seed``), then the analysis (identification for ``pose``, accuracy for ``verify``,
     each configuration visited ``repeats`` times; ``sag``: the robot sags under gravity, one of
-    ``calibration.simulate.SAGGING_ARMS``). Returns (session id, calibration id)."""
+    ``calibration.simulate.SAGGING_ARMS``; ``region_deg``: every joint within that many degrees of
+    one configuration, REGION_CENTRE_DEG, instead of the whole range). Returns (session id,
+    calibration id)."""
     import dataclasses
 
     import numpy as np
@@ -157,7 +164,11 @@ def store_session(
                 from calibration.simulate import sagging
 
                 truth = sagging(truth, sag, frames_of=dataclasses.replace(nominal, compliance=None))
-            q = np.repeat(random_configurations(nominal, n, rng), repeats, axis=0)
+            limits = None
+            if region_deg is not None:
+                centre = np.deg2rad(REGION_CENTRE_DEG)
+                limits = np.stack([centre - np.deg2rad(region_deg), centre + np.deg2rad(region_deg)], axis=1)
+            q = np.repeat(random_configurations(nominal, n, rng, limits=limits), repeats, axis=0)
             data = simulate_measurements(truth, q, rng, targets=("smr",))
             info = {"method": "random", "limits_checked": True, **({"repeats": repeats} if repeats > 1 else {})}
             run = RunSession(

@@ -104,6 +104,16 @@ export async function show(ctx, id) {
 
   // joint compliance under gravity: the rigid and the compliant model, cross-validated on the same data
   const comp = rep.compliance;
+  // the residual map (book §5.4): a smooth correction of what the model leaves, kept where it helps
+  const rmap = rep.residual_map;
+  const mapNote = rmap && rmap.rms_without != null ? h("p", { class: "small", id: "residual-map" },
+    h("strong", {}, "Residual map: "), `a smooth correction of what the model leaves, as a function of the joints, `
+      + `${rmap.folds}-fold cross-validated: RMS ${num(rmap.rms_without, 4)} ${unit} without it, `
+      + `${num(rmap.rms_with, 4)} ${unit} with it. `
+      + (rmap.kept ? "Kept: stored with this calibration and applied when compensating task files (CSV), inside the "
+        + "joint region this session measured; outside it, and in robot programs, the model alone."
+        : `Left out: it did not lower the error by ${num(100 * rmap.min_gain, 2)} % or more (what remains is noise, `
+          + "or too sparse to map).")) : null;
   if (comp && comp.cv_rms_rigid != null) {
     parts.push(card("Rigid against compliant",
       table(["Model", `Cross-validated RMS (${unit})`],
@@ -112,7 +122,10 @@ export async function show(ctx, id) {
         { class: "compliance", id: "rigid-compliant" }),
       h("p", { class: "small muted" }, `${comp.folds}-fold cross-validation: each model identified on all folds but `
         + "one and tested on that one. This calibration is the compliant model"
-        + (comp.gain > 0 ? `: ${num(100 * comp.gain, 3)} % lower error than rigid.` : "; here it does no better than rigid."))));
+        + (comp.gain > 0 ? `: ${num(100 * comp.gain, 3)} % lower error than rigid.` : "; here it does no better than rigid.")),
+      mapNote));
+  } else if (mapNote && rmap.kept) {  // a rigid model with a map: worth a card; one left out is no news
+    parts.push(card("Beyond the geometric model", mapNote));
   }
 
   // parameters
@@ -285,16 +298,20 @@ function compensationCard(id, r) {
   const mode = h("select", { id: "comp-mode" },
     h("option", { value: "joints" }, "joints — new joint commands"),
     h("option", { value: "targets" }, "targets — corrected poses (for a nominal controller)"));
+  // a model with joint compliance sags under the task's payload (the route's ?payload=KG[,X,Y,Z])
+  const payload = r.compliant ? h("input", { type: "text", id: "comp-payload", placeholder: "e.g. 10,0,0,100" }) : null;
   const go = h("button", { class: "primary", id: "compensate" }, "Compensate");
   go.addEventListener("click", () => busy(go, async () => {
     const chosen = [...file.files];
     if (!chosen.length) throw new Error("choose a task file (CSV) or a robot program first");
     let name, text, extras = [], compId;
+    const query = `mode=${mode.value}`
+      + (payload && payload.value.trim() ? `&payload=${encodeURIComponent(payload.value.replace(/\s+/g, ""))}` : "");
     if (chosen.length > 1) {
       // a program of several files (KUKA: the .src and its .dat): one multipart request
       const form = new FormData();
       chosen.forEach((f) => form.append("file", f, f.name));
-      const resp = await api("POST", `/calibrations/${id}/compensate?mode=${mode.value}`, form, { raw: true });
+      const resp = await api("POST", `/calibrations/${id}/compensate?${query}`, form, { raw: true });
       compId = resp.headers.get("x-recal-compensation");
       const files = (await resp.json()).files || [];
       ({ name, text } = files[0]);
@@ -303,7 +320,7 @@ function compensationCard(id, r) {
       const f = chosen[0];
       name = f.name;
       if (name.toLowerCase().endsWith(".src")) throw new Error("a KUKA program needs its .src and its .dat: choose both");
-      const resp = await api("POST", `/calibrations/${id}/compensate?mode=${mode.value}&name=${encodeURIComponent(name)}`, await f.text());
+      const resp = await api("POST", `/calibrations/${id}/compensate?${query}&name=${encodeURIComponent(name)}`, await f.text());
       compId = resp.headers.get("x-recal-compensation");
       text = resp.text;
     }
@@ -319,7 +336,12 @@ function compensationCard(id, r) {
       + "add $config.dat for the TOOL_DATA and BASE_DATA it selects). Download it with every point corrected for "
       + "this robot's real geometry, every other character as it was."),
     h("div", { class: "row" }, h("div", { class: "field" }, h("label", { for: "task-file" }, "Task file"), file),
-      h("div", { class: "field" }, h("label", { for: "comp-mode" }, "Mode"), mode), go),
+      h("div", { class: "field" }, h("label", { for: "comp-mode" }, "Mode"), mode),
+      payload ? h("div", { class: "field" }, h("label", { for: "comp-payload" }, "Payload (optional)"), payload) : null,
+      go),
+    payload ? h("p", { class: "help" }, `Payload: kg, or kg,x,y,z with its centre of gravity in the tool frame `
+      + `(${r.units.length}), what the robot carries during the task. This calibration has joint compliance: the arm `
+      + "sags under the payload, and the points are corrected for it. Empty: no payload.") : null,
     box);
 }
 
@@ -358,6 +380,9 @@ function showCompensation(box, name, text, report, unit, extras = []) {
       h("strong", {}, "Compensated. "), `${summary.points ?? points.length} point(s), ${summary.converged ?? "?"} converged, `
         + `${flagged.length} flagged${skipped.length ? `, ${skipped.length} line(s) left unchanged` : ""}. `, save,
       ...saveExtras),
+    report.payload ? h("p", { class: "small", id: "compensated-payload" }, `Corrected for a payload of `
+      + `${num(report.payload[0], 4)} kg at ${report.payload.slice(1).map((v) => num(v, 4)).join(", ")} ${unit} `
+      + "(centre of gravity in the tool frame): the sag of the arm's joints under it is in the correction.") : null,
     h("p", { class: "small muted" }, `Largest remaining error ${num(summary.residual_max, 3)} ${unit}; largest joint `
       + `correction ${num(summary.correction_max, 3)} ${angle}`
       + (counts.length ? `; flags: ${counts.map(([k, v]) => `${k.replace(/_/g, " ")} ${v}`).join(", ")}` : "; no flags") + "."),
