@@ -2,82 +2,29 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Request
 from pydantic import Field
-from sqlmodel import Session, select
+from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
-from calibration.model import ModelFormatError, model_from_dict
-
-from ... import tasks, workbench
+from ... import cells, tasks, workbench
 from ...controller import controller_document, store_controller_document
-from ...device_config import DeviceConfigError, devices_json_schema, parse_devices
+from ...device_config import devices_json_schema
 from ...drift import cell_drift
 from ...models import (
-    Cell,
     CellCreate,
     CellPublic,
     CellUpdate,
-    RunSession,
     SessionCreate,
     SessionPublic,
     _In,
 )
-from ...plans import RegionError, check_region
-from ...problems import Invalid
-from ...sessions import ACTIVE, get_cell, start_session
-from ...store import audit, current_calibration
+from ...sessions import get_cell, start_session
+from ...store import audit
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
 from ..schemas import CalibrationListItem, Drift, JsonSchema, TaskFileContent, TaskFileInfo, TasksCompensated
 
 router = APIRouter(tags=["cells"])
-
-
-def _public(db, cell: Cell) -> CellPublic:
-    last = current_calibration(db, cell)
-    return CellPublic(**cell.model_dump(), last_calibration_id=None if last is None else last.id)
-
-
-def _check_model(doc: dict):
-    """The parsed model, or 422 naming the field of ``body.model`` at fault."""
-    try:
-        return model_from_dict(doc)
-    except ModelFormatError as exc:
-        field = f"body.model.{exc.field}" if exc.field else "body.model"
-        raise HTTPException(422, {"field": field, "message": str(exc).split(": ", 1)[-1]}) from None
-
-
-def _check_region(model, region: list | None, *, sent: bool = True) -> None:
-    """422 naming the row of ``body.allowed_region`` at fault (``sent``: the region came with
-    this request; else it is the cell's, checked against a new model)."""
-    try:
-        check_region(model, region)
-    except RegionError as exc:
-        field = "body.allowed_region" + (f"[{exc.row}]" if exc.row is not None else "")
-        message = (
-            str(exc)
-            if sent
-            else f"the cell's allowed region does not fit the new model: {exc}; send an "
-            f"allowed_region for it with the model"
-        )
-        raise HTTPException(422, {"field": field, "message": message}) from None
-
-
-def _check_devices(devices: dict | None) -> None:
-    """422 naming the field of ``body.devices`` at fault (an unknown key with the nearest known
-    one); the document is stored as it was sent."""
-    if devices is None:
-        return
-    try:
-        parse_devices(devices)
-    except DeviceConfigError as exc:
-        raise Invalid(f"body.{exc.field}", exc.message) from None
-
-
-def _name_free(db, name: str, cell_id: int | None = None) -> None:
-    other = db.exec(select(Cell.id).where(Cell.name == name)).first()
-    if other is not None and other != cell_id:
-        raise HTTPException(409, f"a cell named {name!r} exists already")
 
 
 @router.get("/schemas/devices", response_model=JsonSchema)
@@ -90,28 +37,19 @@ def devices_schema(tok: Reader) -> dict:
 
 @router.post("/cells", status_code=201, response_model=CellPublic)
 def create_cell(body: CellCreate, db: DbSession, tok: CellEditor):
-    _check_region(_check_model(body.model), body.allowed_region)
-    _check_devices(body.devices)
-    _name_free(db, body.name)
-    cell = Cell(**body.model_dump())
-    db.add(cell)
-    db.commit()
-    db.refresh(cell)
-    audit(db, actor=tok.name, action="register cell", subject=f"cell {cell.id}", detail={"name": cell.name})
-    return _public(db, cell)
+    """Register a cell: its nominal model, allowed region and devices (each checked, a refusal
+    naming the field)."""
+    return cells.register_cell(db, body, tok)
 
 
 @router.get("/cells", response_model=list[CellPublic])
 def list_cells(db: DbSession, tok: Reader, site: str | None = None):
-    q = select(Cell).order_by(Cell.id)
-    if site is not None:
-        q = q.where(Cell.site == site)
-    return [_public(db, c) for c in db.exec(q).all()]
+    return cells.list_cells(db, site)
 
 
 @router.get("/cells/{cell_id}", response_model=CellPublic)
 def read_cell(cell_id: int, db: DbSession, tok: Reader):
-    return _public(db, get_cell(db, cell_id))
+    return cells.public_cell(db, get_cell(db, cell_id))
 
 
 @router.patch("/cells/{cell_id}", response_model=CellPublic)
@@ -120,35 +58,7 @@ def update_cell(cell_id: int, body: CellUpdate, db: DbSession, tok: CellEditor):
     registration, refused while a session drives the cell, and counted (``model_version``; each
     calibration says which it was identified from); the old one is kept in the audit log.
     Calibrations of an earlier nominal no longer serve as the cell's current model or prior."""
-    cell = get_cell(db, cell_id)
-    changes = body.model_dump(exclude_unset=True)
-    if "name" in changes:
-        _name_free(db, changes["name"], cell_id)
-    _check_devices(changes.get("devices"))
-    detail: dict = {"fields": sorted(changes)}
-    if "model" in changes and changes["model"] == cell.model:
-        del changes["model"]
-    if "model" in changes:
-        model = _check_model(changes["model"])
-        _check_region(model, changes.get("allowed_region", cell.allowed_region), sent="allowed_region" in changes)
-        busy = db.exec(select(RunSession).where(RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE))).first()
-        if busy is not None:
-            raise HTTPException(
-                409, f"session {busy.id} is driving this cell ({busy.state}); replace the model when it has stopped"
-            )
-        detail.update(
-            {"old_model": cell.model, "old_model_version": cell.model_version, "model_version": cell.model_version + 1}
-        )
-        cell.model_version += 1
-    elif changes.get("allowed_region") is not None:
-        _check_region(model_from_dict(cell.model), changes["allowed_region"])
-    for k, v in changes.items():
-        setattr(cell, k, v)
-    db.add(cell)
-    db.commit()
-    db.refresh(cell)
-    audit(db, actor=tok.name, action="edit cell", subject=f"cell {cell_id}", detail=detail)
-    return _public(db, cell)
+    return cells.edit_cell(db, get_cell(db, cell_id), body, tok)
 
 
 @router.post("/cells/{cell_id}/sessions", status_code=201, response_model=SessionPublic)
