@@ -51,6 +51,9 @@ class SessionRunner(Protocol):
     def wait(self, session_id: int, timeout_s: float | None = None) -> None:
         """Return when the session is no longer active, or after ``timeout_s``."""
 
+    def not_ready(self) -> str | None:
+        """Why this runner cannot take a session now (``/ready`` says it), or None."""
+
     def shutdown(self, timeout_s: float = 5.0) -> None:
         """Stop running sessions (embedded: pause them) and release what the runner holds."""
 

@@ -172,6 +172,27 @@ def find_token(db: Session, plain: str) -> Token | None:
     return tok if tok is not None and not tok.revoked else None
 
 
+def list_tokens(db: Session) -> list[Token]:
+    return list(db.exec(select(Token).order_by(Token.id)).all())
+
+
+def revoke_token(db: Session, token_id: int) -> bool:
+    """Mark token ``token_id`` revoked (its hash stays, so it is known and refused); False when
+    there is no such token."""
+    t = db.get(Token, token_id)
+    if t is None:
+        return False
+    t.revoked = True
+    db.add(t)
+    db.commit()
+    return True
+
+
+def audit_entries(db: Session, limit: int) -> list[AuditEntry]:
+    """The newest ``limit`` audit entries (at most 5000), newest first."""
+    return list(db.exec(select(AuditEntry).order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all())
+
+
 def audit(db: Session, *, actor: str, action: str, subject: str, detail: dict | None = None) -> None:
     db.add(AuditEntry(actor=actor, action=action, subject=subject, detail=detail))
     db.commit()

@@ -103,6 +103,10 @@ class FleetOrchestrator:
         while self.is_active(session_id) and (deadline is None or time.monotonic() < deadline):
             time.sleep(0.2)
 
+    def not_ready(self) -> str | None:
+        """Always ready: its queue is in the database, which ``/ready`` checks itself."""
+        return None
+
     def shutdown(self, timeout_s: float = 5.0) -> None:
         self.reaper.stop()
         self.app.close()

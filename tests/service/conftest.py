@@ -94,6 +94,9 @@ class NoMotion:
     def is_active(self, session_id):
         return False
 
+    def not_ready(self):
+        return None
+
     def wait(self, session_id, timeout_s=None):
         pass
 

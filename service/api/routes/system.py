@@ -7,10 +7,10 @@ from typing import Annotated
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import JSONResponse
 from sqlalchemy import text
-from sqlmodel import select
 from starlette.concurrency import run_in_threadpool
 
-from ...models import AuditEntry, Token, TokenCreate
+from ... import store
+from ...models import TokenCreate
 from ...store import audit, create_token
 from ..deps import Admin, CurrentToken, DbSession, token_cache
 from ..schemas import AuditRow, Health, Me, Ready, ReadyCheck, TokenCreated, TokenInfo, TokenRevoked
@@ -40,7 +40,7 @@ async def ready(request: Request):
     503 with the same body when not. No token: for load balancers and orchestrators."""
     state = request.app.state
     db = await run_in_threadpool(_database_check, state.engine)
-    runner_problem = getattr(state.orchestrator, "not_ready", lambda: None)()
+    runner_problem = state.orchestrator.not_ready()
     runner = ReadyCheck(ok=runner_problem is None, detail=runner_problem or type(state.orchestrator).__name__ + ": up")
     body = Ready(ready=db.ok and runner.ok, checks={"database": db, "runner": runner})
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
@@ -68,18 +68,14 @@ def create(body: TokenCreate, db: DbSession, tok: Admin):
 def list_tokens(db: DbSession, tok: Admin):
     return [
         {"id": t.id, "name": t.name, "role": t.role, "revoked": t.revoked, "created_at": t.created_at}
-        for t in db.exec(select(Token).order_by(Token.id)).all()
+        for t in store.list_tokens(db)
     ]
 
 
 @router.delete("/tokens/{token_id}", response_model=TokenRevoked)
 def revoke(token_id: int, request: Request, db: DbSession, tok: Admin):
-    t = db.get(Token, token_id)
-    if t is None:
+    if not store.revoke_token(db, token_id):
         raise HTTPException(404, f"no token {token_id}")
-    t.revoked = True
-    db.add(t)
-    db.commit()
     token_cache(request.app).forget(token_id)
     audit(db, actor=tok.name, action="revoke token", subject=f"token {token_id}")
     return {"id": token_id, "revoked": True}
@@ -87,5 +83,5 @@ def revoke(token_id: int, request: Request, db: DbSession, tok: Admin):
 
 @router.get("/audit", response_model=list[AuditRow])
 def audit_log(db: DbSession, tok: Admin, limit: Annotated[int, Query(ge=1, le=5000)] = 200):
-    rows = db.exec(select(AuditEntry).order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all()
+    rows = store.audit_entries(db, limit)
     return [{"at": a.at, "actor": a.actor, "action": a.action, "subject": a.subject, "detail": a.detail} for a in rows]
