@@ -26,7 +26,7 @@ from .device_config import DeviceConfigError, stored_devices
 from .models import AuditEntry, Calibration, Cell, RunSession
 from .records import position_errors, session_measurements
 from .results import _r, calibration_result
-from .store import as_utc
+from .store import as_utc, verifications
 
 INSTRUMENTS = {"tracker": "laser tracker", "cmm": "coordinate measuring machine (I++ DME)"}
 
@@ -59,25 +59,11 @@ def _verify_sessions(db: Session, cell_id: int, cal: Calibration) -> tuple[dict 
     """The hold-out checks around ``cal``: the last verify session before it and the first one
     after it that used it (their results, model units)."""
     before = after = None
-    rows = db.exec(
-        select(RunSession)
-        .where(
-            RunSession.cell_id == cell_id,
-            RunSession.kind == "verify",
-            RunSession.state == "completed",
-            RunSession.dry_run == False,  # noqa: E712 (SQL)
-        )
-        .order_by(RunSession.id.desc())
-        .limit(200)
-    ).all()
-    for s in rows:
-        v = (s.plan_info or {}).get("verify")
-        if not v:
-            continue
-        if s.id < (cal.session_id or 0) and before is None:
-            before = {"session_id": s.id, **v}
-        if v.get("calibration_id") == cal.id and s.id > (cal.session_id or 0):
-            after = {"session_id": s.id, **v}  # keeps the earliest (rows go newest first)
+    for sid, _, v in verifications(db, cell_id, limit=200):
+        if sid < (cal.session_id or 0) and before is None:
+            before = {"session_id": sid, **v}
+        if v.get("calibration_id") == cal.id and sid > (cal.session_id or 0):
+            after = {"session_id": sid, **v}  # keeps the earliest (rows go newest first)
     return before, after
 
 

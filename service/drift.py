@@ -9,7 +9,8 @@ from sqlmodel import Session, select
 
 from calibration.report import change_in_sigmas, comparable_parameter
 
-from .models import Calibration, RunSession
+from .models import Calibration
+from .store import verifications
 
 
 def cell_drift(db: Session, cell_id: int) -> dict:
@@ -44,21 +45,8 @@ def cell_drift(db: Session, cell_id: int) -> dict:
                     entry.update({"change": change, "change_sigmas": moved["change_sigmas"]})
             series.setdefault(name, []).append(entry)
         prev, prev_version = params, version
-    runs = db.exec(
-        select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
-        .where(
-            RunSession.cell_id == cell_id,
-            RunSession.kind == "verify",
-            RunSession.state == "completed",
-            RunSession.dry_run == False,  # noqa: E712 (SQL)
-        )
-        .order_by(RunSession.id)
-    ).all()  # noqa: E712
     verify = []
-    for sid, at, info in runs:
-        v = (info or {}).get("verify")
-        if not v:
-            continue
+    for sid, at, v in reversed(verifications(db, cell_id)):
         iso = v.get("iso9283")
         verify.append(
             {

@@ -188,6 +188,30 @@ def revoke_token(db: Session, token_id: int) -> bool:
     return True
 
 
+def verifications(db: Session, cell_id: int, *, limit: int | None = None) -> list[tuple[int, datetime, dict]]:
+    """The cell's completed verify sessions that have a result, newest first (the last ``limit``
+    verify sessions): ``(session id, when it ended, its result)`` (``plan_info["verify"]``, model
+    units). Columns only: the page's trend, the drift page and the certificate read these."""
+    q = (
+        select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
+        .where(
+            RunSession.cell_id == cell_id,
+            RunSession.kind == "verify",
+            RunSession.state == "completed",
+            RunSession.dry_run == False,  # noqa: E712 (SQL)
+        )
+        .order_by(RunSession.id.desc())
+    )
+    if limit is not None:
+        q = q.limit(limit)
+    out = []
+    for sid, at, info in db.exec(q).all():
+        v = (info or {}).get("verify")
+        if v:
+            out.append((sid, at, v))
+    return out
+
+
 def audit_entries(db: Session, limit: int) -> list[AuditEntry]:
     """The newest ``limit`` audit entries (at most 5000), newest first."""
     return list(db.exec(select(AuditEntry).order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all())

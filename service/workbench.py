@@ -15,7 +15,7 @@ from .devicetest import test_cell_devices
 from .models import Calibration, Cell, RunSession, Token
 from .problems import NotFound
 from .sessions import driving_session, public_session
-from .store import as_utc, audit, measured_count
+from .store import as_utc, audit, measured_count, verifications
 
 TREND = 30  # calibrations and verifications in a cell's trend
 
@@ -48,20 +48,8 @@ def _verified(db, cell_id: int, limit: int = TREND) -> list[dict]:
     sessions, with the calibration it checked and its RMS and max error on fresh
     configurations. This, not a calibration's residual (how well the model fits the data it was
     identified from), is the cell's accuracy."""
-    rows = db.exec(
-        select(RunSession.id, RunSession.plan_info, RunSession.updated_at)
-        .where(
-            RunSession.cell_id == cell_id,
-            RunSession.kind == "verify",
-            RunSession.state == "completed",
-            RunSession.dry_run == False,  # noqa: E712 (SQL)
-        )
-        .order_by(RunSession.id.desc())
-        .limit(limit)
-    ).all()
     out = []
-    for sid, info, t in reversed(rows):
-        v = (info or {}).get("verify") or {}
+    for sid, t, v in reversed(verifications(db, cell_id, limit=limit)):
         if v.get("calibration_id") is None or v.get("rms") is None:
             continue
         out.append(

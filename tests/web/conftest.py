@@ -197,8 +197,13 @@ def stack(tmp_path_factory, browser):
 
 
 def sign_in(page, stack: Stack, role: str = "technician") -> None:
-    page.goto(stack.url + "/")
-    page.fill("#token", stack.tokens[role])
+    sign_in_at(page, stack.url, stack.tokens[role])
+
+
+def sign_in_at(page, url: str, token: str) -> None:
+    """Sign in to the page of the service at ``url`` with ``token``."""
+    page.goto(url + "/")
+    page.fill("#token", token)
     page.click("#sign-in")
     page.wait_for_selector("#role")
 
@@ -250,6 +255,7 @@ class Helpers:
     tablet = TABLET
     shot = staticmethod(shot)
     sign_in = staticmethod(sign_in)
+    sign_in_at = staticmethod(sign_in_at)
     api = staticmethod(api)
     register_cell_by_api = staticmethod(register_cell_by_api)
     overflowing = staticmethod(overflowing)

@@ -78,10 +78,7 @@ def compliant_result(tmp_path, browser):
 
 def test_result_page_shows_rigid_against_compliant(page, compliant_result, web):
     url, token, calibration_id, _ = compliant_result
-    page.goto(url + "/")
-    page.fill("#token", token)
-    page.click("#sign-in")
-    page.wait_for_selector("#role")
+    web.sign_in_at(page, url, token)
     page.goto(f"{url}/#/calibrations/{calibration_id}")
     table = page.wait_for_selector("#rigid-compliant")
     rows = table.query_selector_all("tbody tr")
@@ -97,15 +94,12 @@ def test_result_page_shows_rigid_against_compliant(page, compliant_result, web):
     web.shot(page, "61-rigid-against-compliant", full_page=False)
 
 
-def test_session_form_sends_the_payloads(page, compliant_result):
+def test_session_form_sends_the_payloads(page, compliant_result, web):
     """The session form's payloads go with the plan: a dry run (nothing moves) carries them, in SI."""
     from service.client import Api
 
     url, token, _, cell_id = compliant_result
-    page.goto(url + "/")
-    page.fill("#token", token)
-    page.click("#sign-in")
-    page.wait_for_selector("#role")
+    web.sign_in_at(page, url, token)
     page.goto(f"{url}/#/cells/{cell_id}/start")
     page.fill("#count", "12")
     page.fill("#payloads", "0; 10,0,0,100")
@@ -122,10 +116,7 @@ def test_compensating_with_a_payload_corrects_for_the_sag(page, compliant_result
     route (?payload=KG,X,Y,Z): the same task compensated with it gets other joint commands than
     without it (the arm sags under it), and the page says which payload the points were corrected for."""
     url, token, calibration_id, _ = compliant_result
-    page.goto(url + "/")
-    page.fill("#token", token)
-    page.click("#sign-in")
-    page.wait_for_selector("#role")
+    web.sign_in_at(page, url, token)
     page.goto(f"{url}/#/calibrations/{calibration_id}")
     page.wait_for_selector("#comp-payload")
     task = tmp_path / "task.csv"
