@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import secrets
+import time
 from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -282,9 +283,27 @@ def current_calibration(db: Session, cell: Cell) -> Calibration | None:
     return last_calibration(db, cell.id, kind="pose", nominal_version=cell.model_version)
 
 
-def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30.0) -> bool:
+def acquire_lease(
+    db: Session, run: RunSession, owner: str, *, ttl_s: float = 30.0, closing_wait_s: float = 10.0
+) -> bool:
     """Take (or renew) the exclusive right to drive ``run``'s cell. At most one session per cell
-    holds a live lease; the check and the write happen in one transaction."""
+    holds a live lease; the check and the write happen in one transaction. An aborted session
+    still holds its lease while it closes its devices (it is said aborted first, so that the
+    abort is answered at once): that is waited for, up to ``closing_wait_s``, rather than
+    refused, so a session started right after an abort runs."""
+    deadline = time.monotonic() + closing_wait_s
+    while True:
+        got = _try_lease(db, run, owner, ttl_s)
+        if got != "closing":
+            return got
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+
+
+def _try_lease(db: Session, run: RunSession, owner: str, ttl_s: float) -> bool | str:
+    """``acquire_lease`` once: True, False, or ``"closing"`` (only an aborted session that is
+    closing its devices holds the cell)."""
     # Lock the cell's row first: two processes taking leases on one cell queue up here.
     db.exec(select(Cell.id).where(Cell.id == run.cell_id).with_for_update()).first()
     now = utcnow()
@@ -292,14 +311,14 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
         select(RunSession).where(
             RunSession.cell_id == run.cell_id,
             RunSession.id != run.id,
-            RunSession.state.in_(("planned", "running")),
-            (RunSession.state == "running") | (RunSession.dry_run == False),  # noqa: E712 (SQL)
+            RunSession.state.in_(("planned", "running", "aborted")),
+            (RunSession.state != "planned") | (RunSession.dry_run == False),  # noqa: E712 (SQL)
         )
     ).all()
-    for other in others:
-        if other.lease_expires is not None and as_utc(other.lease_expires) > now:
-            db.rollback()
-            return False
+    live = [o for o in others if o.lease_expires is not None and as_utc(o.lease_expires) > now]
+    if live:
+        db.rollback()
+        return "closing" if all(o.state == "aborted" for o in live) else False
     db.refresh(run)
     if (
         run.lease_owner not in (None, owner) and run.lease_expires is not None and as_utc(run.lease_expires) > now
@@ -311,6 +330,17 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
     db.add(run)
     db.commit()
     return True
+
+
+def release_lease(db: Session, run: RunSession, owner: str) -> None:
+    """Give back ``owner``'s lease on ``run``'s cell (an aborted session whose devices are now
+    closed, :func:`acquire_lease`)."""
+    db.exec(
+        update(RunSession)
+        .where(RunSession.id == run.id, RunSession.lease_owner == owner)
+        .values(lease_expires=utcnow())
+    )
+    db.commit()
 
 
 def as_utc(t: datetime | None) -> datetime | None:

@@ -59,7 +59,8 @@ def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orche
         raise HTTPException(409, f"session {session_id} is {run.state} already")
     stopping = orchestrator.abort(run.id)
     # How long after the request reached this route the robot was told to stop (the answer
-    # itself waits for the session to have ended: the robot decelerating, at most ABORT_WAIT_S).
+    # itself waits for the session's end to be stored, at most ABORT_WAIT_S: an aborted session
+    # is stored aborted before its devices close, orchestrator.run_session).
     response.headers["Server-Timing"] = f"robot-stop;dur={(time.perf_counter() - t0) * 1e3:.1f}"
     audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
     if stopping:
