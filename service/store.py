@@ -27,6 +27,7 @@ from .models import (
     Calibration,
     Cell,
     ControllerModel,
+    EventTicket,
     Measurement,
     RunSession,
     SchemaVersion,
@@ -124,7 +125,13 @@ def _v5(conn) -> None:
     SQLModel.metadata.create_all(conn, tables=[ControllerModel.__table__])
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5]
+def _v6(conn) -> None:
+    """The event stream's tickets in the database (``event_ticket``), so that a ticket issued by
+    one API process of a fleet is accepted by any other (issue 12)."""
+    SQLModel.metadata.create_all(conn, tables=[EventTicket.__table__])
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -192,6 +199,37 @@ def revoke_token(db: Session, token_id: int) -> bool:
 def audit_entries(db: Session, limit: int) -> list[AuditEntry]:
     """The newest ``limit`` audit entries (at most 5000), newest first."""
     return list(db.exec(select(AuditEntry).order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all())
+
+
+def issue_ticket(db: Session, *, token_id: int, scope: str, ttl_s: float, now: datetime | None = None) -> str:
+    """A new single-use ticket for ``scope`` with the rights of token ``token_id``, good for
+    ``ttl_s`` seconds from ``now``; only its hash is stored. Expired tickets are dropped here."""
+    now = now or utcnow()
+    plain = secrets.token_urlsafe(24)
+    db.exec(delete(EventTicket).where(EventTicket.expires_at < now))
+    db.add(
+        EventTicket(hash=hash_token(plain), token_id=token_id, scope=scope, expires_at=now + timedelta(seconds=ttl_s))
+    )
+    db.commit()
+    return plain
+
+
+def redeem_ticket(db: Session, plain: str, scope: str, *, now: datetime | None = None) -> Token | None:
+    """The token whose rights ticket ``plain`` carries, if it is for ``scope``, unexpired, unused
+    and its token not revoked; else None. Presenting a ticket uses it up, whatever the answer:
+    its row is deleted, and of two API processes redeeming it at once only the one whose delete
+    removed the row (rowcount 1) may accept it."""
+    now = now or utcnow()
+    row = db.exec(select(EventTicket).where(EventTicket.hash == hash_token(plain))).first()
+    if row is None:
+        return None
+    ticket_id, token_id, ticket_scope, expires_at = row.id, row.token_id, row.scope, as_utc(row.expires_at)
+    res = db.exec(delete(EventTicket).where(EventTicket.id == ticket_id))
+    db.commit()
+    if res.rowcount != 1 or ticket_scope != scope or expires_at <= now:
+        return None
+    tok = db.get(Token, token_id)
+    return tok if tok is not None and not tok.revoked else None
 
 
 def audit(db: Session, *, actor: str, action: str, subject: str, detail: dict | None = None) -> None:

@@ -10,6 +10,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlmodel import Session, select
+from starlette.concurrency import run_in_threadpool
 
 from ...models import Measurement, SessionPublic, Token
 from ...sessions import (
@@ -89,7 +90,8 @@ async def events_ticket(session_id: int, request: Request, tok: Reader):
     URL instead of the token (``GET .../events?ticket=...``)."""
     await quick_read(request, _read_public, session_id)  # 404 for a session that does not exist
     store = tickets(request.app)
-    return EventTicket(ticket=store.issue(tok, f"events:{session_id}"), expires_in_s=store.ttl_s)
+    plain = await run_in_threadpool(store.issue, request.app.state.engine, tok, f"events:{session_id}")
+    return EventTicket(ticket=plain, expires_in_s=store.ttl_s)
 
 
 async def stream_reader(
@@ -97,7 +99,9 @@ async def stream_reader(
 ) -> Token:
     """The event stream's caller: a ticket (single use, this session's), else the bearer token."""
     if ticket is not None:
-        tok = tickets(request.app).redeem(ticket, f"events:{session_id}")
+        tok = await run_in_threadpool(
+            tickets(request.app).redeem, request.app.state.engine, ticket, f"events:{session_id}"
+        )
         if tok is None:
             raise HTTPException(
                 401, "unknown, used or expired ticket: ask for a new one (POST /api/v1/sessions/{id}/events/ticket)"
