@@ -59,18 +59,21 @@ def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orche
     if run.state in TERMINAL:
         raise HTTPException(409, f"session {session_id} is {run.state} already")
     stopping = orchestrator.abort(run.id)
-    # How long after the request reached this route the robot was told to stop (the answer
-    # itself waits for the session's end to be stored, at most ABORT_WAIT_S: an aborted session
-    # is stored aborted before its devices close, orchestrator.run_session).
-    response.headers["Server-Timing"] = f"robot-stop;dur={(time.perf_counter() - t0) * 1e3:.1f}"
+    stop_ms = (time.perf_counter() - t0) * 1e3  # the robot was told to stop
     audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
     if stopping:
         # It stops the robot at once and the session at its next step (while planning: within
-        # 0.1 s); answer with the state it ends in when that is quick.
+        # 0.1 s); answer with the state it ends in when that is quick (an aborted session is
+        # stored aborted before its devices close, orchestrator.run_session).
         orchestrator.wait(run.id, ABORT_WAIT_S)
     else:  # nothing runs it (planned and never started, paused, interrupted): aborted here
         set_state_unless(db, run, TERMINAL, "aborted", "aborted on request")
     db.refresh(run)
+    # When, after the request reached this route, the robot was told to stop and the session's
+    # end was read back (bench/heavy.py).
+    response.headers["Server-Timing"] = (
+        f"robot-stop;dur={stop_ms:.1f}, session-end;dur={(time.perf_counter() - t0) * 1e3:.1f}"
+    )
     return public_session(db, run)
 
 
