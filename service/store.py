@@ -349,8 +349,9 @@ def _try_lease(db: Session, run: RunSession, owner: str, ttl_s: float) -> bool |
         select(RunSession).where(
             RunSession.cell_id == run.cell_id,
             RunSession.id != run.id,
-            RunSession.state.in_(("planned", "running", "aborted")),
-            (RunSession.state != "planned") | (RunSession.dry_run == False),  # noqa: E712 (SQL)
+            (RunSession.state == "running")
+            | ((RunSession.state == "planned") & (RunSession.dry_run == False))  # noqa: E712 (SQL)
+            | ((RunSession.state == "aborted") & (RunSession.lease_expires > now)),  # closing its devices
         )
     ).all()
     live = [o for o in others if o.lease_expires is not None and as_utc(o.lease_expires) > now]
