@@ -85,7 +85,8 @@ class Robot(Device):
     def move_joints(self, q: np.ndarray, *, speed_rad_s: float, accel_rad_s2: float, timeout_s: float = 60.0) -> None:
         """Move to joint target ``q`` ``(n,)`` and return once it is reached.
 
-        Raises ``RobotStoppedError`` if a protective or emergency stop interrupts the move,
+        Raises ``RobotStoppedError`` if a protective or emergency stop or :meth:`stop` (from
+        another thread: at once, saying "stopped by stop()") interrupts the move,
         ``DeviceTimeoutError`` if it does not finish within ``timeout_s``.
         """
 

@@ -155,6 +155,7 @@ class UrRtdeRobot(Robot):
         self._lock = threading.RLock()
         self._worker: _Worker | None = None
         self._closed = False
+        self._stops = 0  # stop() calls that returned: a move started before one ends at once
         self._connect()
 
     # ----------------------------------------------------------------- Robot
@@ -178,6 +179,7 @@ class UrRtdeRobot(Robot):
         """``moveJ`` to ``q`` (6,) rad and wait until it is reached (see ``Robot``)."""
         q_target = self._check_move(q, speed_rad_s, accel_rad_s2)
         with self._lock:
+            stops_before = self._stops
             for _ in range(2):  # the script may end just before the move: then once more
                 snap = self._fresh_snapshot()
                 self._raise_if_stopped(snap)
@@ -195,7 +197,7 @@ class UrRtdeRobot(Robot):
                     "the controller did not accept moveJ (its control script is not ready)",
                     device=self.name,
                 )
-        self._wait_for_move(q_target, status_before, timeout_s)
+        self._wait_for_move(q_target, status_before, timeout_s, stops_before)
 
     def forward_kinematics(self, q: np.ndarray, tcp_offset: np.ndarray | None = None) -> np.ndarray:
         """The controller's own forward kinematics: ``T_base_tcp`` (N, 4, 4) for readings ``q``
@@ -222,9 +224,12 @@ class UrRtdeRobot(Robot):
         return ur_poses_to_matrices(np.asarray(poses, dtype=float)) @ np.linalg.inv(T_sent) @ T_tcp
 
     def stop(self) -> None:
-        """``stopJ``: decelerate every joint to zero (at ``stop_decel_rad_s2``)."""
+        """``stopJ``: decelerate every joint to zero (at ``stop_decel_rad_s2``). ``stopJ`` is sent
+        synchronously: it returns once the joints stand still. A move in progress then raises
+        ``RobotStoppedError`` at once (without waiting for its arrival, as it will not come)."""
         with self._lock:
             self._call("stop", float(self.config.stop_decel_rad_s2))
+            self._stops += 1
 
     def set_payload(self, mass_kg: float, cog_m) -> None:
         """``setPayload``: the mounted payload (kg) and its centre of gravity (3,) m from the
@@ -320,12 +325,21 @@ class UrRtdeRobot(Robot):
             raise ValueError(f"accel_rad_s2 must be in (0, {self.config.max_accel_rad_s2:g}]; got {accel_rad_s2}")
         return q
 
-    def _wait_for_move(self, q_target: np.ndarray, status_before: int, timeout_s: float) -> None:
-        """Poll until the asynchronous move has finished, a safety stop or the timeout."""
+    def _wait_for_move(self, q_target: np.ndarray, status_before: int, timeout_s: float, stops_before: int) -> None:
+        """Poll until the asynchronous move has finished, a safety stop, a ``stop()`` or the timeout."""
         deadline = time.monotonic() + timeout_s
         while True:
             snap = self._call("snapshot")
             self._raise_if_stopped(snap)
+            if self._stops != stops_before:
+                # stop() returned (the joints stand still): the move is over now. Waiting for its
+                # end to be reported and for the arrival grace below cost an abort 0.1 s or more.
+                error = float(np.max(np.abs(np.asarray(snap["q"], dtype=float) - q_target)))
+                if error > self.config.arrival_tolerance_rad:
+                    raise RobotStoppedError(
+                        f"the move was stopped by stop() {error:.3g} rad from its target", device=self.name
+                    )
+                return
             if not snap["program_running"]:
                 # The receive stream may lag the control stream: look at fresh safety data.
                 self._raise_if_stopped(self._fresh_snapshot())

@@ -34,7 +34,8 @@ class Control:
     ``renew``: called when that moment has come before the next move (a fleet worker's monitor
     thread was late, e.g. on a loaded machine): renews the hold in the store if this process
     still has it (moving ``lease_valid_until`` on), else sets ``interrupt``; a store that
-    cannot be reached raises (the worker waits for it, module docstring)."""
+    cannot be reached raises (the worker waits for it, module docstring). ``ended``: set once
+    the session's final state is committed (an aborted session's devices may still be closing)."""
 
     pause: threading.Event = field(default_factory=threading.Event)
     abort: threading.Event = field(default_factory=threading.Event)
@@ -44,6 +45,7 @@ class Control:
     lease_valid_until: float = math.inf
     renew: Callable[[], object] | None = None
     heavy: threading.Semaphore | None = None  # the process's slots for planning and identification
+    ended: threading.Event = field(default_factory=threading.Event)  # the session's final state is stored
 
     def check(self) -> None:
         """Raise :class:`SessionStopped` when the session must not make another move."""

@@ -146,6 +146,20 @@ class Token(SQLModel, table=True):
     created_at: datetime = Field(default_factory=utcnow)
 
 
+class EventTicket(SQLModel, table=True):
+    """A short-lived, single-use ticket for one connection to a session's event stream (what a
+    browser's ``EventSource`` puts in the URL instead of a token), kept in the database so that
+    any API process of a fleet accepts it (docs/fleet.md). Only its hash is stored; it is deleted
+    when used (store.redeem_ticket)."""
+
+    __tablename__ = "event_ticket"
+    id: int | None = Field(default=None, primary_key=True)
+    hash: str = Field(index=True, unique=True)  # sha256 of the ticket; the ticket itself is never stored
+    token_id: int = Field(foreign_key="token.id")  # whose rights the stream has
+    scope: str  # what it opens: "events:<session id>"
+    expires_at: datetime = Field(index=True)
+
+
 class AuditEntry(SQLModel, table=True):
     __tablename__ = "audit"
     id: int | None = Field(default=None, primary_key=True)

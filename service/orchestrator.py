@@ -54,7 +54,7 @@ from .kinds import Step, finish_session, kind_of
 from .models import Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
-from .store import acquire_lease, database_unavailable, held_by_other, set_state
+from .store import acquire_lease, database_unavailable, held_by_other, release_lease, set_state
 
 __all__ = [
     "Control",
@@ -245,19 +245,32 @@ def run_session(
                 raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
             log.error("session %s failed:\n%s", session_id, traceback.format_exc())
             final, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
+        # An aborted session is over for good (nothing resumes it) and its robot stands still:
+        # it is said aborted at once, before its devices close (which can take a while on real
+        # ones), so that the abort is answered quickly; it keeps the cell's lease until they are
+        # closed, so that no other session opens them meanwhile (store.acquire_lease). Any other
+        # end closes the devices first, so that whoever resumes the session finds them free.
+        early = final == "aborted"
         try:
             state = stopped_device_state(run, devices, final, reason or "session completed", stop)
+            if not early:
+                _close_devices(devices, control)
+            db.refresh(run, with_for_update=True)
+            if run.lease_owner not in (None, owner):
+                db.rollback()  # another process took the session over (ours had expired): its state is not ours to write
+                return run.state
+            _end(db, run, owner, final, reason, state, keep_lease=early)
+            control.ended.set()
         finally:
-            # Close the devices before saying the session stopped, so that whoever resumes it
-            # finds them free.
-            devices.close()
-            control.devices = None
-        db.refresh(run, with_for_update=True)
-        if run.lease_owner not in (None, owner):
-            db.rollback()  # another process took the session over (ours had expired): its state is not ours to write
-            return run.state
-        _end(db, run, owner, final, reason, state)
+            _close_devices(devices, control)
+        if early:
+            release_lease(db, run, owner)
         return run.state
+
+
+def _close_devices(devices: CellDevices, control: Control) -> None:
+    devices.close()  # idempotent
+    control.devices = None
 
 
 def _open_failure_reason(exc: BaseException) -> str:
@@ -274,10 +287,20 @@ def _stop_outcome(exc: SessionStopped, control: Control) -> tuple[str, str]:
     return exc.state, exc.reason
 
 
-def _end(db: Session, run: RunSession, owner: str, state: str, reason: str | None, device_state: dict | None) -> None:
+def _end(
+    db: Session,
+    run: RunSession,
+    owner: str,
+    state: str,
+    reason: str | None,
+    device_state: dict | None,
+    *,
+    keep_lease: bool = False,
+) -> None:
     """The session stops: its state (and the devices' state, when known), and the cell's lease
-    given back (a resume may start at once)."""
-    if run.lease_owner == owner:
+    given back (a resume may start at once), unless ``keep_lease`` (its devices are still open:
+    the caller gives it back once they are closed, ``store.release_lease``)."""
+    if run.lease_owner == owner and not keep_lease:
         run.lease_expires = utcnow()
     if device_state is not None:
         run.device_state = device_state
@@ -464,6 +487,8 @@ class Orchestrator:
                         set_state(db, run, state, reason)
             except Exception:  # noqa: BLE001 - still unreachable: the next start interrupts it
                 pass
+        finally:
+            control.ended.set()
 
     def is_active(self, session_id: int) -> bool:
         t = self._threads.get(session_id)
@@ -491,9 +516,11 @@ class Orchestrator:
         return True
 
     def wait(self, session_id: int, timeout_s: float | None = None) -> None:
+        """Return once the session's final state is stored (an aborted session's devices may
+        still be closing: its lease keeps the cell meanwhile), or after ``timeout_s``."""
         t = self._threads.get(session_id)
         if t is not None:
-            t[0].join(timeout_s)
+            t[1].ended.wait(timeout_s)
 
     def not_ready(self) -> str | None:
         """Why this runner cannot take a session now (``/ready``), or None."""

@@ -49,7 +49,8 @@ class SessionRunner(Protocol):
         """The session is planned or running under this runner."""
 
     def wait(self, session_id: int, timeout_s: float | None = None) -> None:
-        """Return when the session is no longer active, or after ``timeout_s``."""
+        """Return when the session's end is stored (it is no longer active; an aborted session's
+        devices may still be closing, its lease keeping the cell), or after ``timeout_s``."""
 
     def not_ready(self) -> str | None:
         """Why this runner cannot take a session now (``/ready`` says it), or None."""

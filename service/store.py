@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import secrets
+import time
 from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -26,6 +27,7 @@ from .models import (
     Calibration,
     Cell,
     ControllerModel,
+    EventTicket,
     Measurement,
     RunSession,
     SchemaVersion,
@@ -123,7 +125,13 @@ def _v5(conn) -> None:
     SQLModel.metadata.create_all(conn, tables=[ControllerModel.__table__])
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5]
+def _v6(conn) -> None:
+    """The event stream's tickets in the database (``event_ticket``), so that a ticket issued by
+    one API process of a fleet is accepted by any other (issue 12)."""
+    SQLModel.metadata.create_all(conn, tables=[EventTicket.__table__])
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -217,6 +225,37 @@ def audit_entries(db: Session, limit: int) -> list[AuditEntry]:
     return list(db.exec(select(AuditEntry).order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all())
 
 
+def issue_ticket(db: Session, *, token_id: int, scope: str, ttl_s: float, now: datetime | None = None) -> str:
+    """A new single-use ticket for ``scope`` with the rights of token ``token_id``, good for
+    ``ttl_s`` seconds from ``now``; only its hash is stored. Expired tickets are dropped here."""
+    now = now or utcnow()
+    plain = secrets.token_urlsafe(24)
+    db.exec(delete(EventTicket).where(EventTicket.expires_at < now))
+    db.add(
+        EventTicket(hash=hash_token(plain), token_id=token_id, scope=scope, expires_at=now + timedelta(seconds=ttl_s))
+    )
+    db.commit()
+    return plain
+
+
+def redeem_ticket(db: Session, plain: str, scope: str, *, now: datetime | None = None) -> Token | None:
+    """The token whose rights ticket ``plain`` carries, if it is for ``scope``, unexpired, unused
+    and its token not revoked; else None. Presenting a ticket uses it up, whatever the answer:
+    its row is deleted, and of two API processes redeeming it at once only the one whose delete
+    removed the row (rowcount 1) may accept it."""
+    now = now or utcnow()
+    row = db.exec(select(EventTicket).where(EventTicket.hash == hash_token(plain))).first()
+    if row is None:
+        return None
+    ticket_id, token_id, ticket_scope, expires_at = row.id, row.token_id, row.scope, as_utc(row.expires_at)
+    res = db.exec(delete(EventTicket).where(EventTicket.id == ticket_id))
+    db.commit()
+    if res.rowcount != 1 or ticket_scope != scope or expires_at <= now:
+        return None
+    tok = db.get(Token, token_id)
+    return tok if tok is not None and not tok.revoked else None
+
+
 def audit(db: Session, *, actor: str, action: str, subject: str, detail: dict | None = None) -> None:
     db.add(AuditEntry(actor=actor, action=action, subject=subject, detail=detail))
     db.commit()
@@ -306,9 +345,27 @@ def current_calibration(db: Session, cell: Cell) -> Calibration | None:
     return last_calibration(db, cell.id, kind="pose", nominal_version=cell.model_version)
 
 
-def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30.0) -> bool:
+def acquire_lease(
+    db: Session, run: RunSession, owner: str, *, ttl_s: float = 30.0, closing_wait_s: float = 10.0
+) -> bool:
     """Take (or renew) the exclusive right to drive ``run``'s cell. At most one session per cell
-    holds a live lease; the check and the write happen in one transaction."""
+    holds a live lease; the check and the write happen in one transaction. An aborted session
+    still holds its lease while it closes its devices (it is said aborted first, so that the
+    abort is answered at once): that is waited for, up to ``closing_wait_s``, rather than
+    refused, so a session started right after an abort runs."""
+    deadline = time.monotonic() + closing_wait_s
+    while True:
+        got = _try_lease(db, run, owner, ttl_s)
+        if got != "closing":
+            return got
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+
+
+def _try_lease(db: Session, run: RunSession, owner: str, ttl_s: float) -> bool | str:
+    """``acquire_lease`` once: True, False, or ``"closing"`` (only an aborted session that is
+    closing its devices holds the cell)."""
     # Lock the cell's row first: two processes taking leases on one cell queue up here.
     db.exec(select(Cell.id).where(Cell.id == run.cell_id).with_for_update()).first()
     now = utcnow()
@@ -316,14 +373,15 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
         select(RunSession).where(
             RunSession.cell_id == run.cell_id,
             RunSession.id != run.id,
-            RunSession.state.in_(("planned", "running")),
-            (RunSession.state == "running") | (RunSession.dry_run == False),  # noqa: E712 (SQL)
+            (RunSession.state == "running")
+            | ((RunSession.state == "planned") & (RunSession.dry_run == False))  # noqa: E712 (SQL)
+            | ((RunSession.state == "aborted") & (RunSession.lease_expires > now)),  # closing its devices
         )
     ).all()
-    for other in others:
-        if other.lease_expires is not None and as_utc(other.lease_expires) > now:
-            db.rollback()
-            return False
+    live = [o for o in others if o.lease_expires is not None and as_utc(o.lease_expires) > now]
+    if live:
+        db.rollback()
+        return "closing" if all(o.state == "aborted" for o in live) else False
     db.refresh(run)
     if (
         run.lease_owner not in (None, owner) and run.lease_expires is not None and as_utc(run.lease_expires) > now
@@ -335,6 +393,17 @@ def acquire_lease(db: Session, run: RunSession, owner: str, *, ttl_s: float = 30
     db.add(run)
     db.commit()
     return True
+
+
+def release_lease(db: Session, run: RunSession, owner: str) -> None:
+    """Give back ``owner``'s lease on ``run``'s cell (an aborted session whose devices are now
+    closed, :func:`acquire_lease`)."""
+    db.exec(
+        update(RunSession)
+        .where(RunSession.id == run.id, RunSession.lease_owner == owner)
+        .values(lease_expires=utcnow())
+    )
+    db.commit()
 
 
 def as_utc(t: datetime | None) -> datetime | None:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from datetime import datetime
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
@@ -12,9 +13,9 @@ from fastapi.security import HTTPBearer
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
-from ..models import Token
+from ..models import Token, utcnow
 from ..runners import SessionRunner
-from ..store import find_token, hash_token
+from ..store import find_token, hash_token, issue_ticket, redeem_ticket
 
 
 def get_db(request: Request) -> Iterator[Session]:
@@ -159,30 +160,21 @@ class Tickets:
     an Authorization header). A ticket is issued to a caller who authenticated with their token,
     for one session's stream; it is good for ``ttl_s`` seconds and for one connection, and is
     stored only as its hash. A ticket in an access log is worthless: it was used up when the
-    stream opened. Kept in the API process that issued it (a fleet's load balancer must send the
-    stream to the same process, or the page falls back to polling)."""
+    stream opened. Kept in the database (``store.issue_ticket``, ``store.redeem_ticket``), so
+    that every API process of a fleet accepts a ticket any of them issued, once. ``clock``: the
+    current UTC time (tests move it on to see a ticket expire)."""
 
-    def __init__(self, ttl_s: float = 30.0):
-        self.ttl_s = ttl_s
-        self._entries: dict[str, tuple[float, Token, str]] = {}
-        self._lock = threading.Lock()
+    def __init__(self, ttl_s: float = 30.0, clock: Callable[[], datetime] = utcnow):
+        self.ttl_s, self.clock = ttl_s, clock
 
-    def issue(self, tok: Token, scope: str) -> str:
-        import secrets
+    def issue(self, engine, tok: Token, scope: str) -> str:
+        with Session(engine) as db:
+            return issue_ticket(db, token_id=tok.id, scope=scope, ttl_s=self.ttl_s, now=self.clock())
 
-        plain = secrets.token_urlsafe(24)
-        now = time.monotonic()
-        with self._lock:
-            self._entries = {k: v for k, v in self._entries.items() if v[0] > now}  # drop the expired
-            self._entries[hash_token(plain)] = (now + self.ttl_s, tok, scope)
-        return plain
-
-    def redeem(self, plain: str, scope: str) -> Token | None:
-        with self._lock:
-            hit = self._entries.pop(hash_token(plain), None)
-        if hit is None or hit[0] < time.monotonic() or hit[2] != scope:
-            return None
-        return hit[1]
+    def redeem(self, engine, plain: str, scope: str) -> Token | None:
+        with Session(engine) as db:
+            tok = redeem_ticket(db, plain, scope, now=self.clock())
+            return None if tok is None else Token(**tok.model_dump())  # detached: outlives the session
 
 
 def tickets(app) -> Tickets:

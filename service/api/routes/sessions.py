@@ -10,6 +10,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlmodel import Session, select
+from starlette.concurrency import run_in_threadpool
 
 from ...models import Measurement, SessionPublic, Token
 from ...sessions import (
@@ -58,17 +59,21 @@ def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orche
     if run.state in TERMINAL:
         raise HTTPException(409, f"session {session_id} is {run.state} already")
     stopping = orchestrator.abort(run.id)
-    # How long after the request reached this route the robot was told to stop (the answer
-    # itself waits for the session to have ended: the robot decelerating, at most ABORT_WAIT_S).
-    response.headers["Server-Timing"] = f"robot-stop;dur={(time.perf_counter() - t0) * 1e3:.1f}"
+    stop_ms = (time.perf_counter() - t0) * 1e3  # the robot was told to stop
     audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
     if stopping:
         # It stops the robot at once and the session at its next step (while planning: within
-        # 0.1 s); answer with the state it ends in when that is quick.
+        # 0.1 s); answer with the state it ends in when that is quick (an aborted session is
+        # stored aborted before its devices close, orchestrator.run_session).
         orchestrator.wait(run.id, ABORT_WAIT_S)
     else:  # nothing runs it (planned and never started, paused, interrupted): aborted here
         set_state_unless(db, run, TERMINAL, "aborted", "aborted on request")
     db.refresh(run)
+    # When, after the request reached this route, the robot was told to stop and the session's
+    # end was read back (bench/heavy.py).
+    response.headers["Server-Timing"] = (
+        f"robot-stop;dur={stop_ms:.1f}, session-end;dur={(time.perf_counter() - t0) * 1e3:.1f}"
+    )
     return public_session(db, run)
 
 
@@ -88,7 +93,8 @@ async def events_ticket(session_id: int, request: Request, tok: Reader):
     URL instead of the token (``GET .../events?ticket=...``)."""
     await quick_read(request, _read_public, session_id)  # 404 for a session that does not exist
     store = tickets(request.app)
-    return EventTicket(ticket=store.issue(tok, f"events:{session_id}"), expires_in_s=store.ttl_s)
+    plain = await run_in_threadpool(store.issue, request.app.state.engine, tok, f"events:{session_id}")
+    return EventTicket(ticket=plain, expires_in_s=store.ttl_s)
 
 
 async def stream_reader(
@@ -96,7 +102,9 @@ async def stream_reader(
 ) -> Token:
     """The event stream's caller: a ticket (single use, this session's), else the bearer token."""
     if ticket is not None:
-        tok = tickets(request.app).redeem(ticket, f"events:{session_id}")
+        tok = await run_in_threadpool(
+            tickets(request.app).redeem, request.app.state.engine, ticket, f"events:{session_id}"
+        )
         if tok is None:
             raise HTTPException(
                 401, "unknown, used or expired ticket: ask for a new one (POST /api/v1/sessions/{id}/events/ticket)"
