@@ -175,9 +175,7 @@ def session_measurements_csv(db: Session, run: RunSession, cell: Cell) -> str:
     """The session's measurements as the CSV that ``recal identify`` reads (contracts §3), in the
     units of the cell's nominal model, under a comment line naming the session."""
     model = model_from_dict(cell.model)
-    rows = db.exec(
-        select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq, Measurement.id)
-    ).all()
+    rows = stored_rows(db, run)
     return (
         f"# session {run.id} ({run.kind}, {run.state}) of cell {run.cell_id}, units {model.units.length}/"
         f"{model.units.angle}\n" + measurements_csv(model, rows)

@@ -5,6 +5,8 @@ session is active while planned or running; a cell runs one at a time). The rout
 
 from __future__ import annotations
 
+import time
+
 from sqlalchemy import bindparam, delete, func
 from sqlalchemy import select as sa_select
 from sqlalchemy.exc import IntegrityError
@@ -139,6 +141,7 @@ def driving_session(
 
 
 RESUMABLE = ("paused", "interrupted", "planned")
+ABORT_WAIT_S = 3.0  # how long an abort waits for the session to have stopped before answering
 
 
 def resume_session(db: Session, run: RunSession, tok: Token, orchestrator) -> SessionPublic:
@@ -234,3 +237,22 @@ def commit_planned(db, run: RunSession, orchestrator: SessionRunner) -> bool:
     queued = orchestrator.queue(db, run)
     db.commit()
     return queued
+
+
+def abort_session(db: Session, run: RunSession, tok: Token, orchestrator) -> tuple[SessionPublic, float]:
+    """Stop the robot now and end the session: the session as it ended (the runner stops the
+    robot at once and the session at its next step, while planning within 0.1 s, and stores it
+    aborted before its devices close; waited for up to ``ABORT_WAIT_S``), and the
+    ``time.perf_counter()`` at which the robot had been told to stop. A session nothing runs
+    (planned and never started, paused, interrupted) is aborted here."""
+    if run.state in TERMINAL:
+        raise Conflict(f"session {run.id} is {run.state} already")
+    stopping = orchestrator.abort(run.id)
+    stopped_at = time.perf_counter()
+    audit(db, actor=tok.name, action="abort session", subject=f"session {run.id}")
+    if stopping:
+        orchestrator.wait(run.id, ABORT_WAIT_S)
+    else:
+        set_state_unless(db, run, TERMINAL, "aborted", "aborted on request")
+    db.refresh(run)
+    return public_session(db, run), stopped_at

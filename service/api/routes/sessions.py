@@ -9,25 +9,23 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import StreamingResponse
-from sqlmodel import Session, select
+from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
-from ...models import Measurement, SessionPublic, Token
+from ...models import SessionPublic, Token
+from ...records import stored_rows
 from ...sessions import (
     TERMINAL,
+    abort_session,
     get_run,
     pause_session,
-    public_session,
     read_public_session,
     resume_session,
 )
-from ...store import audit, set_state_unless
 from ..deps import PERMISSIONS, DbSession, Orchestrator, Reader, Runner, current_token, quick_read, tickets
 from ..schemas import EventTicket, MeasurementOut
 
 router = APIRouter(tags=["sessions"])
-
-ABORT_WAIT_S = 3.0  # how long POST /abort waits for the session to have stopped before answering
 
 
 def _read_public(engine, session_id: int) -> SessionPublic:
@@ -54,36 +52,21 @@ def pause(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrato
 
 @router.post("/sessions/{session_id}/abort", response_model=SessionPublic)
 def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+    """Stop the robot now and end the session (answered with the state it ends in)."""
     t0 = time.perf_counter()
-    run = get_run(db, session_id)
-    if run.state in TERMINAL:
-        raise HTTPException(409, f"session {session_id} is {run.state} already")
-    stopping = orchestrator.abort(run.id)
-    stop_ms = (time.perf_counter() - t0) * 1e3  # the robot was told to stop
-    audit(db, actor=tok.name, action="abort session", subject=f"session {session_id}")
-    if stopping:
-        # It stops the robot at once and the session at its next step (while planning: within
-        # 0.1 s); answer with the state it ends in when that is quick (an aborted session is
-        # stored aborted before its devices close, orchestrator.run_session).
-        orchestrator.wait(run.id, ABORT_WAIT_S)
-    else:  # nothing runs it (planned and never started, paused, interrupted): aborted here
-        set_state_unless(db, run, TERMINAL, "aborted", "aborted on request")
-    db.refresh(run)
+    ended, stop_s = abort_session(db, get_run(db, session_id), tok, orchestrator)
     # When, after the request reached this route, the robot was told to stop and the session's
     # end was read back (bench/heavy.py).
     response.headers["Server-Timing"] = (
-        f"robot-stop;dur={stop_ms:.1f}, session-end;dur={(time.perf_counter() - t0) * 1e3:.1f}"
+        f"robot-stop;dur={(stop_s - t0) * 1e3:.1f}, session-end;dur={(time.perf_counter() - t0) * 1e3:.1f}"
     )
-    return public_session(db, run)
+    return ended
 
 
 @router.get("/sessions/{session_id}/measurements", response_model=list[MeasurementOut])
 def measurements(session_id: int, db: DbSession, tok: Reader) -> list[dict]:
-    get_run(db, session_id)
-    rows = db.exec(
-        select(Measurement).where(Measurement.session_id == session_id).order_by(Measurement.seq, Measurement.id)
-    ).all()
-    return [r.model_dump(exclude={"session_id"}) for r in rows]
+    run = get_run(db, session_id)
+    return [r.model_dump(exclude={"session_id"}) for r in stored_rows(db, run)]
 
 
 @router.post("/sessions/{session_id}/events/ticket", status_code=201, response_model=EventTicket)
