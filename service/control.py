@@ -35,7 +35,11 @@ class Control:
     thread was late, e.g. on a loaded machine): renews the hold in the store if this process
     still has it (moving ``lease_valid_until`` on), else sets ``interrupt``; a store that
     cannot be reached raises (the worker waits for it, module docstring). ``ended``: set once
-    the session's final state is committed (an aborted session's devices may still be closing)."""
+    the session's final state is committed (an aborted session's devices may still be closing).
+
+    An abort is *certain* (:meth:`request_abort`) until the session starts its last step
+    (:meth:`begin_finishing`, under the same lock): from then on an identification that is under
+    way is not interrupted and the session completes."""
 
     pause: threading.Event = field(default_factory=threading.Event)
     abort: threading.Event = field(default_factory=threading.Event)
@@ -46,6 +50,22 @@ class Control:
     renew: Callable[[], object] | None = None
     heavy: threading.Semaphore | None = None  # the process's slots for planning and identification
     ended: threading.Event = field(default_factory=threading.Event)  # the session's final state is stored
+    finishing: bool = False  # the session has measured everything and is finishing (identifying)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def request_abort(self) -> bool:
+        """Ask the session to abort. True when it will certainly end ``aborted`` (it has not
+        started its last step), so that whoever asked may say so at once."""
+        with self._lock:
+            self.abort.set()
+            return not self.finishing
+
+    def begin_finishing(self) -> None:
+        """Every configuration is measured: :meth:`check` once more, then the last step, which
+        an abort no longer interrupts."""
+        with self._lock:
+            self.check()
+            self.finishing = True
 
     def check(self) -> None:
         """Raise :class:`SessionStopped` when the session must not make another move."""

@@ -24,6 +24,8 @@ def utcnow() -> datetime:
 ROLES = ("viewer", "technician", "job", "admin")
 SESSION_KINDS = ("pose", "circle", "joint", "verify")
 SESSION_STATES = ("planned", "running", "paused", "interrupted", "completed", "failed", "aborted")
+ACTIVE = ("planned", "running")  # a session drives its cell (a cell runs one at a time)
+TERMINAL = ("completed", "failed", "aborted")  # nothing resumes it
 
 
 class Cell(SQLModel, table=True):

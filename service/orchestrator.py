@@ -51,10 +51,17 @@ from . import analysis, controller, records
 from .control import Control, DeviceOpenError, SessionStopped, heavy_slot, retry
 from .devices import CellDevices, DeviceConfigError, open_robot, stored_devices
 from .kinds import Step, finish_session, kind_of
-from .models import Cell, Measurement, RunSession, utcnow
+from .models import TERMINAL, Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
 from .settings import Settings
-from .store import acquire_lease, database_unavailable, held_by_other, release_lease, set_state
+from .store import (
+    acquire_lease,
+    database_unavailable,
+    held_by_other,
+    release_lease,
+    set_state,
+    set_state_unless,
+)
 
 __all__ = [
     "Control",
@@ -228,6 +235,7 @@ def run_session(
             # a UR cell: the controller's own kinematics, read again (docs/devices/ur.md)
             controller.refresh_on_session_start(db, run, cell, devices.robot)
             _measure_all(db, run, cell, devices, settings, control, owner)
+            control.begin_finishing()  # from here on an abort no longer stops it (Control)
             with heavy_slot(control, stoppable=False):  # every pose is measured: identify them
                 finish_session(db, run, cell, settings)
         except SessionStopped as exc:
@@ -245,6 +253,8 @@ def run_session(
                 raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
             log.error("session %s failed:\n%s", session_id, traceback.format_exc())
             final, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
+            if control.abort.is_set() and not control.finishing:  # said aborted already (Orchestrator.abort)
+                final, reason = "aborted", "aborted on request"
         # An aborted session is over for good (nothing resumes it) and its robot stands still:
         # it is said aborted at once, before its devices close (which can take a while on real
         # ones), so that the abort is answered quickly; it keeps the cell's lease until they are
@@ -349,11 +359,12 @@ def _measure_all(
         q_read = retry(devices.robot.read_joints, "read joints", settings, control)
         rows = kind.measure_one(step, seq, q_read, int(swept[seq]))
         following = todo[k + 1] if k + 1 < len(todo) else None
-        robot = (
-            _device_state("moving", f"to configuration {following + 1} of {len(plan)}")
-            if following is not None
-            else _device_state("ready", f"at configuration {seq + 1} of {len(plan)}, the last")
-        )
+        if control.abort.is_set():  # aborted while it measured: the pose is kept, the robot goes no further
+            robot = _device_state("ready", "stopped on abort")
+        elif following is not None:
+            robot = _device_state("moving", f"to configuration {following + 1} of {len(plan)}")
+        else:
+            robot = _device_state("ready", f"at configuration {seq + 1} of {len(plan)}, the last")
         state = {
             "robot": robot,
             key: _device_state("ready", f"measured configuration {seq + 1}"),
@@ -502,17 +513,32 @@ class Orchestrator:
         return True
 
     def abort(self, session_id: int) -> bool:
-        """Ask the session to stop and stop the robot now."""
+        """Ask the session to stop and stop the robot now. A session that will certainly end
+        aborted (it has not started identifying: :meth:`Control.request_abort`) is stored aborted
+        here at once, so that the abort is answered without waiting for the session's thread to
+        notice (it may be in the middle of an instrument's measurement, up to a second on a real
+        tracker); the thread then ends it the same way and keeps the cell until its devices are
+        closed (``run_session``)."""
         t = self._threads.get(session_id)
         if t is None or not t[0].is_alive():
             return False
-        t[1].abort.set()
-        devs = t[1].devices
+        control = t[1]
+        certain = control.request_abort()
+        devs = control.devices
         if devs is not None and devs.robot is not None:
             try:
                 devs.robot.stop()
             except Exception:  # noqa: BLE001 - the worker stops the robot again on its way out
                 pass
+        if certain:
+            try:
+                with Session(self.engine) as db:
+                    run = db.get(RunSession, session_id)
+                    state = stopped_device_state(run, devs, "aborted", "aborted on request")
+                    if set_state_unless(db, run, TERMINAL, "aborted", "aborted on request", device_state=state):
+                        control.ended.set()
+            except Exception:  # noqa: BLE001 - the session's thread stores it all the same
+                log.warning("session %s: storing the abort early failed", session_id, exc_info=True)
         return True
 
     def wait(self, session_id: int, timeout_s: float | None = None) -> None:

@@ -7,9 +7,9 @@ from __future__ import annotations
 from sqlalchemy import delete, func
 from sqlmodel import Session, select
 
-from .models import Calibration, Cell, Compensation, Measurement, RunSession, TaskFile, Token
+from .models import ACTIVE, Calibration, Cell, Compensation, Measurement, RunSession, TaskFile, Token
 from .problems import Conflict
-from .sessions import ACTIVE, driving_session
+from .sessions import driving_session
 from .store import audit, delete_session_rows
 
 

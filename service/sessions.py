@@ -15,13 +15,10 @@ from sqlmodel import Session, select
 from calibration.model import model_from_dict
 
 from .kinds import kind_of
-from .models import Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
+from .models import ACTIVE, TERMINAL, Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
 from .problems import Conflict, Invalid, NotFound
 from .runners import SessionRunner
 from .store import audit, measured_count, set_state_unless
-
-ACTIVE = ("planned", "running")
-TERMINAL = ("completed", "failed", "aborted")
 
 
 def public_session(db, run: RunSession) -> SessionPublic:

@@ -281,14 +281,22 @@ def set_state(db: Session, run: RunSession, state: str, reason: str | None = Non
     return run
 
 
-def set_state_unless(db: Session, run: RunSession, final: tuple[str, ...], state: str, reason: str | None) -> bool:
+def set_state_unless(
+    db: Session,
+    run: RunSession,
+    final: tuple[str, ...],
+    state: str,
+    reason: str | None,
+    *,
+    device_state: dict | None = None,
+) -> bool:
     """``set_state`` in one conditional update, unless the session reached one of ``final``
-    meanwhile (a session that just completed is not then marked aborted). True if it changed."""
-    res = db.exec(
-        update(RunSession)
-        .where(RunSession.id == run.id, RunSession.state.not_in(final))
-        .values(state=state, reason=reason, updated_at=utcnow())
-    )
+    meanwhile (a session that just completed is not then marked aborted); with the devices'
+    state when given. True if it changed."""
+    values = {"state": state, "reason": reason, "updated_at": utcnow()}
+    if device_state is not None:
+        values["device_state"] = device_state
+    res = db.exec(update(RunSession).where(RunSession.id == run.id, RunSession.state.not_in(final)).values(**values))
     db.commit()
     db.refresh(run)
     return res.rowcount > 0

@@ -31,13 +31,11 @@ from datetime import timedelta
 from sqlalchemy import text, update
 from sqlmodel import Session, select
 
-from ..models import Cell, RunSession, utcnow
+from ..models import ACTIVE, Cell, RunSession, utcnow
 from ..store import as_utc, database_unavailable
 from . import jobs
 
 log = logging.getLogger("recal.fleet.reaper")
-
-ACTIVE = ("planned", "running")
 
 
 class Reaper:

@@ -40,7 +40,7 @@ import psycopg
 from sqlalchemy import create_engine, text, update
 from sqlmodel import Session
 
-from ..models import RunSession, utcnow
+from ..models import ACTIVE, RunSession, utcnow
 from ..orchestrator import Control, run_session
 from ..settings import Settings
 from ..store import acquire_lease, database_unavailable, held_by_other, migrate, set_state
@@ -49,8 +49,6 @@ from .orchestrator import CONTROL_CHANNEL
 from .reaper import Reaper
 
 log = logging.getLogger("recal.fleet.worker")
-
-ACTIVE = ("planned", "running")
 
 
 class Monitor:
