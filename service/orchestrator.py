@@ -71,6 +71,7 @@ __all__ = [
     "commit_measurements",
     "open_session_devices",
     "run_session",
+    "store_abort",
 ]
 
 log = logging.getLogger("recal.sessions")
@@ -444,6 +445,21 @@ def _rollback(db: Session) -> None:
         pass
 
 
+def store_abort(engine: Engine, session_id: int, control: Control) -> None:
+    """Store the session aborted now, with its devices' state, for an abort that will certainly
+    end it so (:meth:`Control.request_abort` said so; the robot has been told to stop), so that
+    the abort is answered without waiting for the session's thread, which may be in the middle of
+    an instrument's measurement. That thread ends it the same way (``run_session``)."""
+    try:
+        with Session(engine) as db:
+            run = db.get(RunSession, session_id)
+            state = stopped_device_state(run, control.devices, "aborted", "aborted on request")
+            if set_state_unless(db, run, TERMINAL, "aborted", "aborted on request", device_state=state):
+                control.ended.set()
+    except Exception:  # noqa: BLE001 - the session's thread stores it all the same
+        log.warning("session %s: storing the abort early failed", session_id, exc_info=True)
+
+
 class Orchestrator:
     """Runs sessions in background threads of this process (the embedded default); a
     :class:`service.runners.SessionRunner`."""
@@ -531,14 +547,7 @@ class Orchestrator:
             except Exception:  # noqa: BLE001 - the worker stops the robot again on its way out
                 pass
         if certain:
-            try:
-                with Session(self.engine) as db:
-                    run = db.get(RunSession, session_id)
-                    state = stopped_device_state(run, devs, "aborted", "aborted on request")
-                    if set_state_unless(db, run, TERMINAL, "aborted", "aborted on request", device_state=state):
-                        control.ended.set()
-            except Exception:  # noqa: BLE001 - the session's thread stores it all the same
-                log.warning("session %s: storing the abort early failed", session_id, exc_info=True)
+            store_abort(self.engine, session_id, control)
         return True
 
     def wait(self, session_id: int, timeout_s: float | None = None) -> None:

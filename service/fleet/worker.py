@@ -41,7 +41,7 @@ from sqlalchemy import create_engine, text, update
 from sqlmodel import Session
 
 from ..models import ACTIVE, RunSession, utcnow
-from ..orchestrator import Control, run_session
+from ..orchestrator import Control, run_session, store_abort
 from ..settings import Settings
 from ..store import acquire_lease, database_unavailable, held_by_other, migrate, set_state
 from . import jobs
@@ -163,20 +163,24 @@ class Monitor:
     def _apply(self, sid: int, c: Control, req: str) -> None:
         if req == "abort" and not c.abort.is_set():
             log.info("session %s: abort requested, stopping the robot", sid)
-            c.abort.set()
-            threading.Thread(target=_stop_robot, args=(c,), daemon=True).start()
+            certain = c.request_abort()
+            # in a thread: a real robot's stop returns once it has decelerated; then, as the
+            # embedded runner does, a certain abort is stored at once (orchestrator.store_abort)
+            threading.Thread(target=_stop_robot, args=(self.engine, sid, c, certain), daemon=True).start()
         elif req == "pause" and not c.pause.is_set():
             log.info("session %s: pause requested", sid)
             c.pause.set()
 
 
-def _stop_robot(c: Control) -> None:
+def _stop_robot(engine, sid: int, c: Control, certain: bool) -> None:
     devs = c.devices
     if devs is not None and devs.robot is not None:
         try:
             devs.robot.stop()
         except Exception:  # noqa: BLE001 - the session stops the robot again on its way out
             pass
+    if certain:
+        store_abort(engine, sid, c)
 
 
 class WorkerRuntime:
