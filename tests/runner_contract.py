@@ -17,6 +17,9 @@ A subclass provides the ``deployment`` fixture, an object with:
 from __future__ import annotations
 
 import threading
+import time
+
+import numpy as np
 
 from service.client import ApiError
 
@@ -38,6 +41,31 @@ def wait_state(api, sid: int, states: tuple[str, ...], timeout_s: float = 30.0) 
     s = api.wait_session(sid, timeout_s, until=states, poll_s=0.05)
     assert s["state"] in states, f"session {sid} is {s['state']}, expected one of {states}: {s}"
     return s
+
+
+def _modbus_reader(endpoint: str):
+    """The simulated robot's joints as its controller's Modbus server reports them (read-only,
+    beside the connection the session drives it through)."""
+    from drivers.modbus_robot import ModbusRobot, ModbusRobotConfig
+
+    host, _, port = endpoint.rpartition(":")
+    return ModbusRobot(ModbusRobotConfig(host=host, port=int(port)))
+
+
+def _wait_until_it_stands_after_a_move(robot, timeout_s: float = 60.0) -> None:
+    """Until the robot, once seen moving, stands still (two reads 50 ms apart agree to the
+    registers' 1 mrad)."""
+    deadline = time.monotonic() + timeout_s
+    q, moved = robot.read_joints(), False
+    while True:
+        assert time.monotonic() < deadline, "the robot did not move and stop again"
+        time.sleep(0.05)
+        q2 = robot.read_joints()
+        if np.abs(q2 - q).max() > 2e-3:
+            moved = True
+        elif moved:
+            return
+        q = q2
 
 
 def seqs(api, sid: int) -> list[int]:
@@ -70,6 +98,47 @@ class RunnerContract:
         # the pose under way at the abort may finish; no other is measured
         assert a["measured"] <= at_abort + 1, f"{a['measured'] - at_abort} poses measured after the abort"
         assert seqs(deployment.api(), s["id"]) == list(range(a["measured"]))
+
+    def test_an_abort_during_a_measurement_is_answered_before_that_measurement_is_stored(self, deployment):
+        """The abort is answered, aborted and with the robot stopped, while the tracker is still
+        measuring (1 s here; up to a second on a real tracker), not once the session's thread
+        gets to it (before, the answer waited for the measurement); the session then stays
+        aborted, keeps the pose under way and measures no other. The abort is sent 0.3 s after
+        the robot, seen moving, stands still at a configuration (settle and the measurement's
+        start take a few ms to 0.2 s); the measurement's start cannot be seen from outside, and on
+        a loaded machine an abort may still land before it: up to three sessions are tried."""
+        cell = deployment.add_cell(time_scale=0.2)
+        api = deployment.api(0)
+        devices = cell["devices"]
+        host, _, port = devices["emscon"].rpartition(":")
+        # 5 s of stationary averaging in the simulated cell's time: 1 s of wall time per measurement
+        slow = {"host": host, "port": int(port), "measure_time_s": 5.0}
+        api.call("PATCH", f"/cells/{cell['id']}", {"devices": {**devices, "emscon": slow}})
+        robot = _modbus_reader(devices["modbus"])
+        answered_during_a_measurement = False
+        try:
+            for _attempt in range(3):
+                s = start(api, cell, kind="verify", count=6)
+                wait_measured(api, s["id"], 1)
+                _wait_until_it_stands_after_a_move(robot)
+                time.sleep(0.3)
+                a = deployment.api(1).call("POST", f"/sessions/{s['id']}/abort")
+                assert a["state"] == "aborted" and a["reason"] == "aborted on request", a
+                assert a["device_state"]["robot"] == {"state": "ready", "detail": "stopped on abort"}
+                # the pose under way, if its measurement had begun, is stored after the answer
+                deployment.api(0).wait_session(s["id"], 5.0, measured=a["measured"] + 1, until=())
+                after = deployment.api(0).call("GET", f"/sessions/{s['id']}")
+                assert after["state"] == "aborted" and after["measured"] in (a["measured"], a["measured"] + 1)
+                assert after["device_state"]["robot"] == {"state": "ready", "detail": "stopped on abort"}
+                again = deployment.api(0).wait_session(s["id"], 1.0, measured=after["measured"] + 1, until=())
+                assert again["measured"] == after["measured"], "a pose was measured after the abort"
+                assert seqs(api, s["id"]) == list(range(after["measured"]))
+                if after["measured"] == a["measured"] + 1:
+                    answered_during_a_measurement = True
+                    break
+        finally:
+            robot.close()
+        assert answered_during_a_measurement, "no abort of three was answered while a measurement ran"
 
     def test_a_crash_mid_session_interrupts_it_and_resume_loses_and_duplicates_nothing(self, deployment):
         cell = deployment.add_cell(time_scale=0.05)
