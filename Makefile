@@ -32,9 +32,11 @@ browser:
 # drop databases (`make test RECAL_TEST_POSTGRES_URL=postgresql+psycopg://postgres@127.0.0.1:5432/postgres`;
 # .ci/run sets it); without it they are skipped, and pytest's summary says so.
 # Two workers (pytest-xdist: the simulated cells mostly wait on sockets and simulated time), then
-# the few tests marked `serial` (one restarts PostgreSQL) alone.
+# the few tests marked `serial` (one restarts PostgreSQL) alone. Each test file runs whole in one
+# worker, in its order (--dist loadfile): module-scoped fixtures (a simulated cell, a CAN
+# gateway) see their tests in the order they were written for.
 test: $(STAMP) browser
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 -m "not serial" $(PYTEST_ARGS)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" $(PYTEST_ARGS)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m serial $(PYTEST_ARGS)
 
 # The linter and the formatter (ruff, configured in pyproject.toml): clean on the whole tree.
