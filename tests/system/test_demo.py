@@ -14,6 +14,10 @@ import sys
 import time
 import urllib.request
 
+import numpy as np
+import pytest
+
+from fakes.world import Noise
 from service.processes import free_port
 
 from .conftest import next_host
@@ -94,6 +98,17 @@ def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path)
         while not _get(f"{url}/api/v1/sessions/1", printed)["measured"]:
             assert time.monotonic() < deadline
             time.sleep(0.2)
+        # it measures through the Leica tracker on emScon (the simulated cell's default): the
+        # cell names it, and each stored sigma is the emScon fake's MPE-based one at that range
+        # (the line-protocol tracker would give a constant 20 um)
+        assert "emscon" in _get(f"{url}/api/v1/cells/1", printed)["devices"]
+        rows = _get(f"{url}/api/v1/sessions/1/measurements", printed)
+        assert rows
+        noise = Noise()
+        for r in rows:
+            range_m = float(np.linalg.norm([r["x"], r["y"], r["z"]]))
+            mpe_m = noise.tracker_mpe_const_m + noise.tracker_mpe_per_m * range_m
+            assert r["sigma"] == pytest.approx(0.5 * mpe_m / np.sqrt(3.0), rel=1e-3), r
         children = _children(demo.pid)
         assert len(children) == 2, children  # the service and the simulated cell
         demo.send_signal(signal.SIGTERM)
