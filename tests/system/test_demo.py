@@ -15,12 +15,10 @@ import time
 import urllib.request
 
 import numpy as np
-import pytest
 
-from fakes.world import Noise
 from service.processes import free_port
 
-from .conftest import next_host
+from .conftest import emscon_sigma_m, next_host
 
 
 def _refused(host: str, port: int) -> bool:
@@ -104,11 +102,7 @@ def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path)
         assert "emscon" in _get(f"{url}/api/v1/cells/1", printed)["devices"]
         rows = _get(f"{url}/api/v1/sessions/1/measurements", printed)
         assert rows
-        noise = Noise()
-        for r in rows:
-            range_m = float(np.linalg.norm([r["x"], r["y"], r["z"]]))
-            mpe_m = noise.tracker_mpe_const_m + noise.tracker_mpe_per_m * range_m
-            assert r["sigma"] == pytest.approx(0.5 * mpe_m / np.sqrt(3.0), rel=1e-3), r
+        assert np.allclose([r["sigma"] for r in rows], emscon_sigma_m(rows), rtol=1e-3), rows
         children = _children(demo.pid)
         assert len(children) == 2, children  # the service and the simulated cell
         demo.send_signal(signal.SIGTERM)
