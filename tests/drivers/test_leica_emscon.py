@@ -267,8 +267,14 @@ def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
     assert np.allclose([go.dVal1, go.dVal2, go.dVal3], target * 1e3) and go.bUseADM == 0
     assert by[P.ES_C_FindReflector].dAproxDistance == pytest.approx(np.linalg.norm(target) * 1e3)
 
-    answers = [factory.packet(raw) for raw in _split(bytes(proxy.to_client))]
+    raws = _split(bytes(proxy.to_client))
+    answers = [factory.packet(raw) for raw in raws]
     assert all(a is not None for a in answers)
+    for raw, a in zip(raws, answers):  # replies, results and status changes: each of cesapi's size
+        fresh = type(a)()
+        header = fresh.packetInfo.packetHeader if hasattr(fresh, "packetInfo") else fresh.packetHeader
+        assert header.lPacketSize == len(raw), type(a).__name__
+    assert {P.packetType(a) for a in answers} == {P.ES_DT_Command, P.ES_DT_SingleMeasResult, P.ES_DT_SystemStatusChange}
     replies = [a.packetInfo.command for a in answers if P.packetType(a) == P.ES_DT_Command]
     assert replies.count(P.ES_C_GetReflectors) == 6 and len(replies) == len(commands) + 4
     results = [a for a in answers if P.packetType(a) == P.ES_DT_SingleMeasResult]
@@ -304,11 +310,12 @@ def test_cesapi_reads_the_extended_result_as_the_driver_does(cell):
     finally:
         proxy.close()
         fake.stop()
-    (r,) = [
-        a
-        for a in map(P.PacketFactory().packet, _split(bytes(proxy.to_client)))
-        if P.packetType(a) == P.ES_DT_SingleMeasResult2
+    ((raw, r),) = [
+        (raw, a)
+        for raw in _split(bytes(proxy.to_client))
+        if P.packetType(a := P.PacketFactory().packet(raw)) == P.ES_DT_SingleMeasResult2
     ]
+    assert len(raw) == P.SingleMeasResult2T().packetInfo.packetHeader.lPacketSize  # cesapi's size: 204
     assert np.array_equal(m.p_world, np.array([r.dVal1, r.dVal2, r.dVal3]) * 1e-3)
     assert np.array_equal(m.sigma, np.array([r.dStd1, r.dStd2, r.dStd3]) * 1e-3)
 
