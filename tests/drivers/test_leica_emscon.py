@@ -565,6 +565,54 @@ def test_wrong_packets_are_protocol_errors_then_a_full_reconnect(cell, packet, m
         fake.stop()
 
 
+class Recording(LeicaTrackerFake):
+    """The fake keeping the number of every command it answers."""
+
+    def __init__(self, cell):
+        super().__init__(cell, port=0, initialised=True)
+        self.commands: list[int] = []
+
+    def _answer(self, kind, command, packet):
+        self.commands.append(command)
+        return super()._answer(kind, command, packet)
+
+
+@pytest.mark.parametrize("fault", ["drop_connection_at", "garble_at"])
+def test_after_a_dropped_link_the_whole_set_up_runs_again(cell, fault):
+    """The fake's state is the instrument's, shared by its connections, so a measurement after a
+    reconnect would succeed without a set-up: the commands themselves show that the driver sends
+    the whole of it again. A dropped connection is repaired at once (one resend); a malformed
+    packet is a ``ProtocolError`` and the next measurement reconnects."""
+    fake = Recording(cell)
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            set_up = list(fake.commands)
+            assert set_up == [  # no Initialize: the tracker is initialised
+                P.ES_C_GetSystemStatus,
+                P.ES_C_GetTrackerStatus,
+                P.ES_C_SetUnits,
+                P.ES_C_GetCoordinateSystemType,
+                P.ES_C_GetEnvironmentParams,
+                P.ES_C_GetReflectors,
+                P.ES_C_SetReflector,
+                P.ES_C_SetMeasurementMode,
+                P.ES_C_SetStationaryModeParams,
+            ]
+            fake.commands.clear()
+            setattr(cell.faults, fault, [cell.counters["emscon.request"] + 1])
+            if fault == "garble_at":
+                with pytest.raises(ProtocolError, match="of 23 bytes; expected 16"):
+                    tracker.measure()
+                assert fake.commands == [P.ES_C_StartMeasurement]
+                fake.commands.clear()
+            m = tracker.measure()
+            assert fake.commands == set_up + [P.ES_C_StartMeasurement]
+        assert m.sequence == 1 and np.all(np.abs(m.p_world - cell.target_world()) < 5 * m.sigma)
+    finally:
+        fake.stop()
+
+
 def test_no_server_there(fake):
     port = fake.port
     fake.stop()
