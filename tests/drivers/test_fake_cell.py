@@ -43,8 +43,9 @@ def test_endpoint_line_is_the_only_output_and_sigterm_ends_the_cell(cell_factory
     line = cell.endpoint
     assert line["ready"] is True
     assert line["rtde"] == cell.host
-    host, port = line["modbus"].rsplit(":", 1)
-    assert host == cell.host and int(port) > 0
+    for key in ("modbus", "emscon"):  # "HOST:PORT" (the Leica tracker's emScon server: 700, or ephemeral)
+        host, port = line[key].rsplit(":", 1)
+        assert host == cell.host and int(port) > 0, line
     started = time.monotonic()
     cell.process.send_signal(signal.SIGTERM)
     assert cell.process.wait(timeout=10) == 0

@@ -27,7 +27,7 @@ from drivers.errors import (  # noqa: E402
     MeasurementError,
     ProtocolError,
 )
-from drivers.leica_emscon import EmsconConfig, EmsconTracker  # noqa: E402
+from drivers.leica_emscon import COMMAND_PARAMS, EmsconConfig, EmsconTracker  # noqa: E402
 from fakes.leica_tracker import LeicaTrackerFake  # noqa: E402
 from fakes.world import SimCell  # noqa: E402
 
@@ -183,8 +183,11 @@ def test_cesapi_drives_the_fake_through_every_command_the_driver_sends(fake, cel
 
 
 def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
-    """Every packet our driver sends, parsed by cesapi's classes, has the intended fields and
-    packs back to the same bytes; every answer the fake sends parses with cesapi too."""
+    """Every packet our driver sends, parsed by cesapi's classes, has the intended fields, is of
+    the size cesapi's class has, and packs back to the same bytes; every answer the fake sends
+    parses with cesapi too, and the measurements the driver returns are the results as cesapi
+    reads them. Two connections: the environment from the config, then from the weather station
+    (``GetEnvironmentParams``) with the distance meter alone (``bUseADM``)."""
     proxy = Proxy(fake.port)
     try:
         with EmsconTracker(
@@ -200,33 +203,50 @@ def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
                 reflector="RRR 0.5in",
             )
         ) as tracker:
-            tracker.measure()
+            measured = [tracker.measure()]
             target = cell.target_world()
             tracker.find_reflector(target)
             assert tracker.status() == "ready"
+        with EmsconTracker(EmsconConfig(host="127.0.0.1", port=proxy.port, timeout_s=1.0, use_adm=True)) as tracker:
+            assert tracker.environment == (19.5, 1001.0, 35.0)  # what the first connection set, read back
+            measured.append(tracker.measure())
     finally:
         proxy.close()
     factory = P.PacketFactory()
-    sent = [factory.packet(raw, return_type=False) for raw in _split(bytes(proxy.to_server))]
-    for raw, packet in zip(_split(bytes(proxy.to_server)), sent):
+    raws = _split(bytes(proxy.to_server))
+    sent = [factory.packet(raw, return_type=False) for raw in raws]
+    for raw, packet in zip(raws, sent):
         assert packet.pack() == raw
+        assert type(packet)().packetInfo.packetHeader.lPacketSize == len(raw)  # cesapi's own size of it
     commands = [p.packetInfo.command for p in sent]
-    assert commands == [
+    set_up = [
+        P.ES_C_SetUnits,
+        P.ES_C_GetCoordinateSystemType,
+    ]
+    selection = [P.ES_C_GetReflectors, P.ES_C_SetReflector, P.ES_C_SetMeasurementMode, P.ES_C_SetStationaryModeParams]
+    first = [
         P.ES_C_GetSystemStatus,
         P.ES_C_GetTrackerStatus,
         P.ES_C_Initialize,
-        P.ES_C_SetUnits,
-        P.ES_C_GetCoordinateSystemType,
+        *set_up,
         P.ES_C_SetEnvironmentParams,
-        P.ES_C_GetReflectors,
-        P.ES_C_SetReflector,
-        P.ES_C_SetMeasurementMode,
-        P.ES_C_SetStationaryModeParams,
+        *selection,
         P.ES_C_StartMeasurement,
         P.ES_C_GoPosition,
         P.ES_C_FindReflector,
         P.ES_C_GetMeasurementStatusInfo,
     ]
+    second = [
+        P.ES_C_GetSystemStatus,
+        P.ES_C_GetTrackerStatus,  # initialised by the first connection: no Initialize
+        *set_up,
+        P.ES_C_GetEnvironmentParams,
+        *selection,
+        P.ES_C_StartMeasurement,
+    ]
+    assert commands == first + second
+    # every command the driver can send (drivers/leica_emscon.py) went through cesapi's classes
+    assert set(commands) == set(COMMAND_PARAMS)
     by = dict(zip(commands, sent))
     u = by[P.ES_C_SetUnits].unitsSettings
     assert (u.lenUnitType, u.angUnitType, u.tempUnitType, u.pressUnitType, u.humUnitType) == (
@@ -238,19 +258,66 @@ def test_the_bytes_the_driver_writes_decode_with_cesapi(fake, cell):
     )
     e = by[P.ES_C_SetEnvironmentParams].environmentData
     assert (e.dTemperature, e.dPressure, e.dHumidity) == (19.5, 1001.0, 35.0)
-    assert by[P.ES_C_SetReflector].iInternalReflectorId == 1
-    assert by[P.ES_C_SetMeasurementMode].measMode == P.ES_MM_Stationary
-    assert by[P.ES_C_SetStationaryModeParams].stationaryModeData.lMeasTime == 250
+    set_reflector = [p for p in sent if p.packetInfo.command == P.ES_C_SetReflector]
+    assert [p.iInternalReflectorId for p in set_reflector] == [1, 0]  # RRR 0.5in, then the default RRR 1.5in
+    assert all(p.measMode == P.ES_MM_Stationary for p in sent if p.packetInfo.command == P.ES_C_SetMeasurementMode)
+    stationary = [p.stationaryModeData for p in sent if p.packetInfo.command == P.ES_C_SetStationaryModeParams]
+    assert [(d.lMeasTime, d.bUseADM) for d in stationary] == [(250, 0), (500, 1)]
     go = by[P.ES_C_GoPosition]
     assert np.allclose([go.dVal1, go.dVal2, go.dVal3], target * 1e3) and go.bUseADM == 0
     assert by[P.ES_C_FindReflector].dAproxDistance == pytest.approx(np.linalg.norm(target) * 1e3)
 
-    answers = [factory.packet(raw) for raw in _split(bytes(proxy.to_client))]
+    raws = _split(bytes(proxy.to_client))
+    answers = [factory.packet(raw) for raw in raws]
     assert all(a is not None for a in answers)
-    kinds = [P.packetType(a) for a in answers]
-    assert kinds.count(P.ES_DT_SingleMeasResult) == 1
+    for raw, a in zip(raws, answers):  # replies, results and status changes: each of cesapi's size
+        fresh = type(a)()
+        header = fresh.packetInfo.packetHeader if hasattr(fresh, "packetInfo") else fresh.packetHeader
+        assert header.lPacketSize == len(raw), type(a).__name__
+    assert {P.packetType(a) for a in answers} == {P.ES_DT_Command, P.ES_DT_SingleMeasResult, P.ES_DT_SystemStatusChange}
     replies = [a.packetInfo.command for a in answers if P.packetType(a) == P.ES_DT_Command]
-    assert replies.count(P.ES_C_GetReflectors) == 3 and len(replies) == len(commands) + 2
+    assert replies.count(P.ES_C_GetReflectors) == 6 and len(replies) == len(commands) + 4
+    results = [a for a in answers if P.packetType(a) == P.ES_DT_SingleMeasResult]
+    assert len(results) == 2
+    for r, m in zip(results, measured):  # millimetres on the wire, metres from the driver
+        assert np.array_equal(m.p_world, np.array([r.dVal1, r.dVal2, r.dVal3]) * 1e-3)
+        assert np.array_equal(m.sigma, np.array([r.dStd1, r.dStd2, r.dStd3]) * 1e-3)
+
+
+def test_cesapi_reads_the_extended_result_as_the_driver_does(cell):
+    """The fake's ``SingleMeasResult2T`` (with covariances), read by cesapi: the position, the
+    deviations and the weather in their places; the driver returns the same values."""
+    fake = LeicaTrackerFake(cell, port=0, extended_result=True, initialised=True)
+    fake.start()
+    proxy = Proxy(fake.port)
+    try:
+        connection = Connection()
+        connection.connect(host="127.0.0.1", port=fake.port)
+        try:
+            result = CommandSync(connection).StartMeasurement()  # the fake starts in millimetres
+        finally:
+            connection.disconnect()
+        assert P.packetType(result) == P.ES_DT_SingleMeasResult2
+        sigma_mm = _sigma_m(cell) * 1e3
+        assert (result.dStd1, result.dStd2, result.dStd3) == pytest.approx((sigma_mm,) * 3)
+        assert (result.dAprioriStd1, result.dAprioriStdTotal) == pytest.approx((sigma_mm, np.sqrt(3) * sigma_mm))
+        assert (result.dTemperature, result.dPressure, result.dHumidity) == fake.environment
+        p_mm = np.array([result.dVal1, result.dVal2, result.dVal3])
+        assert np.all(np.abs(p_mm - cell.target_world() * 1e3) < 5 * sigma_mm)
+
+        with EmsconTracker(_config(proxy)) as tracker:
+            m = tracker.measure()
+    finally:
+        proxy.close()
+        fake.stop()
+    ((raw, r),) = [
+        (raw, a)
+        for raw in _split(bytes(proxy.to_client))
+        if P.packetType(a := P.PacketFactory().packet(raw)) == P.ES_DT_SingleMeasResult2
+    ]
+    assert len(raw) == P.SingleMeasResult2T().packetInfo.packetHeader.lPacketSize  # cesapi's size: 204
+    assert np.array_equal(m.p_world, np.array([r.dVal1, r.dVal2, r.dVal3]) * 1e-3)
+    assert np.array_equal(m.sigma, np.array([r.dStd1, r.dStd2, r.dStd3]) * 1e-3)
 
 
 # --------------------------------------------------------------------------- the driver against the fake
@@ -498,6 +565,54 @@ def test_wrong_packets_are_protocol_errors_then_a_full_reconnect(cell, packet, m
         fake.stop()
 
 
+class Recording(LeicaTrackerFake):
+    """The fake keeping the number of every command it answers."""
+
+    def __init__(self, cell):
+        super().__init__(cell, port=0, initialised=True)
+        self.commands: list[int] = []
+
+    def _answer(self, kind, command, packet):
+        self.commands.append(command)
+        return super()._answer(kind, command, packet)
+
+
+@pytest.mark.parametrize("fault", ["drop_connection_at", "garble_at"])
+def test_after_a_dropped_link_the_whole_set_up_runs_again(cell, fault):
+    """The fake's state is the instrument's, shared by its connections, so a measurement after a
+    reconnect would succeed without a set-up: the commands themselves show that the driver sends
+    the whole of it again. A dropped connection is repaired at once (one resend); a malformed
+    packet is a ``ProtocolError`` and the next measurement reconnects."""
+    fake = Recording(cell)
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            set_up = list(fake.commands)
+            assert set_up == [  # no Initialize: the tracker is initialised
+                P.ES_C_GetSystemStatus,
+                P.ES_C_GetTrackerStatus,
+                P.ES_C_SetUnits,
+                P.ES_C_GetCoordinateSystemType,
+                P.ES_C_GetEnvironmentParams,
+                P.ES_C_GetReflectors,
+                P.ES_C_SetReflector,
+                P.ES_C_SetMeasurementMode,
+                P.ES_C_SetStationaryModeParams,
+            ]
+            fake.commands.clear()
+            setattr(cell.faults, fault, [cell.counters["emscon.request"] + 1])
+            if fault == "garble_at":
+                with pytest.raises(ProtocolError, match="of 23 bytes; expected 16"):
+                    tracker.measure()
+                assert fake.commands == [P.ES_C_StartMeasurement]
+                fake.commands.clear()
+            m = tracker.measure()
+            assert fake.commands == set_up + [P.ES_C_StartMeasurement]
+        assert m.sequence == 1 and np.all(np.abs(m.p_world - cell.target_world()) < 5 * m.sigma)
+    finally:
+        fake.stop()
+
+
 def test_no_server_there(fake):
     port = fake.port
     fake.stop()
@@ -579,6 +694,72 @@ def test_a_result_with_a_bad_status_is_not_a_measurement(cell):
             assert info.value.code == P.ES_RS_NoStationaryResult
     finally:
         fake.stop()
+
+
+class Refusing(LeicaTrackerFake):
+    """The fake answering chosen commands, once each, with a reply of the given status."""
+
+    def __init__(self, cell, refuse: dict[int, int]):
+        super().__init__(cell, port=0, initialised=True)
+        self.refuse = refuse
+
+    def _answer(self, kind, command, packet):
+        status = self.refuse.pop(command, None)
+        if status is None:
+            return super()._answer(kind, command, packet)
+        return [struct.pack("<iIII", 16, 0, command, status)]
+
+
+@pytest.mark.parametrize(
+    "status, error, match, reconnects",
+    [
+        (P.ES_RS_MeasurementStatusNotReady, MeasurementError, "no reflector locked", False),
+        (P.ES_RS_ADMStartUpBusy, MeasurementError, "the distance meter is warming up", False),
+        (P.ES_RS_NoStationaryResult, MeasurementError, "reflector moving", False),
+        (P.ES_RS_SensorNotStable, MeasurementError, "the tracker is not stable", False),
+        (P.ES_RS_SystemNotReadyForMeasurement, MeasurementError, "not ready to measure", False),
+        (P.ES_RS_NotImplemented, ProtocolError, "rejected by the server", True),
+        (P.ES_RS_WrongParameter1, ProtocolError, "rejected by the server", True),
+        (P.ES_RS_Parameter1OutOfRangeNOK, ProtocolError, "rejected by the server", True),
+        (P.ES_RS_NoTrackerConnected, DeviceFaultError, "the server reports status 38", False),
+    ],
+)
+def test_each_status_of_a_measurement_maps_onto_the_exception_tree(cell, status, error, match, reconnects):
+    """The codes the driver knows, as cesapi numbers them: what cannot be measured now is a
+    ``MeasurementError`` (the link kept), what the server does not take is a ``ProtocolError``
+    (then a full set-up), anything else a ``DeviceFaultError``; each with its code."""
+    fake = Refusing(cell, {P.ES_C_StartMeasurement: status})
+    fake.start()
+    try:
+        with EmsconTracker(_config(fake)) as tracker:
+            with pytest.raises(error, match=match) as info:
+                tracker.measure()
+            assert type(info.value) is error and info.value.code == status
+            assert f"emScon tracker 127.0.0.1:{fake.port}" in str(info.value)
+            before = cell.counters["emscon.request"]
+            m = tracker.measure()
+            assert cell.counters["emscon.request"] - before == (10 if reconnects else 1)  # set-up (9) or none
+        assert np.all(np.abs(m.p_world - cell.target_world()) < 5 * m.sigma) and m.sequence == 1
+    finally:
+        fake.stop()
+
+
+def test_a_tracker_that_lost_its_initialisation_is_initialised_again(fake, cell):
+    """The tracker restarted under the driver (its processor no longer initialised): the
+    measurement is a ``DeviceFaultError`` with ``ES_RS_TrackerNotInitialized``, and the next one
+    reconnects, initialises and measures."""
+    with EmsconTracker(_config(fake)) as tracker:
+        tracker.measure()
+        fake.initialised = False
+        assert tracker.status() == "not_initialised"
+        with pytest.raises(DeviceFaultError, match="the tracker is not initialised") as info:
+            tracker.measure()
+        assert type(info.value) is DeviceFaultError and info.value.code == P.ES_RS_TrackerNotInitialized
+        before = cell.counters["emscon.request"]
+        m = tracker.measure()
+        assert cell.counters["emscon.request"] - before == 11  # the set-up with Initialize (10), the measurement
+        assert fake.initialised and tracker.status() == "ready"
+    assert m.sequence == 2 and np.all(np.abs(m.p_world - cell.target_world()) < 5 * m.sigma)
 
 
 def test_status_changes_reach_every_client_and_a_closing_server_means_a_reconnect(cell):

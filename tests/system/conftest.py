@@ -37,6 +37,17 @@ def next_host() -> str:
     return f"{NET}.{n}"
 
 
+def emscon_sigma_m(rows: list[dict]) -> np.ndarray:
+    """The per-axis sigma the simulated cell's Leica tracker (emScon) reports for stored rows:
+    half its MPE at the row's range over sqrt(3), MPE = 15 um + 6 um/m (docs/devices/leica.md).
+    A row measured through the line-protocol tracker has 20 um whatever the range."""
+    from fakes.world import Noise
+
+    noise = Noise()
+    range_m = np.linalg.norm([[r["x"], r["y"], r["z"]] for r in rows], axis=1)
+    return 0.5 * (noise.tracker_mpe_const_m + noise.tracker_mpe_per_m * range_m) / np.sqrt(3.0)
+
+
 @pytest.fixture(scope="session")
 def models(tmp_path_factory):
     """A nominal UR5e (with a reflector and three tooling balls) and a 'true' robot near it."""

@@ -14,9 +14,11 @@ import sys
 import time
 import urllib.request
 
+import numpy as np
+
 from service.processes import free_port
 
-from .conftest import next_host
+from .conftest import emscon_sigma_m, next_host
 
 
 def _refused(host: str, port: int) -> bool:
@@ -94,6 +96,13 @@ def test_demo_prints_its_home_and_token_and_sigterm_stops_its_children(tmp_path)
         while not _get(f"{url}/api/v1/sessions/1", printed)["measured"]:
             assert time.monotonic() < deadline
             time.sleep(0.2)
+        # it measures through the Leica tracker on emScon (the simulated cell's default): the
+        # cell names it, and each stored sigma is the emScon fake's MPE-based one at that range
+        # (the line-protocol tracker would give a constant 20 um)
+        assert "emscon" in _get(f"{url}/api/v1/cells/1", printed)["devices"]
+        rows = _get(f"{url}/api/v1/sessions/1/measurements", printed)
+        assert rows
+        assert np.allclose([r["sigma"] for r in rows], emscon_sigma_m(rows), rtol=1e-3), rows
         children = _children(demo.pid)
         assert len(children) == 2, children  # the service and the simulated cell
         demo.send_signal(signal.SIGTERM)

@@ -14,6 +14,8 @@ from calibration.model import model_from_dict
 from service.settings import Settings
 from service.store import make_engine
 
+from .conftest import emscon_sigma_m
+
 BOTH_DATABASES = pytest.mark.parametrize("db_url", ["sqlite", "postgres"], indirect=True)
 
 
@@ -32,6 +34,8 @@ def test_pose_session_calibrates_the_cell_to_the_noise_floor(stack, models, regi
     assert s["device_state"]["robot"]["state"] == "ready" and s["device_state"]["tracker"]["state"] == "ready"
     meas = api.call("GET", f"/sessions/{s['id']}/measurements")
     assert len(meas) == 40 and sorted(m["seq"] for m in meas) == list(range(40))
+    # measured through the Leica tracker's emScon driver (the simulated cell's default)
+    assert np.allclose([m["sigma"] for m in meas], emscon_sigma_m(meas), rtol=1e-3)
     cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
     model = model_from_dict(cal["model"])
     truth = models["truth_model"]
@@ -40,7 +44,7 @@ def test_pose_session_calibrates_the_cell_to_the_noise_floor(stack, models, regi
     p_true = fk(truth, q)[:, :3, :3] @ truth.targets["smr"] + fk(truth, q)[:, :3, 3]
     p_model = fk(model, q)[:, :3, :3] @ model.targets["smr"] + fk(model, q)[:, :3, 3]
     err = np.linalg.norm(p_true - p_model, axis=1)
-    # 40 poses, tracker noise 0.02 mm per axis: the model is good to a few hundredths of a mm
+    # 40 poses, tracker noise about 0.008 mm per axis: the model is good to a few hundredths of a mm
     assert np.sqrt(np.mean(err**2)) < 0.05e-3, np.sqrt(np.mean(err**2))
     assert cal["report"]["success"] and cal["report"]["residuals"]["rms"] < 0.06
 

@@ -81,6 +81,7 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.click("#fill-from-line")
     assert page.input_value("#dev-rtde") == stack.cell_ready["rtde"]
     assert page.input_value("#dev-tracker") == stack.cell_ready["tracker"]
+    assert page.input_value("#dev-emscon") == stack.cell_ready["emscon"]  # the Leica tracker sessions use
     assert page.input_value("#dev-can-port") == str(stack.cell_ready["can"]["port"])
     assert page.input_value("#enc-2") == str(stack.cell_ready["encoders"]["2"])
     assert page.input_value("#res-1") == str(stack.cell_ready["resolvers"]["1"])
@@ -435,8 +436,11 @@ def test_the_cell_form_describes_and_checks_devices_with_the_services_schema(pag
     page.fill("#dev-modbus", "robot-7")
     page.fill("#dev-cmm-ball", "12.5")  # millimetres where metres are asked for
     page.fill("#dev-tracker", "tracker-pc:10001")
+    assert page.inner_text("label[for=dev-emscon]") == props["emscon"]["title"]  # the Leica tracker
+    page.fill("#dev-emscon", "tracker-ctrl:port")
     page.click("#save-cell")
     assert page.inner_text("#dev-modbus-error") == "expected " + props["modbus"]["anyOf"][0]["x-expected"]
+    assert "HOST:PORT of the emScon server" in page.inner_text("#dev-emscon-error")
     assert "(0.0005–0.1)" in page.inner_text("#dev-cmm-ball-error")
     assert "socket://HOST:PORT" in page.inner_text("#dev-tracker-error")
     web.shot(page, "05-register-cell-schema-checks")
