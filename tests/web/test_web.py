@@ -163,7 +163,8 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     page.wait_for_selector("#stop-banner", timeout=60_000)
     banner = page.inner_text("#stop-banner")
     assert "Paused" in banner and "protective stop" in banner.lower(), banner
-    page.wait_for_selector("#residuals svg")
+    # the live residual plot is drawn at the page's next poll after the pause (slow on a loaded machine)
+    page.wait_for_selector("#residuals svg", timeout=60_000)
     state = api(stack, "GET", f"/sessions/{session_id}").get("device_state")
     devices = page.inner_text("#device-state")
     if state:  # the devices' own state, as the session last saw it
