@@ -19,7 +19,7 @@ from calibration.transforms import homogeneous, matrix_to_quat, quat_to_matrix
 from service.files import InputError
 from service.programs import rapid
 
-from .helpers import frame_of, models, numbers, pose_error, reached, recal, skeleton
+from .helpers import compare_with_csv_path, frame_of, models, numbers, pose_error, reached, recal, skeleton
 
 DEG = math.pi / 180
 Q = {  # planned joints (deg): the configurations the program was written for
@@ -187,7 +187,7 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
     old = rapid.parse(d / "prog.mod")
     new = rapid.parse(d / "out.mod")
     assert [t.name for t in old.targets] == [t.name for t in new.targets]
-    errs, before = [], []
+    errs, before, cases = [], [], {}
     for t0, t1 in zip(old.targets, new.targets):
         if t0.kind != "pose":
             continue
@@ -206,10 +206,18 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
         # the same pose through the library call the task CSV's targets mode makes
         csv = compensate_targets(true_t, nom_t, X_d, q_plan, T_nominal_world=M)
         assert csv.residual_m[0] < 1e-9
+        cases.setdefault("tGun" if t0.name else "tool0", (true_t, nom_t, []))[2].append((X_d[0], q_plan[0], W @ t1.P))
     dp = np.array([e[0][0] for e in errs])
     da = np.array([e[1][0] for e in errs])
     assert np.array([b[0][0] for b in before]).min() > 2e-4  # the true robot is 0.2 mm+ off uncompensated
     assert dp.max() < 2e-6 and da.max() < 5e-8
+    # the task CSV's targets mode (`recal compensate --mode targets`) on the same desired poses,
+    # its targets sent to the same controller: the program's targets are the CSV's to the rounding
+    # of the written numbers (3 decimals of mm, 8 of the quaternion), and reach as close
+    prog_dp, prog_da, csv_dp, csv_da, diff_dp, diff_da = compare_with_csv_path(d, cases)
+    assert csv_dp < 1e-8 and csv_da < 1e-7
+    assert diff_dp < 1e-6 and diff_da < 5e-8
+    assert prog_dp < csv_dp + 1e-6 and prog_da < csv_da + 5e-8
 
 
 def test_joint_target_reaches_the_pose_the_nominal_joints_meant(run):
