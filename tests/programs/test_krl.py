@@ -310,3 +310,42 @@ def test_a_target_out_of_reach_in_its_written_configuration_is_flagged_and_left_
     assert sorted(row["flags"]) == ["branch_change", "unreachable"] and row["compensated"] is None
     assert row["configuration"] == {"written": {"S": 0, "T": 34}, "solution": {"S": 2, "T": 34}}
     assert (tmp_path / "o.dat").read_text() == dat
+
+
+def test_inline_ptp_axis_and_circ_auxiliary_and_end_points(run, tmp_path):
+    """Targets written in the moves: a PTP to an axis aggregate, a CIRC through an auxiliary point
+    to an end point (no S and T: the solutions nearest the previous target's, as the controller
+    moves from there). Each is compensated in place; the true robot reaches what each means."""
+    d, nominal, true, *_ = run
+    M = frame_of(true, nominal)
+    q_ptp, q_aux, q_end = [10, -80, 100, 20, 40, -30], [15, -78, 98, 22, 42, -28], [20, -75, 95, 25, 45, -25]
+
+    def inline(q):
+        T = fk(nominal, np.radians([q]))[0]
+        p, a = T[:3, 3] * 1e3, abc(T[:3, :3])
+        return "{X %.3f, Y %.3f, Z %.3f, A %.4f, B %.4f, C %.4f}" % (*p, *a)
+
+    axis = "{A1 %.1f, A2 %.1f, A3 %.1f, A4 %.1f, A5 %.1f, A6 %.1f}" % tuple(q_ptp)
+    src = f"DEF t( )\n; PTP {axis}\nPTP {axis} C_PTP\nCIRC {inline(q_aux)}, {inline(q_end)} C_DIS ; arc\nEND\n"
+    (tmp_path / "t.src").write_text(src)
+    (tmp_path / "t.dat").write_text("DEFDAT t\nENDDAT\n")
+    r = recal("compensate", "--model", d / "identified.json", "--task", "t.src", "--out", "o.src", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("compensated 3 points (KRL): 3 converged"), r.stdout
+    out = (tmp_path / "o.src").read_text()
+    assert skeleton(out.encode()) == skeleton(src.encode()) and out.splitlines()[1] == src.splitlines()[1]
+    old, new = krl.parse(tmp_path / "t.src"), krl.parse(tmp_path / "o.src")
+    assert [(t.kind, t.move, t.line) for t in new.targets] == [
+        ("joints", "PTP", 3),
+        ("pose", "CIRC", 4),
+        ("pose", "CIRC", 4),
+    ]
+    X_d = np.linalg.inv(M) @ fk(nominal, np.radians([q_ptp]))
+    dp, da = pose_error(fk(true, new.targets[0].q[None]), X_d)
+    assert dp[0] < 2e-6 and da[0] < 5e-7
+    for t0, t1, q in zip(old.targets[1:], new.targets[1:], (q_aux, q_end)):
+        X_d = np.linalg.inv(M) @ t0.P[None]
+        dp, da = pose_error(reached(true, nominal, t1.P[None], np.radians([q])), X_d)
+        assert dp[0] < 2e-6 and da[0] < 5e-7
+        before = pose_error(reached(true, nominal, t0.P[None], np.radians([q])), X_d)[0][0]
+        assert before > 2e-4

@@ -355,3 +355,33 @@ def test_a_target_used_with_two_tools_is_left_alone_and_reported(tmp_path):
     assert [(u.line, u.reason) for u in prog.uninterpreted] == [
         (3, "robtarget p1 is used with different tools or work objects (lines 5, 6): not compensated")
     ]
+
+
+def test_format_option_and_nominal_option(run, tmp_path):
+    """--format rapid reads a module whatever its extension (without it a .txt is a task CSV);
+    --nominal gives the controller's model to an identified model that does not record it (the
+    same output as the recorded one); without either the program is refused."""
+    import json
+
+    d, *_ = run
+    (tmp_path / "prog.txt").write_bytes((d / "prog.mod").read_bytes())
+    doc = json.loads((d / "identified.json").read_text())
+    doc.pop("identification")
+    (tmp_path / "bare.json").write_text(json.dumps(doc))
+    args = ("--task", "prog.txt", "--out", "out.txt")
+    r = recal("compensate", "--model", d / "identified.json", *args, cwd=tmp_path)
+    assert r.returncode == 2 and not (tmp_path / "out.txt").exists()
+    r = recal("compensate", "--model", "bare.json", "--format", "rapid", *args, cwd=tmp_path)
+    assert r.returncode == 2 and not (tmp_path / "out.txt").exists()
+    assert (
+        r.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "recal compensate: bare.json: a robot program needs the nominal model its controller uses: give --nominal"
+        )
+    )
+    r = recal(
+        "compensate", "--model", "bare.json", "--nominal", d / "nominal.json", "--format", "rapid", *args, cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out.txt").read_bytes() == (d / "out.mod").read_bytes()
