@@ -349,3 +349,17 @@ def test_inline_ptp_axis_and_circ_auxiliary_and_end_points(run, tmp_path):
         assert dp[0] < 2e-6 and da[0] < 5e-7
         before = pose_error(reached(true, nominal, t0.P[None], np.radians([q])), X_d)[0][0]
         assert before > 2e-4
+
+
+def test_pos_and_axis_declarations_and_status_written_in_binary(tmp_path):
+    """POS and AXIS are read as E6POS and E6AXIS are; S and T written as KRL's bit strings."""
+    (tmp_path / "t.src").write_text("DEF t( )\nPTP XA\nLIN XP1\nEND\n")
+    (tmp_path / "t.dat").write_text(
+        "DEFDAT t\nDECL AXIS XA={A1 0.0,A2 -90.0,A3 90.0,A4 0.0,A5 30.0,A6 0.0}\n"
+        "DECL POS XP1={X 900.0,Y 0.0,Z 1200.0,A 0.0,B 90.0,C 0.0,S 'B010',T 'B100010'}\nENDDAT\n"
+    )
+    prog = krl.parse(tmp_path / "t.src")
+    assert [(t.name, t.kind, t.line) for t in prog.targets] == [("XA", "joints", 2), ("XP1", "pose", 3)]
+    np.testing.assert_allclose(np.degrees(prog.targets[0].q), [0, -90, 90, 0, 30, 0])
+    assert prog.targets[1].config == (2, 34)
+    np.testing.assert_allclose(prog.targets[1].P[:3, 3], [0.9, 0.0, 1.2])

@@ -385,3 +385,30 @@ def test_format_option_and_nominal_option(run, tmp_path):
     )
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "out.txt").read_bytes() == (d / "out.mod").read_bytes()
+
+
+@pytest.mark.parametrize("suffix", [".mod", ".modx", ".prg"])
+def test_every_declaration_scope_and_module_extension(tmp_path, suffix):
+    """PERS, TASK PERS, LOCAL PERS and LOCAL VAR declarations are targets as CONST ones are, in
+    a .mod, .modx or .prg file."""
+    from service.programs import format_of
+
+    rest = "[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]"
+    p = tmp_path / f"m{suffix}"
+    p.write_text(
+        f"MODULE m\n  PERS robtarget p1:=[[1200,0,1200],[0,0,1,0],[0,0,0,0],{rest}];\n"
+        f"  TASK PERS robtarget p2:=[[1200,100,1200],[0,0,1,0],[0,0,0,0],{rest}];\n"
+        f"  LOCAL PERS jointtarget j1:=[[0,0,0,0,30,0],{rest}];\n"
+        f"  LOCAL VAR robtarget p3:=[[1200,-100,1200],[0,0,1,0],[-1,0,-1,0],{rest}];\n"
+        "  PROC main()\n    MoveAbsJ j1, v100, fine, tool0;\n    MoveJ p1, v100, fine, tool0;\n"
+        "    MoveL p2, v100, fine, tool0;\n    MoveL p3, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n"
+    )
+    assert format_of(p) == "rapid"
+    prog = rapid.parse(p)
+    assert [(t.name, t.kind, t.line) for t in prog.targets] == [
+        ("p1", "pose", 2),
+        ("p2", "pose", 3),
+        ("j1", "joints", 4),
+        ("p3", "pose", 5),
+    ]
+    assert prog.targets[3].config == (-1, 0, -1, 0) and prog.uninterpreted == []
