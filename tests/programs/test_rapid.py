@@ -412,3 +412,34 @@ def test_every_declaration_scope_and_module_extension(tmp_path, suffix):
         ("p3", "pose", 5),
     ]
     assert prog.targets[3].config == (-1, 0, -1, 0) and prog.uninterpreted == []
+
+
+@pytest.mark.parametrize(
+    "q, flags",
+    [
+        ([20, 10, -20, 30, 0.2, -40], {"near_singular"}),  # axis 5 at 0.2°: the wrist singularity
+        # axis 1 at -179.99°: the correction takes it past its -180° limit, out of quadrant -2
+        ([-179.99, 10, -20, 30, 50, -40], {"joint_limit", "branch_change"}),
+    ],
+)
+def test_report_rows_flag_near_singular_and_beyond_the_joint_limits(run, tmp_path, q, flags):
+    import json
+
+    d, nominal, *_ = run
+    (tmp_path / "m.mod").write_text(_one_target_module(nominal, q, confdata(q)))
+    r = recal(
+        "compensate",
+        "--model",
+        d / "identified.json",
+        "--task",
+        "m.mod",
+        "--out",
+        "o.mod",
+        "--report",
+        "r.json",
+        cwd=tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    row = json.loads((tmp_path / "r.json").read_text())["points"][0]
+    assert flags <= set(row["flags"]) and row["converged"], row
+    assert row["configuration"]["written"] == confdata(q)
