@@ -16,7 +16,20 @@ from .compensation import CompensationInputError, CompensationRequest, calibrate
 from .files import InputError, parse_payload
 from .programs.frames import Frames
 
-__all__ = ["CompensationInputError", "compensate_and_store", "compensate_text", "read_multipart"]
+__all__ = ["CompensationInputError", "compensate_and_store", "compensate_text", "decode_upload", "read_multipart"]
+
+
+def decode_upload(name: str, data: bytes) -> tuple[str, str]:
+    """An uploaded file's text and the encoding that gives its bytes back: UTF-8 where the bytes
+    are UTF-8; else, for a robot program, ISO-8859-1 (Latin-1), one character per byte (a KUKA or ABB program
+    written in Windows-1252 comes back byte for byte, comments and all). A task CSV that is not
+    UTF-8 is read as before (undecodable bytes replaced): its columns are rewritten anyway."""
+    try:
+        return data.decode("utf-8"), "utf-8"
+    except UnicodeDecodeError:
+        if programs.format_of(name) == "csv" and not name.lower().endswith(".dat"):  # KRL's .dat is a program's
+            return data.decode("utf-8", errors="replace"), "utf-8"
+        return data.decode("iso-8859-1"), "iso-8859-1"
 
 
 def compensate_text(
@@ -28,6 +41,7 @@ def compensate_text(
     mode: str = "joints",
     companions: dict[str, str] | None = None,
     payload: str | None = None,
+    encodings: dict[str, str] | None = None,
 ) -> tuple[str, dict]:
     """Compensate ``text`` (a task CSV or a robot program: URScript, RAPID, KRL, TP, told apart
     by ``name``) with the identified model ``model_doc``; ``nominal_doc`` is what the controller
@@ -35,8 +49,10 @@ def compensate_text(
     ``.src``'s ``.dat``; a ``$config.dat`` is read for its ``TOOL_DATA``/``BASE_DATA``). Returns
     the compensated text and the per-point report (``recal.compensation-report/1``: ``summary``,
     ``points``, ``uninterpreted``; with companions, ``files``: their compensated texts,
-    ``[{"name", "text"}]``). ``payload``: the task's payload ``KG[,X,Y,Z]`` for a compliant model
-    (``recal compensate --payload``)."""
+    ``[{"name", "text", "encoding"}]``). ``payload``: the task's payload ``KG[,X,Y,Z]`` for a
+    compliant model (``recal compensate --payload``). ``encodings``: file name -> the encoding
+    its text was decoded with (:func:`decode_upload`; default UTF-8): each file is compensated
+    as those bytes, and its compensated text is given in the same encoding."""
     try:
         model, nominal = model_from_dict(model_doc), model_from_dict(nominal_doc)
     except ModelFormatError as exc:
@@ -51,18 +67,20 @@ def compensate_text(
             f"the cell's nominal model has {nominal.n_joints} joints, the calibration {model.n_joints}"
         )
     suffix = Path(name).suffix or ".csv"
+    encodings = dict(encodings or {})
     companions = dict(companions or {})
     config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         src, out = d / f"task{suffix}", d / f"compensated{suffix}"
-        src.write_text(text, encoding="utf-8")
+        # bytes as uploaded: the text back in the encoding it was decoded with
+        src.write_bytes(text.encode(encodings.get(name, "utf-8")))
         for other, content in companions.items():  # beside the program, under its stem (KRL's .dat)
-            (d / f"task{Path(other).suffix}").write_text(content, encoding="utf-8")
+            (d / f"task{Path(other).suffix}").write_bytes(content.encode(encodings.get(other, "utf-8")))
         config_path = None
-        for content in config.values():  # KUKA's $config.dat: the TOOL_DATA and BASE_DATA the program selects
+        for other, content in config.items():  # KUKA's $config.dat: the TOOL_DATA and BASE_DATA the program selects
             config_path = d / "config.dat"
-            config_path.write_text(content, encoding="utf-8")
+            config_path.write_bytes(content.encode(encodings.get(other, "utf-8")))
         names = {str(src): name, **{str(d / f"task{Path(o).suffix}"): o for o in companions}}
         if config_path is not None:
             names[str(config_path)] = "$config.dat"
@@ -98,17 +116,20 @@ def compensate_text(
         for point in doc.get("points", []) + doc.get("uninterpreted", []):
             if "file" in point:
                 point["file"] = names.get(str(d / Path(point["file"]).name), name)
+        encs = [encodings.get(name, "utf-8")] + [encodings.get(o, "utf-8") for o in companions]
         texts = [
-            data if isinstance(data, str) else data.decode("utf-8", errors="replace") for _, data in result.outputs
+            data if isinstance(data, str) else data.decode(enc, errors="replace")
+            for (_, data), enc in zip(result.outputs, encs)
         ]
         if companions:
-            doc["files"] = [{"name": o, "text": t} for o, t in zip(companions, texts[1:])]
+            doc["files"] = [{"name": o, "text": t, "encoding": e} for o, t, e in zip(companions, texts[1:], encs[1:])]
         return texts[0], doc
 
 
-def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str]]:
-    """The files of a ``multipart/form-data`` body, ``(file name, text)`` in order (the standard
-    library's MIME parser: no extra dependency). A part without a file name is ignored."""
+def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str, str]]:
+    """The files of a ``multipart/form-data`` body, ``(file name, text, encoding)`` in order
+    (:func:`decode_upload`; the standard library's MIME parser: no extra dependency). A part
+    without a file name is ignored."""
     from email.parser import BytesParser
     from email.policy import HTTP
 
@@ -119,9 +140,7 @@ def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str]]:
     for part in msg.iter_parts():
         filename = part.get_filename()
         if filename:
-            files.append(
-                (Path(filename).name, (part.get_payload(decode=True) or b"").decode("utf-8", errors="replace"))
-            )
+            files.append((Path(filename).name, *decode_upload(filename, part.get_payload(decode=True) or b"")))
     if not files:
         raise CompensationInputError("expected at least one file in the multipart body")
     return files
@@ -143,6 +162,7 @@ def compensate_and_store(
     companions: dict[str, str] | None = None,
     payload: str | None = None,
     audited: bool = True,
+    encodings: dict[str, str] | None = None,
 ) -> tuple[int, str, dict | None, list]:
     """In a worker process: compensate ``text`` (``compensate_text``'s arguments) with calibration
     ``calibration_id``, against the nominal its cell's controller computes with (a UR's own
@@ -174,6 +194,7 @@ def compensate_and_store(
             mode=mode,
             companions=companions,
             payload=payload,
+            encodings=encodings,
         )
         rec = Compensation(
             calibration_id=calibration_id, name=name, mode=mode, output=output, report=report, created_by=actor

@@ -20,7 +20,7 @@ from service.files import InputError
 from service.programs import fanuc_tp
 
 from .arms import arm
-from .helpers import frame_of, models, numbers, pose_error, reached, recal, skeleton
+from .helpers import compare_with_csv_path, frame_of, models, numbers, pose_error, reached, recal, skeleton
 
 Q = {  # planned joints (deg), Fanuc readings
     1: [10, 10, -10, 20, -60, 30],
@@ -154,6 +154,11 @@ def test_every_byte_but_the_positions_numbers_is_unchanged(run):
     assert b"J1=   120.000  mm" in out and b"E1=     55.500  mm" in out  # group 2 and the extended axis
     changed = [(a, b) for a, b in zip(numbers(data), numbers(out)) if a != b]
     assert 18 <= len(changed) <= 24
+    # written precision: millimetres were written with 3 decimals, enough (kept); degrees with 3,
+    # fewer than the 5 a compensation needs (base.MIN_DECIMALS)
+    unit = re.compile(rb"\b([XYZWPR]|J\d)\s*=\s*(-?\d+\.(\d+))\s*(mm|deg)")
+    got = [(m[0], len(m[2]), m[3]) for m in unit.findall(out[out.index(b"/POS") :])]
+    assert got and all(d == (3 if u == b"mm" else 5) for _, d, u in got), got
 
 
 def test_compensated_positions_bring_the_true_robot_to_the_program_poses(run):
@@ -164,11 +169,19 @@ def test_compensated_positions_bring_the_true_robot_to_the_program_poses(run):
     fr = Frames.from_options(["1=" + ",".join(map(str, UT1))], ["1=" + ",".join(map(str, UF1))])
     old = fanuc_tp.parse(d / "recal_test.ls", frames=fr)
     new = fanuc_tp.parse(d / "out.ls", frames=fr)
-    errs, before = [], []
+    errs, before, cases = [], [], {}
     for t0, t1 in zip(old.targets, new.targets):
         n = int(t0.name[2:-1])
         if t0.kind == "joints":
             X_d = np.linalg.inv(M) @ fk(nominal, np.radians([Q[n]]))
+            # the same pose without the model's coupling: the uncoupled chain at the joint angles
+            # Fanuc's readings mean (J3 from the horizon: joint 3 = -(J2 + J3); J4..J6 turn the
+            # other way), contracts §2
+            a = np.radians(Q[n])
+            angles = np.array([a[0], a[1], -(a[1] + a[2]), -a[3], -a[4], -a[5]])
+            uncoupled = dataclasses.replace(nominal, coupling=None)
+            np.testing.assert_allclose(fk(uncoupled, angles[None]), fk(nominal, np.radians([Q[n]])), atol=1e-12)
+            assert np.abs(fk(uncoupled, a[None])[0, :3, 3] - fk(nominal, a[None])[0, :3, 3]).max() > 0.1
             dp, da = pose_error(fk(true, t1.q[None]), X_d)
             assert dp[0] < 2e-6 and da[0] < 5e-7
             continue
@@ -183,9 +196,17 @@ def test_compensated_positions_bring_the_true_robot_to_the_program_poses(run):
         X_d = np.linalg.inv(M) @ (U @ t0.P)[None]
         errs.append(pose_error(reached(true_t, nom_t, (U @ t1.P)[None], q_plan), X_d))
         before.append(pose_error(reached(true_t, nom_t, (U @ t0.P)[None], q_plan), X_d))
+        cases.setdefault("ut1" if framed else "ut0", (true_t, nom_t, []))[2].append((X_d[0], q_plan[0], U @ t1.P))
     assert min(b[0][0] for b in before) > 2e-4
     # written 3 decimals of mm and of a degree: compensated ones get 3 and 5 (base.MIN_DECIMALS)
     assert max(e[0][0] for e in errs) < 2e-6 and max(e[1][0] for e in errs) < 5e-7
+    # the task CSV's targets mode (`recal compensate --mode targets`) on the same desired poses,
+    # its targets sent to the same controller: the program's targets are the CSV's to the rounding
+    # of the written numbers, and reach as close
+    prog_dp, prog_da, csv_dp, csv_da, diff_dp, diff_da = compare_with_csv_path(d, cases)
+    assert csv_dp < 1e-8 and csv_da < 1e-7
+    assert diff_dp < 2e-6 and diff_da < 5e-7
+    assert prog_dp < csv_dp + 2e-6 and prog_da < csv_da + 5e-7
 
 
 def test_report(run):
@@ -226,3 +247,63 @@ def test_bad_programs_name_file_line_and_token(tmp_path, body, message):
     p.write_bytes(("/PROG X\r\n/POS\r\nP[1]{\r\n   GP1:\r\n" + body + "};\r\n/END\r\n").encode())
     with pytest.raises(InputError, match=message):
         fanuc_tp.parse(p)
+
+
+def test_bad_program_on_the_command_line_exits_2_without_output(run, tmp_path):
+    d, *_ = run
+    (tmp_path / "prog.ls").write_bytes(
+        b"/PROG X\r\n/POS\r\nP[1]{\r\n   GP1:\r\n\tUF : 0, UT : 0,\t\tCONFIG : 'N U T, 0, 0, 0',\r\n"
+        b"\tX = 1.0 mm, Y = 2.0 mm, Z = 3.0 mm,\r\n\tW = 0.0 deg, P = 0.0 deg\r\n};\r\n/END\r\n"
+    )
+    r = recal("compensate", "--model", d / "identified.json", "--task", "prog.ls", "--out", "out.ls", cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1].startswith("recal compensate: prog.ls, line 7: P[1]: expected component R")
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out.ls").exists()
+
+
+@pytest.mark.parametrize(
+    "written, reachable",
+    [
+        ("N D T, 0, 0, 0", True),  # the elbow down: the arm reaches P[1] so too, and stays so
+        ("F U T, 0, 0, 0", True),  # the wrist flipped
+        ("N U T, 1, 0, 0", False),  # J4 a turn further: 380°, beyond its 200° limit
+    ],
+)
+def test_the_written_configuration_is_kept_or_the_position_flagged_and_left_as_written(
+    run, tmp_path, written, reachable
+):
+    """P[1]'s pose written in another configuration: compensated in that one (never moved to the
+    configuration it was planned in), or, where the nominal arm cannot reach the pose so, left
+    as written and flagged."""
+    d, nominal, *_ = run
+    T = fk(nominal, np.radians([Q[1]]))[0]
+    lines = cartesian(T, Q[1], 0, 0)
+    assert "'N U T, 0, 0, 0'" in lines[0]
+    lines[0] = lines[0].replace("'N U T, 0, 0, 0'", f"'{written}'")
+    data = "\r\n".join(
+        ["/PROG  T", "/MN", "   1:J P[1] 100% FINE    ;", "/POS", "P[1]{", "   GP1:", *lines, "};", "/END", ""]
+    )
+    (tmp_path / "t.ls").write_text(data, newline="")
+    r = recal(
+        "compensate",
+        "--model",
+        d / "identified.json",
+        "--task",
+        "t.ls",
+        "--out",
+        "o.ls",
+        "--report",
+        "r.json",
+        cwd=tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    row = json.loads((tmp_path / "r.json").read_text())["points"][0]
+    out = (tmp_path / "o.ls").read_bytes()
+    if reachable:
+        assert row["flags"] == [] and row["configuration"] == {"written": written, "solution": written}
+        assert out != data.encode() and skeleton(out) == skeleton(data.encode())
+    else:
+        assert sorted(row["flags"]) == ["branch_change", "unreachable"] and row["compensated"] is None
+        assert row["configuration"] == {"written": written, "solution": "N U T, 0, 0, 0"}
+        assert out == data.encode()

@@ -21,7 +21,7 @@ from service.files import InputError
 from service.programs import krl
 
 from .arms import arm
-from .helpers import frame_of, models, numbers, pose_error, reached, recal, skeleton
+from .helpers import compare_with_csv_path, frame_of, models, numbers, pose_error, reached, recal, skeleton
 
 Q = {  # planned joints (deg)
     "XP1": [10, -80, 100, 20, 40, -30],
@@ -86,6 +86,7 @@ def program(nominal):
                 "&REL 3",
                 "DEF recal_test( )",
                 "; written for Recal's tests. Not a move: LIN {X 1, Y 2, Z 3, A 0, B 0, C 0}",
+                "; Greifer geöffnet, 90° gedreht (Windows-1252, as KUKA's editor writes: not UTF-8)",
                 ";FOLD INI;%{PE}",
                 "  ;FOLD BASISTECH INI",
                 "    BAS (#INITMOV,0 )",
@@ -121,7 +122,7 @@ def program(nominal):
             ";ENDFOLD (EXTERNAL DECLARATIONS)",
             "; DECL E6POS XOLD={X 1,Y 2,Z 3,A 0,B 0,C 0,S 2,T 2} (a comment)",
             "DECL E6AXIS XHOME1={A1 0.0,A2 -90.0,A3 90.0,A4 0.0,A5 30.0,A6 0.0,E1 0.0,E2 0.0,E3 0.0,E4 0.0,E5 0.0,E6 0.0}",
-            f"DECL E6POS XP1={e6pos(pos['XP1'], Q['XP1'])}",
+            f"DECL E6POS XP1={e6pos(pos['XP1'], Q['XP1'])} ; Übergabe – Lage ±0,5 mm",
             'DECL FDAT FP1={TOOL_NO 1,BASE_NO 2,IPO_FRAME #BASE,POINT2[] " ",TQ_STATE FALSE}',
             "DECL PDAT PPDAT1={VEL 100.000,ACC 100.000,APO_DIST 100.000,APO_MODE #CDIS}",
             f"DECL E6POS XP2={e6pos(pos['XP2'], Q['XP2'])},XP3={e6pos(pos['XP3'], Q['XP3'])}",
@@ -131,7 +132,7 @@ def program(nominal):
             "",
         ]
     )
-    return src.encode(), dat.encode()
+    return src.encode("cp1252"), dat.encode("cp1252")
 
 
 @pytest.fixture(scope="module")
@@ -171,6 +172,8 @@ def test_both_files_keep_every_byte_but_the_targets_numbers(run):
     out_src, out_dat = (d / "out.src").read_bytes(), (d / "out.dat").read_bytes()
     assert skeleton(out_src) == skeleton(src) and skeleton(out_dat) == skeleton(dat)
     assert out_dat.count(b"\r\n") == dat.count(b"\r\n")
+    # Windows-1252 bytes (not UTF-8) as read, in a comment line and after a target on its line
+    assert b"ge\xf6ffnet, 90\xb0" in out_src and b"\xdcbergabe \x96 Lage \xb10,5 mm\r\n" in out_dat
     for a, b in zip(src.splitlines() + dat.splitlines(), out_src.splitlines() + out_dat.splitlines()):
         if a.lstrip().startswith(b";") or b"FDAT" in a or b"PDAT" in a or b"_REL" in a:
             assert a == b
@@ -187,7 +190,7 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
     old = krl.parse(d / "recal_test.src", frames=_frames(d))
     new = krl.parse(d / "out.src", frames=_frames(d))
     assert [t.name for t in old.targets] == [t.name for t in new.targets]
-    errs, before = [], []
+    errs, before, cases = [], [], {}
     names = {t.name or ("inline1" if t.frames.startswith("tool TOOL") else "inline2") for t in old.targets}
     assert names == set(Q) | {"XHOME1"}
     for t0, t1 in zip(old.targets, new.targets):
@@ -205,8 +208,16 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
         X_d = np.linalg.inv(M) @ (B @ t0.P)[None]
         errs.append(pose_error(reached(true_t, nom_t, (B @ t1.P)[None], q_plan), X_d))
         before.append(pose_error(reached(true_t, nom_t, (B @ t0.P)[None], q_plan), X_d))
+        cases.setdefault("tool1" if framed else "flange", (true_t, nom_t, []))[2].append((X_d[0], q_plan[0], B @ t1.P))
     assert min(b[0][0] for b in before) > 2e-4
     assert max(e[0][0] for e in errs) < 2e-6 and max(e[1][0] for e in errs) < 5e-7
+    # the task CSV's targets mode (`recal compensate --mode targets`) on the same desired poses,
+    # its targets sent to the same controller: the program's targets are the CSV's to the rounding
+    # of the written numbers (3 decimals of mm, 5 of a degree), and reach as close
+    prog_dp, prog_da, csv_dp, csv_da, diff_dp, diff_da = compare_with_csv_path(d, cases)
+    assert csv_dp < 1e-8 and csv_da < 1e-7
+    assert diff_dp < 2e-6 and diff_da < 5e-7
+    assert prog_dp < csv_dp + 2e-6 and prog_da < csv_da + 5e-7
 
 
 def _frames(d):
@@ -269,3 +280,86 @@ def test_bad_program_on_the_command_line_exits_2_and_writes_neither_file(run, tm
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1] == "recal compensate: t.dat, line 2: E6POS XP1: expected component C"
     assert not (tmp_path / "o.src").exists() and not (tmp_path / "o.dat").exists()
+
+
+def test_a_target_out_of_reach_in_its_written_configuration_is_flagged_and_left_as_written(run, tmp_path):
+    """XP1 written with S 0 (the other elbow) and its T: the nominal arm has no solution with
+    both, so the target is not flipped to the one it has (S 2): left as written, flagged."""
+    d, nominal, *_ = run
+    q = Q["XP1"]
+    S, Tb = status_turn(q)
+    assert (S, Tb) == (2, 34)
+    line = e6pos(fk(nominal, np.radians([q]))[0], q).replace(",S 2,", ",S 0,")
+    (tmp_path / "t.src").write_text("DEF t( )\nLIN XP1\nEND\n")
+    dat = "DEFDAT t\nDECL E6POS XP1=" + line + "\nENDDAT\n"
+    (tmp_path / "t.dat").write_text(dat)
+    r = recal(
+        "compensate",
+        "--model",
+        d / "identified.json",
+        "--task",
+        "t.src",
+        "--out",
+        "o.src",
+        "--report",
+        "r.json",
+        cwd=tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    row = json.loads((tmp_path / "r.json").read_text())["points"][0]
+    assert sorted(row["flags"]) == ["branch_change", "unreachable"] and row["compensated"] is None
+    assert row["configuration"] == {"written": {"S": 0, "T": 34}, "solution": {"S": 2, "T": 34}}
+    assert (tmp_path / "o.dat").read_text() == dat
+
+
+def test_inline_ptp_axis_and_circ_auxiliary_and_end_points(run, tmp_path):
+    """Targets written in the moves: a PTP to an axis aggregate, a CIRC through an auxiliary point
+    to an end point (no S and T: the solutions nearest the previous target's, as the controller
+    moves from there). Each is compensated in place; the true robot reaches what each means."""
+    d, nominal, true, *_ = run
+    M = frame_of(true, nominal)
+    q_ptp, q_aux, q_end = [10, -80, 100, 20, 40, -30], [15, -78, 98, 22, 42, -28], [20, -75, 95, 25, 45, -25]
+
+    def inline(q):
+        T = fk(nominal, np.radians([q]))[0]
+        p, a = T[:3, 3] * 1e3, abc(T[:3, :3])
+        return "{X %.3f, Y %.3f, Z %.3f, A %.4f, B %.4f, C %.4f}" % (*p, *a)
+
+    axis = "{A1 %.1f, A2 %.1f, A3 %.1f, A4 %.1f, A5 %.1f, A6 %.1f}" % tuple(q_ptp)
+    src = f"DEF t( )\n; PTP {axis}\nPTP {axis} C_PTP\nCIRC {inline(q_aux)}, {inline(q_end)} C_DIS ; arc\nEND\n"
+    (tmp_path / "t.src").write_text(src)
+    (tmp_path / "t.dat").write_text("DEFDAT t\nENDDAT\n")
+    r = recal("compensate", "--model", d / "identified.json", "--task", "t.src", "--out", "o.src", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("compensated 3 points (KRL): 3 converged"), r.stdout
+    out = (tmp_path / "o.src").read_text()
+    assert skeleton(out.encode()) == skeleton(src.encode()) and out.splitlines()[1] == src.splitlines()[1]
+    old, new = krl.parse(tmp_path / "t.src"), krl.parse(tmp_path / "o.src")
+    assert [(t.kind, t.move, t.line) for t in new.targets] == [
+        ("joints", "PTP", 3),
+        ("pose", "CIRC", 4),
+        ("pose", "CIRC", 4),
+    ]
+    X_d = np.linalg.inv(M) @ fk(nominal, np.radians([q_ptp]))
+    dp, da = pose_error(fk(true, new.targets[0].q[None]), X_d)
+    assert dp[0] < 2e-6 and da[0] < 5e-7
+    for t0, t1, q in zip(old.targets[1:], new.targets[1:], (q_aux, q_end)):
+        X_d = np.linalg.inv(M) @ t0.P[None]
+        dp, da = pose_error(reached(true, nominal, t1.P[None], np.radians([q])), X_d)
+        assert dp[0] < 2e-6 and da[0] < 5e-7
+        before = pose_error(reached(true, nominal, t0.P[None], np.radians([q])), X_d)[0][0]
+        assert before > 2e-4
+
+
+def test_pos_and_axis_declarations_and_status_written_in_binary(tmp_path):
+    """POS and AXIS are read as E6POS and E6AXIS are; S and T written as KRL's bit strings."""
+    (tmp_path / "t.src").write_text("DEF t( )\nPTP XA\nLIN XP1\nEND\n")
+    (tmp_path / "t.dat").write_text(
+        "DEFDAT t\nDECL AXIS XA={A1 0.0,A2 -90.0,A3 90.0,A4 0.0,A5 30.0,A6 0.0}\n"
+        "DECL POS XP1={X 900.0,Y 0.0,Z 1200.0,A 0.0,B 90.0,C 0.0,S 'B010',T 'B100010'}\nENDDAT\n"
+    )
+    prog = krl.parse(tmp_path / "t.src")
+    assert [(t.name, t.kind, t.line) for t in prog.targets] == [("XA", "joints", 2), ("XP1", "pose", 3)]
+    np.testing.assert_allclose(np.degrees(prog.targets[0].q), [0, -90, 90, 0, 30, 0])
+    assert prog.targets[1].config == (2, 34)
+    np.testing.assert_allclose(prog.targets[1].P[:3, 3], [0.9, 0.0, 1.2])

@@ -19,7 +19,7 @@ from calibration.transforms import homogeneous, matrix_to_quat, quat_to_matrix
 from service.files import InputError
 from service.programs import rapid
 
-from .helpers import frame_of, models, numbers, pose_error, reached, recal, skeleton
+from .helpers import compare_with_csv_path, frame_of, models, numbers, pose_error, reached, recal, skeleton
 
 DEG = math.pi / 180
 Q = {  # planned joints (deg): the configurations the program was written for
@@ -187,7 +187,7 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
     old = rapid.parse(d / "prog.mod")
     new = rapid.parse(d / "out.mod")
     assert [t.name for t in old.targets] == [t.name for t in new.targets]
-    errs, before = [], []
+    errs, before, cases = [], [], {}
     for t0, t1 in zip(old.targets, new.targets):
         if t0.kind != "pose":
             continue
@@ -206,10 +206,18 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
         # the same pose through the library call the task CSV's targets mode makes
         csv = compensate_targets(true_t, nom_t, X_d, q_plan, T_nominal_world=M)
         assert csv.residual_m[0] < 1e-9
+        cases.setdefault("tGun" if t0.name else "tool0", (true_t, nom_t, []))[2].append((X_d[0], q_plan[0], W @ t1.P))
     dp = np.array([e[0][0] for e in errs])
     da = np.array([e[1][0] for e in errs])
     assert np.array([b[0][0] for b in before]).min() > 2e-4  # the true robot is 0.2 mm+ off uncompensated
     assert dp.max() < 2e-6 and da.max() < 5e-8
+    # the task CSV's targets mode (`recal compensate --mode targets`) on the same desired poses,
+    # its targets sent to the same controller: the program's targets are the CSV's to the rounding
+    # of the written numbers (3 decimals of mm, 8 of the quaternion), and reach as close
+    prog_dp, prog_da, csv_dp, csv_da, diff_dp, diff_da = compare_with_csv_path(d, cases)
+    assert csv_dp < 1e-8 and csv_da < 1e-7
+    assert diff_dp < 1e-6 and diff_da < 5e-8
+    assert prog_dp < csv_dp + 1e-6 and prog_da < csv_da + 5e-8
 
 
 def test_joint_target_reaches_the_pose_the_nominal_joints_meant(run):
@@ -347,3 +355,91 @@ def test_a_target_used_with_two_tools_is_left_alone_and_reported(tmp_path):
     assert [(u.line, u.reason) for u in prog.uninterpreted] == [
         (3, "robtarget p1 is used with different tools or work objects (lines 5, 6): not compensated")
     ]
+
+
+def test_format_option_and_nominal_option(run, tmp_path):
+    """--format rapid reads a module whatever its extension (without it a .txt is a task CSV);
+    --nominal gives the controller's model to an identified model that does not record it (the
+    same output as the recorded one); without either the program is refused."""
+    import json
+
+    d, *_ = run
+    (tmp_path / "prog.txt").write_bytes((d / "prog.mod").read_bytes())
+    doc = json.loads((d / "identified.json").read_text())
+    doc.pop("identification")
+    (tmp_path / "bare.json").write_text(json.dumps(doc))
+    args = ("--task", "prog.txt", "--out", "out.txt")
+    r = recal("compensate", "--model", d / "identified.json", *args, cwd=tmp_path)
+    assert r.returncode == 2 and not (tmp_path / "out.txt").exists()
+    r = recal("compensate", "--model", "bare.json", "--format", "rapid", *args, cwd=tmp_path)
+    assert r.returncode == 2 and not (tmp_path / "out.txt").exists()
+    assert (
+        r.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "recal compensate: bare.json: a robot program needs the nominal model its controller uses: give --nominal"
+        )
+    )
+    r = recal(
+        "compensate", "--model", "bare.json", "--nominal", d / "nominal.json", "--format", "rapid", *args, cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out.txt").read_bytes() == (d / "out.mod").read_bytes()
+
+
+@pytest.mark.parametrize("suffix", [".mod", ".modx", ".prg"])
+def test_every_declaration_scope_and_module_extension(tmp_path, suffix):
+    """PERS, TASK PERS, LOCAL PERS and LOCAL VAR declarations are targets as CONST ones are, in
+    a .mod, .modx or .prg file."""
+    from service.programs import format_of
+
+    rest = "[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]"
+    p = tmp_path / f"m{suffix}"
+    p.write_text(
+        f"MODULE m\n  PERS robtarget p1:=[[1200,0,1200],[0,0,1,0],[0,0,0,0],{rest}];\n"
+        f"  TASK PERS robtarget p2:=[[1200,100,1200],[0,0,1,0],[0,0,0,0],{rest}];\n"
+        f"  LOCAL PERS jointtarget j1:=[[0,0,0,0,30,0],{rest}];\n"
+        f"  LOCAL VAR robtarget p3:=[[1200,-100,1200],[0,0,1,0],[-1,0,-1,0],{rest}];\n"
+        "  PROC main()\n    MoveAbsJ j1, v100, fine, tool0;\n    MoveJ p1, v100, fine, tool0;\n"
+        "    MoveL p2, v100, fine, tool0;\n    MoveL p3, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n"
+    )
+    assert format_of(p) == "rapid"
+    prog = rapid.parse(p)
+    assert [(t.name, t.kind, t.line) for t in prog.targets] == [
+        ("p1", "pose", 2),
+        ("p2", "pose", 3),
+        ("j1", "joints", 4),
+        ("p3", "pose", 5),
+    ]
+    assert prog.targets[3].config == (-1, 0, -1, 0) and prog.uninterpreted == []
+
+
+@pytest.mark.parametrize(
+    "q, flags",
+    [
+        ([20, 10, -20, 30, 0.2, -40], {"near_singular"}),  # axis 5 at 0.2°: the wrist singularity
+        # axis 1 at -179.99°: the correction takes it past its -180° limit, out of quadrant -2
+        ([-179.99, 10, -20, 30, 50, -40], {"joint_limit", "branch_change"}),
+    ],
+)
+def test_report_rows_flag_near_singular_and_beyond_the_joint_limits(run, tmp_path, q, flags):
+    import json
+
+    d, nominal, *_ = run
+    (tmp_path / "m.mod").write_text(_one_target_module(nominal, q, confdata(q)))
+    r = recal(
+        "compensate",
+        "--model",
+        d / "identified.json",
+        "--task",
+        "m.mod",
+        "--out",
+        "o.mod",
+        "--report",
+        "r.json",
+        cwd=tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    row = json.loads((tmp_path / "r.json").read_text())["points"][0]
+    assert flags <= set(row["flags"]) and row["converged"], row
+    assert row["configuration"]["written"] == confdata(q)

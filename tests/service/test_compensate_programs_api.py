@@ -86,3 +86,49 @@ def test_a_rapid_module_as_the_body_and_a_bad_one(calibrated, tokens):
     assert r.json()["detail"]["message"].startswith(
         "m.mod, line 4: jointtarget (inline): robot axes: expected 6 values"
     )
+
+
+def test_programs_not_in_utf8_come_back_byte_for_byte(calibrated, tokens):
+    """A KRL program written in Windows-1252 (as KUKA's editor writes it) and a RAPID module with
+    a Latin-1 comment: every byte that is not a target's number comes back as it was, the
+    multipart answer with ``"encoding": "iso-8859-1"``, the body with its charset."""
+    client, _, cal = calibrated
+    src = "DEF job( )\n; Greifer geöffnet, 90° gedreht\nPTP XHOME\nEND\n".encode("cp1252")
+    dat = DAT.replace("ENDDAT", "; Übergabe – Lage ±0,5 mm\r\nENDDAT").encode("cp1252")
+    files = [("program", ("job.src", src, "text/plain")), ("dat", ("job.dat", dat, "text/plain"))]
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate", files=files, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    out = r.json()["files"]
+    assert [(f["name"], f["encoding"]) for f in out] == [("job.src", "iso-8859-1"), ("job.dat", "iso-8859-1")]
+    assert out[0]["text"].encode("iso-8859-1") == src
+    out_dat = out[1]["text"].encode("iso-8859-1")
+    assert NUMBER.sub("#", out_dat.decode("iso-8859-1")) == NUMBER.sub("#", dat.decode("iso-8859-1"))
+    assert b"\xdcbergabe \x96 Lage \xb10,5 mm\r\nENDDAT" in out_dat and out_dat != dat
+
+    mod = (
+        "MODULE m\n  ! Schweißnaht, Düse\n  PROC main()\n"
+        "    MoveAbsJ [[10,-80,90,-100,70,20],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, fine, tool0;\n"
+        "  ENDPROC\nENDMODULE\n"
+    ).encode("latin-1")
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=m.mod", content=mod, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "text/plain; charset=iso-8859-1"
+    assert r.content != mod and re.sub(rb"[-\d.]+", b"#", r.content) == re.sub(rb"[-\d.]+", b"#", mod)
+    assert b"! Schwei\xdfnaht, D\xfcse\n" in r.content
+
+
+def test_a_fanuc_tp_program_as_the_body(calibrated, tokens):
+    client, _, cal = calibrated
+    ls = (
+        "/PROG  JOB\r\n/MN\r\n   1:J P[1] 100% FINE    ;\r\n   2:  ! J1= 1.000 deg ;\r\n/POS\r\nP[1]{\r\n   GP1:\r\n"
+        "\tUF : 0, UT : 0,\r\n\tJ1=    10.000 deg,\tJ2=   -80.000 deg,\tJ3=    90.000 deg,\r\n"
+        "\tJ4=  -100.000 deg,\tJ5=    70.000 deg,\tJ6=    20.000 deg\r\n};\r\n/END\r\n"
+    )
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=job.ls", content=ls, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    assert r.text != ls and NUMBER.sub("#", r.text) == NUMBER.sub("#", ls)
+    assert r.text.split("/POS")[0] == ls.split("/POS")[0]  # the comment that looks like a position
+    bad = ls.replace(",\tJ6=    20.000 deg", "")
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=job.ls", content=bad, headers=auth(tokens["job"]))
+    assert r.status_code == 422
+    assert r.json()["detail"]["message"].startswith("job.ls, line ")

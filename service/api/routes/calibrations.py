@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Request
-from fastapi.responses import PlainTextResponse
+from fastapi.responses import PlainTextResponse, Response
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
@@ -60,12 +60,15 @@ async def compensate(
     ``payload``: the task's payload ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the
     model's length unit), which a calibration with joint compliance sags under. A program of
     several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one part
-    per file; the answer is then JSON ``{"files": [{"name", "text"}, ...]}``, the program first.
+    per file; the answer is then JSON ``{"files": [{"name", "text", "encoding"}, ...]}``, the
+    program first. A program that is not UTF-8 (a KRL or RAPID file in Windows-1252) is read as
+    ISO-8859-1, a character per byte, and answered in it: the body with ``charset=iso-8859-1``, a
+    JSON file with ``"encoding": "iso-8859-1"`` (``text.encode("iso-8859-1")`` is the file's bytes).
     The compensation runs in a worker process (service.heavy), which also stores it: the service
     answers every other request meanwhile."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
-    from ...compensate import CompensationInputError, compensate_and_store, read_multipart
+    from ...compensate import CompensationInputError, compensate_and_store, decode_upload, read_multipart
 
     await run_in_threadpool(_exists, request.app.state.engine, calibration_id)  # 404 before any work
     raw = await request.body()
@@ -75,10 +78,12 @@ async def compensate(
         if content_type.lower().startswith("multipart/form-data"):
             files = read_multipart(content_type, raw)
             main = next((f for f in files if not f[0].lower().endswith(".dat")), files[0])
-            name, body = main
-            companions = {n: t for n, t in files if (n, t) != main}
+            name, body, _ = main
+            companions = {n: t for n, t, _ in files if (n, t) != main[:2]}
+            encodings = {n: e for n, _, e in files}
         else:
-            body = raw.decode("utf-8", errors="replace")
+            body, encoding = decode_upload(name, raw)
+            encodings = {name: encoding}
     except CompensationInputError as exc:
         raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
     if not body.strip():
@@ -99,6 +104,7 @@ async def compensate(
             actor=tok.name,
             companions=companions,
             payload=payload,
+            encodings=encodings,
         )
     except CompensationInputError as exc:
         field = "query.payload" if str(exc).startswith("--payload") else "body"
@@ -107,9 +113,16 @@ async def compensate(
         from fastapi.responses import JSONResponse
 
         return JSONResponse(
-            {"files": [{"name": name, "text": output}] + files}, headers={"X-Recal-Compensation": str(rec_id)}
+            {"files": [{"name": name, "text": output, "encoding": encodings[name]}] + files},
+            headers={"X-Recal-Compensation": str(rec_id)},
         )
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
+    if encodings[name] != "utf-8":  # a program that is not UTF-8 comes back as the bytes it was
+        return Response(
+            output.encode(encodings[name]),
+            media_type=f"{media}; charset={encodings[name]}",
+            headers={"X-Recal-Compensation": str(rec_id)},
+        )
     return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec_id)})
 
 

@@ -44,7 +44,8 @@ function describe(detail) {
   return JSON.stringify(detail);
 }
 
-// A request to /api/v1 + path. `body`: an object (sent as JSON) or a string (sent as text).
+// A request to /api/v1 + path. `body`: an object (sent as JSON), a string (sent as text), a
+// FormData (multipart) or a Blob/File (its bytes).
 // Returns the parsed JSON, or {text, headers} for other answers; raises ApiError.
 export async function api(method, path, body, { raw = false, token = null } = {}) {
   const headers = { Authorization: `Bearer ${token || getToken()}` };
@@ -54,6 +55,9 @@ export async function api(method, path, body, { raw = false, token = null } = {}
     data = body;
   } else if (body instanceof FormData) {
     data = body; // the browser writes the multipart Content-Type with its boundary
+  } else if (body instanceof Blob) {
+    headers["Content-Type"] = "text/plain"; // no charset: the file's bytes as they are (a program need not be UTF-8)
+    data = body;
   } else if (body !== undefined) {
     headers["Content-Type"] = "application/json";
     data = JSON.stringify(body);

@@ -304,7 +304,7 @@ function compensationCard(id, r) {
   go.addEventListener("click", () => busy(go, async () => {
     const chosen = [...file.files];
     if (!chosen.length) throw new Error("choose a task file (CSV) or a robot program first");
-    let name, text, extras = [], compId;
+    let name, text, encoding, extras = [], compId;
     const query = `mode=${mode.value}`
       + (payload && payload.value.trim() ? `&payload=${encodeURIComponent(payload.value.replace(/\s+/g, ""))}` : "");
     if (chosen.length > 1) {
@@ -314,21 +314,30 @@ function compensationCard(id, r) {
       const resp = await api("POST", `/calibrations/${id}/compensate?${query}`, form, { raw: true });
       compId = resp.headers.get("x-recal-compensation");
       const files = (await resp.json()).files || [];
-      ({ name, text } = files[0]);
+      ({ name, text, encoding } = files[0]);
       extras = files.slice(1);
     } else {
       const f = chosen[0];
       name = f.name;
       if (name.toLowerCase().endsWith(".src")) throw new Error("a KUKA program needs its .src and its .dat: choose both");
-      const resp = await api("POST", `/calibrations/${id}/compensate?${query}&name=${encodeURIComponent(name)}`, await f.text());
-      compId = resp.headers.get("x-recal-compensation");
-      text = resp.text;
+      const path = `/calibrations/${id}/compensate?${query}&name=${encodeURIComponent(name)}`;
+      if (name.toLowerCase().endsWith(".csv")) { // a task CSV is UTF-8 text (contracts §5)
+        const resp = await api("POST", path, await f.text());
+        compId = resp.headers.get("x-recal-compensation");
+        text = resp.text;
+      } else {
+        // a program as its bytes, not f.text(): one in Windows-1252 (KUKA, ABB) comes back byte for byte
+        const resp = await api("POST", path, f, { raw: true });
+        compId = resp.headers.get("x-recal-compensation");
+        encoding = /charset=iso-8859-1/i.test(resp.headers.get("content-type") || "") ? "iso-8859-1" : "utf-8";
+        text = bytesAsText(new Uint8Array(await resp.arrayBuffer()), encoding);
+      }
     }
     let report = {};
     if (compId) {
       try { report = (await get(`/compensations/${compId}/report`)).report || {}; } catch (_) { /* shown without */ }
     }
-    showCompensation(box, name, text, report, r.units.length, extras);
+    showCompensation(box, name, text, report, r.units.length, extras, encoding);
   }));
   return card("Compensate a program",
     h("p", {}, "Upload a task file (CSV with x, y, z, qw, qx, qy, qz and/or q1…qN) or a robot program: URScript, "
@@ -345,22 +354,36 @@ function compensationCard(id, r) {
     box);
 }
 
+// A compensated file as the route sent it: UTF-8 text, or ISO-8859-1 (a program that was not
+// UTF-8), one character per byte. The text keeps a character per byte; the blob is the bytes.
+function bytesAsText(bytes, encoding) {
+  if (encoding !== "iso-8859-1") return new TextDecoder("utf-8").decode(bytes);
+  let s = "";
+  for (let i = 0; i < bytes.length; i += 8192) s += String.fromCharCode(...bytes.subarray(i, i + 8192));
+  return s;
+}
+
+function fileBlob(text, encoding) {
+  if (encoding !== "iso-8859-1") return new Blob([text], { type: "text/plain" });
+  return new Blob([Uint8Array.from(text, (c) => c.charCodeAt(0))], { type: "text/plain" });
+}
+
 function compensatedName(name) {
   const dot = name.lastIndexOf(".");
   return dot > 0 ? `${name.slice(0, dot)}-compensated${name.slice(dot)}` : `${name}-compensated`;
 }
 
-function showCompensation(box, name, text, report, unit, extras = []) {
+function showCompensation(box, name, text, report, unit, extras = [], encoding = "utf-8") {
   const points = report.points || [];
   const summary = report.summary || {};
   const angle = report.units?.angle || "deg";
   const flagged = points.filter((p) => (p.flags || []).length || p.converged === false);
   const save = h("button", { class: "primary", id: "download-compensated" }, `Download ${compensatedName(name)}`);
-  save.addEventListener("click", () => saveBlob(new Blob([text], { type: "text/plain" }), compensatedName(name)));
+  save.addEventListener("click", () => saveBlob(fileBlob(text, encoding), compensatedName(name)));
   // a program's other files (KRL's .dat): saved under the same stem, so the .src still finds its .dat
   const saveExtras = extras.map((f, i) => {
     const b = h("button", { id: `download-compensated-${i + 1}` }, `Download ${compensatedName(f.name)}`);
-    b.addEventListener("click", () => saveBlob(new Blob([f.text], { type: "text/plain" }), compensatedName(f.name)));
+    b.addEventListener("click", () => saveBlob(fileBlob(f.text, f.encoding), compensatedName(f.name)));
     return b;
   });
   const maxAbs = (a) => (Array.isArray(a) && a.length ? Math.max(...a.map((v) => Math.abs(v ?? 0))) : null);
