@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yourdfpy
-from urdf_check import assert_urdf_is_predict
+from urdf_check import assert_urdf_is_predict, predict
 
 from calibration import robots
 from calibration.kinematics import fk
@@ -327,10 +327,15 @@ def test_export_without_a_velocity_limit_fails_in_one_line(tmp_path, capsys):
 # --------------------------------------------------------------------------- URDF import
 
 
-@pytest.mark.parametrize("name", ARMS + UR)
+def test_the_tests_cover_the_whole_library():
+    assert set(ARMS + UR + ["puma560", "puma560-zrp"]) == set(robots.names())
+
+
+@pytest.mark.parametrize("name", robots.names())
 def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     """export -> recal model --from-urdf -> the same forward kinematics (readings: the URDF's joint
-    positions; the coupling of the Fanuc arms is not in a URDF)."""
+    positions; the coupling of the Fanuc arms is not in a URDF). Every robot `recal model` lists,
+    the book's PUMA 560 (inches, a base before joint 1) too."""
     urdf, back = tmp_path / "a.urdf", tmp_path / "back.json"
     assert (
         recal(["export", "--model", name, "--format", "urdf", "--out", str(urdf), "--velocity", "1", "--effort", "1"])
@@ -341,8 +346,10 @@ def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     model = robots.nominal(name)
     # dh where the chain starts on the base link and ends on the tip exactly (poe for the KUKA KR arms,
     # whose joint 1 turns about -z or sits off the base link's z axis), as the library
-    assert doc["convention"] == model.convention and "URDF" in doc["source"]
-    assert doc["base"] == [0.0] * 6 and doc["tool"] == [0.0] * 6
+    assert "URDF" in doc["source"]
+    if name in ARMS + UR:  # (the PUMA's base stands off joint 1's axis: poe, the base folded in)
+        assert doc["convention"] == model.convention
+        assert doc["base"] == [0.0] * 6 and doc["tool"] == [0.0] * 6
     assert [j["name"] for j in doc["joints"]][-1] == ("wrist_3_joint" if name in UR else model.joints[-1].name)
     # readings that are inside the limits both as the controller reports them and, for the coupled
     # Fanuc arms, as the URDF's serial joint positions (recal refuses readings beyond the limits)
@@ -353,7 +360,7 @@ def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     q, q_serial = q[inside][:20], q_serial[inside][:20]
     assert len(q) == 20
     np.testing.assert_allclose(
-        _predict(tmp_path, str(back), np.rad2deg(q_serial)), _predict(tmp_path, name, np.rad2deg(q)), atol=1e-9
+        predict(tmp_path, back, np.rad2deg(q_serial)), predict(tmp_path, name, np.rad2deg(q)), atol=1e-9
     )
     np.testing.assert_allclose([j["lower"] for j in doc["joints"]], np.rad2deg(model.joint_limits[:, 0]), atol=1e-9)
 
