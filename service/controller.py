@@ -11,6 +11,7 @@ and returns a ``recal.model/1`` document with a ``controller`` block of check fi
 
 from __future__ import annotations
 
+import dataclasses
 from datetime import datetime, timezone
 
 import numpy as np
@@ -230,13 +231,31 @@ def _read_again(run, cell, robot, stored) -> tuple[dict, dict | None]:
     return info, doc
 
 
-def _check_registers(robot, stored) -> dict:
-    """Over Modbus: the stored model at the joints now against UR's TCP-pose registers. The
-    tolerance is the registers' resolution (``MODBUS_*_TOL``, about twice it) plus what the
-    joint readings' own resolution moves the flange (``J · resolution / 2``, summed over the
-    joints): tight with the motion program's microradian joints (``UR_REGISTER_MAP_HIRES``),
-    about a millimetre with UR's milliradian joint registers."""
+def _joint_step_rad(robot) -> float:
+    """The resolution of the Modbus driver's joint readings (rad): 1 urad from the motion
+    program's registers (``UR_REGISTER_MAP_HIRES``), else UR's 1 mrad angle registers."""
+    m = robot.map
+    return 1e-6 if m.joint_urad is not None else m.joint_angle_scale
+
+
+def register_tolerances(model: KinematicModel, q: np.ndarray, joint_step_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """How far (position m, rotation rad; each (N,)) UR's TCP-pose registers may lie from an
+    exact model of the controller at readings ``q`` (N, 6): the registers' resolution
+    (``MODBUS_*_TOL``, about twice it) plus what the joint readings' own resolution moves the
+    flange (``J · resolution / 2``, summed over the joints): tight with the motion program's
+    microradian joints, about a millimetre with UR's milliradian joint registers."""
     from calibration.ik import geometric_jacobian
+
+    J = geometric_jacobian(model, np.atleast_2d(q))
+    half_step = 0.5 * joint_step_rad
+    tol_p = MODBUS_POSITION_TOL_M + half_step * np.sum(np.linalg.norm(J[:, :3], axis=1), axis=1)
+    tol_r = MODBUS_ROTATION_TOL_RAD + half_step * np.sum(np.linalg.norm(J[:, 3:], axis=1), axis=1)
+    return tol_p, tol_r
+
+
+def _check_registers(robot, stored) -> dict:
+    """Over Modbus: the stored model at the joints now against UR's TCP-pose registers, within
+    :func:`register_tolerances`."""
     from calibration.kinematics import fk
     from calibration.model import model_from_dict
 
@@ -246,11 +265,7 @@ def _check_registers(robot, stored) -> dict:
     T_model = fk(model, q[None, :])[0]
     dp = float(np.linalg.norm(T_model[:3, 3] - T_registers[:3, 3]))
     dr = float(np.linalg.norm(matrix_to_rotvec(T_model[:3, :3].T @ T_registers[:3, :3])))
-    m = robot.map
-    half_step = 0.5 * (1e-6 if m.joint_urad is not None else m.joint_angle_scale)
-    J = geometric_jacobian(model, q[None, :])[0]
-    tol_p = MODBUS_POSITION_TOL_M + half_step * float(np.sum(np.linalg.norm(J[:3], axis=0)))
-    tol_r = MODBUS_ROTATION_TOL_RAD + half_step * float(np.sum(np.linalg.norm(J[3:], axis=0)))
+    tol_p, tol_r = (float(t[0]) for t in register_tolerances(model, q, _joint_step_rad(robot)))
     info = {
         "version": stored.version,
         "changed": None,
@@ -266,6 +281,154 @@ def _check_registers(robot, stored) -> dict:
             f"{tol_p * 1e3:.2g} mm): the controller's kinematics (or its TCP offset) changed; read it "
             f"again: recal controller-model --rtde HOST"
         )
+    return info
+
+
+# ----------------------------------------------------------- over Modbus: the TCP-pose registers
+
+# Over Modbus the controller answers no forward-kinematics query: its own kinematics shows only
+# where the robot stands, in UR's TCP-pose registers (0.1 mm, 1 mrad). A session reads them at
+# every configuration it measures, and fits the controller's model from them (the same fit as
+# over RTDE) when the cell has none yet or the stored one no longer agrees with them. Not exact:
+# on the simulated UR10e, 30 configurations give the controller to about 30 um RMS with the
+# motion program's microradian joints and 0.2 mm with UR's milliradian ones (the published
+# table: 4 mm).
+REGISTER_MIN_POSES = 12  # 72 equations for the fit's 30 parameters
+# The registers resolve 0.1 mm and 1 mrad: rotation residuals weigh as position ones at 0.1 m.
+REGISTER_LENGTH_SCALE_M = 0.1
+# The registers give the TCP, and the fit's flange frame would take in a TCP offset unnoticed. A
+# factory calibration moves the flange by millimetres from the published table; a fit further
+# off than this is refused as a TCP offset that is not zero (a smaller one is not seen: the TCP
+# must be the flange while the session runs, as the docs say).
+REGISTER_MAX_FROM_PUBLISHED_M = 0.02
+
+
+def register_sampler(cell, robot):
+    """Over Modbus, on a cell whose robot has UR's TCP-pose registers and a six-revolute-joint
+    nominal model: the function that reads them (``T_base_tcp`` (4, 4)) where the session's robot
+    stands; ``None`` otherwise (over RTDE the model is read at the session's start)."""
+    if hasattr(robot, "forward_kinematics") or not hasattr(robot, "read_tcp_pose"):
+        return None
+    if getattr(getattr(robot, "map", None), "tcp_pose", None) is None:
+        return None
+    joints = (cell.model or {}).get("joints") or []
+    if len(joints) != 6 or any(j.get("type", "revolute") != "revolute" for j in joints):
+        return None
+    return robot.read_tcp_pose
+
+
+def model_from_registers(
+    q: np.ndarray, T_registers: np.ndarray, reference: KinematicModel, *, source: str, joint_step_rad: float
+) -> dict:
+    """The controller's model fitted to its TCP-pose registers ``T_registers`` (N, 4, 4) read at
+    readings ``q`` (N, 6) rad, as a ``recal.model/1`` document with a ``controller`` block (its
+    figures are the residuals to the registers). ``ControllerModelError`` when there are fewer
+    than ``REGISTER_MIN_POSES`` or a register lies beyond :func:`register_tolerances` of the fit
+    (the controller's TCP offset is not zero, or it is no serial chain of this robot)."""
+    q, T_registers = np.asarray(q, dtype=float), np.asarray(T_registers, dtype=float)
+    if len(q) < REGISTER_MIN_POSES:
+        raise ControllerModelError(
+            f"{source}: {len(q)} configurations with TCP-pose registers, at least {REGISTER_MIN_POSES} needed"
+        )
+    fit = fit_controller_model(q, T_registers, reference, length_scale_m=REGISTER_LENGTH_SCALE_M)
+    dp, dr = pose_differences(fit.model, q, T_registers)
+    tol_p, tol_r = register_tolerances(fit.model, q, joint_step_rad)
+    worst = int(np.argmax(np.maximum(dp / tol_p, dr / tol_r)))
+    robot = reference.name.removesuffix("-nominal")
+    if dp[worst] > tol_p[worst] or dr[worst] > tol_r[worst]:
+        raise ControllerModelError(
+            f"{source}: the TCP-pose registers lie {dp[worst] * 1e3:.3g} mm and {np.rad2deg(dr[worst]):.3g} deg from "
+            f"the best serial chain (tolerance {tol_p[worst] * 1e3:.2g} mm): they do not belong to the joints read "
+            f"with them, or the controller is no {robot}; nothing stored"
+        )
+    published = dataclasses.replace(reference, base=np.zeros(6), tool=np.zeros(6), targets={})
+    off = models_differ(model_to_dict(published), model_to_dict(fit.model), tolerance_m=REGISTER_MAX_FROM_PUBLISHED_M)
+    if off is not None:
+        raise ControllerModelError(
+            f"{source}: the TCP-pose registers are up to {off * 1e3:.3g} mm from the published {robot} table (a "
+            f"factory calibration moves it millimetres): the controller's TCP offset is not zero (set it to the "
+            f"flange for the session), or it is no {robot}; nothing stored"
+        )
+    doc = model_to_dict(fit.model)
+    figures = {
+        "position_rms_um": float(np.sqrt(np.mean(dp**2))) * 1e6,
+        "position_max_um": float(dp.max()) * 1e6,
+        "rotation_max_urad": float(dr.max()) * 1e6,
+    }
+    doc[BLOCK] = {
+        "source": source,
+        "method": "UR TCP-pose registers 400-405 over Modbus (0.1 mm, 1 mrad) at the configurations a "
+        f"session measured, joints read to {joint_step_rad * 1e6:g} urad; fitted, not exact",
+        "reference": reference.name,
+        "read_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "poses_fit": len(q),
+        "poses_check": 0,
+        "tolerance_um": float(tol_p.max()) * 1e6,
+        "fit": figures,
+        "check": figures,  # the registers are all there is to check against
+    }
+    return doc
+
+
+def learn_from_registers(db, run, cell, robot, samples: list[tuple[np.ndarray, np.ndarray]]) -> dict | None:
+    """After a session measured over Modbus: fit the controller's model from the TCP-pose
+    registers read at its configurations (``samples``: (q, T_base_tcp) pairs) and store it as a
+    new version when the cell has none, or when the check at the session's start found the
+    stored one disagreeing with the registers (then the audit log gets "controller model
+    changed"). An exact model read over RTDE that agrees is kept. ``run.plan_info``'s
+    ``controller_model`` says what happened; never raises for the controller's sake."""
+    from calibration.model import model_from_dict
+
+    from .store import add_controller_model, audit, current_controller_model
+
+    if not samples:
+        return None
+    stored = current_controller_model(db, cell.id)
+    at_start = (run.plan_info or {}).get("controller_model") or {}
+    if stored is not None and not at_start.get("changed"):
+        return None
+    q = np.array([s[0] for s in samples])
+    T = np.array([s[1] for s in samples])
+    try:
+        doc = model_from_registers(
+            q,
+            T,
+            model_from_dict(cell.model),
+            source=f"session {run.id} (TCP-pose registers)",
+            joint_step_rad=_joint_step_rad(robot),
+        )
+    except (ControllerModelError, ValueError) as exc:
+        info = {
+            **at_start,
+            "version": None if stored is None else stored.version,
+            "warning": " ".join(
+                w for w in (at_start.get("warning"), f"no model fitted from the registers: {exc}") if w
+            ),
+        }
+    else:
+        moved = models_differ(None if stored is None else stored.model, doc)
+        rec = add_controller_model(db, cell_id=cell.id, model=doc, session_id=run.id, moved_m=moved)
+        info = {
+            **at_start,
+            "version": rec.version,
+            "changed": stored is not None,
+            "warning": at_start.get("warning"),
+            "moved_mm": None if moved is None else moved * 1e3,
+            "from_registers": True,
+            "registers_rms_um": doc[BLOCK]["fit"]["position_rms_um"],
+        }
+        if stored is not None:
+            audit(
+                db,
+                actor=f"session {run.id}",
+                action="controller model changed",
+                subject=f"cell {cell.id}",
+                detail={"version": rec.version, "moved_mm": info["moved_mm"], "from_registers": True},
+            )
+    run.plan_info = {**(run.plan_info or {}), "controller_model": info}
+    db.add(run)
+    db.commit()
+    db.refresh(run)
     return info
 
 
@@ -289,6 +452,8 @@ def controller_summary(db, cell) -> dict | None:
         "read_at": block.get("read_at"),
         "session_id": rec.session_id,
         "check_um": (block.get("check") or {}).get("position_max_um"),
+        # fitted to UR's TCP-pose registers over Modbus (check_um: to them), not read exactly over RTDE
+        "from_registers": "TCP-pose registers" in str(block.get("method", "")),
         "moved_mm": None if rec.moved_m is None else rec.moved_m * 1e3,
         "created_at": rec.created_at.isoformat(),
     }

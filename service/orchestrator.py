@@ -235,7 +235,9 @@ def run_session(
         try:
             # a UR cell: the controller's own kinematics, read again (docs/devices/ur.md)
             controller.refresh_on_session_start(db, run, cell, devices.robot)
-            _measure_all(db, run, cell, devices, settings, control, owner)
+            tcp_registers = _measure_all(db, run, cell, devices, settings, control, owner)
+            # over Modbus: the controller's own kinematics from UR's TCP-pose registers at those poses
+            controller.learn_from_registers(db, run, cell, devices.robot, tcp_registers)
             control.begin_finishing()  # from here on an abort no longer stops it (Control)
             with heavy_slot(control, stoppable=False):  # every pose is measured: identify them
                 finish_session(db, run, cell, settings)
@@ -320,8 +322,13 @@ def _end(
 
 def _measure_all(
     db: Session, run: RunSession, cell: Cell, devices: CellDevices, settings: Settings, control: Control, owner: str
-) -> None:
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Move to and measure every configuration of the plan not measured yet. Returns, over
+    Modbus on a UR cell, the controller's TCP-pose registers where the robot stood: (q, T_base_tcp)
+    pairs (``controller.register_sampler``), else an empty list."""
     model = model_from_dict(cell.model)
+    read_tcp = controller.register_sampler(cell, devices.robot)
+    tcp_registers: list[tuple[np.ndarray, np.ndarray]] = []
     plan = np.asarray(run.plan, dtype=float)
     approach = approach_configurations(model, cell.allowed_region, plan) if _repeats(run) > 1 else None
     swept = (run.plan_info or {}).get("swept_joint") or [0] * len(plan)
@@ -358,6 +365,11 @@ def _measure_all(
         if settings.settle_s > 0:
             time.sleep(settings.settle_s)
         q_read = retry(devices.robot.read_joints, "read joints", settings, control)
+        if read_tcp is not None:
+            try:  # standing still: the registers belong to these joints
+                tcp_registers.append((np.asarray(q_read, dtype=float), read_tcp()))
+            except (DeviceError, ValueError, OSError):
+                pass  # only the controller model's fit misses this configuration, not the session
         rows = kind.measure_one(step, seq, q_read, int(swept[seq]))
         following = todo[k + 1] if k + 1 < len(todo) else None
         if control.abort.is_set():  # aborted while it measured: the pose is kept, the robot goes no further
@@ -375,6 +387,7 @@ def _measure_all(
         commit_measurements(db, rows, settings, control, run=run, device_state=state)
         if seq % 10 == 0 and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
             raise SessionStopped("interrupted", "another process holds this cell now; resume the session to continue")
+    return tcp_registers
 
 
 def _set_payload(devices: CellDevices, model, payload: np.ndarray, settings: Settings, control: Control) -> None:

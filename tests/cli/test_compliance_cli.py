@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from urdf_check import assert_urdf_is_predict, in_file_units
 
 from calibration import robots
 from calibration.kinematics import target_positions
@@ -179,6 +180,14 @@ def test_export_urdf_says_compliance_is_left_out(cell, auto):
     warn = [line for line in proc.stderr.splitlines() if "compliance" in line]
     assert len(warn) == 1 and "rigid part" in warn[0]
     assert (cell.dir / "id.urdf").read_text().count("<joint ") >= 6
+    # the rigid part: recal predict of the identified model without its compliance section
+    doc = json.loads((cell.dir / "id.json").read_text())
+    assert doc.pop("compliance")
+    (cell.dir / "id-rigid.json").write_text(json.dumps(doc))
+    q = in_file_units(
+        cell.dir / "id.json", random_configurations(load_model(cell.dir / "id.json"), 10, np.random.default_rng(9))
+    )
+    assert_urdf_is_predict(cell.dir / "id.urdf", cell.dir / "id-rigid.json", q, cell.dir, names="ur")
 
 
 @pytest.mark.parametrize(

@@ -104,6 +104,30 @@ def test_controller_model_reproduces_the_controllers_forward_kinematics_to_a_mic
         assert np.linalg.norm(matrix_to_rotvec(Ti[:3, :3].T @ expected[:3, :3])) < 1e-6
 
 
+def actual_q(host: str) -> list[float]:
+    """The controller's ``actual_q`` now (unmodified ur_rtde receive interface, child process)."""
+    script = textwrap.dedent(f"""
+        import json, rtde_receive
+        r = rtde_receive.RTDEReceiveInterface({host!r})
+        t = r.getTimestamp()
+        while r.getTimestamp() < t + 0.01:  # a data package sampled after this call began
+            pass
+        print(json.dumps(list(r.getActualQ())))
+        r.disconnect()
+        """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_reading_the_controllers_model_moves_nothing(cell, tmp_path):
+    """96 getForwardKinematics queries over ±180 deg: the arm stays where it stands."""
+    before = actual_q(cell)
+    done = recal("controller-model", "--rtde", cell, "--out", tmp_path / "c.json", "--seed", "3", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert actual_q(cell) == before
+
+
 def test_a_fit_that_does_not_reproduce_the_controller_is_refused_without_a_file(cell, tmp_path):
     done = recal("controller-model", "--rtde", cell, "--out", tmp_path / "c.json", "--tolerance", "1e-9", cwd=tmp_path)
     assert done.returncode == 2

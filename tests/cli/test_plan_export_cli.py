@@ -11,6 +11,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
+from urdf_check import assert_urdf_is_predict, in_file_units
 
 from calibration import robots
 from calibration.kinematics import fk
@@ -271,6 +272,8 @@ def test_export_urdf_dh_csv_and_markdown(cell, tmp_path, capsys):
     ]
     assert root.find("joint[@name='base_joint']/origin").get("xyz") == "2.5 0 0"
     assert all(float(lim.get("velocity")) > 0 and float(lim.get("effort")) > 0 for lim in root.iter("limit"))
+    q = in_file_units(model, random_configurations(load_model(model), 10, np.random.default_rng(4)))
+    assert_urdf_is_predict(urdf, model, q, tmp_path, names="ur")  # yourdfpy: tcp, tool0 and target_smr
     assert recal(["export", "--model", str(model), "--format", "dh-csv", "--out", str(dhcsv)]) == 0
     rows = _rows(dhcsv)
     assert [r["joint"] for r in rows] == [f"j{i}" for i in range(1, 7)] and float(rows[1]["a"]) == pytest.approx(-612.7)

@@ -11,12 +11,15 @@ public descriptions' numbers (the zero pose of each arm's tool0), worked out by 
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yourdfpy
+from urdf_check import assert_urdf_is_predict, predict
 
 from calibration import robots
 from calibration.kinematics import fk
@@ -202,6 +205,42 @@ def test_exported_urdf_parses_with_yourdfpy_and_matches_predict(name, tmp_path, 
     np.testing.assert_allclose(T_base, np.eye(4), atol=1e-12)
 
 
+def _sample_models():
+    """tests/calibration/sample_models.py: one model document per convention and feature."""
+    path = Path(__file__).resolve().parents[1] / "calibration" / "sample_models.py"
+    spec = importlib.util.spec_from_file_location("sample_models_for_urdf", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+SAMPLES = _sample_models()
+CONVENTION_DOCS = SAMPLES.all_convention_docs()
+# gains and harmonics have no URDF form (the export says so, tests/calibration/test_export.py)
+URDF_EXACT = [k for k, d in CONVENTION_DOCS.items() if not any("gain" in j or "harmonic" in j for j in d["joints"])]
+
+
+def test_the_sample_documents_cover_every_convention():
+    assert {d["convention"] for k, d in CONVENTION_DOCS.items() if k in URDF_EXACT} == {"dh", "mdh", "poe"}
+    assert any(j.get("beta") is not None for j in CONVENTION_DOCS["dh_hayati"]["joints"])  # Hayati's form
+
+
+@pytest.mark.parametrize("names", ["auto", "ros", "recal"])
+@pytest.mark.parametrize("doc_id", URDF_EXACT)
+def test_every_convention_exports_a_urdf_yourdfpy_reads_as_predict(doc_id, names, tmp_path):
+    """dh, mdh (Craig), poe, Hayati's beta, prismatic joints, the Fanuc coupling, base, tool and
+    targets, in inches or millimetres: each exported URDF, under each naming scheme, is
+    ``recal predict`` to a nanometre in yourdfpy."""
+    doc = CONVENTION_DOCS[doc_id]
+    path, urdf = tmp_path / f"{doc_id}.json", tmp_path / f"{doc_id}.urdf"
+    path.write_text(json.dumps(doc))
+    argv = ["export", "--model", str(path), "--format", "urdf", "--out", str(urdf), "--names", names]
+    assert recal([*argv, "--velocity", "1.5", "--effort", "80", "--prefix", "c_"]) == 0
+    scheme = {"auto": "ur" if robots.is_ur(doc["name"]) else "ros"}.get(names, names)
+    q = SAMPLES.random_readings(doc, 12, np.random.default_rng(21))
+    assert_urdf_is_predict(urdf, path, q, tmp_path, names=scheme, prefix="c_")
+
+
 def test_export_of_an_identified_ur_keeps_ur_names_tool_and_targets(tmp_path):
     """An identified UR model (every axis moved, poe form, with base, tool and a target) exports with
     UR's names, and yourdfpy's tcp and target frames are recal predict's."""
@@ -282,15 +321,21 @@ def test_export_without_a_velocity_limit_fails_in_one_line(tmp_path, capsys):
     assert [j.get("name") for j in root.findall("joint") if j.get("type") == "revolute"] == [
         f"j{i}" for i in range(1, 7)
     ]
+    assert_urdf_is_predict(out, "puma560", np.rad2deg(_readings("puma560", 10, 3)), tmp_path, names="recal")
 
 
 # --------------------------------------------------------------------------- URDF import
 
 
-@pytest.mark.parametrize("name", ARMS + UR)
+def test_the_tests_cover_the_whole_library():
+    assert set(ARMS + UR + ["puma560", "puma560-zrp"]) == set(robots.names())
+
+
+@pytest.mark.parametrize("name", robots.names())
 def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     """export -> recal model --from-urdf -> the same forward kinematics (readings: the URDF's joint
-    positions; the coupling of the Fanuc arms is not in a URDF)."""
+    positions; the coupling of the Fanuc arms is not in a URDF). Every robot `recal model` lists,
+    the book's PUMA 560 (inches, a base before joint 1) too."""
     urdf, back = tmp_path / "a.urdf", tmp_path / "back.json"
     assert (
         recal(["export", "--model", name, "--format", "urdf", "--out", str(urdf), "--velocity", "1", "--effort", "1"])
@@ -301,8 +346,10 @@ def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     model = robots.nominal(name)
     # dh where the chain starts on the base link and ends on the tip exactly (poe for the KUKA KR arms,
     # whose joint 1 turns about -z or sits off the base link's z axis), as the library
-    assert doc["convention"] == model.convention and "URDF" in doc["source"]
-    assert doc["base"] == [0.0] * 6 and doc["tool"] == [0.0] * 6
+    assert "URDF" in doc["source"]
+    if name in ARMS + UR:  # (the PUMA's base stands off joint 1's axis: poe, the base folded in)
+        assert doc["convention"] == model.convention
+        assert doc["base"] == [0.0] * 6 and doc["tool"] == [0.0] * 6
     assert [j["name"] for j in doc["joints"]][-1] == ("wrist_3_joint" if name in UR else model.joints[-1].name)
     # readings that are inside the limits both as the controller reports them and, for the coupled
     # Fanuc arms, as the URDF's serial joint positions (recal refuses readings beyond the limits)
@@ -313,7 +360,7 @@ def test_urdf_import_round_trips_every_library_arm(name, tmp_path):
     q, q_serial = q[inside][:20], q_serial[inside][:20]
     assert len(q) == 20
     np.testing.assert_allclose(
-        _predict(tmp_path, str(back), np.rad2deg(q_serial)), _predict(tmp_path, name, np.rad2deg(q)), atol=1e-9
+        predict(tmp_path, back, np.rad2deg(q_serial)), predict(tmp_path, name, np.rad2deg(q)), atol=1e-9
     )
     np.testing.assert_allclose([j["lower"] for j in doc["joints"]], np.rad2deg(model.joint_limits[:, 0]), atol=1e-9)
 
@@ -465,6 +512,7 @@ def test_velocity_and_effort_in_the_model_file(tmp_path, capsys):
     robot = yourdfpy.URDF.load(str(urdf), load_meshes=False, build_scene_graph=True)
     assert robot.joint_map["shoulder_pan_joint"].limit.velocity == pytest.approx(np.pi / 2)
     assert robot.joint_map["shoulder_pan_joint"].limit.effort == 150.0
+    assert_urdf_is_predict(urdf, path, np.rad2deg(_readings("ur5e", 10, 6)), tmp_path, names="ur")
     doc["joints"][2]["effort"] = -5
     path.write_text(json.dumps(doc))
     out = tmp_path / "p.csv"

@@ -9,11 +9,11 @@ import os
 
 import numpy as np
 import pytest
-from sqlmodel import Session
+from sqlmodel import Session, select
 
 from calibration.controller import fit_controller_model
 from calibration.kinematics import fk
-from calibration.model import model_to_dict
+from calibration.model import model_from_dict, model_to_dict
 from calibration.robots import nominal
 from drivers.modbus_robot import UR_REGISTER_MAP_HIRES, ModbusRobot, ModbusRobotConfig
 from fakes.modbus_server import ModbusRobotFake
@@ -21,7 +21,7 @@ from fakes.world import SimCell, draw_factory_calibration
 from service.compensate import compensate_text
 from service.controller import refresh_on_session_start
 from service.models import Cell, RunSession
-from service.store import add_controller_model, make_engine
+from service.store import add_controller_model, current_controller_model, make_engine
 
 from .conftest import auth, register_cell
 
@@ -145,3 +145,65 @@ def test_over_modbus_a_session_checks_the_stored_model_against_the_tcp_registers
         else:  # within the registers' resolution (0.1 mm, 1 mrad)
             assert info["warning"] is None and info["tcp_registers_mm"] < 0.1 and info["tolerance_mm"] < 0.25
     engine.dispose()
+
+
+def test_over_modbus_a_changed_controller_is_fitted_again_from_the_tcp_registers(settings, tokens, modbus_controller):
+    """The stored model (the published table) disagrees with the TCP-pose registers at the
+    session's start; the registers read at the session's configurations (microradian joints) give
+    a new version, within tens of micrometres of what the controller computes there, and the audit
+    log says the model changed."""
+    from calibration.robots import nominal_document
+    from service.controller import learn_from_registers
+    from service.models import AuditEntry
+
+    engine = make_engine(settings.effective_database_url)
+    robot = modbus_controller
+    with Session(engine) as db:
+        cell = Cell(name="m", model=nominal_document("ur10e"), devices={})
+        db.add(cell)
+        db.commit()
+        run = RunSession(cell_id=cell.id, kind="pose")
+        db.add(run)
+        db.commit()
+        add_controller_model(db, cell_id=cell.id, model={**nominal_document("ur10e"), "controller": {}})
+        assert refresh_on_session_start(db, run, cell, robot)["changed"] is True
+        q_plan = np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.2]) + np.random.default_rng(6).uniform(-0.8, 0.8, (20, 6))
+        samples = []
+        for q in q_plan:  # what the orchestrator reads where the robot stands
+            robot.move_joints(q, speed_rad_s=1.0, accel_rad_s2=2.0)
+            samples.append((robot.read_joints(), robot.read_tcp_pose()))
+        info = learn_from_registers(db, run, cell, robot, samples)
+        assert info["version"] == 2 and info["changed"] is True and info["from_registers"] is True, info
+        assert "TCP-pose registers disagree" in info["warning"] and info["moved_mm"] > 1.0
+        stored = current_controller_model(db, cell.id)
+        assert stored.version == 2 and stored.session_id == run.id
+        assert db.exec(select(AuditEntry).where(AuditEntry.action == "controller model changed")).first() is not None
+        # what the controller computes near the session's configurations
+        q = q_plan[:, None, :] + np.random.default_rng(7).uniform(-0.05, 0.05, (20, 5, 6))
+        q = q.reshape(-1, 6)
+        truth = fk(draw_factory_calibration("ur10e", 4).model(), q)[:, :3, 3]
+        fitted = fk(model_from_dict(stored.model), q)[:, :3, 3]
+        published = fk(nominal("ur10e"), q)[:, :3, 3]
+        err = np.linalg.norm(fitted - truth, axis=1)
+        assert np.sqrt(np.mean(err**2)) < 60e-6 and err.max() < 0.15e-3, (np.sqrt(np.mean(err**2)), err.max())
+        assert np.linalg.norm(published - truth, axis=1).max() > 1e-3
+    engine.dispose()
+
+
+def test_registers_with_a_tcp_offset_are_refused():
+    """A TCP offset would hide in the fitted flange: registers 10 cm from the published table are
+    refused with one line, nothing fitted."""
+    import dataclasses
+
+    from service.controller import ControllerModelError, model_from_registers
+
+    controller = draw_factory_calibration("ur5e", 2).model()
+    tool = dataclasses.replace(controller, tool=np.array([0.0, 0.0, 0.1, 0.0, 0.0, 0.0]))
+    q = np.random.default_rng(1).uniform(-np.pi, np.pi, (20, 6))
+    kw = {"source": "test", "joint_step_rad": 1e-6}
+    assert model_from_registers(q, fk(controller, q), nominal("ur5e"), **kw)["controller"]["poses_fit"] == 20
+    with pytest.raises(ControllerModelError, match=r"TCP offset is not zero .*nothing stored") as exc:
+        model_from_registers(q, fk(tool, q), nominal("ur5e"), **kw)
+    assert "\n" not in str(exc.value) and "100 mm" in str(exc.value)
+    with pytest.raises(ControllerModelError, match="at least 12"):
+        model_from_registers(q[:8], fk(controller, q[:8]), nominal("ur5e"), **kw)

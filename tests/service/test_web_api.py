@@ -6,9 +6,15 @@ Calibrations come from simulated measurements stored as a session would store th
 
 from __future__ import annotations
 
+import json
+
+import numpy as np
 import pytest
 from sqlmodel import Session, select
+from urdf_check import assert_urdf_is_predict, in_file_units
 
+from calibration.simulate import random_configurations
+from service.files import load_model
 from service.models import RunSession
 from service.store import make_engine
 
@@ -39,7 +45,7 @@ def test_the_page_is_served_at_the_root(client):
     assert "/web/{path}" not in client.get("/openapi.json").json()["paths"]
 
 
-def test_result_certificate_downloads_and_comparison(client, stored_session, tokens):
+def test_result_certificate_downloads_and_comparison(client, stored_session, tokens, tmp_path):
     cell = _cell(client, tokens)
     first = stored_session(cell["id"], seed=2)[1]
     second = stored_session(cell["id"], seed=3)[1]
@@ -79,6 +85,7 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
     assert pdf.status_code == 200 and pdf.content[:4] == b"%PDF"
     assert cert["number"] in pdf.headers["content-disposition"]
 
+    downloads = {}
     for fmt, needle in (
         ("model", '"format": "recal.model/1"'),
         ("urdf", "<robot"),
@@ -89,6 +96,16 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
         d = client.get(f"/api/v1/calibrations/{second}/download/{fmt}", headers=v)
         assert d.status_code == 200, (fmt, d.text)
         assert needle in d.text and "attachment" in d.headers["content-disposition"]
+        downloads[fmt] = d.text
+    # the URDF, read by yourdfpy, is recal predict of the model downloaded beside it
+    (tmp_path / "model.json").write_text(downloads["model"])
+    (tmp_path / "cell.urdf").write_text(downloads["urdf"])
+    names = "ur" if json.loads(downloads["model"])["name"].startswith("ur") else "ros"
+    q = in_file_units(
+        tmp_path / "model.json",
+        random_configurations(load_model(tmp_path / "model.json"), 10, np.random.default_rng(3)),
+    )
+    assert_urdf_is_predict(tmp_path / "cell.urdf", tmp_path / "model.json", q, tmp_path, names=names)
     assert client.get(f"/api/v1/calibrations/{second}/download/step", headers=v).status_code == 404
     assert client.get(f"/api/v1/calibrations/{second}/result").status_code == 401
 

@@ -4,6 +4,8 @@ nominal model of compensation; a changed factory calibration is a new version an
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from calibration.kinematics import fk
@@ -11,6 +13,8 @@ from calibration.model import model_from_dict
 from fakes.world import draw_factory_calibration
 from service.compensate import compensate_text
 from service.processes import start_fake_cell
+
+from .conftest import next_host
 
 SCRIPT = """def task():
   movel(p[0.400, -0.200, 0.350, 0.0, 3.1416, 0.0], a=1.2, v=0.25)
@@ -66,3 +70,50 @@ def test_sessions_read_keep_and_version_the_controllers_kinematics(stack, models
     cm = api.call("GET", f"/cells/{cell['id']}/controller-model")
     assert cm["version"] == 2 and [h["version"] for h in cm["history"]] == [2, 1]
     assert _same_kinematics(cm["model"], 4) < 1e-6
+
+
+def test_over_modbus_a_session_fits_the_controllers_kinematics_from_its_tcp_registers(stack, models):
+    """A UR cell driven over Modbus only: no forward-kinematics query, so the session reads UR's
+    TCP-pose registers (0.1 mm, 1 mrad) at each configuration it measures and fits the
+    controller's model from them: far closer to what the controller computes than the published
+    table, kept as version 1 and used by compensation."""
+    host = next_host()
+    fake = start_fake_cell(models["truth"], host, extra=["--factory-seed", "3", "--no-cmm", "--no-can", "--no-emscon"])
+    stack.cells.append(fake)
+    devices = {"modbus": fake.ready["modbus"], "tracker": fake.ready["tracker"]}  # no rtde
+    cell = stack.api().call(
+        "POST",
+        "/cells",
+        {"name": "modbus-cell", "model": json.loads(models["nominal"].read_text()), "devices": devices},
+    )
+    api = stack.api()
+    s = api.wait_session(api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "pose", "count": 30})["id"], 120)
+    assert s["state"] == "completed", (s["state"], s.get("reason"))
+    info = s["plan_info"]["controller_model"]
+    assert info["version"] == 1 and info["from_registers"] is True and info["changed"] is False, info
+    cm = api.call("GET", f"/cells/{cell['id']}/controller-model")
+    assert cm["version"] == 1 and cm["from_registers"] is True and cm["session_id"] == s["id"]
+    assert "TCP-pose registers" in cm["model"]["controller"]["method"]
+    # what the controller computes, over the whole joint space: the fit within a few tenths of a
+    # millimetre (UR's 1 mrad joint registers), the published table millimetres off
+    q = np.random.default_rng(2).uniform(-np.pi, np.pi, (200, 6))
+    factory = fk(draw_factory_calibration("ur5e", 3).model(), q)[:, :3, 3]
+
+    def rms(doc):
+        return float(np.sqrt(np.mean(np.sum((fk(model_from_dict(doc), q)[:, :3, 3] - factory) ** 2, axis=1))))
+
+    published = {**cell["model"], "base": [0.0] * 6, "tool": [0.0] * 6}
+    assert rms(cm["model"]) < 0.3e-3 and rms(published) > 4 * rms(cm["model"]), (rms(cm["model"]), rms(published))
+
+    # compensation goes through it
+    cal = api.call("GET", f"/calibrations/{s['calibration_id']}")
+    out = api.call("POST", f"/calibrations/{s['calibration_id']}/compensate?name=task.script", raw=SCRIPT)
+    assert out == compensate_text(SCRIPT, name="task.script", model_doc=cal["model"], nominal_doc=cm["model"])[0]
+
+    # the next session: the registers agree with the stored model, nothing new
+    s2 = api.wait_session(api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "verify", "count": 4})["id"], 60)
+    assert s2["state"] == "completed", (s2["state"], s2.get("reason"))
+    info2 = s2["plan_info"]["controller_model"]  # (a check within the registers' resolution: changed None)
+    assert info2["version"] == 1 and info2["warning"] is None, info2
+    assert info2["tcp_registers_mm"] < info2["tolerance_mm"], info2
+    assert api.call("GET", f"/cells/{cell['id']}/controller-model")["version"] == 1

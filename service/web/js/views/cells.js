@@ -158,11 +158,14 @@ export async function detail(ctx, id) {
   const controllerCard = cm || (c.devices_doc || {}).rtde ? card("Controller kinematics", cm
     ? kv([["Model", `${cm.name}, version ${cm.version}`], ["Read", `${when(cm.read_at || cm.created_at)}`
           + (cm.session_id ? ` (session ${cm.session_id})` : " (uploaded)")],
-          ["Reproduces the controller", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm`],
+          cm.from_registers
+            ? ["Fitted to the TCP-pose registers", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm (0.1 mm registers)`]
+            : ["Reproduces the controller", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm`],
           ["Last change", cm.moved_mm == null ? (cm.version > 1 ? "none" : "first read")
             : `the flange moved up to ${num(cm.moved_mm, 3)} mm`]])
     : h("p", { class: "muted", id: "controller-model-none" }, "Not read yet: the next session reads it from the "
-        + "controller (nothing moves), or upload the file `recal controller-model` writes."),
+        + "controller (over RTDE nothing moves; over Modbus from the TCP-pose registers at the poses it measures), "
+        + "or upload the file `recal controller-model` writes."),
   h("p", { class: "muted small" }, "Targets mode, URScript pose targets and compensation use it, not the published "
     + "DH table.")) : null;
 
