@@ -197,7 +197,13 @@ def compensate_and_store(
             encodings=encodings,
         )
         rec = Compensation(
-            calibration_id=calibration_id, name=name, mode=mode, output=output, report=report, created_by=actor
+            calibration_id=calibration_id,
+            name=name,
+            mode=mode,
+            output=output,
+            encoding=(encodings or {}).get(name, "utf-8"),  # served again as the bytes it was answered as
+            report=report,
+            created_by=actor,
         )
         db.add(rec)
         db.commit()

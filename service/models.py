@@ -125,6 +125,9 @@ class Compensation(SQLModel, table=True):
     name: str = ""
     mode: str = "joints"
     output: str = ""
+    # the compensated file is ``output.encode(encoding)``: "utf-8", or "iso-8859-1" for a program
+    # that was not UTF-8 (a character per byte: its bytes kept, schema version 7)
+    encoding: str = "utf-8"
     report: dict | None = Field(default=None, sa_column=Column(JSON))
     created_by: str = ""
     created_at: datetime = Field(default_factory=utcnow)
@@ -136,6 +139,11 @@ class TaskFile(SQLModel, table=True):
     name: str
     content: str
     mode: str = "joints"
+    # the file is ``content.encode(encoding)`` (as Compensation.encoding; schema version 7)
+    encoding: str = "utf-8"
+    # a KRL .src's other files, compensated with it: [{"name", "content", "encoding"}] (its .dat,
+    # and a $config.dat for the TOOL_DATA and BASE_DATA it selects); None for a single file
+    files: list | None = Field(default=None, sa_column=Column(JSON))
     created_at: datetime = Field(default_factory=utcnow)
 
 

@@ -131,7 +131,22 @@ def _v6(conn) -> None:
     SQLModel.metadata.create_all(conn, tables=[EventTicket.__table__])
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6]
+def _v7(conn) -> None:
+    """Robot programs that are not UTF-8 kept as their bytes (issue 18): the encoding of each
+    compensation's output and each task file (``compensation.encoding``, ``taskfile.encoding``;
+    "iso-8859-1" is a character per byte, every existing row is UTF-8) and a task file's other
+    files (``taskfile.files``: a KRL .src's .dat)."""
+    columns = {table: {c["name"] for c in inspect(conn).get_columns(table)} for table in ("compensation", "taskfile")}
+    for table, column, ddl in (
+        ("compensation", "encoding", "VARCHAR NOT NULL DEFAULT 'utf-8'"),
+        ("taskfile", "encoding", "VARCHAR NOT NULL DEFAULT 'utf-8'"),
+        ("taskfile", "files", "JSON"),
+    ):
+        if column not in columns[table]:
+            conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {ddl}"))
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 

@@ -91,8 +91,16 @@ class TaskFileInfo(BaseModel):
     created_at: Any = None
 
 
+class TaskFilePartContent(BaseModel):
+    name: str
+    content: str
+    encoding: str = Field(description="`content.encode(encoding)` is the file's bytes")
+
+
 class TaskFileContent(TaskFileInfo):
     content: str
+    encoding: str = Field(description="`content.encode(encoding)` is the file's bytes: utf-8 or iso-8859-1")
+    files: list[TaskFilePartContent] = Field(description="a KRL .src's other files (its .dat)")
 
 
 class Document(BaseModel):

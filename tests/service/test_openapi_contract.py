@@ -5,7 +5,9 @@ file, a compensation), so that ids 1 (the lowest the schema allows, which schema
 coverage phase tries) reach real resources and their answers are checked against their schemas.
 
 What the schema cannot say: a cell's nominal model (``recal.model/1``, checked by its own
-parser: joint counts against regions, known conventions) and a task file's content. For the
+parser: joint counts against regions, known conventions) and a task file's content (and, for a
+registered one, whether its name, encoding and other files go together: a KRL .src with its .dat,
+ISO-8859-1 for a program only, every character in its encoding). For the
 operations that take them, a schema-valid request may be refused with 422 naming the field,
 and schemathesis is told so (``positive_data_acceptance``), per operation; every other check
 runs everywhere."""
@@ -31,6 +33,7 @@ SEMANTIC_BODIES = (
     "PATCH /api/v1/cells/{cell_id}",
     "POST /api/v1/cells/{cell_id}/sessions",
     "POST /api/v1/calibrations/{calibration_id}/compensate",
+    "POST /api/v1/cells/{cell_id}/tasks",
     "POST /api/v1/cells/{cell_id}/measurements",
     "PUT /api/v1/cells/{cell_id}/controller-model",
 )

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import urllib.request
 
 import numpy as np
 import pytest
@@ -123,6 +124,10 @@ def test_programs_of_each_brand_compensated_from_the_page(page, abb_result, tmp_
     data = out.read_bytes()
     assert data != RAPID and skeleton(data) == skeleton(RAPID)
     assert b"! Schwei\xdfnaht an der D\xfcse" in data  # the Latin-1 bytes as they were
+    # the stored compensation (the store's first) is served again as the bytes the page saved
+    req = urllib.request.Request(f"{url}/api/v1/compensations/1", headers={"Authorization": f"Bearer {token}"})
+    with urllib.request.urlopen(req, timeout=30) as stored:
+        assert stored.headers["Content-Type"] == "text/plain; charset=iso-8859-1" and stored.read() == data
 
     (tmp_path / "pick.ls").write_bytes(TP)
     compensate("pick.ls", banner="pick-compensated.ls")

@@ -127,8 +127,15 @@ async def compensate(
 
 
 @router.get("/compensations/{compensation_id}", response_class=PlainTextResponse)
-def read_compensation(compensation_id: int, db: DbSession, tok: Reader) -> PlainTextResponse:
+def read_compensation(compensation_id: int, db: DbSession, tok: Reader) -> Response:
+    """The compensated file (a KRL program's ``.src``; the report's ``files`` hold its ``.dat``)
+    as the bytes the compensation answered: UTF-8, or a program that was not UTF-8 with
+    ``charset=iso-8859-1``, byte for byte."""
     rec = db.get(Compensation, compensation_id)
     if rec is None:
         raise HTTPException(404, f"no compensation {compensation_id}")
-    return PlainTextResponse(rec.output, headers={"X-Recal-Calibration": str(rec.calibration_id)})
+    return Response(
+        rec.output.encode(rec.encoding),
+        media_type=f"text/plain; charset={rec.encoding}",
+        headers={"X-Recal-Calibration": str(rec.calibration_id)},
+    )

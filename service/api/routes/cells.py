@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from fastapi import APIRouter, Request
 from pydantic import Field
 from sqlmodel import Session
@@ -103,16 +105,44 @@ def drift(cell_id: int, db: DbSession, tok: Reader) -> dict:
     return cell_drift(db, cell_id)
 
 
+_ENCODING = (
+    "utf-8, or iso-8859-1 for a program that is not UTF-8 (a KRL or RAPID file in Windows-1252): "
+    "a character per byte, `content.encode(encoding)` is the file's bytes, kept as they are"
+)
+
+
+class TaskFilePart(_In):
+    name: str = Field(min_length=1, max_length=200)
+    content: str = Field(min_length=1)
+    encoding: Literal["utf-8", "iso-8859-1"] = Field(default="utf-8", description=_ENCODING)
+
+
 class TaskFileCreate(_In):
     name: str = Field(min_length=1, max_length=200)
     content: str = Field(min_length=1)
     mode: str = Field(default="joints", pattern="^(joints|targets)$")
+    encoding: Literal["utf-8", "iso-8859-1"] = Field(default="utf-8", description=_ENCODING)
+    files: list[TaskFilePart] = Field(
+        default=[], description="a KRL .src's other files: its .dat (required), and $config.dat", max_length=2
+    )
 
 
 @router.post("/cells/{cell_id}/tasks", status_code=201, response_model=TaskFileInfo, response_model_exclude_unset=True)
 def register_task(cell_id: int, body: TaskFileCreate, db: DbSession, tok: CellEditor) -> dict:
+    """Register a task file (a task CSV or a robot program: URScript, RAPID, TP, a KRL ``.src``
+    with its ``.dat`` in ``files``), compensated again by ``/cells/{id}/tasks/compensate``. A
+    program that is not UTF-8 is sent as the compensation route answers one: its text read as
+    ISO-8859-1 and ``"encoding": "iso-8859-1"``; its bytes are kept, and its compensations served
+    in them."""
     return tasks.register_task(
-        db, get_cell(db, cell_id), name=body.name, content=body.content, mode=body.mode, actor=tok.name
+        db,
+        get_cell(db, cell_id),
+        name=body.name,
+        content=body.content,
+        mode=body.mode,
+        actor=tok.name,
+        encoding=body.encoding,
+        files=[f.model_dump() for f in body.files],
     )
 
 
@@ -132,9 +162,9 @@ def _tasks_to_compensate(engine, cell_id: int, calibration_id: int | None) -> tu
         return tasks.tasks_to_compensate(db, get_cell(db, cell_id), calibration_id)
 
 
-def _task_content(engine, task_id: int) -> str:
+def _task_input(engine, task_id: int) -> dict:
     with Session(engine) as db:
-        return tasks.task_content(db, task_id)
+        return tasks.task_input(db, task_id)
 
 
 def _audit(engine, **kw) -> None:
@@ -154,10 +184,19 @@ async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, cal
     url = request.app.state.settings.effective_database_url
     results = []
     for task_id, name, mode in todo:
-        content = await run_in_threadpool(_task_content, engine, task_id)
+        task = await run_in_threadpool(_task_input, engine, task_id)
         try:
             rec_id, _, summary, _ = await heavy.run(
-                compensate_and_store, url, cal_id, content, name=name, mode=mode, actor=tok.name, audited=False
+                compensate_and_store,
+                url,
+                cal_id,
+                task["text"],
+                name=name,
+                mode=mode,
+                actor=tok.name,
+                audited=False,
+                companions=task["companions"],
+                encodings=task["encodings"],
             )
         except CompensationInputError as exc:
             results.append({"task_id": task_id, "name": name, "error": str(exc)})
