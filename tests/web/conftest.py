@@ -6,6 +6,7 @@ folder's (the UR ports are fixed per address). Screenshots land in ``tests/web/s
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -248,6 +249,54 @@ def overflowing(page) -> list[str]:
     return page.evaluate(OVERFLOWING)
 
 
+@contextlib.contextmanager
+def service_with_technician(tmp_path: Path):
+    """The real service on its embedded store in ``tmp_path``, with a technician's token:
+    ``(url, token, engine, settings)``; stopped on exit."""
+    settings = Settings(home=tmp_path)
+    engine = make_engine(settings.effective_database_url)
+    migrate(engine)
+    with Session(engine) as db:
+        token = create_token(db, role="technician", name="technician-anna")[1]
+    service = start_service(tmp_path, free_port(), env={}, log_path=tmp_path / "service.log")
+    try:
+        yield service.ready["url"], token, engine, settings
+    finally:
+        service.stop()
+        engine.dispose()
+
+
+def store_finished_pose_session(engine, settings: Settings, cell_id: int, data, plan_info: dict) -> int:
+    """A pose session of the cell that measured ``data`` (simulated rows, stored with the
+    tracker's stated 20 um as a session stores them), finished as the orchestrator finishes one
+    (no cell process needed). Returns its calibration's id."""
+    from service import kinds, records
+    from service.models import Cell, RunSession
+
+    with Session(engine) as db:
+        cell = db.get(Cell, cell_id)
+        run = RunSession(
+            cell_id=cell_id,
+            kind="pose",
+            state="running",
+            planned=len(data),
+            target="smr",
+            created_by="technician-anna",
+            plan=data.q.tolist(),
+            plan_info=plan_info,
+        )
+        db.add(run)
+        db.commit()
+        db.refresh(run)
+        db.add_all(records.measurement_rows(run.id, dataclasses.replace(data, sigma=np.full(len(data), 20e-6))))
+        db.commit()
+        kinds.finish_session(db, run, cell, settings)
+        run.state = "completed"
+        db.add(run)
+        db.commit()
+        return run.calibration_id
+
+
 class Helpers:
     """What the tests use besides the page: the fixtures' helpers in one object (test modules
     cannot import the conftest under --import-mode=importlib)."""
@@ -259,6 +308,8 @@ class Helpers:
     api = staticmethod(api)
     register_cell_by_api = staticmethod(register_cell_by_api)
     overflowing = staticmethod(overflowing)
+    service_with_technician = staticmethod(service_with_technician)
+    store_finished_pose_session = staticmethod(store_finished_pose_session)
 
 
 @pytest.fixture

@@ -8,36 +8,22 @@ import dataclasses
 
 import numpy as np
 import pytest
-from sqlmodel import Session
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture
-def compliant_result(tmp_path, browser):
+def compliant_result(tmp_path, browser, web):
     from calibration.compliance import default_section, with_section
     from calibration.model import model_to_dict
     from calibration.robots import nominal
     from calibration.simulate import perturbed, random_configurations, sagging, simulate_measurements
-    from service import kinds, records
     from service.client import Api
-    from service.models import Cell, RunSession
-    from service.processes import free_port, start_service
-    from service.settings import Settings
-    from service.store import create_token, make_engine, migrate
 
-    settings = Settings(home=tmp_path)
-    engine = make_engine(settings.effective_database_url)
-    migrate(engine)
-    with Session(engine) as db:
-        token = create_token(db, role="technician", name="technician-anna")[1]
-    service = start_service(tmp_path, free_port(), env={}, log_path=tmp_path / "service.log")
-    try:
+    with web.service_with_technician(tmp_path) as (url, token, engine, settings):
         nom = dataclasses.replace(nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
         doc = model_to_dict(with_section(nom, default_section(nom)))
-        cell_id = Api(service.ready["url"], token).call(
-            "POST", "/cells", {"name": "sagging", "model": doc, "devices": {}}
-        )["id"]
+        cell_id = Api(url, token).call("POST", "/cells", {"name": "sagging", "model": doc, "devices": {}})["id"]
         rng = np.random.default_rng(3)
         truth = sagging(
             dataclasses.replace(perturbed(nom, rng), base=np.array([1.5, -0.4, 0.2, 0, 0, 1.0])), "cobot", frames_of=nom
@@ -47,33 +33,9 @@ def compliant_result(tmp_path, browser):
         payloads = [[0.0, 0.0, 0.0, 0.0], [10.0, 0.0, 0.0, 0.1]]
         pay = np.array([payloads[i * len(payloads) // 60] for i in range(60)])
         data = simulate_measurements(truth, random_configurations(nom, 60, rng), rng, targets=("smr",), payload=pay)
-        with Session(engine) as db:
-            cell = db.get(Cell, cell_id)
-            run = RunSession(
-                cell_id=cell_id,
-                kind="pose",
-                state="running",
-                planned=60,
-                target="smr",
-                created_by="technician-anna",
-                plan=data.q.tolist(),
-                plan_info={"method": "random", "payloads": payloads},
-            )
-            db.add(run)
-            db.commit()
-            db.refresh(run)
-            # the tracker's stated uncertainty on every row, as a session stores it
-            db.add_all(records.measurement_rows(run.id, dataclasses.replace(data, sigma=np.full(len(data), 20e-6))))
-            db.commit()
-            kinds.finish_session(db, run, cell, settings)
-            run.state = "completed"
-            db.add(run)
-            db.commit()
-            calibration_id = run.calibration_id
-        yield service.ready["url"], token, calibration_id, cell_id
-    finally:
-        service.stop()
-        engine.dispose()
+        info = {"method": "random", "payloads": payloads}
+        calibration_id = web.store_finished_pose_session(engine, settings, cell_id, data, info)
+        yield url, token, calibration_id, cell_id
 
 
 def test_result_page_shows_rigid_against_compliant(page, compliant_result, web):

@@ -12,7 +12,6 @@ import urllib.request
 
 import numpy as np
 import pytest
-from sqlmodel import Session
 
 pytestmark = pytest.mark.slow
 
@@ -25,57 +24,22 @@ def skeleton(data: bytes) -> bytes:
 
 
 @pytest.fixture
-def abb_result(tmp_path, browser):
+def abb_result(tmp_path, browser, web):
     from calibration.model import model_to_dict
     from calibration.robots import nominal
     from calibration.simulate import perturbed, random_configurations, simulate_measurements
-    from service import kinds, records
     from service.client import Api
-    from service.models import Cell, RunSession
-    from service.processes import free_port, start_service
-    from service.settings import Settings
-    from service.store import create_token, make_engine, migrate
 
-    settings = Settings(home=tmp_path)
-    engine = make_engine(settings.effective_database_url)
-    migrate(engine)
-    with Session(engine) as db:
-        token = create_token(db, role="technician", name="technician-anna")[1]
-    service = start_service(tmp_path, free_port(), env={}, log_path=tmp_path / "service.log")
-    try:
+    with web.service_with_technician(tmp_path) as (url, token, engine, settings):
         nom = dataclasses.replace(nominal("irb4600"), targets={"smr": np.array([0.0, 0.0, 0.05])})
-        cell_id = Api(service.ready["url"], token).call(
+        cell_id = Api(url, token).call(
             "POST", "/cells", {"name": "welding", "model": model_to_dict(nom), "devices": {}}
         )["id"]
         rng = np.random.default_rng(5)
         truth = dataclasses.replace(perturbed(nom, rng), base=np.array([1.5, -0.4, 0.2, 0, 0, 1.0]))
         data = simulate_measurements(truth, random_configurations(nom, 60, rng), rng, targets=("smr",))
-        with Session(engine) as db:
-            cell = db.get(Cell, cell_id)
-            run = RunSession(
-                cell_id=cell_id,
-                kind="pose",
-                state="running",
-                planned=60,
-                target="smr",
-                created_by="technician-anna",
-                plan=data.q.tolist(),
-                plan_info={"method": "random"},
-            )
-            db.add(run)
-            db.commit()
-            db.refresh(run)
-            db.add_all(records.measurement_rows(run.id, dataclasses.replace(data, sigma=np.full(len(data), 20e-6))))
-            db.commit()
-            kinds.finish_session(db, run, cell, settings)
-            run.state = "completed"
-            db.add(run)
-            db.commit()
-            calibration_id = run.calibration_id
-        yield service.ready["url"], token, calibration_id
-    finally:
-        service.stop()
-        engine.dispose()
+        calibration_id = web.store_finished_pose_session(engine, settings, cell_id, data, {"method": "random"})
+        yield url, token, calibration_id
 
 
 RAPID = (
