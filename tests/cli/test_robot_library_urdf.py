@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yourdfpy
-from urdf_check import assert_urdf_is_predict, predict
+from urdf_check import assert_urdf_is_predict, predict, yourdfpy_fk
 
 from calibration import robots
 from calibration.kinematics import fk
@@ -63,15 +63,6 @@ def _predict(tmp_path, model_spec: str, q_deg: np.ndarray) -> np.ndarray:
     T[:, :3, :3] = quat_to_matrix(v[:, 3:7])
     T[:, :3, 3] = v[:, :3] * 1e-3
     return T
-
-
-def _yourdfpy_fk(path, q: np.ndarray, tip: str, base: str = "world") -> np.ndarray:
-    robot = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=True)
-    out = []
-    for qi in q:
-        robot.update_cfg(qi)
-        out.append(robot.get_transform(tip, base))
-    return np.array(out)
 
 
 # --------------------------------------------------------------------------- the library
@@ -198,10 +189,12 @@ def test_exported_urdf_parses_with_yourdfpy_and_matches_predict(name, tmp_path, 
     T_pred = _predict(tmp_path, name, np.rad2deg(q))
     # a URDF joint position is a serial angle: for Fanuc, what fanuc_driver publishes (C·q)
     q_urdf = q @ model.coupling_matrix.T
-    np.testing.assert_allclose(_yourdfpy_fk(urdf, q_urdf, "tcp"), T_pred, atol=1e-9)
-    np.testing.assert_allclose(_yourdfpy_fk(urdf, q_urdf, "tool0"), T_pred, atol=1e-9)  # no tool: tool0 = flange
+    np.testing.assert_allclose(yourdfpy_fk(urdf, q_urdf, "tcp", "world"), T_pred, atol=1e-9)
+    np.testing.assert_allclose(
+        yourdfpy_fk(urdf, q_urdf, "tool0", "world"), T_pred, atol=1e-9
+    )  # no tool: tool0 = flange
     # `base` is the model's robot base frame (UR: the controller's, base_link turned by pi)
-    T_base = _yourdfpy_fk(urdf, q_urdf[:1], "base")[0]
+    T_base = yourdfpy_fk(urdf, q_urdf[:1], "base", "world")[0]
     np.testing.assert_allclose(T_base, np.eye(4), atol=1e-12)
 
 
@@ -283,8 +276,8 @@ def test_export_of_an_identified_ur_keeps_ur_names_tool_and_targets(tmp_path):
     assert robot.joint_map["r1_elbow_joint"].limit.effort == 150.0  # from the library (ur5e)
     q = _readings("ur5e", 20, 4)
     T = _predict(tmp_path, str(path), np.rad2deg(q))
-    np.testing.assert_allclose(_yourdfpy_fk(urdf, q, "r1_tcp", "r1_world"), T, atol=1e-9)
-    p = _yourdfpy_fk(urdf, q, "r1_target_smr", "r1_world")[:, :3, 3]
+    np.testing.assert_allclose(yourdfpy_fk(urdf, q, "r1_tcp", "r1_world"), T, atol=1e-9)
+    p = yourdfpy_fk(urdf, q, "r1_target_smr", "r1_world")[:, :3, 3]
     np.testing.assert_allclose(p, T[:, :3, 3] + T[:, :3, :3] @ [0.01, 0.02, 0.05], atol=1e-9)
 
 
@@ -435,16 +428,14 @@ def test_urdf_import_matches_yourdfpy(tmp_path, convention, capsys):
     # inside every joint's limits (j4: -1 to 2.5 rad)
     q = np.column_stack([rng.uniform(-0.5, 1.5, 30), rng.uniform(-2, 2, (30, 3)), rng.uniform(-1, 2, 30)])
     q_file = np.column_stack([q[:, 0] * 1e3, np.rad2deg(q[:, 1:])])
-    np.testing.assert_allclose(
-        _predict(tmp_path, str(out), q_file), _yourdfpy_fk(urdf, q, "flange", "floor"), atol=1e-9
-    )
+    np.testing.assert_allclose(_predict(tmp_path, str(out), q_file), yourdfpy_fk(urdf, q, "flange", "floor"), atol=1e-9)
     # --base: the chain from a link inside the tree
     assert recal(["model", "--from-urdf", str(urdf), "--base", "l1", "--tip", "flange", "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert [j["name"] for j in doc["joints"]] == ["j2", "j3", "j4"]
     np.testing.assert_allclose(
         _predict(tmp_path, str(out), np.rad2deg(q[:, 2:])),
-        _yourdfpy_fk(urdf, np.column_stack([np.zeros((30, 2)), q[:, 2:]]), "flange", "l1"),
+        yourdfpy_fk(urdf, np.column_stack([np.zeros((30, 2)), q[:, 2:]]), "flange", "l1"),
         atol=1e-9,
     )
 

@@ -121,6 +121,15 @@ def stored_session(settings):
     return lambda cell_id, **kw: store_session(settings, cell_id, **kw)
 
 
+@pytest.fixture
+def calibrated(idle_app, tokens, stored_session):
+    """``(client, cell id, calibration id)``: an idle app's client, a cell registered through it and
+    a calibration from a stored pose session of that cell."""
+    with idle_app() as client:
+        cell = register_cell(client, tokens["technician"], "calibrated")["id"]
+        yield client, cell, stored_session(cell, seed=2)[1]
+
+
 # The configuration a session measured around with ``region_deg`` (a 6-joint arm's working pose), degrees.
 REGION_CENTRE_DEG = [0.0, -60.0, 90.0, -120.0, -90.0, 0.0]
 

@@ -10,22 +10,14 @@ import csv
 import io
 
 import numpy as np
-import pytest
 
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 from calibration.transforms import matrix_to_quat
 
-from .conftest import auth, register_cell
+from .conftest import auth
 
 Q = [f"q{i}" for i in range(1, 7)]
-
-
-@pytest.fixture
-def calibrated(idle_app, tokens, stored_session):
-    with idle_app() as client:
-        cell = register_cell(client, tokens["technician"], "comp")["id"]
-        yield client, cell, stored_session(cell, seed=2)[1]
 
 
 def _task(model, n=8, seed=4) -> tuple[str, np.ndarray, np.ndarray]:

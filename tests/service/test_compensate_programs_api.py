@@ -8,12 +8,11 @@ from __future__ import annotations
 import re
 
 import numpy as np
-import pytest
 
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 
-from .conftest import auth, register_cell
+from .conftest import auth
 
 NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 SRC = "DEF job( )\n; PTP {A1 1, A2 2} is a comment\nPTP XHOME\nPTP XP1\nEND\n"
@@ -21,13 +20,6 @@ DAT = (
     "DEFDAT job\r\nDECL E6AXIS XHOME={A1 10.0,A2 -80.0,A3 90.0,A4 -100.0,A5 70.0,A6 20.0,E1 0.0}\r\n"
     "DECL E6AXIS XP1={A1 -30.0,A2 -100.0,A3 60.0,A4 -50.0,A5 -80.0,A6 0.0,E1 12.5}\r\nENDDAT\r\n"
 )
-
-
-@pytest.fixture
-def calibrated(idle_app, tokens, stored_session):
-    with idle_app() as client:
-        cell = register_cell(client, tokens["technician"], "programs")["id"]
-        yield client, cell, stored_session(cell, seed=2)[1]
 
 
 def test_a_krl_program_and_its_dat_as_multipart(calibrated, tokens):

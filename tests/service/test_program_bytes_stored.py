@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import auth, register_cell
+from .conftest import auth
 
 _EXE = Path(sys.executable).with_name("recal")
 RECAL = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "service.cli"]
@@ -37,13 +37,6 @@ MOD = (
     "    MoveAbsJ [[10,-80,90,-100,70,20],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, fine, tool0; ! Übergabe\n"
     "  ENDPROC\nENDMODULE\n"
 )
-
-
-@pytest.fixture
-def calibrated(idle_app, tokens, stored_session):
-    with idle_app() as client:
-        cell = register_cell(client, tokens["technician"], "programs")["id"]
-        yield client, cell, stored_session(cell, seed=2)[1]
 
 
 def cli_output(client, token: str, cell: int, cal: int, d: Path, files: dict[str, bytes], task: str) -> dict:
