@@ -9,58 +9,56 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
+from complete_reference import random_case
 
 from calibration.identify import Measurements, identify
 from calibration.kinematics import target_positions
-from calibration.model import model_from_dict
 from calibration.robots import nominal
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
-from calibration.uncertainty import validate
+from calibration.uncertainty import chi2_quantile, position_covariance, predicted_uncertainty, validate
 
 SIGMA = 20e-6
 
 
-def random_arm(rng, *, on_axis: bool):
-    """A random 6R in dh: each link's d and a zero or 0.1-0.5 m, alpha 0 or ±90°; a reflector on
-    the last axis, or 40 mm off it."""
-    joints = []
-    for i in range(6):
-        joints.append(
-            {
-                "name": f"j{i + 1}",
-                "theta": 0.0,
-                "lower": -3.0,
-                "upper": 3.0,
-                "d": float(rng.choice([0.0, rng.uniform(0.1, 0.5)])),
-                "a": float(rng.choice([0.0, rng.uniform(0.1, 0.5)])) if i < 5 else 0.0,
-                "alpha": float(np.deg2rad(rng.choice([0.0, 90.0, -90.0]))) if i < 5 else 0.0,
-            }
-        )
-    target = [0.0, 0.0, 0.05] if on_axis else [0.04, 0.01, 0.05]
-    return model_from_dict(
-        {
-            "format": "recal.model/1",
-            "units": {"length": "m", "angle": "rad"},
-            "convention": "dh",
-            "joints": joints,
-            "targets": {"smr": target},
-        }
-    )
+# a series of random 6R arms, the even ones with the reflector nominally on the last axis
+# (complete_reference.random_case): enough of them that the pooled coverage of the true errors,
+# which varies from arm to arm by several percent (one arm's errors all come from one draw of
+# its parameters' errors), is known to about ±1 %
+ARMS = 40
 
 
+@pytest.mark.slow  # forty identifications and their covariance at 800 configurations: several seconds
 def test_the_95_percent_bounds_cover_95_percent_on_random_arms():
-    inside, n = 0.0, 0
-    for seed in range(10):
-        rng = np.random.default_rng(seed)
-        nom = random_arm(rng, on_axis=seed % 2 == 0)
-        truth = perturbed(nom, rng)
-        truth = dataclasses.replace(truth, targets={"smr": nom.targets["smr"] + rng.normal(0, 0.7e-3, 3)})
+    """Over random arms, half with the reflector nominally on the last axis: identified from 150
+    rows with the stated noise and checked at 800 other configurations, the predicted 95 %
+    regions hold 93-97 % of (a) the model's true errors (against the true robot, no noise: the
+    covariance for predictions, a χ²₃ ellipsoid; the issue's u95 covered as little as 8 % of
+    them with a reflector on the flange axis) and (b) the measured hold-out errors
+    (``inside_predicted_95``: the covariance plus the scaled noise); the reported u95 radius
+    (the largest principal axis) covers at least 95 % of the true errors."""
+    q95 = chi2_quantile(0.95, 3)
+    true_in = measured_in = radius_in = 0.0
+    n = 0
+    for seed in range(ARMS):
+        nom, truth, rng = random_case(seed)
         data = simulate_measurements(truth, random_configurations(nom, 150, rng), rng, sigma_m=SIGMA, targets=("smr",))
         hold = simulate_measurements(truth, random_configurations(nom, 800, rng), rng, sigma_m=SIGMA, targets=("smr",))
-        v = validate(identify(nom, data, sigma_m=SIGMA), hold)
-        assert 0.88 < v.coverage_95 < 0.99, (seed, v.coverage_95)
-        inside, n = inside + v.coverage_95 * v.n, n + v.n
-    assert 0.93 <= inside / n <= 0.97, inside / n
+        result = identify(nom, data, sigma_m=SIGMA)
+        e = target_positions(result.model, hold.q, "smr") - target_positions(truth, hold.q, "smr")
+        C = position_covariance(result, hold.q, "smr")
+        d2 = np.einsum("ni,ni->n", e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
+        inside = float(np.mean(d2 <= q95))
+        assert inside > 0.6, (seed, inside, result.warnings)  # no arm's bound far off (was 12 %, 18 %, 54 %)
+        v = validate(result, hold)
+        assert 0.9 < v.coverage_95 < 0.99, (seed, v.coverage_95)
+        true_in += inside * len(e)
+        measured_in += v.coverage_95 * v.n
+        radius_in += float(np.mean(np.linalg.norm(e, axis=1) <= predicted_uncertainty(result, hold.q, "smr"))) * len(e)
+        n += len(e)
+    assert 0.93 <= true_in / n <= 0.97, true_in / n
+    assert 0.93 <= measured_in / n <= 0.97, measured_in / n
+    assert radius_in / n >= 0.95, radius_in / n
 
 
 def _ur10e_case(rng, *, noise_m=SIGMA, sag_deg=0.0, n=200):
@@ -114,8 +112,6 @@ def test_an_unmodelled_sag_is_not_hidden():
 def test_the_stored_covariance_grows_as_the_cross_validation_says():
     """The model file keeps model_error_scale beside the covariance; what `recal predict
     --uncertainty` propagates (covariance_from_block) is the covariance times its square."""
-    import pytest
-
     from calibration.model import Units
     from calibration.report import identification_block
     from calibration.uncertainty import CovarianceError, covariance_from_block, prediction_covariance
