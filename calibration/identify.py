@@ -1011,16 +1011,18 @@ def _levenberg_marquardt(
     ftol: float,
     xtol: float,
     gtol: float,
+    damping: float = 1e-3,
 ) -> _Solution:
     """Levenberg–Marquardt with Marquardt's scaling (the damping proportional to diag(JᵀWJ + I_p),
     ``I_p`` the prior's information), from ``model`` whose linearisation is ``lin``; robust
     weights recomputed at every trial (IRLS: a trial is compared with the current point under the
-    trial's weights). Stops as MINPACK does (``ftol``, ``xtol``, ``gtol``)."""
+    trial's weights). Stops as MINPACK does (``ftol``, ``xtol``, ``gtol``). ``damping``: the
+    first step's (grown tenfold at every rejected trial, shrunk tenfold after an accepted one)."""
     P = len(params)
     steps = np.zeros(P)
     if not P:
         return _Solution(model, lin, steps, -1, 0, 1, (lin.cost,))
-    lam, nfev, status, it = 1e-3, 1, 0, 0
+    lam, nfev, status, it = damping, 1, 0, 0
     cost = lin.cost
     history = [cost]
     for it in range(1, max_iter + 1):
@@ -1217,6 +1219,11 @@ def _fit_and_reselect(
             ftol=ftol,
             xtol=xtol,
             gtol=gtol,
+            # after a re-selection the fit starts at the answer: Gauss-Newton's step first. The
+            # freed parameters are weakly determined (a reflector near an axis), and a damping
+            # of 1e-3 of the diagonal held them back for five passes over the data (at a
+            # million rows with the tool on the flange axis, 11 iterations instead of 6)
+            damping=1e-3 if _round == 0 else 1e-9,
         )
         current = sol.model
         for p, s in zip(params, sol.steps):
