@@ -856,12 +856,19 @@ class _Selection:
 
 
 def _choose(
-    cands: list[Parameter], G: np.ndarray, prior: Prior | None, *, rank_rtol: float, position_only: bool
+    cands: list[Parameter],
+    G: np.ndarray,
+    prior: Prior | None,
+    *,
+    rank_rtol: float,
+    position_only: bool,
+    factor: np.ndarray | None = None,
 ) -> _Selection:
-    """The identifiable set from the candidates' Gram matrix ``G`` (weighted JᵀJ): the data's
-    selection (:func:`select_identifiable`), then the prior's bookkeeping: parameters with a prior
-    that the data see are estimated, those the data cannot see keep the prior."""
-    F = _gram_root(G)
+    """The identifiable set from the candidates' Gram matrix ``G`` (weighted JᵀJ), or from
+    ``factor`` (R with RᵀR = G, from the rows themselves) when given: the data's selection
+    (:func:`select_identifiable`), then the prior's bookkeeping: parameters with a prior that the
+    data see are estimated, those the data cannot see keep the prior."""
+    F = _gram_root(G) if factor is None else factor
     kept, dropped, _ = _select(F, cands, rtol=rank_rtol, position_only=position_only)
     by_data = set(kept)
     from_prior: list[int] = []
@@ -951,9 +958,14 @@ def _reselect(
     evenly spread sample of :data:`RESELECT_ROWS` rows at most (the information scaled to the whole
     data's): a rank and a standard error need no million rows."""
     sub, share = _sample(prob, RESELECT_ROWS)
-    lin = _linearise(current, sub, cands)
+    # the triangular factor of the rows themselves, not a root of their Gram matrix: at the
+    # answer the candidates are often many and nearly dependent (a SCARA's 32 candidates span 17
+    # directions), and the Gram root's rounding (1e-8 per direction, over 15 null directions)
+    # let a prismatic joint's offset pass as independent of the base's z, which it was not
+    # (freed twice, with standard errors of a micrometre for an undetermined difference)
+    lin = _linearise(current, sub, cands, factor=True)
     G = lin.gram / share  # the whole data's information, estimated from the sample
-    new = _choose(cands, G, None, rank_rtol=rank_rtol, position_only=position_only)
+    new = _choose(cands, G, None, rank_rtol=rank_rtol, position_only=position_only, factor=lin.R)
     added = [k for k in new.kept if k not in sel.kept]
     if not added:
         return new
@@ -1362,6 +1374,12 @@ def identify(
         mes = excess_scale(cv["chi2"] / stats["sigma_scale"] ** 2, cv["expected_chi2"])
         cv["model_error_scale"] = mes
     consistency = _consistency(stats["chi2"], stats["dof"])
+    # what the measurement can see, at the identified geometry as the selection is: a target
+    # nominally on an axis hides parameters the real one shows
+    seen = _jacobian_rank(to_poe(current), targets or (None,), orientation=not position_only)
+    if seen != complete["measurable"]:
+        complete["measurable_at_nominal"] = complete["measurable"]
+        complete["measurable"] = seen
     complete["identified"] = len(sel.by_data)
 
     # 6. merging: the parameters the prior alone determines join the estimated ones
