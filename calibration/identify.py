@@ -1191,6 +1191,7 @@ class _Fit:
     iterations: int
     nfev: int
     history: list
+    settled: bool = True
 
 
 def _fit_and_reselect(
@@ -1219,6 +1220,7 @@ def _fit_and_reselect(
     moved: dict[str, float] = {}
     iterations = nfev = 0
     history: list[float] = []
+    settled = True
     for _round in range(MAX_SELECTION_ROUNDS):
         params = [cands[k] for k in sel.kept]
         info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
@@ -1253,8 +1255,13 @@ def _fit_and_reselect(
         if again.kept == sel.kept:
             sel = dataclasses.replace(sel, dropped=again.dropped)
             break
+        if _round == MAX_SELECTION_ROUNDS - 1:
+            # not settled: keep the set the last fit was made with (its solution, linearisation
+            # and covariance belong to it), and say so
+            settled = False
+            break
         sel, lin_next = again, None
-    return _Fit(current, sel, sol, moved, iterations, nfev, history)
+    return _Fit(current, sel, sol, moved, iterations, nfev, history, settled)
 
 
 def identify(
@@ -1346,6 +1353,11 @@ def identify(
     )
     current, sel, sol, moved = fit.model, fit.selection, fit.solution, fit.moved
     iterations, nfev, history = fit.iterations, fit.nfev, fit.history
+    if not fit.settled:
+        notes.append(
+            f"the freed set did not settle in {MAX_SELECTION_ROUNDS} selections at the identified model: "
+            f"the last fit's set is kept"
+        )
     reach = _reach(start)
     kept, dropped = sel.kept, sel.dropped
     params = [cands[k] for k in kept]
