@@ -340,6 +340,8 @@ def identification_block(
     }
     if full["data_only"] is not None:
         block["data_only"] = full["data_only"]
+    from .uncertainty import structure_sigma  # here: uncertainty imports this module's words
+
     block["identified_from"] = (nominal or result.start_model).name
     block["covariance"] = {
         "units": "SI (m, rad; gains 1)",
@@ -348,6 +350,8 @@ def identification_block(
         "matrix": [[float(v) for v in row] for row in result.covariance],
         # predictions use matrix x model_error_scale² (calibration.uncertainty.prediction_covariance)
         "model_error_scale": float(result.model_error_scale),
+        # and add the model-structure error the residuals showed, per axis (m; structure_sigma)
+        "structure_sigma_m": float(structure_sigma(result)),
     }
     if nominal is not None:
         block["nominal"] = model_to_dict(nominal, units=units)

@@ -1,13 +1,18 @@
 """Predicted accuracy of an identified model, and hold-out validation (book §4.3, eq. 4.70).
 
 The parameters' covariance ``Σx`` propagates to any configuration through the identification
-Jacobian: the predicted position of a target has covariance ``J Σx Jᵀ`` (N, 3, 3). A fresh
-measurement differs from the prediction by that plus the instrument's noise, so the actual
-error ``e`` should satisfy ``eᵀ (J Σx Jᵀ + σ² I)⁻¹ e ≤ χ²₃(0.95)`` in 95 % of cases.
+Jacobian: the predicted position of a target has covariance ``J Σx Jᵀ`` (N, 3, 3). When the
+residuals show more than the instrument's noise (the model does not explain the data: a sag, a
+deflection the model lacks), the model's error at any configuration also has that excess, the
+model-structure error ``σ_s² I`` (:func:`structure_sigma`), which no parameter covariance
+describes. A fresh measurement differs from the prediction by both plus the instrument's noise,
+so the actual error ``e`` should satisfy ``eᵀ (J Σx Jᵀ + σ_s² I + σ² I)⁻¹ e ≤ χ²₃(0.95)`` in 95 %
+of cases.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +22,7 @@ from .identification import IdentificationResult, Measurements
 from .jacobian import predict
 from .model import KinematicModel
 from .parameters import Parameter, candidate_parameters
+from .report import expected_rms_m
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -56,11 +62,19 @@ def prediction_covariance(result: IdentificationResult) -> np.ndarray:
     return result.covariance * result.model_error_scale**2
 
 
-def noise_sigma(result: IdentificationResult, sigma_m: np.ndarray | float) -> np.ndarray | float:
-    """The noise a fresh measurement adds to the model's error, per axis (m), for stated
-    uncertainties ``sigma_m``: scaled as the covariance is (``sigma_scale``, the residuals'
-    own estimate when larger than the stated one, and ``model_error_scale``)."""
-    return np.asarray(sigma_m) * result.sigma_scale * result.model_error_scale
+def structure_sigma(result: IdentificationResult) -> float:
+    """The model-structure error per axis (m) that the residuals show beyond the stated noise:
+    ``σ √(s²m² − 1)``, ``σ`` the per-axis noise the stated uncertainties expect in these residuals
+    (``expected_rms / √3``), ``s`` = ``sigma_scale``, ``m`` = ``model_error_scale``; 0 when both are
+    1 (no significant excess: the model explains the data). The data cannot tell an unmodelled
+    effect (a sag: the same error at the same configuration, in the model's predictions too) from
+    an instrument noisier than stated (not in the model's predictions); the bound takes the
+    excess for the former, so that it covers the model's error in both cases (with a noisier
+    instrument, more than 95 %), and the χ² test says the model does not explain the data."""
+    grow = result.sigma_scale * result.model_error_scale
+    if not grow > 1.0:
+        return 0.0
+    return expected_rms_m(result) / math.sqrt(3.0) * math.sqrt(grow**2 - 1.0)
 
 
 def position_covariance(
@@ -70,12 +84,13 @@ def position_covariance(
     targets: np.ndarray | None = None,
     payload: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Covariance (N, 3, 3) m² of the predicted position of ``target`` (or per-row ``targets``)
-    at readings ``q`` (N, n), from the identified parameters' covariance
-    (:func:`prediction_covariance`)."""
+    """Covariance (N, 3, 3) m² of the error of the predicted position of ``target`` (or per-row
+    ``targets``) at readings ``q`` (N, n): the identified parameters' covariance propagated
+    (:func:`prediction_covariance`), plus the model-structure error's (:func:`structure_sigma`)."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     names = np.array([target] * len(q), dtype=object) if targets is None else np.asarray(targets, dtype=object)
-    return propagate(result.model, list(result.params), prediction_covariance(result), q, names, payload)
+    C = propagate(result.model, list(result.params), prediction_covariance(result), q, names, payload)
+    return C + structure_sigma(result) ** 2 * np.eye(3)
 
 
 def radius_95(C: np.ndarray, level: float = 0.95) -> np.ndarray:
@@ -136,14 +151,28 @@ def covariance_from_block(model: KinematicModel) -> tuple[list[Parameter], np.nd
     return [known[n] for n in names], matrix
 
 
+def structure_sigma_from_block(model: KinematicModel) -> float:
+    """The model-structure error per axis (m) stored in an identified model's ``identification``
+    block (:func:`structure_sigma` when it was identified; 0 in files written before it was
+    stored): added to every predicted position's covariance, ``σ_s² I``."""
+    block = model.metadata.get("identification")
+    cov = block.get("covariance") if isinstance(block, dict) else None
+    value = cov.get("structure_sigma_m", 0.0) if isinstance(cov, dict) else 0.0
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0.0:
+        raise CovarianceError(
+            "identification.covariance.structure_sigma_m", f"expected a number >= 0 (metres), got {value!r}"
+        )
+    return float(value)
+
+
 @dataclass(frozen=True, slots=True)
 class Validation:
     """Hold-out errors of a model on measurements it was not fitted to (m).
 
     ``coverage_95``: the fraction of rows whose error lies inside the predicted 95 % region
-    (the model's covariance for predictions plus the instrument's noise, both scaled as the
-    covariance is: :func:`prediction_covariance`, :func:`noise_sigma`); close to 0.95 when the
-    uncertainty is honest.
+    (the model's error, :func:`position_covariance`: the parameters' covariance for predictions
+    and the model-structure error the residuals showed, plus the instrument's stated noise);
+    close to 0.95 when the uncertainty is honest.
     ``before_*``: the same errors of the starting model, for comparison.
     """
 
@@ -172,9 +201,10 @@ def validate(result: IdentificationResult, holdout: Measurements) -> Validation:
     p = predict(result.model, holdout.q, _p_tool(result.model, names), payload=holdout.payload).p_world
     e_vec = holdout.p_world - p
     e = np.linalg.norm(e_vec, axis=1)
-    C = position_covariance(result, holdout.q, targets=names, payload=holdout.payload) + (
-        noise_sigma(result, sigma) ** 2
-    )[:, None, None] * np.eye(3)
+    # the model's error (parameters and structure) plus the instrument's stated noise
+    C = position_covariance(result, holdout.q, targets=names, payload=holdout.payload) + (sigma**2)[
+        :, None, None
+    ] * np.eye(3)
     d2 = np.einsum("ni,ni->n", e_vec, np.linalg.solve(C, e_vec[:, :, None])[:, :, 0])
     coverage = float(np.mean(d2 <= chi2_quantile(0.95, 3))) if len(e) else 0.0
     p0 = predict(result.start_model, holdout.q, _p_tool(result.start_model, names), payload=holdout.payload).p_world

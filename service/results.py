@@ -116,6 +116,11 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
     if missing:
         return {"available": False, "reason": f"parameters not in the model: {', '.join(missing[:5])}"}
     Sigma = np.asarray(cov["matrix"], dtype=float)
+    # as `recal predict --uncertainty` (calibration.uncertainty.position_covariance): grown by the
+    # cross-validation's model_error_scale, plus the model-structure error the residuals showed
+    grown = ((cal.model or {}).get("identification") or {}).get("covariance") or {}
+    Sigma = Sigma * float(grown.get("model_error_scale", 1.0)) ** 2
+    structure_m = float(grown.get("structure_sigma_m", 0.0))
     nominal = model_from_dict(cell.model)
     try:
         lim = allowed_limits(nominal, cell.allowed_region)
@@ -131,7 +136,7 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
         target = None
     names_arr = np.array([target] * samples, dtype=object)
     pred = predict(model, q, np.broadcast_to(model.target(target), (samples, 3)), params, names_arr)
-    C = np.einsum("nip,pq,njq->nij", pred.Jp, Sigma, pred.Jp)
+    C = np.einsum("nip,pq,njq->nij", pred.Jp, Sigma, pred.Jp) + structure_m**2 * np.eye(3)
     lam = np.linalg.eigvalsh(C)[:, -1]
     L = model.units.length_m
     radius = np.sqrt(chi2_quantile(0.95, 3) * np.maximum(lam, 0.0)) / L
@@ -146,7 +151,8 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
         "points": _rl(p, 5),
         "stats95": _stats(radius),
         "stats_rms": _stats(rms),
-        "note": "95 % radius of the position the model predicts, from the identified parameters' covariance; "
+        "note": "95 % radius of the position the model predicts, from the identified parameters' covariance "
+        "and the model-structure error the residuals showed (none when the model explains the data); "
         "the instrument's own noise is not included",
     }
 

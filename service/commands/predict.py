@@ -82,11 +82,12 @@ def run(args) -> int:
 
 
 def _stored_covariance(path, model):
-    from calibration.uncertainty import CovarianceError, covariance_from_block
+    from calibration.uncertainty import CovarianceError, covariance_from_block, structure_sigma_from_block
     from service.files import InputError
 
     try:
-        return covariance_from_block(model)
+        params, matrix = covariance_from_block(model)
+        return params, matrix, structure_sigma_from_block(model)
     except CovarianceError as exc:
         raise InputError(path, f"field {exc.field!r}: {exc} (needed by --uncertainty)") from None
 
@@ -97,8 +98,9 @@ def _uncertainty(model, covariance, q, target, payload=None):
 
     from calibration.uncertainty import propagate, radius_95
 
-    params, Sigma = covariance
+    params, Sigma, structure_m = covariance
     C = propagate(model, params, Sigma, q, np.array([target] * len(q), dtype=object), payload)
+    C = C + structure_m**2 * np.eye(3)  # the model-structure error the residuals showed (0 when none)
     sigma = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
     return np.hstack([sigma, radius_95(C)[:, None]]) / model.units.length_m
 

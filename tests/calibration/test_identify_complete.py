@@ -1,9 +1,10 @@
 """Identification is right on every serial arm (issue 14): on robots built here (a SCARA, a
 Stanford-like arm, a KUKA KR-type 6R with its reflector on the flange axis, a 7-DOF arm, an arm
-with two consecutive revolute axes on one line), ``identify`` reaches the hold-out accuracy of a
-complete reference fit written in this file: every link of the nominal DH chain followed by its
-own 6-DOF error transform, fitted with ``scipy.optimize.least_squares`` (over-parameterised on
-purpose: whatever the real robot's deviations, this model can follow them).
+with two consecutive revolute axes on one line, random 6R arms with the reflector on the last
+axis), ``identify`` reaches the hold-out accuracy of a complete reference fit written in
+``complete_reference.py``: every link of the nominal DH chain followed by its own 6-DOF error
+transform, fitted with ``scipy.optimize.least_squares`` (over-parameterised on purpose: whatever
+the real robot's deviations, this model can follow them).
 """
 
 from __future__ import annotations
@@ -13,9 +14,8 @@ import math
 
 import numpy as np
 import pytest
+from complete_reference import dh_link, random_case, reference_fit
 from sample_models import Rx, Rz, Tx, Tz, stanford_5r1p_doc
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from calibration.identify import NotEnoughData, identify
 from calibration.kinematics import target_positions
@@ -101,51 +101,9 @@ def _robot(name):
 # --------------------------------------------------------------------------- the complete reference
 
 
-def _exp6(x):
-    """A 6-DOF transform from (translation, rotation vector)."""
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(x[3:]).as_matrix()
-    T[:3, 3] = x[:3]
-    return T
-
-
-def _dh_link(theta, d, a, alpha):
-    """``Rz(θ)·Tz(d)·Tx(a)·Rx(α)`` (contracts §2) for arrays θ, d (N,): the product written out."""
-    ct, st, ca, sa = np.cos(theta), np.sin(theta), math.cos(alpha), math.sin(alpha)
-    A = np.zeros((len(theta), 4, 4))
-    A[:, 0] = np.stack([ct, -st * ca, st * sa, a * ct], axis=1)
-    A[:, 1] = np.stack([st, ct * ca, -ct * sa, a * st], axis=1)
-    A[:, 2, 1], A[:, 2, 2], A[:, 2, 3], A[:, 3, 3] = sa, ca, d, 1.0
-    return A
-
-
 def test_the_written_out_link_is_the_product_of_elementary_transforms():
-    A = _dh_link(np.array([0.3]), np.array([0.2]), 0.1, -0.7)[0]
+    A = dh_link(np.array([0.3]), np.array([0.2]), 0.1, -0.7)[0]
     np.testing.assert_allclose(A, Rz(0.3) @ Tz(0.2) @ Tx(0.1) @ Rx(-0.7), atol=1e-15)
-
-
-def _reference_points(model, x, q):
-    """``E0 · Π (Aᵢ(qᵢ) · Eᵢ) · target``: the nominal DH links (written from contracts §2) each
-    followed by a 6-DOF error Eᵢ, and the target's position; ``x`` = 6 per Eᵢ, then the target."""
-    n = model.n_joints
-    T = np.broadcast_to(_exp6(x[:6]), (len(q), 4, 4))
-    for i, j in enumerate(model.joints):
-        th = j.theta + (q[:, i] if j.revolute else 0.0)
-        d = j.d + (0.0 if j.revolute else q[:, i])
-        A = _dh_link(np.broadcast_to(th, len(q)), np.broadcast_to(d, len(q)), j.a, j.alpha)
-        T = T @ A @ _exp6(x[6 * (i + 1) : 6 * (i + 2)])
-    p = x[6 * (n + 1) :]
-    return T[:, :3, :3] @ p + T[:, :3, 3]
-
-
-def reference_fit(model, data):
-    """The complete model fitted to ``data`` (one target); returns a predictor of positions."""
-    n = model.n_joints
-    x0 = np.concatenate([np.zeros(6 * (n + 1)), model.targets["smr"]])
-    sol = least_squares(
-        lambda x: (_reference_points(model, x, data.q) - data.p_world).ravel(), x0, method="lm", xtol=1e-12, ftol=1e-12
-    )
-    return lambda q: _reference_points(model, sol.x, q)
 
 
 def _truth(nom, rng, name):
@@ -166,14 +124,20 @@ def test_identification_reaches_the_complete_fit(name):
     true_p = target_positions(truth, q, "smr")
     ours = np.sqrt(np.mean(np.sum((target_positions(result.model, q, "smr") - true_p) ** 2, axis=1)))
     ref = np.sqrt(np.mean(np.sum((reference_fit(nom, data)(q) - true_p) ** 2, axis=1)))
-    assert ours <= 1.05 * ref + 1e-6, (name, ours, ref, result.notes)
+    assert ours <= 1.05 * ref, (name, ours, ref, result.notes)
     # the model explains the data: residuals at the stated noise, no rows taken for outliers
     assert result.consistency["consistent"] and not result.outliers, (result.sigma_scale, len(result.outliers))
     c = result.completeness
     assert c["count"] == 4 * c["revolute"] + 2 * c["prismatic"] + 6
-    # what the measurement can see at the nominal (one point: no tool orientation, plus the
-    # point's own offset); the identified geometry may show a little more (redundant only there)
-    assert c["measurable"] <= c["count"] and c["identified"] <= c["measurable"] + 3
+    # what the measurement can see (one point: no tool orientation, plus the point's own offset),
+    # at the identified geometry as the selection decides (the KR 16's reflector on the flange
+    # axis hides two at the nominal): no more is freed than that, and the freed set is minimal:
+    # no combination of it is undetermined (the SCARA freed its prismatic offset beside the
+    # base's z, the collinear arm a dependent tilt: condition numbers of 6e15, 18 and 28 freed)
+    assert c["identified"] <= c["measurable"] <= c["count"], c
+    assert result.condition_number < 1e6, result.condition_number
+    if name == "kr16-target-on-axis":
+        assert c["measurable_at_nominal"] < c["measurable"], c
 
 
 @pytest.mark.slow  # the reference fit of 500 rows: a few seconds
@@ -194,6 +158,30 @@ def test_a_reflector_on_the_flange_axis_reaches_the_complete_fit_when_the_noise_
     assert ours <= 1.05 * ref, (ours, ref)
     freed_at_the_answer = [w for w in result.warnings if "determined only at the identified geometry" in w]
     assert freed_at_the_answer and "j5" in freed_at_the_answer[0], result.warnings
+
+
+# random arms with the reflector nominally on the last axis (complete_reference.random_case's even
+# seeds); with 2, 16 and 34 the wrist tilt the real reflector's offset determined only to about
+# 1 mrad used to be held at the nominal: 1.7, 74 and 7 times the complete fit's hold-out error
+ON_AXIS_SEEDS = (0, 2, 4, 6, 8, 16, 20, 34)
+
+
+@pytest.mark.slow  # eight reference fits: several seconds
+def test_random_arms_with_the_reflector_on_the_last_axis_reach_the_complete_fit():
+    """Issue 14, case 3 on arms nobody chose: the parameters redundant only at the nominal (a
+    reflector on the last axis) are freed where the identified geometry determines them, however
+    weakly (their standard errors are in the warning and in the covariance), instead of being
+    held biased; each arm reaches the complete fit's hold-out accuracy within 5 %."""
+    for seed in ON_AXIS_SEEDS:
+        nom, truth, rng = random_case(seed)
+        data = simulate_measurements(truth, random_configurations(nom, 150, rng), rng, sigma_m=SIGMA, targets=("smr",))
+        result = identify(nom, data, sigma_m=SIGMA)
+        q = random_configurations(nom, 500, rng)
+        true_p = target_positions(truth, q, "smr")
+        ours = np.sqrt(np.mean(np.sum((target_positions(result.model, q, "smr") - true_p) ** 2, axis=1)))
+        ref = np.sqrt(np.mean(np.sum((reference_fit(nom, data)(q) - true_p) ** 2, axis=1)))
+        assert ours <= 1.05 * ref, (seed, ours, ref, result.warnings)
+        assert any("on the last joint's axis" in w for w in result.warnings), (seed, result.warnings)
 
 
 def test_scara_is_written_in_a_complete_form():
@@ -226,7 +214,7 @@ def test_collinear_axes_go_to_poe():
     true_p = target_positions(truth, q, "smr")
     ours = np.sqrt(np.mean(np.sum((target_positions(result.model, q, "smr") - true_p) ** 2, axis=1)))
     ref = np.sqrt(np.mean(np.sum((reference_fit(nom, data)(q) - true_p) ** 2, axis=1)))
-    assert ours <= 1.05 * ref + 1e-6, (ours, ref)
+    assert ours <= 1.05 * ref, (ours, ref)
 
 
 def test_a_target_on_the_last_axis_is_warned_about():
@@ -237,6 +225,25 @@ def test_a_target_on_the_last_axis_is_warned_about():
     )
     result = identify(nom, data)
     assert any("on the last joint's axis" in w for w in result.warnings), result.warnings
+
+
+def test_a_freed_set_that_does_not_settle_keeps_the_last_fits_set(monkeypatch):
+    """The selection at the answer is repeated until the freed set is stable, at most
+    MAX_SELECTION_ROUNDS times; when it has not settled by then, the result is that of the last
+    fit, with its own set (the code before took the new set with the old fit's normal equations
+    and failed on their shapes), and a note says so. One round on the KR 16 whose reflector is on
+    the flange axis: the answer frees j5's parameters, which the one fit did not have."""
+    import calibration.identify as identify_module
+
+    monkeypatch.setattr(identify_module, "MAX_SELECTION_ROUNDS", 1)
+    nom = _robot("kr16-target-on-axis")
+    rng = np.random.default_rng(5)
+    truth = _truth(nom, rng, "kr16-target-on-axis")
+    data = simulate_measurements(truth, random_configurations(nom, 150, rng), rng, sigma_m=SIGMA, targets=("smr",))
+    result = identify(nom, data)
+    assert result.success and result.covariance.shape == (len(result.params),) * 2
+    assert result.completeness["identified"] == len(result.params) < result.completeness["measurable"]
+    assert any("did not settle in 1 selections" in n for n in result.notes), result.notes
 
 
 def test_two_rows_are_refused_with_the_rows_needed():

@@ -269,10 +269,15 @@ def test_a_cmm_after_a_tracker_determines_the_tool_frame_the_tracker_could_not(t
     assert misfit > 0.2e-3  # the balls are off their drawing
     held = {u.name for u in first.unidentifiable}
     assert {"tool.tx", "tool.ty", "tool.tz", "tool.rx", "tool.ry"} <= held  # the tracker could not see them
-    # the data determine what they can (tool frame, and the wrist parameters the reflector hid)
+    # the data determine what they can: the tool frame, and (sharper) the wrist parameters the
+    # reflector nominally on the flange axis let the tracker determine only to millimetres and
+    # degrees (issue 14: freed at its identified geometry, not held at the nominal)
     src = dict(zip(second.param_names, second.sources))
-    for name in ("tool.tx", "tool.ty", "tool.tz", "tool.rx", "tool.ry", "j5.a", "j5.alpha"):
+    for name in ("tool.tx", "tool.ty", "tool.tz", "tool.rx", "tool.ry"):
         assert src[name] == "data", (name, src.get(name))
+    sd1, sd2 = dict(zip(first.param_names, first.std_errors)), dict(zip(second.param_names, second.std_errors))
+    for name in ("j5.a", "j5.alpha"):
+        assert src[name] == "data + prior" and sd2[name] < sd1[name] / 10, (name, src[name], sd1[name], sd2[name])
     # the robot did not move: no drift, and the fit reaches the noise the rows state
     assert scale < 0.3, scale
     assert second.success and 0.6 < second.chi2 / second.dof < 1.4, second.chi2 / second.dof
@@ -292,10 +297,17 @@ def test_a_cmm_after_a_tracker_determines_the_tool_frame_the_tracker_could_not(t
 
 def test_without_its_held_relations_the_tracker_prior_holds_the_cmm_off(tracker_then_cmm):
     """The prior's covariance is of what the tracker determined with the held parameters at the
-    model's value (its j5.theta stands in for j5.a as well): taken for the parameters themselves,
-    it fights the CMM's data."""
+    model's value (its reflector offset stands in for the tool frame's translation): taken for the
+    parameters themselves, it keeps the reflector where the tracker put it in the old tool frame
+    while the CMM moves the tool frame, half a millimetre off."""
     truth, seen_by_cmm, misfit, first, cmm, scale, prior, second = tracker_then_cmm
     naive = identify(
         first.model, cmm, prior=Prior(prior.names, prior.covariance), sigma_m=CMM_SIGMA_M, sigma_rad=CMM_SIGMA_RAD
     )
-    assert naive.chi2 / naive.dof > 5 * second.chi2 / second.dof, (naive.chi2 / naive.dof, second.chi2 / second.dof)
+    q = random_configurations(truth, 200, np.random.default_rng(12))
+    smr = lambda m: fk(m, q)[:, :3, :3] @ m.targets["smr"] + fk(m, q)[:, :3, 3]  # noqa: E731
+    rms = {
+        k: np.sqrt(np.mean(np.sum((smr(truth) - smr(r.model)) ** 2, axis=1)))
+        for k, r in (("naive", naive), ("held", second))
+    }
+    assert rms["naive"] > 10 * rms["held"] and rms["naive"] > 0.2e-3, rms

@@ -104,7 +104,10 @@ def test_identify_auto_adds_compliance_and_reports_cross_validation(cell, auto):
     rep = json.loads((cell.dir / "report.json").read_text())
     cv = rep["compliance"]["cross_validation"]
     assert cv["rms_compliant"] < 0.1 * cv["rms_rigid"]  # mm
-    assert cv["rms_compliant"] < 1.15 * np.sqrt(3) * 0.02
+    # each fold is fitted on 96 rows: its error is the noise plus that of ~30 parameters fitted
+    # without it (with the reflector on the flange axis, j5.a and j5.alpha only to 0.4 mm and
+    # 0.13 deg: freed since issue 14, where they were held biased); the hold-out check is below
+    assert cv["rms_compliant"] < 1.2 * np.sqrt(3) * 0.02
     assert rep["validation"]["rms"] < 1.1 * np.sqrt(3) * 0.02
     units = {p["name"]: p["unit"] for p in rep["parameters"]}
     assert units["compliance.j2.k"] == "deg/(N·m)" and units["compliance.j2.j6.m"] == "deg/mm"
