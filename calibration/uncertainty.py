@@ -165,6 +165,22 @@ def structure_sigma_from_block(model: KinematicModel) -> float:
     return float(value)
 
 
+def stored_position_covariance(
+    model: KinematicModel, q: np.ndarray, target: str | None = None, payload: np.ndarray | None = None
+) -> np.ndarray:
+    """Covariance (N, 3, 3) m² of the error of an identified model's predicted position of
+    ``target`` at readings ``q`` (N, n), from what its ``identification`` block stores: the
+    parameters' covariance grown by ``model_error_scale`` (:func:`covariance_from_block`),
+    propagated, plus the model-structure error (:func:`structure_sigma_from_block`). What
+    :func:`position_covariance` gives for the identification's result, for a model read from a
+    file or a store. Raises :class:`CovarianceError` naming the field at fault."""
+    params, Sigma = covariance_from_block(model)
+    structure_m = structure_sigma_from_block(model)
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    names = np.array([target] * len(q), dtype=object)
+    return propagate(model, params, Sigma, q, names, payload) + structure_m**2 * np.eye(3)
+
+
 @dataclass(frozen=True, slots=True)
 class Validation:
     """Hold-out errors of a model on measurements it was not fitted to (m).

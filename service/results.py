@@ -20,12 +20,11 @@ from collections import OrderedDict
 import numpy as np
 from sqlmodel import Session, select
 
-from calibration.jacobian import predict
+from calibration.kinematics import fk
 from calibration.metrics import norm_statistics
 from calibration.model import KinematicModel, model_from_dict
-from calibration.parameters import parameters_by_name
 from calibration.report import COMPARISON_STATUSES, compare_parameters
-from calibration.uncertainty import chi2_quantile
+from calibration.uncertainty import CovarianceError, covariance_from_block, radius_95, stored_position_covariance
 
 from .models import Calibration, Cell, Measurement, RunSession
 from .plans import UnsafePlan, allowed_limits, check_configurations
@@ -107,20 +106,11 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
     """The identified model's predicted position uncertainty (95 % radius, from the parameters'
     covariance, instrument noise not included) at ``samples`` configurations drawn uniformly
     inside the cell's allowed joint ranges; with where the target is there (for a map)."""
-    cov = cal.covariance or {}
-    names = list(cov.get("names") or [])
-    if not names:
-        return {"available": False, "reason": "this calibration stored no parameter covariance"}
     model = model_from_dict(cal.model)
-    params, missing = parameters_by_name(model, names)
-    if missing:
-        return {"available": False, "reason": f"parameters not in the model: {', '.join(missing[:5])}"}
-    Sigma = np.asarray(cov["matrix"], dtype=float)
-    # as `recal predict --uncertainty` (calibration.uncertainty.position_covariance): grown by the
-    # cross-validation's model_error_scale, plus the model-structure error the residuals showed
-    grown = ((cal.model or {}).get("identification") or {}).get("covariance") or {}
-    Sigma = Sigma * float(grown.get("model_error_scale", 1.0)) ** 2
-    structure_m = float(grown.get("structure_sigma_m", 0.0))
+    try:  # the model's stored covariance is what `recal predict --uncertainty` reads too
+        covariance_from_block(model)
+    except CovarianceError as exc:
+        return {"available": False, "reason": f"this calibration stored no usable parameter covariance: {exc}"}
     nominal = model_from_dict(cell.model)
     try:
         lim = allowed_limits(nominal, cell.allowed_region)
@@ -134,14 +124,15 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
     q = rng.uniform(lo, hi, size=(samples, model.n_joints))
     if target is not None and target not in model.targets:
         target = None
-    names_arr = np.array([target] * samples, dtype=object)
-    pred = predict(model, q, np.broadcast_to(model.target(target), (samples, 3)), params, names_arr)
-    C = np.einsum("nip,pq,njq->nij", pred.Jp, Sigma, pred.Jp) + structure_m**2 * np.eye(3)
-    lam = np.linalg.eigvalsh(C)[:, -1]
+    # as `recal predict --uncertainty`: grown by the cross-validation's model_error_scale, plus
+    # the model-structure error the residuals showed
+    C = stored_position_covariance(model, q, target)
+    T = fk(model, q)
+    p_world = T[:, :3, :3] @ model.target(target) + T[:, :3, 3]
     L = model.units.length_m
-    radius = np.sqrt(chi2_quantile(0.95, 3) * np.maximum(lam, 0.0)) / L
+    radius = radius_95(C) / L
     rms = np.sqrt(np.maximum(np.trace(C, axis1=1, axis2=2), 0.0)) / L
-    p = pred.p_world / L
+    p = p_world / L
     return {
         "available": True,
         "samples": int(samples),

@@ -51,7 +51,8 @@ def run(args) -> int:
         raise InputError(
             args.model, f"field 'targets': no target {args.target!r} (asked for by --target); expected {known}"
         )
-    covariance = _stored_covariance(args.model, model) if args.uncertainty else None
+    if args.uncertainty:
+        _stored_covariance(args.model, model)
     if args.payload is not None:
         try:
             model = with_payload(model, parse_payload(args.payload, model))
@@ -69,10 +70,10 @@ def run(args) -> int:
     else:
         quat = matrix_to_quat(T[:, :3, :3])
         header, rows = ["x", "y", "z", "qw", "qx", "qy", "qz"], np.hstack([T[:, :3, 3] / L, quat])
-    if covariance is not None:
+    if args.uncertainty:
         header, rows = (
             header + UNCERTAINTY_COLUMNS,
-            np.hstack([rows, _uncertainty(model, covariance, q, args.target, payload)]),
+            np.hstack([rows, _uncertainty(model, q, args.target, payload)]),
         )
     rows = rows.tolist()
     if flags is not None:  # a model with a residual map says where it applied
@@ -82,25 +83,24 @@ def run(args) -> int:
 
 
 def _stored_covariance(path, model):
+    """Check, before any output, that the model stores what ``--uncertainty`` needs."""
     from calibration.uncertainty import CovarianceError, covariance_from_block, structure_sigma_from_block
     from service.files import InputError
 
     try:
-        params, matrix = covariance_from_block(model)
-        return params, matrix, structure_sigma_from_block(model)
+        covariance_from_block(model)
+        structure_sigma_from_block(model)
     except CovarianceError as exc:
         raise InputError(path, f"field {exc.field!r}: {exc} (needed by --uncertainty)") from None
 
 
-def _uncertainty(model, covariance, q, target, payload=None):
+def _uncertainty(model, q, target, payload=None):
     """(N, 4) sigma_x, sigma_y, sigma_z, u95 of the predicted position, model length unit."""
     import numpy as np
 
-    from calibration.uncertainty import propagate, radius_95
+    from calibration.uncertainty import radius_95, stored_position_covariance
 
-    params, Sigma, structure_m = covariance
-    C = propagate(model, params, Sigma, q, np.array([target] * len(q), dtype=object), payload)
-    C = C + structure_m**2 * np.eye(3)  # the model-structure error the residuals showed (0 when none)
+    C = stored_position_covariance(model, q, target, payload)
     sigma = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
     return np.hstack([sigma, radius_95(C)[:, None]]) / model.units.length_m
 

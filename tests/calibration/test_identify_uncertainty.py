@@ -153,6 +153,7 @@ def test_the_stored_covariance_grows_as_the_cross_validation_says():
         covariance_from_block,
         prediction_covariance,
         propagate,
+        stored_position_covariance,
         structure_sigma_from_block,
     )
 
@@ -174,6 +175,14 @@ def test_the_stored_covariance_grows_as_the_cross_validation_says():
         result.model, list(result.params), prediction_covariance(result), q, np.array(["smr"] * 5, dtype=object)
     )
     np.testing.assert_allclose(C, np.broadcast_to(structure_sigma(result) ** 2 * np.eye(3), (5, 3, 3)), atol=1e-24)
+    # what a model read from a file or the store predicts (recal predict, the result page) is the
+    # identification's own position covariance, the stored scale included
+    as_written = dataclasses.replace(
+        result.model, metadata={"identification": identification_block(result, Units("mm", "deg"))}
+    )
+    np.testing.assert_allclose(
+        stored_position_covariance(as_written, q, "smr"), position_covariance(result, q, "smr"), rtol=1e-9, atol=1e-24
+    )
     block["covariance"]["model_error_scale"] = 0.5
     with pytest.raises(CovarianceError, match="expected a number >= 1") as exc:
         covariance_from_block(dataclasses.replace(result.model, metadata={"identification": block}))
