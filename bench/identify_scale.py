@@ -11,9 +11,14 @@ reports the wall time of that call and the process's peak resident set during it
 identification itself takes. The baseline is the ``calibration`` package of ``--baseline-rev``
 (``git archive``), run the same way. BLAS single-threaded (as bench/identify.py).
 
+``--tool-on-axis``: the same robot with its tool nominally on the flange axis (the nominal tool
+(0, 0, 80) mm; the real one about 1 mm off the axis): the case where the re-selection at the
+answer frees the parameters only the real geometry determines and the fit runs again.
+
 Run: ``python bench/identify_scale.py`` (10k and 100k, both implementations: about a minute);
 ``--sizes 1000000 --no-baseline`` for the million rows of this tree alone (run it once, on a quiet
-machine: about 10 s and under 1 GB; the baseline needs about 4 GB there).
+machine: about 10 s and under 1 GB; the baseline needs about 4 GB there); add ``--tool-on-axis``
+for the on-axis case.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ from calibration.identify import Measurements, identify
 import dataclasses
 z = np.load(sys.argv[1])
 data = Measurements(z["q"], z["p"])
-nominal = dataclasses.replace(robots.nominal("ur10e"), tool=np.array([0.03, 0.0, 0.08, 0.0, 0.0, 0.0]))
+nominal = dataclasses.replace(robots.nominal("ur10e"), tool=np.array(json.loads(sys.argv[2])))
 def status(key):
     for line in open("/proc/self/status"):
         if line.startswith(key + ":"):
@@ -57,7 +62,14 @@ print(json.dumps({"package": calibration.__file__, "time_s": dt, "peak_bytes": p
 """
 
 
-def simulate(N: int, path: Path) -> None:
+# the tool moved onto the flange axis (x 30 mm -> 0), in the nominal and, with its errors, in the truth
+ON_AXIS_SHIFT_M = 0.03
+
+
+def simulate(N: int, path: Path, *, tool_on_axis: bool) -> list[float]:
+    """Simulate ``N`` rows into ``path``; the nominal tool (x, y, z, rx, ry, rz) the child starts from."""
+    import dataclasses
+
     import numpy as np
 
     from calibration.simulate import random_configurations, simulate_measurements
@@ -66,16 +78,26 @@ def simulate(N: int, path: Path) -> None:
     from identify import SIGMA_M, scenario  # the benchmark robot of bench/identify.py
 
     nominal, truth, rng, _, _ = scenario()
+    if tool_on_axis:
+        shift = np.array([ON_AXIS_SHIFT_M, 0, 0, 0, 0, 0])
+        nominal = dataclasses.replace(nominal, tool=nominal.tool - shift)
+        truth = dataclasses.replace(truth, tool=truth.tool - shift)
     data = simulate_measurements(truth, random_configurations(nominal, N, rng), rng, sigma_m=SIGMA_M)
     np.savez(path, q=data.q, p=data.p_world)
+    return [float(v) for v in nominal.tool]
 
 
-def run(pythonpath: Path, npz: Path) -> dict:
+def run(pythonpath: Path, npz: Path, tool: list[float]) -> dict:
     env = {**os.environ, "PYTHONPATH": str(pythonpath)}
     # cwd: the data's directory, so that `-c` (which puts the working directory first on the path)
     # imports the calibration package of ``pythonpath``
     out = subprocess.run(
-        [sys.executable, "-c", CHILD, str(npz)], env=env, capture_output=True, text=True, check=True, cwd=npz.parent
+        [sys.executable, "-c", CHILD, str(npz), json.dumps(tool)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=npz.parent,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -85,6 +107,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[10000, 100000])
     ap.add_argument("--baseline-rev", default="65c8eae", help="git revision whose calibration package is the baseline")
     ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--tool-on-axis", action="store_true", help="the tool nominally on the flange axis")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "bench"))
     from identify import machine
@@ -107,9 +130,9 @@ def main(argv=None) -> int:
             impls.append((args.baseline_rev, base))
         for N in args.sizes:
             npz = d / f"rows_{N}.npz"
-            simulate(N, npz)
+            tool = simulate(N, npz, tool_on_axis=args.tool_on_axis)
             for name, path in impls:
-                r = run(path, npz)
+                r = run(path, npz, tool)
                 above = r["peak_bytes"] - r["before_bytes"]
                 print(
                     f"{N:>8} | {name:>8} | {r['time_s']:7.2f} {r['time_s'] / N * 1e6:7.2f} | "
