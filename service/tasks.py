@@ -58,12 +58,11 @@ def register_task(
         _check_bytes(f"body.files[{i}].", f["name"], f["content"], f["encoding"])
         if not f["name"].lower().endswith(".dat"):
             raise Invalid(f"body.files[{i}].name", f"{f['name']}: expected the .src's .dat, or $config.dat")
+    # a .src alone is taken, as `recal compensate` and the compensation route take it (targets
+    # declared in a .dat it lacks are then reported as not compensated); two .dat files are not
     dats = [f for f in files if f["name"].lower().lstrip("$") != "config.dat"]
-    if lower.endswith(".src") and len(dats) != 1:
-        raise Invalid(
-            "body.files",
-            f"{name} needs its .dat (one, in files), got {len(dats)}: the .src's targets are declared there",
-        )
+    if len(dats) > 1:
+        raise Invalid("body.files", f"{name} has one .dat (its targets' declarations), got {len(dats)}")
     t = TaskFile(cell_id=cell.id, name=name, content=content, mode=mode, encoding=encoding, files=files or None)
     db.add(t)
     db.commit()

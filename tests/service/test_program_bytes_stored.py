@@ -87,6 +87,25 @@ def test_a_windows_1252_krl_program_registered_is_compensated_byte_for_byte(cali
     assert dat["name"] == "job.dat" and dat["text"].encode(dat["encoding"]) == want["job.dat"]
 
 
+def test_a_krl_src_registered_alone_is_compensated_as_recal_compensate_does(calibrated, tokens, tmp_path):
+    """A .src without its .dat: its inline target is corrected, the ones declared in the missing
+    .dat are reported as not compensated (the CLI's warning), and the bytes are the CLI's."""
+    client, cell, cal = calibrated
+    t = auth(tokens["technician"])
+    task = {"name": "job.src", "content": SRC.decode("iso-8859-1"), "encoding": "iso-8859-1"}
+    assert client.post(f"/api/v1/cells/{cell}/tasks", json=task, headers=t).status_code == 201
+    r = client.post(f"/api/v1/cells/{cell}/tasks/compensate", headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    (done,) = r.json()["tasks"]
+    assert "error" not in done and done["summary"]["converged"] == 1, done
+    want = cli_output(client, tokens["viewer"], cell, cal, tmp_path, {"job.src": SRC}, "job.src")
+    got = client.get(f"/api/v1/compensations/{done['compensation_id']}", headers=t)
+    assert got.content == want["job.src"] != SRC
+    report = client.get(f"/api/v1/compensations/{done['compensation_id']}/report", headers=t).json()["report"]
+    missing = " ".join(str(u) for u in report["uninterpreted"])
+    assert "XHOME" in missing and "XP1" in missing, report["uninterpreted"]
+
+
 def test_a_latin_1_rapid_module_registered_and_a_utf8_one(calibrated, tokens, tmp_path):
     """The Latin-1 module comes back in Latin-1, the same module in UTF-8 in UTF-8, each the
     bytes of ``recal compensate``; a task CSV registered beside them is still answered as UTF-8."""
@@ -134,7 +153,18 @@ def test_a_program_compensated_by_the_route_is_served_again_as_answered(calibrat
         ({"name": "m.mod", "content": "! Ωmega\n", "encoding": "iso-8859-1"}, "body.content", "'Ω'"),
         ({"name": "m.mod", "content": "MODULE m\n", "encoding": "cp1252"}, "body.encoding", "'utf-8' or 'iso-8859-1'"),
         ({"name": "t.csv", "content": "q1\n1\n", "encoding": "iso-8859-1"}, "body.encoding", "task CSV is UTF-8"),
-        ({"name": "job.src", "content": "DEF job( )\nEND\n"}, "body.files", "job.src needs its .dat"),
+        (
+            {
+                "name": "job.src",
+                "content": "DEF job( )\nEND\n",
+                "files": [
+                    {"name": "job.dat", "content": "DEFDAT job\n"},
+                    {"name": "old.dat", "content": "DEFDAT old\n"},
+                ],
+            },
+            "body.files",
+            "job.src has one .dat",
+        ),
         (
             {"name": "job.src", "content": "DEF job( )\nEND\n", "files": [{"name": "job.dat", "content": "\ud800"}]},
             "body.files[0].content",
