@@ -7,6 +7,7 @@ propagates) depends on these types, not on the identification that makes them.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -234,3 +235,9 @@ class IdentificationResult:
 # Rows are processed in chunks of this many: the Jacobian of a chunk (3 rows per measurement, one
 # column per parameter) is the largest array identification makes, so memory does not grow with
 # the data beyond a few (N, 3) arrays, and each chunk's arrays stay in cache.
+
+
+def expected_rms_m(result: IdentificationResult) -> float:
+    """The residual RMS (m) the stated uncertainty expects: the actual one over √(χ²/dof)."""
+    ratio = math.sqrt(result.chi2 / result.dof) if result.dof > 0 and result.chi2 > 0 else 1.0
+    return result.rms_m / ratio

@@ -2,24 +2,20 @@
 the JSON-ready report in the model's own units.
 
 The calibration core computes; this module writes. :mod:`calibration.identify` takes its
-explanations from here, so it imports nothing of the core at import time (only for types).
+explanations from here, so it imports neither identify nor what imports identify.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .identification import IdentificationResult, Unidentifiable
+from .identification import IdentificationResult, Unidentifiable, expected_rms_m
 from .model import KinematicModel, Units, model_to_dict
 from .parameters import LOCAL_6, parameter_values, parameters_by_name
 from .transforms import invert, matrix_to_pose, matrix_to_rotvec, pose_to_matrix
-
-if TYPE_CHECKING:  # uncertainty imports this module's words
-    from .uncertainty import Validation
-
+from .uncertainty import Validation, structure_sigma
 
 # --------------------------------------------------------------------------- words
 
@@ -132,12 +128,6 @@ def _unit(kind: str, units: Units) -> tuple[str, float]:
 
 
 # --------------------------------------------------------------------------- the report
-
-
-def expected_rms_m(result: IdentificationResult) -> float:
-    """The residual RMS (m) the stated uncertainty expects: the actual one over √(χ²/dof)."""
-    ratio = math.sqrt(result.chi2 / result.dof) if result.dof > 0 and result.chi2 > 0 else 1.0
-    return result.rms_m / ratio
 
 
 def consistency_text(result: IdentificationResult, units: Units) -> str:
@@ -340,8 +330,6 @@ def identification_block(
     }
     if full["data_only"] is not None:
         block["data_only"] = full["data_only"]
-    from .uncertainty import structure_sigma  # here: uncertainty imports this module's words
-
     block["identified_from"] = (nominal or result.start_model).name
     block["covariance"] = {
         "units": "SI (m, rad; gains 1)",

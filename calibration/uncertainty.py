@@ -18,11 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import RecalError
-from .identification import IdentificationResult, Measurements
+from .identification import IdentificationResult, Measurements, expected_rms_m
 from .jacobian import predict
 from .model import KinematicModel
 from .parameters import Parameter, candidate_parameters
-from .report import expected_rms_m
 
 
 def chi2_quantile(p: float, dof: int) -> float:
