@@ -123,7 +123,9 @@ class TaskFileCreate(_In):
     mode: str = Field(default="joints", pattern="^(joints|targets)$")
     encoding: Literal["utf-8", "iso-8859-1"] = Field(default="utf-8", description=_ENCODING)
     files: list[TaskFilePart] = Field(
-        default=[], description="a KRL .src's other files: its .dat (required), and $config.dat", max_length=2
+        default=[],
+        description="a KRL .src's other files: its .dat (one; a .src alone is taken too), and $config.dat",
+        max_length=2,
     )
 
 
