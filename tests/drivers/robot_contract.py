@@ -219,7 +219,17 @@ class RobotContract:
             with pytest.raises(RobotStoppedError, match="not running"):
                 self.move(robot, HOME)
             assert dashboard(cell.host, "power on", "brake release") == ["Powering on", "Brake releasing"]
-            self.move(robot, HOME)
+            # the arm reports RUNNING in the controller's next state packets (a real UR takes
+            # seconds to release its brakes): move once the driver has seen it, within 5 s
+            deadline = time.monotonic() + 5.0
+            while True:
+                try:
+                    self.move(robot, HOME)
+                    break
+                except RobotStoppedError as exc:
+                    if "not running" not in str(exc) or time.monotonic() > deadline:
+                        raise
+                    robot.read_joints()  # fresh readings: the next state the controller sends
             np.testing.assert_allclose(robot.read_joints(), HOME, atol=self.tolerance_rad)
             assert not robot.state().stopped_by_safety
 
