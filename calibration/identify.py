@@ -1403,7 +1403,11 @@ def identify(
     corr = np.nan_to_num(corr)
     z = prob.original(np.sqrt(lin.z2))
     w_row = prob.original(lin.w_row)
-    outliers = tuple(int(i) for i in np.nonzero((z > outlier_sigma) | (w_row < 0.5))[0])
+    # a row is an outlier against the noise the residuals show, not the instrument's alone: when
+    # the model structure cannot explain the data (sigma_scale > 1, the consistency test failed)
+    # every row is many instrument sigmas off, and flagging 293 of 300 rows as outliers hides
+    # the few that are (issue 25); a gross error still stands out of the scaled noise
+    outliers = tuple(int(i) for i in np.nonzero((z > outlier_sigma * stats["sigma_scale"]) | (w_row < 0.5))[0])
     has_rot = data.has_orientation
     return IdentificationResult(
         model=dataclasses.replace(current, metadata={}, name=identified_name(model.name)),
