@@ -1,4 +1,4 @@
-""""Before" is the starting model placed where it fits the data best, its base and its common
+""" "Before" is the starting model placed where it fits the data best, its base and its common
 target offset registered (issue 25, case 1): a reflector mounted 50 mm from where the nominal
 model says must not read as 50 mm of robot error. Reference: the registration written here as a
 plain least-squares problem (scipy), independent of calibration.registration."""
