@@ -319,6 +319,8 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     assert f"After calibration, hold-out (verify session {verify['id']})" in cert, cert
     assert "Not run" not in page.inner_text("#verdict")
     assert re.search(r"✓ passed\s+hold-out verification on fresh configurations", cert), cert
+    # conditioning judged by the positions predicted, not the raw condition number (issue 25)
+    assert re.search(r"✓ passed\s+identified parameters predict positions precisely over the workspace", cert), cert
     assert "Predicted: predicted position error" in cert
     shot(page, "11-certificate")
     page.emulate_media(media="print")

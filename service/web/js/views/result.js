@@ -7,7 +7,8 @@ import { api, can, download, get, saveBlob } from "../api.js";
 import { COLORS, chart, colorMap, histogram, sizes } from "../plots.js";
 import { add, badge, busy, card, clear, put, h, kv, num, paramLabel, table, when } from "../ui.js";
 
-// Above this the identification's (scaled) Jacobian is called ill-conditioned (as the certificate's check).
+// Above this the page explains the identification's (scaled) condition number in plain words (the certificate
+// judges conditioning by the predicted accuracy over the workspace, not by this number).
 const CONDITION_LIMIT = 1000;
 
 export async function show(ctx, id) {
