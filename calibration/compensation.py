@@ -47,6 +47,7 @@ from .ik import (
     ur_ik,
 )
 from .kinematics import check_q, fk, walk
+from .metrics import outside_joint_ranges
 from .model import KinematicModel
 from .registration import kabsch
 from .simulate import random_configurations
@@ -222,9 +223,7 @@ def assess(
     sigma_min = sv[:, -1] if n <= 6 else sv[:, 5]
     flags |= np.where(sigma_min < singular_tol, FLAG_BIT["near_singular"], 0)
     if calibrated_range is not None:
-        cr = np.asarray(calibrated_range, dtype=float).reshape(n, 2)
-        tol = 1e-9
-        out = np.any((q < cr[:, 0] - tol) | (q > cr[:, 1] + tol), axis=1)
+        out = outside_joint_ranges(q, calibrated_range)
         flags |= np.where(out, FLAG_BIT["outside_calibrated_region"], 0)
     flags |= np.where(~np.asarray(converged, bool), FLAG_BIT["no_convergence"], 0)
     cap = np.array([max_correction_rad if j.revolute else max_correction_m for j in model.joints])

@@ -281,6 +281,15 @@ def error_statistics(
 # --------------------------------------------------------------------------- a model's errors on data
 
 
+def outside_joint_ranges(q: np.ndarray, ranges: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """(N,) bool: the readings ``q`` (N, n) that lie outside the joint ranges ``ranges`` (n, 2), SI
+    (an identified model's calibrated region, ``identification.joint_ranges``): there a
+    prediction, a compensation or a bound is an extrapolation of what the identification saw."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    r = np.asarray(ranges, dtype=float).reshape(q.shape[1], 2)
+    return np.any((q < r[:, 0] - tol) | (q > r[:, 1] + tol), axis=1)
+
+
 def position_errors(
     model: KinematicModel, q: np.ndarray, p_world: np.ndarray, p_tool: np.ndarray, payload: np.ndarray | None = None
 ) -> np.ndarray:

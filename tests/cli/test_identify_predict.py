@@ -216,7 +216,10 @@ def test_predict_tool_pose_and_target_equal_fk(cell, identified, model_file):
     q_si = joints_in(u, model, cell.q_check) * np.array([u.angle_rad] * 6)  # what the file says, in SI
 
     proc = recal("predict", "--model", model_file, "--joints", "joints.csv", "--out", "pose.csv", cwd=cell.dir)
-    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    # an identified model says which configurations lie outside the joint ranges it was measured
+    # in (issue 25, case 3); a nominal model records none, and says nothing
+    said = proc.stderr.startswith("warning: ") and "lie outside the joint ranges the identification" in proc.stderr
+    assert proc.returncode == 0 and (said if model_file.startswith("identified") else proc.stderr == ""), proc.stderr
     header, vals = read_csv(cell.dir / "pose.csv")
     assert header == ["x", "y", "z", "qw", "qx", "qy", "qz"]
     T = fk(model, q_si)
@@ -276,10 +279,21 @@ def test_predict_uncertainty_columns_are_honest(cell, identified):
             f"pred_u_{tag}.csv",
             cwd=cell.dir,
         )
-        assert proc.returncode == 0 and proc.stderr == "", proc.stderr
-        header, vals = read_csv(cell.dir / f"pred_u_{tag}.csv")
-        assert header == ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "u95"]
-        out[tag] = vals * model.units.length_m  # SI
+        assert proc.returncode == 0, proc.stderr
+        rows = [r for r in csv.reader((cell.dir / f"pred_u_{tag}.csv").open()) if r and not r[0].startswith("#")]
+        assert rows[0] == ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "u95", "flags"]
+        # the bounds are marked where the identification's data never went (issue 25, case 3):
+        # exactly the rows outside the joint ranges the 60 measured configurations covered
+        ranges = np.array(
+            json.loads((cell.dir / f"identified_{tag}.json").read_text())["identification"]["joint_ranges"]
+        )
+        q_file = q_si / model.units.angle_rad
+        outside = np.any((q_file < ranges[:, 0]) | (q_file > ranges[:, 1]), axis=1)
+        assert 0 < outside.sum() < len(outside)  # 50 random configurations: some beyond the 60's ranges
+        assert [r[7] == "outside_calibrated_region" for r in rows[1:]] == outside.tolist()
+        assert [r[7] for r in rows[1:] if r[7] != "outside_calibrated_region"] == [""] * int((~outside).sum())
+        assert f"warning: {int(outside.sum())} of 50 configurations lie outside" in proc.stderr
+        out[tag] = np.array([r[:7] for r in rows[1:]], dtype=float) * model.units.length_m  # SI
     mm, m = out["mm"], out["m"]
     assert np.allclose(mm, m, rtol=1e-6, atol=1e-12)  # the same in either unit
     sigma, u95 = mm[:, 3:6], mm[:, 6]
@@ -301,9 +315,9 @@ def test_predict_uncertainty_columns_are_honest(cell, identified):
         cwd=cell.dir,
     )
     assert proc.returncode == 0, proc.stderr
-    header, vals = read_csv(cell.dir / "pose_u.csv")
-    assert header == ["x", "y", "z", "qw", "qx", "qy", "qz", "sigma_x", "sigma_y", "sigma_z", "u95"]
-    assert np.all(vals[:, 7:] > 0)
+    rows = [r for r in csv.reader((cell.dir / "pose_u.csv").open()) if r and not r[0].startswith("#")]
+    assert rows[0] == ["x", "y", "z", "qw", "qx", "qy", "qz", "sigma_x", "sigma_y", "sigma_z", "u95", "flags"]
+    assert np.all(np.array([r[7:11] for r in rows[1:]], dtype=float) > 0)
 
 
 # --------------------------------------------------------------------------- bad input
