@@ -296,7 +296,13 @@ def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list
             "hold-out verification on fresh configurations",
             ok,
             f"session {verify_after['session_id']}: RMS {verify_after['rms']:.4g} {unit}, max "
-            f"{verify_after['max']:.4g} {unit} on {verify_after['n']} configurations",
+            f"{verify_after['max']:.4g} {unit} on {verify_after['n']} configurations"
+            + (
+                f", {verify_after['outside_calibrated_region']} of them outside the joint ranges the calibration "
+                "measured (extrapolated)"
+                if verify_after.get("outside_calibrated_region")
+                else ""
+            ),
         )
     else:
         add("hold-out verification on fresh configurations", None, "not run yet (start a verify session)")

@@ -127,10 +127,17 @@ def check_cell(
             f"verify {v['state']}",
             f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip(),
         )
-    rms = out["verify_rms"] = v["plan_info"]["verify"]["rms"]
+    verified = v["plan_info"]["verify"]
+    rms = out["verify_rms"] = verified["rms"]
     if limit is None or rms <= limit:
         lim = "no threshold set" if limit is None else f"threshold {limit:g} {unit}"
-        return done(EXIT_OK, "accurate", f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}); nothing to do")
+        outside = verified.get("outside_calibrated_region") or 0
+        where = (
+            f"; {outside} of {verified['n']} configurations outside the calibrated joint ranges (extrapolated)"
+            if outside
+            else ""
+        )
+        return done(EXIT_OK, "accurate", f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}){where}; nothing to do")
     p = start_session(api, cell["id"], {"kind": "pose", "count": count, "device": device}, timeout_s)
     p = api.wait_session(p["id"], timeout_s, poll_s=poll_s, patient=True)
     if p["state"] != "completed" or p.get("calibration_id") is None:

@@ -12,6 +12,7 @@ from calibration.identification import Measurements
 from calibration.model import KinematicModel
 
 from ..analysis import session_measurements
+from ..compensation import calibrated_range_of
 from ..plans import Plan, PlanRequest, random_inside, repeated
 from ..records import current_model, position_errors, registered_errors
 from .positions import PositionKind
@@ -51,6 +52,12 @@ def verify_session(db, run, cell) -> dict:
         # page's "before" (one definition, calibration.metrics.registered_errors).
         reg = metrics.norm_statistics(np.linalg.norm(registered_errors(model, data), axis=1) / L)
         out["registered"] = {"rms": reg.rms, "max": reg.max}
+    if cal is not None:
+        # configurations outside the joint ranges the calibration's data covered are an
+        # extrapolation of it: counted, so that a figure measured there is read as such
+        ranges = calibrated_range_of(model)
+        if ranges is not None:
+            out["outside_calibrated_region"] = int(np.count_nonzero(metrics.outside_joint_ranges(data.q, ranges)))
     repeats = int((run.plan_info or {}).get("repeats") or 1)
     if repeats > 1:
         out["iso9283"] = pose_repeatability(model, data, repeats)

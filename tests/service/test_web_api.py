@@ -259,3 +259,34 @@ def test_the_certificates_conditioning_check_judges_the_predicted_accuracy(clien
         c["name"]: c for c in client.get(f"/api/v1/calibrations/{weak}/certificate", headers=v).json()["checks"]
     }["identified parameters predict positions precisely over the workspace"]
     assert weak_check["passed"] is False and "Measure more" in weak_check["detail"]
+
+
+def test_a_verify_session_counts_configurations_outside_the_calibrated_region(client, stored_session, tokens):
+    """Issue 25, case 3: a calibration measured within 10 degrees of one configuration, verified at
+    random configurations over the whole range: the verify result counts those outside the joint
+    ranges the calibration covered (exactly, against the ranges its model records), and the
+    certificate's hold-out check says so."""
+    from calibration.metrics import outside_joint_ranges
+    from service.compensation import calibrated_range_of
+    from service.models import Calibration
+
+    cell = _cell(client, tokens, "region-cell")
+    _, cal = stored_session(cell["id"], seed=8, region_deg=10.0)
+    verify_id, _ = stored_session(cell["id"], kind="verify", seed=9)
+    v = auth(tokens["viewer"])
+    session = client.get(f"/api/v1/sessions/{verify_id}", headers=v).json()
+    verified = session["plan_info"]["verify"]
+    assert verified["calibration_id"] == cal
+    engine = make_engine(client.app.state.settings.effective_database_url)
+    with Session(engine) as db:
+        from calibration.model import model_from_dict
+        from service.records import session_measurements
+
+        model = model_from_dict(db.get(Calibration, cal).model)
+        data, _ = session_measurements(db, db.get(RunSession, verify_id))
+    engine.dispose()
+    expected = int(outside_joint_ranges(data.q, calibrated_range_of(model)).sum())
+    assert expected > 0 and verified["outside_calibrated_region"] == expected
+    cert = client.get(f"/api/v1/calibrations/{cal}/certificate", headers=v).json()
+    detail = {c["name"]: c["detail"] for c in cert["checks"]}["hold-out verification on fresh configurations"]
+    assert f"{expected} of them outside the joint ranges the calibration measured" in detail
