@@ -8,6 +8,7 @@ Apart from :mod:`calibration.compliance` (the model) because it runs the identif
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,9 +90,10 @@ def choose_compliance(
     identify_kw: dict | None = None,
 ) -> CrossValidation:
     """Which joints' compliance the data support (``recal identify --compliance auto``): forward
-    selection by k-fold cross-validation over :func:`calibration.identify.identify`. Starting
-    rigid, add the candidate joint whose compliance lowers the cross-validated RMS most, while it
-    lowers it by at least ``min_gain`` (relative). ``candidates``: the section whose joints are
+    selection by k-fold cross-validation over :func:`calibration.identify.identify`
+    (:func:`select_terms`): starting rigid, add the candidate joint (or, when no single one
+    passes, the pair, then all the remaining joints) whose compliance lowers the cross-validated
+    RMS most, while it lowers it by at least ``min_gain`` (relative). ``candidates``: the section whose joints are
     tried (default :func:`default_section`); the chosen section keeps its gravity and lumps."""
     kw = dict(identify_kw or {})
     cand = candidates if candidates is not None else default_section(model)
@@ -113,20 +115,44 @@ def choose_compliance(
             tried[key] = cv_rms(with_section(rigid, section(key)), data, fidx, kw)
         return tried[key]
 
-    chosen: tuple[str, ...] = ()
-    best = score(chosen)
-    while True:
-        options = [j for j in cand.joints if j not in chosen]
-        if not options:
-            break
-        scored = sorted((score(chosen + (j,)), j) for j in options)
-        rms, j = scored[0]
-        if rms > (1.0 - min_gain) * best:
-            break
-        chosen = tuple(x for x in cand.joints if x in chosen + (j,))
-        best = rms
+    chosen = select_terms(cand.joints, score, min_gain)
     full = score(cand.joints)
     return CrossValidation(folds, tuple(tried.items()), chosen, tried[()], full, section(chosen))
+
+
+def select_terms(candidates: tuple[str, ...], score, min_gain: float) -> tuple[str, ...]:
+    """Forward selection of model terms by a cross-validated error ``score(terms)`` (lower is
+    better), from none: each step adds the term that lowers it most, while it lowers it by at
+    least ``min_gain`` (relative). When no single term passes, the pairs are tried, then every
+    remaining term at once: two joints' compliance can each gain a little and together pass
+    (the WAM: j2 alone 1.1 %, j3 alone 2.3 %, both 5.6 %), which one-at-a-time selection never
+    finds. Cost: a step tries at most k + k(k-1)/2 + 1 sets of the k remaining terms (each one
+    ``score``, i.e. one identification per fold). Returns the chosen terms in ``candidates``'
+    order."""
+    chosen: tuple[str, ...] = ()
+    best = score(chosen)
+
+    def ordered(terms):
+        return tuple(x for x in candidates if x in terms)
+
+    while True:
+        options = [j for j in candidates if j not in chosen]
+        step = None
+        for size in (1, 2):
+            if len(options) < size:
+                break
+            sets = [ordered(chosen + c) for c in itertools.combinations(options, size)]
+            rms, terms = min((score(t), t) for t in sets)
+            if rms <= (1.0 - min_gain) * best:
+                step = (rms, terms)
+                break
+        if step is None and len(options) > 2:
+            rms = score(ordered(candidates))
+            if rms <= (1.0 - min_gain) * best:
+                step = (rms, ordered(candidates))
+        if step is None:
+            return chosen
+        best, chosen = step
 
 
 def compare(model: KinematicModel, data, *, folds: int = 5, seed: int = 0, identify_kw: dict | None = None) -> dict:
