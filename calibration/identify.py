@@ -974,38 +974,65 @@ def _reselect(
     lin = _linearise(current, sub, cands, factor=True)
     G = lin.gram / share  # the whole data's information, estimated from the sample
     new = _choose(cands, G, None, rank_rtol=rank_rtol, position_only=position_only, factor=lin.R)
+    s2 = max(1.0, lin.c.sum() / max(lin.n.sum() - len(new.kept), 1))
+    # only geometric lengths and angles have a scale of what a real robot deviates from its
+    # drawing; a gain and a compliance term (issue 17; a lump's moment is of kind ``angle`` too)
+    # freed only at the answer stays held: such a term redundant at the nominal (a lump's moment
+    # along its link's x, the same motion as its mass) is seen at the answer only through the
+    # identified tilts, and freeing it adds variance, not accuracy
     added = [k for k in new.kept if k not in sel.kept]
-    if not added:
-        return new
-    idx = new.kept
-    Gk = G[np.ix_(idx, idx)]
-    d = np.sqrt(np.maximum(np.diag(Gk), 1e-300))
-    cov = np.linalg.pinv(Gk / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
-    s2 = max(1.0, lin.c.sum() / max(lin.n.sum() - len(idx), 1))
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0) * s2)
-    loose = []
-    for k in added:
-        # only geometric lengths and angles have a scale of what a real robot deviates from its
-        # drawing; a gain and a compliance term (issue 17; a lump's moment is of kind ``angle``
-        # too) stay held: such a term redundant at the nominal (a lump's moment along its link's
-        # x, the same motion as its mass) is seen at the answer only through the identified
-        # tilts, and freeing it adds variance, not accuracy
-        geometric = not cands[k].name.startswith("compliance.")
-        bound = {"length": DETERMINED_M, "angle": DETERMINED_RAD}.get(cands[k].kind) if geometric else None
-        if bound is None or sd[idx.index(k)] > bound:
-            loose.append(k)
-    if not loose:
-        return new
-    kept = [k for k in new.kept if k not in loose]
-    dropped = list(new.dropped)
+    # a parameter held keeps the relation the nominal showed (what a prior made from this result needs)
     before = {u.name: u for u in sel.dropped}
+    return _hold_weak(cands, G, new, s2, held_anyway=[k for k in added if _weak_bound(cands[k]) is None], before=before)
+
+
+def _weak_bound(p: Parameter) -> float | None:
+    """The standard error beyond which a geometric parameter counts as undetermined (``weak``):
+    :data:`DETERMINED_M`, :data:`DETERMINED_RAD`; None for a gain or a compliance term."""
+    if p.name.startswith("compliance."):
+        return None
+    return {"length": DETERMINED_M, "angle": DETERMINED_RAD}.get(p.kind)
+
+
+def _hold_weak(
+    cands: list[Parameter],
+    G: np.ndarray,
+    sel: _Selection,
+    s2: float,
+    *,
+    held_anyway: list[int] = (),
+    before: dict | None = None,
+) -> _Selection:
+    """``sel`` less the parameters the data cannot determine to :data:`DETERMINED_M` /
+    :data:`DETERMINED_RAD` (standard errors from the information ``G`` times ``s2``), held at the
+    model's value as ``weak``, wherever the model puts the tool (issue 25: a reflector 0.09 mm
+    off the last axis is not on it, so the rank freed j5.a at ±94 mm and j5.theta at ±29 deg,
+    and the solver wandered to its iteration limit; the rule held them only on the axis). The
+    weakest is held first and the rest judged again: two parameters that are each undetermined
+    only as a pair (j5.a with j5.theta) leave one determined once the other is held.
+    ``held_anyway``: parameters held whatever their standard error; ``before``: the
+    :class:`Unidentifiable` entries of an earlier selection, whose relations a held parameter keeps."""
+    kept = [k for k in sel.kept if k not in held_anyway]
+    loose = list(held_anyway)
+    while kept:
+        Gk = G[np.ix_(kept, kept)]
+        d = np.sqrt(np.maximum(np.diag(Gk), 1e-300))
+        cov = np.linalg.pinv(Gk / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0) * s2)
+        ratio = [sd[i] / b if (b := _weak_bound(cands[k])) is not None else 0.0 for i, k in enumerate(kept)]
+        worst = int(np.argmax(ratio))
+        if ratio[worst] <= 1.0:
+            break
+        loose.append(kept.pop(worst))
+    if not loose:
+        return sel
+    dropped = list(sel.dropped)
     for k in loose:
-        # it keeps the relation the nominal showed (what a prior made from this result needs)
-        u = before.get(cands[k].name) or Unidentifiable(cands[k].name, "", (), "weak", (cands[k].kind,))
+        u = (before or {}).get(cands[k].name) or Unidentifiable(cands[k].name, "", (), "weak", (cands[k].kind,))
         u = dataclasses.replace(u, category="weak")
         dropped.append(dataclasses.replace(u, reason=explain(u)))
     dropped.sort(key=lambda u: [p.name for p in cands].index(u.name))
-    return _Selection(kept, dropped, [], set(kept), new.sd_prior)
+    return _Selection(kept, dropped, sel.from_prior, sel.by_data - set(loose), sel.sd_prior)
 
 
 # --------------------------------------------------------------------------- step 4: the LM loop
@@ -1335,6 +1362,9 @@ def identify(
     lin_all = _linearise(start, prob, cands)
     sel = _choose(cands, lin_all.gram, prior, rank_rtol=rank_rtol, position_only=position_only)
     if prior is None:
+        # what the data cannot determine is held before the solver starts, not left to wander
+        # (the instrument's sigma: at the nominal the residuals are the robot's errors, not noise)
+        sel = _hold_weak(cands, lin_all.gram, sel, 1.0)
         _check_redundancy(prob, len(sel.kept), complete)
     at_nominal = set(sel.kept)
     # the candidates' linearisation at the start serves the freed ones' first step when the
