@@ -49,9 +49,14 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: {message} (see `{self.prog} --help`)\n")
 
 
+# ``--quiet`` (every verb): no progress lines, even on a terminal.
+_quiet = False
+
+
 def progress(message: str) -> None:
-    """Progress for long runs, only when a person is watching (stderr is a terminal)."""
-    if sys.stderr.isatty():
+    """Progress for long runs, only when a person is watching (stderr is a terminal) and did
+    not ask for ``--quiet``: a script reading stderr sees only warnings and errors."""
+    if not _quiet and sys.stderr.isatty():
         print(message, file=sys.stderr, flush=True)
 
 
@@ -64,6 +69,7 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
             mod = importlib.import_module(f"service.commands.{module}")
             sp = sub.add_parser(name, help=help_text, description=help_text)
             mod.add_parser(sp)
+            sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr (shown on a terminal)")
             sp.set_defaults(func=mod.run)
         else:
             sub.add_parser(name, help=help_text, add_help=False)
@@ -84,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     from service.compensation import CompensationInputError
     from service.files import InputError
 
+    global _quiet
+    _quiet = bool(getattr(args, "quiet", False))
     try:
         return int(args.func(args) or 0)
     except (InputError, Fail, CompensationInputError) as exc:

@@ -108,7 +108,7 @@ def _f(x, digits=6):
 
 def run(args) -> int:
     from calibration.metrics import error_statistics, pose_statistics
-    from service.cli import Fail
+    from service.cli import Fail, progress
     from service.files import InputError, check_output, load_model, read_measurements, read_table, write_atomic
 
     if args.out:
@@ -121,7 +121,9 @@ def run(args) -> int:
         raise InputError(
             args.model, f"field 'targets': no target {args.target!r} (asked for by --target); expected {known}"
         )
+    progress(f"reading {args.data} ...")
     data = read_measurements(args.data, model)
+    progress(f"accuracy of {len(data)} rows ...")
     labels, grouping = _labels(args, model, data, read_table(args.data))
     names, p_cmd, (R_cmd, R_meas) = _commands(model, data, args.target)
     # a pose is a commanded configuration and the target measured there

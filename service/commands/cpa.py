@@ -77,12 +77,14 @@ def read_sweeps(path: str | os.PathLike, model):
 
 def run(args) -> int:
     from calibration.cpa import SweepError, circle_point_analysis
-    from service.cli import Fail
+    from service.cli import Fail, progress
     from service.files import InputError, load_model, save_model, write_atomic
 
     t0 = time.perf_counter()
     model = load_model(args.model)
+    progress(f"reading {args.data} ...")
     sweeps, table = read_sweeps(args.data, model)
+    progress(f"circle-point analysis of {len(sweeps)} sweeps ...")
     L, A = model.units.length_m, model.units.angle_rad
     if args.sigma is not None and not args.sigma > 0:
         raise Fail(f"--sigma: expected a positive number, got {args.sigma}")

@@ -70,7 +70,7 @@ def run(args) -> int:
     from calibration.identify import identify
     from calibration.report import consistency_text, identification_block, identification_report, summary_line
     from calibration.uncertainty import validate
-    from service.cli import Fail
+    from service.cli import Fail, progress
     from service.files import check_output, load_model, read_measurements, save_model, write_atomic
 
     t0 = time.perf_counter()
@@ -78,8 +78,10 @@ def run(args) -> int:
         if path:
             check_output(path)
     model = load_model(args.model)
+    progress(f"reading {args.data} ...")
     data = read_measurements(args.data, model)
     holdout = read_measurements(args.validate, model) if args.validate else None
+    progress(f"read {len(data)} rows in {time.perf_counter() - t0:.1f} s; identifying ...")
     L = model.units.length_m
     if args.sigma is not None and not args.sigma > 0:
         raise Fail(f"--sigma: expected a positive number, got {args.sigma}")
@@ -99,6 +101,9 @@ def run(args) -> int:
         result = identify(start, data, **kw)
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.data}: {exc}") from None
+    progress(f"identified in {time.perf_counter() - t0:.1f} s ({result.iterations} iterations)")
+    if holdout is not None:
+        progress(f"validating on {len(holdout)} hold-out rows ...")
     validation = validate(result, holdout) if holdout is not None else None
     try:  # the map's cross-validation identifies on each fold's share of the rows (NotEnoughData)
         rmap_doc, rmap_line = (

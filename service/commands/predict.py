@@ -31,7 +31,7 @@ def run(args) -> int:
     from calibration.compliance import with_payload
     from calibration.kinematics import fk
     from calibration.transforms import matrix_to_quat
-    from service.cli import Fail
+    from service.cli import Fail, progress
     from service.files import (
         InputError,
         check_output,
@@ -58,8 +58,10 @@ def run(args) -> int:
             model = with_payload(model, parse_payload(args.payload, model))
         except ValueError as exc:
             raise Fail(str(exc)) from None
+    progress(f"reading {args.joints} ...")
     table = read_table(args.joints)
     q = read_joints(args.joints, model, table)
+    progress(f"predicting {len(q)} configurations{' with their uncertainty' if args.uncertainty else ''} ...")
     payload = read_payload(table, model)  # per row, where the CSV gives it
     T = fk(model, q, payload)
     flags = _residual_map(args, model, q, T)
@@ -86,6 +88,7 @@ def run(args) -> int:
         ]
     if flags is not None:  # where a residual map applied, and where the prediction extrapolates
         header, rows = header + ["flags"], [r + [f] for r, f in zip(rows, flags)]
+    progress(f"writing {args.out} ...")
     write_atomic(args.out, format_csv(header, rows))
     return 0
 
