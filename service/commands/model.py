@@ -40,7 +40,7 @@ def run(args) -> int:
     if args.from_urdf:
         if args.name:
             raise Fail("give a library robot name or --from-urdf FILE, not both")
-        from calibration.urdf import UrdfError, model_from_urdf
+        from calibration.urdf import UrdfError, import_urdf
 
         try:
             with open(args.from_urdf, encoding="utf-8") as f:
@@ -48,14 +48,17 @@ def run(args) -> int:
         except OSError as exc:
             raise Fail(f"{args.from_urdf}: cannot read: {exc.strerror or exc}") from None
         try:
-            model = model_from_urdf(text, base=args.base, tip=args.tip, convention=args.convention)
+            model, notes = import_urdf(text, base=args.base, tip=args.tip, convention=args.convention)
         except UrdfError as exc:
             raise Fail(f"{args.from_urdf}: {exc}") from None
+        # Joints off the chain are ignored as ROS's chain solvers ignore them; say which.
+        for note in notes:
+            print(f"note: {args.from_urdf}: {note}", file=sys.stderr)
         doc = model_to_dict(model)
         doc = {
             "format": doc.pop("format"),
             "name": doc.pop("name"),
-            "source": f"URDF {args.from_urdf}, chain {args.base or '(root)'} -> {args.tip or '(leaf)'}",
+            "source": f"URDF {args.from_urdf}, chain {args.base or '(root)'} -> {args.tip or '(default tip)'}",
             **doc,
         }
     elif args.base or args.tip or args.convention != "auto":

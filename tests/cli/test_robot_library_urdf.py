@@ -451,7 +451,11 @@ def _broken(**edits) -> str:
 @pytest.mark.parametrize(
     "text, argv, expect",
     [
-        (HAND_URDF, [], "link 'l1' branches ('j2', 'l1-camera'; leaves camera, flange): give --tip LINK"),
+        (
+            _broken(a=('name="l1-camera" type="fixed"', 'name="l1-camera" type="revolute"')),
+            [],
+            "link 'l1' branches ('j2', 'l1-camera' lead to moving joints; leaves camera, flange): give --tip LINK",
+        ),
         (HAND_URDF, ["--tip", "gripper"], "link 'gripper' (the tip) is not a <link> of the robot"),
         (HAND_URDF, ["--base", "camera", "--tip", "flange"], "link 'flange' (the tip) is not below link 'camera'"),
         (
@@ -490,6 +494,15 @@ def test_a_floating_joint_off_the_chain_does_not_matter(tmp_path):
     urdf, out = tmp_path / "f.urdf", tmp_path / "m.json"
     urdf.write_text(_broken(a=('name="l1-camera" type="fixed"', 'name="l1-camera" type="floating"')))
     assert recal(["model", "--from-urdf", str(urdf), "--tip", "flange", "--out", str(out)]) == 0
+
+
+def test_a_fixed_side_branch_does_not_need_tip(tmp_path, capsys):
+    """The camera on a fixed joint is not a second arm: the default tip follows the moving joints."""
+    urdf, out = tmp_path / "f.urdf", tmp_path / "m.json"
+    urdf.write_text(HAND_URDF)
+    assert recal(["model", "--from-urdf", str(urdf), "--out", str(out)]) == 0
+    assert [j["name"] for j in json.loads(out.read_text())["joints"]] == ["slide", "j1", "j2", "j3", "j4"]
+    assert "1 fixed frame(s) off the chain ('camera'): ignored" in capsys.readouterr().err
 
 
 def test_velocity_and_effort_in_the_model_file(tmp_path, capsys):
