@@ -121,6 +121,73 @@ def joint_origins_ros(model: KinematicModel) -> list[tuple[str, str, np.ndarray,
     return [tuple(o) for o in out]
 
 
+def ur_match(model: KinematicModel, tol_m: float = 0.02) -> tuple[str, np.ndarray] | None:
+    """``(library UR name, T_bli_base)`` when ``model`` (six revolute joints) moves as a Universal
+    Robots arm of the library, whatever its name or convention: its flange positions at eight
+    configurations (base and tool left out) are those of the library UR within ``tol_m`` in the
+    controller's base frame (``base_link_inertia``: ``T_bli_base`` identity) or in ``base_link``
+    (REP-103, the model imported from a URDF's ``base_link``: ``T_bli_base = Rz(pi)``). A
+    calibrated arm differs from its type by millimetres, UR types from each other by decimetres.
+    ``None`` for any other arm."""
+    import dataclasses
+
+    from .kinematics import fk
+
+    if model.n_joints != 6 or not all(j.revolute for j in model.joints):
+        return None
+    q = np.random.default_rng(26).uniform(-1.5, 1.5, (8, 6))
+    bare = dataclasses.replace(model, base=np.zeros(6), tool=np.zeros(6), compliance=None)
+    p_model = fk(bare, q)[:, :3, 3]
+    best = None
+    for name in library_names():
+        if not is_ur(name):
+            continue
+        p_ur = fk(nominal(name), q)[:, :3, 3]  # in the controller's base frame
+        for F in (np.eye(4), _RZ_PI):
+            err = float(np.max(np.linalg.norm(p_model @ F[:3, :3].T + F[:3, 3] - p_ur, axis=1)))
+            if err < tol_m and (best is None or err < best[0]):
+                best = (err, name, F)
+    return None if best is None else (best[1], best[2])
+
+
+def ur_joint_origins(model: KinematicModel) -> tuple[list[np.ndarray], np.ndarray, str | None]:
+    """``(origins, T_tool0_flange, matched)``: the six joint origins of a six-revolute-joint model
+    as ur_description composes them, from ``base_link_inertia`` (``T = Π origin_i · Rz(q_i)``,
+    ``tool0`` the wrist_3 link), the rest to the model's flange, and the library UR it matched.
+
+    - The first origin starts in the controller's base frame: a model whose base is
+      ``base_link`` (:func:`ur_match`) gets ``Rz(pi)`` in front of it.
+    - Each link frame is the one UR's description has, up to the calibration, so that the link's
+      meshes sit where they belong: a frame is turned about its joint's axis (the turn moves
+      from origin i into origin i+1; it commutes with the joint, so the chain is the same) until
+      its x axis is UR's nominal frame's. A ``dh`` (or ``mdh``) frame's x is a common normal and
+      is only turned over (by pi, where ``poe_to_dh`` chose ``a >= 0`` and UR's table has
+      ``a < 0``), so a controller's DH deltas stay where ur_calibration puts them; a ``poe``
+      frame's x means nothing and is turned onto UR's x axis (projected on the link's plane).
+    Without a match the model's base frame is taken as the controller's and frames are kept."""
+    origins = joint_origins_ros(model)
+    joints = [o[2] for o in origins if o[1] == "revolute"]
+    remainder = origins[-1][2]
+    match = ur_match(model)
+    if match is None:
+        return joints, remainder, None
+    name, F = match
+    joints[0] = F @ joints[0]
+    ref = [o[2] for o in joint_origins_ros(nominal(name)) if o[1] == "revolute"]
+    L, L_ref = np.eye(4), np.eye(4)
+    for i in range(5):  # wrist_3's frame is the model's flange (tool0): never turned
+        L, L_ref = L @ joints[i], L_ref @ ref[i]
+        x_ref = L[:3, :3].T @ L_ref[:3, 0]  # UR's x axis in the model's link frame
+        phi = float(np.arctan2(x_ref[1], x_ref[0]))
+        if model.convention != "poe":  # DH frames' x is a common normal: keep it, up to its sign
+            phi = np.pi if abs(phi) > np.pi / 2 else 0.0
+        if phi != 0.0:
+            joints[i] = joints[i] @ homogeneous(rot(2, phi), np.zeros(3))
+            joints[i + 1] = homogeneous(rot(2, -phi), np.zeros(3)) @ joints[i + 1]
+            L = L @ homogeneous(rot(2, phi), np.zeros(3))
+    return joints, remainder, name
+
+
 def _num(v: float) -> str:
     v = float(v)
     if abs(v) < 1e-15:
@@ -317,14 +384,13 @@ def ur_calibration(model: KinematicModel) -> tuple[dict, np.ndarray]:
     """The six joint origins of a 6-revolute-joint model in the layout of UR's calibration YAML
     (ur_calibration writes it, ur_description reads it as the ``<origin>`` of shoulder_pan_joint
     ... wrist_3_joint): ``{segment: (x, y, z, roll, pitch, yaw)}`` in m and rad, and the
-    remainder ``T_tool0_flange`` (4, 4).
+    remainder ``T_tool0_flange`` (4, 4) (see :func:`ur_joint_origins`).
 
     ur_description's chain is ``base_link_inertia · Π origin_i · Rz(q_i)`` and ``tool0`` is the
-    wrist_3 link, so the model's flange is ``T_base · chain(q) · T_tool0_flange`` with the
-    base_link_inertia frame at the model's base. The part of the model's flange transform that is
-    a shift along and a turn about joint 6's axis commutes with joint 6 and goes into ``wrist_3``;
-    the rest (zero for a DH robot like a UR controller's model) cannot be held by the YAML and
-    is returned (a TCP offset).
+    wrist_3 link, so the model's flange is ``T_bli · chain(q) · T_tool0_flange``. The part of the
+    model's flange transform that is a shift along and a turn about joint 6's axis commutes with
+    joint 6 and goes into ``wrist_3``; the rest (zero for a DH robot like a UR controller's model)
+    cannot be held by the YAML and is returned (a TCP offset).
 
     roll, pitch, yaw are what ur_description needs: URDF's ``Rz(yaw)·Ry(pitch)·Rx(roll)``.
     (ur_calibration computes them with Eigen's ``eulerAngles(0, 1, 2)``, i.e. ``Rx·Ry·Rz``; the two
@@ -332,27 +398,87 @@ def ur_calibration(model: KinematicModel) -> tuple[dict, np.ndarray]:
     """
     if model.n_joints != 6 or not all(j.revolute for j in model.joints):
         raise ValueError("the UR calibration format needs six revolute joints")
-    origins = joint_origins_ros(model)
-    segs = {
-        seg: tuple(float(v) for v in matrix_to_pose(T))
-        for seg, (_, _, T, _) in zip(UR_SEGMENTS, [o for o in origins if o[1] == "revolute"])
-    }
-    return segs, origins[-1][2]
+    joints, remainder, _ = ur_joint_origins(model)
+    segs = {seg: tuple(float(v) for v in matrix_to_pose(T)) for seg, T in zip(UR_SEGMENTS, joints)}
+    return segs, remainder
+
+
+def _hash_bytes(data: bytes, seed: int = 0xC70F6907) -> int:
+    """libstdc++'s ``std::_Hash_bytes`` (64-bit MurmurHash2 variant, libsupc++/hash_bytes.cc),
+    which ``std::hash<std::string>`` calls with ``seed`` 0xc70f6907."""
+    mask = (1 << 64) - 1
+    mul = (0xC6A4A793 << 32) + 0x5BD1E995
+
+    def shift_mix(v: int) -> int:
+        return v ^ (v >> 47)
+
+    n = len(data)
+    h = (seed ^ (n * mul)) & mask
+    aligned = n & ~7
+    for i in range(0, aligned, 8):
+        word = int.from_bytes(data[i : i + 8], "little")
+        h = ((h ^ ((shift_mix((word * mul) & mask) * mul) & mask)) * mul) & mask
+    if n & 7:
+        h = ((h ^ int.from_bytes(data[aligned:], "little")) * mul) & mask
+    h = (shift_mix(h) * mul) & mask
+    return shift_mix(h)
+
+
+def _cpp_stream(v: float) -> str:
+    """A double as ``std::ostream << v`` writes it by default (``%g``, 6 significant digits)."""
+    return f"{v:.6g}"
+
+
+def ur_hash(dh: list[tuple[float, float, float, float]]) -> str:
+    """UR's calibration hash of a DH table ``[(theta, d, a, alpha)]`` (m, rad), as the driver's
+    client library computes it from the controller's kinematics (``KinematicsInfo::toHash``):
+    ``std::hash<std::string>`` of theta, d, a, alpha of each joint streamed one after the other."""
+    text = "".join("".join(_cpp_stream(v) for v in row) for row in dh)
+    return f"calib_{_hash_bytes(text.encode())}"
+
+
+def _ur_dh_of_segments(joints: list[np.ndarray]) -> list[tuple[float, float, float, float]] | None:
+    """The DH table (theta, d, a, alpha per joint) that gives these six origins in UR's layout
+    (``shoulder = Rz(theta1)·Tz(d1)``, ``origin_i = Tx(a_{i-1})·Rx(alpha_{i-1})·Rz(theta_i)·Tz(d_i)``,
+    ``a6 = alpha6 = 0``), or ``None`` where an origin is not of that form (a ``poe`` model's tilts)."""
+    rows = []  # (theta_i, d_i, (a_{i-1}, alpha_{i-1}))
+    for T in joints:
+        R, p = T[:3, :3], T[:3, 3]
+        theta = float(np.arctan2(-R[0, 1], R[0, 0]))
+        alpha = float(np.arctan2(-R[1, 2], R[2, 2]))
+        a = float(p[0])
+        d = float(-np.sin(alpha) * p[1] + np.cos(alpha) * p[2])
+        again = homogeneous(rot(0, alpha) @ rot(2, theta), np.array([a, -np.sin(alpha) * d, np.cos(alpha) * d]))
+        if not np.allclose(again, T, atol=1e-12):
+            return None
+        rows.append((theta, d, (a, alpha)))
+    if rows[0][2] != (0.0, 0.0):  # the shoulder has no a, alpha before it
+        return None
+    following = [r[2] for r in rows[1:]] + [(0.0, 0.0)]
+    out = [(theta, d, a, alpha) for (theta, d, _), (a, alpha) in zip(rows, following)]
+    return [tuple(0.0 if abs(v) < 1e-15 else v for v in row) for row in out]
 
 
 def to_ur_calibration(model: KinematicModel) -> str:
     """UR's calibration YAML (``kinematics:`` shoulder ... wrist_3 with x, y, z, roll, pitch, yaw
     and ``hash``), as ur_robot_driver's ``kinematics_params_file`` reads it (see
-    :func:`ur_calibration`). ``hash`` is ``calib_`` and a number derived from the values: the driver
-    compares it to the hash the controller computes from its own factory calibration, so it warns
-    that the file is not the controller's (which it is not: it describes the measured robot)."""
-    import hashlib
-
-    segs, remainder = ur_calibration(model)
+    :func:`ur_calibration`). ``hash`` is UR's (:func:`ur_hash`) of the model's DH table in UR's
+    layout, so a nominal export carries the hash of UR's default file; a model the layout cannot
+    hold as a DH table gets the same hash of the written values (the driver warns either way
+    when the controller's own calibration differs, which for a measured robot it does)."""
+    if model.n_joints != 6 or not all(j.revolute for j in model.joints):
+        raise ValueError("the UR calibration format needs six revolute joints")
+    joints, remainder, matched = ur_joint_origins(model)
+    segs = {seg: tuple(float(v) for v in matrix_to_pose(T)) for seg, T in zip(UR_SEGMENTS, joints)}
     lines = [
         f"# UR calibration of model {model.name!r}, written by recal (ur_calibration layout; metres, radians;",
         "# roll, pitch, yaw as URDF rpy: Rz(yaw)·Ry(pitch)·Rx(roll), as ur_description reads them)",
     ]
+    if matched is None:
+        lines.append(
+            "# warning: the model does not move as a library UR arm; its base frame is taken as the "
+            "controller's (base_link_inertia)"
+        )
     rest = matrix_to_pose(remainder)
     if np.any(np.abs(rest) > 1e-12):
         lines.append(
@@ -362,14 +488,98 @@ def to_ur_calibration(model: KinematicModel) -> str:
     for w in export_warnings(model, "ur-calibration"):
         lines.append(f"# warning: {w}")
     lines.append("kinematics:")
-    body = []
+    values = []
     for seg in UR_SEGMENTS:
-        body.append(f"  {seg}:")
+        lines.append(f"  {seg}:")
         for key, v in zip(("x", "y", "z", "roll", "pitch", "yaw"), segs[seg]):
-            body.append(f"    {key}: {_num(0.0 if abs(v) < 1e-15 else v)}")
-    digest = hashlib.sha256("\n".join(body).encode()).digest()
-    lines += body + [f"  hash: calib_{int.from_bytes(digest[:8], 'big') >> 1}"]
+            v = 0.0 if abs(v) < 1e-15 else v
+            values.append(v)
+            lines.append(f"    {key}: {_num(v)}")
+    dh = _ur_dh_of_segments(joints)
+    lines.append(f"  hash: {ur_hash(dh if dh is not None else [tuple(values[i : i + 4]) for i in range(0, 36, 4)])}")
     return "\n".join(lines) + "\n"
+
+
+UR_KEYS = ("x", "y", "z", "roll", "pitch", "yaw")
+
+
+def parse_ur_calibration_yaml(text: str) -> dict:
+    """The nested mappings of a UR calibration YAML as yaml-cpp writes them (``kinematics:``, two-space
+    indented ``segment:`` blocks of ``key: number`` lines, ``hash: calib_...``; ``#`` comments):
+    ``{"kinematics": {"shoulder": {"x": 0.0, ...}, ..., "hash": "calib_..."}}``. Values that read
+    as numbers are floats. Raises ``ValueError`` naming the line for anything outside that
+    subset of YAML (lists, flow style, tabs, an indentation that is not a mapping's)."""
+    root: dict = {}
+    stack: list[tuple[int, dict]] = [(-1, root)]
+    for no, raw in enumerate(text.splitlines(), 1):
+        line = raw.split(" #")[0].rstrip() if not raw.lstrip().startswith("#") else ""
+        if not line.strip() or line.strip() in ("---", "..."):
+            continue
+        if "\t" in raw[: len(raw) - len(raw.lstrip())]:
+            raise ValueError(f"line {no}: tab in the indentation")
+        indent = len(line) - len(line.lstrip())
+        key, sep, value = line.strip().partition(":")
+        if not sep or not key or key.startswith(("-", "{", "[")):
+            raise ValueError(f"line {no}: expected 'key: value' or 'key:', got {line.strip()!r}")
+        key = key.strip().strip("'\"")
+        while indent <= stack[-1][0]:
+            stack.pop()
+        parent = stack[-1][1]
+        value = value.strip()
+        if not value:
+            child: dict = {}
+            parent[key] = child
+            stack.append((indent, child))
+            continue
+        if value.startswith(("[", "{", "&", "*", "|", ">")):
+            raise ValueError(f"line {no}: {key}: expected a plain value, got {value!r}")
+        value = value.strip("'\"")
+        try:
+            parent[key] = float(value)
+        except ValueError:
+            parent[key] = value
+    return root
+
+
+def model_from_ur_calibration(doc: dict, robot: str, *, name: str | None = None) -> KinematicModel:
+    """The model a UR calibration YAML (``doc``: the file as parsed, ``{"kinematics": {...}}``)
+    describes for the library UR ``robot``, read as ur_description reads it: segment i is the
+    ``<origin xyz rpy>`` of joint i (``rpy`` URDF's ``Rz(yaw)·Ry(pitch)·Rx(roll)``), after which the
+    joint turns about its z axis; the chain starts at ``base_link_inertia`` (the controller's base
+    frame, the library UR's base) and ends at ``tool0`` (the wrist_3 link, the model's flange).
+    Joint names, limits, speeds and torques are the library robot's. Raises ``ValueError`` naming
+    the field at fault (``kinematics.forearm.yaw``)."""
+    from .urdf import ChainJoint, chain_to_model, origin
+
+    if not is_ur(robot) or robot.lower() not in library_names():
+        raise ValueError(
+            f"--robot: expected a library UR arm ({', '.join(n for n in library_names() if is_ur(n))}), got {robot!r}"
+        )
+    lib = nominal(robot.lower())
+    kin = doc.get("kinematics") if isinstance(doc, dict) else None
+    if not isinstance(kin, dict):
+        raise ValueError("kinematics: expected a mapping with shoulder, upper_arm, forearm, wrist_1, wrist_2, wrist_3")
+    chain, parent = [], "base_link_inertia"
+    for seg, j in zip(UR_SEGMENTS, lib.joints):
+        s = kin.get(seg)
+        if not isinstance(s, dict):
+            raise ValueError(f"kinematics.{seg}: missing (expected x, y, z, roll, pitch, yaw)")
+        vals = []
+        for key in UR_KEYS:
+            v = s.get(key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise ValueError(f"kinematics.{seg}.{key}: expected a number, got {v!r}")
+            vals.append(float(v))
+        child = f"{seg}_link"
+        T = origin(vals[:3], vals[3:])
+        chain.append(
+            ChainJoint(
+                j.name, "revolute", parent, child, T, np.array([0.0, 0.0, 1.0]), j.lower, j.upper, j.velocity, j.effort
+            )
+        )
+        parent = child
+    units = lib.units
+    return chain_to_model(name or f"{robot.lower()}-ur-calibration", chain, convention="auto", units=units)
 
 
 # --------------------------------------------------------------------------- DH tables

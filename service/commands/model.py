@@ -14,6 +14,15 @@ def add_parser(s) -> None:
     )
     s.add_argument("--out", help="file to write (default: stdout)")
     s.add_argument("--from-urdf", metavar="FILE", help="read the model from a URDF robot description")
+    s.add_argument(
+        "--from-ur-calibration",
+        metavar="FILE",
+        help="read the model from UR's calibration YAML (what ur_calibration writes), read as ur_description "
+        "reads it; needs --robot",
+    )
+    s.add_argument(
+        "--robot", metavar="UR", help="with --from-ur-calibration: the library UR arm (ur3e, ur5e, ur10e, ur16e)"
+    )
     s.add_argument("--base", metavar="LINK", help="with --from-urdf: the chain's first link (default: the root link)")
     s.add_argument(
         "--tip",
@@ -37,7 +46,9 @@ def run(args) -> int:
     from service.cli import Fail
     from service.files import write_atomic
 
-    if args.from_urdf:
+    if args.from_ur_calibration or args.robot:
+        doc = _from_ur_calibration(args)
+    elif args.from_urdf:
         if args.name:
             raise Fail("give a library robot name or --from-urdf FILE, not both")
         from calibration.urdf import UrdfError, import_urdf
@@ -78,3 +89,32 @@ def run(args) -> int:
     else:
         sys.stdout.write(text)
     return 0
+
+
+def _from_ur_calibration(args) -> dict:
+    from calibration.export import model_from_ur_calibration, parse_ur_calibration_yaml
+    from calibration.model import model_to_dict
+    from service.cli import Fail
+
+    if not (args.from_ur_calibration and args.robot):
+        raise Fail("--from-ur-calibration FILE and --robot UR go together")
+    if args.name or args.from_urdf or args.base or args.tip or args.convention != "auto":
+        raise Fail("--from-ur-calibration takes --robot and --out only")
+    path = args.from_ur_calibration
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError as exc:
+        raise Fail(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        model = model_from_ur_calibration(parse_ur_calibration_yaml(text), args.robot)
+    except ValueError as exc:
+        raise Fail(f"{path}: {exc}") from None
+    doc = model_to_dict(model)
+    return {
+        "format": doc.pop("format"),
+        "name": doc.pop("name"),
+        "source": f"UR calibration {path} (read as ur_description reads it; base: base_link_inertia, flange: tool0), "
+        f"limits of the library {args.robot.lower()}",
+        **doc,
+    }
