@@ -8,8 +8,10 @@ program (:func:`calibration.kinematics.program`): the elementary transforms betw
 motions, the joint's own constant offset (``theta``, or ``d`` of a prismatic joint) included,
 multiplied out. That is exact for ``dh``, Hayati ``dh`` (``beta``), ``mdh`` and ``poe`` alike,
 with no convention-specific formulas; the joint then rotates about (or slides along) its local
-z axis. The base (world -> robot base), the flange (after the last joint: the rest of the last
-link, and ``home`` for ``poe``), the tool and every target are fixed joints. URDF is always in
+z axis. The flange (after the last joint: the rest of the last link, and ``home`` for ``poe``),
+the tool and every target are fixed joints; the base (instrument frame -> robot base) is one too
+with ``world=True``, and otherwise a comment: the URDF is rooted at ``base_link``, as ROS
+descriptions are. URDF is always in
 metres and radians, and a URDF joint position is the reading itself: joint gains other than 1,
 a coupling matrix and gear-eccentricity harmonics cannot be written in URDF (see
 :func:`export_warnings`).
@@ -22,6 +24,7 @@ links where they are parallel). Base, tool and targets come with the table.
 
 from __future__ import annotations
 
+import re
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -36,9 +39,15 @@ from .transforms import homogeneous, invert, matrix_to_pose, pose_to_matrix, rot
 FORMATS = ("urdf", "ur-calibration", "dh-csv", "dh-md")
 
 
-def export_warnings(model: KinematicModel, fmt: str = "urdf") -> list[str]:
-    """What the export ``fmt`` cannot represent of ``model`` (empty when the export is exact)."""
+def export_warnings(
+    model: KinematicModel, fmt: str = "urdf", *, effort: float | None = None, world: bool = False
+) -> list[str]:
+    """What the export ``fmt`` cannot represent of ``model`` (empty when the export is exact); for
+    ``urdf`` (with the options :func:`to_urdf` was given) also the joints whose effort limit is a
+    placeholder and a base left out of a robot-only URDF."""
     out = []
+    if fmt == "urdf":
+        out += _urdf_notes(model, effort=effort, world=world)
     if fmt in ("urdf", "ur-calibration"):
         what = "URDF" if fmt == "urdf" else "the UR calibration YAML"
         if model.coupling is not None:
@@ -221,32 +230,59 @@ _ROS_FLANGE_TOOL0 = pose_to_matrix(np.array([0, 0, 0, 0, np.pi / 2, 0]))
 
 
 def naming(model: KinematicModel, names: str = "auto") -> str:
-    """The URDF naming a model gets: ``auto`` is ``ur`` for a Universal Robots arm of the library
-    (by the model's name, six revolute joints) and ``ros`` for every other model."""
+    """The URDF naming a model gets: ``auto`` is ``ur`` for a model that moves as a Universal
+    Robots arm of the library (:func:`ur_match`: by its kinematics, whatever its name, e.g. a
+    calibrated ``demo-ur10e-calibrated``) and ``ros`` for every other model."""
     if names not in NAMINGS:
         raise ValueError(f"`names` must be one of {', '.join(NAMINGS)}; got {names!r}")
     if names != "auto":
         if names == "ur" and (model.n_joints != 6 or not all(j.revolute for j in model.joints)):
             raise ValueError("UR names need six revolute joints")
         return names
-    return "ur" if is_ur(model.name) and model.n_joints == 6 and all(j.revolute for j in model.joints) else "ros"
+    return "ur" if ur_match(model) is not None else "ros"
+
+
+def ros_joint_names(model: KinematicModel) -> list[str]:
+    """ROS-Industrial joint names: the model's where they are a description's (``joint_a1``,
+    ``joint_1_s``, ``fr3_joint1`` ...), ``joint_1`` ... ``joint_n`` where they are Recal's generic
+    ``j1`` ... ``jn``."""
+    generic = [f"j{i + 1}" for i in range(model.n_joints)]
+    if [j.name for j in model.joints] == generic:
+        return [f"joint_{i + 1}" for i in range(model.n_joints)]
+    return [j.name for j in model.joints]
+
+
+# The effort limit written for a library arm whose public description publishes none (ROS-Industrial's
+# KUKA, ABB and Fanuc descriptions write effort="0"). URDF needs a positive figure; MoveIt and
+# position-controlled drivers do not use it. Large, so that a simulator does not clamp the arm
+# with it; each use is said in the file and on stderr.
+EFFORT_PLACEHOLDER = 1.0e4
+
+
+def _library_joints(model: KinematicModel):
+    """The library robot's joints a model is, by its name (``kr16-identified`` -> ``kr16``) or, for
+    a UR, by its kinematics; ``None`` when it is none."""
+    head = model.name.lower()
+    for suffix in ("-nominal", "-identified", "-true", "-controller", "-ur-calibration"):
+        head = head.removesuffix(suffix)
+    if head not in library_names():
+        match = ur_match(model)
+        if match is None:
+            return None
+        head = match[0]
+    cand = nominal(head)
+    return cand.joints if cand.n_joints == model.n_joints else None
 
 
 def joint_limits_for_export(
     model: KinematicModel, *, velocity: float | None = None, effort: float | None = None
 ) -> list[tuple[float, float]]:
     """``(velocity, effort)`` of each joint for a URDF ``<limit>``: ``velocity``/``effort`` when given
-    (every joint), else the model's, else those of the library robot the model is named after
-    (``kr16-identified`` -> ``kr16``). Raises ``ValueError`` naming the joint when neither is known:
-    a URDF limit of 0 stops every ROS planner."""
-    lib = None
-    head = model.name.lower()
-    for suffix in ("-nominal", "-identified", "-true", "-controller"):
-        head = head.removesuffix(suffix)
-    if head in library_names():
-        cand = nominal(head)
-        if cand.n_joints == model.n_joints:
-            lib = cand.joints
+    (every joint), else the model's, else those of the library robot the model is
+    (:func:`_library_joints`); a library arm whose description publishes no effort gets
+    :data:`EFFORT_PLACEHOLDER` (said by :func:`export_warnings`). Raises ``ValueError`` naming the
+    joint when a limit is still unknown: a URDF velocity limit of 0 stops every ROS planner."""
+    lib = _library_joints(model)
     out = []
     for i, j in enumerate(model.joints):
         vals = []
@@ -254,6 +290,8 @@ def joint_limits_for_export(
             v = given if given is not None else getattr(j, key)
             if v is None and lib is not None:
                 v = getattr(lib[i], key)
+                if v is None and key == "effort":
+                    v = EFFORT_PLACEHOLDER
             if v is None:
                 raise ValueError(
                     f"joint {j.name!r} has no {key} limit (the model and the library do not give one); give {flag}"
@@ -265,6 +303,29 @@ def joint_limits_for_export(
     return out
 
 
+def _urdf_notes(model: KinematicModel, *, effort: float | None, world: bool) -> list[str]:
+    out = []
+    if effort is None:
+        lib = _library_joints(model)
+        unknown = [j.name for i, j in enumerate(model.joints) if j.effort is None and lib and lib[i].effort is None]
+        if unknown:
+            out.append(
+                f"joint(s) {', '.join(unknown)}: effort limit not published for this arm; written as a placeholder "
+                f"{EFFORT_PLACEHOLDER:g} (MoveIt does not use it; give --effort for the real figure)"
+            )
+    if not world and np.any(np.abs(model.base) > 1e-15):
+        out.append(
+            "the model's base (instrument frame -> robot base) is not in the robot-only URDF; "
+            "--world adds it as a 'world' link"
+        )
+    return out
+
+
+def _comment_safe(text: str) -> str:
+    """``text`` for an XML comment, which may not hold ``--``: ``--effort`` -> ``the effort option``."""
+    return re.sub(r"--(\w+)", r"the \1 option", text).replace("--", "-")
+
+
 def to_urdf(
     model: KinematicModel,
     *,
@@ -273,20 +334,25 @@ def to_urdf(
     velocity: float | None = None,
     prefix: str = "",
     names: str = "auto",
+    world: bool = False,
 ) -> str:
-    """The model as a URDF document (kinematics only: links without inertia or geometry).
+    """The model as a URDF document (kinematics only: links without inertia or geometry), a
+    robot-only description rooted at ``base_link``, as ROS descriptions are (a MoveIt
+    configuration adds its own ``world`` joint). ``world=True`` adds a ``world`` link (the
+    instrument's frame) and the model's ``base`` as the fixed joint ``world`` -> ``base_link``.
 
     ``names`` (see :func:`naming`):
 
-    - ``ur``: UR's names (ur_description): ``world`` -> ``base_link`` -> ``base_link_inertia`` ->
+    - ``ur``: UR's names (ur_description): ``base_link`` -> ``base_link_inertia`` ->
       ``shoulder_link`` (``shoulder_pan_joint``) ... ``wrist_3_link`` (``wrist_3_joint``) ->
       ``flange`` -> ``tool0`` (the model's flange) -> ``tcp`` (the model's tool) ->
-      ``target_<name>``; ``base_link`` -> ``base`` (the controller's base frame).
-    - ``ros``: ROS-Industrial's: ``world`` -> ``base_link`` -> ``link_1`` ... ``link_n`` (joints keep
-      the model's names) -> ``flange`` -> ``tool0`` (the model's flange) -> ``tcp`` ->
+      ``target_<name>``; ``base_link`` -> ``base`` (the controller's base frame). The joint
+      origins are :func:`ur_joint_origins`' (those of the UR calibration YAML).
+    - ``ros``: ROS-Industrial's: ``base_link`` -> ``link_1`` ... ``link_n`` (joints:
+      :func:`ros_joint_names`) -> ``flange`` -> ``tool0`` (the model's flange) -> ``tcp`` ->
       ``target_<name>``; ``base_link`` -> ``base``.
-    - ``recal``: ``world`` -> ``base_link`` -> ``<joint>_link`` ... -> ``flange`` (the model's
-      flange) -> ``tool`` -> ``target_<name>``.
+    - ``recal``: ``base_link`` -> ``<joint>_link`` ... -> ``flange`` (the model's flange) ->
+      ``tool`` -> ``target_<name>``.
 
     Every name is prefixed with ``prefix``. ``<limit>`` carries the joint's velocity and effort
     (:func:`joint_limits_for_export`)."""
@@ -299,9 +365,10 @@ def to_urdf(
             f"{scheme} names; metres and radians; joint origins carry the calibrated values "
         )
     )
-    for w in export_warnings(model, "urdf"):
-        robot.append(ET.Comment(f" warning: {w} "))
+    for w in export_warnings(model, "urdf", effort=effort, world=world):
+        robot.append(ET.Comment(f" warning: {_comment_safe(w)} "))
     limits = {j.name: (j.lower, j.upper, *r) for j, r in zip(model.joints, rates)}
+    ros_names = dict(zip((j.name for j in model.joints), ros_joint_names(model)))
 
     def link(n: str) -> str:
         ET.SubElement(robot, "link", name=prefix + n)
@@ -327,42 +394,58 @@ def to_urdf(
                 e, "limit", lower=_num(limit[0]), upper=_num(limit[1]), effort=_num(limit[3]), velocity=_num(limit[2])
             )
 
-    world = link("world")
+    origins = [list(o) for o in (joint_origins(model) if scheme == "recal" else joint_origins_ros(model))]
+    T_base_base_link = np.eye(4)  # the model's base frame -> base_link
+    if scheme == "ur":
+        ur_joints, remainder, matched = ur_joint_origins(model)
+        for o, T in zip([o for o in origins if o[1] != "fixed"], ur_joints):
+            o[2] = T
+        origins[-1][2] = remainder
+        F = ur_match(model)[1] if matched else np.eye(4)  # base_link_inertia <- model base
+        T_base_base_link = invert(F) @ _RZ_PI
+    base_link = link("base_link")
+    T_world_base = origins[0][2]
+    if world:
+        joint("base_joint", "fixed", link("world"), base_link, T_world_base @ T_base_base_link)
+    elif np.any(np.abs(model.base) > 1e-15):
+        p = matrix_to_pose(T_world_base @ T_base_base_link)
+        robot.append(
+            ET.Comment(
+                " the model's base: instrument frame -> base_link, xyz "
+                + " ".join(_num(v) for v in p[:3])
+                + " rpy "
+                + " ".join(_num(v) for v in p[3:])
+                + " (recal export's world option adds it as a 'world' link) "
+            )
+        )
+    parent = base_link
+    if scheme == "ur":
+        joint("base_link-base_fixed_joint", "fixed", base_link, link("base"), _RZ_PI)
+        parent = link("base_link_inertia")
+        joint("base_link-base_link_inertia", "fixed", base_link, parent, _RZ_PI)
+    elif scheme == "ros":
+        joint("base_link-base", "fixed", base_link, link("base"), np.eye(4))
     k = 0
-    for jname, jtype, T, axis in joint_origins(model) if scheme == "recal" else joint_origins_ros(model):
-        if jname == "base":
-            if scheme == "ur":
-                base_link = link("base_link")
-                joint("base_joint", "fixed", world, base_link, T @ _RZ_PI)
-                joint("base_link-base_fixed_joint", "fixed", base_link, link("base"), _RZ_PI)
-                parent = link("base_link_inertia")
-                joint("base_link-base_link_inertia", "fixed", base_link, parent, _RZ_PI)
-            elif scheme == "ros":
-                parent = link("base_link")
-                joint("base_joint", "fixed", world, parent, T)
-                joint("base_link-base", "fixed", parent, link("base"), np.eye(4))
-            else:
-                parent = link("base_link")
-                joint("base_joint", "fixed", world, parent, T)
-        elif jname == "flange":
+    for jname, jtype, T, axis in origins[1:]:
+        if jname == "flange":
             if scheme == "recal":
                 parent_flange = link("flange")
                 joint("flange_joint", "fixed", parent, parent_flange, T)
                 tool = link("tool")
                 joint("tool_joint", "fixed", parent_flange, tool, pose_to_matrix(model.tool))
             else:
-                F = _UR_FLANGE_TOOL0 if scheme == "ur" else _ROS_FLANGE_TOOL0
+                Ft = _UR_FLANGE_TOOL0 if scheme == "ur" else _ROS_FLANGE_TOOL0
                 flange, tool0 = link("flange"), link("tool0")
                 last = parent.removeprefix(prefix)
-                joint("wrist_3-flange" if scheme == "ur" else f"{last}-flange", "fixed", parent, flange, T @ invert(F))
-                joint("flange-tool0", "fixed", flange, tool0, F)
+                joint("wrist_3-flange" if scheme == "ur" else f"{last}-flange", "fixed", parent, flange, T @ invert(Ft))
+                joint("flange-tool0", "fixed", flange, tool0, Ft)
                 tool = link("tcp")
                 joint("tool0-tcp", "fixed", tool0, tool, pose_to_matrix(model.tool))
         else:
             if scheme == "ur":
                 jn, child = UR_JOINTS[k], link(UR_LINKS[k])
             elif scheme == "ros":
-                jn, child = jname, link(f"link_{k + 1}")
+                jn, child = ros_names[jname], link(f"link_{k + 1}")
             else:
                 jn, child = jname, link(f"{jname}_link")
             joint(jn, jtype, parent, child, T, axis, limits[jname])

@@ -100,7 +100,9 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
     # the URDF, read by yourdfpy, is recal predict of the model downloaded beside it
     (tmp_path / "model.json").write_text(downloads["model"])
     (tmp_path / "cell.urdf").write_text(downloads["urdf"])
-    names = "ur" if json.loads(downloads["model"])["name"].startswith("ur") else "ros"
+    # a calibrated UR is named by its kinematics, not its model name (issue 26): UR's joint names
+    names = "ur"
+    assert "shoulder_pan_joint" in downloads["urdf"], json.loads(downloads["model"])["name"]
     q = in_file_units(
         tmp_path / "model.json",
         random_configurations(load_model(tmp_path / "model.json"), 10, np.random.default_rng(3)),
