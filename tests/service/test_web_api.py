@@ -31,6 +31,17 @@ def _cell(client, tokens, name="web-cell") -> dict:
     return register_cell(client, tokens["technician"], name)
 
 
+def test_the_page_offers_every_export_the_api_has(client):
+    """Each format of the download route has its button on the result page (issue 26: the UR
+    calibration YAML had none), served as the browser gets it."""
+    from service.api.routes.results import DOWNLOADS
+
+    js = client.get("/web/js/views/result.js")
+    assert js.status_code == 200
+    for fmt in DOWNLOADS:
+        assert f"/download/{fmt}`" in js.text, fmt
+
+
 def test_the_page_is_served_at_the_root(client):
     r = client.get("/")
     assert r.status_code == 200 and "text/html" in r.headers["content-type"]
