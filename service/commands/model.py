@@ -1,6 +1,8 @@
 """``recal model [NAME] [--out FILE]``: list the robot library (with a short description), or
 write a nominal model. ``recal model --from-urdf ROBOT.urdf [--base LINK] [--tip LINK] --out
-MODEL.json``: the model of a URDF's serial chain (calibration.urdf)."""
+MODEL.json``: the model of a URDF's serial chain (calibration.urdf), joints off the chain named
+on stderr. ``recal model --from-ur-calibration FILE --robot UR --out MODEL.json``: the model UR's
+calibration YAML describes, read as ur_description reads it (calibration.export)."""
 
 from __future__ import annotations
 
@@ -28,7 +30,8 @@ def add_parser(s) -> None:
         "--tip",
         metavar="LINK",
         help="with --from-urdf: the chain's last link, the model's flange "
-        "(default: the only leaf; required where the tree branches)",
+        "(default: down the one branch with joints that move on their own, to its end or to where it "
+        "forks into fixed frames; required where two branches move)",
     )
     s.add_argument(
         "--convention",
