@@ -13,8 +13,8 @@ the tool and every target are fixed joints; the base (instrument frame -> robot 
 with ``world=True``, and otherwise a comment: the URDF is rooted at ``base_link``, as ROS
 descriptions are. URDF is always in
 metres and radians, and a URDF joint position is the reading itself: joint gains other than 1,
-a coupling matrix and gear-eccentricity harmonics cannot be written in URDF (see
-:func:`export_warnings`).
+a coupling matrix (but for a mimic joint's, :func:`mimic_rows`, written as ``<mimic>``) and
+gear-eccentricity harmonics cannot be written in URDF (see :func:`export_warnings`).
 
 DH tables, in the model's units. ``dh`` and ``mdh`` models are written as they are (``beta`` for
 Hayati links); a ``poe`` model is converted to ``dh`` first with
@@ -50,7 +50,7 @@ def export_warnings(
         out += _urdf_notes(model, effort=effort, world=world)
     if fmt in ("urdf", "ur-calibration"):
         what = "URDF" if fmt == "urdf" else "the UR calibration YAML"
-        if model.coupling is not None:
+        if model.coupling is not None and (fmt != "urdf" or mimic_rows(model) is None):
             out.append(
                 f"the joint coupling matrix is not representable in {what} (a joint position there is the reading)"
             )
@@ -69,6 +69,27 @@ def export_warnings(
 
 
 # --------------------------------------------------------------------------- URDF
+
+
+def mimic_rows(model: KinematicModel) -> dict[int, tuple[int, float]] | None:
+    """``{joint i: (lead joint k, multiplier)}`` when the model's coupling is URDF's ``<mimic>``:
+    each row either the joint's own reading, or a multiple of one other joint's reading that is
+    itself read as it is (what ``recal model --from-urdf`` makes of a mimic joint on the chain);
+    ``None`` for any other coupling (the Fanuc J2/J3 sum, gains) or none."""
+    if model.coupling is None:
+        return None
+    C = np.asarray(model.coupling)
+    n = len(C)
+    plain = [bool(np.array_equal(C[i], np.eye(n)[i])) for i in range(n)]
+    out = {}
+    for i in range(n):
+        if plain[i]:
+            continue
+        nz = np.flatnonzero(C[i])
+        if C[i, i] != 0.0 or len(nz) != 1 or not plain[nz[0]]:
+            return None
+        out[i] = (int(nz[0]), float(C[i, nz[0]]))
+    return out or None
 
 
 def _elementary(op: Op) -> np.ndarray:
@@ -369,6 +390,14 @@ def to_urdf(
         robot.append(ET.Comment(f" warning: {_comment_safe(w)} "))
     limits = {j.name: (j.lower, j.upper, *r) for j, r in zip(model.joints, rates)}
     ros_names = dict(zip((j.name for j in model.joints), ros_joint_names(model)))
+    urdf_names = {
+        j.name: UR_JOINTS[k] if scheme == "ur" else ros_names[j.name] if scheme == "ros" else j.name
+        for k, j in enumerate(model.joints)
+    }
+    # a mimic joint: its variable is a multiple of another's reading (its offset is in its origin)
+    mimics = {
+        model.joints[i].name: (urdf_names[model.joints[k].name], m) for i, (k, m) in (mimic_rows(model) or {}).items()
+    }
 
     def link(n: str) -> str:
         ET.SubElement(robot, "link", name=prefix + n)
@@ -382,6 +411,7 @@ def to_urdf(
         T: np.ndarray,
         axis: np.ndarray | None = None,
         limit: tuple[float, float, float, float] | None = None,
+        mimic: tuple[str, float] | None = None,
     ) -> None:
         e = ET.SubElement(robot, "joint", name=prefix + n, type=jtype)
         _origin(e, T)
@@ -393,6 +423,8 @@ def to_urdf(
             ET.SubElement(
                 e, "limit", lower=_num(limit[0]), upper=_num(limit[1]), effort=_num(limit[3]), velocity=_num(limit[2])
             )
+        if mimic is not None:
+            ET.SubElement(e, "mimic", joint=prefix + mimic[0], multiplier=_num(mimic[1]), offset="0")
 
     origins = [list(o) for o in (joint_origins(model) if scheme == "recal" else joint_origins_ros(model))]
     T_base_base_link = np.eye(4)  # the model's base frame -> base_link
@@ -443,12 +475,12 @@ def to_urdf(
                 joint("tool0-tcp", "fixed", tool0, tool, pose_to_matrix(model.tool))
         else:
             if scheme == "ur":
-                jn, child = UR_JOINTS[k], link(UR_LINKS[k])
+                child = link(UR_LINKS[k])
             elif scheme == "ros":
-                jn, child = ros_names[jname], link(f"link_{k + 1}")
+                child = link(f"link_{k + 1}")
             else:
-                jn, child = jname, link(f"{jname}_link")
-            joint(jn, jtype, parent, child, T, axis, limits[jname])
+                child = link(f"{jname}_link")
+            joint(urdf_names[jname], jtype, parent, child, T, axis, limits[jname], mimics.get(jname))
             parent = child
             k += 1
     for tname, p in model.targets.items():

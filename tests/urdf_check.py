@@ -83,12 +83,16 @@ def assert_urdf_is_predict(
 
     model = load_model(str(model_spec))
     robot = yourdfpy.URDF.load(str(urdf), load_meshes=False, build_scene_graph=True)
-    assert len(robot.actuated_joint_names) == model.n_joints, robot.actuated_joint_names
-    for jn in robot.actuated_joint_names:
-        lim = robot.joint_map[jn].limit
-        assert lim is not None and lim.velocity > 0 and lim.effort > 0, (jn, lim)
+    movable = [j for j in robot.robot.joints if j.type != "fixed"]  # in the model's joint order
+    assert len(movable) == model.n_joints, [j.name for j in movable]
+    for j in movable:
+        assert j.limit is not None and j.limit.velocity > 0 and j.limit.effort > 0, (j.name, j.limit)
     scale = np.array([model.units.angle_rad if j.revolute else model.units.length_m for j in model.joints])
-    q_urdf = (q_file * scale) @ model.coupling_matrix.T
+    q_all = (q_file * scale) @ model.coupling_matrix.T
+    # yourdfpy takes the actuated joints' positions and works out the mimic joints' itself
+    actuated = [i for i, j in enumerate(movable) if j.mimic is None]
+    assert [movable[i].name for i in actuated] == list(robot.actuated_joint_names)
+    q_urdf = q_all[:, actuated]
     from calibration.transforms import pose_to_matrix
 
     tool, flange = TOOL_LINKS[names]

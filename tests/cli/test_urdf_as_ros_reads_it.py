@@ -232,3 +232,23 @@ def test_a_mimic_joint_on_the_chain_following_a_joint_off_it_is_refused(tmp_path
     assert recal(argv) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "joint 'joint_3' <mimic>: it follows joint 'joint_1'" in err
+
+
+def test_a_mimic_joint_exports_as_mimic_and_reads_back(tmp_path, capsys):
+    """The on-chain mimic model's URDF writes <mimic> (yourdfpy evaluates it), says nothing is
+    lost, and reads back with no options to the same coupling."""
+    from urdf_check import assert_urdf_is_predict
+
+    doc, _ = _import(tmp_path, capsys, ON_CHAIN)
+    model, urdf, back = tmp_path / "m.json", tmp_path / "out.urdf", tmp_path / "back.json"
+    argv = ["export", "--model", str(model), "--format", "urdf", "--out", str(urdf), "--names", "ros"]
+    assert recal(argv) == 0
+    assert "coupling" not in capsys.readouterr().err
+    robot = yourdfpy.URDF.load(str(urdf), load_meshes=False, build_scene_graph=True)
+    assert robot.joint_map["joint_3"].mimic.joint == "joint_2" and robot.joint_map["joint_3"].mimic.multiplier == -0.8
+    q = np.rad2deg(np.column_stack([_uniform([(-2.5, 2.5), (-1.2, 1.2)]), np.zeros(25), _uniform([(-3, 3)], seed=4)]))
+    assert_urdf_is_predict(urdf, model, q, tmp_path, names="ros")
+    assert recal(["model", "--from-urdf", str(urdf), "--out", str(back)]) == 0
+    again = json.loads(back.read_text())
+    assert again["coupling"] == doc["coupling"]
+    np.testing.assert_allclose(predict(tmp_path, back, q), predict(tmp_path, model, q), atol=1e-9)
