@@ -158,6 +158,12 @@ def test_export_from_either_base_link_is_the_true_chain(tmp_path, capsys, base):
         np.testing.assert_allclose(np.cross(off, G[:, :3, 2]), 0.0, atol=1e-9)
         cos_x = np.einsum("ni,ni->n", F[:, :3, 0], G[:, :3, 0])
         assert np.all(cos_x > np.cos(np.deg2rad(1.0))), (seg, cos_x.min())
+    # the URDF export (UR names by kinematics) has the same link frames as the YAML, from base_link
+    back = tmp_path / "back.urdf"
+    assert recal(["export", "--model", str(model), "--format", "urdf", "--out", str(back)]) == 0
+    T_bl_bli = RZ_PI  # UR's base_link -> base_link_inertia
+    for seg, F in zip(SEGMENTS, _frames(y, Q)):
+        np.testing.assert_allclose(yourdfpy_fk(back, Q, f"{seg}_link", "base_link"), T_bl_bli @ F, atol=1e-9)
 
 
 def test_nominal_ur10e_hash_is_urs(tmp_path):
