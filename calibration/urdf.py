@@ -55,6 +55,7 @@ class ChainJoint:
     upper: float | None = None
     velocity: float | None = None
     effort: float | None = None
+    mimic: tuple[str, float, float] | None = None  # (leading joint, multiplier, offset): q = m·q_lead + offset
 
 
 def origin(xyz=(0.0, 0.0, 0.0), rpy=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -138,8 +139,14 @@ def parse_urdf(text: str) -> tuple[str, list[str], list[ChainJoint]]:
             lower = upper = None
         if lower is not None and upper is not None and not lower < upper:
             lower = upper = None  # URDF's "no limits" spelling (lower = upper = 0)
-        if e.find("mimic") is not None and jtype in MOVING:
-            raise UrdfError(f"{what}: <mimic> joints are not supported (a Recal joint is read on its own)")
+        mimic = None
+        m = e.find("mimic")
+        if m is not None and jtype in MOVING:
+            if not m.get("joint"):
+                raise UrdfError(f"{what} <mimic>: missing joint=...")
+            mult = _attr_float(m, "multiplier", f"{what} <mimic>")
+            off = _attr_float(m, "offset", f"{what} <mimic>")
+            mimic = (m.get("joint"), 1.0 if mult is None else mult, 0.0 if off is None else off)
         joints.append(
             ChainJoint(
                 name,
@@ -152,8 +159,13 @@ def parse_urdf(text: str) -> tuple[str, list[str], list[ChainJoint]]:
                 upper,
                 velocity if velocity and velocity > 0 else None,
                 effort if effort and effort > 0 else None,
+                mimic,
             )
         )
+    names = {j.name for j in joints}
+    for j in joints:
+        if j.mimic is not None and j.mimic[0] not in names:
+            raise UrdfError(f"joint {j.name!r} <mimic>: joint {j.mimic[0]!r} is not a <joint> of the robot")
     return root.get("name") or "robot", links, joints
 
 
@@ -179,16 +191,7 @@ def serial_chain(
     elif base not in children:
         raise UrdfError(f"link {base!r} (the base) is not a <link> of the robot")
     if tip is None:
-        link = base
-        while children[link]:
-            if len(children[link]) > 1:
-                leaves = sorted(_leaves(children, link))
-                raise UrdfError(
-                    f"link {link!r} branches ({', '.join(repr(j.name) for j in children[link])}; "
-                    f"leaves {', '.join(leaves)}): give --tip LINK"
-                )
-            link = children[link][0].child
-        tip = link
+        tip = _default_tip(children, base)
     elif tip not in children:
         raise UrdfError(f"link {tip!r} (the tip) is not a <link> of the robot")
     path = []
@@ -210,6 +213,37 @@ def serial_chain(
     return path
 
 
+def _default_tip(children: dict[str, list[ChainJoint]], base: str) -> str:
+    """The tip when none is given: down from ``base``, into the only branch that holds a joint
+    that moves on its own (a ROS-Industrial ``base_link`` -> ``base`` frame, Recal's own export's
+    ``base``, a balancing cylinder whose joints are mimics are not), then
+    along fixed joints while the way is single; where it forks into fixed-only branches (an
+    exported URDF's tool frame with its ``target_*`` frames) the tip is the fork. Two branches
+    that move on their own are refused: the tip must be given."""
+    link = base
+    while children[link]:
+        moving = [j for j in children[link] if _moves_below(children, j)]
+        if len(moving) > 1:
+            leaves = sorted(_leaves(children, link))
+            raise UrdfError(
+                f"link {link!r} branches ({', '.join(repr(j.name) for j in moving)} lead to moving joints; "
+                f"leaves {', '.join(leaves)}): give --tip LINK"
+            )
+        if moving:
+            link = moving[0].child
+        elif len(children[link]) == 1:
+            link = children[link][0].child
+        else:
+            break
+    return link
+
+
+def _moves_below(children: dict[str, list[ChainJoint]], j: ChainJoint) -> bool:
+    """Whether joint ``j`` or one below it moves on its own (not as a mimic of another joint)."""
+    own = j.type in MOVING and j.mimic is None
+    return own or any(_moves_below(children, c) for c in children[j.child])
+
+
 def _leaves(children: dict, link: str) -> list[str]:
     if not children[link]:
         return [link]
@@ -222,9 +256,15 @@ def _leaves(children: dict, link: str) -> list[str]:
 def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = MM_DEG) -> KinematicModel:
     """The ``poe`` model of a serial chain (book eq. 2.72-2.75): each moving joint's axis and
     origin in the first link's frame at zero joint positions, the last link's frame as ``home``.
-    Exact for any chain. Joints without limits get the model's defaults."""
+    Exact for any chain. Joints without limits get the model's defaults.
+
+    A ``<mimic>`` joint on the chain (``q = multiplier·q_lead + offset``, ``q_lead`` a moving joint
+    of the chain) becomes a row of the model's ``coupling``: its variable is ``multiplier`` times
+    the lead's reading (its own reading is not used), ``offset`` its ``theta`` (``d`` for a
+    prismatic joint)."""
     T = np.eye(4)
     joints = []
+    moving = [cj.name for cj in chain if cj.type != "fixed"]
     for cj in chain:
         T = T @ cj.T_parent_joint
         if cj.type == "fixed":
@@ -235,20 +275,45 @@ def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = MM_DEG) -
             kw = {"lower": cj.lower, "upper": cj.upper}
         elif not rev:
             kw = {"lower": -10.0, "upper": 10.0}
+        offset = 0.0 if cj.mimic is None else cj.mimic[2]
         joints.append(
             Joint(
                 name=cj.name,
                 type="revolute" if rev else "prismatic",
                 axis=T[:3, :3] @ cj.axis,
                 point=T[:3, 3].copy(),
-                theta=0.0,
-                d=0.0,
+                theta=offset if rev else 0.0,
+                d=0.0 if rev else offset,
                 velocity=cj.velocity,
                 effort=cj.effort,
                 **kw,
             )
         )
-    return KinematicModel(name=name, convention="poe", joints=tuple(joints), home=matrix_to_pose(T), units=units)
+    coupling = _mimic_coupling(chain, moving)
+    return KinematicModel(
+        name=name, convention="poe", joints=tuple(joints), home=matrix_to_pose(T), units=units, coupling=coupling
+    )
+
+
+def _mimic_coupling(chain: list[ChainJoint], moving: list[str]) -> np.ndarray | None:
+    """The coupling matrix of the chain's mimic joints (``None`` without any)."""
+    mimics = [cj for cj in chain if cj.type != "fixed" and cj.mimic is not None]
+    if not mimics:
+        return None
+    C = np.eye(len(moving))
+    for cj in mimics:
+        lead, mult, _ = cj.mimic
+        if lead not in moving:
+            raise UrdfError(
+                f"joint {cj.name!r} <mimic>: it follows joint {lead!r}, which is not a moving joint of the chain; "
+                "its position cannot be read from the model's joints"
+            )
+        if next(c for c in chain if c.name == lead).mimic is not None:
+            raise UrdfError(f"joint {cj.name!r} <mimic>: joint {lead!r} is itself a mimic joint")
+        i = moving.index(cj.name)
+        C[i, i] = 0.0
+        C[i, moving.index(lead)] = mult
+    return C
 
 
 def chain_to_model(
@@ -310,10 +375,62 @@ def model_from_urdf(
     units: Units = MM_DEG,
     name: str | None = None,
 ) -> KinematicModel:
-    """The model whose forward kinematics is the URDF chain's from link ``base`` to link ``tip``
-    (defaults: the root link, and the only leaf) in ``convention`` (see :func:`chain_to_model`). Raises :class:`UrdfError` naming the element at
-    fault: a branch without ``tip``, a link that does not exist, a ``floating`` or ``planar`` joint
-    on the chain, a malformed number."""
+    """The model of :func:`import_urdf`, without its notes."""
+    return import_urdf(text, base=base, tip=tip, convention=convention, units=units, name=name)[0]
+
+
+def import_urdf(
+    text: str,
+    *,
+    base: str | None = None,
+    tip: str | None = None,
+    convention: str = "auto",
+    units: Units = MM_DEG,
+    name: str | None = None,
+) -> tuple[KinematicModel, list[str]]:
+    """``(model, notes)``: the model whose forward kinematics is the URDF chain's from link
+    ``base`` to link ``tip`` (defaults: the root link, and :func:`_default_tip`) in
+    ``convention`` (see :func:`chain_to_model`), and one note per joint of the tree that is not
+    on the chain and so is ignored, as ROS's own chain solvers (KDL, MoveIt's groups) ignore it:
+    a gripper's fingers, a balancing cylinder's mimic joints, a camera's floating or planar
+    joint. Fixed leaves ``target_<name>`` under the tip link (Recal's own URDF export writes
+    them) become the model's targets.
+
+    Raises :class:`UrdfError` naming the element at fault: a fork of moving branches without
+    ``tip``, a link that does not exist, a ``floating`` or ``planar`` joint on the chain, a mimic
+    joint on the chain that follows a joint off it, a malformed number."""
     robot, links, joints = parse_urdf(text)
     chain = serial_chain(links, joints, base, tip)
-    return chain_to_model(name or robot, chain, convention=convention, units=units)
+    tip_link = chain[-1].child
+    targets = {
+        j.child.removeprefix("target_"): j.T_parent_joint[:3, 3].copy()
+        for j in joints
+        if j.parent == tip_link and j.type == "fixed" and j.child.startswith("target_") and _is_leaf(joints, j.child)
+    }
+    model = chain_to_model(name or robot, chain, convention=convention, units=units)
+    if targets:
+        model = dataclasses.replace(model, targets=targets)
+    return model, off_chain_notes(joints, chain, set(targets))
+
+
+def _is_leaf(joints: list[ChainJoint], link: str) -> bool:
+    return not any(j.parent == link for j in joints)
+
+
+def off_chain_notes(joints: list[ChainJoint], chain: list[ChainJoint], targets: set[str] = frozenset()) -> list[str]:
+    """One line per non-fixed joint not on ``chain`` (ignored), and one for the fixed ones."""
+    on = {j.name for j in chain}
+    out, fixed = [], []
+    for j in joints:
+        if j.name in on:
+            continue
+        if j.type == "fixed":
+            if j.child.removeprefix("target_") not in targets or not j.child.startswith("target_"):
+                fixed.append(j.child)
+            continue
+        kind = j.type if j.mimic is None else f"{j.type}, mimic of {j.mimic[0]!r}"
+        out.append(f"joint {j.name!r} ({kind}) is not on the chain {chain[0].parent} -> {chain[-1].child}: ignored")
+    if fixed:
+        shown = ", ".join(repr(n) for n in fixed[:4]) + (", ..." if len(fixed) > 4 else "")
+        out.append(f"{len(fixed)} fixed frame(s) off the chain ({shown}): ignored")
+    return out

@@ -83,21 +83,45 @@ def assert_urdf_is_predict(
 
     model = load_model(str(model_spec))
     robot = yourdfpy.URDF.load(str(urdf), load_meshes=False, build_scene_graph=True)
-    assert len(robot.actuated_joint_names) == model.n_joints, robot.actuated_joint_names
-    for jn in robot.actuated_joint_names:
-        lim = robot.joint_map[jn].limit
-        assert lim is not None and lim.velocity > 0 and lim.effort > 0, (jn, lim)
+    movable = [j for j in robot.robot.joints if j.type != "fixed"]  # in the model's joint order
+    assert len(movable) == model.n_joints, [j.name for j in movable]
+    for j in movable:
+        assert j.limit is not None and j.limit.velocity > 0 and j.limit.effort > 0, (j.name, j.limit)
     scale = np.array([model.units.angle_rad if j.revolute else model.units.length_m for j in model.joints])
-    q_urdf = (q_file * scale) @ model.coupling_matrix.T
-    tool, flange = TOOL_LINKS[names]
-    world = prefix + "world"
-    T_pred = predict(workdir, model_spec, q_file)
-    np.testing.assert_allclose(yourdfpy_fk(urdf, q_urdf, prefix + tool, world), T_pred, atol=atol_m)
-    # the flange: the tool frame without the model's tool transform
+    q_all = (q_file * scale) @ model.coupling_matrix.T
+    # yourdfpy takes the actuated joints' positions and works out the mimic joints' itself
+    actuated = [i for i, j in enumerate(movable) if j.mimic is None]
+    assert [movable[i].name for i in actuated] == list(robot.actuated_joint_names)
+    q_urdf = q_all[:, actuated]
     from calibration.transforms import pose_to_matrix
 
+    tool, flange = TOOL_LINKS[names]
+    T_pred = predict(workdir, model_spec, q_file)
+    if prefix + "world" in robot.link_map:  # --world: the instrument's frame is the root
+        world, T_world_root = prefix + "world", np.eye(4)
+    else:  # robot-only: rooted at base_link, the model's base is not in the file
+        world, T_world_root = prefix + "base_link", pose_to_matrix(model.base) @ _base_to_base_link(model, names)
+
+    def fk_world(link: str) -> np.ndarray:
+        return T_world_root @ yourdfpy_fk(urdf, q_urdf, link, world)
+
+    np.testing.assert_allclose(fk_world(prefix + tool), T_pred, atol=atol_m)
+    # the flange: the tool frame without the model's tool transform
     T_flange = T_pred @ np.linalg.inv(pose_to_matrix(model.tool))
-    np.testing.assert_allclose(yourdfpy_fk(urdf, q_urdf, prefix + flange, world), T_flange, atol=atol_m)
+    np.testing.assert_allclose(fk_world(prefix + flange), T_flange, atol=atol_m)
     for t in model.targets:
-        p = yourdfpy_fk(urdf, q_urdf, f"{prefix}target_{t}", world)[:, :3, 3]
+        p = fk_world(f"{prefix}target_{t}")[:, :3, 3]
         np.testing.assert_allclose(p, predict(workdir, model_spec, q_file, target=t), atol=atol_m)
+
+
+def _base_to_base_link(model, names: str) -> np.ndarray:
+    """The model's robot base frame -> the URDF's base_link: identity, but for UR names, where
+    base_link is UR's (the controller's base frame, base_link_inertia, turned by pi about z) and
+    the model's base frame either the controller's or base_link (calibration.export.ur_match)."""
+    if names != "ur":
+        return np.eye(4)
+    from calibration.export import ur_match
+
+    match = ur_match(model)
+    T_bli_base = np.eye(4) if match is None else match[1]
+    return np.linalg.inv(T_bli_base) @ np.diag([-1.0, -1.0, 1.0, 1.0])

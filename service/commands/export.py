@@ -24,7 +24,14 @@ def add_parser(s) -> None:
         "--names",
         default="auto",
         choices=list(NAMINGS),
-        help="URDF link and joint names: ur (UR's), ros (ROS-Industrial's), recal; auto: ur for UR arms, ros otherwise",
+        help="URDF link and joint names: ur (UR's), ros (ROS-Industrial's: joint_1.. for generic j1.. names), "
+        "recal; auto: ur for an arm that moves as a library UR arm, ros otherwise",
+    )
+    s.add_argument(
+        "--world",
+        action="store_true",
+        help="URDF: add a 'world' link (the instrument's frame) joined to base_link by the model's base "
+        "(default: a robot-only URDF rooted at base_link)",
     )
     s.add_argument(
         "--velocity",
@@ -55,12 +62,14 @@ def run(args) -> int:
             "names": args.names,
             "velocity": args.velocity,
             "effort": args.effort,
+            "world": args.world,
         }
     try:
         text = export(model, args.format, **kw)
     except ValueError as exc:
         raise Fail(f"{args.model}: {exc}") from None
     write_atomic(args.out, text)
-    for w in export_warnings(model, args.format):
+    options = {"effort": args.effort, "world": args.world} if args.format == "urdf" else {}
+    for w in export_warnings(model, args.format, **options):
         print(f"warning: {w}", file=sys.stderr)
     return 0

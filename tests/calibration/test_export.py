@@ -81,8 +81,8 @@ def test_urdf_reproduces_fk(doc_id):
     """The URDF's chain (tool link, and every target link) equals fk for random readings."""
     doc = DOCS[doc_id]
     model = model_from_dict(doc)
-    text = to_urdf(model, names="recal", velocity=1.0, effort=10.0)
-    assert export_warnings(model) == []
+    text = to_urdf(model, names="recal", velocity=1.0, effort=10.0, world=True)
+    assert export_warnings(model, "urdf", effort=10.0, world=True) == []
     rng = np.random.default_rng(3)
     q = si_readings(doc, random_readings(doc, 5, rng))
     T = fk(model, q)
@@ -99,7 +99,7 @@ def test_urdf_of_a_perturbed_robot_and_its_structure():
     rng = np.random.default_rng(7)
     base = nominal("ur10e")
     truth = perturbed(base, rng, base_length_m=0.01, base_angle_rad=0.01, tool_length_m=0.01, tool_angle_rad=0.01)
-    text = to_urdf(truth, prefix="r1_", names="recal")
+    text = to_urdf(truth, prefix="r1_", names="recal", world=True)
     q = rng.uniform(-3, 3, (4, 6))
     for qi, Ti in zip(q, fk(truth, q)):
         np.testing.assert_allclose(urdf_fk(text, qi, "r1_tool"), Ti, atol=1e-10)
@@ -115,7 +115,7 @@ def test_urdf_of_a_perturbed_robot_and_its_structure():
 @pytest.mark.parametrize("doc_id", ["dh_gain", "dh_coupling", "dh_harmonic"])
 def test_urdf_says_what_it_cannot_represent(doc_id):
     model = model_from_dict(DOCS[doc_id])
-    warnings = export_warnings(model)
+    warnings = export_warnings(model, "urdf", effort=10.0)
     assert warnings
     text = to_urdf(model, velocity=1.0, effort=10.0)
     assert text.count("warning:") == len(warnings)

@@ -258,10 +258,11 @@ def test_plan_bad_arguments(cell, tmp_path, capsys, argv, expect):
 def test_export_urdf_dh_csv_and_markdown(cell, tmp_path, capsys):
     urdf, dhcsv, md = tmp_path / "r.urdf", tmp_path / "dh.csv", tmp_path / "dh.md"
     model = cell / "ur.json"
-    assert recal(["export", "--model", str(model), "--format", "urdf", "--out", str(urdf), "--name", "cell1"]) == 0
+    argv = ["export", "--model", str(model), "--format", "urdf", "--out", str(urdf), "--name", "cell1"]
+    assert recal([*argv, "--world"]) == 0
     root = ET.parse(urdf).getroot()
     assert root.get("name") == "cell1"
-    # a UR arm gets UR's names (ur_description), the model's base before base_link
+    # a UR arm gets UR's names (ur_description); --world: the model's base before base_link
     assert [j.get("name") for j in root.findall("joint") if j.get("type") == "revolute"] == [
         "shoulder_pan_joint",
         "shoulder_lift_joint",

@@ -31,6 +31,17 @@ def _cell(client, tokens, name="web-cell") -> dict:
     return register_cell(client, tokens["technician"], name)
 
 
+def test_the_page_offers_every_export_the_api_has(client):
+    """Each format of the download route has its button on the result page (issue 26: the UR
+    calibration YAML had none), served as the browser gets it."""
+    from service.api.routes.results import DOWNLOADS
+
+    js = client.get("/web/js/views/result.js")
+    assert js.status_code == 200
+    for fmt in DOWNLOADS:
+        assert f"/download/{fmt}`" in js.text, fmt
+
+
 def test_the_page_is_served_at_the_root(client):
     r = client.get("/")
     assert r.status_code == 200 and "text/html" in r.headers["content-type"]
@@ -100,7 +111,9 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
     # the URDF, read by yourdfpy, is recal predict of the model downloaded beside it
     (tmp_path / "model.json").write_text(downloads["model"])
     (tmp_path / "cell.urdf").write_text(downloads["urdf"])
-    names = "ur" if json.loads(downloads["model"])["name"].startswith("ur") else "ros"
+    # a calibrated UR is named by its kinematics, not its model name (issue 26): UR's joint names
+    names = "ur"
+    assert "shoulder_pan_joint" in downloads["urdf"], json.loads(downloads["model"])["name"]
     q = in_file_units(
         tmp_path / "model.json",
         random_configurations(load_model(tmp_path / "model.json"), 10, np.random.default_rng(3)),

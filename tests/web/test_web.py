@@ -224,6 +224,8 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     assert model["format"] == "recal.model/1" and len(model["joints"]) == 6
     urdf = download("#download-urdf")
     assert urdf.suffix == ".urdf" and "<robot" in urdf.read_text() and "<joint" in urdf.read_text()
+    ur_yaml = download("#download-ur-calibration")
+    assert ur_yaml.name.endswith(".yaml") and "kinematics:\n  shoulder:" in ur_yaml.read_text()
     dh = download("#download-dh").read_text().splitlines()
     assert any(r.startswith("joint,type,theta,d,a,alpha") for r in dh) and sum(r.startswith("j") for r in dh) == 7, dh
 

@@ -25,6 +25,8 @@ export async function show(ctx, id) {
     dl("URDF", `/calibrations/${id}/download/urdf`, "robot.urdf", "download-urdf"),
     dl("DH table (CSV)", `/calibrations/${id}/download/dh-csv`, "dh.csv", "download-dh"),
     dl("DH table (Markdown)", `/calibrations/${id}/download/dh-md`, "dh.md", "download-dh-md"),
+    dl("UR calibration (YAML)", `/calibrations/${id}/download/ur-calibration`, "ur-calibration.yaml",
+      "download-ur-calibration"),
     h("a", { class: "button", href: `#/calibrations/${id}/certificate`, id: "open-certificate" }, "Certificate"));
 
   const head = h("div", { class: "page-head" },
@@ -51,7 +53,9 @@ export async function show(ctx, id) {
 
   const parts = [head, summary, summaryNote, numericalNotes(rep, unit),
     card("Files", downloads, h("p", { class: "muted small" },
-      "The model file works with every recal command; URDF for ROS; the DH table for the robot controller or a report."))];
+      "The model file works with every recal command; URDF for ROS and MoveIt (rooted at base_link); the UR "
+      + "calibration YAML for UR's ROS driver (kinematics_params_file, six-joint arms); the DH table for the robot "
+      + "controller or a report."))];
 
   if (e) {
     parts.push(h("div", { class: "two" },
