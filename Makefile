@@ -39,10 +39,12 @@ test: $(STAMP) browser
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" $(PYTEST_ARGS)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m serial $(PYTEST_ARGS)
 
-# The linter and the formatter (ruff, configured in pyproject.toml): clean on the whole tree.
+# The linter and the formatter (ruff, configured in pyproject.toml): clean on the whole tree; the
+# type checker (mypy, configured there too) on calibration/ and drivers/.
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 bench: $(STAMP)
 	$(BIN)/python bench/identify.py

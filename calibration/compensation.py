@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -516,7 +517,7 @@ def concatenate(parts: list[Compensation]) -> Compensation:
     if len(parts) == 1:
         return parts[0]
     first = parts[0]
-    out = {}
+    out: dict[str, Any] = {}
     for f in dataclasses.fields(first):
         v = getattr(first, f.name)
         out[f.name] = np.concatenate([getattr(p, f.name) for p in parts]) if isinstance(v, np.ndarray) else v

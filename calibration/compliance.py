@@ -139,7 +139,9 @@ def with_payload(model: KinematicModel, payload) -> KinematicModel:
     if model.compliance is None:
         return model
     p = payload_rows(payload, 1)
-    return dataclasses.replace(model, compliance=dataclasses.replace(model.compliance, payload=tuple(p[0])))
+    return dataclasses.replace(
+        model, compliance=dataclasses.replace(model.compliance, payload=None if p is None else tuple(p[0]))
+    )
 
 
 def describe_term(name: str) -> str:

@@ -43,7 +43,7 @@ def dh_to_mdh(model: KinematicModel) -> KinematicModel:
         prev_a, prev_alpha = (js[i - 1].a, js[i - 1].alpha) if i > 0 else (0.0, 0.0)
         new.append(dataclasses.replace(j, a=prev_a, alpha=prev_alpha))
     last = js[-1]
-    tail = homogeneous(np.eye(3), [last.a, 0, 0]) @ homogeneous(rot(0, last.alpha), np.zeros(3))
+    tail = homogeneous(np.eye(3), np.array([last.a, 0.0, 0.0])) @ homogeneous(rot(0, last.alpha), np.zeros(3))
     tool = matrix_to_pose(tail @ pose_to_matrix(model.tool))
     return dataclasses.replace(model, convention="mdh", joints=tuple(new), tool=tool)
 
@@ -54,7 +54,7 @@ def mdh_to_dh(model: KinematicModel) -> KinematicModel:
     if model.convention != "mdh":
         raise ValueError("mdh_to_dh needs an mdh model")
     js = model.joints
-    head = homogeneous(rot(0, js[0].alpha), np.zeros(3)) @ homogeneous(np.eye(3), [js[0].a, 0, 0])
+    head = homogeneous(rot(0, js[0].alpha), np.zeros(3)) @ homogeneous(np.eye(3), np.array([js[0].a, 0.0, 0.0]))
     base = matrix_to_pose(pose_to_matrix(model.base) @ head)
     new = []
     for i, j in enumerate(js):
@@ -269,7 +269,7 @@ def _link_to_axis(R_f: np.ndarray, o_f: np.ndarray, s_next: np.ndarray, r_next: 
     s, x_f = R_f[:, 2], R_f[:, 0]
     c = np.cross(s, s_next)
     sn = float(np.linalg.norm(c))
-    candidates = []
+    candidates: list[tuple[np.ndarray, float, float, float, float | None]] = []
     if sn < np.sin(hayati_tol):
         # Hayati (book eq. 2.64): no shift along z; x towards where axis i+1 crosses the plane
         # through the origin perpendicular to axis i.
@@ -343,9 +343,9 @@ def poe_to_dh(
     poe = to_poe(model)
     n = poe.n_joints
     ref = _dh_reference(reference, n)
-    S = [np.asarray(j.axis, dtype=float) / np.linalg.norm(j.axis) for j in poe.joints]
-    P = [np.asarray(j.point, dtype=float) for j in poe.joints]
-    H = pose_to_matrix(poe.home)
+    S = [np.asarray(j.axis_point()[0], dtype=float) / np.linalg.norm(j.axis_point()[0]) for j in poe.joints]
+    P = [np.asarray(j.axis_point()[1], dtype=float) for j in poe.joints]
+    H = pose_to_matrix(poe.poe_home())
     # frame 0: on axis 1, nearest the base origin
     o = P[0] + S[0] * (S[0] @ (np.zeros(3) - P[0]))
     x = _perpendicular_unit(np.array([1.0, 0.0, 0.0]), S[0], np.array([0.0, 1.0, 0.0]))

@@ -63,7 +63,9 @@ class Measurements:
         return np.all(np.isfinite(self.quat), axis=1)
 
     def subset(self, idx) -> "Measurements":
-        pick = lambda a: None if a is None else a[idx]  # noqa: E731
+        def pick(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[idx]
+
         return Measurements(
             self.q[idx],
             self.p_world[idx],

@@ -1697,7 +1697,7 @@ def _matches(name: str, patterns) -> bool:
 def _reach(model: KinematicModel) -> float:
     """A characteristic length of the robot (m): the sum of its link lengths and offsets."""
     if model.convention == "poe":
-        pts = [j.point for j in model.joints] + [model.home[:3]]
+        pts = [j.axis_point()[1] for j in model.joints] + [model.poe_home()[:3]]
         return float(max(sum(np.linalg.norm(np.diff(pts, axis=0), axis=1)), 0.1))
     return float(max(sum(abs(j.a) + abs(j.d) for j in model.joints), 0.1))
 

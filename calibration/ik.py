@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -102,7 +103,7 @@ def characteristic_length(model: KinematicModel) -> float:
     """A length (m) that makes a rotation comparable with a translation: the robot's reach,
     estimated as the sum of its link lengths and offsets (at least 0.1 m)."""
     if model.convention == "poe":
-        pts = [j.point for j in model.joints] + [model.home[:3]]
+        pts = [j.axis_point()[1] for j in model.joints] + [model.poe_home()[:3]]
         reach = float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1)))
     else:
         reach = float(sum(abs(j.a) + abs(j.d) for j in model.joints))
@@ -515,7 +516,9 @@ def numerical_ik(
     N, n = T.shape[0], model.n_joints
     seed = np.broadcast_to(check_q(model, np.asarray(q_near, dtype=float).reshape(-1, n)), (N, n)).copy()
     taught = np.broadcast_to(np.asarray(taught, dtype=bool), (N,))
-    kw = dict(position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations)
+    kw: dict[str, Any] = dict(
+        position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations
+    )
     L = characteristic_length(model)
     # per point, the best attempt so far, ranked: solved (converged, inside the limits) >
     # converged > closest
@@ -627,7 +630,9 @@ def inverse_kinematics(
     q_near = np.broadcast_to(
         check_q(model, np.asarray(q_near, dtype=float).reshape(-1, model.n_joints)), (N, model.n_joints)
     ).copy()
-    kw = dict(position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations)
+    kw: dict[str, Any] = dict(
+        position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations
+    )
     if ur_geometry(model) is None:
         return numerical_ik(model, T, q_near, taught=keep_branch, **kw)
     keep = np.broadcast_to(np.asarray(keep_branch, dtype=bool), (N,))

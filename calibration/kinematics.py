@@ -93,14 +93,14 @@ def program(model: KinematicModel) -> list[Op]:
             ops.append(Op("trans", 0, j.a, key=f"{n}.a"))
             ops.append(Op("rot", 0, j.alpha, key=f"{n}.alpha"))
             if j.hayati:
-                ops.append(Op("rot", 1, j.beta, key=f"{n}.beta"))
+                ops.append(Op("rot", 1, j.beta or 0.0, key=f"{n}.beta"))
         elif model.convention == "mdh":
             ops.append(Op("rot", 0, j.alpha, key=f"{n}.alpha"))
             ops.append(Op("trans", 0, j.a, key=f"{n}.a"))
             ops.append(Op("rot", 2, j.theta, i if rev else None, key=f"{n}.theta"))
             ops.append(Op("trans", 2, j.d, None if rev else i, key=f"{n}.d"))
         else:  # poe: F · Rz(theta + v) · F^-1 (or Tz(d + v) for a prismatic joint)
-            F = frame_from_axis(j.axis, j.point)
+            F = frame_from_axis(*j.axis_point())
             ops.append(Op("fixed", T=F))
             ops.append(Op("mark", key=f"{n}.pre"))
             if rev:
@@ -111,7 +111,7 @@ def program(model: KinematicModel) -> list[Op]:
             ops.append(Op("fixed", T=invert(F)))
         ops.append(Op("mark", key=f"{n}.link"))
     if model.convention == "poe":
-        ops += [Op("fixed", T=pose_to_matrix(model.home)), Op("mark", key="home")]
+        ops += [Op("fixed", T=pose_to_matrix(model.poe_home())), Op("mark", key="home")]
     ops += [Op("fixed", T=pose_to_matrix(model.tool)), Op("mark", key="tool")]
     return ops
 
@@ -190,6 +190,7 @@ def walk(
     frames: dict = {}
     for op in program(model) if ops is None else ops:
         if op.kind == "fixed":
+            assert op.T is not None  # a fixed op carries its transform
             M, t = op.T[:3, :3], op.T[:3, 3]
             if np.any(t):
                 p = p + sum(t[i] * cols[i] for i in range(3) if t[i] != 0.0)
@@ -273,6 +274,8 @@ def regressors(model: KinematicModel, q: np.ndarray, payload=None, trig: dict | 
     parameter name ``compliance.<term>``, at the rigid configuration of readings ``q`` (N, n).
     ``payload``: see :func:`payload_rows` (``None``: the section's own payload, if any)."""
     c = model.compliance
+    if c is None:
+        raise ValueError("the model has no compliance section: no regressors")
     q = check_q(model, q)
     N = q.shape[0]
     pay = payload_rows(payload if payload is not None else c.payload, N)
@@ -308,6 +311,7 @@ def deflections(
     and the terms' regressors (:func:`regressors`)."""
     reg = regressors(model, q, payload, trig)
     c = model.compliance
+    assert c is not None  # regressors() refused a rigid model
     dv = np.zeros((len(reg[next(iter(reg))]) if reg else check_q(model, q).shape[0], model.n_joints))
     index = {j.name: i for i, j in enumerate(model.joints)}
     for name, phi in reg.items():

@@ -88,7 +88,7 @@ def group_configurations(q: np.ndarray, tol: np.ndarray | float) -> np.ndarray:
     pairs = cKDTree(q / tol).query_pairs(r=1.0, p=np.inf, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(N, N))
     _, labels = connected_components(graph, directed=False)
-    first = {}
+    first: dict[int, int] = {}
     return np.array([first.setdefault(k, len(first)) for k in labels.tolist()], dtype=int)
 
 
@@ -155,7 +155,7 @@ def pose_statistics(
     if len(pose_id) != len(p_meas):
         raise ValueError(f"`pose_id` must have {len(p_meas)} entries; got {len(pose_id)}")
     ids = list(dict.fromkeys(pose_id.tolist()))
-    rows = {k: [] for k in ids}
+    rows: dict = {k: [] for k in ids}
     for i, k in enumerate(pose_id.tolist()):
         rows[k].append(i)
     P = len(ids)
@@ -171,7 +171,7 @@ def pose_statistics(
         l = np.linalg.norm(p_meas[idx] - bary[k], axis=1)  # l_j = |x_j − x̄|
         l_mean[k] = l.mean()
         S_l[k] = _sample_std(l)
-        if delta is not None:
+        if delta is not None and ap_abc is not None and rp_abc is not None:
             d = delta[idx]
             ap_abc[k] = d.mean(axis=0)  # ā − a_c (the command's deviation is 0)
             rp_abc[k] = 3.0 * _sample_std(d)

@@ -19,7 +19,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -136,6 +136,13 @@ class Joint:
     def hayati(self) -> bool:
         return self.beta is not None
 
+    def axis_point(self) -> tuple[np.ndarray, np.ndarray]:
+        """A ``poe`` joint's unit axis and a point on it (m): both set for every ``poe`` joint
+        (:func:`model_from_dict` requires them); a joint of another convention has none."""
+        if self.axis is None or self.point is None:
+            raise ValueError(f"joint {self.name!r} has no axis and point (not a poe joint)")
+        return self.axis, self.point
+
 
 @dataclass(frozen=True, eq=False)
 class KinematicModel:
@@ -198,6 +205,13 @@ class KinematicModel:
             return np.array(self.coupling)
         return np.diag([j.gain for j in self.joints])
 
+    def poe_home(self) -> np.ndarray:
+        """A ``poe`` model's home pose (6,) of the flange at zero readings; every ``poe`` model has
+        one (:func:`model_from_dict`), the other conventions none."""
+        if self.home is None:
+            raise ValueError(f"model {self.name!r} has no home pose (not a poe model)")
+        return self.home
+
     def target(self, name: str | None) -> np.ndarray:
         """A target point (3,) in the tool frame; ``None`` is the tool origin."""
         if name is None or name == "":
@@ -212,7 +226,11 @@ class KinematicModel:
 # ------------------------------------------------------------------------- reading documents
 
 
-def _number(d: Mapping, key: str, where: str, default=None, *, required: bool = False) -> float | None:
+@overload
+def _number(d: Mapping, key: str, where: str, default: float, *, required: bool = False) -> float: ...
+@overload
+def _number(d: Mapping, key: str, where: str, default: None = None, *, required: bool = False) -> float | None: ...
+def _number(d: Mapping, key: str, where: str, default: float | None = None, *, required: bool = False) -> float | None:
     if key not in d or d[key] is None:
         if required:
             raise ModelFormatError(f"{where}.{key}" if where else key, "is required (a number)")
@@ -343,7 +361,7 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
             if jd.get("beta") is not None:
                 if convention != "dh":
                     raise ModelFormatError(f"{where}.beta", "Hayati's beta is defined for convention dh only")
-                kw["beta"] = _number(jd, "beta", where) * A
+                kw["beta"] = _number(jd, "beta", where, 0.0) * A  # present: checked just above
                 if kw["d"] != 0.0 and jtype == "revolute":
                     raise ModelFormatError(f"{where}.d", "must be 0 or absent in a Hayati (beta) link")
         # Published speed and torque (force) limits, for exports; SI inside (rad/s or m/s, N·m or N).
@@ -406,8 +424,9 @@ def model_to_dict(model: KinematicModel, *, units: Units | None = None) -> dict[
         var_scale = A if j.revolute else L
         jd: dict[str, Any] = {"name": j.name, "type": j.type}
         if model.convention == "poe":
-            jd["axis"] = [_r(v) for v in j.axis]
-            jd["point"] = [_r(v / L) for v in j.point]
+            axis, point = j.axis_point()
+            jd["axis"] = [_r(v) for v in axis]
+            jd["point"] = [_r(v / L) for v in point]
             if j.revolute:
                 jd["theta"] = _r(j.theta / A)
             else:
@@ -419,7 +438,7 @@ def model_to_dict(model: KinematicModel, *, units: Units | None = None) -> dict[
             jd["a"] = _r(j.a / L)
             jd["alpha"] = _r(j.alpha / A)
             if j.hayati:
-                jd["beta"] = _r(j.beta / A)
+                jd["beta"] = _r((j.beta or 0.0) / A)
         if model.coupling is None and j.gain != 1.0:
             jd["gain"] = _r(j.gain, 15)
         if j.harmonic is not None:

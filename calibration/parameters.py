@@ -179,7 +179,7 @@ def apply_step(model: KinematicModel, params: list[Parameter], delta: np.ndarray
             tilt = np.array([by_name.get(f"{n}.tilt_x", 0.0), by_name.get(f"{n}.tilt_y", 0.0), 0.0])
             shift = np.array([by_name.get(f"{n}.shift_x", 0.0), by_name.get(f"{n}.shift_y", 0.0), 0.0])
             if np.any(tilt) or np.any(shift):
-                F = frame_from_axis(j.axis, j.point) @ homogeneous(rotvec_to_matrix(tilt), shift)
+                F = frame_from_axis(*j.axis_point()) @ homogeneous(rotvec_to_matrix(tilt), shift)
                 upd["axis"] = F[:3, 2] / np.linalg.norm(F[:3, 2])
                 upd["point"] = F[:3, 3]
         joints.append(dataclasses.replace(j, **upd) if upd else j)
@@ -208,7 +208,8 @@ def parameter_values(model: KinematicModel, params: list[Parameter]) -> np.ndarr
     for p in params:
         head, _, field = p.name.rpartition(".")
         if p.name.startswith("compliance."):
-            out.append(float(model.compliance.values.get(p.name[len("compliance.") :], 0.0)))
+            values = model.compliance.values if model.compliance is not None else {}
+            out.append(float(values.get(p.name[len("compliance.") :], 0.0)))
         elif p.name.startswith("target."):
             t = p.name.split(".")[1]
             out.append(float(model.targets[t]["xyz".index(field)]))

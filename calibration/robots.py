@@ -17,7 +17,9 @@ robot is in ``"description"``; joints carry ``velocity`` and ``effort`` limits w
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -413,11 +415,11 @@ _DESCRIPTIONS = {
     **{k: v["description"] for k, v in _ARMS.items()},
 }
 
-_LIBRARY = {
-    **{name: (lambda n=name: _ur(n)) for name in _UR_DH},
+_LIBRARY: dict[str, Callable[[], dict]] = {
+    **{name: functools.partial(_ur, name) for name in _UR_DH},
     "puma560": _puma_dh,
     "puma560-zrp": _puma_zrp,
-    **{name: (lambda n=name: _arm(n)) for name in _ARMS},
+    **{name: functools.partial(_arm, name) for name in _ARMS},
 }
 
 

@@ -9,6 +9,7 @@ freely) and each axis, joint offset, the home, base and tool frames are perturbe
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -197,6 +198,6 @@ def sagging(model: KinematicModel, arm: str, *, frames_of: KinematicModel | None
     by :func:`perturbed` is in ``poe``)."""
     from .compliance import lumps_in_frames_of, physical_section, with_section
 
-    fig = SAGGING_ARMS[arm]
+    fig: dict[str, Any] = SAGGING_ARMS[arm]
     masses = fig["masses"] if frames_of is None else lumps_in_frames_of(fig["masses"], frames_of, model)
     return with_section(model, physical_section(model, fig["compliance"], masses))

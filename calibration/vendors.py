@@ -75,7 +75,8 @@ def _zyx_near(R: np.ndarray, near: np.ndarray | None) -> np.ndarray:
         return a
     near = np.asarray(near, dtype=float).reshape(-1, 3)
     b = np.stack([a[:, 0] + math.pi, math.pi - a[:, 1], a[:, 2] + math.pi], axis=1)
-    best, cost = None, None
+    best: np.ndarray | None = None
+    cost: np.ndarray = np.zeros(0)
     for cand in (a, b):
         c = cand + TWO_PI * np.round((near - cand) / TWO_PI)
         d = np.sum((c - near) ** 2, axis=1)
@@ -85,6 +86,7 @@ def _zyx_near(R: np.ndarray, near: np.ndarray | None) -> np.ndarray:
             take = d < cost
             best = np.where(take[:, None], c, best)
             cost = np.where(take, d, cost)
+    assert best is not None  # at least one candidate
     return best
 
 

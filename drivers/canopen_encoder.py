@@ -55,6 +55,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+# python-can and canopen are dependencies of the package (pyproject.toml): imported plainly
+import can
+import canopen
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
 from drivers.base import EncoderReading, JointEncoder
 from drivers.errors import (
     DeviceConnectionError,
@@ -65,16 +70,6 @@ from drivers.errors import (
     MeasurementError,
     ProtocolError,
 )
-
-try:  # the client libraries are dependencies, but keep the failure clear where they are missing
-    import can
-    import canopen
-    from canopen.sdo import SdoAbortedError, SdoCommunicationError
-except ImportError as _import_error:  # pragma: no cover - exercised only without the libraries
-    can = canopen = None
-    _IMPORT_ERROR: ImportError | None = _import_error
-else:
-    _IMPORT_ERROR = None
 
 EDS_DIR = Path(__file__).resolve().parent / "eds"
 DEFAULT_EDS = {"encoder": EDS_DIR / "cia406_encoder.eds", "resolver": EDS_DIR / "resolver_reader.eds"}
@@ -217,7 +212,8 @@ def configs_from_endpoint(
     ``("encoder", 1)``, ``("resolver", 1)``, ..."""
     bus = CanBusConfig.from_endpoint(endpoint["can"])
     out: dict[tuple[str, int], CanopenEncoderConfig] = {}
-    for key, kind in (("encoders", "encoder"), ("resolvers", "resolver")):
+    kinds: tuple[tuple[str, Literal["encoder", "resolver"]], ...] = (("encoders", "encoder"), ("resolvers", "resolver"))
+    for key, kind in kinds:
         for joint, node_id in (endpoint.get(key) or {}).items():
             out[(kind, int(joint))] = CanopenEncoderConfig(
                 bus=bus, node_id=int(node_id), kind=kind, use_pdo=use_pdo, timeout_s=timeout_s
@@ -243,7 +239,7 @@ def counts_to_angle(
 # --------------------------------------------------------------------------- bus plumbing
 
 
-class _WatchedBus(can.BusABC if can is not None else object):
+class _WatchedBus(can.BusABC):
     """Wraps the python-can bus so that a lost link is reported once and then stays quiet.
 
     python-can's socketcand client treats a TCP connection closed by the server as "no message"
@@ -257,7 +253,7 @@ class _WatchedBus(can.BusABC if can is not None else object):
         self._on_error = on_error
         self.error: Exception | None = None
         self.channel_info = inner.channel_info
-        super().__init__(channel=getattr(inner, "channel", None))
+        super().__init__(channel=getattr(inner, "channel", ""))
 
     def _recv_internal(self, timeout):
         if self.error is not None:
@@ -295,7 +291,7 @@ class _WatchedBus(can.BusABC if can is not None else object):
         self._inner.shutdown()
 
 
-class _ErrorSink(can.Listener if can is not None else object):
+class _ErrorSink(can.Listener):
     """Tells canopen's notifier that receive errors are handled (recorded by the driver), so
     the notifier thread does not die with a traceback."""
 
@@ -333,16 +329,12 @@ class CanopenEncoder(JointEncoder):
     def __init__(self, config: CanopenEncoderConfig):
         self.config = config
         self.name = f"canopen {config.kind} node {config.node_id} on {config.bus.describe()}"
-        if _IMPORT_ERROR is not None:
-            raise DeviceUnavailableError(
-                f"python-can and canopen are needed for CANopen devices: {_IMPORT_ERROR}", device=self.name
-            )
         if not config.eds.is_file():
             raise ValueError(f"{self.name}: EDS file {config.eds} does not exist")
         self._od = canopen.import_od(str(config.eds), config.node_id)
         self._lock = threading.RLock()
         self._network: canopen.Network | None = None
-        self._node = None
+        self._node: canopen.RemoteNode | None = None
         self._link_error: Exception | None = None
         self._sdo_answers: queue.Queue[bytes] = queue.Queue()
         self._pdo = _PdoInbox()
@@ -403,7 +395,8 @@ class CanopenEncoder(JointEncoder):
             return "fault: " + _emcy_text(active)
         if heartbeat_at is None or time.monotonic() - heartbeat_at > self.config.heartbeat_timeout_s:
             return "no heartbeat"
-        return NMT_STATES.get(self._heartbeat_state, f"NMT state {self._heartbeat_state}")
+        state = self._heartbeat_state
+        return "no heartbeat" if state is None else NMT_STATES.get(state, f"NMT state {state}")
 
     def close(self) -> None:
         with self._lock:
@@ -412,12 +405,25 @@ class CanopenEncoder(JointEncoder):
 
     # ------------------------------------------------------------------ connection
 
+    @property
+    def _live_node(self) -> canopen.RemoteNode:
+        """The node while connected (every caller runs after :meth:`_connect`)."""
+        if self._node is None:
+            raise DeviceConnectionError("not connected to the CANopen node", device=self.name)
+        return self._node
+
+    @property
+    def _live_network(self) -> canopen.Network:
+        if self._network is None:
+            raise DeviceConnectionError("not connected to the CAN bus", device=self.name)
+        return self._network
+
     def _connect(self) -> None:
         bus = self._open_bus()
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = 0.1
         network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
-        network.listeners.append(_ErrorSink())
+        network.listeners.append(_ErrorSink())  # type: ignore[arg-type]  # a can.Listener is what the notifier calls
         self._link_error = None
         self._network = network
         try:
@@ -500,7 +506,7 @@ class CanopenEncoder(JointEncoder):
 
     def _setup(self) -> None:
         """Check the device, read its scaling, configure TPDO1 and start the node."""
-        node = self._node
+        node = self._live_node
         with self._errors("reading the device configuration"):
             if self.config.kind == "encoder":
                 device_type = self._sdo_int(DEVICE_TYPE)
@@ -519,12 +525,12 @@ class CanopenEncoder(JointEncoder):
         self._needs_barrier = False
 
     def _read_scaling(self) -> None:
-        operating = self._sdo_int(OPERATING_PARAMETERS, optional=True)
+        operating = self._sdo_int_optional(OPERATING_PARAMETERS)
         if operating is None or operating & SCALING_BIT:
             cpr, total = self._sdo_int(UNITS_PER_REV), self._sdo_int(TOTAL_RANGE)
         else:
             cpr = self._sdo_int(SINGLETURN_RESOLUTION)
-            revolutions = self._sdo_int(REVOLUTIONS, optional=True)
+            revolutions = self._sdo_int_optional(REVOLUTIONS)
             total = cpr * revolutions if revolutions else self._sdo_int(TOTAL_RANGE)
         if cpr <= 0 or total < cpr:
             raise ProtocolError(
@@ -533,7 +539,7 @@ class CanopenEncoder(JointEncoder):
         self.counts_per_rev, self.total_range = cpr, total
 
     def _setup_pdo(self) -> None:
-        node = self._node
+        node = self._live_node
         tpdo = node.tpdo
         if self.config.configure_pdo:
             node.nmt.state = "PRE-OPERATIONAL"
@@ -566,9 +572,14 @@ class CanopenEncoder(JointEncoder):
             self._pdo.data = bytes(pdo_map.data)
             self._pdo.cond.notify_all()
 
-    def _sdo_int(self, index: int, *, optional: bool = False) -> int | None:
-        """An unsigned object of up to 4 bytes (configuration reads); ``optional``: ``None`` if
-        the device does not have it."""
+    def _sdo_int(self, index: int) -> int:
+        """An unsigned object of up to 4 bytes (configuration reads)."""
+        value = self._sdo_int_optional(index, optional=False)
+        assert value is not None  # not optional: a missing object raised
+        return value
+
+    def _sdo_int_optional(self, index: int, *, optional: bool = True) -> int | None:
+        """As :meth:`_sdo_int`; ``optional``: ``None`` if the device does not have the object."""
         try:
             data = self._upload(index)
         except SdoAbortedError as exc:
@@ -586,7 +597,7 @@ class CanopenEncoder(JointEncoder):
             self._setup()
         elif self.config.start_node and self._heartbeat_state not in (None, 5):
             with self._errors("starting the node (NMT)"):
-                self._node.nmt.state = "OPERATIONAL"
+                self._live_node.nmt.state = "OPERATIONAL"
         try:
             if self._needs_barrier:
                 with self._errors("re-synchronising after a failed request"):
@@ -622,7 +633,7 @@ class CanopenEncoder(JointEncoder):
         """SDO expedited upload, skipping answers that belong to earlier requests."""
         while not self._sdo_answers.empty():  # answers to abandoned requests
             self._sdo_answers.get_nowait()
-        self._network.send_message(0x600 + self.config.node_id, _SDO_REQUEST.pack(0x40, index, subindex, 0))
+        self._live_network.send_message(0x600 + self.config.node_id, _SDO_REQUEST.pack(0x40, index, subindex, 0))
         deadline = time.monotonic() + self.config.timeout_s
         while True:
             try:
@@ -651,7 +662,7 @@ class CanopenEncoder(JointEncoder):
             start = inbox.count
         if self.config.pdo_trigger == "sync":
             with self._errors("sending SYNC"):
-                self._network.sync.transmit()
+                self._live_network.sync.transmit()
         # SYNC: the node samples when it sees our SYNC, so the first TPDO after it is fresh.
         # Event timer: the first TPDO after the call may have been sampled before it and been
         # on its way (gateway, TCP); the second was sampled at least one timer period later.
@@ -662,7 +673,7 @@ class CanopenEncoder(JointEncoder):
         if self._link_down():
             raise DeviceConnectionError(f"CAN link lost: {self._link_error}", device=self.name)
         if not arrived or inbox.count < wanted:
-            active = list(self._node.emcy.active)
+            active = list(self._live_node.emcy.active)
             trigger = "after SYNC" if self.config.pdo_trigger == "sync" else "(event timer)"
             message = f"no TPDO1 (COB-ID 0x{self._pdo_cob_id:03X}) within {self.config.timeout_s:g} s {trigger}"
             if active:
@@ -676,6 +687,8 @@ class CanopenEncoder(JointEncoder):
 
     def _pdo_value(self, data: bytes, index: int, size: int, *, default: int | None = None) -> int:
         if index not in self._pdo_layout:
+            if default is None:  # the layout was checked when TPDO1 was configured
+                raise ProtocolError(f"TPDO1 does not map 0x{index:04X}", device=self.name)
             return default
         offset, length = self._pdo_layout[index]
         if length != size or len(data) < offset + length:
@@ -689,7 +702,7 @@ class CanopenEncoder(JointEncoder):
         if fault_bits:
             names = [text for bit, text in RESOLVER_FAULT_NAMES.items() if fault_bits & bit] or ["unknown fault"]
             raise MeasurementError(f"resolver reports {', '.join(names)}", device=self.name, code=f"0x{fault_bits:02X}")
-        active = list(self._node.emcy.active)
+        active = list(self._live_node.emcy.active)
         if active:
             raise DeviceFaultError(
                 f"the node reports {_emcy_text(active)}", device=self.name, code=f"0x{active[-1].code:04X}"

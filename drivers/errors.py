@@ -34,6 +34,12 @@ class DeviceError(RecalError):
     a tracker ``ERR`` code), else ``None``.
     """
 
+    # what a protocol may add to its errors (I++ DME: the error's severity, the method it named
+    # and its text); None where the protocol says nothing of it
+    severity: int | None = None
+    method: str | None = None
+    text: str | None = None
+
     def __init__(self, message: str, *, device: str = "", code: int | str | None = None):
         self.device = device
         self.code = code

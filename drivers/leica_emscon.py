@@ -518,6 +518,8 @@ class EmsconTracker(SteerablePositionSensor):
 
     def _read_exact(self, n: int, deadline: float, command: int, limit: float) -> bytes:
         sock = self._sock
+        if sock is None:
+            raise DeviceConnectionError("not connected to the emScon server", device=self.name)
         with translate_errors(self.name, timeout_s=limit):
             while len(self._buffer) < n:
                 remaining = deadline - time.monotonic()

@@ -332,10 +332,12 @@ class ModbusRobot(Robot):
         if seen is not None and seen[0] != status.heartbeat:
             self._heartbeat = (status.heartbeat, now)
             return True
-        if seen is not None and seen[1] is None:
-            return False
-        if seen is not None and now - seen[1] < timeout_s:
-            return True
+        if seen is not None:
+            changed_at = seen[1]
+            if changed_at is None:
+                return False
+            if now - changed_at < timeout_s:
+                return True
         deadline = now + timeout_s
         while time.monotonic() < deadline:
             time.sleep(self.config.poll_interval_s)

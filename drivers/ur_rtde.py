@@ -292,11 +292,13 @@ class UrRtdeRobot(Robot):
                 raise DeviceConnectionError("the robot connection is closed", device=self.name)
             if self._worker is None:
                 self._connect()
+            worker = self._worker
+            assert worker is not None  # _connect() starts one or raises
             try:
                 timeout_s = timeout_s or self.config.command_timeout_s
-                return self._worker.call(op, *args, timeout_s=timeout_s)
+                return worker.call(op, *args, timeout_s=timeout_s)
             except (DeviceConnectionError, DeviceTimeoutError):
-                self._worker.kill()
+                worker.kill()
                 self._worker = None
                 raise
 
@@ -435,12 +437,15 @@ class _Worker:
             stdout=subprocess.PIPE,
             bufsize=0,
         )
+        # both pipes exist (stdin and stdout are PIPE): typed as such, once
+        assert self.process.stdin is not None and self.process.stdout is not None
+        self.stdin, self.stdout = self.process.stdin, self.process.stdout
 
     def call(self, op: str, *args, timeout_s: float):
         data = pickle.dumps((op, args))
         try:
-            self.process.stdin.write(_FRAME.pack(len(data)) + data)
-            self.process.stdin.flush()
+            self.stdin.write(_FRAME.pack(len(data)) + data)
+            self.stdin.flush()
         except OSError as exc:
             raise DeviceConnectionError(self._ended(op), device=self.device) from exc
         deadline = time.monotonic() + timeout_s
@@ -461,7 +466,7 @@ class _Worker:
         raise DeviceFaultError(f"{op}: {message}", device=self.device)
 
     def _read(self, n: int, deadline: float, op: str, timeout_s: float) -> bytes:
-        fd = self.process.stdout.fileno()
+        fd = self.stdout.fileno()
         data = b""
         while len(data) < n:
             remaining = deadline - time.monotonic()
@@ -503,7 +508,7 @@ class _Worker:
         if self.process.poll() is None:
             self.process.kill()
         self.process.wait()
-        for stream in (self.process.stdin, self.process.stdout):
+        for stream in (self.stdin, self.stdout):
             try:
                 stream.close()
             except OSError:

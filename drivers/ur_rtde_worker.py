@@ -166,7 +166,7 @@ def main() -> int:
             return 0  # the driver went away
         try:
             result = getattr(session, op)(*args)
-            reply = ("ok", result, capture.lost)
+            reply: tuple = ("ok", result, capture.lost)
         except Exception as exc:  # every failure goes back to the driver
             message = str(exc) or type(exc).__name__
             reply = ("error", _error_kind(exc), message, capture.lost)
