@@ -8,7 +8,6 @@ import os
 import select
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -195,8 +194,9 @@ def test_error_event_fails_the_running_transaction(fake, truth):
     top, approach = _top_of(_centre(truth, "ball1"))
     with IppDmeCmm(_config(fake)) as cmm:
         fake.send_event('KeyPress("F1")')
+        # send_event writes both lines to the driver's connection before it returns, so they
+        # precede the PtMeas reply in the stream: no wait is needed for the driver to read them
         fake.send_event("Controller", error=(3, 500, "Emergency stop"))
-        time.sleep(0.1)
         with pytest.raises(DeviceFaultError, match="Emergency stop") as info:
             cmm.probe(top, approach)
         assert info.value.code == 500

@@ -46,7 +46,11 @@ def test_all_cells_calibrated_concurrently_across_both_workers_and_api_processes
 def test_a_session_for_a_site_no_worker_serves_waits_and_can_be_aborted(fleet):
     (cell,) = fleet.add_cells(["nowhere"])
     s = _start(fleet.api(0), cell, kind="verify", count=5)
-    time.sleep(1.5)
+    # the workers are taking work meanwhile: a session of a site they serve, queued after it,
+    # runs to its end (a condition, not a pause: it shows they polled the queue since)
+    (served,) = fleet.add_cells(["north"])
+    later = _start(fleet.api(0), served, kind="verify", count=5)
+    assert fleet.api(1).wait_session(later["id"], 60, poll_s=0.1)["state"] == "completed"
     assert fleet.api(1).call("GET", f"/sessions/{s['id']}")["state"] == "planned"  # queued, nobody moved
     # an API process starting and stopping meanwhile leaves it queued (it is not that process's)
     fleet.start_api().stop()
@@ -125,11 +129,20 @@ def test_nightly_waits_through_a_restart_of_the_api_replica_it_talks_to(fleet):
     )
     try:
         deadline = time.monotonic() + 60
-        while not fleet.sql("SELECT id FROM session WHERE cell_id = :c AND kind = 'verify'", c=cells[0]["id"]):
+        while not (
+            rows := fleet.sql("SELECT id FROM session WHERE cell_id = :c AND kind = 'verify'", c=cells[0]["id"])
+        ):
             assert time.monotonic() < deadline and job.poll() is None, "the nightly job started no session"
             time.sleep(0.1)
         fleet.apis[1].stop()
-        time.sleep(3)  # the job's polls are refused meanwhile
+        # the workers go on while the replica is away (the job's polls are refused meanwhile):
+        # wait until the session has stored two more configurations than when it went away
+        stored = "SELECT count(*) FROM measurement WHERE session_id = :s"
+        before = fleet.sql(stored, s=rows[0][0])[0][0]
+        deadline = time.monotonic() + 60
+        while fleet.sql(stored, s=rows[0][0])[0][0] < before + 2 and fleet.session_row(rows[0][0]).state == "running":
+            assert time.monotonic() < deadline, "the session stopped measuring while the replica was away"
+            time.sleep(0.1)
         fleet.apis[1] = start_service(
             fleet.home, int(url.rsplit(":", 1)[1]), env=fleet.env, log_path=fleet.home / "api1-restarted.log"
         )
