@@ -50,6 +50,7 @@ from .geometry import (  # noqa: F401 (the generic fits live in geometry; these 
     kasa_circle,
     plane_regression,
 )
+from .identification import INSTRUMENT_SIGMA_M
 from .kinematics import check_q, fk, joint_variables, target_positions, walk
 from .model import KinematicModel
 from .registration import register_points
@@ -844,7 +845,7 @@ def simulate_sweeps(
     span_rad: float = np.deg2rad(200.0),
     travel_m: float = 0.2,
     points: int = 24,
-    sigma_m: float = 20e-6,
+    sigma_m: float = INSTRUMENT_SIGMA_M,
     target: str | None = None,
     joints: tuple[int, ...] | None = None,
     descending: bool = False,

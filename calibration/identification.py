@@ -15,6 +15,12 @@ import numpy as np
 from .model import KinematicModel
 from .parameters import Parameter
 
+# The per-axis standard uncertainty (m) assumed where neither the rows nor the caller state the
+# instrument's: a laser tracker a few metres from a cobot (a Leica AT960's MPE of ±(15 µm + 6 µm/m)
+# read as a 95 % bound at 3-4 m). One name for it, used by every default in calibration/ and
+# service/; an instrument that knows its own (the emScon tracker at its range) states it per row.
+INSTRUMENT_SIGMA_M = 20e-6
+
 
 @dataclass(frozen=True, eq=False)
 class Measurements:

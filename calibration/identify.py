@@ -56,7 +56,13 @@ import numpy as np
 
 from .conventions import hayati_for_parallel_axes, mdh_to_dh, to_poe
 from .errors import RecalError
-from .identification import IdentificationResult, Measurements, Prior, Unidentifiable  # noqa: F401 (re-exported)
+from .identification import (  # noqa: F401 (re-exported)
+    INSTRUMENT_SIGMA_M,
+    IdentificationResult,
+    Measurements,
+    Prior,
+    Unidentifiable,
+)
 from .jacobian import Prediction, jacobian_from_walk, predict, record_keys, world_points
 from .kinematics import program, walk
 from .model import KinematicModel
@@ -90,7 +96,7 @@ def drift_scale(
     covariance: np.ndarray,
     drift: np.ndarray,
     *,
-    sigma_m: float = 20e-6,
+    sigma_m: float = INSTRUMENT_SIGMA_M,
     sigma_rad: float | None = None,
     scales: np.ndarray | None = None,
     held: dict | None = None,
@@ -1303,7 +1309,7 @@ def identify(
     model: KinematicModel,
     data: Measurements,
     *,
-    sigma_m: float = 20e-6,
+    sigma_m: float = INSTRUMENT_SIGMA_M,
     sigma_rad: float | None = None,
     loss: str = "linear",
     f_scale: float = 3.0,

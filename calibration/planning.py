@@ -52,6 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .identification import INSTRUMENT_SIGMA_M
 from .identify import Unidentifiable, _reach, complete_form, observability_indices, select_identifiable
 from .jacobian import predict
 from .kinematics import program, walk
@@ -716,7 +717,7 @@ class PlanOptions:
 
     targets: tuple[str | None, ...] = (None,)
     criterion: str = "D"
-    sigma_m: float = 20e-6
+    sigma_m: float = INSTRUMENT_SIGMA_M
     evaluation: np.ndarray | None = None
     n_evaluation: int = 300
     volume: Volume | None = None

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from .conventions import to_poe
+from .identification import INSTRUMENT_SIGMA_M
 from .identify import Measurements
 from .kinematics import fk
 from .model import KinematicModel
@@ -77,7 +78,7 @@ def simulate_measurements(
     q: np.ndarray,
     rng: np.random.Generator,
     *,
-    sigma_m: float = 20e-6,
+    sigma_m: float = INSTRUMENT_SIGMA_M,
     targets: tuple[str | None, ...] = (None,),
     full_pose: bool = False,
     sigma_rad: float = 0.0,

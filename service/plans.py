@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.errors import RecalError
+from calibration.identification import INSTRUMENT_SIGMA_M
 from calibration.model import KinematicModel
 
 # How far (rad, or m for a prismatic joint, per joint) a repeated verify visit backs away before it
@@ -119,7 +120,7 @@ class PlanRequest:
     target: str | None = None
     joints: list[int] | None = None
     repeats: int = 1
-    sigma_m: float = 20e-6
+    sigma_m: float = INSTRUMENT_SIGMA_M
     between: Callable[[], None] = lambda: None
 
 
@@ -132,7 +133,7 @@ def plan_session(
     target: str | None = None,
     joints: list[int] | None = None,
     seed: int = 0,
-    sigma_m: float = 20e-6,
+    sigma_m: float = INSTRUMENT_SIGMA_M,
     repeats: int = 1,
     between: Callable[[], None] | None = None,
 ) -> Plan:

@@ -20,6 +20,7 @@ from collections import OrderedDict
 import numpy as np
 from sqlmodel import Session, select
 
+from calibration.identification import INSTRUMENT_SIGMA_M
 from calibration.kinematics import fk
 from calibration.metrics import norm_statistics
 from calibration.model import KinematicModel, model_from_dict
@@ -373,7 +374,7 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
     planning's covariance σ²(JᵀJ)⁻¹ propagated to random configurations)."""
     info = run.plan_info or {}
     L = model_from_dict(cell.model).units.length_m
-    sigma_m = 20e-6
+    sigma_m = INSTRUMENT_SIGMA_M
     note = (
         f"RMS position error of the identified model over random configurations, predicted for an "
         f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis"

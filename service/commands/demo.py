@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration import robots
+from calibration.identification import INSTRUMENT_SIGMA_M
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
 
 BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0.03, -0.052, 0.04]}
@@ -312,7 +313,7 @@ def _offline(args) -> int:
         truth,
         random_configurations(nominal, args.poses, rng),
         rng,
-        sigma_m=20e-6,
+        sigma_m=INSTRUMENT_SIGMA_M,
         targets=("smr",),
         payload=payload(args.poses) if payload else None,
     )
@@ -320,7 +321,7 @@ def _offline(args) -> int:
         truth,
         random_configurations(nominal, 200, rng),
         rng,
-        sigma_m=20e-6,
+        sigma_m=INSTRUMENT_SIGMA_M,
         targets=("smr",),
         payload=payload(200) if payload else None,
     )

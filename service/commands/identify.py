@@ -67,6 +67,7 @@ def add_parser(s) -> None:
 
 def run(args) -> int:
 
+    from calibration.identification import INSTRUMENT_SIGMA_M
     from calibration.identify import identify
     from calibration.report import consistency_text, identification_block, identification_report, summary_line
     from calibration.uncertainty import validate
@@ -88,7 +89,7 @@ def run(args) -> int:
     if args.sigma_angle is not None and not args.sigma_angle > 0:
         raise Fail(f"--sigma-angle: expected a positive number, got {args.sigma_angle}")
     kw = dict(
-        sigma_m=args.sigma * L if args.sigma is not None else 20e-6,
+        sigma_m=args.sigma * L if args.sigma is not None else INSTRUMENT_SIGMA_M,
         sigma_rad=args.sigma_angle * model.units.angle_rad if args.sigma_angle is not None else None,
         loss=args.loss,
         f_scale=args.f_scale,

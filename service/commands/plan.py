@@ -126,6 +126,7 @@ def run(args) -> int:
     import numpy as np
 
     from calibration import planning
+    from calibration.identification import INSTRUMENT_SIGMA_M
     from service.cli import Fail, progress
     from service.files import format_csv, load_model, read_joints, read_table, write_atomic
 
@@ -199,7 +200,7 @@ def run(args) -> int:
             raise Fail(str(exc)) from None
         rows = np.arange(1, len(cand) + 1)
     evaluation = read_joints(args.evaluation, model) if args.evaluation else None
-    sigma_m = args.sigma * L if args.sigma is not None else 20e-6
+    sigma_m = args.sigma * L if args.sigma is not None else INSTRUMENT_SIGMA_M
     options = planning.PlanOptions(
         targets=targets,
         criterion=args.criterion,
