@@ -27,6 +27,7 @@ docs/compensation.md.
 from __future__ import annotations
 
 import json
+import re
 import sys
 
 import numpy as np
@@ -210,6 +211,55 @@ def _frames(args):
         raise Fail(str(exc)) from None
 
 
+# Lines that only one of the formats writes: what a file looks like, when --format (or its
+# extension) says otherwise. Each marker is matched at the start of a line (after blanks).
+_MARKERS = {
+    "urscript": re.compile(r"^\s*(movel|movej|movep|movec|servoj|set_tcp)\s*\(|^\s*def\s+\w+\s*\(\s*\)\s*:", re.M),
+    "rapid": re.compile(r"^\s*(%%%|MODULE\s+\w+|ENDMODULE\b|(CONST|PERS|VAR)\s+robtarget\b|Move[LJC]\s+\w)", re.M),
+    "krl": re.compile(r"^\s*(&ACCESS\b|DEF\s+\w+\s*\(|DEFDAT\b|(PTP|LIN|CIRC)\s+[{\w])", re.M),
+    "fanuc-tp": re.compile(r"^\s*/(PROG|MN|POS|ATTR|END)\b", re.M),
+}
+_NAMES = {
+    "csv": "a task CSV",
+    "urscript": "a URScript program",
+    "rapid": "an ABB RAPID program",
+    "krl": "a KUKA KRL program",
+    "fanuc-tp": "a Fanuc TP program",
+}
+
+
+def looks_like(text: str) -> str | None:
+    """The program language ``text`` is written in, by the lines only that language writes
+    (None when no language's lines are there, or two are equally there)."""
+    counts = {fmt: len(pattern.findall(text)) for fmt, pattern in _MARKERS.items()}
+    best = max(counts, key=counts.get)
+    ranked = sorted(counts.values(), reverse=True)
+    return best if ranked[0] > 0 and ranked[0] > ranked[1] else None
+
+
+def check_format(path, fmt: str, given: str | None) -> None:
+    """Refuse a task file whose content is plainly another language than the one it is read as
+    (``--format rapid`` on a URScript program found "no move target" before): say so, and how
+    to read it."""
+    from pathlib import Path
+
+    from service.cli import Fail
+
+    p = Path(path)
+    if not p.is_file():
+        return  # a controller backup folder, or a missing file: reported where it is read
+    with open(p, encoding="utf-8", errors="replace") as f:
+        text = f.read(1 << 20)  # the language shows in its first lines
+    seen = looks_like(text)
+    if seen is None or seen == fmt or _MARKERS.get(fmt, re.compile("(?!)")).search(text):
+        return
+    how = f"--format {fmt}" if given else f"its extension {p.suffix or '(none)'}"
+    raise Fail(
+        f"{path}: looks like {_NAMES[seen]}, not {_NAMES[fmt]} (read as such because of {how}); "
+        f"give --format {seen}" + (" or leave --format out" if given else "")
+    )
+
+
 def run(args) -> int:
     from service.cli import progress
     from service.compensation import CompensationRequest, NoTargetsError, compensate_task
@@ -217,6 +267,7 @@ def run(args) -> int:
     from service.programs import format_of
 
     fmt = format_of(args.task, getattr(args, "format", None))
+    check_format(args.task, fmt, getattr(args, "format", None))
     if fmt == "csv" and str(args.task).lower().endswith(".dat"):
         raise InputError(
             args.task,
