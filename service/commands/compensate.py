@@ -155,6 +155,30 @@ def _models(args):
     return model, nominal, taught
 
 
+def published_table_warning(args, fmt: str, model, nominal) -> str | None:
+    """The one line (stderr) when a UR arm's program is compensated against a published DH table: a
+    UR controller computes with its own factory calibration (up to about 1 mm from the table), and
+    the page and the API use it where the cell keeps it (service.controller.controller_nominal).
+    The controller model comes from ``--nominal`` or from the calibration (``identification.controller``,
+    written by the service for a cell that had one); without either, this names the table assumed."""
+    from calibration import robots
+
+    if fmt == "csv" and args.mode == "joints":
+        return None  # the desired poses are reached by the identified model; no controller in between
+    if nominal is None or args.nominal or (model.metadata.get("identification") or {}).get("controller") is not None:
+        return None  # without a nominal, what needs one is refused where it is needed
+    ur = next((n for n in (nominal.name, model.name) if robots.is_ur(n)), None)
+    if ur is None:
+        return None
+    what = f"{nominal.name} (identification.nominal), UR's published DH table of the {ur.lower().split('-')[0]}"
+    return (
+        f"warning: {args.model}: no controller model (no --nominal, no identification.controller): compensating "
+        f"against {what}, not the kinematics the controller computes with (its factory calibration, up to about "
+        f"1 mm apart); give --nominal CONTROLLER.json (`recal controller-model --rtde HOST`, or the cell's "
+        f"GET /api/v1/cells/ID/controller-model)"
+    )
+
+
 def _calibrated_range(args, model):
     """(n, 2) joint ranges of the calibration data (``--calibration-data``), else the ones the
     identified model records, SI, or None."""
@@ -308,6 +332,9 @@ def run(args) -> int:
             f"warning: {s.get('file', args.task)}, line {s['line']}: not compensated ({s['reason']}): {s['text']}",
             file=sys.stderr,
         )
+    warning = published_table_warning(args, fmt, model, nominal)
+    if warning:  # after the work: bad input stays one line
+        print(warning, file=sys.stderr)
     summary = result.summary
     for note in summary["notes"]:
         print(f"note: {note}", file=sys.stderr)
