@@ -1,4 +1,4 @@
-"""The ``recal`` command line (contracts §6).
+"""The ``recal`` command line (contracts §6, docs/contracts.md).
 
 Each verb lives in its own module under ``service/commands/`` with ``add_parser(sub)`` and
 ``run(args)``; the module is imported only when its verb runs, so ``recal`` starts fast and the
@@ -33,7 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "model": ("model", "list library robots, or write one's nominal model"),
     "controller-model": ("controller_model", "read a UR controller's own kinematics (factory calibration) over RTDE"),
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
-    "serve": ("serve", "run the REST API (contracts §9)"),
+    "serve": ("serve", "run the REST API (docs/contracts.md §9, docs/service.md)"),
     "token": ("token", "create API tokens"),
     "backup": ("backup", "a consistent copy of the embedded SQLite store, while the service runs"),
     "nightly": ("nightly", "check a cell's accuracy and recalibrate it when it drifted"),
@@ -107,7 +107,7 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
         else:
             sub.add_parser(name, help=help_text, add_help=False)
     sub.add_parser(
-        "fake-cell", help="run a simulated cell (contracts §7); see `recal fake-cell --help`", add_help=False
+        "fake-cell", help="run a simulated cell (docs/contracts.md §7); see `recal fake-cell --help`", add_help=False
     )
     return p
 

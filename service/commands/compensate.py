@@ -38,7 +38,7 @@ def add_parser(s) -> None:
     s.add_argument(
         "--task",
         required=True,
-        help="task CSV (contracts §5) or robot program: URScript (.script, "
+        help="task CSV (docs/contracts.md §5) or robot program: URScript (.script, "
         ".urscript), ABB RAPID (.mod, .modx, .prg), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls)",
     )
     s.add_argument(

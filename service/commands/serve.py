@@ -1,4 +1,4 @@
-"""``recal serve [--host 127.0.0.1] [--port 8000]``: the REST API (contracts §9).
+"""``recal serve [--host 127.0.0.1] [--port 8000]``: the REST API (docs/contracts.md §9, docs/service.md).
 
 The database comes from ``RECAL_DATABASE_URL`` (any SQLAlchemy URL); without it, an embedded
 SQLite file in ``RECAL_HOME`` (default ``~/.recal``)."""
