@@ -28,7 +28,9 @@ def add_parser(s) -> None:
         "frame must be the instrument's (an identified model's is)",
     )
     s.add_argument(
-        "--data", required=True, help="measurement CSV (docs/contracts.md §3); repeated configurations give the repeatability"
+        "--data",
+        required=True,
+        help="measurement CSV (docs/contracts.md §3); repeated configurations give the repeatability",
     )
     s.add_argument("--target", help="the target measured by rows that name none (default the tool origin)")
     s.add_argument("--out", help="JSON report to write (every figure, per pose and overall)")
