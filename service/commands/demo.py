@@ -233,9 +233,15 @@ def _live(args) -> int:
                 f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)"
             )
         say("verifying the calibrated model (20 fresh configurations)...")
-        after = session("verify", 20)["plan_info"]["verify"]
+        after_session = session("verify", 20)
+        after, after_id = after_session["plan_info"]["verify"], after_session["id"]
         (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
         (out / "report.json").write_text(json.dumps(cal["report"], indent=2) + "\n")
+        # the sessions' measurements as the CLI reads them (contracts §3, the units of nominal.json):
+        # `recal identify` and `recal accuracy` can be tried on what the service measured
+        csvs = {"measurements.csv": pose["id"], "verify-after.csv": after_id}
+        for name, sid in csvs.items():
+            (out / name).write_text(api.call("GET", f"/sessions/{sid}/measurements.csv"))
         say("")
         reg = before.get("registered")
         if reg:  # the robot's own inaccuracy first; where the tracker stands is not the robot's error
@@ -260,6 +266,15 @@ def _live(args) -> int:
         say(f"where to look: {url}/            (web page; log in with the technician token in {out / 'tokens.txt'})")
         say(f"               {url}/docs        (the REST API, OpenAPI at {url}/openapi.json)")
         say(f"               {out / 'identified.json'}, {out / 'report.json'}")
+        say(
+            f"               {out / 'measurements.csv'} (the pose session's), {out / 'verify-after.csv'} "
+            f"(the last verification's): try the CLI on them, e.g."
+        )
+        say(f"                 recal accuracy --model {out / 'identified.json'} --data {out / 'verify-after.csv'}")
+        say(
+            f"                 recal identify --model {out / 'nominal.json'} --data {out / 'measurements.csv'} "
+            f"--out {out / 'cli-identified.json'}"
+        )
         if args.exit:
             return 0
         say("the service and the simulated cell keep running; Ctrl-C stops them")
