@@ -54,8 +54,18 @@ class _Parser(argparse.ArgumentParser):
         it does (exit 2). argparse would first complain of a required flag the misspelt one was
         meant to be (``--modle`` -> "required: --model") and never name the typo."""
         known = [o for o in self._option_string_actions if o.startswith("--")]
-        for token in args:
+        nested = {
+            name: parser
+            for action in self._actions
+            if isinstance(action, argparse._SubParsersAction)
+            for name, parser in action.choices.items()
+        }
+        for k, token in enumerate(args):
             if token == "--":  # what follows is positional
+                return
+            if token in nested:  # `recal token create --role ...`: the rest is the sub-command's
+                if isinstance(nested[token], _Parser):
+                    nested[token].check_flags(args[k + 1 :])
                 return
             if not token.startswith("--"):
                 continue

@@ -66,6 +66,11 @@ def add_parser(s) -> None:
     s.add_argument("--host", default="127.0.0.2", help="loopback address of the simulated cell")
     s.add_argument("--port", type=int, default=8000, help="port of the service")
     s.add_argument("--exit", action="store_true", help="stop the service and the cell when done")
+    s.add_argument(
+        "--log-format",
+        choices=["json", "text"],
+        help="the service's log (service.log in --dir): JSON lines (default) or text (default: $RECAL_LOG_FORMAT, else json)",
+    )
     s.add_argument("--offline", action="store_true", help="no service: files and `recal identify` only")
     s.add_argument(
         "--sag",
@@ -184,7 +189,11 @@ def _live(args) -> int:
             out / "truth.json", args.host, seed=args.seed, time_scale=args.time_scale, log_path=out / "fake-cell.log"
         )
         say(f"simulated cell ready on {args.host}: {', '.join(k for k in cell.ready if k != 'ready')}")
-        service = start_service(out, args.port, env={"RECAL_SETTLE_S": "0"}, log_path=out / "service.log")
+        service_env = {
+            "RECAL_SETTLE_S": "0",
+            **({"RECAL_LOG_FORMAT": args.log_format} if getattr(args, "log_format", None) else {}),
+        }
+        service = start_service(out, args.port, env=service_env, log_path=out / "service.log")
         url = service.ready["url"]
         say(f"service ready at {url} (SQLite: {db_file})")
         api = Api(url, tech)

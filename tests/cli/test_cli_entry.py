@@ -58,6 +58,10 @@ def test_python_dash_m_recal_is_the_same_cli(tmp_path):
         ),
         (["--verison"], "recal: unrecognized argument --verison; did you mean --version?"),
         (["predict", "--zzzz"], "recal predict: unrecognized argument --zzzz (see"),
+        (
+            ["token", "create", "--rloe", "viewer"],
+            "recal token create: unrecognized argument --rloe; did you mean --role?",
+        ),
     ],
 )
 def test_a_mistyped_flag_is_named_with_a_suggestion(argv, expected, capsys):
@@ -65,6 +69,13 @@ def test_a_mistyped_flag_is_named_with_a_suggestion(argv, expected, capsys):
         recal(argv)
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.startswith(expected) and err.count("\n") == 1, err
+
+
+def test_a_sub_commands_flags_are_its_own(tmp_path, monkeypatch, capsys):
+    # `recal token create --role viewer`: --role is create's, not a typo of token's
+    monkeypatch.setenv("RECAL_HOME", str(tmp_path))
+    assert recal(["token", "create", "--role", "viewer", "--name", "create"]) == 0
+    assert capsys.readouterr().out.startswith("rc_")
 
 
 def test_a_unique_prefix_is_still_a_flag(tmp_path, capsys):
