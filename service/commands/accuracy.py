@@ -134,11 +134,12 @@ def run(args) -> int:
     err = error_statistics(p_cmd, data.p_world, R_cmd=R_cmd, R_meas=R_meas)
     report = _report(args, model, data, grouping, list(keys), pose, st, err)
     report["frame"] = _frame_check(p_cmd, data.p_world, model)
-    if report["frame"] is not None:
-        print(f"warning: {report['frame']['warning']}", file=sys.stderr)
     if args.out:
         write_atomic(args.out, json.dumps(report, indent=1) + "\n")
     _print(report, args.out)
+    if report["frame"] is not None:  # after the figures it explains, the last line a user reads
+        sys.stdout.flush()
+        print(f"warning: {report['frame']['warning']}", file=sys.stderr)
     return 0
 
 
