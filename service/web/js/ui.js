@@ -52,6 +52,18 @@ export function num(v, digits = 4) {
   return v.toFixed(Math.min(d, 8));
 }
 
+// A length for a person, in `unit` (mm, m, in, µm), `digits` significant digits; anything below
+// 0.1 µm, far below what any instrument measures (what is left is rounding), is said as such
+// ("below 0.0001 mm") rather than as 2.69e-7 mm.
+const METRES_PER = { "µm": 1e-6, mm: 1e-3, m: 1, in: 0.0254 };
+export const FLOOR_M = 1e-7;
+export function length(v, unit, digits = 4) {
+  if (v === null || v === undefined || Number.isNaN(v)) return "–";
+  const floor = FLOOR_M / (METRES_PER[unit] || 1e-3);
+  if (v !== 0 && Math.abs(v) < floor) return `below ${num(floor, 1)} ${unit}`;
+  return `${num(v, digits)} ${unit}`;
+}
+
 function parseTime(iso) {
   return new Date(iso.endsWith("Z") || /[+-]\d\d:\d\d$/.test(iso) ? iso : iso + "Z");
 }

@@ -160,7 +160,8 @@ export async function detail(ctx, id) {
           + (cm.session_id ? ` (session ${cm.session_id})` : " (uploaded)")],
           cm.from_registers
             ? ["Fitted to the TCP-pose registers", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm (0.1 mm registers)`]
-            : ["Reproduces the controller", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm`],
+            : ["Reproduces the controller", cm.check_um == null ? "–"
+              : cm.check_um < 0.1 ? "exactly (to within 0.1 µm)" : `to ${num(cm.check_um, 2)} µm`],
           ["Last change", cm.moved_mm == null ? (cm.version > 1 ? "none" : "first read")
             : `the flange moved up to ${num(cm.moved_mm, 3)} mm`]])
     : h("p", { class: "muted", id: "controller-model-none" }, "Not read yet: the next session reads it from the "
