@@ -232,8 +232,9 @@ def _live(args) -> int:
         pose = session("pose", args.poses)
         cal = api.call("GET", f"/calibrations/{pose['calibration_id']}")
         say(
-            f"  identified {len(cal['report']['parameters'])} parameters in {time.monotonic() - t0:.1f} s; "
-            f"residual RMS {cal['rms']:.4f} mm"
+            f"  identified {len(cal['report']['parameters'])} parameters; residual RMS {cal['rms']:.4f} mm "
+            f"(the session, {pose['measured']} poses moved to and measured, then the identification, took "
+            f"{time.monotonic() - t0:.1f} s)"
         )
         comp = cal["report"].get("compliance")
         if comp:  # --sag: the cell's model is compliant; the service compared it with the rigid one

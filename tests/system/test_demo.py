@@ -168,6 +168,12 @@ def test_the_demo_leaves_its_measurements_for_the_cli(tmp_path):
     )
     assert demo.returncode == 0, demo.stdout + demo.stderr
     assert "verify-after.csv" in demo.stdout and "try the CLI on them" in demo.stdout
+    # the time printed is the session's (moves and measurements, then the identification), said as such
+    assert re.search(
+        r"identified \d+ parameters; residual RMS [0-9.]+ mm \(the session, 30 poses moved to and "
+        r"measured, then the identification, took [0-9.]+ s\)",
+        demo.stdout,
+    ), demo.stdout
     for name in ("measurements.csv", "verify-after.csv"):
         text = (out / name).read_text()
         assert text.startswith("# session ") and "q1,q2,q3,q4,q5,q6,x,y,z" in text.replace(" ", ""), text[:300]
