@@ -95,3 +95,12 @@ def test_python_dash_m_recal_is_packaged():
     assert "recal*" in doc["tool"]["setuptools"]["packages"]["find"]["include"]
     assert "from service.cli import main" in (ROOT / "recal" / "__main__.py").read_text()
     assert doc["project"]["scripts"]["recal"] == "service.cli:main"
+
+
+def test_the_image_copies_every_package():
+    # a package left out of the image is silently missing from its install (`python -m recal` there)
+    doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    packages = [p.rstrip("*") for p in doc["tool"]["setuptools"]["packages"]["find"]["include"]]
+    text = (ROOT / "docker" / "Dockerfile").read_text()
+    for package in packages:
+        assert re.search(rf"^COPY {package} \./{package}$", text, re.M), f"docker/Dockerfile does not copy {package}/"
