@@ -144,8 +144,9 @@ export function notify(message, kind = "error") {
   return el;
 }
 
-// A modal confirmation; resolves true when confirmed.
-export function confirmDialog(title, message, { confirm = "Confirm", cancel = "Cancel", danger = false } = {}) {
+// A modal confirmation; resolves true when confirmed. `signal` (an AbortSignal) withdraws the
+// question (false): what it asked about no longer applies (a session that ended meanwhile).
+export function confirmDialog(title, message, { confirm = "Confirm", cancel = "Cancel", danger = false, signal } = {}) {
   return new Promise((resolve) => {
     const dlg = h("dialog", { class: "confirm" },
       h("h2", {}, title),
@@ -154,12 +155,16 @@ export function confirmDialog(title, message, { confirm = "Confirm", cancel = "C
         h("button", { class: "secondary", "data-action": "cancel", onclick: () => done(false) }, cancel),
         h("button", { class: danger ? "danger" : "primary", "data-action": "confirm", onclick: () => done(true) },
           confirm)));
+    let answered = false;
     function done(v) {
+      if (answered) return;
+      answered = true;
       dlg.close();
       dlg.remove();
       resolve(v);
     }
     dlg.addEventListener("cancel", (e) => { e.preventDefault(); done(false); });
+    signal?.addEventListener("abort", () => done(false));
     document.body.appendChild(dlg);
     dlg.showModal();
   });
