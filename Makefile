@@ -13,8 +13,12 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# `make demo HOST=127.0.0.3 PORT=8080`: the simulated cell's loopback address and the service's
+# port (defaults: recal demo's, 127.0.0.2 and 8000).
+HOST ?= 127.0.0.2
+PORT ?= 8000
 demo: $(STAMP)
-	$(BIN)/recal demo
+	$(BIN)/recal demo --host $(HOST) --port $(PORT)
 
 # The browser tests (tests/web) drive Debian's Chromium through Playwright (never `playwright
 # install`): installed here when it is missing and this is Debian as root; otherwise those tests
@@ -35,9 +39,16 @@ browser:
 # the few tests marked `serial` (one restarts PostgreSQL) alone. Each test file runs whole in one
 # worker, in its order (--dist loadfile): module-scoped fixtures (a simulated cell, a CAN
 # gateway) see their tests in the order they were written for.
+# The serial tests run whatever the parallel run gave, and `make test` fails when either failed
+# (the parallel run's status first). pytest's 5, "no tests collected", is a pass for the serial run
+# (PYTEST_ARGS may name files without serial tests).
 test: $(STAMP) browser
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" $(PYTEST_ARGS)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m serial $(PYTEST_ARGS)
+	@parallel=0; serial=0; \
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" $(PYTEST_ARGS) || parallel=$$?; \
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m serial $(PYTEST_ARGS) || serial=$$?; \
+	if [ $$serial = 5 ]; then serial=0; fi; \
+	if [ $$parallel != 0 ]; then echo "make test: the parallel run failed (pytest status $$parallel)" >&2; exit $$parallel; fi; \
+	if [ $$serial != 0 ]; then echo "make test: the serial run failed (pytest status $$serial)" >&2; exit $$serial; fi
 
 # The linter and the formatter (ruff, configured in pyproject.toml): clean on the whole tree; the
 # type checker (mypy, configured there too) on calibration/ and drivers/.

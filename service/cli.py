@@ -1,4 +1,4 @@
-"""The ``recal`` command line (contracts §6).
+"""The ``recal`` command line (contracts §6, docs/contracts.md).
 
 Each verb lives in its own module under ``service/commands/`` with ``add_parser(sub)`` and
 ``run(args)``; the module is imported only when its verb runs, so ``recal`` starts fast and the
@@ -10,6 +10,7 @@ at fault, exits with status 2 and writes no output file.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import os
 import sys
@@ -32,7 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "model": ("model", "list library robots, or write one's nominal model"),
     "controller-model": ("controller_model", "read a UR controller's own kinematics (factory calibration) over RTDE"),
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
-    "serve": ("serve", "run the REST API (contracts §9)"),
+    "serve": ("serve", "run the REST API (docs/contracts.md §9, docs/service.md)"),
     "token": ("token", "create API tokens"),
     "backup": ("backup", "a consistent copy of the embedded SQLite store, while the service runs"),
     "nightly": ("nightly", "check a cell's accuracy and recalibrate it when it drifted"),
@@ -47,6 +48,53 @@ class Fail(RecalError):
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one line, exit 2, without argparse's usage dump
         self.exit(2, f"{self.prog}: {message} (see `{self.prog} --help`)\n")
+
+    def check_flags(self, args: list[str]) -> None:
+        """Name the first long flag in ``args`` that this parser does not know, with the nearest one
+        it does (exit 2). argparse would first complain of a required flag the misspelt one was
+        meant to be (``--modle`` -> "required: --model") and never name the typo."""
+        known = [o for o in self._option_string_actions if o.startswith("--")]
+        nested = {
+            name: parser
+            for action in self._actions
+            if isinstance(action, argparse._SubParsersAction)
+            for name, parser in action.choices.items()
+        }
+        for k, token in enumerate(args):
+            if token == "--":  # what follows is positional
+                return
+            if token in nested:  # `recal token create --role ...`: the rest is the sub-command's
+                if isinstance(nested[token], _Parser):
+                    nested[token].check_flags(args[k + 1 :])
+                return
+            if not token.startswith("--"):
+                continue
+            flag = token.split("=", 1)[0]
+            if flag in known or any(o.startswith(flag) for o in known):  # argparse takes unique prefixes
+                continue
+            near = _nearest(flag, known)
+            self.error(f"unrecognized argument {flag}" + (f"; did you mean {near}?" if near else ""))
+
+
+def _nearest(flag: str, known: list[str]) -> str | None:
+    """The known flag a typo most likely meant: one with the same letters in another order first
+    (``--modle`` is ``--model``, not ``--mode``), else the closest by difflib's ratio."""
+    swapped = [o for o in known if sorted(o) == sorted(flag)]
+    if swapped:
+        return swapped[0]
+    near = difflib.get_close_matches(flag, known, n=1, cutoff=0.6)
+    return near[0] if near else None
+
+
+def version() -> str:
+    """The installed package's version (pyproject.toml's ``version``)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as installed
+
+    try:
+        return installed("recal")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "unknown (not installed: pip install -e .)"
 
 
 # ``--quiet`` (every verb): no progress lines, even on a terminal.
@@ -63,6 +111,7 @@ def progress(message: str) -> None:
 def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
     """The parser; with ``verb``, only that verb's module is imported."""
     p = _Parser(prog="recal", description="Robot calibration: identify, predict, compensate, simulate.")
+    p.add_argument("--version", action="version", version=f"recal {version()}")
     sub = p.add_subparsers(dest="verb", required=True, parser_class=_Parser)
     for name, (module, help_text) in COMMANDS.items():
         if verb is None or name == verb:
@@ -74,7 +123,7 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
         else:
             sub.add_parser(name, help=help_text, add_help=False)
     sub.add_parser(
-        "fake-cell", help="run a simulated cell (contracts §7); see `recal fake-cell --help`", add_help=False
+        "fake-cell", help="run a simulated cell (docs/contracts.md §7); see `recal fake-cell --help`", add_help=False
     )
     return p
 
@@ -85,8 +134,17 @@ def main(argv: list[str] | None = None) -> int:
         from fakes.cell import main as fake_cell
 
         return int(fake_cell(argv[1:]) or 0)
+    if argv[:1] == ["--version"]:  # at once: without importing every verb's module for the help
+        print(f"recal {version()}")
+        return 0
     verb = argv[0] if argv and argv[0] in COMMANDS else None
-    args = build_parser(verb).parse_args(argv)
+    parser = build_parser(verb)
+    if verb is None:
+        parser.check_flags(argv[:1])
+    else:
+        subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        subparsers.choices[verb].check_flags(argv[1:])
+    args = parser.parse_args(argv)
     from service.compensation import CompensationInputError
     from service.files import InputError
 

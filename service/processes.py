@@ -112,9 +112,11 @@ def start_service(
     timeout_s: float = 30.0,
     log_path: Path | None = None,
     host: str = "127.0.0.1",
-    log_level: str = "warning",
+    log_level: str = "info",
 ) -> Proc:
-    """``recal serve`` in its own process with ``RECAL_HOME=home``; returns once /health answers."""
+    """``recal serve`` in its own process with ``RECAL_HOME=home``; returns once /health answers.
+    Its log (``log_path``): access, sessions, device faults and refusals, in the service's format
+    (service/logs.py; ``RECAL_LOG_FORMAT`` in ``env`` or the environment)."""
     e = {**os.environ, "RECAL_HOME": str(home), **(env or {})}
     out = open(log_path, "ab") if log_path else subprocess.DEVNULL
     p = subprocess.Popen(

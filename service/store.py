@@ -9,6 +9,7 @@ service reported as taken survives a crash or a power loss. PostgreSQL comes thr
 from __future__ import annotations
 
 import hashlib
+import logging
 import secrets
 import time
 from collections.abc import Callable
@@ -286,6 +287,27 @@ def measured_count(db: Session, session_id: int) -> int:
     )
 
 
+session_log = logging.getLogger("recal.sessions")
+# States an operator must look at: a device fault pauses a session, a crash fails it.
+_WARN_STATES = {"paused", "failed", "interrupted"}
+
+
+def log_state(run: RunSession, state: str, reason: str | None) -> None:
+    """One line on ``recal.sessions`` for a session's new state (service/logs.py): a warning when
+    it needs someone (paused by a device fault, failed, interrupted), else information."""
+    level = logging.WARNING if state in _WARN_STATES else logging.INFO
+    session_log.log(
+        level,
+        "session %s (%s, cell %s): %s%s",
+        run.id,
+        run.kind,
+        run.cell_id,
+        state,
+        f": {reason}" if reason else "",
+        extra={"fields": {"session": run.id, "kind": run.kind, "cell": run.cell_id, "state": state, "reason": reason}},
+    )
+
+
 def set_state(db: Session, run: RunSession, state: str, reason: str | None = None) -> RunSession:
     run.state = state
     run.reason = reason
@@ -293,6 +315,7 @@ def set_state(db: Session, run: RunSession, state: str, reason: str | None = Non
     db.add(run)
     db.commit()
     db.refresh(run)
+    log_state(run, state, reason)
     return run
 
 
@@ -314,7 +337,10 @@ def set_state_unless(
     res = db.exec(update(RunSession).where(RunSession.id == run.id, RunSession.state.not_in(final)).values(**values))
     db.commit()
     db.refresh(run)
-    return res.rowcount > 0
+    changed = res.rowcount > 0
+    if changed:
+        log_state(run, state, reason)
+    return changed
 
 
 def interrupt_unfinished(db: Session, *, owner: str | None = None) -> list[int]:

@@ -19,13 +19,30 @@ if _TESTS not in sys.path:
     sys.path.insert(0, _TESTS)
 
 # `make test` runs the suite in two pytest-xdist workers (the simulated cells and services mostly
-# wait on sockets and simulated time, so two workers use both cores). Each worker gets its own
-# loopback network for its simulated cells (RECAL_TEST_NET, read by the folders' conftests), so
-# that the two never take each other's addresses; PostgreSQL databases are unique per test anyway.
-_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
-if _WORKER.startswith("gw"):
-    _a, _b, _c = os.environ.get("RECAL_TEST_NET", "127.0.0").split(".")
-    os.environ["RECAL_TEST_NET"] = f"{_a}.{_b}.{(int(_c) + 100 + int(_WORKER[2:])) % 256}"
+# wait on sockets and simulated time, so two workers use both cores). RECAL_TEST_NET is the first
+# three octets of the loopback network of the simulated cells (default 127.0.0; each test picks
+# the fourth; read by the folders' conftests). A run in one process (the serial run too) uses it as
+# it is; worker gwN adds 100 + N to its THIRD octet (mod 256): by default gw0 has 127.0.100.x and
+# gw1 127.0.101.x, so the two never take each other's addresses. Two `make test` runs on one
+# machine need third octets at least 2 apart. PostgreSQL databases are unique per test anyway.
+
+
+def worker_net(net: str, worker: str) -> str:
+    """The loopback network (three octets) of pytest-xdist worker ``worker`` (``gw0``, ``gw1``,
+    ...; ``""`` outside xdist) for RECAL_TEST_NET ``net``.
+
+    >>> worker_net("127.0.0", "gw1"), worker_net("127.0.80", "gw0"), worker_net("127.0.80", "")
+    ('127.0.101', '127.0.180', '127.0.80')
+    """
+    if not worker.startswith("gw"):
+        return net
+    a, b, c = net.split(".")
+    return f"{a}.{b}.{(int(c) + 100 + int(worker[2:])) % 256}"
+
+
+os.environ["RECAL_TEST_NET"] = worker_net(
+    os.environ.get("RECAL_TEST_NET", "127.0.0"), os.environ.get("PYTEST_XDIST_WORKER", "")
+)
 
 POSTGRES_URL = os.environ.get("RECAL_TEST_POSTGRES_URL")
 

@@ -87,3 +87,20 @@ def test_compose_restarts_checks_health_and_keeps_the_password_in_a_secret(name)
     assert db["healthcheck"]["test"]
     cells = [s for n, s in doc["services"].items() if n.startswith("cell")]
     assert cells and all("29999" in " ".join(s["healthcheck"]["test"]) for s in cells)
+
+
+def test_python_dash_m_recal_is_packaged():
+    # contracts §6: `python -m recal` is the same CLI as `recal`; a wheel must carry the `recal` package
+    doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "recal*" in doc["tool"]["setuptools"]["packages"]["find"]["include"]
+    assert "from service.cli import main" in (ROOT / "recal" / "__main__.py").read_text()
+    assert doc["project"]["scripts"]["recal"] == "service.cli:main"
+
+
+def test_the_image_copies_every_package():
+    # a package left out of the image is silently missing from its install (`python -m recal` there)
+    doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    packages = [p.rstrip("*") for p in doc["tool"]["setuptools"]["packages"]["find"]["include"]]
+    text = (ROOT / "docker" / "Dockerfile").read_text()
+    for package in packages:
+        assert re.search(rf"^COPY {package} \./{package}$", text, re.M), f"docker/Dockerfile does not copy {package}/"

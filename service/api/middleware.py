@@ -4,9 +4,11 @@
   task files, ``Settings.max_body_bytes`` for everything else) answered 413 with a message,
   before the body is read (a declared ``Content-Length``) or as soon as it passes the limit
   (chunked uploads). A 50 MB task file once held the service for 5 minutes and 1.6 GB.
-- :class:`RequestLog`: one structured line per request on the ``recal.access`` logger (method,
-  route, status, duration, client), with no secret: query values named like a secret are
-  replaced by ``***``; the ``Authorization`` header is never read here. Its duration also feeds
+- :class:`RequestLog`: one structured line per request on the ``recal.access`` logger (its
+  ``fields``: method, route, status, duration, client; for a refusal (4xx, a warning) or an error
+  (5xx) the answer's ``detail``), with no secret: query values named like a secret are replaced
+  by ``***``; the ``Authorization`` header is never read here (service/logs.py redacts anything
+  token-like besides). Its duration also feeds
   the request-latency histogram of ``/metrics`` (service/api/metrics.py).
 """
 
@@ -136,11 +138,14 @@ class RequestLog:
             return await self.app(scope, receive, send)
         t0 = time.perf_counter()
         status = 500  # what the client gets when the app raises before answering
+        refusal = bytearray()  # a 4xx/5xx answer's body (its "detail"): why, in the log
 
         async def sending(message):
             nonlocal status
             if message["type"] == "http.response.start":
                 status = message["status"]
+            elif message["type"] == "http.response.body" and status >= 400 and len(refusal) < REFUSAL_BYTES:
+                refusal.extend(message.get("body", b"")[: REFUSAL_BYTES - len(refusal)])
             await send(message)
 
         try:
@@ -150,23 +155,49 @@ class RequestLog:
             route = route_of(scope)
             if self.observe is not None:
                 self.observe(scope["method"], route, status, elapsed)
-            if access_log.isEnabledFor(logging.INFO):
+            # refusals (4xx) are warnings and server errors errors: an operator's log at
+            # --log-level warning still shows every 401, 403, 409, 422
+            level = logging.INFO if status < 400 else logging.WARNING if status < 500 else logging.ERROR
+            if access_log.isEnabledFor(level):
                 client = scope.get("client")
                 query = redacted_query(scope.get("query_string", b"").decode("latin-1"))
-                access_log.info(
-                    json.dumps(
-                        {
-                            "method": scope["method"],
-                            "path": scope["path"],
-                            "query": query or None,
-                            "route": route,
-                            "status": status,
-                            "duration_ms": round(elapsed * 1e3, 2),
-                            "client": f"{client[0]}:{client[1]}" if client else None,
-                        },
-                        separators=(",", ":"),
-                    )
+                fields = {
+                    "method": scope["method"],
+                    "path": scope["path"],
+                    "query": query or None,
+                    "route": route,
+                    "status": status,
+                    "duration_ms": round(elapsed * 1e3, 2),
+                    "client": f"{client[0]}:{client[1]}" if client else None,
+                }
+                if status >= 400:
+                    fields["detail"] = _detail(bytes(refusal))
+                access_log.log(
+                    level,
+                    "%s %s %d%s",
+                    scope["method"],
+                    scope["path"],
+                    status,
+                    f": {fields['detail']}" if status >= 400 and fields["detail"] else "",
+                    extra={"fields": fields},
                 )
+
+
+REFUSAL_BYTES = 2048  # of a refusal's body, for its detail in the access log
+
+
+def _detail(body: bytes) -> str | None:
+    """A refusal's reason: its JSON body's ``detail`` (a message, or the fields at fault), or its
+    text, cut to a few hundred characters."""
+    text = body.decode("utf-8", errors="replace")
+    try:
+        detail = json.loads(text).get("detail")
+    except (ValueError, AttributeError):
+        detail = text
+    if detail is None:
+        return None
+    out = detail if isinstance(detail, str) else json.dumps(detail, separators=(",", ":"))
+    return out[:500]
 
 
 # The routes the technician's page polls (service/web/js/views) whose answers are computed from

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 
@@ -27,7 +28,9 @@ def add_parser(s) -> None:
         "frame must be the instrument's (an identified model's is)",
     )
     s.add_argument(
-        "--data", required=True, help="measurement CSV (contracts §3); repeated configurations give the repeatability"
+        "--data",
+        required=True,
+        help="measurement CSV (docs/contracts.md §3); repeated configurations give the repeatability",
     )
     s.add_argument("--target", help="the target measured by rows that name none (default the tool origin)")
     s.add_argument("--out", help="JSON report to write (every figure, per pose and overall)")
@@ -132,10 +135,50 @@ def run(args) -> int:
     st = pose_statistics(p_cmd, data.p_world, pose, R_cmd=R_cmd, R_meas=R_meas)
     err = error_statistics(p_cmd, data.p_world, R_cmd=R_cmd, R_meas=R_meas)
     report = _report(args, model, data, grouping, list(keys), pose, st, err)
+    report["frame"] = _frame_check(p_cmd, data.p_world, model)
     if args.out:
         write_atomic(args.out, json.dumps(report, indent=1) + "\n")
-    _print(report)
+    _print(report, args.out)
+    if report["frame"] is not None:  # after the figures it explains, the last line a user reads
+        sys.stdout.flush()
+        print(f"warning: {report['frame']['warning']}", file=sys.stderr)
     return 0
+
+
+# The errors are "mostly where the robot stands" when a rigid transform between the model's world
+# and the instrument's takes away this share of them, and they are larger than any robot's error
+# (an unregistered base puts them at the robot's distance from the tracker: metres).
+FRAME_RATIO = 5.0
+FRAME_RMS_M = 0.01
+
+
+def _frame_check(p_cmd, p_meas, model) -> dict | None:
+    """A one-line warning (and its figures) when the model's world is not the instrument's: a
+    nominal or library model's world is the robot's own base frame, and its "errors" against a
+    tracker's measurements are then the tracker-to-robot transform (about 1.8 m), not the robot's.
+    None when the frames agree (or too few distinct points to tell)."""
+    from calibration.registration import kabsch
+
+    points = np.unique(np.round(p_cmd, 6), axis=0)
+    if len(points) < 3 or np.linalg.matrix_rank(points - points.mean(axis=0), tol=1e-6) < 2:
+        return None
+    raw_rms = float(np.sqrt(np.mean(np.sum((p_meas - p_cmd) ** 2, axis=1))))
+    T = kabsch(p_cmd, p_meas)
+    moved = p_cmd @ T[:3, :3].T + T[:3, 3]
+    fit_rms = float(np.sqrt(np.mean(np.sum((p_meas - moved) ** 2, axis=1))))
+    if raw_rms < FRAME_RMS_M or raw_rms < FRAME_RATIO * fit_rms:
+        return None
+    L, lu = model.units.length_m, model.units.length
+    own = "" if np.any(np.asarray(model.base) != 0) else " (its base is the robot's own frame)"
+    return {
+        "rms": _f(raw_rms / L),
+        "rms_after_rigid_fit": _f(fit_rms / L),
+        "warning": (
+            f"{model.name}'s base is not registered to the instrument{own}: the errors (RMS {raw_rms / L:.4g} {lu}) "
+            f"are mostly where the robot stands (a rigid transform leaves RMS {fit_rms / L:.4g} {lu}); "
+            f"check an identified model (recal identify), whose world is the instrument's"
+        ),
+    }
 
 
 def _report(args, model, data, grouping, keys, pose, st, err) -> dict:
@@ -217,42 +260,22 @@ def _num(v) -> str:
     return "-" if v is None else f"{v:.4g}"
 
 
-def _print(rep: dict) -> None:
+def _print(rep: dict, out: str | None) -> None:
+    """The summary on stdout; the per-pose figures are in the ``--out`` report."""
     lu, au = rep["units"]["length"], rep["units"]["angle"]
     o, e = rep["overall"], rep["errors"]
     print(
         f"ISO 9283 pose accuracy (AP) and repeatability (RP) of {rep['model']} on {rep['data']}: "
         f"{rep['measurements']} measurements of {o['poses']} poses (grouped {rep['grouping']}); {lu}, {au}"
     )
-    orient = "AP_abc" in (rep["per_pose"][0] if rep["per_pose"] else {})
-    head = ["pose", "target", "n", "AP", "AP_x", "AP_y", "AP_z", "l_mean", "S_l", "3S_l", "RP"]
-    if orient:
-        head += ["AP_a", "AP_b", "AP_c", "RP_a", "RP_b", "RP_c"]
-    rows = []
-    for p in rep["per_pose"]:
-        row = [
-            p["pose"],
-            p["target"] or "-",
-            str(p["n"]),
-            _num(p["AP"]),
-            *map(_num, p["AP_xyz"]),
-            _num(p["l_mean"]),
-            _num(p["S_l"]),
-            _num(p["three_S_l"]),
-            _num(p["RP"]),
-        ]
-        if orient:
-            row += [*map(_num, p["AP_abc"]), *map(_num, p["RP_abc"])]
-        rows.append(row)
-    width = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
-    for r in [head, *rows]:
-        print("  ".join(c.rjust(w) if i >= 2 else c.ljust(w) for i, (c, w) in enumerate(zip(r, width))).rstrip())
     line = f"overall: AP mean {_num(o['AP']['mean'])}, max {_num(o['AP']['max'])} {lu}"
     if o["RP"] is not None:
         line += (
             f"; RP mean {_num(o['RP']['mean'])}, max {_num(o['RP']['max'])} {lu} "
             f"({o['repeated_poses']} poses measured more than once)"
         )
+    if "AP_abc_max" in o:
+        line += f"; orientation AP_a, AP_b, AP_c max {', '.join(map(_num, o['AP_abc_max']))} {au}"
     print(line)
     line = (
         f"position error of the {e['n']} measurements: mean {_num(e['mean'])}, 3σ {_num(e['three_sigma'])}, "
@@ -264,3 +287,7 @@ def _print(rep: dict) -> None:
     print(line)
     if rep["note"]:
         print(f"note: {rep['note']}")
+    if out:
+        print(f"per-pose figures (AP, RP and their components, each pose's rows): {out}")
+    else:
+        print("per-pose figures (AP, RP and their components, each pose's rows): give --out R.json")

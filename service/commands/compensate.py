@@ -27,6 +27,7 @@ docs/compensation.md.
 from __future__ import annotations
 
 import json
+import re
 import sys
 
 import numpy as np
@@ -37,7 +38,7 @@ def add_parser(s) -> None:
     s.add_argument(
         "--task",
         required=True,
-        help="task CSV (contracts §5) or robot program: URScript (.script, "
+        help="task CSV (docs/contracts.md §5) or robot program: URScript (.script, "
         ".urscript), ABB RAPID (.mod, .modx, .prg), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls)",
     )
     s.add_argument(
@@ -154,6 +155,30 @@ def _models(args):
     return model, nominal, taught
 
 
+def published_table_warning(args, fmt: str, model, nominal) -> str | None:
+    """The one line (stderr) when a UR arm's program is compensated against a published DH table: a
+    UR controller computes with its own factory calibration (up to about 1 mm from the table), and
+    the page and the API use it where the cell keeps it (service.controller.controller_nominal).
+    The controller model comes from ``--nominal`` or from the calibration (``identification.controller``,
+    written by the service for a cell that had one); without either, this names the table assumed."""
+    from calibration import robots
+
+    if fmt == "csv" and args.mode == "joints":
+        return None  # the desired poses are reached by the identified model; no controller in between
+    if nominal is None or args.nominal or (model.metadata.get("identification") or {}).get("controller") is not None:
+        return None  # without a nominal, what needs one is refused where it is needed
+    ur = next((n for n in (nominal.name, model.name) if robots.is_ur(n)), None)
+    if ur is None:
+        return None
+    what = f"{nominal.name} (identification.nominal), UR's published DH table of the {ur.lower().split('-')[0]}"
+    return (
+        f"warning: {args.model}: no controller model (no --nominal, no identification.controller): compensating "
+        f"against {what}, not the kinematics the controller computes with (its factory calibration, up to about "
+        f"1 mm apart); give --nominal CONTROLLER.json (`recal controller-model --rtde HOST`, or the cell's "
+        f"GET /api/v1/cells/ID/controller-model)"
+    )
+
+
 def _calibrated_range(args, model):
     """(n, 2) joint ranges of the calibration data (``--calibration-data``), else the ones the
     identified model records, SI, or None."""
@@ -210,6 +235,55 @@ def _frames(args):
         raise Fail(str(exc)) from None
 
 
+# Lines that only one of the formats writes: what a file looks like, when --format (or its
+# extension) says otherwise. Each marker is matched at the start of a line (after blanks).
+_MARKERS = {
+    "urscript": re.compile(r"^\s*(movel|movej|movep|movec|servoj|set_tcp)\s*\(|^\s*def\s+\w+\s*\(\s*\)\s*:", re.M),
+    "rapid": re.compile(r"^\s*(%%%|MODULE\s+\w+|ENDMODULE\b|(CONST|PERS|VAR)\s+robtarget\b|Move[LJC]\s+\w)", re.M),
+    "krl": re.compile(r"^\s*(&ACCESS\b|DEF\s+\w+\s*\(|DEFDAT\b|(PTP|LIN|CIRC)\s+[{\w])", re.M),
+    "fanuc-tp": re.compile(r"^\s*/(PROG|MN|POS|ATTR|END)\b", re.M),
+}
+_NAMES = {
+    "csv": "a task CSV",
+    "urscript": "a URScript program",
+    "rapid": "an ABB RAPID program",
+    "krl": "a KUKA KRL program",
+    "fanuc-tp": "a Fanuc TP program",
+}
+
+
+def looks_like(text: str) -> str | None:
+    """The program language ``text`` is written in, by the lines only that language writes
+    (None when no language's lines are there, or two are equally there)."""
+    counts = {fmt: len(pattern.findall(text)) for fmt, pattern in _MARKERS.items()}
+    best = max(counts, key=counts.get)
+    ranked = sorted(counts.values(), reverse=True)
+    return best if ranked[0] > 0 and ranked[0] > ranked[1] else None
+
+
+def check_format(path, fmt: str, given: str | None) -> None:
+    """Refuse a task file whose content is plainly another language than the one it is read as
+    (``--format rapid`` on a URScript program found "no move target" before): say so, and how
+    to read it."""
+    from pathlib import Path
+
+    from service.cli import Fail
+
+    p = Path(path)
+    if not p.is_file():
+        return  # a controller backup folder, or a missing file: reported where it is read
+    with open(p, encoding="utf-8", errors="replace") as f:
+        text = f.read(1 << 20)  # the language shows in its first lines
+    seen = looks_like(text)
+    if seen is None or seen == fmt or _MARKERS.get(fmt, re.compile("(?!)")).search(text):
+        return
+    how = f"--format {fmt}" if given else f"its extension {p.suffix or '(none)'}"
+    raise Fail(
+        f"{path}: looks like {_NAMES[seen]}, not {_NAMES[fmt]} (read as such because of {how}); "
+        f"give --format {seen}" + (" or leave --format out" if given else "")
+    )
+
+
 def run(args) -> int:
     from service.cli import progress
     from service.compensation import CompensationRequest, NoTargetsError, compensate_task
@@ -217,6 +291,7 @@ def run(args) -> int:
     from service.programs import format_of
 
     fmt = format_of(args.task, getattr(args, "format", None))
+    check_format(args.task, fmt, getattr(args, "format", None))
     if fmt == "csv" and str(args.task).lower().endswith(".dat"):
         raise InputError(
             args.task,
@@ -257,6 +332,9 @@ def run(args) -> int:
             f"warning: {s.get('file', args.task)}, line {s['line']}: not compensated ({s['reason']}): {s['text']}",
             file=sys.stderr,
         )
+    warning = published_table_warning(args, fmt, model, nominal)
+    if warning:  # after the work: bad input stays one line
+        print(warning, file=sys.stderr)
     summary = result.summary
     for note in summary["notes"]:
         print(f"note: {note}", file=sys.stderr)

@@ -20,7 +20,9 @@ from calibration.report import cpa_report
 
 def add_parser(s) -> None:
     s.add_argument("--model", required=True, help="nominal model file (recal.model/1) or a library robot name")
-    s.add_argument("--data", required=True, help="circle-point CSV (contracts §4): measurements plus a `joint` column")
+    s.add_argument(
+        "--data", required=True, help="circle-point CSV (docs/contracts.md §4): measurements plus a `joint` column"
+    )
     s.add_argument("--out", required=True, help="model file to write")
     s.add_argument("--report", help="JSON report to write (per-joint fits and diagnostics)")
     s.add_argument(

@@ -67,6 +67,11 @@ def add_parser(s) -> None:
     s.add_argument("--host", default="127.0.0.2", help="loopback address of the simulated cell")
     s.add_argument("--port", type=int, default=8000, help="port of the service")
     s.add_argument("--exit", action="store_true", help="stop the service and the cell when done")
+    s.add_argument(
+        "--log-format",
+        choices=["json", "text"],
+        help="the service's log (service.log in --dir): JSON lines (default) or text (default: $RECAL_LOG_FORMAT, else json)",
+    )
     s.add_argument("--offline", action="store_true", help="no service: files and `recal identify` only")
     s.add_argument(
         "--sag",
@@ -185,7 +190,11 @@ def _live(args) -> int:
             out / "truth.json", args.host, seed=args.seed, time_scale=args.time_scale, log_path=out / "fake-cell.log"
         )
         say(f"simulated cell ready on {args.host}: {', '.join(k for k in cell.ready if k != 'ready')}")
-        service = start_service(out, args.port, env={"RECAL_SETTLE_S": "0"}, log_path=out / "service.log")
+        service_env = {
+            "RECAL_SETTLE_S": "0",
+            **({"RECAL_LOG_FORMAT": args.log_format} if getattr(args, "log_format", None) else {}),
+        }
+        service = start_service(out, args.port, env=service_env, log_path=out / "service.log")
         url = service.ready["url"]
         say(f"service ready at {url} (SQLite: {db_file})")
         api = Api(url, tech)
@@ -224,8 +233,9 @@ def _live(args) -> int:
         pose = session("pose", args.poses)
         cal = api.call("GET", f"/calibrations/{pose['calibration_id']}")
         say(
-            f"  identified {len(cal['report']['parameters'])} parameters in {time.monotonic() - t0:.1f} s; "
-            f"residual RMS {cal['rms']:.4f} mm"
+            f"  identified {len(cal['report']['parameters'])} parameters; residual RMS {cal['rms']:.4f} mm "
+            f"(the session, {pose['measured']} poses moved to and measured, then the identification, took "
+            f"{time.monotonic() - t0:.1f} s)"
         )
         comp = cal["report"].get("compliance")
         if comp:  # --sag: the cell's model is compliant; the service compared it with the rigid one
@@ -234,9 +244,15 @@ def _live(args) -> int:
                 f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)"
             )
         say("verifying the calibrated model (20 fresh configurations)...")
-        after = session("verify", 20)["plan_info"]["verify"]
+        after_session = session("verify", 20)
+        after, after_id = after_session["plan_info"]["verify"], after_session["id"]
         (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
         (out / "report.json").write_text(json.dumps(cal["report"], indent=2) + "\n")
+        # the sessions' measurements as the CLI reads them (contracts §3, the units of nominal.json):
+        # `recal identify` and `recal accuracy` can be tried on what the service measured
+        csvs = {"measurements.csv": pose["id"], "verify-after.csv": after_id}
+        for name, sid in csvs.items():
+            (out / name).write_text(api.call("GET", f"/sessions/{sid}/measurements.csv"))
         say("")
         reg = before.get("registered")
         if reg:  # the robot's own inaccuracy first; where the tracker stands is not the robot's error
@@ -261,6 +277,15 @@ def _live(args) -> int:
         say(f"where to look: {url}/            (web page; log in with the technician token in {out / 'tokens.txt'})")
         say(f"               {url}/docs        (the REST API, OpenAPI at {url}/openapi.json)")
         say(f"               {out / 'identified.json'}, {out / 'report.json'}")
+        say(
+            f"               {out / 'measurements.csv'} (the pose session's), {out / 'verify-after.csv'} "
+            f"(the last verification's): try the CLI on them, e.g."
+        )
+        say(f"                 recal accuracy --model {out / 'identified.json'} --data {out / 'verify-after.csv'}")
+        say(
+            f"                 recal identify --model {out / 'nominal.json'} --data {out / 'measurements.csv'} "
+            f"--out {out / 'cli-identified.json'}"
+        )
         if args.exit:
             return 0
         say("the service and the simulated cell keep running; Ctrl-C stops them")

@@ -16,7 +16,7 @@ import time
 
 def add_parser(s) -> None:
     s.add_argument("--model", required=True, help="nominal model file (recal.model/1) or a library robot name")
-    s.add_argument("--data", required=True, help="measurement CSV (contracts §3)")
+    s.add_argument("--data", required=True, help="measurement CSV (docs/contracts.md §3)")
     s.add_argument("--out", required=True, help="identified model file to write")
     s.add_argument("--report", help="JSON report to write")
     s.add_argument("--validate", help="hold-out measurement CSV to test the identified model on")

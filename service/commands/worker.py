@@ -65,7 +65,12 @@ def run(args) -> int:
         libpq_url(settings)
     except FleetConfigError as exc:
         raise Fail(str(exc)) from None
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from service.logs import configure
+
+    try:
+        configure(args.log_level)  # the service's format: JSON lines, or RECAL_LOG_FORMAT=text
+    except ValueError as exc:
+        raise Fail(str(exc)) from None
     if args.log_level != "debug":
         logging.getLogger("procrastinate").setLevel(logging.WARNING)
     return run_worker(

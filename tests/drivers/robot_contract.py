@@ -57,6 +57,22 @@ def step_towards_zero(q: np.ndarray, joint: int, dq_rad: float) -> np.ndarray:
     return target
 
 
+# How long a test waits for the controller's state packets to show what it just did (a released
+# stop, a powered arm): generous, since they come every few milliseconds and the wait ends as
+# soon as they do; only a driver that never sees the change waits this long, and fails.
+STATE_TIMEOUT_S = 10.0
+
+
+def wait_for(condition, timeout_s: float, what: str, robot) -> None:
+    """Return once ``condition()`` holds; fail naming ``what`` after ``timeout_s``. Between tries
+    the robot's joints are read (fresh state from the controller)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"waited {timeout_s:g} s for {what}"
+        robot.read_joints()
+        time.sleep(0.01)
+
+
 class RobotContract:
     tolerance_rad: float = 1e-9
     drop_faults: tuple[str, ...] = ()
@@ -215,13 +231,15 @@ class RobotContract:
             # A person releases the button; the arm stays powered off until it is powered on
             # and its brakes are released.
             dashboard(cell.host, "sim emergency stop release", "close safety popup")
-            assert not robot.state().emergency_stop
+            # the release shows in the controller's next state packets: wait for the driver to
+            # see it (once read straight away, under load the last packet still had the stop)
+            wait_for(lambda: not robot.state().emergency_stop, STATE_TIMEOUT_S, "the emergency stop to clear", robot)
             with pytest.raises(RobotStoppedError, match="not running"):
                 self.move(robot, HOME)
             assert dashboard(cell.host, "power on", "brake release") == ["Powering on", "Brake releasing"]
             # the arm reports RUNNING in the controller's next state packets (a real UR takes
-            # seconds to release its brakes): move once the driver has seen it, within 5 s
-            deadline = time.monotonic() + 5.0
+            # seconds to release its brakes): move once the driver has seen it
+            deadline = time.monotonic() + STATE_TIMEOUT_S
             while True:
                 try:
                     self.move(robot, HOME)

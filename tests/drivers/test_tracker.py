@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 import tty
 from pathlib import Path
 
@@ -217,26 +218,38 @@ class ScriptedTracker(LineServer):
 
     device_name = "scripted-tracker"
 
-    def __init__(self, replies: dict[str, str | None]):
+    def __init__(self, replies: dict[str, str | None], delay_s: float = 0.0):
         super().__init__("127.0.0.1", 0)
         self.replies = {"*IDN?": "ACME,T1,42,0.1", "UNIT:LEN MM": "OK", "UNIT:LEN?": "MM", **replies}
+        self.delay_s = delay_s  # each reply this late: a tracker (or a machine) under load
 
     def handle_line(self, client, line):
         reply = self.replies.get(line.strip(), "ERR 10,unknown command")
+        if self.delay_s:
+            time.sleep(self.delay_s)
         if reply is not None:
             client.send_raw(reply.encode("latin-1") if reply.endswith("\n") else reply.encode("latin-1") + b"\r\n")
 
 
+# The driver's deadline for a reply the scripted tracker does send: generous, since a reply that
+# comes takes milliseconds and the test waits only that long; a tight one (0.3 s) once left the
+# handshake's *IDN? unanswered on a loaded machine. Only a test of the deadline itself (a reply
+# that never comes) sets a short one, and waits that long.
+REPLY_TIMEOUT_S = 10.0
+NO_REPLY_TIMEOUT_S = 1.0
+
+
 @pytest.fixture
 def scripted():
-    """``scripted(replies)`` starts a ScriptedTracker and returns a driver config for it."""
+    """``scripted(replies, timeout_s=REPLY_TIMEOUT_S)`` starts a ScriptedTracker and returns a
+    driver config for it."""
     servers = []
 
-    def make(replies: dict[str, str | None]) -> TrackerConfig:
-        s = ScriptedTracker(replies)
+    def make(replies: dict[str, str | None], timeout_s: float = REPLY_TIMEOUT_S, delay_s: float = 0.0) -> TrackerConfig:
+        s = ScriptedTracker(replies, delay_s)
         s.start()
         servers.append(s)
-        return TrackerConfig(url=f"socket://127.0.0.1:{s.port}", timeout_s=0.3)
+        return TrackerConfig(url=f"socket://127.0.0.1:{s.port}", timeout_s=timeout_s)
 
     yield make
     for s in servers:
@@ -258,7 +271,8 @@ def scripted():
     ],
 )
 def test_bad_meas_replies(scripted, reply, error, match):
-    with LineTracker(scripted({"MEAS?": reply})) as tracker:
+    timeout_s = NO_REPLY_TIMEOUT_S if reply is None else REPLY_TIMEOUT_S  # only a silence waits its deadline
+    with LineTracker(scripted({"MEAS?": reply}, timeout_s)) as tracker:
         with pytest.raises(error, match=match) as info:
             tracker.measure()
     assert not isinstance(info.value, MeasurementError)
@@ -284,11 +298,19 @@ def test_partial_line_is_timeout():
     server = _RawReplyServer(b"1.0,2.0,3")
     server.start()
     try:
-        with LineTracker(TrackerConfig(url=f"socket://127.0.0.1:{server.port}", timeout_s=0.3)) as tracker:
+        config = TrackerConfig(url=f"socket://127.0.0.1:{server.port}", timeout_s=NO_REPLY_TIMEOUT_S)
+        with LineTracker(config) as tracker:
             with pytest.raises(DeviceTimeoutError, match="partial"):
                 tracker.measure()
     finally:
         server.stop()
+
+
+def test_replies_late_under_load_are_waited_for(scripted):
+    # every reply 0.5 s late (the handshake's *IDN? once came after the old 0.3 s deadline under
+    # load): the handshake and the status are waited for, up to the reply deadline
+    with LineTracker(scripted({"STAT?": "READY"}, delay_s=0.5)) as tracker:
+        assert tracker.status() == "ready"
 
 
 def test_bad_status_reply(scripted):

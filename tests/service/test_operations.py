@@ -75,12 +75,15 @@ def test_one_structured_log_line_per_request_without_secrets(idle_app, tokens, c
         caplog.clear()
         client.get("/api/v1/me", headers=auth(tokens["viewer"]))
         client.get(f"/api/v1/cells?token={tokens['admin']}&site=x")  # a token in a URL is refused, and not logged
-        lines = [json.loads(r.getMessage()) for r in caplog.records if r.name == "recal.access"]
+        records = [r for r in caplog.records if r.name == "recal.access"]
+        lines = [r.fields for r in records]
     assert [(x["method"], x["route"], x["status"]) for x in lines] == [
         ("GET", "/api/v1/me", 200),
         ("GET", "/api/v1/cells", 401),
     ]
     assert lines[1]["query"] == "token=%2A%2A%2A&site=x" and lines[0]["duration_ms"] >= 0
+    # the refusal is a warning, with its reason
+    assert [r.levelname for r in records] == ["INFO", "WARNING"] and lines[1]["detail"].startswith("missing token")
     assert not any(t in caplog.text for t in tokens.values())
 
 

@@ -151,3 +151,51 @@ def test_sigterm_while_the_demo_starts_leaves_no_child(tmp_path):
         if demo.poll() is None:
             demo.kill()
             demo.wait(10)
+
+
+def test_the_demo_leaves_its_measurements_for_the_cli(tmp_path):
+    """The demo's folder holds what the service measured as the CLI reads it (issue 27): the pose
+    session's measurements and the last verification's, in nominal.json's units. `recal accuracy`
+    of the identified model on the verification gives the demo's "after" figures, and `recal
+    identify` identifies the robot from the pose session's file."""
+    out = tmp_path / "demo"
+    demo = subprocess.run(
+        [sys.executable, "-m", "service.cli", "demo", "--dir", str(out), "--host", next_host()]
+        + ["--port", str(free_port()), "--time-scale", "0", "--poses", "30", "--exit"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert demo.returncode == 0, demo.stdout + demo.stderr
+    assert "verify-after.csv" in demo.stdout and "try the CLI on them" in demo.stdout
+    # the time printed is the session's (moves and measurements, then the identification), said as such
+    assert re.search(
+        r"identified \d+ parameters; residual RMS [0-9.]+ mm \(the session, 30 poses moved to and "
+        r"measured, then the identification, took [0-9.]+ s\)",
+        demo.stdout,
+    ), demo.stdout
+    for name in ("measurements.csv", "verify-after.csv"):
+        text = (out / name).read_text()
+        assert text.startswith("# session ") and "q1,q2,q3,q4,q5,q6,x,y,z" in text.replace(" ", ""), text[:300]
+    after_rms = float(re.search(r"accuracy after:\s+RMS ([0-9.]+) mm", demo.stdout).group(1))
+    acc = subprocess.run(
+        [sys.executable, "-m", "service.cli", "accuracy", "--model", "identified.json"]
+        + ["--data", "verify-after.csv", "--out", "acc.json"],
+        capture_output=True,
+        text=True,
+        cwd=out,
+        timeout=120,
+    )
+    assert acc.returncode == 0 and "warning" not in acc.stderr, acc.stderr
+    rep = json.loads((out / "acc.json").read_text())
+    assert rep["measurements"] == 20 and rep["units"]["length"] == "mm"
+    assert rep["errors"]["rms"] < 0.1 and abs(rep["errors"]["rms"] - after_rms) < 0.02, (rep["errors"], after_rms)
+    ident = subprocess.run(
+        [sys.executable, "-m", "service.cli", "identify", "--model", "nominal.json"]
+        + ["--data", "measurements.csv", "--out", "cli.json"],
+        capture_output=True,
+        text=True,
+        cwd=out,
+        timeout=300,
+    )
+    assert ident.returncode in (0, 3) and (out / "cli.json").exists(), ident.stderr

@@ -70,7 +70,8 @@ def test_a_whole_session_with_its_event_stream_leaves_no_secret_in_the_log(stack
     log = (stack.home / "service.log").read_text()
     secrets = [*stack.tokens.values(), ticket]
     assert not [t for t in secrets if t in log], "a token or ticket was written to the service's log"
-    access = [json.loads(line.split("recal.access: ", 1)[1]) for line in log.splitlines() if "recal.access: " in line]
+    lines = [json.loads(line) for line in log.splitlines() if line.strip()]  # JSON lines (service/logs.py)
+    access = [line for line in lines if line["logger"] == "recal.access"]
     routes = {(a["method"], a["route"], a["status"]) for a in access}
     assert ("GET", "/api/v1/sessions/{session_id}/events", 200) in routes
     assert ("GET", "/api/v1/sessions/{session_id}/events", 401) in routes

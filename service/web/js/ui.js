@@ -52,6 +52,18 @@ export function num(v, digits = 4) {
   return v.toFixed(Math.min(d, 8));
 }
 
+// A length for a person, in `unit` (mm, m, in, µm), `digits` significant digits; anything below
+// 0.1 µm, far below what any instrument measures (what is left is rounding), is said as such
+// ("below 0.0001 mm") rather than as 2.69e-7 mm.
+const METRES_PER = { "µm": 1e-6, mm: 1e-3, m: 1, in: 0.0254 };
+export const FLOOR_M = 1e-7;
+export function length(v, unit, digits = 4) {
+  if (v === null || v === undefined || Number.isNaN(v)) return "–";
+  const floor = FLOOR_M / (METRES_PER[unit] || 1e-3);
+  if (v !== 0 && Math.abs(v) < floor) return `below ${num(floor, 1)} ${unit}`;
+  return `${num(v, digits)} ${unit}`;
+}
+
 function parseTime(iso) {
   return new Date(iso.endsWith("Z") || /[+-]\d\d:\d\d$/.test(iso) ? iso : iso + "Z");
 }
@@ -132,8 +144,9 @@ export function notify(message, kind = "error") {
   return el;
 }
 
-// A modal confirmation; resolves true when confirmed.
-export function confirmDialog(title, message, { confirm = "Confirm", cancel = "Cancel", danger = false } = {}) {
+// A modal confirmation; resolves true when confirmed. `signal` (an AbortSignal) withdraws the
+// question (false): what it asked about no longer applies (a session that ended meanwhile).
+export function confirmDialog(title, message, { confirm = "Confirm", cancel = "Cancel", danger = false, signal } = {}) {
   return new Promise((resolve) => {
     const dlg = h("dialog", { class: "confirm" },
       h("h2", {}, title),
@@ -142,12 +155,16 @@ export function confirmDialog(title, message, { confirm = "Confirm", cancel = "C
         h("button", { class: "secondary", "data-action": "cancel", onclick: () => done(false) }, cancel),
         h("button", { class: danger ? "danger" : "primary", "data-action": "confirm", onclick: () => done(true) },
           confirm)));
+    let answered = false;
     function done(v) {
+      if (answered) return;
+      answered = true;
       dlg.close();
       dlg.remove();
       resolve(v);
     }
     dlg.addEventListener("cancel", (e) => { e.preventDefault(); done(false); });
+    signal?.addEventListener("abort", () => done(false));
     document.body.appendChild(dlg);
     dlg.showModal();
   });

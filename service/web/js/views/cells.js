@@ -160,7 +160,8 @@ export async function detail(ctx, id) {
           + (cm.session_id ? ` (session ${cm.session_id})` : " (uploaded)")],
           cm.from_registers
             ? ["Fitted to the TCP-pose registers", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm (0.1 mm registers)`]
-            : ["Reproduces the controller", cm.check_um == null ? "–" : `to ${num(cm.check_um, 2)} µm`],
+            : ["Reproduces the controller", cm.check_um == null ? "–"
+              : cm.check_um < 0.1 ? "exactly (to within 0.1 µm)" : `to ${num(cm.check_um, 2)} µm`],
           ["Last change", cm.moved_mm == null ? (cm.version > 1 ? "none" : "first read")
             : `the flange moved up to ${num(cm.moved_mm, 3)} mm`]])
     : h("p", { class: "muted", id: "controller-model-none" }, "Not read yet: the next session reads it from the "
@@ -322,6 +323,43 @@ function mark(input, message) {
 // ranges; a shortcut that fills them from the endpoint line `recal fake-cell` prints; checks
 // each field as it is left and all of them on `read()` (which returns {devices, allowed_region}
 // or null when a field is wrong, with the messages shown at the fields).
+// Python difflib's SequenceMatcher(None, a, b).ratio() (no junk: the keys are short), so that the
+// page suggests the key the API would ("did you mean 'emscon'?", service/device_config.py).
+function matchRatio(a, b) {
+  const b2j = {};
+  [...b].forEach((c, j) => (b2j[c] ||= []).push(j));
+  function longest(alo, ahi, blo, bhi) {
+    let best = [alo, blo, 0], j2len = {};
+    for (let i = alo; i < ahi; i++) {
+      const next = {};
+      for (const j of b2j[a[i]] || []) {
+        if (j < blo) continue;
+        if (j >= bhi) break;
+        const k = next[j] = (j2len[j - 1] || 0) + 1;
+        if (k > best[2]) best = [i - k + 1, j - k + 1, k];
+      }
+      j2len = next;
+    }
+    return best;
+  }
+  function matched(alo, ahi, blo, bhi) {
+    const [i, j, k] = longest(alo, ahi, blo, bhi);
+    return k ? k + matched(alo, i, blo, j) + matched(i + k, ahi, j + k, bhi) : 0;
+  }
+  const total = a.length + b.length;
+  return total ? (2 * matched(0, a.length, 0, b.length)) / total : 1;
+}
+
+// difflib.get_close_matches(word, known, n=1, cutoff=0.6)[0], or null: the largest (ratio, key).
+function closeMatch(word, known) {
+  let best = null, bestScore = -1;
+  for (const k of known) {
+    const score = matchRatio(k, word);
+    if (score >= 0.6 && (score > bestScore || (score === bestScore && k > best))) [best, bestScore] = [k, score];
+  }
+  return best;
+}
+
 function deviceForm(doc, region, schema) {
   doc = doc || {};
   const can = typeof doc.can === "object" && doc.can ? doc.can : {};
@@ -502,6 +540,15 @@ function deviceForm(doc, region, schema) {
       lineErr.textContent = `Not an endpoint line: ${e.message}. Paste the one line of JSON that recal fake-cell printed.`;
       return;
     }
+    // A key the service does not know is refused, in the API's words (POST /cells answers 422
+    // with the same message), and nothing is filled in: a typo is not silently dropped.
+    const strange = Object.keys(d).filter((k) => !known.includes(k));
+    if (strange.length) {
+      const near = closeMatch(strange[0], known);
+      lineErr.textContent = `The line's ${JSON.stringify(strange[0])}: unknown key`
+        + (near ? `; did you mean '${near}'?` : "") + ` (expected one of ${known.join(", ")}). Nothing was filled in.`;
+      return;
+    }
     const named = Object.keys(d).filter((k) => known.includes(k) && k !== "ready");
     if (!named.length) {
       lineErr.textContent = `This JSON names no device (expected ${known.filter((k) => k !== "ready").join(", ")}).`;
@@ -594,7 +641,9 @@ export async function register(ctx) {
   let fileModel = null;
   const name = h("input", { id: "cell-name", required: true, placeholder: "e.g. line 3 welding robot" });
   const site = h("input", { id: "cell-site", value: "default" });
+  // No robot is chosen for the technician (the first of the library, alphabetically, is no default)
   const src = h("select", { id: "model-source" },
+    h("option", { value: "", selected: true, disabled: true }, "choose the robot…"),
     library.map((r) => h("option", { value: `lib:${r.name}` }, `${r.name} (library, ${r.joints} joints)`)),
     h("option", { value: "file" }, "a model file (recal.model/1 JSON)…"));
   const file = h("input", { type: "file", id: "model-file", accept: ".json,application/json" });
@@ -602,6 +651,7 @@ export async function register(ctx) {
   const modelInfo = h("p", { class: "muted small", id: "model-info" });
   const devs = deviceForm({}, null, await deviceSchema());
   async function model() {
+    if (!src.value) return null;
     if (src.value === "file") return fileModel;
     const key = src.value.slice(4);
     docs[key] ||= await get(`/library/robots/${encodeURIComponent(key)}`);
@@ -610,7 +660,9 @@ export async function register(ctx) {
   async function describeModel() {
     const m = await model().catch(() => null);
     devs.setJoints(m?.joints || [], m?.units);
-    if (src.value === "file") {
+    if (!src.value) {
+      modelInfo.textContent = "Choose the robot: a library robot's published model, or a model file.";
+    } else if (src.value === "file") {
       modelInfo.textContent = fileModel ? `${fileModel.name || "model"}: ${fileModel.joints?.length} joints, `
         + `${fileModel.convention}, units ${fileModel.units?.length}/${fileModel.units?.angle}, targets: `
         + `${Object.keys(fileModel.targets || {}).join(", ") || "none"}` : "Choose the robot's nominal model file.";
@@ -653,7 +705,8 @@ export async function register(ctx) {
       const okName = mark(name, name.value.trim() ? "" : "give the cell a name");
       const d = devs.read();
       if (!okName || !d || !m) {
-        formErr.textContent = !m ? "Choose the robot's model file first." : "Some fields need attention (marked in red).";
+        formErr.textContent = !m ? (src.value === "file" ? "Choose the robot's model file first."
+          : "Choose the robot first (Robot model).") : "Some fields need attention (marked in red).";
         if (!okName) name.focus();
         return;
       }

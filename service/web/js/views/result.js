@@ -5,7 +5,7 @@
 
 import { api, can, download, get, saveBlob } from "../api.js";
 import { COLORS, chart, colorMap, histogram, sizes } from "../plots.js";
-import { add, badge, busy, card, clear, put, h, kv, num, paramLabel, table, when } from "../ui.js";
+import { add, badge, busy, card, clear, put, h, kv, length, num, paramLabel, table, when } from "../ui.js";
 
 // Above this the page explains the identification's (scaled) condition number in plain words (the certificate
 // judges conditioning by the predicted accuracy over the workspace, not by this number).
@@ -411,7 +411,7 @@ function showCompensation(box, name, text, report, unit, extras = [], encoding =
     report.payload ? h("p", { class: "small", id: "compensated-payload" }, `Corrected for a payload of `
       + `${num(report.payload[0], 4)} kg at ${report.payload.slice(1).map((v) => num(v, 4)).join(", ")} ${unit} `
       + "(centre of gravity in the tool frame): the sag of the arm's joints under it is in the correction.") : null,
-    h("p", { class: "small muted" }, `Largest remaining error ${num(summary.residual_max, 3)} ${unit}; largest joint `
+    h("p", { class: "small muted" }, `Largest remaining error ${length(summary.residual_max, unit, 3)}; largest joint `
       + `correction ${num(summary.correction_max, 3)} ${angle}`
       + (counts.length ? `; flags: ${counts.map(([k, v]) => `${k.replace(/_/g, " ")} ${v}`).join(", ")}` : "; no flags") + "."),
     counts.length ? h("ul", { class: "small", id: "flag-meanings" }, counts.map(([k]) =>

@@ -139,6 +139,12 @@ export async function live(ctx, id) {
 
   function show(snap) {
     s = snap;
+    if (asking && !APPLIES[asking.what](s.state)) { // e.g. "Pause the session?" while it completed
+      const { what, controller } = asking;
+      asking = null;
+      controller.abort();
+      notify(`The session is ${s.state} now: nothing to ${what}.`, "ok");
+    }
     put(stateEl, badge(s.state));
     const pct = s.planned ? Math.round((100 * s.measured) / s.planned) : 0;
     bar.style.width = `${pct}%`;
@@ -182,9 +188,21 @@ export async function live(ctx, id) {
       + "far are kept but no calibration is made from them.", "Abort", true],
   };
 
+  // Whether a control still applies to the session's state (its button is shown for it).
+  const APPLIES = {
+    pause: (state) => state === "running" || state === "planned",
+    resume: (state) => state === "paused" || state === "interrupted",
+    abort: (state) => !TERMINAL.includes(state),
+  };
+  let asking = null; // {what, controller}: the question open, withdrawn when the session moves on
+
   async function act(button, what) {
     const [t, m, c, danger] = ASK[what];
-    if (!(await confirmDialog(t, m, { confirm: c, danger }))) return;
+    const controller = new AbortController();
+    asking = { what, controller };
+    const yes = await confirmDialog(t, m, { confirm: c, danger, signal: controller.signal });
+    if (asking?.controller === controller) asking = null;
+    if (!yes) return;
     await busy(button, async () => {
       show(await post(`/sessions/${id}/${what}`));
       if (what === "resume") listen();
