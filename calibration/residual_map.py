@@ -21,6 +21,7 @@ model again and the map must be fitted again.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -32,6 +33,15 @@ from .model import KinematicModel
 LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)
 RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # relative to the kernel's unit diagonal
 MIN_CV_GAIN = 0.05  # a map must lower the cross-validated RMS by at least this fraction to be kept
+# A map is fitted to at most this many configurations (a seeded draw of them when there are
+# more): the kernel matrix is M x M and its solve M^3, so without a bound a 30,000-row import
+# needed 16 GB; a few hundred samples are what a smooth function of six angles needs.
+MAX_MAP_CONFIGURATIONS = 400
+# The cross-validation of the whole procedure (identification, then the map) runs on at most this
+# many configurations (a seeded draw): its five identifications are then bounded too, and a few
+# thousand held-out configurations tell a gain of 5 % as well as a hundred thousand do.
+MAX_CV_CONFIGURATIONS = 4000
+EVALUATE_CHUNK_ROWS = 4096  # rows evaluated at once: the distance block stays a few MB
 FORMAT = "recal.residual_map/1"
 
 
@@ -65,12 +75,16 @@ class ResidualMap:
         (N, n), and (N,) whether each is inside the measured region (the correction is zero
         outside)."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
-        F = features(q, self.revolute)
-        D = _sqdist(F, features(self.q_train, self.revolute))
+        F_train = features(self.q_train, self.revolute)
         lo, hi = self.q_train.min(axis=0), self.q_train.max(axis=0)
-        in_box = np.all((q >= lo) & (q <= hi), axis=1)
-        inside = in_box & (np.sqrt(D.min(axis=1)) <= self.length_scale)
-        corr = np.exp(-D / (2.0 * self.length_scale**2)) @ self.alpha
+        corr = np.zeros((len(q), 3))
+        inside = np.zeros(len(q), dtype=bool)
+        for start in range(0, len(q), EVALUATE_CHUNK_ROWS):  # bounded memory however many rows
+            part = slice(start, start + EVALUATE_CHUNK_ROWS)
+            D = _sqdist(features(q[part], self.revolute), F_train)
+            in_box = np.all((q[part] >= lo) & (q[part] <= hi), axis=1)
+            inside[part] = in_box & (np.sqrt(D.min(axis=1)) <= self.length_scale)
+            corr[part] = np.exp(-D / (2.0 * self.length_scale**2)) @ self.alpha
         corr[~inside] = 0.0
         return corr, inside
 
@@ -149,6 +163,8 @@ def choose_residual_map(
 
     kw = dict(identify_kw or {})
     revolute = np.array([j.revolute for j in start.joints])
+    all_data = data
+    data = data.subset(map_rows(data, MAX_CV_CONFIGURATIONS, seed + 3))
     outer = fold_indices(data, folds, seed)
     sq_without = sq_with = 0.0
     inside_share = []
@@ -156,9 +172,7 @@ def choose_residual_map(
         train = np.setdiff1d(np.arange(len(data)), test)
         tr, te = data.subset(train), data.subset(test)
         model = identify(start, tr, **kw).model
-        r_tr = residuals(model, tr)
-        ell, lam, _ = select_smoothness(tr.q, r_tr, revolute, fold_indices(tr, folds, seed + 1))
-        m = fit(tr.q, r_tr, revolute, ell, lam)
+        m = _fitted_map(tr, residuals(model, tr), revolute, folds, seed)
         r_te = residuals(model, te)
         corr, inside = m.evaluate(te.q)
         sq_without += float(np.sum(r_te**2))
@@ -175,14 +189,39 @@ def choose_residual_map(
         "min_gain": min_gain,
         "held_out_inside_share": float(np.mean(inside_share)),
         "kept": gain >= min_gain,
+        "max_configurations": MAX_MAP_CONFIGURATIONS,
+        "cv_rows": n,
     }
     if gain < min_gain:
         return None, figures
-    final = final if final is not None else identify(start, data, **kw).model
-    r = residuals(final, data)
-    ell, lam, _ = select_smoothness(data.q, r, revolute, fold_indices(data, folds, seed + 1))
-    figures.update(length_scale=ell, ridge=lam)
-    return fit(data.q, r, revolute, ell, lam, figures), figures
+    final = final if final is not None else identify(start, all_data, **kw).model
+    m = _fitted_map(all_data, residuals(final, all_data), revolute, folds, seed)
+    figures.update(length_scale=m.length_scale, ridge=m.ridge, rows=len(m.q_train))
+    return dataclasses.replace(m, cv=figures), figures
+
+
+def map_rows(data, max_configurations: int = MAX_MAP_CONFIGURATIONS, seed: int = 0) -> np.ndarray:
+    """Row indices a map is fitted to: every row when ``data`` has at most ``max_configurations``
+    configurations (``pose_id``), else the rows of a seeded draw of that many (a configuration's
+    rows together), in their order."""
+    N = len(data)
+    groups = np.asarray(data.pose_id) if data.pose_id is not None else np.arange(N)
+    keys, label = np.unique(groups.astype(str) if groups.dtype == object else groups, return_inverse=True)
+    if len(keys) <= max_configurations:
+        return np.arange(N)
+    chosen = np.random.default_rng(seed).choice(len(keys), size=max_configurations, replace=False)
+    return np.nonzero(np.isin(label, chosen))[0]
+
+
+def _fitted_map(data, r: np.ndarray, revolute: np.ndarray, folds: int, seed: int) -> ResidualMap:
+    """The map of residuals ``r`` (N, 3) m on ``data``'s rows (at most :data:`MAX_MAP_CONFIGURATIONS`
+    configurations of them, :func:`map_rows`), its smoothness chosen by k-fold cross-validation."""
+    from .compliance_fit import fold_indices
+
+    rows = map_rows(data, seed=seed + 2)
+    sub = data.subset(rows)
+    ell, lam, _ = select_smoothness(sub.q, r[rows], revolute, fold_indices(sub, folds, seed + 1))
+    return fit(sub.q, r[rows], revolute, ell, lam)
 
 
 # ----------------------------------------------------------------------------- the file section

@@ -31,6 +31,15 @@ def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, li
         raise AnalysisError(str(exc)) from None
 
 
+def session_data(db: Session, run: RunSession) -> Measurements:
+    """As :func:`records.session_data` (arrays only, read as plain columns), with "no
+    measurements" as the session's reason."""
+    try:
+        return records.session_data(db, run)
+    except NoMeasurementsError as exc:
+        raise AnalysisError(str(exc)) from None
+
+
 def store_calibration(
     db: Session,
     cell: Cell,

@@ -14,6 +14,7 @@ from calibration.model import ModelFormatError, model_from_dict
 from . import programs
 from .compensation import CompensationInputError, CompensationRequest, calibrated_range_of, compensate_task
 from .files import InputError, parse_payload
+from .packed import pack_output, pack_report
 from .programs.frames import Frames
 
 __all__ = ["CompensationInputError", "compensate_and_store", "compensate_text", "decode_upload", "read_multipart"]
@@ -196,13 +197,15 @@ def compensate_and_store(
             payload=payload,
             encodings=encodings,
         )
+        # stored compressed (service.packed): at most about the input's size, not six times it
+        stored_output, stored_encoding = pack_output(output, (encodings or {}).get(name, "utf-8"))
         rec = Compensation(
             calibration_id=calibration_id,
             name=name,
             mode=mode,
-            output=output,
-            encoding=(encodings or {}).get(name, "utf-8"),  # served again as the bytes it was answered as
-            report=report,
+            output=stored_output,
+            encoding=stored_encoding,  # served again as the bytes it was answered as
+            report=pack_report(report),
             created_by=actor,
         )
         db.add(rec)

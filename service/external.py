@@ -18,6 +18,29 @@ from .models import Cell, RunSession
 from .problems import Invalid
 from .store import audit, delete_session_rows
 
+# What an imported session says until its analysis has ended (committed with its measurements).
+INTERRUPTED = "import interrupted before its analysis ended (the service stopped); import the file again"
+
+
+def check_row_count(body: bytes, max_rows: int) -> None:
+    """:class:`Invalid` when ``body`` has more than ``max_rows`` data rows (lines that are not
+    blank, not comments, not the header), counted on the bytes before anything is parsed."""
+    n = sum(1 for line in body.splitlines() if line.strip() and not line.lstrip().startswith(b"#")) - 1
+    if n > max_rows:
+        raise Invalid(
+            "body",
+            f"at most {max_rows} rows per import (the service's RECAL_MAX_IMPORT_ROWS setting), got {n}; "
+            "split the file into several imports",
+        )
+
+
+def _mark_failed(db: Session, session_id: int, reason: str) -> None:
+    run = db.get(RunSession, session_id)
+    if run is not None:
+        run.state, run.reason = "failed", reason[:2000]
+        db.add(run)
+        db.commit()
+
 
 def import_measurements(
     db: Session, cell: Cell, body: bytes, *, kind: str, name: str, actor: str, settings
@@ -25,11 +48,18 @@ def import_measurements(
     """Externally measured data (a measurement CSV, contracts §3, in the units of the cell's
     nominal model) stored as a completed session of ``kind`` (``pose``: identified as a pose
     session is; ``verify``: the cell's current model checked against it). Nothing is kept when
-    the data cannot conclude. Bad rows: :class:`~service.problems.Invalid` naming row and column."""
+    the data cannot conclude. Bad rows, or more than ``settings.max_import_rows`` of them (counted
+    before anything is parsed): :class:`~service.problems.Invalid` naming row and column.
+
+    The session is stored ``failed`` ("interrupted before its analysis ended") with its
+    measurements and becomes ``completed`` with its result in one commit: a process that dies
+    during the analysis, or an analysis that breaks unexpectedly, leaves a failed session that
+    says why, never a completed one without its calibration."""
     from .files import InputError, read_measurements
 
     model = model_from_dict(cell.model)
     safe_name = Path(name).name or "measurements.csv"
+    check_row_count(body, settings.max_import_rows)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / safe_name
         path.write_bytes(body)
@@ -41,7 +71,8 @@ def import_measurements(
     run = RunSession(
         cell_id=cell.id,
         kind=kind,
-        state="completed",
+        state="failed",
+        reason=INTERRUPTED,
         planned=len(data),
         device=device,
         target=None,
@@ -51,16 +82,21 @@ def import_measurements(
     )
     db.add(run)
     db.flush()
-    db.add_all(records.measurement_rows(run.id, data))
+    records.insert_measurements(db, run.id, data)
     db.commit()
     db.refresh(run)
     try:
+        run.state, run.reason = "completed", None
         finish_session(db, run, cell, settings)
     except (AnalysisError, ValueError, np.linalg.LinAlgError) as exc:  # the data cannot conclude
         db.rollback()
         delete_session_rows(db, run.id)
         db.commit()
         raise Invalid("body", f"{safe_name}: {exc}") from None
+    except Exception as exc:  # not the data's fault: the session says what broke, then 500
+        db.rollback()
+        _mark_failed(db, run.id, f"the analysis failed: {type(exc).__name__}: {exc}")
+        raise
     db.refresh(run)
     audit(
         db,

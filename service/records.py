@@ -20,7 +20,7 @@ from calibration.errors import RecalError
 from calibration.identify import Measurements
 from calibration.model import KinematicModel, model_from_dict
 
-from .models import Calibration, Cell, Measurement, RunSession
+from .models import Calibration, Cell, Measurement, RunSession, utcnow
 from .store import current_calibration
 
 
@@ -96,6 +96,54 @@ def measurement_rows(session_id: int, data: Measurements) -> list[Measurement]:
             )
         )
     return rows
+
+
+# Rows inserted per statement by :func:`insert_measurements`: a few MB of parameters at a time.
+INSERT_CHUNK_ROWS = 5000
+
+
+def insert_measurements(db: Session, session_id: int, data: Measurements) -> None:
+    """:func:`measurement_rows`' rows inserted in chunks of plain parameter dicts (not committed):
+    an ORM object per row cost 0.15 ms and a kilobyte each, 15 s for a 100,000-row import."""
+    table = Measurement.__table__  # the plain table: no ORM bookkeeping per row
+    conn = db.connection()
+    now = utcnow()
+    quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
+    q = np.asarray(data.q, dtype=float).tolist()
+    p = np.asarray(data.p_world, dtype=float).tolist()
+    quat_l = np.where(np.isnan(quat), None, quat).tolist()
+    sigma_l = np.where(np.isfinite(data.sigma), data.sigma, None).tolist()
+    for start in range(0, len(data), INSERT_CHUNK_ROWS):
+        chunk = [
+            {
+                "session_id": session_id,
+                "seq": i,
+                "target": data.target[i] or "",
+                "q": q[i],
+                "x": p[i][0],
+                "y": p[i][1],
+                "z": p[i][2],
+                "qw": quat_l[i][0],
+                "qx": quat_l[i][1],
+                "qy": quat_l[i][2],
+                "qz": quat_l[i][3],
+                "sigma": sigma_l[i],
+                "created_at": now,
+            }
+            for i in range(start, min(start + INSERT_CHUNK_ROWS, len(data)))
+        ]
+        conn.execute(table.insert(), chunk)
+
+
+def session_data(db: Session, run: RunSession) -> Measurements:
+    """The session's measurements as arrays, read as plain columns (no ORM object per row: a
+    100,000-row session reads in a fraction of a second)."""
+    cols = (Measurement.seq, Measurement.target, Measurement.q, Measurement.x, Measurement.y, Measurement.z)
+    cols += (Measurement.qw, Measurement.qx, Measurement.qy, Measurement.qz, Measurement.sigma)
+    rows = db.exec(
+        select(*cols).where(Measurement.session_id == run.id).order_by(Measurement.seq, Measurement.id)
+    ).all()
+    return measurements_of(rows, run)
 
 
 def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, list[Measurement]]:

@@ -8,7 +8,7 @@ from sqlalchemy import delete, func
 from sqlmodel import Session, select
 
 from .models import ACTIVE, Calibration, Cell, Compensation, Measurement, RunSession, TaskFile, Token
-from .problems import Conflict
+from .problems import Conflict, NotFound
 from .sessions import driving_session
 from .store import audit, delete_session_rows
 
@@ -62,3 +62,30 @@ def delete_cell(db: Session, cell: Cell, tok: Token) -> dict:
     db.commit()
     audit(db, actor=tok.name, action="delete cell", subject=f"cell {cell_id}", detail={"name": name, **counts})
     return {"deleted": f"cell {cell_id}", "name": name, **counts}
+
+
+def delete_task_file(db: Session, cell_id: int, task_id: int, tok: Token) -> dict:
+    """Delete task file ``task_id`` of cell ``cell_id`` (a technician's or an admin's, as they
+    register them): it is no longer compensated again by ``/cells/{id}/tasks/compensate`` and the
+    nightly job. Its compensations already stored are kept (they belong to their calibration)."""
+    t = db.get(TaskFile, task_id)
+    if t is None or t.cell_id != cell_id:
+        raise NotFound(f"no task file {task_id} in cell {cell_id}")
+    detail = {"cell": cell_id, "name": t.name, "mode": t.mode, "bytes": len(t.content.encode(t.encoding, "replace"))}
+    db.delete(t)
+    db.commit()
+    audit(db, actor=tok.name, action="delete task file", subject=f"task file {task_id}", detail=detail)
+    return {"deleted": f"task file {task_id}", **detail}
+
+
+def delete_compensation(db: Session, compensation_id: int, tok: Token) -> dict:
+    """Delete stored compensation ``compensation_id`` (its compensated file and report; admin).
+    Its calibration and the task it came from are untouched: it can be computed again."""
+    rec = db.get(Compensation, compensation_id)
+    if rec is None:
+        raise NotFound(f"no compensation {compensation_id}")
+    detail = {"calibration": rec.calibration_id, "name": rec.name, "mode": rec.mode, "created_by": rec.created_by}
+    db.delete(rec)
+    db.commit()
+    audit(db, actor=tok.name, action="delete compensation", subject=f"compensation {compensation_id}", detail=detail)
+    return {"deleted": f"compensation {compensation_id}", **detail}

@@ -32,9 +32,20 @@ LIMITS: dict[str, tuple[float, float, str, str]] = {
     # 413 before anything is parsed (docs/service.md).
     "max_body_bytes": (1024, 1 << 30, "RECAL_MAX_BODY_BYTES", "bytes"),
     "max_task_bytes": (1024, 1 << 30, "RECAL_MAX_TASK_BYTES", "bytes"),
+    # A measurement import (POST /cells/{id}/measurements): its CSV's bytes (413 beyond) and rows
+    # (422 beyond, counted before anything is parsed or stored).
+    "max_import_bytes": (1024, 1 << 30, "RECAL_MAX_IMPORT_BYTES", "bytes"),
+    "max_import_rows": (1, 10_000_000, "RECAL_MAX_IMPORT_ROWS", "rows"),
 }
 
-INTEGER_SETTINGS = ("device_retries", "heavy_workers", "max_body_bytes", "max_task_bytes")
+INTEGER_SETTINGS = (
+    "device_retries",
+    "heavy_workers",
+    "max_body_bytes",
+    "max_task_bytes",
+    "max_import_bytes",
+    "max_import_rows",
+)
 
 
 class SettingsError(RecalError, ValueError):
@@ -68,6 +79,11 @@ class Settings:
     # real robot programs have hundreds to a few thousand (a URScript program of 5,000 moves is
     # under 1 MiB). Compensating the largest allowed file takes seconds in a worker process.
     max_task_bytes: int = 4 << 20
+    # 16 MiB and 100,000 rows: a measurement row at full precision is about 125 bytes, so the
+    # largest allowed import fits both; importing it takes a few seconds and under 300 MB
+    # (bench/import_scale.py, docs/benchmarks.md).
+    max_import_bytes: int = 16 << 20
+    max_import_rows: int = 100_000
 
     def __post_init__(self):
         for f in fields(self):

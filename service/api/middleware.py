@@ -1,7 +1,8 @@
 """What every request passes through, as plain ASGI (no per-request thread hop, no body copy):
 
 - :class:`BodyLimit`: request bodies beyond the route's limit (``Settings.max_task_bytes`` for
-  task files, ``Settings.max_body_bytes`` for everything else) answered 413 with a message,
+  task files, ``Settings.max_import_bytes`` for a measurement import, ``Settings.max_body_bytes``
+  for everything else) answered 413 with a message,
   before the body is read (a declared ``Content-Length``) or as soon as it passes the limit
   (chunked uploads). A 50 MB task file once held the service for 5 minutes and 1.6 GB.
 - :class:`RequestLog`: one structured line per request on the ``recal.access`` logger (its
@@ -32,8 +33,8 @@ access_log = logging.getLogger("recal.access")
 TASK_ROUTES = (
     re.compile(r"^/api/v1/calibrations/[^/]+/compensate$"),
     re.compile(r"^/api/v1/cells/[^/]+/tasks$"),
-    re.compile(r"^/api/v1/cells/[^/]+/measurements$"),
-)  # the import of an external CSV
+)
+IMPORT_ROUTE = re.compile(r"^/api/v1/cells/[^/]+/measurements$")  # the import of an external CSV
 SECRET_KEYS = {"token", "ticket", "access_token", "password", "secret", "key", "api_key"}
 
 
@@ -60,6 +61,8 @@ class BodyLimit:
         self.app, self.settings = app, settings
 
     def limit_for(self, path: str) -> tuple[int, str]:
+        if IMPORT_ROUTE.match(path):
+            return self.settings.max_import_bytes, "RECAL_MAX_IMPORT_BYTES"
         if any(r.match(path) for r in TASK_ROUTES):
             return self.settings.max_task_bytes, "RECAL_MAX_TASK_BYTES"
         return self.settings.max_body_bytes, "RECAL_MAX_BODY_BYTES"

@@ -15,7 +15,7 @@ from calibration.identify import Measurements, NotEnoughData, Prior, drift_scale
 from calibration.model import KinematicModel, model_from_dict
 from calibration.report import identification_block, identification_report
 
-from ..analysis import AnalysisError, session_measurements, store_calibration
+from ..analysis import AnalysisError, session_data, store_calibration
 from ..models import Calibration, Cell, RunSession
 from ..plans import Plan, PlanRequest, planned_poses
 from ..results import predicted_accuracy
@@ -47,7 +47,7 @@ class Pose(PositionKind):
 
 
 def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
-    data, _ = session_measurements(db, run)
+    data = session_data(db, run)
     nominal = model_from_dict(cell.model)
     prev = current_calibration(db, cell)
     prior = None

@@ -11,7 +11,7 @@ from calibration import metrics
 from calibration.identification import Measurements
 from calibration.model import KinematicModel
 
-from ..analysis import session_measurements
+from ..analysis import session_data
 from ..compensation import calibrated_range_of
 from ..plans import Plan, PlanRequest, random_inside, repeated
 from ..records import current_model, position_errors, registered_errors
@@ -32,7 +32,7 @@ def verify_session(db, run, cell) -> dict:
     """The current model's position errors on the session's measurements (statistics in the
     model's length unit), also with the base placed where it fits best, and the ISO 9283 figures
     of a repeated session."""
-    data, _ = session_measurements(db, run)
+    data = session_data(db, run)
     model, cal = current_model(db, cell)
     e = np.linalg.norm(position_errors(model, data), axis=1)
     L = model.units.length_m

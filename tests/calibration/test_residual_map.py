@@ -97,3 +97,39 @@ def test_map_round_trips_through_the_model_file():
         assert exc.field == "residual_map.configurations"
     else:
         raise AssertionError("a short coefficient list must be refused")
+
+
+def _peak_bytes(fn) -> int:
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_auto_on_many_configurations_fits_a_bounded_map_in_memory_linear_in_rows():
+    # issue 22: the map's kernel matrix was rows x rows (a 31,487-row import needed 16 GB); the
+    # map now takes a seeded draw of at most MAX_MAP_CONFIGURATIONS configurations, and twice the
+    # rows cost at most about twice the memory
+    nom, measure = _sagging_cell()
+    small, large = measure(600), measure(1200)
+    kw = {"sigma_m": 20e-6}
+    out = {}
+    peaks = [
+        _peak_bytes(lambda d=d: out.setdefault(len(d), RM.choose_residual_map(nom, d, identify_kw=kw)))
+        for d in (small, large)
+    ]
+    rmap, fig = out[1200]
+    assert fig["kept"] and rmap is not None
+    assert len(rmap.q_train) == fig["rows"] <= RM.MAX_MAP_CONFIGURATIONS
+    assert peaks[1] < 2.6 * peaks[0], peaks
+    # the map drawn from the configurations still corrects fresh ones of the region
+    model = identify(nom, large, **kw).model
+    holdout = measure(300)
+    r = RM.residuals(model, holdout)
+    corr, inside = rmap.evaluate(holdout.q)
+    assert inside.mean() > 0.9
+    assert np.sqrt(np.mean(np.sum((r - corr) ** 2, axis=1))) < 0.6 * np.sqrt(np.mean(np.sum(r**2, axis=1)))

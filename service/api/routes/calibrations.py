@@ -8,6 +8,7 @@ from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
 from ...models import Calibration, CalibrationPublic, Compensation
+from ...packed import output_bytes
 from ...results import compare_calibrations
 from ..deps import Compensator, DbSession, Reader
 from ..schemas import Comparison
@@ -134,8 +135,9 @@ def read_compensation(compensation_id: int, db: DbSession, tok: Reader) -> Respo
     rec = db.get(Compensation, compensation_id)
     if rec is None:
         raise HTTPException(404, f"no compensation {compensation_id}")
+    data, charset = output_bytes(rec.output, rec.encoding)
     return Response(
-        rec.output.encode(rec.encoding),
-        media_type=f"text/plain; charset={rec.encoding}",
+        data,
+        media_type=f"text/plain; charset={charset}",
         headers={"X-Recal-Calibration": str(rec.calibration_id)},
     )

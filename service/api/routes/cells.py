@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Literal
 
 from fastapi import APIRouter, Request
@@ -25,6 +26,8 @@ from ...sessions import get_cell, start_session
 from ...store import audit
 from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
 from ..schemas import CalibrationListItem, Drift, JsonSchema, TaskFileContent, TaskFileInfo, TasksCompensated
+
+log = logging.getLogger("recal.api")
 
 router = APIRouter(tags=["cells"])
 
@@ -177,7 +180,8 @@ def _audit(engine, **kw) -> None:
 @router.post("/cells/{cell_id}/tasks/compensate", response_model=TasksCompensated, response_model_exclude_unset=True)
 async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, calibration_id: int | None = None):
     """Compensate every task file registered with the cell, with ``calibration_id`` (default the
-    cell's last pose calibration); each result is stored. Each is computed and stored in a
+    cell's last pose calibration); each result is stored. Each file is compensated on its own:
+    one that fails is answered with its ``error`` beside the others' results. Each is computed and stored in a
     worker process (service.heavy), awaited: no request thread is held meanwhile."""
     from ...compensate import CompensationInputError, compensate_and_store
 
@@ -186,8 +190,9 @@ async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, cal
     url = request.app.state.settings.effective_database_url
     results = []
     for task_id, name, mode in todo:
-        task = await run_in_threadpool(_task_input, engine, task_id)
+        # each file on its own: one that fails is reported with its reason, the others still done
         try:
+            task = await run_in_threadpool(_task_input, engine, task_id)
             rec_id, _, summary, _ = await heavy.run(
                 compensate_and_store,
                 url,
@@ -202,6 +207,10 @@ async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, cal
             )
         except CompensationInputError as exc:
             results.append({"task_id": task_id, "name": name, "error": str(exc)})
+            continue
+        except Exception as exc:  # not the file's known fault: logged in full, named in the answer
+            log.error("compensating task file %s (%s) of cell %s failed", task_id, name, cell_id, exc_info=exc)
+            results.append({"task_id": task_id, "name": name, "error": f"internal error: {type(exc).__name__}: {exc}"})
             continue
         results.append({"task_id": task_id, "name": name, "compensation_id": rec_id, "summary": summary})
     await run_in_threadpool(

@@ -83,3 +83,19 @@ def delete_cell(cell_id: int, db: DbSession, tok: Admin) -> dict:
     measurements, its calibrations and their compensations, its task files. Refused (409)
     while one of its sessions is planned or running. The audit entry keeps the counts."""
     return retention.delete_cell(db, get_cell(db, cell_id), tok)
+
+
+@router.delete("/cells/{cell_id}/tasks/{task_id}")
+def delete_task_file(cell_id: int, task_id: int, db: DbSession, tok: CellEditor) -> dict:
+    """Delete a task file registered with the cell (technician or admin, who register them; audited):
+    ``/cells/{id}/tasks/compensate`` and the nightly job no longer compensate it. Its stored
+    compensations are kept (delete them one by one, or with the cell)."""
+    get_cell(db, cell_id)
+    return retention.delete_task_file(db, cell_id, task_id, tok)
+
+
+@router.delete("/compensations/{compensation_id}")
+def delete_compensation(compensation_id: int, db: DbSession, tok: Admin) -> dict:
+    """Delete a stored compensation, its compensated file and report (admin; audited). Its
+    calibration is untouched: the task can be compensated again."""
+    return retention.delete_compensation(db, compensation_id, tok)

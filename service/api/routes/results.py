@@ -15,6 +15,7 @@ from starlette.concurrency import run_in_threadpool
 
 from ...certificate import certificate_data, certificate_pdf
 from ...models import Calibration, Compensation
+from ...packed import unpack_report
 from ...results import calibration_result, compare_calibrations, previous_calibration_id
 from ..deps import DbSession, Reader
 from ..schemas import CalibrationResult, Certificate, Comparison, CompensationReport
@@ -135,5 +136,5 @@ def compensation_report(compensation_id: int, db: DbSession, tok: Reader) -> dic
         "mode": rec.mode,
         "created_by": rec.created_by,
         "created_at": rec.created_at,
-        "report": rec.report or {},
+        "report": unpack_report(rec.report) or {},
     }
