@@ -136,14 +136,38 @@ def insert_measurements(db: Session, session_id: int, data: Measurements) -> Non
 
 
 def session_data(db: Session, run: RunSession) -> Measurements:
-    """The session's measurements as arrays, read as plain columns (no ORM object per row: a
-    100,000-row session reads in a fraction of a second)."""
-    cols = (Measurement.seq, Measurement.target, Measurement.q, Measurement.x, Measurement.y, Measurement.z)
-    cols += (Measurement.qw, Measurement.qx, Measurement.qy, Measurement.qz, Measurement.sigma)
+    """The session's measurements as arrays (as :func:`measurements_of` makes them), read as plain
+    columns, the readings' JSON decoded in one piece: no ORM object and no JSON parse per row (a
+    100,000-row session reads in well under a second)."""
+    import json
+
+    from sqlalchemy import String, cast
+
+    cols = (Measurement.seq, Measurement.target, cast(Measurement.q, String), Measurement.x, Measurement.y)
+    cols += (Measurement.z, Measurement.qw, Measurement.qx, Measurement.qy, Measurement.qz, Measurement.sigma)
     rows = db.exec(
         select(*cols).where(Measurement.session_id == run.id).order_by(Measurement.seq, Measurement.id)
     ).all()
-    return measurements_of(rows, run)
+    if not rows:
+        raise NoMeasurementsError("the session has no measurements")
+    seq, target, q_text, x, y, z, qw, qx, qy, qz, sigma = zip(*rows)
+    seq = np.array(seq, dtype=int)
+
+    def floats(values) -> np.ndarray:  # None (an empty column) as NaN
+        return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+    quat = np.column_stack([floats(qw), floats(qx), floats(qy), floats(qz)])
+    sig = floats(sigma)
+    return Measurements(
+        q=np.array(json.loads("[" + ",".join(q_text) + "]"), dtype=float),
+        p_world=np.column_stack([x, y, z]).astype(float),
+        quat=None if np.all(np.isnan(quat[:, 0])) else quat,
+        target=np.array([t or None for t in target], dtype=object),
+        sigma=np.where(sig == 0.0, np.nan, sig),  # as measurements_of: a zero sigma is none
+        pose_id=seq,
+        row=seq + 1,
+        payload=payload_of(run, seq),
+    )
 
 
 def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, list[Measurement]]:
