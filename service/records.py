@@ -103,36 +103,32 @@ INSERT_CHUNK_ROWS = 5000
 
 
 def insert_measurements(db: Session, session_id: int, data: Measurements) -> None:
-    """:func:`measurement_rows`' rows inserted in chunks of plain parameter dicts (not committed):
-    an ORM object per row cost 0.15 ms and a kilobyte each, 15 s for a 100,000-row import."""
-    table = Measurement.__table__  # the plain table: no ORM bookkeeping per row
+    """:func:`measurement_rows`' rows inserted in chunks through the database driver's own
+    ``executemany`` (not committed): an ORM object per row cost 0.15 ms and a kilobyte each, and
+    SQLAlchemy's per-row parameter processing another 20 µs; a 100,000-row import took 15 s.
+    Each value is given as SQLAlchemy would bind it (the readings as JSON text, the time through
+    the column type's own bind processing)."""
+    import json
+
     conn = db.connection()
-    now = utcnow()
+    table = Measurement.__table__
+    names = ("session_id", "seq", "target", "q", "x", "y", "z", "qw", "qx", "qy", "qz", "sigma", "created_at")
+    bind_time = table.c.created_at.type.bind_processor(conn.dialect)
+    now = utcnow() if bind_time is None else bind_time(utcnow())
+    mark = "?" if conn.dialect.paramstyle == "qmark" else "%s"
+    sql = f"INSERT INTO {table.name} ({', '.join(names)}) VALUES ({', '.join([mark] * len(names))})"
     quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
-    q = np.asarray(data.q, dtype=float).tolist()
+    q_json = [json.dumps(row) for row in np.asarray(data.q, dtype=float).tolist()]
     p = np.asarray(data.p_world, dtype=float).tolist()
     quat_l = np.where(np.isnan(quat), None, quat).tolist()
     sigma_l = np.where(np.isfinite(data.sigma), data.sigma, None).tolist()
+    target = [t or "" for t in data.target]
     for start in range(0, len(data), INSERT_CHUNK_ROWS):
         chunk = [
-            {
-                "session_id": session_id,
-                "seq": i,
-                "target": data.target[i] or "",
-                "q": q[i],
-                "x": p[i][0],
-                "y": p[i][1],
-                "z": p[i][2],
-                "qw": quat_l[i][0],
-                "qx": quat_l[i][1],
-                "qy": quat_l[i][2],
-                "qz": quat_l[i][3],
-                "sigma": sigma_l[i],
-                "created_at": now,
-            }
+            (session_id, i, target[i], q_json[i], *p[i], *quat_l[i], sigma_l[i], now)
             for i in range(start, min(start + INSERT_CHUNK_ROWS, len(data)))
         ]
-        conn.execute(table.insert(), chunk)
+        conn.exec_driver_sql(sql, chunk)
 
 
 def session_data(db: Session, run: RunSession) -> Measurements:
