@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         runs.append(import_once(n, text))
         r = runs[-1]
         print(
-            f"import {n:>7} rows ({r['csv_bytes'] / 1e6:.1f} MB): {r['s']:.2f} s, "
+            f"import {n:>7} rows ({r['csv_bytes'] / 1e6:.1f} MB): {r['s']:.2f} s ({r['cpu_s']:.2f} s of service CPU), "
             f"{r['peak_above_idle_mb']:.0f} MB above idle ({r['idle_mb']:.0f} MB), {r['state']}, "
             f"calibration {r['calibration_id']}",
             flush=True,

@@ -131,6 +131,26 @@ def insert_measurements(db: Session, session_id: int, data: Measurements) -> Non
         conn.exec_driver_sql(sql, chunk)
 
 
+def as_stored(run: RunSession, data: Measurements) -> Measurements:
+    """``data`` as :func:`session_data` reads it back once :func:`insert_measurements` has stored
+    it for ``run`` (the row's index as pose number, an empty target or uncertainty as none):
+    what an import hands to its analysis instead of reading 100,000 rows back."""
+    n = len(data)
+    seq = np.arange(n)
+    quat = None if data.quat is None or np.all(np.isnan(data.quat[:, 0])) else np.asarray(data.quat, dtype=float)
+    sigma = np.asarray(data.sigma, dtype=float)
+    return Measurements(
+        q=np.asarray(data.q, dtype=float),
+        p_world=np.asarray(data.p_world, dtype=float),
+        quat=quat,
+        target=np.array([t or None for t in data.target], dtype=object),
+        sigma=np.where(np.isfinite(sigma) & (sigma != 0.0), sigma, np.nan),
+        pose_id=seq,
+        row=seq + 1,
+        payload=payload_of(run, seq),
+    )
+
+
 def session_data(db: Session, run: RunSession) -> Measurements:
     """The session's measurements as arrays (as :func:`measurements_of` makes them), read as plain
     columns, the readings' JSON decoded in one piece: no ORM object and no JSON parse per row (a
