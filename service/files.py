@@ -12,6 +12,7 @@ import io
 import json
 import math
 import os
+import stat
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -106,13 +107,56 @@ def load_model(spec: str | os.PathLike) -> KinematicModel:
         ) from None
 
 
-def read_text(path: str | os.PathLike, expected: str, *, encoding: str = "utf-8") -> str:
-    """A text file's contents; a file that cannot be read, a binary file (NUL bytes) or one
-    that is not UTF-8 raises ``InputError`` (one line) naming where and what was expected."""
+# The largest input file a verb reads (bytes): a million measurement rows are about 100 MB. A
+# device or a pipe (`--joints /dev/zero`) is read only this far; a larger regular file is refused
+# before it is read. RECAL_MAX_INPUT_BYTES sets another bound (docs/formats.md §6).
+DEFAULT_MAX_INPUT_BYTES = 512 * 1024 * 1024
+
+
+def max_input_bytes() -> int:
+    """The input bound in force: ``RECAL_MAX_INPUT_BYTES`` (a positive whole number of bytes, a
+    ``k``, ``M`` or ``G`` suffix allowed) or :data:`DEFAULT_MAX_INPUT_BYTES`."""
+    raw = os.environ.get("RECAL_MAX_INPUT_BYTES", "").strip()
+    if not raw:
+        return DEFAULT_MAX_INPUT_BYTES
+    scale = {"k": 1024, "m": 1024**2, "g": 1024**3}.get(raw[-1].lower(), 1)
     try:
-        data = Path(path).read_bytes()
+        value = int(raw[:-1] if scale > 1 else raw) * scale
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise InputError("RECAL_MAX_INPUT_BYTES", f"expected a positive number of bytes (e.g. 512M), got {raw!r}")
+    return value
+
+
+def read_bounded(path: str | os.PathLike) -> bytes:
+    """A file's bytes, at most :func:`max_input_bytes` of them: a larger regular file is refused
+    from its size before anything is read, and a device or pipe after that many bytes, so the
+    memory a verb uses for its input stays bounded (issue 22: ``/dev/zero`` grew to 21.8 GB)."""
+    limit = max_input_bytes()
+    try:
+        with open(path, "rb") as f:
+            st = os.fstat(f.fileno())
+            if stat.S_ISREG(st.st_mode) and st.st_size > limit:
+                raise InputError(
+                    path,
+                    f"is {st.st_size:,} bytes; expected at most {limit:,} (RECAL_MAX_INPUT_BYTES sets the bound)",
+                )
+            data = f.read(limit + 1)
     except OSError as exc:
         raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+    if len(data) > limit:
+        raise InputError(
+            path, f"goes on past {limit:,} bytes; expected at most that (RECAL_MAX_INPUT_BYTES sets the bound)"
+        )
+    return data
+
+
+def read_text(path: str | os.PathLike, expected: str, *, encoding: str = "utf-8") -> str:
+    """A text file's contents; a file that cannot be read, one over the input bound
+    (:func:`read_bounded`), a binary file (NUL bytes) or one that is not UTF-8 raises
+    ``InputError`` (one line) naming where and what was expected."""
+    data = read_bounded(path)
     nul = data.find(b"\x00")
     if nul >= 0:
         raise InputError(
@@ -241,13 +285,58 @@ class Table:
         return [(row[k].strip() or None) if k < len(row) else None for row in self.rows]
 
 
+def _check_line_ends(path: str | os.PathLike, text: str) -> None:
+    """Refuse a carriage return that ends a line alone in a file of LF or CR LF lines: the rows
+    it separates would be read as one (csv refuses it mid-file; a program's reader would not)."""
+    cr = text.find("\r")
+    while cr >= 0 and text.startswith("\r\n", cr):
+        cr = text.find("\r", cr + 2)
+    if cr >= 0:
+        raise InputError(
+            path,
+            "a carriage return (CR) alone ends this line; expected every line to end with LF or CR LF "
+            "(the file mixes line ends: save it with one kind)",
+            line=text.count("\n", 0, cr) + 1,
+        )
+
+
+def _csv_rows(path: str | os.PathLike, text: str):
+    """The rows of ``text`` as csv reads them; a row csv cannot read (a field over its limit, a
+    stray quote at the end) is one ``InputError`` naming the line."""
+    reader = csv.reader(io.StringIO(text))
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            if "field larger than field limit" in str(exc):
+                what = (
+                    f"has a field longer than {csv.field_size_limit():,} characters; expected numbers and short names"
+                )
+            else:
+                what = f"cannot be read as CSV ({exc}); expected comma-separated values"
+            raise InputError(path, what, line=reader.line_num) from None
+        yield row
+
+
+def check_csv_text(path: str | os.PathLike, text: str) -> None:
+    """Refuse (``InputError`` naming the line) a CSV text the reader cannot take: what
+    :func:`read_table` would refuse before looking at columns. For text kept to be read later (a
+    task file registered with a cell): refused when it arrives, not when the night's job reads it."""
+    _check_line_ends(path, text)
+    for _ in _csv_rows(path, text):
+        pass
+
+
 def read_table(path: str | os.PathLike) -> Table:
     """Read a CSV with one header line; ``#`` starts a comment line; blank lines are skipped."""
     text = read_text(path, "a CSV file", encoding="utf-8-sig")
+    _check_line_ends(path, text)
     header: list[str] | None = None
     header_line = 1
     rows, lines = [], []
-    for lineno, row in enumerate(csv.reader(io.StringIO(text)), start=1):
+    for lineno, row in enumerate(_csv_rows(path, text), start=1):
         if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
             continue
         if header is None:

@@ -34,7 +34,7 @@ import numpy as np
 from calibration.model import KinematicModel
 from calibration.transforms import homogeneous, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, rotvec_to_matrix
 
-from .files import MAX_MAGNITUDE_SI, InputError, Table, read_table, replace_spans
+from .files import MAX_MAGNITUDE_SI, InputError, Table, read_bounded, read_table, replace_spans
 
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 RESULT_COLUMNS = ("converged", "residual", "flags")
@@ -356,10 +356,7 @@ def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | Non
     """Find the move targets of a URScript program (see the module docstring); ``data`` the
     file's bytes (read from ``path`` when not given)."""
     if data is None:
-        try:
-            data = Path(path).read_bytes()
-        except OSError as exc:
-            raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+        data = read_bounded(path)
     text = data.decode("utf-8", "surrogateescape")
     lines = [(m.start(), m.end()) for m in _LINE_RE.finditer(text) if m.end() > m.start()]
     skipped: list[Uninterpreted] = []

@@ -7,6 +7,7 @@ from __future__ import annotations
 from sqlmodel import Session, select
 
 from . import programs
+from .files import InputError, check_csv_text
 from .models import Calibration, Cell, TaskFile
 from .problems import Invalid, NotFound
 from .store import audit, current_calibration
@@ -52,6 +53,11 @@ def register_task(
     _check_bytes("body.", name, content, encoding)
     if encoding != "utf-8" and programs.format_of(name) == "csv":
         raise Invalid("body.encoding", f"{name}: a task CSV is UTF-8 (contracts §5); got {encoding}")
+    if programs.format_of(name) == "csv":
+        try:  # the reader the compensation will use, now: a file it cannot read is not kept
+            check_csv_text(name, content)
+        except InputError as exc:
+            raise Invalid("body.content", str(exc)) from None
     if files and not lower.endswith(".src"):
         raise Invalid("body.files", f"{name}: only a KRL .src has other files (its .dat, and $config.dat)")
     for i, f in enumerate(files):

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ..files import InputError, replace_spans
+from ..files import read_bounded, replace_spans
 
 NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 NUM_RE = re.compile(NUM)
@@ -101,10 +100,7 @@ class Program:
 def read_text(path, data: bytes | None = None) -> str:
     """A file's text, UTF-8 with undecodable bytes kept as surrogates (so every byte comes back)."""
     if data is None:
-        try:
-            data = Path(path).read_bytes()
-        except OSError as exc:
-            raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+        data = read_bounded(path)
     return data.decode("utf-8", "surrogateescape")
 
 

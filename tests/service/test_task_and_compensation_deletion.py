@@ -8,7 +8,7 @@ from __future__ import annotations
 from sqlmodel import Session, select
 
 from calibration.model import model_from_dict
-from service.models import AuditEntry
+from service.models import AuditEntry, TaskFile
 from service.store import make_engine
 
 from .conftest import auth
@@ -27,12 +27,30 @@ def _bare_cr(task: str) -> str:
     return "\n".join(lines[:2]) + "\n" + lines[2] + "\r" + "\n".join(lines[3:]) + "\n"
 
 
+def _stored_before_the_check(settings, cell: int, name: str, content: str) -> int:
+    engine = make_engine(settings.effective_database_url)
+    try:
+        with Session(engine) as db:
+            t = TaskFile(cell_id=cell, name=name, content=content, mode="joints", encoding="utf-8")
+            db.add(t)
+            db.commit()
+            return int(t.id)
+    finally:
+        engine.dispose()
+
+
 def test_a_failing_task_file_is_reported_beside_the_others_and_can_be_deleted(calibrated, tokens, settings):
     client, cell, cal = calibrated
     model = model_from_dict(client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"])
     task, _, _ = _task(model)
     tech = tokens["technician"]
-    bad = _register(client, tech, cell, "bare-cr.csv", _bare_cr(task))
+    # registration now refuses it (the reader the compensation uses, at the door) ...
+    r = client.post(
+        f"/api/v1/cells/{cell}/tasks", json={"name": "bare-cr.csv", "content": _bare_cr(task)}, headers=auth(tech)
+    )
+    assert r.status_code == 422 and "carriage return (CR) alone" in r.text, r.text
+    # ... but a store may keep one registered before it did: stored as such a registration stored it
+    bad = _stored_before_the_check(settings, cell, "bare-cr.csv", _bare_cr(task))
     good = _register(client, tech, cell, "weld.csv", task)
     r = client.post(f"/api/v1/cells/{cell}/tasks/compensate", headers=auth(tokens["job"]))
     assert r.status_code == 200, r.text
