@@ -23,6 +23,8 @@ from calibration.errors import RecalError
 from calibration.identify import Measurements
 from calibration.model import KinematicModel, ModelFormatError, model_from_dict, model_to_dict
 
+from .textcheck import document_faults
+
 # The largest magnitude of any number in a JSON document the API takes (a model, a region, a
 # body field), checked before its units are known, in the document's own units. A robot cell's lengths are metres (1e3-1e4 in mm), its
 # angles a few turns; 1e9 leaves room for any unit and any cell while every product the
@@ -99,6 +101,11 @@ def load_model(spec: str | os.PathLike) -> KinematicModel:
             spec,
             f"line {exc.lineno}, column {exc.colno}: invalid JSON ({exc.msg}); expected a recal.model/1 JSON document",
         ) from None
+    faults = document_faults(doc)
+    if faults:  # "\ud800" is valid JSON but not text: every verb that wrote it out failed
+        loc, message = faults[0]
+        where = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".")
+        raise InputError(spec, f"field {where!r}: {message}")
     try:
         return model_from_dict(doc)
     except ModelFormatError as exc:

@@ -159,6 +159,7 @@ SERVICE_BOTTOM = (
     "service.settings",
     "service.problems",
     "service.files",
+    "service.textcheck",
 )
 
 

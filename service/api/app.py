@@ -3,6 +3,7 @@ engine, the migrations and the orchestrator start in the lifespan."""
 
 from __future__ import annotations
 
+import json
 import logging
 import typing
 from contextlib import asynccontextmanager
@@ -22,6 +23,7 @@ from ..problems import STATUS, Conflict, Invalid, NotFound, detail_of
 from ..runners import runner_class
 from ..settings import Settings
 from ..store import database_unavailable, interrupt_unfinished, make_engine, migrate
+from ..textcheck import document_faults, parameter_fault
 from . import docs, metrics
 from .deps import current_token
 from .docs import allowed_methods, document_errors, needs_token
@@ -58,10 +60,9 @@ async def bounded_numbers(request: Request) -> None:
     ):
         for param in declared:
             value = given.get(param.alias or param.name)
-            if isinstance(value, str) and "\x00" in value:  # no database stores NUL in text (PostgreSQL: a 500)
-                errors.append(
-                    {"loc": (where, param.name), "msg": "expected text without NUL characters", "type": "value_error"}
-                )
+            fault = parameter_fault(param.name, value) if isinstance(value, str) else None
+            if fault:  # no database stores NUL or a lone surrogate in text (PostgreSQL: a 500)
+                errors.append({"loc": (where, param.name), "msg": fault, "type": "value_error"})
                 continue
             if value is None or not _declares_int(param.field_info.annotation):
                 continue
@@ -85,8 +86,25 @@ async def bounded_numbers(request: Request) -> None:
                         "type": "value_error",
                     }
                 )
+    errors += await _body_text_faults(request)
     if errors:
         raise RequestValidationError(errors)
+
+
+async def _body_text_faults(request: Request) -> list[dict]:
+    """Every string of a JSON body (keys too) that could not be stored as text, before any route
+    reads it: a refused request stores nothing (a PATCH whose model name held a lone surrogate
+    answered 500 and kept the model, after which GET /cells answered 500 for every role)."""
+    if request.method not in ("POST", "PUT", "PATCH"):
+        return []
+    if not (request.headers.get("content-type") or "").startswith("application/json"):
+        return []
+    body = await request.body()  # Starlette keeps it for the route
+    try:
+        doc = json.loads(body)
+    except ValueError:
+        return []  # not JSON: the route's own validation answers
+    return [{"loc": ("body", *loc), "msg": msg, "type": "value_error"} for loc, msg in document_faults(doc)[:20]]
 
 
 def _field(loc) -> str:
