@@ -9,7 +9,7 @@ from __future__ import annotations
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationInfo, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, StrictInt, ValidationInfo, field_validator
 from pydantic import Field as PField
 from sqlalchemy import JSON, BigInteger, Column, Integer, UniqueConstraint
 from sqlmodel import Field, SQLModel
@@ -270,14 +270,21 @@ class CellCreate(_In):
     drift_threshold: float | None = PField(default=None, gt=0)
 
 
+def _omitted_or_value(schema: dict[str, Any]) -> None:
+    """A field that may be left out but is never null: its schema without the ``null`` default."""
+    schema.pop("default", None)
+
+
 class CellUpdate(_In):
     """Fields to change; a field left out stays as it is. ``model`` replaces the nominal model
     (refused while a session drives the cell; the old one is kept in the audit log)."""
 
-    name: Name | None = None
-    model: dict[str, Any] | None = None
-    devices: dict[str, Any] | None = PField(None, description=DEVICES_DOC)
-    site: Name | None = None
+    # Omitted or a value, never null (the OpenAPI document says so: no "null" in their types and
+    # no default, which once let a client generated from it send nulls the route refused).
+    name: Name = PField(None, json_schema_extra=_omitted_or_value)
+    model: dict[str, Any] = PField(None, json_schema_extra=_omitted_or_value)
+    devices: dict[str, Any] = PField(None, description=DEVICES_DOC, json_schema_extra=_omitted_or_value)
+    site: Name = PField(None, json_schema_extra=_omitted_or_value)
     allowed_region: list[list[float]] | None = None  # null: no region beyond the model's joint limits
     drift_threshold: float | None = PField(default=None, gt=0)  # null: no threshold
 
@@ -304,12 +311,12 @@ class CellPublic(BaseModel):
 
 class SessionCreate(_In):
     kind: Literal["pose", "circle", "joint", "verify"]
-    count: int = PField(default=30, ge=1, le=max(MAX_COUNT.values()))
+    count: StrictInt = PField(default=30, ge=1, le=max(MAX_COUNT.values()))  # true and "10" are not counts
     device: Literal["tracker", "cmm"] = "tracker"
     target: str | None = None
     dry_run: bool = False
     joints: list[int] | None = PField(default=None, min_length=1)  # circle / joint sessions: which joints (1-based)
-    repeats: int = PField(default=1, ge=1, le=MAX_REPEATS)  # verify: visits of each configuration (ISO 9283)
+    repeats: StrictInt = PField(default=1, ge=1, le=MAX_REPEATS)  # verify: visits of each configuration (ISO 9283)
     # pose / verify sessions: payloads [kg] or [kg, x, y, z] (centre of gravity in the tool frame, model length
     # unit), the plan split between them in order (a compliant model separates the arm's weight from the payload's)
     payloads: list[list[float]] | None = PField(default=None, min_length=1, max_length=4)

@@ -32,7 +32,15 @@ TASK_ROUTES = (
     re.compile(r"^/api/v1/cells/[^/]+/tasks$"),
     re.compile(r"^/api/v1/cells/[^/]+/measurements$"),
 )  # the import of an external CSV
-SECRET_KEYS = {"token", "ticket", "access_token", "password", "secret", "key", "api_key"}
+# A query parameter whose name contains any of these (case and separators aside) is written
+# ``***``: ``auth=`` and ``authorization=`` were once logged verbatim (issue 22).
+SECRET_KEYS = ("token", "ticket", "auth", "pass", "pwd", "secret", "key", "credential", "signature", "cookie")
+
+
+def secret_like(name: str) -> bool:
+    """Whether the query parameter ``name`` looks like it carries a credential."""
+    folded = "".join(ch for ch in name.lower() if ch.isalnum())
+    return any(word in folded for word in SECRET_KEYS)
 
 
 class BodyTooLarge(RecalError, HTTPException):
@@ -106,7 +114,7 @@ def redacted_query(query: str) -> str:
     if not query:
         return ""
     pairs = parse_qsl(query, keep_blank_values=True)
-    return urlencode([(k, "***" if k.lower() in SECRET_KEYS else v) for k, v in pairs])
+    return urlencode([(k, "***" if secret_like(k) else v) for k, v in pairs])
 
 
 def route_of(scope) -> str:
