@@ -14,6 +14,7 @@ import pytest
 from service.models import MAX_COUNT
 
 from .conftest import auth, register_cell
+from .test_limits import live  # noqa: F401, F811 (the service served by uvicorn on loopback)
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "service.md"
 TASK = "q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n"
@@ -100,3 +101,24 @@ def test_a_krl_target_beyond_any_cell_is_refused_as_urscript_is(calibrated, toke
     script = "def prog():\n  movel(p[1e197, 0.1, 0.4, 0, 3.14, 0], a=1.2, v=0.25)\nend\n"
     r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=prog.script", content=script, headers=h)
     assert r.status_code == 422 and "prog.script, line 2" in r.text, r.text
+
+
+@pytest.mark.parametrize("megabytes", [4, 40])
+def test_a_plain_client_sending_a_body_over_the_limit_reads_the_413(live, tokens, megabytes):  # noqa: F811
+    """http.client (as requests) sends the whole body before it reads the answer: the service
+    reads it (discarding it) and answers 413, instead of closing on an unread body, which the
+    client saw as a connection reset."""
+    import http.client
+
+    body = b"q1,q2,q3,q4,q5,q6\n" + b"1,2,3,4,5,6\n" * (megabytes * 1024 * 1024 // 12)
+    conn = http.client.HTTPConnection(*live, timeout=60)
+    conn.request(
+        "POST",
+        "/api/v1/calibrations/1/compensate",
+        body=body,
+        headers={"Authorization": f"Bearer {tokens['job']}", "Content-Type": "text/csv"},
+    )
+    r = conn.getresponse()
+    assert r.status == 413 and "RECAL_MAX_TASK_BYTES" in json.loads(r.read())["detail"]
+    assert r.getheader("connection") == "close"
+    conn.close()
