@@ -41,8 +41,9 @@ def _declares_int(annotation) -> bool:
 
 async def bounded_numbers(request: Request) -> None:
     """Every route's integer parameters, before anything reads them: an id (``*_id`` or
-    ``previous``, in the path or the query: ``docs.is_id_parameter``) is 1 to 2**63 - 1, any other integer (``limit``, ``offset``) fits 64 bits,
-    as the database stores them (beyond, SQLite and PostgreSQL raise instead of finding nothing).
+    ``previous``, in the path or the query: ``docs.is_id_parameter``) is 1 to 2**63 - 1, any other
+    integer (``limit``, ``offset``) fits 64 bits, as the database stores them (every id column is
+    64-bit since schema version 8; beyond, SQLite and PostgreSQL raise instead of finding nothing).
     422 naming the parameter. An app-wide dependency: it covers the routes added later too (async:
     no thread hop on every request)."""
     route = request.scope.get("route")
