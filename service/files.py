@@ -546,10 +546,10 @@ def parse_payload(text: str, model: KinematicModel, flag: str = "--payload") -> 
         vals = [float(v) for v in text.split(",")]
     except ValueError:
         vals = []
-    if len(vals) not in (1, 4) or not all(math.isfinite(v) for v in vals) or vals[0] < 0:
+    if len(vals) not in (1, 4) or any(magnitude_problem(v) for v in vals) or vals[0] < 0:
         raise ValueError(
             f"{flag}: expected KG or KG,X,Y,Z (mass >= 0 kg, centre of gravity in the tool frame in "
-            f"{model.units.length}), got {text!r}"
+            f"{model.units.length}, each from {-MAX_MAGNITUDE:g} to {MAX_MAGNITUDE:g}), got {text!r}"
         )
     vals += [0.0] * (4 - len(vals))
     L = model.units.length_m

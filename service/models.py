@@ -9,9 +9,9 @@ from __future__ import annotations
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationInfo, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, StrictInt, ValidationInfo, field_validator
 from pydantic import Field as PField
-from sqlalchemy import JSON, Column, UniqueConstraint
+from sqlalchemy import JSON, BigInteger, Column, Integer, UniqueConstraint
 from sqlmodel import Field, SQLModel
 
 from .files import MAX_MAGNITUDE, magnitude_problem
@@ -27,9 +27,14 @@ SESSION_STATES = ("planned", "running", "paused", "interrupted", "completed", "f
 ACTIVE = ("planned", "running")  # a session drives its cell (a cell runs one at a time)
 TERMINAL = ("completed", "failed", "aborted")  # nothing resumes it
 
+# Ids and the columns that refer to them are 64-bit on every database (the docs promise 1 to
+# 2**63 - 1; PostgreSQL's INTEGER stopped at 2**31 - 1 and answered 500 beyond it, schema v8).
+# SQLite's INTEGER is already 64-bit, and only an INTEGER PRIMARY KEY is its autoincrementing rowid.
+ID_TYPE = BigInteger().with_variant(Integer, "sqlite")
+
 
 class Cell(SQLModel, table=True):
-    id: int | None = Field(default=None, primary_key=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
     name: str = Field(index=True, unique=True)
     site: str = Field(default="default", index=True)
     model: dict = Field(sa_column=Column(JSON, nullable=False))  # nominal recal.model/1
@@ -43,8 +48,8 @@ class Cell(SQLModel, table=True):
 
 class RunSession(SQLModel, table=True):
     __tablename__ = "session"
-    id: int | None = Field(default=None, primary_key=True)
-    cell_id: int = Field(foreign_key="cell.id", index=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
+    cell_id: int = Field(foreign_key="cell.id", sa_type=ID_TYPE, index=True)
     kind: str
     state: str = Field(default="planned", index=True)
     planned: int = 0
@@ -54,7 +59,7 @@ class RunSession(SQLModel, table=True):
     plan: list | None = Field(default=None, sa_column=Column(JSON))  # joint configurations, SI
     plan_info: dict | None = Field(default=None, sa_column=Column(JSON))
     reason: str | None = None  # why it paused, failed or was interrupted
-    calibration_id: int | None = None
+    calibration_id: int | None = Field(default=None, sa_type=ID_TYPE)
     created_by: str = ""
     created_at: datetime = Field(default_factory=utcnow)
     updated_at: datetime = Field(default_factory=utcnow)
@@ -70,8 +75,8 @@ class RunSession(SQLModel, table=True):
 
 class Measurement(SQLModel, table=True):
     __table_args__ = (UniqueConstraint("session_id", "seq", "target", name="uq_measurement_seq_target"),)
-    id: int | None = Field(default=None, primary_key=True)
-    session_id: int = Field(foreign_key="session.id", index=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
+    session_id: int = Field(foreign_key="session.id", sa_type=ID_TYPE, index=True)
     seq: int  # index in the session's plan
     target: str = ""  # "" is the tool origin
     joint: int | None = None  # circle sessions: the swept joint (1-based)
@@ -89,9 +94,9 @@ class Measurement(SQLModel, table=True):
 
 
 class Calibration(SQLModel, table=True):
-    id: int | None = Field(default=None, primary_key=True)
-    cell_id: int = Field(foreign_key="cell.id", index=True)
-    session_id: int | None = Field(default=None, foreign_key="session.id")
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
+    cell_id: int = Field(foreign_key="cell.id", sa_type=ID_TYPE, index=True)
+    session_id: int | None = Field(default=None, foreign_key="session.id", sa_type=ID_TYPE)
     kind: str = "pose"
     model: dict = Field(sa_column=Column(JSON, nullable=False))
     report: dict = Field(sa_column=Column(JSON, nullable=False))
@@ -110,18 +115,18 @@ class ControllerModel(SQLModel, table=True):
 
     __tablename__ = "controller_model"
     __table_args__ = (UniqueConstraint("cell_id", "version", name="uq_controller_model_version"),)
-    id: int | None = Field(default=None, primary_key=True)
-    cell_id: int = Field(foreign_key="cell.id", index=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
+    cell_id: int = Field(foreign_key="cell.id", sa_type=ID_TYPE, index=True)
     version: int = 1
     model: dict = Field(sa_column=Column(JSON, nullable=False))  # recal.model/1 with its `controller` block
-    session_id: int | None = None  # the session that read it (None: uploaded)
+    session_id: int | None = Field(default=None, sa_type=ID_TYPE)  # the session that read it (None: uploaded)
     moved_m: float | None = None  # how far it moved from the previous version (m, worst flange position)
     created_at: datetime = Field(default_factory=utcnow)
 
 
 class Compensation(SQLModel, table=True):
-    id: int | None = Field(default=None, primary_key=True)
-    calibration_id: int = Field(foreign_key="calibration.id", index=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
+    calibration_id: int = Field(foreign_key="calibration.id", sa_type=ID_TYPE, index=True)
     name: str = ""
     mode: str = "joints"
     output: str = ""
@@ -134,8 +139,8 @@ class Compensation(SQLModel, table=True):
 
 
 class TaskFile(SQLModel, table=True):
-    id: int | None = Field(default=None, primary_key=True)
-    cell_id: int = Field(foreign_key="cell.id", index=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
+    cell_id: int = Field(foreign_key="cell.id", sa_type=ID_TYPE, index=True)
     name: str
     content: str
     mode: str = "joints"
@@ -148,7 +153,7 @@ class TaskFile(SQLModel, table=True):
 
 
 class Token(SQLModel, table=True):
-    id: int | None = Field(default=None, primary_key=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
     name: str = Field(index=True)
     role: str
     hash: str = Field(index=True, unique=True)  # sha256 of the token; the token itself is never stored
@@ -163,16 +168,16 @@ class EventTicket(SQLModel, table=True):
     when used (store.redeem_ticket)."""
 
     __tablename__ = "event_ticket"
-    id: int | None = Field(default=None, primary_key=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
     hash: str = Field(index=True, unique=True)  # sha256 of the ticket; the ticket itself is never stored
-    token_id: int = Field(foreign_key="token.id")  # whose rights the stream has
+    token_id: int = Field(foreign_key="token.id", sa_type=ID_TYPE)  # whose rights the stream has
     scope: str  # what it opens: "events:<session id>"
     expires_at: datetime = Field(index=True)
 
 
 class AuditEntry(SQLModel, table=True):
     __tablename__ = "audit"
-    id: int | None = Field(default=None, primary_key=True)
+    id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
     at: datetime = Field(default_factory=utcnow)
     actor: str
     action: str
@@ -265,14 +270,21 @@ class CellCreate(_In):
     drift_threshold: float | None = PField(default=None, gt=0)
 
 
+def _omitted_or_value(schema: dict[str, Any]) -> None:
+    """A field that may be left out but is never null: its schema without the ``null`` default."""
+    schema.pop("default", None)
+
+
 class CellUpdate(_In):
     """Fields to change; a field left out stays as it is. ``model`` replaces the nominal model
     (refused while a session drives the cell; the old one is kept in the audit log)."""
 
-    name: Name | None = None
-    model: dict[str, Any] | None = None
-    devices: dict[str, Any] | None = PField(None, description=DEVICES_DOC)
-    site: Name | None = None
+    # Omitted or a value, never null (the OpenAPI document says so: no "null" in their types and
+    # no default, which once let a client generated from it send nulls the route refused).
+    name: Name = PField(None, json_schema_extra=_omitted_or_value)
+    model: dict[str, Any] = PField(None, json_schema_extra=_omitted_or_value)
+    devices: dict[str, Any] = PField(None, description=DEVICES_DOC, json_schema_extra=_omitted_or_value)
+    site: Name = PField(None, json_schema_extra=_omitted_or_value)
     allowed_region: list[list[float]] | None = None  # null: no region beyond the model's joint limits
     drift_threshold: float | None = PField(default=None, gt=0)  # null: no threshold
 
@@ -299,12 +311,12 @@ class CellPublic(BaseModel):
 
 class SessionCreate(_In):
     kind: Literal["pose", "circle", "joint", "verify"]
-    count: int = PField(default=30, ge=1, le=max(MAX_COUNT.values()))
+    count: StrictInt = PField(default=30, ge=1, le=max(MAX_COUNT.values()))  # true and "10" are not counts
     device: Literal["tracker", "cmm"] = "tracker"
     target: str | None = None
     dry_run: bool = False
     joints: list[int] | None = PField(default=None, min_length=1)  # circle / joint sessions: which joints (1-based)
-    repeats: int = PField(default=1, ge=1, le=MAX_REPEATS)  # verify: visits of each configuration (ISO 9283)
+    repeats: StrictInt = PField(default=1, ge=1, le=MAX_REPEATS)  # verify: visits of each configuration (ISO 9283)
     # pose / verify sessions: payloads [kg] or [kg, x, y, z] (centre of gravity in the tool frame, model length
     # unit), the plan split between them in order (a compliant model separates the arm's weight from the payload's)
     payloads: list[list[float]] | None = PField(default=None, min_length=1, max_length=4)

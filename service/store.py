@@ -23,6 +23,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 from sqlmodel import Session, SQLModel, create_engine, select
 
 from .models import (
+    ID_TYPE,
     ROLES,
     AuditEntry,
     Calibration,
@@ -147,7 +148,36 @@ def _v7(conn) -> None:
             conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {column} {ddl}"))
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7]
+def _id_columns() -> list[tuple[str, str]]:
+    """Every id column and column that names an id: ``(table, column)``, read from the models
+    (``models.ID_TYPE``), so that a table added later is covered too."""
+    return [
+        (table.name, column.name)
+        for table in SQLModel.metadata.sorted_tables
+        for column in table.columns
+        if column.type is ID_TYPE
+    ]
+
+
+def _v8(conn) -> None:
+    """Ids as documented, 1 to 2**63 - 1 (issue 22): every id and every column naming one is
+    64-bit on PostgreSQL (its INTEGER and SERIAL stopped at 2**31 - 1, and a larger id in a path
+    or query answered 500), and the ids' sequences count as far. SQLite's INTEGER is 64-bit
+    already: nothing to do there. Rows are kept (ALTER ... TYPE BIGINT converts them in place)."""
+    if conn.dialect.name != "postgresql":
+        return
+    existing = set(inspect(conn).get_table_names())
+    for table, column in _id_columns():
+        if table not in existing:
+            continue
+        conn.execute(text(f'ALTER TABLE "{table}" ALTER COLUMN "{column}" TYPE BIGINT'))
+        if column == "id":
+            sequence = conn.execute(text("SELECT pg_get_serial_sequence(:t, 'id')"), {"t": f'"{table}"'}).scalar()
+            if sequence:
+                conn.execute(text(f"ALTER SEQUENCE {sequence} AS BIGINT"))
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 

@@ -26,7 +26,7 @@ from ..store import database_unavailable, interrupt_unfinished, make_engine, mig
 from ..textcheck import document_faults, parameter_fault
 from . import docs, metrics
 from .deps import current_token
-from .docs import allowed_methods, document_errors, needs_token
+from .docs import allowed_methods, document_errors, is_id_parameter, needs_token
 from .middleware import BodyLimit, PageCache, RequestLog
 from .routes import calibrations, cells, records, results, sessions, system, web, workbench
 
@@ -42,9 +42,10 @@ def _declares_int(annotation) -> bool:
 
 
 async def bounded_numbers(request: Request) -> None:
-    """Every route's integer parameters, before anything reads them: an id (``*_id``, in the
-    path or the query) is 1 to 2**63 - 1, any other integer (``limit``, ``offset``) fits 64 bits,
-    as the database stores them (beyond, SQLite and PostgreSQL raise instead of finding nothing).
+    """Every route's integer parameters, before anything reads them: an id (``*_id`` or
+    ``previous``, in the path or the query: ``docs.is_id_parameter``) is 1 to 2**63 - 1, any other
+    integer (``limit``, ``offset``) fits 64 bits, as the database stores them (every id column is
+    64-bit since schema version 8; beyond, SQLite and PostgreSQL raise instead of finding nothing).
     422 naming the parameter. An app-wide dependency: it covers the routes added later too (async:
     no thread hop on every request)."""
     route = request.scope.get("route")
@@ -70,7 +71,7 @@ async def bounded_numbers(request: Request) -> None:
                 v = int(value)
             except ValueError:
                 continue  # not an integer: the route's own validation answers
-            if param.name.endswith("_id") and not 1 <= v <= MAX_ID:
+            if is_id_parameter(param.name) and not 1 <= v <= MAX_ID:
                 errors.append(
                     {
                         "loc": (where, param.name),

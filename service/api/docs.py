@@ -122,9 +122,19 @@ def document_errors(app) -> None:
     app.openapi = openapi
 
 
+# Query parameters that carry an id without being named ``*_id``.
+ID_PARAMETERS = ("previous",)
+
+
+def is_id_parameter(name: str) -> bool:
+    """Whether the path or query parameter ``name`` carries an id (1 to 2**63 - 1): the one rule
+    ``app.bounded_numbers`` enforces and the OpenAPI document states."""
+    return name.endswith("_id") or name in ID_PARAMETERS
+
+
 def _bound_integers(op: dict) -> None:
-    """The bounds ``app.bounded_numbers`` enforces, in the document: an id (``*_id``) is 1 to
-    2**63 - 1, any other integer parameter a 64-bit integer (what both databases store)."""
+    """The bounds ``app.bounded_numbers`` enforces, in the document: an id (``is_id_parameter``)
+    is 1 to 2**63 - 1, any other integer parameter a 64-bit integer (what both databases store)."""
     from ..models import MAX_ID
 
     for param in op.get("parameters", []):
@@ -133,7 +143,7 @@ def _bound_integers(op: dict) -> None:
         for option in options:
             if option.get("type") != "integer":
                 continue
-            if param["name"].endswith("_id"):
+            if is_id_parameter(param["name"]):
                 option["minimum"] = max(option.get("minimum", 1), 1)
                 option["maximum"] = min(option.get("maximum", MAX_ID), MAX_ID)
             else:

@@ -36,22 +36,25 @@ def format_of(path: str | os.PathLike, given: str | None = None) -> str:
 
 
 def parse(fmt: str, path: str | os.PathLike, **options):
-    """Parse a RAPID, KRL or TP program (see each module's ``parse``), or a URScript program
-    (:func:`service.taskfiles.parse_urscript`, its own target types)."""
+    """Parse a RAPID, KRL or TP program (see each module's ``parse``; a target no robot cell can
+    have is refused: ``base.refuse_numbers_beyond_a_cell``), or a URScript program
+    (:func:`service.taskfiles.parse_urscript`, its own target types and the same bound)."""
     if fmt == "urscript":
         from ..taskfiles import parse_urscript
 
         return parse_urscript(path, options.get("n_joints", 6))
+    from .base import refuse_numbers_beyond_a_cell
+
     if fmt == "rapid":
         from . import rapid
 
-        return rapid.parse(path, **options)
+        return refuse_numbers_beyond_a_cell(rapid.parse(path, **options))
     if fmt == "krl":
         from . import krl
 
-        return krl.parse(path, **options)
+        return refuse_numbers_beyond_a_cell(krl.parse(path, **options))
     if fmt == "fanuc-tp":
         from . import fanuc_tp
 
-        return fanuc_tp.parse(path, **options)
+        return refuse_numbers_beyond_a_cell(fanuc_tp.parse(path, **options))
     raise ValueError(f"no program parser for {fmt!r}")

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..files import read_bounded, replace_spans
+from ..files import MAX_MAGNITUDE, MAX_MAGNITUDE_SI, InputError, magnitude_problem, read_bounded, replace_spans
 
 NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 NUM_RE = re.compile(NUM)
@@ -157,3 +157,32 @@ def mask_code(text: str, comment: str) -> str:
         else:
             i += 1
     return "".join(out)
+
+
+def refuse_numbers_beyond_a_cell(prog: Program) -> Program:
+    """``prog``, or ``InputError`` naming the file, line and number of the first target no robot
+    cell can have: a written number beyond ±``MAX_MAGNITUDE`` or not finite, or a position, frame
+    or joint beyond ``MAX_MAGNITUDE_SI`` (m, rad). The bound URScript's reader applies, for every
+    program language alike (a KRL ``PTP {X 1e200, ...}`` was once left alone and answered 200)."""
+    for t in prog.targets:
+        where = t.name or t.move
+        for number in (*t.position, *t.orientation, *t.joints):
+            try:
+                problem = magnitude_problem(number.value)
+            except ValueError:  # written otherwise (KRL's 'B...' status bits): the parser read it
+                continue
+            if problem:
+                raise InputError(prog.paths[t.file], f"{where}: {problem}", line=t.line)
+        si = [t.q] if t.q is not None else []
+        si += [T[:3, 3] for T in (t.P, t.T_work, t.T_tool) if T is not None]
+        for values in si:
+            values = np.asarray(values, dtype=float)
+            if not np.all(np.isfinite(values)) or np.any(np.abs(values) > MAX_MAGNITUDE_SI):
+                v = float(values[np.argmax(np.where(np.isfinite(values), np.abs(values), np.inf))])
+                raise InputError(
+                    prog.paths[t.file],
+                    f"{where}: {v:g} is beyond any robot cell; expected a magnitude of at most "
+                    f"{MAX_MAGNITUDE_SI:g} in metres and radians (numbers up to {MAX_MAGNITUDE:g} as written)",
+                    line=t.line,
+                )
+    return prog
