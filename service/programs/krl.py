@@ -288,7 +288,7 @@ def parse(
             text = code[a:b]
             if text.startswith("{"):
                 items, _ = _aggregate(src, code, a, s, f"{mv} inline target")
-                t = _target(src, None, None, items, mv, s + a, tool, base, inline=True)
+                t = _target(src, None, None, items, mv, s + a, tool, base, inline=True, seq=s + a)
                 if isinstance(t, str):
                     skipped.append(Uninterpreted(ln, raw, t))
                 else:
@@ -300,7 +300,7 @@ def parse(
                 continue
             key = r.group(1).lower() + (f"[{int(r.group(2))}]" if r.group(2) else "")
             expected.add((0, s + a))
-            uses.setdefault(key, []).append((ln, mv, tool, base))
+            uses.setdefault(key, []).append((ln, mv, tool, base, s + a))
     names_done = set()
     for key, dd in decls.items():
         f = dd["file"]
@@ -329,8 +329,8 @@ def parse(
                 )
             )
             continue
-        _, mv, tool, base = us[0]
-        t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base)
+        _, mv, tool, base, first = us[0]
+        t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base, seq=first)
         if isinstance(t, str):
             skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), t, f.index))
             continue
@@ -378,7 +378,7 @@ def _dat_beside(src: Path) -> Path | None:
     return None
 
 
-def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
+def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False, seq=None):
     """A :class:`Target` from a KRL aggregate, or the reason it is left alone (a string)."""
     what = f"{(typ or 'inline').upper()} {name}" if name else f"{mv} inline target"
     is_axis = typ in AXIS_TYPES if typ else any(k in items for k in ("a1", "a2", "a3"))
@@ -393,7 +393,9 @@ def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
             f.fail(offset, f"{what}: expected component {missing[0].upper()}")
         nums = tuple(items[k] for k in need)
         q = np.radians([_value(f, n, what, k) for n, k in zip(nums, need)])
-        return Target("joints", f.index, ln, name, mv, q=q, joints=nums, T_work=base[0], T_tool=tool[0], frames=frames)
+        return Target(
+            "joints", f.index, ln, name, mv, q=q, joints=nums, T_work=base[0], T_tool=tool[0], frames=frames, seq=seq
+        )
     need = list("xyzabc")
     missing = [k for k in need if k not in items]
     if missing:
@@ -427,4 +429,5 @@ def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
         T_work=base[0],
         T_tool=tool[0],
         frames=frames,
+        seq=seq,
     )
