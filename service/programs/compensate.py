@@ -60,8 +60,9 @@ def decode(brand: str, config: tuple | None):
         codes[4] = float("nan") if S is None else codes[4] + 2 * ((S >> 2) & 1)
         return front, up, codes
     if brand == "fanuc":
-        flip, up, front, t4, t5, t6 = config
-        return bool(front), bool(up), np.array([0, 0, 0, 2 * t4, 2 * t5 + flip, 2 * t6])
+        # the turn numbers count J1, J4 and J6 (docs/compensation.md §7: not J4, J5, J6)
+        flip, up, front, t1, t4, t6 = config
+        return bool(front), bool(up), np.array([2 * t1, 0, 0, 2 * t4, flip, 2 * t6])
     raise ValueError(brand)
 
 
@@ -88,8 +89,8 @@ def show(brand: str, config: tuple | None):
     if config is None:
         return None
     if brand == "fanuc":
-        flip, up, front, t4, t5, t6 = config
-        return f"{'F' if flip else 'N'} {'U' if up else 'D'} {'T' if front else 'B'}, {t4}, {t5}, {t6}"
+        flip, up, front, t1, t4, t6 = config
+        return f"{'F' if flip else 'N'} {'U' if up else 'D'} {'T' if front else 'B'}, {t1}, {t4}, {t6}"
     if brand == "kuka":
         return {"S": config[0], "T": config[1]}
     return list(config)
