@@ -268,6 +268,10 @@ def run(args) -> int:
         + (f"; flagged: {flagged}" if flagged else "")
         + f"; wrote {', '.join(str(p) for p, _ in result.outputs)}"
     )
+    short = result.shortfall()
+    if short:  # written, but not everything asked was done: exit 3, naming what (contracts §6)
+        print(f"recal compensate: {short}" + (f" (rows in {args.report})" if args.report else ""), file=sys.stderr)
+        return 3
     return 0
 
 

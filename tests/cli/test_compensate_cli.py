@@ -487,3 +487,21 @@ def test_pose_only_rows_on_a_robot_without_a_closed_form(tmp_path):
     T[:, :3, :3], T[:, :3, 3] = quat_to_matrix(P[:, 3:]), P[:, :3] * IN
     ctrl = inverse_kinematics(nominal, T, qc)  # the controller, in the branch of the commands above
     assert np.abs(fk(ident, ctrl.q)[:, :3, 3] - X[:, :3, 3]).max() < 1e-6
+
+
+def test_a_row_that_does_not_converge_exits_3_naming_it(files, tmp_path):
+    """Row 3's pose is 5 m out of the UR10e's reach: the output is written with it flagged, and
+    the exit status says not everything was done (3), the last line naming the row (issue 24:
+    it exited 0 with 1,059 of 20,000 points not converged)."""
+    d, nominal, ident, q, X, M = files
+    lines = (d / "task.csv").read_text().splitlines()[:6]
+    far = lines[4].split(",")
+    far[1] = "5000.0"
+    lines[4] = ",".join(far)
+    (tmp_path / "t.csv").write_text("\n".join(lines) + "\n")
+    r = recal("compensate", "--model", d / "identified.json", "--task", "t.csv", "--out", "o.csv", cwd=tmp_path)
+    assert r.returncode == 3, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last == "recal compensate: 1 of 4 targets not compensated (1 unreachable): row 3", last
+    header, rows = read_out(tmp_path / "o.csv")
+    assert [row[header.index("converged")] for row in rows] == ["1", "1", "0", "1"]

@@ -124,3 +124,25 @@ def test_a_fanuc_tp_program_as_the_body(calibrated, tokens):
     r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=job.ls", content=bad, headers=auth(tokens["job"]))
     assert r.status_code == 422
     assert r.json()["detail"]["message"].startswith("job.ls, line ")
+
+
+def test_targets_not_compensated_are_counted_as_the_cli_exit_3(calibrated, tokens):
+    """A task CSV whose second row is 5 m out of reach: the compensated file comes back (200) and
+    X-Recal-Not-Compensated says 1, the stored report's rows naming it; 0 when all are done."""
+    client, _, cal = calibrated
+    good = "x,y,z,qw,qx,qy,qz\n400,100,500,0,1,0,0\n"
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?mode=targets", content=good, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    assert r.headers["x-recal-not-compensated"] == "0"
+    r = client.post(
+        f"/api/v1/calibrations/{cal}/compensate?mode=targets",
+        content=good + "5000,100,500,0,1,0,0\n",
+        headers=auth(tokens["job"]),
+    )
+    assert r.status_code == 200, r.text
+    assert r.headers["x-recal-not-compensated"] == "1"
+    report = client.get(
+        f"/api/v1/compensations/{r.headers['x-recal-compensation']}/report", headers=auth(tokens["viewer"])
+    ).json()["report"]
+    assert [p["converged"] for p in report["points"]] == [True, False]
+    assert report["summary"]["not_compensated"] == 1
