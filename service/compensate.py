@@ -66,7 +66,11 @@ def compensate_text(
         raise CompensationInputError(
             f"the cell's nominal model has {nominal.n_joints} joints, the calibration {model.n_joints}"
         )
-    suffix = Path(name).suffix or ".csv"
+    try:  # a name whose extension says nothing: the format from the content (or refused)
+        fmt_named = programs.format_of(name, None, text=None if name.lower().endswith(".dat") else text)
+    except InputError as exc:
+        raise CompensationInputError(str(exc).replace("--format", "a file name with its extension (?name=)")) from None
+    suffix = Path(name).suffix if programs.format_of(name) == fmt_named else programs.FORMATS[fmt_named][0]
     encodings = dict(encodings or {})
     companions = dict(companions or {})
     config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}

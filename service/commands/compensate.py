@@ -216,7 +216,7 @@ def run(args) -> int:
     from service.files import InputError, check_output, write_atomic
     from service.programs import format_of
 
-    fmt = format_of(args.task, getattr(args, "format", None))
+    fmt = format_of(args.task, getattr(args, "format", None), text=_head_of(args.task))
     if fmt == "csv" and str(args.task).lower().endswith(".dat"):
         raise InputError(
             args.task,
@@ -273,6 +273,16 @@ def run(args) -> int:
         print(f"recal compensate: {short}" + (f" (rows in {args.report})" if args.report else ""), file=sys.stderr)
         return 3
     return 0
+
+
+def _head_of(path) -> str | None:
+    """The start of the task file's text, to tell its format when its extension says nothing
+    (``None`` where it cannot be read: the parser reports that)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(1 << 16).decode("utf-8", "replace")
+    except OSError:
+        return None
 
 
 def _shown(v: float | None) -> str:
