@@ -65,6 +65,20 @@ def add_parser(s) -> None:
         help="KRL: the controller's $config.dat, whose "
         "TOOL_DATA[N] and BASE_DATA[N] give the frames the program selects",
     )
+    s.add_argument(
+        "--module",
+        action="append",
+        metavar="MODULE",
+        help="RAPID: another module of the task (a system module, a data module) whose tooldata and "
+        "wobjdata the program's moves use; read, not rewritten. Repeatable",
+    )
+    s.add_argument(
+        "--work-object",
+        action="append",
+        metavar="NAME=X,Y,Z,Q1,Q2,Q3,Q4",
+        help="RAPID: a wobjdata the program uses but no module declares (its user and object frames in one: "
+        "mm and a quaternion). Repeatable; RAPID's --tool-frame is NAME=X,Y,Z,Q1,Q2,Q3,Q4 likewise",
+    )
     s.add_argument("--out", required=True, help="compensated task file to write")
     s.add_argument(
         "--mode",
@@ -205,7 +219,14 @@ def _frames(args):
     from service.programs.frames import Frames
 
     try:
-        return Frames.from_options(args.tool_frame or [], args.base_frame or [], args.config_dat)
+        return Frames.from_options(
+            args.tool_frame or [],
+            args.base_frame or [],
+            args.config_dat,
+            modules=args.module or [],
+            rapid=args.fmt == "rapid",
+            wobjs=args.work_object or [],
+        )
     except ValueError as exc:
         raise Fail(str(exc)) from None
 
@@ -226,6 +247,11 @@ def run(args) -> int:
     for path in (args.out, args.report):  # before any work: a run never ends unable to write
         if path:
             check_output(path)
+    args.fmt = fmt
+    if fmt != "rapid" and (args.module or args.work_object):
+        from service.cli import Fail
+
+        raise Fail(f"--module and --work-object are for RAPID programs; {args.task} is read as {fmt}")
     model, nominal, taught = _models(args)
     kw, qnear = _settings(args, model)
     req = CompensationRequest(
