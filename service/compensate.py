@@ -74,6 +74,12 @@ def compensate_text(
     encodings = dict(encodings or {})
     companions = dict(companions or {})
     config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}
+    # RAPID: the task's other modules (a SYSMOD, a data module), read for their tooldata/wobjdata
+    modules = (
+        {k: companions.pop(k) for k in list(companions) if programs.format_of(k) == "rapid"}
+        if fmt_named == "rapid"
+        else {}
+    )
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         src, out = d / f"task{suffix}", d / f"compensated{suffix}"
@@ -85,7 +91,13 @@ def compensate_text(
         for other, content in config.items():  # KUKA's $config.dat: the TOOL_DATA and BASE_DATA the program selects
             config_path = d / "config.dat"
             config_path.write_bytes(content.encode(encodings.get(other, "utf-8")))
+        module_paths = []
+        for k, (other, content) in enumerate(modules.items()):  # under their own names, kept apart
+            (d / f"m{k}").mkdir()
+            module_paths.append(d / f"m{k}" / Path(other).name)  # its name: the report's frames say it
+            module_paths[-1].write_bytes(content.encode(encodings.get(other, "utf-8")))
         names = {str(src): name, **{str(d / f"task{Path(o).suffix}"): o for o in companions}}
+        names.update({str(p): o for p, o in zip(module_paths, modules)})
         if config_path is not None:
             names[str(config_path)] = "$config.dat"
 
@@ -97,7 +109,9 @@ def compensate_text(
         try:
             fmt = programs.format_of(str(src), None)
             frames = (
-                Frames.from_options([], [], str(config_path) if config_path else None)
+                Frames.from_options(
+                    [], [], str(config_path) if config_path else None, modules=[str(p) for p in module_paths]
+                )
                 if fmt not in ("csv", "urscript")
                 else None
             )
@@ -114,7 +128,8 @@ def compensate_text(
             )
             result = compensate_task(model, req)
         except (InputError, CompensationInputError, ValueError) as exc:
-            raise CompensationInputError(ours(str(exc))) from None
+            message = ours(str(exc)).replace("(--module SYSMOD.sys)", "(post it with the program)")
+            raise CompensationInputError(message) from None
         doc = result.report()
         doc["task"] = name
         for point in doc.get("points", []) + doc.get("uninterpreted", []):

@@ -59,8 +59,9 @@ async def compensate(
     body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``;
     ``payload``: the task's payload ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the
     model's length unit), which a calibration with joint compliance sags under. A program of
-    several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one part
-    per file; the answer is then JSON ``{"files": [{"name", "text", "encoding"}, ...]}``, the
+    several files (KRL: the ``.src`` and its ``.dat``; RAPID: the module and the task's other
+    modules, read for the tooldata and wobjdata they declare) comes as ``multipart/form-data``,
+    one part per file; the answer is then JSON ``{"files": [{"name", "text", "encoding"}, ...]}``, the
     program first. A program that is not UTF-8 (a KRL or RAPID file in Windows-1252) is read as
     ISO-8859-1, a character per byte, and answered in it: the body with ``charset=iso-8859-1``, a
     JSON file with ``"encoding": "iso-8859-1"`` (``text.encode("iso-8859-1")`` is the file's bytes).
