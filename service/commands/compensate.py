@@ -38,7 +38,8 @@ def add_parser(s) -> None:
         "--task",
         required=True,
         help="task CSV (contracts §5) or robot program: URScript (.script, "
-        ".urscript), ABB RAPID (.mod, .modx, .prg), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls)",
+        ".urscript), ABB RAPID (.mod, .modx, .prg, .sys), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls); "
+        "or a controller backup folder (KUKA archive, ABB backup, folder of .ls): --out is then a new folder",
     )
     s.add_argument(
         "--format",
@@ -232,11 +233,15 @@ def _frames(args):
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from service.cli import progress
     from service.compensation import CompensationRequest, NoTargetsError, compensate_task
     from service.files import InputError, check_output, write_atomic
     from service.programs import format_of
 
+    if Path(args.task).is_dir():
+        return _run_backup(args)
     fmt = format_of(args.task, getattr(args, "format", None), text=_head_of(args.task))
     if fmt == "csv" and str(args.task).lower().endswith(".dat"):
         raise InputError(
@@ -299,6 +304,77 @@ def run(args) -> int:
         print(f"recal compensate: {short}" + (f" (rows in {args.report})" if args.report else ""), file=sys.stderr)
         return 3
     return 0
+
+
+def _run_backup(args) -> int:
+    """``--task DIR --out OUTDIR``: every program of a controller backup compensated
+    (service.programs.backup), every other file copied, the same layout; one report (a row per
+    target, a summary per file). Nothing is written unless every program could be read."""
+    import shutil
+    from dataclasses import replace
+    from pathlib import Path
+
+    from service.cli import Fail
+    from service.compensation import CompensationRequest, compensate_task
+    from service.files import write_atomic
+    from service.programs import backup
+
+    root, out = Path(args.task), Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise Fail(f"--out {args.out}: expected a new or empty folder for the compensated backup")
+    try:
+        layout, jobs = backup.plan(root, args.config_dat)
+    except ValueError as exc:
+        raise Fail(f"--task {args.task}: {exc}") from None
+    model, nominal, taught = _models(args)
+    kw, qnear = _settings(args, model)
+    results = []
+    for job in jobs:
+        args.fmt, args.module = job.fmt, list(job.modules)
+        frames = replace(_frames(args), config_dat=job.config_dat) if job.fmt == "krl" else _frames(args)
+        req = CompensationRequest(
+            task=str(job.path),
+            out=str(out / job.rel),
+            model_label=args.model,
+            fmt=job.fmt,
+            mode=args.mode,
+            nominal=nominal,
+            taught=taught,
+            calibrated=_calibrated_range(args, model),
+            settings=kw,
+            qnear=qnear,
+            frames=frames,
+            report=True,
+        )
+        results.append((job, compensate_task(model, req)))
+    shutil.copytree(root, out, dirs_exist_ok=True)  # every byte that is no target's number
+    points, files, short = [], [], []
+    for job, result in results:
+        for path, data in result.outputs:
+            write_atomic(path, data)
+        doc = result.report()
+        rel = {str(job.path): str(job.rel), str(job.path.with_suffix(".dat")): str(job.rel.with_suffix(".dat"))}
+        for p in doc["points"] + doc["uninterpreted"]:
+            p["file"] = rel.get(p.get("file", str(job.path)), p.get("file", str(job.rel)))
+        points += doc["points"]
+        files.append({"file": str(job.rel), "summary": doc["summary"], "uninterpreted": doc["uninterpreted"]})
+        if result.shortfall():
+            short.append(f"{job.rel}: {result.shortfall()}")
+    if args.report:
+        write_atomic(
+            args.report,
+            json.dumps(
+                {"format": "recal.compensation-report/1", "task": str(root), "layout": layout, "files": files,
+                 "points": points},
+                indent=1,
+            )
+            + "\n",
+        )  # fmt: skip
+    n = sum(len(r.comp) for _, r in results)
+    print(f"compensated {len(results)} programs ({layout} backup), {n} points; wrote {out}")
+    for line in short:
+        print(f"recal compensate: {line}", file=sys.stderr)
+    return 3 if short else 0
 
 
 def _head_of(path) -> str | None:
