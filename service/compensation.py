@@ -486,7 +486,7 @@ def _no_targets(req: CompensationRequest, model: KinematicModel, script) -> None
     skipped = script.uninterpreted
     if not skipped:
         if hasattr(script, "brand"):
-            raise InputError(req.task, "no move target found; expected a program with move targets to compensate")
+            raise NoTargetsError(req.task, "no move target found; expected a program with move targets to compensate")
         raise InputError(
             req.task,
             "no movej/movel/movep/movec call found; expected a URScript program with move targets to compensate",

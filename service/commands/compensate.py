@@ -315,7 +315,7 @@ def _run_backup(args) -> int:
     from pathlib import Path
 
     from service.cli import Fail
-    from service.compensation import CompensationRequest, compensate_task
+    from service.compensation import CompensationRequest, NoTargetsError, compensate_task
     from service.files import write_atomic
     from service.programs import backup
 
@@ -346,10 +346,22 @@ def _run_backup(args) -> int:
             frames=frames,
             report=True,
         )
-        results.append((job, compensate_task(model, req)))
+        try:
+            results.append((job, compensate_task(model, req)))
+        except NoTargetsError as exc:  # a program without targets (a KUKA cell.src): copied as it is
+            results.append((job, exc.report or {"summary": {"points": 0}, "uninterpreted": []}))
     shutil.copytree(root, out, dirs_exist_ok=True)  # every byte that is no target's number
     points, files, short = [], [], []
     for job, result in results:
+        if isinstance(result, dict):
+            files.append(
+                {
+                    "file": str(job.rel),
+                    "summary": result.get("summary"),
+                    "uninterpreted": result.get("uninterpreted", []),
+                }
+            )
+            continue
         for path, data in result.outputs:
             write_atomic(path, data)
         doc = result.report()
@@ -370,7 +382,7 @@ def _run_backup(args) -> int:
             )
             + "\n",
         )  # fmt: skip
-    n = sum(len(r.comp) for _, r in results)
+    n = sum(len(r.comp) for _, r in results if not isinstance(r, dict))
     print(f"compensated {len(results)} programs ({layout} backup), {n} points; wrote {out}")
     for line in short:
         print(f"recal compensate: {line}", file=sys.stderr)

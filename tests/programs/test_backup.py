@@ -37,6 +37,10 @@ def test_a_kuka_archive_comes_back_in_its_layout(tmp_path):
     ).encode()
     (arc / "KRC/R1/System/$config.dat").write_bytes(config)
     (arc / "am.ini").write_bytes(b"[Version]\r\nVersion=KRC4\r\n")
+    # a program without targets, as every archive has: copied as it is
+    (arc / "KRC/R1/cell.src").write_bytes(
+        b"DEF CELL ( )\r\n  INIT\r\n  LOOP\r\n    P00 (#EXT_PGNO,#PGNO_GET,DMY[],0 )\r\n  ENDLOOP\r\nEND\r\n"
+    )
     r = recal("compensate", "--model", "identified.json", "--task", "archive", "--out", "out", "--report", "b.json", cwd=tmp_path)  # fmt: skip
     assert r.returncode == 0, r.stderr
     before, after = _tree(arc), _tree(tmp_path / "out")
@@ -54,7 +58,8 @@ def test_a_kuka_archive_comes_back_in_its_layout(tmp_path):
     assert one.returncode == 0, one.stderr
     assert after[arc.joinpath("KRC/R1/Program/recal_test.dat").relative_to(arc)] == (tmp_path / "o.dat").read_bytes()
     rep = json.loads((tmp_path / "b.json").read_text())
-    assert rep["layout"] == "kuka" and [f["file"] for f in rep["files"]] == ["KRC/R1/Program/recal_test.src"]
+    assert rep["layout"] == "kuka"
+    assert [f["file"] for f in rep["files"]] == ["KRC/R1/Program/recal_test.src", "KRC/R1/cell.src"]
     assert {p["file"] for p in rep["points"]} == {"KRC/R1/Program/recal_test.src", "KRC/R1/Program/recal_test.dat"}
     assert _compensated(rep) == _compensated(json.loads((tmp_path / "one.json").read_text()))
 
