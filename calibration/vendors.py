@@ -20,7 +20,7 @@ Arm configurations of a six-axis arm with a spherical wrist, from its readings `
   axis 1 (the side where it is in the brand's reference pose) and the *elbow* on the same side of
   the line through axes 2 and 3 as in that reference pose;
 - :func:`abb_confdata` ``[cf1, cf4, cf6, cfx]``; :func:`kuka_status_turn` ``(S, T)``;
-  :func:`fanuc_config` ``(flip, up, front, turn4, turn5, turn6)``.
+  :func:`fanuc_config` ``(flip, up, front, turn1, turn4, turn6)``.
 
 Each brand function is a geometric part (:func:`arm_flags`) and a per-joint part that depends only
 on each joint's own reading (:func:`joint_codes`), so that a solver can move a joint by whole
@@ -168,8 +168,9 @@ def joint_codes(q: np.ndarray, brand: str) -> np.ndarray:
     (rad). ABB: quadrant ``floor(q/90°)`` of joints 1, 4, 6 (cf1, cf4, cf6) and for joint 5 1 where
     it is negative (cfx's axis-5 bit); KUKA: 1 where a joint is negative (the T bits), and for
     A5 additionally 2 where sin A5 < 0 (S bit 2: A5 in [0°, 180°) or below −180° is 0); Fanuc:
-    the turn number ``floor((q + 180°)/360°)`` of J4, J5, J6, times 2, plus 1 for J5 > 0
-    ("F", flip). Joints a brand does not encode are 0."""
+    the turn number ``floor((q + 180°)/360°)`` of J1, J4, J6, times 2, and for J5 1 where it is
+    positive ("F", flip; J5 never turns: its range is under ±180°). Joints a brand does not
+    encode are 0 (docs/compensation.md §7 gives the evidence for J1, J4, J6)."""
     q = np.asarray(q, dtype=float)
     c = np.zeros(q.shape, dtype=np.int64)
     if brand == "abb":
@@ -182,9 +183,9 @@ def joint_codes(q: np.ndarray, brand: str) -> np.ndarray:
         c[:, 4] += 2 * (np.sin(q[:, 4]) < 0)
     elif brand == "fanuc":
         turns = np.floor((q + math.pi) / TWO_PI).astype(np.int64)
-        for i in (3, 4, 5):
+        for i in (0, 3, 5):
             c[:, i] = 2 * turns[:, i]
-        c[:, 4] += q[:, 4] > 0
+        c[:, 4] = q[:, 4] > 0
     else:
         raise ValueError(f"unknown brand {brand!r}")
     return c
@@ -214,13 +215,13 @@ def kuka_status_turn(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 def fanuc_config(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """Fanuc ``CONFIG`` (N, 6) int of readings ``q`` (N, 6), rad: ``flip`` (1 = "F", J5 > 0; 0 =
-    "N"), ``up`` (1 = "U"), ``front`` (1 = "T", toward; 0 = "B"), then the turn numbers of J4,
-    J5 and J6, ``floor((J + 180°)/360°)`` (0 between −180° and 180°)."""
+    "N"), ``up`` (1 = "U"), ``front`` (1 = "T", toward; 0 = "B"), then the turn numbers of J1,
+    J4 and J6, ``floor((J + 180°)/360°)`` (0 between −180° and 180°)."""
     front, up = arm_flags(model, q, "fanuc")
     q = check_q(model, q)
     c = joint_codes(q, "fanuc")
     return np.stack(
-        [c[:, 4] % 2, up.astype(np.int64), front.astype(np.int64), c[:, 3] // 2, c[:, 4] // 2, c[:, 5] // 2], axis=1
+        [c[:, 4], up.astype(np.int64), front.astype(np.int64), c[:, 0] // 2, c[:, 3] // 2, c[:, 5] // 2], axis=1
     )
 
 

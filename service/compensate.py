@@ -67,10 +67,20 @@ def compensate_text(
         raise CompensationInputError(
             f"the cell's nominal model has {nominal.n_joints} joints, the calibration {model.n_joints}"
         )
-    suffix = Path(name).suffix or ".csv"
+    try:  # a name whose extension says nothing: the format from the content (or refused)
+        fmt_named = programs.format_of(name, None, text=None if name.lower().endswith(".dat") else text)
+    except InputError as exc:
+        raise CompensationInputError(str(exc).replace("--format", "a file name with its extension (?name=)")) from None
+    suffix = Path(name).suffix if programs.format_of(name) == fmt_named else programs.FORMATS[fmt_named][0]
     encodings = dict(encodings or {})
     companions = dict(companions or {})
     config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}
+    # RAPID: the task's other modules (a SYSMOD, a data module), read for their tooldata/wobjdata
+    modules = (
+        {k: companions.pop(k) for k in list(companions) if programs.format_of(k) == "rapid"}
+        if fmt_named == "rapid"
+        else {}
+    )
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         src, out = d / f"task{suffix}", d / f"compensated{suffix}"
@@ -82,7 +92,13 @@ def compensate_text(
         for other, content in config.items():  # KUKA's $config.dat: the TOOL_DATA and BASE_DATA the program selects
             config_path = d / "config.dat"
             config_path.write_bytes(content.encode(encodings.get(other, "utf-8")))
+        module_paths = []
+        for k, (other, content) in enumerate(modules.items()):  # under their own names, kept apart
+            (d / f"m{k}").mkdir()
+            module_paths.append(d / f"m{k}" / Path(other).name)  # its name: the report's frames say it
+            module_paths[-1].write_bytes(content.encode(encodings.get(other, "utf-8")))
         names = {str(src): name, **{str(d / f"task{Path(o).suffix}"): o for o in companions}}
+        names.update({str(p): o for p, o in zip(module_paths, modules)})
         if config_path is not None:
             names[str(config_path)] = "$config.dat"
 
@@ -94,7 +110,9 @@ def compensate_text(
         try:
             fmt = programs.format_of(str(src), None)
             frames = (
-                Frames.from_options([], [], str(config_path) if config_path else None)
+                Frames.from_options(
+                    [], [], str(config_path) if config_path else None, modules=[str(p) for p in module_paths]
+                )
                 if fmt not in ("csv", "urscript")
                 else None
             )
@@ -111,7 +129,8 @@ def compensate_text(
             )
             result = compensate_task(model, req)
         except (InputError, CompensationInputError, ValueError) as exc:
-            raise CompensationInputError(ours(str(exc))) from None
+            message = ours(str(exc)).replace("(--module SYSMOD.sys)", "(post it with the program)")
+            raise CompensationInputError(message) from None
         doc = result.report()
         doc["task"] = name
         for point in doc.get("points", []) + doc.get("uninterpreted", []):

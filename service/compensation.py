@@ -121,6 +121,41 @@ class CompensationResult:
         """The whole report as a document."""
         return json.loads(self.report_text())
 
+    def shortfall(self) -> str | None:
+        """What was asked but not done, in one line (``None`` when every target was compensated):
+        how many targets were left as written (unreachable in their configuration) or did not
+        converge, and where (the report's rows: file and line, or row)."""
+        bad = np.flatnonzero(~self.comp.converged)
+        if len(bad) == 0:
+            return None
+        unreachable = (self.comp.flags[bad] & FLAG_BIT["unreachable"]) != 0
+        parts = []
+        if unreachable.any():
+            kept = ", left as written" if self.report_head.get("mode") in programs.BRAND else ""
+            parts.append(f"{int(unreachable.sum())} unreachable{kept}")
+        if (~unreachable).any():
+            worst = self.comp.residual_m[bad[~unreachable]].max(initial=0.0) / self.model.units.length_m
+            parts.append(
+                f"{int((~unreachable).sum())} not converged (residual up to {worst:.3g} {self.model.units.length})"
+            )
+        where = [_where(self.prefixes[k]) if k < len(self.prefixes) else f"point {k + 1}" for k in bad[:10]]
+        more = f" and {len(bad) - 10} more" if len(bad) > 10 else ""
+        return (
+            f"{len(bad)} of {len(self.comp)} targets not compensated ({'; '.join(parts)}): " + ", ".join(where) + more
+        )
+
+
+def _where(prefix: str) -> str:
+    """A report row's place, from its leading fields: ``file, line L (NAME)`` or ``row R``."""
+    try:
+        head = json.loads("{" + prefix.rstrip().rstrip(",") + "}")
+    except ValueError:
+        return "?"
+    if "row" in head:
+        return f"row {head['row']}"
+    place = f"{Path(str(head.get('file', ''))).name}, line {head.get('line')}".lstrip(", ")
+    return place + (f" ({head['variable']})" if head.get("variable") else "")
+
 
 def residual_map_of(model: KinematicModel):
     """The model's residual map (``calibration.residual_map``), or None."""
@@ -164,6 +199,8 @@ def compensate_task(
     summary = {
         "points": len(comp),
         "converged": int(np.count_nonzero(comp.converged)),
+        # targets left as written (unreachable) or not converged: `recal compensate` exits 3
+        "not_compensated": int(np.count_nonzero(~comp.converged)),
         "residual_max": _f(comp.residual_m.max(initial=0.0) / L),
         "residual_angle_max": _f(comp.residual_rad.max(initial=0.0) / u.angle_rad),
         "correction_max": _f(np.abs(comp.correction).max(initial=0.0) / u.angle_rad),
@@ -449,7 +486,7 @@ def _no_targets(req: CompensationRequest, model: KinematicModel, script) -> None
     skipped = script.uninterpreted
     if not skipped:
         if hasattr(script, "brand"):
-            raise InputError(req.task, "no move target found; expected a program with move targets to compensate")
+            raise NoTargetsError(req.task, "no move target found; expected a program with move targets to compensate")
         raise InputError(
             req.task,
             "no movej/movel/movep/movec call found; expected a URScript program with move targets to compensate",
@@ -478,7 +515,7 @@ def _no_targets(req: CompensationRequest, model: KinematicModel, script) -> None
             "mode": "script",
             "units": {"length": u.length, "angle": u.angle},
             "error": message,
-            "summary": {"points": 0, "converged": 0},
+            "summary": {"points": 0, "converged": 0, "not_compensated": 0},
             "uninterpreted": [{"line": k.line, "text": k.text, "reason": k.reason} for k in skipped],
             "points": [],
         }

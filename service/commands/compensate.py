@@ -39,7 +39,8 @@ def add_parser(s) -> None:
         "--task",
         required=True,
         help="task CSV (docs/contracts.md §5) or robot program: URScript (.script, "
-        ".urscript), ABB RAPID (.mod, .modx, .prg), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls)",
+        ".urscript), ABB RAPID (.mod, .modx, .prg, .sys), KUKA KRL (.src, with its .dat beside it), Fanuc TP (.ls); "
+        "or a controller backup folder (KUKA archive, ABB backup, folder of .ls): --out is then a new folder",
     )
     s.add_argument(
         "--format",
@@ -65,6 +66,20 @@ def add_parser(s) -> None:
         metavar="$config.dat",
         help="KRL: the controller's $config.dat, whose "
         "TOOL_DATA[N] and BASE_DATA[N] give the frames the program selects",
+    )
+    s.add_argument(
+        "--module",
+        action="append",
+        metavar="MODULE",
+        help="RAPID: another module of the task (a system module, a data module) whose tooldata and "
+        "wobjdata the program's moves use; read, not rewritten. Repeatable",
+    )
+    s.add_argument(
+        "--work-object",
+        action="append",
+        metavar="NAME=X,Y,Z,Q1,Q2,Q3,Q4",
+        help="RAPID: a wobjdata the program uses but no module declares (its user and object frames in one: "
+        "mm and a quaternion). Repeatable; RAPID's --tool-frame is NAME=X,Y,Z,Q1,Q2,Q3,Q4 likewise",
     )
     s.add_argument("--out", required=True, help="compensated task file to write")
     s.add_argument(
@@ -230,7 +245,14 @@ def _frames(args):
     from service.programs.frames import Frames
 
     try:
-        return Frames.from_options(args.tool_frame or [], args.base_frame or [], args.config_dat)
+        return Frames.from_options(
+            args.tool_frame or [],
+            args.base_frame or [],
+            args.config_dat,
+            modules=args.module or [],
+            rapid=args.fmt == "rapid",
+            wobjs=args.work_object or [],
+        )
     except ValueError as exc:
         raise Fail(str(exc)) from None
 
@@ -285,12 +307,16 @@ def check_format(path, fmt: str, given: str | None) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from service.cli import progress
     from service.compensation import CompensationRequest, NoTargetsError, compensate_task
     from service.files import InputError, check_output, write_atomic
     from service.programs import format_of
 
-    fmt = format_of(args.task, getattr(args, "format", None))
+    if Path(args.task).is_dir():
+        return _run_backup(args)
+    fmt = format_of(args.task, getattr(args, "format", None), text=_head_of(args.task))
     check_format(args.task, fmt, getattr(args, "format", None))
     if fmt == "csv" and str(args.task).lower().endswith(".dat"):
         raise InputError(
@@ -301,6 +327,11 @@ def run(args) -> int:
     for path in (args.out, args.report):  # before any work: a run never ends unable to write
         if path:
             check_output(path)
+    args.fmt = fmt
+    if fmt != "rapid" and (args.module or args.work_object):
+        from service.cli import Fail
+
+        raise Fail(f"--module and --work-object are for RAPID programs; {args.task} is read as {fmt}")
     model, nominal, taught = _models(args)
     kw, qnear = _settings(args, model)
     req = CompensationRequest(
@@ -346,7 +377,104 @@ def run(args) -> int:
         + (f"; flagged: {flagged}" if flagged else "")
         + f"; wrote {', '.join(str(p) for p, _ in result.outputs)}"
     )
+    short = result.shortfall()
+    if short:  # written, but not everything asked was done: exit 3, naming what (contracts §6)
+        print(f"recal compensate: {short}" + (f" (rows in {args.report})" if args.report else ""), file=sys.stderr)
+        return 3
     return 0
+
+
+def _run_backup(args) -> int:
+    """``--task DIR --out OUTDIR``: every program of a controller backup compensated
+    (service.programs.backup), every other file copied, the same layout; one report (a row per
+    target, a summary per file). Nothing is written unless every program could be read."""
+    import shutil
+    from dataclasses import replace
+    from pathlib import Path
+
+    from service.cli import Fail
+    from service.compensation import CompensationRequest, NoTargetsError, compensate_task
+    from service.files import write_atomic
+    from service.programs import backup
+
+    root, out = Path(args.task), Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise Fail(f"--out {args.out}: expected a new or empty folder for the compensated backup")
+    try:
+        layout, jobs = backup.plan(root, args.config_dat)
+    except ValueError as exc:
+        raise Fail(f"--task {args.task}: {exc}") from None
+    model, nominal, taught = _models(args)
+    kw, qnear = _settings(args, model)
+    results = []
+    for job in jobs:
+        args.fmt, args.module = job.fmt, list(job.modules)
+        frames = replace(_frames(args), config_dat=job.config_dat) if job.fmt == "krl" else _frames(args)
+        req = CompensationRequest(
+            task=str(job.path),
+            out=str(out / job.rel),
+            model_label=args.model,
+            fmt=job.fmt,
+            mode=args.mode,
+            nominal=nominal,
+            taught=taught,
+            calibrated=_calibrated_range(args, model),
+            settings=kw,
+            qnear=qnear,
+            frames=frames,
+            report=True,
+        )
+        try:
+            results.append((job, compensate_task(model, req)))
+        except NoTargetsError as exc:  # a program without targets (a KUKA cell.src): copied as it is
+            results.append((job, exc.report or {"summary": {"points": 0}, "uninterpreted": []}))
+    shutil.copytree(root, out, dirs_exist_ok=True)  # every byte that is no target's number
+    points, files, short = [], [], []
+    for job, result in results:
+        if isinstance(result, dict):
+            files.append(
+                {
+                    "file": str(job.rel),
+                    "summary": result.get("summary"),
+                    "uninterpreted": result.get("uninterpreted", []),
+                }
+            )
+            continue
+        for path, data in result.outputs:
+            write_atomic(path, data)
+        doc = result.report()
+        rel = {str(job.path): str(job.rel), str(job.path.with_suffix(".dat")): str(job.rel.with_suffix(".dat"))}
+        for p in doc["points"] + doc["uninterpreted"]:
+            p["file"] = rel.get(p.get("file", str(job.path)), p.get("file", str(job.rel)))
+        points += doc["points"]
+        files.append({"file": str(job.rel), "summary": doc["summary"], "uninterpreted": doc["uninterpreted"]})
+        if result.shortfall():
+            short.append(f"{job.rel}: {result.shortfall()}")
+    if args.report:
+        write_atomic(
+            args.report,
+            json.dumps(
+                {"format": "recal.compensation-report/1", "task": str(root), "layout": layout, "files": files,
+                 "points": points},
+                indent=1,
+            )
+            + "\n",
+        )  # fmt: skip
+    n = sum(len(r.comp) for _, r in results if not isinstance(r, dict))
+    print(f"compensated {len(results)} programs ({layout} backup), {n} points; wrote {out}")
+    for line in short:
+        print(f"recal compensate: {line}", file=sys.stderr)
+    return 3 if short else 0
+
+
+def _head_of(path) -> str | None:
+    """The start of the task file's text, to tell its format when its extension says nothing
+    (``None`` where it cannot be read: the parser reports that)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(1 << 16).decode("utf-8", "replace")
+    except OSError:
+        return None
 
 
 def _shown(v: float | None) -> str:

@@ -11,28 +11,56 @@ puts them in place of the old ones, every other byte as it was.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 FORMATS = {
     "csv": (".csv",),
     "urscript": (".script", ".urscript"),
-    "rapid": (".mod", ".modx", ".prg"),
+    "rapid": (".mod", ".modx", ".prg", ".sys", ".sysx"),
     "krl": (".src",),
     "fanuc-tp": (".ls",),
 }
 BRAND = {"rapid": "abb", "krl": "kuka", "fanuc-tp": "fanuc"}
 
+# What each format's text starts with, for a file whose extension says nothing (a RAPID system
+# module saved without one, a URScript named "program"): a TP listing's /PROG header, KRL's
+# &ACCESS/&REL or DEF NAME( ), a RAPID MODULE, a URScript def NAME(): or move call, a task CSV's
+# header naming x or q1. Checked in this order: KRL's DEF has no colon, URScript's has one.
+_CONTENT = (
+    ("fanuc-tp", re.compile(r"^\s*/PROG\s+\S", re.MULTILINE)),
+    ("krl", re.compile(r"^\s*(?:&ACCESS\b|&REL\b|(?:GLOBAL\s+)?DEF\s+\w+\s*\([^)]*\)\s*(?:;.*)?$)", re.M | re.I)),
+    ("rapid", re.compile(r"^\s*MODULE\s+\w+", re.MULTILINE | re.IGNORECASE)),
+    ("urscript", re.compile(r"^\s*def\s+\w+\s*\([^)]*\)\s*:|\b(?:movej|movel|movep|movec)\s*\(", re.MULTILINE)),
+)
 
-def format_of(path: str | os.PathLike, given: str | None = None) -> str:
-    """The task file's format: ``given`` (``--format``), else from the extension (a task CSV when
-    it is none of the programs')."""
+
+def format_of(path: str | os.PathLike, given: str | None = None, text: str | None = None) -> str:
+    """The task file's format: ``given`` (``--format``), else from the extension, else (``text``:
+    the file's text) from the content, else refused naming ``--format``. Without ``text``, a
+    file whose extension is none of the programs' is a task CSV."""
     if given:
         return given
     suffix = Path(path).suffix.lower()
     for name, suffixes in FORMATS.items():
         if suffix in suffixes:
             return name
-    return "csv"
+    if text is None:
+        return "csv"
+    for name, pattern in _CONTENT:
+        if pattern.search(text):
+            return name
+    header = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
+    columns = {c.strip().lower() for c in header.split(",")}
+    if "," in header and columns & {"x", "q1"}:
+        return "csv"
+    from ..files import InputError
+
+    raise InputError(
+        path,
+        f"cannot tell its format from the extension ({suffix or 'none'}) or the content: give --format "
+        f"{'|'.join(FORMATS)}",
+    )
 
 
 def parse(fmt: str, path: str | os.PathLike, **options):

@@ -46,7 +46,8 @@ class Target:
     numbers; ``config`` the written configuration (brand terms, or ``None`` when the target has
     none) and ``config_text`` as written. Joints: ``q`` (6,) readings in rad and ``joints`` its
     numbers. ``T_work`` (4, 4) the work frame (wobj, base, user frame) in the robot's base frame,
-    ``T_tool`` (4, 4) the tool in the flange frame, ``frames`` how they were named."""
+    ``T_tool`` (4, 4) the tool in the flange frame, ``frames`` how they were named; ``seq`` its
+    place in the program's motions where that is not its line (:func:`motion_order`)."""
 
     kind: str
     file: int
@@ -64,6 +65,13 @@ class Target:
     T_work: np.ndarray = field(default_factory=lambda: np.eye(4))
     T_tool: np.ndarray = field(default_factory=lambda: np.eye(4))
     frames: str = ""
+    seq: int | None = None
+
+
+def motion_order(t: Target) -> tuple:
+    """Where a target comes in the program's motions: ``seq`` (KRL: the offset in the ``.src`` of
+    the move that first uses it, since its declaration may be in the ``.dat``), else its line."""
+    return (t.seq if t.seq is not None else -1, t.file, t.line)
 
 
 @dataclass(frozen=True)

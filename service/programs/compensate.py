@@ -34,11 +34,10 @@ from calibration.compensation import (
     source_poses,
     take,
 )
-from calibration.ik import numerical_ik
 from calibration.kinematics import fk
 from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
 
-from .base import Program, Target, written
+from .base import Program, Target, motion_order, written
 
 
 def decode(brand: str, config: tuple | None):
@@ -61,8 +60,9 @@ def decode(brand: str, config: tuple | None):
         codes[4] = float("nan") if S is None else codes[4] + 2 * ((S >> 2) & 1)
         return front, up, codes
     if brand == "fanuc":
-        flip, up, front, t4, t5, t6 = config
-        return bool(front), bool(up), np.array([0, 0, 0, 2 * t4, 2 * t5 + flip, 2 * t6])
+        # the turn numbers count J1, J4 and J6 (docs/compensation.md §7: not J4, J5, J6)
+        flip, up, front, t1, t4, t6 = config
+        return bool(front), bool(up), np.array([2 * t1, 0, 0, 2 * t4, flip, 2 * t6])
     raise ValueError(brand)
 
 
@@ -77,7 +77,10 @@ def configuration(brand: str, model, q: np.ndarray) -> list[tuple]:
 
 def same(brand: str, written_config: tuple, found: tuple) -> bool:
     if brand == "kuka":
-        return all(w is None or w == f for w, f in zip(written_config, found))
+        # only S bits 0-2 choose the solution (bit 4 marks a point taught on an absolutely
+        # accurate robot, bit 3 is unused): the others are kept as written, not compared
+        mask = (7, 63)
+        return all(w is None or (w & m) == f for w, f, m in zip(written_config, found, mask))
     return tuple(written_config) == tuple(found)
 
 
@@ -86,8 +89,8 @@ def show(brand: str, config: tuple | None):
     if config is None:
         return None
     if brand == "fanuc":
-        flip, up, front, t4, t5, t6 = config
-        return f"{'F' if flip else 'N'} {'U' if up else 'D'} {'T' if front else 'B'}, {t4}, {t5}, {t6}"
+        flip, up, front, t1, t4, t6 = config
+        return f"{'F' if flip else 'N'} {'U' if up else 'D'} {'T' if front else 'B'}, {t1}, {t4}, {t6}"
     if brand == "kuka":
         return {"S": config[0], "T": config[1]}
     return list(config)
@@ -118,6 +121,7 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
     parts, order, heads, edits = [], [], [], []
     ref = np.zeros(6)
     ref[1:] = vendors.REFERENCE[brand]
+    q_all, found_all = controller_solutions(prog, nominal, B, ref)
     for idx in groups.values():
         T_tool = prog.targets[idx[0]].T_tool
         nom = _with_tool(nominal, T_tool, nominal)
@@ -128,31 +132,7 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
         if poses:
             ts = [prog.targets[i] for i in poses]
             X_nom = np.array([B @ t.T_work @ t.P for t in ts])
-            q_nom = np.zeros((len(ts), 6))
-            found = np.ones(len(ts), dtype=bool)
-            dec = [decode(brand, t.config) for t in ts]
-            stated = np.array([d[0] is not None or d[1] is not None or d[2] is not None for d in dec], dtype=bool)
-            if np.any(stated):
-                # the controller's solution in the written configuration (NaN: a part not written)
-                nan = float("nan")
-                fr = np.array([nan if d[0] is None else float(d[0]) for d, s in zip(dec, stated) if s])
-                up = np.array([nan if d[1] is None else float(d[1]) for d, s in zip(dec, stated) if s])
-                codes = np.array(
-                    [np.full(6, nan) if d[2] is None else d[2].astype(float) for d, s in zip(dec, stated) if s]
-                )
-                q_s, f_s = vendors.configured_ik(nom, X_nom[stated], brand, fr, up, codes, ref)
-                q_nom[stated], found[stated] = q_s, f_s
-            if not np.all(stated):
-                # nothing written (a KRL POS or FRAME without S and T): the solution nearest the
-                # previous target's, as the controller moves from there
-                prev, near = ref, np.empty((len(ts), 6))
-                for k in range(len(ts)):
-                    near[k] = prev
-                    if stated[k]:
-                        prev = q_nom[k]
-                free = ~stated
-                r = numerical_ik(nom, X_nom[free], near[free])
-                q_nom[free], found[free] = r.q, r.converged
+            q_nom, found = q_all[poses], found_all[poses]
             X_d = np.linalg.inv(M) @ X_nom if tau is None else fk(tau, q_nom)
             cp = compensate_targets(
                 ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
@@ -208,6 +188,93 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
     comp = take(comp, np.array(perm, dtype=int))
     heads = [heads[k] for k in perm]
     return prog.rewrite(edits), comp, heads
+
+
+# Moves whose path is Cartesian (KRL, RAPID, TP, URScript names): the arm cannot change its
+# configuration on the way, so a target without configuration data keeps the start's.
+LINEAR_MOVES = {
+    "lin",
+    "circ",
+    "slin",
+    "scirc",
+    "spl",
+    "movel",
+    "movec",
+    "movep",
+    "movelsync",
+    "movecsync",
+    "searchl",
+    "searchc",
+    "triggl",
+    "triggc",
+    "arcl",
+    "arcc",
+    "arclstart",
+    "arclend",
+    "arccstart",
+    "arccend",
+    "l",
+    "c",
+    "a",
+}
+
+
+def is_linear(move: str) -> bool:
+    return move.lower() in LINEAR_MOVES
+
+
+def controller_solutions(prog: Program, nominal, B: np.ndarray, ref: np.ndarray):
+    """The nominal controller's joints (N, 6) for every pose target of ``prog`` (rows of joint
+    targets unused) and whether it has them (N,).
+
+    A target with configuration data: the solution in that configuration, turns nearest the
+    brand's reference (:func:`calibration.vendors.configured_ik`). A target without (a KRL POS or
+    FRAME without S and T) takes what the controller takes, moving from the previous target in
+    the program's motions (:func:`~.base.motion_order`): a linear or circular move keeps the
+    start configuration (the same side of axis 1, elbow and wrist), turns nearest the start; a
+    joint move the solution nearest the axes where it starts. Where a linear move's target has no
+    solution in the start configuration, it is not found (the controller stops there)."""
+    brand = prog.brand
+    N = len(prog.targets)
+    q_all, found_all = np.zeros((N, 6)), np.ones(N, dtype=bool)
+    nan = float("nan")
+    groups: dict[bytes, list[int]] = {}
+    for i, t in enumerate(prog.targets):
+        if t.kind == "pose":
+            groups.setdefault(np.round(t.T_tool, 12).tobytes(), []).append(i)
+    stated = set()
+    for idx in groups.values():
+        nom = _with_tool(nominal, prog.targets[idx[0]].T_tool, nominal)
+        dec = {i: decode(brand, prog.targets[i].config) for i in idx}
+        rows = [i for i in idx if any(v is not None for v in dec[i])]
+        if not rows:
+            continue
+        X = np.array([B @ prog.targets[i].T_work @ prog.targets[i].P for i in rows])
+        fr = np.array([nan if dec[i][0] is None else float(dec[i][0]) for i in rows])
+        up = np.array([nan if dec[i][1] is None else float(dec[i][1]) for i in rows])
+        codes = np.array([np.full(6, nan) if dec[i][2] is None else dec[i][2].astype(float) for i in rows])
+        q_all[rows], found_all[rows] = vendors.configured_ik(nom, X, brand, fr, up, codes, ref)
+        stated.update(rows)
+    prev = ref
+    for i in sorted(range(N), key=lambda k: motion_order(prog.targets[k])):
+        t = prog.targets[i]
+        if t.kind == "joints":
+            prev = t.q
+            continue
+        if i not in stated:
+            nom = _with_tool(nominal, t.T_tool, nominal)
+            X = (B @ t.T_work @ t.P)[None]
+            if is_linear(t.move):
+                f, u = vendors.arm_flags(nom, prev[None], brand)
+                # the wrist keeps its side too: axis 5 cannot pass zero on a Cartesian path
+                codes = np.full((1, 6), nan)
+                codes[0, 4] = vendors.joint_codes(prev[None], brand)[0, 4]
+                q, ok = vendors.configured_ik(nom, X, brand, f.astype(float), u.astype(float), codes, prev[None])
+            else:
+                q, ok = vendors.configured_ik(nom, X, brand, np.array([nan]), np.array([nan]), None, prev[None])
+            q_all[i], found_all[i] = q[0], ok[0]
+        prev = q_all[i]
+    return q_all, found_all
 
 
 def _head(prog: Program, t: Target, original, compensated, config) -> str:

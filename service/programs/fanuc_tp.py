@@ -5,7 +5,7 @@ group 1 (``GP1:``; other groups are left untouched):
 
 - Cartesian: ``UF : u, UT : t, CONFIG : 'N U T, 0, 0, 0', X = .. mm, Y, Z, W = .. deg, P, R``
   (W, P, R Fanuc's fixed angles about X, Y, Z of the user frame; the configuration: flip F/N,
-  up U/D, front T/B and the turn numbers of J4, J5, J6);
+  up U/D, front T/B and the turn numbers of J1, J4, J6);
 - joint: ``UF : u, UT : t, J1 = .. deg, ..., J6`` (Fanuc's readings: J3 from the horizon, which
   the model's coupling matrix turns into joint angles, contracts §2).
 
@@ -123,7 +123,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
         if cv is None:
             fail(
                 seg_s + cm.start(1),
-                f"{label}: CONFIG: expected 'F|N U|D T|B, turn4, turn5, turn6', got {cm.group(1)!r}",
+                f"{label}: CONFIG: expected 'F|N U|D T|B, turn1, turn4, turn6', got {cm.group(1)!r}",
             )
         config = (
             int(cv.group(1).upper() == "F"),

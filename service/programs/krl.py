@@ -11,12 +11,18 @@ the real move.
 
 Frames, in program order of the ``.src``: ``$TOOL = TOOL_DATA[n]``, ``$BASE = BASE_DATA[n]``,
 ``$TOOL``/``$BASE = $NULLFRAME``, ``BAS(#TOOL, n)``/``BAS(#BASE, n)``, and the inline forms'
-``FDAT_ACT = FP1`` with the ``.dat``'s ``DECL FDAT FP1={TOOL_NO 1, BASE_NO 2, ...}``. Frame n comes
+``FDAT_ACT = FP1`` with the ``.dat``'s ``DECL FDAT FP1={TOOL_NO 1, BASE_NO 2, ...}``, and the
+``WITH`` clause of a move (KSS 8's spline inline forms: ``SPTP XP1 WITH $TOOL = STOOL2(FP1),
+$BASE = SBASE(FP1.BASE_NO), $IPO_MODE = SIPO_MODE(FP1.IPO_FRAME), ...``; kept for the moves after
+it, as ``BAS`` keeps them). FDATs come from the ``.dat`` or the ``$config.dat`` (``FHOME``); a
+``$config.dat`` target (``XHOME``) is a global other programs share: reported, not rewritten.
+Frame n comes
 from ``--tool-frame n=X,Y,Z,A,B,C`` / ``--base-frame n=...`` or from ``TOOL_DATA[n]`` /
 ``BASE_DATA[n]`` of a ``$config.dat`` (``--config-dat``); before the program selects any, the
 unnumbered ``--tool-frame``/``--base-frame`` or ``$NULLFRAME`` (the flange, the robot's base).
 The base frame is taken in the robot's base frame (``$ROBROOT`` = ``$WORLD``). A move that uses a
-frame Recal cannot resolve refuses the program, naming the line.
+frame Recal cannot resolve refuses the program, naming the line and the frame (an axis target
+under such a frame is left alone and reported: it needs no Cartesian frame to be read).
 """
 
 from __future__ import annotations
@@ -58,6 +64,27 @@ _BAS_RE = re.compile(r"^[ \t]*bas\s*\(\s*#(tool|base)\s*,\s*(\d+)\s*\)", re.IGNO
 _FDAT_ACT_RE = re.compile(r"^[ \t]*fdat_act\s*=\s*([a-z_]\w*)\s*$", re.IGNORECASE)
 _REF_RE = re.compile(r"([a-z_]\w*)(?:\s*\[\s*(\d+)\s*\])?$", re.IGNORECASE)
 _IDENT_RE = re.compile(r"[A-Za-z_]\w*")
+_WITH_RE = re.compile(r"\bwith\b", re.IGNORECASE)
+_FDAT_CALL_RE = re.compile(
+    r"^(stool2|stool|sbase|sipo_mode)\s*\(\s*([a-z_]\w*)\s*(?:\.\s*([a-z_]\w*)\s*)?\)$", re.IGNORECASE
+)
+
+
+def _top_level_split(text: str) -> list[str]:
+    """``text`` split at the commas outside parentheses and brackets."""
+    parts, depth, cur = [], 0, []
+    for ch in text:
+        if ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth -= 1
+        if ch == "," and depth == 0:
+            parts.append("".join(cur))
+            cur = []
+        else:
+            cur.append(ch)
+    parts.append("".join(cur))
+    return parts
 
 
 class _File:
@@ -148,40 +175,14 @@ def parse(
     config = _config_frames(frames.config_dat) if frames.config_dat else {}
     decls: dict[str, dict] = {}
     fdat: dict[str, dict] = {}
+    bare: dict[str, tuple] = {}  # declared without a value: name -> (file, offset, type)
     for f in files:
-        for ln, s, code in f.lines():
-            m = _DECL_RE.match(code)
-            if m:
-                typ = m.group(1).lower()
-                rest_at = m.start(2)
-                i = rest_at
-                while True:  # NAME={...}, NAME2={...}
-                    mm = re.compile(r"\s*([a-z_]\w*)\s*=\s*", re.IGNORECASE).match(code, i)
-                    if not mm:
-                        break
-                    name = mm.group(1)
-                    if mm.end() >= len(code) or code[mm.end()] != "{":
-                        break
-                    items, i = _aggregate(f, code, mm.end(), s, f"{typ.upper()} {name}")
-                    entry = {"type": typ, "items": items, "file": f, "offset": s + mm.start(1), "name": name}
-                    (fdat if typ == "fdat" else decls)[name.lower()] = entry
-                    c = re.compile(r"\s*,").match(code, i)
-                    if not c:
-                        break
-                    i = c.end()
-                continue
-            m = _ELEM_RE.match(code)
-            if m:
-                base_name = m.group(1).lower()
-                items, _ = _aggregate(f, code, m.start(3), s, f"{m.group(1)}[{m.group(2)}]")
-                typ = "e6axis" if any(k.startswith("a") and k[1:].isdigit() for k in items) else "e6pos"
-                decls[f"{base_name}[{int(m.group(2))}]"] = {
-                    "type": typ,
-                    "items": items,
-                    "file": f,
-                    "offset": s + m.start(1),
-                    "name": f"{m.group(1)}[{m.group(2)}]",
-                }
+        _declarations(f, decls, fdat, bare, elements=True)
+    # $config.dat's globals (XHOME, FHOME, ...): seen by every program; its targets are not
+    # rewritten here (other programs share them), its FDATs give frames
+    glob_decls: dict[str, dict] = {}
+    if frames.config_dat:
+        _declarations(_File(-1, frames.config_dat, read_text(frames.config_dat)), glob_decls, fdat, {}, elements=False)
     # the .src in program order: frames and moves
     state = {"tool": ("opt", None), "base": ("opt", None)}
     out, skipped, uses, expected = [], [], {}, set()
@@ -206,9 +207,45 @@ def parse(
             )
         if how == "lit":
             return _frame(n), f"${kind.upper()} literal"
-        src.fail(
-            offset,
-            f"${kind.upper()} = {n}: Recal cannot resolve this {kind} frame (use TOOL_DATA[n]/"
+        src.fail(offset, n)
+
+    def fdat_item(name, key):
+        """FDAT ``name``'s ``key`` (its text), or a message saying why there is none."""
+        fd = fdat.get(name.lower())
+        if fd is None:
+            where = "the .dat or $config.dat" if frames.config_dat else "the .dat (pass --config-dat for $config.dat's)"
+            return None, f"FDAT {name} is not declared in {where}"
+        item = fd["items"].get(key)
+        if item is None:
+            return None, f"FDAT {fd['name']} has no {key.upper()}"
+        return item.text.strip(), None
+
+    def frame_value(kind, val):
+        """The state a ``$TOOL``/``$BASE`` assignment's value ``val`` selects (``("bad",
+        message)`` where Recal cannot resolve it)."""
+        val = val.strip()
+        dm = _DATA_RE.match(val)
+        if dm and dm.group(1).lower() == kind:
+            return ("num", int(dm.group(2)))
+        if val.upper() == "$NULLFRAME":
+            return ("null", None)
+        fm = _FDAT_CALL_RE.match(val)  # STOOL2(FP1), SBASE(FP1.BASE_NO): what KSS 8's inline forms write
+        if fm and fm.group(1).lower() in (("stool", "stool2") if kind == "tool" else ("sbase",)):
+            name, key = fm.group(2), (fm.group(3) or f"{kind}_no").lower()
+            text, why = fdat_item(name, key)
+            if why:
+                return ("bad", f"${kind.upper()} = {val}: {why}")
+            if kind == "tool":
+                ipo, _ = fdat_item(name, "ipo_frame")
+                if ipo is not None and ipo.upper() == "#TCP":
+                    return ("bad", f"${kind.upper()} = {val}: FDAT {name} with IPO_FRAME #TCP (an external TCP)")
+            try:
+                return ("num", int(float(text)))
+            except ValueError:
+                return ("bad", f"${kind.upper()} = {val}: {key.upper()} {text!r} is not a number")
+        return (
+            "bad",
+            f"${kind.upper()} = {val}: Recal cannot resolve this {kind} frame (use TOOL_DATA[n]/"
             f"BASE_DATA[n], BAS(#{kind.upper()}, n) or an inline FDAT)",
         )
 
@@ -216,19 +253,14 @@ def parse(
         m = _FRAME_SET_RE.match(code)
         if m:
             kind, val = m.group(1).lower(), m.group(2)
-            dm = _DATA_RE.match(val)
-            if dm and dm.group(1).lower() == kind:
-                state[kind] = ("num", int(dm.group(2)))
-            elif val.upper() == "$NULLFRAME":
-                state[kind] = ("null", None)
-            elif val.startswith("{"):
+            if val.startswith("{"):
                 items, _ = _aggregate(src, code, code.index("{"), s, f"${kind.upper()}")
                 state[kind] = (
                     "lit",
                     tuple(_value(src, items[k], f"${kind.upper()}", k) if k in items else 0.0 for k in "xyzabc"),
                 )
             else:
-                state[kind] = ("bad", val)
+                state[kind] = frame_value(kind, val)
             continue
         m = _BAS_RE.match(code)
         if m:
@@ -238,14 +270,15 @@ def parse(
         if m:
             fd = fdat.get(m.group(1).lower())
             if fd is None:
-                state["tool"] = state["base"] = ("bad", f"FDAT_ACT={m.group(1)} (not declared in the .dat)")
+                _, why = fdat_item(m.group(1), "tool_no")
+                state["tool"] = state["base"] = ("bad", f"FDAT_ACT = {m.group(1)} (line {ln}): {why}")
                 continue
             for kind, key in (("tool", "tool_no"), ("base", "base_no")):
                 if key in fd["items"]:
                     state[kind] = ("num", int(_value(fd["file"], fd["items"][key], f"FDAT {fd['name']}", key)))
             ipo = fd["items"].get("ipo_frame")
             if ipo is not None and ipo.text.strip().upper() == "#TCP":
-                state["tool"] = ("bad", f"FDAT {fd['name']} with IPO_FRAME #TCP (an external TCP)")
+                state["tool"] = ("bad", f"FDAT {fd['name']} (line {ln}) with IPO_FRAME #TCP (an external TCP)")
             continue
         m = _MOVE_RE.match(code)
         if not m:
@@ -282,13 +315,36 @@ def parse(
                     skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
                     continue
                 targets.append((a2, a2 + t.end()))
-        tool = resolve("tool", state["tool"], s)
-        base = resolve("base", state["base"], s)
+        w = _WITH_RE.search(code, targets[-1][1])
+        if w:  # SPTP XP1 WITH $TOOL = STOOL2(FP1), $BASE = SBASE(FP1.BASE_NO), ...: kept after the move
+            for part in _top_level_split(code[w.end() :]):
+                a = re.match(r"\s*\$(tool|base|ipo_mode)\s*=\s*(.*?)\s*$", part, re.IGNORECASE)
+                if not a:
+                    continue
+                kind, val = a.group(1).lower(), a.group(2)
+                if kind != "ipo_mode":
+                    state[kind] = frame_value(kind, val)
+                    continue
+                im = _FDAT_CALL_RE.match(val)
+                ipo = fdat_item(im.group(2), "ipo_frame")[0] if im else val
+                if ipo is not None and ipo.strip().upper() == "#TCP":
+                    state["tool"] = ("bad", f"$IPO_MODE = {val}: #TCP (an external TCP)")
+        frame_error = None
+        try:
+            tool = resolve("tool", state["tool"], s)
+            base = resolve("base", state["base"], s)
+        except InputError as exc:  # refused where a Cartesian target needs it
+            frame_error, tool, base = exc, (None, None), (None, None)
         for a, b in targets:
             text = code[a:b]
             if text.startswith("{"):
                 items, _ = _aggregate(src, code, a, s, f"{mv} inline target")
-                t = _target(src, None, None, items, mv, s + a, tool, base, inline=True)
+                if frame_error is not None:
+                    if not any(k in items for k in ("a1", "a2", "a3")):
+                        raise frame_error
+                    skipped.append(Uninterpreted(ln, raw, f"{frame_error}: this axis target is not compensated"))
+                    continue
+                t = _target(src, None, None, items, mv, s + a, tool, base, inline=True, seq=s + a)
                 if isinstance(t, str):
                     skipped.append(Uninterpreted(ln, raw, t))
                 else:
@@ -300,7 +356,7 @@ def parse(
                 continue
             key = r.group(1).lower() + (f"[{int(r.group(2))}]" if r.group(2) else "")
             expected.add((0, s + a))
-            uses.setdefault(key, []).append((ln, mv, tool, base))
+            uses.setdefault(key, []).append((ln, mv, tool, base, s + a, frame_error))
     names_done = set()
     for key, dd in decls.items():
         f = dd["file"]
@@ -318,6 +374,12 @@ def parse(
                     )
                 )
             continue
+        bad = [u for u in us if u[5] is not None]
+        if bad:
+            if dd["type"] in POSE_TYPES:
+                raise bad[0][5]
+            skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), f"{bad[0][5]}: not compensated", f.index))
+            continue
         if len({(u[2][1], u[3][1]) for u in us}) > 1 and dd["type"] in POSE_TYPES:
             skipped.append(
                 Uninterpreted(
@@ -329,8 +391,8 @@ def parse(
                 )
             )
             continue
-        _, mv, tool, base = us[0]
-        t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base)
+        _, mv, tool, base, first, _ = us[0]
+        t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base, seq=first)
         if isinstance(t, str):
             skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), t, f.index))
             continue
@@ -338,14 +400,20 @@ def parse(
         names_done.add(key.split("[")[0])
     for key, us in uses.items():
         if key not in decls:
-            for u in us:
-                skipped.append(
-                    Uninterpreted(
-                        u[0],
-                        line_text(src.text, src.starts, u[0]),
-                        f"{key.upper()} is not declared in this program's .src or .dat: not compensated",
-                    )
+            if key in glob_decls:
+                why = f"{key.upper()} is a global of $config.dat (other programs share it): not compensated here"
+            elif key.split("[")[0] in bare:
+                why = (
+                    f"{key.upper()} is declared without a value ({bare[key.split('[')[0]][2].upper()}, "
+                    f"given at run time): not compensated"
                 )
+            else:
+                why = f"{key.upper()} is not declared in this program's .src or .dat" + (
+                    "" if frames.config_dat else " (pass --config-dat for $config.dat's globals)"
+                )
+                why += ": not compensated"
+            for u in us:
+                skipped.append(Uninterpreted(u[0], line_text(src.text, src.starts, u[0]), why))
     # other uses of a target's name in the .src (e.g. XP1.Z = ...): they see the new value
     for ln, s, code in src.lines():
         if _DECL_RE.match(code) or _ELEM_RE.match(code):
@@ -370,6 +438,54 @@ def parse(
     return Program(tuple(f.path for f in files), tuple(f.text for f in files), "kuka", out, dedup)
 
 
+_NAME_EQ_RE = re.compile(r"\s*([a-z_]\w*)\s*=\s*", re.IGNORECASE)
+_BARE_RE = re.compile(r"\s*([a-z_$]\w*)\s*(?:\[[^\]]*\])?\s*(?=,|$)", re.IGNORECASE)
+
+
+def _declarations(f: _File, decls: dict, fdat: dict, bare: dict, elements: bool) -> None:
+    """The ``DECL`` lines of ``f`` (and, ``elements``, its ``NAME[k]={...}`` lines) into ``decls``
+    (targets) and ``fdat``; names declared without a value into ``bare``."""
+    for ln, s, code in f.lines():
+        m = _DECL_RE.match(code)
+        if m:
+            typ = m.group(1).lower()
+            i = m.start(2)
+            while True:  # NAME={...}, NAME2={...}, or NAME alone (a value assigned at run time)
+                mm = _NAME_EQ_RE.match(code, i)
+                if not mm:
+                    b = _BARE_RE.match(code, i)
+                    if b and b.group(1):
+                        bare.setdefault(b.group(1).lower(), (f, s + b.start(1), typ))
+                        c = re.compile(r"\s*,").match(code, b.end())
+                        if c:
+                            i = c.end()
+                            continue
+                    break
+                name = mm.group(1)
+                if mm.end() >= len(code) or code[mm.end()] != "{":
+                    break
+                items, i = _aggregate(f, code, mm.end(), s, f"{typ.upper()} {name}")
+                entry = {"type": typ, "items": items, "file": f, "offset": s + mm.start(1), "name": name}
+                (fdat if typ == "fdat" else decls)[name.lower()] = entry
+                c = re.compile(r"\s*,").match(code, i)
+                if not c:
+                    break
+                i = c.end()
+            continue
+        m = _ELEM_RE.match(code) if elements else None
+        if m:
+            base_name = m.group(1).lower()
+            items, _ = _aggregate(f, code, m.start(3), s, f"{m.group(1)}[{m.group(2)}]")
+            typ = "e6axis" if any(k.startswith("a") and k[1:].isdigit() for k in items) else "e6pos"
+            decls[f"{base_name}[{int(m.group(2))}]"] = {
+                "type": typ,
+                "items": items,
+                "file": f,
+                "offset": s + m.start(1),
+                "name": f"{m.group(1)}[{m.group(2)}]",
+            }
+
+
 def _dat_beside(src: Path) -> Path | None:
     for suffix in (".dat", ".DAT", ".Dat"):
         p = src.with_suffix(suffix)
@@ -378,7 +494,7 @@ def _dat_beside(src: Path) -> Path | None:
     return None
 
 
-def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
+def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False, seq=None):
     """A :class:`Target` from a KRL aggregate, or the reason it is left alone (a string)."""
     what = f"{(typ or 'inline').upper()} {name}" if name else f"{mv} inline target"
     is_axis = typ in AXIS_TYPES if typ else any(k in items for k in ("a1", "a2", "a3"))
@@ -393,7 +509,9 @@ def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
             f.fail(offset, f"{what}: expected component {missing[0].upper()}")
         nums = tuple(items[k] for k in need)
         q = np.radians([_value(f, n, what, k) for n, k in zip(nums, need)])
-        return Target("joints", f.index, ln, name, mv, q=q, joints=nums, T_work=base[0], T_tool=tool[0], frames=frames)
+        return Target(
+            "joints", f.index, ln, name, mv, q=q, joints=nums, T_work=base[0], T_tool=tool[0], frames=frames, seq=seq
+        )
     need = list("xyzabc")
     missing = [k for k in need if k not in items]
     if missing:
@@ -427,4 +545,5 @@ def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False):
         T_work=base[0],
         T_tool=tool[0],
         frames=frames,
+        seq=seq,
     )

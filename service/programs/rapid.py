@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 
@@ -208,9 +209,82 @@ class _Reader:
         return homogeneous(quat_to_matrix(qv), np.array([n.value for n in p]) * 1e-3)
 
 
+def _module_frames(path) -> dict:
+    """The ``tooldata`` and ``wobjdata`` another module of the task declares (not ``LOCAL``):
+    lowercase name -> declaration, with the module's reader."""
+    r = _Reader(path, read_text(path))
+    code, out, pos = r.code, {}, 0
+    for stmt_end in [m.start() for m in re.finditer(";", code)] + [len(code)]:
+        s0, pos = pos, stmt_end + 1
+        d = _DECL_RE.search(code[s0:stmt_end])
+        if not d or d.group(3).lower() not in ("tooldata", "wobjdata") or d.group(5):
+            continue
+        if (d.group(1) or "").lower() == "local":
+            continue  # visible in its own module only
+        after = s0 + d.end()
+        if not code.startswith(":=", after):
+            continue
+        try:
+            node, _ = _value(code, after + 2)
+        except _Bad as exc:
+            r.fail(exc.offset, f"{d.group(3)} {d.group(4)}: {exc.message}")
+        out[d.group(4).lower()] = {
+            "type": d.group(3).lower(),
+            "node": node,
+            "offset": after,
+            "name": d.group(4),
+            "r": r,
+        }
+    return out
+
+
+def _declared_frame(r: _Reader, dd: dict, typ: str, name: str) -> np.ndarray:
+    """A declared ``tooldata`` (the tool in the flange) or ``wobjdata`` (``uframe · oframe``) as
+    (4, 4) SI, read from the module ``r`` that declares it."""
+    node, text = dd["node"], r.text
+    hold = node[0] if isinstance(node, list) and node else None
+    held = isinstance(hold, tuple) and text[hold[0] : hold[1]].strip().upper() == "TRUE"
+    if typ == "tooldata":
+        if not held:
+            r.fail(dd["offset"], f"tooldata {name}: a stationary tool (robhold FALSE) is not supported")
+        T, _, _ = r.pose(node[1], "tooldata", name, dd["offset"])
+        return T
+    if held:
+        r.fail(dd["offset"], f"wobjdata {name}: a work object held by the robot (robhold TRUE) is not supported")
+    if len(node) < 5:
+        r.fail(dd["offset"], f"wobjdata {name}: expected [robhold, ufprog, ufmec, uframe, oframe]")
+    ufprog = text[node[1][0] : node[1][1]].strip().upper() if isinstance(node[1], tuple) else ""
+    if ufprog == "FALSE":
+        r.fail(
+            dd["offset"], f"wobjdata {name}: a user frame moved by a mechanical unit (ufprog FALSE) is not supported"
+        )
+    U, _, _ = r.pose(node[3], "wobjdata", name, dd["offset"])
+    O, _, _ = r.pose(node[4], "wobjdata", name, dd["offset"])
+    return U @ O
+
+
+def _source(sources: dict, name: str | None) -> str:
+    """Where a frame declared outside the module came from, for the report: `` (user.sys)`` or
+    `` (--tool-frame)``; nothing for the module's own."""
+    src = sources.get((name or "").lower())
+    if src is None:
+        return ""
+    return f" ({src if src.startswith('-') else Path(src).name})"
+
+
+def _named_frame(vals) -> np.ndarray:
+    x, y, z, *q = vals
+    qv = np.array(q, dtype=float)
+    n = float(np.linalg.norm(qv))
+    if abs(n - 1.0) > 1e-3:
+        raise ValueError(f"the quaternion has norm {n:.6g}; expected a unit quaternion")
+    return homogeneous(quat_to_matrix(qv / n), np.array([x, y, z]) * 1e-3)
+
+
 def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) -> Program:
-    """Parse a RAPID module (see the module docstring). ``frames`` is not used (RAPID programs
-    declare their tools and work objects)."""
+    """Parse a RAPID module (see the module docstring). ``frames``
+    (:class:`~.frames.Frames`): the task's other modules, whose ``tooldata``/``wobjdata`` the
+    moves may use, and tools and work objects given by name (``--tool-frame``/``--work-object``)."""
     if n_joints != 6:
         raise InputError(path, f"RAPID programs are compensated for six-axis arms; the model has {n_joints} joints")
     text = read_text(path, data)
@@ -275,7 +349,15 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
             targets.append((a, b))
         moves.append((s0 + m.start(), mv, targets, tool, wobj))
 
-    # frames
+    # frames: this module's declarations first (they hide the task's), then the task's other
+    # modules in the order given, then --tool-frame/--work-object
+    others: dict = {}
+    for mod in reversed(getattr(frames, "modules", ()) or ()):
+        others.update(_module_frames(mod))
+    given = {"tooldata": getattr(frames, "named_tools", {}) or {}, "wobjdata": getattr(frames, "named_wobjs", {}) or {}}
+    given = {typ: {k.lower(): (k, v) for k, v in d.items()} for typ, d in given.items()}
+    sources: dict[str, str] = {}
+
     def frame(name, typ, offset, mv):
         if name is None or name.lower() in (("tool0",) if typ == "tooldata" else ("wobj0",)):
             return np.eye(4)
@@ -283,37 +365,33 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
             r.fail(offset, f"{mv}: {typ} {name!r} is an expression; Recal resolves only {typ} declared in this file")
         dd = decls.get(name.lower())
         if dd is None or dd["type"] != typ:
+            dd = others.get(name.lower())
+            if dd is not None and dd["type"] == typ:
+                sources[name.lower()] = dd["r"].path
+                return _declared_frame(dd["r"], dd, typ, name)
+            if name.lower() in given[typ]:
+                flag = "--tool-frame" if typ == "tooldata" else "--work-object"
+                sources[name.lower()] = flag
+                try:
+                    return _named_frame(given[typ][name.lower()][1])
+                except ValueError as exc:
+                    raise InputError(flag, f"{name}: {exc}") from None
+            flag = "--tool-frame" if typ == "tooldata" else "--work-object"
             r.fail(
                 offset,
-                f"{mv}: {typ} {name} is not declared in this file; Recal cannot resolve it (declare it in this module)",
+                f"{mv}: {typ} {name} is not declared in this module"
+                + (" nor in the modules given" if others else "")
+                + f"; pass the module that declares it (--module SYSMOD.sys) or {flag} {name}=X,Y,Z,Q1,Q2,Q3,Q4",
             )
-        node = dd["node"]
-        hold = node[0] if isinstance(node, list) and node else None
-        held = isinstance(hold, tuple) and text[hold[0] : hold[1]].strip().upper() == "TRUE"
-        if typ == "tooldata":
-            if not held:
-                r.fail(dd["offset"], f"tooldata {name}: a stationary tool (robhold FALSE) is not supported")
-            T, _, _ = r.pose(node[1], "tooldata", name, dd["offset"])
-            return T
-        if held:
-            r.fail(dd["offset"], f"wobjdata {name}: a work object held by the robot (robhold TRUE) is not supported")
-        if len(node) < 5:
-            r.fail(dd["offset"], f"wobjdata {name}: expected [robhold, ufprog, ufmec, uframe, oframe]")
-        ufprog = text[node[1][0] : node[1][1]].strip().upper() if isinstance(node[1], tuple) else ""
-        if ufprog == "FALSE":
-            r.fail(
-                dd["offset"],
-                f"wobjdata {name}: a user frame moved by a mechanical unit (ufprog FALSE) is not supported",
-            )
-        U, _, _ = r.pose(node[3], "wobjdata", name, dd["offset"])
-        O, _, _ = r.pose(node[4], "wobjdata", name, dd["offset"])
-        return U @ O
+        return _declared_frame(r, dd, typ, name)
 
     resolved_frames = []
     for off, mv, targets, tool, wobj in moves:
         T_tool = frame(tool, "tooldata", off, mv)
         T_work = frame(wobj, "wobjdata", off, mv)
-        resolved_frames.append((T_tool, T_work, f"tool {tool}, wobj {wobj or 'wobj0'}"))
+        t_src = _source(sources, tool)
+        w_src = _source(sources, wobj)
+        resolved_frames.append((T_tool, T_work, f"tool {tool}{t_src}, wobj {wobj or 'wobj0'}{w_src}"))
     out: list[Target] = []
     uses: dict[str, list] = {}
     for (off, mv, targets, tool, wobj), (T_tool, T_work, fr) in zip(moves, resolved_frames):

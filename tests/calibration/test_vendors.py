@@ -75,10 +75,10 @@ def test_per_joint_rules():
     c = vendors.abb_confdata(arm("abb"), q)
     assert c[0, :3].tolist() == [1, 0, 0] and c[1, :3].tolist() == [-3, 3, -3]
     assert c[0, 3] & 1 and not c[1, 3] & 1
-    # Fanuc: F where J5 > 0; turn numbers of J4, J5, J6
+    # Fanuc: F where J5 > 0; turn numbers of J1, J4, J6 (J5 never turns)
     f = vendors.fanuc_config(arm("fanuc"), q)
     assert f[0, 0] == 0 and f[1, 0] == 1
-    assert f[1, 3:].tolist() == [1, 1, -1]
+    assert f[1, 3:].tolist() == [-1, 1, -1]
 
 
 @pytest.mark.parametrize(

@@ -13,6 +13,7 @@ import csv
 import dataclasses
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -34,6 +35,7 @@ _EXE = Path(sys.executable).with_name("recal")
 RECAL = [str(_EXE)] if _EXE.exists() else [sys.executable, "-m", "service.cli"]
 MM = 1e-3
 DEG = math.pi / 180
+NUMBER_RE = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 
 
 def recal(*args, cwd: Path) -> subprocess.CompletedProcess:
@@ -487,3 +489,58 @@ def test_pose_only_rows_on_a_robot_without_a_closed_form(tmp_path):
     T[:, :3, :3], T[:, :3, 3] = quat_to_matrix(P[:, 3:]), P[:, :3] * IN
     ctrl = inverse_kinematics(nominal, T, qc)  # the controller, in the branch of the commands above
     assert np.abs(fk(ident, ctrl.q)[:, :3, 3] - X[:, :3, 3]).max() < 1e-6
+
+
+def test_a_row_that_does_not_converge_exits_3_naming_it(files, tmp_path):
+    """Row 3's pose is 5 m out of the UR10e's reach: the output is written with it flagged, and
+    the exit status says not everything was done (3), the last line naming the row (issue 24:
+    it exited 0 with 1,059 of 20,000 points not converged)."""
+    d, nominal, ident, q, X, M = files
+    lines = (d / "task.csv").read_text().splitlines()[:6]
+    far = lines[4].split(",")
+    far[1] = "5000.0"
+    lines[4] = ",".join(far)
+    (tmp_path / "t.csv").write_text("\n".join(lines) + "\n")
+    r = recal("compensate", "--model", d / "identified.json", "--task", "t.csv", "--out", "o.csv", cwd=tmp_path)
+    assert r.returncode == 3, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last == "recal compensate: 1 of 4 targets not compensated (1 unreachable): row 3", last
+    header, rows = read_out(tmp_path / "o.csv")
+    assert [row[header.index("converged")] for row in rows] == ["1", "1", "0", "1"]
+
+
+@pytest.mark.parametrize(
+    "name, content, expected",
+    [
+        # a RAPID system module (.sys): read as RAPID, not as a CSV ("row 9 (line 10): has 6 values")
+        (
+            "user.sys",
+            "%%%\n  VERSION:1\n  LANGUAGE:ENGLISH\n%%%\n\nMODULE user(SYSMODULE)\n  PROC main()\n"
+            "    MoveAbsJ [[10,-80,90,-100,70,20],[9E9,9E9,9E9,9E9,9E9,9E9]], v1000, fine, tool0;\n"
+            "  ENDPROC\nENDMODULE\n",
+            "(RAPID)",
+        ),
+        # a URScript saved without an extension
+        ("program", "def prog():\n  movej([0.1, -1.2, 1.5, -1.9, -1.5, 0.2], a=1.2, v=0.25)\nend\n", "(URScript)"),
+    ],
+)
+def test_the_format_comes_from_the_content_when_the_extension_says_nothing(files, tmp_path, name, content, expected):
+    d, *_ = files
+    (tmp_path / name).write_text(content)
+    r = recal("compensate", "--model", d / "identified.json", "--task", name, "--out", "out", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert expected in r.stdout
+    out = (tmp_path / "out").read_text()
+    assert out != content and NUMBER_RE.sub("#", out) == NUMBER_RE.sub("#", content)
+
+
+def test_a_file_whose_format_cannot_be_told_is_refused_naming_format(files, tmp_path):
+    d, *_ = files
+    (tmp_path / "job.txt").write_text("hello\n1 2 3\n")
+    r = recal("compensate", "--model", d / "identified.json", "--task", "job.txt", "--out", "o.txt", cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1] == (
+        "recal compensate: job.txt: cannot tell its format from the extension (.txt) or the content: "
+        "give --format csv|urscript|rapid|krl|fanuc-tp"
+    )
+    assert not (tmp_path / "o.txt").exists()

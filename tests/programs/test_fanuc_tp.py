@@ -45,13 +45,13 @@ def wpr(R):
 def config(q_deg):
     """Fanuc CONFIG of the Fanuc-like arm from its geometry (tests/programs/arms.py): F where
     J5 > 0; U while the elbow angle J2 + J3 is below the stretched 90° - atan(150/860); T while
-    the wrist centre is ahead of J1 along the arm's heading; turn numbers of J4, J5, J6."""
+    the wrist centre is ahead of J1 along the arm's heading; turn numbers of J1, J4, J6."""
     q = np.radians(q_deg)
     T = fk(arm("fanuc"), q[None])[0]
     w = T[:3, 3] - 0.100 * T[:3, 2]
     front = w[0] * math.cos(q[0]) + w[1] * math.sin(q[0]) >= 0
     up = q_deg[1] + q_deg[2] < 90 - math.degrees(math.atan2(150, 860))
-    turns = [math.floor((v + 180) / 360) for v in q_deg[3:]]
+    turns = [math.floor((q_deg[i] + 180) / 360) for i in (0, 3, 5)]
     return f"{'F' if q_deg[4] > 0 else 'N'} {'U' if up else 'D'} {'T' if front else 'B'}, " + ", ".join(map(str, turns))
 
 
@@ -267,7 +267,7 @@ def test_bad_program_on_the_command_line_exits_2_without_output(run, tmp_path):
     [
         ("N D T, 0, 0, 0", True),  # the elbow down: the arm reaches P[1] so too, and stays so
         ("F U T, 0, 0, 0", True),  # the wrist flipped
-        ("N U T, 1, 0, 0", False),  # J4 a turn further: 380°, beyond its 200° limit
+        ("N U T, 1, 0, 0", False),  # J1 a turn further: beyond its 170° limit
     ],
 )
 def test_the_written_configuration_is_kept_or_the_position_flagged_and_left_as_written(
@@ -297,7 +297,13 @@ def test_the_written_configuration_is_kept_or_the_position_flagged_and_left_as_w
         "r.json",
         cwd=tmp_path,
     )
-    assert r.returncode == 0, r.stderr
+    # written either way; left as written is a shortfall: exit 3, the line naming the target
+    assert r.returncode == (0 if reachable else 3), r.stderr
+    if not reachable:
+        assert r.stderr.strip().splitlines()[-1] == (
+            "recal compensate: 1 of 1 targets not compensated (1 unreachable, left as written): "
+            "t.ls, line 5 (P[1]) (rows in r.json)"
+        )
     row = json.loads((tmp_path / "r.json").read_text())["points"][0]
     out = (tmp_path / "o.ls").read_bytes()
     if reachable:
@@ -307,3 +313,37 @@ def test_the_written_configuration_is_kept_or_the_position_flagged_and_left_as_w
         assert sorted(row["flags"]) == ["branch_change", "unreachable"] and row["compensated"] is None
         assert row["configuration"] == {"written": written, "solution": "N U T, 0, 0, 0"}
         assert out == data.encode()
+
+
+def test_turn_numbers_count_j1_j4_j6(run, tmp_path):
+    """J4 at 190° (past a half turn, within the M-20iA-like arm's ±200°): the controller writes
+    'N U T, 0, 1, 0' (turns of J1, J4, J6; docs/compensation.md §7). Read that way the target is
+    reached; read as J4, J5, J6 it was flagged unreachable. The J4, J5, J6 reading's string
+    'N U T, 1, 0, 0' asks for a J1 turn the arm (±170°) cannot make: left alone, flagged."""
+    d, nominal, true, *_ = run
+    q = [20, 10, -20, 190, -40, 30]
+    assert config(q) == "N U T, 0, 1, 0"
+    X = fk(nominal, np.radians([q]))[0]
+    rows = {}
+    for written in ("N U T, 0, 1, 0", "N U T, 1, 0, 0"):
+        lines = cartesian(X, q, 0, 0)
+        lines[0] = lines[0].replace(config(q), written)
+        text = "\r\n".join(
+            ["/PROG  TURNS", "/MN", "   1:J P[1] 100% FINE    ;", "/POS", "P[1]{", "   GP1:", *lines, "};", "/END", ""]
+        )
+        (tmp_path / "turns.ls").write_text(text)
+        r = recal(
+            "compensate", "--model", d / "identified.json", "--task", "turns.ls", "--out", "out.ls", "--report", "r.json",
+            cwd=tmp_path,
+        )  # fmt: skip
+        rows[written] = (json.loads((tmp_path / "r.json").read_text())["points"][0], r)
+        (tmp_path / f"{written[-7:].replace(', ', '')}.ls").write_bytes((tmp_path / "out.ls").read_bytes())
+    row, r = rows["N U T, 0, 1, 0"]
+    assert row["flags"] == [] and row["configuration"]["solution"] == "N U T, 0, 1, 0", row
+    t0 = fanuc_tp.parse(tmp_path / "turns.ls").targets[0]
+    t1 = fanuc_tp.parse(tmp_path / "010.ls").targets[0]
+    X_d = np.linalg.inv(frame_of(true, nominal)) @ t0.P[None]
+    dp, da = pose_error(reached(true, nominal, t1.P[None], np.radians([q])), X_d)
+    assert dp[0] < 1e-5 and math.degrees(da[0]) < 0.005
+    row, r = rows["N U T, 1, 0, 0"]
+    assert "unreachable" in row["flags"] and row["compensated"] is None

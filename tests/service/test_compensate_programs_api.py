@@ -124,3 +124,56 @@ def test_a_fanuc_tp_program_as_the_body(calibrated, tokens):
     r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=job.ls", content=bad, headers=auth(tokens["job"]))
     assert r.status_code == 422
     assert r.json()["detail"]["message"].startswith("job.ls, line ")
+
+
+def test_targets_not_compensated_are_counted_as_the_cli_exit_3(calibrated, tokens):
+    """A task CSV whose second row is 5 m out of reach: the compensated file comes back (200) and
+    X-Recal-Not-Compensated says 1, the stored report's rows naming it; 0 when all are done."""
+    client, _, cal = calibrated
+    good = "x,y,z,qw,qx,qy,qz\n400,100,500,0,1,0,0\n"
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?mode=targets", content=good, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    assert r.headers["x-recal-not-compensated"] == "0"
+    r = client.post(
+        f"/api/v1/calibrations/{cal}/compensate?mode=targets",
+        content=good + "5000,100,500,0,1,0,0\n",
+        headers=auth(tokens["job"]),
+    )
+    assert r.status_code == 200, r.text
+    assert r.headers["x-recal-not-compensated"] == "1"
+    report = client.get(
+        f"/api/v1/compensations/{r.headers['x-recal-compensation']}/report", headers=auth(tokens["viewer"])
+    ).json()["report"]
+    assert [p["converged"] for p in report["points"]] == [True, False]
+    assert report["summary"]["not_compensated"] == 1
+
+
+def test_a_rapid_module_with_the_system_module_that_declares_its_tool(calibrated, tokens):
+    """A RAPID program posted with the task's system module (multipart): the tooldata it declares
+    is the move's tool; the program alone is refused, saying to post the module with it."""
+    client, _, cal = calibrated
+    mod = (
+        "MODULE job\n  PROC main()\n"
+        "    MoveAbsJ [[10,-80,90,-100,70,20],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, fine, tGripper;\n"
+        "  ENDPROC\nENDMODULE\n"
+    )
+    sys_mod = "MODULE user(SYSMODULE)\n  PERS tooldata tGripper:=[TRUE,[[0,0,200],[1,0,0,0]],[1,[0,0,50],[1,0,0,0],0,0,0]];\nENDMODULE\n"
+    files = [
+        ("program", ("job.mod", mod.encode(), "text/plain")),
+        ("sys", ("user.sys", sys_mod.encode(), "text/plain")),
+    ]
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate", files=files, headers=auth(tokens["job"]))
+    assert r.status_code == 200, r.text
+    out = r.json()["files"]
+    assert out[0]["name"] == "job.mod" and NUMBER.sub("#", out[0]["text"]) == NUMBER.sub("#", mod)
+    assert out[0]["text"] != mod
+    report = client.get(
+        f"/api/v1/compensations/{r.headers['x-recal-compensation']}/report", headers=auth(tokens["viewer"])
+    ).json()["report"]
+    assert report["points"][0]["frames"] == "tool tGripper (user.sys), wobj wobj0"
+    r = client.post(f"/api/v1/calibrations/{cal}/compensate?name=job.mod", content=mod, headers=auth(tokens["job"]))
+    assert r.status_code == 422
+    assert (
+        "tooldata tGripper is not declared in this module; pass the module that declares it (post it with"
+        in (r.json()["detail"]["message"])
+    )

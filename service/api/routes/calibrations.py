@@ -60,13 +60,16 @@ async def compensate(
     body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``;
     ``payload``: the task's payload ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the
     model's length unit), which a calibration with joint compliance sags under. A program of
-    several files (KRL: the ``.src`` and its ``.dat``) comes as ``multipart/form-data``, one part
-    per file; the answer is then JSON ``{"files": [{"name", "text", "encoding"}, ...]}``, the
+    several files (KRL: the ``.src`` and its ``.dat``; RAPID: the module and the task's other
+    modules, read for the tooldata and wobjdata they declare) comes as ``multipart/form-data``,
+    one part per file; the answer is then JSON ``{"files": [{"name", "text", "encoding"}, ...]}``, the
     program first. A program that is not UTF-8 (a KRL or RAPID file in Windows-1252) is read as
     ISO-8859-1, a character per byte, and answered in it: the body with ``charset=iso-8859-1``, a
     JSON file with ``"encoding": "iso-8859-1"`` (``text.encode("iso-8859-1")`` is the file's bytes).
     The compensation runs in a worker process (service.heavy), which also stores it: the service
-    answers every other request meanwhile."""
+    answers every other request meanwhile. ``X-Recal-Not-Compensated`` (and the JSON's
+    ``not_compensated``) counts the targets left as written or not converged, as ``recal
+    compensate`` exits 3 for them; the stored report's rows name them."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
     from ...compensate import CompensationInputError, compensate_and_store, decode_upload, read_multipart
@@ -95,7 +98,7 @@ async def compensate(
         )
 
     try:
-        rec_id, output, _, files = await request.app.state.heavy.run(
+        rec_id, output, summary, files = await request.app.state.heavy.run(
             compensate_and_store,
             request.app.state.settings.effective_database_url,
             calibration_id,
@@ -110,21 +113,23 @@ async def compensate(
     except CompensationInputError as exc:
         field = "query.payload" if str(exc).startswith("--payload") else "body"
         raise HTTPException(422, {"field": field, "message": str(exc)}) from None
+    # the CLI's exit 3: targets left as written (unreachable) or not converged, counted here and
+    # named by the stored report's rows (GET /compensations/{id}/report)
+    short = int((summary or {}).get("not_compensated", 0))
+    headers = {"X-Recal-Compensation": str(rec_id), "X-Recal-Not-Compensated": str(short)}
     if companions is not None:
         from fastapi.responses import JSONResponse
 
         return JSONResponse(
-            {"files": [{"name": name, "text": output, "encoding": encodings[name]}] + files},
-            headers={"X-Recal-Compensation": str(rec_id)},
+            {"files": [{"name": name, "text": output, "encoding": encodings[name]}] + files, "not_compensated": short},
+            headers=headers,
         )
     media = "text/csv" if name.lower().endswith(".csv") else "text/plain"
     if encodings[name] != "utf-8":  # a program that is not UTF-8 comes back as the bytes it was
         return Response(
-            output.encode(encodings[name]),
-            media_type=f"{media}; charset={encodings[name]}",
-            headers={"X-Recal-Compensation": str(rec_id)},
+            output.encode(encodings[name]), media_type=f"{media}; charset={encodings[name]}", headers=headers
         )
-    return PlainTextResponse(output, media_type=media, headers={"X-Recal-Compensation": str(rec_id)})
+    return PlainTextResponse(output, media_type=media, headers=headers)
 
 
 @router.get("/compensations/{compensation_id}", response_class=PlainTextResponse)
