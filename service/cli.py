@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the main job: a whole calibration, end to end, on a simulated robot"),
     "serve": ("serve", "run the REST API (docs/contracts.md §9, docs/service.md)"),
     "token": ("token", "create API tokens"),
+    "repair-text": ("repair_text", "find (--check) or repair stored text that cannot be read"),
     "backup": ("backup", "a consistent copy of the embedded SQLite store, while the service runs"),
     "nightly": ("nightly", "check a cell's accuracy and recalibrate it when it drifted"),
     "worker": ("worker", "run the sessions of some sites' cells (the fleet, docs/fleet.md)"),

@@ -266,9 +266,31 @@ def verifications(db: Session, cell_id: int, *, limit: int | None = None) -> lis
     return out
 
 
-def audit_entries(db: Session, limit: int) -> list[AuditEntry]:
-    """The newest ``limit`` audit entries (at most 5000), newest first."""
-    return list(db.exec(select(AuditEntry).order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all())
+def audit_entries(db: Session, limit: int, *, before_id: int | None = None) -> list[AuditEntry]:
+    """The newest ``limit`` audit entries (at most 5000), newest first; with ``before_id``, those
+    older than that entry (the next page: pass the last id of a page)."""
+    q = select(AuditEntry)
+    if before_id is not None:
+        q = q.where(AuditEntry.id < before_id)
+    return list(db.exec(q.order_by(AuditEntry.id.desc()).limit(max(1, min(limit, 5000)))).all())
+
+
+def prune_audit(db: Session, *, before: datetime, actor: str) -> int:
+    """Delete the audit entries written before ``before``; the pruning itself is audited (an
+    entry that stays). Returns how many were deleted."""
+    old = db.exec(select(AuditEntry.id).where(AuditEntry.at < before)).all()
+    for start in range(0, len(old), 1000):
+        chunk = old[start : start + 1000]
+        db.exec(delete(AuditEntry).where(AuditEntry.id.in_(chunk)))  # type: ignore[union-attr]
+    db.commit()
+    audit(
+        db,
+        actor=actor,
+        action="prune audit",
+        subject="audit",
+        detail={"before": before.isoformat(), "deleted": len(old)},
+    )
+    return len(old)
 
 
 def issue_ticket(db: Session, *, token_id: int, scope: str, ttl_s: float, now: datetime | None = None) -> str:

@@ -24,6 +24,7 @@ from ..runners import runner_class
 from ..settings import Settings
 from ..store import database_unavailable, interrupt_unfinished, make_engine, migrate
 from ..textcheck import document_faults, parameter_fault
+from ..textrepair import unreadable_text
 from . import docs, metrics
 from .deps import current_token
 from .docs import allowed_methods, document_errors, is_id_parameter, needs_token
@@ -123,6 +124,15 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
     async def lifespan(app: FastAPI):
         engine = make_engine(settings.effective_database_url)
         migrate(engine)
+        with Session(engine) as db:  # what a store kept before the API refused it
+            unreadable = unreadable_text(db)
+        if unreadable:
+            log.error(
+                "%d stored value(s) hold text that cannot be read (%s); every answer that includes them "
+                "fails until `recal repair-text` repairs them",
+                len(unreadable),
+                ", ".join(f"{f['table']} {f['id']} {f['field']}" for f in unreadable[:5]),
+            )
         factory = orchestrator_factory or runner_class(settings)
         if not factory.distributed:  # a fleet's sessions run on, in its workers
             with Session(engine) as db:

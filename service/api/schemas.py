@@ -72,6 +72,7 @@ class TokenRevoked(BaseModel):
 
 
 class AuditRow(BaseModel):
+    id: int
     at: Any
     actor: str
     action: str

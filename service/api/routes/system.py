@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request
@@ -82,6 +83,26 @@ def revoke(token_id: int, request: Request, db: DbSession, tok: Admin):
 
 
 @router.get("/audit", response_model=list[AuditRow])
-def audit_log(db: DbSession, tok: Admin, limit: Annotated[int, Query(ge=1, le=5000)] = 200):
-    rows = store.audit_entries(db, limit)
-    return [{"at": a.at, "actor": a.actor, "action": a.action, "subject": a.subject, "detail": a.detail} for a in rows]
+def audit_log(
+    db: DbSession,
+    tok: Admin,
+    limit: Annotated[int, Query(ge=1, le=5000)] = 200,
+    before_id: Annotated[int | None, Query(ge=1, description="the next page: the last id of the previous one")] = None,
+):
+    """The newest audit entries, newest first, a page of ``limit``; ``before_id`` pages on."""
+    rows = store.audit_entries(db, limit, before_id=before_id)
+    return [
+        {"id": a.id, "at": a.at, "actor": a.actor, "action": a.action, "subject": a.subject, "detail": a.detail}
+        for a in rows
+    ]
+
+
+@router.delete("/audit")
+def prune_audit(
+    db: DbSession,
+    tok: Admin,
+    before: Annotated[datetime, Query(description="delete the entries written before this time (ISO 8601)")],
+) -> dict:
+    """Delete the audit entries older than ``before`` (admin); the pruning is itself audited."""
+    at = before if before.tzinfo is not None else before.replace(tzinfo=timezone.utc)
+    return {"deleted": store.prune_audit(db, before=at, actor=tok.name)}

@@ -1,0 +1,95 @@
+"""Stored text that cannot be read is found when the service starts and repaired by a documented
+command; the audit log can be paged and pruned by an admin (issue 22, case 1). The bad row is
+written straight into the store, as a PATCH that answered 500 once kept it (SQLite keeps JSON's
+"\\ud800" escaped; PostgreSQL refuses it, so it cannot hold one)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlmodel import Session
+
+from calibration.robots import nominal_document
+from service.api.app import create_app
+from service.models import AuditEntry, Cell
+from service.store import make_engine, migrate
+
+from .conftest import auth
+
+RECAL = str(Path(sys.executable).with_name("recal"))
+
+
+def _poison(settings) -> int:
+    engine = make_engine(settings.effective_database_url)
+    migrate(engine)
+    model = nominal_document("ur5e")
+    model["name"] = "ur\ud800x"
+    with Session(engine) as db:
+        cell = Cell(name="poisoned", model=model, devices={})
+        db.add(cell)
+        db.add(AuditEntry(actor="a", action="update cell", subject="cell", detail={"model": model}))
+        db.commit()
+        cid = int(cell.id)
+    engine.dispose()
+    return cid
+
+
+def _repair(settings, *args):
+    env = {**os.environ, "RECAL_DATABASE_URL": settings.effective_database_url, "RECAL_HOME": str(settings.home)}
+    return subprocess.run([RECAL, "repair-text", *args], capture_output=True, text=True, timeout=120, env=env)
+
+
+@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+def test_unreadable_text_is_reported_at_start_and_repaired_by_recal_repair_text(settings, tokens, caplog):
+    cid = _poison(settings)
+    with (
+        caplog.at_level(logging.ERROR, logger="recal.api"),
+        TestClient(create_app(settings), raise_server_exceptions=False) as client,
+    ):
+        assert client.get("/api/v1/cells", headers=auth(tokens["viewer"])).status_code == 500  # what it broke
+    reported = [r.getMessage() for r in caplog.records if "cannot be read" in r.getMessage()]
+    assert reported and f"cell {cid} model.name" in reported[0] and "recal repair-text" in reported[0], reported
+
+    check = _repair(settings, "--check")
+    assert check.returncode == 3, check.stdout + check.stderr
+    assert f"cell {cid}: model.name: expected text (UTF-8)" in check.stdout and "audit" in check.stdout, check.stdout
+    done = _repair(settings)
+    assert done.returncode == 0 and "repaired 2 stored value(s)" in done.stdout, done.stdout + done.stderr
+    assert _repair(settings, "--check").returncode == 0
+
+    with TestClient(create_app(settings)) as client:
+        for role in ("viewer", "admin"):
+            assert client.get("/api/v1/cells", headers=auth(tokens[role])).status_code == 200
+        cell = client.get(f"/api/v1/cells/{cid}", headers=auth(tokens["viewer"])).json()
+        assert cell["model"]["name"] == "ur\ufffdx"
+        audit = client.get("/api/v1/audit", headers=auth(tokens["admin"]))
+        assert audit.status_code == 200, audit.text
+        assert audit.json()[0]["action"] == "repair text"
+
+
+def test_the_audit_log_is_paged_and_pruned_by_an_admin(settings, tokens):
+    with TestClient(create_app(settings)) as client:
+        admin = auth(tokens["admin"])
+        for i in range(5):
+            r = client.post("/api/v1/tokens", json={"role": "viewer", "name": f"t{i}"}, headers=admin)
+            assert r.status_code in (200, 201), r.text
+        first = client.get("/api/v1/audit?limit=2", headers=admin).json()
+        second = client.get(f"/api/v1/audit?limit=2&before_id={first[-1]['id']}", headers=admin).json()
+        assert len(first) == len(second) == 2 and first[-1]["id"] > second[0]["id"] > second[1]["id"]
+        every = client.get("/api/v1/audit?limit=5000", headers=admin).json()
+        assert [e["id"] for e in every[:4]] == [e["id"] for e in first + second]
+        future = (datetime.now(timezone.utc) + timedelta(minutes=1)).isoformat()
+        for role in ("viewer", "technician", "job"):
+            r = client.delete("/api/v1/audit", params={"before": future}, headers=auth(tokens[role]))
+            assert r.status_code == 403, r.text
+        r = client.delete("/api/v1/audit", params={"before": future}, headers=admin)
+        assert r.status_code == 200 and r.json()["deleted"] == len(every), r.text
+        left = client.get("/api/v1/audit", headers=admin).json()
+        assert [e["action"] for e in left] == ["prune audit"] and left[0]["detail"]["deleted"] == len(every)
