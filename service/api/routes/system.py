@@ -101,8 +101,20 @@ def audit_log(
 def prune_audit(
     db: DbSession,
     tok: Admin,
-    before: Annotated[datetime, Query(description="delete the entries written before this time (ISO 8601)")],
+    before: Annotated[
+        str,
+        Query(
+            description="delete the entries written before this time (ISO 8601, UTC when it names no zone)",
+            json_schema_extra={"format": "date-time"},
+        ),
+    ],
 ) -> dict:
     """Delete the audit entries older than ``before`` (admin); the pruning is itself audited."""
-    at = before if before.tzinfo is not None else before.replace(tzinfo=timezone.utc)
+    try:  # an ISO 8601 time only: a number (pydantic would read 0.5 as seconds since 1970) is refused
+        at = datetime.fromisoformat(before)
+    except ValueError:
+        raise HTTPException(
+            422, {"field": "query.before", "message": f"expected an ISO 8601 time, got {before!r}"}
+        ) from None
+    at = at if at.tzinfo is not None else at.replace(tzinfo=timezone.utc)
     return {"deleted": store.prune_audit(db, before=at, actor=tok.name)}
