@@ -168,7 +168,7 @@ def test_a_program_compensated_by_the_route_is_served_again_as_answered(calibrat
         (
             {"name": "job.src", "content": "DEF job( )\nEND\n", "files": [{"name": "job.dat", "content": "\ud800"}]},
             "body.files[0].content",
-            "unicode string",
+            "unpaired surrogate U+D800",  # every request's text is checked first (service/textcheck.py)
         ),
     ],
 )
