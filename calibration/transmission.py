@@ -68,20 +68,18 @@ class JointTransmission:
 
 @dataclass(frozen=True, eq=False)
 class TransmissionCorrection:
-    """A fitted :class:`JointTransmission` bound to the geometric model it corrects: the same
-    ``evaluate`` as a residual map (a position correction and where it applies)."""
+    """A fitted :class:`JointTransmission` and the geometric model identified on the readings it
+    corrects (``corrected``), as a correction of the model file's own geometric model (``base``):
+    inside the fitted region the position is ``corrected`` at ``q + δq(q)``; outside, ``base``
+    alone. The same ``evaluate`` as a residual map."""
 
-    model: KinematicModel
+    base: KinematicModel
+    corrected: KinematicModel
     transmission: JointTransmission
 
     @property
     def cv(self) -> dict:
         return self.transmission.cv
-
-    def joint_offsets(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """δq (N, n) to add to readings ``q`` (zero outside the fitted region), and (N,) inside."""
-        inside = self.transmission.inside(q)
-        return self.transmission.joint_errors(q) * inside[:, None], inside
 
     def evaluate(self, q: np.ndarray, p_tool: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The correction (N, 3) m of the position of tool-frame point ``p_tool`` ((3,) or (N, 3);
@@ -91,8 +89,12 @@ class TransmissionCorrection:
 
         q = np.atleast_2d(np.asarray(q, dtype=float))
         p = np.broadcast_to(np.zeros(3) if p_tool is None else np.asarray(p_tool, dtype=float), (len(q), 3))
-        dq, inside = self.joint_offsets(q)
-        corr = predict(self.model, q + dq, p).p_world - predict(self.model, q, p).p_world
+        inside = self.transmission.inside(q)
+        corr = np.zeros((len(q), 3))
+        if inside.any():
+            qi, pi = q[inside], p[inside]
+            dq = self.transmission.joint_errors(qi)
+            corr[inside] = predict(self.corrected, qi + dq, pi).p_world - predict(self.base, qi, pi).p_world
         return corr, inside
 
 
@@ -232,10 +234,14 @@ def corrected_readings(data, t: JointTransmission):
 # ----------------------------------------------------------------------------- the file section
 
 
-def to_dict(t: JointTransmission, model: KinematicModel) -> dict:
+def to_dict(c: TransmissionCorrection, model: KinematicModel) -> dict:
     """The model file's ``residual_map`` section for the transmission family: per joint its ratios
     (cycles per output turn) and cosine/sine amplitudes in the model's angle unit; the region in
-    the model's joint units."""
+    the model's joint units; the geometric model identified with the correction (a model
+    document, in ``model``'s units)."""
+    from .model import model_to_dict
+
+    t = c.transmission
     u = model.units
     scale = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
     return {
@@ -250,6 +256,7 @@ def to_dict(t: JointTransmission, model: KinematicModel) -> dict:
             }
             for i, (j, r, c) in enumerate(zip(model.joints, t.ratios, t.coefficients))
         ],
+        "geometric_model": model_to_dict(c.corrected, units=u),
         "lower": [float(v) for v in t.lower / scale],
         "upper": [float(v) for v in t.upper / scale],
         "cross_validation": {k: (v / u.length_m if k.endswith("_m") else v) for k, v in t.cv.items()},
@@ -289,5 +296,13 @@ def from_dict(d: dict, model: KinematicModel) -> TransmissionCorrection:
         ) from None
     if lo.shape != (model.n_joints,) or hi.shape != (model.n_joints,):
         raise ResidualMapError("residual_map.lower", f"expected lower and upper: {model.n_joints} numbers each")
+    try:
+        from .model import model_from_dict
+
+        corrected = model_from_dict(d["geometric_model"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ResidualMapError("residual_map.geometric_model", f"expected a model document ({exc})") from None
+    if corrected.n_joints != model.n_joints:
+        raise ResidualMapError("residual_map.geometric_model", f"expected a model of {model.n_joints} joints")
     t = JointTransmission(tuple(ratios), tuple(coefs), lo, hi, dict(d.get("cross_validation") or {}))
-    return TransmissionCorrection(model, t)
+    return TransmissionCorrection(model, corrected, t)
