@@ -234,6 +234,7 @@ def to_dict(m: ResidualMap, model: KinematicModel) -> dict:
     scale = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
     return {
         "format": FORMAT,
+        "family": "map",
         "kernel": "gaussian on (cos q, sin q) of revolute joints, q / 1 m of prismatic ones",
         "length_scale": m.length_scale,
         "ridge": m.ridge,
