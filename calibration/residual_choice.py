@@ -64,7 +64,10 @@ def fit_family(family: str, start: KinematicModel, model: KinematicModel, data, 
         return rm._fitted_map(data, r, revolute, 5, seed)
     if family == "transmission":
         t = tr.fit_transmission(model, data.q, r, _p_tool(model, data), target_names=data.target, payload=data.payload)
-        corrected = identify(start, tr.corrected_readings(data, t), **identify_kw).model
+        # identified again on the corrected readings from ``model`` with its tool and targets held:
+        # a point of ``model``'s tool frame is then the same point of the corrected model's
+        kw = {**identify_kw, "fixed": (*identify_kw.get("fixed", ()), "tool.*", "target.*")}
+        corrected = identify(model, tr.corrected_readings(data, t), **kw).model
         return tr.TransmissionCorrection(model, corrected, t)
     if family == "trees":
         rows = rm.map_rows(data, MAX_TREE_CONFIGURATIONS, seed + 5)
