@@ -176,3 +176,19 @@ def test_transmission_fit_finds_the_wave_generator_and_refuses_chance(chosen):
     J = TR.position_jacobian(nom, q, p_tool)
     found = TR.find_gear_ratios(J, q, rng.normal(0, SIGMA_M, (len(q), 3)), np.ones(6, dtype=bool), [[1.0, 2.0]] * 6)
     assert found == [None] * 6
+
+
+def test_the_simulated_cell_puts_the_arm_where_its_transmission_errors_say():
+    from fakes.world import SimCell
+
+    rng, nom, truth, tx = _arm()
+    q = random_configurations(nom, 5, rng, limits=REGION)
+    expected = simulate_measurements(truth, q, rng, sigma_m=0.0, targets=("smr",), transmission=tx).p_world
+    rigid = simulate_measurements(truth, q, rng, sigma_m=0.0, targets=("smr",)).p_world
+    cell, plain = SimCell(truth, transmission=tx), SimCell(truth)
+    for k in range(len(q)):
+        for c in (cell, plain):
+            c.start_move(q[k], 1.0, 1.0)  # time_scale 0: the move is done at once
+        assert np.allclose(cell.target_world("smr"), expected[k], atol=1e-12)
+        assert np.allclose(plain.target_world("smr"), rigid[k], atol=1e-12)
+        assert np.linalg.norm(expected[k] - rigid[k]) > 1e-5  # the transmission errors matter
