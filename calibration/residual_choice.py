@@ -162,16 +162,19 @@ def _learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) ->
     out = []
     for share in LEARNING_SHARES:
         sq, n, poses = 0.0, 0, []
-        for tr_data, te, model in fitted_per_fold:
-            k = max(int(share * _poses(tr_data)), 10)
-            rows = rm.map_rows(tr_data, k, seed + 7)
-            sub = tr_data.subset(rows)
-            sub_model = model if share == 1.0 else identify_or(start, sub, kw, model)
-            c = fit_family(family, start, sub_model, sub, kw, seed)
-            s, _ = _held_out_sq(c, sub_model, te)
-            sq += s
-            n += len(te)
-            poses.append(_poses(sub))
+        try:
+            for tr_data, te, model in fitted_per_fold:
+                k = max(int(share * _poses(tr_data)), 10)
+                rows = rm.map_rows(tr_data, k, seed + 7)
+                sub = tr_data.subset(rows)
+                sub_model = model if share == 1.0 else identify_or(start, sub, kw, model)
+                c = fit_family(family, start, sub_model, sub, kw, seed)
+                s, _ = _held_out_sq(c, sub_model, te)
+                sq += s
+                n += len(te)
+                poses.append(_poses(sub))
+        except ValueError:  # too few poses at this share to identify (NotEnoughData): no point
+            continue
         out.append({"poses": int(np.mean(poses)), "rms_m": math.sqrt(sq / max(n, 1))})
     return out
 
