@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from calibration import robots
 from calibration.model import Units, model_to_dict
@@ -27,9 +28,16 @@ def recal(*args, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([*RECAL, *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
-def test_identify_stores_the_transmission_correction_and_predict_applies_it(tmp_path):
+@pytest.fixture(scope="module")
+def identified(tmp_path_factory):
+    """A UR10e with every link in error and harmonic-drive transmission errors, measured on 800
+    configurations of a region, identified with ``--residual-map auto``."""
+    tmp_path = tmp_path_factory.mktemp("transmission")
     rng = np.random.default_rng(21)
-    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    # the reflector at the tool origin (50 mm out from the flange): the point measured is the point
+    # compensated
+    ur = robots.nominal("ur10e")
+    nominal = dataclasses.replace(ur, tool=ur.tool + np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0]))
     truth = perturbed(nominal, rng, base_length_m=0.5, base_angle_rad=0.3)
     tx = harmonic_drive_errors(nominal, rng)
     (tmp_path / "nominal.json").write_text(json.dumps(model_to_dict(nominal, units=Units("mm", "deg"))))
@@ -38,18 +46,23 @@ def test_identify_stores_the_transmission_correction_and_predict_applies_it(tmp_
         random_configurations(nominal, 800, rng, limits=REGION),
         rng,
         sigma_m=10e-6,
-        targets=("smr",),
+        targets=(None,),
         transmission=tx,
     )
     with (tmp_path / "meas.csv").open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow([f"q{i + 1}" for i in range(6)] + ["x", "y", "z", "target"])
+        w.writerow([f"q{i + 1}" for i in range(6)] + ["x", "y", "z"])
         for k in range(len(data)):
-            w.writerow([*np.rad2deg(data.q[k]).tolist(), *(data.p_world[k] * 1e3).tolist(), "smr"])
+            w.writerow([*np.rad2deg(data.q[k]).tolist(), *(data.p_world[k] * 1e3).tolist()])
     proc = recal(
         "identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "id.json", "--sigma", "0.01",
         "--report", "r.json", "--residual-map", "auto", cwd=tmp_path,
     )  # fmt: skip
+    return tmp_path, rng, nominal, truth, tx, proc
+
+
+def test_identify_stores_the_transmission_correction_and_predict_applies_it(identified):
+    tmp_path, rng, nominal, truth, tx, proc = identified
     assert proc.returncode in (0, 3), proc.stderr  # 3: the geometric model alone does not explain the data
     line = next(x for x in proc.stdout.splitlines() if x.startswith("residual map (5-fold nested cross-validation"))
     assert "kept transmission" in line
@@ -68,21 +81,91 @@ def test_identify_stores_the_transmission_correction_and_predict_applies_it(tmp_
         w = csv.writer(f)
         w.writerow([f"q{i + 1}" for i in range(6)])
         w.writerows(np.rad2deg(q).tolist())
-    p = recal(
-        "predict", "--model", "id.json", "--joints", "joints.csv", "--target", "smr", "--out", "p.csv", cwd=tmp_path
-    )
+    p = recal("predict", "--model", "id.json", "--joints", "joints.csv", "--out", "p.csv", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     rows = list(csv.reader((tmp_path / "p.csv").open()))
-    assert rows[0] == ["x", "y", "z", "flags"]
+    assert rows[0] == ["x", "y", "z", "qw", "qx", "qy", "qz", "flags"]
     xyz = np.array([r[:3] for r in rows[1:]], dtype=float) * 1e-3
-    outside = np.array(["outside_mapped_region" in r[3] for r in rows[1:]])
+    outside = np.array(["outside_mapped_region" in r[7] for r in rows[1:]])
     assert outside[-5:].all() and not outside[:-5].any()
-    true = simulate_measurements(truth, q, rng, sigma_m=0.0, targets=("smr",), transmission=tx).p_world
+    true = simulate_measurements(truth, q, rng, sigma_m=0.0, targets=(None,), transmission=tx).p_world
     model = load_model(tmp_path / "id.json")
     from calibration.kinematics import target_positions
 
-    geometric = target_positions(model, q, "smr")
+    geometric = target_positions(model, q, None)
     err_pred = np.linalg.norm(xyz - true, axis=1)
     err_geo = np.linalg.norm(geometric - true, axis=1)
     assert np.sqrt(np.mean(err_pred[~outside] ** 2)) < 0.3 * np.sqrt(np.mean(err_geo[~outside] ** 2))
     assert np.allclose(xyz[outside], geometric[outside], atol=1e-9)  # the geometric model alone there
+
+
+def _task(path: Path, T_goal: np.ndarray, q_near: np.ndarray) -> None:
+    from calibration.transforms import matrix_to_quat
+
+    quat = matrix_to_quat(T_goal[:, :3, :3])
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["x", "y", "z", "qw", "qx", "qy", "qz"] + [f"q{i + 1}" for i in range(6)])
+        for k in range(len(T_goal)):
+            w.writerow([*(T_goal[k, :3, 3] * 1e3), *quat[k], *np.rad2deg(q_near[k])])
+
+
+def _compensated(path: Path):
+    rows = list(csv.reader(path.open()))
+    head = rows[0]
+    q = np.deg2rad(np.array([[r[head.index(f"q{i + 1}")] for i in range(6)] for r in rows[1:]], dtype=float))
+    return q, [r[head.index("flags")] for r in rows[1:]]
+
+
+def test_compensation_through_the_transmission_puts_the_true_arm_on_the_targets(identified):
+    from calibration.kinematics import fk
+
+    tmp_path, rng, nominal, truth, tx, proc = identified
+    assert proc.returncode in (0, 3), proc.stderr
+    inner = REGION + np.deg2rad([5.0, -5.0])
+    q_goal = random_configurations(nominal, 30, rng, limits=inner)
+    T_goal = fk(truth, q_goal + tx.joint_errors(q_goal))  # where the tool must truly be
+    _task(tmp_path / "task.csv", T_goal, q_goal)
+    c = recal("compensate", "--model", "id.json", "--task", "task.csv", "--out", "c.csv", cwd=tmp_path)
+    assert c.returncode == 0, c.stderr
+    qc, flags = _compensated(tmp_path / "c.csv")
+    assert not any(flags), flags
+    reached = fk(truth, qc + tx.joint_errors(qc))[:, :3, 3]  # where the true arm goes at the commands
+    err = np.linalg.norm(reached - T_goal[:, :3, 3], axis=1)
+    doc = json.loads((tmp_path / "id.json").read_text())
+    (tmp_path / "nomap.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "residual_map"}))
+    c2 = recal("compensate", "--model", "nomap.json", "--task", "task.csv", "--out", "c2.csv", cwd=tmp_path)
+    assert c2.returncode == 0, c2.stderr
+    q2, _ = _compensated(tmp_path / "c2.csv")
+    err2 = np.linalg.norm(fk(truth, q2 + tx.joint_errors(q2))[:, :3, 3] - T_goal[:, :3, 3], axis=1)
+    assert err.max() < 0.01e-3, err.max()  # within 0.01 mm of every target (issue 28)
+    assert err2.max() > 2 * err.max()  # the geometric model alone does not get there
+
+
+def test_compensation_through_trees_settles_or_flags_every_point(identified, tmp_path):
+    from calibration import residual_choice as RC
+    from calibration import trees as TT
+    from calibration.kinematics import fk
+    from service.files import read_measurements
+
+    d, rng, nominal, truth, tx, proc = identified
+    model = load_model(d / "id.json")
+    data = read_measurements(str(d / "meas.csv"), model)
+    trees = RC.fit_family("trees", model, model, data, {"sigma_m": 10e-6})
+    doc = json.loads((d / "id.json").read_text())
+    doc["residual_map"] = TT.to_dict(trees, model)
+    (tmp_path / "trees.json").write_text(json.dumps(doc))
+    q_goal = random_configurations(nominal, 40, rng, limits=REGION + np.deg2rad([5.0, -5.0]))
+    T_goal = fk(truth, q_goal + tx.joint_errors(q_goal))
+    _task(tmp_path / "task.csv", T_goal, q_goal)
+    c = recal("compensate", "--model", "trees.json", "--task", "task.csv", "--out", "c.csv", cwd=tmp_path)
+    assert c.returncode in (0, 3), c.stderr
+    qc, flags = _compensated(tmp_path / "c.csv")
+    m = load_model(tmp_path / "trees.json")
+    corr, inside = trees.evaluate(qc)
+    reached = fk(m, qc)[:, :3, 3] + corr  # where the corrected model puts the commands
+    miss = np.linalg.norm(reached - T_goal[:, :3, 3], axis=1)
+    flagged = np.array(["no_convergence" in f or "outside_mapped_region" in f for f in flags])
+    assert inside[~flagged].all()
+    assert np.all(miss[~flagged] < 5e-6), miss[~flagged].max()  # settled: on the goal
+    assert np.all(miss[flagged & inside] > 1e-6)  # flagged only where it did not settle
