@@ -169,3 +169,30 @@ def test_compensation_through_trees_settles_or_flags_every_point(identified, tmp
     assert inside[~flagged].all()
     assert np.all(miss[~flagged] < 5e-6), miss[~flagged].max()  # settled: on the goal
     assert np.all(miss[flagged & inside] > 1e-6)  # flagged only where it did not settle
+
+
+def test_accuracy_judges_the_model_with_its_transmission_correction(identified):
+    tmp_path, rng, nominal, truth, tx, proc = identified
+    assert proc.returncode in (0, 3), proc.stderr
+    held = simulate_measurements(
+        truth,
+        random_configurations(nominal, 200, rng, limits=REGION + np.deg2rad([5.0, -5.0])),
+        rng,
+        sigma_m=10e-6,
+        targets=(None,),
+        transmission=tx,
+    )
+    with (tmp_path / "held.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([f"q{i + 1}" for i in range(6)] + ["x", "y", "z"])
+        for k in range(len(held)):
+            w.writerow([*np.rad2deg(held.q[k]).tolist(), *(held.p_world[k] * 1e3).tolist()])
+    doc = json.loads((tmp_path / "id.json").read_text())
+    (tmp_path / "geometric.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "residual_map"}))
+    rms = {}
+    for name in ("id.json", "geometric.json"):
+        a = recal("accuracy", "--model", name, "--data", "held.csv", "--out", f"acc-{name}", cwd=tmp_path)
+        assert a.returncode == 0, a.stderr
+        rms[name] = json.loads((tmp_path / f"acc-{name}").read_text())["errors"]["rms"]
+    # with the correction only the tracker's noise is left (√3 · 0.01 mm), well under the geometric model's
+    assert rms["id.json"] < 0.6 * rms["geometric.json"] and rms["id.json"] < 1.3 * np.sqrt(3) * 0.01
