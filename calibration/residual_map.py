@@ -70,10 +70,10 @@ class ResidualMap:
     revolute: np.ndarray
     cv: dict
 
-    def evaluate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(self, q: np.ndarray, p_tool: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The correction (N, 3) m to add to the parametric model's position at readings ``q``
         (N, n), and (N,) whether each is inside the measured region (the correction is zero
-        outside)."""
+        outside). ``p_tool`` is not used: the map corrects whatever point it was fitted to."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
         F_train = features(self.q_train, self.revolute)
         lo, hi = self.q_train.min(axis=0), self.q_train.max(axis=0)
@@ -234,6 +234,7 @@ def to_dict(m: ResidualMap, model: KinematicModel) -> dict:
     scale = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])
     return {
         "format": FORMAT,
+        "family": "map",
         "kernel": "gaussian on (cos q, sin q) of revolute joints, q / 1 m of prismatic ones",
         "length_scale": m.length_scale,
         "ridge": m.ridge,
@@ -251,13 +252,25 @@ class ResidualMapError(RecalError, ValueError):
         super().__init__(f"{field}: {message}")
 
 
-def from_model(model: KinematicModel) -> ResidualMap | None:
-    """The residual map a model file carries (its top-level ``residual_map``), or None."""
+def from_model(model: KinematicModel):
+    """The correction a model file carries in its top-level ``residual_map`` section, whatever its
+    family (the smooth map here, :mod:`calibration.transmission`, :mod:`calibration.trees`), or
+    None: an object with ``evaluate(q, p_tool=None) -> (correction (N, 3) m, inside (N,))``, so
+    every verb loads and applies it the same way."""
+    from . import transmission, trees
+
     d = model.metadata.get("residual_map")
     if d is None:
         return None
-    if not isinstance(d, dict) or d.get("format") != FORMAT:
-        raise ResidualMapError("residual_map.format", f"expected {FORMAT!r}")
+    fmt = d.get("format") if isinstance(d, dict) else None
+    if fmt == transmission.FORMAT:
+        return transmission.from_dict(d, model)
+    if fmt == trees.FORMAT:
+        return trees.from_dict(d, model)
+    if fmt != FORMAT:
+        raise ResidualMapError(
+            "residual_map.format", f"expected one of {FORMAT!r}, {transmission.FORMAT!r}, {trees.FORMAT!r}"
+        )
     n = model.n_joints
     try:
         Q = np.array(d["configurations"], dtype=float)

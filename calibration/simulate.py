@@ -20,6 +20,7 @@ from .kinematics import fk
 from .model import KinematicModel
 from .parameters import apply_step, candidate_parameters
 from .transforms import matrix_to_quat, rotvec_to_matrix
+from .transmission import JointTransmission
 
 
 def perturbed(
@@ -83,15 +84,18 @@ def simulate_measurements(
     full_pose: bool = False,
     sigma_rad: float = 0.0,
     payload: np.ndarray | None = None,
+    transmission: JointTransmission | None = None,
 ) -> Measurements:
     """Measurements of ``truth`` at readings ``q`` (N, n): every named target (``None``: the tool
     origin) at every configuration, with normal noise ``sigma_m`` per axis; with ``full_pose``,
     the tool orientation too, rotated by normal noise ``sigma_rad`` per axis. ``payload`` (N, 4)
     or (4,): kg and centre of gravity in the tool frame (m) at each configuration (a compliant
-    ``truth`` sags under it); the rows carry it."""
+    ``truth`` sags under it); the rows carry it. ``transmission``: the truth's joint transmission
+    errors (:func:`harmonic_drive_errors`): the joints stand at ``q + δq(q)`` while the rows
+    record the readings ``q``."""
     q = np.asarray(q, dtype=float)
     pay = None if payload is None else np.broadcast_to(np.asarray(payload, dtype=float), (len(q), 4))
-    T = fk(truth, q, pay)
+    T = fk(truth, q if transmission is None else q + transmission.joint_errors(q), pay)
     rows_q, rows_p, rows_t, rows_quat, pose_id, rows_pay = [], [], [], [], [], []
     for t in targets:
         p_tool = truth.target(t)
@@ -116,6 +120,48 @@ def simulate_measurements(
         pose_id=cat(pose_id),
         payload=None if pay is None else cat(rows_pay),
     )
+
+
+# ------------------------------------------------------------- joint transmission errors (issue 28)
+
+# A harmonic drive's transmission error, per joint (rad), by term: (cycles per output turn, amplitude).
+# Figures of the size and shape stated for cobot-size drives (a transmission accuracy of the order
+# of one arc-minute peak to peak in the makers' catalogues; measured errors, e.g. Tuttle and
+# Seering 1996, are dominated by once- and twice-per-output-turn terms, with a ripple at twice the
+# wave generator's speed). The amplitudes here are below the catalogue's bound, as on a good arm:
+# - once per output turn (circular spline and bearing eccentricity): 0.004-0.010 deg;
+# - twice per output turn (flexspline ellipticity): 0.002-0.005 deg;
+# - twice per wave-generator turn, i.e. 2N per output turn for gear ratio N: 3-8 arc-seconds, a
+#   period of 1.8 deg of joint angle at N = 100: "sharp in the configuration", as issue 28 found on
+#   a real UR10 where smooth maps failed.
+# At a UR10's reach (1.3 m) 0.01 deg is 0.2 mm: the size of what a complete geometric model left
+# on the measured UR10 (0.49 mm) and UR5 (0.11 mm).
+HARMONIC_DRIVE_TERMS_DEG = ((1.0, (0.004, 0.010)), (2.0, (0.002, 0.005)), ("2N", (3 / 3600, 8 / 3600)))
+HARMONIC_DRIVE_RATIO = 101  # UR-class joints: 100-101:1 harmonic drives
+
+
+def harmonic_drive_errors(
+    model: KinematicModel, rng: np.random.Generator, *, gear_ratios: tuple[float, ...] | None = None
+) -> JointTransmission:
+    """Joint transmission errors of harmonic drives (:data:`HARMONIC_DRIVE_TERMS_DEG`) for every
+    revolute joint of ``model``: each term's amplitude uniform in its range, its phase uniform;
+    ``gear_ratios`` per joint (default :data:`HARMONIC_DRIVE_RATIO` for all)."""
+    n = model.n_joints
+    ratios_n = gear_ratios or (HARMONIC_DRIVE_RATIO,) * n
+    ratios, coefs = [], []
+    for i, j in enumerate(model.joints):
+        if not j.revolute:
+            ratios.append(np.zeros(0))
+            coefs.append(np.zeros((0, 2)))
+            continue
+        r, c = [], []
+        for k, (lo, hi) in HARMONIC_DRIVE_TERMS_DEG:
+            amp, phase = np.deg2rad(rng.uniform(lo, hi)), rng.uniform(0, 2 * np.pi)
+            r.append(2.0 * ratios_n[i] if k == "2N" else float(k))
+            c.append((amp * np.sin(phase), amp * np.cos(phase)))  # a·sin(r q + φ) = a sinφ cos + a cosφ sin
+        ratios.append(np.array(r))
+        coefs.append(np.array(c))
+    return JointTransmission(tuple(ratios), tuple(coefs))
 
 
 # ------------------------------------------------------------------ arms that sag under gravity

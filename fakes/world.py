@@ -32,6 +32,7 @@ from calibration.model import KinematicModel
 from calibration.robots import nominal
 from calibration.simulate import perturbed
 from calibration.transforms import homogeneous, matrix_to_rotvec, pose_to_matrix, rotvec_to_matrix
+from calibration.transmission import JointTransmission
 
 
 def ur_pose_to_matrix(pose: np.ndarray) -> np.ndarray:
@@ -257,8 +258,12 @@ class SimCell:
         balls_tool: dict[str, np.ndarray] | None = None,
         ball_radius_m: float = 0.0125,
         factory: FactoryCalibration | None = None,
+        transmission: JointTransmission | None = None,
     ):
         self.truth = truth
+        # joint transmission errors (calibration.simulate.harmonic_drive_errors): each joint truly
+        # stands at its reading plus δq(reading), which no device of the cell reports
+        self.transmission = transmission
         # The controller's own kinematics (robot base frame, flange): the factory calibration's
         # model; without one (not a UR cell) the controller computes with the truth, in the
         # world frame, as this simulator always did.
@@ -475,7 +480,12 @@ class SimCell:
 
     def T_world_tool(self) -> np.ndarray:
         """The true tool pose now, (4, 4): a compliant truth sags under the payload."""
-        return fk(self.truth, self.joints()[None, :], self.payload)[0]
+        return fk(self.truth, self._true_readings(), self.payload)[0]
+
+    def _true_readings(self) -> np.ndarray:
+        """(1, n): the readings the truth's kinematics sees, transmission errors included."""
+        q = self.joints()[None, :]
+        return q if self.transmission is None else q + self.transmission.joint_errors(q)
 
     def point_world(self, p_tool: np.ndarray) -> np.ndarray:
         """Where a point fixed in the tool frame truly is now, (3,)."""
@@ -492,5 +502,5 @@ class SimCell:
         """The true rotation of joint ``joint`` (1-based) from its kinematic zero, rad: what a
         reference encoder on the joint sees (book eq. 2.4: gain, offset and gear eccentricity
         relative to the controller's reading)."""
-        v = joint_variables(self.truth, self.joints()[None, :])[0]
+        v = joint_variables(self.truth, self._true_readings())[0]
         return float(v[joint - 1])

@@ -43,6 +43,10 @@ from .programs.compensate import compensate_program
 from .programs.frames import Frames
 from .taskfiles import format_task, matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur, read_task
 
+# compensation through a residual correction: at most this many passes, and a point whose
+# correction at its command still differs from the one aimed with by more than this is flagged
+MAX_CORRECTION_PASSES = 6
+CORRECTION_SETTLED_M = 1e-6
 CHUNK = 25_000
 FLAG_COUNTS = (
     "joint_limit",
@@ -322,16 +326,27 @@ def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
     comp = _chunked(N, run, t0, progress)
     rmap = residual_map_of(model)
     if rmap is not None:
-        # the robot is where the parametric model puts it plus the map's correction at the command:
-        # aim the parametric model at the goal minus that correction (run() reads X when called)
+        # the robot is where the parametric model puts it plus the correction at the command: aim
+        # the parametric model at the goal minus that correction (run() reads X when called), again
+        # until the correction at the new command is the one aimed with. A smooth map or the
+        # transmission settles in two passes to well below a micrometre; boosted trees are
+        # piecewise constant, and a command on a leaf's boundary can jump between two leaves:
+        # there the point is flagged no_convergence (the reached position misses the goal by the
+        # jump).
         goal = X.copy()
-        for _ in range(2):  # the map is smooth and small: two passes settle it to well below a micrometre
-            corr, inside = rmap.evaluate(comp.q)
-            X = goal.copy()
-            X[:, :3, 3] -= corr
-            comp = _chunked(N, run, t0, progress)
         corr, inside = rmap.evaluate(comp.q)
-        comp = dataclasses.replace(comp, flags=comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"]))
+        for _ in range(MAX_CORRECTION_PASSES):
+            aimed = corr
+            X = goal.copy()
+            X[:, :3, 3] -= aimed
+            comp = _chunked(N, run, t0, progress)
+            corr, inside = rmap.evaluate(comp.q)
+            unsettled = np.linalg.norm(corr - aimed, axis=1) > CORRECTION_SETTLED_M
+            if not unsettled.any():
+                break
+        flags = comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"])
+        flags |= np.where(unsettled, FLAG_BIT["no_convergence"], 0)
+        comp = dataclasses.replace(comp, flags=flags, converged=comp.converged & ~unsettled)
     names = {int(b): ";".join(flag_names(b)) for b in np.unique(comp.flags)}
     flags = [names[int(b)] for b in comp.flags]
     text = format_task(task, model, req.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)

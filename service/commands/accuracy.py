@@ -85,10 +85,11 @@ def _commands(model, data, target):
 
     names = np.array([t if t is not None else target for t in data.target], dtype=object)
     T = fk(model, data.q, data.payload)  # a compliant model sags under each row's payload
-    p_cmd = np.einsum("nij,nj->ni", T[:, :3, :3], np.stack([model.target(t) for t in names])) + T[:, :3, 3]
+    p_tool = np.stack([model.target(t) for t in names])
+    p_cmd = np.einsum("nij,nj->ni", T[:, :3, :3], p_tool) + T[:, :3, 3]
     rmap = _residual_map(model)
-    if rmap is not None:  # where the model's residual map applies, it corrects the commanded position
-        p_cmd = p_cmd + rmap.evaluate(data.q)[0]
+    if rmap is not None:  # where the model's residual correction applies, it corrects the commanded
+        p_cmd = p_cmd + rmap.evaluate(data.q, p_tool)[0]  # position (a transmission's: at each row's point)
     full = data.quat is not None and bool(np.all(data.has_orientation))
     R = (T[:, :3, :3], quat_to_matrix(data.quat)) if full else (None, None)
     return names, p_cmd, R

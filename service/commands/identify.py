@@ -60,8 +60,9 @@ def add_parser(s) -> None:
     s.add_argument(
         "--residual-map",
         choices=["auto"],
-        help="add a smooth correction of what the model leaves, as a function of the joints (book §5.4), "
-        "where 5-fold cross-validation shows a gain; applied only inside the measured region",
+        help="add a correction of what the model leaves, as a function of the joints: the family (a smooth "
+        "map, book §5.4; joint transmission errors; boosted trees) with the least error by 5-fold nested "
+        "cross-validation, where it shows a gain; applied only inside the measured region (docs/residual.md)",
     )
 
 
@@ -209,28 +210,41 @@ def _with_compliance(args, model, data, kw):
 
 
 def _residual_map(args, model, start, data, holdout, result, kw):
-    """``--residual-map auto``: the map's file section (None when it is left out) and the line
-    to print with the report's figures (model units)."""
+    """``--residual-map auto``: nested cross-validation among no correction, the smooth map, the
+    joint transmission and boosted trees (calibration.residual_choice, issue 28). Returns the
+    chosen correction's file section (None when none is kept) and the line to print with the
+    report's figures (model units)."""
     import numpy as np
 
+    from calibration import residual_choice as rc
     from calibration import residual_map as rm
 
     L = model.units.length_m
     u = model.units.length
-    rmap, fig = rm.choose_residual_map(start, data, identify_kw=kw, final=result.model)
-    figures = {k.removesuffix("_m"): (v / L if k.endswith("_m") else v) for k, v in fig.items()}
-    line = (
-        f"residual map ({fig['folds']}-fold cross-validation): RMS without {fig['rms_without_m'] / L:.4g} {u}, "
-        f"with {fig['rms_with_m'] / L:.4g} {u}; "
-    )
-    if rmap is None:
+    choice = rc.choose_correction(start, data, identify_kw=kw, final=result.model)
+    fig = choice.figures
+    figures = _in_units(fig, L)
+    fams = ", ".join(f"{f} {v['rms_m'] / L:.4g}" for f, v in fig["families"].items())
+    line = f"residual map ({fig['folds']}-fold nested cross-validation, RMS {u}): {fams}; "
+    if choice.correction is None:
         line += f"no gain of {100 * fig['min_gain']:.0f} % or more: left out"
         return None, (line, figures)
-    line += f"kept (length scale {rmap.length_scale:.3g}, ridge {rmap.ridge:.3g})"
+    line += f"kept {choice.family} ({100 * fig['gain']:.0f} % lower than without)"
     if holdout is not None:
         r = rm.residuals(result.model, holdout)
-        corr, inside = rmap.evaluate(holdout.q)
+        p_tool = np.array([result.model.target(t) for t in holdout.target])
+        corr, inside = choice.correction.evaluate(holdout.q, p_tool)
         after = float(np.sqrt(np.mean(np.sum((r - corr) ** 2, axis=1))))
         figures["validation"] = {"rms_with_map": after / L, "inside_share": float(np.mean(inside))}
-        line += f"; hold-out RMS with the map {after / L:.4g} {u} ({100 * np.mean(inside):.0f}% of it inside the map)"
-    return rm.to_dict(rmap, model), (line, figures)
+        line += f"; hold-out RMS with it {after / L:.4g} {u} ({100 * np.mean(inside):.0f}% of it inside its region)"
+    return choice.section(model), (line, figures)
+
+
+def _in_units(value, L: float, key: str = ""):
+    """``value`` with every number under a key ending in ``_m`` divided by ``L`` (the key without
+    the suffix), recursively."""
+    if isinstance(value, dict):
+        return {k.removesuffix("_m"): _in_units(v, L, k) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_in_units(v, L, key) for v in value]
+    return value / L if key.endswith("_m") and isinstance(value, float) else value

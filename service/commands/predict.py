@@ -149,8 +149,9 @@ def _uncertainty(model, q, target, payload=None):
 
 
 def _residual_map(args, model, q, T):
-    """Apply the model's residual map (book §5.4) to the tool poses ``T`` (N, 4, 4) in place (a
-    translation of the tool frame); the per-row flags (``outside_mapped_region`` where it does not
+    """Apply the model's residual correction (whatever its family: a smooth map, book §5.4; joint
+    transmission errors; boosted trees) to the tool poses ``T`` (N, 4, 4) in place (a translation
+    of the tool frame, computed at the ``--target`` point when one is asked for); the per-row flags (``outside_mapped_region`` where it does not
     apply), or None for a model without a map."""
     import numpy as np
 
@@ -163,6 +164,8 @@ def _residual_map(args, model, q, T):
         raise InputError(args.model, f"field {exc.field!r}: {str(exc).split(': ', 1)[-1]}") from None
     if rmap is None:
         return None
-    corr, inside = rmap.evaluate(q)
+    # a transmission correction moves each point by its own amount: the one asked for (--target)
+    p_tool = model.targets[args.target] if args.target is not None else None
+    corr, inside = rmap.evaluate(q, p_tool)
     T[:, :3, 3] += corr
     return np.where(inside, "", "outside_mapped_region").tolist()

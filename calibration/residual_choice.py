@@ -1,0 +1,189 @@
+"""Which correction of what the geometric model leaves, by nested cross-validation (issue 28):
+none, the smooth map (:mod:`calibration.residual_map`), the joint transmission
+(:mod:`calibration.transmission`) or boosted trees (:mod:`calibration.trees`).
+
+Outer k-fold cross-validation of the whole procedure, a configuration's rows in one fold: identify
+the geometric model on the training folds, fit each family to its residuals there (each family
+chooses its own settings inside, on the training folds only: the map its smoothness by an inner
+cross-validation, the transmission its gear ratios, the trees are fixed), and measure every
+family's error on the held-out fold. The family with the least cross-validated RMS is kept when it
+lowers the RMS of none by at least :data:`MIN_CV_GAIN`; it is then fitted to all the data. A
+learning curve (the held-out RMS of the best family fitted to a share of each training fold's
+configurations, against that number of poses) tells whether more poses would help.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import residual_map as rm
+from . import transmission as tr
+from . import trees as tt
+from .model import KinematicModel
+
+FAMILIES = ("none", "map", "transmission", "trees")
+MIN_CV_GAIN = rm.MIN_CV_GAIN
+LEARNING_SHARES = (0.25, 0.5, 1.0)
+
+
+@dataclass(frozen=True, eq=False)
+class Choice:
+    """``family`` chosen (``"none"``: no correction), ``correction`` (an object with
+    ``evaluate(q, p_tool=None) -> (corr, inside)``, None for none) and ``figures`` (m)."""
+
+    family: str
+    correction: object | None
+    figures: dict
+
+    def section(self, model: KinematicModel) -> dict | None:
+        """The model file's ``residual_map`` section (None for none)."""
+        if self.correction is None:
+            return None
+        if self.family == "map":
+            return rm.to_dict(self.correction, model)
+        if self.family == "transmission":
+            return tr.to_dict(self.correction, model)
+        return tt.to_dict(self.correction, model)
+
+
+def _p_tool(model: KinematicModel, data) -> np.ndarray:
+    return np.array([model.target(t) for t in data.target])
+
+
+def fit_family(family: str, start: KinematicModel, model: KinematicModel, data, identify_kw: dict, seed: int = 0):
+    """``family`` fitted to the residuals of ``model`` (identified from ``start``) on ``data``."""
+    from .identify import identify
+
+    r = rm.residuals(model, data)
+    revolute = np.array([j.revolute for j in model.joints])
+    if family == "map":
+        return rm._fitted_map(data, r, revolute, 5, seed)
+    if family == "transmission":
+        t = tr.fit_transmission(model, data.q, r, _p_tool(model, data), target_names=data.target, payload=data.payload)
+        # identified again on the corrected readings from ``model`` with its tool and targets held:
+        # a point of ``model``'s tool frame is then the same point of the corrected model's
+        kw = {**identify_kw, "fixed": (*identify_kw.get("fixed", ()), "tool.*", "target.*")}
+        corrected = identify(model, tr.corrected_readings(data, t), **kw).model
+        return tr.TransmissionCorrection(model, corrected, t)
+    if family == "trees":
+        rows = rm.map_rows(data, MAX_TREE_CONFIGURATIONS, seed + 5)
+        sub = data.subset(rows)
+        return tt.fit_trees(sub.q, r[rows], seed=seed)
+    raise ValueError(f"unknown family {family!r}; expected one of {', '.join(FAMILIES)}")
+
+
+# the trees are fitted on at most this many configurations (a seeded draw): their cost grows
+# linearly, and a few thousand poses are what the measured arms of issue 28 had
+MAX_TREE_CONFIGURATIONS = 3000
+
+
+def _held_out_sq(correction, model: KinematicModel, te) -> tuple[float, float]:
+    """Sum of squared held-out errors with ``correction`` (None: without), and the share inside."""
+    r = rm.residuals(model, te)
+    if correction is None:
+        return float(np.sum(r**2)), 1.0
+    corr, inside = correction.evaluate(te.q, _p_tool(model, te))
+    return float(np.sum((r - corr) ** 2)), float(np.mean(inside))
+
+
+def choose_correction(
+    start: KinematicModel,
+    data,
+    *,
+    folds: int = 5,
+    families: tuple[str, ...] = FAMILIES,
+    min_gain: float = MIN_CV_GAIN,
+    seed: int = 0,
+    identify_kw: dict | None = None,
+    final: KinematicModel | None = None,
+) -> Choice:
+    """``recal identify --residual-map auto``: see the module. ``final``: the geometric model
+    identified on all ``data`` (default: identified here); the chosen correction corrects it."""
+    from .compliance_fit import fold_indices
+    from .identify import identify
+
+    kw = dict(identify_kw or {})
+    all_data = data
+    data = data.subset(rm.map_rows(data, rm.MAX_CV_CONFIGURATIONS, seed + 3))
+    outer = fold_indices(data, folds, seed)
+    sq = {f: 0.0 for f in families}
+    inside = {f: [] for f in families}
+    fitted_per_fold = []
+    for test in outer:
+        train = np.setdiff1d(np.arange(len(data)), test)
+        tr_data, te = data.subset(train), data.subset(test)
+        model = identify(start, tr_data, **kw).model
+        fitted_per_fold.append((tr_data, te, model))
+        for f in families:
+            c = None if f == "none" else fit_family(f, start, model, tr_data, kw, seed)
+            s, share = _held_out_sq(c, model, te)
+            sq[f] += s
+            inside[f].append(share)
+    n = len(data)
+    rms = {f: math.sqrt(sq[f] / n) for f in families}
+    best = min((f for f in families if f != "none"), key=lambda f: rms[f], default=None)
+    base = rms.get("none", math.inf)
+    gain = 1.0 - rms[best] / base if best is not None and base > 0 else 0.0
+    kept = best is not None and gain >= min_gain
+    figures = {
+        "folds": folds,
+        "cv_rows": n,
+        "cv_poses": _poses(data),
+        "families": {f: {"rms_m": rms[f], "held_out_inside_share": float(np.mean(inside[f]))} for f in families},
+        "best": best,
+        "gain": gain,
+        "min_gain": min_gain,
+        "chosen": best if kept else "none",
+        "learning_curve": _learning_curve(best, start, fitted_per_fold, kw, seed) if best else [],
+    }
+    if not kept:
+        return Choice("none", None, figures)
+    final = final if final is not None else identify(start, all_data, **kw).model
+    c = fit_family(best, start, final, all_data, kw, seed)
+    cv_figures = {"family": best, "rms_without_m": base, "rms_with_m": rms[best], "gain": gain, "folds": folds}
+    if best == "transmission":
+        c = dataclasses.replace(c, transmission=dataclasses.replace(c.transmission, cv=cv_figures))
+    else:
+        c = dataclasses.replace(c, cv=cv_figures)
+    return Choice(best, c, figures)
+
+
+def _poses(data) -> int:
+    return len(np.unique(np.asarray(data.pose_id).astype(str))) if data.pose_id is not None else len(data)
+
+
+def _learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> list[dict]:
+    """The held-out RMS (m) of ``family`` fitted to a share of each training fold's poses (the
+    geometric model of the whole training fold), against the number of those poses."""
+    out = []
+    for share in LEARNING_SHARES:
+        sq, n, poses = 0.0, 0, []
+        try:
+            for tr_data, te, model in fitted_per_fold:
+                k = max(int(share * _poses(tr_data)), 10)
+                rows = rm.map_rows(tr_data, k, seed + 7)
+                sub = tr_data.subset(rows)
+                sub_model = model if share == 1.0 else identify_or(start, sub, kw, model)
+                c = fit_family(family, start, sub_model, sub, kw, seed)
+                s, _ = _held_out_sq(c, sub_model, te)
+                sq += s
+                n += len(te)
+                poses.append(_poses(sub))
+        except ValueError:  # too few poses at this share to identify (NotEnoughData): no point
+            continue
+        out.append({"poses": int(np.mean(poses)), "rms_m": math.sqrt(sq / max(n, 1))})
+    return out
+
+
+def identify_or(start, data, kw: dict, fallback: KinematicModel) -> KinematicModel:
+    """The geometric model identified on ``data``, or ``fallback`` when they are too few."""
+    from .identify import identify
+
+    try:
+        return identify(start, data, **kw).model
+    except ValueError:
+        return fallback
