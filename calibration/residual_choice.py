@@ -43,11 +43,13 @@ class Choice:
         """The model file's ``residual_map`` section (None for none)."""
         if self.correction is None:
             return None
-        if self.family == "map":
-            return rm.to_dict(self.correction, model)
-        if self.family == "transmission":
-            return tr.to_dict(self.correction, model)
-        return tt.to_dict(self.correction, model)
+        c = self.correction
+        if isinstance(c, rm.ResidualMap):
+            return rm.to_dict(c, model)
+        if isinstance(c, tr.TransmissionCorrection):
+            return tr.to_dict(c, model)
+        assert isinstance(c, tt.BoostedTrees), type(c)
+        return tt.to_dict(c, model)
 
 
 def _p_tool(model: KinematicModel, data) -> np.ndarray:
@@ -111,7 +113,7 @@ def choose_correction(
     data = data.subset(rm.map_rows(data, rm.MAX_CV_CONFIGURATIONS, seed + 3))
     outer = fold_indices(data, folds, seed)
     sq = {f: 0.0 for f in families}
-    inside = {f: [] for f in families}
+    inside: dict[str, list[float]] = {f: [] for f in families}
     fitted_per_fold = []
     for test in outer:
         train = np.setdiff1d(np.arange(len(data)), test)
@@ -140,7 +142,7 @@ def choose_correction(
         "chosen": best if kept else "none",
         "learning_curve": _learning_curve(best, start, fitted_per_fold, kw, seed) if best else [],
     }
-    if not kept:
+    if not kept or best is None:
         return Choice("none", None, figures)
     final = final if final is not None else identify(start, all_data, **kw).model
     c = fit_family(best, start, final, all_data, kw, seed)

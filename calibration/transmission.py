@@ -171,6 +171,7 @@ def geometry_columns(model: KinematicModel, q: np.ndarray, p_tool: np.ndarray, t
     names = tuple(sorted({t for t in (target_names if target_names is not None else []) if t is not None}))
     params = candidate_parameters(model, targets=names, gains=False)
     Jp = predict(model, q, p_tool, params, target_names=target_names, payload=payload).Jp
+    assert Jp is not None  # asked for with parameters
     G = Jp.reshape(-1, Jp.shape[2])
     norm = np.linalg.norm(G, axis=0)
     return G[:, norm > 0] / norm[norm > 0]
