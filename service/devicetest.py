@@ -15,6 +15,7 @@ costs its time limit and no more, and never holds up the others.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import threading
 import time
@@ -142,12 +143,14 @@ def _checks(config: DevicesConfig) -> list[tuple[str, str, Callable[[float], Any
     """(device label, address, check) for the robot and each instrument the configuration names
     (the reference encoders and resolvers are tested node by node: :func:`_test_can_nodes`)."""
     checks = []
+    # each robot's check is bound to its own configuration (functools.partial, not a closure over
+    # a variable the next branch reassigns: the RTDE row once tested the Modbus robot, issue 22)
     if config.rtde:
-        robot = DevicesConfig(rtde=config.rtde)
-        checks.append(("robot (UR RTDE)", config.address("rtde"), lambda t: _robot(robot, t)))
+        rtde_only = DevicesConfig(rtde=config.rtde)
+        checks.append(("robot (UR RTDE)", config.address("rtde"), functools.partial(_robot, rtde_only)))
     if config.modbus:
-        robot = DevicesConfig(modbus=config.modbus)
-        checks.append(("robot (Modbus TCP)", config.address("modbus"), lambda t: _robot(robot, t)))
+        modbus_only = DevicesConfig(modbus=config.modbus)
+        checks.append(("robot (Modbus TCP)", config.address("modbus"), functools.partial(_robot, modbus_only)))
     if config.emscon is not None:
         checks.append(("laser tracker", config.address("emscon"), lambda t: _emscon(config, t)))
     if config.tracker:
