@@ -161,10 +161,15 @@ def stopped_device_state(
             what = "not connected"
         else:
             what = "fault"
+        # each device's own state and detail: the one that failed says why, the other only that
+        # the session stopped because of it (the tracker once showed "ready" with the robot's error)
+        other = f"the session is {final}: the {exc.device} failed" if connected else reason or final
         if exc.device == "robot":
             robot = _device_state(what, str(cause))
+            instrument = _device_state(instrument["state"], other)
         else:
             instrument = _device_state(what, str(cause))
+            robot = _device_state(robot["state"], other)
     if final == "aborted" and connected:
         robot = _device_state("ready", "stopped on abort")
     return {"robot": robot, key: instrument, "at": utcnow().isoformat()}

@@ -81,7 +81,7 @@ def test_persistent_beam_break_pauses_with_the_reason_and_resume_finishes(stack,
     assert s["state"] == "paused", s
     assert "beam" in s["reason"].lower() and s["measured"] == 3
     assert s["device_state"]["tracker"]["state"] == "fault" and "beam" in s["device_state"]["tracker"]["detail"]
-    assert s["device_state"]["robot"]["state"] == "ready"
+    assert s["device_state"]["robot"] == {"state": "ready", "detail": "the session is paused: the tracker failed"}
     s = api.call("POST", f"/sessions/{s['id']}/resume")
     s = api.wait_session(s["id"], 60)
     assert s["state"] == "completed" and s["measured"] == 14
@@ -95,6 +95,10 @@ def test_protective_stop_pauses_the_session_at_once(stack, models, register):
     assert "stop" in s["reason"].lower()
     assert s["measured"] == 2
     assert s["device_state"]["robot"]["state"] == "protective stop", s["device_state"]
+    # the tracker says its own state, not the robot's error as its detail (issue 22)
+    tracker = s["device_state"]["tracker"]
+    assert tracker["state"] == "ready" and tracker["detail"] == "the session is paused: the robot failed", tracker
+    assert s["device_state"]["robot"]["detail"] not in tracker["detail"]
 
 
 def _dashboard(host: str, command: str) -> str:
