@@ -81,7 +81,7 @@ def test_the_audit_log_is_paged_and_pruned_by_an_admin(settings, tokens):
             r = client.post("/api/v1/tokens", json={"role": "viewer", "name": f"t{i}"}, headers=admin)
             assert r.status_code in (200, 201), r.text
         first = client.get("/api/v1/audit?limit=2", headers=admin).json()
-        second = client.get(f"/api/v1/audit?limit=2&before_id={first[-1]['id']}", headers=admin).json()
+        second = client.get(f"/api/v1/audit?limit=2&older_than={first[-1]['id']}", headers=admin).json()
         assert len(first) == len(second) == 2 and first[-1]["id"] > second[0]["id"] > second[1]["id"]
         every = client.get("/api/v1/audit?limit=5000", headers=admin).json()
         assert [e["id"] for e in every[:4]] == [e["id"] for e in first + second]

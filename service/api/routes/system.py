@@ -87,10 +87,13 @@ def audit_log(
     db: DbSession,
     tok: Admin,
     limit: Annotated[int, Query(ge=1, le=5000)] = 200,
-    before_id: Annotated[int | None, Query(ge=1, description="the next page: the last id of the previous one")] = None,
+    # a cursor, not a reference to an entry (no 404 for an id that names none): hence not *_id
+    older_than: Annotated[
+        int | None, Query(ge=1, description="the next page: the entries older than this id (the last of a page)")
+    ] = None,
 ):
-    """The newest audit entries, newest first, a page of ``limit``; ``before_id`` pages on."""
-    rows = store.audit_entries(db, limit, before_id=before_id)
+    """The newest audit entries, newest first, a page of ``limit``; ``older_than`` pages on."""
+    rows = store.audit_entries(db, limit, before_id=older_than)
     return [
         {"id": a.id, "at": a.at, "actor": a.actor, "action": a.action, "subject": a.subject, "detail": a.detail}
         for a in rows
