@@ -23,48 +23,8 @@ from urdf_check import predict, yourdfpy_fk
 
 from service.cli import main as recal
 
-SEGMENTS = ["shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3"]
-
-# UR's own file for a UR10e (Universal_Robots_ROS2_Description, config/ur10e/default_kinematics.yaml).
-UR10E_DEFAULT = {
-    "shoulder": (0, 0, 0.1807, 0, 0, 0),
-    "upper_arm": (0, 0, 0, 1.570796327, 0, 0),
-    "forearm": (-0.6127, 0, 0, 0, 0, 0),
-    "wrist_1": (-0.57155, 0, 0.17415, 0, 0, 0),
-    "wrist_2": (0, -0.11985, -2.458164590756244e-11, 1.570796327, 0, 0),
-    "wrist_3": (0, 0.11655, -2.390480459346185e-11, 1.570796326589793, 3.141592653589793, 3.141592653589793),
-}
-
-
-def _rz(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-
-
-def _origin(x, y, z, roll, pitch, yaw) -> np.ndarray:
-    """A URDF <origin>: rpy is fixed-axis roll about x, then pitch about y, then yaw about z."""
-    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    T = np.eye(4)
-    T[:3, :3] = _rz(yaw) @ Ry @ Rx
-    T[:3, 3] = (x, y, z)
-    return T
-
-
-def _chain(kin: dict, q: np.ndarray) -> np.ndarray:
-    """shoulder_pan_joint ... wrist_3_joint of ur_description from the file: (N, 4, 4)."""
-    out = []
-    for qi in q:
-        T = np.eye(4)
-        for seg, angle in zip(SEGMENTS, qi):
-            s = kin[seg]
-            R = np.eye(4)
-            R[:3, :3] = _rz(angle)
-            T = T @ _origin(s["x"], s["y"], s["z"], s["roll"], s["pitch"], s["yaw"]) @ R
-        out.append(T)
-    return np.array(out)
-
+# UR's segments, its default UR10e file and ur_description's chain: one copy, beside the export's tests
+from .test_ur_calibration_export import SEGMENTS, UR10E_DEFAULT, _chain, _origin, _rz  # noqa: E402,F401
 
 PI = np.pi
 KEYS = ("x", "y", "z", "roll", "pitch", "yaw")
