@@ -230,7 +230,7 @@ def run_session(
             return "completed"
         set_state(db, run, "running", None)
         try:
-            devices = open_devices(cell, run, settings)
+            devices = _open_with_retries(open_devices, cell, run, settings, control)
         except (DeviceError, DeviceConfigError, OSError) as exc:
             reason = _open_failure_reason(exc)
             _end(db, run, owner, "paused", reason, stopped_device_state(run, None, "paused", reason, exc))
@@ -289,6 +289,25 @@ def run_session(
 def _close_devices(devices: CellDevices, control: Control) -> None:
     devices.close()  # idempotent
     control.devices = None
+
+
+def _open_with_retries(open_devices, cell: Cell, run: RunSession, settings: Settings, control: Control) -> CellDevices:
+    """The session's devices, opened again ``device_retries`` times with back-off when the first
+    try meets a passing fault (a connection dropped or a garbled packet while it was set up),
+    as a measurement is retried: such a fault paused the session before its first pose, and a
+    resume was needed for what a second try does. A safety stop, a configuration the service
+    cannot read or an abort is not retried."""
+    for attempt in range(settings.device_retries + 1):
+        try:
+            return open_devices(cell, run, settings)
+        except DeviceOpenError as exc:
+            cause = exc.cause
+            transient = isinstance(cause, (DeviceError, OSError)) and not isinstance(cause, RobotStoppedError)
+            if not transient or attempt == settings.device_retries or control.abort.is_set():
+                raise
+            log.warning("opening the %s failed (attempt %d): %s", exc.device, attempt + 1, cause)
+            time.sleep(settings.retry_backoff_s * (attempt + 1))
+    raise AssertionError("unreachable")  # the loop returns or raises
 
 
 def _open_failure_reason(exc: BaseException) -> str:
