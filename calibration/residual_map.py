@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import RecalError
 from .model import KinematicModel
+from .residual_base import ResidualMapError, features  # noqa: F401 (the families' shared names, kept importable here)
+from .residual_base import sqdist as _sqdist
 
 LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)
 RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # relative to the kernel's unit diagonal
@@ -43,18 +44,6 @@ MAX_MAP_CONFIGURATIONS = 400
 MAX_CV_CONFIGURATIONS = 4000
 EVALUATE_CHUNK_ROWS = 4096  # rows evaluated at once: the distance block stays a few MB
 FORMAT = "recal.residual_map/1"
-
-
-def features(q: np.ndarray, revolute: np.ndarray) -> np.ndarray:
-    """The embedding φ(q) (N, F): (cos, sin) of each revolute joint, q / 1 m of each prismatic one."""
-    q = np.atleast_2d(np.asarray(q, dtype=float))
-    rev = np.asarray(revolute, dtype=bool)
-    return np.hstack([np.cos(q[:, rev]), np.sin(q[:, rev]), q[:, ~rev]])
-
-
-def _sqdist(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    d = np.sum(A**2, axis=1)[:, None] + np.sum(B**2, axis=1)[None, :] - 2.0 * A @ B.T
-    return np.maximum(d, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -242,14 +231,6 @@ def to_dict(m: ResidualMap, model: KinematicModel) -> dict:
         "coefficients": [[float(f"{v:.12g}") for v in row] for row in m.alpha / u.length_m],
         "cross_validation": {k: (v / u.length_m if k.endswith("_m") else v) for k, v in m.cv.items()},
     }
-
-
-class ResidualMapError(RecalError, ValueError):
-    """A model's ``residual_map`` section is malformed; ``field`` is the JSON path at fault."""
-
-    def __init__(self, field: str, message: str):
-        self.field = field
-        super().__init__(f"{field}: {message}")
 
 
 def from_model(model: KinematicModel):

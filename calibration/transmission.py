@@ -266,7 +266,7 @@ def to_dict(c: TransmissionCorrection, model: KinematicModel) -> dict:
 
 def from_dict(d: dict, model: KinematicModel) -> TransmissionCorrection:
     """The correction a model file's ``residual_map`` section of :data:`FORMAT` describes."""
-    from .residual_map import ResidualMapError
+    from .residual_base import ResidualMapError
 
     u = model.units
     scale = np.array([u.angle_rad if j.revolute else u.length_m for j in model.joints])

@@ -78,7 +78,8 @@ class BoostedTrees:
 
     def inside(self, q: np.ndarray) -> np.ndarray:
         """(N,) within the training ranges and within ``radius`` of a training configuration."""
-        from .residual_map import _sqdist, features
+        from .residual_base import features
+        from .residual_base import sqdist as _sqdist
 
         q = np.atleast_2d(np.asarray(q, dtype=float))
         rev = np.ones(q.shape[1], dtype=bool)
@@ -102,7 +103,8 @@ class BoostedTrees:
 def training_radius(q_train: np.ndarray) -> float:
     """:data:`RADIUS_FACTOR` times the 95th percentile of each training configuration's distance
     to its nearest other one (chordal, on (cos q, sin q))."""
-    from .residual_map import _sqdist, features
+    from .residual_base import features
+    from .residual_base import sqdist as _sqdist
 
     F = features(q_train, np.ones(q_train.shape[1], dtype=bool))
     d = np.full(len(F), np.inf)
@@ -183,7 +185,7 @@ def to_dict(m: BoostedTrees, model) -> dict:
 
 def from_dict(d: dict, model) -> BoostedTrees:
     """The trees a model file's ``residual_map`` section of :data:`FORMAT` stores."""
-    from .residual_map import ResidualMapError
+    from .residual_base import ResidualMapError
 
     u = model.units
     n = model.n_joints
@@ -211,7 +213,7 @@ def from_dict(d: dict, model) -> BoostedTrees:
 
 
 def _tree_from_dict(td, where: str, n: int, scale: np.ndarray, L: float) -> Tree:
-    from .residual_map import ResidualMapError
+    from .residual_base import ResidualMapError
 
     try:
         f = np.array(td["feature"], dtype=np.intp)
