@@ -227,7 +227,8 @@ def validate(result: IdentificationResult, holdout: Measurements) -> Validation:
     # "before": the starting model placed where it fits these data best, its base and one common
     # reflector offset registered (calibration.metrics.registered_errors, the one definition the
     # page, the certificate and the nightly job use). The start's own base, registered without the
-    # offset, made a 100 mm T-Mac offset read as 15 mm "before" where the robot was 1 mm off.
+    # offset, made a UR10 with a T-Mac read 15 mm "before" where it was 1 mm off (issue 25), and a
+    # reflector 50 mm from the nominal's target read 50.7 mm (tests/calibration/test_before_figure.py).
     start = result.start_model
     e0 = np.linalg.norm(
         registered_errors(start, holdout.q, holdout.p_world, _p_tool(start, names), holdout.payload)[0], axis=1
