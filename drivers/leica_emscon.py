@@ -36,7 +36,9 @@ returned (it is logged and dropped; within a command it is a ``ProtocolError``).
 - ``ES_RS_TrackerNotInitialized`` and every other status -> ``DeviceFaultError``; the link is
   dropped so that the next command reconnects and initialises;
 - a packet of a wrong size or unknown type, a reply to another command -> ``ProtocolError``,
-  the link is dropped and the next command reconnects with the full set-up;
+  the link is dropped and the next command reconnects with the full set-up; a size field larger
+  than the packet is caught by ``PACKET_BODY_S`` (the rest of a packet that does not follow its
+  header promptly), not by the command's deadline, which for ``Initialize`` is minutes;
 - no (complete) reply within the deadline -> ``DeviceTimeoutError``, the link is dropped;
 - a dropped connection -> one reconnect with the full set-up and one resend; if that fails
   too, ``DeviceConnectionError``.
@@ -174,6 +176,11 @@ _FIXED_SIZES = {
     **{t: s.size for t, s in RESULT.items()},
 }
 MAX_PACKET = 4096
+# The server writes each packet whole, so once a header has arrived the rest of that packet is
+# on the wire: on a LAN it follows within milliseconds. A header announcing more bytes than
+# follow is a wrong size field, and waiting for the command's deadline instead would hold a
+# session for initialize_timeout_s (120 s) on a garbled reply to Initialize (issue 22).
+PACKET_BODY_S = 1.0
 
 
 def command_struct(command: int) -> struct.Struct:
@@ -514,7 +521,18 @@ class EmsconTracker(SteerablePositionSensor):
             raise self._protocol(f"packet of unknown type {kind} ({size} bytes) while waiting for command {command}")
         if not ok:
             raise self._protocol(f"packet of type {kind} with a wrong size {size} while waiting for command {command}")
-        return kind, header + self._read_exact(size - HEADER.size, deadline, command, limit)
+        body_deadline = min(deadline, time.monotonic() + PACKET_BODY_S)
+        try:
+            body = self._read_exact(size - HEADER.size, body_deadline, command, limit)
+        except DeviceTimeoutError:
+            if body_deadline >= deadline:
+                raise  # the command's own deadline ran out: a late answer, not a bad size
+            arrived = len(self._buffer)
+            raise self._protocol(
+                f"packet of type {kind} announced {size} bytes but {HEADER.size + arrived} arrived "
+                f"(a wrong size field) while waiting for command {command}"
+            ) from None
+        return kind, header + body
 
     def _read_exact(self, n: int, deadline: float, command: int, limit: float) -> bytes:
         sock = self._sock

@@ -27,15 +27,16 @@ def text_fault(s: str) -> str | None:
     return None
 
 
-def document_faults(doc, loc: tuple = ()) -> list[tuple[tuple, str]]:
+def document_faults(doc, loc: tuple = (), *, lengths: bool = True) -> list[tuple[tuple, str]]:
     """``(location, message)`` of every string of a JSON document (keys too) that cannot be
-    stored as text, and of every key or ``name`` over its length; ``loc`` the document's own."""
+    stored as text, and (``lengths``) of every key or ``name`` over its length; ``loc`` the
+    document's own."""
     out: list[tuple[tuple, str]] = []
     if isinstance(doc, str):
         fault = text_fault(doc)
         if fault:
             out.append((loc, fault))
-        elif loc and loc[-1] == "name" and len(doc) > MAX_NAME_CHARS:
+        elif lengths and loc and loc[-1] == "name" and len(doc) > MAX_NAME_CHARS:
             out.append((loc, f"expected a name of at most {MAX_NAME_CHARS} characters, got {len(doc)}"))
     elif isinstance(doc, dict):
         for k, v in doc.items():
@@ -44,13 +45,13 @@ def document_faults(doc, loc: tuple = ()) -> list[tuple[tuple, str]]:
             if fault:
                 out.append(((*loc, ascii(key)), f"key: {fault}"))
                 continue
-            if len(key) > MAX_PARAM_CHARS:
+            if lengths and len(key) > MAX_PARAM_CHARS:
                 out.append(((*loc, key[:40] + "..."), f"key: expected at most {MAX_PARAM_CHARS} characters"))
                 continue
-            out += document_faults(v, (*loc, key))
+            out += document_faults(v, (*loc, key), lengths=lengths)
     elif isinstance(doc, list):
         for i, v in enumerate(doc):
-            out += document_faults(v, (*loc, i))
+            out += document_faults(v, (*loc, i), lengths=lengths)
     return out
 
 

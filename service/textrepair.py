@@ -6,6 +6,7 @@ and ``recal repair-text`` (:func:`repair_text`) replaces each bad character with
 
 from __future__ import annotations
 
+from sqlalchemy import JSON, Text, cast, func, or_
 from sqlmodel import Session, select
 
 from .models import AuditEntry, Calibration, Cell, Compensation, RunSession, TaskFile, Token
@@ -27,23 +28,48 @@ TEXT_COLUMNS = {
 
 def unreadable_text(db: Session) -> list[dict]:
     """Every stored value that holds text no encoding can store (a lone surrogate, a NUL):
-    ``{"table", "id", "column", "field", "message"}``."""
+    ``{"table", "id", "column", "field", "message"}``.
+
+    Run at every start, so its cost must not grow with what the store holds: the database picks
+    the few rows that could hold such text (:func:`_suspect`), and only those are read, one
+    column at a time (never a compensation's output or a whole audit log into memory)."""
     out = []
+    sqlite = db.get_bind().dialect.name == "sqlite"
     for table, columns in TEXT_COLUMNS.items():
-        for row in db.exec(select(table)).all():
-            for column in columns:
-                for loc, message in document_faults(getattr(row, column), ()):
+        for column in columns:
+            suspect = _suspect(getattr(table, column), sqlite=sqlite)
+            if suspect is None:
+                continue
+            rows = db.exec(select(table.id, getattr(table, column)).where(suspect).order_by(table.id))
+            for row_id, value in rows:
+                for loc, message in document_faults(value, (), lengths=False):
                     field = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
                     out.append(
                         {
                             "table": table.__tablename__,
-                            "id": row.id,
+                            "id": row_id,
                             "column": column,
                             "field": column + field,
                             "message": message,
                         }
                     )
     return out
+
+
+# JSON keeps a lone surrogate or a NUL as an escape (json.dumps writes non-ASCII as escapes):
+# "\ud800".."\udfff" or "\u0000". A valid pair (an emoji) matches too and is let go by the exact
+# check; nothing unreadable escapes the filter.
+_JSON_ESCAPES = tuple(f"\\u{p}" for p in ("d8", "d9", "da", "db", "dc", "dd", "de", "df", "0000"))
+
+
+def _suspect(column, *, sqlite: bool):
+    """A SQL condition true for every value of ``column`` that may hold unreadable text, or None
+    when the column cannot hold any. A plain text column cannot hold a lone surrogate (the driver
+    refuses to encode it) and, on PostgreSQL, no NUL either; SQLite keeps a NUL."""
+    if isinstance(column.type, JSON):
+        text = func.lower(cast(column, Text))
+        return or_(*(text.contains(e, autoescape=True) for e in _JSON_ESCAPES))
+    return column.contains("\x00", autoescape=True) if sqlite else None
 
 
 def _repaired(value):

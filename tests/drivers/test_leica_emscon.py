@@ -9,6 +9,7 @@ import select
 import socket
 import struct
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -778,5 +779,52 @@ def test_status_changes_reach_every_client_and_a_closing_server_means_a_reconnec
             before = cell.counters["emscon.request"]
             assert b.status() == "ready"
             assert cell.counters["emscon.request"] - before == 11  # the status, a full set-up (9), the status again
+    finally:
+        fake.stop()
+
+
+# The set-up of a tracker that is not initialised, in the order the driver sends it.
+SET_UP_NOT_INITIALISED = (
+    "GetSystemStatus",
+    "GetTrackerStatus",
+    "Initialize",
+    "SetUnits",
+    "GetCoordinateSystemType",
+    "GetEnvironmentParams",
+    "GetReflectors",
+    "SetReflector",
+    "SetMeasurementMode",
+    "SetStationaryModeParams",
+)
+
+
+@pytest.mark.parametrize("fault", ["garble_at", "drop_connection_at", "error_status_at"])
+@pytest.mark.parametrize("step", range(1, len(SET_UP_NOT_INITIALISED) + 1), ids=SET_UP_NOT_INITIALISED)
+def test_a_fault_at_any_step_of_the_set_up_ends_promptly_and_the_next_connect_works(cell, fault, step):
+    """Issue 22: a garbled reply to ``Initialize`` (its size field 7 bytes too large) held the
+    driver for ``initialize_timeout_s`` waiting for bytes that never come, and a session stayed
+    ``running`` for two minutes. A packet's body follows its header at once, so a wrong size is a
+    ``ProtocolError`` within ``PACKET_BODY_S`` at every step; a drop or an error status is the
+    tree's error at once. The next connect (the session retries opening) sets the tracker up."""
+    from drivers.leica_emscon import PACKET_BODY_S
+
+    fake = LeicaTrackerFake(cell, port=0, initialised=False, initialize_time_s=0.0)
+    fake.start()
+    try:
+        setattr(cell.faults, fault, [step])
+        config = _config(fake, timeout_s=5.0, initialize_timeout_s=120.0)
+        started = time.monotonic()
+        try:
+            tracker = EmsconTracker(config)
+        except (ProtocolError, DeviceFaultError, DeviceConnectionError) as exc:
+            if fault == "garble_at":
+                assert isinstance(exc, ProtocolError), exc  # a size too large, or bytes of the next packet
+            tracker = EmsconTracker(config)
+        elapsed_s = time.monotonic() - started
+        with tracker:
+            m = tracker.measure()
+        assert np.all(np.abs(m.p_world - cell.target_world()) < 5 * m.sigma)
+        # promptly: well inside one ordinary reply deadline, never the 120 s of Initialize
+        assert elapsed_s < config.timeout_s, (elapsed_s, PACKET_BODY_S)
     finally:
         fake.stop()

@@ -18,8 +18,9 @@ from sqlmodel import Session
 
 from calibration.robots import nominal_document
 from service.api.app import create_app
-from service.models import AuditEntry, Cell
+from service.models import AuditEntry, Cell, Token
 from service.store import make_engine, migrate
+from service.textrepair import unreadable_text
 
 from .conftest import auth
 
@@ -72,6 +73,34 @@ def test_unreadable_text_is_reported_at_start_and_repaired_by_recal_repair_text(
         audit = client.get("/api/v1/audit", headers=auth(tokens["admin"]))
         assert audit.status_code == 200, audit.text
         assert audit.json()[0]["action"] == "repair text"
+
+
+def test_the_start_up_scan_reads_only_what_could_be_unreadable(settings):
+    """The scan runs at every start, so the database picks the candidate rows: a valid pair (an
+    emoji, kept as two escapes), a long name and a thousand clean audit entries are not reported
+    (a long name is readable); a NUL in an audit entry's detail is, on both databases (JSON keeps
+    it as an escape), and a NUL in a plain text column where the database can hold one (SQLite)."""
+    engine = make_engine(settings.effective_database_url)
+    migrate(engine)
+    model = nominal_document("ur5e")
+    model["name"] = "ur \U0001f916 " + "x" * 300
+    sqlite = engine.dialect.name == "sqlite"
+    with Session(engine) as db:
+        db.add(Cell(name="clean", model=model, devices={}))
+        db.add_all(AuditEntry(actor="a", action="create token", subject=f"token {i}") for i in range(1000))
+        bad = AuditEntry(actor="a", action="note", subject="x", detail={"note": ["ok", "nul\x00here"]})
+        db.add(bad)
+        token = Token(name="with\x00nul", role="viewer", hash="h" * 64)
+        if sqlite:
+            db.add(token)
+        db.commit()
+        found = unreadable_text(db)
+        expected = [("audit", bad.id, "detail.note[1]")]
+        if sqlite:
+            expected.append(("token", token.id, "name"))
+    engine.dispose()
+    assert sorted((f["table"], f["id"], f["field"]) for f in found) == sorted(expected), found
+    assert all("NUL" in f["message"] for f in found)
 
 
 def test_the_audit_log_is_paged_and_pruned_by_an_admin(settings, tokens):

@@ -378,11 +378,13 @@ def test_cmm_pose_session_after_a_tracker_calibration_on_the_demo_cell(stack, tm
     assert res["rms"] < 0.01 and res["chi2"] / res["dof"] < 2.0, res  # mm: the CMM's noise
 
 
-@pytest.mark.parametrize("fault", ["drop_connection_at=3", "garble_at=8"])
+@pytest.mark.parametrize("fault", ["drop_connection_at=3", "garble_at=3", "garble_at=8", "error_status_at=5"])
 def test_a_passing_fault_while_the_devices_open_is_retried_not_paused(stack, models, register, fault):
     """Issue 22: a dropped connection or a garbled packet while the emScon tracker is being set
     up paused the session before its first pose ("cannot open the cell's devices"), and it took a
-    resume to do what a second try does. Opening is retried as a measurement is."""
+    resume to do what a second try does. Opening is retried as a measurement is. A garbled reply
+    to Initialize (request 3 of a tracker that is not initialised) held the session ``running``
+    for Initialize's two-minute deadline: the driver now knows a wrong size within a second."""
     cell, _ = register(fake_args=["--fault", fault])
     api = stack.api()
     s = api.wait_session(_start(api, cell, kind="pose", count=14)["id"], 90)
