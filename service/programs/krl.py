@@ -162,65 +162,94 @@ def _config_frames(path) -> dict:
 def parse(
     path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames | None = None, dat_data: bytes | None = None
 ) -> Program:
-    """Parse a ``.src`` and the ``.dat`` beside it (``dat_data``: its bytes, when given)."""
+    """Parse a ``.src`` and the ``.dat`` beside it (``dat_data``: its bytes, when given): the
+    declarations first, then the ``.src`` in program order (frame selections and moves), then
+    each declared target with the frames of the moves that use it."""
     if n_joints != 6:
         raise InputError(path, f"KRL programs are compensated for six-axis arms; the model has {n_joints} joints")
-    frames = frames or Frames()
-    src = _File(0, path, read_text(path, data))
-    files = [src]
-    dat_path = _dat_beside(Path(path))
-    if dat_data is not None or dat_path is not None:
-        dp = dat_path or Path(path).with_suffix(".dat")
-        files.append(_File(1, dp, read_text(dp, dat_data)))
-    config = _config_frames(frames.config_dat) if frames.config_dat else {}
-    decls: dict[str, dict] = {}
-    fdat: dict[str, dict] = {}
-    bare: dict[str, tuple] = {}  # declared without a value: name -> (file, offset, type)
-    for f in files:
-        _declarations(f, decls, fdat, bare, elements=True)
-    # $config.dat's globals (XHOME, FHOME, ...): seen by every program; its targets are not
-    # rewritten here (other programs share them), its FDATs give frames
-    glob_decls: dict[str, dict] = {}
-    if frames.config_dat:
-        _declarations(_File(-1, frames.config_dat, read_text(frames.config_dat)), glob_decls, fdat, {}, elements=False)
-    # the .src in program order: frames and moves
-    state = {"tool": ("opt", None), "base": ("opt", None)}
-    out, skipped, uses, expected = [], [], {}, set()
+    reader = _Reader(path, data, frames or Frames(), dat_data)
+    for ln, s, code in reader.src.lines():
+        reader.line(ln, s, code)
+    reader.declared_targets()
+    reader.undeclared_uses()
+    reader.other_uses()
+    return reader.program()
 
-    def resolve(kind, ref, offset):
+
+class _Reader:
+    """One KRL program being read: its files and declarations, the tool and base the program
+    has selected so far (``state``: ``("opt"|"num"|"null"|"lit"|"bad", value)`` per frame), and
+    what was found: targets (``out``), lines left alone (``skipped``), the moves that use each
+    declared name (``uses``)."""
+
+    def __init__(self, path, data: bytes | None, frames: Frames, dat_data: bytes | None):
+        self.frames = frames
+        self.src = _File(0, path, read_text(path, data))
+        self.files = [self.src]
+        dat_path = _dat_beside(Path(path))
+        if dat_data is not None or dat_path is not None:
+            dp = dat_path or Path(path).with_suffix(".dat")
+            self.files.append(_File(1, dp, read_text(dp, dat_data)))
+        self.config = _config_frames(frames.config_dat) if frames.config_dat else {}
+        self.decls: dict[str, dict] = {}
+        self.fdat: dict[str, dict] = {}
+        self.bare: dict[str, tuple] = {}  # declared without a value: name -> (file, offset, type)
+        for f in self.files:
+            _declarations(f, self.decls, self.fdat, self.bare, elements=True)
+        # $config.dat's globals (XHOME, FHOME, ...): seen by every program; its targets are not
+        # rewritten here (other programs share them), its FDATs give frames
+        self.glob_decls: dict[str, dict] = {}
+        if frames.config_dat:
+            glob = _File(-1, frames.config_dat, read_text(frames.config_dat))
+            _declarations(glob, self.glob_decls, self.fdat, {}, elements=False)
+        self.state: dict[str, tuple] = {"tool": ("opt", None), "base": ("opt", None)}
+        self.out: list[Target] = []
+        self.skipped: list[Uninterpreted] = []
+        self.uses: dict[str, list] = {}
+        self.expected: set[tuple[int, int]] = set()
+        self.names_done: set[str] = set()
+
+    # ------------------------------------------------------------------ frames
+
+    def resolve(self, kind, ref, offset):
+        """``(T, label)`` of the frame a state selects; refuses one Recal cannot resolve."""
         how, n = ref
+        given = self.frames.tools if kind == "tool" else self.frames.bases
         if how == "null" or (how == "num" and n == 0):
             return np.eye(4), "$NULLFRAME"
         if how == "opt":
-            vals = (frames.tools if kind == "tool" else frames.bases).get(None)
+            vals = given.get(None)
             return (np.eye(4), "$NULLFRAME") if vals is None else (_frame(vals), f"--{kind}-frame")
         if how == "num":
-            vals = (frames.tools if kind == "tool" else frames.bases).get(n)
+            vals = given.get(n)
             if vals is not None:
                 return _frame(vals), f"{kind.upper()}_DATA[{n}] (--{kind}-frame)"
-            if (kind, n) in config:
-                return _frame(config[(kind, n)]), f"{kind.upper()}_DATA[{n}] ($config.dat)"
-            src.fail(
+            if (kind, n) in self.config:
+                return _frame(self.config[(kind, n)]), f"{kind.upper()}_DATA[{n}] ($config.dat)"
+            self.src.fail(
                 offset,
                 f"{kind.upper()}_DATA[{n}] is selected here but not given: pass --{kind}-frame "
                 f"{n}=X,Y,Z,A,B,C or --config-dat $config.dat",
             )
         if how == "lit":
             return _frame(n), f"${kind.upper()} literal"
-        src.fail(offset, n)
+        self.src.fail(offset, n)
 
-    def fdat_item(name, key):
+    def fdat_item(self, name, key):
         """FDAT ``name``'s ``key`` (its text), or a message saying why there is none."""
-        fd = fdat.get(name.lower())
+        fd = self.fdat.get(name.lower())
         if fd is None:
-            where = "the .dat or $config.dat" if frames.config_dat else "the .dat (pass --config-dat for $config.dat's)"
+            if self.frames.config_dat:
+                where = "the .dat or $config.dat"
+            else:
+                where = "the .dat (pass --config-dat for $config.dat's)"
             return None, f"FDAT {name} is not declared in {where}"
         item = fd["items"].get(key)
         if item is None:
             return None, f"FDAT {fd['name']} has no {key.upper()}"
         return item.text.strip(), None
 
-    def frame_value(kind, val):
+    def frame_value(self, kind, val):
         """The state a ``$TOOL``/``$BASE`` assignment's value ``val`` selects (``("bad",
         message)`` where Recal cannot resolve it)."""
         val = val.strip()
@@ -232,11 +261,11 @@ def parse(
         fm = _FDAT_CALL_RE.match(val)  # STOOL2(FP1), SBASE(FP1.BASE_NO): what KSS 8's inline forms write
         if fm and fm.group(1).lower() in (("stool", "stool2") if kind == "tool" else ("sbase",)):
             name, key = fm.group(2), (fm.group(3) or f"{kind}_no").lower()
-            text, why = fdat_item(name, key)
+            text, why = self.fdat_item(name, key)
             if why:
                 return ("bad", f"${kind.upper()} = {val}: {why}")
             if kind == "tool":
-                ipo, _ = fdat_item(name, "ipo_frame")
+                ipo, _ = self.fdat_item(name, "ipo_frame")
                 if ipo is not None and ipo.upper() == "#TCP":
                     return ("bad", f"${kind.upper()} = {val}: FDAT {name} with IPO_FRAME #TCP (an external TCP)")
             try:
@@ -249,193 +278,227 @@ def parse(
             f"BASE_DATA[n], BAS(#{kind.upper()}, n) or an inline FDAT)",
         )
 
-    for ln, s, code in src.lines():
-        m = _FRAME_SET_RE.match(code)
+    # ------------------------------------------------------------------ the .src in program order
+
+    def line(self, ln: int, s: int, code: str) -> None:
+        """One line of the ``.src``: a frame selection changes the state, a move is read."""
+        if self._frame_assignment(s, code) or self._bas(code) or self._fdat_act(ln, code):
+            return
+        m = _MOVE_RE.match(code)
         if m:
-            kind, val = m.group(1).lower(), m.group(2)
-            if val.startswith("{"):
-                items, _ = _aggregate(src, code, code.index("{"), s, f"${kind.upper()}")
-                state[kind] = (
-                    "lit",
-                    tuple(_value(src, items[k], f"${kind.upper()}", k) if k in items else 0.0 for k in "xyzabc"),
-                )
-            else:
-                state[kind] = frame_value(kind, val)
-            continue
+            self._move(ln, s, code, m)
+
+    def _frame_assignment(self, s: int, code: str) -> bool:
+        m = _FRAME_SET_RE.match(code)
+        if not m:
+            return False
+        kind, val = m.group(1).lower(), m.group(2)
+        if val.startswith("{"):
+            items, _ = _aggregate(self.src, code, code.index("{"), s, f"${kind.upper()}")
+            what = f"${kind.upper()}"
+            self.state[kind] = (
+                "lit",
+                tuple(_value(self.src, items[k], what, k) if k in items else 0.0 for k in "xyzabc"),
+            )
+        else:
+            self.state[kind] = self.frame_value(kind, val)
+        return True
+
+    def _bas(self, code: str) -> bool:
         m = _BAS_RE.match(code)
         if m:
-            state[m.group(1).lower()] = ("num", int(m.group(2)))
-            continue
+            self.state[m.group(1).lower()] = ("num", int(m.group(2)))
+        return m is not None
+
+    def _fdat_act(self, ln: int, code: str) -> bool:
         m = _FDAT_ACT_RE.match(code)
-        if m:
-            fd = fdat.get(m.group(1).lower())
-            if fd is None:
-                _, why = fdat_item(m.group(1), "tool_no")
-                state["tool"] = state["base"] = ("bad", f"FDAT_ACT = {m.group(1)} (line {ln}): {why}")
-                continue
-            for kind, key in (("tool", "tool_no"), ("base", "base_no")):
-                if key in fd["items"]:
-                    state[kind] = ("num", int(_value(fd["file"], fd["items"][key], f"FDAT {fd['name']}", key)))
-            ipo = fd["items"].get("ipo_frame")
-            if ipo is not None and ipo.text.strip().upper() == "#TCP":
-                state["tool"] = ("bad", f"FDAT {fd['name']} (line {ln}) with IPO_FRAME #TCP (an external TCP)")
-            continue
-        m = _MOVE_RE.match(code)
         if not m:
-            continue
+            return False
+        fd = self.fdat.get(m.group(1).lower())
+        if fd is None:
+            _, why = self.fdat_item(m.group(1), "tool_no")
+            self.state["tool"] = self.state["base"] = ("bad", f"FDAT_ACT = {m.group(1)} (line {ln}): {why}")
+            return True
+        for kind, key in (("tool", "tool_no"), ("base", "base_no")):
+            if key in fd["items"]:
+                self.state[kind] = ("num", int(_value(fd["file"], fd["items"][key], f"FDAT {fd['name']}", key)))
+        ipo = fd["items"].get("ipo_frame")
+        if ipo is not None and ipo.text.strip().upper() == "#TCP":
+            self.state["tool"] = ("bad", f"FDAT {fd['name']} (line {ln}) with IPO_FRAME #TCP (an external TCP)")
+        return True
+
+    def _move(self, ln: int, s: int, code: str, m: re.Match) -> None:
+        """A move: its target(s), the frames of its ``WITH`` clause, then each target read (an
+        inline one) or noted as a use of a declared name (resolved after the whole ``.src``)."""
         mv = m.group(1).upper()
-        raw = line_text(src.text, src.starts, ln)
+        raw = line_text(self.src.text, self.src.starts, ln)
         if mv.endswith("_REL"):
-            skipped.append(Uninterpreted(ln, raw, f"{mv} moves relative to where the robot is: not compensated"))
-            continue
-        args_at = m.start(2)
-        targets = []  # (start, end) in the line's code
-        if code[args_at : args_at + 1] == "{":
-            j = code.find("}", args_at)
-            targets.append((args_at, j + 1 if j >= 0 else len(code)))
-            rest = code[targets[-1][1] :]
-        else:
-            t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[args_at:], re.IGNORECASE)
-            if not t:
-                skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
-                continue
-            targets.append((args_at, args_at + t.end()))
-            rest = code[args_at + t.end() :]
-        if mv in ("CIRC", "SCIRC"):
-            c = re.match(r"\s*,\s*", rest)
-            if not c:
-                src.fail(s + targets[0][1], f"{mv}: expected ', target' after the auxiliary point")
-            a2 = targets[0][1] + c.end()
-            if code[a2 : a2 + 1] == "{":
-                j = code.find("}", a2)
-                targets.append((a2, j + 1 if j >= 0 else len(code)))
-            else:
-                t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[a2:], re.IGNORECASE)
-                if not t:
-                    skipped.append(Uninterpreted(ln, raw, f"the {mv} target is an expression: not compensated"))
-                    continue
-                targets.append((a2, a2 + t.end()))
-        w = _WITH_RE.search(code, targets[-1][1])
-        if w:  # SPTP XP1 WITH $TOOL = STOOL2(FP1), $BASE = SBASE(FP1.BASE_NO), ...: kept after the move
-            for part in _top_level_split(code[w.end() :]):
-                a = re.match(r"\s*\$(tool|base|ipo_mode)\s*=\s*(.*?)\s*$", part, re.IGNORECASE)
-                if not a:
-                    continue
-                kind, val = a.group(1).lower(), a.group(2)
-                if kind != "ipo_mode":
-                    state[kind] = frame_value(kind, val)
-                    continue
-                im = _FDAT_CALL_RE.match(val)
-                ipo = fdat_item(im.group(2), "ipo_frame")[0] if im else val
-                if ipo is not None and ipo.strip().upper() == "#TCP":
-                    state["tool"] = ("bad", f"$IPO_MODE = {val}: #TCP (an external TCP)")
+            self.skipped.append(Uninterpreted(ln, raw, f"{mv} moves relative to where the robot is: not compensated"))
+            return
+        targets = self._move_targets(mv, s, code, m.start(2))
+        if isinstance(targets, str):
+            self.skipped.append(Uninterpreted(ln, raw, targets))
+            return
+        self._with_clause(code, targets[-1][1])
         frame_error = None
         try:
-            tool = resolve("tool", state["tool"], s)
-            base = resolve("base", state["base"], s)
+            tool = self.resolve("tool", self.state["tool"], s)
+            base = self.resolve("base", self.state["base"], s)
         except InputError as exc:  # refused where a Cartesian target needs it
             frame_error, tool, base = exc, (None, None), (None, None)
         for a, b in targets:
             text = code[a:b]
             if text.startswith("{"):
-                items, _ = _aggregate(src, code, a, s, f"{mv} inline target")
-                if frame_error is not None:
-                    if not any(k in items for k in ("a1", "a2", "a3")):
-                        raise frame_error
-                    skipped.append(Uninterpreted(ln, raw, f"{frame_error}: this axis target is not compensated"))
-                    continue
-                t = _target(src, None, None, items, mv, s + a, tool, base, inline=True, seq=s + a)
-                if isinstance(t, str):
-                    skipped.append(Uninterpreted(ln, raw, t))
-                else:
-                    out.append(t)
+                self._inline_target(ln, s, code, a, mv, raw, tool, base, frame_error)
                 continue
             r = _REF_RE.match(text.replace(" ", ""))
             if text.startswith("$") or r is None:
-                skipped.append(Uninterpreted(ln, raw, f"{text} is a system variable: not compensated"))
+                self.skipped.append(Uninterpreted(ln, raw, f"{text} is a system variable: not compensated"))
                 continue
             key = r.group(1).lower() + (f"[{int(r.group(2))}]" if r.group(2) else "")
-            expected.add((0, s + a))
-            uses.setdefault(key, []).append((ln, mv, tool, base, s + a, frame_error))
-    names_done = set()
-    for key, dd in decls.items():
-        f = dd["file"]
-        ln = f.line(dd["offset"])
-        us = uses.get(key, [])
-        if not us:
-            if dd["type"] in POSE_TYPES + AXIS_TYPES:
-                skipped.append(
-                    Uninterpreted(
-                        ln,
-                        line_text(f.text, f.starts, ln),
-                        f"{dd['type'].upper()} "
-                        f"{dd['name']} is not the target of a move in this program: its frames are unknown",
-                        f.index,
-                    )
-                )
-            continue
-        bad = [u for u in us if u[5] is not None]
-        if bad:
-            if dd["type"] in POSE_TYPES:
-                raise bad[0][5]
-            skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), f"{bad[0][5]}: not compensated", f.index))
-            continue
-        if len({(u[2][1], u[3][1]) for u in us}) > 1 and dd["type"] in POSE_TYPES:
-            skipped.append(
-                Uninterpreted(
-                    ln,
-                    line_text(f.text, f.starts, ln),
-                    f"{dd['name']} is used with different "
-                    f"tools or bases (lines {', '.join(str(u[0]) for u in us)}): not compensated",
-                    f.index,
-                )
-            )
-            continue
-        _, mv, tool, base, first, _ = us[0]
-        t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base, seq=first)
+            self.expected.add((0, s + a))
+            self.uses.setdefault(key, []).append((ln, mv, tool, base, s + a, frame_error))
+
+    def _move_targets(self, mv: str, s: int, code: str, args_at: int) -> list[tuple[int, int]] | str:
+        """``(start, end)`` in the line's code of the move's target (and, CIRC, its auxiliary
+        point first), or why the move is left alone (a target that is an expression)."""
+        first = _target_span(code, args_at)
+        if first is None:
+            return f"the {mv} target is an expression: not compensated"
+        targets = [first]
+        if mv in ("CIRC", "SCIRC"):
+            c = re.match(r"\s*,\s*", code[first[1] :])
+            if not c:
+                self.src.fail(s + first[1], f"{mv}: expected ', target' after the auxiliary point")
+            second = _target_span(code, first[1] + c.end())
+            if second is None:
+                return f"the {mv} target is an expression: not compensated"
+            targets.append(second)
+        return targets
+
+    def _with_clause(self, code: str, after: int) -> None:
+        """``SPTP XP1 WITH $TOOL = STOOL2(FP1), $BASE = SBASE(FP1.BASE_NO), ...``: the frames
+        it selects are kept for the moves after it, as ``BAS`` keeps them."""
+        w = _WITH_RE.search(code, after)
+        if not w:
+            return
+        for part in _top_level_split(code[w.end() :]):
+            a = re.match(r"\s*\$(tool|base|ipo_mode)\s*=\s*(.*?)\s*$", part, re.IGNORECASE)
+            if not a:
+                continue
+            kind, val = a.group(1).lower(), a.group(2)
+            if kind != "ipo_mode":
+                self.state[kind] = self.frame_value(kind, val)
+                continue
+            im = _FDAT_CALL_RE.match(val)
+            ipo = self.fdat_item(im.group(2), "ipo_frame")[0] if im else val
+            if ipo is not None and ipo.strip().upper() == "#TCP":
+                self.state["tool"] = ("bad", f"$IPO_MODE = {val}: #TCP (an external TCP)")
+
+    def _inline_target(self, ln, s, code, a, mv, raw, tool, base, frame_error) -> None:
+        items, _ = _aggregate(self.src, code, a, s, f"{mv} inline target")
+        if frame_error is not None:
+            if not any(k in items for k in ("a1", "a2", "a3")):
+                raise frame_error
+            self.skipped.append(Uninterpreted(ln, raw, f"{frame_error}: this axis target is not compensated"))
+            return
+        t = _target(self.src, None, None, items, mv, s + a, tool, base, inline=True, seq=s + a)
         if isinstance(t, str):
-            skipped.append(Uninterpreted(ln, line_text(f.text, f.starts, ln), t, f.index))
-            continue
-        out.append(t)
-        names_done.add(key.split("[")[0])
-    for key, us in uses.items():
-        if key not in decls:
-            if key in glob_decls:
+            self.skipped.append(Uninterpreted(ln, raw, t))
+        else:
+            self.out.append(t)
+
+    # ------------------------------------------------------------------ after the .src
+
+    def declared_targets(self) -> None:
+        """Each declared target with the frames of the moves that use it; one used under two
+        different frames, or not used at all, is left alone and reported."""
+        for key, dd in self.decls.items():
+            f = dd["file"]
+            ln = f.line(dd["offset"])
+            raw = line_text(f.text, f.starts, ln)
+            us = self.uses.get(key, [])
+            if not us:
+                if dd["type"] in POSE_TYPES + AXIS_TYPES:
+                    why = (
+                        f"{dd['type'].upper()} {dd['name']} is not the target of a move in this program: "
+                        f"its frames are unknown"
+                    )
+                    self.skipped.append(Uninterpreted(ln, raw, why, f.index))
+                continue
+            bad = [u for u in us if u[5] is not None]
+            if bad:
+                if dd["type"] in POSE_TYPES:
+                    raise bad[0][5]
+                self.skipped.append(Uninterpreted(ln, raw, f"{bad[0][5]}: not compensated", f.index))
+                continue
+            if len({(u[2][1], u[3][1]) for u in us}) > 1 and dd["type"] in POSE_TYPES:
+                lines = ", ".join(str(u[0]) for u in us)
+                why = f"{dd['name']} is used with different tools or bases (lines {lines}): not compensated"
+                self.skipped.append(Uninterpreted(ln, raw, why, f.index))
+                continue
+            _, mv, tool, base, first, _ = us[0]
+            t = _target(f, dd["type"], dd["name"], dd["items"], mv, dd["offset"], tool, base, seq=first)
+            if isinstance(t, str):
+                self.skipped.append(Uninterpreted(ln, raw, t, f.index))
+                continue
+            self.out.append(t)
+            self.names_done.add(key.split("[")[0])
+
+    def undeclared_uses(self) -> None:
+        """Moves to names this program does not declare with a value: left alone, saying why."""
+        for key, us in self.uses.items():
+            if key in self.decls:
+                continue
+            if key in self.glob_decls:
                 why = f"{key.upper()} is a global of $config.dat (other programs share it): not compensated here"
-            elif key.split("[")[0] in bare:
+            elif key.split("[")[0] in self.bare:
                 why = (
-                    f"{key.upper()} is declared without a value ({bare[key.split('[')[0]][2].upper()}, "
+                    f"{key.upper()} is declared without a value ({self.bare[key.split('[')[0]][2].upper()}, "
                     f"given at run time): not compensated"
                 )
             else:
                 why = f"{key.upper()} is not declared in this program's .src or .dat" + (
-                    "" if frames.config_dat else " (pass --config-dat for $config.dat's globals)"
+                    "" if self.frames.config_dat else " (pass --config-dat for $config.dat's globals)"
                 )
                 why += ": not compensated"
             for u in us:
-                skipped.append(Uninterpreted(u[0], line_text(src.text, src.starts, u[0]), why))
-    # other uses of a target's name in the .src (e.g. XP1.Z = ...): they see the new value
-    for ln, s, code in src.lines():
-        if _DECL_RE.match(code) or _ELEM_RE.match(code):
-            continue
-        for m in _IDENT_RE.finditer(code):
-            if m.group().lower() in names_done and (0, s + m.start()) not in expected:
-                skipped.append(
-                    Uninterpreted(
-                        ln,
-                        line_text(src.text, src.starts, ln),
+                self.skipped.append(Uninterpreted(u[0], line_text(self.src.text, self.src.starts, u[0]), why))
+
+    def other_uses(self) -> None:
+        """Other uses of a target's name in the ``.src`` (``XP1.Z = ...``): they see the new value."""
+        src = self.src
+        for ln, s, code in src.lines():
+            if _DECL_RE.match(code) or _ELEM_RE.match(code):
+                continue
+            for m in _IDENT_RE.finditer(code):
+                if m.group().lower() in self.names_done and (0, s + m.start()) not in self.expected:
+                    why = (
                         f"uses target {m.group()} in an expression: this use sees the "
-                        f"compensated value and is not itself compensated",
+                        f"compensated value and is not itself compensated"
                     )
-                )
-                break
-    out.sort(key=lambda t: (t.file, t.line))
-    seen, dedup = set(), []
-    for u in sorted(skipped, key=lambda u: (u.file, u.line)):
-        if (u.file, u.line, u.reason) not in seen:
-            seen.add((u.file, u.line, u.reason))
-            dedup.append(u)
-    return Program(tuple(f.path for f in files), tuple(f.text for f in files), "kuka", out, dedup)
+                    self.skipped.append(Uninterpreted(ln, line_text(src.text, src.starts, ln), why))
+                    break
+
+    def program(self) -> Program:
+        self.out.sort(key=lambda t: (t.file, t.line))
+        seen, dedup = set(), []
+        for u in sorted(self.skipped, key=lambda u: (u.file, u.line)):
+            if (u.file, u.line, u.reason) not in seen:
+                seen.add((u.file, u.line, u.reason))
+                dedup.append(u)
+        files = self.files
+        return Program(tuple(f.path for f in files), tuple(f.text for f in files), "kuka", self.out, dedup)
+
+
+def _target_span(code: str, at: int) -> tuple[int, int] | None:
+    """``(start, end)`` of the target written at ``code[at:]``: an inline aggregate ``{...}`` or
+    a name (``XP1``, ``P[3]``); None for an expression."""
+    if code[at : at + 1] == "{":
+        j = code.find("}", at)
+        return (at, j + 1 if j >= 0 else len(code))
+    t = re.match(r"[a-z_$]\w*(?:\s*\[\s*\d+\s*\])?", code[at:], re.IGNORECASE)
+    return (at, at + t.end()) if t else None
 
 
 _NAME_EQ_RE = re.compile(r"\s*([a-z_]\w*)\s*=\s*", re.IGNORECASE)
