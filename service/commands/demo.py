@@ -146,57 +146,40 @@ def _models_only(args) -> int:
 
 
 def _live(args) -> int:
-    from sqlmodel import Session
-
     from service.client import Api
     from service.files import save_model
     from service.processes import start_fake_cell, start_service
-    from service.settings import Settings
-    from service.store import create_token, make_engine, migrate
 
     out = Path(args.dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     nominal, truth, _ = truth_and_nominal(args)
     save_model(out / "nominal.json", _cell_model(args, nominal))
     save_model(out / "truth.json", truth)
-    db_file = out / "recal.db"
-    for f in out.glob("recal.db*"):
-        f.unlink()
-    settings = Settings(home=out)
-    engine = make_engine(settings.effective_database_url)
-    migrate(engine)
-    with Session(engine) as db:
-        admin = create_token(db, role="admin", name="demo-admin")[1]
-        tech = create_token(db, role="technician", name="demo-technician")[1]
-    engine.dispose()
-    (out / "tokens.txt").write_text(f"admin {admin}\ntechnician {tech}\n")
-
-    def say(msg):
-        print(msg, flush=True)
+    admin, tech = _fresh_store(out)
 
     # `kill` (SIGTERM) stops the demo as Ctrl-C does: its service and simulated cell with it.
     def terminate(signum, frame):
         raise KeyboardInterrupt
 
     previous = signal.signal(signal.SIGTERM, terminate)
-    say(
+    _say(
         f"RECAL_HOME={out}   (the demo's database, logs and tokens; `RECAL_HOME={out} recal token create "
         f"--role technician` makes another token for this service)"
     )
-    say(f"technician token: {tech}   (admin: {admin}; both in {out / 'tokens.txt'})")
+    _say(f"technician token: {tech}   (admin: {admin}; both in {out / 'tokens.txt'})")
     cell = service = None
     try:
         cell = start_fake_cell(
             out / "truth.json", args.host, seed=args.seed, time_scale=args.time_scale, log_path=out / "fake-cell.log"
         )
-        say(f"simulated cell ready on {args.host}: {', '.join(k for k in cell.ready if k != 'ready')}")
+        _say(f"simulated cell ready on {args.host}: {', '.join(k for k in cell.ready if k != 'ready')}")
         service_env = {
             "RECAL_SETTLE_S": "0",
             **({"RECAL_LOG_FORMAT": args.log_format} if getattr(args, "log_format", None) else {}),
         }
         service = start_service(out, args.port, env=service_env, log_path=out / "service.log")
         url = service.ready["url"]
-        say(f"service ready at {url} (SQLite: {db_file})")
+        _say(f"service ready at {url} (SQLite: {out / 'recal.db'})")
         api = Api(url, tech)
         c = api.call(
             "POST",
@@ -208,87 +191,11 @@ def _live(args) -> int:
                 "drift_threshold": 0.1,
             },
         )
-        cid = c["id"]
-        tty = sys.stdout.isatty()
-
-        def show(s):
-            if tty or s["state"] not in ("planned", "running"):
-                end = "" if tty and s["state"] in ("planned", "running") else "\n"
-                sys.stdout.write(
-                    f"\r  {s['kind']} session {s['id']}: {s['state']}, {s['measured']}/{s['planned']} measured   {end}"
-                )
-                sys.stdout.flush()
-
-        def session(kind, count, **kw):
-            s = api.call("POST", f"/cells/{cid}/sessions", {"kind": kind, "count": count, **kw})
-            s = api.wait_session(s["id"], 600, on_progress=show)
-            if s["state"] != "completed":
-                raise RuntimeError(f"{kind} session {s['id']} ended {s['state']}: {s.get('reason')}")
-            return s
-
-        say("verifying the nominal model (tracker, 20 fresh configurations)...")
-        before = session("verify", 20)["plan_info"]["verify"]
-        say(f"calibrating (pose session, {args.poses} planned configurations)...")
-        t0 = time.monotonic()
-        pose = session("pose", args.poses)
-        cal = api.call("GET", f"/calibrations/{pose['calibration_id']}")
-        say(
-            f"  identified {len(cal['report']['parameters'])} parameters; residual RMS {cal['rms']:.4f} mm "
-            f"(the session, {pose['measured']} poses moved to and measured, then the identification, took "
-            f"{time.monotonic() - t0:.1f} s)"
-        )
-        comp = cal["report"].get("compliance")
-        if comp:  # --sag: the cell's model is compliant; the service compared it with the rigid one
-            say(
-                f"  rigid against compliant ({comp['folds']}-fold cross-validation on the session's data): RMS "
-                f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)"
-            )
-        say("verifying the calibrated model (20 fresh configurations)...")
-        after_session = session("verify", 20)
-        after, after_id = after_session["plan_info"]["verify"], after_session["id"]
-        (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
-        (out / "report.json").write_text(json.dumps(cal["report"], indent=2) + "\n")
-        # the sessions' measurements as the CLI reads them (contracts §3, the units of nominal.json):
-        # `recal identify` and `recal accuracy` can be tried on what the service measured
-        csvs = {"measurements.csv": pose["id"], "verify-after.csv": after_id}
-        for name, sid in csvs.items():
-            (out / name).write_text(api.call("GET", f"/sessions/{sid}/measurements.csv"))
-        say("")
-        reg = before.get("registered")
-        if reg:  # the robot's own inaccuracy first; where the tracker stands is not the robot's error
-            say(
-                f"accuracy before: RMS {reg['rms']:.3f} mm, max {reg['max']:.3f} mm (the nominal model, with the "
-                f"robot placed where it fits the tracker best; {before['rms']:.0f} mm RMS before the tracker's "
-                f"placement is known)"
-            )
-        else:
-            say(f"accuracy before: RMS {before['rms']:.3f} mm, max {before['max']:.3f} mm (the nominal model)")
-        say(
-            f"accuracy after:  RMS {after['rms']:.4f} mm, max {after['max']:.4f} mm (the calibrated model, "
-            f"on {after['n']} fresh configurations)"
-        )
-        say("parameters the data cannot determine (and why):")
-        undetermined = cal["report"]["unidentifiable"]
-        for u in undetermined[:SHOWN]:
-            say(f"  - {u['name']}: {u['reason']}")
-        if len(undetermined) > SHOWN:
-            say(f"  ... and {len(undetermined) - SHOWN} more ({out / 'report.json'} lists all {len(undetermined)})")
-        say("")
-        say(f"where to look: {url}/            (web page; log in with the technician token in {out / 'tokens.txt'})")
-        say(f"               {url}/docs        (the REST API, OpenAPI at {url}/openapi.json)")
-        say(f"               {out / 'identified.json'}, {out / 'report.json'}")
-        say(
-            f"               {out / 'measurements.csv'} (the pose session's), {out / 'verify-after.csv'} "
-            f"(the last verification's): try the CLI on them, e.g."
-        )
-        say(f"                 recal accuracy --model {out / 'identified.json'} --data {out / 'verify-after.csv'}")
-        say(
-            f"                 recal identify --model {out / 'nominal.json'} --data {out / 'measurements.csv'} "
-            f"--out {out / 'cli-identified.json'}"
-        )
+        before, cal, after = _calibrate_and_verify(api, c["id"], args, out)
+        _summary(out, url, before, cal, after)
         if args.exit:
             return 0
-        say("the service and the simulated cell keep running; Ctrl-C stops them")
+        _say("the service and the simulated cell keep running; Ctrl-C stops them")
         while service.popen.poll() is None:
             time.sleep(0.5)
         return 0
@@ -300,6 +207,116 @@ def _live(args) -> int:
             if p is not None:
                 p.stop()
         signal.signal(signal.SIGTERM, previous)
+
+
+def _say(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def _fresh_store(out: Path) -> tuple[str, str]:
+    """A new demo database in ``out`` with an admin and a technician token (also written to
+    tokens.txt): ``(admin, technician)``."""
+    from sqlmodel import Session
+
+    from service.settings import Settings
+    from service.store import create_token, make_engine, migrate
+
+    for f in out.glob("recal.db*"):
+        f.unlink()
+    engine = make_engine(Settings(home=out).effective_database_url)
+    migrate(engine)
+    with Session(engine) as db:
+        admin = create_token(db, role="admin", name="demo-admin")[1]
+        tech = create_token(db, role="technician", name="demo-technician")[1]
+    engine.dispose()
+    (out / "tokens.txt").write_text(f"admin {admin}\ntechnician {tech}\n")
+    return admin, tech
+
+
+def _calibrate_and_verify(api, cid: int, args, out: Path) -> tuple[dict, dict, dict]:
+    """The demo's three sessions (verify the nominal, calibrate, verify the calibration), their
+    files written to ``out``: ``(verify before, calibration, verify after)``."""
+    tty = sys.stdout.isatty()
+
+    def show(s):
+        if tty or s["state"] not in ("planned", "running"):
+            end = "" if tty and s["state"] in ("planned", "running") else "\n"
+            sys.stdout.write(
+                f"\r  {s['kind']} session {s['id']}: {s['state']}, {s['measured']}/{s['planned']} measured   {end}"
+            )
+            sys.stdout.flush()
+
+    def session(kind, count, **kw):
+        s = api.call("POST", f"/cells/{cid}/sessions", {"kind": kind, "count": count, **kw})
+        s = api.wait_session(s["id"], 600, on_progress=show)
+        if s["state"] != "completed":
+            raise RuntimeError(f"{kind} session {s['id']} ended {s['state']}: {s.get('reason')}")
+        return s
+
+    _say("verifying the nominal model (tracker, 20 fresh configurations)...")
+    before = session("verify", 20)["plan_info"]["verify"]
+    _say(f"calibrating (pose session, {args.poses} planned configurations)...")
+    t0 = time.monotonic()
+    pose = session("pose", args.poses)
+    cal = api.call("GET", f"/calibrations/{pose['calibration_id']}")
+    _say(
+        f"  identified {len(cal['report']['parameters'])} parameters; residual RMS {cal['rms']:.4f} mm "
+        f"(the session, {pose['measured']} poses moved to and measured, then the identification, took "
+        f"{time.monotonic() - t0:.1f} s)"
+    )
+    comp = cal["report"].get("compliance")
+    if comp:  # --sag: the cell's model is compliant; the service compared it with the rigid one
+        _say(
+            f"  rigid against compliant ({comp['folds']}-fold cross-validation on the session's data): RMS "
+            f"{comp['cv_rms_rigid']:.4f} mm against {comp['cv_rms_compliant']:.4f} mm (see the result page)"
+        )
+    _say("verifying the calibrated model (20 fresh configurations)...")
+    after_session = session("verify", 20)
+    (out / "identified.json").write_text(json.dumps(cal["model"], indent=2) + "\n")
+    (out / "report.json").write_text(json.dumps(cal["report"], indent=2) + "\n")
+    # the sessions' measurements as the CLI reads them (contracts §3, the units of nominal.json):
+    # `recal identify` and `recal accuracy` can be tried on what the service measured
+    csvs = {"measurements.csv": pose["id"], "verify-after.csv": after_session["id"]}
+    for name, sid in csvs.items():
+        (out / name).write_text(api.call("GET", f"/sessions/{sid}/measurements.csv"))
+    return before, cal, after_session["plan_info"]["verify"]
+
+
+def _summary(out: Path, url: str, before: dict, cal: dict, after: dict) -> None:
+    """Before and after, what the data cannot determine, and where to look."""
+    _say("")
+    reg = before.get("registered")
+    if reg:  # the robot's own inaccuracy first; where the tracker stands is not the robot's error
+        _say(
+            f"accuracy before: RMS {reg['rms']:.3f} mm, max {reg['max']:.3f} mm (the nominal model, with the "
+            f"robot placed where it fits the tracker best; {before['rms']:.0f} mm RMS before the tracker's "
+            f"placement is known)"
+        )
+    else:
+        _say(f"accuracy before: RMS {before['rms']:.3f} mm, max {before['max']:.3f} mm (the nominal model)")
+    _say(
+        f"accuracy after:  RMS {after['rms']:.4f} mm, max {after['max']:.4f} mm (the calibrated model, "
+        f"on {after['n']} fresh configurations)"
+    )
+    _say("parameters the data cannot determine (and why):")
+    undetermined = cal["report"]["unidentifiable"]
+    for u in undetermined[:SHOWN]:
+        _say(f"  - {u['name']}: {u['reason']}")
+    if len(undetermined) > SHOWN:
+        _say(f"  ... and {len(undetermined) - SHOWN} more ({out / 'report.json'} lists all {len(undetermined)})")
+    _say("")
+    _say(f"where to look: {url}/            (web page; log in with the technician token in {out / 'tokens.txt'})")
+    _say(f"               {url}/docs        (the REST API, OpenAPI at {url}/openapi.json)")
+    _say(f"               {out / 'identified.json'}, {out / 'report.json'}")
+    _say(
+        f"               {out / 'measurements.csv'} (the pose session's), {out / 'verify-after.csv'} "
+        f"(the last verification's): try the CLI on them, e.g."
+    )
+    _say(f"                 recal accuracy --model {out / 'identified.json'} --data {out / 'verify-after.csv'}")
+    _say(
+        f"                 recal identify --model {out / 'nominal.json'} --data {out / 'measurements.csv'} "
+        f"--out {out / 'cli-identified.json'}"
+    )
 
 
 def _write_measurements(path: Path, model, data) -> None:
