@@ -296,9 +296,18 @@ def identification_report(
 
 
 def identification_block(
-    result: IdentificationResult, units: Units, *, nominal: KinematicModel | None = None, q: np.ndarray | None = None
+    result: IdentificationResult,
+    units: Units,
+    *,
+    nominal: KinematicModel | None = None,
+    q: np.ndarray | None = None,
+    report: dict | None = None,
 ) -> dict:
     """The compact ``identification`` block written into an identified model file.
+
+    ``report``: the :func:`identification_report` of this ``result`` in these ``units`` when the
+    caller has made it already (the CLI and the service both print or store one), so that it is
+    made once per calibration (issue 23).
 
     With ``nominal``, the block also keeps the nominal model (what a controller that was never
     calibrated knows: compensation's ``targets`` mode needs it); with the identification data's
@@ -309,7 +318,7 @@ def identification_block(
     ``kinds``, ``matrix``): what :func:`calibration.uncertainty.covariance_from_block` needs to
     predict the position uncertainty anywhere (``recal predict --uncertainty``).
     """
-    full = identification_report(result, units)
+    full = identification_report(result, units) if report is None else report
     block = {
         k: full[k]
         for k in (

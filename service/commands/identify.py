@@ -123,7 +123,7 @@ def run(args) -> int:
         write_atomic(args.report, json.dumps(report, indent=2) + "\n")
     # the block keeps what `recal compensate` needs later: the nominal model the controller
     # knows, and the joint ranges the data covered (its "calibrated region")
-    block = identification_block(result, model.units, nominal=model, q=data.q)
+    block = identification_block(result, model.units, nominal=model, q=data.q, report=report)
     save_model(args.out, result.model, {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})})
     u = model.units.length
     line = summary_line(result, model.units, len(data), validation)

@@ -94,7 +94,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
     rmap_doc, report["residual_map"] = _residual_map(start, data, prior, result.model, model)
     L = units.length_m
-    block = identification_block(result, units, nominal=nominal, q=data.q)
+    block = identification_block(result, units, nominal=nominal, q=data.q, report=report)
     ctrl = current_controller_model(db, cell.id)
     if ctrl is not None:  # a UR cell: what its controller computes with (targets mode, URScript need it)
         block["controller"] = ctrl.model
