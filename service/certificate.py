@@ -387,12 +387,11 @@ def _num(v, digits: int = 6) -> str:
 
 
 def certificate_pdf(cert: dict) -> bytes:
-    """The certificate as an A4 PDF."""
-    from reportlab.lib import colors
+    """The certificate as an A4 PDF: the identification of the cell, robot and instrument, the
+    accuracy before and after, the checks, the parameters, and the signatures."""
     from reportlab.lib.pagesizes import A4
-    from reportlab.lib.styles import getSampleStyleSheet
     from reportlab.lib.units import mm
-    from reportlab.platypus import Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
+    from reportlab.platypus import SimpleDocTemplate, Spacer
 
     buf = io.BytesIO()
     doc = SimpleDocTemplate(
@@ -405,38 +404,73 @@ def certificate_pdf(cert: dict) -> bytes:
         title=f"{cert['title']} {cert['number']}",
         author="Recal",
     )
-    ss = getSampleStyleSheet()
-    h1, h2, body, small = (
-        ss["Title"],
-        ss["Heading2"],
-        ss["BodyText"],
-        ss["BodyText"].clone("small", fontSize=8, leading=10),
-    )
+    pdf = _PdfStyles()
+    s = _pdf_identity(pdf, cert)
+    s += _pdf_accuracy(pdf, cert)
+    s += _pdf_checks(pdf, cert)
+    s += _pdf_parameters(pdf, cert)
+    s.append(Spacer(1, 8 * mm))
+    s.append(pdf.P(f"Overall: {cert['verdict']}."))
+    s.append(Spacer(1, 14 * mm))
+    s.append(_pdf_signatures())
+
+    def footer(canvas, doc_):
+        canvas.saveState()
+        canvas.setFont("Helvetica", 7.5)
+        canvas.drawString(18 * mm, 9 * mm, f"Recal — {cert['number']}")
+        canvas.drawRightString(A4[0] - 18 * mm, 9 * mm, f"page {doc_.page}")
+        canvas.restoreState()
+
+    doc.build(s, onFirstPage=footer, onLaterPages=footer)
+    return buf.getvalue()
+
+
+class _PdfStyles:
+    """The certificate's paragraph and table styles (reportlab, imported when a PDF is made)."""
+
+    def __init__(self):
+        from reportlab.lib import colors
+        from reportlab.lib.styles import getSampleStyleSheet
+        from reportlab.platypus import TableStyle
+
+        ss = getSampleStyleSheet()
+        self.h1, self.h2, self.body = ss["Title"], ss["Heading2"], ss["BodyText"]
+        self.small = ss["BodyText"].clone("small", fontSize=8, leading=10)
+        self.grid = TableStyle(
+            [
+                ("GRID", (0, 0), (-1, -1), 0.4, colors.grey),
+                ("FONTSIZE", (0, 0), (-1, -1), 8.5),
+                ("BACKGROUND", (0, 0), (-1, 0), colors.HexColor("#e8eef5")),
+                ("VALIGN", (0, 0), (-1, -1), "TOP"),
+            ]
+        )
+        self.kv = TableStyle(
+            [
+                ("FONTSIZE", (0, 0), (-1, -1), 9),
+                ("TEXTCOLOR", (0, 0), (0, -1), colors.HexColor("#445")),
+                ("VALIGN", (0, 0), (-1, -1), "TOP"),
+                ("LINEBELOW", (0, 0), (-1, -1), 0.25, colors.lightgrey),
+            ]
+        )
+
+    def P(self, text, style=None):
+        """A paragraph of plain text (reportlab reads markup: & and < are escaped)."""
+        from reportlab.platypus import Paragraph
+
+        return Paragraph(str(text).replace("&", "&amp;").replace("<", "&lt;"), style or self.body)
+
+    def grid_with(self, *commands):
+        from reportlab.platypus import TableStyle
+
+        return TableStyle(self.grid.getCommands() + list(commands))
+
+
+def _pdf_identity(pdf: _PdfStyles, cert: dict) -> list:
+    """Title, number, and what was calibrated with what, when, by whom."""
+    from reportlab.lib.units import mm
+    from reportlab.platypus import Paragraph, Spacer, Table
+
     unit = cert["units"]["length"]
-    grid = TableStyle(
-        [
-            ("GRID", (0, 0), (-1, -1), 0.4, colors.grey),
-            ("FONTSIZE", (0, 0), (-1, -1), 8.5),
-            ("BACKGROUND", (0, 0), (-1, 0), colors.HexColor("#e8eef5")),
-            ("VALIGN", (0, 0), (-1, -1), "TOP"),
-        ]
-    )
-    kv = TableStyle(
-        [
-            ("FONTSIZE", (0, 0), (-1, -1), 9),
-            ("TEXTCOLOR", (0, 0), (0, -1), colors.HexColor("#445")),
-            ("VALIGN", (0, 0), (-1, -1), "TOP"),
-            ("LINEBELOW", (0, 0), (-1, -1), 0.25, colors.lightgrey),
-        ]
-    )
-
-    def P(text, style=body):
-        return Paragraph(str(text).replace("&", "&amp;").replace("<", "&lt;"), style)
-
-    s = []
-    s.append(Paragraph(cert["title"], h1))
-    s.append(P(f"Certificate {cert['number']} — issued {cert['issued_at'][:19].replace('T', ' ')} UTC"))
-    s.append(Spacer(1, 4 * mm))
     inst = cert["instrument"]
     rows = [
         ["Cell", f"{cert['cell']['name']} (site {cert['cell']['site']}, id {cert['cell']['id']})"],
@@ -460,9 +494,20 @@ def certificate_pdf(cert: dict) -> bytes:
         ],
         ["Method", cert["calibration"]["method"]],
     ]
-    s.append(Table([[P(a), P(b)] for a, b in rows], colWidths=[38 * mm, 136 * mm], style=kv, hAlign="LEFT"))
+    return [
+        Paragraph(cert["title"], pdf.h1),
+        pdf.P(f"Certificate {cert['number']} — issued {cert['issued_at'][:19].replace('T', ' ')} UTC"),
+        Spacer(1, 4 * mm),
+        Table([[pdf.P(a), pdf.P(b)] for a, b in rows], colWidths=[38 * mm, 136 * mm], style=pdf.kv, hAlign="LEFT"),
+    ]
 
-    s.append(Paragraph("Accuracy before and after calibration", h2))
+
+def _pdf_accuracy(pdf: _PdfStyles, cert: dict) -> list:
+    """The accuracy table (before, after, hold-out) and what each row means."""
+    from reportlab.lib.units import mm
+    from reportlab.platypus import Paragraph, Table
+
+    unit = cert["units"]["length"]
     acc = cert["accuracy"]
     figs = [
         ("n", "poses"),
@@ -473,21 +518,20 @@ def certificate_pdf(cert: dict) -> bytes:
         ("p95", "95th pct"),
         ("max", "max"),
     ]
-    head = [P("", small), *[P(f"{label} ({unit})" if k != "n" else label, small) for k, label in figs]]
-    data = [head]
+    small = pdf.small
+    data = [[pdf.P("", small), *[pdf.P(f"{label} ({unit})" if k != "n" else label, small) for k, label in figs]]]
     for label, f in _accuracy_rows(acc):
-        data.append([label, *[str(f[k]) if k == "n" else _num(f.get(k), 4) for k, _ in figs]])
-    s.append(
+        data.append([pdf.P(label, small), *[str(f[k]) if k == "n" else _num(f.get(k), 4) for k, _ in figs]])
+    out = [
+        Paragraph("Accuracy before and after calibration", pdf.h2),
         Table(
-            [[P(r[0], small), *r[1:]] if i else r for i, r in enumerate(data)],
+            data,
             colWidths=[41 * mm] + [19 * mm] * 7,
-            style=TableStyle(grid.getCommands() + [("ALIGN", (1, 1), (-1, -1), "RIGHT")]),
+            style=pdf.grid_with(("ALIGN", (1, 1), (-1, -1), "RIGHT")),
             repeatRows=1,
             hAlign="LEFT",
-        )
-    )
-    s.append(
-        P(
+        ),
+        pdf.P(
             f"Before: {acc.get('before_model') or '–'}. After, {acc['after_kind']}. "
             + (
                 f"Hold-out: {acc['holdout_model']}. "
@@ -496,26 +540,39 @@ def certificate_pdf(cert: dict) -> bytes:
             )
             + f"{acc['note']}.",
             small,
-        )
-    )
+        ),
+    ]
     if acc.get("predicted_workspace"):
         w = acc["predicted_workspace"]
-        s.append(
-            P(
+        out.append(
+            pdf.P(
                 f"Predicted: {w['what']}: RMS {_num(w['rms'], 3)} {unit}, 95th percentile {_num(w['p95'], 3)} "
                 f"{unit}, max {_num(w['max'], 3)} {unit}.",
                 small,
             )
         )
+    return out
 
-    s.append(Paragraph("Checks", h2))
+
+def _pdf_checks(pdf: _PdfStyles, cert: dict) -> list:
+    from reportlab.lib.units import mm
+    from reportlab.platypus import Paragraph, Table
+
     data = [["Check", "Result", "Detail"]]
     for c in cert["checks"]:
         res = "passed" if c["passed"] else ("not run" if c["passed"] is None else "FAILED")
-        data.append([P(c["name"], small), res, P(c["detail"], small)])
-    s.append(Table(data, colWidths=[62 * mm, 18 * mm, 94 * mm], style=grid, repeatRows=1, hAlign="LEFT"))
+        data.append([pdf.P(c["name"], pdf.small), res, pdf.P(c["detail"], pdf.small)])
+    return [
+        Paragraph("Checks", pdf.h2),
+        Table(data, colWidths=[62 * mm, 18 * mm, 94 * mm], style=pdf.grid, repeatRows=1, hAlign="LEFT"),
+    ]
 
-    s.append(Paragraph("Identified parameters", h2))
+
+def _pdf_parameters(pdf: _PdfStyles, cert: dict) -> list:
+    """The identified parameters with their uncertainties, and those the data could not determine."""
+    from reportlab.lib.units import mm
+    from reportlab.platypus import Paragraph, Table
+
     data = [["Parameter", "Unit", "Value", "Change", "Std. unc. u", "U (k=2)"]]
     for p in cert["parameters"]:
         name = p["name"] + (" (from the prior)" if p.get("source") == "prior" else "")
@@ -529,49 +586,49 @@ def certificate_pdf(cert: dict) -> bytes:
                 _num(p["expanded_uncertainty"], 3),
             ]
         )
-    s.append(
+    out = [
+        Paragraph("Identified parameters", pdf.h2),
         Table(
             data,
             colWidths=[34 * mm, 14 * mm, 34 * mm, 28 * mm, 28 * mm, 28 * mm],
-            style=TableStyle(grid.getCommands() + [("ALIGN", (2, 1), (-1, -1), "RIGHT")]),
+            style=pdf.grid_with(("ALIGN", (2, 1), (-1, -1), "RIGHT")),
             repeatRows=1,
             hAlign="LEFT",
-        )
-    )
-    s.append(
-        P(
+        ),
+        pdf.P(
             "base.*, tool.* (and home.*) are small displacements of those frames about the calibrated model: "
             "their value is 0 by definition, the change is what the calibration moved.",
-            small,
-        )
-    )
+            pdf.small,
+        ),
+    ]
     if cert["unidentifiable"]:
-        s.append(Paragraph("Parameters the data could not determine", h2))
-        data = [["Parameter", "Reason"]] + [[u["name"], P(u["reason"], small)] for u in cert["unidentifiable"]]
-        s.append(Table(data, colWidths=[30 * mm, 144 * mm], style=grid, repeatRows=1, hAlign="LEFT"))
-    s.append(Spacer(1, 8 * mm))
-    s.append(P(f"Overall: {cert['verdict']}."))
-    s.append(Spacer(1, 14 * mm))
-    s.append(
-        Table(
-            [["Operator signature", "", "Reviewed by", ""]],
-            colWidths=[35 * mm, 52 * mm, 30 * mm, 57 * mm],
-            style=TableStyle(
-                [
-                    ("LINEBELOW", (1, 0), (1, 0), 0.5, colors.black),
-                    ("LINEBELOW", (3, 0), (3, 0), 0.5, colors.black),
-                    ("FONTSIZE", (0, 0), (-1, -1), 9),
-                ]
-            ),
+        rows = [[u["name"], pdf.P(u["reason"], pdf.small)] for u in cert["unidentifiable"]]
+        out.append(Paragraph("Parameters the data could not determine", pdf.h2))
+        out.append(
+            Table(
+                [["Parameter", "Reason"], *rows],
+                colWidths=[30 * mm, 144 * mm],
+                style=pdf.grid,
+                repeatRows=1,
+                hAlign="LEFT",
+            )
         )
+    return out
+
+
+def _pdf_signatures():
+    from reportlab.lib import colors
+    from reportlab.lib.units import mm
+    from reportlab.platypus import Table, TableStyle
+
+    return Table(
+        [["Operator signature", "", "Reviewed by", ""]],
+        colWidths=[35 * mm, 52 * mm, 30 * mm, 57 * mm],
+        style=TableStyle(
+            [
+                ("LINEBELOW", (1, 0), (1, 0), 0.5, colors.black),
+                ("LINEBELOW", (3, 0), (3, 0), 0.5, colors.black),
+                ("FONTSIZE", (0, 0), (-1, -1), 9),
+            ]
+        ),
     )
-
-    def footer(canvas, doc_):
-        canvas.saveState()
-        canvas.setFont("Helvetica", 7.5)
-        canvas.drawString(18 * mm, 9 * mm, f"Recal — {cert['number']}")
-        canvas.drawRightString(A4[0] - 18 * mm, 9 * mm, f"page {doc_.page}")
-        canvas.restoreState()
-
-    doc.build(s, onFirstPage=footer, onLaterPages=footer)
-    return buf.getvalue()
