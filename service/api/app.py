@@ -117,8 +117,9 @@ def _field(loc) -> str:
     return out
 
 
-def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -> FastAPI:
-    settings = settings or Settings.from_env()
+def _lifespan(settings: Settings, orchestrator_factory):
+    """Start-up and shut-down: the store migrated and checked, unfinished sessions marked
+    interrupted, the orchestrator and the heavy-work pool."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -152,21 +153,11 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
                 interrupt_unfinished(db, owner=app.state.orchestrator.owner)
             engine.dispose()
 
-    app = FastAPI(
-        title="Recal",
-        version="0.1.0",
-        lifespan=lifespan,
-        generate_unique_id_function=_operation_id,
-        dependencies=[Depends(bounded_numbers)],
-        docs_url=None,
-        redoc_url=None,
-        swagger_ui_oauth2_redirect_url=None,
-        description="Robot calibration service: cells, measurement sessions, calibrations, compensation.",
-    )
-    # Outermost last: every request is logged and timed (413s included), then its body limited.
-    app.add_middleware(BodyLimit, settings=settings)
-    app.add_middleware(PageCache)
-    app.add_middleware(RequestLog, observe=metrics.install(app))
+    return lifespan
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    """Every error a request can meet answered as JSON naming what is at fault; never a traceback."""
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
@@ -222,6 +213,26 @@ def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -
     async def _unexpected(request: Request, exc: Exception):
         return _internal_error(request, exc)
 
+
+def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -> FastAPI:
+    settings = settings or Settings.from_env()
+    app = FastAPI(
+        title="Recal",
+        version="0.1.0",
+        lifespan=_lifespan(settings, orchestrator_factory),
+        generate_unique_id_function=_operation_id,
+        dependencies=[Depends(bounded_numbers)],
+        docs_url=None,
+        redoc_url=None,
+        swagger_ui_oauth2_redirect_url=None,
+        description="Robot calibration service: cells, measurement sessions, calibrations, compensation.",
+    )
+    # Outermost last: every request is logged and timed (413s included), then its body limited.
+    app.add_middleware(BodyLimit, settings=settings)
+    app.add_middleware(PageCache)
+    app.add_middleware(RequestLog, observe=metrics.install(app))
+
+    _install_error_handlers(app)
     for module in (system, cells, sessions, calibrations, results, workbench, records):
         app.include_router(module.router, prefix="/api/v1")
     app.include_router(web.router)  # the technician's web page at / (service/web)
