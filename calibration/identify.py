@@ -67,7 +67,7 @@ from .jacobian import Prediction, jacobian_from_walk, predict, record_keys, worl
 from .kinematics import program, walk
 from .model import KinematicModel
 from .parameters import Parameter, apply_step, candidate_parameters, parameter_values
-from .registration import register_points, register_poses
+from .registration import PointSums, register_poses
 from .report import describe, explain, relation_coefficients, relation_text, unit_name  # noqa: F401 (re-exported)
 from .transforms import homogeneous, invert, matrix_to_pose, matrix_to_rotvec, pose_to_matrix, quat_to_matrix
 
@@ -363,7 +363,10 @@ def _linearise(
     its columns to ``Jt`` here, and its candidates in :func:`_candidates`.
     """
     N, P, K = len(prob.data), len(params), prob.n_folds
-    rp, rr = np.empty((N, 3)), np.zeros((N, 3))
+    rp = np.empty((N, 3))
+    # rotation residuals: zeros that take no memory when no row has an orientation (24 bytes a
+    # row, twice over while the fit holds two linearisations)
+    rr = np.zeros((N, 3)) if any(ch.rot for ch in prob.chunks) else np.broadcast_to(np.zeros(3), (N, 3))
     z2, w_row = np.empty(N), np.ones(N)
     G, g, c, n = np.zeros((K, P, P)), np.zeros((K, P)), np.zeros(K), np.zeros(K, dtype=int)
     R = None
@@ -590,22 +593,27 @@ def _select(J: np.ndarray, params: list[Parameter], *, rtol: float, position_onl
 
 def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, dict]:
     """Try a rigid registration of the model's predictions onto the data; keep it if it fits
-    better than the model's own base."""
+    better than the model's own base.
+
+    One pass over the rows, :data:`CHUNK_ROWS` at a time: the points the model predicts are kept
+    (N, 3), their tool frames only where a row has a measured orientation; the point
+    registration needs only sums (:class:`calibration.registration.PointSums`). Walking all rows
+    at once kept every joint's frame of a million rows (issue 25: the identification's peak)."""
     data = prob.data
     local = dataclasses.replace(model, base=np.zeros(6))
-    w = walk(local, data.q, payload=data.payload)
+    p_tool = _p_tool(model, prob.p_tool_names, prob.target_rows)
+    sums, p_local, R_rot, p_rot = _registration_pass(local, prob, p_tool)
 
     def rms(base: np.ndarray, p_local: np.ndarray) -> float:
         e = data.p_world - (p_local @ base[:3, :3].T + base[:3, 3])
         return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
 
-    p_local = world_points(w, _p_tool(model, prob.p_tool_names, prob.target_rows))
     before = rms(pose_to_matrix(model.base), p_local)
     info = {"rms_before_m": before}
-    n_rot = int(np.sum(prob.has_rot))
+    n_rot = len(R_rot)
     if n_rot >= 3:
         m = prob.has_rot
-        T_pred = homogeneous(w.R[m], w.p[m])  # includes the current tool
+        T_pred = homogeneous(R_rot, p_rot)  # includes the current tool
         T_meas = homogeneous(prob.R_meas[m], np.zeros((n_rot, 3)))
         # the measured position is of the row's target; bring it to the tool origin with the
         # model's target offset as the first guess
@@ -616,13 +624,14 @@ def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, di
         candidate = dataclasses.replace(model, base=matrix_to_pose(X), tool=tool)
         info["method"] = "robot-world/hand-eye (base and tool from full poses)"
         G = invert(pose_to_matrix(model.tool)) @ pose_to_matrix(candidate.tool)  # old tool -> new tool
-        p_local = world_points(w, G[:3, 3] + _p_tool(model, prob.p_tool_names, prob.target_rows) @ G[:3, :3].T)
+        p_local = _registration_pass(local, prob, G[:3, 3] + p_tool @ G[:3, :3].T)[1]
     else:
-        X, c = register_points(w.R, w.p, data.p_world, _p_tool(model, prob.p_tool_names, prob.target_rows))
+        X, c = sums.register()
         candidate = dataclasses.replace(model, base=matrix_to_pose(X))
         info["method"] = "rigid point registration (Kabsch)"
         info["point_offset_correction_m"] = c.tolist()
-    after = rms(pose_to_matrix(candidate.base), p_local)
+    B = pose_to_matrix(candidate.base)
+    after = rms(B, p_local)
     info["applied"] = bool(after < before)
     # the figure reported is the registration as found, the common target offset included: the
     # start keeps its own targets (the fit frees what the data determine of them), but an offset
@@ -630,11 +639,44 @@ def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, di
     # a T-Mac read 15 mm where the same registration with its offset gave 1 mm; a reflector 50 mm
     # from the nominal's target read 50.7 mm here, tests/calibration/test_before_figure.py)
     if "point_offset_correction_m" in info:
-        p_reg = world_points(w, _p_tool(model, prob.p_tool_names, prob.target_rows) + c)
-        info["rms_after_m"] = rms(pose_to_matrix(candidate.base), p_reg)
+        info["rms_after_m"] = _rms_with_offset(sums, data.p_world, p_local, B, c)
     else:
         info["rms_after_m"] = after
     return (candidate if after < before else model), info
+
+
+def _registration_pass(model: KinematicModel, prob: _Problem, p_tool: np.ndarray):
+    """One chunked walk of every row: the registration's sums, the predicted points (N, 3), and
+    the tool frames ``(R, p)`` of the rows with a measured orientation."""
+    data = prob.data
+    N = len(data)
+    sums, points = PointSums(), np.empty((N, 3))
+    R_rot, p_rot = [], []
+    ops = program(model)
+    for a in range(0, N, CHUNK_ROWS):
+        b = min(a + CHUNK_ROWS, N)
+        payload = None if data.payload is None else data.payload[a:b]
+        w = walk(model, data.q[a:b], payload=payload, ops=ops)
+        points[a:b] = sums.add(w.R, w.p, data.p_world[a:b], p_tool[a:b])
+        m = prob.has_rot[a:b]
+        if m.any():
+            R_rot.append(w.R[m])
+            p_rot.append(w.p[m])
+    if R_rot:
+        return sums, points, np.concatenate(R_rot), np.concatenate(p_rot)
+    return sums, points, np.zeros((0, 3, 3)), np.zeros((0, 3))
+
+
+def _rms_with_offset(sums: PointSums, m: np.ndarray, a: np.ndarray, B: np.ndarray, c: np.ndarray) -> float:
+    """RMS of ``m_i - (B (a_i + R_i c))`` (B (4, 4) rigid) without the rows' frames ``R_i``:
+    with ``e_i = m_i - B a_i`` (exact, from the kept points), ``Σ |e_i - B_R R_i c|² = Σ |e_i|²
+    - 2 Σ e_iᵀ B_R R_i c + N |c|²``, the middle sum from the registration's sums (it is linear in
+    the rows: ``Σ m_iᵀ B_R R_i c - (Σ R_iᵀ a_i)·c - tᵀ B_R (Σ R_i) c``)."""
+    BR, t = B[:3, :3], B[:3, 3]
+    e = m - (a @ BR.T + t)
+    cross = np.einsum("xy,z,zyx->", BR, c, sums.sRm) - sums.sRa @ c - t @ BR @ sums.sR @ c
+    total = float(np.sum(e**2)) - 2.0 * float(cross) + sums.n * float(c @ c)
+    return float(np.sqrt(max(total, 0.0) / sums.n))
 
 
 # --------------------------------------------------------------------------- step 1: validation

@@ -64,36 +64,69 @@ def register_points(
 
     Alternates a Kabsch fit of ``a_i + R_i c`` (``a_i`` the points before the correction) onto
     the measured ``m_i`` with the least-squares ``c`` for that fit. Both steps need only sums
-    over the points, which are linear in ``c`` and in the fitted rotation: they are formed once
-    (a few passes over the data), and each iteration is a 3 x 3 problem.
+    over the points (:class:`PointSums`), which are linear in ``c`` and in the fitted rotation:
+    they are formed once (a few passes over the data, or chunk by chunk), and each iteration is a
+    3 x 3 problem.
     """
-    N = len(p_world)
-    R = np.ascontiguousarray(R_base_tool, dtype=float)
-    m = np.asarray(p_world, dtype=float)
-    a = p_base_tool + np.einsum("nij,nj->ni", R, p_tool)  # the points before the correction
-    w = np.full(N, 1.0 / N)
-    a_bar, m_bar, R_bar = w @ a, w @ m, (w @ R.reshape(N, 9)).reshape(3, 3)
-    m_c = m - m_bar
-    H0 = (a - a_bar).T @ m_c
-    # K[j] = Σ R_i[:, j] m̃_iᵀ: H(c) = H0 + Σ_j c_j K[j] (the centroid's part sums to zero)
-    K = (R.reshape(N, 9).T @ m_c).reshape(3, 3, 3).transpose(1, 0, 2)
-    # c for a fit (R_T, t_T): mean of R_iᵀ R_Tᵀ (m_i - t_T) - R_iᵀ a_i, each block orthonormal
-    Q = (R.reshape(N, 9).T @ m).reshape(3, 3, 3).transpose(1, 0, 2) / N  # Q[j, a, b] = mean R_i[a, j] m_i[b]
-    v = np.einsum("naj,na->j", R, a) / N
+    sums = PointSums()
+    sums.add(R_base_tool, p_base_tool, p_world, p_tool)
+    return sums.register(iterations=iterations)
 
-    def fit(c):
-        return _kabsch_from(H0 + np.tensordot(c, K, axes=1), a_bar + R_bar @ c, m_bar)
 
-    c = np.zeros(3)
-    for _ in range(iterations):
-        T = fit(c)
-        RT, tT = T[:3, :3], T[:3, 3]
-        c_new = np.einsum("jab,ba->j", Q, RT) - R_bar.T @ (RT.T @ tT) - v
-        if np.linalg.norm(c_new - c) < 1e-12:
+class PointSums:
+    """The sums over measured points that :func:`register_points` needs, added chunk by chunk so
+    that a million rows never hold their tool frames at once: with ``a_i = p_i + R_i p_tool,i``
+    and ``m_i`` the measured point, ``n``, ``Σ a``, ``Σ m``, ``Σ R``, ``Σ a mᵀ``, ``Σ R[:, j] mᵀ``
+    and ``Σ Rᵀ a``. Their order of summation is the only difference from one pass."""
+
+    def __init__(self):
+        self.n = 0
+        self.sa, self.sm, self.sRa = np.zeros(3), np.zeros(3), np.zeros(3)
+        self.sR, self.sam = np.zeros((3, 3)), np.zeros((3, 3))
+        self.sRm = np.zeros((3, 3, 3))  # [j, a, b] = Σ R_i[a, j] m_i[b]
+
+    def add(self, R: np.ndarray, p: np.ndarray, m: np.ndarray, p_tool: np.ndarray) -> np.ndarray:
+        """Add rows (R (n, 3, 3), p (n, 3), m (n, 3), p_tool (n, 3)); returns their points ``a``."""
+        R = np.ascontiguousarray(R, dtype=float)
+        m = np.asarray(m, dtype=float)
+        a = p + np.einsum("nij,nj->ni", R, p_tool)
+        n = len(m)
+        self.n += n
+        self.sa += a.sum(axis=0)
+        self.sm += m.sum(axis=0)
+        self.sR += R.sum(axis=0)
+        self.sam += a.T @ m
+        self.sRm += (R.reshape(n, 9).T @ m).reshape(3, 3, 3).transpose(1, 0, 2)
+        self.sRa += np.einsum("naj,na->j", R, a)
+        return a
+
+    def register(self, *, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+        """``(T_world_base, c)`` as :func:`register_points` defines them."""
+        N = self.n
+        a_bar, m_bar, R_bar = self.sa / N, self.sm / N, self.sR / N
+        H0 = self.sam - N * np.outer(a_bar, m_bar)
+        # K[j] = Σ R_i[:, j] m̃_iᵀ: H(c) = H0 + Σ_j c_j K[j] (the centroid's part sums to zero)
+        K = self.sRm - np.einsum("aj,b->jab", self.sR, m_bar)
+        # c for a fit (R_T, t_T): mean of R_iᵀ R_Tᵀ (m_i - t_T) - R_iᵀ a_i, each block orthonormal
+        Q = self.sRm / N  # Q[j, a, b] = mean R_i[a, j] m_i[b]
+        v = self.sRa / N
+
+        def fit(c):
+            return _kabsch_from(H0 + np.tensordot(c, K, axes=1), a_bar + R_bar @ c, m_bar)
+
+        c = np.zeros(3)
+        for _ in range(iterations):
+            T = fit(c)
+            RT, tT = T[:3, :3], T[:3, 3]
+            c_new = np.einsum("jab,ba->j", Q, RT) - R_bar.T @ (RT.T @ tT) - v
+            if np.linalg.norm(c_new - c) < 1e-12:
+                c = c_new
+                break
             c = c_new
-            break
-        c = c_new
-    return fit(c), c
+        return fit(c), c
+
+
+_POSE_CHUNK = 4096  # poses per block of register_poses' rotation system
 
 
 def register_poses(T_pred: np.ndarray, T_meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,12 +139,18 @@ def register_poses(T_pred: np.ndarray, T_meas: np.ndarray) -> tuple[np.ndarray, 
     RP, RM = T_pred[:, :3, :3], T_meas[:, :3, :3]
     N = len(RP)
     I3 = np.eye(3)
-    # vec() is column-major: vec(A B) = (I ⊗ A) vec(B) = (B^T ⊗ I) vec(A)
-    rows = []
-    for i in range(N):
-        rows.append(np.hstack([np.kron(I3, RP[i]), -np.kron(RM[i].T, I3)]))
-    M = np.vstack(rows)
-    _, _, Vt = np.linalg.svd(M)
+    # vec() is column-major: vec(A B) = (I ⊗ A) vec(B) = (B^T ⊗ I) vec(A). The stacked system
+    # (9N, 18) is reduced to its triangular factor chunk by chunk (same singular vectors): one
+    # (9N, 18) matrix, built row by row and decomposed with its full U, needed 543 GiB at 30,000 poses.
+    R = np.zeros((0, 18))
+    for a in range(0, N, _POSE_CHUNK):
+        rp, rm = RP[a : a + _POSE_CHUNK], RM[a : a + _POSE_CHUNK]
+        n = len(rp)
+        kron_rp = np.einsum("pq,nij->npiqj", I3, rp).reshape(n, 9, 9)  # I ⊗ RP_i
+        kron_rm = np.einsum("nqp,ij->npiqj", rm, I3).reshape(n, 9, 9)  # RM_iᵀ ⊗ I
+        M = np.concatenate([kron_rp, -kron_rm], axis=2).reshape(9 * n, 18)
+        R = np.linalg.qr(np.vstack([R, M]), mode="r")
+    _, _, Vt = np.linalg.svd(R)
     v = Vt[-1]
     RY = v[:9].reshape(3, 3, order="F")
     RXt = v[9:].reshape(3, 3, order="F")

@@ -12,6 +12,7 @@ import io
 import json
 import math
 import os
+import re
 import stat
 import tempfile
 from dataclasses import dataclass
@@ -163,7 +164,11 @@ def read_text(path: str | os.PathLike, expected: str, *, encoding: str = "utf-8"
     """A text file's contents; a file that cannot be read, one over the input bound
     (:func:`read_bounded`), a binary file (NUL bytes) or one that is not UTF-8 raises
     ``InputError`` (one line) naming where and what was expected."""
-    data = read_bounded(path)
+    return decode_text(path, read_bounded(path), expected, encoding=encoding)
+
+
+def decode_text(path: str | os.PathLike, data: bytes, expected: str, *, encoding: str = "utf-8") -> str:
+    """``data`` (a file's bytes) as text, refused as :func:`read_text` refuses it."""
     nul = data.find(b"\x00")
     if nul >= 0:
         raise InputError(
@@ -241,6 +246,10 @@ class Table:
     @property
     def index(self) -> dict[str, int]:
         return {name: i for i, name in enumerate(self.header)}
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.rows)
 
     def numbers(
         self, column: str, *, scale: float = 1.0, required: bool = True, allow_empty: bool = False
@@ -336,9 +345,24 @@ def check_csv_text(path: str | os.PathLike, text: str) -> None:
         pass
 
 
-def read_table(path: str | os.PathLike) -> Table:
-    """Read a CSV with one header line; ``#`` starts a comment line; blank lines are skipped."""
-    text = read_text(path, "a CSV file", encoding="utf-8-sig")
+def read_table(path: str | os.PathLike) -> Table | ColumnTable:
+    """Read a CSV with one header line; ``#`` starts a comment line; blank lines are skipped.
+
+    Two readers give the same table: the columnar one (:class:`ColumnTable`, pyarrow) for the
+    files it can take as they are, and the Python one (:class:`Table`) for the rest and for every
+    error, so that a fault is always named by the same words, row and column.
+    ``RECAL_CSV_READER=python`` uses the Python one alone (the benchmark's baseline)."""
+    raw = read_bounded(path)
+    if os.environ.get("RECAL_CSV_READER", "").strip().lower() != "python":
+        fast = ColumnTable.read(path, raw)
+        if fast is not None:
+            return fast
+    return _python_table(path, raw)
+
+
+def _python_table(path: str | os.PathLike, raw: bytes) -> Table:
+    """The Python reader: every row through ``csv``."""
+    text = decode_text(path, raw, "a CSV file", encoding="utf-8-sig")
     _check_line_ends(path, text)
     header: list[str] | None = None
     header_line = 1
@@ -372,6 +396,160 @@ def read_table(path: str | os.PathLike) -> Table:
     if not rows:
         raise InputError(path, "has a header but no data rows; expected at least one row after the header")
     return Table(str(path), header, rows, lines, header_line)
+
+
+# The columns the contracts give as numbers (§3-§5: joints, positions, orientations, sigma, payload,
+# task frames): the columnar reader types them as float64 as it parses. Any other column is text.
+_NUMERIC_COLUMN = re.compile(r"q\d+|[xyz]|q[wxyz]|r[xyz]|sigma|payload_\w+")
+
+
+class ColumnTable:
+    """A CSV read by pyarrow's columnar reader, with the interface of :class:`Table`.
+
+    It takes only files the two readers read alike: no quote character, no comment or blank-only
+    line after the header, a line end of LF or CR LF, every row as long as the header. Anything
+    else, and every value :meth:`numbers` would refuse (an empty, non-finite or out-of-range
+    cell), is handed to the Python reader (:meth:`python`), whose error names the row, line and
+    column. ``rows`` and ``lines`` come from the Python reader too (read when first asked for:
+    an error message, a task file's report); the file's bytes are kept for that until the table
+    is dropped."""
+
+    def __init__(self, path, raw: bytes, header: list[str], header_line: int, columns: dict, n: int):
+        self.path, self.header, self.header_line = str(path), header, header_line
+        self._raw, self._columns, self._n = raw, columns, n
+        self._python: Table | None = None
+
+    @classmethod
+    def read(cls, path, raw: bytes) -> ColumnTable | None:
+        """The table, or None when the file is one for the Python reader."""
+        try:
+            import pyarrow as pa
+            import pyarrow.compute as pc
+            import pyarrow.csv as pacsv
+        except ImportError:  # pragma: no cover - a dependency; the Python reader still works
+            return None
+        body = raw[3:] if raw.startswith(b"\xef\xbb\xbf") else raw
+        if b'"' in body or b"\x00" in body or body.count(b"\r") != body.count(b"\r\n"):
+            return None
+        if not body.isascii():
+            try:
+                body.decode("utf-8")
+            except UnicodeDecodeError:
+                return None
+        found = _header_line(body)
+        if found is None:
+            return None
+        header, header_line, start = found
+        if b"#" in body[start:] or not header or "" in header or len(set(header)) < len(header):
+            return None
+        types = {h: (pa.float64() if _NUMERIC_COLUMN.fullmatch(h) else pa.string()) for h in header}
+        try:
+            table = pacsv.read_csv(
+                pa.BufferReader(pa.py_buffer(body)[start:]),
+                read_options=pacsv.ReadOptions(column_names=header),
+                parse_options=pacsv.ParseOptions(newlines_in_values=False),
+                convert_options=pacsv.ConvertOptions(
+                    column_types=types, null_values=[""], strings_can_be_null=True, quoted_strings_can_be_null=True
+                ),
+            )
+        except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError):
+            return None  # a cell that is not a number, a row of another length: the Python reader says which
+        n = table.num_rows
+        if n == 0:
+            return None
+        columns = {h: table.column(h) for h in header}
+        # a row whose every cell is empty is a blank line to the Python reader ("  ,  ," included)
+        blank = np.ones(n, dtype=bool)
+        for h, col in columns.items():
+            if types[h] == pa.string():
+                filled = pc.fill_null(pc.not_equal(pc.utf8_trim_whitespace(col), ""), False)
+                blank &= ~filled.to_numpy(zero_copy_only=False)
+            else:
+                blank &= col.is_null().to_numpy(zero_copy_only=False)
+        if blank.any():
+            return None
+        return cls(path, raw, header, header_line, columns, n)
+
+    # -- the interface of Table
+
+    @property
+    def index(self) -> dict[str, int]:
+        return {name: i for i, name in enumerate(self.header)}
+
+    def has(self, column: str) -> bool:
+        return column in self._columns
+
+    @property
+    def n_rows(self) -> int:
+        return self._n
+
+    @property
+    def rows(self) -> list[list[str]]:
+        return self.python().rows
+
+    @property
+    def lines(self) -> list[int]:
+        return self.python().lines
+
+    def numbers(
+        self, column: str, *, scale: float = 1.0, required: bool = True, allow_empty: bool = False
+    ) -> np.ndarray:
+        """As :meth:`Table.numbers`; a column the Python reader would refuse or treat otherwise
+        (text, an empty cell, a value out of range) is read by it, so that it says why."""
+        col = self._columns.get(column)
+        if col is None and not required:
+            return np.full(self._n, np.nan)
+        if col is None or str(col.type) != "double":
+            return self.python().numbers(column, scale=scale, required=required, allow_empty=allow_empty)
+        v = col.to_numpy(zero_copy_only=False)
+        empty = np.isnan(v)  # nulls come out as NaN; a written "nan" is refused below as the Python reader does
+        if empty.any():
+            written_nan = ~col.is_null().to_numpy(zero_copy_only=False) & empty
+            if written_nan.any() or not allow_empty:
+                return self.python().numbers(column, scale=scale, required=required, allow_empty=allow_empty)
+        out = v * scale
+        with np.errstate(invalid="ignore"):
+            bad = np.isinf(v) | (np.abs(out) > MAX_MAGNITUDE_SI)
+        if bad.any():
+            return self.python().numbers(column, scale=scale, required=required, allow_empty=allow_empty)
+        return out
+
+    def strings(self, column: str) -> list[str | None]:
+        """As :meth:`Table.strings`: each cell stripped, None for an empty one."""
+        import pyarrow.compute as pc
+
+        col = self._columns.get(column)
+        if col is None:
+            return [None] * self._n
+        if str(col.type) != "string":
+            return self.python().strings(column)
+        # a target or label column holds a few names many times: strip each name once
+        coded = pc.dictionary_encode(col).combine_chunks()
+        names = [v.strip() or None for v in coded.dictionary.to_pylist()]
+        lookup = np.array([*names, None], dtype=object)
+        return lookup[pc.fill_null(coded.indices, len(names)).to_numpy(zero_copy_only=False)].tolist()
+
+    def python(self) -> Table:
+        """The same file read by the Python reader (once)."""
+        if self._python is None:
+            self._python = _python_table(self.path, self._raw)
+        return self._python
+
+
+def _header_line(body: bytes) -> tuple[list[str], int, int] | None:
+    """The header of a CSV's bytes: its names (stripped), its line number, and the offset where
+    the rows start; None when there is none (the Python reader says so)."""
+    offset, line = 0, 0
+    while offset < len(body):
+        end = body.find(b"\n", offset)
+        end = len(body) if end < 0 else end + 1
+        line += 1
+        text = body[offset:end].decode("utf-8").strip()
+        offset = end
+        if not text or text.startswith("#") or not text.replace(",", "").strip():
+            continue
+        return [h.strip() for h in next(csv.reader([text]))], line, offset
+    return None
 
 
 def _joint_columns(table: Table, model: KinematicModel) -> None:
@@ -501,7 +679,7 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
         target=np.array(targets, dtype=object),
         sigma=sigma,
         pose_id=None if pose_id is None else np.array(pose_id, dtype=object),
-        row=np.arange(1, len(table.rows) + 1),
+        row=np.arange(1, table.n_rows + 1),
         payload=read_payload(table, model),
     )
 
