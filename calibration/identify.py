@@ -189,7 +189,7 @@ class _Problem:
 
     def original(self, a: np.ndarray) -> np.ndarray:
         """Per-row values (N, ...) in this problem's order -> in the caller's order."""
-        if self.order is None:
+        if self.order is None or (a.ndim and a.strides[0] == 0):  # the same for every row (zeros)
             return a
         out = np.empty_like(a)
         out[self.order] = a
@@ -1283,7 +1283,7 @@ def _fit_and_reselect(
     prob,
     cands,
     sel,
-    lin_next,
+    first_lin: list,
     prior,
     *,
     loss,
@@ -1296,8 +1296,8 @@ def _fit_and_reselect(
     position_only,
     reselect,
 ) -> _Fit:
-    """Levenberg–Marquardt on the selected parameters (``lin_next``: their linearisation at
-    ``start`` when it can be reused); then, when ``reselect``, the selection again at the answer
+    """Levenberg–Marquardt on the selected parameters (``first_lin``: [their linearisation at
+    ``start``] when it can be reused, taken out of the list by the first fit); then, when ``reselect``, the selection again at the answer
     (a parameter redundant only at the nominal geometry, e.g. on a reflector nominally on the
     flange axis, is freed where the data show it), and again, until the freed set is stable."""
     current = start
@@ -1308,12 +1308,11 @@ def _fit_and_reselect(
     for _round in range(MAX_SELECTION_ROUNDS):
         params = [cands[k] for k in sel.kept]
         info = prior.information(params) if prior is not None else np.zeros((len(params), len(params)))
-        lin_p = lin_next or _linearise(current, prob, params, loss=loss, f_scale=f_scale)
         sol = _levenberg_marquardt(
             current,
             prob,
             params,
-            lin_p,
+            first_lin.pop() if first_lin else _linearise(current, prob, params, loss=loss, f_scale=f_scale),
             info,
             loss=loss,
             f_scale=f_scale,
@@ -1344,7 +1343,7 @@ def _fit_and_reselect(
             # and covariance belong to it), and say so
             settled = False
             break
-        sel, lin_next = again, None
+        sel = again
     return _Fit(current, sel, sol, moved, iterations, nfev, history, settled)
 
 
@@ -1418,7 +1417,10 @@ def identify(
     at_nominal = set(sel.kept)
     # the candidates' linearisation at the start serves the freed ones' first step when the
     # weights are the same (no robust loss): no second pass over the data
-    lin_next = lin_all.restricted(sel.kept) if loss == "linear" else None
+    # handed over in a list the fit empties, so that no frame here keeps its per-row arrays alive
+    # while the fit makes new ones (a million rows: 38 MB a linearisation)
+    first_lin = [lin_all.restricted(sel.kept)] if loss == "linear" else []
+    del lin_all
 
     # 4. Levenberg–Marquardt; then the selection again at the answer, until the freed set is stable
     fit = _fit_and_reselect(
@@ -1426,7 +1428,7 @@ def identify(
         prob,
         cands,
         sel,
-        lin_next,
+        first_lin,
         prior,
         loss=loss,
         f_scale=f_scale,
@@ -1464,8 +1466,10 @@ def identify(
     chi2_data = float(lin.c.sum())
     rp = prob.original(lin.rp)
     rr = prob.original(lin.rr)
-    rn = np.linalg.norm(rp, axis=1)
-    rms_m = float(np.sqrt(np.mean(rn**2))) if len(rn) else 0.0
+    rn2 = np.einsum("ni,ni->n", rp, rp)  # squared norms without an (N, 3) temporary
+    rms_m = float(np.sqrt(np.mean(rn2))) if len(rn2) else 0.0
+    max_m = float(np.sqrt(rn2.max(initial=0.0)))
+    del rn2
     mes = 1.0
     if cv is not None:
         cv["rms_m"] = rms_m * math.sqrt(max(cv["chi2"], 0.0) / chi2_data) if chi2_data > 0 else 0.0
@@ -1512,7 +1516,7 @@ def identify(
         residuals_m=rp,
         residuals_rad=rr,
         rms_m=rms_m,
-        max_m=float(rn.max(initial=0.0)),
+        max_m=max_m,
         rms_rad=float(np.sqrt(np.mean(np.sum(rr[has_rot] ** 2, axis=1)))) if np.any(has_rot) else 0.0,
         chi2=stats["chi2"],
         dof=stats["dof"],

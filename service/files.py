@@ -360,6 +360,17 @@ def read_table(path: str | os.PathLike) -> Table | ColumnTable:
     return _python_table(path, raw)
 
 
+def release_columns() -> None:
+    """Give back the memory pyarrow's pool (mimalloc) keeps after a :class:`ColumnTable` is
+    dropped: it holds it for later reads, which a verb that reads once and then identifies never
+    makes (a million rows: 150 MB through the whole fit)."""
+    try:
+        import pyarrow as pa
+    except ImportError:  # pragma: no cover - a dependency
+        return
+    pa.default_memory_pool().release_unused()
+
+
 def _python_table(path: str | os.PathLike, raw: bytes) -> Table:
     """The Python reader: every row through ``csv``."""
     text = decode_text(path, raw, "a CSV file", encoding="utf-8-sig")
@@ -414,7 +425,7 @@ class ColumnTable:
     an error message, a task file's report); the file's bytes are kept for that until the table
     is dropped."""
 
-    def __init__(self, path, raw: bytes, header: list[str], header_line: int, columns: dict, n: int):
+    def __init__(self, path, raw: bytes | None, header: list[str], header_line: int, columns: dict, n: int):
         self.path, self.header, self.header_line = str(path), header, header_line
         self._raw, self._columns, self._n = raw, columns, n
         self._python: Table | None = None
@@ -468,7 +479,8 @@ class ColumnTable:
                 blank &= col.is_null().to_numpy(zero_copy_only=False)
         if blank.any():
             return None
-        return cls(path, raw, header, header_line, columns, n)
+        # the bytes are kept for the Python reader only where they cannot be read again (a pipe)
+        return cls(path, None if _regular_file(path) else raw, header, header_line, columns, n)
 
     # -- the interface of Table
 
@@ -532,8 +544,15 @@ class ColumnTable:
     def python(self) -> Table:
         """The same file read by the Python reader (once)."""
         if self._python is None:
-            self._python = _python_table(self.path, self._raw)
+            self._python = _python_table(self.path, self._raw if self._raw is not None else read_bounded(self.path))
         return self._python
+
+
+def _regular_file(path) -> bool:
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except OSError:
+        return False
 
 
 def _header_line(body: bytes) -> tuple[list[str], int, int] | None:
@@ -582,10 +601,9 @@ def read_joints(path: str | os.PathLike, model: KinematicModel, table: Table | N
     table = table or read_table(path)
     _joint_columns(table, model)
     u = model.units
-    cols = [
-        table.numbers(f"q{i + 1}", scale=u.angle_rad if j.revolute else u.length_m) for i, j in enumerate(model.joints)
-    ]
-    q = np.stack(cols, axis=1)
+    q = np.empty((table.n_rows, model.n_joints))
+    for i, j in enumerate(model.joints):  # column by column: no list of columns beside the matrix
+        q[:, i] = table.numbers(f"q{i + 1}", scale=u.angle_rad if j.revolute else u.length_m)
     check_joint_limits(table, model, q)
     return q
 
@@ -617,7 +635,9 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
     table = read_table(path)
     q = read_joints(path, model, table)
     L = model.units.length_m
-    p = np.stack([table.numbers(c, scale=L) for c in "xyz"], axis=1)
+    p = np.empty((table.n_rows, 3))
+    for k, c in enumerate("xyz"):
+        p[:, k] = table.numbers(c, scale=L)
     quat = None
     qcols = ["qw", "qx", "qy", "qz"]
     present = [c for c in qcols if table.has(c)]
@@ -672,7 +692,7 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
             path, "expected a positive standard uncertainty", row=r + 1, line=table.lines[r], column="sigma"
         )
     pose_id = table.strings("pose_id") if table.has("pose_id") else None
-    return Measurements(
+    data = Measurements(
         q=q,
         p_world=p,
         quat=quat,
@@ -682,6 +702,9 @@ def read_measurements(path: str | os.PathLike, model: KinematicModel) -> Measure
         row=np.arange(1, table.n_rows + 1),
         payload=read_payload(table, model),
     )
+    del table
+    release_columns()
+    return data
 
 
 PAYLOAD_COLUMNS = ("payload_kg", "payload_x", "payload_y", "payload_z")
