@@ -38,9 +38,9 @@ sys.path.append(str(ROOT / "bench"))  # after ROOT: bench/service.py must not hi
 def write_case(N: int, folder: Path) -> tuple[Path, Path]:
     """The nominal model file and an ``N``-row measurement CSV of the benchmark robot."""
     import numpy as np
+    from identify import SIGMA_M, scenario  # the benchmark robot of bench/identify.py
 
     from calibration.simulate import random_configurations, simulate_measurements
-    from identify import SIGMA_M, scenario  # the benchmark robot of bench/identify.py
     from service.files import save_model
 
     nominal, truth, rng, _, _ = scenario()
