@@ -142,14 +142,14 @@ def register_poses(T_pred: np.ndarray, T_meas: np.ndarray) -> tuple[np.ndarray, 
     # vec() is column-major: vec(A B) = (I ⊗ A) vec(B) = (B^T ⊗ I) vec(A). The stacked system
     # (9N, 18) is reduced to its triangular factor chunk by chunk (same singular vectors): one
     # (9N, 18) matrix, built row by row and decomposed with its full U, needed 543 GiB at 30,000 poses.
-    R = np.zeros((0, 18))
+    R: np.ndarray = np.zeros((0, 18))
     for a in range(0, N, _POSE_CHUNK):
         rp, rm = RP[a : a + _POSE_CHUNK], RM[a : a + _POSE_CHUNK]
         n = len(rp)
         kron_rp = np.einsum("pq,nij->npiqj", I3, rp).reshape(n, 9, 9)  # I ⊗ RP_i
         kron_rm = np.einsum("nqp,ij->npiqj", rm, I3).reshape(n, 9, 9)  # RM_iᵀ ⊗ I
         M = np.concatenate([kron_rp, -kron_rm], axis=2).reshape(9 * n, 18)
-        R = np.linalg.qr(np.vstack([R, M]), mode="r")
+        R = np.asarray(np.linalg.qr(np.vstack([R, M]), mode="r"))
     _, _, Vt = np.linalg.svd(R)
     v = Vt[-1]
     RY = v[:9].reshape(3, 3, order="F")
