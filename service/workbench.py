@@ -15,7 +15,7 @@ from .devicetest import test_cell_devices
 from .models import Calibration, Cell, RunSession, Token
 from .problems import NotFound
 from .sessions import driving_session, public_session
-from .store import as_utc, audit, measured_count, verifications
+from .store import as_utc, audit, current_calibration, measured_count, verifications
 
 TREND = 30  # calibrations and verifications in a cell's trend
 
@@ -148,11 +148,19 @@ def calibration_page(db: Session, cell_id: int, kind: str | None, limit: int, of
         .offset(max(0, offset))
         .limit(max(1, min(limit, 200)))
     ).all()
+    status = _statuses(db, cell_id, [r[0] for r in rows])
     return {
         "total": int(total),
         "offset": offset,
         "items": [
-            {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": as_utc(t).isoformat()}
+            {
+                "id": i,
+                "kind": k,
+                "session_id": s,
+                "rms": r,
+                "created_at": as_utc(t).isoformat(),
+                "status": status.get(i),
+            }
             for i, k, s, r, t in rows
         ],
     }
@@ -188,10 +196,50 @@ def calibration_list(db: Session, cell_id: int, kind: str | None, limit: int) ->
     if kind:
         q = q.where(Calibration.kind == kind)
     rows = db.exec(q.order_by(Calibration.id.desc()).limit(max(1, min(limit, 5000)))).all()
+    status = _statuses(db, cell_id, [r[0] for r in rows])
     return [
-        {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": t, "nominal_version": v, "predicted": p}
+        {
+            "id": i,
+            "kind": k,
+            "session_id": s,
+            "rms": r,
+            "created_at": t,
+            "nominal_version": v,
+            "predicted": p,
+            "status": status.get(i),
+        }
         for i, k, s, r, t, v, p in rows
     ]
+
+
+def _statuses(db: Session, cell_id: int, ids: list[int]) -> dict[int, str]:
+    """Each listed calibration's status (``store.calibration_status``) from columns only."""
+    cell = db.get(Cell, cell_id)
+    if cell is None or not ids:
+        return {}
+    cur = current_calibration(db, cell)
+    rows = db.exec(
+        select(
+            Calibration.id,
+            Calibration.kind,
+            Calibration.nominal_version,
+            Calibration.activated_at,
+            Calibration.retired_at,
+        ).where(Calibration.id.in_(ids))  # type: ignore[union-attr]
+    ).all()
+    out = {}
+    for i, kind, version, activated, retired in rows:
+        if retired is not None:
+            out[i] = "retired"
+        elif kind != "pose":
+            out[i] = "current"
+        elif cur is not None and i == cur.id:
+            out[i] = "current"
+        elif activated is None and version == cell.model_version:
+            out[i] = "candidate"
+        else:
+            out[i] = "superseded"
+    return out
 
 
 def test_devices(db: Session, cell: Cell, tok: Token, timeout_s: float) -> dict:

@@ -132,6 +132,8 @@ class CalibrationListItem(BaseModel):
     created_at: Timestamp
     nominal_version: int | None = None
     predicted: dict[str, Any] | None = None
+    # current, candidate, superseded or retired (GET /calibrations/{id}'s status)
+    status: str | None = None
 
 
 class DriftCalibration(BaseModel):
