@@ -29,7 +29,7 @@ from calibration.uncertainty import CovarianceError, covariance_from_block, radi
 
 from .models import Calibration, Cell, Measurement, RunSession
 from .plans import UnsafePlan, allowed_limits, check_configurations
-from .records import position_errors, registered_errors, session_measurements
+from .records import measurements_of, position_errors, registered_errors, session_measurements
 from .store import as_utc, candidate_calibration, current_calibration
 
 WORKSPACE_SAMPLES = 400
@@ -480,7 +480,9 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         "reference_deg": _r(math.degrees(last.reference)) if last.reference is not None else None,
     }
     if run.kind in ("pose", "verify"):
-        data, _ = session_measurements(db, run)
+        # from the rows read above, not read again: the chart, "measured" and "last" count the same
+        # poses (a pose stored between two reads made "7 of 60" beside a chart ending at pose 6)
+        data = measurements_of(rows, run)
         model, cal = session_model(db, run, cell)
         if cal is not None:
             e = position_errors(model, data)

@@ -60,9 +60,23 @@ export async function live(ctx, id) {
     } catch (e) { /* the next event retries */ }
   }
 
+  // One count of the poses measured, from the live snapshot the chart and "Last reading" are
+  // drawn from (the server counts them once, from the rows it charts); the session's own count
+  // only until the first snapshot arrives. A paused session said "7 of 60 poses" beside a chart
+  // and a last reading ending at pose 6: two counts read at different times (the live one from
+  // the service's page cache, and never read again once the session had paused).
+  function showProgress() {
+    const measured = lastL ? lastL.measured : s.measured;
+    const planned = s.planned;
+    const pct = planned ? Math.round((100 * measured) / planned) : 0;
+    bar.style.width = `${pct}%`;
+    progressText.textContent = `${measured} of ${planned} poses measured (${pct} %)`;
+  }
+
   let lastL = null;
   function showLive(l) {
     lastL = l;
+    showProgress();
     remaining.textContent = TERMINAL.includes(s.state) ? "–"
       : s.state === "paused" || s.state === "interrupted" ? `${l.remaining_s != null ? `about ${duration(l.remaining_s)} ` : ""}once resumed`
       : l.remaining_s != null ? `about ${duration(l.remaining_s)}` : "estimating…";
@@ -81,6 +95,10 @@ export async function live(ctx, id) {
         : r ? r.model : "No residuals for this kind of session."));
     }
     showDevices();
+    // The live answer may be up to a second older than the session's state (the service keeps
+    // the page's polled answers that long): until they agree, ask again. A paused session sends no
+    // further events, and its page stayed at the older answer.
+    if (l.measured !== s.measured || l.state !== s.state) refreshLive();
   }
 
   function showDevices() {
@@ -146,9 +164,7 @@ export async function live(ctx, id) {
       notify(`The session is ${s.state} now: nothing to ${what}.`, "ok");
     }
     put(stateEl, badge(s.state));
-    const pct = s.planned ? Math.round((100 * s.measured) / s.planned) : 0;
-    bar.style.width = `${pct}%`;
-    progressText.textContent = `${s.measured} of ${s.planned} poses measured (${pct} %)`;
+    showProgress();
     clear(banner);
     if (s.state === "paused" || s.state === "interrupted" || s.state === "failed" || s.state === "aborted") {
       const kind = s.state === "failed" ? "error" : "warn";
@@ -245,8 +261,10 @@ export async function live(ctx, id) {
       if (!ctx.alive()) return es.close();
       retries = 0;
       const snap = JSON.parse(ev.data);
+      const moved = snap.state !== s.state;
       show(snap);
-      refreshLive(TERMINAL.includes(snap.state));
+      // a session that stops (pauses, completes) is shown as it stopped at once, not a second later
+      refreshLive(moved || snap.state !== "running");
       if (TERMINAL.includes(snap.state)) { done = true; es.close(); }
     });
     es.onerror = () => {
