@@ -498,14 +498,17 @@ def candidate_calibration(db: Session, cell: Cell, *, made_by: datetime | None =
     return db.exec(q.order_by(Calibration.id.desc())).first()
 
 
-def calibration_status(db: Session, cal: Calibration) -> str:
+def calibration_status(db: Session, cal: Calibration) -> str | None:
     """``current``, ``candidate`` (never activated: waits for a verify session or an activation),
-    ``superseded`` (current once, or made from an earlier nominal model) or ``retired``."""
+    ``superseded`` (current once, or made from an earlier nominal model) or ``retired``; None for
+    a circle or joint calibration, which is never a cell's model."""
     if cal.retired_at is not None:
         return "retired"
+    if cal.kind != "pose":
+        return None
     cell = db.get(Cell, cal.cell_id)
-    if cal.kind != "pose" or cell is None or cal.nominal_version != cell.model_version:
-        return "superseded" if cal.kind == "pose" else "current"
+    if cell is None or cal.nominal_version != cell.model_version:
+        return "superseded"
     if cal.activated_at is None:
         return "candidate"
     cur = current_calibration(db, cell)

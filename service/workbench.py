@@ -240,8 +240,8 @@ def _statuses(db: Session, cell_id: int, ids: list[int]) -> dict[int, str]:
     for i, kind, version, activated, retired in rows:
         if retired is not None:
             out[i] = "retired"
-        elif kind != "pose":
-            out[i] = "current"
+        elif kind != "pose":  # never a cell's model
+            continue
         elif cur is not None and i == cur.id:
             out[i] = "current"
         elif activated is None and version == cell.model_version:

@@ -91,8 +91,11 @@ def test_a_later_calibration_is_activated_and_retired_on_the_page(page, web, tmp
         api = Api(url, token)
         cell = api.call("POST", "/cells", {"name": "press-7", "model": model_to_dict(nom), "devices": {}})["id"]
         _, first = _store(engine, settings, cell, "pose", _measured(truth, nom, 40, 1))
-        _, quick = _store(engine, settings, cell, "pose", _measured(truth, nom, 20, 2))  # a quick test session
+        quick_session, quick = _store(engine, settings, cell, "pose", _measured(truth, nom, 20, 2))  # a quick test
         web.sign_in_at(page, url, token)
+        page.goto(f"{url}/#/sessions/{quick_session}")
+        page.wait_for_selector("#done-banner")
+        assert f"not in use yet: the cell still works with calibration {first}" in page.inner_text("#done-banner")
         page.goto(f"{url}/#/cells/{cell}")
         # the verified 40-pose calibration is still the cell's; the quick one waits
         page.wait_for_selector("#candidate")

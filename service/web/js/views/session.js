@@ -232,9 +232,15 @@ export async function live(ctx, id) {
     clear(outcome);
     if (s.state !== "completed") return;
     if (s.calibration_id) {
+      // a later calibration does not replace the one in use: it waits for a verify session or an activation
+      const now = await get(`/cells/${s.cell_id}/summary`).catch(() => null);
+      const waits = now && now.current && now.current.id !== s.calibration_id;
       add(outcome, h("div", { class: "banner banner-ok", id: "done-banner" },
         h("strong", {}, "Calibrated. "), `The robot was measured at ${s.measured} poses and its true geometry worked out `
-        + `(calibration ${s.calibration_id}). A verify session next measures how accurate it now is. `,
+        + `(calibration ${s.calibration_id}). `
+        + (waits ? `It is not in use yet: the cell still works with calibration ${now.current.id}. A verify session next `
+          + "measures both and puts the new one in use if it is at least as accurate; or activate it on the cell's page. "
+          : "A verify session next measures how accurate it now is. "),
         h("a", { class: "button primary", href: `#/calibrations/${s.calibration_id}`, id: "open-result" }, "Open the result")));
     } else if (s.plan_info && s.plan_info.verify) {
       add(outcome, card("Verification result", verifyBanner(s.plan_info.verify)));
@@ -291,9 +297,14 @@ export async function live(ctx, id) {
 function verifyBanner(v) {
   const u = v.unit;
   if (v.calibration_id) {
-    return h("div", { class: "banner banner-ok", id: "done-banner" },
+    const k = v.candidate, was = k && k.against.calibration_id ? `calibration ${k.against.calibration_id}` : "the nominal model";
+    return h("div", { class: `banner banner-${k && !k.passed ? "warn" : "ok"}`, id: "done-banner" },
       h("strong", {}, "Checked. "), `Calibration ${v.calibration_id} is accurate to ${num(v.rms, 3)} ${u} RMS `
-      + `(max ${num(v.max, 3)} ${u}; 95 % of points within ${num(v.p95, 3)} ${u}), measured at ${v.n} fresh configurations.`);
+      + `(max ${num(v.max, 3)} ${u}; 95 % of points within ${num(v.p95, 3)} ${u}), measured at ${v.n} fresh configurations.`,
+      k ? h("div", { id: "candidate-verdict" }, k.passed
+        ? `It is at least as accurate as ${was} (${num(k.against.rms, 3)} ${u} RMS on the same configurations) and is now in use.`
+        : `It is less accurate than ${was} (${num(k.against.rms, 3)} ${u} RMS on the same configurations), which stays in use; `
+          + "it can still be activated on the cell's page.") : null);
   }
   const reg = v.registered;
   return h("div", { class: "banner banner-warn", id: "done-banner" },
