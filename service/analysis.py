@@ -13,6 +13,7 @@ from calibration.model import KinematicModel, model_to_dict
 from . import records
 from .models import Calibration, Cell, Measurement, RunSession
 from .records import NoMeasurementsError, current_model
+from .store import activate_calibration, current_calibration
 
 
 class AnalysisError(RecalError, RuntimeError):
@@ -75,7 +76,14 @@ def store_calibration(
         rms=rms,
         nominal_version=cell.model_version,
     )
+    first = kind == "pose" and current_calibration(db, cell) is None
+    if kind != "pose":  # only pose calibrations serve as the cell's model: nothing to protect
+        cal.activated_at, cal.activated_by = cal.created_at, run.created_by
     db.add(cal)
     db.commit()
     db.refresh(cal)
+    if first:  # a cell with no current calibration has nothing to protect: this one is current at once
+        activate_calibration(
+            db, cal, actor=run.created_by or "recal", why=f"the cell's first calibration (session {run.id})"
+        )
     return cal

@@ -107,6 +107,13 @@ class Calibration(SQLModel, table=True):
     # Predicted accuracy over the workspace (the 95 % radius statistics /result shows), stored when the
     # calibration is made so that drift over hundreds of calibrations reads no reports (schema v3).
     predicted: dict | None = Field(default=None, sa_column=Column(JSON))
+    # Calibrations are activated, not overwritten (schema v9): the cell's current calibration is
+    # the one activated last that is not retired (a new one waits as a candidate until a verify
+    # session passes it or someone activates it; a cell's first one is activated at once).
+    activated_at: datetime | None = None
+    activated_by: str | None = None
+    retired_at: datetime | None = None
+    retired_by: str | None = None
 
 
 class ControllerModel(SQLModel, table=True):
@@ -385,6 +392,13 @@ class CalibrationPublic(BaseModel):
     created_at: datetime
     nominal_version: int | None = None
     predicted: dict[str, Any] | None = None
+    # "current", "candidate" (waits for a verify session or an activation), "superseded" (was
+    # current once) or "retired"; "superseded" too for one of an earlier nominal model
+    status: str | None = None
+    activated_at: datetime | None = None
+    activated_by: str | None = None
+    retired_at: datetime | None = None
+    retired_by: str | None = None
 
 
 class TokenCreate(_In):

@@ -29,8 +29,8 @@ from calibration.uncertainty import CovarianceError, covariance_from_block, radi
 
 from .models import Calibration, Cell, Measurement, RunSession
 from .plans import UnsafePlan, allowed_limits, check_configurations
-from .records import current_model, position_errors, registered_errors, session_measurements
-from .store import as_utc
+from .records import measurements_of, position_errors, registered_errors, session_measurements
+from .store import as_utc, candidate_calibration, current_calibration
 
 WORKSPACE_SAMPLES = 400
 
@@ -396,7 +396,7 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
         from calibration import planning
     except ImportError:  # pragma: no cover
         return {"available": False, "reason": "observation planning is not available in this build"}
-    model, _ = current_model(db, cell)
+    model, _ = session_model(db, run, cell)
     target = run.target if run.device != "cmm" else None
     try:
         res = planning.plan(
@@ -419,6 +419,21 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
 
 
 # --------------------------------------------------------------------------- live session
+
+
+def session_model(db: Session, run: RunSession, cell: Cell) -> tuple[KinematicModel, Calibration | None]:
+    """The model a session's figures are shown against: only a calibration that existed when
+    the session ran. A verify session's is the calibration it checked (None: the nominal model),
+    or, until it has finished, the one it will check (the candidate made before it started, else
+    the cell's current one then); any other session's is the cell's calibration when it started."""
+    verified = (run.plan_info or {}).get("verify")
+    if verified is not None:
+        cid = verified.get("calibration_id")
+        cal = db.get(Calibration, cid) if cid is not None else None
+    else:
+        cal = candidate_calibration(db, cell, made_by=run.created_at) if run.kind == "verify" else None
+        cal = cal or current_calibration(db, cell, at=run.created_at)
+    return (model_from_dict(cal.model), cal) if cal is not None else (model_from_dict(cell.model), None)
 
 
 def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
@@ -465,11 +480,17 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         "reference_deg": _r(math.degrees(last.reference)) if last.reference is not None else None,
     }
     if run.kind in ("pose", "verify"):
-        data, _ = session_measurements(db, run)
-        model, cal = current_model(db, cell)
+        # from the rows read above, not read again: the chart, "measured" and "last" count the same
+        # poses (a pose stored between two reads made "7 of 60" beside a chart ending at pose 6)
+        data = measurements_of(rows, run)
+        model, cal = session_model(db, run, cell)
         if cal is not None:
             e = position_errors(model, data)
-            how = f"calibration {cal.id} as it stands"
+            how = (
+                f"calibration {cal.id}, which this session checks"
+                if run.kind == "verify"
+                else f"calibration {cal.id}, the cell's when this session started"
+            )
         elif len(data) >= 4:
             e = registered_errors(model, data)
             how = "the nominal model, its base placed where it fits the measurements so far"

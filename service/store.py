@@ -177,7 +177,26 @@ def _v8(conn) -> None:
                 conn.execute(text(f"ALTER SEQUENCE {sequence} AS BIGINT"))
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8]
+def _v9(conn) -> None:
+    """Calibrations are activated, not overwritten (issue 27): when each was made the cell's
+    current one and by whom (``calibration.activated_at``, ``activated_by``), and when it was
+    retired and by whom (``retired_at``, ``retired_by``). Every existing calibration became
+    current when it was made (the newest was the cell's): it counts as activated then, so the
+    cell's current calibration stays the one it was."""
+    columns = {c["name"] for c in inspect(conn).get_columns("calibration")}
+    stamp = "TIMESTAMP" if conn.dialect.name == "postgresql" else "DATETIME"
+    for column, ddl in (
+        ("activated_at", stamp),
+        ("activated_by", "VARCHAR"),
+        ("retired_at", stamp),
+        ("retired_by", "VARCHAR"),
+    ):
+        if column not in columns:
+            conn.execute(text(f"ALTER TABLE calibration ADD COLUMN {column} {ddl}"))
+    conn.execute(text("UPDATE calibration SET activated_at = created_at WHERE activated_at IS NULL"))
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8, _v9]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -440,10 +459,90 @@ def last_calibration(
     return db.exec(q.order_by(Calibration.id.desc())).first()
 
 
-def current_calibration(db: Session, cell: Cell) -> Calibration | None:
-    """The calibration the cell's robot is known by: its newest pose calibration identified from
-    the cell's present nominal model (after the nominal is replaced, none until the next one)."""
-    return last_calibration(db, cell.id, kind="pose", nominal_version=cell.model_version)
+def current_calibration(db: Session, cell: Cell, *, at: datetime | None = None) -> Calibration | None:
+    """The calibration the cell's robot is known by: of its pose calibrations identified from the
+    cell's present nominal model (after the nominal is replaced, none until the next one), the
+    one activated last that is not retired. With ``at``: the one that was so at that time (as far
+    as the store knows: a calibration activated again counts from its last activation)."""
+    q = select(Calibration).where(
+        Calibration.cell_id == cell.id,
+        Calibration.kind == "pose",
+        Calibration.nominal_version == cell.model_version,
+        Calibration.activated_at.is_not(None),  # type: ignore[union-attr]
+    )
+    if at is None:
+        q = q.where(Calibration.retired_at.is_(None))  # type: ignore[union-attr]
+    else:
+        q = q.where(
+            Calibration.activated_at <= at,  # type: ignore[operator]
+            Calibration.retired_at.is_(None) | (Calibration.retired_at > at),  # type: ignore[union-attr,operator]
+        )
+    return db.exec(q.order_by(Calibration.activated_at.desc(), Calibration.id.desc())).first()  # type: ignore[union-attr]
+
+
+def candidate_calibration(db: Session, cell: Cell, *, made_by: datetime | None = None) -> Calibration | None:
+    """The cell's newest pose calibration that waits to become current (never activated, not
+    retired, newer than the current one; made by ``made_by`` when given), else None."""
+    cur = current_calibration(db, cell)
+    q = select(Calibration).where(
+        Calibration.cell_id == cell.id,
+        Calibration.kind == "pose",
+        Calibration.nominal_version == cell.model_version,
+        Calibration.activated_at.is_(None),  # type: ignore[union-attr]
+        Calibration.retired_at.is_(None),  # type: ignore[union-attr]
+    )
+    if cur is not None:
+        q = q.where(Calibration.id > cur.id)
+    if made_by is not None:
+        q = q.where(Calibration.created_at <= made_by)
+    return db.exec(q.order_by(Calibration.id.desc())).first()
+
+
+def calibration_status(db: Session, cal: Calibration) -> str | None:
+    """``current``, ``candidate`` (never activated: waits for a verify session or an activation),
+    ``superseded`` (current once, or made from an earlier nominal model) or ``retired``; None for
+    a circle or joint calibration, which is never a cell's model."""
+    if cal.retired_at is not None:
+        return "retired"
+    if cal.kind != "pose":
+        return None
+    cell = db.get(Cell, cal.cell_id)
+    if cell is None or cal.nominal_version != cell.model_version:
+        return "superseded"
+    if cal.activated_at is None:
+        return "candidate"
+    cur = current_calibration(db, cell)
+    return "current" if cur is not None and cur.id == cal.id else "superseded"
+
+
+def activate_calibration(db: Session, cal: Calibration, *, actor: str, why: str) -> Calibration | None:
+    """Make ``cal`` its cell's current calibration (a retired one is brought back), audited with
+    ``why``; returns the calibration that was current before (None: the nominal model)."""
+    cell = db.get(Cell, cal.cell_id)
+    before = current_calibration(db, cell) if cell is not None else None
+    cal.activated_at, cal.activated_by = utcnow(), actor
+    cal.retired_at, cal.retired_by = None, None
+    db.add(cal)
+    db.commit()
+    db.refresh(cal)
+    detail = {"cell": cal.cell_id, "previous": None if before is None else before.id, "why": why}
+    audit(db, actor=actor, action="activate calibration", subject=f"calibration {cal.id}", detail=detail)
+    return before
+
+
+def retire_calibration(db: Session, cal: Calibration, *, actor: str) -> Calibration | None:
+    """Retire ``cal``: it no longer serves as its cell's model or prior (the one activated before
+    it that is not retired does, else the nominal model); kept and readable. Audited; returns
+    the cell's current calibration afterwards."""
+    cal.retired_at, cal.retired_by = utcnow(), actor
+    db.add(cal)
+    db.commit()
+    db.refresh(cal)
+    cell = db.get(Cell, cal.cell_id)
+    now = current_calibration(db, cell) if cell is not None else None
+    detail = {"cell": cal.cell_id, "current": None if now is None else now.id}
+    audit(db, actor=actor, action="retire calibration", subject=f"calibration {cal.id}", detail=detail)
+    return now
 
 
 def acquire_lease(

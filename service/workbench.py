@@ -15,7 +15,7 @@ from .devicetest import test_cell_devices
 from .models import Calibration, Cell, RunSession, Token
 from .problems import NotFound
 from .sessions import driving_session, public_session
-from .store import as_utc, audit, measured_count, verifications
+from .store import as_utc, audit, candidate_calibration, current_calibration, measured_count, verifications
 
 TREND = 30  # calibrations and verifications in a cell's trend
 
@@ -40,6 +40,12 @@ def _trend(db, cell_id: int, limit: int = TREND) -> list[dict]:
         .limit(limit)
     ).all()
     return [{"id": i, "rms": r, "created_at": as_utc(t).isoformat()} for i, r, t in reversed(rows)]
+
+
+def _brief(cal: Calibration | None) -> dict | None:
+    if cal is None:
+        return None
+    return {"id": cal.id, "rms": cal.rms, "created_at": as_utc(cal.created_at).isoformat()}
 
 
 def _verified(db, cell_id: int, limit: int = TREND) -> list[dict]:
@@ -93,8 +99,9 @@ def summary(db, cell: Cell) -> dict:
     unit = (cell.model.get("units") or {}).get("length")
     last = trend[-1] if trend else None
     kinds, devices_error = describe(cell.devices)
+    current, candidate = current_calibration(db, cell), candidate_calibration(db, cell)
     # the cell's accuracy: the last verification of its current calibration (None until verified)
-    accuracy = verified[-1] if verified and last and verified[-1]["calibration_id"] == last["id"] else None
+    accuracy = verified[-1] if verified and current and verified[-1]["calibration_id"] == current.id else None
     return {
         "id": cell.id,
         "name": cell.name,
@@ -104,7 +111,9 @@ def summary(db, cell: Cell) -> dict:
         "devices_error": devices_error,
         "unit": unit,
         "drift_threshold": cell.drift_threshold,
-        "last": last,
+        "last": last,  # the newest pose calibration, current or not
+        "current": _brief(current),  # the cell's model (issue 27: activated, not overwritten)
+        "candidate": _brief(candidate),  # made later, waits for a verify session or an activation
         "trend": trend,
         "verified": verified,
         "accuracy": accuracy,
@@ -148,11 +157,19 @@ def calibration_page(db: Session, cell_id: int, kind: str | None, limit: int, of
         .offset(max(0, offset))
         .limit(max(1, min(limit, 200)))
     ).all()
+    status = _statuses(db, cell_id, [r[0] for r in rows])
     return {
         "total": int(total),
         "offset": offset,
         "items": [
-            {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": as_utc(t).isoformat()}
+            {
+                "id": i,
+                "kind": k,
+                "session_id": s,
+                "rms": r,
+                "created_at": as_utc(t).isoformat(),
+                "status": status.get(i),
+            }
             for i, k, s, r, t in rows
         ],
     }
@@ -188,10 +205,50 @@ def calibration_list(db: Session, cell_id: int, kind: str | None, limit: int) ->
     if kind:
         q = q.where(Calibration.kind == kind)
     rows = db.exec(q.order_by(Calibration.id.desc()).limit(max(1, min(limit, 5000)))).all()
+    status = _statuses(db, cell_id, [r[0] for r in rows])
     return [
-        {"id": i, "kind": k, "session_id": s, "rms": r, "created_at": t, "nominal_version": v, "predicted": p}
+        {
+            "id": i,
+            "kind": k,
+            "session_id": s,
+            "rms": r,
+            "created_at": t,
+            "nominal_version": v,
+            "predicted": p,
+            "status": status.get(i),
+        }
         for i, k, s, r, t, v, p in rows
     ]
+
+
+def _statuses(db: Session, cell_id: int, ids: list[int]) -> dict[int, str]:
+    """Each listed calibration's status (``store.calibration_status``) from columns only."""
+    cell = db.get(Cell, cell_id)
+    if cell is None or not ids:
+        return {}
+    cur = current_calibration(db, cell)
+    rows = db.exec(
+        select(
+            Calibration.id,
+            Calibration.kind,
+            Calibration.nominal_version,
+            Calibration.activated_at,
+            Calibration.retired_at,
+        ).where(Calibration.id.in_(ids))  # type: ignore[union-attr]
+    ).all()
+    out = {}
+    for i, kind, version, activated, retired in rows:
+        if retired is not None:
+            out[i] = "retired"
+        elif kind != "pose":  # never a cell's model
+            continue
+        elif cur is not None and i == cur.id:
+            out[i] = "current"
+        elif activated is None and version == cell.model_version:
+            out[i] = "candidate"
+        else:
+            out[i] = "superseded"
+    return out
 
 
 def test_devices(db: Session, cell: Cell, tok: Token, timeout_s: float) -> dict:

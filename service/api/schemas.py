@@ -132,6 +132,8 @@ class CalibrationListItem(BaseModel):
     created_at: Timestamp
     nominal_version: int | None = None
     predicted: dict[str, Any] | None = None
+    # current, candidate, superseded or retired (GET /calibrations/{id}'s status)
+    status: str | None = None
 
 
 class DriftCalibration(BaseModel):
@@ -270,7 +272,11 @@ class CellSummary(Open):
     )
     unit: str | None = None
     drift_threshold: Number = None
-    last: dict[str, Any] | None = None
+    last: dict[str, Any] | None = Field(None, description="the newest pose calibration, current or not")
+    current: dict[str, Any] | None = Field(None, description="the cell's current calibration (None: its nominal model)")
+    candidate: dict[str, Any] | None = Field(
+        None, description="a newer calibration that waits for a verify session to pass it, or an activation"
+    )
     trend: list[dict[str, Any]]
     active_session: dict[str, Any] | None = None
 
@@ -285,6 +291,7 @@ class HistoryItem(BaseModel):
     id: int
     kind: str
     session_id: int | None
+    status: str | None = None  # current, candidate, superseded or retired
     rms: Number
     created_at: Timestamp
 

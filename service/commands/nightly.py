@@ -3,8 +3,10 @@
 
 Through the REST API with a ``job`` token (``RECAL_TOKEN`` or ``--token-file``): a ``verify``
 session; if its RMS error exceeds the cell's ``drift_threshold`` (or ``--threshold``), a ``pose``
-session (identified with the previous calibration as a prior), then every task file registered
-with the cell compensated again. Prints one line fit for cron or a systemd timer.
+session (identified with the previous calibration as a prior); on a cell that had a calibration
+the new one waits as a candidate, and a second ``verify`` session puts it in use when it is at
+least as accurate as the current one (else exit 1, nothing recompensated); then every task file
+registered with the cell compensated again. Prints one line fit for cron or a systemd timer.
 
 Exit status: 0 the cell is within its threshold; 10 it drifted and was recalibrated;
 1 a session failed, paused or timed out (a person must look); 2 bad arguments;
@@ -150,8 +152,16 @@ def check_cell(
             ).strip(),
         )
     cal = api.call_patiently("GET", f"/calibrations/{p['calibration_id']}", deadline=time.monotonic() + timeout_s)
-    # Not repeated: each call stores a compensation of every task file (a failure needs a person).
     out["calibration_id"] = cal["id"]
+    if cal.get("status") == "candidate":  # the cell had a calibration: the new one is used once verified
+        refused = _verify_candidate(api, cell, cal, verify_count, device, timeout_s, poll_s)
+        if refused is not None:
+            return done(
+                EXIT_FAILED,
+                "drifted, recalibration not verified",
+                f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}) -> calibration {cal['id']} {refused}",
+            )
+    # Not repeated: each call stores a compensation of every task file (a failure needs a person).
     tasks = api.call("POST", f"/cells/{cell['id']}/tasks/compensate?calibration_id={cal['id']}")
     failed = [t for t in tasks["tasks"] if "error" in t]
     out["tasks"] = len(tasks["tasks"]) - len(failed)
@@ -166,6 +176,29 @@ def check_cell(
             msg + f", {len(failed)} failed ({failed[0]['name']}: {failed[0]['error']})",
         )
     return done(EXIT_RECALIBRATED, f"recalibrated (RMS {cal['rms']:.4g} {unit})", msg)
+
+
+def _verify_candidate(
+    api: Api, cell: dict, cal: dict, verify_count: int, device: str, timeout_s: float, poll_s: float
+) -> str | None:
+    """A verify session of the new calibration, which waits as a candidate (docs/service.md, "Which
+    calibration is current"): None when it passed and is now the cell's current calibration, else
+    why not (the task files are then left as they are, for a person to look)."""
+    body = {"kind": "verify", "count": verify_count, "device": device}
+    v = start_session(api, cell["id"], body, timeout_s)
+    v = api.wait_session(v["id"], timeout_s, poll_s=poll_s, patient=True)
+    if v["state"] != "completed":
+        return f"not verified: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip()
+    verdict = (v["plan_info"]["verify"] or {}).get("candidate") or {}
+    if verdict.get("passed"):
+        return None
+    unit = cell["model"].get("units", {}).get("length", "")
+    against = verdict.get("against") or {}
+    return (
+        f"not put in use: verify session {v['id']} found it less accurate ({v['plan_info']['verify']['rms']:.4g} "
+        f"{unit} RMS) than calibration {against.get('calibration_id')} ({against.get('rms', float('nan')):.4g} {unit}); "
+        "task files not recompensated"
+    )
 
 
 def start_session(api: Api, cell_id: int, body: dict, timeout_s: float) -> dict:

@@ -9,12 +9,13 @@ import numpy as np
 
 from calibration import metrics
 from calibration.identification import Measurements
-from calibration.model import KinematicModel
+from calibration.model import KinematicModel, model_from_dict
 
 from ..analysis import session_data
 from ..compensation import calibrated_range_of
 from ..plans import Plan, PlanRequest, random_inside, repeated
 from ..records import current_model, position_errors, registered_errors
+from ..store import activate_calibration, candidate_calibration
 from .positions import PositionKind
 
 
@@ -34,6 +35,11 @@ def verify_session(db, run, cell) -> dict:
     of a repeated session."""
     data = session_data(db, run)
     model, cal = current_model(db, cell)
+    candidate = candidate_calibration(db, cell, made_by=run.created_at)
+    before = None
+    if candidate is not None:  # a new calibration waits: this session checks it against the current model
+        before = _errors(model, data, cal)
+        model, cal = model_from_dict(candidate.model), candidate
     e = np.linalg.norm(position_errors(model, data), axis=1)
     L = model.units.length_m
     st = metrics.norm_statistics(e / L)
@@ -61,7 +67,26 @@ def verify_session(db, run, cell) -> dict:
     repeats = int((run.plan_info or {}).get("repeats") or 1)
     if repeats > 1:
         out["iso9283"] = pose_repeatability(model, data, repeats)
+    if candidate is not None and before is not None:
+        out["candidate"] = _judge(db, run, candidate, st.rms, before)
     return out
+
+
+def _errors(model: KinematicModel, data: Measurements, cal) -> dict:
+    """The RMS and max position error of ``model`` (calibration ``cal``, None: the nominal model)
+    on the session's measurements, in the model's length unit."""
+    st = metrics.norm_statistics(np.linalg.norm(position_errors(model, data), axis=1) / model.units.length_m)
+    return {"calibration_id": None if cal is None else cal.id, "rms": st.rms, "max": st.max}
+
+
+def _judge(db, run, candidate, rms: float, before: dict) -> dict:
+    """A candidate passes when its RMS error on these fresh configurations is no larger than the
+    current model's on the same measurements (both in the model's length unit); it then becomes
+    the cell's current calibration, activated by whoever started the session."""
+    passed = bool(rms <= before["rms"])
+    if passed:
+        activate_calibration(db, candidate, actor=run.created_by or "recal", why=f"verify session {run.id} passed it")
+    return {"calibration_id": candidate.id, "passed": passed, "activated": passed, "against": before}
 
 
 def pose_repeatability(model: KinematicModel, data: Measurements, repeats: int) -> dict:

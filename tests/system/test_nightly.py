@@ -43,6 +43,18 @@ def test_nightly_exit_statuses(stack, models, register, monkeypatch, capsys):
     assert status == 0, (out, err)
     assert out.startswith("weld-3: accurate, verify RMS") and "threshold 0.1 mm" in out
 
+    # a calibrated cell recalibrated (a threshold it cannot meet): the new calibration waits as a
+    # candidate, and is put in use (and the tasks recompensated) only when a verify session passes it
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--threshold", "1e-9", "--url", url, token=job)
+    new = max(c["id"] for c in stack.api().call("GET", f"/cells/{cell['id']}/calibrations"))
+    current = stack.api().call("GET", f"/cells/{cell['id']}")["last_calibration_id"]
+    assert new != cal, (out, err)
+    if status == 10:  # it passed: in use, tasks recompensated with it
+        assert f"-> recalibrated: calibration {new}," in out and current == new, (out, err)
+    else:
+        assert status == 1 and f"calibration {new} not put in use" in out and current == cal, (out, err)
+        assert stack.api().call("GET", f"/calibrations/{new}")["status"] == "candidate"
+
     # a cell whose devices do not answer: the verify session pauses, a person must look
     stack.api().call(
         "POST",

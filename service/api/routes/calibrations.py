@@ -1,4 +1,4 @@
-"""Calibrations: read one, compare two, compensate a task file with one."""
+"""Calibrations: read one, compare two, activate or retire one, compensate a task file with one."""
 
 from __future__ import annotations
 
@@ -7,10 +7,13 @@ from fastapi.responses import PlainTextResponse, Response
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
-from ...models import Calibration, CalibrationPublic, Compensation
+from ...models import Calibration, CalibrationPublic, Cell, Compensation
 from ...packed import output_bytes
+from ...problems import Conflict
 from ...results import compare_calibrations
-from ..deps import Compensator, DbSession, Reader
+from ...sessions import driving_session
+from ...store import activate_calibration, calibration_status, retire_calibration
+from ..deps import CellEditor, Compensator, DbSession, Reader
 from ..schemas import Comparison
 
 router = APIRouter(tags=["calibrations"])
@@ -23,9 +26,58 @@ def get_calibration(db, calibration_id: int) -> Calibration:
     return cal
 
 
+def public_calibration(db, cal: Calibration) -> CalibrationPublic:
+    db.refresh(cal)  # a commit (the audit entry) expired it, and an expired row dumps as {}
+    return CalibrationPublic(**cal.model_dump(), status=calibration_status(db, cal))
+
+
 @router.get("/calibrations/{calibration_id}", response_model=CalibrationPublic)
 def read_calibration(calibration_id: int, db: DbSession, tok: Reader):
-    return CalibrationPublic(**get_calibration(db, calibration_id).model_dump())
+    return public_calibration(db, get_calibration(db, calibration_id))
+
+
+def _changeable(db, cal: Calibration, verb: str) -> Cell:
+    """The calibration's cell, if its current model may change now: not while a session drives
+    it (a session works with the model it started with)."""
+    cell = db.get(Cell, cal.cell_id)
+    busy = driving_session(db, cal.cell_id, dry_runs=True)
+    if busy is not None:
+        raise Conflict(
+            f"session {busy.id} is driving this cell ({busy.state}); {verb} the calibration when it has stopped"
+        )
+    return cell
+
+
+@router.post("/calibrations/{calibration_id}/activate", response_model=CalibrationPublic)
+def activate(calibration_id: int, db: DbSession, tok: CellEditor):
+    """Make this calibration the cell's current one (the model compensation, verify sessions and
+    the next calibration's prior use); a retired one is brought back. Only a pose calibration
+    identified from the cell's present nominal model; not while a session drives the cell.
+    Audited ("activate calibration", who and which was current before)."""
+    cal = get_calibration(db, calibration_id)
+    cell = _changeable(db, cal, "activate")
+    if cal.kind != "pose":
+        raise Conflict(f"calibration {cal.id} is a {cal.kind} calibration; only a pose calibration is a cell's model")
+    if cal.nominal_version != cell.model_version:
+        raise Conflict(
+            f"calibration {cal.id} was identified from nominal model version {cal.nominal_version}; the cell's is "
+            f"version {cell.model_version}"
+        )
+    if calibration_status(db, cal) != "current":
+        activate_calibration(db, cal, actor=tok.name, why="activated by hand")
+    return public_calibration(db, cal)
+
+
+@router.post("/calibrations/{calibration_id}/retire", response_model=CalibrationPublic)
+def retire(calibration_id: int, db: DbSession, tok: CellEditor):
+    """Retire this calibration: kept and readable, but no longer a candidate or the cell's model
+    (the calibration activated before it that is not retired becomes current again, else the
+    nominal model). Not while a session drives the cell. Audited ("retire calibration")."""
+    cal = get_calibration(db, calibration_id)
+    _changeable(db, cal, "retire")
+    if cal.retired_at is None:
+        retire_calibration(db, cal, actor=tok.name)
+    return public_calibration(db, cal)
 
 
 @router.get("/calibrations/{calibration_id}/compare/{other_id}", response_model=Comparison)

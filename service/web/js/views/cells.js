@@ -148,10 +148,11 @@ export async function detail(ctx, id) {
       { xLabel: "date", yLabel: unit, xTime: true, height: 220, title: "accuracy trend", width: sizes().half })
       : h("p", { class: "muted" }, c.last ? "Not verified yet: a verify session measures the calibrated robot at "
         + "fresh configurations and gives its accuracy." : "No calibration yet."),
-    c.last ? h("p", {}, "Last calibration: ", h("a", { href: `#/calibrations/${c.last.id}`, id: "last-calibration" },
-      `calibration ${c.last.id}`), `, ${when(c.last.created_at)}`,
-      c.accuracy && c.accuracy.calibration_id === c.last.id ? `; accuracy ${num(c.accuracy.rms, 3)} ${unit} RMS, `
-        + `max ${num(c.accuracy.max, 3)} ${unit} on ${c.accuracy.n} fresh configurations` : "; not verified yet") : null);
+    c.current ? h("p", {}, "Current calibration: ", h("a", { href: `#/calibrations/${c.current.id}`, id: "last-calibration" },
+      `calibration ${c.current.id}`), `, ${when(c.current.created_at)}`,
+      c.accuracy && c.accuracy.calibration_id === c.current.id ? `; accuracy ${num(c.accuracy.rms, 3)} ${unit} RMS, `
+        + `max ${num(c.accuracy.max, 3)} ${unit} on ${c.accuracy.n} fresh configurations` : "; not verified yet") : null,
+    candidateNote(c, ctx.reload));
 
   // a UR controller computes with its own kinematics (factory calibration): the cell keeps a copy
   const cm = c.controller_model;
@@ -177,7 +178,7 @@ export async function detail(ctx, id) {
     devCard, controllerCard,
     h("div", { class: "two" }, card("Sessions", sessionsBox), card("Calibrations", calsBox)));
   pagedSessions(sessionsBox, id, 0);
-  pagedCalibrations(calsBox, id, 0, unit);
+  pagedCalibrations(calsBox, id, 0, unit, ctx.reload);
 }
 
 function describeAddress(key, v) {
@@ -227,13 +228,51 @@ async function pagedSessions(box, id, offset) {
     pager(page.total, offset, 8, (o) => pagedSessions(box, id, o)));
 }
 
-async function pagedCalibrations(box, id, offset, unit) {
+// A newer calibration than the current one waits: a verify session that passes it makes it
+// current, or a technician activates it here (issue 27: activated, not overwritten).
+function candidateNote(c, reload) {
+  const k = c.candidate;
+  if (!k) return null;
+  return h("p", { id: "candidate" }, h("a", { href: `#/calibrations/${k.id}` }, `Calibration ${k.id}`),
+    ` (${when(k.created_at)}) is not in use yet: a verify session that finds it at least as accurate as the `
+    + `${c.current ? `current calibration ${c.current.id}` : "nominal model"} makes it current, or activate it now. `,
+    can("cells") ? calibrationButton(k.id, "activate", reload, "activate-candidate") : null);
+}
+
+const CHANGES = {
+  activate: ["Activate", "Make calibration {id} the cell's current calibration?", "Compensation, verify sessions and "
+    + "the next calibration then use it. The calibration in use now is kept and can be activated again."],
+  retire: ["Retire", "Retire calibration {id}?", "It is kept and can still be read and compared, but no longer "
+    + "serves as the cell's calibration; the one activated before it does (or the nominal model)."],
+};
+
+function calibrationButton(id, what, reload, elId = `${what}-${id}`) {
+  const [label, title, text] = CHANGES[what];
+  const b = h("button", { class: what === "activate" ? "primary" : "secondary", id: elId }, label);
+  b.addEventListener("click", async () => {
+    if (!await confirmDialog(title.replace("{id}", id), text, { confirm: label, danger: what === "retire" })) return;
+    await busy(b, async () => {
+      await post(`/calibrations/${id}/${what}`);
+      notify(`Calibration ${id}: ${what === "activate" ? "now the cell's current calibration" : "retired"}.`, "ok");
+      reload();
+    });
+  });
+  return b;
+}
+
+const STATUS_WORDS = { current: "in use", candidate: "not in use yet", superseded: "earlier", retired: "retired" };
+
+async function pagedCalibrations(box, id, offset, unit, reload) {
   const page = await get(`/cells/${id}/history?limit=10&offset=${offset}`);
   const rows = page.items.map((c) => [h("a", { href: `#/calibrations/${c.id}` }, `#${c.id}`), c.kind,
-    c.rms != null ? num(c.rms, 3) : "–", h("span", { class: "nowrap" }, whenShort(c.created_at))]);
-  put(box, rows.length ? table(["", "Kind", `Fit residual RMS (${unit})`, "Date"], rows, { class: "calibrations" })
+    h("span", { class: `status status-${c.status}`, "data-calibration": c.id }, STATUS_WORDS[c.status] || c.status || "–"),
+    c.rms != null ? num(c.rms, 3) : "–", h("span", { class: "nowrap" }, whenShort(c.created_at)),
+    can("cells") && c.kind === "pose" ? h("span", { class: "actions" },
+      c.status !== "current" ? calibrationButton(c.id, "activate", reload) : null,
+      c.status !== "retired" ? calibrationButton(c.id, "retire", reload) : null) : ""]);
+  put(box, rows.length ? table(["", "Kind", "Status", `Fit residual RMS (${unit})`, "Date", ""], rows, { class: "calibrations" })
     : h("p", { class: "muted" }, "No calibrations yet."),
-    pager(page.total, offset, 10, (o) => pagedCalibrations(box, id, o, unit)));
+    pager(page.total, offset, 10, (o) => pagedCalibrations(box, id, o, unit, reload)));
 }
 
 function pager(total, offset, size, go) {

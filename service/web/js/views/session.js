@@ -60,9 +60,23 @@ export async function live(ctx, id) {
     } catch (e) { /* the next event retries */ }
   }
 
+  // One count of the poses measured, from the live snapshot the chart and "Last reading" are
+  // drawn from (the server counts them once, from the rows it charts); the session's own count
+  // only until the first snapshot arrives. A paused session said "7 of 60 poses" beside a chart
+  // and a last reading ending at pose 6: two counts read at different times (the live one from
+  // the service's page cache, and never read again once the session had paused).
+  function showProgress() {
+    const measured = lastL ? lastL.measured : s.measured;
+    const planned = s.planned;
+    const pct = planned ? Math.round((100 * measured) / planned) : 0;
+    bar.style.width = `${pct}%`;
+    progressText.textContent = `${measured} of ${planned} poses measured (${pct} %)`;
+  }
+
   let lastL = null;
   function showLive(l) {
     lastL = l;
+    showProgress();
     remaining.textContent = TERMINAL.includes(s.state) ? "–"
       : s.state === "paused" || s.state === "interrupted" ? `${l.remaining_s != null ? `about ${duration(l.remaining_s)} ` : ""}once resumed`
       : l.remaining_s != null ? `about ${duration(l.remaining_s)}` : "estimating…";
@@ -81,6 +95,10 @@ export async function live(ctx, id) {
         : r ? r.model : "No residuals for this kind of session."));
     }
     showDevices();
+    // The live answer may be up to a second older than the session's state (the service keeps
+    // the page's polled answers that long): until they agree, ask again. A paused session sends no
+    // further events, and its page stayed at the older answer.
+    if (l.measured !== s.measured || l.state !== s.state) refreshLive();
   }
 
   function showDevices() {
@@ -146,9 +164,7 @@ export async function live(ctx, id) {
       notify(`The session is ${s.state} now: nothing to ${what}.`, "ok");
     }
     put(stateEl, badge(s.state));
-    const pct = s.planned ? Math.round((100 * s.measured) / s.planned) : 0;
-    bar.style.width = `${pct}%`;
-    progressText.textContent = `${s.measured} of ${s.planned} poses measured (${pct} %)`;
+    showProgress();
     clear(banner);
     if (s.state === "paused" || s.state === "interrupted" || s.state === "failed" || s.state === "aborted") {
       const kind = s.state === "failed" ? "error" : "warn";
@@ -216,9 +232,15 @@ export async function live(ctx, id) {
     clear(outcome);
     if (s.state !== "completed") return;
     if (s.calibration_id) {
+      // a later calibration does not replace the one in use: it waits for a verify session or an activation
+      const now = await get(`/cells/${s.cell_id}/summary`).catch(() => null);
+      const waits = now && now.current && now.current.id !== s.calibration_id;
       add(outcome, h("div", { class: "banner banner-ok", id: "done-banner" },
         h("strong", {}, "Calibrated. "), `The robot was measured at ${s.measured} poses and its true geometry worked out `
-        + `(calibration ${s.calibration_id}). A verify session next measures how accurate it now is. `,
+        + `(calibration ${s.calibration_id}). `
+        + (waits ? `It is not in use yet: the cell still works with calibration ${now.current.id}. A verify session next `
+          + "measures both and puts the new one in use if it is at least as accurate; or activate it on the cell's page. "
+          : "A verify session next measures how accurate it now is. "),
         h("a", { class: "button primary", href: `#/calibrations/${s.calibration_id}`, id: "open-result" }, "Open the result")));
     } else if (s.plan_info && s.plan_info.verify) {
       add(outcome, card("Verification result", verifyBanner(s.plan_info.verify)));
@@ -245,8 +267,10 @@ export async function live(ctx, id) {
       if (!ctx.alive()) return es.close();
       retries = 0;
       const snap = JSON.parse(ev.data);
+      const moved = snap.state !== s.state;
       show(snap);
-      refreshLive(TERMINAL.includes(snap.state));
+      // a session that stops (pauses, completes) is shown as it stopped at once, not a second later
+      refreshLive(moved || snap.state !== "running");
       if (TERMINAL.includes(snap.state)) { done = true; es.close(); }
     });
     es.onerror = () => {
@@ -273,9 +297,14 @@ export async function live(ctx, id) {
 function verifyBanner(v) {
   const u = v.unit;
   if (v.calibration_id) {
-    return h("div", { class: "banner banner-ok", id: "done-banner" },
+    const k = v.candidate, was = k && k.against.calibration_id ? `calibration ${k.against.calibration_id}` : "the nominal model";
+    return h("div", { class: `banner banner-${k && !k.passed ? "warn" : "ok"}`, id: "done-banner" },
       h("strong", {}, "Checked. "), `Calibration ${v.calibration_id} is accurate to ${num(v.rms, 3)} ${u} RMS `
-      + `(max ${num(v.max, 3)} ${u}; 95 % of points within ${num(v.p95, 3)} ${u}), measured at ${v.n} fresh configurations.`);
+      + `(max ${num(v.max, 3)} ${u}; 95 % of points within ${num(v.p95, 3)} ${u}), measured at ${v.n} fresh configurations.`,
+      k ? h("div", { id: "candidate-verdict" }, k.passed
+        ? `It is at least as accurate as ${was} (${num(k.against.rms, 3)} ${u} RMS on the same configurations) and is now in use.`
+        : `It is less accurate than ${was} (${num(k.against.rms, 3)} ${u} RMS on the same configurations), which stays in use; `
+          + "it can still be activated on the cell's page.") : null);
   }
   const reg = v.registered;
   return h("div", { class: "banner banner-warn", id: "done-banner" },
