@@ -23,7 +23,9 @@ import numpy as np
 from . import residual_map as rm
 from . import transmission as tr
 from . import trees as tt
+from .identification import INSTRUMENT_SIGMA_M
 from .model import KinematicModel
+from .residual_base import corrected_model_sigma
 
 FAMILIES = ("none", "map", "transmission", "trees")
 MIN_CV_GAIN = rm.MIN_CV_GAIN
@@ -85,11 +87,23 @@ MAX_TREE_CONFIGURATIONS = 3000
 
 def _held_out_sq(correction, model: KinematicModel, te) -> tuple[float, float]:
     """Sum of squared held-out errors with ``correction`` (None: without), and the share inside."""
+    s, share, _ = _held_out(correction, model, te, 0.0)
+    return s, share
+
+
+def _held_out(correction, model: KinematicModel, te, sigma_m: float) -> tuple[float, float, tuple[float, float, int]]:
+    """:func:`_held_out_sq`, and over the held-out rows inside the correction's region: the sum
+    of squared errors, the sum of the stated noise's 3 σ² (rows without their own σ: ``sigma_m``)
+    and their number (what :func:`calibration.residual_base.corrected_model_sigma` needs)."""
     r = rm.residuals(model, te)
-    if correction is None:
-        return float(np.sum(r**2)), 1.0
-    corr, inside = correction.evaluate(te.q, _p_tool(model, te))
-    return float(np.sum((r - corr) ** 2)), float(np.mean(inside))
+    inside = np.ones(len(te), dtype=bool)
+    if correction is not None:
+        corr, inside = correction.evaluate(te.q, _p_tool(model, te))
+        r = r - corr
+    sigma = np.where(np.isfinite(te.sigma) & (te.sigma > 0), te.sigma, sigma_m)
+    sq = np.sum(r**2, axis=1)
+    within = (float(np.sum(sq[inside])), float(np.sum(3.0 * sigma[inside] ** 2)), int(inside.sum()))
+    return float(np.sum(sq)), float(np.mean(inside)) if len(te) else 1.0, within
 
 
 def choose_correction(
@@ -114,6 +128,8 @@ def choose_correction(
     outer = fold_indices(data, folds, seed)
     sq = {f: 0.0 for f in families}
     inside: dict[str, list[float]] = {f: [] for f in families}
+    within = {f: np.zeros(3) for f in families}  # inside the region: Σ|e|², Σ 3σ², rows
+    sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
     fitted_per_fold = []
     for test in outer:
         train = np.setdiff1d(np.arange(len(data)), test)
@@ -122,20 +138,29 @@ def choose_correction(
         fitted_per_fold.append((tr_data, te, model))
         for f in families:
             c = None if f == "none" else fit_family(f, start, model, tr_data, kw, seed)
-            s, share = _held_out_sq(c, model, te)
+            s, share, w = _held_out(c, model, te, sigma_m)
             sq[f] += s
             inside[f].append(share)
+            within[f] += w
     n = len(data)
     rms = {f: math.sqrt(sq[f] / n) for f in families}
     best = min((f for f in families if f != "none"), key=lambda f: rms[f], default=None)
     base = rms.get("none", math.inf)
     gain = 1.0 - rms[best] / base if best is not None and base > 0 else 0.0
     kept = best is not None and gain >= min_gain
+    sigma = {f: corrected_model_sigma(within[f][0], within[f][1], int(within[f][2])) for f in families}
     figures = {
         "folds": folds,
         "cv_rows": n,
         "cv_poses": _poses(data),
-        "families": {f: {"rms_m": rms[f], "held_out_inside_share": float(np.mean(inside[f]))} for f in families},
+        "families": {
+            f: {
+                "rms_m": rms[f],
+                "held_out_inside_share": float(np.mean(inside[f])),
+                "model_sigma_m": sigma[f],
+            }
+            for f in families
+        },
         "best": best,
         "gain": gain,
         "min_gain": min_gain,
@@ -146,7 +171,16 @@ def choose_correction(
         return Choice("none", None, figures)
     final = final if final is not None else identify(start, all_data, **kw).model
     c = fit_family(best, start, final, all_data, kw, seed)
-    cv_figures = {"family": best, "rms_without_m": base, "rms_with_m": rms[best], "gain": gain, "folds": folds}
+    cv_figures = {
+        "family": best,
+        "rms_without_m": base,
+        "rms_with_m": rms[best],
+        "gain": gain,
+        "folds": folds,
+        # the corrected model's per-axis uncertainty inside its region: what u95 uses there
+        # (calibration.uncertainty.stored_position_covariance)
+        "model_sigma_m": sigma[best],
+    }
     if best == "transmission":
         c = dataclasses.replace(c, transmission=dataclasses.replace(c.transmission, cv=cv_figures))
     else:

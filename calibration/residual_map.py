@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .identification import INSTRUMENT_SIGMA_M
 from .model import KinematicModel
-from .residual_base import ResidualMapError, features  # noqa: F401 (the families' shared names, kept importable here)
+from .residual_base import ResidualMapError, corrected_model_sigma, features  # noqa: F401 (the families' shared names, kept importable here)
 from .residual_base import sqdist as _sqdist
 
 LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)
@@ -157,6 +158,8 @@ def choose_residual_map(
     outer = fold_indices(data, folds, seed)
     sq_without = sq_with = 0.0
     inside_share = []
+    within = np.zeros(3)  # inside the map's region: Σ|e|² with it, Σ 3σ² stated, rows
+    sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
     for test in outer:
         train = np.setdiff1d(np.arange(len(data)), test)
         tr, te = data.subset(train), data.subset(test)
@@ -167,6 +170,8 @@ def choose_residual_map(
         sq_without += float(np.sum(r_te**2))
         sq_with += float(np.sum((r_te - corr) ** 2))
         inside_share.append(float(np.mean(inside)))
+        sigma = np.where(np.isfinite(te.sigma) & (te.sigma > 0), te.sigma, sigma_m)[inside]
+        within += (float(np.sum((r_te - corr)[inside] ** 2)), float(np.sum(3.0 * sigma**2)), int(inside.sum()))
     n = len(data)
     rms_without, rms_with = math.sqrt(sq_without / n), math.sqrt(sq_with / n)
     gain = 1.0 - rms_with / rms_without if rms_without > 0 else 0.0
@@ -180,6 +185,8 @@ def choose_residual_map(
         "kept": gain >= min_gain,
         "max_configurations": MAX_MAP_CONFIGURATIONS,
         "cv_rows": n,
+        # the corrected model's per-axis uncertainty inside the region (what u95 uses there)
+        "model_sigma_m": corrected_model_sigma(within[0], within[1], int(within[2])),
     }
     if gain < min_gain:
         return None, figures
