@@ -244,11 +244,16 @@ def planned_poses(req: PlanRequest) -> Plan:
         )
     except ValueError as exc:
         # Too few poses to determine every parameter from the data alone: a short session that
-        # updates a previous calibration (its prior) needs no more. Spread them at random.
+        # updates a previous calibration (its prior) needs no more. Spread them at random, and say
+        # how many planned poses would determine them (issue 27).
         return Plan(
             candidates[:count],
             np.zeros(count, int),
-            {"method": "random (too few poses to plan for a full identification)", "note": str(exc)},
+            {
+                "method": "random (too few poses to plan for a full identification)",
+                "note": str(exc),
+                "shortfall": _shortfall(model, candidates, count, target, sigma_m),
+            },
         )
     between()
     q = res.q[planning.measurement_order(res.q)]
@@ -259,7 +264,20 @@ def planned_poses(req: PlanRequest) -> Plan:
         "predicted_max_m": float(res.predicted_max_m),
         "unidentifiable": [u.name for u in res.unidentifiable],
     }
+    if res.unidentifiable or not res.success:
+        info["shortfall"] = _shortfall(model, candidates, count, target, sigma_m)
     return Plan(q, np.zeros(len(q), int), info)
+
+
+def _shortfall(model: KinematicModel, candidates: np.ndarray, count: int, target, sigma_m: float) -> dict | None:
+    """What ``count`` poses of this kind leave undetermined and what would determine it
+    (``calibration.planning.shortfall``), JSON-ready; None when the candidates say nothing."""
+    from calibration import planning
+
+    try:
+        return planning.shortfall(model, candidates, count, targets=(target,), sigma_m=sigma_m).as_dict()
+    except ValueError:
+        return None
 
 
 def _checking(compute: Callable, between: Callable[[], None]):

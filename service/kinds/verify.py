@@ -14,7 +14,7 @@ from calibration.model import KinematicModel
 from ..analysis import session_data
 from ..compensation import calibrated_range_of
 from ..plans import Plan, PlanRequest, random_inside, repeated
-from ..records import current_model, position_errors, registered_errors
+from ..records import corrected_errors, current_model, position_errors, registered_errors
 from .positions import PositionKind
 
 
@@ -34,7 +34,8 @@ def verify_session(db, run, cell) -> dict:
     of a repeated session."""
     data = session_data(db, run)
     model, cal = current_model(db, cell)
-    e = np.linalg.norm(position_errors(model, data), axis=1)
+    e_xyz, inside = corrected_errors(model, data)  # with the model's residual correction, as compensation uses it
+    e = np.linalg.norm(e_xyz, axis=1)
     L = model.units.length_m
     st = metrics.norm_statistics(e / L)
     out = {
@@ -46,6 +47,12 @@ def verify_session(db, run, cell) -> dict:
         "mean": st.mean,
         "unit": model.units.length,
     }
+    if inside is not None:
+        # where the correction did not apply the geometric model alone was judged: counted, flagged
+        out["residual_correction"] = {
+            "family": (model.metadata.get("residual_map") or {}).get("family", "map"),
+            "outside_mapped_region": int(np.count_nonzero(~inside)),
+        }
     if len(e) >= 3:
         # Also with the base placed where it fits best (book Table 1.1 does the same): the robot's
         # own inaccuracy, apart from where the instrument stands; the same figure as the result

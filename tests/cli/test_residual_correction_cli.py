@@ -193,7 +193,10 @@ def test_accuracy_judges_the_model_with_its_transmission_correction(identified):
     for name in ("id.json", "geometric.json"):
         a = recal("accuracy", "--model", name, "--data", "held.csv", "--out", f"acc-{name}", cwd=tmp_path)
         assert a.returncode == 0, a.stderr
-        rms[name] = json.loads((tmp_path / f"acc-{name}").read_text())["errors"]["rms"]
+        report = json.loads((tmp_path / f"acc-{name}").read_text())
+        rms[name] = report["errors"]["rms"]
+        # every row inside the correction's region is counted as such; a model without one says nothing
+        assert report.get("outside_mapped_region") == (0 if name == "id.json" else None)
     # with the correction only the tracker's noise is left (√3 · 0.01 mm), well under the geometric model's
     assert rms["id.json"] < 0.6 * rms["geometric.json"] and rms["id.json"] < 1.3 * np.sqrt(3) * 0.01
 
