@@ -929,13 +929,13 @@ def measurement_order(q: np.ndarray) -> np.ndarray:
     K = len(q)
     if K == 0:
         return np.zeros(0, dtype=int)
-    D = np.max(np.abs(q[:, None, :] - q[None, :, :]), axis=2)
+    # the distances from the last pose, row by row: a dense session's K x K matrix would not fit
     start = int(np.argmin(np.max(np.abs(q - np.median(q, axis=0)), axis=1)))
     order = [start]
     left = np.ones(K, bool)
     left[start] = False
     for _ in range(K - 1):
-        d = np.where(left, D[order[-1]], np.inf)
+        d = np.where(left, np.max(np.abs(q - q[order[-1]]), axis=1), np.inf)
         nxt = int(np.argmin(d))
         order.append(nxt)
         left[nxt] = False

@@ -165,7 +165,9 @@ def choose_correction(
         "gain": gain,
         "min_gain": min_gain,
         "chosen": best if kept else "none",
-        "learning_curve": _learning_curve(best, start, fitted_per_fold, kw, seed) if best else [],
+        "learning_curve": learning_curve(best, start, fitted_per_fold, kw, seed) if best else [],
+        # the instrument's per-axis noise the rows state (what extrapolate_learning_curve needs)
+        "noise_sigma_m": noise_sigma(data, sigma_m),
     }
     if not kept or best is None:
         return Choice("none", None, figures)
@@ -188,11 +190,18 @@ def choose_correction(
     return Choice(best, c, figures)
 
 
+def noise_sigma(data, sigma_m: float) -> float:
+    """The per-axis noise (m) the rows of ``data`` state, as one figure (root mean square; rows
+    without their own σ: ``sigma_m``)."""
+    sigma = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
+    return float(np.sqrt(np.mean(sigma**2))) if len(sigma) else float(sigma_m)
+
+
 def _poses(data) -> int:
     return len(np.unique(np.asarray(data.pose_id).astype(str))) if data.pose_id is not None else len(data)
 
 
-def _learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> list[dict]:
+def learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> list[dict]:
     """The held-out RMS (m) of ``family`` fitted to a share of each training fold's poses (the
     geometric model of the whole training fold), against the number of those poses."""
     out = []
@@ -204,7 +213,7 @@ def _learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) ->
                 rows = rm.map_rows(tr_data, k, seed + 7)
                 sub = tr_data.subset(rows)
                 sub_model = model if share == 1.0 else identify_or(start, sub, kw, model)
-                c = fit_family(family, start, sub_model, sub, kw, seed)
+                c = None if family == "none" else fit_family(family, start, sub_model, sub, kw, seed)
                 s, _ = _held_out_sq(c, sub_model, te)
                 sq += s
                 n += len(te)
@@ -223,3 +232,39 @@ def identify_or(start, data, kw: dict, fallback: KinematicModel) -> KinematicMod
         return identify(start, data, **kw).model
     except ValueError:
         return fallback
+
+
+def extrapolate_learning_curve(curve: list[dict], poses: int, sigma_m: float) -> dict | None:
+    """The held-out RMS (m) a learning curve (``[{"poses", "rms_m"}]``, :func:`learning_curve`)
+    predicts at ``poses`` poses, by a power law of what exceeds the instrument's noise:
+
+        rms(n)² = 3 σ² + a · n^(−b),   b in [0, 2]
+
+    fitted in log-log to the points whose RMS exceeds the noise's ``√3 σ`` (per-axis ``sigma_m``).
+    Why this form: a held-out error is the model's plus the instrument's, and only the model's
+    part falls with more poses (as ``n^(−1)`` in variance for a fixed set of parameters; slower
+    for a learned correction that refines with the data, faster never). ``b`` is bounded so that
+    three points cannot promise more. Returns ``{"poses", "rms_m", "law", "a_m2", "b",
+    "extrapolated", "points"}`` or None when the curve has no point."""
+    pts = [(int(p["poses"]), float(p["rms_m"])) for p in curve if p.get("poses") and p.get("rms_m") is not None]
+    if not pts:
+        return None
+    noise2 = 3.0 * float(sigma_m) ** 2
+    n = np.array([p[0] for p in pts], dtype=float)
+    excess = np.array([p[1] ** 2 for p in pts]) - noise2
+    keep = excess > 0
+    out = {"poses": int(poses), "extrapolated": bool(poses > n.max()), "points": len(pts)}
+    law = "rms(n)^2 = 3 sigma^2 + a n^-b (power law of the excess over the instrument's noise)"
+    if keep.sum() >= 2 and len(np.unique(n[keep])) >= 2:
+        slope, intercept = np.polyfit(np.log(n[keep]), np.log(excess[keep]), 1)
+        b = float(np.clip(-slope, 0.0, 2.0))
+        # the intercept at the mean of the points, so that a clipped slope still passes through them
+        a = float(np.exp(np.mean(np.log(excess[keep]) + b * np.log(n[keep]))))
+        rms = math.sqrt(noise2 + a * float(poses) ** (-b))
+        return {**out, "rms_m": rms, "law": law, "a_m2": a, "b": b}
+    if keep.sum() == 0:  # already at the instrument's noise: more poses cannot show better
+        return {**out, "rms_m": math.sqrt(noise2), "law": "at the instrument's noise already", "a_m2": 0.0, "b": 0.0}
+    # one point above the noise: no slope to fit; the model's part taken to fall as 1/n (fixed parameters)
+    k = int(np.flatnonzero(keep)[0])
+    a = float(excess[k] * n[k])
+    return {**out, "rms_m": math.sqrt(noise2 + a / float(poses)), "law": law + ", b = 1 assumed", "a_m2": a, "b": 1.0}

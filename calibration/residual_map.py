@@ -158,12 +158,14 @@ def choose_residual_map(
     outer = fold_indices(data, folds, seed)
     sq_without = sq_with = 0.0
     inside_share = []
+    fitted_per_fold = []  # (training, held-out, model) of each fold: the learning curve refits on shares
     within = np.zeros(3)  # inside the map's region: Σ|e|² with it, Σ 3σ² stated, rows
     sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
     for test in outer:
         train = np.setdiff1d(np.arange(len(data)), test)
         tr, te = data.subset(train), data.subset(test)
         model = identify(start, tr, **kw).model
+        fitted_per_fold.append((tr, te, model))
         m = _fitted_map(tr, residuals(model, tr), revolute, folds, seed)
         r_te = residuals(model, te)
         corr, inside = m.evaluate(te.q)
@@ -175,7 +177,7 @@ def choose_residual_map(
     n = len(data)
     rms_without, rms_with = math.sqrt(sq_without / n), math.sqrt(sq_with / n)
     gain = 1.0 - rms_with / rms_without if rms_without > 0 else 0.0
-    figures = {
+    figures: dict = {
         "folds": folds,
         "rms_without_m": rms_without,
         "rms_with_m": rms_with,
@@ -188,12 +190,21 @@ def choose_residual_map(
         # the corrected model's per-axis uncertainty inside the region (what u95 uses there)
         "model_sigma_m": corrected_model_sigma(within[0], within[1], int(within[2])),
     }
+    # the held-out RMS against the number of poses, of the procedure kept (map or none): what a
+    # planned session's accuracy is predicted from (residual_choice.extrapolate_learning_curve)
+    from . import residual_choice as rc
+
+    figures["learning_curve"] = rc.learning_curve(
+        "map" if gain >= min_gain else "none", start, fitted_per_fold, kw, seed
+    )
+    figures["noise_sigma_m"] = rc.noise_sigma(data, sigma_m)
     if gain < min_gain:
         return None, figures
     final = final if final is not None else identify(start, all_data, **kw).model
     m = _fitted_map(all_data, residuals(final, all_data), revolute, folds, seed)
     figures.update(length_scale=m.length_scale, ridge=m.ridge, rows=len(m.q_train))
-    return dataclasses.replace(m, cv=figures), figures
+    # the file's section keeps the figures that judge the map, not the curve (in the report)
+    return dataclasses.replace(m, cv={k: v for k, v in figures.items() if k != "learning_curve"}), figures
 
 
 def map_rows(data, max_configurations: int = MAX_MAP_CONFIGURATIONS, seed: int = 0) -> np.ndarray:

@@ -383,7 +383,47 @@ def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
     }
     if run.kind == "pose":
         out["predicted"] = _predicted_pose_accuracy(db, cell, q, run)
+        out["learning_curve"] = learning_curve_prediction(db, cell, len(q))
     return out
+
+
+def learning_curve_prediction(db: Session, cell: Cell, poses: int) -> dict:
+    """The held-out RMS a plan of ``poses`` poses is predicted to reach, from the learning curve
+    of the cell's current calibration (the nested cross-validation's held-out RMS of the whole
+    procedure, geometric identification and residual correction, against the number of poses),
+    extrapolated by a power law of the excess over the instrument's noise
+    (``calibration.residual_choice.extrapolate_learning_curve``). Model length unit."""
+    from calibration.residual_choice import extrapolate_learning_curve
+
+    _, cal = current_model(db, cell)
+    L = model_from_dict(cell.model).units.length_m
+    rmap = ((cal.report or {}).get("residual_map") or {}) if cal is not None else {}
+    curve = rmap.get("learning_curve") or []
+    if not curve or rmap.get("noise_sigma") is None:
+        return {
+            "available": False,
+            "reason": "no earlier learning curve: the cell's current calibration has none (a pose calibration "
+            "made by this version records one)",
+        }
+    pred = extrapolate_learning_curve(
+        [{"poses": p["poses"], "rms_m": p["rms"] * L} for p in curve], poses, rmap["noise_sigma"] * L
+    )
+    if pred is None:
+        return {"available": False, "reason": "the earlier learning curve has no point"}
+    return {
+        "available": True,
+        "calibration_id": cal.id if cal is not None else None,
+        "poses": int(poses),
+        "rms": _r(pred["rms_m"] / L),
+        "noise": _r(rmap["noise_sigma"]),
+        "exponent": _r(pred["b"], 3),
+        "extrapolated": pred["extrapolated"],
+        "curve": [{"poses": int(p["poses"]), "rms": _r(p["rms"])} for p in curve],
+        "note": f"held-out RMS predicted for {poses} poses from calibration {cal.id if cal else '-'}'s learning "
+        f"curve ({len(curve)} points, {min(p['poses'] for p in curve)}-{max(p['poses'] for p in curve)} poses), "
+        f"{'extrapolated' if pred['extrapolated'] else 'interpolated'} by a power law: {pred['law']}"
+        f" (b = {pred['b']:.2f}); it includes the instrument's noise",
+    }
 
 
 def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSession) -> dict:

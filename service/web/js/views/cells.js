@@ -876,6 +876,7 @@ function showPlan(ctx, box, plan, s, c) {
   const unit = c.unit;
   const ok = plan.check && plan.check.ok && s.state === "completed";
   const p = plan.predicted;
+  const lc = plan.learning_curve;  // the accuracy the earlier calibration's learning curve predicts (issue 28)
   const rows = [
     ["Configurations", `${plan.configurations}${plan.method ? ` (${plan.method})` : ""}`],
     ["Limit check (dry run)", h("span", { class: ok ? "ok-text" : "error-text", id: "plan-check" },
@@ -890,6 +891,9 @@ function showPlan(ctx, box, plan, s, c) {
     p && p.identifiable ? ["Parameters", `${p.identifiable} identifiable, ${p.unidentifiable} that these poses cannot determine`]
       : p && p.unidentifiable != null ? ["Parameters", `${p.unidentifiable} that these poses cannot determine`
         + (p.unidentifiable_names ? ` (${p.unidentifiable_names.slice(0, 6).join(", ")}${p.unidentifiable > 6 ? ` and ${p.unidentifiable - 6} more` : ""})` : "")] : null,
+    lc && lc.available ? ["Predicted from earlier data", h("span", {},
+      h("span", { id: "learning-curve" }, `hold-out RMS ${num(lc.rms, 3)} ${unit} with ${lc.poses} poses`),
+      h("span", { class: "muted small", id: "learning-curve-note", style: { display: "block" } }, lc.note))] : null,
     p && p.shortfall ? ["What would determine the rest", h("span", { id: "plan-shortfall" }, shortfallText(p.shortfall))] : null,
     plan.estimated_duration_s != null ? ["Estimated robot time", `${duration(plan.estimated_duration_s)} (motion at `
       + `≤ ${num(plan.speed_caps?.joint_speed_deg_s, 3)} °/s, settling and measuring)`] : null,
