@@ -259,3 +259,34 @@ def test_u95_of_the_corrected_model_covers_95_percent_of_fresh_hold_out_errors_i
     # outside: the geometric model's position and bound, flagged
     assert np.allclose(xyz[~inside], geo_xyz[~inside], atol=1e-9)
     assert np.allclose(u95[~inside], geo_u95[~inside], rtol=1e-9)
+
+
+def test_identify_validate_reports_how_many_hold_out_errors_the_corrected_bound_covers(identified):
+    """``recal identify --residual-map auto --validate`` states the share of hold-out rows inside
+    the correction's region within the 95 % bound the stored model gives there (the one bound of
+    ``recal predict --uncertainty``) plus the tracker's noise."""
+    tmp_path, _, nominal, truth, tx, _ = identified
+    rng = np.random.default_rng(195)
+    held = simulate_measurements(
+        truth,
+        random_configurations(nominal, 400, rng, limits=REGION + np.deg2rad([2.0, -2.0])),
+        rng,
+        sigma_m=10e-6,
+        targets=(None,),
+        transmission=tx,
+    )
+    with (tmp_path / "val.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([f"q{i + 1}" for i in range(6)] + ["x", "y", "z"])
+        for k in range(len(held)):
+            w.writerow([*np.rad2deg(held.q[k]).tolist(), *(held.p_world[k] * 1e3).tolist()])
+    proc = recal(
+        "identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "idv.json", "--sigma", "0.01",
+        "--report", "rv.json", "--residual-map", "auto", "--validate", "val.csv", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode in (0, 3), proc.stderr
+    v = json.loads((tmp_path / "rv.json").read_text())["residual_map"]["validation"]
+    assert v["inside_share"] > 0.95
+    assert 0.90 <= v["coverage_95"] <= 0.99, v  # measured: 0.975 of 400
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("residual map ("))
+    assert f"{100 * v['coverage_95']:.1f} % of those within their 95 % bound" in line
