@@ -202,8 +202,13 @@ def _poses(data) -> int:
 
 
 def learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> list[dict]:
-    """The held-out RMS (m) of ``family`` fitted to a share of each training fold's poses (the
-    geometric model of the whole training fold), against the number of those poses."""
+    """The held-out RMS (m) of ``family`` (``"none"``: the geometric model alone) fitted to a
+    share of each training fold's poses, the geometric model identified on that share too,
+    against the number of those poses: the whole procedure's error at that many poses. A share
+    too small to identify from gives no point (the whole fold's model in its place made a
+    30-pose session's curve flat: three points of one model)."""
+    from .identify import identify
+
     out = []
     for share in LEARNING_SHARES:
         sq, n, poses = 0.0, 0, []
@@ -212,7 +217,7 @@ def learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> 
                 k = max(int(share * _poses(tr_data)), 10)
                 rows = rm.map_rows(tr_data, k, seed + 7)
                 sub = tr_data.subset(rows)
-                sub_model = model if share == 1.0 else identify_or(start, sub, kw, model)
+                sub_model = model if share == 1.0 else identify(start, sub, **kw).model
                 c = None if family == "none" else fit_family(family, start, sub_model, sub, kw, seed)
                 s, _ = _held_out_sq(c, sub_model, te)
                 sq += s
@@ -222,16 +227,6 @@ def learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> 
             continue
         out.append({"poses": int(np.mean(poses)), "rms_m": math.sqrt(sq / max(n, 1))})
     return out
-
-
-def identify_or(start, data, kw: dict, fallback: KinematicModel) -> KinematicModel:
-    """The geometric model identified on ``data``, or ``fallback`` when they are too few."""
-    from .identify import identify
-
-    try:
-        return identify(start, data, **kw).model
-    except ValueError:
-        return fallback
 
 
 def extrapolate_learning_curve(curve: list[dict], poses: int, sigma_m: float) -> dict | None:
