@@ -436,6 +436,11 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
         f"RMS position error of the identified model over random configurations, predicted for an "
         f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis"
     )
+    if "dense" in info:  # the planner predicted for the planned core; the filling poses only add to it
+        note += (
+            f" (from the {info['dense']['planned']} planned poses: the {info['dense']['filling']} filling the "
+            "region can only improve it)"
+        )
     if "predicted_rms_m" in info:
         un = info.get("unidentifiable")
         return {

@@ -55,6 +55,7 @@ def test_a_dense_pose_session_fills_the_region_and_shows_the_accuracy_its_learni
         plan = _dry_plan(client, settings, tokens, cell, 1200)
     assert plan["configurations"] == 1200 and plan["check"]["ok"]
     assert plan["method"].startswith("dense: 200 poses")
+    assert "from the 200 planned poses: the 1000 filling" in plan["predicted"]["note"]
     # the region evenly: every joint's values in each tenth of its allowed range, none outside it
     for j, joint in enumerate(plan["joints"]):
         v = np.array(joint["values"])
