@@ -290,3 +290,33 @@ def test_identify_validate_reports_how_many_hold_out_errors_the_corrected_bound_
     assert 0.90 <= v["coverage_95"] <= 0.99, v  # measured: 0.975 of 400
     line = next(x for x in proc.stdout.splitlines() if x.startswith("residual map ("))
     assert f"{100 * v['coverage_95']:.1f} % of those within their 95 % bound" in line
+
+
+def test_the_bound_of_a_file_without_the_stored_error_is_wider_and_a_bad_one_is_named(identified, tmp_path):
+    """A model file whose correction has no ``model_sigma`` (written before it was stored) gets the
+    cross-validated RMS with the correction over √3 inside the region (the noise left in: wider,
+    never narrower); a malformed figure is refused naming its field, before any output."""
+    from calibration.model import model_from_dict
+    from calibration.uncertainty import CovarianceError, stored_position_bound
+
+    d, rng, nominal, *_ = identified
+    doc = json.loads((d / "id.json").read_text())
+    cv = doc["residual_map"]["cross_validation"]
+    q = random_configurations(nominal, 20, np.random.default_rng(3), limits=REGION + np.deg2rad([5.0, -5.0]))
+    C_new, inside = stored_position_bound(model_from_dict(doc), q)
+    assert inside.all() and np.allclose(C_new, (cv["model_sigma_m"] * 1e-3) ** 2 * np.eye(3))
+    old = json.loads(json.dumps(doc))
+    del old["residual_map"]["cross_validation"]["model_sigma_m"]
+    C_old, _ = stored_position_bound(model_from_dict(old), q)
+    assert np.allclose(C_old, (cv["rms_with_m"] * 1e-3 / np.sqrt(3)) ** 2 * np.eye(3))
+    assert np.all(C_old[:, 0, 0] > C_new[:, 0, 0])
+    bad = json.loads(json.dumps(doc))
+    bad["residual_map"]["cross_validation"]["model_sigma_m"] = -1
+    with pytest.raises(CovarianceError) as exc:
+        stored_position_bound(model_from_dict(bad), q)
+    assert exc.value.field == "residual_map.cross_validation.model_sigma_m"
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    _write_joints(tmp_path / "j.csv", q)
+    p = recal("predict", "--model", "bad.json", "--joints", "j.csv", "--out", "o.csv", "--uncertainty", cwd=tmp_path)
+    assert p.returncode == 2 and "residual_map.cross_validation.model_sigma_m" in p.stderr
+    assert not (tmp_path / "o.csv").exists()
