@@ -929,14 +929,146 @@ def measurement_order(q: np.ndarray) -> np.ndarray:
     K = len(q)
     if K == 0:
         return np.zeros(0, dtype=int)
-    D = np.max(np.abs(q[:, None, :] - q[None, :, :]), axis=2)
+    # the distances from the last pose, row by row: a dense session's K x K matrix would not fit
     start = int(np.argmin(np.max(np.abs(q - np.median(q, axis=0)), axis=1)))
     order = [start]
     left = np.ones(K, bool)
     left[start] = False
     for _ in range(K - 1):
-        d = np.where(left, D[order[-1]], np.inf)
+        d = np.where(left, np.max(np.abs(q - q[order[-1]]), axis=1), np.inf)
         nxt = int(np.argmin(d))
         order.append(nxt)
         left[nxt] = False
     return np.array(order, dtype=int)
+
+
+# --------------------------------------------------------------------------- what a plan cannot determine
+
+# What would determine a parameter that more poses of the same kind never will, by the category
+# of :class:`calibration.identification.Unidentifiable` (issue 27: "a plan that cannot determine
+# everything says how many more poses, or which kind, would").
+WHAT_WOULD_DETERMINE = {
+    "tool_orientation": "orientation measurements (a 6-D probe) or two more targets on the tool, not on one "
+    "line with the first",
+    "last_joint_offset": "orientation measurements (a 6-D probe) or a second target elsewhere on the tool",
+    "no_effect": "a target away from the axis that hides it (e.g. 20 mm or more off the last joint's axis), or "
+    "orientation measurements",
+    "weak": "a target 20 mm or more off the joint axis it sits on",
+    "same_motion": "nothing: it is the same motion as another parameter, which carries it; predictions do not "
+    "depend on it",
+    "combination": "nothing: other parameters' motions together make it; predictions do not depend on it",
+    "target_offsets": "nothing: the target offsets carry it; predictions do not depend on it",
+}
+NEEDS_NOTHING = ("same_motion", "combination", "target_offsets")
+
+
+@dataclass(frozen=True, eq=False)
+class Shortfall:
+    """What a plan of ``count`` poses leaves undetermined, and what would determine it.
+
+    ``poses_needed``: the fewest poses, planned from the same candidates (the D-optimal greedy
+    sequence), that determine every parameter poses of this kind can determine (None when even
+    ``k_max`` do not); ``more_poses``: how many that is beyond ``count`` (0 when ``count``
+    suffices); ``identifiable``: how many parameters that is; ``by_kind``: the parameters no
+    number of such poses determines, grouped by what would (:data:`WHAT_WOULD_DETERMINE`), each
+    ``{"category", "needs", "parameters", "harmless"}``; ``message``: one line saying all this."""
+
+    count: int
+    poses_needed: int | None
+    more_poses: int | None
+    identifiable: int
+    by_kind: tuple[dict, ...]
+    message: str
+
+    def as_dict(self) -> dict:
+        return {
+            "count": self.count,
+            "poses_needed": self.poses_needed,
+            "more_poses": self.more_poses,
+            "identifiable": self.identifiable,
+            "by_kind": [dict(k) for k in self.by_kind],
+            "message": self.message,
+        }
+
+
+def shortfall(
+    model: KinematicModel,
+    candidates: np.ndarray,
+    count: int,
+    options: PlanOptions | None = None,
+    *,
+    k_max: int = 400,
+    **overrides,
+) -> Shortfall:
+    """How many poses (from ``candidates``, planned) would determine every parameter poses of
+    this kind can, against the ``count`` a plan has; and, for the parameters no number of such
+    poses determines, which kind of measurement would (:data:`WHAT_WOULD_DETERMINE`). Other
+    arguments as for :func:`plan`."""
+    o = _options(options, overrides)
+    design = _prepare(
+        model,
+        candidates,
+        targets=o.targets,
+        sigma_m=o.sigma_m,
+        gains=o.gains,
+        fixed=tuple(o.fixed),
+        rank_rtol=o.rank_rtol,
+        hayati=o.hayati,
+    )
+    needed = _poses_needed(design, min(int(k_max), len(design.J)))
+    more = None if needed is None else max(needed - int(count), 0)
+    groups: dict[str, list[str]] = {}
+    for u in design.unidentifiable:
+        groups.setdefault(u.category if u.category in WHAT_WOULD_DETERMINE else "no_effect", []).append(u.name)
+    by_kind = tuple(
+        {
+            "category": c,
+            "needs": WHAT_WOULD_DETERMINE[c],
+            "parameters": names,
+            "harmless": c in NEEDS_NOTHING,
+        }
+        for c, names in groups.items()
+    )
+    return Shortfall(
+        int(count), needed, more, len(design.params), by_kind, _shortfall_message(design, count, needed, by_kind)
+    )
+
+
+def _poses_needed(design: _Design, k_max: int) -> int | None:
+    """The fewest poses of the D-optimal greedy sequence that determine every identifiable
+    parameter (full rank), or None when ``k_max`` do not."""
+    C, r, P = design.J.shape
+    k_min = max(1, math.ceil(P / r))
+    rdiag = _ridge(design.J, PlanOptions.ridge)
+    found: list[int] = []
+
+    def on_step(chosen, M) -> bool:
+        if len(chosen) >= k_min and _full_rank(M - np.diag(rdiag)):
+            found.append(len(chosen))
+            return True
+        return False
+
+    _greedy(design.J, k_max, rdiag, on_step)
+    return found[0] if found else None
+
+
+def _shortfall_message(design: _Design, count: int, needed: int | None, by_kind: tuple[dict, ...]) -> str:
+    P = len(design.params)
+    if needed is None:
+        first = f"no plan of up to the candidates' poses determines all {P} parameters poses of this kind can"
+    elif needed > count:
+        first = (
+            f"{needed} planned poses would determine the {P} parameters poses of this kind can ({needed - count} "
+            "more; identification wants a few beyond that to check the fit)"
+        )
+    else:
+        first = f"{count} poses determine the {P} parameters poses of this kind can (planned, {needed} would)"
+    parts = [first]
+    for k in by_kind:
+        names = k["parameters"]
+        shown = ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
+        if k["harmless"]:
+            parts.append(f"{len(names)} need no measurement ({shown}): {k['needs'].split(': ', 1)[-1]}")
+        else:
+            parts.append(f"{len(names)} no number of these poses determines ({shown}): {k['needs']} would")
+    return "; ".join(parts)

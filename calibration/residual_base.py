@@ -30,3 +30,21 @@ def sqdist(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Squared Euclidean distances (N, M) between the rows of ``A`` (N, F) and ``B`` (M, F)."""
     d = np.sum(A**2, axis=1)[:, None] + np.sum(B**2, axis=1)[None, :] - 2.0 * A @ B.T
     return np.maximum(d, 0.0)
+
+
+def corrected_model_sigma(sq_sum_m2: float, noise_sq_sum_m2: float, rows: int) -> float:
+    """Per-axis standard uncertainty (m) of the corrected model's position inside its region,
+    from cross-validation: ``sq_sum_m2`` the sum over ``rows`` held-out rows inside the region of
+    the squared error (3 axes) of the geometric model plus the correction, ``noise_sq_sum_m2`` the
+    sum of what the instrument's stated noise gives there (3 σ² a row). The held-out error is the
+    model's plus the instrument's, so the model's variance is the difference; when the data cannot
+    resolve it (the difference is within the sampling scatter of the noise's own sum of squares,
+    ``σ² √(6/n)`` per row), it is taken as that scatter: a bound the data support, never zero.
+    Why the held-out rows and not the fit's: the correction was fitted to the others (issue 28:
+    "the correction's CV error enters u95")."""
+    if rows <= 0:
+        return 0.0
+    noise_per_row = noise_sq_sum_m2 / rows  # 3 σ² (m²)
+    excess = sq_sum_m2 / rows - noise_per_row
+    resolution = (noise_per_row / 3.0) * np.sqrt(6.0 / rows)  # scatter of the mean of |noise|²: σ² √(6/n)
+    return float(np.sqrt(max(excess, resolution) / 3.0))

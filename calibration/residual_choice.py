@@ -23,7 +23,9 @@ import numpy as np
 from . import residual_map as rm
 from . import transmission as tr
 from . import trees as tt
+from .identification import INSTRUMENT_SIGMA_M
 from .model import KinematicModel
+from .residual_base import corrected_model_sigma
 
 FAMILIES = ("none", "map", "transmission", "trees")
 MIN_CV_GAIN = rm.MIN_CV_GAIN
@@ -85,11 +87,23 @@ MAX_TREE_CONFIGURATIONS = 3000
 
 def _held_out_sq(correction, model: KinematicModel, te) -> tuple[float, float]:
     """Sum of squared held-out errors with ``correction`` (None: without), and the share inside."""
+    s, share, _ = _held_out(correction, model, te, 0.0)
+    return s, share
+
+
+def _held_out(correction, model: KinematicModel, te, sigma_m: float) -> tuple[float, float, tuple[float, float, int]]:
+    """:func:`_held_out_sq`, and over the held-out rows inside the correction's region: the sum
+    of squared errors, the sum of the stated noise's 3 σ² (rows without their own σ: ``sigma_m``)
+    and their number (what :func:`calibration.residual_base.corrected_model_sigma` needs)."""
     r = rm.residuals(model, te)
-    if correction is None:
-        return float(np.sum(r**2)), 1.0
-    corr, inside = correction.evaluate(te.q, _p_tool(model, te))
-    return float(np.sum((r - corr) ** 2)), float(np.mean(inside))
+    inside = np.ones(len(te), dtype=bool)
+    if correction is not None:
+        corr, inside = correction.evaluate(te.q, _p_tool(model, te))
+        r = r - corr
+    sigma = np.where(np.isfinite(te.sigma) & (te.sigma > 0), te.sigma, sigma_m)
+    sq = np.sum(r**2, axis=1)
+    within = (float(np.sum(sq[inside])), float(np.sum(3.0 * sigma[inside] ** 2)), int(inside.sum()))
+    return float(np.sum(sq)), float(np.mean(inside)) if len(te) else 1.0, within
 
 
 def choose_correction(
@@ -114,6 +128,8 @@ def choose_correction(
     outer = fold_indices(data, folds, seed)
     sq = {f: 0.0 for f in families}
     inside: dict[str, list[float]] = {f: [] for f in families}
+    within = {f: np.zeros(3) for f in families}  # inside the region: Σ|e|², Σ 3σ², rows
+    sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
     fitted_per_fold = []
     for test in outer:
         train = np.setdiff1d(np.arange(len(data)), test)
@@ -122,31 +138,51 @@ def choose_correction(
         fitted_per_fold.append((tr_data, te, model))
         for f in families:
             c = None if f == "none" else fit_family(f, start, model, tr_data, kw, seed)
-            s, share = _held_out_sq(c, model, te)
+            s, share, w = _held_out(c, model, te, sigma_m)
             sq[f] += s
             inside[f].append(share)
+            within[f] += w
     n = len(data)
     rms = {f: math.sqrt(sq[f] / n) for f in families}
     best = min((f for f in families if f != "none"), key=lambda f: rms[f], default=None)
     base = rms.get("none", math.inf)
     gain = 1.0 - rms[best] / base if best is not None and base > 0 else 0.0
     kept = best is not None and gain >= min_gain
+    sigma = {f: corrected_model_sigma(within[f][0], within[f][1], int(within[f][2])) for f in families}
     figures = {
         "folds": folds,
         "cv_rows": n,
         "cv_poses": _poses(data),
-        "families": {f: {"rms_m": rms[f], "held_out_inside_share": float(np.mean(inside[f]))} for f in families},
+        "families": {
+            f: {
+                "rms_m": rms[f],
+                "held_out_inside_share": float(np.mean(inside[f])),
+                "model_sigma_m": sigma[f],
+            }
+            for f in families
+        },
         "best": best,
         "gain": gain,
         "min_gain": min_gain,
         "chosen": best if kept else "none",
-        "learning_curve": _learning_curve(best, start, fitted_per_fold, kw, seed) if best else [],
+        "learning_curve": learning_curve(best, start, fitted_per_fold, kw, seed) if best else [],
+        # the instrument's per-axis noise the rows state (what extrapolate_learning_curve needs)
+        "noise_sigma_m": noise_sigma(data, sigma_m),
     }
     if not kept or best is None:
         return Choice("none", None, figures)
     final = final if final is not None else identify(start, all_data, **kw).model
     c = fit_family(best, start, final, all_data, kw, seed)
-    cv_figures = {"family": best, "rms_without_m": base, "rms_with_m": rms[best], "gain": gain, "folds": folds}
+    cv_figures = {
+        "family": best,
+        "rms_without_m": base,
+        "rms_with_m": rms[best],
+        "gain": gain,
+        "folds": folds,
+        # the corrected model's per-axis uncertainty inside its region: what u95 uses there
+        # (calibration.uncertainty.stored_position_covariance)
+        "model_sigma_m": sigma[best],
+    }
     if best == "transmission":
         c = dataclasses.replace(c, transmission=dataclasses.replace(c.transmission, cv=cv_figures))
     else:
@@ -154,13 +190,25 @@ def choose_correction(
     return Choice(best, c, figures)
 
 
+def noise_sigma(data, sigma_m: float) -> float:
+    """The per-axis noise (m) the rows of ``data`` state, as one figure (root mean square; rows
+    without their own σ: ``sigma_m``)."""
+    sigma = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
+    return float(np.sqrt(np.mean(sigma**2))) if len(sigma) else float(sigma_m)
+
+
 def _poses(data) -> int:
     return len(np.unique(np.asarray(data.pose_id).astype(str))) if data.pose_id is not None else len(data)
 
 
-def _learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> list[dict]:
-    """The held-out RMS (m) of ``family`` fitted to a share of each training fold's poses (the
-    geometric model of the whole training fold), against the number of those poses."""
+def learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> list[dict]:
+    """The held-out RMS (m) of ``family`` (``"none"``: the geometric model alone) fitted to a
+    share of each training fold's poses, the geometric model identified on that share too,
+    against the number of those poses: the whole procedure's error at that many poses. A share
+    too small to identify from gives no point (the whole fold's model in its place made a
+    30-pose session's curve flat: three points of one model)."""
+    from .identify import identify
+
     out = []
     for share in LEARNING_SHARES:
         sq, n, poses = 0.0, 0, []
@@ -169,8 +217,8 @@ def _learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) ->
                 k = max(int(share * _poses(tr_data)), 10)
                 rows = rm.map_rows(tr_data, k, seed + 7)
                 sub = tr_data.subset(rows)
-                sub_model = model if share == 1.0 else identify_or(start, sub, kw, model)
-                c = fit_family(family, start, sub_model, sub, kw, seed)
+                sub_model = model if share == 1.0 else identify(start, sub, **kw).model
+                c = None if family == "none" else fit_family(family, start, sub_model, sub, kw, seed)
                 s, _ = _held_out_sq(c, sub_model, te)
                 sq += s
                 n += len(te)
@@ -181,11 +229,37 @@ def _learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) ->
     return out
 
 
-def identify_or(start, data, kw: dict, fallback: KinematicModel) -> KinematicModel:
-    """The geometric model identified on ``data``, or ``fallback`` when they are too few."""
-    from .identify import identify
+def extrapolate_learning_curve(curve: list[dict], poses: int, sigma_m: float) -> dict | None:
+    """The held-out RMS (m) a learning curve (``[{"poses", "rms_m"}]``, :func:`learning_curve`)
+    predicts at ``poses`` poses, by a power law of what exceeds the instrument's noise:
 
-    try:
-        return identify(start, data, **kw).model
-    except ValueError:
-        return fallback
+        rms(n)² = 3 σ² + a · n^(−b),   b in [0, 2]
+
+    fitted in log-log to the points whose RMS exceeds the noise's ``√3 σ`` (per-axis ``sigma_m``).
+    Why this form: a held-out error is the model's plus the instrument's, and only the model's
+    part falls with more poses (as ``n^(−1)`` in variance for a fixed set of parameters; slower
+    for a learned correction that refines with the data, faster never). ``b`` is bounded so that
+    three points cannot promise more. Returns ``{"poses", "rms_m", "law", "a_m2", "b",
+    "extrapolated", "points"}`` or None when the curve has no point."""
+    pts = [(int(p["poses"]), float(p["rms_m"])) for p in curve if p.get("poses") and p.get("rms_m") is not None]
+    if not pts:
+        return None
+    noise2 = 3.0 * float(sigma_m) ** 2
+    n = np.array([p[0] for p in pts], dtype=float)
+    excess = np.array([p[1] ** 2 for p in pts]) - noise2
+    keep = excess > 0
+    out = {"poses": int(poses), "extrapolated": bool(poses > n.max()), "points": len(pts)}
+    law = "rms(n)^2 = 3 sigma^2 + a n^-b (power law of the excess over the instrument's noise)"
+    if keep.sum() >= 2 and len(np.unique(n[keep])) >= 2:
+        slope, intercept = np.polyfit(np.log(n[keep]), np.log(excess[keep]), 1)
+        b = float(np.clip(-slope, 0.0, 2.0))
+        # the intercept at the mean of the points, so that a clipped slope still passes through them
+        a = float(np.exp(np.mean(np.log(excess[keep]) + b * np.log(n[keep]))))
+        rms = math.sqrt(noise2 + a * float(poses) ** (-b))
+        return {**out, "rms_m": rms, "law": law, "a_m2": a, "b": b}
+    if keep.sum() == 0:  # already at the instrument's noise: more poses cannot show better
+        return {**out, "rms_m": math.sqrt(noise2), "law": "at the instrument's noise already", "a_m2": 0.0, "b": 0.0}
+    # one point above the noise: no slope to fit; the model's part taken to fall as 1/n (fixed parameters)
+    k = int(np.flatnonzero(keep)[0])
+    a = float(excess[k] * n[k])
+    return {**out, "rms_m": math.sqrt(noise2 + a / float(poses)), "law": law + ", b = 1 assumed", "a_m2": a, "b": 1.0}

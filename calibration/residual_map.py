@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .identification import INSTRUMENT_SIGMA_M
 from .model import KinematicModel
-from .residual_base import ResidualMapError, features  # noqa: F401 (the families' shared names, kept importable here)
+from .residual_base import ResidualMapError, corrected_model_sigma, features  # noqa: F401 (the families' shared names, kept importable here)
 from .residual_base import sqdist as _sqdist
 
 LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)
@@ -157,20 +158,26 @@ def choose_residual_map(
     outer = fold_indices(data, folds, seed)
     sq_without = sq_with = 0.0
     inside_share = []
+    fitted_per_fold = []  # (training, held-out, model) of each fold: the learning curve refits on shares
+    within = np.zeros(3)  # inside the map's region: Σ|e|² with it, Σ 3σ² stated, rows
+    sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
     for test in outer:
         train = np.setdiff1d(np.arange(len(data)), test)
         tr, te = data.subset(train), data.subset(test)
         model = identify(start, tr, **kw).model
+        fitted_per_fold.append((tr, te, model))
         m = _fitted_map(tr, residuals(model, tr), revolute, folds, seed)
         r_te = residuals(model, te)
         corr, inside = m.evaluate(te.q)
         sq_without += float(np.sum(r_te**2))
         sq_with += float(np.sum((r_te - corr) ** 2))
         inside_share.append(float(np.mean(inside)))
+        sigma = np.where(np.isfinite(te.sigma) & (te.sigma > 0), te.sigma, sigma_m)[inside]
+        within += (float(np.sum((r_te - corr)[inside] ** 2)), float(np.sum(3.0 * sigma**2)), int(inside.sum()))
     n = len(data)
     rms_without, rms_with = math.sqrt(sq_without / n), math.sqrt(sq_with / n)
     gain = 1.0 - rms_with / rms_without if rms_without > 0 else 0.0
-    figures = {
+    figures: dict = {
         "folds": folds,
         "rms_without_m": rms_without,
         "rms_with_m": rms_with,
@@ -180,13 +187,24 @@ def choose_residual_map(
         "kept": gain >= min_gain,
         "max_configurations": MAX_MAP_CONFIGURATIONS,
         "cv_rows": n,
+        # the corrected model's per-axis uncertainty inside the region (what u95 uses there)
+        "model_sigma_m": corrected_model_sigma(within[0], within[1], int(within[2])),
     }
+    # the held-out RMS against the number of poses, of the procedure kept (map or none): what a
+    # planned session's accuracy is predicted from (residual_choice.extrapolate_learning_curve)
+    from . import residual_choice as rc
+
+    figures["learning_curve"] = rc.learning_curve(
+        "map" if gain >= min_gain else "none", start, fitted_per_fold, kw, seed
+    )
+    figures["noise_sigma_m"] = rc.noise_sigma(data, sigma_m)
     if gain < min_gain:
         return None, figures
     final = final if final is not None else identify(start, all_data, **kw).model
     m = _fitted_map(all_data, residuals(final, all_data), revolute, folds, seed)
     figures.update(length_scale=m.length_scale, ridge=m.ridge, rows=len(m.q_train))
-    return dataclasses.replace(m, cv=figures), figures
+    # the file's section keeps the figures that judge the map, not the curve (in the report)
+    return dataclasses.replace(m, cv={k: v for k, v in figures.items() if k != "learning_curve"}), figures
 
 
 def map_rows(data, max_configurations: int = MAX_MAP_CONFIGURATIONS, seed: int = 0) -> np.ndarray:

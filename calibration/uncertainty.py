@@ -169,16 +169,69 @@ def stored_position_covariance(
     model: KinematicModel, q: np.ndarray, target: str | None = None, payload: np.ndarray | None = None
 ) -> np.ndarray:
     """Covariance (N, 3, 3) m² of the error of an identified model's predicted position of
-    ``target`` at readings ``q`` (N, n), from what its ``identification`` block stores: the
-    parameters' covariance grown by ``model_error_scale`` (:func:`covariance_from_block`),
-    propagated, plus the model-structure error (:func:`structure_sigma_from_block`). What
-    :func:`position_covariance` gives for the identification's result, for a model read from a
-    file or a store. Raises :class:`CovarianceError` naming the field at fault."""
+    ``target`` at readings ``q`` (N, n): :func:`stored_position_bound`'s, the one bound every verb
+    (predict, the result page, the certificate) uses. Raises :class:`CovarianceError` naming the
+    field at fault."""
+    return stored_position_bound(model, q, target, payload)[0]
+
+
+def stored_position_bound(
+    model: KinematicModel, q: np.ndarray, target: str | None = None, payload: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Covariance (N, 3, 3) m² of the error of a stored model's predicted position of ``target``
+    at readings ``q`` (N, n), and (N,) whether its residual correction applies there (None: the
+    model carries none).
+
+    Where the correction applies (inside the region it was fitted in), the position is the
+    geometric model's plus the correction, and its error is what the nested cross-validation
+    measured on held-out poses of the region, the instrument's noise taken out
+    (``residual_map.cross_validation.model_sigma_m``, :func:`correction_sigma_from_model`): that
+    error is of the whole procedure (the geometric model identified on the training folds, the
+    correction fitted to them), so the parameters' covariance is in it already. Elsewhere, and
+    for a model without a correction: what the ``identification`` block stores, the parameters'
+    covariance grown by ``model_error_scale`` (:func:`covariance_from_block`), propagated, plus
+    the model-structure error (:func:`structure_sigma_from_block`), what :func:`position_covariance`
+    gives for the identification's result."""
+    from .residual_map import from_model
+
     params, Sigma = covariance_from_block(model)
     structure_m = structure_sigma_from_block(model)
     q = np.atleast_2d(np.asarray(q, dtype=float))
     names = np.array([target] * len(q), dtype=object)
-    return propagate(model, params, Sigma, q, names, payload) + structure_m**2 * np.eye(3)
+    C = propagate(model, params, Sigma, q, names, payload) + structure_m**2 * np.eye(3)
+    correction = from_model(model)
+    if correction is None:
+        return C, None
+    p_tool = model.targets[target] if target is not None else None
+    inside = np.asarray(correction.evaluate(q, p_tool)[1], dtype=bool)
+    sigma_c = correction_sigma_from_model(model)
+    C[inside] = sigma_c**2 * np.eye(3)
+    return C, inside
+
+
+def correction_sigma_from_model(model: KinematicModel) -> float:
+    """The per-axis standard uncertainty (m) of a model's corrected position inside its residual
+    correction's region, from the cross-validation its ``residual_map`` section stores
+    (``model_sigma_m``, model length unit; :func:`calibration.residual_base.corrected_model_sigma`).
+    A file written before it was stored: the cross-validated RMS with the correction over √3
+    (``rms_with_m``; the instrument's noise left in: wider, never narrower)."""
+    section = model.metadata.get("residual_map")
+    cv = section.get("cross_validation") if isinstance(section, dict) else None
+    cv = cv if isinstance(cv, dict) else {}
+    for key, scale in (("model_sigma_m", 1.0), ("rms_with_m", 1.0 / math.sqrt(3.0))):
+        value = cv.get(key)
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0.0:
+            raise CovarianceError(
+                f"residual_map.cross_validation.{key}", f"expected a number >= 0 (model length unit), got {value!r}"
+            )
+        return float(value) * scale * model.units.length_m
+    raise CovarianceError(
+        "residual_map.cross_validation.model_sigma_m",
+        "this model's residual correction stores no cross-validated error (a model written by "
+        "`recal identify --residual-map auto` does)",
+    )
 
 
 @dataclass(frozen=True, slots=True)

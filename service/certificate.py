@@ -24,7 +24,7 @@ from calibration.model import model_from_dict
 
 from .device_config import DeviceConfigError, stored_devices
 from .models import AuditEntry, Calibration, Cell, RunSession
-from .records import position_errors, registered_errors, session_measurements
+from .records import corrected_errors, registered_errors, session_measurements
 from .results import _r, calibration_result
 from .store import as_utc, verifications
 
@@ -78,9 +78,12 @@ def _holdout(db: Session, cal: Calibration, verify_after: dict | None, unit: str
     except Exception:  # noqa: BLE001 - without its measurements the verify summary still stands
         return None
     model = model_from_dict(cal.model)
-    figures = _iso_figures((position_errors(model, data) / model.units.length_m).tolist(), unit)
+    e, inside = corrected_errors(model, data)  # the model with its residual correction, as it is used
+    figures = _iso_figures((e / model.units.length_m).tolist(), unit)
     if figures is None:
         return None
+    if inside is not None:  # there the geometric model alone was judged: counted, so the figure is read as such
+        figures["outside_mapped_region"] = int(np.count_nonzero(~inside))
     return {
         **figures,
         "session_id": run.id,
@@ -88,6 +91,22 @@ def _holdout(db: Session, cal: Calibration, verify_after: dict | None, unit: str
         "date": as_utc(run.created_at).isoformat(),
         "target": run.target,
     }
+
+
+def _holdout_model(holdout: dict, model) -> str:
+    """What the hold-out figures are of: the model as it stands, with its residual correction
+    where it applies (the geometric model alone elsewhere, counted)."""
+    text = (
+        f"the identified model as it stands on the {holdout['n']} fresh configurations of verify session "
+        f"{holdout['session_id']}, measured after the calibration"
+    )
+    if "outside_mapped_region" not in holdout:
+        return text
+    family = (model.metadata.get("residual_map") or {}).get("family", "map")
+    return (
+        f"{text}, with its residual correction ({family}) applied; {holdout['outside_mapped_region']} of them "
+        "lie outside the region the correction was fitted in, where the geometric model alone was judged"
+    )
 
 
 def _placed_verify_before(db: Session, verify_before: dict | None, nominal, unit: str) -> dict | None:
@@ -173,10 +192,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         "after_kind": "in-sample: the identified model's residuals on the measurements it was fitted to "
         "(optimistic; the hold-out figures are the accuracy to quote)",
         "holdout": holdout,
-        "holdout_model": None
-        if holdout is None
-        else f"the identified model as it stands on the {holdout['n']} fresh configurations of verify session "
-        f"{holdout['session_id']}, measured after the calibration",
+        "holdout_model": None if holdout is None else _holdout_model(holdout, model_from_dict(cal.model)),
         "verify_before": verify_before,
         "verify_after": verify_after,
         "predicted_workspace": _predicted(ws),

@@ -236,6 +236,8 @@ def planned_poses(req: PlanRequest) -> Plan:
 
     model, count, rng, between = req.model, req.count, req.rng, req.between
     target, sigma_m = req.target, req.sigma_m
+    if count > DENSE_FROM:
+        return dense_poses(req)
     candidates = random_inside(req.lim, max(20 * count, 1000), rng, model)
     between()
     try:
@@ -244,11 +246,16 @@ def planned_poses(req: PlanRequest) -> Plan:
         )
     except ValueError as exc:
         # Too few poses to determine every parameter from the data alone: a short session that
-        # updates a previous calibration (its prior) needs no more. Spread them at random.
+        # updates a previous calibration (its prior) needs no more. Spread them at random, and say
+        # how many planned poses would determine them (issue 27).
         return Plan(
             candidates[:count],
             np.zeros(count, int),
-            {"method": "random (too few poses to plan for a full identification)", "note": str(exc)},
+            {
+                "method": "random (too few poses to plan for a full identification)",
+                "note": str(exc),
+                "shortfall": _shortfall(model, candidates, count, target, sigma_m),
+            },
         )
     between()
     q = res.q[planning.measurement_order(res.q)]
@@ -259,7 +266,62 @@ def planned_poses(req: PlanRequest) -> Plan:
         "predicted_max_m": float(res.predicted_max_m),
         "unidentifiable": [u.name for u in res.unidentifiable],
     }
+    if res.unidentifiable or not res.success:
+        info["shortfall"] = _shortfall(model, candidates, count, target, sigma_m)
     return Plan(q, np.zeros(len(q), int), info)
+
+
+# A pose session of more configurations than this is a dense set for a learned residual correction
+# (issue 28): this many are planned D-optimally for the geometric model, the rest fill the region.
+DENSE_FROM = 200
+
+
+def dense_poses(req: PlanRequest) -> Plan:
+    """A dense set of ``req.count`` configurations over the allowed region (the task's region, as
+    the cell's allowed region says it): :data:`DENSE_FROM` planned D-optimally (what the geometric
+    identification needs, :func:`planned_poses`), the rest a Latin hypercube of the region (every
+    joint's range cut in as many strata as configurations, one in each, shuffled per joint), so
+    that a learned correction sees the whole region evenly; in a short measurement order."""
+    from calibration import planning
+
+    core = planned_poses(
+        PlanRequest(req.model, req.lim, DENSE_FROM, req.rng, req.target, None, 1, req.sigma_m, req.between)
+    )
+    req.between()
+    fill = latin_hypercube(req.lim, req.count - len(core.q), req.rng, req.model)
+    q = np.vstack([core.q, fill])
+    q = q[planning.measurement_order(q)]
+    info = {
+        **{k: v for k, v in core.info.items() if k != "method"},
+        "method": f"dense: {len(core.q)} poses {core.info.get('method')}, {len(fill)} filling the region "
+        "(Latin hypercube)",
+        "dense": {"planned": int(len(core.q)), "filling": int(len(fill))},
+    }
+    return Plan(q, np.zeros(len(q), int), info)
+
+
+def latin_hypercube(lim: np.ndarray, count: int, rng: np.random.Generator, model: KinematicModel) -> np.ndarray:
+    """(count, n) configurations inside ``lim`` (revolute joints within one turn, as
+    :func:`random_inside`), each joint's range cut in ``count`` equal strata with one
+    configuration in each, the strata shuffled independently per joint."""
+    lo, hi = lim[:, 0].copy(), lim[:, 1].copy()
+    for i, j in enumerate(model.joints):
+        if j.revolute:
+            lo[i], hi[i] = max(lo[i], -np.pi), min(hi[i], np.pi)
+    n = model.n_joints
+    u = (np.argsort(rng.random((count, n)), axis=0) + rng.random((count, n))) / max(count, 1)
+    return lo + u * (hi - lo)
+
+
+def _shortfall(model: KinematicModel, candidates: np.ndarray, count: int, target, sigma_m: float) -> dict | None:
+    """What ``count`` poses of this kind leave undetermined and what would determine it
+    (``calibration.planning.shortfall``), JSON-ready; None when the candidates say nothing."""
+    from calibration import planning
+
+    try:
+        return planning.shortfall(model, candidates, count, targets=(target,), sigma_m=sigma_m).as_dict()
+    except ValueError:
+        return None
 
 
 def _checking(compute: Callable, between: Callable[[], None]):

@@ -198,8 +198,27 @@ def target_points(model: KinematicModel, data: Measurements) -> np.ndarray:
 
 
 def position_errors(model: KinematicModel, data: Measurements) -> np.ndarray:
-    """(N, 3) measured minus predicted target positions, m (``calibration.metrics``)."""
-    return metrics.position_errors(model, data.q, data.p_world, target_points(model, data), data.payload)
+    """(N, 3) measured minus predicted target positions, m (``calibration.metrics``), the model's
+    stored residual correction applied where it applies (:func:`corrected_errors`)."""
+    return corrected_errors(model, data)[0]
+
+
+def corrected_errors(model: KinematicModel, data: Measurements) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N, 3) measured minus predicted target positions, m, the prediction being the model as
+    every verb uses it: the geometric model plus its stored residual correction
+    (``calibration.residual_map.from_model``, whatever its family) inside the region it was fitted
+    in, the geometric model alone elsewhere; and (N,) whether the correction applied (None: the
+    model carries none). Verify sessions, the certificate and the result page judge a model by
+    this, as ``recal accuracy`` does, so that the figures are of what compensation sends."""
+    from calibration.residual_map import from_model
+
+    p_tool = target_points(model, data)
+    e = metrics.position_errors(model, data.q, data.p_world, p_tool, data.payload)
+    correction = from_model(model)
+    if correction is None:
+        return e, None
+    corr, inside = correction.evaluate(data.q, p_tool)
+    return e - corr, np.asarray(inside, dtype=bool)
 
 
 def registered_errors(model: KinematicModel, data: Measurements) -> np.ndarray:

@@ -25,11 +25,18 @@ from calibration.kinematics import fk
 from calibration.metrics import norm_statistics
 from calibration.model import KinematicModel, model_from_dict
 from calibration.report import COMPARISON_STATUSES, compare_parameters
-from calibration.uncertainty import CovarianceError, covariance_from_block, radius_95, stored_position_covariance
+from calibration.uncertainty import CovarianceError, covariance_from_block, radius_95, stored_position_bound
 
 from .models import Calibration, Cell, Measurement, RunSession
 from .plans import UnsafePlan, allowed_limits, check_configurations
-from .records import measurements_of, position_errors, registered_errors, session_measurements
+from .records import (
+    corrected_errors,
+    current_model,
+    measurements_of,
+    position_errors,
+    registered_errors,
+    session_measurements,
+)
 from .store import as_utc, candidate_calibration, current_calibration
 
 WORKSPACE_SAMPLES = 400
@@ -127,7 +134,10 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
         target = None
     # as `recal predict --uncertainty`: grown by the cross-validation's model_error_scale, plus
     # the model-structure error the residuals showed
-    C = stored_position_covariance(model, q, target)
+    try:
+        C, inside = stored_position_bound(model, q, target)
+    except CovarianceError as exc:
+        return {"available": False, "reason": f"this calibration stored no usable bound: {exc}"}
     T = fk(model, q)
     p_world = T[:, :3, :3] @ model.target(target) + T[:, :3, 3]
     L = model.units.length_m
@@ -145,7 +155,14 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
         "stats_rms": _stats(rms),
         "note": "95 % radius of the position the model predicts, from the identified parameters' covariance "
         "and the model-structure error the residuals showed (none when the model explains the data); "
-        "the instrument's own noise is not included",
+        "the instrument's own noise is not included"
+        + (
+            ""
+            if inside is None
+            else "; inside the region its residual correction was fitted in, from the correction's "
+            f"cross-validated error ({100 * float(np.mean(inside)):.0f} % of these configurations)"
+        ),
+        **({} if inside is None else {"inside_correction_share": float(np.mean(inside))}),
     }
 
 
@@ -235,7 +252,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         out["errors"] = {"available": False, "reason": str(exc)}
         return out
     start, start_name = start_model_of(db, cal, cell)
-    e_after = position_errors(model, data)
+    e_after, inside = corrected_errors(model, data)  # with its residual correction, as the model is used
     raw_before = np.linalg.norm(position_errors(start, data), axis=1)
     if len(data) >= 3:
         e_before = registered_errors(start, data)
@@ -259,7 +276,14 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
             "norm": _rl(na / L),
             "xyz": _rl(e_after / L),
             "stats": _stats(na / L),
-            "model": "the identified model (in-sample: the same measurements it was fitted to)",
+            "model": "the identified model (in-sample: the same measurements it was fitted to)"
+            + (
+                ""
+                if inside is None
+                else f", with its residual correction where it applies ({int(np.count_nonzero(~inside))} "
+                "outside its region: the geometric model alone there)"
+            ),
+            **({} if inside is None else {"outside_mapped_region": int(np.count_nonzero(~inside))}),
         },
         "outlier_poses": [int(o["row"]) for o in report.get("outliers") or []],
     }
@@ -366,7 +390,47 @@ def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
     }
     if run.kind == "pose":
         out["predicted"] = _predicted_pose_accuracy(db, cell, q, run)
+        out["learning_curve"] = learning_curve_prediction(db, cell, len(q))
     return out
+
+
+def learning_curve_prediction(db: Session, cell: Cell, poses: int) -> dict:
+    """The held-out RMS a plan of ``poses`` poses is predicted to reach, from the learning curve
+    of the cell's current calibration (the nested cross-validation's held-out RMS of the whole
+    procedure, geometric identification and residual correction, against the number of poses),
+    extrapolated by a power law of the excess over the instrument's noise
+    (``calibration.residual_choice.extrapolate_learning_curve``). Model length unit."""
+    from calibration.residual_choice import extrapolate_learning_curve
+
+    _, cal = current_model(db, cell)
+    L = model_from_dict(cell.model).units.length_m
+    rmap = ((cal.report or {}).get("residual_map") or {}) if cal is not None else {}
+    curve = rmap.get("learning_curve") or []
+    if not curve or rmap.get("noise_sigma") is None:
+        return {
+            "available": False,
+            "reason": "no earlier learning curve: the cell's current calibration has none (a pose calibration "
+            "made by this version records one)",
+        }
+    pred = extrapolate_learning_curve(
+        [{"poses": p["poses"], "rms_m": p["rms"] * L} for p in curve], poses, rmap["noise_sigma"] * L
+    )
+    if pred is None:
+        return {"available": False, "reason": "the earlier learning curve has no point"}
+    return {
+        "available": True,
+        "calibration_id": cal.id if cal is not None else None,
+        "poses": int(poses),
+        "rms": _r(pred["rms_m"] / L),
+        "noise": _r(rmap["noise_sigma"]),
+        "exponent": _r(pred["b"], 3),
+        "extrapolated": pred["extrapolated"],
+        "curve": [{"poses": int(p["poses"]), "rms": _r(p["rms"])} for p in curve],
+        "note": f"held-out RMS predicted for {poses} poses from calibration {cal.id if cal else '-'}'s learning "
+        f"curve ({len(curve)} points, {min(p['poses'] for p in curve)}-{max(p['poses'] for p in curve)} poses), "
+        f"{'extrapolated' if pred['extrapolated'] else 'interpolated'} by a power law: {pred['law']}"
+        f" (b = {pred['b']:.2f}); it includes the instrument's noise",
+    }
 
 
 def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSession) -> dict:
@@ -379,6 +443,11 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
         f"RMS position error of the identified model over random configurations, predicted for an "
         f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis"
     )
+    if "dense" in info:  # the planner predicted for the planned core; the filling poses only add to it
+        note += (
+            f" (from the {info['dense']['planned']} planned poses: the {info['dense']['filling']} filling the "
+            "region can only improve it)"
+        )
     if "predicted_rms_m" in info:
         un = info.get("unidentifiable")
         return {
@@ -389,6 +458,7 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
             "sigma": _r(sigma_m / L),
             "unidentifiable": len(un) if isinstance(un, list) else None,
             "unidentifiable_names": un if isinstance(un, list) else None,
+            "shortfall": info.get("shortfall"),
             "source": "planner",
             "note": note,
         }
@@ -403,9 +473,11 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
             model, q, len(q), targets=(target,), sigma_m=sigma_m, exchange=False, rng=np.random.default_rng(7)
         )
     except ValueError as exc:
-        return {"available": False, "reason": str(exc)}
+        return {"available": False, "reason": str(exc), "shortfall": info.get("shortfall")}
     return {
         "available": bool(res.success),
+        # how many more poses, or which kind, would determine what these cannot (issue 27)
+        "shortfall": info.get("shortfall"),
         "rms": _r(res.predicted_rms_m / L),
         "p95": _r(res.predicted_p95_m / L),
         "max": _r(res.predicted_max_m / L),

@@ -88,11 +88,13 @@ def _commands(model, data, target):
     p_tool = np.stack([model.target(t) for t in names])
     p_cmd = np.einsum("nij,nj->ni", T[:, :3, :3], p_tool) + T[:, :3, 3]
     rmap = _residual_map(model)
+    inside = None
     if rmap is not None:  # where the model's residual correction applies, it corrects the commanded
-        p_cmd = p_cmd + rmap.evaluate(data.q, p_tool)[0]  # position (a transmission's: at each row's point)
+        corr, inside = rmap.evaluate(data.q, p_tool)  # position (a transmission's: at each row's point)
+        p_cmd = p_cmd + corr
     full = data.quat is not None and bool(np.all(data.has_orientation))
     R = (T[:, :3, :3], quat_to_matrix(data.quat)) if full else (None, None)
-    return names, p_cmd, R
+    return names, p_cmd, R, inside
 
 
 def _residual_map(model):
@@ -129,7 +131,7 @@ def run(args) -> int:
     data = read_measurements(args.data, model)
     progress(f"accuracy of {len(data)} rows ...")
     labels, grouping = _labels(args, model, data, read_table(args.data))
-    names, p_cmd, (R_cmd, R_meas) = _commands(model, data, args.target)
+    names, p_cmd, (R_cmd, R_meas), inside = _commands(model, data, args.target)
     # a pose is a commanded configuration and the target measured there
     keys: dict[tuple, int] = {}
     pose = np.array([keys.setdefault((lab, t), len(keys)) for lab, t in zip(labels, names)])
@@ -137,9 +139,19 @@ def run(args) -> int:
     err = error_statistics(p_cmd, data.p_world, R_cmd=R_cmd, R_meas=R_meas)
     report = _report(args, model, data, grouping, list(keys), pose, st, err)
     report["frame"] = _frame_check(p_cmd, data.p_world, model)
+    if inside is not None:
+        # rows outside the correction's region are judged by the geometric model alone: counted, said
+        report["outside_mapped_region"] = int(np.count_nonzero(~np.asarray(inside, dtype=bool)))
     if args.out:
         write_atomic(args.out, json.dumps(report, indent=1) + "\n")
     _print(report, args.out)
+    if report.get("outside_mapped_region"):
+        sys.stdout.flush()
+        print(
+            f"note: {report['outside_mapped_region']} of {len(data)} rows lie outside the region the model's residual "
+            "correction was fitted in: there the geometric model alone was judged",
+            file=sys.stderr,
+        )
     if report["frame"] is not None:  # after the figures it explains, the last line a user reads
         sys.stdout.flush()
         print(f"warning: {report['frame']['warning']}", file=sys.stderr)

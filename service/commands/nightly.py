@@ -139,6 +139,12 @@ def check_cell(
             if outside
             else ""
         )
+        corr = verified.get("residual_correction") or {}
+        if corr.get("outside_mapped_region"):  # the verify RMS there is the geometric model's alone
+            where += (
+                f"; {corr['outside_mapped_region']} of {verified['n']} outside the region its residual correction "
+                f"({corr.get('family', 'map')}) was fitted in (the geometric model alone there)"
+            )
         return done(EXIT_OK, "accurate", f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}){where}; nothing to do")
     p = start_session(api, cell["id"], {"kind": "pose", "count": count, "device": device}, timeout_s)
     p = api.wait_session(p["id"], timeout_s, poll_s=poll_s, patient=True)

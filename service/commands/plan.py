@@ -225,7 +225,10 @@ def run(args) -> int:
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.candidates or 'candidates'}: {exc.args[0] if isinstance(exc, KeyError) else exc}") from None
 
+    # what the plan leaves undetermined, and how many more poses, or which kind, would determine it (issue 27)
+    short = planning.shortfall(model, cand, len(result.indices), options) if _undetermined(result) else None
     report = _report(result, curve, model, len(cand), args, time.perf_counter() - t0)
+    report["shortfall"] = None if short is None else short.as_dict()
     if args.report:
         write_atomic(args.report, json.dumps(report, indent=2) + "\n")
     unit = u.length
@@ -258,9 +261,17 @@ def run(args) -> int:
         f"95th percentile {result.predicted_p95_m / L:.4g} {unit}, max {result.predicted_max_m / L:.4g} {unit}; "
         f"{len(result.params)} parameters identifiable, {len(result.unidentifiable)} not"
     )
+    if short is not None:
+        print(f"not determined: {short.message}")
     if not result.success:
         print(f"warning: {result.message}", file=sys.stderr)
     return 0
+
+
+def _undetermined(result) -> bool:
+    """Whether a plan leaves a parameter undetermined: one poses of its kind never determine, or
+    too few poses for the ones they can."""
+    return bool(result.unidentifiable) or not result.success
 
 
 def _report(result, curve, model, n_candidates: int, args, elapsed_s: float) -> dict:

@@ -21,7 +21,8 @@ def add_parser(s) -> None:
         action="store_true",
         help="append sigma_x, sigma_y, sigma_z (standard uncertainty per axis) and u95 (95 %% radius) of "
         "the predicted position, in the model's length unit, from the covariance an identified "
-        "model stores (the model's own uncertainty; the instrument's noise is not included)",
+        "model stores, or inside a residual correction's region from its cross-validated error "
+        "(the model's own uncertainty; the instrument's noise is not included)",
     )
 
 
@@ -127,12 +128,19 @@ def _outside_calibrated_region(args, model, q):
 
 def _stored_covariance(path, model):
     """Check, before any output, that the model stores what ``--uncertainty`` needs."""
-    from calibration.uncertainty import CovarianceError, covariance_from_block, structure_sigma_from_block
+    from calibration.uncertainty import (
+        CovarianceError,
+        correction_sigma_from_model,
+        covariance_from_block,
+        structure_sigma_from_block,
+    )
     from service.files import InputError
 
     try:
         covariance_from_block(model)
         structure_sigma_from_block(model)
+        if model.metadata.get("residual_map") is not None:  # inside its region the bound is its CV error
+            correction_sigma_from_model(model)
     except CovarianceError as exc:
         raise InputError(path, f"field {exc.field!r}: {exc} (needed by --uncertainty)") from None
 

@@ -119,6 +119,8 @@ def _residual_map(
         return None, None
     L = model.units.length_m
     figures = {k.removesuffix("_m"): (v / L if k.endswith("_m") else v) for k, v in fig.items()}
+    # the held-out RMS against the number of poses (model units): what the next plan's accuracy is predicted from
+    figures["learning_curve"] = [{"poses": p["poses"], "rms": p["rms_m"] / L} for p in fig.get("learning_curve", [])]
     return (None if rmap is None else rm.to_dict(rmap, model)), figures
 
 

@@ -14,7 +14,7 @@ from calibration.model import KinematicModel, model_from_dict
 from ..analysis import session_data
 from ..compensation import calibrated_range_of
 from ..plans import Plan, PlanRequest, random_inside, repeated
-from ..records import current_model, position_errors, registered_errors
+from ..records import corrected_errors, current_model, position_errors, registered_errors
 from ..store import activate_calibration, candidate_calibration
 from .positions import PositionKind
 
@@ -40,7 +40,8 @@ def verify_session(db, run, cell) -> dict:
     if candidate is not None:  # a new calibration waits: this session checks it against the current model
         before = _errors(model, data, cal)
         model, cal = model_from_dict(candidate.model), candidate
-    e = np.linalg.norm(position_errors(model, data), axis=1)
+    e_xyz, inside = corrected_errors(model, data)  # with the model's residual correction, as compensation uses it
+    e = np.linalg.norm(e_xyz, axis=1)
     L = model.units.length_m
     st = metrics.norm_statistics(e / L)
     out = {
@@ -52,6 +53,12 @@ def verify_session(db, run, cell) -> dict:
         "mean": st.mean,
         "unit": model.units.length,
     }
+    if inside is not None:
+        # where the correction did not apply the geometric model alone was judged: counted, flagged
+        out["residual_correction"] = {
+            "family": (model.metadata.get("residual_map") or {}).get("family", "map"),
+            "outside_mapped_region": int(np.count_nonzero(~inside)),
+        }
     if len(e) >= 3:
         # Also with the base placed where it fits best (book Table 1.1 does the same): the robot's
         # own inaccuracy, apart from where the instrument stands; the same figure as the result
@@ -74,8 +81,9 @@ def verify_session(db, run, cell) -> dict:
 
 def _errors(model: KinematicModel, data: Measurements, cal) -> dict:
     """The RMS and max position error of ``model`` (calibration ``cal``, None: the nominal model)
-    on the session's measurements, in the model's length unit."""
-    st = metrics.norm_statistics(np.linalg.norm(position_errors(model, data), axis=1) / model.units.length_m)
+    on the session's measurements, in the model's length unit, its residual correction applied
+    as for the candidate (one comparison, one definition)."""
+    st = metrics.norm_statistics(np.linalg.norm(corrected_errors(model, data)[0], axis=1) / model.units.length_m)
     return {"calibration_id": None if cal is None else cal.id, "rms": st.rms, "max": st.max}
 
 

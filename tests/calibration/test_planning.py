@@ -284,3 +284,38 @@ def test_measurement_order_is_a_short_tour():
     assert sorted(order.tolist()) == list(range(40))
     length = lambda o: np.sum(np.max(np.abs(np.diff(q[o], axis=0)), axis=1))  # noqa: E731
     assert length(order) < 0.7 * length(np.arange(40))
+
+
+def test_a_plan_that_cannot_determine_everything_says_how_many_poses_or_which_kind_would():
+    """Issue 27: the shortfall names the fewest planned poses that determine every parameter
+    poses of this kind can (checked here by planning that many, and one fewer, from the same
+    candidates), and what kind of measurement the others need."""
+    import dataclasses as dc
+
+    from calibration import planning as PL
+    from calibration.robots import nominal as lib
+    from calibration.simulate import random_configurations as draw
+
+    model = dc.replace(lib("ur10e"), targets={"smr": np.array([0.03, 0.0, 0.08])})
+    cand = draw(model, 1500, np.random.default_rng(4))
+    s = PL.shortfall(model, cand, 5, targets=("smr",))
+    assert s.poses_needed is not None and s.more_poses == s.poses_needed - 5 > 0
+    assert f"{s.more_poses} more" in s.message
+    # independent check: that many planned poses determine them all, one fewer does not
+    full = PL.plan(model, cand, s.poses_needed, targets=("smr",), exchange=False)
+    assert full.success and len(full.params) == s.identifiable
+    try:
+        fewer = PL.plan(model, cand, s.poses_needed - 1, targets=("smr",), exchange=False).success
+    except ValueError:  # below the count the parameters need at all
+        fewer = False
+    assert not fewer
+    # what no number of position-only poses determines: the tool's orientation needs another kind
+    kinds = {k["category"]: k for k in s.by_kind}
+    assert {"tool.rx", "tool.ry", "tool.rz"} <= set(kinds["tool_orientation"]["parameters"])
+    assert (
+        "orientation measurements" in kinds["tool_orientation"]["needs"] and not kinds["tool_orientation"]["harmless"]
+    )
+    names = [n for k in s.by_kind for n in k["parameters"]]
+    assert sorted(names) == sorted(u.name for u in full.unidentifiable)  # every one of them accounted for
+    # a plan with enough poses: no more poses needed, the kinds still named
+    assert PL.shortfall(model, cand, 40, targets=("smr",)).more_poses == 0

@@ -192,3 +192,36 @@ def test_the_simulated_cell_puts_the_arm_where_its_transmission_errors_say():
         assert np.allclose(cell.target_world("smr"), expected[k], atol=1e-12)
         assert np.allclose(plain.target_world("smr"), rigid[k], atol=1e-12)
         assert np.linalg.norm(expected[k] - rigid[k]) > 1e-5  # the transmission errors matter
+
+
+def test_a_learning_curve_extrapolates_by_a_power_law_of_the_excess_over_the_noise():
+    """``extrapolate_learning_curve``: points on rms² = 3σ² + a n^-b give back the law, and a
+    prediction at more poses than measured; a curve at the noise predicts the noise; the
+    exponent is bounded (three points cannot promise more than 1/n²)."""
+    sigma, a, b = 10e-6, 4e-6, 0.7
+    curve = [{"poses": n, "rms_m": float(np.sqrt(3 * sigma**2 + a * n**-b))} for n in (160, 320, 640)]
+    p = RC.extrapolate_learning_curve(curve, 2000, sigma)
+    assert p["extrapolated"] and p["b"] == pytest.approx(b, rel=1e-9) and p["a_m2"] == pytest.approx(a, rel=1e-9)
+    assert p["rms_m"] == pytest.approx(np.sqrt(3 * sigma**2 + a * 2000**-b), rel=1e-9)
+    assert np.sqrt(3) * sigma < p["rms_m"] < curve[-1]["rms_m"]  # better than measured, never below the noise
+    flat = [{"poses": n, "rms_m": np.sqrt(3) * sigma * 0.99} for n in (100, 200)]
+    assert RC.extrapolate_learning_curve(flat, 5000, sigma)["rms_m"] == pytest.approx(np.sqrt(3) * sigma)
+    steep = [{"poses": n, "rms_m": float(np.sqrt(3 * sigma**2 + 1e3 * n**-5.0))} for n in (10, 20, 40)]
+    assert RC.extrapolate_learning_curve(steep, 80, sigma)["b"] == 2.0
+    assert RC.extrapolate_learning_curve([], 100, sigma) is None
+
+
+def test_the_learning_curve_of_400_poses_predicts_the_error_of_800(chosen):
+    """The procedure's learning curve (nested CV on 1,000 poses of the simulated cell with
+    transmission errors), extrapolated, against the held-out RMS it reports: the prediction at
+    the curve's own largest point is its measured value, and at twice that number it lies
+    between the noise and the measured value."""
+    *_, choice = chosen
+    fig = choice.figures
+    curve = fig["learning_curve"]
+    assert len(curve) == 3 and fig["noise_sigma_m"] == pytest.approx(SIGMA_M)
+    last = curve[-1]
+    at_last = RC.extrapolate_learning_curve(curve, last["poses"], SIGMA_M)["rms_m"]
+    assert at_last == pytest.approx(last["rms_m"], rel=0.15)
+    ahead = RC.extrapolate_learning_curve(curve, 2 * last["poses"], SIGMA_M)
+    assert ahead["extrapolated"] and np.sqrt(3) * SIGMA_M <= ahead["rms_m"] <= last["rms_m"] * 1.0001

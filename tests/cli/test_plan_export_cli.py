@@ -303,3 +303,19 @@ def test_export_bad_model_names_the_field(tmp_path, capsys):
     assert recal(["export", "--model", str(tmp_path / "bad.json"), "--format", "urdf", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "joints[2].alpha" in err and not out.exists()
+
+
+def test_a_20_pose_plan_says_what_would_determine_what_it_cannot(cell, tmp_path, capsys):
+    """Issue 27: the plan names the parameters it cannot determine, how many poses would determine
+    the ones poses of this kind can, and which kind of measurement the others need."""
+    out, rep = tmp_path / "poses.csv", tmp_path / "plan.json"
+    args = ["plan", "--model", str(cell / "ur.json"), "--count", "20", "--out", str(out)]
+    assert recal([*args, "--candidates", str(cell / "cand.csv"), "--target", "smr", "--report", str(rep)]) == 0
+    stdout = capsys.readouterr().out
+    report = json.loads(rep.read_text())
+    sf = report["shortfall"]
+    assert sf["count"] == 20 and sf["more_poses"] == 0 and sf["poses_needed"] <= 20
+    undetermined = {u["name"] for u in report["unidentifiable"]}
+    assert {n for k in sf["by_kind"] for n in k["parameters"]} == undetermined
+    line = next(x for x in stdout.splitlines() if x.startswith("not determined: "))
+    assert "orientation measurements" in line and "tool.rx" in line

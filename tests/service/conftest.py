@@ -145,14 +145,16 @@ def store_session(
     truth_seed: int = 1,
     sag: str | None = None,
     region_deg: float | None = None,
+    transmission_seed: int | None = None,
 ) -> tuple[int, int | None]:
     """A completed session of the cell stored as the orchestrator stores one: simulated tracker
     measurements (reflector ``smr``) of a robot near the cell's nominal model (link errors from
     ``truth_seed``), then the analysis (identification for ``pose``, accuracy for ``verify``,
     each configuration visited ``repeats`` times; ``sag``: the robot sags under gravity, one of
     ``calibration.simulate.SAGGING_ARMS``; ``region_deg``: every joint within that many degrees of
-    one configuration, REGION_CENTRE_DEG, instead of the whole range). Returns (session id,
-    calibration id)."""
+    one configuration, REGION_CENTRE_DEG, instead of the whole range; ``transmission_seed``: the
+    robot's joints have harmonic-drive transmission errors drawn from it,
+    ``calibration.simulate.harmonic_drive_errors``). Returns (session id, calibration id)."""
     import dataclasses
 
     import numpy as np
@@ -181,7 +183,12 @@ def store_session(
                 centre = np.deg2rad(REGION_CENTRE_DEG)
                 limits = np.stack([centre - np.deg2rad(region_deg), centre + np.deg2rad(region_deg)], axis=1)
             q = np.repeat(random_configurations(nominal, n, rng, limits=limits), repeats, axis=0)
-            data = simulate_measurements(truth, q, rng, targets=("smr",))
+            tx = None
+            if transmission_seed is not None:
+                from calibration.simulate import harmonic_drive_errors
+
+                tx = harmonic_drive_errors(nominal, np.random.default_rng(transmission_seed))
+            data = simulate_measurements(truth, q, rng, targets=("smr",), transmission=tx)
             info = {"method": "random", "limits_checked": True, **({"repeats": repeats} if repeats > 1 else {})}
             run = RunSession(
                 cell_id=cell_id,

@@ -152,6 +152,8 @@ def test_technician_calibrates_a_cell_from_the_page(page, stack, web, tmp_path):
     assert page.inner_text("#plan-check").startswith("✓")
     assert "95th percentile" in page.inner_text("#predicted")
     assert "random configurations" in page.inner_text("#predicted-note")
+    # what these poses cannot determine, and which kind of measurement would (issue 27)
+    assert "orientation measurements" in page.inner_text("#plan-shortfall")
     assert page.locator("svg[aria-label='joint ranges']").count() == 1
     shot(page, "05-session-plan")
     page.click("#confirm-start")

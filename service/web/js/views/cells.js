@@ -896,10 +896,26 @@ export async function start(ctx, id) {
   put(ctx.root, form, planBox);
 }
 
+// How many more poses, or which kind of measurement, would determine what a plan cannot (issue 27):
+// calibration.planning.shortfall, in plain words.
+function shortfallText(sf) {
+  const parts = [];
+  if (sf.more_poses > 0) parts.push(`${sf.more_poses} more poses (${sf.poses_needed} planned in all) would determine the ${sf.identifiable} parameters these poses can reach.`);
+  else if (sf.poses_needed != null) parts.push(`These ${sf.count} poses are enough for the ${sf.identifiable} parameters poses of this kind can reach.`);
+  for (const k of sf.by_kind || []) {
+    const names = k.parameters.slice(0, 4).join(", ") + (k.parameters.length > 4 ? ` and ${k.parameters.length - 4} more` : "");
+    parts.push(k.harmless
+      ? `${k.parameters.length} need nothing more (${names}): ${k.needs.replace(/^nothing: /, "")}.`
+      : `${k.parameters.length} no number of these poses determines (${names}): ${k.needs} would.`);
+  }
+  return parts.join(" ");
+}
+
 function showPlan(ctx, box, plan, s, c) {
   const unit = c.unit;
   const ok = plan.check && plan.check.ok && s.state === "completed";
   const p = plan.predicted;
+  const lc = plan.learning_curve;  // the accuracy the earlier calibration's learning curve predicts (issue 28)
   const rows = [
     ["Configurations", `${plan.configurations}${plan.method ? ` (${plan.method})` : ""}`],
     ["Limit check (dry run)", h("span", { class: ok ? "ok-text" : "error-text", id: "plan-check" },
@@ -914,6 +930,10 @@ function showPlan(ctx, box, plan, s, c) {
     p && p.identifiable ? ["Parameters", `${p.identifiable} identifiable, ${p.unidentifiable} that these poses cannot determine`]
       : p && p.unidentifiable != null ? ["Parameters", `${p.unidentifiable} that these poses cannot determine`
         + (p.unidentifiable_names ? ` (${p.unidentifiable_names.slice(0, 6).join(", ")}${p.unidentifiable > 6 ? ` and ${p.unidentifiable - 6} more` : ""})` : "")] : null,
+    lc && lc.available ? ["Predicted from earlier data", h("span", {},
+      h("span", { id: "learning-curve" }, `hold-out RMS ${num(lc.rms, 3)} ${unit} with ${lc.poses} poses`),
+      h("span", { class: "muted small", id: "learning-curve-note", style: { display: "block" } }, lc.note))] : null,
+    p && p.shortfall ? ["What would determine the rest", h("span", { id: "plan-shortfall" }, shortfallText(p.shortfall))] : null,
     plan.estimated_duration_s != null ? ["Estimated robot time", `${duration(plan.estimated_duration_s)} (motion at `
       + `≤ ${num(plan.speed_caps?.joint_speed_deg_s, 3)} °/s, settling and measuring)`] : null,
   ];
