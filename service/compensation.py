@@ -463,8 +463,26 @@ def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress
     perm = np.argsort(order, kind="stable")
     comp = take(comp, perm)
     prefixes = [prefixes[k] for k in perm]
-    skipped = [{"line": u.line, "text": u.text, "reason": u.reason} for u in script.uninterpreted]
+    skipped = [
+        {"line": u.line, "text": u.text, "reason": u.reason}
+        for u in script.uninterpreted
+        if not (u.tcp is not None and tcp_is_tool(u.tcp, model))
+    ]
     return script.rewrite(replacements, literals), comp, prefixes, skipped, M, fit_rms
+
+
+# How close a set_tcp must be to the model's tool to count as it: the digits a program gives a TCP
+# (1 µm, 10 µrad: a few µm at the tool point), far below the 0.01 mm a target must reach.
+TCP_SAME_M, TCP_SAME_RAD = 1e-6, 1e-5
+
+
+def tcp_is_tool(tcp_ur: np.ndarray, model: KinematicModel) -> bool:
+    """Whether a URScript ``set_tcp`` pose (m, rotation vector) is the model's tool: the targets,
+    compensated for that tool, are then right under it, and the line needs no flag (issue 27)."""
+    T_set, T_tool = pose_to_matrix_ur(tcp_ur), pose_to_matrix(model.tool)
+    dR = T_set[:3, :3].T @ T_tool[:3, :3]
+    angle = float(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)))
+    return bool(np.linalg.norm(T_set[:3, 3] - T_tool[:3, 3]) <= TCP_SAME_M and angle <= TCP_SAME_RAD)
 
 
 def _program(req: CompensationRequest, model: KinematicModel, t0: float, progress):

@@ -249,6 +249,9 @@ class Uninterpreted:
     line: int
     text: str
     reason: str
+    # a set_tcp's pose literal (m, rotation vector): the compensation drops the flag when it is
+    # the model's own tool (issue 27)
+    tcp: np.ndarray | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -352,6 +355,17 @@ def _literal(code: str, s: int, e: int, offset: int, line: int, name: str | None
     return Literal(kind, line, spans, values, name)
 
 
+def _tcp_literal(code: str, open_idx: int) -> np.ndarray | None:
+    """The pose a ``set_tcp(p[...])`` call sets (m, rotation vector), or ``None`` when its
+    argument is anything but one pose literal (a variable, an expression)."""
+    parsed = _args(code, open_idx)
+    if parsed is None or len(parsed[0]) != 1:
+        return None
+    s, e = _strip(code, *parsed[0][0])
+    lit = _literal(code, s, e, 0, 0)
+    return lit.values if lit is not None and lit.kind == "pose" and len(lit.values) == 6 else None
+
+
 def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | None = None) -> Script:
     """Find the move targets of a URScript program (see the module docstring); ``data`` the
     file's bytes (read from ``path`` when not given)."""
@@ -382,6 +396,7 @@ def parse_urscript(path: str | os.PathLike, n_joints: int = 6, data: bytes | Non
                         ln,
                         raw.strip(),
                         "set_tcp changes the TCP: targets are compensated for the model's tool, which must be this TCP",
+                        _tcp_literal(code, mv.end() - 1),
                     )
                 )
                 continue

@@ -386,33 +386,28 @@ def run(args) -> int:
 
 def _run_backup(args) -> int:
     """``--task DIR --out OUTDIR``: every program of a controller backup compensated
-    (service.programs.backup), every other file copied, the same layout; one report (a row per
+    (service.backups), every other file copied, the same layout; one report (a row per
     target, a summary per file). Nothing is written unless every program could be read."""
-    import shutil
     from dataclasses import replace
     from pathlib import Path
 
+    from service.backups import NotABackup, compensate_folder, report_bytes
     from service.cli import Fail
-    from service.compensation import CompensationRequest, NoTargetsError, compensate_task
+    from service.compensation import CompensationRequest
     from service.files import write_atomic
-    from service.programs import backup
 
     root, out = Path(args.task), Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise Fail(f"--out {args.out}: expected a new or empty folder for the compensated backup")
-    try:
-        layout, jobs = backup.plan(root, args.config_dat)
-    except ValueError as exc:
-        raise Fail(f"--task {args.task}: {exc}") from None
     model, nominal, taught = _models(args)
     kw, qnear = _settings(args, model)
-    results = []
-    for job in jobs:
+
+    def request(job, out_path):
         args.fmt, args.module = job.fmt, list(job.modules)
         frames = replace(_frames(args), config_dat=job.config_dat) if job.fmt == "krl" else _frames(args)
-        req = CompensationRequest(
+        return CompensationRequest(
             task=str(job.path),
-            out=str(out / job.rel),
+            out=str(out_path),
             model_label=args.model,
             fmt=job.fmt,
             mode=args.mode,
@@ -424,47 +419,17 @@ def _run_backup(args) -> int:
             frames=frames,
             report=True,
         )
-        try:
-            results.append((job, compensate_task(model, req)))
-        except NoTargetsError as exc:  # a program without targets (a KUKA cell.src): copied as it is
-            results.append((job, exc.report or {"summary": {"points": 0}, "uninterpreted": []}))
-    shutil.copytree(root, out, dirs_exist_ok=True)  # every byte that is no target's number
-    points, files, short = [], [], []
-    for job, result in results:
-        if isinstance(result, dict):
-            files.append(
-                {
-                    "file": str(job.rel),
-                    "summary": result.get("summary"),
-                    "uninterpreted": result.get("uninterpreted", []),
-                }
-            )
-            continue
-        for path, data in result.outputs:
-            write_atomic(path, data)
-        doc = result.report()
-        rel = {str(job.path): str(job.rel), str(job.path.with_suffix(".dat")): str(job.rel.with_suffix(".dat"))}
-        for p in doc["points"] + doc["uninterpreted"]:
-            p["file"] = rel.get(p.get("file", str(job.path)), p.get("file", str(job.rel)))
-        points += doc["points"]
-        files.append({"file": str(job.rel), "summary": doc["summary"], "uninterpreted": doc["uninterpreted"]})
-        if result.shortfall():
-            short.append(f"{job.rel}: {result.shortfall()}")
+
+    try:
+        result = compensate_folder(root, out, model, request, args.config_dat)
+    except NotABackup as exc:
+        raise Fail(f"--task {args.task}: {exc}") from None
     if args.report:
-        write_atomic(
-            args.report,
-            json.dumps(
-                {"format": "recal.compensation-report/1", "task": str(root), "layout": layout, "files": files,
-                 "points": points},
-                indent=1,
-            )
-            + "\n",
-        )  # fmt: skip
-    n = sum(len(r.comp) for _, r in results if not isinstance(r, dict))
-    print(f"compensated {len(results)} programs ({layout} backup), {n} points; wrote {out}")
-    for line in short:
+        write_atomic(args.report, report_bytes(result).decode())
+    print(f"compensated {result.programs} programs ({result.layout} backup), {result.points} points; wrote {out}")
+    for line in result.short:
         print(f"recal compensate: {line}", file=sys.stderr)
-    return 3 if short else 0
+    return 3 if result.short else 0
 
 
 def _head_of(path) -> str | None:

@@ -10,13 +10,15 @@ registered with the cell compensated again. Prints one line fit for cron or a sy
 
 Exit status: 0 the cell is within its threshold; 10 it drifted and was recalibrated;
 1 a session failed, paused or timed out (a person must look); 2 bad arguments;
-3 the service cannot be reached or refused the token.
+3 the service cannot be reached or refused the token, or the cell was recalibrated but some
+targets of its task files were left as written or did not converge (as ``recal compensate``
+exits 3; the line counts them and names the files and compensations whose report rows say which).
 
 With ``--all`` (or ``--site`` alone) every cell's check runs concurrently (the fleet's workers
 share them out; ``--parallel`` caps how many at once) and a summary table is printed when all
 are done, then the line of each cell that needs a person. Exit status: 3 if the service could
-not be reached for any cell, else 1 if any cell needs a person, else 10 if any was
-recalibrated, else 0.
+not be reached for any cell, else 1 if any cell needs a person, else 3 if any cell's task files
+have targets not compensated, else 10 if any was recalibrated, else 0.
 
 A service that is slow to answer, busy (502/503/504) or briefly away (a busy night, an API
 replica restarting) is waited for, up to each session's ``--timeout``: reads are repeated, and a
@@ -34,6 +36,9 @@ from concurrent.futures import ThreadPoolExecutor
 from service.client import Api, ApiError, ServiceError, transient
 
 EXIT_OK, EXIT_RECALIBRATED, EXIT_FAILED, EXIT_USAGE, EXIT_SERVICE = 0, 10, 1, 2, 3
+# recalibrated, but targets of the task files left as written or not converged: the compensate
+# verbs' exit 3 (the line tells it from an unreachable service, which prints no cell line)
+EXIT_SHORTFALL = 3
 
 
 def add_parser(s) -> None:
@@ -181,6 +186,10 @@ def check_cell(
             f"recalibrated, {len(failed)} task files failed",
             msg + f", {len(failed)} failed ({failed[0]['name']}: {failed[0]['error']})",
         )
+    short = shortfalls(tasks["tasks"])
+    if short:
+        r = done(EXIT_SHORTFALL, f"recalibrated, {short[0]} targets not compensated", msg + f"; {short[1]}")
+        return {**r, "shortfall": short[0]}
     return done(EXIT_RECALIBRATED, f"recalibrated (RMS {cal['rms']:.4g} {unit})", msg)
 
 
@@ -205,6 +214,19 @@ def _verify_candidate(
         f"{unit} RMS) than calibration {against.get('calibration_id')} ({against.get('rms', float('nan')):.4g} {unit}); "
         "task files not recompensated"
     )
+
+
+def shortfalls(tasks: list[dict]) -> tuple[int, str] | None:
+    """The targets of the recompensated task files left as written (unreachable) or not
+    converged: their count and a phrase naming each file with its stored compensation (whose
+    report's rows say which targets), or ``None`` when every target was compensated."""
+    short = [(t, int((t.get("summary") or {}).get("not_compensated", 0))) for t in tasks if "error" not in t]
+    short = [(t, n) for t, n in short if n]
+    if not short:
+        return None
+    total = sum(n for _, n in short)
+    where = ", ".join(f"{t['name']}: {n} (compensation {t['compensation_id']})" for t, n in short)
+    return total, f"{total} targets not compensated ({where}; rows in GET /compensations/ID/report)"
 
 
 def start_session(api: Api, cell_id: int, body: dict, timeout_s: float) -> dict:
@@ -287,12 +309,15 @@ def nightly_fleet(api: Api, sites: list[str], *, parallel: int, **kw) -> tuple[i
     width = len(cells) if parallel <= 0 else min(parallel, len(cells))
     with ThreadPoolExecutor(max_workers=min(width, 512), thread_name_prefix="nightly") as pool:
         results = list(pool.map(one, cells))
+    unreachable = any(r["status"] == EXIT_SERVICE and not r.get("shortfall") for r in results)
     statuses = {r["status"] for r in results}
     status = (
         EXIT_SERVICE
-        if EXIT_SERVICE in statuses
+        if unreachable
         else EXIT_FAILED
         if EXIT_FAILED in statuses
+        else EXIT_SHORTFALL
+        if any(r.get("shortfall") for r in results)
         else EXIT_RECALIBRATED
         if EXIT_RECALIBRATED in statuses
         else EXIT_OK
@@ -327,14 +352,16 @@ def _report(results: list[dict]) -> str:
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
+    short = [r for r in results if r.get("shortfall")]
     n = {k: sum(r["status"] == k for r in results) for k in (EXIT_OK, EXIT_RECALIBRATED, EXIT_FAILED, EXIT_SERVICE)}
     lines.append("")
     lines.append(
-        f"{len(results)} cells: {n[EXIT_OK]} accurate, {n[EXIT_RECALIBRATED]} recalibrated, "
-        f"{n[EXIT_FAILED] + n[EXIT_SERVICE]} need a person"
+        f"{len(results)} cells: {n[EXIT_OK]} accurate, {n[EXIT_RECALIBRATED] + len(short)} recalibrated"
+        + (f" ({len(short)} with targets not compensated)" if short else "")
+        + f", {n[EXIT_FAILED] + n[EXIT_SERVICE] - len(short)} need a person"
     )
     for r in results:
-        if r["status"] in (EXIT_FAILED, EXIT_SERVICE):
+        if r["status"] in (EXIT_FAILED, EXIT_SERVICE):  # a shortfall's line names its targets
             lines.append("  " + r["line"])
     return "\n".join(lines)
 

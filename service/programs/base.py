@@ -47,7 +47,8 @@ class Target:
     none) and ``config_text`` as written. Joints: ``q`` (6,) readings in rad and ``joints`` its
     numbers. ``T_work`` (4, 4) the work frame (wobj, base, user frame) in the robot's base frame,
     ``T_tool`` (4, 4) the tool in the flange frame, ``frames`` how they were named; ``seq`` its
-    place in the program's motions where that is not its line (:func:`motion_order`)."""
+    place in the program's motions where that is not its line (:func:`motion_order`);
+    ``config_off`` the controller does not monitor its configuration (RAPID ``ConfL\\Off``)."""
 
     kind: str
     file: int
@@ -66,6 +67,10 @@ class Target:
     T_tool: np.ndarray = field(default_factory=lambda: np.eye(4))
     frames: str = ""
     seq: int | None = None
+    # the written configuration does not choose the solution (RAPID ConfL\Off/ConfJ\Off at the
+    # move that uses it): the controller's rule for a target without one applies, and it is kept
+    # as written
+    config_off: bool = False
 
 
 def motion_order(t: Target) -> tuple:

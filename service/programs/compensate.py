@@ -138,7 +138,9 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
                 ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
             )
             sol = configuration(brand, nom, cp.q)
-            changed = np.array([t.config is not None and not same(brand, t.config, s) for t, s in zip(ts, sol)])
+            changed = np.array(
+                [t.config is not None and not t.config_off and not same(brand, t.config, s) for t, s in zip(ts, sol)]
+            )
             flags = (
                 cp.flags
                 | np.where(changed, FLAG_BIT["branch_change"], 0)
@@ -229,8 +231,8 @@ def controller_solutions(prog: Program, nominal, B: np.ndarray, ref: np.ndarray)
 
     A target with configuration data: the solution in that configuration, turns nearest the
     brand's reference (:func:`calibration.vendors.configured_ik`). A target without (a KRL POS or
-    FRAME without S and T) takes what the controller takes, moving from the previous target in
-    the program's motions (:func:`~.base.motion_order`): a linear or circular move keeps the
+    FRAME without S and T; a RAPID target whose move runs under ``ConfL\\Off``/``ConfJ\\Off``)
+    takes what the controller takes, moving from the previous target in the program's motions (:func:`~.base.motion_order`): a linear or circular move keeps the
     start configuration (the same side of axis 1, elbow and wrist), turns nearest the start; a
     joint move the solution nearest the axes where it starts. Where a linear move's target has no
     solution in the start configuration, it is not found (the controller stops there)."""
@@ -245,7 +247,8 @@ def controller_solutions(prog: Program, nominal, B: np.ndarray, ref: np.ndarray)
     stated = set()
     for idx in groups.values():
         nom = _with_tool(nominal, prog.targets[idx[0]].T_tool, nominal)
-        dec = {i: decode(brand, prog.targets[i].config) for i in idx}
+        # a configuration the controller does not monitor (RAPID ConfL\Off) chooses nothing
+        dec = {i: decode(brand, None if prog.targets[i].config_off else prog.targets[i].config) for i in idx}
         rows = [i for i in idx if any(v is not None for v in dec[i])]
         if not rows:
             continue

@@ -15,10 +15,18 @@ whose tool or work object Recal cannot resolve refuses the file, naming the line
 robtarget takes the frames of the moves that use it; one used with different frames, or by no
 move, is left alone and reported, as are targets computed by an expression (``Offs``, ``RelTool``,
 ``CRobT``) and other uses of a target's name.
+
+Configuration monitoring: after ``ConfL\\Off`` (until ``ConfL\\On``) a linear or circular move
+does not hold its target's confdata, and after ``ConfJ\\Off`` a joint move does not: the
+controller takes the configuration nearest the start, as for a KRL or TP target without
+configuration data (service.programs.compensate.controller_solutions); the confdata is kept as
+written. The state follows the module's text (a controller starts a program with both on); a
+target used by several moves takes its first move's.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from pathlib import Path
@@ -59,6 +67,10 @@ MOVES = {
     "arcl": (1, -1),
     "arcc": (2, -1),
 }
+# ConfL\Off / ConfJ\Off (and \On): whether the controller holds a linear (and circular) or a
+# joint move to the target's written configuration
+_CONF_RE = re.compile(r"^\s*(ConfL|ConfJ)\s*\\\s*(On|Off)\s*$", re.IGNORECASE)
+_JOINT_MOVES = ("movej", "movejdo", "movejsync", "triggj")
 _MOVE_RE = re.compile(r"(?<![\w\\])(" + "|".join(sorted(MOVES, key=len, reverse=True)) + r")(?=[\s\\,])", re.IGNORECASE)
 _DECL_RE = re.compile(
     r"^[ \t]*(?:(local|task)\s+)?(const|pers|var)\s+([a-z_]\w*)\s+([a-z_]\w*)\s*(\{[^}]*\})?\s*",
@@ -294,11 +306,17 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
     moves = []  # (offset, move, [target arg spans], tool name, wobj name)
     skipped: list[Uninterpreted] = []
     expected: set[int] = set()  # offsets of identifiers that are a target's own use
+    monitored = {"confl": True, "confj": True}  # a program starts with both on
+    conf_off: dict[int, bool] = {}  # a move's offset -> its target's confdata is not held
     pos = 0
     for stmt_end in [m.start() for m in re.finditer(";", code)] + [len(code)]:
         s0 = pos
         pos = stmt_end + 1
         chunk = code[s0:stmt_end]
+        c = _CONF_RE.match(chunk)
+        if c:
+            monitored[c.group(1).lower()] = c.group(2).lower() == "on"
+            continue
         d = _DECL_RE.search(chunk)
         if d and d.group(3).lower() in TYPES:
             typ, name = d.group(3).lower(), d.group(4)
@@ -348,6 +366,8 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
             (a, b), _ = _options(code, *args[k])
             targets.append((a, b))
         moves.append((s0 + m.start(), mv, targets, tool, wobj))
+        joint = mv.lower() in _JOINT_MOVES
+        conf_off[s0 + m.start()] = not monitored["confj" if joint else "confl"] if mv.lower() != "moveabsj" else False
 
     # frames: this module's declarations first (they hide the task's), then the task's other
     # modules in the order given, then --tool-frame/--work-object
@@ -394,6 +414,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         resolved_frames.append((T_tool, T_work, f"tool {tool}{t_src}, wobj {wobj or 'wobj0'}{w_src}"))
     out: list[Target] = []
     uses: dict[str, list] = {}
+    first_move: dict[str, int] = {}  # a declared target's first move (offset): its place in the motions
     for (off, mv, targets, tool, wobj), (T_tool, T_work, fr) in zip(moves, resolved_frames):
         kind = "jointtarget" if mv.lower() == "moveabsj" else "robtarget"
         for a, b in targets:
@@ -404,13 +425,15 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
                     node, _ = _value(code, a)
                 except _Bad as exc:
                     r.fail(exc.offset, f"{mv}: inline {kind}: {exc.message}")
-                out.append(_target(r, kind, node, None, mv, a, T_tool, T_work, fr))
+                t_in = _target(r, kind, node, None, mv, a, T_tool, T_work, fr)
+                out.append(dataclasses.replace(t_in, seq=off, config_off=conf_off[off]))
                 continue
             ref = _REF_RE.fullmatch(t)
             if ref:
                 key = ref.group(1).lower() + (f"{{{ref.group(2)}}}" if ref.group(2) else "")
                 expected.add(a)
                 uses.setdefault(key, []).append((ln, mv, kind, T_tool, T_work, fr, tool, wobj))
+                first_move.setdefault(key, off)
                 continue
             skipped.append(
                 Uninterpreted(
@@ -447,7 +470,9 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         if us[0][2] != dd["type"]:
             r.fail(dd["offset"], f"{dd['type']} {dd['name']}: used as a {us[0][2]} by {us[0][1]} (line {us[0][0]})")
         _, mv, kind, T_tool, T_work, fr, _, _ = us[0]
-        out.append(_target(r, kind, dd["node"], dd["name"], mv, dd["offset"], T_tool, T_work, fr))
+        t_dd = _target(r, kind, dd["node"], dd["name"], mv, dd["offset"], T_tool, T_work, fr)
+        off = first_move[key]
+        out.append(dataclasses.replace(t_dd, seq=off, config_off=conf_off[off]))
         names_done.add(dd["name"].split("{")[0].lower())
     # undeclared names used as targets
     for key, us in uses.items():

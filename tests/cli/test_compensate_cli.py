@@ -544,3 +544,19 @@ def test_a_file_whose_format_cannot_be_told_is_refused_naming_format(files, tmp_
         "give --format csv|urscript|rapid|krl|fanuc-tp"
     )
     assert not (tmp_path / "o.txt").exists()
+
+
+@pytest.mark.parametrize("tcp, flagged", [("p[0, 0, 0, 0, 0, 0]", False), ("p[0, 0, 0.1, 0, 0, 0]", True)])
+def test_a_set_tcp_equal_to_the_models_tool_is_not_flagged(files, tcp, flagged):
+    # issue 27: set_tcp(p[0,0,0,0,0,0]) is the identified model's own tool (the flange here): the
+    # targets are compensated for exactly that TCP, so nothing is left alone; another TCP is flagged
+    d, *_ = files
+    prog = f"def job():\n  set_tcp({tcp})\n  movel(p[0.55, -0.35, 0.42, 0.01, 3.12, 0.03], a=1.2, v=0.25)\nend\n"
+    (d / "tcp.script").write_text(prog)
+    args = ["--model", "identified.json", "--task", "tcp.script", "--out", "tcp_out.script", "--report", "tcp.json"]
+    r = recal("compensate", *args, cwd=d)
+    report = json.loads((d / "tcp.json").read_text())
+    assert [u["line"] for u in report["uninterpreted"]] == ([2] if flagged else [])
+    assert ("line 2: not compensated (set_tcp changes the TCP" in r.stderr) == flagged
+    assert r.returncode in ((0, 3) if flagged else (0,)), r.stderr
+    assert (d / "tcp_out.script").read_text().splitlines()[1] == f"  set_tcp({tcp})"

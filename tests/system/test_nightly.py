@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 from service.cli import main
 from service.processes import free_port
@@ -86,3 +87,22 @@ def test_nightly_exit_statuses(stack, models, register, monkeypatch, capsys):
     nobody = f"http://127.0.0.1:{free_port()}"
     status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-3", "--url", nobody, token=job)
     assert status == 3 and "cannot reach" in err
+
+
+def test_nightly_exits_3_naming_targets_not_compensated(stack, register, monkeypatch, capsys):
+    """A drifted cell recalibrated whose task file has a target 5 m out of reach: the file is
+    compensated and stored, but one target is left as written, so the job exits 3 as ``recal
+    compensate`` does, its line counting it and naming the file and the compensation whose report
+    rows say which (it exited 10 before, as if everything had been done)."""
+    url = stack.service.ready["url"]
+    cell, _ = register(name="weld-4")
+    task = {"name": "far.csv", "content": "x,y,z,qw,qx,qy,qz\n400,100,500,0,1,0,0\n5000,100,500,0,1,0,0\n"}
+    stack.api().call("POST", f"/cells/{cell['id']}/tasks", {**task, "mode": "targets"})
+    status, out, err = nightly(monkeypatch, capsys, "--cell", "weld-4", "--url", url, token=stack.tokens["job"])
+    assert status == 3, (out, err)
+    assert "-> recalibrated: calibration" in out and "\n" not in out
+    m = re.search(r"(\d+) targets not compensated \(far\.csv: (\d+) \(compensation (\d+)\)", out)
+    assert m and m.group(1) == m.group(2), out
+    report = stack.api().call("GET", f"/compensations/{m.group(3)}/report")["report"]
+    left = [p for p in report["points"] if not p["converged"]]
+    assert len(left) == int(m.group(1)) >= 1 and report["points"][1] in left  # the far one at least
