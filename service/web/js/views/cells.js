@@ -6,10 +6,19 @@ import { COLORS, chart, jointRanges, sizes, sparkline } from "../plots.js";
 import { address, badge, busy, card, put, confirmDialog, duration, epochMs, h, kv, notify, num, table, when,
          whenShort } from "../ui.js";
 
-const DEVICE_NAMES = { rtde: "robot (UR RTDE)", modbus: "robot (Modbus TCP)", emscon: "laser tracker (Leica emScon)",
-                       tracker: "laser tracker (line protocol)",
-                       cmm: "CMM (I++ DME)", can: "CAN bus", encoders: "reference encoders", resolvers: "resolvers",
-                       cmm_ball_radius_m: "CMM tooling ball radius (m)" };
+// How the page names a device: the service's device registry (x-devices of GET /schemas/devices)
+// names each device; the other keys of the document are named here.
+const SETTING_NAMES = { encoders: "reference encoders", resolvers: "resolvers", cmm_ball_radius_m: "CMM tooling ball radius" };
+
+async function deviceNames() {
+  const schema = await deviceSchema();
+  return { ...SETTING_NAMES, ...Object.fromEntries((schema["x-devices"] || []).map((e) => [e.key, e.label])) };
+}
+
+// A length in metres (the API's) as the page shows it, in mm; and back (rounded to 12 digits so
+// that 12.5 mm is 0.0125 m, not 0.012500000000000001).
+const mmOf = (m) => (m == null || m === "" ? "" : +(Number(m) * 1000).toPrecision(12));
+const mOf = (mm) => +(Number(mm) / 1000).toPrecision(12);
 
 function robotLine(r) {
   return `${r.name} · ${r.joints} joints · ${r.convention}`;
@@ -37,7 +46,7 @@ function accuracyNote(c) {
 export async function overview(ctx, page = 1) {
   ctx.crumbs([["Cells", null]]);
   page = Math.max(1, page || 1);
-  const data = await get(`/overview?limit=${PAGE}&offset=${(page - 1) * PAGE}`);
+  const [data, DEVICE_NAMES] = await Promise.all([get(`/overview?limit=${PAGE}&offset=${(page - 1) * PAGE}`), deviceNames()]);
   if (!ctx.alive()) return;
   const grid = h("div", { class: "cell-grid" });
   for (const c of data.cells) {
@@ -96,7 +105,7 @@ function howTo(open) {
 // --------------------------------------------------------------------------- one cell
 
 export async function detail(ctx, id) {
-  const c = await get(`/cells/${id}/summary`);
+  const [c, DEVICE_NAMES] = await Promise.all([get(`/cells/${id}/summary`), deviceNames()]);
   if (!ctx.alive()) return;
   ctx.crumbs([["Cells", "#/"], [c.name, null]]);
   const unit = c.unit;
@@ -122,7 +131,7 @@ export async function detail(ctx, id) {
   const results = h("div", { id: "device-results" });
   const testBtn = can("run") ? h("button", { class: "primary", id: "test-devices" }, "Test connections") : null;
   const devRows = Object.entries(c.devices_doc || {}).filter(([k]) => k !== "ready")
-    .map(([k, v]) => [DEVICE_NAMES[k] || k, describeAddress(k, v)]);
+    .map(([k, v]) => [DEVICE_NAMES[k] || k, k === "cmm_ball_radius_m" ? `${mmOf(v)} mm` : describeAddress(k, v)]);
   const devCard = card("Devices", c.devices_error ? h("p", { class: "error-text", id: "devices-error" },
       `This cell's devices cannot be used: ${c.devices_error}. Edit the cell to correct them.`) : null,
     table(["Device", "Address"], devRows),
@@ -360,6 +369,13 @@ function closeMatch(word, known) {
   return best;
 }
 
+// Fields two by two.
+function pairs(fields) {
+  const out = [];
+  for (let i = 0; i < fields.length; i += 2) out.push(h("div", { class: "pair" }, fields.slice(i, i + 2)));
+  return out;
+}
+
 function deviceForm(doc, region, schema) {
   doc = doc || {};
   const can = typeof doc.can === "object" && doc.can ? doc.can : {};
@@ -368,14 +384,22 @@ function deviceForm(doc, region, schema) {
   const canProp = (name) => schemaOf(schema, canSchema, name);
   const input = (id, value, s, attrs = {}) => h("input", { id, value: value ?? "", spellcheck: "false", autocomplete: "off",
                                                            placeholder: placeholderOf(s), ...attrs });
-  const rtde = input("dev-rtde", doc.rtde, prop("rtde"));
-  const modbus = input("dev-modbus", doc.modbus, prop("modbus"));
-  // emScon as "HOST:PORT" has a field; an object (host, reflector, environment, …) is kept as it is
-  const emscon = input("dev-emscon", typeof doc.emscon === "string" ? doc.emscon : "", prop("emscon", "string"),
-                       typeof doc.emscon === "object" && doc.emscon ? { placeholder: `${doc.emscon.host} (settings kept)` } : {});
-  const tracker = input("dev-tracker", doc.tracker, prop("tracker"));
-  const cmm = input("dev-cmm", doc.cmm, prop("cmm"));
-  const ball = input("dev-cmm-ball", doc.cmm_ball_radius_m, prop("cmm_ball_radius_m"), { inputmode: "decimal" });
+  // One text field per device of the registry entered as text (x-devices: its key, role, label,
+  // kind of field), in the registry's order; a device written as an object of settings (emScon:
+  // host, reflector, environment, …) is kept as it is.
+  const entries = (schema["x-devices"] || []).filter((e) => e.page === "text" || e.page === "text-or-settings");
+  const texts = entries.map((e) => {
+    const v = doc[e.key], kept = e.page === "text-or-settings" && v && typeof v === "object";
+    return { entry: e, s: prop(e.key, "string"),
+             input: input(`dev-${e.key}`, typeof v === "string" ? v : "", prop(e.key, "string"),
+                          kept ? { placeholder: `${v.host} (settings kept)` } : {}) };
+  });
+  // the tooling balls' radius is in metres in the API and in mm on the page, as every length here
+  const ballM = prop("cmm_ball_radius_m");
+  const ballS = { ...ballM, title: ballM.title.replace("(m)", "(mm)"), minimum: mmOf(ballM.minimum),
+                  maximum: mmOf(ballM.maximum), default: mmOf(ballM.default),
+                  description: `radius of the tool's tooling balls the CMM probes, every ball alike, mm (${mmOf(ballM.minimum)} to ${mmOf(ballM.maximum)})` };
+  const ball = input("dev-cmm-ball", mmOf(doc.cmm_ball_radius_m), ballS, { inputmode: "decimal" });
   const canIf = input("dev-can-interface", can.interface, canProp("interface"), { placeholder: canProp("interface").default, list: "can-interfaces" });
   const canCh = input("dev-can-channel", can.channel, canProp("channel"), { placeholder: "e.g. vcan0, can0" });
   const canHost = input("dev-can-host", can.host, canProp("host"), { placeholder: "socketcand only" });
@@ -396,9 +420,10 @@ function deviceForm(doc, region, schema) {
   // are kept as they are; keys it does not know (registered before the service checked them) are
   // left out when saved, and said so.
   const known = Object.keys(schema.properties);
-  const FORM_KEYS = ["rtde", "modbus", "emscon", "tracker", "cmm", "cmm_ball_radius_m", "can", "encoders", "resolvers", "ready"];
+  const FORM_KEYS = [...(schema["x-devices"] || []).map((e) => e.key), "cmm_ball_radius_m", "encoders", "resolvers", "ready"];
+  const keptAsIs = entries.filter((e) => e.page === "text-or-settings").map((e) => e.key);
   const extra = Object.fromEntries(Object.entries(doc).filter(([k, v]) => known.includes(k) && (!FORM_KEYS.includes(k)
-    || (k === "emscon" && v && typeof v === "object"))));
+    || (keptAsIs.includes(k) && v && typeof v === "object"))));
   const unknown = Object.keys(doc).filter((k) => !known.includes(k));
   const unknownNote = unknown.length ? h("p", { class: "help", id: "devices-unknown" }, `Not device settings, left out `
     + `when saved: ${unknown.join(", ")} (the service knows ${known.filter((k) => k !== "ready").join(", ")}).`) : null;
@@ -407,12 +432,8 @@ function deviceForm(doc, region, schema) {
   const checkNode = schemaCheck(nodeSchema);
 
   const checks = [
-    [rtde, schemaCheck(prop("rtde"))],
-    [modbus, schemaCheck(prop("modbus"))],
-    [emscon, schemaCheck(prop("emscon", "string"))],
-    [tracker, schemaCheck(prop("tracker"))],
-    [cmm, schemaCheck(prop("cmm"))],
-    [ball, schemaCheck(prop("cmm_ball_radius_m"))],
+    ...texts.map((t) => [t.input, schemaCheck(t.s)]),
+    [ball, schemaCheck(ballS)],
     [canIf, (v) => !v && usesCan() ? "the reference encoders and resolvers need the CAN interface (socketcand, socketcan, pcan, …)" : ""],
     [canCh, (v) => !v && (canIf.value.trim() || usesCan()) ? "expected the CAN channel, e.g. vcan0 or can0" : ""],
     [canHost, (v) => {
@@ -554,9 +575,8 @@ function deviceForm(doc, region, schema) {
       lineErr.textContent = `This JSON names no device (expected ${known.filter((k) => k !== "ready").join(", ")}).`;
       return;
     }
-    rtde.value = d.rtde ?? ""; modbus.value = d.modbus ?? ""; tracker.value = d.tracker ?? ""; cmm.value = d.cmm ?? "";
-    ball.value = d.cmm_ball_radius_m ?? "";
-    emscon.value = typeof d.emscon === "string" ? d.emscon : "";
+    for (const t of texts) t.input.value = typeof d[t.entry.key] === "string" ? d[t.entry.key] : "";
+    ball.value = mmOf(d.cmm_ball_radius_m);
     const c = d.can && typeof d.can === "object" ? d.can : {};
     canIf.value = c.interface ?? ""; canCh.value = c.channel ?? ""; canHost.value = c.host ?? ""; canPort.value = c.port ?? "";
     Object.keys(canExtra).forEach((k) => delete canExtra[k]);
@@ -582,12 +602,8 @@ function deviceForm(doc, region, schema) {
     remember();
     const devices = { ...extra };
     const v = (x) => x.value.trim();
-    if (v(rtde)) devices.rtde = v(rtde);
-    if (v(modbus)) devices.modbus = v(modbus);
-    if (v(emscon)) devices.emscon = v(emscon);
-    if (v(tracker)) devices.tracker = v(tracker);
-    if (v(cmm)) devices.cmm = v(cmm);
-    if (v(ball)) devices.cmm_ball_radius_m = Number(v(ball));
+    for (const t of texts) if (v(t.input)) devices[t.entry.key] = v(t.input);
+    if (v(ball)) devices.cmm_ball_radius_m = mOf(v(ball));
     if (v(canIf)) {
       devices.can = { interface: v(canIf), channel: v(canCh), ...canExtra };
       if (v(canHost)) devices.can.host = v(canHost);
@@ -612,10 +628,10 @@ function deviceForm(doc, region, schema) {
           " prints once its devices are ready; the fields below are filled from it."),
         line, h("div", { class: "actions wrap" }, fill), lineErr, lineOk),
       h("h3", {}, "Robot controller"),
-      h("div", { class: "pair" }, schemaField(rtde, prop("rtde")), schemaField(modbus, prop("modbus"))),
+      pairs(texts.filter((t) => t.entry.role === "robot").map((t) => schemaField(t.input, prop(t.entry.key)))),
       h("h3", {}, "Instrument"),
-      h("div", { class: "pair" }, schemaField(emscon, prop("emscon")), schemaField(tracker, prop("tracker"))),
-      h("div", { class: "pair" }, schemaField(cmm, prop("cmm")), schemaField(ball, prop("cmm_ball_radius_m"))),
+      pairs([...texts.filter((t) => t.entry.role !== "robot").map((t) => schemaField(t.input, prop(t.entry.key))),
+             schemaField(ball, ballS)]),
       h("h3", {}, "CAN bus (reference encoders and resolvers)"),
       h("datalist", { id: "can-interfaces" }, (canProp("interface").examples || []).map((x) => h("option", { value: x }))),
       h("div", { class: "pair" }, schemaField(canIf, canProp("interface")), schemaField(canCh, canProp("channel"))),
