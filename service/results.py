@@ -27,7 +27,7 @@ from calibration.model import KinematicModel, model_from_dict
 from calibration.report import COMPARISON_STATUSES, compare_parameters
 from calibration.uncertainty import CovarianceError, covariance_from_block, radius_95, stored_position_covariance
 
-from .models import Calibration, Cell, Measurement, RunSession
+from .models import KIND_RULES, Calibration, Cell, Measurement, RunSession
 from .plans import UnsafePlan, allowed_limits, check_configurations
 from .records import current_model, position_errors, registered_errors, session_measurements
 from .store import as_utc
@@ -227,7 +227,8 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         "errors": None,
         "workspace": None,
     }
-    if cal.kind != "pose" or run is None:
+    # the before/after errors of an identified model (the kinds whose calibration the robot is known by)
+    if cal.kind not in {r.calibration_kind for r in KIND_RULES.values() if r.current_model} or run is None:
         return out
     try:
         data, rows = session_measurements(db, run)
@@ -364,7 +365,7 @@ def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
         "joint_speed_deg_s": _r(math.degrees(speed), 4),
         "joint_accel_deg_s2": _r(math.degrees(accel), 4),
     }
-    if run.kind == "pose":
+    if run.kind in KIND_RULES and KIND_RULES[run.kind].predicts_accuracy:
         out["predicted"] = _predicted_pose_accuracy(db, cell, q, run)
     return out
 
@@ -464,37 +465,52 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         "sigma": _r(last.sigma / L) if last.sigma else None,
         "reference_deg": _r(math.degrees(last.reference)) if last.reference is not None else None,
     }
-    if run.kind in ("pose", "verify"):
-        data, _ = session_measurements(db, run)
-        model, cal = current_model(db, cell)
-        if cal is not None:
-            e = position_errors(model, data)
-            how = f"calibration {cal.id} as it stands"
-        elif len(data) >= 4:
-            e = registered_errors(model, data)
-            how = "the nominal model, its base placed where it fits the measurements so far"
-        else:
-            e, how = None, "shown from the fourth pose on (the instrument's placement is fitted first)"
-        if e is not None:
-            n = np.linalg.norm(e, axis=1) / L
-            out["residuals"] = {
-                "pose": [int(s) + 1 for s in data.pose_id],
-                "norm": _rl(n),
-                "stats": _stats(n),
-                "model": how,
-            }
-        else:
-            out["residuals"] = {"pose": [], "norm": [], "stats": _stats(np.zeros(0)), "model": how}
-    elif run.kind == "joint":
-        sel = [r for r in rows if r.joint and r.reference is not None]
-        if sel:
-            d = np.array([math.degrees(r.reference - r.q[r.joint - 1]) for r in sel])
-            d = (d + 180.0) % 360.0 - 180.0
-            out["residuals"] = {
-                "pose": [int(r.seq) + 1 for r in sel],
-                "norm": _rl(d - d.mean()),
-                "stats": _stats(np.abs(d - d.mean())),
-                "unit": "deg",
-                "model": "reference encoder minus controller reading (mean removed), deg",
-            }
+    view = KIND_RULES[run.kind].live_residuals if run.kind in KIND_RULES else None
+    residuals = view(db, run, cell, rows, L) if view is not None else None
+    if residuals is not None:
+        out["residuals"] = residuals
     return out
+
+
+# --------------------------------------------------------------------------- the kinds' live residuals
+# Each kind names its view (KindRules.live_residuals, service/kinds/); the live page calls it.
+
+
+def position_residuals(db: Session, run: RunSession, cell: Cell, rows: list, L: float) -> dict:
+    """A session measuring points: each pose's position error so far against the cell's current
+    calibration, else the nominal model placed where it fits the measurements."""
+    data, _ = session_measurements(db, run)
+    model, cal = current_model(db, cell)
+    if cal is not None:
+        e = position_errors(model, data)
+        how = f"calibration {cal.id} as it stands"
+    elif len(data) >= 4:
+        e = registered_errors(model, data)
+        how = "the nominal model, its base placed where it fits the measurements so far"
+    else:
+        e, how = None, "shown from the fourth pose on (the instrument's placement is fitted first)"
+    if e is not None:
+        n = np.linalg.norm(e, axis=1) / L
+        return {
+            "pose": [int(s) + 1 for s in data.pose_id],
+            "norm": _rl(n),
+            "stats": _stats(n),
+            "model": how,
+        }
+    return {"pose": [], "norm": [], "stats": _stats(np.zeros(0)), "model": how}
+
+
+def joint_residuals(db: Session, run: RunSession, cell: Cell, rows: list, L: float) -> dict | None:
+    """A session against reference encoders: reference minus controller reading per point."""
+    sel = [r for r in rows if r.joint and r.reference is not None]
+    if sel:
+        d = np.array([math.degrees(r.reference - r.q[r.joint - 1]) for r in sel])
+        d = (d + 180.0) % 360.0 - 180.0
+        return {
+            "pose": [int(r.seq) + 1 for r in sel],
+            "norm": _rl(d - d.mean()),
+            "stats": _stats(np.abs(d - d.mean())),
+            "unit": "deg",
+            "model": "reference encoder minus controller reading (mean removed), deg",
+        }
+    return None

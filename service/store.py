@@ -24,6 +24,7 @@ from sqlmodel import Session, SQLModel, create_engine, select
 
 from .models import (
     ID_TYPE,
+    KIND_RULES,
     ROLES,
     AuditEntry,
     Calibration,
@@ -34,6 +35,7 @@ from .models import (
     RunSession,
     SchemaVersion,
     Token,
+    kinds_that,
     utcnow,
 )
 
@@ -250,7 +252,7 @@ def verifications(db: Session, cell_id: int, *, limit: int | None = None) -> lis
         select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
         .where(
             RunSession.cell_id == cell_id,
-            RunSession.kind == "verify",
+            RunSession.kind.in_(kinds_that(lambda r: r.stores == "verification")),  # type: ignore[attr-defined]
             RunSession.state == "completed",
             RunSession.dry_run == False,  # noqa: E712 (SQL)
         )
@@ -443,7 +445,8 @@ def last_calibration(
 def current_calibration(db: Session, cell: Cell) -> Calibration | None:
     """The calibration the cell's robot is known by: its newest pose calibration identified from
     the cell's present nominal model (after the nominal is replaced, none until the next one)."""
-    return last_calibration(db, cell.id, kind="pose", nominal_version=cell.model_version)
+    kinds = [r.calibration_kind for r in KIND_RULES.values() if r.current_model]
+    return last_calibration(db, cell.id, kind=kinds[0] if kinds else "", nominal_version=cell.model_version)
 
 
 def acquire_lease(

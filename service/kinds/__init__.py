@@ -14,12 +14,19 @@ from __future__ import annotations
 
 from sqlmodel import Session
 
-from ..models import Cell, RunSession
+from ..models import Cell, RunSession, register_kind_rules
 from ..settings import Settings
 from . import circle, joint, pose, verify
 from .base import SessionKind, Step
 
 KINDS: dict[str, SessionKind] = {k.name: k for k in (pose.KIND, verify.KIND, circle.KIND, joint.KIND)}
+for _kind in KINDS.values():  # what the rows, the store and the pages read of each kind
+    register_kind_rules(_kind.name, _kind.rules)
+
+
+def describe_kinds() -> list[dict]:
+    """Every kind as the page reads it (``GET /api/v1/kinds``), in the table's order."""
+    return [k.describe() for k in KINDS.values()]
 
 
 def kind_of(name: str) -> SessionKind:
@@ -39,4 +46,4 @@ def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings)
     db.refresh(run)
 
 
-__all__ = ["KINDS", "SessionKind", "Step", "finish_session", "kind_of"]
+__all__ = ["KINDS", "SessionKind", "Step", "describe_kinds", "finish_session", "kind_of"]

@@ -16,9 +16,9 @@ from calibration.model import KinematicModel, model_from_dict
 from calibration.report import identification_block, identification_report
 
 from ..analysis import AnalysisError, session_data, store_calibration
-from ..models import Calibration, Cell, RunSession
+from ..models import Calibration, Cell, KindRules, RunSession
 from ..plans import Plan, PlanRequest, planned_poses
-from ..results import predicted_accuracy
+from ..results import position_residuals, predicted_accuracy
 from ..store import current_calibration, current_controller_model
 from .positions import PositionKind
 
@@ -35,6 +35,19 @@ DRIFT_SCALE_MIN = 0.1
 
 class Pose(PositionKind):
     name = "pose"
+    title = "Calibrate"
+    summary = "measure the robot at planned poses and identify its true geometry"
+    heading = "Calibration (pose) session"
+    default_count = 40
+    rules = KindRules(
+        max_count=200,
+        carries_payloads=True,
+        calibration_kind="pose",
+        current_model=True,
+        importable=True,
+        predicts_accuracy=True,
+        live_residuals=position_residuals,
+    )
 
     def plan(self, req: PlanRequest) -> Plan:
         return planned_poses(req)

@@ -13,13 +13,27 @@ from calibration.model import KinematicModel
 
 from ..analysis import session_data
 from ..compensation import calibrated_range_of
+from ..models import KindRules
 from ..plans import Plan, PlanRequest, random_inside, repeated
 from ..records import current_model, position_errors, registered_errors
+from ..results import position_residuals
 from .positions import PositionKind
 
 
 class Verify(PositionKind):
     name = "verify"
+    title = "Verify"
+    summary = "measure fresh poses and report how accurate the current model is (changes nothing)"
+    heading = "Verification session"
+    default_count = 20
+    rules = KindRules(
+        max_count=500,
+        carries_payloads=True,
+        repeats=True,
+        stores="verification",
+        importable=True,
+        live_residuals=position_residuals,
+    )
 
     def plan(self, req: PlanRequest) -> Plan:
         return repeated(random_inside(req.lim, req.count, req.rng, req.model), req.repeats)

@@ -782,17 +782,23 @@ export async function edit(ctx, id) {
 // --------------------------------------------------------------------------- start a session
 
 // [label, what it does, default count, most the service accepts (service/models.py MAX_COUNT)]
-const KINDS = {
-  pose: ["Calibrate", "measure the robot at planned poses and identify its true geometry", 40, 200],
-  verify: ["Verify", "measure fresh poses and report how accurate the current model is (changes nothing)", 20, 500],
-  joint: ["Joint encoders", "sweep joints against reference encoders: gains and gear eccentricity", 12, 360],
-  circle: ["Circle points", "sweep each joint alone to locate its axis", 12, 120],
-};
+// The kinds of session come from the service (GET /kinds: service/kinds/, each kind's name, words,
+// count and instruments); nothing here names one.
+let kindsPromise = null;
+
+export function sessionKinds() {
+  kindsPromise ||= get("/kinds").catch((e) => { kindsPromise = null; throw e; });
+  return kindsPromise;
+}
 
 export async function start(ctx, id) {
-  const c = await get(`/cells/${id}/summary`);
+  const [c, kindList, schema] = await Promise.all([get(`/cells/${id}/summary`), sessionKinds(), deviceSchema()]);
   if (!ctx.alive()) return;
   ctx.crumbs([["Cells", "#/"], [c.name, `#/cells/${id}`], ["Start a session", null]]);
+  const KINDS = Object.fromEntries(kindList.map((k) => [k.name, k]));
+  // the roles of the cell's devices (the device registry's: robot, tracker, cmm, encoder)
+  const roleOf = Object.fromEntries((schema["x-devices"] || []).map((e) => [e.key, e.role]));
+  const roles = new Set(c.devices.map((d) => roleOf[d]));
   if (!can("run")) {
     put(ctx.root, card("Start a session", h("p", { id: "no-start" },
       `Your role (${me.role}) can watch sessions and read results, but not start sessions.`)));
@@ -800,16 +806,17 @@ export async function start(ctx, id) {
   }
   const devs = c.devices;
   const kind = h("div", { class: "kinds", role: "radiogroup" });
-  for (const [k, [label, text]] of Object.entries(KINDS)) {
-    const needs = k === "joint" ? devs.includes("can") : devs.includes("tracker") || devs.includes("emscon") || devs.includes("cmm");
+  kindList.forEach((k, i) => {
+    const needs = k.instruments.some((r) => roles.has(r));
     kind.appendChild(h("label", { class: `kind${needs ? "" : " disabled"}` },
-      h("input", { type: "radio", name: "kind", value: k, checked: k === "pose", disabled: !needs }),
-      h("span", {}, h("strong", {}, label), ` — ${text}`)));
-  }
-  const count = h("input", { type: "number", id: "count", min: 1, max: KINDS.pose[3], value: 40 });
+      h("input", { type: "radio", name: "kind", value: k.name, checked: i === 0, disabled: !needs }),
+      h("span", {}, h("strong", {}, k.title), ` — ${k.summary}`)));
+  });
+  const first = kindList[0];
+  const count = h("input", { type: "number", id: "count", min: 1, max: first.max_count, value: first.default_count });
   const device = h("select", { id: "device" },
-    devs.includes("tracker") || devs.includes("emscon") ? h("option", { value: "tracker" }, "laser tracker") : null,
-    devs.includes("cmm") ? h("option", { value: "cmm" }, "CMM (tooling balls, full pose)") : null);
+    roles.has("tracker") ? h("option", { value: "tracker" }, "laser tracker") : null,
+    roles.has("cmm") ? h("option", { value: "cmm" }, "CMM (tooling balls, full pose)") : null);
   const targets = c.robot.targets;
   const target = h("select", { id: "target" },
     targets.filter((t) => !t.startsWith("ball")).map((t) => h("option", { value: t }, t)),
@@ -822,17 +829,16 @@ export async function start(ctx, id) {
     + `${c.unit}), separated by ";": the plan is split between them, each set through the robot controller (UR). `
     + "Two payloads let a model with joint compliance tell the arm's own weight from the payload's.");
   function sync() {
-    const k = kind.querySelector("input:checked").value;
-    countHelp.textContent = k === "pose" || k === "verify" ? "number of robot configurations to measure"
-      : "points per swept joint";
-    deviceField.hidden = k === "joint";
-    targetField.hidden = k === "joint" || device.value === "cmm";
-    payloadField.hidden = !(k === "pose" || k === "verify");
+    const k = KINDS[kind.querySelector("input:checked").value];
+    countHelp.textContent = k.count_help;
+    deviceField.hidden = !k.device_choice;
+    targetField.hidden = !k.device_choice || device.value === "cmm";
+    payloadField.hidden = !k.payloads;
   }
   kind.addEventListener("change", () => {
     const spec = KINDS[kind.querySelector("input:checked").value];
-    count.value = spec[2];
-    count.max = spec[3];
+    count.value = spec.default_count;
+    count.max = spec.max_count;
     sync();
   });
   device.addEventListener("change", sync);
@@ -853,8 +859,8 @@ export async function start(ctx, id) {
       planBtn.textContent = "Planning…";
       const k = kind.querySelector("input:checked").value;
       const body = { kind: k, count: Number(count.value), dry_run: true };
-      if (k !== "joint") body.device = device.value || "tracker";
-      if (k !== "joint" && device.value !== "cmm" && target.value) body.target = target.value;
+      if (KINDS[k].device_choice) body.device = device.value || "tracker";
+      if (KINDS[k].device_choice && device.value !== "cmm" && target.value) body.target = target.value;
       if (!payloadField.hidden && payloads.value.trim()) {  // "0; 10,0,0,100" -> [[0], [10, 0, 0, 100]]
         body.payloads = payloads.value.split(";").map((p) => p.split(",").map((v) => Number(v.trim())));
       }
