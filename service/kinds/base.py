@@ -51,6 +51,7 @@ class SessionKind(ABC):
     store and the pages need to know of it (registered by :mod:`service.kinds`)."""
 
     name: str
+    order: int  # where the page offers it among the kinds (the first is its proposal)
     title: str
     summary: str
     heading: str

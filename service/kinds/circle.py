@@ -18,6 +18,7 @@ from .positions import PositionKind
 
 class Circle(PositionKind):
     name = "circle"
+    order = 30
     title = "Circle points"
     summary = "sweep each joint alone to locate its axis"
     heading = "Circle-point session"

@@ -25,6 +25,7 @@ from .base import SessionKind, Step, cell_devices
 
 class Joint(SessionKind):
     name = "joint"
+    order = 40
     title = "Joint encoders"
     summary = "sweep joints against reference encoders: gains and gear eccentricity"
     heading = "Joint encoder session"

@@ -35,6 +35,7 @@ DRIFT_SCALE_MIN = 0.1
 
 class Pose(PositionKind):
     name = "pose"
+    order = 10
     title = "Calibrate"
     summary = "measure the robot at planned poses and identify its true geometry"
     heading = "Calibration (pose) session"

@@ -22,6 +22,7 @@ from .positions import PositionKind
 
 class Verify(PositionKind):
     name = "verify"
+    order = 20
     title = "Verify"
     summary = "measure fresh poses and report how accurate the current model is (changes nothing)"
     heading = "Verification session"
