@@ -218,6 +218,11 @@ class KindRules:
     live_residuals: Callable[..., dict | None] | None = None
 
 
+def identified_calibration_kinds() -> list[str]:
+    """The ``Calibration.kind`` of the calibrations a cell's robot is known by (a pose session's)."""
+    return [r.calibration_kind for r in KIND_RULES.values() if r.current_model and r.calibration_kind]
+
+
 def kinds_that(predicate: Callable[[KindRules], bool]) -> list[str]:
     """The names of the registered kinds whose rules satisfy ``predicate``, in the table's order."""
     return [name for name, rules in KIND_RULES.items() if predicate(rules)]

@@ -27,7 +27,7 @@ from calibration.model import KinematicModel, model_from_dict
 from calibration.report import COMPARISON_STATUSES, compare_parameters
 from calibration.uncertainty import CovarianceError, covariance_from_block, radius_95, stored_position_covariance
 
-from .models import KIND_RULES, Calibration, Cell, Measurement, RunSession
+from .models import KIND_RULES, Calibration, Cell, Measurement, RunSession, identified_calibration_kinds
 from .plans import UnsafePlan, allowed_limits, check_configurations
 from .records import current_model, position_errors, registered_errors, session_measurements
 from .store import as_utc
@@ -228,7 +228,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         "workspace": None,
     }
     # the before/after errors of an identified model (the kinds whose calibration the robot is known by)
-    if cal.kind not in {r.calibration_kind for r in KIND_RULES.values() if r.current_model} or run is None:
+    if cal.kind not in identified_calibration_kinds() or run is None:
         return out
     try:
         data, rows = session_measurements(db, run)

@@ -24,7 +24,6 @@ from sqlmodel import Session, SQLModel, create_engine, select
 
 from .models import (
     ID_TYPE,
-    KIND_RULES,
     ROLES,
     AuditEntry,
     Calibration,
@@ -35,6 +34,7 @@ from .models import (
     RunSession,
     SchemaVersion,
     Token,
+    identified_calibration_kinds,
     kinds_that,
     utcnow,
 )
@@ -445,7 +445,7 @@ def last_calibration(
 def current_calibration(db: Session, cell: Cell) -> Calibration | None:
     """The calibration the cell's robot is known by: its newest pose calibration identified from
     the cell's present nominal model (after the nominal is replaced, none until the next one)."""
-    kinds = [r.calibration_kind for r in KIND_RULES.values() if r.current_model]
+    kinds = identified_calibration_kinds()
     return last_calibration(db, cell.id, kind=kinds[0] if kinds else "", nominal_version=cell.model_version)
 
 
