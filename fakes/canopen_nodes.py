@@ -701,6 +701,11 @@ def _truth(args):
     return nominal(args.robot)
 
 
+# What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
+# place in the start order, the class, and its keyword arguments from the command line.
+CELL_FAKE = {"key": "can", "order": 60, "cls": CanGatewayFake}
+
+
 def main(argv: list[str] | None = None) -> int:
     from fakes.world import Faults
 

@@ -16,7 +16,8 @@ key         fake                                 port(s)
 
 When every endpoint accepts connections it prints exactly one line of JSON on stdout (the
 endpoint line, merged from each fake's ``endpoint()``), then serves until SIGINT or SIGTERM
-and shuts everything down. A fake whose module is missing is left out of the line.
+and shuts everything down. The fakes are the modules of ``fakes`` with a ``CELL_FAKE`` line
+(:func:`find_fakes`); ``--only KEY`` starts one of them alone.
 
 Extension flags (beyond the contract): ``--fault NAME=VALUE`` sets a field of
 ``fakes.world.Faults`` (lists as comma-separated counts: ``--fault protective_stop_at_move=3``,
@@ -59,6 +60,7 @@ import argparse
 import dataclasses
 import importlib
 import json
+import pkgutil
 import signal
 import sys
 import threading
@@ -77,15 +79,24 @@ from fakes.world import (
 
 PROG = "recal fake-cell"
 
-# (key of the --no-KEY flag, module, class) in start order.
-FAKES = (
-    ("ur", "fakes.ur_controller", "UrControllerFake"),
-    ("modbus", "fakes.modbus_server", "ModbusRobotFake"),
-    ("tracker", "fakes.tracker", "TrackerFake"),
-    ("emscon", "fakes.leica_tracker", "LeicaTrackerFake"),
-    ("cmm", "fakes.cmm", "IppCmmFake"),
-    ("can", "fakes.canopen_nodes", "CanGatewayFake"),
-)
+
+def find_fakes() -> list[dict]:
+    """Every device fake of the package, in start order: the ``CELL_FAKE`` line of each module
+    of ``fakes`` (its --no-KEY flag's key, its order, its class, its keyword arguments). A new
+    fake is its module alone; nothing here names it."""
+    import fakes
+
+    found = []
+    for info in pkgutil.iter_modules(fakes.__path__):
+        if info.name.startswith("_") or info.name == "cell":
+            continue
+        entry = getattr(importlib.import_module(f"fakes.{info.name}"), "CELL_FAKE", None)
+        if entry is not None:
+            found.append(entry)
+    return sorted(found, key=lambda e: (e["order"], e["key"]))
+
+
+FAKES = find_fakes()
 
 
 class CellError(RecalError, ValueError):
@@ -160,8 +171,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="emScon tracker: the arm's links block the beam within this radius (default 0: not checked)",
     )
-    for key, _, _ in FAKES:
-        parser.add_argument(f"--no-{key}", action="store_true", help=f"do not simulate {key}")
+    for fake in FAKES:
+        parser.add_argument(f"--no-{fake['key']}", action="store_true", help=f"do not simulate {fake['key']}")
+    parser.add_argument(
+        "--only",
+        choices=[fake["key"] for fake in FAKES],
+        default=None,
+        help="simulate this device alone (python -m fakes.modbus_server, fakes.ur_controller)",
+    )
     return parser
 
 
@@ -245,24 +262,11 @@ def start_fakes(cell: SimCell, args: argparse.Namespace) -> list:
     """Construct and start every available fake; stop them all again if one fails."""
     started = []
     try:
-        for key, module_name, class_name in FAKES:
-            if getattr(args, f"no_{key}"):
+        for entry in FAKES:
+            key, cls = entry["key"], entry["cls"]
+            if getattr(args, f"no_{key}") or args.only not in (None, key):
                 continue
-            try:
-                module = importlib.import_module(module_name)
-            except ModuleNotFoundError as exc:
-                if exc.name != module_name:
-                    raise
-                print(f"{PROG}: no {key} fake ({module_name} is missing)", file=sys.stderr)
-                continue
-            cls = getattr(module, class_name)
-            kwargs = {"port": args.modbus_port} if key == "modbus" else {}
-            if key == "emscon":
-                kwargs = {
-                    "port": args.emscon_port,
-                    "reflector_axis_tool": args.reflector_axis,
-                    "arm_radius_m": args.arm_radius,
-                }
+            kwargs = entry.get("kwargs", lambda _args: {})(args)
             try:
                 fake = cls(cell, host=args.host, **kwargs)
             except ValueError as exc:  # this device cannot simulate this robot

@@ -419,6 +419,11 @@ class IppCmmFake(LineServer):
             time.sleep(simulated_s * self.cell.time_scale)
 
 
+# What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
+# place in the start order, the class, and its keyword arguments from the command line.
+CELL_FAKE = {"key": "cmm", "order": 50, "cls": IppCmmFake}
+
+
 def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 

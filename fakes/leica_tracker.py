@@ -521,6 +521,20 @@ class LeicaTrackerFake(LineServer):
         return head + [RESULT.pack(RESULT.size, DT_RESULT, RS_OK, self.meas_mode, 0, *doubles)]
 
 
+# What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
+# place in the start order, the class, and its keyword arguments from the command line.
+CELL_FAKE = {
+    "key": "emscon",
+    "order": 40,
+    "cls": LeicaTrackerFake,
+    "kwargs": lambda args: {
+        "port": args.emscon_port,
+        "reflector_axis_tool": args.reflector_axis,
+        "arm_radius_m": args.arm_radius,
+    },
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 

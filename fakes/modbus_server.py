@@ -309,6 +309,11 @@ class _FaultyServer(ModbusTcpServer):
         return _Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
 
+# What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
+# place in the start order, the class, and its keyword arguments from the command line.
+CELL_FAKE = {"key": "modbus", "order": 20, "cls": ModbusRobotFake, "kwargs": lambda args: {"port": args.modbus_port}}
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m fakes.modbus_server --truth TRUE.json [--host H] [--modbus-port P]``."""
     import sys
@@ -316,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     from fakes.cell import main as cell_main
 
     args = list(sys.argv[1:] if argv is None else argv)
-    return cell_main([*args, "--no-ur", "--no-tracker", "--no-emscon", "--no-cmm", "--no-can"])
+    return cell_main([*args, "--only", CELL_FAKE["key"]])
 
 
 if __name__ == "__main__":

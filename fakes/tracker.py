@@ -139,6 +139,11 @@ class TrackerFake(LineServer):
         return float(np.linalg.norm(self.cell.target_world())) <= self.cell.tracker_range_m
 
 
+# What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
+# place in the start order, the class, and its keyword arguments from the command line.
+CELL_FAKE = {"key": "tracker", "order": 30, "cls": TrackerFake}
+
+
 def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 

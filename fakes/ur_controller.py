@@ -908,12 +908,17 @@ def _close_quietly(sock: socket.socket) -> None:
         pass
 
 
+# What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
+# place in the start order, the class, and its keyword arguments from the command line.
+CELL_FAKE = {"key": "ur", "order": 10, "cls": UrControllerFake}
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m fakes.ur_controller --truth TRUE.json [--host H]``: serve one controller."""
     from fakes.cell import main as cell_main
 
     args = list(sys.argv[1:] if argv is None else argv)
-    return cell_main([*args, "--no-modbus", "--no-tracker", "--no-emscon", "--no-cmm", "--no-can"])
+    return cell_main([*args, "--only", CELL_FAKE["key"]])
 
 
 if __name__ == "__main__":

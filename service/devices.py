@@ -1,9 +1,9 @@
 """Opening a cell's devices from its typed configuration (:class:`DevicesConfig`, parsed from
 the ``devices`` document by :func:`service.device_config.parse_devices`).
 
-This is the one place that names concrete drivers (after python-can's backend table): the
-orchestrator only sees the interfaces of ``drivers.base``. Drivers are imported when a cell
-needs them, so a missing client library matters only to the cells that use it.
+Which driver opens which key is the registry's (:data:`service.device_registry.DEVICES`); the
+orchestrator only sees the interfaces of ``drivers.base``. The CAN bus's nodes are opened here,
+joint by joint.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from .device_config import (
     DEFAULT_BALL_RADIUS_M,
     DeviceConfigError,
     DevicesConfig,
-    EmsconSettings,
     parse_devices,
     stored_devices,
 )
+from .device_registry import DEVICES, ROLE_NAMES, emscon_config
 
 __all__ = [
     "DEFAULT_BALL_RADIUS_M",
@@ -33,8 +33,8 @@ __all__ = [
     "encoder_nodes",
     "open_cmm",
     "open_encoders",
-    "open_line_tracker",
     "open_robot",
+    "open_role",
     "open_tracker",
     "parse_devices",
     "stored_devices",
@@ -65,70 +65,33 @@ class CellDevices:
         self.close()
 
 
+def open_role(config: DevicesConfig, role: str, *, timeout_s: float = 10.0) -> Any:
+    """The cell's device of ``role`` (the registry's first of that role the configuration
+    names: ``rtde`` before ``modbus``, ``emscon`` before ``tracker``), open."""
+    for entry in config.present(role):
+        if entry.open is not None:
+            return entry.open(config, timeout_s)
+    keys = [e.key for e in DEVICES if e.role == role]
+    raise DeviceConfigError(
+        "devices" if role == "robot" else f"devices.{keys[-1]}",
+        f"this cell has no {ROLE_NAMES[role]} (expected {' or '.join(f'`{k}`' for k in keys)})",
+    )
+
+
 def open_robot(config: DevicesConfig, *, timeout_s: float = 10.0) -> Robot:
     """The cell's robot: UR over RTDE when ``rtde`` is given, else Modbus TCP (``modbus``).
-    ``timeout_s`` bounds each request (RTDE: each probe of the controller and each call; its
-    connection, which uploads ``ur_rtde``'s control script, gets at least the driver's 15 s)."""
-    if config.rtde:
-        from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot
-
-        connect_s = max(UrRtdeConfig.__dataclass_fields__["connect_timeout_s"].default, timeout_s)
-        return UrRtdeRobot(
-            UrRtdeConfig(
-                host=config.rtde, probe_timeout_s=timeout_s, command_timeout_s=timeout_s, connect_timeout_s=connect_s
-            )
-        )
-    if config.modbus:
-        from drivers.modbus_robot import ModbusRobot, ModbusRobotConfig
-
-        host, _, port = config.modbus.rpartition(":")
-        return ModbusRobot(ModbusRobotConfig(host=host.strip("[]"), port=int(port), timeout_s=timeout_s))
-    raise DeviceConfigError("devices", "no robot (expected an `rtde` host or a `modbus` HOST:PORT)")
-
-
-def emscon_config(settings: EmsconSettings, *, timeout_s: float = 10.0):
-    """The driver's configuration of ``devices.emscon`` (:attr:`DevicesConfig.emscon_settings`).
-    What the driver still refuses is named as the entry's fault."""
-    from drivers.leica_emscon import EmsconConfig
-
-    try:
-        return EmsconConfig(**settings.driver_kwargs(), timeout_s=timeout_s)
-    except ValueError as exc:
-        raise DeviceConfigError("devices.emscon", str(exc)) from exc
+    ``timeout_s`` bounds each request."""
+    return open_role(config, "robot", timeout_s=timeout_s)
 
 
 def open_tracker(config: DevicesConfig, *, timeout_s: float = 10.0) -> PositionSensor:
     """The cell's laser tracker: a Leica through its emScon server when ``emscon`` is given (the
     simulated cell names both: sessions use emScon), else the line protocol of ``tracker``."""
-    if config.emscon is not None:
-        settings = emscon_config(config.emscon_settings, timeout_s=timeout_s)
-        from drivers.leica_emscon import EmsconTracker
-
-        return EmsconTracker(settings)
-    return open_line_tracker(config, timeout_s=timeout_s)
-
-
-def open_line_tracker(config: DevicesConfig, *, timeout_s: float = 10.0) -> PositionSensor:
-    """The laser tracker on the line protocol (``tracker``: directly or through a bridge)."""
-    if not config.tracker:
-        raise DeviceConfigError("devices.tracker", "this cell has no laser tracker (expected `emscon` or `tracker`)")
-    from drivers.tracker import LineTracker, TrackerConfig
-
-    return LineTracker(TrackerConfig(url=config.tracker, timeout_s=timeout_s))
+    return open_role(config, "tracker", timeout_s=timeout_s)
 
 
 def open_cmm(config: DevicesConfig, *, timeout_s: float = 10.0) -> Cmm:
-    if not config.cmm:
-        raise DeviceConfigError("devices.cmm", "this cell has no CMM")
-    from drivers.ippdme import IppDmeCmm, IppDmeConfig
-
-    # The session finds the tooling balls where the cell's current model puts them. After a
-    # tracker calibration that model cannot know the tool's orientation (one reflector does not
-    # show it) nor how the balls are really mounted, so it is a few millimetres off; with the
-    # driver's default 3 mm approach the probe then starts inside a ball (I++ 1001 "Illegal
-    # touch"). Start 10 mm off the nominal surface and search 15 mm past it, as CMM programs
-    # probing a part that is not yet aligned do (each point then takes a little longer).
-    return IppDmeCmm(IppDmeConfig(url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
+    return open_role(config, "cmm", timeout_s=timeout_s)
 
 
 def can_bus_config(config: DevicesConfig):

@@ -21,143 +21,23 @@ import threading
 import time
 from typing import Any, Callable
 
-import numpy as np
-
-from .devices import (
-    DeviceConfigError,
-    DevicesConfig,
-    can_node_configs,
-    emscon_config,
-    open_cmm,
-    open_line_tracker,
-    open_robot,
-    stored_devices,
-)
-
-
-def _fmt(v: float, digits: int = 4) -> str:
-    return f"{v:.{digits}f}"
-
-
-def _robot(robot_only: DevicesConfig, timeout_s: float) -> dict:
-    robot = open_robot(robot_only, timeout_s=timeout_s)
-    try:
-        st = robot.state()
-        q = np.rad2deg(np.asarray(st.q, dtype=float))
-        flags = []
-        if st.emergency_stop:
-            flags.append("EMERGENCY STOP")
-        if st.protective_stop:
-            flags.append("protective stop")
-        flags.append("moving" if st.moving else "standing still")
-        flags.append("program running" if st.program_running else "no program running")
-        return {
-            "ok": not st.stopped_by_safety,
-            "name": robot.name,
-            "answer": f"joints [{', '.join(_fmt(v, 2) for v in q)}] deg; {', '.join(flags)}",
-            "details": {
-                "q_deg": [float(v) for v in q],
-                "moving": bool(st.moving),
-                "protective_stop": bool(st.protective_stop),
-                "emergency_stop": bool(st.emergency_stop),
-                "program_running": bool(st.program_running),
-            },
-        }
-    finally:
-        robot.close()
-
-
-def _emscon(config: DevicesConfig, timeout_s: float) -> dict:
-    from drivers.leica_emscon import EmsconTracker
-
-    tr = EmsconTracker(emscon_config(config.emscon_settings, timeout_s=timeout_s))
-    try:
-        ident, refl, env = tr.identity, tr.reflector, tr.environment
-        idn = f"Leica, emScon {ident.server_version}, tracker {ident.serial}"
-        status = tr.status()
-        details: dict[str, Any] = {
-            "identity": idn,
-            "status": status,
-            "reflector": refl.name,
-            "environment": {"temperature_c": env[0], "pressure_mbar": env[1], "humidity_pct": env[2]},
-        }
-        answer = (
-            f"{idn}; reflector {refl.name}; {env[0]:.1f} °C, {env[1]:.1f} mbar, {env[2]:.0f} %RH "
-            f"({tr.config.environment}); {status.replace('_', ' ')}"
-        )
-        ok = status == "ready"
-        if ok:
-            m = tr.measure()
-            p, s = m.p_world * 1e3, m.sigma * 1e3
-            details.update({"position_mm": [float(v) for v in p], "sigma_mm": [float(v) for v in s]})
-            answer += f"; reflector at ({', '.join(_fmt(v, 3) for v in p)}) mm ± {_fmt(float(np.max(s)), 4)} mm"
-        return {"ok": ok, "name": tr.name, "answer": answer, "details": details}
-    finally:
-        tr.close()
-
-
-def _tracker(config: DevicesConfig, timeout_s: float) -> dict:
-    tr = open_line_tracker(config, timeout_s=timeout_s)
-    try:
-        ident = getattr(tr, "identity", None)
-        idn = ", ".join([ident.maker, ident.model, ident.serial, ident.firmware]) if ident else "?"
-        status = tr.status()
-        details: dict[str, Any] = {"identity": idn, "status": status}
-        answer = f"*IDN? {idn}; STAT? {status.upper()}"
-        ok = status == "ready"
-        if ok:
-            m = tr.measure()
-            p, s = m.p_world * 1e3, m.sigma * 1e3
-            details.update({"position_mm": [float(v) for v in p], "sigma_mm": [float(v) for v in s]})
-            answer += f"; MEAS? reflector at ({', '.join(_fmt(v, 3) for v in p)}) mm ± {_fmt(float(np.max(s)), 4)} mm"
-        return {"ok": ok, "name": tr.name, "answer": answer, "details": details}
-    finally:
-        tr.close()
-
-
-def _cmm(config: DevicesConfig, timeout_s: float) -> dict:
-    cmm = open_cmm(config, timeout_s=timeout_s)
-    try:
-        version = getattr(cmm, "dme_version", None)
-        pos = cmm.position() * 1e3 if hasattr(cmm, "position") else None
-        err = cmm.error_status() if hasattr(cmm, "error_status") else False
-        answer = f"I++ DME session started (server {version or '?'})"
-        if pos is not None:
-            answer += f"; probe at ({', '.join(_fmt(v, 3) for v in pos)}) mm"
-        answer += "; error state" if err else "; no error"
-        return {
-            "ok": not err,
-            "name": cmm.name,
-            "answer": answer,
-            "details": {
-                "dme_version": version,
-                "probe_mm": None if pos is None else [float(v) for v in pos],
-                "error": bool(err),
-            },
-        }
-    finally:
-        cmm.close()
+from .device_registry import DEVICES
+from .devices import DeviceConfigError, DevicesConfig, can_node_configs, stored_devices
 
 
 def _checks(config: DevicesConfig) -> list[tuple[str, str, Callable[[float], Any]]]:
-    """(device label, address, check) for the robot and each instrument the configuration names
-    (the reference encoders and resolvers are tested node by node: :func:`_test_can_nodes`)."""
+    """(device label, address, check) for each device of the registry the configuration names
+    that has a connection test (the reference encoders and resolvers are tested node by node:
+    :func:`_test_can_nodes`). Each check is bound to the configuration and its own entry
+    (functools.partial, not a closure over a loop variable: the RTDE row once tested the Modbus
+    robot, issue 22)."""
     checks = []
-    # each robot's check is bound to its own configuration (functools.partial, not a closure over
-    # a variable the next branch reassigns: the RTDE row once tested the Modbus robot, issue 22)
-    if config.rtde:
-        rtde_only = DevicesConfig(rtde=config.rtde)
-        checks.append(("robot (UR RTDE)", config.address("rtde"), functools.partial(_robot, rtde_only)))
-    if config.modbus:
-        modbus_only = DevicesConfig(modbus=config.modbus)
-        checks.append(("robot (Modbus TCP)", config.address("modbus"), functools.partial(_robot, modbus_only)))
-    if config.emscon is not None:
-        checks.append(("laser tracker", config.address("emscon"), lambda t: _emscon(config, t)))
-    if config.tracker:
-        label = "laser tracker (line protocol)" if config.emscon is not None else "laser tracker"
-        checks.append((label, config.address("tracker"), lambda t: _tracker(config, t)))
-    if config.cmm:
-        checks.append(("CMM (I++ DME)", config.address("cmm"), lambda t: _cmm(config, t)))
+    first_of_role: set[str] = set()
+    for entry in config.present():
+        label = entry.short_label if entry.short_label and entry.role not in first_of_role else entry.label
+        first_of_role.add(entry.role)
+        if entry.test is not None:
+            checks.append((label, config.address(entry.key), functools.partial(entry.test, config)))
     return checks
 
 
@@ -174,7 +54,9 @@ def test_devices(config: DevicesConfig, *, timeout_s: float = 8.0, busy: str | N
                 "device": "devices",
                 "address": "",
                 "ok": False,
-                "error": "the cell's devices document names no device (expected rtde, modbus, emscon, tracker, cmm or can)",
+                "error": "the cell's devices document names no device (expected "
+                + ", ".join(e.key for e in DEVICES[:-1])
+                + f" or {DEVICES[-1].key})",
             }
         ]
     if busy:
@@ -243,7 +125,7 @@ def test_cell_devices(doc: dict, *, timeout_s: float = 8.0, busy: str | None = N
         target=lambda: box.update(results=_test_can_nodes(config, timeout_s, busy)), name="devtest-can", daemon=True
     )
     can_thread.start()
-    has_other = any(getattr(config, k) is not None for k in ("rtde", "modbus", "emscon", "tracker", "cmm"))
+    has_other = any(e.test is not None for e in config.present())
     results = test_devices(config, timeout_s=timeout_s, busy=busy) if has_other or not _has_can_nodes(config) else []
     can_thread.join()
     return results + box.get("results", [])

@@ -9,7 +9,7 @@ from sqlmodel import Session, select
 
 from calibration.report import change_in_sigmas, comparable_parameter
 
-from .models import Calibration
+from .models import Calibration, identified_calibration_kinds
 from .store import verifications
 
 
@@ -25,7 +25,7 @@ def cell_drift(db: Session, cell_id: int) -> dict:
             Calibration.nominal_version,
             Calibration.report["parameters"],
         )  # not whole reports
-        .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
+        .where(Calibration.cell_id == cell_id, Calibration.kind.in_(identified_calibration_kinds()))  # type: ignore[attr-defined]
         .order_by(Calibration.id)
     ).all()
     series: dict[str, list] = {}

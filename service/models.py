@@ -6,6 +6,8 @@ documents (models, reports, endpoint lines) exactly as they were given.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Annotated, Any, Literal
 
@@ -22,7 +24,6 @@ def utcnow() -> datetime:
 
 
 ROLES = ("viewer", "technician", "job", "admin")
-SESSION_KINDS = ("pose", "circle", "joint", "verify")
 SESSION_STATES = ("planned", "running", "paused", "interrupted", "completed", "failed", "aborted")
 ACTIVE = ("planned", "running")  # a session drives its cell (a cell runs one at a time)
 TERMINAL = ("completed", "failed", "aborted")  # nothing resumes it
@@ -203,21 +204,46 @@ class SchemaVersion(SQLModel, table=True):
 
 MAX_ID = 2**63 - 1  # ids are 64-bit integers in every database we use
 
-# Configurations a session may ask for, per kind: what a session can really use, and no more (a
-# request for 100000 once held a core and gigabytes for minutes while nothing could stop it).
-# - pose: about 30 parameters are identified; 200 planned configurations (600 coordinates) are
-#   twenty per parameter, far past where more poses still improve the geometric model much (its
-#   uncertainty falls only as 1/sqrt(K)); but a learned residual correction (issue 28) wants a dense
-#   set over the task's region (1,000+ poses: the measured UR10 of issue 28 had 2,773), so a
-#   session may ask for 5,000: D-optimal planning chooses at most DENSE_FROM of them (a few
-#   seconds) and the rest fill the region (service.plans.planned_poses);
-# - verify: 500 measured configurations (repeats included) give percentiles to a fraction of a
-#   percent, and take a night;
-# - circle: points per joint sweep; 120 over at most 300 deg is one every 2.5 deg, far more than a
-#   circle fit needs;
-# - joint: points per joint sweep; 360 resolve gear harmonics up to about 40 cycles per turn
-#   (four points a period, book eq. 2.4).
-MAX_COUNT = {"pose": 5000, "verify": 500, "circle": 120, "joint": 360}
+
+# What a session request may ask of each kind: its kind's (service/kinds/, each SessionKind's
+# max_count, carries_payloads and repeats), registered here by service.kinds when it is imported
+# (the rows sit below the kinds and do not import them). Nothing here names a kind.
+@dataclass(frozen=True)
+class KindRules:
+    """What the rows, the store and the pages need to know of a session kind (its SessionKind
+    says it; service.kinds registers it)."""
+
+    max_count: int  # configurations (or points per swept joint) a session of the kind can use
+    carries_payloads: bool = False  # the plan may be split between payloads
+    repeats: bool = False  # the configurations may be visited more than once (ISO 9283)
+    stores: str = "calibration"  # what a completed session leaves: "calibration" or "verification"
+    calibration_kind: str | None = None  # Calibration.kind of what it stores ("cpa" for circle sessions)
+    current_model: bool = False  # its calibration is the one the cell's robot is known by
+    importable: bool = False  # external measurements may be imported as a session of this kind
+    predicts_accuracy: bool = False  # its plan shows the accuracy identification is predicted to reach
+    # the live page's residuals so far: (db, run, cell, rows, L) -> dict, or None (none shown)
+    live_residuals: Callable[..., dict | None] | None = None
+
+
+def identified_calibration_kinds() -> list[str]:
+    """The ``Calibration.kind`` of the calibrations a cell's robot is known by (a pose session's)."""
+    return [r.calibration_kind for r in KIND_RULES.values() if r.current_model and r.calibration_kind]
+
+
+def kinds_that(predicate: Callable[[KindRules], bool]) -> list[str]:
+    """The names of the registered kinds whose rules satisfy ``predicate``, in the table's order."""
+    return [name for name, rules in KIND_RULES.items() if predicate(rules)]
+
+
+KIND_RULES: dict[str, KindRules] = {}
+MAX_COUNT: dict[str, int] = {}  # kind -> KindRules.max_count (filled with KIND_RULES)
+
+
+def register_kind_rules(name: str, rules: KindRules) -> None:
+    KIND_RULES[name] = rules
+    MAX_COUNT[name] = rules.max_count
+
+
 MAX_REPEATS = 30  # ISO 9283 measures repeatability over 30 cycles
 
 
@@ -318,9 +344,17 @@ class CellPublic(BaseModel):
     last_calibration_id: int | None = None
 
 
+def _one_of(names: list[str]) -> str:
+    """Pydantic's words for a choice: 'a', 'b' or 'c'."""
+    quoted = [f"'{n}'" for n in names]
+    return quoted[0] if len(quoted) == 1 else f"{', '.join(quoted[:-1])} or {quoted[-1]}"
+
+
 class SessionCreate(_In):
-    kind: Literal["pose", "circle", "joint", "verify"]
-    count: StrictInt = PField(default=30, ge=1, le=max(MAX_COUNT.values()))  # true and "10" are not counts
+    # one of the kinds of service/kinds/ (their names are the schema's enum, read when it is made)
+    kind: str = PField(json_schema_extra=lambda s: s.update(enum=list(KIND_RULES)))
+    # true and "10" are not counts; the kind's own cap is checked below
+    count: StrictInt = PField(default=30, ge=1, json_schema_extra=lambda s: s.update(maximum=max(MAX_COUNT.values())))
     device: Literal["tracker", "cmm"] = "tracker"
     target: str | None = None
     dry_run: bool = False
@@ -330,15 +364,22 @@ class SessionCreate(_In):
     # unit), the plan split between them in order (a compliant model separates the arm's weight from the payload's)
     payloads: list[list[float]] | None = PField(default=None, min_length=1, max_length=4)
 
+    @field_validator("kind")
+    @classmethod
+    def _a_known_kind(cls, kind: str) -> str:
+        if kind not in KIND_RULES:
+            raise ValueError(f"Input should be {_one_of(list(KIND_RULES))}")
+        return kind
+
     @field_validator("payloads")
     @classmethod
     def _payloads(cls, payloads, info: ValidationInfo):
         if payloads is None:
             return None
-        if info.data.get("kind") not in ("pose", "verify"):
-            raise ValueError(
-                f"only pose and verify sessions carry payloads (this is a {info.data.get('kind')} session)"
-            )
+        rules = KIND_RULES.get(info.data.get("kind", ""))
+        if rules is None or not rules.carries_payloads:
+            carrying = " and ".join(k for k, r in KIND_RULES.items() if r.carries_payloads)
+            raise ValueError(f"only {carrying} sessions carry payloads (this is a {info.data.get('kind')} session)")
         for p in payloads:
             if len(p) not in (1, 4) or p[0] < 0:
                 raise ValueError(f"each payload is [kg] or [kg, x, y, z] with kg >= 0, got {p}")
@@ -348,6 +389,8 @@ class SessionCreate(_In):
     @classmethod
     def _count_within_what_the_kind_uses(cls, count: int, info: ValidationInfo) -> int:
         kind = info.data.get("kind")
+        if count > max(MAX_COUNT.values(), default=count):  # the schema's maximum, as pydantic words it
+            raise ValueError(f"Input should be less than or equal to {max(MAX_COUNT.values())}")
         if kind in MAX_COUNT and count > MAX_COUNT[kind]:
             raise ValueError(f"at most {MAX_COUNT[kind]} for a {kind} session, got {count}")
         return count
@@ -356,10 +399,12 @@ class SessionCreate(_In):
     @classmethod
     def _repeats_of_verify_sessions(cls, repeats: int, info: ValidationInfo) -> int:
         kind, count = info.data.get("kind"), info.data.get("count")
-        if repeats != 1 and kind != "verify":
-            raise ValueError(f"only verify sessions repeat their configurations (this is a {kind} session)")
-        if count is not None and count * repeats > MAX_COUNT["verify"]:
-            raise ValueError(f"count x repeats is at most {MAX_COUNT['verify']} measurements, got {count} x {repeats}")
+        rules = KIND_RULES.get(kind or "")
+        if repeats != 1 and (rules is None or not rules.repeats):
+            repeating = " and ".join(k for k, r in KIND_RULES.items() if r.repeats)
+            raise ValueError(f"only {repeating} sessions repeat their configurations (this is a {kind} session)")
+        if rules is not None and count is not None and count * repeats > rules.max_count:
+            raise ValueError(f"count x repeats is at most {rules.max_count} measurements, got {count} x {repeats}")
         return repeats
 
 

@@ -27,7 +27,7 @@ from calibration.model import KinematicModel, model_from_dict
 from calibration.report import COMPARISON_STATUSES, compare_parameters
 from calibration.uncertainty import CovarianceError, covariance_from_block, radius_95, stored_position_bound
 
-from .models import Calibration, Cell, Measurement, RunSession
+from .models import KIND_RULES, Calibration, Cell, Measurement, RunSession, identified_calibration_kinds
 from .plans import UnsafePlan, allowed_limits, check_configurations
 from .records import (
     corrected_errors,
@@ -244,7 +244,8 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         "errors": None,
         "workspace": None,
     }
-    if cal.kind != "pose" or run is None:
+    # the before/after errors of an identified model (the kinds whose calibration the robot is known by)
+    if cal.kind not in identified_calibration_kinds() or run is None:
         return out
     try:
         data, rows = session_measurements(db, run)
@@ -388,7 +389,7 @@ def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
         "joint_speed_deg_s": _r(math.degrees(speed), 4),
         "joint_accel_deg_s2": _r(math.degrees(accel), 4),
     }
-    if run.kind == "pose":
+    if run.kind in KIND_RULES and KIND_RULES[run.kind].predicts_accuracy:
         out["predicted"] = _predicted_pose_accuracy(db, cell, q, run)
         out["learning_curve"] = learning_curve_prediction(db, cell, len(q))
     return out
@@ -551,43 +552,59 @@ def session_live(db: Session, run: RunSession, cell: Cell) -> dict:
         "sigma": _r(last.sigma / L) if last.sigma else None,
         "reference_deg": _r(math.degrees(last.reference)) if last.reference is not None else None,
     }
-    if run.kind in ("pose", "verify"):
-        # from the rows read above, not read again: the chart, "measured" and "last" count the same
-        # poses (a pose stored between two reads made "7 of 60" beside a chart ending at pose 6)
-        data = measurements_of(rows, run)
-        model, cal = session_model(db, run, cell)
-        if cal is not None:
-            e = position_errors(model, data)
-            how = (
-                f"calibration {cal.id}, which this session checks"
-                if run.kind == "verify"
-                else f"calibration {cal.id}, the cell's when this session started"
-            )
-        elif len(data) >= 4:
-            e = registered_errors(model, data)
-            how = "the nominal model, its base placed where it fits the measurements so far"
-        else:
-            e, how = None, "shown from the fourth pose on (the instrument's placement is fitted first)"
-        if e is not None:
-            n = np.linalg.norm(e, axis=1) / L
-            out["residuals"] = {
-                "pose": [int(s) + 1 for s in data.pose_id],
-                "norm": _rl(n),
-                "stats": _stats(n),
-                "model": how,
-            }
-        else:
-            out["residuals"] = {"pose": [], "norm": [], "stats": _stats(np.zeros(0)), "model": how}
-    elif run.kind == "joint":
-        sel = [r for r in rows if r.joint and r.reference is not None]
-        if sel:
-            d = np.array([math.degrees(r.reference - r.q[r.joint - 1]) for r in sel])
-            d = (d + 180.0) % 360.0 - 180.0
-            out["residuals"] = {
-                "pose": [int(r.seq) + 1 for r in sel],
-                "norm": _rl(d - d.mean()),
-                "stats": _stats(np.abs(d - d.mean())),
-                "unit": "deg",
-                "model": "reference encoder minus controller reading (mean removed), deg",
-            }
+    view = KIND_RULES[run.kind].live_residuals if run.kind in KIND_RULES else None
+    residuals = view(db, run, cell, rows, L) if view is not None else None
+    if residuals is not None:
+        out["residuals"] = residuals
     return out
+
+
+# --------------------------------------------------------------------------- the kinds' live residuals
+# Each kind names its view (KindRules.live_residuals, service/kinds/); the live page calls it.
+
+
+def position_residuals(db: Session, run: RunSession, cell: Cell, rows: list, L: float, *, checks: bool = False) -> dict:
+    """A session measuring points: each pose's position error so far against the calibration the
+    session ran with (``checks``: the one it checks, a verify session's), else the nominal model
+    placed where it fits the measurements."""
+    # from the rows read by the caller, not read again: the chart, "measured" and "last" count the
+    # same poses (a pose stored between two reads made "7 of 60" beside a chart ending at pose 6)
+    data = measurements_of(rows, run)
+    model, cal = session_model(db, run, cell)
+    if cal is not None:
+        e = position_errors(model, data)
+        how = (
+            f"calibration {cal.id}, which this session checks"
+            if checks
+            else f"calibration {cal.id}, the cell's when this session started"
+        )
+    elif len(data) >= 4:
+        e = registered_errors(model, data)
+        how = "the nominal model, its base placed where it fits the measurements so far"
+    else:
+        e, how = None, "shown from the fourth pose on (the instrument's placement is fitted first)"
+    if e is not None:
+        n = np.linalg.norm(e, axis=1) / L
+        return {
+            "pose": [int(s) + 1 for s in data.pose_id],
+            "norm": _rl(n),
+            "stats": _stats(n),
+            "model": how,
+        }
+    return {"pose": [], "norm": [], "stats": _stats(np.zeros(0)), "model": how}
+
+
+def joint_residuals(db: Session, run: RunSession, cell: Cell, rows: list, L: float) -> dict | None:
+    """A session against reference encoders: reference minus controller reading per point."""
+    sel = [r for r in rows if r.joint and r.reference is not None]
+    if sel:
+        d = np.array([math.degrees(r.reference - r.q[r.joint - 1]) for r in sel])
+        d = (d + 180.0) % 360.0 - 180.0
+        return {
+            "pose": [int(r.seq) + 1 for r in sel],
+            "norm": _rl(d - d.mean()),
+            "stats": _stats(np.abs(d - d.mean())),
+            "unit": "deg",
+            "model": "reference encoder minus controller reading (mean removed), deg",
+        }
+    return None

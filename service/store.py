@@ -34,6 +34,8 @@ from .models import (
     RunSession,
     SchemaVersion,
     Token,
+    identified_calibration_kinds,
+    kinds_that,
     utcnow,
 )
 
@@ -269,7 +271,7 @@ def verifications(db: Session, cell_id: int, *, limit: int | None = None) -> lis
         select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
         .where(
             RunSession.cell_id == cell_id,
-            RunSession.kind == "verify",
+            RunSession.kind.in_(kinds_that(lambda r: r.stores == "verification")),  # type: ignore[attr-defined]
             RunSession.state == "completed",
             RunSession.dry_run == False,  # noqa: E712 (SQL)
         )
@@ -466,7 +468,7 @@ def current_calibration(db: Session, cell: Cell, *, at: datetime | None = None) 
     as the store knows: a calibration activated again counts from its last activation)."""
     q = select(Calibration).where(
         Calibration.cell_id == cell.id,
-        Calibration.kind == "pose",
+        Calibration.kind.in_(identified_calibration_kinds()),  # type: ignore[attr-defined]
         Calibration.nominal_version == cell.model_version,
         Calibration.activated_at.is_not(None),  # type: ignore[union-attr]
     )
@@ -486,7 +488,7 @@ def candidate_calibration(db: Session, cell: Cell, *, made_by: datetime | None =
     cur = current_calibration(db, cell)
     q = select(Calibration).where(
         Calibration.cell_id == cell.id,
-        Calibration.kind == "pose",
+        Calibration.kind.in_(identified_calibration_kinds()),  # type: ignore[attr-defined]
         Calibration.nominal_version == cell.model_version,
         Calibration.activated_at.is_(None),  # type: ignore[union-attr]
         Calibration.retired_at.is_(None),  # type: ignore[union-attr]
@@ -504,7 +506,7 @@ def calibration_status(db: Session, cal: Calibration) -> str | None:
     a circle or joint calibration, which is never a cell's model."""
     if cal.retired_at is not None:
         return "retired"
-    if cal.kind != "pose":
+    if cal.kind not in identified_calibration_kinds():
         return None
     cell = db.get(Cell, cal.cell_id)
     if cell is None or cal.nominal_version != cell.model_version:

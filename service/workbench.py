@@ -12,7 +12,7 @@ from calibration import robots
 
 from .devices import describe
 from .devicetest import test_cell_devices
-from .models import Calibration, Cell, RunSession, Token
+from .models import Calibration, Cell, RunSession, Token, identified_calibration_kinds
 from .problems import NotFound
 from .sessions import driving_session, public_session
 from .store import as_utc, audit, candidate_calibration, current_calibration, measured_count, verifications
@@ -35,7 +35,7 @@ def _trend(db, cell_id: int, limit: int = TREND) -> list[dict]:
     """The last ``limit`` pose calibrations' RMS, oldest first (columns only, no reports)."""
     rows = db.exec(
         select(Calibration.id, Calibration.rms, Calibration.created_at)
-        .where(Calibration.cell_id == cell_id, Calibration.kind == "pose")
+        .where(Calibration.cell_id == cell_id, Calibration.kind.in_(identified_calibration_kinds()))  # type: ignore[attr-defined]
         .order_by(Calibration.id.desc())
         .limit(limit)
     ).all()

@@ -156,6 +156,8 @@ SERVICE_BOTTOM = (
     "service.models",
     "service.records",
     "service.device_config",
+    "service.device_fields",  # the device configuration's field types
+    "service.device_registry",  # the device registry: the configuration's model and its table
     "service.settings",
     "service.problems",
     "service.files",

@@ -23,7 +23,8 @@ from prometheus_client.core import GaugeMetricFamily
 from sqlalchemy import func
 from sqlmodel import Session, select
 
-from ..models import Cell, Measurement, RunSession
+from ..kinds import KINDS  # noqa: F401 - registers the kinds' rules kinds_that reads
+from ..models import Cell, Measurement, RunSession, kinds_that
 
 router = APIRouter(include_in_schema=False)
 
@@ -46,7 +47,11 @@ class StoreCollector:
             cells = db.exec(select(Cell.id, Cell.name, Cell.model["units"], Cell.drift_threshold)).all()
             verifies = db.exec(
                 select(RunSession.cell_id, RunSession.plan_info)
-                .where(RunSession.kind == "verify", RunSession.state == "completed", RunSession.dry_run == False)  # noqa: E712
+                .where(
+                    RunSession.kind.in_(kinds_that(lambda r: r.stores == "verification")),  # type: ignore[attr-defined]
+                    RunSession.state == "completed",
+                    RunSession.dry_run == False,  # noqa: E712
+                )
                 .order_by(RunSession.id)
             ).all()
         g = GaugeMetricFamily("recal_sessions", "Sessions by state", labels=["state"])

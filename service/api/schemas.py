@@ -362,3 +362,21 @@ class SessionPage(BaseModel):
     total: int
     offset: int
     items: list[SessionPublic]
+
+
+class SessionKindPublic(BaseModel):
+    """One session kind (service/kinds/), as the page offers it: a new kind shows up here alone."""
+
+    name: str = Field(description="the request's `kind`")
+    title: str = Field(description="the page's short name for the choice")
+    summary: str = Field(description="what a session of this kind does")
+    heading: str = Field(description="the title of a session's page")
+    default_count: int = Field(description="the page's proposal for `count`")
+    max_count: int = Field(description="the largest `count` a session of this kind takes")
+    count_help: str = Field(description="what `count` counts for this kind")
+    instruments: list[str] = Field(description="roles of the device registry it measures with: tracker, cmm, encoder")
+    device_choice: bool = Field(description="the request's `device` chooses the instrument")
+    payloads: bool = Field(description="the request may carry `payloads`")
+    repeats: bool = Field(description="the request may ask for `repeats`")
+    importable: bool = Field(description="external measurements may be imported as a session of this kind")
+    stores: str = Field(description="what a completed session leaves: calibration or verification")

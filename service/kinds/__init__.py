@@ -8,18 +8,43 @@ show each kind's result: ``service.results``).
 - ``verify`` (:mod:`.verify`): fresh configurations, the current calibration's errors;
 - ``circle`` (:mod:`.circle`): joint sweeps, circle-point analysis;
 - ``joint`` (:mod:`.joint`): joint sweeps against reference encoders, gains and harmonics.
+
+A new kind is its module alone (with its test and its docs): every module here with a ``KIND``
+is in the table, and its rules (:class:`service.models.KindRules`) reach the rows, the store and
+the pages through it (``GET /api/v1/kinds``); nothing outside this package names a kind.
 """
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
+
 from sqlmodel import Session
 
-from ..models import Cell, RunSession
+from ..models import Cell, RunSession, register_kind_rules
 from ..settings import Settings
-from . import circle, joint, pose, verify
 from .base import SessionKind, Step
 
-KINDS: dict[str, SessionKind] = {k.name: k for k in (pose.KIND, verify.KIND, circle.KIND, joint.KIND)}
+
+def _find_kinds() -> list[SessionKind]:
+    """Every module of this package with a ``KIND`` (a new kind is its module alone), in the
+    kinds' ``order`` (the page offers them so; the first is the page's proposal)."""
+    found = []
+    for info in pkgutil.iter_modules(__path__):
+        kind = getattr(importlib.import_module(f"{__name__}.{info.name}"), "KIND", None)
+        if isinstance(kind, SessionKind):
+            found.append(kind)
+    return sorted(found, key=lambda k: (k.order, k.name))
+
+
+KINDS: dict[str, SessionKind] = {k.name: k for k in _find_kinds()}
+for _kind in KINDS.values():  # what the rows, the store and the pages read of each kind
+    register_kind_rules(_kind.name, _kind.rules)
+
+
+def describe_kinds() -> list[dict]:
+    """Every kind as the page reads it (``GET /api/v1/kinds``), in the table's order."""
+    return [k.describe() for k in KINDS.values()]
 
 
 def kind_of(name: str) -> SessionKind:
@@ -39,4 +64,4 @@ def finish_session(db: Session, run: RunSession, cell: Cell, settings: Settings)
     db.refresh(run)
 
 
-__all__ = ["KINDS", "SessionKind", "Step", "finish_session", "kind_of"]
+__all__ = ["KINDS", "SessionKind", "Step", "describe_kinds", "finish_session", "kind_of"]

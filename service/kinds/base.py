@@ -14,7 +14,7 @@ from calibration.model import KinematicModel
 
 from ..control import Control
 from ..devices import CellDevices, DeviceConfigError, DevicesConfig, stored_devices
-from ..models import Cell, Measurement, RunSession
+from ..models import Cell, KindRules, Measurement, RunSession
 from ..plans import Plan, PlanRequest
 from ..problems import Invalid
 from ..settings import Settings
@@ -44,9 +44,40 @@ def cell_devices(cell: Cell, *, field: str) -> DevicesConfig:
 
 
 class SessionKind(ABC):
-    """One kind of session (``pose``, ``verify``, ``circle``, ``joint``)."""
+    """One kind of session (``pose``, ``verify``, ``circle``, ``joint``): its name, how the page
+    offers it (``title``, ``summary``, ``heading``, the count's default and cap and what it
+    counts), what it measures with (``instruments``: roles of the device registry; the request's
+    ``device`` chooses among them when ``device_choice``), and :attr:`rules`: what the rows, the
+    store and the pages need to know of it (registered by :mod:`service.kinds`)."""
 
     name: str
+    order: int  # where the page offers it among the kinds (the first is its proposal)
+    title: str
+    summary: str
+    heading: str
+    default_count: int
+    count_help: str
+    instruments: tuple[str, ...]
+    device_choice: bool = True
+    rules: KindRules
+
+    def describe(self) -> dict:
+        """The kind as the page reads it (``GET /api/v1/kinds``)."""
+        return {
+            "name": self.name,
+            "title": self.title,
+            "summary": self.summary,
+            "heading": self.heading,
+            "default_count": self.default_count,
+            "max_count": self.rules.max_count,
+            "count_help": self.count_help,
+            "instruments": list(self.instruments),
+            "device_choice": self.device_choice,
+            "payloads": self.rules.carries_payloads,
+            "repeats": self.rules.repeats,
+            "importable": self.rules.importable,
+            "stores": self.rules.stores,
+        }
 
     @abstractmethod
     def check(self, cell: Cell, model: KinematicModel, *, device: str, joints: list[int] | None, payloads) -> None:

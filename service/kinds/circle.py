@@ -11,12 +11,20 @@ import numpy as np
 from calibration.model import model_from_dict
 
 from ..analysis import AnalysisError, session_measurements, store_calibration
+from ..models import KindRules
 from ..plans import Plan, PlanRequest, joint_sweeps
 from .positions import PositionKind
 
 
 class Circle(PositionKind):
     name = "circle"
+    order = 30
+    title = "Circle points"
+    summary = "sweep each joint alone to locate its axis"
+    heading = "Circle-point session"
+    default_count = 12
+    count_help = "points per swept joint"
+    rules = KindRules(max_count=120, calibration_kind="cpa")
 
     def plan(self, req: PlanRequest) -> Plan:
         return joint_sweeps(req, "circle sweeps")

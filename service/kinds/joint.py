@@ -15,15 +15,25 @@ from .. import records
 from ..analysis import AnalysisError, store_calibration
 from ..control import SessionStopped, retry
 from ..devices import encoder_nodes, open_encoders, stored_devices
-from ..models import Measurement
+from ..models import KindRules, Measurement
 from ..plans import Plan, PlanRequest, joint_sweeps
 from ..problems import Invalid
 from ..records import current_model
+from ..results import joint_residuals
 from .base import SessionKind, Step, cell_devices
 
 
 class Joint(SessionKind):
     name = "joint"
+    order = 40
+    title = "Joint encoders"
+    summary = "sweep joints against reference encoders: gains and gear eccentricity"
+    heading = "Joint encoder session"
+    default_count = 12
+    count_help = "points per swept joint"
+    instruments = ("encoder",)
+    device_choice = False
+    rules = KindRules(max_count=360, calibration_kind="joint", live_residuals=joint_residuals)
 
     def check(self, cell, model, *, device, joints, payloads) -> None:
         have = sorted(encoder_nodes(cell_devices(cell, field="body.kind")))

@@ -16,9 +16,9 @@ from calibration.model import KinematicModel, model_from_dict
 from calibration.report import identification_block, identification_report
 
 from ..analysis import AnalysisError, session_data, store_calibration
-from ..models import Calibration, Cell, RunSession
+from ..models import Calibration, Cell, KindRules, RunSession
 from ..plans import Plan, PlanRequest, planned_poses
-from ..results import predicted_accuracy
+from ..results import position_residuals, predicted_accuracy
 from ..store import current_calibration, current_controller_model
 from .positions import PositionKind
 
@@ -35,6 +35,25 @@ DRIFT_SCALE_MIN = 0.1
 
 class Pose(PositionKind):
     name = "pose"
+    order = 10
+    title = "Calibrate"
+    summary = "measure the robot at planned poses and identify its true geometry"
+    heading = "Calibration (pose) session"
+    default_count = 40
+    # 200 planned configurations (600 coordinates) are twenty per identified parameter, far past
+    # where more poses still improve the geometric model much; a learned residual correction
+    # (issue 28) wants a dense set over the task's region (the measured UR10 of issue 28 had 2,773),
+    # so a session may ask for 5,000: D-optimal planning chooses at most service.plans.DENSE_FROM
+    # of them and the rest fill the region (service.plans.planned_poses).
+    rules = KindRules(
+        max_count=5000,
+        carries_payloads=True,
+        calibration_kind="pose",
+        current_model=True,
+        importable=True,
+        predicts_accuracy=True,
+        live_residuals=position_residuals,
+    )
 
     def plan(self, req: PlanRequest) -> Plan:
         return planned_poses(req)

@@ -39,6 +39,9 @@ def reflector_target(model: KinematicModel) -> str | None:
 class PositionKind(SessionKind):
     """A session measured by the cell's tracker or CMM (``run.device``)."""
 
+    count_help = "number of robot configurations to measure"
+    instruments = ("tracker", "cmm")
+
     def check(self, cell, model, *, device, joints, payloads) -> None:
         devices = cell_devices(cell, field="body.device")  # the CMM's ball radius included
         if device == "cmm":

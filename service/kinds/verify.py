@@ -5,6 +5,8 @@ repeatability (§7.2.1-7.2.2)."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from calibration import metrics
@@ -13,14 +15,29 @@ from calibration.model import KinematicModel, model_from_dict
 
 from ..analysis import session_data
 from ..compensation import calibrated_range_of
+from ..models import KindRules
 from ..plans import Plan, PlanRequest, random_inside, repeated
 from ..records import corrected_errors, current_model, position_errors, registered_errors
+from ..results import position_residuals
 from ..store import activate_calibration, candidate_calibration
 from .positions import PositionKind
 
 
 class Verify(PositionKind):
     name = "verify"
+    order = 20
+    title = "Verify"
+    summary = "measure fresh poses and report how accurate the current model is (changes nothing)"
+    heading = "Verification session"
+    default_count = 20
+    rules = KindRules(
+        max_count=500,
+        carries_payloads=True,
+        repeats=True,
+        stores="verification",
+        importable=True,
+        live_residuals=functools.partial(position_residuals, checks=True),
+    )
 
     def plan(self, req: PlanRequest) -> Plan:
         return repeated(random_inside(req.lim, req.count, req.rng, req.model), req.repeats)

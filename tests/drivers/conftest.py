@@ -31,6 +31,8 @@ from pathlib import Path
 
 import pytest
 
+from fakes.cell import FAKES
+
 # Loopback network of the simulated cells: RECAL_TEST_NET lets two test runs on one machine
 # use disjoint addresses (the UR controller's ports are fixed per address).
 NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
@@ -42,7 +44,7 @@ if _HERE not in sys.path:
 POOL = [f"{NET}.{i}" for i in range(2, 19)]
 ABSENT_HOST = f"{NET}.19"  # never given a cell: an absent controller
 START_TIMEOUT_S = 20.0
-DEVICES = ("ur", "modbus", "tracker", "emscon", "cmm", "can")  # fakes.cell's --no-KEY flags
+DEVICES = tuple(fake["key"] for fake in FAKES)  # fakes.cell's --no-KEY flags
 
 # The simulated robot: a UR5e whose true geometry differs from the nominal one by up to a
 # millimetre and a few hundredths of a degree, with a reflector and three tooling balls.

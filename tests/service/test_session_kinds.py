@@ -6,7 +6,6 @@ without an encoder moved the robot to its first configuration and failed there).
 from __future__ import annotations
 
 import time
-import typing
 
 import pytest
 from fastapi.testclient import TestClient
@@ -25,8 +24,11 @@ CAN = {"interface": "socketcand", "channel": "vcan0", "host": NOWHERE, "port": 2
 
 
 def test_every_kind_the_api_accepts_is_in_the_table():
-    accepted = typing.get_args(SessionCreate.model_fields["kind"].annotation)
-    assert sorted(accepted) == sorted(KINDS)
+    # the request's schema lists the table's kinds (the kinds register themselves with the rows)
+    accepted = SessionCreate.model_json_schema()["properties"]["kind"]["enum"]
+    assert accepted == list(KINDS)
+    with pytest.raises(ValueError, match="Input should be 'pose', 'verify', 'circle' or 'joint'"):
+        SessionCreate(kind="sweep")
     assert all(kind_of(name).name == name for name in accepted)
     with pytest.raises(ValueError, match="unknown session kind 'sweep'"):
         kind_of("sweep")
@@ -100,3 +102,96 @@ def test_a_dry_run_shows_the_plan_on_any_cell_but_running_it_is_checked(client, 
         time.sleep(0.05)
     r = client.post(f"/api/v1/sessions/{dry['id']}/run", headers=t)
     assert r.status_code == 422 and "no CMM" in r.text, r.text
+
+
+# --------------------------------------------------------------------------- a stub session kind
+
+STUB_KIND = '''"""A stub kind: fresh configurations, measured as a verification is (docs/architecture.md)."""
+
+from ..models import KindRules
+from ..plans import random_inside
+from .verify import Verify
+
+
+class Stub(Verify):
+    name = "stub"
+    order = 90
+    title = "Stub"
+    summary = "a stub kind, for the worked example"
+    heading = "Stub session"
+    default_count = 5
+    rules = KindRules(max_count=7, stores="verification")
+
+    def plan(self, req):
+        return random_inside(req.lim, req.count, req.rng, req.model)
+
+
+KIND = Stub()
+'''
+
+USE_THE_STUB = """
+import json
+from service.kinds import KINDS, describe_kinds
+from service.models import SessionCreate, kinds_that
+from pydantic import ValidationError
+
+SessionCreate(kind="stub", count=7)
+try:
+    SessionCreate(kind="stub", count=8)
+    capped = False
+except ValidationError as exc:
+    capped = "at most 7 for a stub session" in str(exc)
+print(json.dumps({
+    "kinds": list(KINDS),
+    "page": describe_kinds()[-1],
+    "capped": capped,
+    "verifications": kinds_that(lambda r: r.stores == "verification"),
+    "enum": SessionCreate.model_json_schema()["properties"]["kind"]["enum"],
+}))
+"""
+
+
+def test_a_stub_session_kind_is_its_module_alone(tmp_path):
+    """Adding a kind, as docs/architecture.md says: one module in service/kinds/ (with its test and
+    its docs). A copy of the packages with the stub added differs from this one by that file, and
+    the request's schema, its caps, the store's verifications and the page's list (GET /kinds,
+    describe_kinds) all have it."""
+    import filecmp
+    import json
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    for package in ("calibration", "drivers", "fakes", "service"):
+        shutil.copytree(root / package, tmp_path / package, ignore=shutil.ignore_patterns("__pycache__"))
+    (tmp_path / "service" / "kinds" / "stub.py").write_text(STUB_KIND)
+    changed = [
+        str(p.relative_to(tmp_path))
+        for p in sorted(tmp_path.rglob("*.py"))
+        if not (root / p.relative_to(tmp_path)).exists()
+        or not filecmp.cmp(root / p.relative_to(tmp_path), p, shallow=False)
+    ]
+    assert changed == ["service/kinds/stub.py"]
+    done = subprocess.run(
+        [sys.executable, "-c", USE_THE_STUB], cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout.splitlines()[-1])
+    assert seen["kinds"] == ["pose", "verify", "circle", "joint", "stub"] == seen["enum"]
+    assert (
+        seen["page"]["name"] == "stub" and seen["page"]["max_count"] == 7 and seen["page"]["heading"] == "Stub session"
+    )
+    assert seen["capped"]
+    assert seen["verifications"] == ["verify", "stub"]
+
+
+def test_the_page_reads_the_kinds_from_the_api(idle_app, tokens):
+    from service.kinds import describe_kinds
+
+    with idle_app() as client:
+        r = client.get("/api/v1/kinds", headers=auth(tokens["viewer"]))
+    assert r.status_code == 200, r.text
+    assert r.json() == describe_kinds()
+    assert [k["name"] for k in r.json()] == list(KINDS)

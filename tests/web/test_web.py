@@ -438,17 +438,23 @@ def test_the_cell_form_describes_and_checks_devices_with_the_services_schema(pag
     web.sign_in(page, stack)
     page.goto(f"{stack.url}/#/cells/new")
     page.wait_for_selector("#dev-modbus")
-    assert page.inner_text("label[for=dev-cmm-ball]") == props["cmm_ball_radius_m"]["title"]
-    assert page.get_attribute("#dev-cmm-ball", "placeholder") == str(props["cmm_ball_radius_m"]["default"])
+    # the ball's radius is entered in mm (the API's metres converted at the page)
+    assert page.inner_text("label[for=dev-cmm-ball]") == "CMM tooling ball radius (mm)"
+    assert props["cmm_ball_radius_m"]["default"] == 0.0125
+    assert page.get_attribute("#dev-cmm-ball", "placeholder") == "12.5"
+    # every device the registry serves has its field, labelled with the schema's title
+    for entry in schema["x-devices"]:
+        if entry["page"] != "can":
+            assert page.inner_text(f"label[for=dev-{entry['key']}]") == props[entry["key"]]["title"]
     page.fill("#dev-modbus", "robot-7")
-    page.fill("#dev-cmm-ball", "12.5")  # millimetres where metres are asked for
+    page.fill("#dev-cmm-ball", "125")  # beyond 100 mm
     page.fill("#dev-tracker", "tracker-pc:10001")
     assert page.inner_text("label[for=dev-emscon]") == props["emscon"]["title"]  # the Leica tracker
     page.fill("#dev-emscon", "tracker-ctrl:port")
     page.click("#save-cell")
     assert page.inner_text("#dev-modbus-error") == "expected " + props["modbus"]["anyOf"][0]["x-expected"]
     assert "HOST:PORT of the emScon server" in page.inner_text("#dev-emscon-error")
-    assert "(0.0005–0.1)" in page.inner_text("#dev-cmm-ball-error")
+    assert "(0.5–100)" in page.inner_text("#dev-cmm-ball-error")
     assert "socket://HOST:PORT" in page.inner_text("#dev-tracker-error")
     web.shot(page, "05-register-cell-schema-checks")
 
@@ -463,7 +469,7 @@ def test_the_cell_form_describes_and_checks_devices_with_the_services_schema(pag
     page.goto(f"{stack.url}/#/cells/{cell_id}/edit")
     page.wait_for_selector("#devices-unknown")
     assert "note" in page.inner_text("#devices-unknown")
-    page.fill("#dev-cmm-ball", "0.01")
+    page.fill("#dev-cmm-ball", "10")  # mm
     page.click("#save-cell")
     page.wait_for_url(re.compile(rf"#/cells/{cell_id}$"))
     page.wait_for_selector("#test-devices")

@@ -9,6 +9,7 @@ from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import PlainTextResponse
 
 from ... import external, retention
+from ...kinds import KINDS
 from ...models import SessionPublic
 from ...records import session_measurements_csv
 from ...sessions import get_cell, get_run, public_session
@@ -16,7 +17,7 @@ from ..deps import Admin, CellEditor, DbSession, Reader
 
 router = APIRouter(tags=["records"])
 
-IMPORT_KINDS = ("pose", "verify")
+IMPORT_KINDS = [k.name for k in KINDS.values() if k.rules.importable]  # each kind says (service/kinds/)
 
 
 # --------------------------------------------------------------------------- measurements as CSV

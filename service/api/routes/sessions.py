@@ -12,6 +12,7 @@ from fastapi.responses import StreamingResponse
 from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
+from ...kinds import describe_kinds
 from ...models import SessionPublic, Token
 from ...records import stored_rows
 from ...sessions import (
@@ -23,7 +24,7 @@ from ...sessions import (
     resume_session,
 )
 from ..deps import PERMISSIONS, DbSession, Orchestrator, Reader, Runner, current_token, quick_read, tickets
-from ..schemas import EventTicket, MeasurementOut
+from ..schemas import EventTicket, MeasurementOut, SessionKindPublic
 
 router = APIRouter(tags=["sessions"])
 
@@ -31,6 +32,12 @@ router = APIRouter(tags=["sessions"])
 def _read_public(engine, session_id: int) -> SessionPublic:
     with Session(engine) as db:
         return read_public_session(db, session_id)
+
+
+@router.get("/kinds", response_model=list[SessionKindPublic])
+def session_kinds(tok: Reader) -> list[dict]:
+    """The kinds of session (service/kinds/), in the table's order: the page offers these."""
+    return describe_kinds()
 
 
 @router.get("/sessions/{session_id}", response_model=SessionPublic)

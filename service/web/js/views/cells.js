@@ -6,10 +6,19 @@ import { COLORS, chart, jointRanges, sizes, sparkline } from "../plots.js";
 import { address, badge, busy, card, put, confirmDialog, duration, epochMs, h, kv, notify, num, table, when,
          whenShort } from "../ui.js";
 
-const DEVICE_NAMES = { rtde: "robot (UR RTDE)", modbus: "robot (Modbus TCP)", emscon: "laser tracker (Leica emScon)",
-                       tracker: "laser tracker (line protocol)",
-                       cmm: "CMM (I++ DME)", can: "CAN bus", encoders: "reference encoders", resolvers: "resolvers",
-                       cmm_ball_radius_m: "CMM tooling ball radius (m)" };
+// How the page names a device: the service's device registry (x-devices of GET /schemas/devices)
+// names each device; the other keys of the document are named here.
+const SETTING_NAMES = { encoders: "reference encoders", resolvers: "resolvers", cmm_ball_radius_m: "CMM tooling ball radius" };
+
+async function deviceNames() {
+  const schema = await deviceSchema();
+  return { ...SETTING_NAMES, ...Object.fromEntries((schema["x-devices"] || []).map((e) => [e.key, e.label])) };
+}
+
+// A length in metres (the API's) as the page shows it, in mm; and back (rounded to 12 digits so
+// that 12.5 mm is 0.0125 m, not 0.012500000000000001).
+const mmOf = (m) => (m == null || m === "" ? "" : +(Number(m) * 1000).toPrecision(12));
+const mOf = (mm) => +(Number(mm) / 1000).toPrecision(12);
 
 function robotLine(r) {
   return `${r.name} · ${r.joints} joints · ${r.convention}`;
@@ -37,7 +46,7 @@ function accuracyNote(c) {
 export async function overview(ctx, page = 1) {
   ctx.crumbs([["Cells", null]]);
   page = Math.max(1, page || 1);
-  const data = await get(`/overview?limit=${PAGE}&offset=${(page - 1) * PAGE}`);
+  const [data, DEVICE_NAMES] = await Promise.all([get(`/overview?limit=${PAGE}&offset=${(page - 1) * PAGE}`), deviceNames()]);
   if (!ctx.alive()) return;
   const grid = h("div", { class: "cell-grid" });
   for (const c of data.cells) {
@@ -96,7 +105,7 @@ function howTo(open) {
 // --------------------------------------------------------------------------- one cell
 
 export async function detail(ctx, id) {
-  const c = await get(`/cells/${id}/summary`);
+  const [c, DEVICE_NAMES] = await Promise.all([get(`/cells/${id}/summary`), deviceNames()]);
   if (!ctx.alive()) return;
   ctx.crumbs([["Cells", "#/"], [c.name, null]]);
   const unit = c.unit;
@@ -122,7 +131,7 @@ export async function detail(ctx, id) {
   const results = h("div", { id: "device-results" });
   const testBtn = can("run") ? h("button", { class: "primary", id: "test-devices" }, "Test connections") : null;
   const devRows = Object.entries(c.devices_doc || {}).filter(([k]) => k !== "ready")
-    .map(([k, v]) => [DEVICE_NAMES[k] || k, describeAddress(k, v)]);
+    .map(([k, v]) => [DEVICE_NAMES[k] || k, k === "cmm_ball_radius_m" ? `${mmOf(v)} mm` : describeAddress(k, v)]);
   const devCard = card("Devices", c.devices_error ? h("p", { class: "error-text", id: "devices-error" },
       `This cell's devices cannot be used: ${c.devices_error}. Edit the cell to correct them.`) : null,
     table(["Device", "Address"], devRows),
@@ -399,6 +408,13 @@ function closeMatch(word, known) {
   return best;
 }
 
+// Fields two by two.
+function pairs(fields) {
+  const out = [];
+  for (let i = 0; i < fields.length; i += 2) out.push(h("div", { class: "pair" }, fields.slice(i, i + 2)));
+  return out;
+}
+
 function deviceForm(doc, region, schema) {
   doc = doc || {};
   const can = typeof doc.can === "object" && doc.can ? doc.can : {};
@@ -407,14 +423,22 @@ function deviceForm(doc, region, schema) {
   const canProp = (name) => schemaOf(schema, canSchema, name);
   const input = (id, value, s, attrs = {}) => h("input", { id, value: value ?? "", spellcheck: "false", autocomplete: "off",
                                                            placeholder: placeholderOf(s), ...attrs });
-  const rtde = input("dev-rtde", doc.rtde, prop("rtde"));
-  const modbus = input("dev-modbus", doc.modbus, prop("modbus"));
-  // emScon as "HOST:PORT" has a field; an object (host, reflector, environment, …) is kept as it is
-  const emscon = input("dev-emscon", typeof doc.emscon === "string" ? doc.emscon : "", prop("emscon", "string"),
-                       typeof doc.emscon === "object" && doc.emscon ? { placeholder: `${doc.emscon.host} (settings kept)` } : {});
-  const tracker = input("dev-tracker", doc.tracker, prop("tracker"));
-  const cmm = input("dev-cmm", doc.cmm, prop("cmm"));
-  const ball = input("dev-cmm-ball", doc.cmm_ball_radius_m, prop("cmm_ball_radius_m"), { inputmode: "decimal" });
+  // One text field per device of the registry entered as text (x-devices: its key, role, label,
+  // kind of field), in the registry's order; a device written as an object of settings (emScon:
+  // host, reflector, environment, …) is kept as it is.
+  const entries = (schema["x-devices"] || []).filter((e) => e.page === "text" || e.page === "text-or-settings");
+  const texts = entries.map((e) => {
+    const v = doc[e.key], kept = e.page === "text-or-settings" && v && typeof v === "object";
+    return { entry: e, s: prop(e.key, "string"),
+             input: input(`dev-${e.key}`, typeof v === "string" ? v : "", prop(e.key, "string"),
+                          kept ? { placeholder: `${v.host} (settings kept)` } : {}) };
+  });
+  // the tooling balls' radius is in metres in the API and in mm on the page, as every length here
+  const ballM = prop("cmm_ball_radius_m");
+  const ballS = { ...ballM, title: ballM.title.replace("(m)", "(mm)"), minimum: mmOf(ballM.minimum),
+                  maximum: mmOf(ballM.maximum), default: mmOf(ballM.default),
+                  description: `radius of the tool's tooling balls the CMM probes, every ball alike, mm (${mmOf(ballM.minimum)} to ${mmOf(ballM.maximum)})` };
+  const ball = input("dev-cmm-ball", mmOf(doc.cmm_ball_radius_m), ballS, { inputmode: "decimal" });
   const canIf = input("dev-can-interface", can.interface, canProp("interface"), { placeholder: canProp("interface").default, list: "can-interfaces" });
   const canCh = input("dev-can-channel", can.channel, canProp("channel"), { placeholder: "e.g. vcan0, can0" });
   const canHost = input("dev-can-host", can.host, canProp("host"), { placeholder: "socketcand only" });
@@ -435,9 +459,10 @@ function deviceForm(doc, region, schema) {
   // are kept as they are; keys it does not know (registered before the service checked them) are
   // left out when saved, and said so.
   const known = Object.keys(schema.properties);
-  const FORM_KEYS = ["rtde", "modbus", "emscon", "tracker", "cmm", "cmm_ball_radius_m", "can", "encoders", "resolvers", "ready"];
+  const FORM_KEYS = [...(schema["x-devices"] || []).map((e) => e.key), "cmm_ball_radius_m", "encoders", "resolvers", "ready"];
+  const keptAsIs = entries.filter((e) => e.page === "text-or-settings").map((e) => e.key);
   const extra = Object.fromEntries(Object.entries(doc).filter(([k, v]) => known.includes(k) && (!FORM_KEYS.includes(k)
-    || (k === "emscon" && v && typeof v === "object"))));
+    || (keptAsIs.includes(k) && v && typeof v === "object"))));
   const unknown = Object.keys(doc).filter((k) => !known.includes(k));
   const unknownNote = unknown.length ? h("p", { class: "help", id: "devices-unknown" }, `Not device settings, left out `
     + `when saved: ${unknown.join(", ")} (the service knows ${known.filter((k) => k !== "ready").join(", ")}).`) : null;
@@ -446,12 +471,8 @@ function deviceForm(doc, region, schema) {
   const checkNode = schemaCheck(nodeSchema);
 
   const checks = [
-    [rtde, schemaCheck(prop("rtde"))],
-    [modbus, schemaCheck(prop("modbus"))],
-    [emscon, schemaCheck(prop("emscon", "string"))],
-    [tracker, schemaCheck(prop("tracker"))],
-    [cmm, schemaCheck(prop("cmm"))],
-    [ball, schemaCheck(prop("cmm_ball_radius_m"))],
+    ...texts.map((t) => [t.input, schemaCheck(t.s)]),
+    [ball, schemaCheck(ballS)],
     [canIf, (v) => !v && usesCan() ? "the reference encoders and resolvers need the CAN interface (socketcand, socketcan, pcan, …)" : ""],
     [canCh, (v) => !v && (canIf.value.trim() || usesCan()) ? "expected the CAN channel, e.g. vcan0 or can0" : ""],
     [canHost, (v) => {
@@ -593,9 +614,8 @@ function deviceForm(doc, region, schema) {
       lineErr.textContent = `This JSON names no device (expected ${known.filter((k) => k !== "ready").join(", ")}).`;
       return;
     }
-    rtde.value = d.rtde ?? ""; modbus.value = d.modbus ?? ""; tracker.value = d.tracker ?? ""; cmm.value = d.cmm ?? "";
-    ball.value = d.cmm_ball_radius_m ?? "";
-    emscon.value = typeof d.emscon === "string" ? d.emscon : "";
+    for (const t of texts) t.input.value = typeof d[t.entry.key] === "string" ? d[t.entry.key] : "";
+    ball.value = mmOf(d.cmm_ball_radius_m);
     const c = d.can && typeof d.can === "object" ? d.can : {};
     canIf.value = c.interface ?? ""; canCh.value = c.channel ?? ""; canHost.value = c.host ?? ""; canPort.value = c.port ?? "";
     Object.keys(canExtra).forEach((k) => delete canExtra[k]);
@@ -621,12 +641,8 @@ function deviceForm(doc, region, schema) {
     remember();
     const devices = { ...extra };
     const v = (x) => x.value.trim();
-    if (v(rtde)) devices.rtde = v(rtde);
-    if (v(modbus)) devices.modbus = v(modbus);
-    if (v(emscon)) devices.emscon = v(emscon);
-    if (v(tracker)) devices.tracker = v(tracker);
-    if (v(cmm)) devices.cmm = v(cmm);
-    if (v(ball)) devices.cmm_ball_radius_m = Number(v(ball));
+    for (const t of texts) if (v(t.input)) devices[t.entry.key] = v(t.input);
+    if (v(ball)) devices.cmm_ball_radius_m = mOf(v(ball));
     if (v(canIf)) {
       devices.can = { interface: v(canIf), channel: v(canCh), ...canExtra };
       if (v(canHost)) devices.can.host = v(canHost);
@@ -651,10 +667,10 @@ function deviceForm(doc, region, schema) {
           " prints once its devices are ready; the fields below are filled from it."),
         line, h("div", { class: "actions wrap" }, fill), lineErr, lineOk),
       h("h3", {}, "Robot controller"),
-      h("div", { class: "pair" }, schemaField(rtde, prop("rtde")), schemaField(modbus, prop("modbus"))),
+      pairs(texts.filter((t) => t.entry.role === "robot").map((t) => schemaField(t.input, prop(t.entry.key)))),
       h("h3", {}, "Instrument"),
-      h("div", { class: "pair" }, schemaField(emscon, prop("emscon")), schemaField(tracker, prop("tracker"))),
-      h("div", { class: "pair" }, schemaField(cmm, prop("cmm")), schemaField(ball, prop("cmm_ball_radius_m"))),
+      pairs([...texts.filter((t) => t.entry.role !== "robot").map((t) => schemaField(t.input, prop(t.entry.key))),
+             schemaField(ball, ballS)]),
       h("h3", {}, "CAN bus (reference encoders and resolvers)"),
       h("datalist", { id: "can-interfaces" }, (canProp("interface").examples || []).map((x) => h("option", { value: x }))),
       h("div", { class: "pair" }, schemaField(canIf, canProp("interface")), schemaField(canCh, canProp("channel"))),
@@ -805,17 +821,23 @@ export async function edit(ctx, id) {
 // --------------------------------------------------------------------------- start a session
 
 // [label, what it does, default count, most the service accepts (service/models.py MAX_COUNT)]
-const KINDS = {
-  pose: ["Calibrate", "measure the robot at planned poses and identify its true geometry", 40, 200],
-  verify: ["Verify", "measure fresh poses and report how accurate the current model is (changes nothing)", 20, 500],
-  joint: ["Joint encoders", "sweep joints against reference encoders: gains and gear eccentricity", 12, 360],
-  circle: ["Circle points", "sweep each joint alone to locate its axis", 12, 120],
-};
+// The kinds of session come from the service (GET /kinds: service/kinds/, each kind's name, words,
+// count and instruments); nothing here names one.
+let kindsPromise = null;
+
+export function sessionKinds() {
+  kindsPromise ||= get("/kinds").catch((e) => { kindsPromise = null; throw e; });
+  return kindsPromise;
+}
 
 export async function start(ctx, id) {
-  const c = await get(`/cells/${id}/summary`);
+  const [c, kindList, schema] = await Promise.all([get(`/cells/${id}/summary`), sessionKinds(), deviceSchema()]);
   if (!ctx.alive()) return;
   ctx.crumbs([["Cells", "#/"], [c.name, `#/cells/${id}`], ["Start a session", null]]);
+  const KINDS = Object.fromEntries(kindList.map((k) => [k.name, k]));
+  // the roles of the cell's devices (the device registry's: robot, tracker, cmm, encoder)
+  const roleOf = Object.fromEntries((schema["x-devices"] || []).map((e) => [e.key, e.role]));
+  const roles = new Set(c.devices.map((d) => roleOf[d]));
   if (!can("run")) {
     put(ctx.root, card("Start a session", h("p", { id: "no-start" },
       `Your role (${me.role}) can watch sessions and read results, but not start sessions.`)));
@@ -823,16 +845,17 @@ export async function start(ctx, id) {
   }
   const devs = c.devices;
   const kind = h("div", { class: "kinds", role: "radiogroup" });
-  for (const [k, [label, text]] of Object.entries(KINDS)) {
-    const needs = k === "joint" ? devs.includes("can") : devs.includes("tracker") || devs.includes("emscon") || devs.includes("cmm");
+  kindList.forEach((k, i) => {
+    const needs = k.instruments.some((r) => roles.has(r));
     kind.appendChild(h("label", { class: `kind${needs ? "" : " disabled"}` },
-      h("input", { type: "radio", name: "kind", value: k, checked: k === "pose", disabled: !needs }),
-      h("span", {}, h("strong", {}, label), ` — ${text}`)));
-  }
-  const count = h("input", { type: "number", id: "count", min: 1, max: KINDS.pose[3], value: 40 });
+      h("input", { type: "radio", name: "kind", value: k.name, checked: i === 0, disabled: !needs }),
+      h("span", {}, h("strong", {}, k.title), ` — ${k.summary}`)));
+  });
+  const first = kindList[0];
+  const count = h("input", { type: "number", id: "count", min: 1, max: first.max_count, value: first.default_count });
   const device = h("select", { id: "device" },
-    devs.includes("tracker") || devs.includes("emscon") ? h("option", { value: "tracker" }, "laser tracker") : null,
-    devs.includes("cmm") ? h("option", { value: "cmm" }, "CMM (tooling balls, full pose)") : null);
+    roles.has("tracker") ? h("option", { value: "tracker" }, "laser tracker") : null,
+    roles.has("cmm") ? h("option", { value: "cmm" }, "CMM (tooling balls, full pose)") : null);
   const targets = c.robot.targets;
   const target = h("select", { id: "target" },
     targets.filter((t) => !t.startsWith("ball")).map((t) => h("option", { value: t }, t)),
@@ -845,17 +868,16 @@ export async function start(ctx, id) {
     + `${c.unit}), separated by ";": the plan is split between them, each set through the robot controller (UR). `
     + "Two payloads let a model with joint compliance tell the arm's own weight from the payload's.");
   function sync() {
-    const k = kind.querySelector("input:checked").value;
-    countHelp.textContent = k === "pose" || k === "verify" ? "number of robot configurations to measure"
-      : "points per swept joint";
-    deviceField.hidden = k === "joint";
-    targetField.hidden = k === "joint" || device.value === "cmm";
-    payloadField.hidden = !(k === "pose" || k === "verify");
+    const k = KINDS[kind.querySelector("input:checked").value];
+    countHelp.textContent = k.count_help;
+    deviceField.hidden = !k.device_choice;
+    targetField.hidden = !k.device_choice || device.value === "cmm";
+    payloadField.hidden = !k.payloads;
   }
   kind.addEventListener("change", () => {
     const spec = KINDS[kind.querySelector("input:checked").value];
-    count.value = spec[2];
-    count.max = spec[3];
+    count.value = spec.default_count;
+    count.max = spec.max_count;
     sync();
   });
   device.addEventListener("change", sync);
@@ -876,8 +898,8 @@ export async function start(ctx, id) {
       planBtn.textContent = "Planning…";
       const k = kind.querySelector("input:checked").value;
       const body = { kind: k, count: Number(count.value), dry_run: true };
-      if (k !== "joint") body.device = device.value || "tracker";
-      if (k !== "joint" && device.value !== "cmm" && target.value) body.target = target.value;
+      if (KINDS[k].device_choice) body.device = device.value || "tracker";
+      if (KINDS[k].device_choice && device.value !== "cmm" && target.value) body.target = target.value;
       if (!payloadField.hidden && payloads.value.trim()) {  // "0; 10,0,0,100" -> [[0], [10, 0, 0, 100]]
         body.payloads = payloads.value.split(";").map((p) => p.split(",").map((v) => Number(v.trim())));
       }

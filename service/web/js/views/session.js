@@ -3,22 +3,23 @@
 
 import { can, download, get, post, sessionEvents } from "../api.js";
 import { COLORS, chart, sizes } from "../plots.js";
+import { sessionKinds } from "./cells.js";
 import { add, address, badge, busy, card, clear, put, confirmDialog, duration, h, kv, notify, num, when, whenSeconds } from "../ui.js";
 
 const TERMINAL = ["completed", "failed", "aborted"];
-const KIND_NAMES = { pose: "Calibration (pose) session", verify: "Verification session", joint: "Joint encoder session",
-                     circle: "Circle-point session" };
 // The devices of a session's device_state, in order, with what to call them.
 const DEVICE_LABELS = [["robot", "Robot"], ["tracker", "Laser tracker"], ["cmm", "CMM"], ["encoder", "Reference encoders"]];
 
 export async function live(ctx, id) {
   let s = await get(`/sessions/${id}`);
-  const cell = await get(`/cells/${s.cell_id}/summary`);
+  const [cell, kindList] = await Promise.all([get(`/cells/${s.cell_id}/summary`), sessionKinds()]);
+  // how the page names the kind and whether the request chose its instrument: the kind's own say (GET /kinds)
+  const kind = kindList.find((k) => k.name === s.kind) || { heading: s.kind, device_choice: true };
   if (!ctx.alive()) return;
   ctx.crumbs([["Cells", "#/"], [cell.name, `#/cells/${cell.id}`], [`Session ${id}`, null]]);
   const unit = cell.unit;
 
-  const title = h("h1", {}, `${KIND_NAMES[s.kind] || s.kind} ${id}`);
+  const title = h("h1", {}, `${kind.heading} ${id}`);
   const stateEl = h("span", { id: "state" });
   const banner = h("div", { id: "banner" });
   const bar = h("div", { class: "bar-fill" });
@@ -124,7 +125,7 @@ export async function live(ctx, id) {
       } else if (ds.at) rows.push(["As of", whenSeconds(ds.at)]);
     } else {
       rows = [["Robot", robots.length ? where.robot : "–"],
-              ["Instrument", s.kind === "joint" ? "reference encoders (CAN)"
+              ["Instrument", !kind.device_choice ? "reference encoders (CAN)"
                 : [`${s.device} `, s.device === "tracker" ? trackerAddress() : address(cell.devices_doc[s.device] || "")]],
               ["State", deviceState(s)]];
     }
@@ -133,7 +134,7 @@ export async function live(ctx, id) {
     if (last) {
       rows.push(["Last reading", `pose ${last.pose} at ${whenSeconds(last.at)}`]);
       rows.push(["Joints (deg)", last.q_deg.map((v) => num(v, 4)).join(", ")]);
-      if (s.kind !== "joint") rows.push(["Measured point", `${last.position.map((v) => num(v, 6)).join(", ")} ${unit}`
+      if (kind.device_choice) rows.push(["Measured point", `${last.position.map((v) => num(v, 6)).join(", ")} ${unit}`
         + (last.sigma ? ` ± ${num(last.sigma, 2)}` : "")]);
       if (last.reference_deg != null) rows.push(["Reference encoder", `${num(last.reference_deg, 6)} deg`]);
     }
