@@ -918,6 +918,52 @@ def _choose(
 DETERMINED_RAD = 0.05
 DETERMINED_M = 0.01
 
+# How far a held parameter is taken to be from the model's value, for what it moves that the
+# data did not see (the tool's orientation after a position-only fit, issue 25): held is not
+# known to be zero. A parameter held as ``weak`` at the weak threshold: the data could not
+# determine it better than that, and the bound does not claim to. One the data cannot see at all
+# (a tool's rotation on its flange, the last joint's zero under a reflector on its axis, a length
+# another parameter moves the same way) at what a robot and its tool's mounting are taken to
+# deviate from their drawing: 1 mm, 0.2 deg (a joint mastered to about 0.1 deg; the simulated
+# arms' joint offsets are drawn at 0.1 deg). The weak threshold for those too made a UR10's
+# orientation bound 11 deg where the errors were 0.3-0.7 deg (27 times): right, and useless.
+HELD_SD_M = 1e-3
+HELD_SD_RAD = math.radians(0.2)
+
+
+def _held_sd(p: Parameter, category: str) -> float:
+    """The prior standard deviation (SI) of held parameter ``p`` (:data:`HELD_SD_M`,
+    :data:`HELD_SD_RAD`; a ``weak`` one's, the weak threshold)."""
+    if category == "weak":
+        return DETERMINED_M if p.kind == "length" else DETERMINED_RAD
+    return HELD_SD_M if p.kind == "length" else HELD_SD_RAD
+
+
+def held_covariance(
+    current: KinematicModel, prob: _Problem, cands: list[Parameter], sel: _Selection, scale: float
+) -> dict | None:
+    """The covariance over the freed parameters and the held geometric ones, each held one with a
+    prior of :data:`HELD_SD_M` / :data:`HELD_SD_RAD` about the model's value: ``((JᵀWJ) / scale²
+    + Σh⁻¹)⁻¹``, ``scale`` the growth of the freed ones' covariance (``sigma_scale`` times
+    ``model_error_scale``). Along what the data see it is the freed parameters' covariance; along
+    what they do not (a held tool rotation, a joint offset on the reflector's axis) the prior's
+    width, moved into whatever the data see with it. ``{"names", "prior_sd", "matrix"}`` SI, for
+    the uncertainty of what the data did not measure (:func:`calibration.uncertainty.
+    orientation_covariance`); None when nothing geometric is held."""
+    category = {u.name: u.category for u in sel.dropped}
+    held = [k for k, p in enumerate(cands) if p.name in category and _weak_bound(p) is not None]
+    if not held:
+        return None
+    idx = list(sel.kept) + held
+    sub, share = _sample(prob, RESELECT_ROWS)
+    G = _linearise(current, sub, [cands[k] for k in idx]).gram / share / scale**2
+    prior_sd = np.array([np.inf] * len(sel.kept) + [_held_sd(cands[k], category[cands[k].name]) for k in held])
+    A = G + np.diag(1.0 / prior_sd**2)
+    d = np.sqrt(np.maximum(np.diag(A), 1e-300))
+    cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
+    return {"names": [cands[k].name for k in idx], "prior_sd": prior_sd.tolist(), "matrix": cov}
+
+
 # The re-selection at the answer works on at most this many rows (evenly spread over the data).
 RESELECT_ROWS = 20000
 
@@ -1431,6 +1477,7 @@ def identify(
         mes = excess_scale(cv["chi2"] / stats["sigma_scale"] ** 2, cv["expected_chi2"])
         cv["model_error_scale"] = mes
     consistency = _consistency(stats["chi2"], stats["dof"])
+    held_cov = held_covariance(current, prob, cands, sel, stats["sigma_scale"] * mes) if prior is None else None
     # what the measurement can see, at the identified geometry as the selection is: a target
     # nominally on an axis hides parameters the real one shows
     seen = _jacobian_rank(to_poe(current), targets or (None,), orientation=not position_only)
@@ -1503,6 +1550,7 @@ def identify(
         consistency=consistency,
         model_error_scale=mes,
         warnings=tuple(warnings),
+        held_covariance=held_cov,
     )
 
 

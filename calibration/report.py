@@ -341,6 +341,15 @@ def identification_block(
         # and add the model-structure error the residuals showed, per axis (m; structure_sigma)
         "structure_sigma_m": float(structure_sigma(result)),
     }
+    if result.held_covariance is not None:
+        # the orientation's uncertainty: freed and held parameters, the held ones at their prior
+        # width (calibration.uncertainty.orientation_from_block); already grown as predictions are
+        held = result.held_covariance
+        block["covariance"]["held"] = {
+            "names": list(held["names"]),
+            "prior_sd": [None if not np.isfinite(v) else float(v) for v in held["prior_sd"]],
+            "matrix": [[float(v) for v in row] for row in held["matrix"]],
+        }
     if nominal is not None:
         block["nominal"] = model_to_dict(nominal, units=units)
     if q is not None and len(q):

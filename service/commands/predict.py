@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 UNCERTAINTY_COLUMNS = ["sigma_x", "sigma_y", "sigma_z", "u95"]
+# with the tool pose (no --target), the orientation's too (issue 25: a position-only fit's
+# orientation came without one, and was 4 deg off on a real UR10)
+ORIENTATION_COLUMNS = ["r95"]
 
 
 def add_parser(s) -> None:
@@ -21,7 +24,9 @@ def add_parser(s) -> None:
         action="store_true",
         help="append sigma_x, sigma_y, sigma_z (standard uncertainty per axis) and u95 (95 %% radius) of "
         "the predicted position, in the model's length unit, from the covariance an identified "
-        "model stores (the model's own uncertainty; the instrument's noise is not included)",
+        "model stores (the model's own uncertainty; the instrument's noise is not included); "
+        "without --target also r95, a 95 %% bound on the tool orientation's rotation angle error, in the "
+        "model's angle unit (held parameters at their prior width: a position-only fit's orientation)",
     )
 
 
@@ -77,6 +82,8 @@ def run(args) -> int:
             header + UNCERTAINTY_COLUMNS,
             np.hstack([rows, _uncertainty(model, q, args.target, payload)]),
         )
+        if args.target is None:
+            header, rows = header + ORIENTATION_COLUMNS, np.hstack([rows, _orientation_bound(model, q, payload)])
     rows = rows.tolist()
     outside = _outside_calibrated_region(args, model, q)
     if outside is not None and (args.uncertainty or (flags is not None and outside.any())):
@@ -127,12 +134,18 @@ def _outside_calibrated_region(args, model, q):
 
 def _stored_covariance(path, model):
     """Check, before any output, that the model stores what ``--uncertainty`` needs."""
-    from calibration.uncertainty import CovarianceError, covariance_from_block, structure_sigma_from_block
+    from calibration.uncertainty import (
+        CovarianceError,
+        covariance_from_block,
+        orientation_from_block,
+        structure_sigma_from_block,
+    )
     from service.files import InputError
 
     try:
         covariance_from_block(model)
         structure_sigma_from_block(model)
+        orientation_from_block(model)
     except CovarianceError as exc:
         raise InputError(path, f"field {exc.field!r}: {exc} (needed by --uncertainty)") from None
 
@@ -146,6 +159,14 @@ def _uncertainty(model, q, target, payload=None):
     C = stored_position_covariance(model, q, target, payload)
     sigma = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
     return np.hstack([sigma, radius_95(C)[:, None]]) / model.units.length_m
+
+
+def _orientation_bound(model, q, payload=None):
+    """(N, 1) r95: a 95 % bound on the rotation angle of the tool orientation's error, model angle
+    unit (the largest principal axis of its covariance times sqrt(chi2_3(0.95)), as u95)."""
+    from calibration.uncertainty import radius_95, stored_orientation_covariance
+
+    return (radius_95(stored_orientation_covariance(model, q, payload)) / model.units.angle_rad)[:, None]
 
 
 def _residual_map(args, model, q, T):
