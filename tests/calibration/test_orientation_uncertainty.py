@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration.identify import identify
+from calibration.identify import DETERMINED_M, DETERMINED_RAD, identify
 from calibration.kinematics import fk
 from calibration.model import Units
 from calibration.report import identification_block
@@ -116,3 +116,26 @@ def test_a_model_read_from_a_file_gives_the_same_orientation_bound(cases):
     del block["covariance"]["held"]
     params, matrix = orientation_from_block(dataclasses.replace(result.model, metadata={"identification": block}))
     assert [p.name for p in params] == list(result.param_names)
+
+
+def test_a_weak_parameter_enters_at_the_weak_threshold():
+    """A parameter held as weak is known no better than the threshold it was held at: a KR 16 with
+    its reflector 0.09 mm off the flange axis, 60 positions, holds base.ty and base.tz as weak, and
+    what they move with them (the arm's tilts) widens the orientation bound to several degrees:
+    honest (the data determine the orientation no better), and loose. Measured: errors 0.45 deg
+    RMS, bound median 6.9 deg, every error inside."""
+    rng = np.random.default_rng(0)
+    nom = dataclasses.replace(nominal("kr16"), targets={"smr": np.array([0.09e-3, 0.0, 0.0])})
+    truth = perturbed(nom, rng, base_length_m=0.5, base_angle_rad=0.3)
+    train = simulate_measurements(truth, random_configurations(nom, 60, rng), rng, sigma_m=30e-6, targets=("smr",))
+    result = identify(nom, train, sigma_m=30e-6)
+    weak = {u.name for u in result.unidentifiable if u.category == "weak"}
+    assert weak
+    held = result.held_covariance
+    prior = dict(zip(held["names"], held["prior_sd"]))
+    assert all(prior[n] in (DETERMINED_M, DETERMINED_RAD) for n in weak), prior
+    q = random_configurations(nom, 200, rng)
+    err = _angle_errors(result.model, truth, q)
+    bound = radius_95(orientation_covariance(result, q))
+    assert np.all(err <= bound)
+    assert np.median(bound) < 20 * np.sqrt(np.mean(err**2))  # measured 15 times
