@@ -283,6 +283,100 @@ def identify(
     Raises ``ValueError`` for inconsistent input (shapes, unknown targets, non-finite values) and
     :class:`NotEnoughData` (a ``ValueError``) when the data leave no redundancy to check the fit.
     """
+    st = _prepare(
+        model,
+        data,
+        sigma_m=sigma_m,
+        sigma_rad=sigma_rad,
+        loss=loss,
+        register=register,
+        fixed=fixed,
+        gains=gains,
+        hayati=hayati,
+        rank_rtol=rank_rtol,
+        prior=prior,
+    )
+    at_nominal = set(st.sel.kept)
+
+    # 4. Levenberg–Marquardt; then the selection again at the answer, until the freed set is stable
+    fit = _fit_and_reselect(
+        st.model,
+        st.prob,
+        st.cands,
+        st.sel,
+        st.lin_next,
+        prior,
+        loss=loss,
+        f_scale=f_scale,
+        max_iter=max_iter,
+        ftol=ftol,
+        xtol=xtol,
+        gtol=gtol,
+        rank_rtol=rank_rtol,
+        position_only=st.position_only,
+        reselect=prior is None and hayati,
+    )
+    if not fit.settled:
+        st.notes.append(
+            f"the freed set did not settle in {MAX_SELECTION_ROUNDS} selections at the identified model: "
+            f"the last fit's set is kept"
+        )
+
+    # 5. statistics at the solution
+    ans = _answer(st, fit, prior, loss=loss, f_scale=f_scale, n_poses=len(data))
+    params = [st.cands[k] for k in fit.selection.kept]
+    answer_sd = np.sqrt(np.maximum(np.diag(ans.stats["covariance"]), 0.0))
+    answer_only = [(params[i], float(answer_sd[i])) for i, k in enumerate(fit.selection.kept) if k not in at_nominal]
+    warnings = _on_axis_warnings(st.on_axis, answer_only, fit.selection.dropped)
+
+    # 6. merging: the parameters the prior alone determines join the estimated ones
+    settings = dict(
+        sigma_m=sigma_m,
+        sigma_rad=st.prob.sigma_rot,
+        loss=loss,
+        f_scale=f_scale,
+        gains=gains,
+        rank_rtol=rank_rtol,
+        fixed=list(fixed),
+    )
+    return _result(model, data, st, fit, ans, prior, warnings, settings, outlier_sigma=outlier_sigma)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Start:
+    """What steps 1-3 end with: the model the fit starts from (complete form, registered), the
+    problem, the candidates and their selection, the freed ones' first linearisation (None: to
+    be made), and what the report says of the start."""
+
+    model: KinematicModel
+    prob: _Problem
+    cands: list[Parameter]
+    sel: _Selection
+    lin_next: _Linearisation | None
+    notes: list[str]
+    complete: dict
+    on_axis: list
+    registration: dict | None
+    targets: tuple
+    position_only: bool
+
+
+def _prepare(
+    model: KinematicModel,
+    data: Measurements,
+    *,
+    sigma_m: float,
+    sigma_rad: float | None,
+    loss: str,
+    register: str,
+    fixed: tuple[str, ...],
+    gains: bool,
+    hayati: bool,
+    rank_rtol: float,
+    prior: Prior | None,
+) -> _Start:
+    """Steps 1-3 of :func:`identify`: validation, the complete form, the candidates, the
+    registration and what the data determine (and the prior's share)."""
     # 1. validation
     _check_input(model, data, loss, register)
     position_only = not np.any(data.has_orientation)
@@ -309,51 +403,48 @@ def identify(
         # (the instrument's sigma: at the nominal the residuals are the robot's errors, not noise)
         sel = _hold_weak(cands, lin_all.gram, sel, 1.0)
         _check_redundancy(prob, len(sel.kept), complete)
-    at_nominal = set(sel.kept)
     # the candidates' linearisation at the start serves the freed ones' first step when the
     # weights are the same (no robust loss): no second pass over the data
     lin_next = lin_all.restricted(sel.kept) if loss == "linear" else None
+    return _Start(start, prob, cands, sel, lin_next, notes, complete, on_axis, registration, targets, position_only)
 
-    # 4. Levenberg–Marquardt; then the selection again at the answer, until the freed set is stable
-    fit = _fit_and_reselect(
-        start,
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Answer:
+    """What step 5 says of the answer: :func:`_statistics` (its ``cross_validation`` taken out as
+    ``cv``), the χ² test, the prediction growth ``mes`` (``model_error_scale``), the held
+    parameters' covariance, and the residuals in the data's order."""
+
+    stats: dict
+    cv: dict | None
+    mes: float
+    consistency: dict
+    held_cov: dict | None
+    rp: np.ndarray
+    rr: np.ndarray
+    rms_m: float
+
+
+def _answer(st: _Start, fit: _Fit, prior: Prior | None, *, loss: str, f_scale: float, n_poses: int) -> _Answer:
+    """Step 5 of :func:`identify`: the statistics at the solution, the cross-validation's growth of
+    the predictions, the χ² test, the held parameters' covariance; and (in ``st.complete``) what
+    the measurement sees at the identified geometry."""
+    current, sel, lin, prob = fit.model, fit.selection, fit.solution.lin, st.prob
+    params = [st.cands[k] for k in sel.kept]
+    steps = np.array([fit.moved.get(p.name, 0.0) for p in params])
+    stats = _statistics(
+        current,
         prob,
-        cands,
-        sel,
-        lin_next,
+        params,
+        lin,
+        steps,
         prior,
+        sel,
         loss=loss,
         f_scale=f_scale,
-        max_iter=max_iter,
-        ftol=ftol,
-        xtol=xtol,
-        gtol=gtol,
-        rank_rtol=rank_rtol,
-        position_only=position_only,
-        reselect=prior is None and hayati,
+        reach_m=_reach(st.model),
+        n_poses=n_poses,
     )
-    current, sel, sol, moved = fit.model, fit.selection, fit.solution, fit.moved
-    iterations, nfev, history = fit.iterations, fit.nfev, fit.history
-    if not fit.settled:
-        notes.append(
-            f"the freed set did not settle in {MAX_SELECTION_ROUNDS} selections at the identified model: "
-            f"the last fit's set is kept"
-        )
-    reach = _reach(start)
-    kept, dropped = sel.kept, sel.dropped
-    params = [cands[k] for k in kept]
-    steps = np.array([moved.get(p.name, 0.0) for p in params])
-    status = sol.status
-    lin = sol.lin
-    P = len(params)
-
-    # 5. statistics at the solution
-    stats = _statistics(
-        current, prob, params, lin, steps, prior, sel, loss=loss, f_scale=f_scale, reach_m=reach, n_poses=len(data)
-    )
-    answer_sd = np.sqrt(np.maximum(np.diag(stats["covariance"]), 0.0))
-    answer_only = [(params[i], float(answer_sd[i])) for i, k in enumerate(kept) if k not in at_nominal]
-    warnings = _on_axis_warnings(on_axis, answer_only, dropped)
     cv = stats.pop("cross_validation")
     chi2_data = float(lin.c.sum())
     rp = prob.original(lin.rp)
@@ -367,80 +458,91 @@ def identify(
         mes = excess_scale(cv["chi2"] / stats["sigma_scale"] ** 2, cv["expected_chi2"])
         cv["model_error_scale"] = mes
     consistency = _consistency(stats["chi2"], stats["dof"])
-    held_cov = held_covariance(current, prob, cands, sel, stats["sigma_scale"] * mes) if prior is None else None
+    held_cov = held_covariance(current, prob, st.cands, sel, stats["sigma_scale"] * mes) if prior is None else None
     # what the measurement can see, at the identified geometry as the selection is: a target
     # nominally on an axis hides parameters the real one shows
-    seen = _jacobian_rank(to_poe(current), targets or (None,), orientation=not position_only)
+    complete = st.complete
+    seen = _jacobian_rank(to_poe(current), st.targets or (None,), orientation=not st.position_only)
     if seen != complete["measurable"]:
         complete["measurable_at_nominal"] = complete["measurable"]
         complete["measurable"] = seen
     complete["identified"] = len(sel.by_data)
+    return _Answer(stats, cv, mes, consistency, held_cov, rp, rr, rms_m)
 
-    # 6. merging: the parameters the prior alone determines join the estimated ones
-    params, steps, cov, sources, prior_sd = _merge_prior(cands, sel, stats["covariance"], steps, prior)
-    values = parameter_values(current, params)
+
+def _result(
+    model: KinematicModel,
+    data: Measurements,
+    st: _Start,
+    fit: _Fit,
+    ans: _Answer,
+    prior: Prior | None,
+    warnings: list[str],
+    settings: dict,
+    *,
+    outlier_sigma: float,
+) -> IdentificationResult:
+    """Step 6 of :func:`identify` (the parameters the prior alone determines join the estimated
+    ones) and the result."""
+    current, sel, sol, lin, stats = fit.model, fit.selection, fit.solution, fit.solution.lin, ans.stats
+    P = len(sel.kept)
+    steps = np.array([fit.moved.get(st.cands[k].name, 0.0) for k in sel.kept])
+    params, steps, cov, sources, prior_sd = _merge_prior(st.cands, sel, stats["covariance"], steps, prior)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(std, std)
     corr = np.nan_to_num(corr)
-    z = prob.original(np.sqrt(lin.z2))
-    w_row = prob.original(lin.w_row)
+    z = st.prob.original(np.sqrt(lin.z2))
+    w_row = st.prob.original(lin.w_row)
     # a row is an outlier against the noise the residuals show, not the instrument's alone: when
     # the model structure cannot explain the data (sigma_scale > 1, the consistency test failed)
     # every row is many instrument sigmas off, and flagging 293 of 300 rows as outliers hides
     # the few that are (issue 25); a gross error still stands out of the scaled noise
     outliers = tuple(int(i) for i in np.nonzero((z > outlier_sigma * stats["sigma_scale"]) | (w_row < 0.5))[0])
     has_rot = data.has_orientation
+    rr = ans.rr
     return IdentificationResult(
         model=dataclasses.replace(current, metadata={}, name=identified_name(model.name)),
-        start_model=start,
+        start_model=st.model,
         params=tuple(params),
-        values=values,
+        values=parameter_values(current, params),
         steps=steps,
         std_errors=std,
         covariance=cov,
         correlation=corr,
-        unidentifiable=tuple(dropped),
+        unidentifiable=tuple(sel.dropped),
         singular_values=stats["singular_values"],
         condition_number=stats["condition_number"],
         observability=stats["observability"],
-        residuals_m=rp,
+        residuals_m=ans.rp,
         residuals_rad=rr,
-        rms_m=rms_m,
-        max_m=float(rn.max(initial=0.0)),
+        rms_m=ans.rms_m,
+        max_m=float(np.linalg.norm(ans.rp, axis=1).max(initial=0.0)),
         rms_rad=float(np.sqrt(np.mean(np.sum(rr[has_rot] ** 2, axis=1)))) if np.any(has_rot) else 0.0,
         chi2=stats["chi2"],
         dof=stats["dof"],
         sigma_scale=stats["sigma_scale"],
         row_weights=w_row,
         outliers=outliers,
-        success=status > 0 if P else False,
-        status=status if P else -1,
-        message=TERMINATION_MESSAGES[status if P else -1],
-        iterations=iterations,
-        nfev=nfev,
-        cost_history=tuple(history),
-        registration=registration,
-        notes=tuple(notes),
-        settings=dict(
-            sigma_m=sigma_m,
-            sigma_rad=prob.sigma_rot,
-            loss=loss,
-            f_scale=f_scale,
-            gains=gains,
-            rank_rtol=rank_rtol,
-            fixed=list(fixed),
-        ),
+        success=sol.status > 0 if P else False,
+        status=sol.status if P else -1,
+        message=TERMINATION_MESSAGES[sol.status if P else -1],
+        iterations=fit.iterations,
+        nfev=fit.nfev,
+        cost_history=tuple(fit.history),
+        registration=st.registration,
+        notes=tuple(st.notes),
+        settings=settings,
         sources=tuple(sources),
         prior_std_errors=prior_sd,
         chi2_prior=stats["chi2_prior"],
         data_only=stats["data_only"],
-        completeness=complete,
-        cross_validation=cv,
-        consistency=consistency,
-        model_error_scale=mes,
+        completeness=st.complete,
+        cross_validation=ans.cv,
+        consistency=ans.consistency,
+        model_error_scale=ans.mes,
         warnings=tuple(warnings),
-        held_covariance=held_cov,
+        held_covariance=ans.held_cov,
     )
 
 
