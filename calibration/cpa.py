@@ -155,38 +155,7 @@ def fit_axis(
     warnings: list[str] = []
     m = len(P)
     if prismatic:
-        c, s, rms = fit_line(P)
-        t = (P - c) @ s
-        sign, slope = _sense(t, v)
-        s, t = sign * s, sign * t
-        off = (P - c) - np.outer(t, s)
-        dof = max(2 * m - 4, 1)
-        noise = float(np.sqrt(np.sum(off**2) / dof))
-        spread = float(np.sqrt(np.sum((t - t.mean()) ** 2)))
-        travel = float(np.ptp(t))
-        ref = max(noise, floor)
-        if ref > 0 and travel < min_radius_to_noise * ref:
-            warnings.append(
-                f"travel is only {travel / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
-                f"wanted): the axis direction is poorly determined"
-            )
-        return AxisFit(
-            True,
-            s,
-            c,
-            float("nan"),
-            float("nan"),
-            travel,
-            rms,
-            float("nan"),
-            noise,
-            noise / spread if spread > 0 else float("inf"),
-            noise / np.sqrt(m),
-            slope,
-            m,
-            "line",
-            tuple(warnings),
-        )
+        return _fit_prismatic_axis(P, v, floor, min_radius_to_noise)
     circ = fit_circle(P, method=method)
     n = circ.normal
     u = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
@@ -236,6 +205,44 @@ def fit_axis(
         slope,
         m,
         circ.method,
+        tuple(warnings),
+    )
+
+
+def _fit_prismatic_axis(P: np.ndarray, v: np.ndarray | None, floor: float, min_radius_to_noise: float) -> AxisFit:
+    """:func:`fit_axis` of a prismatic joint: a line through the sweep's points ``P`` (m, 3)."""
+    warnings: list[str] = []
+    m = len(P)
+    c, s, rms = fit_line(P)
+    t = (P - c) @ s
+    sign, slope = _sense(t, v)
+    s, t = sign * s, sign * t
+    off = (P - c) - np.outer(t, s)
+    dof = max(2 * m - 4, 1)
+    noise = float(np.sqrt(np.sum(off**2) / dof))
+    spread = float(np.sqrt(np.sum((t - t.mean()) ** 2)))
+    travel = float(np.ptp(t))
+    ref = max(noise, floor)
+    if ref > 0 and travel < min_radius_to_noise * ref:
+        warnings.append(
+            f"travel is only {travel / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
+            f"wanted): the axis direction is poorly determined"
+        )
+    return AxisFit(
+        True,
+        s,
+        c,
+        float("nan"),
+        float("nan"),
+        travel,
+        rms,
+        float("nan"),
+        noise,
+        noise / spread if spread > 0 else float("inf"),
+        noise / np.sqrt(m),
+        slope,
+        m,
+        "line",
         tuple(warnings),
     )
 
