@@ -746,20 +746,8 @@ def circle_point_analysis(
     exist, too few points, another joint moving, the swept joint's reading not changing,
     collinear points), ``ValueError`` for other bad input.
     """
-    if method not in METHODS:
-        raise ValueError(f"`method` must be one of {', '.join(METHODS)}; got {method!r}")
-    convention = convention or ("poe" if nominal.convention == "poe" else "dh")
-    if convention not in ("poe", "dh"):
-        raise ValueError(f"`convention` must be poe or dh; got {convention!r}")
+    convention, q = _check_cpa_input(nominal, sweeps, method, convention)
     n = nominal.n_joints
-    q = check_q(nominal, sweeps.q)
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(sweeps.p_world))):
-        raise ValueError("joint readings and positions must be finite")
-    for t in set(sweeps.target.tolist()) - {None}:
-        try:
-            nominal.target(t)
-        except KeyError as exc:
-            raise ValueError(str(exc).strip("'\"")) from None
     v = joint_variables(nominal, q)
     tol = np.array([held_tol_rad if j.revolute else held_tol_m for j in nominal.joints])
     groups, held = _check_sweeps(nominal, sweeps, v, tol, min_points)
@@ -780,32 +768,14 @@ def circle_point_analysis(
     S_nom, R_nom = (
         a[0] for a in axis_lines(dataclasses.replace(_unit_readings(nominal), base=matrix_to_pose(T_wb)), vs)
     )
-    for j in sorted(set(range(n)) - set(measured)):
-        S[j], R[j] = S_nom[j], R_nom[j]
-        warnings.append(
-            f"joint {j + 1} ({nominal.joints[j].name}) was not swept: its axis is the registered nominal one"
-        )
-    tilt = np.arctan2(np.linalg.norm(np.cross(S, S_nom), axis=1), np.sum(S * S_nom, axis=1))
-    offset = np.array(
-        [
-            np.linalg.norm(np.cross(R[j] - R_nom[j], S_nom[j])) if j_.revolute else 0.0
-            for j, j_ in enumerate(nominal.joints)
-        ]
-    )
+    tilt, offset = _against_nominal(nominal, measured, S, R, S_nom, R_nom, warnings)
     T_fl, tool, targets, changes, flange_notes, flange_warnings = _flange_at_signature(
         nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb
     )
     notes += flange_notes
     warnings += flange_warnings
     model_poe = _zero_reference_model(nominal, S, R, vs, T_wb, T_fl, tool, targets)
-    model = model_poe
-    if convention == "dh":
-        reference = nominal
-        if nominal.convention == "mdh" and not any(j.hayati for j in nominal.joints):
-            reference = mdh_to_dh(nominal)
-        model = poe_to_dh(model_poe, reference=reference, parallel_tol_rad=parallel_tol_rad)
-        if nominal.convention != "dh":
-            notes.append(f"written in dh (the nominal model is {nominal.convention})")
+    model = _in_convention(model_poe, nominal, convention, parallel_tol_rad, notes)
     message = f"{len(measured)} of {n} axes identified from {len(sweeps)} points" + (
         f"; {len(warnings)} warnings" if warnings else ""
     )
@@ -839,6 +809,58 @@ def circle_point_analysis(
             parallel_tol_rad=parallel_tol_rad,
         ),
     )
+
+
+def _check_cpa_input(nominal: KinematicModel, sweeps: Sweeps, method: str, convention: str | None):
+    """:func:`circle_point_analysis`'s arguments checked: the convention to write (default: ``poe``
+    for a ``poe`` nominal, else ``dh``) and the joint readings."""
+    if method not in METHODS:
+        raise ValueError(f"`method` must be one of {', '.join(METHODS)}; got {method!r}")
+    convention = convention or ("poe" if nominal.convention == "poe" else "dh")
+    if convention not in ("poe", "dh"):
+        raise ValueError(f"`convention` must be poe or dh; got {convention!r}")
+    q = check_q(nominal, sweeps.q)
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(sweeps.p_world))):
+        raise ValueError("joint readings and positions must be finite")
+    for t in set(sweeps.target.tolist()) - {None}:
+        try:
+            nominal.target(t)
+        except KeyError as exc:
+            raise ValueError(str(exc).strip("'\"")) from None
+    return convention, q
+
+
+def _against_nominal(nominal, measured, S, R, S_nom, R_nom, warnings: list[str]):
+    """The joints not swept take their registered nominal axes (in place, with a warning); then
+    each axis's tilt (rad) and offset (m, revolute joints) from the nominal's."""
+    n = nominal.n_joints
+    for j in sorted(set(range(n)) - set(measured)):
+        S[j], R[j] = S_nom[j], R_nom[j]
+        warnings.append(
+            f"joint {j + 1} ({nominal.joints[j].name}) was not swept: its axis is the registered nominal one"
+        )
+    tilt = np.arctan2(np.linalg.norm(np.cross(S, S_nom), axis=1), np.sum(S * S_nom, axis=1))
+    offset = np.array(
+        [
+            np.linalg.norm(np.cross(R[j] - R_nom[j], S_nom[j])) if j_.revolute else 0.0
+            for j, j_ in enumerate(nominal.joints)
+        ]
+    )
+    return tilt, offset
+
+
+def _in_convention(model_poe, nominal, convention: str, parallel_tol_rad: float, notes: list[str]):
+    """The ``poe`` model of :func:`circle_point_analysis` in ``convention`` (``dh``:
+    :func:`poe_to_dh` with the nominal as reference)."""
+    if convention != "dh":
+        return model_poe
+    reference = nominal
+    if nominal.convention == "mdh" and not any(j.hayati for j in nominal.joints):
+        reference = mdh_to_dh(nominal)
+    model = poe_to_dh(model_poe, reference=reference, parallel_tol_rad=parallel_tol_rad)
+    if nominal.convention != "dh":
+        notes.append(f"written in dh (the nominal model is {nominal.convention})")
+    return model
 
 
 # --------------------------------------------------------------------------- simulation
