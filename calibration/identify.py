@@ -44,6 +44,12 @@ Method (book §4.4.2, §4.3.3, §4.5.3), in named steps (:func:`identify` calls 
 
 Rows are processed in chunks (:data:`CHUNK_ROWS`): the normal equations are accumulated per
 cross-validation fold, and no array of the size of the whole Jacobian is ever made.
+
+Each step's code has a module of its own (this one keeps :func:`identify`, the loop of fit and
+selection, and every name it had): :mod:`calibration.identify_start` (steps 1-2 and the
+registration), :mod:`calibration.identify_selection` (step 3, the selection at the answer, step
+6), :mod:`calibration.identify_solver` (step 4), :mod:`calibration.identify_statistics` (step 5),
+and :mod:`calibration.identify_problem`, the rows, residuals and normal equations they share.
 """
 
 from __future__ import annotations
