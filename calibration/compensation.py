@@ -407,36 +407,11 @@ def compensate_targets(
     ik_ok = first.converged.copy()
     w = walk(identified, q)
     e = pose_error(T_desired, w.R, w.p)
-    iterations = np.zeros(N, dtype=int)
-
-    def done(err):
-        return (np.linalg.norm(err[:, :3], axis=1) <= position_tol_m) & (
-            np.linalg.norm(err[:, 3:], axis=1) <= rotation_tol_rad
-        )
-
-    L = characteristic_length(identified)
-    active = ~done(e) & ik_ok
-    for _ in range(max_iterations):
-        idx = np.nonzero(active)[0]
-        if idx.size == 0:
-            break
-        Xi = X[idx].copy()
-        Xi[:, :3, 3] += e[idx, :3] @ RM.T
-        Xi[:, :3, :3] = rotvec_to_matrix(e[idx, 3:] @ RM.T) @ Xi[:, :3, :3]
-        r = _nominal_ik_fixed(nominal, Xi, q[idx], None if branch is None else branch[idx], kw)
-        w = walk(identified, r.q)
-        e2 = pose_error(T_desired[idx], w.R, w.p)
-        # a pass whose target the nominal IK cannot reach, or that doubles the error (the
-        # iteration diverges there), is not taken: the point stops at its last valid target
-        worse = _size(e2, L) > 2.0 * _size(e[idx], L)
-        keep = r.converged & ~worse
-        X[idx[keep]] = Xi[keep]
-        q[idx[keep]] = r.q[keep]
-        e[idx[keep]] = e2[keep]
-        reachable[idx] &= r.reachable
-        iterations[idx] += 1
-        active[idx] = ~done(e[idx]) & keep
-    converged = done(e) & ik_ok
+    tol = (position_tol_m, rotation_tol_rad)
+    iterations = _iterate_targets(
+        identified, nominal, T_desired, X, q, e, ik_ok, reachable, branch, RM, kw, tol, max_iterations
+    )
+    converged = _done(e, tol) & ik_ok
     flags, smin = assess(
         identified,
         q,
@@ -464,6 +439,41 @@ def compensate_targets(
         mode="targets",
         message=_message(converged, flags),
     )
+
+
+def _done(err: np.ndarray, tol: tuple[float, float]) -> np.ndarray:
+    """(N,) whether pose errors ``err`` (N, 6) are within ``tol`` (m, rad)."""
+    return (np.linalg.norm(err[:, :3], axis=1) <= tol[0]) & (np.linalg.norm(err[:, 3:], axis=1) <= tol[1])
+
+
+def _iterate_targets(identified, nominal, T_desired, X, q, e, ik_ok, reachable, branch, RM, kw, tol, max_iterations):
+    """The passes of :func:`compensate_targets`: move each target ``X`` (N, 4, 4) by the identified
+    robot's remaining error ``e`` (N, 6), solve the nominal IK there, until within ``tol``. ``X``,
+    ``q``, ``e`` and ``reachable`` are updated in place; returns the passes per point (N,)."""
+    iterations = np.zeros(len(T_desired), dtype=int)
+    L = characteristic_length(identified)
+    active = ~_done(e, tol) & ik_ok
+    for _ in range(max_iterations):
+        idx = np.nonzero(active)[0]
+        if idx.size == 0:
+            break
+        Xi = X[idx].copy()
+        Xi[:, :3, 3] += e[idx, :3] @ RM.T
+        Xi[:, :3, :3] = rotvec_to_matrix(e[idx, 3:] @ RM.T) @ Xi[:, :3, :3]
+        r = _nominal_ik_fixed(nominal, Xi, q[idx], None if branch is None else branch[idx], kw)
+        w = walk(identified, r.q)
+        e2 = pose_error(T_desired[idx], w.R, w.p)
+        # a pass whose target the nominal IK cannot reach, or that doubles the error (the
+        # iteration diverges there), is not taken: the point stops at its last valid target
+        worse = _size(e2, L) > 2.0 * _size(e[idx], L)
+        keep = r.converged & ~worse
+        X[idx[keep]] = Xi[keep]
+        q[idx[keep]] = r.q[keep]
+        e[idx[keep]] = e2[keep]
+        reachable[idx] &= r.reachable
+        iterations[idx] += 1
+        active[idx] = ~_done(e[idx], tol) & keep
+    return iterations
 
 
 def _size(e: np.ndarray, L: float) -> np.ndarray:

@@ -155,38 +155,7 @@ def fit_axis(
     warnings: list[str] = []
     m = len(P)
     if prismatic:
-        c, s, rms = fit_line(P)
-        t = (P - c) @ s
-        sign, slope = _sense(t, v)
-        s, t = sign * s, sign * t
-        off = (P - c) - np.outer(t, s)
-        dof = max(2 * m - 4, 1)
-        noise = float(np.sqrt(np.sum(off**2) / dof))
-        spread = float(np.sqrt(np.sum((t - t.mean()) ** 2)))
-        travel = float(np.ptp(t))
-        ref = max(noise, floor)
-        if ref > 0 and travel < min_radius_to_noise * ref:
-            warnings.append(
-                f"travel is only {travel / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
-                f"wanted): the axis direction is poorly determined"
-            )
-        return AxisFit(
-            True,
-            s,
-            c,
-            float("nan"),
-            float("nan"),
-            travel,
-            rms,
-            float("nan"),
-            noise,
-            noise / spread if spread > 0 else float("inf"),
-            noise / np.sqrt(m),
-            slope,
-            m,
-            "line",
-            tuple(warnings),
-        )
+        return _fit_prismatic_axis(P, v, floor, min_radius_to_noise)
     circ = fit_circle(P, method=method)
     n = circ.normal
     u = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
@@ -236,6 +205,44 @@ def fit_axis(
         slope,
         m,
         circ.method,
+        tuple(warnings),
+    )
+
+
+def _fit_prismatic_axis(P: np.ndarray, v: np.ndarray | None, floor: float, min_radius_to_noise: float) -> AxisFit:
+    """:func:`fit_axis` of a prismatic joint: a line through the sweep's points ``P`` (m, 3)."""
+    warnings: list[str] = []
+    m = len(P)
+    c, s, rms = fit_line(P)
+    t = (P - c) @ s
+    sign, slope = _sense(t, v)
+    s, t = sign * s, sign * t
+    off = (P - c) - np.outer(t, s)
+    dof = max(2 * m - 4, 1)
+    noise = float(np.sqrt(np.sum(off**2) / dof))
+    spread = float(np.sqrt(np.sum((t - t.mean()) ** 2)))
+    travel = float(np.ptp(t))
+    ref = max(noise, floor)
+    if ref > 0 and travel < min_radius_to_noise * ref:
+        warnings.append(
+            f"travel is only {travel / ref:.0f} times the noise (at least {min_radius_to_noise:.0f} "
+            f"wanted): the axis direction is poorly determined"
+        )
+    return AxisFit(
+        True,
+        s,
+        c,
+        float("nan"),
+        float("nan"),
+        travel,
+        rms,
+        float("nan"),
+        noise,
+        noise / spread if spread > 0 else float("inf"),
+        noise / np.sqrt(m),
+        slope,
+        m,
+        "line",
         tuple(warnings),
     )
 
@@ -739,20 +746,8 @@ def circle_point_analysis(
     exist, too few points, another joint moving, the swept joint's reading not changing,
     collinear points), ``ValueError`` for other bad input.
     """
-    if method not in METHODS:
-        raise ValueError(f"`method` must be one of {', '.join(METHODS)}; got {method!r}")
-    convention = convention or ("poe" if nominal.convention == "poe" else "dh")
-    if convention not in ("poe", "dh"):
-        raise ValueError(f"`convention` must be poe or dh; got {convention!r}")
+    convention, q = _check_cpa_input(nominal, sweeps, method, convention)
     n = nominal.n_joints
-    q = check_q(nominal, sweeps.q)
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(sweeps.p_world))):
-        raise ValueError("joint readings and positions must be finite")
-    for t in set(sweeps.target.tolist()) - {None}:
-        try:
-            nominal.target(t)
-        except KeyError as exc:
-            raise ValueError(str(exc).strip("'\"")) from None
     v = joint_variables(nominal, q)
     tol = np.array([held_tol_rad if j.revolute else held_tol_m for j in nominal.joints])
     groups, held = _check_sweeps(nominal, sweeps, v, tol, min_points)
@@ -773,32 +768,14 @@ def circle_point_analysis(
     S_nom, R_nom = (
         a[0] for a in axis_lines(dataclasses.replace(_unit_readings(nominal), base=matrix_to_pose(T_wb)), vs)
     )
-    for j in sorted(set(range(n)) - set(measured)):
-        S[j], R[j] = S_nom[j], R_nom[j]
-        warnings.append(
-            f"joint {j + 1} ({nominal.joints[j].name}) was not swept: its axis is the registered nominal one"
-        )
-    tilt = np.arctan2(np.linalg.norm(np.cross(S, S_nom), axis=1), np.sum(S * S_nom, axis=1))
-    offset = np.array(
-        [
-            np.linalg.norm(np.cross(R[j] - R_nom[j], S_nom[j])) if j_.revolute else 0.0
-            for j, j_ in enumerate(nominal.joints)
-        ]
-    )
+    tilt, offset = _against_nominal(nominal, measured, S, R, S_nom, R_nom, warnings)
     T_fl, tool, targets, changes, flange_notes, flange_warnings = _flange_at_signature(
         nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb
     )
     notes += flange_notes
     warnings += flange_warnings
     model_poe = _zero_reference_model(nominal, S, R, vs, T_wb, T_fl, tool, targets)
-    model = model_poe
-    if convention == "dh":
-        reference = nominal
-        if nominal.convention == "mdh" and not any(j.hayati for j in nominal.joints):
-            reference = mdh_to_dh(nominal)
-        model = poe_to_dh(model_poe, reference=reference, parallel_tol_rad=parallel_tol_rad)
-        if nominal.convention != "dh":
-            notes.append(f"written in dh (the nominal model is {nominal.convention})")
+    model = _in_convention(model_poe, nominal, convention, parallel_tol_rad, notes)
     message = f"{len(measured)} of {n} axes identified from {len(sweeps)} points" + (
         f"; {len(warnings)} warnings" if warnings else ""
     )
@@ -832,6 +809,58 @@ def circle_point_analysis(
             parallel_tol_rad=parallel_tol_rad,
         ),
     )
+
+
+def _check_cpa_input(nominal: KinematicModel, sweeps: Sweeps, method: str, convention: str | None):
+    """:func:`circle_point_analysis`'s arguments checked: the convention to write (default: ``poe``
+    for a ``poe`` nominal, else ``dh``) and the joint readings."""
+    if method not in METHODS:
+        raise ValueError(f"`method` must be one of {', '.join(METHODS)}; got {method!r}")
+    convention = convention or ("poe" if nominal.convention == "poe" else "dh")
+    if convention not in ("poe", "dh"):
+        raise ValueError(f"`convention` must be poe or dh; got {convention!r}")
+    q = check_q(nominal, sweeps.q)
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(sweeps.p_world))):
+        raise ValueError("joint readings and positions must be finite")
+    for t in set(sweeps.target.tolist()) - {None}:
+        try:
+            nominal.target(t)
+        except KeyError as exc:
+            raise ValueError(str(exc).strip("'\"")) from None
+    return convention, q
+
+
+def _against_nominal(nominal, measured, S, R, S_nom, R_nom, warnings: list[str]):
+    """The joints not swept take their registered nominal axes (in place, with a warning); then
+    each axis's tilt (rad) and offset (m, revolute joints) from the nominal's."""
+    n = nominal.n_joints
+    for j in sorted(set(range(n)) - set(measured)):
+        S[j], R[j] = S_nom[j], R_nom[j]
+        warnings.append(
+            f"joint {j + 1} ({nominal.joints[j].name}) was not swept: its axis is the registered nominal one"
+        )
+    tilt = np.arctan2(np.linalg.norm(np.cross(S, S_nom), axis=1), np.sum(S * S_nom, axis=1))
+    offset = np.array(
+        [
+            np.linalg.norm(np.cross(R[j] - R_nom[j], S_nom[j])) if j_.revolute else 0.0
+            for j, j_ in enumerate(nominal.joints)
+        ]
+    )
+    return tilt, offset
+
+
+def _in_convention(model_poe, nominal, convention: str, parallel_tol_rad: float, notes: list[str]):
+    """The ``poe`` model of :func:`circle_point_analysis` in ``convention`` (``dh``:
+    :func:`poe_to_dh` with the nominal as reference)."""
+    if convention != "dh":
+        return model_poe
+    reference = nominal
+    if nominal.convention == "mdh" and not any(j.hayati for j in nominal.joints):
+        reference = mdh_to_dh(nominal)
+    model = poe_to_dh(model_poe, reference=reference, parallel_tol_rad=parallel_tol_rad)
+    if nominal.convention != "dh":
+        notes.append(f"written in dh (the nominal model is {nominal.convention})")
+    return model
 
 
 # --------------------------------------------------------------------------- simulation

@@ -388,43 +388,8 @@ def to_urdf(
     )
     for w in export_warnings(model, "urdf", effort=effort, world=world):
         robot.append(ET.Comment(f" warning: {_comment_safe(w)} "))
-    limits = {j.name: (j.lower, j.upper, *r) for j, r in zip(model.joints, rates)}
-    ros_names = dict(zip((j.name for j in model.joints), ros_joint_names(model)))
-    urdf_names = {
-        j.name: UR_JOINTS[k] if scheme == "ur" else ros_names[j.name] if scheme == "ros" else j.name
-        for k, j in enumerate(model.joints)
-    }
-    # a mimic joint: its variable is a multiple of another's reading (its offset is in its origin)
-    mimics = {
-        model.joints[i].name: (urdf_names[model.joints[k].name], m) for i, (k, m) in (mimic_rows(model) or {}).items()
-    }
-
-    def link(n: str) -> str:
-        ET.SubElement(robot, "link", name=prefix + n)
-        return prefix + n
-
-    def joint(
-        n: str,
-        jtype: str,
-        parent: str,
-        child: str,
-        T: np.ndarray,
-        axis: np.ndarray | None = None,
-        limit: tuple[float, float, float, float] | None = None,
-        mimic: tuple[str, float] | None = None,
-    ) -> None:
-        e = ET.SubElement(robot, "joint", name=prefix + n, type=jtype)
-        _origin(e, T)
-        ET.SubElement(e, "parent", link=parent)
-        ET.SubElement(e, "child", link=child)
-        if axis is not None:
-            ET.SubElement(e, "axis", xyz=" ".join(_num(v) for v in axis))
-        if limit is not None:
-            ET.SubElement(
-                e, "limit", lower=_num(limit[0]), upper=_num(limit[1]), effort=_num(limit[3]), velocity=_num(limit[2])
-            )
-        if mimic is not None:
-            ET.SubElement(e, "mimic", joint=prefix + mimic[0], multiplier=_num(mimic[1]), offset="0")
+    limits, urdf_names, mimics = _urdf_joint_names(model, scheme, rates)
+    w = _UrdfWriter(robot, prefix)
 
     origins = [list(o) for o in (joint_origins(model) if scheme == "recal" else joint_origins_ros(model))]
     T_base_base_link = np.eye(4)  # the model's base frame -> base_link
@@ -435,10 +400,10 @@ def to_urdf(
         origins[-1][2] = remainder
         F = ur_match(model)[1] if matched else np.eye(4)  # base_link_inertia <- model base
         T_base_base_link = invert(F) @ _RZ_PI
-    base_link = link("base_link")
+    base_link = w.link("base_link")
     T_world_base = origins[0][2]
     if world:
-        joint("base_joint", "fixed", link("world"), base_link, T_world_base @ T_base_base_link)
+        w.joint("base_joint", "fixed", w.link("world"), base_link, T_world_base @ T_base_base_link)
     elif np.any(np.abs(model.base) > 1e-15):
         p = matrix_to_pose(T_world_base @ T_base_base_link)
         robot.append(
@@ -452,42 +417,102 @@ def to_urdf(
         )
     parent = base_link
     if scheme == "ur":
-        joint("base_link-base_fixed_joint", "fixed", base_link, link("base"), _RZ_PI)
-        parent = link("base_link_inertia")
-        joint("base_link-base_link_inertia", "fixed", base_link, parent, _RZ_PI)
+        w.joint("base_link-base_fixed_joint", "fixed", base_link, w.link("base"), _RZ_PI)
+        parent = w.link("base_link_inertia")
+        w.joint("base_link-base_link_inertia", "fixed", base_link, parent, _RZ_PI)
     elif scheme == "ros":
-        joint("base_link-base", "fixed", base_link, link("base"), np.eye(4))
+        w.joint("base_link-base", "fixed", base_link, w.link("base"), np.eye(4))
     k = 0
     for jname, jtype, T, axis in origins[1:]:
         if jname == "flange":
-            if scheme == "recal":
-                parent_flange = link("flange")
-                joint("flange_joint", "fixed", parent, parent_flange, T)
-                tool = link("tool")
-                joint("tool_joint", "fixed", parent_flange, tool, pose_to_matrix(model.tool))
-            else:
-                Ft = _UR_FLANGE_TOOL0 if scheme == "ur" else _ROS_FLANGE_TOOL0
-                flange, tool0 = link("flange"), link("tool0")
-                last = parent.removeprefix(prefix)
-                joint("wrist_3-flange" if scheme == "ur" else f"{last}-flange", "fixed", parent, flange, T @ invert(Ft))
-                joint("flange-tool0", "fixed", flange, tool0, Ft)
-                tool = link("tcp")
-                joint("tool0-tcp", "fixed", tool0, tool, pose_to_matrix(model.tool))
+            tool = _urdf_flange(w, model, scheme, parent, T)
         else:
             if scheme == "ur":
-                child = link(UR_LINKS[k])
+                child = w.link(UR_LINKS[k])
             elif scheme == "ros":
-                child = link(f"link_{k + 1}")
+                child = w.link(f"link_{k + 1}")
             else:
-                child = link(f"{jname}_link")
-            joint(urdf_names[jname], jtype, parent, child, T, axis, limits[jname], mimics.get(jname))
+                child = w.link(f"{jname}_link")
+            w.joint(urdf_names[jname], jtype, parent, child, T, axis, limits[jname], mimics.get(jname))
             parent = child
             k += 1
     for tname, p in model.targets.items():
-        child = link(f"target_{tname}")
-        joint(f"target_{tname}_joint", "fixed", tool, child, homogeneous(np.eye(3), p))
+        child = w.link(f"target_{tname}")
+        w.joint(f"target_{tname}_joint", "fixed", tool, child, homogeneous(np.eye(3), p))
     ET.indent(robot, space="  ")
     return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"
+
+
+class _UrdfWriter:
+    """The links and joints of a URDF document being written (every name prefixed)."""
+
+    def __init__(self, robot: ET.Element, prefix: str):
+        self.robot, self.prefix = robot, prefix
+
+    def link(self, n: str) -> str:
+        ET.SubElement(self.robot, "link", name=self.prefix + n)
+        return self.prefix + n
+
+    def joint(
+        self,
+        n: str,
+        jtype: str,
+        parent: str,
+        child: str,
+        T: np.ndarray,
+        axis: np.ndarray | None = None,
+        limit: tuple[float, float, float, float] | None = None,
+        mimic: tuple[str, float] | None = None,
+    ) -> None:
+        e = ET.SubElement(self.robot, "joint", name=self.prefix + n, type=jtype)
+        _origin(e, T)
+        ET.SubElement(e, "parent", link=parent)
+        ET.SubElement(e, "child", link=child)
+        if axis is not None:
+            ET.SubElement(e, "axis", xyz=" ".join(_num(v) for v in axis))
+        if limit is not None:
+            ET.SubElement(
+                e, "limit", lower=_num(limit[0]), upper=_num(limit[1]), effort=_num(limit[3]), velocity=_num(limit[2])
+            )
+        if mimic is not None:
+            ET.SubElement(e, "mimic", joint=self.prefix + mimic[0], multiplier=_num(mimic[1]), offset="0")
+
+
+def _urdf_joint_names(model: KinematicModel, scheme: str, rates) -> tuple[dict, dict, dict]:
+    """Per joint of ``model``: its limits (lower, upper, velocity, effort), its URDF name in
+    ``scheme``, and for a mimic joint (the joint it follows, the multiplier)."""
+    limits = {j.name: (j.lower, j.upper, *r) for j, r in zip(model.joints, rates)}
+    ros_names = dict(zip((j.name for j in model.joints), ros_joint_names(model)))
+    urdf_names = {
+        j.name: UR_JOINTS[k] if scheme == "ur" else ros_names[j.name] if scheme == "ros" else j.name
+        for k, j in enumerate(model.joints)
+    }
+    # a mimic joint: its variable is a multiple of another's reading (its offset is in its origin)
+    mimics = {
+        model.joints[i].name: (urdf_names[model.joints[k].name], m) for i, (k, m) in (mimic_rows(model) or {}).items()
+    }
+
+    return limits, urdf_names, mimics
+
+
+def _urdf_flange(w: _UrdfWriter, model: KinematicModel, scheme: str, parent: str, T: np.ndarray) -> str:
+    """The flange, the tool and (``ur``, ``ros``) ``tool0`` after the last joint's link
+    ``parent``, ``T`` the flange's origin; returns the tool's link."""
+    prefix = w.prefix
+    if scheme == "recal":
+        parent_flange = w.link("flange")
+        w.joint("flange_joint", "fixed", parent, parent_flange, T)
+        tool = w.link("tool")
+        w.joint("tool_joint", "fixed", parent_flange, tool, pose_to_matrix(model.tool))
+    else:
+        Ft = _UR_FLANGE_TOOL0 if scheme == "ur" else _ROS_FLANGE_TOOL0
+        flange, tool0 = w.link("flange"), w.link("tool0")
+        last = parent.removeprefix(prefix)
+        w.joint("wrist_3-flange" if scheme == "ur" else f"{last}-flange", "fixed", parent, flange, T @ invert(Ft))
+        w.joint("flange-tool0", "fixed", flange, tool0, Ft)
+        tool = w.link("tcp")
+        w.joint("tool0-tcp", "fixed", tool0, tool, pose_to_matrix(model.tool))
+    return tool
 
 
 # --------------------------------------------------------------------------- UR calibration YAML

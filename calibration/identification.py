@@ -185,7 +185,10 @@ class IdentificationResult:
     poses); ``model_error_scale``: how much predictions grow beyond the covariance
     (:func:`calibration.uncertainty.prediction_covariance`); ``consistency``: the χ² test
     (:func:`_consistency`); ``warnings``: what the user should know (a target nominally on the
-    last axis).
+    last axis); ``held_covariance``: the freed and the held geometric parameters' covariance, the
+    held ones with a prior width (:func:`calibration.identify.held_covariance`; None when none is
+    held, or with a :class:`Prior`), for what the data did not measure (a position-only fit's
+    orientation).
     """
 
     model: KinematicModel
@@ -228,6 +231,7 @@ class IdentificationResult:
     consistency: dict | None = None
     model_error_scale: float = 1.0
     warnings: tuple[str, ...] = ()
+    held_covariance: dict | None = None
 
     @property
     def param_names(self) -> tuple[str, ...]:

@@ -519,62 +519,91 @@ def numerical_ik(
     kw: dict[str, Any] = dict(
         position_tol_m=position_tol_m, rotation_tol_rad=rotation_tol_rad, max_iterations=max_iterations
     )
-    L = characteristic_length(model)
-    # per point, the best attempt so far, ranked: solved (converged, inside the limits) >
-    # converged > closest
-    q = seed.copy()
-    conv = np.zeros(N, dtype=bool)
-    rank = np.full(N, np.inf)
-    res_m, res_rad = np.full(N, np.inf), np.full(N, np.inf)
-    iters = np.zeros(N, dtype=int)
+    best = _Attempts(model, T, seed, kw)
+    best.keep(np.arange(N), solve_ik(model, T, seed, **kw))
+    own = best.rank == -2.0  # solved from the point's own seed
+    best.chain(max_chain)
+    if n_seeds > 0 and np.any(best.rank > -2.0):
+        best.spread(n_seeds)
+        best.chain(max_chain)
+    q, conv = best.q, best.conv
+    changed = taught & conv & ~own
+    if np.any(changed):
+        k = np.nonzero(changed)[0]
+        changed[k] = _branch_sign(model, q[k]) != _branch_sign(model, seed[k])
+    return IKResult(
+        q=q,
+        converged=conv,
+        residual_m=best.res_m,
+        residual_rad=best.res_rad,
+        iterations=best.iters,
+        reachable=conv.copy(),
+        branch_changed=changed,
+    )
 
-    def score(r, idx):
+
+class _Attempts:
+    """:func:`numerical_ik`'s best attempt per point so far, ranked: solved (converged, inside the
+    limits) > converged > closest; ``seed`` (N, n) the points' own seeds, ``kw`` :func:`solve_ik`'s
+    tolerances."""
+
+    def __init__(self, model: KinematicModel, T: np.ndarray, seed: np.ndarray, kw: dict[str, Any]):
+        N = len(T)
+        self.model, self.T, self.seed, self.kw = model, T, seed, kw
+        self.L = characteristic_length(model)
+        self.q = seed.copy()
+        self.conv = np.zeros(N, dtype=bool)
+        self.rank = np.full(N, np.inf)
+        self.res_m, self.res_rad = np.full(N, np.inf), np.full(N, np.inf)
+        self.iters = np.zeros(N, dtype=int)
+        self.tried_prev = np.zeros(N, dtype=bool)
+
+    def score(self, r, idx):
         """Lower is better: -2 solved, -1 converged outside the limits, else the residual size.
         Revolute joints are first put on the turn nearest the point's own seed."""
-        qw = wrap_into_limits(model, r.q, seed[idx])
-        s = np.where(r.converged, np.where(_inside(model, qw), -2.0, -1.0), r.residual_m + L * r.residual_rad)
+        model = self.model
+        qw = wrap_into_limits(model, r.q, self.seed[idx])
+        s = np.where(r.converged, np.where(_inside(model, qw), -2.0, -1.0), r.residual_m + self.L * r.residual_rad)
         return qw, s
 
-    def keep(idx, r):
-        qw, s = score(r, idx)
-        take = s < rank[idx]
+    def keep(self, idx, r) -> None:
+        qw, s = self.score(r, idx)
+        take = s < self.rank[idx]
         t = idx[take]
-        q[t], conv[t], rank[t] = qw[take], r.converged[take], s[take]
-        res_m[t], res_rad[t] = r.residual_m[take], r.residual_rad[take]
-        iters[idx] += r.iterations
+        self.q[t], self.conv[t], self.rank[t] = qw[take], r.converged[take], s[take]
+        self.res_m[t], self.res_rad[t] = r.residual_m[take], r.residual_rad[take]
+        self.iters[idx] += r.iterations
 
-    keep(np.arange(N), solve_ik(model, T, seed, **kw))
-    own = rank == -2.0  # solved from the point's own seed
-    tried_prev = np.zeros(N, dtype=bool)
-
-    def chain():
+    def chain(self, max_chain: int) -> None:
+        """Step 2: the previous point's solution as the seed, while it solves more points."""
+        rank, tried_prev = self.rank, self.tried_prev
         for _ in range(max_chain):
             idx = np.nonzero((rank[1:] > -2.0) & (rank[:-1] == -2.0) & ~tried_prev[1:])[0] + 1
             if idx.size == 0:
                 return
             tried_prev[idx] = True
-            keep(idx, solve_ik(model, T[idx], q[idx - 1], **kw))
+            self.keep(idx, solve_ik(self.model, self.T[idx], self.q[idx - 1], **self.kw))
 
-    chain()
-    if n_seeds > 0 and np.any(rank > -2.0):
+    def spread(self, n_seeds: int) -> None:
+        """Step 3: the spread seeds nearest each point's own seed first, ``group`` at a time,
+        stopping at the first group that solves it: the nearest of that group's solutions is kept."""
+        model, T, seed, n = self.model, self.T, self.seed, self.model.n_joints
         seeds = spread_seeds(model, n_seeds)
-        # each point tries the spread seeds nearest its own seed first, ``group`` at a time, and
-        # stops at the first group that solves it: the nearest of that group's solutions is kept
         order = np.argsort(np.sum((seed[:, None, :] - seeds[None, :, :]) ** 2, axis=2), axis=1)
         group = 4
         for start in range(0, len(seeds), group):
-            idx = np.nonzero(rank > -2.0)[0]
+            idx = np.nonzero(self.rank > -2.0)[0]
             if idx.size == 0:
                 break
             cols = order[idx, start : start + group]
             S = cols.shape[1]
-            r = solve_ik(model, np.repeat(T[idx], S, axis=0), seeds[cols.reshape(-1)], **kw)
-            qw, sc = score(r, np.repeat(idx, S))
+            r = solve_ik(model, np.repeat(T[idx], S, axis=0), seeds[cols.reshape(-1)], **self.kw)
+            qw, sc = self.score(r, np.repeat(idx, S))
             qw, sc = qw.reshape(idx.size, S, n), sc.reshape(idx.size, S)
             near = np.sum((qw - seed[idx][:, None, :]) ** 2, axis=2)
             best = np.argmin(np.where(sc == sc.min(axis=1, keepdims=True), np.where(sc < 0, near, 0.0), np.inf), axis=1)
             pick = np.arange(idx.size) * S + best
-            keep(
+            self.keep(
                 idx,
                 IKResult(
                     q=r.q[pick],
@@ -585,20 +614,6 @@ def numerical_ik(
                     reachable=np.ones(idx.size, dtype=bool),
                 ),
             )
-        chain()
-    changed = taught & conv & ~own
-    if np.any(changed):
-        k = np.nonzero(changed)[0]
-        changed[k] = _branch_sign(model, q[k]) != _branch_sign(model, seed[k])
-    return IKResult(
-        q=q,
-        converged=conv,
-        residual_m=res_m,
-        residual_rad=res_rad,
-        iterations=iters,
-        reachable=conv.copy(),
-        branch_changed=changed,
-    )
 
 
 def inverse_kinematics(

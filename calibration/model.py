@@ -294,15 +294,8 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
     fmt = doc.get("format")
     if fmt != FORMAT:
         raise ModelFormatError("format", f"expected {FORMAT!r}, got {fmt!r}")
-    u = doc.get("units")
-    if not isinstance(u, Mapping):
-        raise ModelFormatError("units", 'expected {"length": "mm"|"m"|"in", "angle": "deg"|"rad"}')
-    if u.get("length") not in LENGTH_UNITS:
-        raise ModelFormatError("units.length", f"expected one of mm, m, in; got {u.get('length')!r}")
-    if u.get("angle") not in ANGLE_UNITS:
-        raise ModelFormatError("units.angle", f"expected deg or rad; got {u.get('angle')!r}")
-    units = Units(u["length"], u["angle"])
-    L, A = units.length_m, units.angle_rad
+    units = _units_of(doc)
+    L = units.length_m
     convention = doc.get("convention")
     if convention not in CONVENTIONS:
         raise ModelFormatError("convention", f"expected one of {', '.join(CONVENTIONS)}, got {convention!r}")
@@ -316,67 +309,10 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
         if not isinstance(c, list) or len(c) != n:
             raise ModelFormatError("coupling", f"expected {n} rows of {n} numbers")
         coupling = np.array([_vector(row, n, f"coupling[{i}]") for i, row in enumerate(c)])
-    joints = []
-    names = set()
+    joints: list[Joint] = []
+    names: set[str] = set()
     for i, jd in enumerate(raw_joints):
-        where = f"joints[{i}]"
-        if not isinstance(jd, Mapping):
-            raise ModelFormatError(where, "expected an object")
-        jtype = jd.get("type", "revolute")
-        if jtype not in JOINT_TYPES:
-            raise ModelFormatError(f"{where}.type", f"expected revolute or prismatic, got {jtype!r}")
-        name = str(jd.get("name", f"j{i + 1}"))
-        if name in names:
-            raise ModelFormatError(f"{where}.name", f"duplicate joint name {name!r}")
-        names.add(name)
-        var_scale = A if jtype == "revolute" else L  # unit of this joint's reading
-        if "gain" in jd and coupling is not None:
-            raise ModelFormatError(f"{where}.gain", "a model may give `coupling` or `gain`, not both")
-        kw: dict[str, Any] = dict(
-            name=name,
-            type=jtype,
-            theta=_number(jd, "theta", where, 0.0) * A,
-            d=_number(jd, "d", where, 0.0) * L,
-            gain=_number(jd, "gain", where, 1.0),
-        )
-        # Without limits: a full turn either way for revolute joints, 10 m for prismatic ones.
-        default_limit = 2 * math.pi if jtype == "revolute" else 10.0
-        lower, upper = _number(jd, "lower", where), _number(jd, "upper", where)
-        kw["lower"] = -default_limit if lower is None else lower * var_scale
-        kw["upper"] = default_limit if upper is None else upper * var_scale
-        if kw["lower"] >= kw["upper"]:
-            raise ModelFormatError(f"{where}.lower", "must be below `upper`")
-        if convention == "poe":
-            if "axis" not in jd:
-                raise ModelFormatError(f"{where}.axis", "is required for convention poe (a unit 3-vector)")
-            axis = _vector(jd["axis"], 3, f"{where}.axis")
-            norm = np.linalg.norm(axis)
-            if not norm > 0:
-                raise ModelFormatError(f"{where}.axis", "must not be zero")
-            kw["axis"] = axis / norm
-            kw["point"] = _vector(jd.get("point", [0, 0, 0]), 3, f"{where}.point") * L
-        else:
-            kw["a"] = _number(jd, "a", where, 0.0) * L
-            kw["alpha"] = _number(jd, "alpha", where, 0.0) * A
-            if jd.get("beta") is not None:
-                if convention != "dh":
-                    raise ModelFormatError(f"{where}.beta", "Hayati's beta is defined for convention dh only")
-                kw["beta"] = _number(jd, "beta", where, 0.0) * A  # present: checked just above
-                if kw["d"] != 0.0 and jtype == "revolute":
-                    raise ModelFormatError(f"{where}.d", "must be 0 or absent in a Hayati (beta) link")
-        # Published speed and torque (force) limits, for exports; SI inside (rad/s or m/s, N·m or N).
-        for key, scale in (("velocity", var_scale), ("effort", 1.0)):
-            v = _number(jd, key, where)
-            if v is not None:
-                if not v > 0:
-                    raise ModelFormatError(f"{where}.{key}", f"expected a positive number, got {v!r}")
-                kw[key] = v * scale
-        if jd.get("harmonic") is not None:
-            h = _vector(jd["harmonic"], 3, f"{where}.harmonic")
-            # k multiplies the reading: per radian (dimensionless) or per file length unit
-            freq_scale = 1.0 if jtype == "revolute" else 1.0 / L
-            kw["harmonic"] = (h[0] * var_scale, h[1] * freq_scale, h[2] * A)
-        joints.append(Joint(**kw))
+        joints.append(_joint_from_dict(jd, i, convention, units, coupling, names))
     targets = {}
     raw_targets = doc.get("targets") or {}
     if not isinstance(raw_targets, Mapping):
@@ -402,6 +338,84 @@ def model_from_dict(doc: Mapping[str, Any]) -> KinematicModel:
         metadata={k: v for k, v in doc.items() if k not in known},
         compliance=None if doc.get("compliance") is None else compliance_from_dict(doc["compliance"], joints, units),
     )
+
+
+def _joint_from_dict(
+    jd: Any, i: int, convention: str, units: Units, coupling: np.ndarray | None, names: set[str]
+) -> Joint:
+    """Joint ``i`` of a model document (``jd``), in SI; ``names``: the joint names read so far
+    (this one is added)."""
+    L, A = units.length_m, units.angle_rad
+    where = f"joints[{i}]"
+    if not isinstance(jd, Mapping):
+        raise ModelFormatError(where, "expected an object")
+    jtype = jd.get("type", "revolute")
+    if jtype not in JOINT_TYPES:
+        raise ModelFormatError(f"{where}.type", f"expected revolute or prismatic, got {jtype!r}")
+    name = str(jd.get("name", f"j{i + 1}"))
+    if name in names:
+        raise ModelFormatError(f"{where}.name", f"duplicate joint name {name!r}")
+    names.add(name)
+    var_scale = A if jtype == "revolute" else L  # unit of this joint's reading
+    if "gain" in jd and coupling is not None:
+        raise ModelFormatError(f"{where}.gain", "a model may give `coupling` or `gain`, not both")
+    kw: dict[str, Any] = dict(
+        name=name,
+        type=jtype,
+        theta=_number(jd, "theta", where, 0.0) * A,
+        d=_number(jd, "d", where, 0.0) * L,
+        gain=_number(jd, "gain", where, 1.0),
+    )
+    # Without limits: a full turn either way for revolute joints, 10 m for prismatic ones.
+    default_limit = 2 * math.pi if jtype == "revolute" else 10.0
+    lower, upper = _number(jd, "lower", where), _number(jd, "upper", where)
+    kw["lower"] = -default_limit if lower is None else lower * var_scale
+    kw["upper"] = default_limit if upper is None else upper * var_scale
+    if kw["lower"] >= kw["upper"]:
+        raise ModelFormatError(f"{where}.lower", "must be below `upper`")
+    if convention == "poe":
+        if "axis" not in jd:
+            raise ModelFormatError(f"{where}.axis", "is required for convention poe (a unit 3-vector)")
+        axis = _vector(jd["axis"], 3, f"{where}.axis")
+        norm = np.linalg.norm(axis)
+        if not norm > 0:
+            raise ModelFormatError(f"{where}.axis", "must not be zero")
+        kw["axis"] = axis / norm
+        kw["point"] = _vector(jd.get("point", [0, 0, 0]), 3, f"{where}.point") * L
+    else:
+        kw["a"] = _number(jd, "a", where, 0.0) * L
+        kw["alpha"] = _number(jd, "alpha", where, 0.0) * A
+        if jd.get("beta") is not None:
+            if convention != "dh":
+                raise ModelFormatError(f"{where}.beta", "Hayati's beta is defined for convention dh only")
+            kw["beta"] = _number(jd, "beta", where, 0.0) * A  # present: checked just above
+            if kw["d"] != 0.0 and jtype == "revolute":
+                raise ModelFormatError(f"{where}.d", "must be 0 or absent in a Hayati (beta) link")
+    # Published speed and torque (force) limits, for exports; SI inside (rad/s or m/s, N·m or N).
+    for key, scale in (("velocity", var_scale), ("effort", 1.0)):
+        v = _number(jd, key, where)
+        if v is not None:
+            if not v > 0:
+                raise ModelFormatError(f"{where}.{key}", f"expected a positive number, got {v!r}")
+            kw[key] = v * scale
+    if jd.get("harmonic") is not None:
+        h = _vector(jd["harmonic"], 3, f"{where}.harmonic")
+        # k multiplies the reading: per radian (dimensionless) or per file length unit
+        freq_scale = 1.0 if jtype == "revolute" else 1.0 / L
+        kw["harmonic"] = (h[0] * var_scale, h[1] * freq_scale, h[2] * A)
+    return Joint(**kw)
+
+
+def _units_of(doc: Mapping[str, Any]) -> Units:
+    """A model document's ``units``."""
+    u = doc.get("units")
+    if not isinstance(u, Mapping):
+        raise ModelFormatError("units", 'expected {"length": "mm"|"m"|"in", "angle": "deg"|"rad"}')
+    if u.get("length") not in LENGTH_UNITS:
+        raise ModelFormatError("units.length", f"expected one of mm, m, in; got {u.get('length')!r}")
+    if u.get("angle") not in ANGLE_UNITS:
+        raise ModelFormatError("units.angle", f"expected deg or rad; got {u.get('angle')!r}")
+    return Units(u["length"], u["angle"])
 
 
 def _r(x: float, digits: int = 12) -> float:

@@ -877,33 +877,50 @@ def poses_for_accuracy(
 
     _greedy(design.J, k_max, rdiag, on_step)
     opts = dict(exchange=True, max_sweeps=o.max_sweeps, screen=o.screen, ridge=o.ridge, tol=o.tol)
-    name = "RMS" if statistic == "rms" else "95th percentile"
+    curve = (np.array(counts), np.array(values))
     if not values or values[-1] > accuracy_m:
-        result = _plan(design, ev, k_max, criterion, **opts)
-        got = result.predicted_rms_m if statistic == "rms" else result.predicted_p95_m
-        if got <= accuracy_m:
-            return AccuracyPlan(
-                k_max,
-                result,
-                accuracy_m,
-                statistic,
-                np.array(counts),
-                np.array(values),
-                True,
-                f"{k_max} poses are predicted to give a {name} error of {got:.3g} m",
-            )
+        return _at_most(design, ev, k_max, criterion, opts, accuracy_m, statistic, curve)
+    return _growing(design, ev, counts[-1], k_max, criterion, opts, accuracy_m, statistic, curve)
+
+
+def _statistic_name(statistic: str) -> str:
+    return "RMS" if statistic == "rms" else "95th percentile"
+
+
+def _at_most(design, ev, k_max: int, criterion, opts: dict, accuracy_m: float, statistic: str, curve) -> AccuracyPlan:
+    """:func:`poses_for_accuracy` when the greedy sequence did not reach ``accuracy_m`` by
+    ``k_max`` poses: the full plan of ``k_max`` poses, which may still reach it."""
+    name = _statistic_name(statistic)
+    result = _plan(design, ev, k_max, criterion, **opts)
+    got = result.predicted_rms_m if statistic == "rms" else result.predicted_p95_m
+    if got <= accuracy_m:
         return AccuracyPlan(
-            None,
+            k_max,
             result,
             accuracy_m,
             statistic,
-            np.array(counts),
-            np.array(values),
-            False,
-            f"even {k_max} poses are predicted to give a {name} error of {got:.3g} m, above the "
-            f"{accuracy_m:.3g} m wanted: allow more poses or candidates, or use a better instrument",
+            *curve,
+            True,
+            f"{k_max} poses are predicted to give a {name} error of {got:.3g} m",
         )
-    k = counts[-1]
+    return AccuracyPlan(
+        None,
+        result,
+        accuracy_m,
+        statistic,
+        *curve,
+        False,
+        f"even {k_max} poses are predicted to give a {name} error of {got:.3g} m, above the "
+        f"{accuracy_m:.3g} m wanted: allow more poses or candidates, or use a better instrument",
+    )
+
+
+def _growing(
+    design, ev, k: int, k_max: int, criterion, opts: dict, accuracy_m: float, statistic: str, curve
+) -> AccuracyPlan:
+    """:func:`poses_for_accuracy` from the first ``k`` the greedy sequence predicts to reach
+    ``accuracy_m``: planned in full, ``k`` growing until the full plan reaches it too."""
+    name = _statistic_name(statistic)
     while True:
         result = _plan(design, ev, k, criterion, **opts)
         got = result.predicted_rms_m if statistic == "rms" else result.predicted_p95_m
@@ -915,9 +932,7 @@ def poses_for_accuracy(
                 else f"even {k} poses are predicted to give a {name} error of {got:.3g} m, above the "
                 f"{accuracy_m:.3g} m wanted"
             )
-            return AccuracyPlan(
-                k if ok else None, result, accuracy_m, statistic, np.array(counts), np.array(values), ok, msg
-            )
+            return AccuracyPlan(k if ok else None, result, accuracy_m, statistic, *curve, ok, msg)
         k += 1
 
 

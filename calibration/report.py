@@ -179,20 +179,6 @@ def identification_report(
     """Everything a metrologist needs to judge the identification, in ``units``."""
     L = units.length_m
     rows = np.arange(1, result.n_rows + 1) if data_rows is None else np.asarray(data_rows)
-    params = []
-    for k, p in enumerate(result.params):
-        uname, s = _unit(p.kind, units)
-        entry = {
-            "name": p.name,
-            "unit": uname,
-            "value": _f(result.values[k] / s),
-            "change": _f(result.steps[k] / s),
-            "std_error": _f(result.std_errors[k] / s),
-            "source": result.sources[k] if result.sources else "data",
-        }
-        if result.prior_std_errors is not None and math.isfinite(result.prior_std_errors[k]):
-            entry["prior_std_error"] = _f(result.prior_std_errors[k] / s)
-        params.append(entry)
     rn = np.linalg.norm(result.residuals_m, axis=1)
     report = {
         "success": result.success,
@@ -202,7 +188,7 @@ def identification_report(
         "function_evaluations": result.nfev,
         "units": {"length": units.length, "angle": units.angle},
         "rows": result.n_rows,
-        "parameters": params,
+        "parameters": _parameters_section(result, units),
         "unidentifiable": [
             {
                 "name": u.name,
@@ -220,29 +206,8 @@ def identification_report(
         },
         "condition_number": _f(result.condition_number),
         "observability": {k: _f(v) for k, v in result.observability.items()},
-        "residuals": {
-            "rms": _f(result.rms_m / L),
-            "max": _f(result.max_m / L),
-            "p95": _f(np.percentile(rn, 95) / L) if len(rn) else 0.0,
-            "rms_per_axis": [_f(v / L) for v in np.sqrt(np.mean(result.residuals_m**2, axis=0))],
-            "rms_orientation": _f(result.rms_rad / units.angle_rad),
-            "chi2": _f(result.chi2),
-            "dof": result.dof,
-            "sigma_scale": _f(result.sigma_scale),
-            "model_error_scale": _f(result.model_error_scale),
-        },
-        "cross_validation": None
-        if result.cross_validation is None
-        else {
-            "folds": result.cross_validation["folds"],
-            "method": "linearised k-fold: each fold predicted by the fit without it (one Gauss-Newton step from "
-            "the full fit)",
-            "rms": _f(result.cross_validation["rms_m"] / L),
-            "in_sample_rms": _f(result.rms_m / L),
-            "chi2": _f(result.cross_validation["chi2"]),
-            "expected_chi2": _f(result.cross_validation["expected_chi2"]),
-            "scale": _f(result.cross_validation["scale"]),
-        },
+        "residuals": _residuals_section(result, units, rn),
+        "cross_validation": _cross_validation_section(result, L),
         "consistency": None
         if result.consistency is None
         else {
@@ -263,14 +228,7 @@ def identification_report(
             {"row": int(rows[i]), "residual": _f(rn[i] / L), "weight": _f(result.row_weights[i], 4)}
             for i in result.outliers
         ],
-        "registration": None
-        if result.registration is None
-        else {
-            # SI in the result (rms_before_m); here in the length unit, so without the suffix
-            (k.removesuffix("_m") if k.startswith("rms") else k): (_f(v / L) if k.startswith("rms") else v)
-            for k, v in result.registration.items()
-            if k != "point_offset_correction_m"
-        },
+        "registration": _registration_section(result, L),
         "notes": list(result.notes),
         "settings": {
             **{k: v for k, v in result.settings.items() if k not in ("sigma_m", "sigma_rad")},
@@ -279,20 +237,89 @@ def identification_report(
         },
     }
     if validation is not None:
-        report["validation"] = {
-            "rows": validation.n,
-            "rms": _f(validation.rms_m / L),
-            "max": _f(validation.max_m / L),
-            "p95": _f(validation.p95_m / L),
-            "mean": _f(validation.mean_m / L),
-            "inside_predicted_95": _f(validation.coverage_95, 4),
-            "before": {
-                "rms": _f(validation.before_rms_m / L),
-                "max": _f(validation.before_max_m / L),
-                "p95": _f(validation.before_p95_m / L),
-            },
-        }
+        report["validation"] = _validation_section(validation, L)
     return report
+
+
+def _parameters_section(result: IdentificationResult, units: Units) -> list[dict]:
+    """The report's ``parameters``: each estimated one's value, change and standard error in ``units``."""
+    params = []
+    for k, p in enumerate(result.params):
+        uname, s = _unit(p.kind, units)
+        entry = {
+            "name": p.name,
+            "unit": uname,
+            "value": _f(result.values[k] / s),
+            "change": _f(result.steps[k] / s),
+            "std_error": _f(result.std_errors[k] / s),
+            "source": result.sources[k] if result.sources else "data",
+        }
+        if result.prior_std_errors is not None and math.isfinite(result.prior_std_errors[k]):
+            entry["prior_std_error"] = _f(result.prior_std_errors[k] / s)
+        params.append(entry)
+    return params
+
+
+def _residuals_section(result: IdentificationResult, units: Units, rn: np.ndarray) -> dict:
+    """The report's ``residuals`` (``rn``: the position residuals' lengths, m)."""
+    L = units.length_m
+    return {
+        "rms": _f(result.rms_m / L),
+        "max": _f(result.max_m / L),
+        "p95": _f(np.percentile(rn, 95) / L) if len(rn) else 0.0,
+        "rms_per_axis": [_f(v / L) for v in np.sqrt(np.mean(result.residuals_m**2, axis=0))],
+        "rms_orientation": _f(result.rms_rad / units.angle_rad),
+        "chi2": _f(result.chi2),
+        "dof": result.dof,
+        "sigma_scale": _f(result.sigma_scale),
+        "model_error_scale": _f(result.model_error_scale),
+    }
+
+
+def _cross_validation_section(result: IdentificationResult, L: float) -> dict | None:
+    """The report's ``cross_validation`` (``L``: metres per length unit)."""
+    cv = result.cross_validation
+    if cv is None:
+        return None
+    return {
+        "folds": cv["folds"],
+        "method": "linearised k-fold: each fold predicted by the fit without it (one Gauss-Newton step from "
+        "the full fit)",
+        "rms": _f(cv["rms_m"] / L),
+        "in_sample_rms": _f(result.rms_m / L),
+        "chi2": _f(cv["chi2"]),
+        "expected_chi2": _f(cv["expected_chi2"]),
+        "scale": _f(cv["scale"]),
+    }
+
+
+def _registration_section(result: IdentificationResult, L: float) -> dict | None:
+    """The report's ``registration``: SI in the result (rms_before_m); here in the length unit,
+    so without the suffix."""
+    if result.registration is None:
+        return None
+    return {
+        (k.removesuffix("_m") if k.startswith("rms") else k): (_f(v / L) if k.startswith("rms") else v)
+        for k, v in result.registration.items()
+        if k != "point_offset_correction_m"
+    }
+
+
+def _validation_section(validation: Validation, L: float) -> dict:
+    """The report's ``validation``: the hold-out errors, and the start's ("before")."""
+    return {
+        "rows": validation.n,
+        "rms": _f(validation.rms_m / L),
+        "max": _f(validation.max_m / L),
+        "p95": _f(validation.p95_m / L),
+        "mean": _f(validation.mean_m / L),
+        "inside_predicted_95": _f(validation.coverage_95, 4),
+        "before": {
+            "rms": _f(validation.before_rms_m / L),
+            "max": _f(validation.before_max_m / L),
+            "p95": _f(validation.before_p95_m / L),
+        },
+    }
 
 
 def identification_block(
@@ -350,6 +377,15 @@ def identification_block(
         # and add the model-structure error the residuals showed, per axis (m; structure_sigma)
         "structure_sigma_m": float(structure_sigma(result)),
     }
+    if result.held_covariance is not None:
+        # the orientation's uncertainty: freed and held parameters, the held ones at their prior
+        # width (calibration.uncertainty.orientation_from_block); already grown as predictions are
+        held = result.held_covariance
+        block["covariance"]["held"] = {
+            "names": list(held["names"]),
+            "prior_sd": [None if not np.isfinite(v) else float(v) for v in held["prior_sd"]],
+            "matrix": [[float(v) for v in row] for row in held["matrix"]],
+        }
     if nominal is not None:
         block["nominal"] = model_to_dict(nominal, units=units)
     if q is not None and len(q):

@@ -234,6 +234,74 @@ def correction_sigma_from_model(model: KinematicModel) -> float:
     )
 
 
+def rotation_covariance(
+    model: KinematicModel, params: list[Parameter], covariance: np.ndarray, q: np.ndarray, payload=None
+) -> np.ndarray:
+    """Covariance (N, 3, 3) rad² of the tool frame's orientation (a world-frame rotation vector)
+    at readings ``q`` (N, n), from the covariance (P, P) SI of ``params`` of ``model``: ``Jr Σx Jrᵀ``."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    if not params:
+        return np.zeros((len(q), 3, 3))
+    pred = predict(model, q, np.zeros((len(q), 3)), list(params), np.full(len(q), None, dtype=object), payload)
+    return np.einsum("nip,pq,njq->nij", pred.Jr, covariance, pred.Jr)
+
+
+def _held_params(model: KinematicModel, names: list[str], field: str) -> list[Parameter]:
+    gains = any(n.endswith(".gain") for n in names)
+    known = {p.name: p for p in candidate_parameters(model, targets=tuple(model.targets), gains=gains)}
+    for i, n in enumerate(names):
+        if n not in known:
+            raise CovarianceError(f"{field}.names[{i}]", f"no parameter {n!r} in this model")
+    return [known[n] for n in names]
+
+
+def orientation_covariance(result: IdentificationResult, q: np.ndarray, payload=None) -> np.ndarray:
+    """Covariance (N, 3, 3) rad² of the error of the tool frame's predicted orientation at readings
+    ``q`` (N, n): the freed parameters' covariance and, where parameters were held, their prior
+    width (:attr:`IdentificationResult.held_covariance`). A position-only fit does not measure the
+    orientation: there the held parameters (the tool's rotation, the last joint's offset, whatever
+    the data could not determine) decide it, and a bound from the freed ones alone claimed to know
+    them to zero. The model-structure error of the positions is not an orientation's and is not
+    added."""
+    held = result.held_covariance
+    if held is None:
+        return rotation_covariance(result.model, list(result.params), prediction_covariance(result), q, payload)
+    params = _held_params(result.model, held["names"], "held_covariance")
+    return rotation_covariance(result.model, params, np.asarray(held["matrix"]), q, payload)
+
+
+def orientation_from_block(model: KinematicModel) -> tuple[list[Parameter], np.ndarray]:
+    """The parameters and the covariance (P, P) SI that an identified model's ``identification``
+    block stores for its orientation: ``covariance.held`` (the freed and held parameters, the held
+    ones at their prior width: :func:`calibration.identify.held_covariance`) where it was written,
+    else the freed parameters' (:func:`covariance_from_block`: nothing held, or a file written
+    before the held ones were stored). Raises :class:`CovarianceError` naming the field at fault."""
+    params, matrix = covariance_from_block(model)
+    held = model.metadata["identification"]["covariance"].get("held")
+    if held is None:
+        return params, matrix
+    field = "identification.covariance.held"
+    names = held.get("names") if isinstance(held, dict) else None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise CovarianceError(f"{field}.names", "expected a list of parameter names")
+    try:
+        matrix = np.array(held.get("matrix"), dtype=float)
+    except (TypeError, ValueError):
+        matrix = np.zeros(0)
+    if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
+        raise CovarianceError(f"{field}.matrix", f"expected a {len(names)} x {len(names)} matrix of numbers")
+    return _held_params(model, names, field), matrix
+
+
+def stored_orientation_covariance(model: KinematicModel, q: np.ndarray, payload=None) -> np.ndarray:
+    """Covariance (N, 3, 3) rad² of the error of an identified model's predicted tool orientation
+    at readings ``q`` (N, n), from what its ``identification`` block stores
+    (:func:`orientation_from_block`): what :func:`orientation_covariance` gives for the
+    identification's result, for a model read from a file or a store."""
+    params, Sigma = orientation_from_block(model)
+    return rotation_covariance(model, params, Sigma, q, payload)
+
+
 @dataclass(frozen=True, slots=True)
 class Validation:
     """Hold-out errors of a model on measurements it was not fitted to (m).

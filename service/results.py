@@ -25,7 +25,14 @@ from calibration.kinematics import fk
 from calibration.metrics import norm_statistics
 from calibration.model import KinematicModel, model_from_dict
 from calibration.report import COMPARISON_STATUSES, compare_parameters
-from calibration.uncertainty import CovarianceError, covariance_from_block, radius_95, stored_position_bound
+from calibration.uncertainty import (
+    CovarianceError,
+    covariance_from_block,
+    orientation_from_block,
+    radius_95,
+    stored_orientation_covariance,
+    stored_position_bound,
+)
 
 from .models import KIND_RULES, Calibration, Cell, Measurement, RunSession, identified_calibration_kinds
 from .plans import UnsafePlan, allowed_limits, check_configurations
@@ -117,6 +124,7 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
     model = model_from_dict(cal.model)
     try:  # the model's stored covariance is what `recal predict --uncertainty` reads too
         covariance_from_block(model)
+        orientation_from_block(model)
     except CovarianceError as exc:
         return {"available": False, "reason": f"this calibration stored no usable parameter covariance: {exc}"}
     nominal = model_from_dict(cell.model)
@@ -144,6 +152,9 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
     radius = radius_95(C) / L
     rms = np.sqrt(np.maximum(np.trace(C, axis1=1, axis2=2), 0.0)) / L
     p = p_world / L
+    # the tool orientation's 95 % bound, as `recal predict --uncertainty` gives it (r95): held
+    # parameters at their prior width, what a position-only fit's orientation rests on (issue 25)
+    angle95 = radius_95(stored_orientation_covariance(model, q)) / model.units.angle_rad
     return {
         "available": True,
         "samples": int(samples),
@@ -153,6 +164,7 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
         "points": _rl(p, 5),
         "stats95": _stats(radius),
         "stats_rms": _stats(rms),
+        "angle95": _stats(angle95),
         "note": "95 % radius of the position the model predicts, from the identified parameters' covariance "
         "and the model-structure error the residuals showed (none when the model explains the data); "
         "the instrument's own noise is not included"
@@ -161,7 +173,9 @@ def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samp
             if inside is None
             else "; inside the region its residual correction was fitted in, from the correction's "
             f"cross-validated error ({100 * float(np.mean(inside)):.0f} % of these configurations)"
-        ),
+        )
+        + "; angle95: the same for the tool orientation's rotation angle (model angle unit), the "
+        "parameters the data could not determine taken at their prior width",
         **({} if inside is None else {"inside_correction_share": float(np.mean(inside))}),
     }
 

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 UNCERTAINTY_COLUMNS = ["sigma_x", "sigma_y", "sigma_z", "u95"]
+# with the tool pose (no --target), the orientation's too (issue 25: a position-only fit's
+# orientation came without one, and was 4 deg off on a real UR10)
+ORIENTATION_COLUMNS = ["r95"]
 
 
 def add_parser(s) -> None:
@@ -22,7 +25,9 @@ def add_parser(s) -> None:
         help="append sigma_x, sigma_y, sigma_z (standard uncertainty per axis) and u95 (95 %% radius) of "
         "the predicted position, in the model's length unit, from the covariance an identified "
         "model stores, or inside a residual correction's region from its cross-validated error "
-        "(the model's own uncertainty; the instrument's noise is not included)",
+        "(the model's own uncertainty; the instrument's noise is not included); "
+        "without --target also r95, a 95 %% bound on the tool orientation's rotation angle error, in the "
+        "model's angle unit (held parameters at their prior width: a position-only fit's orientation)",
     )
 
 
@@ -78,6 +83,8 @@ def run(args) -> int:
             header + UNCERTAINTY_COLUMNS,
             np.hstack([rows, _uncertainty(model, q, args.target, payload)]),
         )
+        if args.target is None:
+            header, rows = header + ORIENTATION_COLUMNS, np.hstack([rows, _orientation_bound(model, q, payload)])
     rows = rows.tolist()
     outside = _outside_calibrated_region(args, model, q)
     if outside is not None and (args.uncertainty or (flags is not None and outside.any())):
@@ -132,6 +139,7 @@ def _stored_covariance(path, model):
         CovarianceError,
         correction_sigma_from_model,
         covariance_from_block,
+        orientation_from_block,
         structure_sigma_from_block,
     )
     from service.files import InputError
@@ -141,6 +149,7 @@ def _stored_covariance(path, model):
         structure_sigma_from_block(model)
         if model.metadata.get("residual_map") is not None:  # inside its region the bound is its CV error
             correction_sigma_from_model(model)
+        orientation_from_block(model)
     except CovarianceError as exc:
         raise InputError(path, f"field {exc.field!r}: {exc} (needed by --uncertainty)") from None
 
@@ -154,6 +163,14 @@ def _uncertainty(model, q, target, payload=None):
     C = stored_position_covariance(model, q, target, payload)
     sigma = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
     return np.hstack([sigma, radius_95(C)[:, None]]) / model.units.length_m
+
+
+def _orientation_bound(model, q, payload=None):
+    """(N, 1) r95: a 95 % bound on the rotation angle of the tool orientation's error, model angle
+    unit (the largest principal axis of its covariance times sqrt(chi2_3(0.95)), as u95)."""
+    from calibration.uncertainty import radius_95, stored_orientation_covariance
+
+    return (radius_95(stored_orientation_covariance(model, q, payload)) / model.units.angle_rad)[:, None]
 
 
 def _residual_map(args, model, q, T):

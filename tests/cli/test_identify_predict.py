@@ -316,8 +316,12 @@ def test_predict_uncertainty_columns_are_honest(cell, identified):
     )
     assert proc.returncode == 0, proc.stderr
     rows = [r for r in csv.reader((cell.dir / "pose_u.csv").open()) if r and not r[0].startswith("#")]
-    assert rows[0] == ["x", "y", "z", "qw", "qx", "qy", "qz", "sigma_x", "sigma_y", "sigma_z", "u95", "flags"]
+    assert rows[0] == ["x", "y", "z", "qw", "qx", "qy", "qz", "sigma_x", "sigma_y", "sigma_z", "u95", "r95", "flags"]
     assert np.all(np.array([r[7:11] for r in rows[1:]], dtype=float) > 0)
+    # the orientation's bound (issue 25): a position-only fit holds the tool's rotation and the last
+    # joint's zero at 0.2 deg, so the bound is at least that (degrees: the model's angle unit)
+    r95 = np.array([r[11] for r in rows[1:]], dtype=float)
+    assert np.all((r95 > 0.2) & (r95 < 10.0)), r95
 
 
 # --------------------------------------------------------------------------- bad input

@@ -74,6 +74,9 @@ def test_result_certificate_downloads_and_comparison(client, stored_session, tok
     ws = res["workspace"]
     assert ws["available"] and ws["samples"] == len(ws["radius95"]) == len(ws["points"])
     assert 0 < ws["stats95"]["mean"] < 1.0
+    # and the tool orientation's bound (issue 25), degrees: a few tenths at least, the tool's
+    # rotation being held at 0.2 deg when the data are positions
+    assert 0.1 < ws["angle95"]["mean"] < 10.0, ws["angle95"]
     assert res["report"]["unidentifiable"] and res["report"]["parameters"]
 
     first_res = client.get(f"/api/v1/calibrations/{first}/result", headers=v).json()
