@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, StrictInt, ValidationInfo, field_validator
 from pydantic import Field as PField
-from sqlalchemy import JSON, BigInteger, Column, Integer, UniqueConstraint
+from sqlalchemy import JSON, BigInteger, Column, Index, Integer, UniqueConstraint
 from sqlmodel import Field, SQLModel
 
 from .files import MAX_MAGNITUDE, magnitude_problem
@@ -95,6 +95,12 @@ class Measurement(SQLModel, table=True):
 
 
 class Calibration(SQLModel, table=True):
+    # Which calibration is a cell's current one, read from the index alone (schema v9): the JSON
+    # columns come first in a row, and a query that read activated_at from each row of a cell with
+    # a thousand calibrations read all their reports (0.4 s).
+    __table_args__ = (
+        Index("ix_calibration_current", "cell_id", "kind", "nominal_version", "retired_at", "activated_at"),
+    )
     id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
     cell_id: int = Field(foreign_key="cell.id", sa_type=ID_TYPE, index=True)
     session_id: int | None = Field(default=None, foreign_key="session.id", sa_type=ID_TYPE)

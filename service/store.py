@@ -196,6 +196,12 @@ def _v9(conn) -> None:
         if column not in columns:
             conn.execute(text(f"ALTER TABLE calibration ADD COLUMN {column} {ddl}"))
     conn.execute(text("UPDATE calibration SET activated_at = created_at WHERE activated_at IS NULL"))
+    conn.execute(
+        text(
+            "CREATE INDEX IF NOT EXISTS ix_calibration_current "
+            "ON calibration (cell_id, kind, nominal_version, retired_at, activated_at)"
+        )
+    )
 
 
 MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8, _v9]
@@ -466,7 +472,7 @@ def current_calibration(db: Session, cell: Cell, *, at: datetime | None = None) 
     cell's present nominal model (after the nominal is replaced, none until the next one), the
     one activated last that is not retired. With ``at``: the one that was so at that time (as far
     as the store knows: a calibration activated again counts from its last activation)."""
-    q = select(Calibration).where(
+    q = select(Calibration.id).where(
         Calibration.cell_id == cell.id,
         Calibration.kind.in_(identified_calibration_kinds()),  # type: ignore[attr-defined]
         Calibration.nominal_version == cell.model_version,
@@ -479,14 +485,16 @@ def current_calibration(db: Session, cell: Cell, *, at: datetime | None = None) 
             Calibration.activated_at <= at,  # type: ignore[operator]
             Calibration.retired_at.is_(None) | (Calibration.retired_at > at),  # type: ignore[union-attr,operator]
         )
-    return db.exec(q.order_by(Calibration.activated_at.desc(), Calibration.id.desc())).first()  # type: ignore[union-attr]
+    # the id from the index (ix_calibration_current), then the one row: not every row's reports
+    found = db.exec(q.order_by(Calibration.activated_at.desc(), Calibration.id.desc()).limit(1)).first()  # type: ignore[union-attr]
+    return None if found is None else db.get(Calibration, found)
 
 
 def candidate_calibration(db: Session, cell: Cell, *, made_by: datetime | None = None) -> Calibration | None:
     """The cell's newest pose calibration that waits to become current (never activated, not
     retired, newer than the current one; made by ``made_by`` when given), else None."""
     cur = current_calibration(db, cell)
-    q = select(Calibration).where(
+    q = select(Calibration.id).where(
         Calibration.cell_id == cell.id,
         Calibration.kind.in_(identified_calibration_kinds()),  # type: ignore[attr-defined]
         Calibration.nominal_version == cell.model_version,
@@ -497,7 +505,8 @@ def candidate_calibration(db: Session, cell: Cell, *, made_by: datetime | None =
         q = q.where(Calibration.id > cur.id)
     if made_by is not None:
         q = q.where(Calibration.created_at <= made_by)
-    return db.exec(q.order_by(Calibration.id.desc())).first()
+    found = db.exec(q.order_by(Calibration.id.desc()).limit(1)).first()
+    return None if found is None else db.get(Calibration, found)
 
 
 def calibration_status(db: Session, cal: Calibration) -> str | None:

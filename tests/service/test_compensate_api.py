@@ -102,8 +102,11 @@ def test_registered_task_files_are_compensated_again(calibrated, tokens, stored_
         csv.DictReader(io.StringIO(client.get(f"/api/v1/compensations/{good['compensation_id']}", headers=t).text))
     )
     np.testing.assert_allclose([[float(row[c]) for c in Q] for row in rows], q_goal, atol=1e-4)
-    # after a recalibration, the newest calibration is the default
+    # after a recalibration the current calibration stays the default until the new one is put in
+    # use (issue 27: activated, not overwritten), then the new one is
     newer = stored_session(cell, seed=3)[1]
+    assert client.post(f"/api/v1/cells/{cell}/tasks/compensate", headers=t).json()["calibration_id"] == cal
+    assert client.post(f"/api/v1/calibrations/{newer}/activate", headers=t).status_code == 200
     assert client.post(f"/api/v1/cells/{cell}/tasks/compensate", headers=t).json()["calibration_id"] == newer
     assert (
         client.post(f"/api/v1/cells/{cell}/tasks/compensate?calibration_id={cal}", headers=t).json()["calibration_id"]

@@ -23,6 +23,7 @@ def test_version_1_store_is_upgraded(database_url):
     engine = make_engine(database_url)
     migrate(engine)
     with engine.begin() as conn:  # back to what version 1 made
+        conn.execute(text("DROP INDEX IF EXISTS ix_calibration_current"))  # v9 indexes columns dropped here
         for table, column in V3_COLUMNS:
             conn.execute(text(f"ALTER TABLE {table} DROP COLUMN {column}"))
         conn.execute(text("DROP INDEX uq_session_active_cell"))

@@ -481,7 +481,7 @@ def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     page load quickly (they never load all the reports); the overview shows the cells page by page."""
     from sqlmodel import Session
 
-    from service.models import Calibration, Cell
+    from service.models import Calibration, Cell, utcnow
     from service.settings import Settings
     from service.store import make_engine
 
@@ -500,8 +500,18 @@ def test_pages_stay_fast_with_a_thousand_calibrations(page, stack, web):
     model = json.loads(stack.nominal_path.read_text())
     engine = make_engine(Settings(home=stack.home).effective_database_url)
     with Session(engine) as db:
-        for k in range(1000):
-            db.add(Calibration(cell_id=cell_id, kind="pose", model=model, report=report, rms=0.03 + 0.01 * (k % 7) / 7))
+        for k in range(1000):  # as the store keeps them: each put in use in its turn (schema v9), the last current
+            db.add(
+                Calibration(
+                    cell_id=cell_id,
+                    kind="pose",
+                    model=model,
+                    report=report,
+                    rms=0.03 + 0.01 * (k % 7) / 7,
+                    nominal_version=1,
+                    activated_at=utcnow(),
+                )
+            )
         for k in range(30):  # more cells than one page of the overview holds
             db.add(Cell(name=f"spare cell {k + 1:02d}", site="plant C", model=model, devices={}))
         db.commit()

@@ -37,10 +37,10 @@ const PAGE = 30; // cells per page of the overview
 // What the cell card's accuracy figure is: a verification of the current calibration on fresh
 // configurations, never the calibration's own residual (how well it fits the data it came from).
 function accuracyNote(c) {
-  const a = c.accuracy, last = c.last;
-  if (a) return `accuracy: RMS error on ${a.n} fresh configurations (verified ${whenShort(a.created_at)})`;
-  if (last) return `calibrated ${whenShort(last.created_at)}, not verified yet: run a verify session`;
-  return "not calibrated yet";
+  const a = c.accuracy, cur = c.current, waits = c.candidate ? `; calibration ${c.candidate.id} not in use yet` : "";
+  if (a) return `accuracy: RMS error on ${a.n} fresh configurations (verified ${whenShort(a.created_at)})${waits}`;
+  if (cur) return `calibrated ${whenShort(cur.created_at)}, not verified yet: run a verify session${waits}`;
+  return c.last ? `no calibration in use${waits}` : "not calibrated yet";
 }
 
 export async function overview(ctx, page = 1) {
