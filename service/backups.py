@@ -103,6 +103,9 @@ class UnsafeZip(ValueError):
         super().__init__(message)
         self.too_large = too_large
 
+    def __reduce__(self):  # raised in a worker process, re-raised in the API's with its flag
+        return (UnsafeZip, (str(self), self.too_large))
+
 
 def _safe_name(name: str) -> PurePosixPath:
     """An entry's path inside the folder, or :class:`UnsafeZip` for one that could land outside

@@ -1,0 +1,111 @@
+"""A zipped controller backup through ``POST /calibrations/{id}/compensate-backup`` (issue 24):
+the zip of the same layout comes back, every entry that is not a program byte for byte, each
+program compensated as the single-program route compensates it, plus the report; targets not
+compensated are counted in ``X-Recal-Not-Compensated``. A zip that would write outside its
+folder (an absolute path, ``..``) or unpack beyond ``RECAL_MAX_INPUT_BYTES`` is refused before
+anything is written; a viewer may not compensate; the work is audited."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import zipfile
+
+import pytest
+
+from .conftest import auth
+
+NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+MOD = (
+    "MODULE job\r\n  PROC main()\r\n"
+    "    MoveAbsJ [[10,-80,90,-100,70,20],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, fine, tGripper;\r\n"
+    "    MoveAbsJ [[-30,-100,60,-50,-80,0],[9E+09,9E+09,9E+09,9E+09,9E+09,9E+09]], v1000, z10, tGripper;\r\n"
+    "  ENDPROC\r\nENDMODULE\r\n"
+)
+SYS = "MODULE user(SYSMODULE)\n  PERS tooldata tGripper:=[TRUE,[[0,0,200],[1,0,0,0]],[1,[0,0,50],[1,0,0,0],0,0,0]];\nENDMODULE\n"
+OTHER = {"BACKINFO/backinfo.txt": b"[BACKUP]\r\nSYSTEM=recal-test\r\n", "SYSPAR/MOC.cfg": b"MOC:CFG_1.0:6:0::\n"}
+
+
+def backup_zip(extra: dict | None = None) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("RAPID/TASK1/PROGMOD/job.mod", MOD)
+        zf.writestr("RAPID/TASK1/SYSMOD/user.sys", SYS)
+        for name, data in {**OTHER, **(extra or {})}.items():
+            zf.writestr(name, data)
+    return buf.getvalue()
+
+
+def post(client, cal, data: bytes, token: str):
+    return client.post(
+        f"/api/v1/calibrations/{cal}/compensate-backup?name=cell7.zip",
+        content=data,
+        headers={**auth(token), "Content-Type": "application/zip"},
+    )
+
+
+def test_an_abb_backup_zip_comes_back_in_its_layout_with_the_report(calibrated, tokens):
+    client, _, cal = calibrated
+    r = post(client, cal, backup_zip(), tokens["job"])
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "application/zip"
+    assert r.headers["x-recal-not-compensated"] == "0"
+    assert 'filename="cell7-compensated.zip"' in r.headers["content-disposition"]
+    out = zipfile.ZipFile(io.BytesIO(r.content))
+    names = out.namelist()
+    assert names[:-1] == ["RAPID/TASK1/PROGMOD/job.mod", "RAPID/TASK1/SYSMOD/user.sys", *OTHER]
+    assert names[-1] == "recal-compensation-report.json"
+    for name, data in OTHER.items():
+        assert out.read(name) == data
+    assert out.read("RAPID/TASK1/SYSMOD/user.sys").decode() == SYS
+    job = out.read("RAPID/TASK1/PROGMOD/job.mod").decode()
+    assert job != MOD and NUMBER.sub("#", job) == NUMBER.sub("#", MOD)
+    # the same as the single-program route gives for the module and its system module
+    files = [("p", ("job.mod", MOD.encode(), "text/plain")), ("s", ("user.sys", SYS.encode(), "text/plain"))]
+    one = client.post(f"/api/v1/calibrations/{cal}/compensate", files=files, headers=auth(tokens["job"]))
+    assert one.status_code == 200, one.text
+    assert one.json()["files"][0]["text"] == job
+    report = json.loads(out.read("recal-compensation-report.json"))
+    assert report["layout"] == "abb" and report["task"] == "cell7.zip"
+    assert [f["file"] for f in report["files"]] == ["RAPID/TASK1/PROGMOD/job.mod"]
+    assert [p["line"] for p in report["points"]] == [3, 4]
+    assert {p["file"] for p in report["points"]} == {"RAPID/TASK1/PROGMOD/job.mod"}
+    assert report["points"][0]["frames"].startswith("tool tGripper")
+    audit = client.get("/api/v1/audit", headers=auth(tokens["admin"])).json()
+    entries = audit if isinstance(audit, list) else audit.get("entries", audit.get("items", []))
+    assert any(e["action"] == "compensate backup" and e["actor"] == "job-user" for e in entries), audit
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["../evil.mod", "/etc/evil", "RAPID/../../evil", "C:/evil", "..\\evil"],
+)
+def test_an_entry_outside_the_folder_is_refused(calibrated, tokens, name, tmp_path):
+    client, _, cal = calibrated
+    r = post(client, cal, backup_zip({name: b"x"}), tokens["job"])
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"]["message"].startswith(f"zip entry {name!r}: an absolute path or '..'")
+
+
+def test_a_zip_beyond_the_input_bound_is_refused_before_it_is_unpacked(calibrated, tokens, monkeypatch):
+    client, _, cal = calibrated
+    monkeypatch.setenv("RECAL_MAX_INPUT_BYTES", "1M")
+    data = backup_zip({"bomb.bin": bytes(4 << 20)})  # 4 MiB of zeros: a few kB compressed
+    assert len(data) < 64 * 1024
+    r = post(client, cal, data, tokens["job"])
+    assert r.status_code == 413, r.text
+    assert "beyond the input bound of 1048576 bytes (RECAL_MAX_INPUT_BYTES)" in r.json()["detail"]["message"]
+
+
+def test_bad_zips_and_roles(calibrated, tokens):
+    client, _, cal = calibrated
+    assert post(client, cal, backup_zip(), tokens["viewer"]).status_code == 403
+    r = post(client, cal, b"not a zip", tokens["job"])
+    assert r.status_code == 422 and "expected a zip of a controller backup" in r.json()["detail"]["message"]
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        zf.writestr("readme.txt", "no programs")
+    r = post(client, cal, buf.getvalue(), tokens["job"])
+    assert r.status_code == 422 and r.json()["detail"]["message"].startswith("the zip: expected a controller backup")
+    assert post(client, 99999, backup_zip(), tokens["job"]).status_code == 404
