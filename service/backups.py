@@ -92,6 +92,25 @@ def compensate_folder(
     return BackupResult(layout, report, len(results), n, short)
 
 
+def with_frame_data(frames, job: backup.Job, root: Path):
+    """``frames`` with a Fanuc job's user and tool frames from the backup's frame data
+    (``SYSFRAME.VA``): numbers the options give stay the options'. A file that cannot be read
+    is a ``ValueError`` naming it (its path in the backup)."""
+    from dataclasses import replace
+
+    from .programs.fanuc_frames import read_frame_data
+
+    if not job.frame_data:
+        return frames
+    tools, bases = {}, {}
+    for path in job.frame_data:
+        p = Path(path)
+        data = read_frame_data(p.read_bytes().decode("utf-8", "replace"), str(p.relative_to(root)))
+        tools.update(data["tools"])
+        bases.update(data["bases"])
+    return replace(frames, tools={**tools, **frames.tools}, bases={**bases, **frames.bases})
+
+
 class NotABackup(ValueError):
     """A folder that holds none of the three backups' programs."""
 

@@ -252,7 +252,15 @@ def compensate_backup_and_audit(
     :class:`CompensationInputError` naming the zip entry (never a temporary path)."""
     from sqlmodel import Session
 
-    from .backups import REPORT_NAME, NotABackup, compensate_folder, pack_zip, report_bytes, unpack_zip
+    from .backups import (
+        REPORT_NAME,
+        NotABackup,
+        compensate_folder,
+        pack_zip,
+        report_bytes,
+        unpack_zip,
+        with_frame_data,
+    )
     from .controller import controller_nominal
     from .models import Calibration, Cell
     from .store import audit, make_engine
@@ -278,6 +286,7 @@ def compensate_backup_and_audit(
 
         def request(job, out_path):
             frames = Frames.from_options([], [], job.config_dat, modules=list(job.modules), rapid=job.fmt == "rapid")
+            frames = with_frame_data(frames, job, src)  # a Fanuc backup's SYSFRAME.VA
             return CompensationRequest(
                 task=str(job.path),
                 out=str(out_path),
