@@ -5,6 +5,7 @@ and compensated by the same library function as ``recal compensate``
 
 from __future__ import annotations
 
+import re
 import tempfile
 from pathlib import Path
 
@@ -298,8 +299,13 @@ def compensate_backup_and_audit(
                 report=True,
             )
 
-        def ours(message: str) -> str:  # the zip's entry names, not our temporary folder
-            return message.replace(str(src) + "/", "").replace(str(src), "the zip")
+        def ours(message: str) -> str:  # the zip's entry names, not our temporary folder nor CLI flags
+            message = message.replace(str(src) + "/", "").replace(str(src), "the zip")
+            return re.sub(
+                r"pass --(?:base|tool)-frame \d+=X,Y,Z,W,P,R",
+                "not set (or Uninitialized) in the backup's frame data (SYSFRAME.VA)",
+                message,
+            )
 
         try:
             result = compensate_folder(src, out, model, request)

@@ -109,3 +109,41 @@ def test_bad_zips_and_roles(calibrated, tokens):
     r = post(client, cal, buf.getvalue(), tokens["job"])
     assert r.status_code == 422 and r.json()["detail"]["message"].startswith("the zip: expected a controller backup")
     assert post(client, 99999, backup_zip(), tokens["job"]).status_code == 404
+
+
+def fanuc_zip(tool_frame: str) -> bytes:
+    """A folder of Fanuc programs: one joint position in user frame 1 and tool frame 1, and the
+    controller's frame data (SYSFRAME.VA, written for this test in a Fanuc backup's layout)."""
+    ls = (
+        "/PROG  JOB\r\n/MN\r\n   1:J P[1] 100% FINE    ;\r\n/POS\r\nP[1]{\r\n   GP1:\r\n\tUF : 1, UT : 1,\r\n"
+        "\tJ1=    10.000 deg,\tJ2=   -20.000 deg,\tJ3=    30.000 deg,\r\n"
+        "\tJ4=   -40.000 deg,\tJ5=    50.000 deg,\tJ6=   -60.000 deg\r\n};\r\n/END\r\n"
+    )
+    va = (
+        "[*SYSTEM*]$MNUFRAME  Storage: SHADOW  Access: RW  : ARRAY[1,9] OF POSITION\r\n    [1,1] =\r\n"
+        "  Group: 1   Config: N D B, 0, 0, 0\r\n  X:   800.000   Y:  -300.000   Z:   150.000\r\n"
+        "  W:     0.000   P:     0.000   R:   -30.000\r\n"
+        "[*SYSTEM*]$MNUTOOL  Storage: SHADOW  Access: RW  : ARRAY[1,10] OF POSITION\r\n" + tool_frame
+    )
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        zf.writestr("cell3/JOB.LS", ls)
+        zf.writestr("cell3/SYSFRAME.VA", va)
+    return buf.getvalue()
+
+
+def test_a_fanuc_backup_zip_takes_its_frames_from_the_frame_data(calibrated, tokens):
+    client, _, cal = calibrated
+    tool = "    [1,1] = 'GUN'\r\n  Group: 1   Config: N D B, 0, 0, 0\r\n  X: 0.000   Y: 10.000   Z: 220.000\r\n  W: 0.000   P: -20.000   R: 0.000\r\n"
+    r = post(client, cal, fanuc_zip(tool), tokens["job"])
+    assert r.status_code == 200, r.text
+    report = json.loads(zipfile.ZipFile(io.BytesIO(r.content)).read("recal-compensation-report.json"))
+    assert report["layout"] == "fanuc" and [p["frames"] for p in report["points"]] == ["UF 1, UT 1"]
+    # tool frame 1 never set on the controller: refused, naming the entry, its line and the frame
+    r = post(client, cal, fanuc_zip("    [1,1] = '' Uninitialized\r\n"), tokens["job"])
+    assert r.status_code == 422, r.text
+    message = r.json()["detail"]["message"]
+    assert message == (
+        "cell3/JOB.LS, line 7: P[1]: UT 1 is not given: not set (or Uninitialized) in the backup's frame data "
+        "(SYSFRAME.VA)"
+    ), message
