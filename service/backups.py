@@ -19,6 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from calibration.errors import RecalError
+
 from .compensation import CompensationRequest, NoTargetsError, compensate_task
 from .files import write_atomic
 from .programs import backup
@@ -111,11 +113,11 @@ def with_frame_data(frames, job: backup.Job, root: Path):
     return replace(frames, tools={**tools, **frames.tools}, bases={**bases, **frames.bases})
 
 
-class NotABackup(ValueError):
+class NotABackup(RecalError, ValueError):
     """A folder that holds none of the three backups' programs."""
 
 
-class UnsafeZip(ValueError):
+class UnsafeZip(RecalError, ValueError):
     """A zip refused before anything of it is written; ``too_large``: beyond the input bound."""
 
     def __init__(self, message: str, too_large: bool = False):
