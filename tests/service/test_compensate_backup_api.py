@@ -147,3 +147,41 @@ def test_a_fanuc_backup_zip_takes_its_frames_from_the_frame_data(calibrated, tok
         "cell3/JOB.LS, line 7: P[1]: UT 1 is not given: not set (or Uninitialized) in the backup's frame data "
         "(SYSFRAME.VA)"
     ), message
+
+
+def test_a_kuka_archive_zip_comes_back_in_its_layout(calibrated, tokens):
+    """A KUKA archive (KRC/R1/Program with a .src and its .dat, KRC/R1/System/$config.dat, am.ini):
+    the .dat's targets compensated as the multipart route compensates the program, every other
+    entry byte for byte (the .src holds no target's number)."""
+    client, _, cal = calibrated
+    src = "DEF job( )\r\nPTP XHOME\r\nPTP XP1\r\nEND\r\n"
+    dat = (
+        "DEFDAT job\r\nDECL E6AXIS XHOME={A1 10.0,A2 -80.0,A3 90.0,A4 -100.0,A5 70.0,A6 20.0,E1 0.0}\r\n"
+        "DECL E6AXIS XP1={A1 -30.0,A2 -100.0,A3 60.0,A4 -50.0,A5 -80.0,A6 0.0,E1 12.5}\r\nENDDAT\r\n"
+    )
+    config = "DEFDAT $CONFIG\r\nDECL FRAME TOOL_DATA[16]\r\nENDDAT\r\n"
+    entries = {
+        "KRC/R1/Program/job.src": src,
+        "KRC/R1/Program/job.dat": dat,
+        "KRC/R1/System/$config.dat": config,
+        "am.ini": "[Version]\r\nVersion=KRC4\r\n",
+    }
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name, text in entries.items():
+            zf.writestr(name, text)
+    r = post(client, cal, buf.getvalue(), tokens["job"])
+    assert r.status_code == 200, r.text
+    assert r.headers["x-recal-not-compensated"] == "0"
+    out = zipfile.ZipFile(io.BytesIO(r.content))
+    assert out.namelist() == [*entries, "recal-compensation-report.json"]
+    for name in ("KRC/R1/Program/job.src", "KRC/R1/System/$config.dat", "am.ini"):
+        assert out.read(name).decode() == entries[name], name
+    new_dat = out.read("KRC/R1/Program/job.dat").decode()
+    assert new_dat != dat and NUMBER.sub("#", new_dat) == NUMBER.sub("#", dat) and "E1 12.5}" in new_dat
+    files = [("p", ("job.src", src.encode(), "text/plain")), ("d", ("job.dat", dat.encode(), "text/plain"))]
+    one = client.post(f"/api/v1/calibrations/{cal}/compensate", files=files, headers=auth(tokens["job"]))
+    assert one.status_code == 200, one.text
+    assert one.json()["files"][1]["text"] == new_dat
+    report = json.loads(out.read("recal-compensation-report.json"))
+    assert report["layout"] == "kuka" and {p["file"] for p in report["points"]} == {"KRC/R1/Program/job.dat"}
