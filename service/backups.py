@@ -19,6 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from calibration.errors import RecalError
+
 from .compensation import CompensationRequest, NoTargetsError, compensate_task
 from .files import write_atomic
 from .programs import backup
@@ -92,16 +94,38 @@ def compensate_folder(
     return BackupResult(layout, report, len(results), n, short)
 
 
-class NotABackup(ValueError):
+def with_frame_data(frames, job: backup.Job, root: Path):
+    """``frames`` with a Fanuc job's user and tool frames from the backup's frame data
+    (``SYSFRAME.VA``): numbers the options give stay the options'. A file that cannot be read
+    is a ``ValueError`` naming it (its path in the backup)."""
+    from dataclasses import replace
+
+    from .programs.fanuc_frames import read_frame_data
+
+    if not job.frame_data:
+        return frames
+    tools, bases = {}, {}
+    for path in job.frame_data:
+        p = Path(path)
+        data = read_frame_data(p.read_bytes().decode("utf-8", "replace"), str(p.relative_to(root)))
+        tools.update(data["tools"])
+        bases.update(data["bases"])
+    return replace(frames, tools={**tools, **frames.tools}, bases={**bases, **frames.bases})
+
+
+class NotABackup(RecalError, ValueError):
     """A folder that holds none of the three backups' programs."""
 
 
-class UnsafeZip(ValueError):
+class UnsafeZip(RecalError, ValueError):
     """A zip refused before anything of it is written; ``too_large``: beyond the input bound."""
 
     def __init__(self, message: str, too_large: bool = False):
         super().__init__(message)
         self.too_large = too_large
+
+    def __reduce__(self):  # raised in a worker process, re-raised in the API's with its flag
+        return (UnsafeZip, (str(self), self.too_large))
 
 
 def _safe_name(name: str) -> PurePosixPath:

@@ -5,6 +5,7 @@ and compensated by the same library function as ``recal compensate``
 
 from __future__ import annotations
 
+import re
 import tempfile
 from pathlib import Path
 
@@ -238,3 +239,95 @@ def compensate_and_store(
                 detail={"name": name, "mode": mode, **({"payload": payload} if payload else {})},
             )
         return rec.id, output, (report or {}).get("summary"), (report or {}).get("files", [])
+
+
+def compensate_backup_and_audit(
+    database_url: str, calibration_id: int, data: bytes, *, actor: str, name: str, limit: int
+) -> tuple[bytes, int, dict]:
+    """In a worker process: the zipped controller backup ``data`` (a KUKA archive, an ABB backup, a
+    folder of Fanuc ``.ls`` programs) compensated with calibration ``calibration_id`` against the
+    nominal its cell's controller computes with (service.backups), as ``recal compensate --task
+    DIR`` does; audited. Returns (the zip of the same layout with the report,
+    ``service.backups.REPORT_NAME``, beside its entries; the targets not compensated; a summary).
+    ``limit``: the input bound on the uncompressed size. Bad input raises
+    :class:`CompensationInputError` naming the zip entry (never a temporary path)."""
+    from sqlmodel import Session
+
+    from .backups import (
+        REPORT_NAME,
+        NotABackup,
+        compensate_folder,
+        pack_zip,
+        report_bytes,
+        unpack_zip,
+        with_frame_data,
+    )
+    from .controller import controller_nominal
+    from .models import Calibration, Cell
+    from .store import audit, make_engine
+
+    engine = _ENGINES.get(database_url)
+    if engine is None:
+        engine = _ENGINES[database_url] = make_engine(database_url)
+    with Session(engine) as db:
+        cal = db.get(Calibration, calibration_id)
+        if cal is None:
+            raise CompensationInputError(f"no calibration {calibration_id}")
+        model_doc, nominal_doc = cal.model, controller_nominal(db, db.get(Cell, cal.cell_id))
+    try:
+        model, nominal = model_from_dict(model_doc), model_from_dict(nominal_doc)
+    except ModelFormatError as exc:
+        raise CompensationInputError(f"the calibration's model: {exc}") from None
+    with tempfile.TemporaryDirectory() as tmp:
+        src, out = Path(tmp) / "in", Path(tmp) / "out"
+        src.mkdir()
+        names = unpack_zip(data, src, limit)  # UnsafeZip (a ValueError): the route's 413 or 422
+        if REPORT_NAME in names:
+            raise CompensationInputError(f"the zip already holds {REPORT_NAME}: expected a controller backup")
+
+        def request(job, out_path):
+            frames = Frames.from_options([], [], job.config_dat, modules=list(job.modules), rapid=job.fmt == "rapid")
+            frames = with_frame_data(frames, job, src)  # a Fanuc backup's SYSFRAME.VA
+            return CompensationRequest(
+                task=str(job.path),
+                out=str(out_path),
+                model_label="the calibration's model",
+                fmt=job.fmt,
+                nominal=nominal,
+                calibrated=calibrated_range_of(model),
+                frames=frames,
+                report=True,
+            )
+
+        def ours(message: str) -> str:  # the zip's entry names, not our temporary folder nor CLI flags
+            message = message.replace(str(src) + "/", "").replace(str(src), "the zip")
+            return re.sub(
+                r"pass --(?:base|tool)-frame \d+=X,Y,Z,W,P,R",
+                "not set (or Uninitialized) in the backup's frame data (SYSFRAME.VA)",
+                message,
+            )
+
+        try:
+            result = compensate_folder(src, out, model, request)
+        except NotABackup as exc:
+            raise CompensationInputError(f"the zip: {exc}") from None
+        except (InputError, CompensationInputError, ValueError) as exc:
+            raise CompensationInputError(ours(str(exc)).replace(" (--module SYSMOD.sys)", "")) from None
+        result.report["task"] = name
+        answer = pack_zip(out, names, {REPORT_NAME: report_bytes(result)})
+    summary = {
+        "layout": result.layout,
+        "programs": result.programs,
+        "points": result.points,
+        "not_compensated": result.not_compensated,
+        "shortfalls": result.short,
+    }
+    with Session(engine) as db:
+        audit(
+            db,
+            actor=actor,
+            action="compensate backup",
+            subject=f"calibration {calibration_id}",
+            detail={"name": name, **{k: v for k, v in summary.items() if k != "shortfalls"}},
+        )
+    return answer, result.not_compensated, summary

@@ -52,6 +52,7 @@ CONTENT = {
     ("get", "/download/{fmt}"): ("application/json", "application/xml", "text/csv", "text/markdown"),
     ("get", "/compensations/{compensation_id}"): ("text/plain",),
     ("post", "/calibrations/{calibration_id}/compensate"): ("text/csv", "text/plain"),
+    ("post", "/calibrations/{calibration_id}/compensate-backup"): ("application/zip",),
     ("get", "/measurements.csv"): ("text/csv",),
 }
 
@@ -88,6 +89,19 @@ def document_errors(app) -> None:
                         "program's .src and .dat: multipart/form-data, one part per file)",
                         "content": {
                             m: {"schema": {"type": "string", "minLength": 1}} for m in ("text/csv", "text/plain")
+                        },
+                    }
+                if path.endswith("/compensate-backup"):
+                    op["requestBody"] = {
+                        "required": True,
+                        # the zip's bytes whatever the Content-Type says (application/zip is usual):
+                        # declared as octet-stream, the binary type OpenAPI tools can send
+                        "description": "a controller backup folder, zipped (KUKA archive, ABB backup, Fanuc .ls); "
+                        "sent as application/zip or application/octet-stream",
+                        "content": {
+                            "application/octet-stream": {
+                                "schema": {"type": "string", "format": "binary", "minLength": 1}
+                            }
                         },
                     }
                 if method == "post" and path.endswith("/measurements") and path.startswith("/api/v1/cells/"):

@@ -32,6 +32,7 @@ access_log = logging.getLogger("recal.access")
 # ``max_task_bytes``; any other body by ``max_body_bytes``.
 TASK_ROUTES = (
     re.compile(r"^/api/v1/calibrations/[^/]+/compensate$"),
+    re.compile(r"^/api/v1/calibrations/[^/]+/compensate-backup$"),
     re.compile(r"^/api/v1/cells/[^/]+/tasks$"),
 )
 IMPORT_ROUTE = re.compile(r"^/api/v1/cells/[^/]+/measurements$")  # the import of an external CSV

@@ -391,7 +391,7 @@ def _run_backup(args) -> int:
     from dataclasses import replace
     from pathlib import Path
 
-    from service.backups import NotABackup, compensate_folder, report_bytes
+    from service.backups import NotABackup, compensate_folder, report_bytes, with_frame_data
     from service.cli import Fail
     from service.compensation import CompensationRequest
     from service.files import write_atomic
@@ -405,6 +405,10 @@ def _run_backup(args) -> int:
     def request(job, out_path):
         args.fmt, args.module = job.fmt, list(job.modules)
         frames = replace(_frames(args), config_dat=job.config_dat) if job.fmt == "krl" else _frames(args)
+        try:
+            frames = with_frame_data(frames, job, root)
+        except ValueError as exc:
+            raise Fail(str(exc)) from None
         return CompensationRequest(
             task=str(job.path),
             out=str(out_path),

@@ -309,20 +309,21 @@ def nightly_fleet(api: Api, sites: list[str], *, parallel: int, **kw) -> tuple[i
     width = len(cells) if parallel <= 0 else min(parallel, len(cells))
     with ThreadPoolExecutor(max_workers=min(width, 512), thread_name_prefix="nightly") as pool:
         results = list(pool.map(one, cells))
-    unreachable = any(r["status"] == EXIT_SERVICE and not r.get("shortfall") for r in results)
+    return fleet_status(results), _report(results)
+
+
+def fleet_status(results: list[dict]) -> int:
+    """The job's exit status from its cells' results: 3 when the service could not be reached for
+    any, else 1 when any needs a person, else 3 when any has targets not compensated (a cell's 3
+    with ``shortfall``), else 10 when any was recalibrated, else 0."""
     statuses = {r["status"] for r in results}
-    status = (
-        EXIT_SERVICE
-        if unreachable
-        else EXIT_FAILED
-        if EXIT_FAILED in statuses
-        else EXIT_SHORTFALL
-        if any(r.get("shortfall") for r in results)
-        else EXIT_RECALIBRATED
-        if EXIT_RECALIBRATED in statuses
-        else EXIT_OK
-    )
-    return status, _report(results)
+    if any(r["status"] == EXIT_SERVICE and not r.get("shortfall") for r in results):
+        return EXIT_SERVICE
+    if EXIT_FAILED in statuses:
+        return EXIT_FAILED
+    if any(r.get("shortfall") for r in results):
+        return EXIT_SHORTFALL
+    return EXIT_RECALIBRATED if EXIT_RECALIBRATED in statuses else EXIT_OK
 
 
 def _quote(s: str) -> str:

@@ -7,8 +7,9 @@ them.
   and the globals, unless ``--config-dat`` names another.
 - ABB backup: every ``.mod``/``.modx``/``.prg`` under ``RAPID/TASK*/PROGMOD``; the task's other
   modules (its ``PROGMOD`` and ``SYSMOD`` ``.mod``/``.sys``) give the tooldata and wobjdata.
-- A folder of Fanuc ``.ls`` files: every ``.ls``; user and tool frames from ``--base-frame``/
-  ``--tool-frame``.
+- A folder of Fanuc ``.ls`` files: every ``.ls``; user and tool frames from the controller's
+  frame data in the folder (``SYSFRAME.VA``, ``FRAMEVAR.VA``: service.programs.fanuc_frames),
+  and from ``--base-frame``/``--tool-frame`` for numbers the frame data does not set.
 
 Every other file is copied byte for byte; the layout of the output is the input's.
 """
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 RAPID_MODULES = (".mod", ".modx", ".prg", ".sys", ".sysx")
+FANUC_FRAME_FILES = ("sysframe.va", "framevar.va")
 
 
 @dataclass(frozen=True)
@@ -31,6 +33,7 @@ class Job:
     fmt: str
     config_dat: str | None = None
     modules: tuple = ()
+    frame_data: tuple = ()  # Fanuc: the backup's SYSFRAME.VA / FRAMEVAR.VA
 
 
 def _files(root: Path) -> list[Path]:
@@ -58,7 +61,8 @@ def plan(root: Path, config_dat: str | None = None) -> tuple[str, list[Job]]:
         return "abb", jobs
     ls = [p for p in files if suffix[p] == ".ls"]
     if ls:
-        return "fanuc", [Job(p, p.relative_to(root), "fanuc-tp") for p in ls]
+        va = tuple(str(p) for p in files if p.name.lower() in FANUC_FRAME_FILES)
+        return "fanuc", [Job(p, p.relative_to(root), "fanuc-tp", frame_data=va) for p in ls]
     raise ValueError(
         "expected a controller backup: a KUKA archive (.src programs, KRC/R1/System/$config.dat), an ABB backup "
         "(RAPID/TASK*/PROGMOD, SYSMOD) or a folder of Fanuc .ls programs; found none of their programs"

@@ -12,9 +12,11 @@ group 1 (``GP1:``; other groups are left untouched):
 The form stays as written. Positions span several lines; ``/MN`` (the instructions, their ``!``
 comments and continuation lines) is not read: every position of ``/POS`` is compensated. User
 frame ``u`` and tool frame ``t`` come from ``--base-frame u=X,Y,Z,W,P,R`` and
-``--tool-frame t=...`` (or the unnumbered option for every number); ``UF : 0`` is the robot's
-world frame (taken as its base frame) and ``UT : 0`` the faceplate. ``F`` (the frame active at
-run time) or a number not given refuses the program, naming the line.
+``--tool-frame t=...`` (or the unnumbered option for every number), or a backup's frame data
+(service.programs.fanuc_frames); ``UF : 0`` is the robot's world frame (taken as its base frame)
+and ``UT : 0`` the faceplate. ``F`` (the frame active at run time) is the number ``/MN`` selects
+with ``UFRAME_NUM=n`` / ``UTOOL_NUM=n`` when it fixes one statically (:func:`selected_frames`);
+else, or for a number not given, the program is refused, naming the line.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
         raise InputError(path, "expected a /POS section (an ASCII .ls program); none found")
     end = _END_RE.search(text, m.end())
     stop = end.start() if end else len(text)
+    active = selected_frames(text[: m.start()])
     out = []
     for p in _P_RE.finditer(text, m.end(), stop):
         label = f"P[{p.group(1)}]"
@@ -87,8 +90,8 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
             comps[c.group(1).upper()] = Number(0, seg_s + c.start(2), seg_s + c.end(2), c.group(2))
         last = max((n.start for n in comps.values()), default=seg_s)  # a missing component: named at the last
         _components(fail, label, comps, last)
-        T_work, uf_name = _resolve(fail, label, "UF", *fr["UF"], frames.bases, "--base-frame")
-        T_tool, ut_name = _resolve(fail, label, "UT", *fr["UT"], frames.tools, "--tool-frame")
+        T_work, uf_name = _resolve(fail, label, "UF", *fr["UF"], frames.bases, "--base-frame", active)
+        T_tool, ut_name = _resolve(fail, label, "UT", *fr["UT"], frames.tools, "--tool-frame", active)
         ln = line_of(starts, p.start())
         names = f"UF {uf_name}, UT {ut_name}"
         if any(k.startswith("J") for k in comps):
@@ -166,9 +169,45 @@ def _components(fail, label, comps, offset):
         fail(offset, f"{label}: expected component {missing[0]} (Cartesian X, Y, Z, W, P, R or joints J1..J6)")
 
 
-def _resolve(fail, label, key, value, offset, given: dict, flag: str):
+# /MN: UFRAME_NUM=n / UTOOL_NUM=n (the frames a position written UF : F / UT : F moves in) and
+# the motion instructions (J, L, C, A with a position or position register)
+_SELECT_RE = re.compile(r"^\s*\d+\s*:\s*(UFRAME_NUM|UTOOL_NUM)\s*=\s*([^;]*?)\s*;", re.M | re.IGNORECASE)
+_MOTION_RE = re.compile(r"^\s*\d+\s*:\s*[JLCA]\s+(?:P|PR)\[", re.M)
+_SELECT_KEYS = {"UFRAME_NUM": "UF", "UTOOL_NUM": "UT"}
+
+
+def selected_frames(head: str) -> dict[str, tuple[int | None, str]]:
+    """For ``UF`` and ``UT``: the frame number ``F`` stands for, read from the program's
+    ``UFRAME_NUM=n`` / ``UTOOL_NUM=n`` (``head``: the text before ``/POS``), and how it was found;
+    ``None`` with the reason where the program does not fix it statically. It is fixed when every
+    assignment gives the same constant and the first comes before the first motion (before it
+    the frame is whatever the controller had)."""
+    first_motion = _MOTION_RE.search(head)
+    out: dict[str, tuple[int | None, str]] = {}
+    for name, key in _SELECT_KEYS.items():
+        sets = [m for m in _SELECT_RE.finditer(head) if m.group(1).upper() == name]
+        values = {m.group(2) for m in sets}
+        if not sets:
+            out[key] = (None, f"the program sets no {name}")
+        elif len(values) > 1 or not next(iter(values)).isdigit():
+            out[key] = (None, f"{name} is set to {', '.join(sorted(values))} in the program")
+        elif first_motion is not None and sets[0].start() > first_motion.start():
+            out[key] = (None, f"a motion comes before {name}={sets[0].group(2)}")
+        else:
+            out[key] = (int(sets[0].group(2)), f"{name}={sets[0].group(2)}")
+    return out
+
+
+def _resolve(fail, label, key, value, offset, given: dict, flag: str, active: dict | None = None):
     if value.upper() == "F":
-        fail(offset, f"{label}: {key} : F (the frame active at run time) cannot be compensated statically")
+        n_active, how = (active or {}).get(key, (None, "no /MN section"))
+        if n_active is None:
+            fail(
+                offset,
+                f"{label}: {key} : F (the frame active at run time) cannot be compensated statically: {how}",
+            )
+        T, name = _resolve(fail, label, key, str(n_active), offset, given, flag)
+        return T, f"{name} (F: {how})"
     try:
         n = int(value)
     except ValueError:

@@ -8,6 +8,7 @@ numbers, and the targets compensated exactly as the single-program run compensat
 from __future__ import annotations
 
 import json
+import re
 
 from .helpers import models, recal, skeleton
 from .test_krl import BASE2, TOOL1
@@ -120,3 +121,57 @@ def test_a_folder_of_fanuc_programs_with_frames_given(tmp_path):
     assert (tmp_path / "out/notes.txt").read_bytes() == b"cell 3\n"
     r = recal("compensate", "--model", "identified.json", "--task", "tp", "--out", "out", *frames, cwd=tmp_path)
     assert r.returncode == 2 and "expected a new or empty folder" in r.stderr
+
+
+def sysframe_va(uf1, ut1) -> bytes:
+    """A SYSFRAME.VA written for this test in the layout a Fanuc backup writes (service.programs.
+    fanuc_frames): group 1's user frame 1 and tool frame 1, frames never set (Uninitialized), and a
+    second group's frame that must not be read."""
+
+    def element(g, n, v, comment=""):
+        return (
+            f"    [{g},{n}] = {comment}\r\n  Group: {g}   Config: N D B, 0, 0, 0\r\n"
+            f"  X: {v[0]:9.3f}   Y: {v[1]:9.3f}   Z: {v[2]:9.3f}\r\n"
+            f"  W: {v[3]:9.3f}   P: {v[4]:9.3f}   R: {v[5]:9.3f}\r\n"
+        )
+
+    return (
+        "[*SYSTEM*]$MNUFRAME  Storage: SHADOW  Access: RW  : ARRAY[2,9] OF POSITION\r\n"
+        + element(1, 1, uf1)
+        + "    [1,2] = '' Uninitialized\r\n"
+        + element(2, 1, (5, 5, 5, 0, 0, 0))
+        + "[*SYSTEM*]$MNUFRAMENUM  Storage: SHADOW  Access: RW  : ARRAY[2] OF BYTE\r\n  [1] = 1\r\n"
+        + "[*SYSTEM*]$MNUTOOL  Storage: SHADOW  Access: RW  : ARRAY[2,10] OF POSITION\r\n"
+        + element(1, 1, ut1, "'GRIPPER'")
+        + "    [1,2] = '' Uninitialized\r\n"
+    ).encode()
+
+
+def test_a_fanuc_backup_takes_its_frames_from_the_controllers_frame_data(tmp_path):
+    """The user and tool frames come from the backup's SYSFRAME.VA ($MNUFRAME[1,1], $MNUTOOL[1,1]):
+    the same bytes as the single program run with those frames given (before, the backup run
+    refused the program: UF 1 not given). A frame the data leaves Uninitialized is refused,
+    naming the line and the frame, not taken as the null frame."""
+    from .test_fanuc_tp import UF1, UT1
+    from .test_fanuc_tp import program as tp_program
+
+    nominal, _ = models(tmp_path, "fanuc")
+    data = tp_program(nominal)
+    (tmp_path / "bk").mkdir()
+    (tmp_path / "bk/recal_test.ls").write_bytes(data)
+    (tmp_path / "bk/SYSFRAME.VA").write_bytes(sysframe_va(UF1, UT1))
+    r = recal("compensate", "--model", "identified.json", "--task", "bk", "--out", "out", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    frames = ("--base-frame", "1=" + ",".join(map(str, UF1)), "--tool-frame", "1=" + ",".join(map(str, UT1)))
+    (tmp_path / "recal_test.ls").write_bytes(data)
+    one = recal("compensate", "--model", "identified.json", "--task", "recal_test.ls", "--out", "o.ls", *frames, cwd=tmp_path)  # fmt: skip
+    assert one.returncode == 0, one.stderr
+    assert (tmp_path / "out/recal_test.ls").read_bytes() == (tmp_path / "o.ls").read_bytes() != data
+    assert (tmp_path / "out/SYSFRAME.VA").read_bytes() == sysframe_va(UF1, UT1)
+    # a program on tool frame 2, which the controller never set: refused, naming line and frame
+    bad = data.replace(b"UF : 1, UT : 1,", b"UF : 1, UT : 2,", 1)
+    (tmp_path / "bk/recal_test.ls").write_bytes(bad)
+    r = recal("compensate", "--model", "identified.json", "--task", "bk", "--out", "out2", cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert re.search(r"recal_test\.ls, line \d+: .*UT 2 is not given", r.stderr), r.stderr
+    assert not (tmp_path / "out2").exists()

@@ -347,3 +347,33 @@ def test_turn_numbers_count_j1_j4_j6(run, tmp_path):
     assert dp[0] < 1e-5 and math.degrees(da[0]) < 0.005
     row, r = rows["N U T, 1, 0, 0"]
     assert "unreachable" in row["flags"] and row["compensated"] is None
+
+
+def test_uf_f_and_ut_f_take_the_frames_uframe_num_and_utool_num_select(tmp_path):
+    """``UF : F`` / ``UT : F``: the frames active at run time, which /MN fixes with UFRAME_NUM=1 and
+    UTOOL_NUM=1 before its first motion: P[1] is read in user frame 1 and tool frame 1, as when
+    written ``UF : 1, UT : 1`` (it was refused before). Where a motion comes before the
+    selection, the active frame is the controller's: refused, naming the line and why."""
+    from service.programs.frames import Frames
+
+    from .arms import arm
+
+    data = program(arm("fanuc"))
+    frames = Frames.from_options(["1=" + ",".join(map(str, UT1))], ["1=" + ",".join(map(str, UF1))])
+    (tmp_path / "n.ls").write_bytes(data)
+    (tmp_path / "f.ls").write_bytes(data.replace(b"UF : 1, UT : 1,", b"UF : F, UT : F,", 1))
+    numbered, active = (
+        fanuc_tp.parse(tmp_path / "n.ls", frames=frames),
+        fanuc_tp.parse(tmp_path / "f.ls", frames=frames),
+    )
+    a, b = numbered.targets[0], active.targets[0]
+    np.testing.assert_array_equal(a.T_work, b.T_work)
+    np.testing.assert_array_equal(a.T_tool, b.T_tool)
+    assert b.frames == "UF 1 (F: UFRAME_NUM=1), UT 1 (F: UTOOL_NUM=1)", b.frames
+    late = data.replace(b"UF : 1, UT : 1,", b"UF : F, UT : F,", 1).replace(
+        b"   1:  UFRAME_NUM=1 ;\r\n   2:  UTOOL_NUM=1 ;\r\n   3:J P[1]",
+        b"   1:J P[1] 100% FINE ;\r\n   2:  UFRAME_NUM=1 ;\r\n   3:  UTOOL_NUM=1 ;\r\n   4:J P[1]",
+    )
+    (tmp_path / "late.ls").write_bytes(late)
+    with pytest.raises(InputError, match=r"line \d+: P\[1\]: UF : F .*: a motion comes before UFRAME_NUM=1"):
+        fanuc_tp.parse(tmp_path / "late.ls", frames=frames)

@@ -34,6 +34,7 @@ SEMANTIC_BODIES = (
     "PATCH /api/v1/cells/{cell_id}",
     "POST /api/v1/cells/{cell_id}/sessions",
     "POST /api/v1/calibrations/{calibration_id}/compensate",
+    "POST /api/v1/calibrations/{calibration_id}/compensate-backup",
     "POST /api/v1/cells/{cell_id}/tasks",
     "POST /api/v1/cells/{cell_id}/measurements",
     "PUT /api/v1/cells/{cell_id}/controller-model",

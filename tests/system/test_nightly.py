@@ -106,3 +106,23 @@ def test_nightly_exits_3_naming_targets_not_compensated(stack, register, monkeyp
     report = stack.api().call("GET", f"/compensations/{m.group(3)}/report")["report"]
     left = [p for p in report["points"] if not p["converged"]]
     assert len(left) == int(m.group(1)) >= 1 and report["points"][1] in left  # the far one at least
+
+
+def test_nightly_all_exit_status_counts_a_shortfall_after_failures_and_before_recalibrations():
+    """``--all``: a cell recalibrated with targets not compensated makes the job exit 3 (not the
+    10 of a clean recalibration), below a cell that needs a person (1) and an unreachable
+    service (3, no shortfall); the summary counts it as recalibrated, not as needing a person."""
+    from service.commands.nightly import _report, fleet_status
+
+    def cell(name, status, shortfall=None):
+        r = {"cell": name, "site": "", "status": status, "result": "", "line": f"{name}: ...", "seconds": 1.0}
+        r.update(verify_rms=None, unit="mm", threshold=None, calibration_id=None, tasks=None)
+        return {**r, "shortfall": shortfall} if shortfall else r
+
+    ok, recal, short = cell("a", 0), cell("b", 10), cell("c", 3, shortfall=2)
+    assert fleet_status([ok, recal]) == 10
+    assert fleet_status([ok, recal, short]) == 3
+    assert fleet_status([short, cell("d", 1)]) == 1
+    assert fleet_status([short, cell("e", 3)]) == 3
+    text = _report([ok, recal, short])
+    assert "3 cells: 1 accurate, 2 recalibrated (1 with targets not compensated), 0 need a person" in text

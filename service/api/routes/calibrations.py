@@ -184,6 +184,49 @@ async def compensate(
     return PlainTextResponse(output, media_type=media, headers=headers)
 
 
+@router.post("/calibrations/{calibration_id}/compensate-backup", response_class=Response)
+async def compensate_backup(
+    calibration_id: int, request: Request, tok: Compensator, name: str = "backup.zip"
+) -> Response:
+    """A controller backup folder, zipped (a KUKA archive with ``KRC/R1/System/$config.dat``, an
+    ABB backup with ``RAPID/TASK*/PROGMOD`` and ``SYSMOD``, a folder of Fanuc ``.ls`` programs), in
+    the request body (``application/zip``); the zip of the same layout back, every program
+    compensated as ``recal compensate --task DIR`` compensates it and every other entry byte for
+    byte, with the report (``recal-compensation-report.json``: a row per target, a summary per
+    file). ``X-Recal-Not-Compensated`` counts the targets left as written or not converged (the
+    CLI's exit 3). A zip entry with an absolute path or ``..`` is refused (422), and so is a zip
+    whose entries unpack beyond the input bound ``RECAL_MAX_INPUT_BYTES`` (413), before anything
+    is written. The work runs in a worker process (service.heavy); it is audited, not stored."""
+    from ...backups import UnsafeZip
+    from ...compensate import CompensationInputError, compensate_backup_and_audit
+    from ...files import max_input_bytes
+
+    await run_in_threadpool(_exists, request.app.state.engine, calibration_id)  # 404 before any work
+    raw = await request.body()
+    if not raw:
+        raise HTTPException(422, {"field": "body", "message": "expected a zip of a controller backup, got nothing"})
+    try:
+        answer, short, summary = await request.app.state.heavy.run(
+            compensate_backup_and_audit,
+            request.app.state.settings.effective_database_url,
+            calibration_id,
+            raw,
+            actor=tok.name,
+            name=name,
+            limit=max_input_bytes(),
+        )
+    except UnsafeZip as exc:
+        raise HTTPException(413 if exc.too_large else 422, {"field": "body", "message": str(exc)}) from None
+    except CompensationInputError as exc:
+        raise HTTPException(422, {"field": "body", "message": str(exc)}) from None
+    stem = name[:-4] if name.lower().endswith(".zip") else name
+    headers = {
+        "X-Recal-Not-Compensated": str(short),
+        "Content-Disposition": f'attachment; filename="{stem}-compensated.zip"',
+    }
+    return Response(answer, media_type="application/zip", headers=headers)
+
+
 @router.get("/compensations/{compensation_id}", response_class=PlainTextResponse)
 def read_compensation(compensation_id: int, db: DbSession, tok: Reader) -> Response:
     """The compensated file (a KRL program's ``.src``; the report's ``files`` hold its ``.dat``)

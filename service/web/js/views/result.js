@@ -168,6 +168,7 @@ export async function show(ctx, id) {
 
   // compensation
   parts.push(compensationCard(id, r));
+  if (can("compensate")) parts.push(backupCard(id));
   // The identification's own terms (its stopping rule, χ²/dof, model conventions) for whoever
   // checks the mathematics, folded away from the technician's reading.
   parts.push(h("details", { class: "card details", id: "details" },
@@ -356,6 +357,37 @@ function compensationCard(id, r) {
     payload ? h("p", { class: "help" }, `Payload: kg, or kg,x,y,z with its centre of gravity in the tool frame `
       + `(${r.units.length}), what the robot carries during the task. This calibration has joint compliance: the arm `
       + "sags under the payload, and the points are corrected for it. Empty: no payload.") : null,
+    box);
+}
+
+// A controller backup (KUKA archive, ABB backup, folder of Fanuc .ls programs) as a zip: sent
+// as its bytes, the zip of the same layout (with the report) back, to download as it came.
+function backupCard(id) {
+  const box = h("div", { id: "backup-result" });
+  const file = h("input", { type: "file", id: "backup-file", accept: ".zip,application/zip" });
+  const go = h("button", { class: "primary", id: "compensate-backup" }, "Compensate the backup");
+  go.addEventListener("click", () => busy(go, async () => {
+    const f = file.files[0];
+    if (!f) throw new Error("choose a zip of the controller's backup folder first");
+    const path = `/calibrations/${id}/compensate-backup?name=${encodeURIComponent(f.name)}`;
+    const resp = await api("POST", path, f, { raw: true });
+    const short = Number(resp.headers.get("x-recal-not-compensated") || 0);
+    const blob = new Blob([await resp.arrayBuffer()], { type: "application/zip" });
+    const name = `${f.name.replace(/\.zip$/i, "")}-compensated.zip`;
+    const save = h("button", { class: "primary", id: "download-backup" }, `Download ${name}`);
+    save.addEventListener("click", () => saveBlob(blob, name));
+    clear(box);
+    add(box, h("div", { class: `banner banner-${short ? "warn" : "ok"}`, id: "backup-compensated" },
+      h("strong", {}, "Compensated. "),
+      short ? `${short} target(s) were left as written or did not converge: the report in the zip `
+        + "(recal-compensation-report.json) names them. " : "Every target was compensated. ", save));
+  }));
+  return card("Compensate a controller backup",
+    h("p", {}, "Upload a controller's backup folder as a zip: a KUKA archive (KRC/R1/… with $config.dat), an ABB "
+      + "backup (RAPID/TASK1/PROGMOD, SYSMOD) or a folder of Fanuc .ls programs. You get back a zip of the same "
+      + "folders with every program corrected and every other file as it was, plus a report of every point."),
+    h("div", { class: "row" }, h("div", { class: "field" }, h("label", { for: "backup-file" }, "Backup (.zip)"), file),
+      go),
     box);
 }
 
