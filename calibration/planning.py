@@ -99,11 +99,11 @@ class Volume:
             raise ValueError(f"`kind` must be box or sphere; got {self.kind!r}")
 
     @classmethod
-    def box(cls, lo, hi) -> "Volume":
+    def box(cls, lo, hi) -> Volume:
         return cls("box", lo=lo, hi=hi)
 
     @classmethod
-    def sphere(cls, center, radius: float, inner_radius: float = 0.0) -> "Volume":
+    def sphere(cls, center, radius: float, inner_radius: float = 0.0) -> Volume:
         return cls("sphere", center=center, radius=float(radius), inner_radius=float(inner_radius))
 
     def contains(self, p_world: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ documents (models, reports, endpoint lines) exactly as they were given.
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, StrictInt, ValidationInfo, field_validator
@@ -18,7 +18,7 @@ from .files import MAX_MAGNITUDE, magnitude_problem
 
 
 def utcnow() -> datetime:
-    return datetime.now(timezone.utc)
+    return datetime.now(UTC)
 
 
 ROLES = ("viewer", "technician", "job", "admin")

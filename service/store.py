@@ -13,7 +13,7 @@ import logging
 import secrets
 import time
 from collections.abc import Callable
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from sqlalchemy import delete, event, func, inspect, text, update
@@ -511,7 +511,7 @@ def as_utc(t: datetime | None) -> datetime | None:
     """A stored time as an aware UTC time (SQLite gives naive ones back); None stays None."""
     if t is None:
         return None
-    return t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)
+    return t if t.tzinfo is not None else t.replace(tzinfo=UTC)
 
 
 def database_unavailable(exc: BaseException) -> bool:

@@ -276,7 +276,7 @@ class PageCache:
     def __init__(self, app, ttl_s: float = 0.5):
         self.app, self.ttl_s = app, ttl_s
         self._entries: dict[tuple, tuple[float, list[dict], object]] = {}  # key: (fresh until, answer, route)
-        self._inflight: dict[tuple, "asyncio.Future"] = {}
+        self._inflight: dict[tuple, asyncio.Future] = {}
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":

@@ -145,7 +145,7 @@ class Reaper:
 
     # ------------------------------------------------------------------ the thread
 
-    def start(self) -> "Reaper":
+    def start(self) -> Reaper:
         self._thread = threading.Thread(target=self._loop, name=self.name, daemon=True)
         self._thread.start()
         return self
