@@ -115,7 +115,7 @@ def run_puma(n: int, repeat: int) -> None:
             if kind == "anywhere" and keep:
                 continue  # the same as typical: Newton from the planned joints
 
-            def joints():
+            def joints(X=X, start=start, keep=keep):
                 sol = nominal_solution(nominal, M @ X, start, keep_branch=keep)
                 return sol, compensate_joints(
                     ident, X, sol.q, reachable=sol.reachable, branch_changed=sol.branch_changed
@@ -305,7 +305,7 @@ def main(argv=None) -> int:
         print(f"### `recal compensate` on a {min(args.cli_points, len(q)):,}-row task CSV (whole process)\n")
         print("| mode | wall time (s) | summary |")
         print("|---|---|---|")
-        for mode, (t, rc, out, summary) in res.items():
+        for mode, (t, _rc, _out, summary) in res.items():
             s = (
                 summary
                 if isinstance(summary, str)

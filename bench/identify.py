@@ -197,13 +197,13 @@ def main(argv=None) -> int:
         # interleaved, so that both see the same (shared, noisy) machine; the best of each is kept
         t_ours = t_fd = float("inf")
         for _ in range(args.repeat if N <= 10000 else 2):
-            t, res = best_time(lambda: identify(nominal, data, sigma_m=SIGMA_M), 3 if N <= 10000 else 1)
+            t, res = best_time(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M), 3 if N <= 10000 else 1)
             t_ours = min(t_ours, t)
-            t, (sol, m_fd) = best_time(lambda: fd_baseline(res, sub), 1)
+            t, (sol, m_fd) = best_time(lambda res=res, sub=sub: fd_baseline(res, sub), 1)
             t_fd = min(t_fd, t)
-        mem_ours = peak_memory(lambda: identify(nominal, data, sigma_m=SIGMA_M))
+        mem_ours = peak_memory(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M))
         rms, mx = holdout_errors(res.model, q_holdout, p_true)
-        mem_fd = peak_memory(lambda: fd_baseline(res, sub)) if not args.no_fd_memory else float("nan")
+        mem_fd = peak_memory(lambda res=res, sub=sub: fd_baseline(res, sub)) if not args.no_fd_memory else float("nan")
         rms_fd, _ = holdout_errors(m_fd, q_holdout, p_true)
         poe = identify(to_poe(nominal), data, sigma_m=SIGMA_M)
         rms_poe, _ = holdout_errors(poe.model, q_holdout, p_true)

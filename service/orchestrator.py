@@ -600,7 +600,7 @@ class Orchestrator:
 
     def shutdown(self, timeout_s: float = 5.0) -> None:
         self._stopping = True
-        for thread, control in list(self._threads.values()):
+        for _thread, control in list(self._threads.values()):
             control.pause.set()
         for thread, _ in list(self._threads.values()):
             thread.join(timeout_s)

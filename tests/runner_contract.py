@@ -167,7 +167,7 @@ class RunnerContract:
             barrier = threading.Barrier(2)
             results: list = [None, None]
 
-            def go(i):
+            def go(i, barrier=barrier, results=results):
                 barrier.wait()
                 try:
                     results[i] = start(deployment.api(i), cell, kind="verify", count=6)

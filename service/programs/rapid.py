@@ -386,7 +386,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         return _declared_frame(r, dd, typ, name)
 
     resolved_frames = []
-    for off, mv, targets, tool, wobj in moves:
+    for off, mv, _targets, tool, wobj in moves:
         T_tool = frame(tool, "tooldata", off, mv)
         T_work = frame(wobj, "wobjdata", off, mv)
         t_src = _source(sources, tool)
@@ -394,7 +394,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         resolved_frames.append((T_tool, T_work, f"tool {tool}{t_src}, wobj {wobj or 'wobj0'}{w_src}"))
     out: list[Target] = []
     uses: dict[str, list] = {}
-    for (off, mv, targets, tool, wobj), (T_tool, T_work, fr) in zip(moves, resolved_frames):
+    for (_off, mv, targets, tool, wobj), (T_tool, T_work, fr) in zip(moves, resolved_frames):
         kind = "jointtarget" if mv.lower() == "moveabsj" else "robtarget"
         for a, b in targets:
             t = code[a:b]
