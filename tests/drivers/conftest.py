@@ -100,7 +100,7 @@ def subprocess_env() -> dict:
 
 def start_cell(truth_path: Path, host: str, *args: str) -> RunningCell:
     """Start a cell on ``host`` and wait for its endpoint line; raise if it does not come."""
-    stderr = tempfile.NamedTemporaryFile(prefix="fake-cell-", suffix=".log", delete=False)
+    stderr = tempfile.NamedTemporaryFile(prefix="fake-cell-", suffix=".log", delete=False)  # noqa: SIM115 (closed once Popen has it; the name is kept for the log)
     process = subprocess.Popen(
         [sys.executable, "-m", "fakes.cell", "--truth", str(truth_path), "--host", host, *args],
         stdout=subprocess.PIPE,

@@ -194,11 +194,13 @@ def test_gear_eccentricity_is_visible_in_a_joint_sweep():
     q = np.linspace(-math.pi, math.pi, 37)
     measured = []
     cell = SimCell(truth_with_eccentricity(), seed=3)
-    with CanGatewayFake(cell, "127.0.0.1", 0, encoders={1: 17}, resolvers={}) as fake:
-        with CanopenEncoder(config(fake, 17, use_pdo=True)) as enc:
-            for q1 in q:
-                move(cell, [q1, 0, 0, 0, 0, 0])
-                measured.append(enc.read().angle_rad)
+    with (
+        CanGatewayFake(cell, "127.0.0.1", 0, encoders={1: 17}, resolvers={}) as fake,
+        CanopenEncoder(config(fake, 17, use_pdo=True)) as enc,
+    ):
+        for q1 in q:
+            move(cell, [q1, 0, 0, 0, 0, 0])
+            measured.append(enc.read().angle_rad)
     residual = np.unwrap(np.array(measured)) - q
     design = np.column_stack([np.ones_like(q), np.sin(k * q), np.cos(k * q)])
     (offset, s, c), *_ = np.linalg.lstsq(design, residual, rcond=None)

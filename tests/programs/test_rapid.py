@@ -85,10 +85,7 @@ def program(nominal):
     W = T_wobj()
     rt = {}
     for name, q in Q.items():
-        if name == "inline":
-            T = fk(nominal, np.radians([q]))[0]
-        else:
-            T = np.linalg.inv(W) @ fk(nom_t, np.radians([q]))[0]
+        T = fk(nominal, np.radians([q]))[0] if name == "inline" else np.linalg.inv(W) @ fk(nom_t, np.radians([q]))[0]
         rt[name] = robtarget(T, confdata(q))
     weld = rt["pWeld"].split("],[")
     lines = [
