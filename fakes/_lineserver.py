@@ -180,7 +180,7 @@ class LineServer:
                 self._clients.discard(client)
             try:
                 self.on_disconnect(client)
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - a fake must not die silently in a thread
                 log.exception("%s fake: on_disconnect failed", self.device_name)
 
 

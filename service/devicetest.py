@@ -318,7 +318,7 @@ def _test_can_node(config, joint: int) -> dict:
             "details": details,
             "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
         }
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - every failure is a result to show
         return {
             **base,
             "ok": False,

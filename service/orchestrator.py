@@ -535,7 +535,7 @@ class Orchestrator:
             run_session(
                 self.engine, self.settings, session_id, control, owner=self.owner, open_devices=self.open_devices
             )
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
             log.error("session %s crashed:\n%s", session_id, traceback.format_exc())
             # Never leave it planned or running with nobody on it (that would hold the cell):
             # the store failing under it is not the session's fault (interrupted, resumable).
