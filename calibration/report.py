@@ -463,7 +463,7 @@ def comparable_parameter(name: str) -> bool:
     """Whether a parameter's value means the same in two calibrations: not the base, tool and
     home frames' local steps, nor a Hayati link's tilt or shift (each is a step from its own
     calibration's model, not a value; :func:`compare_parameters` compares the frames apart)."""
-    return name.split(".")[0] not in FRAMES and ".tilt_" not in name and ".shift_" not in name
+    return name.split(".", maxsplit=1)[0] not in FRAMES and ".tilt_" not in name and ".shift_" not in name
 
 
 def change_in_sigmas(change: float | None, sd_a: float | None, sd_b: float | None) -> dict:

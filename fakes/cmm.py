@@ -422,7 +422,7 @@ class IppCmmFake(LineServer):
 def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 
-    return run_fake(lambda cell, host, port: IppCmmFake(cell, host, port), default_port=1294, argv=argv)
+    return run_fake(IppCmmFake, default_port=1294, argv=argv)
 
 
 if __name__ == "__main__":

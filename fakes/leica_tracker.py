@@ -525,7 +525,7 @@ def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 
     return run_fake(
-        lambda cell, host, port: LeicaTrackerFake(cell, host, port),
+        LeicaTrackerFake,
         default_port=700,
         argv=argv,
         description="Run a simulated Leica tracker's emScon server.",

@@ -107,7 +107,8 @@ def start_cell(truth_path: Path, host: str, *args: str) -> RunningCell:
         stderr=stderr,
         cwd=REPO,
         env=subprocess_env(),
-        preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+        # a prctl() call only, so safe before exec in a threaded parent
+        preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,  # noqa: PLW1509
     )
     stderr.close()
     cell = RunningCell(process, host, {}, stderr.name)
