@@ -43,8 +43,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from calibration import robots  # noqa: E402
-from calibration.compensation import (  # noqa: E402
+from calibration import robots
+from calibration.compensation import (
     FLAGS,
     compensate_joints,
     compensate_targets,
@@ -52,12 +52,12 @@ from calibration.compensation import (  # noqa: E402
     inverse_jacobian_iteration,
     nominal_solution,
 )
-from calibration.conventions import hayati_for_parallel_axes  # noqa: E402
-from calibration.ik import inverse_kinematics  # noqa: E402
-from calibration.kinematics import fk  # noqa: E402
-from calibration.model import model_to_dict  # noqa: E402
-from calibration.parameters import apply_step, candidate_parameters  # noqa: E402
-from calibration.transforms import matrix_to_quat, matrix_to_rotvec  # noqa: E402
+from calibration.conventions import hayati_for_parallel_axes
+from calibration.ik import inverse_kinematics
+from calibration.kinematics import fk
+from calibration.model import model_to_dict
+from calibration.parameters import apply_step, candidate_parameters
+from calibration.transforms import matrix_to_quat, matrix_to_rotvec
 
 
 def identified(robot: str, *, seed: int, base, q_range_rad: float):

@@ -42,17 +42,17 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
-import scipy  # noqa: E402
-from scipy.optimize import least_squares  # noqa: E402
+import numpy as np
+import scipy
+from scipy.optimize import least_squares
 
-from calibration import robots  # noqa: E402
-from calibration.conventions import to_poe  # noqa: E402
-from calibration.identify import identify  # noqa: E402
-from calibration.kinematics import target_positions  # noqa: E402
-from calibration.model import model_to_dict  # noqa: E402
-from calibration.parameters import apply_step  # noqa: E402
-from calibration.simulate import perturbed, random_configurations, simulate_measurements  # noqa: E402
+from calibration import robots
+from calibration.conventions import to_poe
+from calibration.identify import identify
+from calibration.kinematics import target_positions
+from calibration.model import model_to_dict
+from calibration.parameters import apply_step
+from calibration.simulate import perturbed, random_configurations, simulate_measurements
 
 SIGMA_M = 20e-6
 TOOL = np.array([0.03, 0.0, 0.08, 0.0, 0.0, 0.0])  # a reflector 80 mm out and 30 mm off the flange axis

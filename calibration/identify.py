@@ -56,7 +56,7 @@ import numpy as np
 
 from .conventions import hayati_for_parallel_axes, mdh_to_dh, to_poe
 from .errors import RecalError
-from .identification import (  # noqa: F401 (re-exported)
+from .identification import (  # re-exported
     INSTRUMENT_SIGMA_M,
     IdentificationResult,
     Measurements,

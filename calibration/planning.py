@@ -554,7 +554,7 @@ class _Evaluation:
 
 def _evaluation(design: _Design, q: np.ndarray) -> _Evaluation:
     Je = _jacobians(design.model, q, list(design.params), design.targets) * design.S
-    E, r, P = Je.shape
+    E, r, _P = Je.shape
     W = np.einsum("erp,erq->pq", Je, Je) / (E * (r // 3))
     return _Evaluation(q, Je, W)
 

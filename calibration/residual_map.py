@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .model import KinematicModel
-from .residual_base import ResidualMapError, features  # noqa: F401 (the families' shared names, kept importable here)
+from .residual_base import ResidualMapError, features  # the families' shared names, kept importable here
 from .residual_base import sqdist as _sqdist
 
 LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)

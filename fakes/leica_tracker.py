@@ -286,7 +286,7 @@ class LeicaTrackerFake(LineServer):
                     self.handle_packet(client, kind, packet)
         except DropConnection:
             log.info("emscon fake: dropping the connection")
-        except Exception:  # noqa: BLE001 - a fake must not die silently in a thread
+        except Exception:  # a fake must not die silently in a thread
             log.exception("emscon fake: client handler failed")
         finally:
             client.close()

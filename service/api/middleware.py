@@ -336,7 +336,7 @@ class PageCache:
         try:
             await self.app(scope, receive, capture)
             ok = bool(messages) and messages[0].get("status") == 200
-        except Exception:  # noqa: BLE001 - a background refresh has nobody to tell; a request re-raises
+        except Exception:  # a background refresh has nobody to tell; a request re-raises
             if send is not None:
                 raise
         finally:

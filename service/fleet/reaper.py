@@ -156,7 +156,7 @@ class Reaper:
             try:
                 self.reap_once()
                 failing = False
-            except Exception as exc:  # noqa: BLE001 - the reaper must outlive a database restart
+            except Exception as exc:  # the reaper must outlive a database restart
                 if not failing:
                     level = (
                         logging.WARNING if database_unavailable(exc) or "connect" in str(exc).lower() else logging.ERROR

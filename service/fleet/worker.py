@@ -248,7 +248,7 @@ class WorkerRuntime:
         while True:
             try:
                 return self._claim(sid, control)
-            except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
+            except Exception as exc:  # the session must end in a state, never a traceback
                 if not database_unavailable(exc):
                     log.error("session %s: %s", sid, traceback.format_exc())
                     self._end_if_ours(

@@ -148,7 +148,7 @@ def test_compensation_through_trees_settles_or_flags_every_point(identified, tmp
     from calibration.kinematics import fk
     from service.files import read_measurements
 
-    d, rng, nominal, truth, tx, proc = identified
+    d, rng, nominal, truth, tx, _proc = identified
     model = load_model(d / "id.json")
     data = read_measurements(str(d / "meas.csv"), model)
     trees = RC.fit_family("trees", model, model, data, {"sigma_m": 10e-6})
