@@ -69,6 +69,8 @@ class Measurements:
         return np.all(np.isfinite(self.quat), axis=1)
 
     def subset(self, idx) -> Measurements:
+        assert self.target is not None and self.sigma is not None and self.row is not None  # __post_init__
+
         def pick(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[idx]
 
