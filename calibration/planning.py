@@ -301,7 +301,9 @@ def _jacobians(model: KinematicModel, q: np.ndarray, params: list[Parameter], ta
     blocks = []
     for t in targets:
         names = np.array([t] * len(q), dtype=object)
-        blocks.append(predict(model, q, model.target(t), params, names).Jp)
+        Jp = predict(model, q, model.target(t), params, names).Jp
+        assert Jp is not None  # asked with params
+        blocks.append(Jp)
     return np.concatenate(blocks, axis=1)
 
 
@@ -362,6 +364,7 @@ def _scores(Ms: np.ndarray, criterion: str, W: np.ndarray | None) -> np.ndarray:
     if criterion in ("D", "O1"):
         return _logdet(Ms)
     if criterion == "I":
+        assert W is not None, "criterion I weighs by W"
         tr = np.trace(np.linalg.solve(Ms, np.broadcast_to(W, Ms.shape)), axis1=-2, axis2=-1)
         return np.where(np.isfinite(tr) & (tr > 0), -tr, -np.inf)
     lam = np.linalg.eigvalsh(Ms)
@@ -384,6 +387,7 @@ def criterion_value(M: np.ndarray, criterion: str, *, n_rows: int, W: np.ndarray
         ld = float(_logdet(M))
         return 0.0 if not math.isfinite(ld) else math.exp(ld / (2 * P)) / math.sqrt(n_rows)
     if criterion == "I":
+        assert W is not None, "criterion I weighs by W"
         try:
             return math.sqrt(max(float(np.trace(np.linalg.solve(M, W))), 0.0))
         except np.linalg.LinAlgError:
