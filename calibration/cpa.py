@@ -453,6 +453,7 @@ def _rows_text(rows: np.ndarray) -> str:
 
 def _check_sweeps(model: KinematicModel, sw: Sweeps, v: np.ndarray, tol: np.ndarray, min_points: int):
     """Per swept joint: its row indices and the (median) joint variables held during the sweep."""
+    assert sw.row is not None and sw.target is not None  # Sweeps.__post_inthem__ fills them
     n = model.n_joints
     bad = np.nonzero((sw.joint < 0) | (sw.joint >= n))[0]
     if len(bad):
@@ -532,12 +533,14 @@ def _frame_on_line(s: np.ndarray, r: np.ndarray, p: np.ndarray, x_hint: np.ndarr
 
 def _rows_of(sweeps: Sweeps, idx: np.ndarray, target) -> np.ndarray:
     """The indices among ``idx`` of the rows that measured ``target``."""
+    assert sweeps.target is not None  # Sweeps.__post_init__ fills it
     return idx[np.array([x == target for x in sweeps.target[idx]])]
 
 
 def _fit_sweeps(nominal: KinematicModel, sweeps: Sweeps, groups: dict, v: np.ndarray, **fit_kw):
     """Step 1: each swept joint's axis where it was measured (one fit per target, combined),
     the fits per joint and target, and the fits' warnings."""
+    assert sweeps.row is not None and sweeps.target is not None  # Sweeps.__post_inthem__ fills them
     measured: dict[int, AxisFit] = {}
     fits: list[dict] = [dict() for _ in range(nominal.n_joints)]
     warnings: list[str] = []
@@ -564,6 +567,7 @@ def _axes_at_signature(
     the transform that took its sweep there. Axis j measured with earlier joints away from the
     signature by Δ is moved back by ``[E_1(Δ_1)···E_(j−1)(Δ_(j−1))]⁻¹``, ``E_k`` the motion
     about the (already moved back) axis k (book §4.6.3, sequence B)."""
+    assert sweeps.row is not None  # Sweeps.__post_init__ fills it
     n = nominal.n_joints
     S, R = np.zeros((n, 3)), np.zeros((n, 3))
     moved: dict[int, np.ndarray] = {}
@@ -595,6 +599,7 @@ def _registration(nominal: KinematicModel, sweeps: Sweeps) -> tuple[np.ndarray, 
     """Step 3: ``T_world_base`` (4, 4) by rigid registration of the nominal model's predictions
     of every sweep row onto the measurements (with a common reflector-offset correction), and
     the RMS of what is left, m."""
+    assert sweeps.target is not None  # Sweeps.__post_init__ fills it
     wk = walk(dataclasses.replace(nominal, base=np.zeros(6)), sweeps.q)
     p_tool = np.array([nominal.target(t) for t in sweeps.target])
     T_wb, _ = register_points(wk.R, wk.p, sweeps.p_world, p_tool)
@@ -748,6 +753,7 @@ def circle_point_analysis(
     q = check_q(nominal, sweeps.q)
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(sweeps.p_world))):
         raise ValueError("joint readings and positions must be finite")
+    assert sweeps.target is not None  # Sweeps.__post_init__ fills it
     for t in set(sweeps.target.tolist()) - {None}:
         try:
             nominal.target(t)
