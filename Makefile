@@ -51,7 +51,8 @@ test: $(STAMP) browser
 	if [ $$serial != 0 ]; then echo "make test: the serial run failed (pytest status $$serial)" >&2; exit $$serial; fi
 
 # The linter and the formatter (ruff, configured in pyproject.toml): clean on the whole tree; the
-# type checker (mypy, configured there too) on calibration/ and drivers/.
+# type checker (mypy, configured there too) on calibration/, drivers/ and the service/ modules
+# its `files` lists.
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .

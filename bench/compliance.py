@@ -35,13 +35,13 @@ import time
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small BLAS calls: threads only slow them down
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from calibration import compliance as C  # noqa: E402
-from calibration import compliance_fit  # noqa: E402
-from calibration.identify import identify  # noqa: E402
-from calibration.robots import nominal  # noqa: E402
-from calibration.simulate import (  # noqa: E402
+from calibration import compliance as C
+from calibration import compliance_fit
+from calibration.identify import identify
+from calibration.robots import nominal
+from calibration.simulate import (
     SAGGING_ARMS,
     heavy_arm_nominal,
     perturbed,
@@ -49,7 +49,7 @@ from calibration.simulate import (  # noqa: E402
     sagging,
     simulate_measurements,
 )
-from calibration.uncertainty import validate  # noqa: E402
+from calibration.uncertainty import validate
 
 SIGMA = {"cobot": 20e-6, "arm165": 30e-6}
 

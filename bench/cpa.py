@@ -26,12 +26,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from calibration import robots  # noqa: E402
-from calibration.cpa import axis_lines, circle_point_analysis, simulate_sweeps  # noqa: E402
-from calibration.identify import identify  # noqa: E402
-from calibration.kinematics import target_positions  # noqa: E402
-from calibration.simulate import perturbed, random_configurations, simulate_measurements  # noqa: E402
-from calibration.transforms import matrix_to_pose  # noqa: E402
+from calibration import robots
+from calibration.cpa import axis_lines, circle_point_analysis, simulate_sweeps
+from calibration.identify import identify
+from calibration.kinematics import target_positions
+from calibration.simulate import perturbed, random_configurations, simulate_measurements
+from calibration.transforms import matrix_to_pose
 
 SIGNATURE = np.deg2rad([10.0, -80.0, 70.0, -60.0, 45.0, 20.0])
 SPANS_DEG = (30, 60, 90, 180, 270)

@@ -35,10 +35,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibration import robots  # noqa: E402
-from calibration.simulate import perturbed  # noqa: E402
-from service.files import save_model  # noqa: E402
-from service.processes import start_fake_cell  # noqa: E402
+from calibration import robots
+from calibration.simulate import perturbed
+from service.files import save_model
+from service.processes import start_fake_cell
 
 
 def joint_targets(n: int, seed: int = 3) -> np.ndarray:

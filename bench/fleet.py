@@ -62,12 +62,12 @@ from sqlmodel import Session
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from calibration import robots  # noqa: E402
-from calibration.simulate import perturbed  # noqa: E402
-from service.client import Api  # noqa: E402
-from service.files import save_model  # noqa: E402
-from service.processes import free_port, start_fake_cell, start_service, start_worker  # noqa: E402
-from service.store import create_token, make_engine, migrate  # noqa: E402
+from calibration import robots
+from calibration.simulate import perturbed
+from service.client import Api
+from service.files import save_model
+from service.processes import free_port, start_fake_cell, start_service, start_worker
+from service.store import create_token, make_engine, migrate
 
 ENV = {"RECAL_SETTLE_S": "0", "RECAL_RETRY_BACKOFF_S": "0.05", "OPENBLAS_NUM_THREADS": "1"}
 
@@ -320,7 +320,8 @@ def fleet_concurrency(args, cells: int) -> int:
 def machine() -> dict:
     cpu = ""
     try:
-        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+        with open("/proc/cpuinfo") as f:
+            cpu = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
     except (OSError, StopIteration):
         pass
     info = {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "os": platform.platform()}

@@ -42,17 +42,17 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
-import scipy  # noqa: E402
-from scipy.optimize import least_squares  # noqa: E402
+import numpy as np
+import scipy
+from scipy.optimize import least_squares
 
-from calibration import robots  # noqa: E402
-from calibration.conventions import to_poe  # noqa: E402
-from calibration.identify import identify  # noqa: E402
-from calibration.kinematics import target_positions  # noqa: E402
-from calibration.model import model_to_dict  # noqa: E402
-from calibration.parameters import apply_step  # noqa: E402
-from calibration.simulate import perturbed, random_configurations, simulate_measurements  # noqa: E402
+from calibration import robots
+from calibration.conventions import to_poe
+from calibration.identify import identify
+from calibration.kinematics import target_positions
+from calibration.model import model_to_dict
+from calibration.parameters import apply_step
+from calibration.simulate import perturbed, random_configurations, simulate_measurements
 
 SIGMA_M = 20e-6
 TOOL = np.array([0.03, 0.0, 0.08, 0.0, 0.0, 0.0])  # a reflector 80 mm out and 30 mm off the flange axis
@@ -197,13 +197,13 @@ def main(argv=None) -> int:
         # interleaved, so that both see the same (shared, noisy) machine; the best of each is kept
         t_ours = t_fd = float("inf")
         for _ in range(args.repeat if N <= 10000 else 2):
-            t, res = best_time(lambda: identify(nominal, data, sigma_m=SIGMA_M), 3 if N <= 10000 else 1)
+            t, res = best_time(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M), 3 if N <= 10000 else 1)
             t_ours = min(t_ours, t)
-            t, (sol, m_fd) = best_time(lambda: fd_baseline(res, sub), 1)
+            t, (sol, m_fd) = best_time(lambda res=res, sub=sub: fd_baseline(res, sub), 1)
             t_fd = min(t_fd, t)
-        mem_ours = peak_memory(lambda: identify(nominal, data, sigma_m=SIGMA_M))
+        mem_ours = peak_memory(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M))
         rms, mx = holdout_errors(res.model, q_holdout, p_true)
-        mem_fd = peak_memory(lambda: fd_baseline(res, sub)) if not args.no_fd_memory else float("nan")
+        mem_fd = peak_memory(lambda res=res, sub=sub: fd_baseline(res, sub)) if not args.no_fd_memory else float("nan")
         rms_fd, _ = holdout_errors(m_fd, q_holdout, p_true)
         poe = identify(to_poe(nominal), data, sigma_m=SIGMA_M)
         rms_poe, _ = holdout_errors(poe.model, q_holdout, p_true)

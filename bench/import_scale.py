@@ -35,16 +35,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibration.model import model_from_dict  # noqa: E402
-from calibration.robots import nominal_document  # noqa: E402
-from calibration.simulate import perturbed, random_configurations, simulate_measurements  # noqa: E402
-from service import records  # noqa: E402
-from service.processes import free_port, start_service  # noqa: E402
-from service.settings import Settings  # noqa: E402
-from service.store import create_token, make_engine, migrate  # noqa: E402
+from calibration.model import model_from_dict
+from calibration.robots import nominal_document
+from calibration.simulate import perturbed, random_configurations, simulate_measurements
+from service import records
+from service.processes import free_port, start_service
+from service.settings import Settings
+from service.store import create_token, make_engine, migrate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from heavy import task_csv  # noqa: E402
+from heavy import task_csv
 
 
 def cell_document() -> dict:

@@ -92,12 +92,12 @@ def main(argv=None) -> int:
         print(f"{args.rows:,} rows, {data.stat().st_size / 2**20:.0f} MB of CSV")
         results: dict[str, list[dict]] = {"arrow": [], "python": []}
         for _ in range(args.repeat):
-            for reader in results:
+            for reader, runs in results.items():
                 r = run(model, data, folder / f"out-{reader}.json", reader)
                 if r["exit"] not in (0, 3):
                     print(f"{reader}: exit {r['exit']}: {r['stderr']}")
                     return 1
-                results[reader].append(r)
+                runs.append(r)
         same = json.loads((folder / "out-arrow.json").read_text()) == json.loads(
             (folder / "out-python.json").read_text()
         )

@@ -43,14 +43,14 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small LAPACK calls: threads only cost here
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from calibration import planning, robots  # noqa: E402
-from calibration.identify import identify  # noqa: E402
-from calibration.kinematics import target_positions  # noqa: E402
-from calibration.simulate import perturbed, simulate_measurements  # noqa: E402
+from calibration import planning, robots
+from calibration.identify import identify
+from calibration.kinematics import target_positions
+from calibration.simulate import perturbed, simulate_measurements
 
 SMR = np.array([0.03, 0.0, 0.08])
 SIGMA_M = 20e-6

@@ -24,14 +24,14 @@ import time
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small BLAS calls: threads only slow them down
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from calibration import residual_choice as RC  # noqa: E402
-from calibration import residual_map as RM  # noqa: E402
-from calibration.identify import identify  # noqa: E402
-from calibration.jacobian import predict  # noqa: E402
-from calibration.robots import nominal  # noqa: E402
-from calibration.simulate import (  # noqa: E402
+from calibration import residual_choice as RC
+from calibration import residual_map as RM
+from calibration.identify import identify
+from calibration.jacobian import predict
+from calibration.robots import nominal
+from calibration.simulate import (
     harmonic_drive_errors,
     perturbed,
     random_configurations,
@@ -57,7 +57,7 @@ def run(n_poses: int, seed: int) -> None:
     kw = {"sigma_m": SIGMA_M}
     final = identify(nom, data, **kw).model
     t0 = time.perf_counter()
-    _, fig_map = RM.choose_residual_map(nom, data, identify_kw=kw, final=final)
+    _, _fig_map = RM.choose_residual_map(nom, data, identify_kw=kw, final=final)
     t_map = time.perf_counter() - t0
     t0 = time.perf_counter()
     choice = RC.choose_correction(nom, data, identify_kw=kw, final=final)

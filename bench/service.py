@@ -50,13 +50,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibration import robots  # noqa: E402
-from calibration.simulate import perturbed  # noqa: E402
-from service.client import Api  # noqa: E402
-from service.files import save_model  # noqa: E402
-from service.processes import free_port, start_fake_cell, start_service  # noqa: E402
-from service.settings import Settings  # noqa: E402
-from service.store import create_token, make_engine, migrate  # noqa: E402
+from calibration import robots
+from calibration.simulate import perturbed
+from service.client import Api
+from service.files import save_model
+from service.processes import free_port, start_fake_cell, start_service
+from service.settings import Settings
+from service.store import create_token, make_engine, migrate
 
 
 def _ts(v) -> float:

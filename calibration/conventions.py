@@ -270,6 +270,7 @@ def _link_to_axis(R_f: np.ndarray, o_f: np.ndarray, s_next: np.ndarray, r_next: 
     c = np.cross(s, s_next)
     sn = float(np.linalg.norm(c))
     candidates: list[tuple[np.ndarray, float, float, float, float | None]] = []
+    beta: float | None  # Hayati's tilt (rad), None for a plain DH link
     if sn < np.sin(hayati_tol):
         # Hayati (book eq. 2.64): no shift along z; x towards where axis i+1 crosses the plane
         # through the origin perpendicular to axis i.

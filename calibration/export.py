@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import re
 import xml.etree.ElementTree as ET
+from typing import Any
 
 import numpy as np
 
@@ -112,6 +113,7 @@ def joint_origins(model: KinematicModel) -> list[tuple[str, str, np.ndarray, np.
     T = np.eye(4)
     for op in ops[:tool_at]:
         if op.kind == "fixed":
+            assert op.T is not None  # a fixed op carries its transform
             T = T @ op.T
         elif op.kind == "mark":
             if op.key == "base":
@@ -136,7 +138,7 @@ def joint_origins_ros(model: KinematicModel) -> list[tuple[str, str, np.ndarray,
     the last joint's. Both commute with the joint's motion, so the chain is the same; the origins
     are then UR's calibration layout (``shoulder`` = ``Rz(theta1)·Tz(d1)``, ``upper_arm`` =
     ``Tx(a1)·Rx(alpha1)·Rz(theta2)·Tz(d2)`` ...)."""
-    out = [list(o) for o in joint_origins(model)]
+    out: list[list[Any]] = [list(o) for o in joint_origins(model)]
     moving = [o for o in out if o[1] != "fixed"]
     for cur, nxt in zip(moving, moving[1:] + [out[-1]]):
         T_next = nxt[2]
@@ -148,7 +150,7 @@ def joint_origins_ros(model: KinematicModel) -> list[tuple[str, str, np.ndarray,
             S = homogeneous(np.eye(3), np.array([0.0, 0.0, T_next[2, 3]]))
         cur[2] = cur[2] @ S
         nxt[2] = invert(S) @ T_next
-    return [tuple(o) for o in out]
+    return [(name, kind, T, axis) for name, kind, T, axis in out]
 
 
 def ur_match(model: KinematicModel, tol_m: float = 0.02) -> tuple[str, np.ndarray] | None:
@@ -386,19 +388,22 @@ def to_urdf(
             f"{scheme} names; metres and radians; joint origins carry the calibrated values "
         )
     )
-    for w in export_warnings(model, "urdf", effort=effort, world=world):
-        robot.append(ET.Comment(f" warning: {_comment_safe(w)} "))
+    for warning in export_warnings(model, "urdf", effort=effort, world=world):
+        robot.append(ET.Comment(f" warning: {_comment_safe(warning)} "))
     limits, urdf_names, mimics = _urdf_joint_names(model, scheme, rates)
     w = _UrdfWriter(robot, prefix)
 
-    origins = [list(o) for o in (joint_origins(model) if scheme == "recal" else joint_origins_ros(model))]
+    origins: list[list[Any]] = [
+        list(o) for o in (joint_origins(model) if scheme == "recal" else joint_origins_ros(model))
+    ]
     T_base_base_link = np.eye(4)  # the model's base frame -> base_link
     if scheme == "ur":
         ur_joints, remainder, matched = ur_joint_origins(model)
         for o, T in zip([o for o in origins if o[1] != "fixed"], ur_joints):
             o[2] = T
         origins[-1][2] = remainder
-        F = ur_match(model)[1] if matched else np.eye(4)  # base_link_inertia <- model base
+        match = ur_match(model) if matched else None  # ur_joint_origins matched it: not None then
+        F = match[1] if match is not None else np.eye(4)  # base_link_inertia <- model base
         T_base_base_link = invert(F) @ _RZ_PI
     base_link = w.link("base_link")
     T_world_base = origins[0][2]
@@ -569,7 +574,7 @@ def _cpp_stream(v: float) -> str:
     return f"{v:.6g}"
 
 
-def ur_hash(dh: list[tuple[float, float, float, float]]) -> str:
+def ur_hash(dh: list[tuple[float, ...]]) -> str:
     """UR's calibration hash of a DH table ``[(theta, d, a, alpha)]`` (m, rad), as the driver's
     client library computes it from the controller's kinematics (``KinematicsInfo::toHash``):
     ``std::hash<std::string>`` of theta, d, a, alpha of each joint streamed one after the other."""
@@ -577,7 +582,7 @@ def ur_hash(dh: list[tuple[float, float, float, float]]) -> str:
     return f"calib_{_hash_bytes(text.encode())}"
 
 
-def _ur_dh_of_segments(joints: list[np.ndarray]) -> list[tuple[float, float, float, float]] | None:
+def _ur_dh_of_segments(joints: list[np.ndarray]) -> list[tuple[float, ...]] | None:
     """The DH table (theta, d, a, alpha per joint) that gives these six origins in UR's layout
     (``shoulder = Rz(theta1)·Tz(d1)``, ``origin_i = Tx(a_{i-1})·Rx(alpha_{i-1})·Rz(theta_i)·Tz(d_i)``,
     ``a6 = alpha6 = 0``), or ``None`` where an origin is not of that form (a ``poe`` model's tilts)."""
@@ -758,7 +763,7 @@ def dh_table(model: KinematicModel) -> dict:
     for j in m.joints:
         row = [j.name, j.type, j.theta / A, j.d / L, j.a / L, j.alpha / A]
         if hayati:
-            row.append(j.beta / A if j.hayati else "")
+            row.append(j.beta / A if j.beta is not None else "")  # j.hayati
         rows.append(row)
     if m.coupling is None and any(j.gain != 1.0 for j in m.joints):
         header.append("gain")

@@ -68,7 +68,9 @@ class Measurements:
             return np.zeros(len(self), bool)
         return np.all(np.isfinite(self.quat), axis=1)
 
-    def subset(self, idx) -> "Measurements":
+    def subset(self, idx) -> Measurements:
+        assert self.target is not None and self.sigma is not None and self.row is not None  # __post_init__
+
         def pick(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[idx]
 
@@ -103,13 +105,13 @@ class Prior:
     covariance: np.ndarray
     held: dict = field(default_factory=dict)
 
-    def _block(self, params: list["Parameter"]) -> tuple[list[int], np.ndarray]:
+    def _block(self, params: list[Parameter]) -> tuple[list[int], np.ndarray]:
         idx = {n: i for i, n in enumerate(self.names)}
         have = [k for k, p in enumerate(params) if p.name in idx]
         rows = [idx[params[k].name] for k in have]
         return have, np.asarray(self.covariance, dtype=float)[np.ix_(rows, rows)]
 
-    def combinations(self, params: list["Parameter"]) -> np.ndarray:
+    def combinations(self, params: list[Parameter]) -> np.ndarray:
         """The matrix M (H, P) of the combinations the prior describes, one row per parameter of
         ``params`` with a prior (in the order of ``params``): ``M·s`` for a step ``s`` (P,) over
         ``params``, the held ones of ``params`` entering by their relation."""
@@ -123,7 +125,7 @@ class Prior:
                     M[row[name], k] += c
         return M
 
-    def information(self, params: list["Parameter"]) -> np.ndarray:
+    def information(self, params: list[Parameter]) -> np.ndarray:
         """The prior information matrix ``Mᵀ Σ⁻¹ M`` over ``params`` (:meth:`combinations`, Σ the
         marginal covariance of the parameters of ``params`` with a prior; zero rows and columns
         for parameters neither with a prior nor held)."""
@@ -133,7 +135,7 @@ class Prior:
         M = self.combinations(params)
         return M.T @ np.linalg.pinv(sub, hermitian=True) @ M
 
-    def covariance_of(self, params: list["Parameter"]) -> np.ndarray:
+    def covariance_of(self, params: list[Parameter]) -> np.ndarray:
         """The prior covariance (P, P) over ``params`` (NaN rows and columns for parameters without
         a prior)."""
         have, sub = self._block(params)

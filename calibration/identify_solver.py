@@ -60,7 +60,7 @@ def _levenberg_marquardt(
     lam, nfev, status, it = damping, 1, 0, 0
     cost = lin.cost
     history = [cost]
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the iterations done, read after the loop)
         A = lin.gram + info
         g = lin.gradient - info @ steps
         D = np.maximum(np.diag(A), 1e-30)

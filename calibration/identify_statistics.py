@@ -30,7 +30,7 @@ from .model import KinematicModel
 from .parameters import Parameter, candidate_parameters
 
 
-def held_relations(result: "IdentificationResult") -> dict:
+def held_relations(result: IdentificationResult) -> dict:
     """What a :class:`Prior` made from ``result`` needs to know of the parameters it held at the
     model's value: ``{name: ((estimated name, coefficient SI), ...)}`` for those related to the
     estimated ones."""

@@ -95,7 +95,7 @@ def jacobian_from_walk(
     lever: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # p − o per origin (keys may share one)
     tmp = np.empty(N)
     for k, par in enumerate(params):
-        cp, cr = Jp[k], (Jr[k] if orientation else None)
+        cp, cr = Jp[k], (Jr[k] if Jr is not None else None)
         first = True
         for key, gen, axis, sign in par.terms:
             if key in w.axes:  # an op: recorded along its own axis
@@ -117,7 +117,7 @@ def jacobian_from_walk(
                     cp[1] -= np.multiply(uT[0], d[2], out=tmp)
                     np.multiply(uT[0], d[1], out=cp[2])
                     cp[2] -= np.multiply(uT[1], d[0], out=tmp)
-                    if orientation:
+                    if cr is not None:
                         cr[...] = uT
                 else:
                     c = np.cross(uT, d, axis=0)
@@ -125,7 +125,7 @@ def jacobian_from_walk(
                         np.multiply(c, sign, out=cp)
                     else:
                         cp += sign * c
-                    if orientation:
+                    if cr is not None:
                         cr += sign * uT
             elif first:  # translation: dp = u, dω = 0
                 np.multiply(uT, sign, out=cp)
@@ -134,14 +134,14 @@ def jacobian_from_walk(
             first = False
         if par.q_joint is not None:
             cp *= q[:, par.q_joint]
-            if orientation:
+            if cr is not None:
                 cr *= q[:, par.q_joint]
         if par.regressor is not None:  # a compliance term: its joint's offset column times its regressor
             cp *= w.regressors[par.regressor]
-            if orientation:
+            if cr is not None:
                 cr *= w.regressors[par.regressor]
         if par.target is not None:
             cp *= (target_names == par.target) if target_names is not None else 0.0
-            if orientation:
+            if cr is not None:
                 cr[...] = 0.0
-    return Jp.transpose(2, 1, 0), (Jr.transpose(2, 1, 0) if orientation else None)
+    return Jp.transpose(2, 1, 0), (Jr.transpose(2, 1, 0) if Jr is not None else None)

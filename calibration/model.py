@@ -164,7 +164,7 @@ class KinematicModel:
     coupling: np.ndarray | None = None
     units: Units = Units()
     metadata: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
-    compliance: "GravityCompliance | None" = None  # joint compliance under gravity (level 3), see below
+    compliance: GravityCompliance | None = None  # joint compliance under gravity (level 3), see below
 
     def __post_init__(self):
         if self.convention not in CONVENTIONS:

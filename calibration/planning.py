@@ -99,11 +99,11 @@ class Volume:
             raise ValueError(f"`kind` must be box or sphere; got {self.kind!r}")
 
     @classmethod
-    def box(cls, lo, hi) -> "Volume":
+    def box(cls, lo, hi) -> Volume:
         return cls("box", lo=lo, hi=hi)
 
     @classmethod
-    def sphere(cls, center, radius: float, inner_radius: float = 0.0) -> "Volume":
+    def sphere(cls, center, radius: float, inner_radius: float = 0.0) -> Volume:
         return cls("sphere", center=center, radius=float(radius), inner_radius=float(inner_radius))
 
     def contains(self, p_world: np.ndarray) -> np.ndarray:
@@ -301,7 +301,9 @@ def _jacobians(model: KinematicModel, q: np.ndarray, params: list[Parameter], ta
     blocks = []
     for t in targets:
         names = np.array([t] * len(q), dtype=object)
-        blocks.append(predict(model, q, model.target(t), params, names).Jp)
+        Jp = predict(model, q, model.target(t), params, names).Jp
+        assert Jp is not None  # asked with params
+        blocks.append(Jp)
     return np.concatenate(blocks, axis=1)
 
 
@@ -362,6 +364,7 @@ def _scores(Ms: np.ndarray, criterion: str, W: np.ndarray | None) -> np.ndarray:
     if criterion in ("D", "O1"):
         return _logdet(Ms)
     if criterion == "I":
+        assert W is not None, "criterion I weighs by W"
         tr = np.trace(np.linalg.solve(Ms, np.broadcast_to(W, Ms.shape)), axis1=-2, axis2=-1)
         return np.where(np.isfinite(tr) & (tr > 0), -tr, -np.inf)
     lam = np.linalg.eigvalsh(Ms)
@@ -384,6 +387,7 @@ def criterion_value(M: np.ndarray, criterion: str, *, n_rows: int, W: np.ndarray
         ld = float(_logdet(M))
         return 0.0 if not math.isfinite(ld) else math.exp(ld / (2 * P)) / math.sqrt(n_rows)
     if criterion == "I":
+        assert W is not None, "criterion I weighs by W"
         try:
             return math.sqrt(max(float(np.trace(np.linalg.solve(M, W))), 0.0))
         except np.linalg.LinAlgError:
@@ -554,7 +558,7 @@ class _Evaluation:
 
 def _evaluation(design: _Design, q: np.ndarray) -> _Evaluation:
     Je = _jacobians(design.model, q, list(design.params), design.targets) * design.S
-    E, r, P = Je.shape
+    E, r, _P = Je.shape
     W = np.einsum("erp,erq->pq", Je, Je) / (E * (r // 3))
     return _Evaluation(q, Je, W)
 
@@ -1052,7 +1056,7 @@ def shortfall(
 def _poses_needed(design: _Design, k_max: int) -> int | None:
     """The fewest poses of the D-optimal greedy sequence that determine every identifiable
     parameter (full rank), or None when ``k_max`` do not."""
-    C, r, P = design.J.shape
+    _C, r, P = design.J.shape
     k_min = max(1, math.ceil(P / r))
     rdiag = _ridge(design.J, PlanOptions.ridge)
     found: list[int] = []

@@ -508,7 +508,7 @@ def comparable_parameter(name: str) -> bool:
     """Whether a parameter's value means the same in two calibrations: not the base, tool and
     home frames' local steps, nor a Hayati link's tilt or shift (each is a step from its own
     calibration's model, not a value; :func:`compare_parameters` compares the frames apart)."""
-    return name.split(".")[0] not in FRAMES and ".tilt_" not in name and ".shift_" not in name
+    return name.split(".", maxsplit=1)[0] not in FRAMES and ".tilt_" not in name and ".shift_" not in name
 
 
 def change_in_sigmas(change: float | None, sd_a: float | None, sd_b: float | None) -> dict:
@@ -519,12 +519,9 @@ def change_in_sigmas(change: float | None, sd_a: float | None, sd_b: float | Non
     calibrations both show this."""
     known = [s for s in (sd_a, sd_b) if s is not None]
     sigma = float(np.sqrt(sum(s * s for s in known))) if known else None
-    ok = bool(sigma) and change is not None
-    return {
-        "sigma": sigma,
-        "change_sigmas": abs(change) / sigma if ok else None,
-        "moved": bool(ok and abs(change) > 2 * sigma),
-    }
+    if not sigma or change is None:
+        return {"sigma": sigma, "change_sigmas": None, "moved": False}
+    return {"sigma": sigma, "change_sigmas": abs(change) / sigma, "moved": bool(abs(change) > 2 * sigma)}
 
 
 def compare_parameters(
@@ -561,7 +558,7 @@ def compare_parameters(
         )
 
     for n in plain:
-        unit = (rb.get(n) or ra.get(n))["unit"]
+        unit = (rb.get(n) or ra[n])["unit"]  # n is a key of one of them
         scale = units.length_m if unit == units.length else units.angle_rad if unit == units.angle else 1.0
         fa = va[n] / scale if n in va else (ra[n]["value"] if n in ra else None)
         fb = vb[n] / scale if n in vb else (rb[n]["value"] if n in rb else None)

@@ -251,7 +251,7 @@ def extrapolate_learning_curve(curve: list[dict], poses: int, sigma_m: float) ->
     out = {"poses": int(poses), "extrapolated": bool(poses > n.max()), "points": len(pts)}
     law = "rms(n)^2 = 3 sigma^2 + a n^-b (power law of the excess over the instrument's noise)"
     if keep.sum() >= 2 and len(np.unique(n[keep])) >= 2:
-        slope, intercept = np.polyfit(np.log(n[keep]), np.log(excess[keep]), 1)
+        slope, _intercept = np.polyfit(np.log(n[keep]), np.log(excess[keep]), 1)
         b = float(np.clip(-slope, 0.0, 2.0))
         # the intercept at the mean of the points, so that a clipped slope still passes through them
         a = float(np.exp(np.mean(np.log(excess[keep]) + b * np.log(n[keep]))))

@@ -29,7 +29,7 @@ import numpy as np
 
 from .identification import INSTRUMENT_SIGMA_M
 from .model import KinematicModel
-from .residual_base import ResidualMapError, corrected_model_sigma, features  # noqa: F401 (the families' shared names, kept importable here)
+from .residual_base import ResidualMapError, corrected_model_sigma, features
 from .residual_base import sqdist as _sqdist
 
 LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)

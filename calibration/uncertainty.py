@@ -50,8 +50,9 @@ def propagate(
     q = np.atleast_2d(np.asarray(q, dtype=float))
     if not params:
         return np.zeros((len(q), 3, 3))
-    pred = predict(model, q, _p_tool(model, targets), list(params), targets, payload)
-    return np.einsum("nip,pq,njq->nij", pred.Jp, covariance, pred.Jp)
+    Jp = predict(model, q, _p_tool(model, targets), list(params), targets, payload).Jp
+    assert Jp is not None  # asked with params
+    return np.einsum("nip,pq,njq->nij", Jp, covariance, Jp)
 
 
 def prediction_covariance(result: IdentificationResult) -> np.ndarray:
@@ -334,8 +335,9 @@ def _stats(e: np.ndarray) -> tuple[float, float, float, float]:
 
 def validate(result: IdentificationResult, holdout: Measurements) -> Validation:
     """Errors of ``result.model`` (and of the starting model) on ``holdout``."""
-    names = holdout.target
-    sigma = np.where(np.isfinite(holdout.sigma) & (holdout.sigma > 0), holdout.sigma, result.settings["sigma_m"])
+    names, row_sigma = holdout.target, holdout.sigma
+    assert row_sigma is not None  # Measurements.__post_init__ fills it (NaN: the instrument's)
+    sigma = np.where(np.isfinite(row_sigma) & (row_sigma > 0), row_sigma, result.settings["sigma_m"])
     p = predict(result.model, holdout.q, _p_tool(result.model, names), payload=holdout.payload).p_world
     e_vec = holdout.p_world - p
     e = np.linalg.norm(e_vec, axis=1)

@@ -22,6 +22,7 @@ import dataclasses
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -100,11 +101,12 @@ def parse_urdf(text: str) -> tuple[str, list[str], list[ChainJoint]]:
         raise UrdfError(f"not well-formed XML: {exc}") from None
     if root.tag != "robot":
         raise UrdfError(f"the root element is <{root.tag}>; expected <robot>")
-    links = []
+    links: list[str] = []
     for e in root.findall("link"):
-        if not e.get("name"):
+        link_name = e.get("name")
+        if not link_name:
             raise UrdfError("a <link> has no name")
-        links.append(e.get("name"))
+        links.append(link_name)
     joints = []
     for e in root.findall("joint"):
         name = e.get("name")
@@ -114,14 +116,15 @@ def parse_urdf(text: str) -> tuple[str, list[str], list[ChainJoint]]:
         jtype = e.get("type")
         if jtype not in MOVING + ("fixed", "floating", "planar"):
             raise UrdfError(f"{what}: unknown type {jtype!r}")
-        ends = {}
+        ends: dict[str, str] = {}
         for tag in ("parent", "child"):
             c = e.find(tag)
-            if c is None or not c.get("link"):
+            link = None if c is None else c.get("link")
+            if not link:
                 raise UrdfError(f"{what}: missing <{tag} link=...>")
-            if c.get("link") not in links:
-                raise UrdfError(f"{what}: {tag} link {c.get('link')!r} is not a <link> of the robot")
-            ends[tag] = c.get("link")
+            if link not in links:
+                raise UrdfError(f"{what}: {tag} link {link!r} is not a <link> of the robot")
+            ends[tag] = link
         o = e.find("origin")
         xyz = _floats(None if o is None else o.get("xyz"), 3, f"{what} <origin xyz>", [0, 0, 0])
         rpy = _floats(None if o is None else o.get("rpy"), 3, f"{what} <origin rpy>", [0, 0, 0])
@@ -142,11 +145,12 @@ def parse_urdf(text: str) -> tuple[str, list[str], list[ChainJoint]]:
         mimic = None
         m = e.find("mimic")
         if m is not None and jtype in MOVING:
-            if not m.get("joint"):
+            lead = m.get("joint")
+            if not lead:
                 raise UrdfError(f"{what} <mimic>: missing joint=...")
             mult = _attr_float(m, "multiplier", f"{what} <mimic>")
             off = _attr_float(m, "offset", f"{what} <mimic>")
-            mimic = (m.get("joint"), 1.0 if mult is None else mult, 0.0 if off is None else off)
+            mimic = (lead, 1.0 if mult is None else mult, 0.0 if off is None else off)
         joints.append(
             ChainJoint(
                 name,
@@ -270,7 +274,7 @@ def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = MM_DEG) -
         if cj.type == "fixed":
             continue
         rev = cj.type != "prismatic"
-        kw = {}
+        kw: dict[str, Any] = {}  # the limits, where the URDF has them (else Joint's own)
         if cj.lower is not None and cj.upper is not None:
             kw = {"lower": cj.lower, "upper": cj.upper}
         elif not rev:
@@ -297,12 +301,11 @@ def chain_to_poe(name: str, chain: list[ChainJoint], *, units: Units = MM_DEG) -
 
 def _mimic_coupling(chain: list[ChainJoint], moving: list[str]) -> np.ndarray | None:
     """The coupling matrix of the chain's mimic joints (``None`` without any)."""
-    mimics = [cj for cj in chain if cj.type != "fixed" and cj.mimic is not None]
+    mimics = [(cj, cj.mimic) for cj in chain if cj.type != "fixed" and cj.mimic is not None]
     if not mimics:
         return None
     C = np.eye(len(moving))
-    for cj in mimics:
-        lead, mult, _ = cj.mimic
+    for cj, (lead, mult, _) in mimics:
         if lead not in moving:
             raise UrdfError(
                 f"joint {cj.name!r} <mimic>: it follows joint {lead!r}, which is not a moving joint of the chain; "
@@ -340,7 +343,7 @@ def chain_to_model(
     if convention == "dh":
         return dh if folded is None else folded
     exact = folded is not None and np.allclose(folded.base, 0.0, atol=1e-12)
-    return folded if exact else poe
+    return folded if folded is not None and exact else poe
 
 
 def _flange_into_last_link(model: KinematicModel) -> KinematicModel | None:
@@ -417,7 +420,9 @@ def _is_leaf(joints: list[ChainJoint], link: str) -> bool:
     return not any(j.parent == link for j in joints)
 
 
-def off_chain_notes(joints: list[ChainJoint], chain: list[ChainJoint], targets: set[str] = frozenset()) -> list[str]:
+def off_chain_notes(
+    joints: list[ChainJoint], chain: list[ChainJoint], targets: set[str] | frozenset[str] = frozenset()
+) -> list[str]:
     """One line per non-fixed joint not on ``chain`` (ignored), and one for the fixed ones."""
     on = {j.name for j in chain}
     out, fixed = [], []

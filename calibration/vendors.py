@@ -290,9 +290,9 @@ def configured_ik(
     if front is not None or up is not None:
         f, u = arm_flags(model, qs.reshape(-1, 6), brand)
         f, u = f.reshape(N, K), u.reshape(N, K)
-        for got, want in ((f, front), (u, up)):
-            if want is not None:
-                w = np.asarray(want, dtype=float).reshape(N, 1)
+        for got, wanted in ((f, front), (u, up)):
+            if wanted is not None:
+                w = np.asarray(wanted, dtype=float).reshape(N, 1)
                 match &= np.isnan(w) | (got == (w == 1.0))
     d = np.sum((qs - near) ** 2, axis=-1)
     best = np.argmin(np.where(match, d, np.inf), axis=1)

@@ -64,7 +64,7 @@ class LineLink:
         if ser is not None:
             try:
                 ser.close()
-            except Exception:  # noqa: BLE001 - closing a broken port must not raise
+            except Exception:  # closing a broken port must not raise
                 log.debug("%s: error while closing", self.device, exc_info=True)
 
     # ----------------------------------------------------------------- I/O

@@ -261,7 +261,7 @@ class _WatchedBus(can.BusABC):
             return None, False
         try:
             msg, filtered = self._inner._recv_internal(timeout)
-        except Exception as exc:  # the backend's receive failed: the link is gone
+        except Exception as exc:  # noqa: BLE001 - any backend's receive failing means the link is gone
             self._fail(can.CanOperationError(f"receiving failed: {exc}"))
         if msg is None and self._peer_closed():
             self._fail(can.CanOperationError("the socketcand server closed the connection"))

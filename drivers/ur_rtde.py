@@ -592,13 +592,17 @@ def _probe_dashboard(host: str, timeout_s: float, device: str) -> str:
             )
         version = ask("PolyscopeVersion")
         match = re.search(r"(\d+)\.(\d+)\.\d+", version)
-        if match and int(match.group(1)) >= 5 and int(match.group(2)) > 5:
-            if ask("is in remote control").lower() == "false":
-                raise DeviceFaultError(
-                    "the robot is in Local Control: switch it to Remote Control on the teach "
-                    "pendant (PolyScope 5.6 and later)",
-                    device=device,
-                )
+        if (
+            match
+            and int(match.group(1)) >= 5
+            and int(match.group(2)) > 5
+            and ask("is in remote control").lower() == "false"
+        ):
+            raise DeviceFaultError(
+                "the robot is in Local Control: switch it to Remote Control on the teach "
+                "pendant (PolyScope 5.6 and later)",
+                device=device,
+            )
         return version
 
 

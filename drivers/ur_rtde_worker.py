@@ -167,7 +167,7 @@ def main() -> int:
         try:
             result = getattr(session, op)(*args)
             reply: tuple = ("ok", result, capture.lost)
-        except Exception as exc:  # every failure goes back to the driver
+        except Exception as exc:  # noqa: BLE001 - every failure goes back to the driver, never kills the worker
             message = str(exc) or type(exc).__name__
             reply = ("error", _error_kind(exc), message, capture.lost)
         data = pickle.dumps(reply)

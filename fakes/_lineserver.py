@@ -172,7 +172,7 @@ class LineServer:
                         break
                 if len(buffer) > self.max_line:
                     buffer.clear()
-        except Exception:  # noqa: BLE001 - a fake must not die silently in a thread
+        except Exception:  # a fake must not die silently in a thread
             log.exception("%s fake: client handler failed", self.device_name)
         finally:
             client.close()
@@ -180,7 +180,7 @@ class LineServer:
                 self._clients.discard(client)
             try:
                 self.on_disconnect(client)
-            except Exception:  # noqa: BLE001
+            except Exception:  # a fake must not die silently in a thread
                 log.exception("%s fake: on_disconnect failed", self.device_name)
 
 

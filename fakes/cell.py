@@ -287,7 +287,7 @@ def stop_fakes(fakes: list) -> None:
     for fake in reversed(fakes):
         try:
             fake.stop()
-        except Exception as exc:  # keep stopping the others
+        except Exception as exc:  # noqa: BLE001 - keep stopping the others
             print(f"{PROG}: stopping {type(fake).__name__}: {exc}", file=sys.stderr)
 
 

@@ -427,7 +427,7 @@ CELL_FAKE = {"key": "cmm", "order": 50, "cls": IppCmmFake}
 def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 
-    return run_fake(lambda cell, host, port: IppCmmFake(cell, host, port), default_port=1294, argv=argv)
+    return run_fake(IppCmmFake, default_port=1294, argv=argv)
 
 
 if __name__ == "__main__":

@@ -286,7 +286,7 @@ class LeicaTrackerFake(LineServer):
                     self.handle_packet(client, kind, packet)
         except DropConnection:
             log.info("emscon fake: dropping the connection")
-        except Exception:  # noqa: BLE001 - a fake must not die silently in a thread
+        except Exception:  # a fake must not die silently in a thread
             log.exception("emscon fake: client handler failed")
         finally:
             client.close()
@@ -539,7 +539,7 @@ def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 
     return run_fake(
-        lambda cell, host, port: LeicaTrackerFake(cell, host, port),
+        LeicaTrackerFake,
         default_port=700,
         argv=argv,
         description="Run a simulated Leica tracker's emScon server.",

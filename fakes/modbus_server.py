@@ -147,7 +147,7 @@ class ModbusRobotFake:
         if self._server is not None:
             try:
                 asyncio.run_coroutine_threadsafe(self._server.shutdown(), loop).result(timeout=5.0)
-            except Exception:
+            except Exception:  # noqa: BLE001 - stopping is best effort; the loop is stopped next
                 pass
             self._server = None
         loop.call_soon_threadsafe(loop.stop)

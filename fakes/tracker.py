@@ -147,7 +147,7 @@ CELL_FAKE = {"key": "tracker", "order": 30, "cls": TrackerFake}
 def main(argv: list[str] | None = None) -> int:
     from fakes._standalone import run_fake
 
-    return run_fake(lambda cell, host, port: TrackerFake(cell, host, port), default_port=10001, argv=argv)
+    return run_fake(TrackerFake, default_port=10001, argv=argv)
 
 
 if __name__ == "__main__":

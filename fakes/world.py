@@ -150,7 +150,7 @@ class FactoryCalibration:
         }
 
     @classmethod
-    def from_dict(cls, doc, where: str = "ur_factory_calibration") -> "FactoryCalibration":
+    def from_dict(cls, doc, where: str = "ur_factory_calibration") -> FactoryCalibration:
         """Read the block written by :meth:`to_dict`; ``ValueError`` names the field at fault."""
         if not isinstance(doc, dict):
             raise ValueError(f"{where}: expected an object with published, {', '.join(cls.FIELDS)}")

@@ -63,6 +63,7 @@ def store_calibration(
 ) -> Calibration:
     """Store what a session gave as a calibration of ``kind`` of ``cell`` (committed); ``extra``
     goes into the stored model document beside the model."""
+    assert cell.id is not None  # a stored cell
     doc = model_to_dict(model)
     if extra:
         doc.update(extra)

@@ -4,7 +4,7 @@ in the audit log)."""
 
 from __future__ import annotations
 
-from sqlmodel import Session, select
+from sqlmodel import Session, col, select
 
 from calibration.model import ModelFormatError, model_from_dict
 
@@ -76,7 +76,7 @@ def register_cell(db: Session, body: CellCreate, tok: Token) -> CellPublic:
 
 
 def list_cells(db: Session, site: str | None) -> list[CellPublic]:
-    q = select(Cell).order_by(Cell.id)
+    q = select(Cell).order_by(col(Cell.id))
     if site is not None:
         q = q.where(Cell.site == site)
     return [public_cell(db, c) for c in db.exec(q).all()]
@@ -87,6 +87,7 @@ def edit_cell(db: Session, cell: Cell, body: CellUpdate, tok: Token) -> CellPubl
     registration, refused while a session drives the cell, and counted (``model_version``; each
     calibration says which it was identified from); the old one is kept in the audit log.
     Calibrations of an earlier nominal no longer serve as the cell's current model or prior."""
+    assert cell.id is not None  # a stored cell
     changes = body.model_dump(exclude_unset=True)
     if "name" in changes:
         _name_free(db, changes["name"], cell.id)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import io
 import math
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 from sqlmodel import Session, select
@@ -200,7 +200,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
     }
     accuracy["rows"] = [{"label": label, **f} for label, f in _accuracy_rows(accuracy)]
-    issued = datetime.now(timezone.utc)
+    issued = datetime.now(UTC)
     return {
         "title": "Robot calibration certificate",
         "number": f"RECAL-{cell.id:04d}-{cal.id:06d}",

@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     from service.compensation import CompensationInputError
     from service.files import InputError
 
-    global _quiet
+    global _quiet  # noqa: PLW0603 - one flag for the whole process (--quiet), set once per command
     _quiet = bool(getattr(args, "quiet", False))
     try:
         return int(args.func(args) or 0)

@@ -12,7 +12,7 @@ and returns a ``recal.model/1`` document with a ``controller`` block of check fi
 from __future__ import annotations
 
 import dataclasses
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -87,7 +87,7 @@ def read_controller_model(
         "source": source,
         "method": "get_forward_kin (ur_rtde getForwardKinematics), tool offset zero; nothing moved",
         "reference": reference.name,
-        "read_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "read_at": datetime.now(UTC).isoformat(timespec="seconds"),
         "poses_fit": n_fit,
         "poses_check": n_check,
         "tolerance_um": tolerance_m * 1e6,
@@ -360,7 +360,7 @@ def model_from_registers(
         "method": "UR TCP-pose registers 400-405 over Modbus (0.1 mm, 1 mrad) at the configurations a "
         f"session measured, joints read to {joint_step_rad * 1e6:g} urad; fitted, not exact",
         "reference": reference.name,
-        "read_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "read_at": datetime.now(UTC).isoformat(timespec="seconds"),
         "poses_fit": len(q),
         "poses_check": 0,
         "tolerance_um": float(tol_p.max()) * 1e6,

@@ -19,7 +19,8 @@ import functools
 import math
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .device_registry import DEVICES
 from .devices import DeviceConfigError, DevicesConfig, can_node_configs, stored_devices
@@ -199,7 +200,7 @@ def _test_can_node(config, joint: int) -> dict:
             "details": details,
             "elapsed_ms": round((time.monotonic() - t0) * 1e3, 1),
         }
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - every failure is a result to show
         return {
             **base,
             "ok": False,

@@ -5,7 +5,9 @@ too), and its verify sessions' measured accuracy. Columns only: never whole repo
 
 from __future__ import annotations
 
-from sqlmodel import Session, select
+from typing import Any
+
+from sqlmodel import Session, col, select
 
 from calibration.report import change_in_sigmas, comparable_parameter
 
@@ -16,17 +18,19 @@ from .store import verifications
 def cell_drift(db: Session, cell_id: int) -> dict:
     """``calibrations``, ``parameters`` and ``verify`` of the cell, oldest first (the API's
     ``GET /cells/{id}/drift`` documents each)."""
+    # SQLModel's select() is typed for up to four columns: six, as a tuple
+    columns: tuple[Any, ...] = (
+        Calibration.id,
+        Calibration.created_at,
+        Calibration.rms,
+        Calibration.predicted,
+        Calibration.nominal_version,
+        Calibration.report["parameters"],
+    )  # not whole reports
     cals = db.exec(
-        select(
-            Calibration.id,
-            Calibration.created_at,
-            Calibration.rms,
-            Calibration.predicted,
-            Calibration.nominal_version,
-            Calibration.report["parameters"],
-        )  # not whole reports
-        .where(Calibration.cell_id == cell_id, Calibration.kind.in_(identified_calibration_kinds()))  # type: ignore[attr-defined]
-        .order_by(Calibration.id)
+        select(*columns)
+        .where(col(Calibration.cell_id) == cell_id, col(Calibration.kind).in_(identified_calibration_kinds()))
+        .order_by(col(Calibration.id))
     ).all()
     series: dict[str, list] = {}
     history = []

@@ -256,7 +256,7 @@ def run_session(
                     pass
         except analysis.AnalysisError as exc:
             final, reason = "failed", str(exc)
-        except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
+        except Exception as exc:  # the session must end in a state, never a traceback
             if database_unavailable(exc):
                 raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
             log.error("session %s failed:\n%s", session_id, traceback.format_exc())
@@ -493,7 +493,7 @@ def store_abort(engine: Engine, session_id: int, control: Control) -> None:
             state = stopped_device_state(run, control.devices, "aborted", "aborted on request")
             if set_state_unless(db, run, TERMINAL, "aborted", "aborted on request", device_state=state):
                 control.ended.set()
-    except Exception:  # noqa: BLE001 - the session's thread stores it all the same
+    except Exception:  # the session's thread stores it all the same
         log.warning("session %s: storing the abort early failed", session_id, exc_info=True)
 
 
@@ -535,7 +535,7 @@ class Orchestrator:
             run_session(
                 self.engine, self.settings, session_id, control, owner=self.owner, open_devices=self.open_devices
             )
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
             log.error("session %s crashed:\n%s", session_id, traceback.format_exc())
             # Never leave it planned or running with nobody on it (that would hold the cell):
             # the store failing under it is not the session's fault (interrupted, resumable).
@@ -600,7 +600,7 @@ class Orchestrator:
 
     def shutdown(self, timeout_s: float = 5.0) -> None:
         self._stopping = True
-        for thread, control in list(self._threads.values()):
+        for _thread, control in list(self._threads.values()):
             control.pause.set()
         for thread, _ in list(self._threads.values()):
             thread.join(timeout_s)

@@ -204,7 +204,7 @@ def repeated(q: np.ndarray, repeats: int) -> Plan:
     """Verify configurations ``q`` (K, n), each visited ``repeats`` times in a row: step ``s``
     visits configuration ``s // repeats`` (see :func:`approach_configurations`)."""
     steps = np.repeat(np.arange(len(q)), max(int(repeats), 1))
-    info = {"method": "random"}
+    info: dict[str, object] = {"method": "random"}
     if repeats > 1:
         info.update(
             {

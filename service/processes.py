@@ -54,7 +54,7 @@ def start_fake_cell(
     log_path: Path | None = None,
 ) -> Proc:
     """``recal fake-cell`` in its own process; returns once it printed its endpoint line."""
-    err = open(log_path, "ab") if log_path else subprocess.DEVNULL
+    err = open(log_path, "ab") if log_path else subprocess.DEVNULL  # noqa: SIM115 (the child's stderr, handed to Popen)
     p = subprocess.Popen(
         _recal()
         + [
@@ -118,7 +118,7 @@ def start_service(
     Its log (``log_path``): access, sessions, device faults and refusals, in the service's format
     (service/logs.py; ``RECAL_LOG_FORMAT`` in ``env`` or the environment)."""
     e = {**os.environ, "RECAL_HOME": str(home), **(env or {})}
-    out = open(log_path, "ab") if log_path else subprocess.DEVNULL
+    out = open(log_path, "ab") if log_path else subprocess.DEVNULL  # noqa: SIM115 (the child's output, handed to Popen)
     p = subprocess.Popen(
         _recal() + ["serve", "--host", host, "--port", str(port), "--log-level", log_level],
         env=e,
@@ -160,7 +160,7 @@ def start_worker(
     """``recal worker`` (the fleet, docs/fleet.md) in its own process; returns once it printed
     its ready line (``ready`` holds it: ``owner``, ``pid``...)."""
     e = {**os.environ, "RECAL_HOME": str(home), "RECAL_ENGINE": "procrastinate", **(env or {})}
-    err = open(log_path, "ab") if log_path else subprocess.DEVNULL
+    err = open(log_path, "ab") if log_path else subprocess.DEVNULL  # noqa: SIM115 (the child's stderr, handed to Popen)
     site_args = ["--all-sites"] if sites is None else [a for s in sites for a in ("--site", s)]
     p = subprocess.Popen(
         _recal() + ["worker", *site_args, "--name", name, "--concurrency", str(concurrency)],

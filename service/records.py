@@ -12,8 +12,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
-from sqlmodel import Session, select
+from sqlmodel import Session, col, select
 
 from calibration import metrics
 from calibration.errors import RecalError
@@ -32,7 +34,9 @@ def stored_rows(db: Session, run: RunSession) -> list[Measurement]:
     """The session's measurement rows, in the order they were taken."""
     return list(
         db.exec(
-            select(Measurement).where(Measurement.session_id == run.id).order_by(Measurement.seq, Measurement.id)
+            select(Measurement)
+            .where(col(Measurement.session_id) == run.id)
+            .order_by(col(Measurement.seq), col(Measurement.id))
         ).all()
     )
 
@@ -74,6 +78,7 @@ def measurements_of(rows: list[Measurement], run: RunSession | None = None) -> M
 def measurement_rows(session_id: int, data: Measurements) -> list[Measurement]:
     """The other way: :class:`Measurements` as rows of session ``session_id``, one per row, the
     row's index its pose number (``seq``); NaN orientations and uncertainties are stored empty."""
+    assert data.sigma is not None and data.target is not None  # Measurements.__post_init__ fills them
     quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
     rows = []
     for i in range(len(data)):
@@ -111,7 +116,8 @@ def insert_measurements(db: Session, session_id: int, data: Measurements) -> Non
     import json
 
     conn = db.connection()
-    table = Measurement.__table__
+    assert data.sigma is not None and data.target is not None  # Measurements.__post_init__ fills them
+    table = Measurement.__table__  # type: ignore[attr-defined]  # SQLAlchemy's, not in SQLModel's stubs
     names = ("session_id", "seq", "target", "q", "x", "y", "z", "qw", "qx", "qy", "qz", "sigma", "created_at")
     bind_time = table.c.created_at.type.bind_processor(conn.dialect)
     now = utcnow() if bind_time is None else bind_time(utcnow())
@@ -120,8 +126,9 @@ def insert_measurements(db: Session, session_id: int, data: Measurements) -> Non
     quat = data.quat if data.quat is not None else np.full((len(data), 4), np.nan)
     q_json = [json.dumps(row) for row in np.asarray(data.q, dtype=float).tolist()]
     p = np.asarray(data.p_world, dtype=float).tolist()
-    quat_l = np.where(np.isnan(quat), None, quat).tolist()
-    sigma_l = np.where(np.isfinite(data.sigma), data.sigma, None).tolist()
+    null = np.array(None, dtype=object)  # SQL NULL as np.where's fill (the same as a bare None)
+    quat_l = np.where(np.isnan(quat), null, quat).tolist()
+    sigma_l = np.where(np.isfinite(data.sigma), data.sigma, null).tolist()
     target = [t or "" for t in data.target]
     for start in range(0, len(data), INSERT_CHUNK_ROWS):
         chunk = [
@@ -135,6 +142,7 @@ def as_stored(run: RunSession, data: Measurements) -> Measurements:
     """``data`` as :func:`session_data` reads it back once :func:`insert_measurements` has stored
     it for ``run`` (the row's index as pose number, an empty target or uncertainty as none):
     what an import hands to its analysis instead of reading 100,000 rows back."""
+    assert data.sigma is not None and data.target is not None  # Measurements.__post_init__ fills them
     n = len(data)
     seq = np.arange(n)
     quat = None if data.quat is None or np.all(np.isnan(data.quat[:, 0])) else np.asarray(data.quat, dtype=float)
@@ -159,15 +167,21 @@ def session_data(db: Session, run: RunSession) -> Measurements:
 
     from sqlalchemy import String, cast
 
-    cols = (Measurement.seq, Measurement.target, cast(Measurement.q, String), Measurement.x, Measurement.y)
+    cols: tuple[Any, ...] = (
+        Measurement.seq,
+        Measurement.target,
+        cast(Measurement.q, String),
+        Measurement.x,
+        Measurement.y,
+    )
     cols += (Measurement.z, Measurement.qw, Measurement.qx, Measurement.qy, Measurement.qz, Measurement.sigma)
     rows = db.exec(
-        select(*cols).where(Measurement.session_id == run.id).order_by(Measurement.seq, Measurement.id)
+        select(*cols).where(col(Measurement.session_id) == run.id).order_by(col(Measurement.seq), col(Measurement.id))
     ).all()
     if not rows:
         raise NoMeasurementsError("the session has no measurements")
-    seq, target, q_text, x, y, z, qw, qx, qy, qz, sigma = zip(*rows)
-    seq = np.array(seq, dtype=int)
+    seq_read, target, q_text, x, y, z, qw, qx, qy, qz, sigma = zip(*rows)
+    seq = np.array(seq_read, dtype=int)
 
     def floats(values) -> np.ndarray:  # None (an empty column) as NaN
         return np.array([np.nan if v is None else v for v in values], dtype=float)
@@ -194,6 +208,7 @@ def session_measurements(db: Session, run: RunSession) -> tuple[Measurements, li
 
 def target_points(model: KinematicModel, data: Measurements) -> np.ndarray:
     """(N, 3) tool-frame point of each row: the model's position of the row's target."""
+    assert data.target is not None  # Measurements.__post_init__ fills it
     return np.array([model.target(t) for t in data.target]).reshape(len(data.target), 3)
 
 

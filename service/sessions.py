@@ -10,7 +10,7 @@ import time
 from sqlalchemy import bindparam, delete, func
 from sqlalchemy import select as sa_select
 from sqlalchemy.exc import IntegrityError
-from sqlmodel import Session, select
+from sqlmodel import Session, col, select
 
 from calibration.model import model_from_dict
 
@@ -22,6 +22,7 @@ from .store import audit, measured_count, set_state_unless
 
 
 def public_session(db, run: RunSession) -> SessionPublic:
+    assert run.id is not None  # a stored session
     info = dict(run.plan_info or {})
     info.pop("swept_joint", None)
     return SessionPublic(
@@ -34,15 +35,19 @@ def public_session(db, run: RunSession) -> SessionPublic:
 # What GET /sessions/{id} and the progress events read: the public columns and the measured count
 # in one query, without the plan (every configuration of the session) or an ORM object. Pages and
 # nightly jobs poll this; bench/service.py measures it.
-_PUBLIC = [c for c in RunSession.__table__.columns if c.name in SessionPublic.model_fields]
+_PUBLIC = [
+    c
+    for c in RunSession.__table__.columns  # type: ignore[attr-defined]  # SQLAlchemy's, not in SQLModel's stubs
+    if c.name in SessionPublic.model_fields
+]
 _MEASURED = (
     select(func.count(func.distinct(Measurement.seq)))
-    .where(Measurement.session_id == RunSession.id)
+    .where(col(Measurement.session_id) == RunSession.id)
     .correlate(RunSession)
     .scalar_subquery()
     .label("measured")
 )
-_READ_PUBLIC = sa_select(*_PUBLIC, _MEASURED).where(RunSession.id == bindparam("session_id"))  # built once
+_READ_PUBLIC = sa_select(*_PUBLIC, _MEASURED).where(col(RunSession.id) == bindparam("session_id"))  # built once
 
 
 def read_public_session(db, session_id: int) -> SessionPublic:
@@ -70,14 +75,16 @@ def get_run(db, session_id: int) -> RunSession:
 
 
 def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orchestrator) -> SessionPublic:
+    assert cell.id is not None  # a stored cell
     model = model_from_dict(cell.model)
     if body.target is not None and body.target not in model.targets:
         raise Invalid(
             "body.target",
             f"unknown target {body.target!r}; the cell's model has: {', '.join(sorted(model.targets)) or 'none'}",
         )
-    for i, j in enumerate(body.joints or []):
-        if not 1 <= j <= model.n_joints or j in body.joints[:i]:
+    joints = body.joints or []
+    for i, j in enumerate(joints):
+        if not 1 <= j <= model.n_joints or j in joints[:i]:
             raise Invalid(
                 f"body.joints[{i}]", f"expected a joint number from 1 to {model.n_joints}, each once; got {j}"
             )
@@ -116,6 +123,7 @@ def _commit_and_start(
         db.rollback()
         raise Conflict("another session is already driving this cell") from None
     db.refresh(run)
+    assert run.id is not None  # committed
     if run.dry_run:  # after the new one has its id: on SQLite a deleted highest id would be given again
         forget_dry_runs(db, run.cell_id, keep=run.id)
     audit(db, actor=tok.name, action=action, subject=f"session {run.id}", detail=detail)
@@ -129,11 +137,11 @@ def driving_session(
 ) -> RunSession | None:
     """The session driving the cell (planned or running), if any; dry runs (which move nothing)
     only if ``dry_runs``; never session ``other_than``."""
-    where = [RunSession.cell_id == cell_id, RunSession.state.in_(ACTIVE)]
+    where = [col(RunSession.cell_id) == cell_id, col(RunSession.state).in_(ACTIVE)]
     if not dry_runs:
-        where.append(RunSession.dry_run == False)  # noqa: E712 (SQL)
+        where.append(col(RunSession.dry_run) == False)  # noqa: E712 (SQL)
     if other_than is not None:
-        where.append(RunSession.id != other_than)
+        where.append(col(RunSession.id) != other_than)
     return db.exec(select(RunSession).where(*where)).first()
 
 
@@ -183,6 +191,7 @@ def refuse_if_busy(db: Session, cell_id: int) -> None:
 def run_dry_plan(db: Session, dry: RunSession, cell: Cell, tok: Token, orchestrator) -> SessionPublic:
     """Run the plan of a completed dry run for real: a new session measuring exactly the
     configurations that were shown and checked, after the same checks as any start."""
+    assert cell.id is not None  # a stored cell
     if not dry.dry_run or dry.state != "completed" or not dry.plan:
         raise Conflict(
             f"session {dry.id} is not a completed dry run with a plan "
@@ -216,10 +225,10 @@ def forget_dry_runs(db, cell_id: int, *, keep: int) -> None:
     the cell's latest is kept, and session lists leave it out. Dry runs have no measurements."""
     db.execute(
         delete(RunSession).where(
-            RunSession.cell_id == cell_id,
-            RunSession.dry_run == True,  # noqa: E712
-            RunSession.state.not_in(ACTIVE),
-            RunSession.id != keep,
+            col(RunSession.cell_id) == cell_id,
+            col(RunSession.dry_run) == True,  # noqa: E712
+            col(RunSession.state).not_in(ACTIVE),
+            col(RunSession.id) != keep,
         )
     )
     db.commit()

@@ -111,7 +111,7 @@ class Settings:
         return f"sqlite:///{self.home / 'recal.db'}"
 
     @classmethod
-    def from_env(cls, env: dict[str, str] | None = None) -> "Settings":
+    def from_env(cls, env: dict[str, str] | None = None) -> Settings:
         env = dict(os.environ if env is None else env)
         kw: dict = {}
         if env.get("RECAL_HOME"):

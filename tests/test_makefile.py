@@ -52,7 +52,7 @@ def test_make_test_runs_the_serial_tests_whatever_the_parallel_run_gave(tmp_path
 
 
 def test_make_demo_takes_host_and_port(tmp_path):
-    done, calls = _make(tmp_path, "-n", "demo", "HOST=127.0.0.9", "PORT=8123")
+    done, _calls = _make(tmp_path, "-n", "demo", "HOST=127.0.0.9", "PORT=8123")
     assert done.returncode == 0, done.stderr
     assert f"{tmp_path / 'bin'}/recal demo --host 127.0.0.9 --port 8123" in done.stdout
     done, _ = _make(tmp_path, "-n", "demo")

@@ -277,7 +277,7 @@ class PageCache:
     def __init__(self, app, ttl_s: float = 0.5):
         self.app, self.ttl_s = app, ttl_s
         self._entries: dict[tuple, tuple[float, list[dict], object]] = {}  # key: (fresh until, answer, route)
-        self._inflight: dict[tuple, "asyncio.Future"] = {}
+        self._inflight: dict[tuple, asyncio.Future] = {}
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -337,7 +337,7 @@ class PageCache:
         try:
             await self.app(scope, receive, capture)
             ok = bool(messages) and messages[0].get("status") == 200
-        except Exception:  # noqa: BLE001 - a background refresh has nobody to tell; a request re-raises
+        except Exception:  # a background refresh has nobody to tell; a request re-raises
             if send is not None:
                 raise
         finally:

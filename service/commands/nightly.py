@@ -371,7 +371,8 @@ def run(args) -> int:
     token = os.environ.get("RECAL_TOKEN", "")
     if args.token_file:
         try:
-            token = open(args.token_file, encoding="utf-8").read().strip()
+            with open(args.token_file, encoding="utf-8") as f:
+                token = f.read().strip()
         except OSError as exc:
             print(f"recal nightly: --token-file {args.token_file}: {exc.strerror}", file=sys.stderr)
             return EXIT_USAGE

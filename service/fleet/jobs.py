@@ -200,6 +200,6 @@ def fail_job(app: App, job_id: int) -> bool:
 
 
 def _now():
-    from datetime import datetime, timezone
+    from datetime import UTC, datetime
 
-    return datetime.now(timezone.utc)
+    return datetime.now(UTC)

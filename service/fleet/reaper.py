@@ -145,7 +145,7 @@ class Reaper:
 
     # ------------------------------------------------------------------ the thread
 
-    def start(self) -> "Reaper":
+    def start(self) -> Reaper:
         self._thread = threading.Thread(target=self._loop, name=self.name, daemon=True)
         self._thread.start()
         return self
@@ -156,7 +156,7 @@ class Reaper:
             try:
                 self.reap_once()
                 failing = False
-            except Exception as exc:  # noqa: BLE001 - the reaper must outlive a database restart
+            except Exception as exc:  # the reaper must outlive a database restart
                 if not failing:
                     level = (
                         logging.WARNING if database_unavailable(exc) or "connect" in str(exc).lower() else logging.ERROR

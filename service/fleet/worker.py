@@ -248,7 +248,7 @@ class WorkerRuntime:
         while True:
             try:
                 return self._claim(sid, control)
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:  # the session must end in a state, never a traceback
                 if not database_unavailable(exc):
                     log.error("session %s: %s", sid, traceback.format_exc())
                     self._end_if_ours(
@@ -295,7 +295,7 @@ class WorkerRuntime:
         while True:
             try:
                 return run_session(self.engine, self.settings, sid, control, owner=self.owner, leased=True)
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:  # noqa: BLE001 - the session must end in a state, never a traceback
                 if not database_unavailable(exc):
                     log.error("session %s: %s", sid, traceback.format_exc())
                     self._end_if_ours(sid, "failed", f"internal error in the worker: {type(exc).__name__}: {exc}")
@@ -341,7 +341,7 @@ class WorkerRuntime:
                     )
                     db.commit()
                 return
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - the store may fail in any way while it restarts; the reaper ends it else
                 if time.monotonic() > deadline:
                     log.error("session %s: could not record it %s; the reaper will", sid, state)
                     return

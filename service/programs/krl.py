@@ -148,7 +148,7 @@ def _config_frames(path) -> dict:
     """``TOOL_DATA[n]`` and ``BASE_DATA[n]`` of a ``$config.dat``: {("tool"|"base", n): values}."""
     f = _File(0, path, read_text(path))
     out = {}
-    for ln, s, code in f.lines():
+    for _ln, s, code in f.lines():
         m = _ELEM_RE.match(code)
         if m and m.group(1).lower() in ("tool_data", "base_data"):
             items, _ = _aggregate(f, code, m.start(3), s, f"{m.group(1)}[{m.group(2)}]")
@@ -508,7 +508,7 @@ _BARE_RE = re.compile(r"\s*([a-z_$]\w*)\s*(?:\[[^\]]*\])?\s*(?=,|$)", re.IGNOREC
 def _declarations(f: _File, decls: dict, fdat: dict, bare: dict, elements: bool) -> None:
     """The ``DECL`` lines of ``f`` (and, ``elements``, its ``NAME[k]={...}`` lines) into ``decls``
     (targets) and ``fdat``; names declared without a value into ``bare``."""
-    for ln, s, code in f.lines():
+    for _ln, s, code in f.lines():
         m = _DECL_RE.match(code)
         if m:
             typ = m.group(1).lower()

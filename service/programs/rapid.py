@@ -406,7 +406,7 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         return _declared_frame(r, dd, typ, name)
 
     resolved_frames = []
-    for off, mv, targets, tool, wobj in moves:
+    for off, mv, _targets, tool, wobj in moves:
         T_tool = frame(tool, "tooldata", off, mv)
         T_work = frame(wobj, "wobjdata", off, mv)
         t_src = _source(sources, tool)

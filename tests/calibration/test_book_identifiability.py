@@ -29,7 +29,7 @@ IN = 0.0254
 DEG = math.pi / 180
 
 
-def _rank(model, *, full_pose: bool, n: int = 40, seed: int = 0, p_tool=np.zeros(3)) -> tuple[int, int]:
+def _rank(model, *, full_pose: bool, n: int = 40, seed: int = 0, p_tool=np.zeros(3)) -> tuple[int, int]:  # noqa: B008 (read only)
     """(number of candidate parameters, numerical rank) of the full model's Jacobian: base, every
     link parameter and the tool free."""
     q = random_configurations(model, n, np.random.default_rng(seed))

@@ -375,7 +375,7 @@ def test_targets_mode_with_a_numerical_nominal_inverse(cell):
 
 
 def test_taught_joints_mapped_from_the_nominal_and_between_two_robots(cell):
-    nominal, identified, M, q, X = cell
+    nominal, identified, M, q, _X = cell
     q = q[:400]
     # planned on the nominal (off line): the identified robot reaches the pose the nominal would
     c = compensate_taught(nominal, identified, q, T_from_world=M)
@@ -455,7 +455,7 @@ def test_every_flag_is_triggered_by_a_constructed_case(cell):
 
 
 def test_bad_arguments_are_clear_value_errors(cell):
-    nominal, identified, M, q, X = cell
+    nominal, identified, _M, q, X = cell
     with pytest.raises(ValueError, match="2 poses but 3"):
         compensate_joints(identified, X[:2], q[:3])
     with pytest.raises(ValueError, match=r"shape \(N, 6\)"):

@@ -100,7 +100,7 @@ def test_hayati_moves_d_into_the_next_link(alpha2, sign):
     doc["joints"][1]["d"] = 60.0
     doc["joints"][1]["alpha"] = alpha2
     m = model_from_dict(doc)
-    h, notes = hayati_for_parallel_axes(m)
+    h, _notes = hayati_for_parallel_axes(m)
     assert h.joints[1].hayati and h.joints[1].d == 0.0
     # links 2 and 3 are both parallel to the next: the offset travels on to link 4
     assert h.joints[2].hayati and h.joints[2].d == 0.0

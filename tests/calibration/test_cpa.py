@@ -80,7 +80,7 @@ def test_plane_regression_recovers_plane_and_printed_4_252_does_not():
     sxx, syy, sxy, szy = d[:, 0] @ d[:, 0], d[:, 1] @ d[:, 1], d[:, 0] @ d[:, 1], d[:, 2] @ d[:, 1]
     E_printed = (sxx * syy - szy * sxy) / (sxx * syy - sxy**2)
     assert abs(E_printed - 0.3) > 0.1
-    c, n, rms = fit_plane(P)
+    _c, n, rms = fit_plane(P)
     assert rms < 1e-12
     assert abs(abs(n @ np.array([E, F, -1.0])) / np.linalg.norm([E, F, -1.0]) - 1.0) < 1e-12
 
@@ -445,7 +445,7 @@ def test_bad_sweeps_name_the_row_and_column():
     assert e.value.column == "joint"
     p = sw.p_world.copy()
     p[120:144] = p[120]  # the reflector did not move: no circle
-    with pytest.raises(SweepError, match="sweep of joint 6 .rows 121-144.: the points are collinear") as e:
+    with pytest.raises(SweepError, match=r"sweep of joint 6 .rows 121-144.: the points are collinear") as e:
         circle_point_analysis(nominal, _replace(sw, p_world=p))
     assert e.value.row == 121
 

@@ -51,7 +51,7 @@ def test_fit_sphere_recovers_exact_sphere():
 
 def test_fit_sphere_minimum_four_points():
     pts = np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0]]) * 3 + [5, 6, 7]
-    c, r, rms = fit_sphere(pts)
+    c, r, _rms = fit_sphere(pts)
     assert np.allclose(c, [5, 6, 7], atol=1e-12)
     assert r == pytest.approx(3.0)
 
@@ -158,7 +158,7 @@ def test_pose_from_points_three_points_and_reflection_safe():
     for _ in range(20):
         T = _random_pose(rng)
         p_world = p_tool @ T[:3, :3].T + T[:3, 3]
-        T_fit, rms = pose_from_points(p_tool, p_world)
+        T_fit, _rms = pose_from_points(p_tool, p_world)
         assert np.linalg.det(T_fit[:3, :3]) == pytest.approx(1.0)
         assert np.allclose(T_fit, T, atol=1e-12)
 

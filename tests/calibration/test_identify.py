@@ -228,7 +228,7 @@ def test_robust_loss_names_the_bumped_rows(ur10e, bumped_case, loss):
 
 
 def test_linear_loss_is_ruined_by_the_bumped_rows(ur10e, bumped_case):
-    truth, data, bumped, q_hold = bumped_case
+    truth, data, _bumped, q_hold = bumped_case
     linear = identify(ur10e, data, loss="linear")
     robust = identify(ur10e, data, loss="soft_l1")
     assert _holdout_rms(linear.model, truth, q_hold) > 5 * _holdout_rms(robust.model, truth, q_hold)
@@ -295,7 +295,7 @@ def test_unidentifiable_reasons(far_case):
 
 
 def test_fixed_parameters_are_not_freed(ur10e, far_case):
-    truth, data, q_hold, *_ = far_case
+    _truth, data, _q_hold, *_ = far_case
     result = identify(ur10e, data, fixed=("j2.a", "j3.*"))
     assert "j2.a" not in result.param_names
     assert not any(n.startswith("j3.") for n in result.param_names)
@@ -307,7 +307,7 @@ def test_fixed_parameters_are_not_freed(ur10e, far_case):
 
 def test_predicted_uncertainty_is_honest(ur10e, far_case):
     """Hold-out coverage of the predicted 95 % region is close to 95 %."""
-    truth, data, q_hold, result, _ = far_case
+    truth, _data, q_hold, result, _ = far_case
     holdout = simulate_measurements(truth, q_hold, np.random.default_rng(40), sigma_m=SIGMA)
     v = validate(result, holdout)
     assert v.n == 300

@@ -58,7 +58,7 @@ def _unit_columns(model, data, names):
 
 
 def test_same_motion_only_when_one_parameter_explains_it(flange_case):
-    nom, truth, data, result = flange_case
+    _nom, _truth, data, result = flange_case
     why = {u.name: u for u in result.unidentifiable}
     for r in ("tool.rx", "tool.ry", "tool.rz"):
         assert why[r].reason.startswith("tool orientation is unobservable from position-only data"), why[r].reason
@@ -91,7 +91,7 @@ def test_relations_are_written_with_units(flange_case):
 
 
 def test_the_reflector_offset_is_kept_and_the_last_joint_offset_stays_nominal(flange_case):
-    nom, truth, data, result = flange_case
+    nom, truth, _data, result = flange_case
     assert {"target.smr1.x", "target.smr1.y", "target.smr1.z"} <= set(result.param_names)
     assert "j6.theta" not in result.param_names
     why = {u.name: u for u in result.unidentifiable}
@@ -144,7 +144,7 @@ def two_sessions():
 
 
 def test_with_a_prior_every_parameter_is_determined_or_undetermined_never_both(two_sessions):
-    nom, first, prior, second, alone = two_sessions
+    _nom, _first, prior, second, _alone = two_sessions
     assert second.success
     freed, dropped = set(second.param_names), {u.name for u in second.unidentifiable}
     assert not freed & dropped
@@ -163,7 +163,7 @@ def test_with_a_prior_every_parameter_is_determined_or_undetermined_never_both(t
 
 
 def test_what_the_data_cannot_see_keeps_the_prior(two_sessions):
-    nom, first, prior, second, alone = two_sessions
+    _nom, first, prior, second, _alone = two_sessions
     src = dict(zip(second.param_names, second.sources))
     unseen = [n for n, s in src.items() if s == "prior"]
     assert {"target.ball1.x", "target.ball1.y", "target.ball1.z"} <= set(unseen)  # not measured this time
@@ -265,7 +265,7 @@ def tracker_then_cmm():
 
 
 def test_a_cmm_after_a_tracker_determines_the_tool_frame_the_tracker_could_not(tracker_then_cmm):
-    truth, seen_by_cmm, misfit, first, cmm, scale, prior, second = tracker_then_cmm
+    truth, seen_by_cmm, misfit, first, _cmm, scale, prior, second = tracker_then_cmm
     assert misfit > 0.2e-3  # the balls are off their drawing
     held = {u.name for u in first.unidentifiable}
     assert {"tool.tx", "tool.ty", "tool.tz", "tool.rx", "tool.ry"} <= held  # the tracker could not see them
@@ -300,7 +300,7 @@ def test_without_its_held_relations_the_tracker_prior_holds_the_cmm_off(tracker_
     model's value (its reflector offset stands in for the tool frame's translation): taken for the
     parameters themselves, it keeps the reflector where the tracker put it in the old tool frame
     while the CMM moves the tool frame, half a millimetre off."""
-    truth, seen_by_cmm, misfit, first, cmm, scale, prior, second = tracker_then_cmm
+    truth, _seen_by_cmm, _misfit, first, cmm, _scale, prior, second = tracker_then_cmm
     naive = identify(
         first.model, cmm, prior=Prior(prior.names, prior.covariance), sigma_m=CMM_SIGMA_M, sigma_rad=CMM_SIGMA_RAD
     )

@@ -112,13 +112,13 @@ def test_prediction_without_params_is_fk():
 
 
 def test_apply_step_is_a_new_model_and_values_follow():
-    model, q, names, params = _setup("dh_prismatic")
+    model, _q, _names, params = _setup("dh_prismatic")
     delta = np.linspace(-1e-3, 1e-3, len(params))
     moved = apply_step(model, params, delta)
     assert moved is not model
     v0, v1 = parameter_values(model, params), parameter_values(moved, params)
     for k, p in enumerate(params):
-        head, _, f = p.name.rpartition(".")
+        head, _, _f = p.name.rpartition(".")
         if head in ("base", "tool"):
             continue
         assert v1[k] - v0[k] == pytest.approx(delta[k], abs=1e-15), p.name

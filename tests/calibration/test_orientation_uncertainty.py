@@ -86,7 +86,7 @@ def test_orientation_errors_stay_within_their_predicted_bounds(cases):
 
 
 def test_the_held_parameters_enter_at_their_prior_width(cases):
-    result, _, q = cases[OFFSETS_M[0], SEEDS[0]]
+    result, _, _q = cases[OFFSETS_M[0], SEEDS[0]]
     held = result.held_covariance
     assert held is not None
     names = held["names"]
@@ -109,12 +109,12 @@ def test_a_model_read_from_a_file_gives_the_same_orientation_bound(cases):
         stored_orientation_covariance(model, q[:20]), orientation_covariance(result, q[:20]), rtol=1e-9, atol=1e-20
     )
     block["covariance"]["held"]["names"][0] = "j9.theta"
-    with pytest.raises(CovarianceError, match="no parameter 'j9.theta'") as exc:
+    with pytest.raises(CovarianceError, match=r"no parameter 'j9\.theta'") as exc:
         orientation_from_block(dataclasses.replace(result.model, metadata={"identification": block}))
     assert exc.value.field == "identification.covariance.held.names[0]"
     # a file written before the held parameters were stored: the freed ones' covariance
     del block["covariance"]["held"]
-    params, matrix = orientation_from_block(dataclasses.replace(result.model, metadata={"identification": block}))
+    params, _matrix = orientation_from_block(dataclasses.replace(result.model, metadata={"identification": block}))
     assert [p.name for p in params] == list(result.param_names)
 
 

@@ -166,7 +166,7 @@ def test_outside_the_fitted_region_every_family_leaves_the_geometric_model_and_s
 
 
 def test_transmission_fit_finds_the_wave_generator_and_refuses_chance(chosen):
-    rng, nom, truth, tx, final, choice = chosen
+    rng, nom, _truth, _tx, _final, choice = chosen
     t = choice.correction.transmission
     # the shoulder and elbow carry most of the arm: their 2N = 202 ripple is found
     assert 202.0 in t.ratios[1].tolist() and 202.0 in t.ratios[2].tolist()

@@ -191,10 +191,10 @@ def _accuracy(d, rows, capsys):
 def test_accuracy_of_a_model_whose_base_is_not_registered_warns(nominal_and_rows, capsys):
     """Measured by a tracker 1.5 m away and turned 30°: the nominal model's world is its own base
     frame, so every "error" is about the tracker-to-robot distance; one line says so."""
-    d, model, q_deg, p_mm = nominal_and_rows
+    d, _model, q_deg, p_mm = nominal_and_rows
     T_tracker_base = homogeneous(rot(2, np.radians(30.0)), np.array([1500.0, -600.0, -300.0]))
     p_tracker = p_mm @ T_tracker_base[:3, :3].T + T_tracker_base[:3, 3]
-    code, out, err, rep = _accuracy(d, zip(q_deg, p_tracker), capsys)
+    code, _out, err, rep = _accuracy(d, zip(q_deg, p_tracker), capsys)
     assert code == 0
     lines = err.splitlines()
     assert len(lines) == 1 and lines[0].startswith(
@@ -205,7 +205,7 @@ def test_accuracy_of_a_model_whose_base_is_not_registered_warns(nominal_and_rows
 
 
 def test_accuracy_in_the_models_own_frame_does_not_warn(nominal_and_rows, capsys):
-    d, model, q_deg, p_mm = nominal_and_rows
+    d, _model, q_deg, p_mm = nominal_and_rows
     code, out, err, rep = _accuracy(d, zip(q_deg, p_mm), capsys)
     assert code == 0 and err == "" and rep["frame"] is None
     assert out.splitlines()[1].startswith("overall: AP mean") and "pose  target" not in out

@@ -113,7 +113,7 @@ POSE = ["x", "y", "z", "qw", "qx", "qy", "qz"]
 
 
 def test_joints_mode_commands_reach_the_task_poses(files):
-    d, nominal, ident, q, X, M = files
+    d, _nominal, ident, q, X, _M = files
     r = recal(
         "compensate",
         "--model",
@@ -154,7 +154,7 @@ def test_joints_mode_commands_reach_the_task_poses(files):
 def test_targets_mode_through_the_nominal_controller(files):
     """No --nominal: the identified model records the one it came from. The corrected targets,
     given to the nominal closed form (the controller), bring the identified robot to the task."""
-    d, nominal, ident, q, X, M = files
+    d, nominal, ident, q, X, _M = files
     r = recal(
         "compensate", "--model", "identified.json", "--task", "task.csv", "--out", "tgt.csv", "--mode", "targets", cwd=d
     )
@@ -175,7 +175,7 @@ def test_targets_mode_through_the_nominal_controller(files):
 
 
 def test_taught_joints_replayed_on_another_robot(files):
-    d, nominal, ident, q, X, M = files
+    d, _nominal, ident, q, _X, _M = files
     r = recal(
         "compensate",
         "--model",
@@ -203,12 +203,12 @@ def test_outside_the_calibrated_region_is_flagged(files):
     (d / "wide.csv").write_text("q1,q2,q3,q4,q5,q6\n10,-170,90,-90,90,0\n10,-90,90,-90,90,0\n")
     r = recal("compensate", "--model", "identified.json", "--task", "wide.csv", "--out", "wide_out.csv", cwd=d)
     assert r.returncode == 0, r.stderr
-    header, rows = read_out(d / "wide_out.csv")
+    _header, rows = read_out(d / "wide_out.csv")
     assert rows[0][-1] == "outside_calibrated_region" and rows[1][-1] == ""
 
 
 def test_urscript_program_is_rewritten_byte_for_byte_except_its_targets(files):
-    d, nominal, ident, q, X, M = files
+    d, nominal, ident, _q, _X, M = files
     p0 = [0.55, -0.35, 0.42, 0.01, 3.12, 0.03]
     q0 = (np.radians([-40, -100, 90, -80, -90, 10])).tolist()
     prog = (
@@ -495,7 +495,7 @@ def test_a_row_that_does_not_converge_exits_3_naming_it(files, tmp_path):
     """Row 3's pose is 5 m out of the UR10e's reach: the output is written with it flagged, and
     the exit status says not everything was done (3), the last line naming the row (issue 24:
     it exited 0 with 1,059 of 20,000 points not converged)."""
-    d, nominal, ident, q, X, M = files
+    d, _nominal, _ident, _q, _X, _M = files
     lines = (d / "task.csv").read_text().splitlines()[:6]
     far = lines[4].split(",")
     far[1] = "5000.0"

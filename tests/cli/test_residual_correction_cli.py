@@ -148,7 +148,7 @@ def test_compensation_through_trees_settles_or_flags_every_point(identified, tmp
     from calibration.kinematics import fk
     from service.files import read_measurements
 
-    d, rng, nominal, truth, tx, proc = identified
+    d, rng, nominal, truth, tx, _proc = identified
     model = load_model(d / "id.json")
     data = read_measurements(str(d / "meas.csv"), model)
     trees = RC.fit_family("trees", model, model, data, {"sigma_m": 10e-6})
@@ -299,7 +299,7 @@ def test_the_bound_of_a_file_without_the_stored_error_is_wider_and_a_bad_one_is_
     from calibration.model import model_from_dict
     from calibration.uncertainty import CovarianceError, stored_position_bound
 
-    d, rng, nominal, *_ = identified
+    d, _rng, nominal, *_ = identified
     doc = json.loads((d / "id.json").read_text())
     cv = doc["residual_map"]["cross_validation"]
     q = random_configurations(nominal, 20, np.random.default_rng(3), limits=REGION + np.deg2rad([5.0, -5.0]))

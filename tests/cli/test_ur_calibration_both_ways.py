@@ -24,7 +24,7 @@ from urdf_check import predict, yourdfpy_fk
 from service.cli import main as recal
 
 # UR's segments, its default UR10e file and ur_description's chain: one copy, beside the export's tests
-from .test_ur_calibration_export import SEGMENTS, UR10E_DEFAULT, _chain, _origin, _rz  # noqa: E402,F401
+from .test_ur_calibration_export import SEGMENTS, UR10E_DEFAULT, _chain, _origin, _rz
 
 PI = np.pi
 KEYS = ("x", "y", "z", "roll", "pitch", "yaw")

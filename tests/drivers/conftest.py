@@ -102,14 +102,15 @@ def subprocess_env() -> dict:
 
 def start_cell(truth_path: Path, host: str, *args: str) -> RunningCell:
     """Start a cell on ``host`` and wait for its endpoint line; raise if it does not come."""
-    stderr = tempfile.NamedTemporaryFile(prefix="fake-cell-", suffix=".log", delete=False)
+    stderr = tempfile.NamedTemporaryFile(prefix="fake-cell-", suffix=".log", delete=False)  # noqa: SIM115 (closed once Popen has it; the name is kept for the log)
     process = subprocess.Popen(
         [sys.executable, "-m", "fakes.cell", "--truth", str(truth_path), "--host", host, *args],
         stdout=subprocess.PIPE,
         stderr=stderr,
         cwd=REPO,
         env=subprocess_env(),
-        preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+        # a prctl() call only, so safe before exec in a threaded parent
+        preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,  # noqa: PLW1509
     )
     stderr.close()
     cell = RunningCell(process, host, {}, stderr.name)

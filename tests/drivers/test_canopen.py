@@ -194,11 +194,13 @@ def test_gear_eccentricity_is_visible_in_a_joint_sweep():
     q = np.linspace(-math.pi, math.pi, 37)
     measured = []
     cell = SimCell(truth_with_eccentricity(), seed=3)
-    with CanGatewayFake(cell, "127.0.0.1", 0, encoders={1: 17}, resolvers={}) as fake:
-        with CanopenEncoder(config(fake, 17, use_pdo=True)) as enc:
-            for q1 in q:
-                move(cell, [q1, 0, 0, 0, 0, 0])
-                measured.append(enc.read().angle_rad)
+    with (
+        CanGatewayFake(cell, "127.0.0.1", 0, encoders={1: 17}, resolvers={}) as fake,
+        CanopenEncoder(config(fake, 17, use_pdo=True)) as enc,
+    ):
+        for q1 in q:
+            move(cell, [q1, 0, 0, 0, 0, 0])
+            measured.append(enc.read().angle_rad)
     residual = np.unwrap(np.array(measured)) - q
     design = np.column_stack([np.ones_like(q), np.sin(k * q), np.cos(k * q)])
     (offset, s, c), *_ = np.linalg.lstsq(design, residual, rcond=None)
@@ -249,7 +251,7 @@ def test_other_process_gateway_serves_sdo_and_pdo_reads():
             expected = (q[0] + default_mount_offset_rad(33)) % TAU
             assert r1.read().angle_rad == pytest.approx(expected, abs=5 * TAU / 65536)
         t0 = time.monotonic()
-        with pytest.raises(DeviceTimeoutError, match="node 34.*no SDO answer"):
+        with pytest.raises(DeviceTimeoutError, match=r"node 34.*no SDO answer"):
             CanopenEncoder(configs[("resolver", 3)])
         assert time.monotonic() - t0 < 2.0
     finally:
@@ -341,7 +343,7 @@ def test_resolver_fault_bits_refuse_an_sdo_reading(cell, fake):
 
 def test_sdo_abort_for_an_object_the_node_lacks_is_a_protocol_error(fake):
     """Configured as a resolver reader but node 17 is an encoder: no pole-pairs object 0x2001."""
-    with pytest.raises(ProtocolError, match="node 17.*SDO abort.*Object does not exist") as info:
+    with pytest.raises(ProtocolError, match=r"node 17.*SDO abort.*Object does not exist") as info:
         CanopenEncoder(config(fake, 17, kind="resolver"))
     assert info.value.code == "0x06020000"
 
@@ -355,7 +357,7 @@ def test_silent_node_times_out_and_is_read_again_when_back(cell, fake, use_pdo):
         enc.read()
         cell.faults.silent_nodes = [18]
         t0 = time.monotonic()
-        with pytest.raises(DeviceTimeoutError, match="node 18.*within 0.3 s"):
+        with pytest.raises(DeviceTimeoutError, match=r"node 18.*within 0.3 s"):
             enc.read()
         assert time.monotonic() - t0 < TIMEOUT_S + 0.3
         cell.faults.silent_nodes = []
@@ -396,14 +398,14 @@ def test_gateway_gone_is_a_connection_error_quickly(cell):
         enc.read()
         gateway.stop()
         t0 = time.monotonic()
-        with pytest.raises(DeviceConnectionError, match="node 17.*(connect|link lost)"):
+        with pytest.raises(DeviceConnectionError, match=r"node 17.*(connect|link lost)"):
             enc.read()
         assert time.monotonic() - t0 < 2.0
         assert enc.status() == "disconnected"
     finally:
         enc.close()
     t0 = time.monotonic()
-    with pytest.raises(DeviceConnectionError, match="cannot connect to socketcand server 127.0.0.1"):
+    with pytest.raises(DeviceConnectionError, match=r"cannot connect to socketcand server 127.0.0.1"):
         CanopenEncoder(config(gateway, 17))
     assert time.monotonic() - t0 < 1.0
 

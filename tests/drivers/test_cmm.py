@@ -138,9 +138,8 @@ def test_measurement_follows_the_robot(fake, truth, cell):
 
 def test_probing_empty_space_is_no_touch(fake, truth):
     top, approach = _top_of(_centre(truth, "ball1"))
-    with IppDmeCmm(_config(fake)) as cmm:
-        with pytest.raises(MeasurementError) as info:
-            cmm.probe(top + [0.05, 0, 0], approach)
+    with IppDmeCmm(_config(fake)) as cmm, pytest.raises(MeasurementError) as info:
+        cmm.probe(top + [0.05, 0, 0], approach)
     assert info.value.code == 1003
 
 
@@ -229,9 +228,8 @@ def test_slow_move_is_timeout(truth):
     fake.start()
     try:
         top, approach = _top_of(_centre(truth, "ball1"))
-        with IppDmeCmm(_config(fake, move_timeout_s=0.3)) as cmm:
-            with pytest.raises(DeviceTimeoutError, match="completion"):
-                cmm.probe(top, approach)
+        with IppDmeCmm(_config(fake, move_timeout_s=0.3)) as cmm, pytest.raises(DeviceTimeoutError, match="completion"):
+            cmm.probe(top, approach)
     finally:
         fake.stop()
 

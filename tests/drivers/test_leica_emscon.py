@@ -381,7 +381,7 @@ def test_a_moving_reflector_gives_no_stationary_result(truth):
 
 
 def test_configuration_errors_name_what_is_wrong(fake):
-    with pytest.raises(DeviceFaultError, match="no reflector named 'CCR'; the server lists 'RRR 1.5in'"):
+    with pytest.raises(DeviceFaultError, match=r"no reflector named 'CCR'; the server lists 'RRR 1.5in'"):
         EmsconTracker(_config(fake, reflector="CCR"))
     fake.weather_station = False
     with pytest.raises(DeviceFaultError, match="no weather station"):

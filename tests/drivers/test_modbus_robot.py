@@ -83,7 +83,7 @@ def test_garbled_replies_give_a_protocol_error(fault_cell):
 def test_slow_controller_times_out(fault_cell):
     cell = fault_cell("--fault", "delay_s=1")
     started = time.monotonic()
-    with pytest.raises(DeviceTimeoutError, match="no answer within 0.2 s"):
+    with pytest.raises(DeviceTimeoutError, match=r"no answer within 0.2 s"):
         connect(cell.endpoint, timeout_s=0.2)
     assert time.monotonic() - started < 2.0
 

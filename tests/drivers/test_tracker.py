@@ -272,9 +272,8 @@ def scripted():
 )
 def test_bad_meas_replies(scripted, reply, error, match):
     timeout_s = NO_REPLY_TIMEOUT_S if reply is None else REPLY_TIMEOUT_S  # only a silence waits its deadline
-    with LineTracker(scripted({"MEAS?": reply}, timeout_s)) as tracker:
-        with pytest.raises(error, match=match) as info:
-            tracker.measure()
+    with LineTracker(scripted({"MEAS?": reply}, timeout_s)) as tracker, pytest.raises(error, match=match) as info:
+        tracker.measure()
     assert not isinstance(info.value, MeasurementError)
     if reply and reply.startswith("ERR ") and "," in reply:
         assert info.value.code == int(reply[4:6])
@@ -299,9 +298,8 @@ def test_partial_line_is_timeout():
     server.start()
     try:
         config = TrackerConfig(url=f"socket://127.0.0.1:{server.port}", timeout_s=NO_REPLY_TIMEOUT_S)
-        with LineTracker(config) as tracker:
-            with pytest.raises(DeviceTimeoutError, match="partial"):
-                tracker.measure()
+        with LineTracker(config) as tracker, pytest.raises(DeviceTimeoutError, match="partial"):
+            tracker.measure()
     finally:
         server.stop()
 
@@ -314,9 +312,11 @@ def test_replies_late_under_load_are_waited_for(scripted):
 
 
 def test_bad_status_reply(scripted):
-    with LineTracker(scripted({"STAT?": "LOCKED"})) as tracker:
-        with pytest.raises(ProtocolError, match="STAT\\? replied 'LOCKED'"):
-            tracker.status()
+    with (
+        LineTracker(scripted({"STAT?": "LOCKED"})) as tracker,
+        pytest.raises(ProtocolError, match="STAT\\? replied 'LOCKED'"),
+    ):
+        tracker.status()
     with LineTracker(scripted({"STAT?": "NOT_INITIALISED"})) as tracker:
         assert tracker.status() == "not_initialised"
 

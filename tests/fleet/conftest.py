@@ -52,7 +52,7 @@ def _skip_reason() -> str | None:
         with eng.connect() as conn:
             conn.execute(text("SELECT 1"))
         eng.dispose()
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - any failure to reach the server is the skip's reason
         return f"fleet tests need PostgreSQL at RECAL_TEST_POSTGRES_URL: {type(exc).__name__}: {exc}"
     return None
 

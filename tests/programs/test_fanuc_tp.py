@@ -142,7 +142,7 @@ def run(tmp_path_factory):
 
 
 def test_every_byte_but_the_positions_numbers_is_unchanged(run):
-    d, nominal, true, data, r = run
+    d, _nominal, _true, data, r = run
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("compensated 4 points (Fanuc TP): 4 converged"), r.stdout
     out = (d / "out.ls").read_bytes()
@@ -162,7 +162,7 @@ def test_every_byte_but_the_positions_numbers_is_unchanged(run):
 
 
 def test_compensated_positions_bring_the_true_robot_to_the_program_poses(run):
-    d, nominal, true, data, r = run
+    d, nominal, true, _data, _r = run
     from service.programs.frames import Frames
 
     M = frame_of(true, nominal)

@@ -165,7 +165,7 @@ def run(tmp_path_factory):
 
 
 def test_both_files_keep_every_byte_but_the_targets_numbers(run):
-    d, nominal, true, src, dat, r = run
+    d, _nominal, _true, src, dat, r = run
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("compensated 7 points (KRL): 7 converged"), r.stdout
     assert "wrote out.src, out.dat" in r.stdout
@@ -185,7 +185,7 @@ def test_both_files_keep_every_byte_but_the_targets_numbers(run):
 
 
 def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
-    d, nominal, true, src, dat, r = run
+    d, nominal, true, _src, _dat, _r = run
     M = frame_of(true, nominal)
     old = krl.parse(d / "recal_test.src", frames=_frames(d))
     new = krl.parse(d / "out.src", frames=_frames(d))
@@ -236,7 +236,7 @@ def test_report_and_configuration(run):
     assert all(p["configuration"]["written"] == p["configuration"]["solution"] for p in stated)
     assert {p["configuration"]["written"]["S"] & 2 for p in stated} == {0, 2}  # both elbows (A3 vs φ)
     assert {p["file"].rsplit("/", 1)[-1] for p in rep["points"]} == {"recal_test.src", "recal_test.dat"}
-    xp1 = [p for p in rows if p["variable"] == "XP1"][0]
+    xp1 = next(p for p in rows if p["variable"] == "XP1")
     assert xp1["frames"] == "tool TOOL_DATA[1] (--tool-frame), base BASE_DATA[2] ($config.dat)"
 
 

@@ -87,8 +87,8 @@ def test_inline_targets_without_s_and_t_take_the_controllers_solution_and_reach_
 
 
 def test_s_bits_beyond_0_to_2_are_kept_as_written_not_a_branch(run):
-    d, nominal, true, r = run
+    d, _nominal, _true, _r = run
     rep = json.loads((d / "r.json").read_text())
-    xb = [p for p in rep["points"] if p["variable"] == "XB"][0]
+    xb = next(p for p in rep["points"] if p["variable"] == "XB")
     assert xb["flags"] == [] and xb["configuration"]["written"] == {"S": 22, "T": 26}
     assert ",S 22,T 26," in (d / "out.dat").read_text()

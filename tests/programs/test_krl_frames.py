@@ -79,8 +79,8 @@ def test_with_clause_frames_are_the_fdats_and_the_target_reaches_its_pose(cell):
     assert rows["withs"]["XP1"]["compensated"] == rows["act"]["XP1"]["compensated"]
     # the true robot, sent the compensated XP1 through the nominal controller, reaches XP1's pose
     fr = Frames.from_options([], [], str(d / "config.dat"))
-    t0 = [t for t in krl.parse(d / "withs.src", frames=fr).targets if t.name == "XP1"][0]
-    t1 = [t for t in krl.parse(d / "withs-out.src", frames=fr).targets if t.name == "XP1"][0]
+    t0 = next(t for t in krl.parse(d / "withs.src", frames=fr).targets if t.name == "XP1")
+    t1 = next(t for t in krl.parse(d / "withs-out.src", frames=fr).targets if t.name == "XP1")
     tool, B = kuka_frame(TOOL1), kuka_frame(BASE2)
     nom_t = dataclasses.replace(nominal, tool=matrix_to_pose(tool))
     true_t = dataclasses.replace(true, tool=matrix_to_pose(tool))
@@ -92,7 +92,7 @@ def test_with_clause_frames_are_the_fdats_and_the_target_reaches_its_pose(cell):
 
 
 def test_config_dat_globals_and_a_name_declared_without_value_are_reported_as_they_are(cell):
-    d, nominal, true, runs = cell
+    d, _nominal, _true, _runs = cell
     rep = json.loads((d / "withs.json").read_text())
     why = {u["line"]: u["reason"] for u in rep["uninterpreted"]}
     assert "XHOME is a global of $config.dat" in why[8], why

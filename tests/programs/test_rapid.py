@@ -85,10 +85,7 @@ def program(nominal):
     W = T_wobj()
     rt = {}
     for name, q in Q.items():
-        if name == "inline":
-            T = fk(nominal, np.radians([q]))[0]
-        else:
-            T = np.linalg.inv(W) @ fk(nom_t, np.radians([q]))[0]
+        T = fk(nominal, np.radians([q]))[0] if name == "inline" else np.linalg.inv(W) @ fk(nom_t, np.radians([q]))[0]
         rt[name] = robtarget(T, confdata(q))
     weld = rt["pWeld"].split("],[")
     lines = [
@@ -148,7 +145,7 @@ def run(tmp_path_factory):
 
 
 def test_every_byte_but_the_targets_numbers_is_unchanged(run):
-    d, nominal, true, data, r = run
+    d, _nominal, _true, data, r = run
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("compensated 7 points (RAPID): 7 converged"), r.stdout
     out = (d / "out.mod").read_bytes()
@@ -182,7 +179,7 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
 
     from calibration.transforms import matrix_to_pose
 
-    d, nominal, true, data, r = run
+    d, nominal, true, _data, _r = run
     M = frame_of(true, nominal)
     old = rapid.parse(d / "prog.mod")
     new = rapid.parse(d / "out.mod")
@@ -221,10 +218,10 @@ def test_compensated_targets_bring_the_true_robot_to_the_program_poses(run):
 
 
 def test_joint_target_reaches_the_pose_the_nominal_joints_meant(run):
-    d, nominal, true, data, r = run
+    d, nominal, true, _data, _r = run
     M = frame_of(true, nominal)
     new = rapid.parse(d / "out.mod")
-    j = [t for t in new.targets if t.kind == "joints"][0]
+    j = next(t for t in new.targets if t.kind == "joints")
     X_d = np.linalg.inv(M) @ fk(nominal, np.radians([[0, -10, 20, 0, 60, 0]]))
     dp, da = pose_error(fk(true, j.q[None]), X_d)
     assert dp[0] < 2e-6 and da[0] < 5e-7  # 5 decimals of a degree

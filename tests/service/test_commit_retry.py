@@ -4,6 +4,8 @@ that went through although its answer was lost is not stored twice (the unique c
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import pytest
 from sqlalchemy.exc import OperationalError
 from sqlmodel import Session, select
@@ -17,7 +19,7 @@ from service.store import make_engine, migrate
 class FlakySession(Session):
     """Its commits fail as planned: ``before`` (nothing stored), ``after`` (stored, answer lost)."""
 
-    plan: list[str] = []
+    plan: ClassVar[list[str]] = []  # set by each test, read by every session
 
     def commit(self):
         mode = self.plan.pop(0) if self.plan else None

@@ -10,7 +10,7 @@ BAD = b"q1,q2,q3,q4,q5,q6\n0,-80,90,0,90,0\r10,-80,90,0,90,0\n"
 
 
 def test_compensate_answers_a_bare_cr_with_422_naming_the_line(calibrated, tokens):
-    client, cell, cal = calibrated
+    client, _cell, cal = calibrated
     r = client.post(
         f"/api/v1/calibrations/{cal}/compensate?name=t.csv", content=BAD, headers=auth(tokens["technician"])
     )

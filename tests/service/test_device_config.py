@@ -144,11 +144,11 @@ def test_a_stored_document_from_before_the_check_still_reads():
     # registered when any key passed: sessions still open its devices; the rules that were not
     # checked then (the encoders' bus, one node per id) are the opening's to refuse
     old = {"rtde": "h", "note": "line 3", "encoders": {"1": 17}}
-    with pytest.raises(DeviceConfigError, match="devices.note: unknown key"):
+    with pytest.raises(DeviceConfigError, match=r"devices.note: unknown key"):
         parse_devices(old)
     assert stored_devices(old) == DevicesConfig(rtde="h", encoders={"1": 17})
     # a value no device can have is refused either way
-    with pytest.raises(DeviceConfigError, match="devices.modbus"):
+    with pytest.raises(DeviceConfigError, match=r"devices.modbus"):
         stored_devices({"modbus": "x"})
 
 

@@ -32,7 +32,7 @@ def test_an_unreachable_rtde_beside_a_live_modbus_robot_is_reported_as_itself(cl
         cell = register_cell(client, tokens["technician"], "two-robots")
         t = auth(tokens["technician"])
         nobody = f"127.0.0.1:{free_port()}"  # a port where nothing listens
-        devices = {"rtde": nobody.split(":")[0], "modbus": fake.endpoint()["modbus"]}
+        devices = {"rtde": nobody.split(":", maxsplit=1)[0], "modbus": fake.endpoint()["modbus"]}
         r = client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": devices}, headers=t)
         assert r.status_code == 200, r.text
         res = client.post(f"/api/v1/cells/{cell['id']}/devices/test?timeout_s=3", headers=t).json()["results"]

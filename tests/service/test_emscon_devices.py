@@ -71,7 +71,7 @@ def test_emscon_entries_make_tracker_configurations():
     )
     assert emscon("10.0.0.5:7000").port == 7000
     assert (emscon("10.0.0.5").host, emscon("10.0.0.5").port) == ("10.0.0.5", 700)
-    with pytest.raises(DeviceConfigError, match="devices.emscon.use_adm: expected true or false"):
+    with pytest.raises(DeviceConfigError, match=r"devices.emscon.use_adm: expected true or false"):
         parse_devices({"emscon": {"host": "h", "use_adm": 1}})
     assert (
         parse_devices({"emscon": "h:700"}).has_tracker

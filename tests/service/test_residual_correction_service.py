@@ -80,7 +80,7 @@ def corrected(idle_app, tokens, stored_session, settings):
 
 
 def test_verify_certificate_and_result_page_judge_the_model_with_its_stored_correction(corrected, tokens, settings):
-    client, cell, cal, v_in, v_all = corrected
+    client, _cell, cal, v_in, v_all = corrected
     h = auth(tokens["viewer"])
     verify = client.get(f"/api/v1/sessions/{v_in}", headers=h).json()["plan_info"]["verify"]
     geo, inside = _geometric_errors(settings, v_in, cal)

@@ -14,7 +14,7 @@ import pytest
 from service.models import MAX_COUNT
 
 from .conftest import auth, register_cell
-from .test_limits import live  # noqa: F401, F811 (the service served by uvicorn on loopback)
+from .test_limits import live  # noqa: F401 (the service served by uvicorn on loopback)
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "service.md"
 TASK = "q1,q2,q3,q4,q5,q6\n10,-80,90,-100,70,20\n"

@@ -86,7 +86,26 @@ def test_format_task_replaces_only_its_columns_and_keeps_the_others_text(tmp_pat
     T[0, :3, 3] = [0.2, 0.3, 0.4]
     out = format_task(task, UR, "joints", q, T, np.array([True]), np.array([2e-9]), ["near_singular"])
     rows = list(csv.reader(io.StringIO(out)))
-    assert rows[0] == "name,x,y,z,qw,qx,qy,qz,q1,q2,q3,q4,q5,q6,note,converged,residual,flags".split(",")
+    assert rows[0] == [
+        "name",
+        "x",
+        "y",
+        "z",
+        "qw",
+        "qx",
+        "qy",
+        "qz",
+        "q1",
+        "q2",
+        "q3",
+        "q4",
+        "q5",
+        "q6",
+        "note",
+        "converged",
+        "residual",
+        "flags",
+    ]
     assert rows[1][:8] == ["A", "100.50", "2", "3", "-1", "0", "0", "0"]  # text as it was
     np.testing.assert_allclose([float(v) for v in rows[1][8:14]], [1.5, 2.5, 3.5, 4.5, 5.5, 6.5])
     assert rows[1][14:] == ["keep me", "1", "2e-06", "near_singular"]  # residual in mm

@@ -9,7 +9,7 @@ import logging
 import os
 import subprocess
 import sys
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
@@ -114,7 +114,7 @@ def test_the_audit_log_is_paged_and_pruned_by_an_admin(settings, tokens):
         assert len(first) == len(second) == 2 and first[-1]["id"] > second[0]["id"] > second[1]["id"]
         every = client.get("/api/v1/audit?limit=5000", headers=admin).json()
         assert [e["id"] for e in every[:4]] == [e["id"] for e in first + second]
-        future = (datetime.now(timezone.utc) + timedelta(minutes=1)).isoformat()
+        future = (datetime.now(UTC) + timedelta(minutes=1)).isoformat()
         for role in ("viewer", "technician", "job"):
             r = client.delete("/api/v1/audit", params={"before": future}, headers=auth(tokens[role]))
             assert r.status_code == 403, r.text

@@ -24,7 +24,7 @@ def geared_models(models, tmp_path):
 
 
 def test_joint_session_finds_gain_and_gear_eccentricity(stack, geared_models, register):
-    cell, fake = register(truth=geared_models["truth"])
+    cell, _fake = register(truth=geared_models["truth"])
     api = stack.api()
     s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": "joint", "count": 60, "joints": [1, 2]})
     s = api.wait_session(s["id"], 120)

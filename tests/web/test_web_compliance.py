@@ -69,7 +69,7 @@ def test_session_form_sends_the_payloads(page, compliant_result, web):
     page.wait_for_selector("#plan-check")
     api = Api(url, token)
     # a dry run is a plan, not a session: listed only when asked for
-    dry = [s for s in api.call("GET", f"/cells/{cell_id}/sessions?dry_runs=true") if s["dry_run"]][0]
+    dry = next(s for s in api.call("GET", f"/cells/{cell_id}/sessions?dry_runs=true") if s["dry_run"])
     assert api.call("GET", f"/sessions/{dry['id']}")["plan_info"]["payloads"] == [[0, 0, 0, 0], [10, 0, 0, 0.1]]
 
 

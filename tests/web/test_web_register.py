@@ -14,7 +14,7 @@ NET = os.environ.get("RECAL_TEST_NET", "127.0.0")
 
 
 def test_the_register_form_chooses_no_robot_and_refuses_an_unknown_key_as_the_api_does(page, web, tmp_path):
-    with web.service_with_technician(tmp_path) as (url, token, engine, settings):
+    with web.service_with_technician(tmp_path) as (url, token, _engine, _settings):
         line = {"ready": True, "rtde": f"{NET}.2", "tracker": f"socket://{NET}.2:10001", "emscom": f"{NET}.2:700"}
         try:  # what the API says of the same devices
             Api(url, token).call("POST", "/cells", {"name": "x", "model": nominal_document("ur10e"), "devices": line})

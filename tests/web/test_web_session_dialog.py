@@ -26,7 +26,7 @@ def test_pause_question_is_withdrawn_when_the_session_completes(page, web, tmp_p
     # about a pose a second (the demo's pace): the session runs while the page asks
     cell = start_fake_cell(tmp_path / "truth.json", f"{NET}.84", time_scale=0.15, log_path=tmp_path / "cell.log")
     try:
-        with web.service_with_technician(tmp_path / "svc") as (url, token, engine, settings):
+        with web.service_with_technician(tmp_path / "svc") as (url, token, _engine, _settings):
             api = Api(url, token)
             doc = json.loads((tmp_path / "nominal.json").read_text())
             cell_id = api.call("POST", "/cells", {"name": "c", "model": doc, "devices": cell.ready})["id"]

@@ -206,7 +206,7 @@ async def compensate_backup(
     if not raw:
         raise HTTPException(422, {"field": "body", "message": "expected a zip of a controller backup, got nothing"})
     try:
-        answer, short, summary = await request.app.state.heavy.run(
+        answer, short, _summary = await request.app.state.heavy.run(
             compensate_backup_and_audit,
             request.app.state.settings.effective_database_url,
             calibration_id,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request
@@ -119,5 +119,5 @@ def prune_audit(
         raise HTTPException(
             422, {"field": "query.before", "message": f"expected an ISO 8601 time, got {before!r}"}
         ) from None
-    at = at if at.tzinfo is not None else at.replace(tzinfo=timezone.utc)
+    at = at if at.tzinfo is not None else at.replace(tzinfo=UTC)
     return {"deleted": store.prune_audit(db, before=at, actor=tok.name)}
