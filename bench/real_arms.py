@@ -170,6 +170,37 @@ def run_identify(work: Path, tag: str, extra: list[str], sigma: list[str]) -> di
     return out
 
 
+def holdout_coverage(work: Path, tag: str, target: str, sigma_mm: float) -> dict:
+    """The hold-out errors of ``recal predict`` with the model ``tag`` (its correction applied) against its 95 % bound.
+
+    ``predict --uncertainty`` gives u95, the model's own 95 % radius; the instrument's noise is
+    added as ``identify --validate`` does: inside when ``|e|^2 <= u95^2 + chi2_3(0.95) sigma^2``.
+    """
+    recal = Path(sys.executable).with_name("recal")
+    out = work / f"predict_{tag}.csv"
+    cmd = [str(recal), "predict", "--model", str(work / f"model_{tag}.json"), "--joints", str(work / "holdout.csv"),
+           "--uncertainty", "--quiet", "--out", str(out)] + (["--target", target] if target else [])  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode not in (0, 3) or not out.exists():
+        return {"error": done.stderr.strip()}
+    with out.open(newline="") as f:
+        pred = list(csv.DictReader(f))
+    with (work / "holdout.csv").open(newline="") as f:
+        meas = list(csv.DictReader(f))
+    e = np.array([[float(m[a]) - float(p[a]) for a in "xyz"] for m, p in zip(meas, pred, strict=True)])
+    u95 = np.array([float(p["u95"]) for p in pred])
+    outside = np.array(["outside" in p["flags"] for p in pred])
+    err = np.linalg.norm(e, axis=1)
+    inside = err**2 <= u95**2 + 7.8147 * sigma_mm**2
+    return {
+        "rms": float(np.sqrt(np.mean(err**2))),
+        "covered": float(np.mean(inside)),
+        "covered_in_region": float(np.mean(inside[~outside])) if np.any(~outside) else float("nan"),
+        "flagged_outside": int(np.sum(outside)),
+        "median_u95": float(np.median(u95)),
+    }
+
+
 def prepare(args: argparse.Namespace, work: Path) -> tuple[list[str], str]:
     """Write nominal.json, train.csv and holdout.csv; return the sigma options and a description."""
     if args.arm == "ur10":
@@ -235,9 +266,12 @@ def main() -> None:
         if not args.skip_geometric:
             results["geometric"] = run_identify(work, "geometric", [], sigma)
         results["auto"] = run_identify(work, "auto", ["--residual-map", "auto"], sigma)
+        target = "smr" if args.arm == "ur5" else ""
         print()
         for name, rep in results.items():
             print("\n".join(summary(name, rep)))
+            cov = holdout_coverage(work, name, target, args.sigma)
+            print(f"  recal predict on the hold-out (correction applied): {json.dumps(cov)}")
 
 
 if __name__ == "__main__":
