@@ -31,6 +31,12 @@ GEAR_RATIOS_SEARCHED = tuple(range(30, 201))  # harmonic-drive ratios of industr
 # a found wave-generator ratio must lower the residual sum of squares by this many times what the
 # best of len(GEAR_RATIOS_SEARCHED) sinusoids of pure noise would (about 2 ln(K) σ² for K tried)
 FIND_MARGIN = 4.0
+# A joint whose axis passes within this of the measured points (RMS over the data, m) moves them
+# too little for its transmission error to be seen in position residuals: a 0.01° error there
+# moves them under 1 µm. Its terms are left out; fitted, they grow without bound (a real UR10's
+# T-Mac 0.09 mm off the last axis gave that joint 10-19° amplitudes and made the correction
+# 5.6 times worse than none on held-out poses).
+MIN_LEVER_M = 0.005
 RIDGE = 1e-9  # relative to the normal matrix's mean diagonal: only for terms the data cannot see
 JACOBIAN_STEP_RAD = 1e-6
 
@@ -205,13 +211,15 @@ def fit_transmission(
     revolute = np.array([j.revolute for j in model.joints])
     J = position_jacobian(model, q, p_tool, payload)
     G = geometry_columns(model, q, p_tool, target_names, payload)
-    terms: list[list[float]] = [list(OUTPUT_HARMONICS) if revolute[i] else [] for i in range(q.shape[1])]
+    lever_m = np.sqrt(np.mean(np.sum(J**2, axis=1), axis=0))  # (n,) RMS |dp/dq_i|
+    seen = revolute & (lever_m >= MIN_LEVER_M)
+    terms: list[list[float]] = [list(OUTPUT_HARMONICS) if seen[i] else [] for i in range(q.shape[1])]
     given = list(gear_ratios) if gear_ratios is not None else [None] * q.shape[1]
     if find:
-        found = find_gear_ratios(J, q, residuals, revolute, terms, G)
+        found = find_gear_ratios(J, q, residuals, seen, terms, G)
         given = [g if g is not None else f for g, f in zip(given, found)]
     for i, g in enumerate(given):
-        if g is not None and revolute[i]:
+        if g is not None and seen[i]:
             terms[i].append(2.0 * float(g))
     cols = [(i, k) for i, ks in enumerate(terms) for k in ks]
     A = np.hstack([_columns(J, q, i, k) for i, k in cols])
