@@ -357,7 +357,9 @@ def read_table(path: str | os.PathLike) -> Table | ColumnTable:
         fast = ColumnTable.read(path, raw)
         if fast is not None:
             return fast
-    return _python_table(path, raw)
+    text = decode_text(path, raw, "a CSV file", encoding="utf-8-sig")
+    del raw  # the rows are read from the text alone: not both in memory through them
+    return _python_table(path, text)
 
 
 def release_columns() -> None:
@@ -371,9 +373,8 @@ def release_columns() -> None:
     pa.default_memory_pool().release_unused()
 
 
-def _python_table(path: str | os.PathLike, raw: bytes) -> Table:
-    """The Python reader: every row through ``csv``."""
-    text = decode_text(path, raw, "a CSV file", encoding="utf-8-sig")
+def _python_table(path: str | os.PathLike, text: str) -> Table:
+    """The Python reader: every row of ``text`` (the file decoded) through ``csv``."""
     _check_line_ends(path, text)
     header: list[str] | None = None
     header_line = 1
@@ -544,7 +545,8 @@ class ColumnTable:
     def python(self) -> Table:
         """The same file read by the Python reader (once)."""
         if self._python is None:
-            self._python = _python_table(self.path, self._raw if self._raw is not None else read_bounded(self.path))
+            raw = self._raw if self._raw is not None else read_bounded(self.path)
+            self._python = _python_table(self.path, decode_text(self.path, raw, "a CSV file", encoding="utf-8-sig"))
         return self._python
 
 
