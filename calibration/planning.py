@@ -749,6 +749,20 @@ def _options(options: PlanOptions | None, overrides: dict) -> PlanOptions:
     return o
 
 
+def _design(model: KinematicModel, candidates: np.ndarray, o: PlanOptions):
+    """:func:`_prepare` with the options' targets, noise, gains, fixed parameters and rank rule."""
+    return _prepare(
+        model,
+        candidates,
+        targets=o.targets,
+        sigma_m=o.sigma_m,
+        gains=o.gains,
+        fixed=tuple(o.fixed),
+        rank_rtol=o.rank_rtol,
+        hayati=o.hayati,
+    )
+
+
 def plan(
     model: KinematicModel, candidates: np.ndarray, count: int, options: PlanOptions | None = None, **overrides
 ) -> PlanResult:
@@ -760,16 +774,7 @@ def plan(
     the identifiable parameters need or above the number of candidates, unknown criterion)."""
     o = _options(options, overrides)
     rng = np.random.default_rng(0) if o.rng is None else o.rng
-    design = _prepare(
-        model,
-        candidates,
-        targets=o.targets,
-        sigma_m=o.sigma_m,
-        gains=o.gains,
-        fixed=tuple(o.fixed),
-        rank_rtol=o.rank_rtol,
-        hayati=o.hayati,
-    )
+    design = _design(model, candidates, o)
     _check_count(design, count)
     ev = _evaluation(design, _evaluation_q(model, o.evaluation, o.n_evaluation, rng, o.volume, design.targets))
     return _plan(
@@ -844,16 +849,7 @@ def poses_for_accuracy(
         raise ValueError(f"`accuracy_m` must be a positive number; got {accuracy_m}")
     o = _options(options, overrides)
     rng = np.random.default_rng(0) if o.rng is None else o.rng
-    design = _prepare(
-        model,
-        candidates,
-        targets=o.targets,
-        sigma_m=o.sigma_m,
-        gains=o.gains,
-        fixed=tuple(o.fixed),
-        rank_rtol=o.rank_rtol,
-        hayati=o.hayati,
-    )
+    design = _design(model, candidates, o)
     criterion = o.criterion
     C, r, P = design.J.shape
     k_min = max(1, math.ceil(P / r))
@@ -1024,16 +1020,7 @@ def shortfall(
     poses determines, which kind of measurement would (:data:`WHAT_WOULD_DETERMINE`). Other
     arguments as for :func:`plan`."""
     o = _options(options, overrides)
-    design = _prepare(
-        model,
-        candidates,
-        targets=o.targets,
-        sigma_m=o.sigma_m,
-        gains=o.gains,
-        fixed=tuple(o.fixed),
-        rank_rtol=o.rank_rtol,
-        hayati=o.hayati,
-    )
+    design = _design(model, candidates, o)
     needed = _poses_needed(design, min(int(k_max), len(design.J)))
     more = None if needed is None else max(needed - int(count), 0)
     groups: dict[str, list[str]] = {}

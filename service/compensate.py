@@ -196,16 +196,11 @@ def compensate_and_store(
     from sqlmodel import Session
 
     from .controller import controller_nominal
-    from .models import Calibration, Cell, Compensation
-    from .store import audit, make_engine
+    from .models import Cell, Compensation
+    from .store import audit
 
-    engine = _ENGINES.get(database_url)
-    if engine is None:
-        engine = _ENGINES[database_url] = make_engine(database_url)
-    with Session(engine) as db:
-        cal = db.get(Calibration, calibration_id)
-        if cal is None:
-            raise CompensationInputError(f"no calibration {calibration_id}")
+    with Session(_engine(database_url)) as db:
+        cal = _calibration(db, calibration_id)
         nominal_doc = controller_nominal(db, db.get(Cell, cal.cell_id))
         output, report = compensate_text(
             text,
@@ -263,16 +258,11 @@ def compensate_backup_and_audit(
         with_frame_data,
     )
     from .controller import controller_nominal
-    from .models import Calibration, Cell
-    from .store import audit, make_engine
+    from .models import Cell
+    from .store import audit
 
-    engine = _ENGINES.get(database_url)
-    if engine is None:
-        engine = _ENGINES[database_url] = make_engine(database_url)
-    with Session(engine) as db:
-        cal = db.get(Calibration, calibration_id)
-        if cal is None:
-            raise CompensationInputError(f"no calibration {calibration_id}")
+    with Session(_engine(database_url)) as db:
+        cal = _calibration(db, calibration_id)
         model_doc, nominal_doc = cal.model, controller_nominal(db, db.get(Cell, cal.cell_id))
     try:
         model, nominal = model_from_dict(model_doc), model_from_dict(nominal_doc)
@@ -322,7 +312,7 @@ def compensate_backup_and_audit(
         "not_compensated": result.not_compensated,
         "shortfalls": result.short,
     }
-    with Session(engine) as db:
+    with Session(_engine(database_url)) as db:
         audit(
             db,
             actor=actor,
@@ -331,3 +321,22 @@ def compensate_backup_and_audit(
             detail={"name": name, **{k: v for k, v in summary.items() if k != "shortfalls"}},
         )
     return answer, result.not_compensated, summary
+
+
+def _engine(database_url: str):
+    """The worker process's engine for ``database_url`` (made once, kept for the next job)."""
+    from .store import make_engine
+
+    engine = _ENGINES.get(database_url)
+    if engine is None:
+        engine = _ENGINES[database_url] = make_engine(database_url)
+    return engine
+
+
+def _calibration(db, calibration_id: int):
+    from .models import Calibration
+
+    cal = db.get(Calibration, calibration_id)
+    if cal is None:
+        raise CompensationInputError(f"no calibration {calibration_id}")
+    return cal
