@@ -41,7 +41,8 @@ CHILD = r"""
 import json, sys, time
 import numpy as np
 from calibration import robots
-from calibration.identify import Measurements, identify
+from calibration.identification import Measurements
+from calibration.identify import identify
 import dataclasses
 z = np.load(sys.argv[1])
 data = Measurements(z["q"], z["p"])

@@ -14,8 +14,7 @@ from typing import Any
 import numpy as np
 
 from .conventions import to_poe
-from .identification import INSTRUMENT_SIGMA_M
-from .identify import Measurements
+from .identification import INSTRUMENT_SIGMA_M, Measurements
 from .kinematics import fk
 from .model import KinematicModel
 from .parameters import apply_step, candidate_parameters

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.errors import RecalError
-from calibration.identify import Measurements
+from calibration.identification import Measurements
 from calibration.model import KinematicModel, ModelFormatError, model_from_dict, model_to_dict
 
 from .textcheck import document_faults

@@ -19,7 +19,7 @@ from sqlmodel import Session, col, select
 
 from calibration import metrics
 from calibration.errors import RecalError
-from calibration.identify import Measurements
+from calibration.identification import Measurements
 from calibration.model import KinematicModel, model_from_dict
 
 from .models import Calibration, Cell, Measurement, RunSession, utcnow

@@ -11,7 +11,8 @@ import dataclasses
 import numpy as np
 from sqlmodel import Session
 
-from calibration.identify import Measurements, NotEnoughData, Prior, drift_scale, held_relations, identify
+from calibration.identification import Measurements
+from calibration.identify import NotEnoughData, Prior, drift_scale, held_relations, identify
 from calibration.model import KinematicModel, model_from_dict
 from calibration.report import identification_block, identification_report
 

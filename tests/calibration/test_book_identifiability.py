@@ -17,7 +17,8 @@ import pytest
 from sample_models import craig_puma_mdh_doc, stanford_5r1p_doc
 
 from calibration.conventions import hayati_for_parallel_axes, to_poe
-from calibration.identify import Measurements, identify
+from calibration.identification import Measurements
+from calibration.identify import identify
 from calibration.jacobian import predict
 from calibration.kinematics import target_positions
 from calibration.model import model_from_dict

@@ -17,7 +17,8 @@ import pytest
 from sample_models import fanuc_r2000ic_doc, stanford_5r1p_doc
 
 from calibration.conventions import to_poe
-from calibration.identify import IdentificationResult, Measurements, identify
+from calibration.identification import IdentificationResult, Measurements
+from calibration.identify import identify
 from calibration.kinematics import fk, target_positions
 from calibration.model import model_from_dict
 from calibration.parameters import apply_step, candidate_parameters

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from complete_reference import random_case
 
-from calibration.identify import Measurements, identify
+from calibration.identification import Measurements
+from calibration.identify import identify
 from calibration.kinematics import target_positions
 from calibration.robots import nominal
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
