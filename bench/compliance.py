@@ -142,6 +142,7 @@ def main() -> None:
 
 
 def residual_maps(rows: int, seed: int) -> None:
+    from calibration import residual_choice as RC
     from calibration import residual_map as RM
 
     nom, truth, rng = cell("cobot", seed)
@@ -162,7 +163,7 @@ def residual_maps(rows: int, seed: int) -> None:
     train, holdout = measure(rows), measure(1000)
     for label, start in (("rigid", nom), ("compliant", C.with_section(nom, C.default_section(nom)))):
         t = time.perf_counter()
-        rmap, fig = RM.choose_residual_map(start, train, identify_kw={"sigma_m": SIGMA["cobot"]})
+        rmap, fig = RC.choose_residual_map(start, train, identify_kw={"sigma_m": SIGMA["cobot"]})
         elapsed = time.perf_counter() - t
         model = identify(start, train, sigma_m=SIGMA["cobot"]).model
         r = RM.residuals(model, holdout)

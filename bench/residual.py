@@ -27,7 +27,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small BLAS calls: thr
 import numpy as np
 
 from calibration import residual_choice as RC
-from calibration import residual_map as RM
 from calibration.identify import identify
 from calibration.jacobian import predict
 from calibration.robots import nominal
@@ -57,7 +56,7 @@ def run(n_poses: int, seed: int) -> None:
     kw = {"sigma_m": SIGMA_M}
     final = identify(nom, data, **kw).model
     t0 = time.perf_counter()
-    _, _fig_map = RM.choose_residual_map(nom, data, identify_kw=kw, final=final)
+    _, _fig_map = RC.choose_residual_map(nom, data, identify_kw=kw, final=final)
     t_map = time.perf_counter() - t0
     t0 = time.perf_counter()
     choice = RC.choose_correction(nom, data, identify_kw=kw, final=final)

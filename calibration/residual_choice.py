@@ -65,7 +65,7 @@ def fit_family(family: str, start: KinematicModel, model: KinematicModel, data, 
     r = rm.residuals(model, data)
     revolute = np.array([j.revolute for j in model.joints])
     if family == "map":
-        return rm._fitted_map(data, r, revolute, 5, seed)
+        return _fitted_map(data, r, revolute, 5, seed)
     if family == "transmission":
         t = tr.fit_transmission(model, data.q, r, _p_tool(model, data), target_names=data.target, payload=data.payload)
         # identified again on the corrected readings from ``model`` with its tool and targets held:
@@ -263,3 +263,88 @@ def extrapolate_learning_curve(curve: list[dict], poses: int, sigma_m: float) ->
     k = int(np.flatnonzero(keep)[0])
     a = float(excess[k] * n[k])
     return {**out, "rms_m": math.sqrt(noise2 + a / float(poses)), "law": law + ", b = 1 assumed", "a_m2": a, "b": 1.0}
+
+
+# ----------------------------------------------------------------------------- the smooth map alone
+
+
+def choose_residual_map(
+    start: KinematicModel,
+    data,
+    *,
+    folds: int = 5,
+    min_gain: float = MIN_CV_GAIN,
+    seed: int = 0,
+    identify_kw: dict | None = None,
+    final: KinematicModel | None = None,
+) -> tuple[rm.ResidualMap | None, dict]:
+    """``recal identify --residual-map auto``: k-fold cross-validation of the whole procedure
+    (identify ``start`` on the training folds, fit a map to its residuals with the smoothness
+    chosen by an inner cross-validation, test on the held-out fold, with and without the map).
+    Returns the map fitted to ``final``'s residuals on all ``data`` (``final``: the model
+    identified from all of them; default: identified here) when it lowers the cross-validated RMS
+    by at least ``min_gain``, else None; and the figures either way (m)."""
+    from .compliance_fit import fold_indices
+    from .identify import identify
+
+    kw = dict(identify_kw or {})
+    revolute = np.array([j.revolute for j in start.joints])
+    all_data = data
+    data = data.subset(rm.map_rows(data, rm.MAX_CV_CONFIGURATIONS, seed + 3))
+    outer = fold_indices(data, folds, seed)
+    sq_without = sq_with = 0.0
+    inside_share = []
+    fitted_per_fold = []  # (training, held-out, model) of each fold: the learning curve refits on shares
+    within = np.zeros(3)  # inside the map's region: Σ|e|² with it, Σ 3σ² stated, rows
+    sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
+    for test in outer:
+        train = np.setdiff1d(np.arange(len(data)), test)
+        tr, te = data.subset(train), data.subset(test)
+        model = identify(start, tr, **kw).model
+        fitted_per_fold.append((tr, te, model))
+        m = _fitted_map(tr, rm.residuals(model, tr), revolute, folds, seed)
+        r_te = rm.residuals(model, te)
+        corr, inside = m.evaluate(te.q)
+        sq_without += float(np.sum(r_te**2))
+        sq_with += float(np.sum((r_te - corr) ** 2))
+        inside_share.append(float(np.mean(inside)))
+        sigma = np.where(np.isfinite(te.sigma) & (te.sigma > 0), te.sigma, sigma_m)[inside]
+        within += (float(np.sum((r_te - corr)[inside] ** 2)), float(np.sum(3.0 * sigma**2)), int(inside.sum()))
+    n = len(data)
+    rms_without, rms_with = math.sqrt(sq_without / n), math.sqrt(sq_with / n)
+    gain = 1.0 - rms_with / rms_without if rms_without > 0 else 0.0
+    figures: dict = {
+        "folds": folds,
+        "rms_without_m": rms_without,
+        "rms_with_m": rms_with,
+        "gain": gain,
+        "min_gain": min_gain,
+        "held_out_inside_share": float(np.mean(inside_share)),
+        "kept": gain >= min_gain,
+        "max_configurations": rm.MAX_MAP_CONFIGURATIONS,
+        "cv_rows": n,
+        # the corrected model's per-axis uncertainty inside the region (what u95 uses there)
+        "model_sigma_m": corrected_model_sigma(within[0], within[1], int(within[2])),
+    }
+    # the held-out RMS against the number of poses, of the procedure kept (map or none): what a
+    # planned session's accuracy is predicted from (residual_choice.extrapolate_learning_curve)
+    figures["learning_curve"] = learning_curve("map" if gain >= min_gain else "none", start, fitted_per_fold, kw, seed)
+    figures["noise_sigma_m"] = noise_sigma(data, sigma_m)
+    if gain < min_gain:
+        return None, figures
+    final = final if final is not None else identify(start, all_data, **kw).model
+    m = _fitted_map(all_data, rm.residuals(final, all_data), revolute, folds, seed)
+    figures.update(length_scale=m.length_scale, ridge=m.ridge, rows=len(m.q_train))
+    # the file's section keeps the figures that judge the map, not the curve (in the report)
+    return dataclasses.replace(m, cv={k: v for k, v in figures.items() if k != "learning_curve"}), figures
+
+
+def _fitted_map(data, r: np.ndarray, revolute: np.ndarray, folds: int, seed: int) -> rm.ResidualMap:
+    """The map of residuals ``r`` (N, 3) m on ``data``'s rows (at most :data:`rm.MAX_MAP_CONFIGURATIONS`
+    configurations of them, :func:`map_rows`), its smoothness chosen by k-fold cross-validation."""
+    from .compliance_fit import fold_indices
+
+    rows = rm.map_rows(data, seed=seed + 2)
+    sub = data.subset(rows)
+    ell, lam, _ = rm.select_smoothness(sub.q, r[rows], revolute, fold_indices(sub, folds, seed + 1))
+    return rm.fit(sub.q, r[rows], revolute, ell, lam)

@@ -21,15 +21,13 @@ model again and the map must be fitted again.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from .identification import INSTRUMENT_SIGMA_M
 from .model import KinematicModel
-from .residual_base import ResidualMapError, corrected_model_sigma, features
+from .residual_base import ResidualMapError, features
 from .residual_base import sqdist as _sqdist
 
 LENGTH_SCALES = tuple(float(v) for v in np.geomspace(0.25, 4.0, 9))  # chordal units (≈ rad)
@@ -132,81 +130,6 @@ def residuals(model: KinematicModel, data) -> np.ndarray:
     return data.p_world - predict(model, data.q, p_tool, payload=data.payload).p_world
 
 
-def choose_residual_map(
-    start: KinematicModel,
-    data,
-    *,
-    folds: int = 5,
-    min_gain: float = MIN_CV_GAIN,
-    seed: int = 0,
-    identify_kw: dict | None = None,
-    final: KinematicModel | None = None,
-) -> tuple[ResidualMap | None, dict]:
-    """``recal identify --residual-map auto``: k-fold cross-validation of the whole procedure
-    (identify ``start`` on the training folds, fit a map to its residuals with the smoothness
-    chosen by an inner cross-validation, test on the held-out fold, with and without the map).
-    Returns the map fitted to ``final``'s residuals on all ``data`` (``final``: the model
-    identified from all of them; default: identified here) when it lowers the cross-validated RMS
-    by at least ``min_gain``, else None; and the figures either way (m)."""
-    from .compliance_fit import fold_indices
-    from .identify import identify
-
-    kw = dict(identify_kw or {})
-    revolute = np.array([j.revolute for j in start.joints])
-    all_data = data
-    data = data.subset(map_rows(data, MAX_CV_CONFIGURATIONS, seed + 3))
-    outer = fold_indices(data, folds, seed)
-    sq_without = sq_with = 0.0
-    inside_share = []
-    fitted_per_fold = []  # (training, held-out, model) of each fold: the learning curve refits on shares
-    within = np.zeros(3)  # inside the map's region: Σ|e|² with it, Σ 3σ² stated, rows
-    sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
-    for test in outer:
-        train = np.setdiff1d(np.arange(len(data)), test)
-        tr, te = data.subset(train), data.subset(test)
-        model = identify(start, tr, **kw).model
-        fitted_per_fold.append((tr, te, model))
-        m = _fitted_map(tr, residuals(model, tr), revolute, folds, seed)
-        r_te = residuals(model, te)
-        corr, inside = m.evaluate(te.q)
-        sq_without += float(np.sum(r_te**2))
-        sq_with += float(np.sum((r_te - corr) ** 2))
-        inside_share.append(float(np.mean(inside)))
-        sigma = np.where(np.isfinite(te.sigma) & (te.sigma > 0), te.sigma, sigma_m)[inside]
-        within += (float(np.sum((r_te - corr)[inside] ** 2)), float(np.sum(3.0 * sigma**2)), int(inside.sum()))
-    n = len(data)
-    rms_without, rms_with = math.sqrt(sq_without / n), math.sqrt(sq_with / n)
-    gain = 1.0 - rms_with / rms_without if rms_without > 0 else 0.0
-    figures: dict = {
-        "folds": folds,
-        "rms_without_m": rms_without,
-        "rms_with_m": rms_with,
-        "gain": gain,
-        "min_gain": min_gain,
-        "held_out_inside_share": float(np.mean(inside_share)),
-        "kept": gain >= min_gain,
-        "max_configurations": MAX_MAP_CONFIGURATIONS,
-        "cv_rows": n,
-        # the corrected model's per-axis uncertainty inside the region (what u95 uses there)
-        "model_sigma_m": corrected_model_sigma(within[0], within[1], int(within[2])),
-    }
-    # the held-out RMS against the number of poses, of the procedure kept (map or none): what a
-    # planned session's accuracy is predicted from (residual_choice.extrapolate_learning_curve)
-    from . import residual_choice as rc
-
-    figures["learning_curve"] = rc.learning_curve(
-        "map" if gain >= min_gain else "none", start, fitted_per_fold, kw, seed
-    )
-    figures["noise_sigma_m"] = rc.noise_sigma(data, sigma_m)
-    if gain < min_gain:
-        return None, figures
-    final = final if final is not None else identify(start, all_data, **kw).model
-    m = _fitted_map(all_data, residuals(final, all_data), revolute, folds, seed)
-    figures.update(length_scale=m.length_scale, ridge=m.ridge, rows=len(m.q_train))
-    # the file's section keeps the figures that judge the map, not the curve (in the report)
-    return dataclasses.replace(m, cv={k: v for k, v in figures.items() if k != "learning_curve"}), figures
-
-
 def map_rows(data, max_configurations: int = MAX_MAP_CONFIGURATIONS, seed: int = 0) -> np.ndarray:
     """Row indices a map is fitted to: every row when ``data`` has at most ``max_configurations``
     configurations (``pose_id``), else the rows of a seeded draw of that many (a configuration's
@@ -218,17 +141,6 @@ def map_rows(data, max_configurations: int = MAX_MAP_CONFIGURATIONS, seed: int =
         return np.arange(N)
     chosen = np.random.default_rng(seed).choice(len(keys), size=max_configurations, replace=False)
     return np.nonzero(np.isin(label, chosen))[0]
-
-
-def _fitted_map(data, r: np.ndarray, revolute: np.ndarray, folds: int, seed: int) -> ResidualMap:
-    """The map of residuals ``r`` (N, 3) m on ``data``'s rows (at most :data:`MAX_MAP_CONFIGURATIONS`
-    configurations of them, :func:`map_rows`), its smoothness chosen by k-fold cross-validation."""
-    from .compliance_fit import fold_indices
-
-    rows = map_rows(data, seed=seed + 2)
-    sub = data.subset(rows)
-    ell, lam, _ = select_smoothness(sub.q, r[rows], revolute, fold_indices(sub, folds, seed + 1))
-    return fit(sub.q, r[rows], revolute, ell, lam)
 
 
 # ----------------------------------------------------------------------------- the file section

@@ -131,10 +131,11 @@ def _residual_map(
     Returns the model file's ``residual_map`` section (None when it is left out), which the
     service's compensation applies inside the measured region, and the cross-validation's
     figures in ``model``'s units either way (None when the folds leave too few poses to tell)."""
+    from calibration import residual_choice as rc
     from calibration import residual_map as rm
 
     try:
-        rmap, fig = rm.choose_residual_map(start, data, identify_kw={"prior": prior}, final=identified)
+        rmap, fig = rc.choose_residual_map(start, data, identify_kw={"prior": prior}, final=identified)
     except NotEnoughData:
         return None, None
     L = model.units.length_m

@@ -10,6 +10,7 @@ import json
 import numpy as np
 
 from calibration import compliance as C
+from calibration import residual_choice as RC
 from calibration import residual_map as RM
 from calibration.identify import identify
 from calibration.model import model_from_dict, model_to_dict
@@ -64,7 +65,7 @@ def test_auto_keeps_a_map_that_helps_and_leaves_out_one_that_does_not():
     train, holdout = measure(200), measure(500)
     kw = {"sigma_m": 20e-6}
     # the rigid model of a sagging arm leaves a smooth error: the map takes most of it
-    rmap, fig = RM.choose_residual_map(nom, train, identify_kw=kw)
+    rmap, fig = RC.choose_residual_map(nom, train, identify_kw=kw)
     assert fig["kept"] and rmap is not None and fig["gain"] > 0.3
     model = identify(nom, train, **kw).model
     r = RM.residuals(model, holdout)
@@ -73,7 +74,7 @@ def test_auto_keeps_a_map_that_helps_and_leaves_out_one_that_does_not():
     after = np.sqrt(np.mean(np.sum((r - corr) ** 2, axis=1)))
     assert inside.mean() > 0.9 and after < 0.6 * before
     # the compliant model leaves only noise: the map is left out, and the figures say why
-    rmap, fig = RM.choose_residual_map(C.with_section(nom, C.default_section(nom)), train, identify_kw=kw)
+    rmap, fig = RC.choose_residual_map(C.with_section(nom, C.default_section(nom)), train, identify_kw=kw)
     assert rmap is None and not fig["kept"] and fig["gain"] < RM.MIN_CV_GAIN
     assert fig["rms_without_m"] < 1.1 * np.sqrt(3) * 20e-6
 
@@ -119,7 +120,7 @@ def test_auto_on_many_configurations_fits_a_bounded_map_in_memory_linear_in_rows
     kw = {"sigma_m": 20e-6}
     out = {}
     peaks = [
-        _peak_bytes(lambda d=d: out.setdefault(len(d), RM.choose_residual_map(nom, d, identify_kw=kw)))
+        _peak_bytes(lambda d=d: out.setdefault(len(d), RC.choose_residual_map(nom, d, identify_kw=kw)))
         for d in (small, large)
     ]
     rmap, fig = out[1200]

@@ -13,7 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlmodel import Session, select
 
-from calibration import residual_map
+from calibration import residual_choice, residual_map
 from calibration.model import model_from_dict
 from calibration.robots import nominal_document
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
@@ -88,7 +88,7 @@ def test_an_import_whose_analysis_breaks_is_left_failed_with_the_reason(settings
     def broken(*a, **kw):
         raise failure("out of memory")
 
-    monkeypatch.setattr(residual_map, "choose_residual_map", broken)
+    monkeypatch.setattr(residual_choice, "choose_residual_map", broken)
     text = _measurement_csv(60)
     engine = make_engine(settings.effective_database_url)
     try:
