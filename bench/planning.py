@@ -170,7 +170,7 @@ def ratio_line(label, planned, random_mean, random_each) -> str:
     )
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="simulated cells (default 20)")
     ap.add_argument("--draws", type=int, default=10, help="noise draws per design (default 10)")
@@ -179,48 +179,70 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.quick:
         args.seeds, args.draws, args.random = 4, 4, 4
-    t_start = time.perf_counter()
-    nominal, sight, box = cell()
+    return args
+
+
+@dataclasses.dataclass
+class Cells:
+    """What the simulated cells gave, per design name (the criteria, ``random0``..): per cell, the
+    hold-out errors (working volume RMS, p95, max; measurable region RMS, p95, max) and the
+    predictions (predicted RMS, p95, expected hold-out RMS); the planning and candidate times; the
+    first cell's candidates and its I design."""
+
+    err: dict[str, list]
+    pred: dict[str, list]
+    t_plan: dict[str, list[float]]
+    t_gen: list[float]
+    keep: dict
+
+
+def designs_of(nominal, cand, box, seed: int, rng, n_random: int, t_plan: dict) -> dict:
+    """A cell's designs of ``K`` poses: one planned per criterion (its time added to ``t_plan``),
+    and ``n_random`` drawn at random from the same candidates."""
+    designs = {}
+    for crit in CRITERIA:
+        t0 = time.perf_counter()
+        designs[crit] = planning.plan(
+            nominal,
+            cand,
+            K,
+            targets=("smr",),
+            sigma_m=SIGMA_M,
+            criterion=crit,
+            volume=box,
+            rng=np.random.default_rng(seed),
+        )
+        t_plan[crit].append(time.perf_counter() - t0)
+    for k in range(n_random):
+        designs[f"random{k}"] = planning.plan(
+            nominal,
+            cand[rng.choice(len(cand), K, replace=False)],
+            K,
+            targets=("smr",),
+            sigma_m=SIGMA_M,
+            volume=box,
+            rng=np.random.default_rng(seed),
+            exchange=False,
+        )
+    return designs
+
+
+def simulate_cells(args, nominal, sight, box) -> Cells:
+    """Every cell (``--seeds``): its truth, candidates and hold-out sets, its designs, each measured
+    and identified ``--draws`` times; a line per cell on stderr."""
     R = args.random
     names = (*CRITERIA, *(f"random{k}" for k in range(R)))
-    err = {name: [] for name in names}  # per cell: (work rms, p95, max, seen rms, p95, max)
-    pred = {name: [] for name in names}  # per cell: (predicted rms, p95, expected hold-out rms)
-    t_plan = {c: [] for c in CRITERIA}
-    t_gen = []
-    keep = {}
+    out = Cells({name: [] for name in names}, {name: [] for name in names}, {c: [] for c in CRITERIA}, [], {})
+    err, pred = out.err, out.pred
     for seed in range(args.seeds):
         rng = np.random.default_rng(1000 + seed)
         truth = truth_of(nominal, rng)
         t0 = time.perf_counter()
         cand = planning.generate_candidates(nominal, 2000, rng, targets=("smr",), volume=box, sight=sight)
-        t_gen.append(time.perf_counter() - t0)
+        out.t_gen.append(time.perf_counter() - t0)
         q_work = planning.generate_candidates(nominal, 1000, rng, targets=("smr",), volume=box)
         q_seen = planning.generate_candidates(nominal, 1000, rng, targets=("smr",), volume=box, sight=sight)
-        designs = {}
-        for crit in CRITERIA:
-            t0 = time.perf_counter()
-            designs[crit] = planning.plan(
-                nominal,
-                cand,
-                K,
-                targets=("smr",),
-                sigma_m=SIGMA_M,
-                criterion=crit,
-                volume=box,
-                rng=np.random.default_rng(seed),
-            )
-            t_plan[crit].append(time.perf_counter() - t0)
-        for k in range(R):
-            designs[f"random{k}"] = planning.plan(
-                nominal,
-                cand[rng.choice(len(cand), K, replace=False)],
-                K,
-                targets=("smr",),
-                sigma_m=SIGMA_M,
-                volume=box,
-                rng=np.random.default_rng(seed),
-                exchange=False,
-            )
+        designs = designs_of(nominal, cand, box, seed, rng, R, out.t_plan)
         for name, r in designs.items():
             # the same noise draws for every design of a cell (common random numbers)
             err[name].append(
@@ -228,7 +250,7 @@ def main(argv=None) -> int:
             )
             pred[name].append((r.predicted_rms_m, r.predicted_p95_m, predicted_rms(nominal, r.q, None, box, q_work)))
         if seed == 0:
-            keep = dict(cand=cand, res=designs["I"])
+            out.keep = dict(cand=cand, res=designs["I"])
         rnd = np.mean([err[f"random{k}"][-1][0] for k in range(R)])
         print(
             f"seed {seed}: "
@@ -236,17 +258,17 @@ def main(argv=None) -> int:
             + f", random (mean of {R}) {rnd * 1e3:.4f} mm",
             file=sys.stderr,
         )
-    E = {n: np.array(v) for n, v in err.items()}
-    PR = {n: np.array(v) for n, v in pred.items()}
-    rand_E = np.stack([E[f"random{k}"] for k in range(R)], axis=0)  # (R, cells, 6)
-    rand_PR = np.stack([PR[f"random{k}"] for k in range(R)], axis=0)
-    E["random"], PR["random"] = rand_E.mean(axis=0), rand_PR.mean(axis=0)
+    return out
 
+
+def print_planned_vs_random(args, E, PR, rand_E, rand_PR) -> None:
+    """The tables "Planned against random: 30 poses": the figures, the per-cell ratios, and the
+    prediction against the simulated hold-out."""
     print(f"Machine: {machine()}.\n")
     print(
-        f"{args.seeds} cells; per cell {len(CRITERIA)} planned designs and {R} random designs of {K} poses, each "
-        f"measured {args.draws} times (the same noise draws for every design of a cell). Hold-out (noise-free, 1,000 "
-        "fresh configurations per cell): the working volume (reflector in the box, any orientation) and the "
+        f"{args.seeds} cells; per cell {len(CRITERIA)} planned designs and {args.random} random designs of {K} poses, "
+        f"each measured {args.draws} times (the same noise draws for every design of a cell). Hold-out (noise-free, "
+        "1,000 fresh configurations per cell): the working volume (reflector in the box, any orientation) and the "
         "measurable region (in the box and in sight of the tracker: the candidates' distribution). Random: the "
         "mean over the cell's random designs. Median (interquartile range) over the cells, mm.\n"
     )
@@ -285,6 +307,8 @@ def main(argv=None) -> int:
         f"random {np.median(rand_PR[:, :, 0] / rand_E[:, :, 0]):.3f}.\n"
     )
 
+
+def print_criteria(E, PR, t_plan) -> None:
     print("Criteria (same cells, 30 poses; medians over the cells, mm; time: planning, median):\n")
     print(
         "| criterion | predicted RMS | predicted p95 | expected hold-out RMS | hold-out RMS (working volume) | "
@@ -298,13 +322,11 @@ def main(argv=None) -> int:
             f"{np.median(PR[name][:, 2]) * 1e3:.4f} | {np.median(E[name][:, 0]) * 1e3:.4f} | "
             f"{np.median(E[name][:, 2]) * 1e3:.4f} | {tp} |"
         )
-    if args.quick:
-        print(f"\nWhole benchmark {time.perf_counter() - t_start:.0f} s.")
-        return 0
 
-    # how many random poses match 30 planned ones (predicted), on the first cell's candidates
+
+def random_poses_needed(nominal, cand, res, box) -> None:
+    """How many random poses match 30 planned ones (predicted), on the first cell's candidates."""
     rng = np.random.default_rng(7)
-    cand, res = keep["cand"], keep["res"]
     print(
         "\nRandom poses needed to match the predicted accuracy of 30 planned ones (first cell, median of 10 draws):\n"
     )
@@ -314,8 +336,9 @@ def main(argv=None) -> int:
         v = [predicted_rms(nominal, cand[rng.choice(len(cand), k, replace=False)], rng, box) for _ in range(10)]
         print(f"| {k} | {np.median(v) * 1e3:.4f} |")
     print(f"| 30 planned (I) | {res.predicted_rms_m * 1e3:.4f} |")
-    poses_sweep(nominal, cand, box)
 
+
+def planning_times(nominal) -> None:
     print("\nPlanning time (greedy + exchange; candidates drawn without constraints):\n")
     print("| candidates | poses | I: time (s) | swaps | D: time (s) | swaps |")
     print("|---|---|---|---|---|---|")
@@ -327,8 +350,29 @@ def main(argv=None) -> int:
             r = planning.plan(nominal, c, k, targets=("smr",), sigma_m=SIGMA_M, criterion=crit)
             cells.append(f"{time.perf_counter() - t0:.2f} | {r.swaps}")
         print(f"| {n_c} | {k} | {' | '.join(cells)} |")
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    t_start = time.perf_counter()
+    nominal, sight, box = cell()
+    sim = simulate_cells(args, nominal, sight, box)
+    E = {n: np.array(v) for n, v in sim.err.items()}
+    PR = {n: np.array(v) for n, v in sim.pred.items()}
+    rand_E = np.stack([E[f"random{k}"] for k in range(args.random)], axis=0)  # (R, cells, 6)
+    rand_PR = np.stack([PR[f"random{k}"] for k in range(args.random)], axis=0)
+    E["random"], PR["random"] = rand_E.mean(axis=0), rand_PR.mean(axis=0)
+
+    print_planned_vs_random(args, E, PR, rand_E, rand_PR)
+    print_criteria(E, PR, sim.t_plan)
+    if args.quick:
+        print(f"\nWhole benchmark {time.perf_counter() - t_start:.0f} s.")
+        return 0
+    random_poses_needed(nominal, sim.keep["cand"], sim.keep["res"], box)
+    poses_sweep(nominal, sim.keep["cand"], box)
+    planning_times(nominal)
     print(
-        f"\nCandidate generation with the line-of-sight and volume tests: median {np.median(t_gen):.2f} s "
+        f"\nCandidate generation with the line-of-sight and volume tests: median {np.median(sim.t_gen):.2f} s "
         f"for 2,000 candidates; whole benchmark {time.perf_counter() - t_start:.0f} s."
     )
     return 0
