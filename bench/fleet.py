@@ -53,6 +53,7 @@ import tempfile
 import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,13 @@ class Database:
         )
 
 
+def elapsed_s(a, b) -> float:
+    """Seconds from ``a`` to ``b``, two of the store's timestamps (SQLite hands them back as text)."""
+    if isinstance(a, str):
+        a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
+    return (b - a).total_seconds()
+
+
 def session_stats(db_url: str, exclude=()) -> dict:
     """Sessions and measurements in the store; times of the sessions that completed in one go."""
     eng = make_engine(db_url)
@@ -116,12 +124,7 @@ def session_stats(db_url: str, exclude=()) -> dict:
     eng.dispose()
 
     def secs(r):
-        a, b = r[2], r[3]
-        if isinstance(a, str):  # SQLite hands back text
-            from datetime import datetime
-
-            a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
-        return (b - a).total_seconds()
+        return elapsed_s(r[2], r[3])
 
     out = {"sessions": len(rows), "states": {}, "measurements": meas[0], "distinct_configurations": meas[1]}
     for r in rows:
@@ -136,166 +139,190 @@ def session_stats(db_url: str, exclude=()) -> dict:
     return out
 
 
+def store_tokens(db_url: str) -> dict[str, str]:
+    """A fresh store at ``db_url``, migrated; a token of each role the bench uses (technician, job)."""
+    engine = make_engine(db_url)
+    migrate(engine)
+    with Session(engine) as s:
+        tokens = {r: create_token(s, role=r, name=r)[1] for r in ("technician", "job")}
+    engine.dispose()
+    return tokens
+
+
+def start_processes(mode: str, home: Path, env: dict, args, cells: int, log_dir: Path, procs: list) -> list:
+    """The set-up's API processes (two for the fleet, else one) and the fleet's workers, each added to
+    ``procs`` as it starts (so that the caller stops it whatever fails next); the API processes."""
+    apis = []
+    for i in range(2 if mode == "fleet" else 1):
+        apis.append(start_service(home, free_port(), env=env, log_path=log_dir / f"{mode}-api{i}.log"))
+        procs.append(apis[-1])
+    if mode == "fleet":
+        for i in range(args.workers):
+            procs.append(
+                start_worker(
+                    home,
+                    ["a", "b"],
+                    env=env,
+                    name=f"w{i + 1}",
+                    concurrency=fleet_concurrency(args, cells),
+                    log_path=log_dir / f"{mode}-w{i + 1}.log",
+                )
+            )
+    return apis
+
+
+def add_cells(api: Api, mdl: dict, fakes: list) -> list[dict]:
+    """One cell per simulated cell, in sites ``a`` and ``b`` in turn, all with the nominal model."""
+    nominal = json.loads(mdl["nominal"].read_text())
+    return [
+        api.call(
+            "POST",
+            "/cells",
+            {
+                "name": f"cell{i:03d}",
+                "site": "ab"[i % 2],
+                "model": nominal,
+                "devices": f.ready,
+                "drift_threshold": 0.1,
+            },
+        )
+        for i, f in enumerate(fakes)
+    ]
+
+
+def nightly_commands(mode: str, apis: list, args) -> list[list[str]]:
+    """The nightly run of the whole fleet: one ``recal nightly --all`` (the fleet: one per site,
+    each against its own API process, half of the sessions at once each)."""
+    common = ["--verify-count", str(args.verify_count), "--count", str(args.count), "--timeout", "1800"]
+    nightly = [sys.executable, "-m", "service.cli", "nightly", "--all"]
+    if mode == "fleet":
+        return [
+            [
+                *nightly,
+                "--site",
+                site,
+                "--url",
+                apis[i % len(apis)].ready["url"],
+                "--parallel",
+                str(-(-args.parallel // 2)),
+                *common,
+            ]
+            for i, site in enumerate(("a", "b"))
+        ]
+    return [[*nightly, "--url", apis[0].ready["url"], "--parallel", str(args.parallel), *common]]
+
+
+def run_nightly(mode: str, apis: list, tokens: dict, args, cells: int, log_dir: Path, db_url: str) -> dict:
+    """The nightly run, timed; the set-up's result so far (wall time, exit statuses, the nightly's
+    summary lines, the store's session times and counts)."""
+    nenv = {**os.environ, "RECAL_TOKEN": tokens["job"]}
+    t0 = time.monotonic()
+    runs = [
+        subprocess.Popen(c, env=nenv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for c in nightly_commands(mode, apis, args)
+    ]
+    outs = [r.communicate()[0] for r in runs]
+    wall = time.monotonic() - t0
+    (log_dir / f"{mode}-nightly.txt").write_text("\n\n".join(outs))
+    result = {
+        "mode": mode,
+        "cells": cells,
+        "wall_s": wall,
+        "parallel": args.parallel,
+        "worker_concurrency": fleet_concurrency(args, cells) if mode == "fleet" else None,
+        "nightly_exit": [r.returncode for r in runs],
+        "summary": [next((ln for ln in o.splitlines() if " cells: " in ln), "") for o in outs],
+        "concurrent": session_stats(db_url),
+    }
+    result["concurrent_incomplete"] = sum(v for k, v in result["concurrent"]["states"].items() if k != "completed")
+    return result
+
+
+def last_session_id(db_url: str) -> int:
+    eng = make_engine(db_url)
+    with eng.connect() as conn:
+        last = conn.execute(text("SELECT max(id) FROM session")).scalar()
+    eng.dispose()
+    return last
+
+
+def sequential_sessions(api: Api, cell: dict, args) -> set[int]:
+    """``--sequential`` rounds of a verify and a pose session on one cell, one at a time; the
+    sessions a device fault paused (resumed, and left out of the times)."""
+    resumed: set[int] = set()
+    for _ in range(args.sequential):
+        for kind, n in (("verify", args.verify_count), ("pose", args.count)):
+            s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": kind, "count": n})
+            s = api.wait_session(s["id"], 300, poll_s=0.05)
+            for _attempt in range(3):
+                if s["state"] != "paused":
+                    break
+                print(f"  session {s['id']} paused ({s['reason']}): resumed, not timed", file=sys.stderr)
+                resumed.add(s["id"])
+                api.call("POST", f"/sessions/{s['id']}/resume")
+                s = api.wait_session(s["id"], 300, poll_s=0.05)
+            assert s["state"] == "completed", s
+    return resumed
+
+
+def sequential_breakdown(db_url: str, cell_id: int, after_id: int, resumed: set[int]) -> dict:
+    """Where a sequential session's time goes, per kind (the cell's sessions after ``after_id``,
+    not ``resumed``): created -> first measurement stored (queue, claim, devices opened, planning,
+    first move), first -> last measurement, last measurement -> final state (analysis, results
+    stored)."""
+    eng = make_engine(db_url)
+    with eng.connect() as conn:
+        rows = [
+            r
+            for r in conn.execute(
+                text(
+                    "SELECT s.kind, s.created_at, s.updated_at, s.id, min(m.created_at), max(m.created_at) "
+                    "FROM session s JOIN measurement m ON m.session_id = s.id WHERE s.cell_id = :c "
+                    "GROUP BY s.id, s.kind, s.created_at, s.updated_at ORDER BY s.id"
+                ),
+                {"c": cell_id},
+            ).all()
+            if r[3] > after_id and r[3] not in resumed
+        ]
+    eng.dispose()
+    out = {}
+    for kind in ("verify", "pose"):
+        mine = [r for r in rows if r[0] == kind]
+        t = [elapsed_s(r[1], r[2]) for r in mine]
+        out[kind] = {
+            "n": len(t),
+            "mean_s": statistics.fmean(t),
+            "median_s": statistics.median(t),
+            "to_first_measurement_s": statistics.median(elapsed_s(r[1], r[4]) for r in mine),
+            "measuring_s": statistics.median(elapsed_s(r[4], r[5]) for r in mine),
+            "after_last_measurement_s": statistics.median(elapsed_s(r[5], r[2]) for r in mine),
+        }
+    return out
+
+
 def run_setup(mode: str, fakes: list, mdl: dict, args, pg_admin: str, log_dir: Path) -> dict:
+    """One set-up on the cells: its store and processes, the nightly run of every cell at once,
+    then the sequential sessions on the first cell; its figures."""
     home = Path(tempfile.mkdtemp(prefix=f"recal-bench-{mode}-"))
     db = Database(pg_admin) if mode in ("embedded-pg", "fleet") else None
     env = dict(ENV)
     if db is not None:
         env["RECAL_DATABASE_URL"] = db.url
+    if mode == "fleet":
+        env["RECAL_ENGINE"] = "procrastinate"
     db_url = db.url if db is not None else f"sqlite:///{home / 'recal.db'}"
-    procs = []
+    procs: list = []
     try:
-        engine = make_engine(db_url)
-        migrate(engine)
-        with Session(engine) as s:
-            tokens = {r: create_token(s, role=r, name=r)[1] for r in ("technician", "job")}
-        engine.dispose()
-        n_api = 2 if mode == "fleet" else 1
-        if mode == "fleet":
-            env["RECAL_ENGINE"] = "procrastinate"
-        apis = []
-        for i in range(n_api):
-            apis.append(start_service(home, free_port(), env=env, log_path=log_dir / f"{mode}-api{i}.log"))
-        procs += apis
-        if mode == "fleet":
-            for i in range(args.workers):
-                procs.append(
-                    start_worker(
-                        home,
-                        ["a", "b"],
-                        env=env,
-                        name=f"w{i + 1}",
-                        concurrency=fleet_concurrency(args, len(fakes)),
-                        log_path=log_dir / f"{mode}-w{i + 1}.log",
-                    )
-                )
-        nominal = json.loads(mdl["nominal"].read_text())
+        tokens = store_tokens(db_url)
+        apis = start_processes(mode, home, env, args, len(fakes), log_dir, procs)
         api = Api(apis[0].ready["url"], tokens["technician"])
-        cells = [
-            api.call(
-                "POST",
-                "/cells",
-                {
-                    "name": f"cell{i:03d}",
-                    "site": "ab"[i % 2],
-                    "model": nominal,
-                    "devices": f.ready,
-                    "drift_threshold": 0.1,
-                },
-            )
-            for i, f in enumerate(fakes)
-        ]
-        # the nightly run of the whole fleet
-        nenv = {**os.environ, "RECAL_TOKEN": tokens["job"]}
-        common = ["--verify-count", str(args.verify_count), "--count", str(args.count), "--timeout", "1800"]
-        if mode == "fleet":  # one nightly per site, half of the sessions at once each
-            cmds = [
-                [
-                    sys.executable,
-                    "-m",
-                    "service.cli",
-                    "nightly",
-                    "--all",
-                    "--site",
-                    site,
-                    "--url",
-                    apis[i % n_api].ready["url"],
-                    "--parallel",
-                    str(-(-args.parallel // 2)),
-                    *common,
-                ]
-                for i, site in enumerate(("a", "b"))
-            ]
-        else:
-            cmds = [
-                [
-                    sys.executable,
-                    "-m",
-                    "service.cli",
-                    "nightly",
-                    "--all",
-                    "--url",
-                    apis[0].ready["url"],
-                    "--parallel",
-                    str(args.parallel),
-                    *common,
-                ]
-            ]
-        t0 = time.monotonic()
-        runs = [
-            subprocess.Popen(c, env=nenv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for c in cmds
-        ]
-        outs = [r.communicate()[0] for r in runs]
-        wall = time.monotonic() - t0
-        (log_dir / f"{mode}-nightly.txt").write_text("\n\n".join(outs))
-        result = {
-            "mode": mode,
-            "cells": len(cells),
-            "wall_s": wall,
-            "parallel": args.parallel,
-            "worker_concurrency": fleet_concurrency(args, len(fakes)) if mode == "fleet" else None,
-            "nightly_exit": [r.returncode for r in runs],
-            "summary": [next((ln for ln in o.splitlines() if " cells: " in ln), "") for o in outs],
-            "concurrent": session_stats(db_url),
-        }
-        result["concurrent_incomplete"] = sum(v for k, v in result["concurrent"]["states"].items() if k != "completed")
-        eng = make_engine(db_url)
-        with eng.connect() as conn:
-            nightly_last = conn.execute(text("SELECT max(id) FROM session")).scalar()
-        eng.dispose()
+        cells = add_cells(api, mdl, fakes)
+        result = run_nightly(mode, apis, tokens, args, len(cells), log_dir, db_url)
+        nightly_last = last_session_id(db_url)
         # sequential: one cell, one session at a time
-        cell = cells[0]
-        resumed = set()  # sessions a device fault paused (resumed, left out of the times)
-        for _ in range(args.sequential):
-            for kind, n in (("verify", args.verify_count), ("pose", args.count)):
-                s = api.call("POST", f"/cells/{cell['id']}/sessions", {"kind": kind, "count": n})
-                s = api.wait_session(s["id"], 300, poll_s=0.05)
-                for _attempt in range(3):
-                    if s["state"] != "paused":
-                        break
-                    print(f"  session {s['id']} paused ({s['reason']}): resumed, not timed", file=sys.stderr)
-                    resumed.add(s["id"])
-                    api.call("POST", f"/sessions/{s['id']}/resume")
-                    s = api.wait_session(s["id"], 300, poll_s=0.05)
-                assert s["state"] == "completed", s
+        resumed = sequential_sessions(api, cells[0], args)
         stats = session_stats(db_url)
-        eng = make_engine(db_url)
-        with eng.connect() as conn:
-            rows = [
-                r
-                for r in conn.execute(
-                    text(
-                        "SELECT s.kind, s.created_at, s.updated_at, s.id, min(m.created_at), max(m.created_at) "
-                        "FROM session s JOIN measurement m ON m.session_id = s.id WHERE s.cell_id = :c "
-                        "GROUP BY s.id, s.kind, s.created_at, s.updated_at ORDER BY s.id"
-                    ),
-                    {"c": cell["id"]},
-                ).all()
-                if r[3] > nightly_last and r[3] not in resumed
-            ]
-        eng.dispose()
-
-        def secs(a, b):
-            if isinstance(a, str):
-                from datetime import datetime
-
-                a, b = datetime.fromisoformat(a), datetime.fromisoformat(b)
-            return (b - a).total_seconds()
-
-        # Where the time goes: created -> first measurement stored (queue, claim, devices opened,
-        # planning, first move), first -> last measurement, last measurement -> final state
-        # (analysis, results stored).
-        for kind in ("verify", "pose"):
-            mine = [r for r in rows if r[0] == kind]
-            t = [secs(r[1], r[2]) for r in mine]
-            result.setdefault("sequential", {})[kind] = {
-                "n": len(t),
-                "mean_s": statistics.fmean(t),
-                "median_s": statistics.median(t),
-                "to_first_measurement_s": statistics.median(secs(r[1], r[4]) for r in mine),
-                "measuring_s": statistics.median(secs(r[4], r[5]) for r in mine),
-                "after_last_measurement_s": statistics.median(secs(r[5], r[2]) for r in mine),
-            }
+        result["sequential"] = sequential_breakdown(db_url, cells[0]["id"], nightly_last, resumed)
         result["checks"] = {
             "measurements": stats["measurements"],
             "distinct": stats["distinct_configurations"],
@@ -338,7 +365,7 @@ def machine() -> dict:
     return info
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cells", type=int, default=50)
     ap.add_argument("--workers", type=int, default=2)
@@ -356,16 +383,17 @@ def main(argv=None) -> int:
         default=os.environ.get("RECAL_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"),
     )
     ap.add_argument("--out", help="write the results as JSON here")
-    args = ap.parse_args(argv)
-    log_dir = Path(tempfile.mkdtemp(prefix="recal-bench-fleet-"))
-    print(f"logs: {log_dir}", file=sys.stderr)
-    mdl = models(log_dir)
+    return ap.parse_args(argv)
+
+
+def start_fakes(args, mdl: dict, log_dir: Path) -> list:
+    """The simulated cells, on ``--host-prefix`` 1..N, started 16 at a time."""
     hosts = [f"{args.host_prefix}{i}" for i in range(1, args.cells + 1)]
     with ThreadPoolExecutor(16) as pool:
         # Only the devices the sessions use (the UR and the tracker): fifty idle CMMs and CAN
         # buses (heartbeats every 0.1 s) would take a good share of the two cores from what is
         # measured.
-        fakes = list(
+        return list(
             pool.map(
                 lambda h: start_fake_cell(
                     mdl["truth"],
@@ -378,12 +406,17 @@ def main(argv=None) -> int:
                 hosts,
             )
         )
-    results = {"machine": machine(), "args": vars(args), "setups": []}
+
+
+def run_setups(fakes: list, mdl: dict, args, log_dir: Path) -> list[dict]:
+    """Every set-up of ``--modes`` in turn on the same cells, each summed up on stderr as it ends;
+    the simulated cells stopped at the end."""
+    setups = []
     try:
         for mode in args.modes.split(","):
             print(f"{mode}: {args.cells} cells ...", file=sys.stderr, flush=True)
             r = run_setup(mode, fakes, mdl, args, args.postgres, log_dir)
-            results["setups"].append(r)
+            setups.append(r)
             c, s = r["concurrent"], r["sequential"]
             print(
                 f"  wall {r['wall_s']:.1f} s; per session (concurrent) verify {c['verify']['mean_s']:.3f} s, pose "
@@ -395,32 +428,48 @@ def main(argv=None) -> int:
     finally:
         for f in fakes:
             f.stop()
+    return setups
+
+
+def overhead(b: dict, f: dict, e: dict) -> dict:
+    """The fleet ``f`` against the set-up ``b``, each difference in % of the embedded default's
+    (``e``) time: sequential (per kind and over both), concurrent per session, and wall."""
+    out = {}
+    for stat in ("mean_s", "median_s"):
+        seq_b = statistics.fmean([b["sequential"][k][stat] for k in ("verify", "pose")])
+        seq_f = statistics.fmean([f["sequential"][k][stat] for k in ("verify", "pose")])
+        seq_e = statistics.fmean([e["sequential"][k][stat] for k in ("verify", "pose")])
+        out[f"sequential_{stat[:-2]}_per_session_s"] = seq_f - seq_b
+        out[f"sequential_{stat[:-2]}_pct"] = 100 * (seq_f - seq_b) / seq_e
+        for k in ("verify", "pose"):
+            out[f"sequential_{stat[:-2]}_{k}_pct"] = (
+                100 * (f["sequential"][k][stat] - b["sequential"][k][stat]) / e["sequential"][k][stat]
+            )
+    con_b, con_f = b["concurrent"]["all"]["mean_s"], f["concurrent"]["all"]["mean_s"]
+    out.update(
+        {
+            "concurrent_per_session_s": con_f - con_b,
+            "concurrent_pct": 100 * (con_f - con_b) / con_b,
+            "wall_pct": 100 * (f["wall_s"] - b["wall_s"]) / b["wall_s"],
+        }
+    )
+    return out
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    log_dir = Path(tempfile.mkdtemp(prefix="recal-bench-fleet-"))
+    print(f"logs: {log_dir}", file=sys.stderr)
+    mdl = models(log_dir)
+    fakes = start_fakes(args, mdl, log_dir)
+    results = {"machine": machine(), "args": vars(args), "setups": run_setups(fakes, mdl, args, log_dir)}
     by = {r["mode"]: r for r in results["setups"]}
     # The fleet against the embedded default (SQLite), and against the embedded service on the
     # fleet's store (PostgreSQL: the engine's own share), each in % of the embedded default's time.
     for base in ("embedded", "embedded-pg"):
         if base not in by or "fleet" not in by or "embedded" not in by:
             continue
-        b, f, e = by[base], by["fleet"], by["embedded"]
-        out = {}
-        for stat in ("mean_s", "median_s"):
-            seq_b = statistics.fmean([b["sequential"][k][stat] for k in ("verify", "pose")])
-            seq_f = statistics.fmean([f["sequential"][k][stat] for k in ("verify", "pose")])
-            seq_e = statistics.fmean([e["sequential"][k][stat] for k in ("verify", "pose")])
-            out[f"sequential_{stat[:-2]}_per_session_s"] = seq_f - seq_b
-            out[f"sequential_{stat[:-2]}_pct"] = 100 * (seq_f - seq_b) / seq_e
-            for k in ("verify", "pose"):
-                out[f"sequential_{stat[:-2]}_{k}_pct"] = (
-                    100 * (f["sequential"][k][stat] - b["sequential"][k][stat]) / e["sequential"][k][stat]
-                )
-        con_b, con_f = b["concurrent"]["all"]["mean_s"], f["concurrent"]["all"]["mean_s"]
-        out.update(
-            {
-                "concurrent_per_session_s": con_f - con_b,
-                "concurrent_pct": 100 * (con_f - con_b) / con_b,
-                "wall_pct": 100 * (f["wall_s"] - b["wall_s"]) / b["wall_s"],
-            }
-        )
+        out = overhead(by[base], by["fleet"], by["embedded"])
         results["overhead" if base == "embedded" else "overhead_vs_embedded_pg"] = out
     print(json.dumps(results, indent=2, default=str))
     if args.out:
