@@ -227,7 +227,7 @@ def page_routes(api: Api, cell_id: int, session_id: int) -> list[str]:
     ]
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--poses", type=int, default=60)
     ap.add_argument("--clients", type=int, default=50)
@@ -241,20 +241,116 @@ def main(argv: list[str] | None = None) -> int:
         help="only the page's routes against the baseline (skip the per-pose and single-route loads)",
     )
     ap.add_argument("--page-requests", type=int, default=60, help="requests per page client")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
+
+@dataclasses.dataclass
+class Figures:
+    """What a run measured: per pose (s) in the session and in the drivers' plain loop; the
+    single-route loads by (load, route); the page's routes, the service's own count of requests
+    over 50 ms, and the baseline of the page's clients."""
+
+    session_dt: list[float]
+    driver_dt: list[float]
+    loads: dict[tuple[str, str], dict]
+    page: dict[str, dict]
+    server_side: dict[str, tuple[int, int]]
+    page_base: dict
+
+
+def prepare_home(home: Path) -> str:
+    """The models (a nominal UR10e and its perturbed truth) and a migrated store in ``home``; a
+    technician's token."""
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    save_model(home / "truth.json", perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0))
+    save_model(home / "nominal.json", nominal)
+    engine = make_engine(Settings(home=home).effective_database_url)
+    migrate(engine)
+    from sqlmodel import Session
+
+    with Session(engine) as db:
+        token = create_token(db, role="technician", name="bench")[1]
+    engine.dispose()
+    return token
+
+
+def measure(args, home: Path, url: str, token: str, cell) -> Figures:
+    """Against the running service at ``url`` and the simulated ``cell``: the pose session and its
+    baseline, the single-route loads, then the page's routes and their baseline."""
+    api = Api(url, token)
+    doc = json.loads((home / "nominal.json").read_text())
+    cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
+    session_id, session_dt, configs = session_per_pose(api, cell_id, args.poses)
+    driver_dt = [] if args.page_only else drivers_per_pose(cell.ready, configs)
+    path = f"/api/v1/sessions/{session_id}"
+    loads = {}
+    for mode, interval in () if args.page_only else (("polling", args.interval), ("saturated", 0.0)):
+        for name, p, tok in ((path, path, token), ("/api/v1/health", "/api/v1/health", None)):
+            loads[mode, name] = load(url, p, tok, args.clients, args.client_processes, args.requests, interval)
+    # 3. The page's own routes, polled by 50 pages, and the baseline in the same run.
+    routes = page_routes(api, cell_id, session_id)
+    page = page_load(url, routes, token, args.clients, args.client_processes, args.page_requests, args.interval)
+    server_side = over_50ms(url)
+    page_base = load(
+        url, "/api/v1/health", None, args.clients, args.client_processes, args.page_requests, args.interval
+    )
+    return Figures(session_dt, driver_dt, loads, page, server_side, page_base)
+
+
+def print_page(args, fig: Figures) -> None:
+    print(
+        f"\n## The page's routes: {args.clients} pages each polling one every {args.interval:g} s, "
+        f"in turn ({args.page_requests} requests each; latency in ms)\n"
+    )
+    print("| request | requests | p50 | p95 | p99 | max |")
+    print("|---|---|---|---|---|---|")
+    for name, r in fig.page.items():
+        what = "all the page's routes" if name == "all" else "GET " + name.split("?")[0]
+        print(f"| {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | {r['max']:.1f} |")
+    base = fig.page_base
+    print(
+        f"| GET /api/v1/health (baseline, same clients) | {base['n']} | {base['p50']:.1f} | "
+        f"{base['p95']:.1f} | {base['p99']:.1f} | {base['max']:.1f} |"
+    )
+    print("\nInside the service (its /metrics histogram, every request of the run so far): requests over 50 ms")
+    for route, (n, slow) in sorted(fig.server_side.items()):
+        if n >= 100:
+            print(f"- {route}: {slow} of {n}")
+
+
+def print_per_pose(args, fig: Figures) -> None:
+    print(f"\n## Per pose, {args.poses} poses, time scale 0 (ms)\n")
+    print("| | mean | median | p95 |")
+    print("|---|---|---|---|")
+    for name, dt in (
+        ("pose session (orchestrator + drivers + store)", fig.session_dt),
+        ("drivers alone (baseline)", fig.driver_dt),
+    ):
+        d = np.array(dt) * 1e3
+        print(f"| {name} | {d.mean():.2f} | {np.median(d):.2f} | {np.percentile(d, 95):.2f} |")
+    over = (statistics.fmean(fig.session_dt) - statistics.fmean(fig.driver_dt)) * 1e3
+    over_med = (statistics.median(fig.session_dt) - statistics.median(fig.driver_dt)) * 1e3
+    print(f"\norchestrator overhead per pose: {over:.2f} ms (mean), {over_med:.2f} ms (median)")
+
+
+def print_loads(args, fig: Figures) -> None:
+    print(f"\n## {args.clients} concurrent clients x {args.requests} requests (latency in ms)\n")
+    print("| load | request | requests | p50 | p95 | p99 | max | requests/s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for (mode, name), r in fig.loads.items():
+        what = "GET /api/v1/sessions/{id}" if name != "/api/v1/health" else "GET /api/v1/health (baseline)"
+        load_name = f"polling every {args.interval:g} s" if mode == "polling" else "saturated"
+        print(
+            f"| {load_name} | {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | "
+            f"{r['max']:.1f} | {r['rps']:.0f} |"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="recal-bench-service-") as tmp:
         home = Path(tmp)
-        nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
-        save_model(home / "truth.json", perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0))
-        save_model(home / "nominal.json", nominal)
-        engine = make_engine(Settings(home=home).effective_database_url)
-        migrate(engine)
-        from sqlmodel import Session
-
-        with Session(engine) as db:
-            token = create_token(db, role="technician", name="bench")[1]
-        engine.dispose()
+        token = prepare_home(home)
         cell = start_fake_cell(home / "truth.json", args.host, time_scale=0.0, log_path=home / "cell.log")
         try:
             service = start_service(
@@ -264,39 +360,7 @@ def main(argv: list[str] | None = None) -> int:
                 log_path=home / "service.log",
             )
             try:
-                api = Api(service.ready["url"], token)
-                doc = json.loads((home / "nominal.json").read_text())
-                cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
-                session_id, session_dt, configs = session_per_pose(api, cell_id, args.poses)
-                driver_dt = [] if args.page_only else drivers_per_pose(cell.ready, configs)
-                path = f"/api/v1/sessions/{session_id}"
-                loads = {}
-                for mode, interval in () if args.page_only else (("polling", args.interval), ("saturated", 0.0)):
-                    for name, p, tok in ((path, path, token), ("/api/v1/health", "/api/v1/health", None)):
-                        loads[mode, name] = load(
-                            service.ready["url"], p, tok, args.clients, args.client_processes, args.requests, interval
-                        )
-                # 3. The page's own routes, polled by 50 pages, and the baseline in the same run.
-                routes = page_routes(api, cell_id, session_id)
-                page = page_load(
-                    service.ready["url"],
-                    routes,
-                    token,
-                    args.clients,
-                    args.client_processes,
-                    args.page_requests,
-                    args.interval,
-                )
-                server_side = over_50ms(service.ready["url"])
-                page_base = load(
-                    service.ready["url"],
-                    "/api/v1/health",
-                    None,
-                    args.clients,
-                    args.client_processes,
-                    args.page_requests,
-                    args.interval,
-                )
+                fig = measure(args, home, service.ready["url"], token, cell)
             finally:
                 service.stop()
         finally:
@@ -306,47 +370,11 @@ def main(argv: list[str] | None = None) -> int:
         f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
         f"Python {platform.python_version()}, {platform.system()} {platform.release()}"
     )
-    print(
-        f"\n## The page's routes: {args.clients} pages each polling one every {args.interval:g} s, "
-        f"in turn ({args.page_requests} requests each; latency in ms)\n"
-    )
-    print("| request | requests | p50 | p95 | p99 | max |")
-    print("|---|---|---|---|---|---|")
-    for name, r in page.items():
-        what = "all the page's routes" if name == "all" else "GET " + name.split("?")[0]
-        print(f"| {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | {r['max']:.1f} |")
-    print(
-        f"| GET /api/v1/health (baseline, same clients) | {page_base['n']} | {page_base['p50']:.1f} | "
-        f"{page_base['p95']:.1f} | {page_base['p99']:.1f} | {page_base['max']:.1f} |"
-    )
-    print("\nInside the service (its /metrics histogram, every request of the run so far): requests over 50 ms")
-    for route, (n, slow) in sorted(server_side.items()):
-        if n >= 100:
-            print(f"- {route}: {slow} of {n}")
+    print_page(args, fig)
     if args.page_only:
         return 0
-    print(f"\n## Per pose, {args.poses} poses, time scale 0 (ms)\n")
-    print("| | mean | median | p95 |")
-    print("|---|---|---|---|")
-    for name, dt in (
-        ("pose session (orchestrator + drivers + store)", session_dt),
-        ("drivers alone (baseline)", driver_dt),
-    ):
-        d = np.array(dt) * 1e3
-        print(f"| {name} | {d.mean():.2f} | {np.median(d):.2f} | {np.percentile(d, 95):.2f} |")
-    over = (statistics.fmean(session_dt) - statistics.fmean(driver_dt)) * 1e3
-    over_med = (statistics.median(session_dt) - statistics.median(driver_dt)) * 1e3
-    print(f"\norchestrator overhead per pose: {over:.2f} ms (mean), {over_med:.2f} ms (median)")
-    print(f"\n## {args.clients} concurrent clients x {args.requests} requests (latency in ms)\n")
-    print("| load | request | requests | p50 | p95 | p99 | max | requests/s |")
-    print("|---|---|---|---|---|---|---|---|")
-    for (mode, name), r in loads.items():
-        what = "GET /api/v1/sessions/{id}" if name != "/api/v1/health" else "GET /api/v1/health (baseline)"
-        load_name = f"polling every {args.interval:g} s" if mode == "polling" else "saturated"
-        print(
-            f"| {load_name} | {what} | {r['n']} | {r['p50']:.1f} | {r['p95']:.1f} | {r['p99']:.1f} | "
-            f"{r['max']:.1f} | {r['rps']:.0f} |"
-        )
+    print_per_pose(args, fig)
+    print_loads(args, fig)
     return 0
 
 
