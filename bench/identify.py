@@ -165,7 +165,7 @@ def cli_wall_time(nominal, truth, rng, rows: int = 4000, repeat: int = 3) -> flo
     return best
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     ap.add_argument(
@@ -178,8 +178,59 @@ def main(argv=None) -> int:
         help="run the finite-difference baseline on at most this many rows (subsample above)",
     )
     ap.add_argument("--no-fd-memory", action="store_true", help="skip the traced run of the baseline (saves its time)")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
+
+def measure_size(N: int, nominal, truth, rng, q_holdout, p_true, args) -> tuple[dict, int]:
+    """N rows simulated and identified by ours, the finite-difference baseline and in the true
+    (poe) parameterisation: (the row of figures, how many parameters are not identifiable)."""
+    data = simulate_measurements(truth, random_configurations(nominal, N, rng), rng, sigma_m=SIGMA_M)
+    sub = data if N <= args.baseline_max else data.subset(np.arange(args.baseline_max))
+    # interleaved, so that both see the same (shared, noisy) machine; the best of each is kept
+    t_ours = t_fd = float("inf")
+    for _ in range(args.repeat if N <= 10000 else 2):
+        t, res = best_time(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M), 3 if N <= 10000 else 1)
+        t_ours = min(t_ours, t)
+        t, (sol, m_fd) = best_time(lambda res=res, sub=sub: fd_baseline(res, sub), 1)
+        t_fd = min(t_fd, t)
+    mem_ours = peak_memory(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M))
+    rms, mx = holdout_errors(res.model, q_holdout, p_true)
+    mem_fd = peak_memory(lambda res=res, sub=sub: fd_baseline(res, sub)) if not args.no_fd_memory else float("nan")
+    rms_fd, _ = holdout_errors(m_fd, q_holdout, p_true)
+    poe = identify(to_poe(nominal), data, sigma_m=SIGMA_M)
+    rms_poe, _ = holdout_errors(poe.model, q_holdout, p_true)
+    row = dict(
+        N=N,
+        t=t_ours,
+        it=res.iterations,
+        mem=mem_ours,
+        rms=rms,
+        max=mx,
+        P=len(res.params),
+        t_fd=t_fd,
+        njev=sol.njev,
+        mem_fd=mem_fd,
+        rms_fd=rms_fd,
+        n_fd=len(sub),
+        rms_poe=rms_poe,
+    )
+    return row, len(res.unidentifiable)
+
+
+def print_row(r: dict) -> None:
+    N = r["N"]
+    fd_note = "" if r["n_fd"] == N else f"  (FD on the first {r['n_fd']} rows)"
+    print(
+        f"{N:>7} | {r['t']:7.3f} {r['t'] / N * 1e6:6.1f} {r['it']:>4} {r['mem'] / 2**20:7.1f} {r['rms'] * 1e6:7.2f} "
+        f"{r['max'] * 1e6:7.2f} | {r['t_fd']:7.3f} {r['njev']:>6} {r['mem_fd'] / 2**20:7.1f} {r['rms_fd'] * 1e6:7.2f} | "
+        f"{r['t_fd'] / r['t'] * (N / r['n_fd']):7.1f}x | {r['rms_poe'] * 1e6:10.2f} {r['rms'] / r['rms_poe']:5.2f}"
+        f"{fd_note}",
+        flush=True,
+    )
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     print(f"machine: {machine()}")
     nominal, truth, rng, q_holdout, p_true = scenario()
     print(
@@ -190,52 +241,13 @@ def main(argv=None) -> int:
         f"{'N':>7} | {'ours s':>7} {'us/row':>6} {'iter':>4} {'peak MB':>7} {'RMS um':>7} {'max um':>7} | "
         f"{'FD s':>7} {'Jevals':>6} {'peak MB':>7} {'RMS um':>7} | {'speed-up':>8} | {'poe RMS um':>10} {'ratio':>5}"
     )
-    rows = []
-    for N in args.sizes:
-        data = simulate_measurements(truth, random_configurations(nominal, N, rng), rng, sigma_m=SIGMA_M)
-        sub = data if N <= args.baseline_max else data.subset(np.arange(args.baseline_max))
-        # interleaved, so that both see the same (shared, noisy) machine; the best of each is kept
-        t_ours = t_fd = float("inf")
-        for _ in range(args.repeat if N <= 10000 else 2):
-            t, res = best_time(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M), 3 if N <= 10000 else 1)
-            t_ours = min(t_ours, t)
-            t, (sol, m_fd) = best_time(lambda res=res, sub=sub: fd_baseline(res, sub), 1)
-            t_fd = min(t_fd, t)
-        mem_ours = peak_memory(lambda data=data: identify(nominal, data, sigma_m=SIGMA_M))
-        rms, mx = holdout_errors(res.model, q_holdout, p_true)
-        mem_fd = peak_memory(lambda res=res, sub=sub: fd_baseline(res, sub)) if not args.no_fd_memory else float("nan")
-        rms_fd, _ = holdout_errors(m_fd, q_holdout, p_true)
-        poe = identify(to_poe(nominal), data, sigma_m=SIGMA_M)
-        rms_poe, _ = holdout_errors(poe.model, q_holdout, p_true)
-        rows.append(
-            dict(
-                N=N,
-                t=t_ours,
-                it=res.iterations,
-                mem=mem_ours,
-                rms=rms,
-                max=mx,
-                P=len(res.params),
-                t_fd=t_fd,
-                njev=sol.njev,
-                mem_fd=mem_fd,
-                rms_fd=rms_fd,
-                n_fd=len(sub),
-                rms_poe=rms_poe,
-            )
-        )
-        r = rows[-1]
-        if len(rows) == 1:
-            print(f"free parameters: {r['P']} (ours and the baseline); {len(res.unidentifiable)} not identifiable")
+    for k, N in enumerate(args.sizes):
+        r, unidentifiable = measure_size(N, nominal, truth, rng, q_holdout, p_true, args)
+        if k == 0:
+            print(f"free parameters: {r['P']} (ours and the baseline); {unidentifiable} not identifiable")
             print(head)
             print("-" * len(head))
-        fd_note = "" if r["n_fd"] == N else f"  (FD on the first {r['n_fd']} rows)"
-        print(
-            f"{N:>7} | {r['t']:7.3f} {r['t'] / N * 1e6:6.1f} {r['it']:>4} {r['mem'] / 2**20:7.1f} {rms * 1e6:7.2f} "
-            f"{mx * 1e6:7.2f} | {t_fd:7.3f} {sol.njev:>6} {mem_fd / 2**20:7.1f} {rms_fd * 1e6:7.2f} | "
-            f"{t_fd / r['t'] * (N / r['n_fd']):7.1f}x | {rms_poe * 1e6:10.2f} {rms / rms_poe:5.2f}{fd_note}",
-            flush=True,
-        )
+        print_row(r)
     t_cli = cli_wall_time(nominal, truth, rng)
     print(
         f"\n`recal identify` on 4,000 rows, whole process (start, read, identify, write model and report): {t_cli:.2f} s"
