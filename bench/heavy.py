@@ -153,66 +153,73 @@ def probe(api: Api, viewer: Api, cell_id: int, begin, running) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--host", default="127.0.4.3", help="loopback address of the simulated cell")
-    ap.add_argument("--time-scale", type=float, default=0.2)
-    ap.add_argument("--repeat", type=int, default=3, help="runs of each kind (baseline, loaded), alternately")
-    args = ap.parse_args(argv)
-    max_bytes = Settings().max_task_bytes
-    with tempfile.TemporaryDirectory(prefix="recal-bench-heavy-") as tmp:
-        home = Path(tmp)
-        nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
-        save_model(home / "truth.json", perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0))
-        save_model(home / "nominal.json", nominal)
-        engine = make_engine(Settings(home=home).effective_database_url)
-        migrate(engine)
-        from sqlmodel import Session
+def prepare_home(home: Path) -> tuple[str, str]:
+    """The models (a nominal UR10e and its perturbed truth) and a migrated store in ``home``; a
+    technician's token and a viewer's."""
+    nominal = dataclasses.replace(robots.nominal("ur10e"), targets={"smr": np.array([0.0, 0.0, 0.05])})
+    save_model(home / "truth.json", perturbed(nominal, np.random.default_rng(1), tool_length_m=0.0))
+    save_model(home / "nominal.json", nominal)
+    engine = make_engine(Settings(home=home).effective_database_url)
+    migrate(engine)
+    from sqlmodel import Session
 
-        with Session(engine) as db:
-            token = create_token(db, role="technician", name="bench")[1]
-            viewer_token = create_token(db, role="viewer", name="bench-viewer")[1]
-        engine.dispose()
-        cell = start_fake_cell(home / "truth.json", args.host, time_scale=args.time_scale, log_path=home / "cell.log")
-        try:
-            service = start_service(
-                home,
-                free_port(),
-                env={"RECAL_SETTLE_S": "0", "OPENBLAS_NUM_THREADS": "1"},
-                log_path=home / "service.log",
-            )
-            try:
-                api, viewer = Api(service.ready["url"], token, timeout_s=120), Api(service.ready["url"], viewer_token)
-                doc = json.loads((home / "nominal.json").read_text())
-                cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
-                s = api.call(
-                    "POST",
-                    f"/cells/{cell_id}/sessions",
-                    {"kind": "pose", "count": 30, "device": "tracker", "target": "smr"},
-                )
-                s = api.wait_session(s["id"], 300, poll_s=0.5)
-                cal = s["calibration_id"]
-                model = model_from_dict(api.call("GET", f"/calibrations/{cal}")["model"])
-                task = task_csv(model, max_bytes)
-                baseline, loaded, box = [], [], {"s": []}
-                for _ in range(args.repeat):
-                    baseline.append(probe(api, viewer, cell_id, lambda: None, lambda: False))
-                    done = threading.Event()
+    with Session(engine) as db:
+        token = create_token(db, role="technician", name="bench")[1]
+        viewer_token = create_token(db, role="viewer", name="bench-viewer")[1]
+    engine.dispose()
+    return token, viewer_token
 
-                    def compensate(done=done):
-                        t0 = time.perf_counter()
-                        api.call("POST", f"/calibrations/{cal}/compensate?name=task.csv", raw=task)
-                        box["s"].append(time.perf_counter() - t0)
-                        done.set()
 
-                    worker = threading.Thread(target=compensate)
-                    loaded.append(probe(api, viewer, cell_id, worker.start, lambda done=done: not done.is_set()))
-                    worker.join()
-            finally:
-                service.stop()
-        finally:
-            cell.stop()
+@dataclasses.dataclass
+class Runs:
+    """The task compensated, the probes of the baseline and loaded runs, and how long each
+    compensation took to be answered (s)."""
 
+    task: str
+    baseline: list[dict]
+    loaded: list[dict]
+    compensation_s: list[float]
+
+
+def calibrate(api: Api, home: Path, cell, max_bytes: int) -> tuple[int, int, str]:
+    """The cell added and calibrated by a 30-pose session; (the cell's id, the calibration's id, a
+    task CSV of ``max_bytes`` from its model)."""
+    doc = json.loads((home / "nominal.json").read_text())
+    cell_id = api.call("POST", "/cells", {"name": "bench", "model": doc, "devices": cell.ready})["id"]
+    s = api.call(
+        "POST",
+        f"/cells/{cell_id}/sessions",
+        {"kind": "pose", "count": 30, "device": "tracker", "target": "smr"},
+    )
+    s = api.wait_session(s["id"], 300, poll_s=0.5)
+    cal = s["calibration_id"]
+    model = model_from_dict(api.call("GET", f"/calibrations/{cal}")["model"])
+    return cell_id, cal, task_csv(model, max_bytes)
+
+
+def run_probes(api: Api, viewer: Api, home: Path, cell, args, max_bytes: int) -> Runs:
+    """The calibration, then ``--repeat`` baseline and loaded runs, alternately (the loaded run's
+    compensation in a thread of its own)."""
+    cell_id, cal, task = calibrate(api, home, cell, max_bytes)
+    runs = Runs(task, [], [], [])
+    for _ in range(args.repeat):
+        runs.baseline.append(probe(api, viewer, cell_id, lambda: None, lambda: False))
+        done = threading.Event()
+
+        def compensate(done=done):
+            t0 = time.perf_counter()
+            api.call("POST", f"/calibrations/{cal}/compensate?name=task.csv", raw=task)
+            runs.compensation_s.append(time.perf_counter() - t0)
+            done.set()
+
+        worker = threading.Thread(target=compensate)
+        runs.loaded.append(probe(api, viewer, cell_id, worker.start, lambda done=done: not done.is_set()))
+        worker.join()
+    return runs
+
+
+def print_runs(args, runs: Runs) -> None:
+    task, loaded = runs.task, runs.loaded
     rows = task.count("\n") - 1
     print(
         f"# {platform.processor() or platform.machine()}, {multiprocessing.cpu_count()} cores, "
@@ -221,8 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     during = sum(r["abort_during"] for r in loaded)
     print(
         f"\ncompensation: {len(task) / 2**20:.2f} MiB, {rows} points, answered in "
-        f"{', '.join(f'{x:.1f}' for x in box['s'])} s; {during} of {len(loaded)} aborts answered while it ran; "
-        f"time scale {args.time_scale}\n"
+        f"{', '.join(f'{x:.1f}' for x in runs.compensation_s)} s; {during} of {len(loaded)} aborts answered while "
+        f"it ran; time scale {args.time_scale}\n"
     )
     print(
         "| run | health p50 | health p99 | health max | status p99 | robot told to stop | end stored | "
@@ -233,14 +240,42 @@ def main(argv: list[str] | None = None) -> int:
     def each(runs, key, fmt="{:.0f}"):
         return " / ".join(fmt.format(r[key]) for r in runs) + " ms"
 
-    for name, runs in (("baseline (nothing heavy)", baseline), ("during the compensation", loaded)):
-        h = np.concatenate([r["health"] for r in runs])
-        st = np.concatenate([r["status"] for r in runs])
+    for name, rs in (("baseline (nothing heavy)", runs.baseline), ("during the compensation", loaded)):
+        h = np.concatenate([r["health"] for r in rs])
+        st = np.concatenate([r["status"] for r in rs])
         print(
             f"| {name} | {np.percentile(h, 50):.1f} ms | {np.percentile(h, 99):.1f} ms | {h.max():.1f} ms | "
-            f"{np.percentile(st, 99):.1f} ms | {each(runs, 'stop_ms', '{:.1f}')} | {each(runs, 'end_ms')} | "
-            f"{each(runs, 'abort_ms')} | {max(r['after'] for r in runs)} | {sum(r['polls'] for r in runs)} |"
+            f"{np.percentile(st, 99):.1f} ms | {each(rs, 'stop_ms', '{:.1f}')} | {each(rs, 'end_ms')} | "
+            f"{each(rs, 'abort_ms')} | {max(r['after'] for r in rs)} | {sum(r['polls'] for r in rs)} |"
         )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--host", default="127.0.4.3", help="loopback address of the simulated cell")
+    ap.add_argument("--time-scale", type=float, default=0.2)
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each kind (baseline, loaded), alternately")
+    args = ap.parse_args(argv)
+    max_bytes = Settings().max_task_bytes
+    with tempfile.TemporaryDirectory(prefix="recal-bench-heavy-") as tmp:
+        home = Path(tmp)
+        token, viewer_token = prepare_home(home)
+        cell = start_fake_cell(home / "truth.json", args.host, time_scale=args.time_scale, log_path=home / "cell.log")
+        try:
+            service = start_service(
+                home,
+                free_port(),
+                env={"RECAL_SETTLE_S": "0", "OPENBLAS_NUM_THREADS": "1"},
+                log_path=home / "service.log",
+            )
+            try:
+                api, viewer = Api(service.ready["url"], token, timeout_s=120), Api(service.ready["url"], viewer_token)
+                runs = run_probes(api, viewer, home, cell, args, max_bytes)
+            finally:
+                service.stop()
+        finally:
+            cell.stop()
+    print_runs(args, runs)
     return 0
 
 
