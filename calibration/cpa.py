@@ -650,7 +650,18 @@ def _target_at_signature(
     return moved[:3, :3] @ p + moved[:3, 3]
 
 
-def _flange_at_signature(nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb):
+def _flange_at_signature(
+    nominal: KinematicModel,
+    sweeps: Sweeps,
+    groups: dict[int, np.ndarray],
+    fits: list[dict],
+    moved: dict[int, np.ndarray],
+    v: np.ndarray,
+    vs: np.ndarray,
+    S: np.ndarray,
+    R: np.ndarray,
+    T_wb: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str], list[str]]:
     """Step 4: the flange ``T_world_flange`` (4, 4) at the signature, the tool (4, 4), the
     targets (tool frame) and their changes, notes and warnings.
 
