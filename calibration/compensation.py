@@ -381,28 +381,14 @@ def compensate_targets(
     ``q`` of the result are the joints the controller will command for ``T_command`` (= ``X_m``,
     nominal world); ``correction`` is their difference from the nominal solution of ``X_d``.
     """
-    T_desired = _as_poses(T_desired)
-    N = len(T_desired)
-    n = nominal.n_joints
-    if identified.n_joints != n:
-        raise ValueError(f"the identified model has {identified.n_joints} joints, the nominal {n}")
-    M = np.eye(4) if T_nominal_world is None else np.asarray(T_nominal_world, dtype=float)
+    T_desired, M, q_near = _targets_input(identified, nominal, T_desired, q_near, T_nominal_world)
     RM = M[:3, :3]
-    q_near = np.broadcast_to(check_q(nominal, np.asarray(q_near, dtype=float).reshape(-1, n)), (N, n)).copy()
     kw = dict(position_tol_m=position_tol_m * 1e-2, rotation_tol_rad=rotation_tol_rad * 1e-2, max_iterations=50)
     X = _apply(M, T_desired)
-    first = nominal_solution(
-        nominal,
-        X,
-        q_near,
-        keep_branch=keep_branch,
-        position_tol_m=kw["position_tol_m"],
-        rotation_tol_rad=kw["rotation_tol_rad"],
-    )
+    first, branch = _nominal_start(nominal, X, q_near, keep_branch, kw)
     q_nom = first.q
     reachable = first.reachable.copy()
     branch_changed = first.branch_changed
-    branch = ur_branch(nominal, q_nom) if ur_geometry(nominal) is not None else None
     q = q_nom.copy()
     ik_ok = first.converged.copy()
     w = walk(identified, q)
@@ -439,6 +425,41 @@ def compensate_targets(
         mode="targets",
         message=_message(converged, flags),
     )
+
+
+def _targets_input(
+    identified: KinematicModel,
+    nominal: KinematicModel,
+    T_desired: np.ndarray,
+    q_near: np.ndarray,
+    T_nominal_world: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`compensate_targets`' input checked: the desired poses (N, 4, 4), ``T_nominal_world``
+    (4, 4; the identity when not given) and ``q_near`` as one row (N, n) per pose."""
+    T_desired = _as_poses(T_desired)
+    N = len(T_desired)
+    n = nominal.n_joints
+    if identified.n_joints != n:
+        raise ValueError(f"the identified model has {identified.n_joints} joints, the nominal {n}")
+    M = np.eye(4) if T_nominal_world is None else np.asarray(T_nominal_world, dtype=float)
+    q_near = np.broadcast_to(check_q(nominal, np.asarray(q_near, dtype=float).reshape(-1, n)), (N, n)).copy()
+    return T_desired, M, q_near
+
+
+def _nominal_start(nominal: KinematicModel, X: np.ndarray, q_near: np.ndarray, keep_branch, kw: dict):
+    """Algorithm B's start: the nominal inverse kinematics of ``X`` (N, 4, 4) in the branch of
+    ``q_near`` (:func:`nominal_solution`), and that solution's UR configuration branch (``None``
+    for a robot without UR geometry)."""
+    first = nominal_solution(
+        nominal,
+        X,
+        q_near,
+        keep_branch=keep_branch,
+        position_tol_m=kw["position_tol_m"],
+        rotation_tol_rad=kw["rotation_tol_rad"],
+    )
+    branch = ur_branch(nominal, first.q) if ur_geometry(nominal) is not None else None
+    return first, branch
 
 
 def _done(err: np.ndarray, tol: tuple[float, float]) -> np.ndarray:

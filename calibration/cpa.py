@@ -152,10 +152,19 @@ def fit_axis(
     if v is not None:
         v = np.asarray(v, dtype=float).reshape(len(P))
     floor = float(sigma_m) if sigma_m is not None else 0.0
-    warnings: list[str] = []
-    m = len(P)
     if prismatic:
         return _fit_prismatic_axis(P, v, floor, min_radius_to_noise)
+    return _fit_revolute_axis(P, v, method, floor, min_arc_rad, min_radius_to_noise)
+
+
+def _fit_revolute_axis(
+    P: np.ndarray, v: np.ndarray | None, method: str, floor: float, min_arc_rad: float, min_radius_to_noise: float
+) -> AxisFit:
+    """:func:`fit_axis` of a revolute joint: the normal through the centre of the circle fitted
+    to the sweep's points ``P`` (m, 3) (book §4.6.4), signed by the joint's positive sense, with
+    the noise from the 2m − 6 degrees of freedom left by the circle's six parameters."""
+    warnings: list[str] = []
+    m = len(P)
     circ = fit_circle(P, method=method)
     n = circ.normal
     u = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
@@ -169,16 +178,7 @@ def fit_axis(
     dof = 2 * m - 6
     sq = circ.out_of_plane @ circ.out_of_plane + circ.radial @ circ.radial
     noise = float(np.sqrt(sq / dof)) if dof > 0 else 0.0
-    cov = circ.covariance
-    if np.all(np.isfinite(cov)):
-        Pn = np.eye(3) - np.outer(n, n)
-        # the RMS of the angle (and of the distance across the axis) between the fitted and the
-        # true axis: both errors are two-dimensional, so the trace, not the largest principal
-        # variance, which made the angle's standard uncertainty up to √2 too small (issue 14)
-        point_std = float(np.sqrt(max(np.trace(Pn @ cov[:3, :3] @ Pn), 0.0)))
-        direction_std = float(np.sqrt(max(np.trace(cov[3:5, 3:5]), 0.0)))
-    else:
-        point_std = direction_std = float("nan")
+    point_std, direction_std = _circle_axis_std(circ.covariance, n)
     if arc < min_arc_rad:
         warnings.append(
             f"arc of {np.rad2deg(arc):.0f} deg is under {np.rad2deg(min_arc_rad):.0f} deg: the axis is "
@@ -207,6 +207,23 @@ def fit_axis(
         circ.method,
         tuple(warnings),
     )
+
+
+def _circle_axis_std(cov: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """(point_std_m, direction_std_rad) of a circle's axis from the fit's covariance ``cov``
+    (centre (3) then the normal's two tilts first): the RMS of the distance across the axis
+    ``sqrt(tr(P_n Σ_c P_n))``, ``P_n = I − n nᵀ``, and of the angle ``sqrt(tr Σ_tilt)``; NaN
+    when the covariance is not finite."""
+    if np.all(np.isfinite(cov)):
+        Pn = np.eye(3) - np.outer(n, n)
+        # the RMS of the angle (and of the distance across the axis) between the fitted and the
+        # true axis: both errors are two-dimensional, so the trace, not the largest principal
+        # variance, which made the angle's standard uncertainty up to √2 too small (issue 14)
+        point_std = float(np.sqrt(max(np.trace(Pn @ cov[:3, :3] @ Pn), 0.0)))
+        direction_std = float(np.sqrt(max(np.trace(cov[3:5, 3:5]), 0.0)))
+    else:
+        point_std = direction_std = float("nan")
+    return point_std, direction_std
 
 
 def _fit_prismatic_axis(P: np.ndarray, v: np.ndarray | None, floor: float, min_radius_to_noise: float) -> AxisFit:
@@ -389,29 +406,39 @@ def s_model_chain(frames: np.ndarray) -> list[tuple[float, float, float, float, 
 # --------------------------------------------------------------------------- sweeps and the model
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class Sweeps:
     """Circle-point data (contracts §4), SI. ``q`` (M, n) joint readings; ``p_world`` (M, 3)
     measured target positions; ``joint`` (M,) the swept joint of each row, 0-based; ``target``
     (M,) target names (``None``: the tool origin); ``row`` (M,) row numbers in the source file.
-    Rows of one sweep are in the order the joint moved."""
+    Rows of one sweep are in the order the joint moved.
+
+    ``target`` and ``row`` may be left out when built (no names: the tool origin; rows 1..M),
+    so once built they are always arrays: the constructor is written out for that."""
 
     q: np.ndarray
     p_world: np.ndarray
     joint: np.ndarray
-    target: np.ndarray | None = None
-    row: np.ndarray | None = None
+    target: np.ndarray
+    row: np.ndarray
 
-    def __post_init__(self):
-        q = np.atleast_2d(np.asarray(self.q, dtype=float))
+    def __init__(
+        self,
+        q: np.ndarray,
+        p_world: np.ndarray,
+        joint: np.ndarray,
+        target: np.ndarray | None = None,
+        row: np.ndarray | None = None,
+    ):
+        q = np.atleast_2d(np.asarray(q, dtype=float))
         M = q.shape[0]
         object.__setattr__(self, "q", q)
-        object.__setattr__(self, "p_world", np.asarray(self.p_world, dtype=float).reshape(M, 3))
-        object.__setattr__(self, "joint", np.asarray(self.joint).reshape(M).astype(int))
-        t = np.full(M, None, dtype=object) if self.target is None else np.asarray(self.target, dtype=object).reshape(M)
+        object.__setattr__(self, "p_world", np.asarray(p_world, dtype=float).reshape(M, 3))
+        object.__setattr__(self, "joint", np.asarray(joint).reshape(M).astype(int))
+        t = np.full(M, None, dtype=object) if target is None else np.asarray(target, dtype=object).reshape(M)
         names = [None if (x is None or x == "") else str(x) for x in t]
         object.__setattr__(self, "target", np.array(names, dtype=object))
-        object.__setattr__(self, "row", np.arange(1, M + 1) if self.row is None else np.asarray(self.row).reshape(M))
+        object.__setattr__(self, "row", np.arange(1, M + 1) if row is None else np.asarray(row).reshape(M))
 
     def __len__(self) -> int:
         return self.q.shape[0]
@@ -623,7 +650,18 @@ def _target_at_signature(
     return moved[:3, :3] @ p + moved[:3, 3]
 
 
-def _flange_at_signature(nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb):
+def _flange_at_signature(
+    nominal: KinematicModel,
+    sweeps: Sweeps,
+    groups: dict[int, np.ndarray],
+    fits: list[dict],
+    moved: dict[int, np.ndarray],
+    v: np.ndarray,
+    vs: np.ndarray,
+    S: np.ndarray,
+    R: np.ndarray,
+    T_wb: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str], list[str]]:
     """Step 4: the flange ``T_world_flange`` (4, 4) at the signature, the tool (4, 4), the
     targets (tool frame) and their changes, notes and warnings.
 
@@ -747,10 +785,48 @@ def circle_point_analysis(
     collinear points), ``ValueError`` for other bad input.
     """
     convention, q = _check_cpa_input(nominal, sweeps, method, convention)
+    settings = dict(
+        method=method,
+        convention=convention,
+        sigma_m=sigma_m,
+        min_arc_rad=min_arc_rad,
+        min_radius_to_noise=min_radius_to_noise,
+        min_points=min_points,
+        held_tol_rad=held_tol_rad,
+        held_tol_m=held_tol_m,
+        parallel_tol_rad=parallel_tol_rad,
+    )
+    axes = _signature_axes(nominal, sweeps, q, settings)
+    return _model_from_axes(nominal, sweeps, axes, settings)
+
+
+@dataclass(frozen=True, eq=False)
+class _SignatureAxes:
+    """Steps 1-2 of :func:`circle_point_analysis`: ``v`` (M, n) the joint variables of the rows,
+    ``vs`` (n,) the signature's; ``groups``/``held`` per swept joint its rows and the variables
+    held; ``measured``/``fits`` the axis fits; ``S``, ``R`` (n, 3) the axes at the signature
+    (zero rows for joints not swept) and ``moved`` per joint the transform that took them there."""
+
+    v: np.ndarray
+    vs: np.ndarray
+    groups: dict[int, np.ndarray]
+    measured: dict[int, AxisFit]
+    fits: list[dict]
+    S: np.ndarray
+    R: np.ndarray
+    moved: dict[int, np.ndarray]
+    warnings: list[str]
+    notes: list[str]
+
+
+def _signature_axes(nominal: KinematicModel, sweeps: Sweeps, q: np.ndarray, settings: dict) -> _SignatureAxes:
+    """Steps 1-2 of :func:`circle_point_analysis`: the sweeps checked, each swept joint's axis
+    fitted (:func:`_fit_sweeps`) and moved to the signature configuration
+    (:func:`_axes_at_signature`)."""
     n = nominal.n_joints
     v = joint_variables(nominal, q)
-    tol = np.array([held_tol_rad if j.revolute else held_tol_m for j in nominal.joints])
-    groups, held = _check_sweeps(nominal, sweeps, v, tol, min_points)
+    tol = np.array([settings["held_tol_rad"] if j.revolute else settings["held_tol_m"] for j in nominal.joints])
+    groups, held = _check_sweeps(nominal, sweeps, v, tol, settings["min_points"])
     vs = _signature(n, held, groups, v)
 
     measured, fits, warnings = _fit_sweeps(
@@ -758,24 +834,34 @@ def circle_point_analysis(
         sweeps,
         groups,
         v,
-        method=method,
-        sigma_m=sigma_m,
-        min_arc_rad=min_arc_rad,
-        min_radius_to_noise=min_radius_to_noise,
+        method=settings["method"],
+        sigma_m=settings["sigma_m"],
+        min_arc_rad=settings["min_arc_rad"],
+        min_radius_to_noise=settings["min_radius_to_noise"],
     )
     S, R, moved, notes = _axes_at_signature(nominal, sweeps, groups, held, measured, vs, tol)
+    return _SignatureAxes(v, vs, groups, measured, fits, S, R, moved, warnings, notes)
+
+
+def _model_from_axes(nominal: KinematicModel, sweeps: Sweeps, axes: _SignatureAxes, settings: dict) -> CPAResult:
+    """Steps 3-6 of :func:`circle_point_analysis`: the base registered, the axes compared with
+    the nominal's, the flange placed, the model at the zero of the joint variables and in the
+    requested convention."""
+    n = nominal.n_joints
+    measured, S, R, vs = axes.measured, axes.S, axes.R, axes.vs
+    warnings, notes = axes.warnings, axes.notes
     T_wb, reg_rms = _registration(nominal, sweeps)
     S_nom, R_nom = (
         a[0] for a in axis_lines(dataclasses.replace(_unit_readings(nominal), base=matrix_to_pose(T_wb)), vs)
     )
     tilt, offset = _against_nominal(nominal, measured, S, R, S_nom, R_nom, warnings)
     T_fl, tool, targets, changes, flange_notes, flange_warnings = _flange_at_signature(
-        nominal, sweeps, groups, fits, moved, v, vs, S, R, T_wb
+        nominal, sweeps, axes.groups, axes.fits, axes.moved, axes.v, vs, S, R, T_wb
     )
     notes += flange_notes
     warnings += flange_warnings
     model_poe = _zero_reference_model(nominal, S, R, vs, T_wb, T_fl, tool, targets)
-    model = _in_convention(model_poe, nominal, convention, parallel_tol_rad, notes)
+    model = _in_convention(model_poe, nominal, settings["convention"], settings["parallel_tol_rad"], notes)
     message = f"{len(measured)} of {n} axes identified from {len(sweeps)} points" + (
         f"; {len(warnings)} warnings" if warnings else ""
     )
@@ -783,7 +869,7 @@ def circle_point_analysis(
         model=model,
         model_poe=model_poe,
         axes=tuple(measured.get(j) for j in range(n)),
-        fits=tuple(fits),
+        fits=tuple(axes.fits),
         directions=S,
         points=R,
         signature_v=vs,
@@ -797,17 +883,7 @@ def circle_point_analysis(
         notes=tuple(notes),
         success=len(measured) == n,
         message=message,
-        settings=dict(
-            method=method,
-            convention=convention,
-            sigma_m=sigma_m,
-            min_arc_rad=min_arc_rad,
-            min_radius_to_noise=min_radius_to_noise,
-            min_points=min_points,
-            held_tol_rad=held_tol_rad,
-            held_tol_m=held_tol_m,
-            parallel_tol_rad=parallel_tol_rad,
-        ),
+        settings=settings,
     )
 
 

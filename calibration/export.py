@@ -392,19 +392,7 @@ def to_urdf(
         robot.append(ET.Comment(f" warning: {_comment_safe(warning)} "))
     limits, urdf_names, mimics = _urdf_joint_names(model, scheme, rates)
     w = _UrdfWriter(robot, prefix)
-
-    origins: list[list[Any]] = [
-        list(o) for o in (joint_origins(model) if scheme == "recal" else joint_origins_ros(model))
-    ]
-    T_base_base_link = np.eye(4)  # the model's base frame -> base_link
-    if scheme == "ur":
-        ur_joints, remainder, matched = ur_joint_origins(model)
-        for o, T in zip([o for o in origins if o[1] != "fixed"], ur_joints):
-            o[2] = T
-        origins[-1][2] = remainder
-        match = ur_match(model) if matched else None  # ur_joint_origins matched it: not None then
-        F = match[1] if match is not None else np.eye(4)  # base_link_inertia <- model base
-        T_base_base_link = invert(F) @ _RZ_PI
+    origins, T_base_base_link = _urdf_origins(model, scheme)
     base_link = w.link("base_link")
     T_world_base = origins[0][2]
     if world:
@@ -427,6 +415,47 @@ def to_urdf(
         w.joint("base_link-base_link_inertia", "fixed", base_link, parent, _RZ_PI)
     elif scheme == "ros":
         w.joint("base_link-base", "fixed", base_link, w.link("base"), np.eye(4))
+    tool = _urdf_chain(w, model, scheme, parent, origins, urdf_names, limits, mimics)
+    for tname, p in model.targets.items():
+        child = w.link(f"target_{tname}")
+        w.joint(f"target_{tname}_joint", "fixed", tool, child, homogeneous(np.eye(3), p))
+    ET.indent(robot, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"
+
+
+def _urdf_origins(model: KinematicModel, scheme: str) -> tuple[list[list[Any]], np.ndarray]:
+    """The joint origins ``[name, type, T (4, 4), axis]`` of the chain in ``scheme``'s frames
+    (``ur``: those of the UR calibration YAML, :func:`ur_joint_origins`, the remainder on the
+    flange), and the transform (4, 4) from the model's base frame to ``base_link`` (``ur``: through
+    ``base_link_inertia`` and UR's half turn about z; else the identity)."""
+    origins: list[list[Any]] = [
+        list(o) for o in (joint_origins(model) if scheme == "recal" else joint_origins_ros(model))
+    ]
+    T_base_base_link = np.eye(4)  # the model's base frame -> base_link
+    if scheme == "ur":
+        ur_joints, remainder, matched = ur_joint_origins(model)
+        for o, T in zip([o for o in origins if o[1] != "fixed"], ur_joints):
+            o[2] = T
+        origins[-1][2] = remainder
+        match = ur_match(model) if matched else None  # ur_joint_origins matched it: not None then
+        F = match[1] if match is not None else np.eye(4)  # base_link_inertia <- model base
+        T_base_base_link = invert(F) @ _RZ_PI
+    return origins, T_base_base_link
+
+
+def _urdf_chain(
+    w: _UrdfWriter,
+    model: KinematicModel,
+    scheme: str,
+    parent: str,
+    origins: list[list[Any]],
+    urdf_names: dict,
+    limits: dict,
+    mimics: dict,
+) -> str:
+    """The chain's links and joints from ``parent`` (the joints after the base origin in
+    ``origins``, each link named by ``scheme``), ending with the flange and tool frames
+    (:func:`_urdf_flange`); returns the tool link, where the targets hang."""
     k = 0
     for jname, jtype, T, axis in origins[1:]:
         if jname == "flange":
@@ -441,11 +470,7 @@ def to_urdf(
             w.joint(urdf_names[jname], jtype, parent, child, T, axis, limits[jname], mimics.get(jname))
             parent = child
             k += 1
-    for tname, p in model.targets.items():
-        child = w.link(f"target_{tname}")
-        w.joint(f"target_{tname}_joint", "fixed", tool, child, homogeneous(np.eye(3), p))
-    ET.indent(robot, space="  ")
-    return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"
+    return tool
 
 
 class _UrdfWriter:

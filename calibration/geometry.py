@@ -82,21 +82,8 @@ def fit_sphere(
     >>> np.round(c, 9).tolist(), round(r, 9), rms < 1e-12
     ([2.0, 2.0, 2.0], 1.0, True)
     """
-    x = np.asarray(points, dtype=float)
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ValueError(f"`points` must have shape (k, 3); got {x.shape}")
-    if not np.all(np.isfinite(x)):
-        raise ValueError("`points` contains NaN or infinite values")
+    x, radius = _sphere_input(points, radius)
     k = x.shape[0]
-    if radius is None and k < 4:
-        raise ValueError(f"a sphere of unknown radius needs at least 4 points; got {k}")
-    if radius is not None:
-        radius = float(radius)
-        if not np.isfinite(radius) or radius <= 0:
-            raise ValueError(f"`radius` must be a positive finite number; got {radius}")
-        if k < 3:
-            raise ValueError(f"a sphere of known radius needs at least 3 points; got {k}")
-
     # Work in centred, scaled coordinates for conditioning.
     mean = x.mean(axis=0)
     y = x - mean
@@ -106,7 +93,6 @@ def fit_sphere(
         raise ValueError("the points are collinear (or coincide): no unique sphere passes through them")
     coplanar = s[2] <= _DEGENERATE_RTOL * s[0]
     y = y / scale
-
     if radius is None:
         if coplanar:
             raise ValueError(
@@ -127,6 +113,26 @@ def fit_sphere(
     residuals = np.linalg.norm(y - c, axis=1) - r
     rms = float(np.sqrt(np.mean(residuals**2)) * scale)
     return c * scale + mean, float(r * scale), rms
+
+
+def _sphere_input(points: np.ndarray, radius: float | None) -> tuple[np.ndarray, float | None]:
+    """:func:`fit_sphere`'s points (k, 3) and known radius checked: finite, enough points for
+    the unknowns (4 with a free radius, 3 with a known one), a positive radius."""
+    x = np.asarray(points, dtype=float)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"`points` must have shape (k, 3); got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("`points` contains NaN or infinite values")
+    k = x.shape[0]
+    if radius is None and k < 4:
+        raise ValueError(f"a sphere of unknown radius needs at least 4 points; got {k}")
+    if radius is not None:
+        radius = float(radius)
+        if not np.isfinite(radius) or radius <= 0:
+            raise ValueError(f"`radius` must be a positive finite number; got {radius}")
+        if k < 3:
+            raise ValueError(f"a sphere of known radius needs at least 3 points; got {k}")
+    return x, radius
 
 
 def _algebraic_sphere(y: np.ndarray) -> tuple[np.ndarray, float]:

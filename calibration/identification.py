@@ -22,7 +22,7 @@ from .parameters import Parameter
 INSTRUMENT_SIGMA_M = 20e-6
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class Measurements:
     """Measured data, SI. ``q`` (N, n) joint readings; ``p_world`` (N, 3) measured target
     positions; ``quat`` (N, 4) tool orientation ``(qw, qx, qy, qz)`` or NaN where a row has
@@ -33,30 +33,44 @@ class Measurements:
 
     q: np.ndarray
     p_world: np.ndarray
-    quat: np.ndarray | None = None
-    target: np.ndarray | None = None
-    sigma: np.ndarray | None = None
-    pose_id: np.ndarray | None = None
-    row: np.ndarray | None = None
-    payload: np.ndarray | None = None
+    quat: np.ndarray | None
+    target: np.ndarray
+    sigma: np.ndarray
+    pose_id: np.ndarray | None
+    row: np.ndarray
+    payload: np.ndarray | None
 
-    def __post_init__(self):
-        q = np.atleast_2d(np.asarray(self.q, dtype=float))
+    # written out (not the dataclass's) so that ``target``, ``sigma`` and ``row``, which may be
+    # left out, are arrays once built: readers need not test them for None
+    def __init__(
+        self,
+        q: np.ndarray,
+        p_world: np.ndarray,
+        quat: np.ndarray | None = None,
+        target: np.ndarray | None = None,
+        sigma: np.ndarray | None = None,
+        pose_id: np.ndarray | None = None,
+        row: np.ndarray | None = None,
+        payload: np.ndarray | None = None,
+    ):
+        q = np.atleast_2d(np.asarray(q, dtype=float))
         N = q.shape[0]
         object.__setattr__(self, "q", q)
-        p = np.asarray(self.p_world, dtype=float).reshape(N, 3)
+        p = np.asarray(p_world, dtype=float).reshape(N, 3)
         object.__setattr__(self, "p_world", p)
-        if self.quat is not None:
-            object.__setattr__(self, "quat", np.asarray(self.quat, dtype=float).reshape(N, 4))
-        t = np.full(N, None, dtype=object) if self.target is None else np.asarray(self.target, dtype=object).reshape(N)
+        if quat is not None:
+            quat = np.asarray(quat, dtype=float).reshape(N, 4)
+        object.__setattr__(self, "quat", quat)
+        t = np.full(N, None, dtype=object) if target is None else np.asarray(target, dtype=object).reshape(N)
         t = np.array([None if (x is None or x == "") else str(x) for x in t], dtype=object)
         object.__setattr__(self, "target", t)
-        s = np.full(N, np.nan) if self.sigma is None else np.asarray(self.sigma, dtype=float).reshape(N)
+        s = np.full(N, np.nan) if sigma is None else np.asarray(sigma, dtype=float).reshape(N)
         object.__setattr__(self, "sigma", s)
-        if self.row is None:
-            object.__setattr__(self, "row", np.arange(1, N + 1))
-        if self.payload is not None:
-            object.__setattr__(self, "payload", np.asarray(self.payload, dtype=float).reshape(N, 4))
+        object.__setattr__(self, "pose_id", pose_id)
+        object.__setattr__(self, "row", np.arange(1, N + 1) if row is None else row)
+        if payload is not None:
+            payload = np.asarray(payload, dtype=float).reshape(N, 4)
+        object.__setattr__(self, "payload", payload)
 
     def __len__(self) -> int:
         return self.q.shape[0]
@@ -69,8 +83,6 @@ class Measurements:
         return np.all(np.isfinite(self.quat), axis=1)
 
     def subset(self, idx) -> Measurements:
-        assert self.target is not None and self.sigma is not None and self.row is not None  # __post_init__
-
         def pick(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[idx]
 

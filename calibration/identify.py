@@ -111,7 +111,7 @@ from .identify_selection import (  # noqa: F401 (re-exported: calibration.identi
     preference_order,
     select_identifiable,
 )
-from .identify_solver import (  # noqa: F401 (re-exported: calibration.identify keeps every name it had)
+from .identify_solver import (
     TERMINATION_MESSAGES,
     _levenberg_marquardt,
     _Solution,
@@ -169,8 +169,8 @@ class _Fit:
     Levenberg–Marquardt solution, each freed parameter's total step, and the counts."""
 
     model: KinematicModel
-    selection: object
-    solution: object
+    selection: _Selection
+    solution: _Solution
     moved: dict
     iterations: int
     nfev: int
@@ -179,27 +179,25 @@ class _Fit:
 
 
 def _fit_and_reselect(
-    start,
-    prob,
-    cands,
-    sel,
-    first_lin: list,
-    prior,
+    st: _Start,
+    prior: Prior | None,
     *,
-    loss,
-    f_scale,
-    max_iter,
-    ftol,
-    xtol,
-    gtol,
-    rank_rtol,
-    position_only,
-    reselect,
+    loss: str,
+    f_scale: float,
+    max_iter: int,
+    ftol: float,
+    xtol: float,
+    gtol: float,
+    rank_rtol: float,
+    reselect: bool,
 ) -> _Fit:
-    """Levenberg–Marquardt on the selected parameters (``first_lin``: [their linearisation at
-    ``start``] when it can be reused, taken out of the list by the first fit); then, when ``reselect``, the selection again at the answer
-    (a parameter redundant only at the nominal geometry, e.g. on a reflector nominally on the
-    flange axis, is freed where the data show it), and again, until the freed set is stable."""
+    """Levenberg–Marquardt on the selected parameters from the start ``st`` (its ``first_lin``:
+    [their linearisation at the start] when it can be reused, taken out of the list by the first
+    fit); then, when ``reselect``, the selection again at the answer (a parameter redundant only
+    at the nominal geometry, e.g. on a reflector nominally on the flange axis, is freed where the
+    data show it), and again, until the freed set is stable."""
+    start, prob, cands, sel, first_lin = st.model, st.prob, st.cands, st.sel, st.first_lin
+    position_only = st.position_only
     current = start
     moved: dict[str, float] = {}
     iterations = nfev = 0
@@ -294,6 +292,7 @@ def identify(
         sigma_m=sigma_m,
         sigma_rad=sigma_rad,
         loss=loss,
+        f_scale=f_scale,
         register=register,
         fixed=fixed,
         gains=gains,
@@ -305,11 +304,7 @@ def identify(
 
     # 4. Levenberg–Marquardt; then the selection again at the answer, until the freed set is stable
     fit = _fit_and_reselect(
-        st.model,
-        st.prob,
-        st.cands,
-        st.sel,
-        st.first_lin,
+        st,
         prior,
         loss=loss,
         f_scale=f_scale,
@@ -318,33 +313,39 @@ def identify(
         xtol=xtol,
         gtol=gtol,
         rank_rtol=rank_rtol,
-        position_only=st.position_only,
         reselect=prior is None and hayati,
     )
+    # 5. statistics at the solution; 6. merging the parameters the prior alone determines
+    return _judge(model, data, st, fit, prior, at_nominal, loss=loss, f_scale=f_scale, outlier_sigma=outlier_sigma)
+
+
+def _judge(
+    model: KinematicModel,
+    data: Measurements,
+    st: _Start,
+    fit: _Fit,
+    prior: Prior | None,
+    at_nominal: set[int],
+    *,
+    loss: str,
+    f_scale: float,
+    outlier_sigma: float,
+) -> IdentificationResult:
+    """Steps 5-6 of :func:`identify`: the statistics at the solution (:func:`_answer`), the
+    warnings of a target on the last axis (with the standard errors ``sqrt(diag Σ)`` of the
+    parameters freed only at the answer, not in ``at_nominal``), and the result with the
+    prior's parameters merged (:func:`_result`)."""
     if not fit.settled:
         st.notes.append(
             f"the freed set did not settle in {MAX_SELECTION_ROUNDS} selections at the identified model: "
             f"the last fit's set is kept"
         )
-
-    # 5. statistics at the solution
     ans = _answer(st, fit, prior, loss=loss, f_scale=f_scale, n_poses=len(data))
     params = [st.cands[k] for k in fit.selection.kept]
     answer_sd = np.sqrt(np.maximum(np.diag(ans.stats["covariance"]), 0.0))
     answer_only = [(params[i], float(answer_sd[i])) for i, k in enumerate(fit.selection.kept) if k not in at_nominal]
     warnings = _on_axis_warnings(st.on_axis, answer_only, fit.selection.dropped)
-
-    # 6. merging: the parameters the prior alone determines join the estimated ones
-    settings = dict(
-        sigma_m=sigma_m,
-        sigma_rad=st.prob.sigma_rot,
-        loss=loss,
-        f_scale=f_scale,
-        gains=gains,
-        rank_rtol=rank_rtol,
-        fixed=list(fixed),
-    )
-    return _result(model, data, st, fit, ans, prior, warnings, settings, outlier_sigma=outlier_sigma)
+    return _result(model, data, st, fit, ans, prior, warnings, st.settings, outlier_sigma=outlier_sigma)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -367,6 +368,7 @@ class _Start:
     registration: dict | None
     targets: tuple
     position_only: bool
+    settings: dict  # what the result records of the options
 
 
 def _prepare(
@@ -376,6 +378,7 @@ def _prepare(
     sigma_m: float,
     sigma_rad: float | None,
     loss: str,
+    f_scale: float,
     register: str,
     fixed: tuple[str, ...],
     gains: bool,
@@ -415,7 +418,18 @@ def _prepare(
     # weights are the same (no robust loss): no second pass over the data
     first_lin = [lin_all.restricted(sel.kept)] if loss == "linear" else []
     del lin_all
-    return _Start(start, prob, cands, sel, first_lin, notes, complete, on_axis, registration, targets, position_only)
+    settings = dict(
+        sigma_m=sigma_m,
+        sigma_rad=prob.sigma_rot,
+        loss=loss,
+        f_scale=f_scale,
+        gains=gains,
+        rank_rtol=rank_rtol,
+        fixed=list(fixed),
+    )
+    return _Start(
+        start, prob, cands, sel, first_lin, notes, complete, on_axis, registration, targets, position_only, settings
+    )
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

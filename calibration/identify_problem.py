@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -154,18 +155,18 @@ def _stack(prob: _Problem, rp, rr, Jp=None, Jr=None):
     :func:`~calibration.jacobian.jacobian_from_walk`, used for nothing else) is weighted in place."""
     wp = 1.0 / prob.sigma_pos
     r = [(rp.T * wp).reshape(-1)]
-    Jt = None
+    cols: list[np.ndarray] | None = None  # the Jacobian's transposed blocks, with Jp
     if Jp is not None:
         JpT = Jp.transpose(2, 1, 0)  # (P, 3, N), contiguous
         JpT = np.multiply(JpT, wp, out=JpT) if JpT.flags.c_contiguous and JpT.flags.writeable else JpT * wp
-        Jt = [JpT.reshape(Jp.shape[2], -1)]  # (P, 3N)
+        cols = [JpT.reshape(Jp.shape[2], -1)]  # (P, 3N)
     if np.any(prob.has_rot):
         m = prob.has_rot
         r.append((rr[m].T / prob.sigma_rot).reshape(-1))
-        if Jp is not None:
-            Jt.append((Jr.transpose(2, 1, 0)[:, :, m] / prob.sigma_rot).reshape(Jr.shape[2], -1))
-    if Jt is not None:
-        Jt = Jt[0] if len(Jt) == 1 else np.concatenate(Jt, axis=1)
+        if cols is not None:
+            assert Jr is not None  # rows with an orientation have its Jacobian
+            cols.append((Jr.transpose(2, 1, 0)[:, :, m] / prob.sigma_rot).reshape(Jr.shape[2], -1))
+    Jt = None if cols is None else cols[0] if len(cols) == 1 else np.concatenate(cols, axis=1)
     return (r[0] if len(r) == 1 else np.concatenate(r)), (None if Jt is None else Jt.T)
 
 
@@ -243,7 +244,7 @@ def _linearise(
     rr = np.zeros((N, 3)) if any(ch.rot for ch in prob.chunks) else np.broadcast_to(np.zeros(3), (N, 3))
     z2, w_row = np.empty(N), np.ones(N)
     G, g, c, n = np.zeros((K, P, P)), np.zeros((K, P)), np.zeros(K), np.zeros(K, dtype=int)
-    R = None
+    R: np.ndarray | None = None
     keys = record_keys(params)
     data = prob.data
     ops = program(model)  # compiled once for every chunk
@@ -260,6 +261,7 @@ def _linearise(
         zz = np.einsum("ni,ni->n", zp, zp)
         m = None
         if ch.rot:
+            assert prob.R_meas is not None  # a chunk with orientation rows has measured orientations
             m = prob.has_rot[a:b]
             rrc = matrix_to_rotvec(prob.R_meas[a:b][m] @ np.swapaxes(w.R[m], 1, 2))
             rr[a:b][m] = rrc
@@ -278,6 +280,7 @@ def _linearise(
         JpT *= wp * sw
         cols, res = [JpT.reshape(P, -1)], [(zp.T * sw).reshape(-1)]
         if m is not None:
+            assert Jr is not None  # asked for (orientation=ch.rot)
             cols.append((Jr.transpose(2, 1, 0)[:, :, m] * (sw[m] / prob.sigma_rot)).reshape(P, -1))
             res.append((zr.T * sw[m]).reshape(-1))
         Jt = cols[0] if len(cols) == 1 else np.concatenate(cols, axis=1)  # (P, rows of the chunk)
@@ -285,7 +288,8 @@ def _linearise(
         G[f] += Jt @ Jt.T
         g[f] += Jt @ rv
         if factor:
-            R = np.linalg.qr(Jt.T if R is None else np.vstack([R, Jt.T]), mode="r")
+            # numpy's stubs type every mode's answer as the (Q, R) pair; mode "r" returns R alone
+            R = cast(np.ndarray, np.linalg.qr(Jt.T if R is None else np.vstack([R, Jt.T]), mode="r"))
     return _Linearisation(rp, rr, z2, w_row, G, g, c, n, R)
 
 

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -98,10 +100,11 @@ def _r_factor(J: np.ndarray, *, block_rows: int = 2048) -> np.ndarray:
     as fast as one QR of a tall-skinny matrix. ``RᵀR = JᵀJ``; R's rows may differ in sign from
     LAPACK's, which changes no inner product, singular value or Gram matrix computed from it."""
     M = J.shape[0]
+    # numpy's stubs type every mode's answer as the (Q, R) pair; mode "r" returns R alone
     if M <= 2 * block_rows:
-        return np.linalg.qr(J, mode="r")
-    blocks = [np.linalg.qr(J[a : a + block_rows], mode="r") for a in range(0, M, block_rows)]
-    return np.linalg.qr(np.vstack(blocks), mode="r")
+        return cast(np.ndarray, np.linalg.qr(J, mode="r"))
+    blocks = [cast(np.ndarray, np.linalg.qr(J[a : a + block_rows], mode="r")) for a in range(0, M, block_rows)]
+    return cast(np.ndarray, np.linalg.qr(np.vstack(blocks), mode="r"))
 
 
 # A dropped column is "the same motion" as the kept column it is closest to when the part of it
@@ -339,7 +342,7 @@ def _hold_weak(
     sel: _Selection,
     s2: float,
     *,
-    held_anyway: list[int] = (),
+    held_anyway: Sequence[int] = (),
     before: dict | None = None,
 ) -> _Selection:
     """``sel`` less the parameters the data cannot determine to :data:`DETERMINED_M` /
@@ -388,6 +391,7 @@ def _merge_prior(cands: list[Parameter], sel: _Selection, cov: np.ndarray, steps
         est = [pos[k] for k in kept]
         full[np.ix_(est, est)] = cov
         fp = [pos[k] for k in sel.from_prior]
+        assert prior is not None  # only a prior gives parameters to take from it
         full[np.ix_(fp, fp)] = prior.covariance_of([cands[k] for k in sel.from_prior])
         cov = full
         params = [cands[k] for k in order]

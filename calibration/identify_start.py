@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
@@ -43,9 +44,10 @@ def _register(model: KinematicModel, prob: _Problem) -> tuple[KinematicModel, di
         return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
 
     before = rms(pose_to_matrix(model.base), p_local)
-    info = {"rms_before_m": before}
+    info: dict[str, Any] = {"rms_before_m": before}
     n_rot = len(R_rot)
     if n_rot >= 3:
+        assert prob.R_meas is not None  # rows with an orientation: measured orientations
         m = prob.has_rot
         T_pred = homogeneous(R_rot, p_rot)  # includes the current tool
         T_meas = homogeneous(prob.R_meas[m], np.zeros((n_rot, 3)))
@@ -192,8 +194,10 @@ def _jacobian_rank(model: KinematicModel, targets: tuple, *, orientation: bool) 
     blocks = []
     for i, t in enumerate(targets):
         pred = predict(model, q, model.target(t), params, np.array([t] * len(q), dtype=object))
+        assert pred.Jp is not None  # asked for (params)
         blocks.append(pred.Jp.reshape(-1, len(params)))
         if orientation and i == 0:  # the tool's orientation: the same rows for every target
+            assert pred.Jr is not None
             blocks.append(pred.Jr.reshape(-1, len(params)))
     return _rank(np.vstack(blocks))
 
@@ -218,12 +222,12 @@ def complete_form(
     the rewritten model sags exactly as the given one."""
     if model.compliance is not None:
         rigid = dataclasses.replace(model, compliance=None)
-        form, notes = complete_form(rigid, hayati=hayati, parallel_tol_rad=parallel_tol_rad)
+        form, form_notes = complete_form(rigid, hayati=hayati, parallel_tol_rad=parallel_tol_rad)
         if form is rigid:
-            return model, notes
+            return model, form_notes
         from .compliance import reexpress  # here: compliance imports identify
 
-        return reexpress(form, model), notes
+        return reexpress(form, model), form_notes
     notes: list[str] = []
     start = model
     if start.convention == "mdh" and not any(j.hayati for j in start.joints):

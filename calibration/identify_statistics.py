@@ -7,6 +7,7 @@ what a prior made from a result needs (:func:`held_relations`, :func:`drift_scal
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -192,7 +193,7 @@ CONSISTENCY_MIN_SCALE = 1.1
 SCALE_LEVEL = 0.01
 
 
-def chi2_upper_tail(chi2: float, dof: int) -> float:
+def chi2_upper_tail(chi2: float, dof: float) -> float:
     """P(X ≥ ``chi2``) for X ~ χ²(``dof``), by the Wilson–Hilferty cube-root normal approximation
     (absolute error below 1e-3 from 10 degrees of freedom on, which the redundancy check
     guarantees; no scipy import, which costs ~0.2 s)."""
@@ -250,7 +251,7 @@ def _statistics(
     chi2 = float(lin.c.sum()) + chi2_prior
     dof = max(int(lin.n.sum()) + n_prior - P, 1)
     sigma_scale = excess_scale(chi2, dof)
-    out = {
+    out: dict[str, Any] = {
         "chi2": chi2,
         "dof": dof,
         "sigma_scale": sigma_scale,
@@ -274,6 +275,7 @@ def _statistics(
     Rw = _gram_factor(G)
     if Rw is None:
         Rw = _linearise(current, prob, params, loss=loss, f_scale=f_scale, factor=True).R
+        assert Rw is not None  # asked for (factor), and there are parameters
     Ra = Rw if prior is None else np.vstack([Rw, _sqrt_psd(info)])
     out["singular_values"], out["condition_number"], out["observability"] = _conditioning(
         Ra, params, n_poses=n_poses, reach_m=reach_m

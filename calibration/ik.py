@@ -356,7 +356,7 @@ def solve_ik(
     q = check_q(model, q0).copy()
     T = np.asarray(T_world_tool, dtype=float)
     T = T[None] if T.ndim == 2 else T
-    N, n = q.shape
+    N = q.shape[0]
     if T.shape != (N, 4, 4):
         raise ValueError(f"`T_world_tool` must have shape ({N}, 4, 4); got {T.shape}")
     L = length_scale_m or characteristic_length(model)
@@ -382,16 +382,8 @@ def solve_ik(
         idx = np.nonzero(active)[0]
         if idx.size == 0:
             break
-        Js = J[idx] * col
-        Js[:, :3, :] /= L
         es = scaled(e[idx])
-        A = np.einsum("nki,nkj->nij", Js, Js)
-        g = np.einsum("nki,nk->ni", Js, es)
-        tr = np.trace(A, axis1=1, axis2=2) / n
-        damp = (mu[idx] * np.maximum(tr, 1e-300))[:, None, None] * np.eye(n)
-        dq = np.linalg.solve(A + damp, g[:, :, None])[:, :, 0] * col
-        over = np.max(np.abs(dq) / cap, axis=1)
-        dq /= np.maximum(over, 1.0)[:, None]
+        dq = _damped_newton_step(J[idx], es, mu[idx], col, L, cap)
         q_try = q[idx] + dq
         R2, p2, J2 = pose_and_jacobian(model, q_try)
         e2 = pose_error(T[idx], R2, p2)
@@ -416,6 +408,27 @@ def solve_ik(
         jacobian=J,
         jacobian_start=J_start,
     )
+
+
+def _damped_newton_step(
+    J: np.ndarray, es: np.ndarray, mu: np.ndarray, col: np.ndarray, L: float, cap: np.ndarray
+) -> np.ndarray:
+    """The Levenberg–Marquardt step dq (k, n) of :func:`solve_ik` for k points: Jacobians ``J``
+    (k, 6, n), scaled pose errors ``es`` (k, 6), damping ``mu`` (k,). On the dimensionless
+    problem (columns times ``col``, position rows over the length ``L``) it solves
+    ``(JᵀJ + μ·tr(JᵀJ)/n·I) dq = Jᵀe``, then shrinks each point's step so that no joint moves
+    more than its ``cap``."""
+    n = J.shape[2]
+    Js = J * col
+    Js[:, :3, :] /= L
+    A = np.einsum("nki,nkj->nij", Js, Js)
+    g = np.einsum("nki,nk->ni", Js, es)
+    tr = np.trace(A, axis1=1, axis2=2) / n
+    damp = (mu * np.maximum(tr, 1e-300))[:, None, None] * np.eye(n)
+    dq = np.linalg.solve(A + damp, g[:, :, None])[:, :, 0] * col
+    over = np.max(np.abs(dq) / cap, axis=1)
+    dq /= np.maximum(over, 1.0)[:, None]
+    return dq
 
 
 def spread_seeds(model: KinematicModel, count: int) -> np.ndarray:

@@ -453,67 +453,105 @@ def _exchange(
     :func:`_swap_trace`); the eigenvalue criteria screen ``screen`` candidates by their D gain and
     ``screen`` by what they add along the design's weakest direction, then score those exactly."""
     chosen = list(chosen)
-    C, r, P = J.shape
+    C, r, _ = J.shape
     in_design = np.zeros(C, bool)
     in_design[chosen] = True
     M = np.diag(ridge) + sum(J[i].T @ J[i] for i in chosen)
     swaps = sweeps = 0
     eye = np.eye(r)
     use_trace = criterion == "I"
-
-    def cache(M):  # recomputed exactly after each accepted swap only (no drift)
-        Mi = _inv(M)
-        G, A, _ = _add_gain(J, Mi)
-        if not use_trace:
-            return Mi, G, A, None, None
-        GW = (G.reshape(C * r, P) @ W).reshape(C, r, P)
-        return Mi, G, A, GW, GW @ np.swapaxes(G, 1, 2)
-
-    Mi, G, A, GW, H = cache(M)
+    st = _exchange_state(J, M, W, use_trace)
     for sweeps in range(1, max_sweeps + 1):
         swapped = False
         for pos in range(len(chosen)):
             j = chosen[pos]
-            Sj = eye - A[j]
+            Sj = eye - st.A[j]
             if np.linalg.det(Sj) <= 1e-12:
                 continue  # j alone carries a direction: removing it would lose rank
             Sji = np.linalg.inv(Sj)
             allowed = ~in_design
             if not np.any(allowed):
                 return chosen, swaps, sweeps
-            B, A_minus = _downdate(G, A, J[j], Sji)
-            if criterion in ("D", "O1"):
-                gain = _logdet(eye + A_minus)  # the D gain of i in, relative to j out
-                cand = np.where(allowed, gain, -np.inf)
-                i = int(np.argmax(cand))
-                better = cand[i] > gain[j] + tol
-            elif use_trace:
-                after = _swap_trace(B, A_minus, GW, H, J[j], Sj, Sji, Mi, W)  # trace(M'⁻¹W), j out, i in
-                cand = np.where(allowed, after, np.inf)
-                i = int(np.argmin(cand))
-                better = cand[i] < after[j] * (1.0 - tol)
-            else:
-                gain = _logdet(eye + A_minus)
-                M_minus = M - J[j].T @ J[j]
-                _, V = np.linalg.eigh(M_minus)
-                weak = np.sum((J @ V[:, 0]) ** 2, axis=1)
-                idx = np.nonzero(allowed)[0]
-                pool = np.unique(np.concatenate([_top(gain, idx, screen), _top(weak, idx, screen)]))
-                s = _scores(M_minus + np.swapaxes(J[pool], 1, 2) @ J[pool], criterion, W)
-                now = float(_scores(M, criterion, W))
-                k = int(np.argmax(s))
-                i = int(pool[k])
-                better = s[k] > now + tol * max(abs(now), 1e-300)
+            i, better = _best_swap(J, st, j, Sj, Sji, allowed, criterion, W, screen=screen, tol=tol)
             if better:
                 chosen[pos] = i
                 in_design[j], in_design[i] = False, True
-                M = M - J[j].T @ J[j] + J[i].T @ J[i]
-                Mi, G, A, GW, H = cache(M)
+                st = _exchange_state(J, st.M - J[j].T @ J[j] + J[i].T @ J[i], W, use_trace)
                 swaps += 1
                 swapped = True
         if not swapped:
             break
     return chosen, swaps, sweeps
+
+
+@dataclass(frozen=True, eq=False)
+class _ExchangeState:
+    """The design's information ``M`` (P, P) during :func:`_exchange`, its inverse ``Mi``, and per
+    candidate i ``Gᵢ = Jᵢ M⁻¹`` (C, r, P) and ``Aᵢ = Jᵢ M⁻¹ Jᵢᵀ`` (C, r, r); for the I criterion
+    also ``GWᵢ = Gᵢ W`` and ``Hᵢ = Gᵢ W Gᵢᵀ`` (else None)."""
+
+    M: np.ndarray
+    Mi: np.ndarray
+    G: np.ndarray
+    A: np.ndarray
+    GW: np.ndarray | None
+    H: np.ndarray | None
+
+
+def _exchange_state(J: np.ndarray, M: np.ndarray, W: np.ndarray | None, use_trace: bool) -> _ExchangeState:
+    """:class:`_ExchangeState` of the design ``M``: recomputed exactly after each accepted swap
+    only (no drift)."""
+    C, r, P = J.shape
+    Mi = _inv(M)
+    G, A, _ = _add_gain(J, Mi)
+    if not use_trace:
+        return _ExchangeState(M, Mi, G, A, None, None)
+    assert W is not None  # the I criterion's weight
+    GW = (G.reshape(C * r, P) @ W).reshape(C, r, P)
+    return _ExchangeState(M, Mi, G, A, GW, GW @ np.swapaxes(G, 1, 2))
+
+
+def _best_swap(
+    J: np.ndarray,
+    st: _ExchangeState,
+    j: int,
+    Sj: np.ndarray,
+    Sji: np.ndarray,
+    allowed: np.ndarray,
+    criterion: str,
+    W: np.ndarray | None,
+    *,
+    screen: int,
+    tol: float,
+) -> tuple[int, bool]:
+    """The best candidate i (among ``allowed``) to replace the design's pose j, and whether the
+    swap improves the criterion by more than ``tol``. D and O1: the D gain ``log det(I + Aᵢ⁻ʲ)``
+    of i in against j's (Aᵢ⁻ʲ from :func:`_downdate`); I: ``trace(M'⁻¹W)`` with j out and i in
+    (:func:`_swap_trace`); the eigenvalue criteria: ``screen`` candidates by their D gain and
+    ``screen`` by what they add along the weakest direction of ``M − JⱼᵀJⱼ``, scored exactly."""
+    eye = np.eye(J.shape[1])
+    B, A_minus = _downdate(st.G, st.A, J[j], Sji)
+    if criterion in ("D", "O1"):
+        gain = _logdet(eye + A_minus)  # the D gain of i in, relative to j out
+        cand = np.where(allowed, gain, -np.inf)
+        i = int(np.argmax(cand))
+        return i, bool(cand[i] > gain[j] + tol)
+    if criterion == "I":
+        assert st.GW is not None and st.H is not None and W is not None  # kept for the I criterion
+        after = _swap_trace(B, A_minus, st.GW, st.H, J[j], Sj, Sji, st.Mi, W)  # trace(M'⁻¹W), j out, i in
+        cand = np.where(allowed, after, np.inf)
+        i = int(np.argmin(cand))
+        return i, bool(cand[i] < after[j] * (1.0 - tol))
+    gain = _logdet(eye + A_minus)
+    M_minus = st.M - J[j].T @ J[j]
+    _, V = np.linalg.eigh(M_minus)
+    weak = np.sum((J @ V[:, 0]) ** 2, axis=1)
+    idx = np.nonzero(allowed)[0]
+    pool = np.unique(np.concatenate([_top(gain, idx, screen), _top(weak, idx, screen)]))
+    s = _scores(M_minus + np.swapaxes(J[pool], 1, 2) @ J[pool], criterion, W)
+    now = float(_scores(st.M, criterion, W))
+    k = int(np.argmax(s))
+    return int(pool[k]), bool(s[k] > now + tol * max(abs(now), 1e-300))
 
 
 def _downdate(G: np.ndarray, A: np.ndarray, Jj: np.ndarray, Sji: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -887,7 +925,16 @@ def _statistic_name(statistic: str) -> str:
     return "RMS" if statistic == "rms" else "95th percentile"
 
 
-def _at_most(design, ev, k_max: int, criterion, opts: dict, accuracy_m: float, statistic: str, curve) -> AccuracyPlan:
+def _at_most(
+    design,
+    ev,
+    k_max: int,
+    criterion,
+    opts: dict,
+    accuracy_m: float,
+    statistic: str,
+    curve: tuple[np.ndarray, np.ndarray],
+) -> AccuracyPlan:
     """:func:`poses_for_accuracy` when the greedy sequence did not reach ``accuracy_m`` by
     ``k_max`` poses: the full plan of ``k_max`` poses, which may still reach it."""
     name = _statistic_name(statistic)
@@ -916,7 +963,15 @@ def _at_most(design, ev, k_max: int, criterion, opts: dict, accuracy_m: float, s
 
 
 def _growing(
-    design, ev, k: int, k_max: int, criterion, opts: dict, accuracy_m: float, statistic: str, curve
+    design,
+    ev,
+    k: int,
+    k_max: int,
+    criterion,
+    opts: dict,
+    accuracy_m: float,
+    statistic: str,
+    curve: tuple[np.ndarray, np.ndarray],
 ) -> AccuracyPlan:
     """:func:`poses_for_accuracy` from the first ``k`` the greedy sequence predicts to reach
     ``accuracy_m``: planned in full, ``k`` growing until the full plan reaches it too."""

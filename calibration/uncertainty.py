@@ -244,6 +244,7 @@ def rotation_covariance(
     if not params:
         return np.zeros((len(q), 3, 3))
     pred = predict(model, q, np.zeros((len(q), 3)), list(params), np.full(len(q), None, dtype=object), payload)
+    assert pred.Jr is not None  # asked for (params)
     return np.einsum("nip,pq,njq->nij", pred.Jr, covariance, pred.Jr)
 
 

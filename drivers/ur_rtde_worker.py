@@ -42,7 +42,7 @@ class _Capture:
     """Everything written to fds 1 and 2 goes through a pipe read by a thread, which keeps
     the first line that reports a lost connection."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.lost: str | None = None
         read_fd, write_fd = os.pipe()
         os.dup2(write_fd, 1)
