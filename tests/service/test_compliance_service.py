@@ -69,7 +69,6 @@ def test_a_pose_session_keeps_a_residual_map_where_it_helps(idle_app, tokens, st
         res = client.get(f"/api/v1/calibrations/{cal}/result", headers=auth(tokens["viewer"])).json()
         assert "compliance" not in (res["report"] or {}) or res["report"]["compliance"] is None
         rmap = res["report"]["residual_map"]
-        print(rmap["chosen"], {k: f["rms"] for k, f in rmap["families"].items()})
         fams = rmap["families"]
         assert fams[rmap["chosen"]]["rms"] < 0.9 * fams["none"]["rms"], rmap
         model = client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"]
