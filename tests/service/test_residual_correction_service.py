@@ -174,10 +174,10 @@ def test_a_pose_session_without_transmission_errors_keeps_no_correction(idle_app
     to the tracker's noise; every family is tried, none gains, none is stored."""
     with idle_app() as client:
         cell = register_cell(client, tokens["technician"], "plain-session")["id"]
-        cal = stored_session(cell, seed=2, n=150, region_deg=50)[1]
+        cal = stored_session(cell, seed=2, n=100, region_deg=50)[1]
         fig, doc = _session_choice(client, tokens, cal)
     fams = fig["families"]
-    assert set(fams) == {"none", "map", "transmission", "trees"} and fig["cv_rows"] == 150
+    assert set(fams) == {"none", "map", "transmission", "trees"} and fig["cv_rows"] == 100
     assert fig["chosen"] == "none" and "residual_map" not in doc, fig
     assert min(f["rms"] for k, f in fams.items() if k != "none") > (1 - fig["min_gain"]) * fams["none"]["rms"]
-    assert fams["none"]["rms"] < 1.2 * np.sqrt(3) * fig["noise_sigma"]  # the noise alone is left (measured: 1.05 times)
+    assert fams["none"]["rms"] < 1.2 * np.sqrt(3) * fig["noise_sigma"]  # the noise alone is left (measured: 1.09 times)
