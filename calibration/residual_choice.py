@@ -53,6 +53,23 @@ class Choice:
         assert isinstance(c, tt.BoostedTrees), type(c)
         return tt.to_dict(c, model)
 
+    def report(self, model: KinematicModel) -> dict:
+        """The figures in ``model``'s length unit, each ``…_m`` key without its suffix: the
+        report's ``residual_map`` (``recal identify --residual-map auto`` and the service's pose
+        sessions write this one shape: ``families`` with each one's cross-validated ``rms``,
+        ``chosen``, ``gain``, ``learning_curve``, ``noise_sigma``, ...)."""
+        return in_length_unit(self.figures, model.units.length_m)
+
+
+def in_length_unit(value, length_m: float, key: str = ""):
+    """``value`` with every number under a key ending in ``_m`` divided by ``length_m`` (the key
+    without the suffix), recursively through dicts and lists."""
+    if isinstance(value, dict):
+        return {k.removesuffix("_m"): in_length_unit(v, length_m, k) for k, v in value.items()}
+    if isinstance(value, list):
+        return [in_length_unit(v, length_m, key) for v in value]
+    return value / length_m if key.endswith("_m") and isinstance(value, float) else value
+
 
 def _p_tool(model: KinematicModel, data) -> np.ndarray:
     return np.array([model.target(t) for t in data.target])

@@ -223,7 +223,7 @@ def _residual_map(args, model, start, data, holdout, result, kw):
     u = model.units.length
     choice = rc.choose_correction(start, data, identify_kw=kw, final=result.model)
     fig = choice.figures
-    figures = _in_units(fig, L)
+    figures = choice.report(model)
     fams = ", ".join(f"{f} {v['rms_m'] / L:.4g}" for f, v in fig["families"].items())
     line = f"residual map ({fig['folds']}-fold nested cross-validation, RMS {u}): {fams}; "
     if choice.correction is None:
@@ -279,13 +279,3 @@ def _corrected_coverage(model, result, section: dict, holdout, kw: dict) -> floa
         d2[np.flatnonzero(rows)] = np.where(inside if inside is not None else True, d, np.nan)
     keep = np.isfinite(d2)
     return float(np.mean(d2[keep] <= chi2_quantile(0.95, 3))) if keep.any() else None
-
-
-def _in_units(value, L: float, key: str = ""):
-    """``value`` with every number under a key ending in ``_m`` divided by ``L`` (the key without
-    the suffix), recursively."""
-    if isinstance(value, dict):
-        return {k.removesuffix("_m"): _in_units(v, L, k) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_in_units(v, L, key) for v in value]
-    return value / L if key.endswith("_m") and isinstance(value, float) else value

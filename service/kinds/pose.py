@@ -2,7 +2,9 @@
 identification, with the cell's previous calibration as a prior when it has one
 (minimum-variance estimation, book §4.3.2), so that a short nightly session updates a
 calibration instead of replacing it; then, as ``recal identify --residual-map auto``, a residual
-map where cross-validation shows it helps; stored as a new calibration of kind ``pose``."""
+correction chosen by nested cross-validation among every family (none, the smooth map, the joint
+transmission, boosted trees; issue 28), kept where it shows a gain; stored as a new calibration
+of kind ``pose``."""
 
 from __future__ import annotations
 
@@ -125,24 +127,22 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
 def _residual_map(
     start: KinematicModel, data: Measurements, prior: Prior | None, identified: KinematicModel, model: KinematicModel
 ) -> tuple[dict | None, dict | None]:
-    """What ``recal identify --residual-map auto`` does (book §5.4): a smooth correction of what the
-    identified model leaves, kept only where k-fold cross-validation of the whole procedure (the
-    identification from ``start``, with the session's ``prior``, then the map) shows a gain.
-    Returns the model file's ``residual_map`` section (None when it is left out), which the
-    service's compensation applies inside the measured region, and the cross-validation's
-    figures in ``model``'s units either way (None when the folds leave too few poses to tell)."""
+    """What ``recal identify --residual-map auto`` does, by the same function
+    (``calibration.residual_choice.choose_correction``; a session has no setting for it: it is
+    always auto, among every family): a correction of what the identified model leaves, kept
+    only where nested cross-validation of the whole procedure (the identification from ``start``,
+    with the session's ``prior``, then each family) shows a gain. Returns the model file's
+    ``residual_map`` section of the chosen family (None when none is kept), which every verb
+    applies inside the region it was fitted in, and the CLI report's ``residual_map`` figures in
+    ``model``'s units either way (each family's cross-validated RMS, the choice, the learning
+    curve; None when the folds leave too few poses to tell)."""
     from calibration import residual_choice as rc
-    from calibration import residual_map as rm
 
     try:
-        rmap, fig = rc.choose_residual_map(start, data, identify_kw={"prior": prior}, final=identified)
+        choice = rc.choose_correction(start, data, identify_kw={"prior": prior}, final=identified)
     except NotEnoughData:
         return None, None
-    L = model.units.length_m
-    figures = {k.removesuffix("_m"): (v / L if k.endswith("_m") else v) for k, v in fig.items()}
-    # the held-out RMS against the number of poses (model units): what the next plan's accuracy is predicted from
-    figures["learning_curve"] = [{"poses": p["poses"], "rms": p["rms_m"] / L} for p in fig.get("learning_curve", [])]
-    return (None if rmap is None else rm.to_dict(rmap, model)), figures
+    return choice.section(model), choice.report(model)
 
 
 def _prior_summary(result, prev: Calibration, prior: Prior, scale: float, units) -> dict:

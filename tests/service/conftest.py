@@ -134,6 +134,39 @@ def calibrated(idle_app, tokens, stored_session):
 REGION_CENTRE_DEG = [0.0, -60.0, 90.0, -120.0, -90.0, 0.0]
 
 
+def region_limits(region_deg: float):
+    """(6, 2) rad: every joint within ``region_deg`` of REGION_CENTRE_DEG."""
+    import numpy as np
+
+    centre = np.deg2rad(REGION_CENTRE_DEG)
+    return np.stack([centre - np.deg2rad(region_deg), centre + np.deg2rad(region_deg)], axis=1)
+
+
+def session_truth(nominal, *, truth_seed: int = 1, sag: str | None = None, transmission_seed: int | None = None):
+    """The simulated robot :func:`store_session` measures: ``(truth, transmission)`` (the latter
+    None without ``transmission_seed``); see there."""
+    import dataclasses
+
+    import numpy as np
+
+    from calibration.simulate import perturbed
+
+    truth = dataclasses.replace(
+        perturbed(nominal, np.random.default_rng(truth_seed), tool_length_m=0.0),
+        base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]),
+    )
+    if sag is not None:
+        from calibration.simulate import sagging
+
+        truth = sagging(truth, sag, frames_of=dataclasses.replace(nominal, compliance=None))
+    tx = None
+    if transmission_seed is not None:
+        from calibration.simulate import harmonic_drive_errors
+
+        tx = harmonic_drive_errors(nominal, np.random.default_rng(transmission_seed))
+    return truth, tx
+
+
 def store_session(
     settings: Settings,
     cell_id: int,
@@ -160,7 +193,7 @@ def store_session(
     import numpy as np
 
     from calibration.model import model_from_dict
-    from calibration.simulate import perturbed, random_configurations, simulate_measurements
+    from calibration.simulate import random_configurations, simulate_measurements
     from service import kinds, records
     from service.models import Cell, RunSession
 
@@ -170,24 +203,9 @@ def store_session(
             cell = db.get(Cell, cell_id)
             nominal = model_from_dict(cell.model)
             rng = np.random.default_rng(seed)
-            truth = dataclasses.replace(
-                perturbed(nominal, np.random.default_rng(truth_seed), tool_length_m=0.0),
-                base=np.array([1.5, -0.4, 0.2, 0.0, 0.0, 1.0]),
-            )
-            if sag is not None:
-                from calibration.simulate import sagging
-
-                truth = sagging(truth, sag, frames_of=dataclasses.replace(nominal, compliance=None))
-            limits = None
-            if region_deg is not None:
-                centre = np.deg2rad(REGION_CENTRE_DEG)
-                limits = np.stack([centre - np.deg2rad(region_deg), centre + np.deg2rad(region_deg)], axis=1)
+            truth, tx = session_truth(nominal, truth_seed=truth_seed, sag=sag, transmission_seed=transmission_seed)
+            limits = None if region_deg is None else region_limits(region_deg)
             q = np.repeat(random_configurations(nominal, n, rng, limits=limits), repeats, axis=0)
-            tx = None
-            if transmission_seed is not None:
-                from calibration.simulate import harmonic_drive_errors
-
-                tx = harmonic_drive_errors(nominal, np.random.default_rng(transmission_seed))
             data = simulate_measurements(truth, q, rng, targets=("smr",), transmission=tx)
             info = {"method": "random", "limits_checked": True, **({"repeats": repeats} if repeats > 1 else {})}
             run = RunSession(

@@ -27,11 +27,13 @@ def test_compliant_cell_result_shows_rigid_against_compliant(idle_app, tokens, s
         assert comp["cv_rms_compliant"] < 0.05
         model = client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"]
         assert model["compliance"]["terms"]  # the identified terms are in the stored model
-        # the residual map was tried (as `recal identify --residual-map auto`) and left out: the
-        # compliant model leaves only the tracker's noise, which no smooth function of the joints predicts
+        # every residual correction was tried (as `recal identify --residual-map auto`) and left
+        # out: the compliant model leaves only the tracker's noise, which no function of the joints predicts
         rmap = res.json()["report"]["residual_map"]
-        assert rmap["folds"] == 5 and rmap["kept"] is False and "residual_map" not in model
-        assert rmap["rms_with"] > (1 - rmap["min_gain"]) * rmap["rms_without"]
+        assert rmap["folds"] == 5 and rmap["chosen"] == "none" and "residual_map" not in model
+        fams = rmap["families"]
+        assert set(fams) == {"none", "map", "transmission", "trees"}
+        assert min(f["rms"] for k, f in fams.items() if k != "none") > (1 - rmap["min_gain"]) * fams["none"]["rms"]
         # the next session starts from this calibration, its covariance as the prior (compliance terms included)
         _, cal2 = stored_session(r.json()["id"], n=40, seed=5, sag="cobot")
         rep = client.get(f"/api/v1/calibrations/{cal2}/result", headers=auth(tokens["viewer"])).json()["report"]
@@ -67,7 +69,8 @@ def test_a_pose_session_keeps_a_residual_map_where_it_helps(idle_app, tokens, st
         res = client.get(f"/api/v1/calibrations/{cal}/result", headers=auth(tokens["viewer"])).json()
         assert "compliance" not in (res["report"] or {}) or res["report"]["compliance"] is None
         rmap = res["report"]["residual_map"]
-        assert rmap["kept"] is True and rmap["rms_with"] < 0.9 * rmap["rms_without"], rmap
+        fams = rmap["families"]
+        assert fams[rmap["chosen"]]["rms"] < 0.9 * fams["none"]["rms"], rmap
         model = client.get(f"/api/v1/calibrations/{cal}", headers=auth(tokens["viewer"])).json()["model"]
         assert model["residual_map"]["format"] == "recal.residual_map/1"
         assert len(model["residual_map"]["configurations"]) == 100

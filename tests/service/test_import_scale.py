@@ -57,8 +57,11 @@ def test_an_import_of_more_configurations_than_the_map_takes_ends_with_its_calib
         assert s["state"] == "completed" and s["measured"] == 1500 and s["calibration_id"] is not None
         cal = app.get(f"/api/v1/calibrations/{s['calibration_id']}", headers=auth(tokens["viewer"])).json()
     assert cal["report"]["residuals"]["rms"] < 0.06  # mm: the simulated tracker's noise
+    # every family cross-validated on all 1,500 configurations (the map fitted to at most
+    # residual_map.MAX_MAP_CONFIGURATIONS of them, the trees to residual_choice.MAX_TREE_CONFIGURATIONS)
     fig = cal["report"]["residual_map"]
-    assert fig["max_configurations"] == residual_map.MAX_MAP_CONFIGURATIONS and fig["cv_rows"] == 1500
+    assert residual_map.MAX_MAP_CONFIGURATIONS < 1500 <= residual_choice.MAX_TREE_CONFIGURATIONS
+    assert fig["cv_rows"] == 1500 and set(fig["families"]) == set(residual_choice.FAMILIES)
 
 
 def test_an_import_beyond_the_row_or_byte_limit_is_refused_before_anything_is_stored(settings, tokens):
@@ -84,11 +87,11 @@ class _Killed(BaseException):
 )
 def test_an_import_whose_analysis_breaks_is_left_failed_with_the_reason(settings, tokens, monkeypatch, failure, reason):
     # the process stopping (or running out of memory) in the analysis is not something a fake
-    # instrument can produce: the residual map's cross-validation is made to raise it
+    # instrument can produce: the residual correction's cross-validation is made to raise it
     def broken(*a, **kw):
         raise failure("out of memory")
 
-    monkeypatch.setattr(residual_choice, "choose_residual_map", broken)
+    monkeypatch.setattr(residual_choice, "choose_correction", broken)
     text = _measurement_csv(60)
     engine = make_engine(settings.effective_database_url)
     try:

@@ -49,9 +49,14 @@ def test_result_page_shows_rigid_against_compliant(page, compliant_result, web):
     assert compliant < 0.2 * rigid  # mm: the arm sags; the compliant model knows it
     assert "j2, j3" in rows[1].inner_text()
     assert "lower error than rigid" in page.inner_text("body")
-    # the residual map was tried on the session's data and left out (only the tracker's noise remains)
+    # every residual correction was tried on the session's data and left out (only the tracker's
+    # noise remains): each family's cross-validated RMS shown, none of them kept
     note = page.locator(".card", has=page.locator("#rigid-compliant")).locator("#residual-map").inner_text()
     assert "5-fold cross-validated" in note and "Left out" in note, note
+    families = page.locator("#residual-families tbody tr")
+    assert families.count() == 4 and page.locator("#residual-families tr.chosen").count() == 1
+    assert "the geometric model alone" in page.locator("#residual-families tr.chosen").inner_text()
+    assert all(float(families.nth(i).locator("td").nth(1).inner_text()) > 0 for i in range(4))
     page.evaluate("document.querySelector('#rigid-compliant').closest('.card').scrollIntoView()")
     web.shot(page, "61-rigid-against-compliant", full_page=False)
 

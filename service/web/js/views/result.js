@@ -109,16 +109,10 @@ export async function show(ctx, id) {
 
   // joint compliance under gravity: the rigid and the compliant model, cross-validated on the same data
   const comp = rep.compliance;
-  // the residual map (book §5.4): a smooth correction of what the model leaves, kept where it helps
+  // the residual correction (issue 28): chosen by nested cross-validation among families, kept where it helps
   const rmap = rep.residual_map;
-  const mapNote = rmap && rmap.rms_without != null ? h("p", { class: "small", id: "residual-map" },
-    h("strong", {}, "Residual map: "), `a smooth correction of what the model leaves, as a function of the joints, `
-      + `${rmap.folds}-fold cross-validated: RMS ${num(rmap.rms_without, 4)} ${unit} without it, `
-      + `${num(rmap.rms_with, 4)} ${unit} with it. `
-      + (rmap.kept ? "Kept: stored with this calibration and applied when compensating task files (CSV), inside the "
-        + "joint region this session measured; outside it, and in robot programs, the model alone."
-        : `Left out: it did not lower the error by ${num(100 * rmap.min_gain, 2)} % or more (what remains is noise, `
-          + "or too sparse to map).")) : null;
+  const mapNote = residualNote(rmap, unit);
+  const mapKept = rmap && (rmap.families ? rmap.chosen && rmap.chosen !== "none" : rmap.kept);
   if (comp && comp.cv_rms_rigid != null) {
     parts.push(card("Rigid against compliant",
       table(["Model", `Cross-validated RMS (${unit})`],
@@ -129,7 +123,7 @@ export async function show(ctx, id) {
         + "one and tested on that one. This calibration is the compliant model"
         + (comp.gain > 0 ? `: ${num(100 * comp.gain, 3)} % lower error than rigid.` : "; here it does no better than rigid.")),
       mapNote));
-  } else if (mapNote && rmap.kept) {  // a rigid model with a map: worth a card; one left out is no news
+  } else if (mapNote && (mapKept || rmap.families)) {  // an old map-only report left out: no news
     parts.push(card("Beyond the geometric model", mapNote));
   }
 
@@ -227,6 +221,52 @@ function avg(p, k) {
 
 function significant(p) {
   return p.std_error == null || Math.abs(p.change || 0) > 2 * p.std_error;
+}
+
+// What each residual-correction family is (calibration.residual_choice.FAMILIES).
+const FAMILY_TITLES = {
+  none: "none: the geometric model alone",
+  map: "smooth map of the joint angles",
+  transmission: "joint transmission (per-joint gear harmonics)",
+  trees: "boosted trees on the joint angles",
+};
+
+// The residual correction's figures (report.residual_map, the shape `recal identify --residual-map auto`
+// reports): each family's cross-validated RMS, the one kept and the learning curve; a calibration made
+// before every family was tried has the smooth map's alone (rms_without, rms_with, kept). null: none.
+function residualNote(rmap, unit) {
+  if (!rmap) return null;
+  if (!rmap.families) {
+    return rmap.rms_without == null ? null : h("p", { class: "small", id: "residual-map" },
+      h("strong", {}, "Residual map: "), `a smooth correction of what the model leaves, as a function of the joints, `
+        + `${rmap.folds}-fold cross-validated: RMS ${num(rmap.rms_without, 4)} ${unit} without it, `
+        + `${num(rmap.rms_with, 4)} ${unit} with it. `
+        + (rmap.kept ? "Kept: stored with this calibration and applied when compensating task files (CSV), inside the "
+          + "joint region this session measured; outside it, and in robot programs, the model alone."
+          : `Left out: it did not lower the error by ${num(100 * rmap.min_gain, 2)} % or more (what remains is noise, `
+            + "or too sparse to map)."));
+  }
+  const kept = rmap.chosen && rmap.chosen !== "none";
+  const rows = Object.entries(rmap.families).map(([name, f]) => h("tr", { class: name === rmap.chosen ? "chosen" : "",
+                                                                       "data-family": name },
+    h("td", {}, FAMILY_TITLES[name] || name), h("td", { class: "num" }, num(f.rms, 4)),
+    h("td", {}, name === rmap.chosen ? "chosen" : "")));
+  const curve = rmap.learning_curve || [];
+  return h("div", { id: "residual-map" },
+    table(["Correction of what the model leaves", `Cross-validated RMS (${unit})`, ""], rows,
+      { class: "families", id: "residual-families" }),
+    h("p", { class: "small" }, h("strong", {}, "Residual correction: "),
+      `${rmap.folds}-fold cross-validated over ${rmap.cv_poses ?? rmap.cv_rows} poses, nested (the geometric model `
+        + "identified on each training fold, each family fitted to what it leaves there, tested on the held-out fold). "
+        + (kept ? `Kept: ${FAMILY_TITLES[rmap.chosen] || rmap.chosen}, ${num(100 * rmap.gain, 2)} % lower error than `
+          + "none. Stored with this calibration and applied, inside the joint region this session measured, when "
+          + "compensating task files (CSV), in verify sessions, the certificate and the errors above; outside that "
+          + "region, and in robot programs, the model alone."
+          : `Left out: no family lowered the error by ${num(100 * rmap.min_gain, 2)} % or more (what remains is noise, `
+            + "or too sparse to learn).")),
+    curve.length ? h("p", { class: "small muted", id: "residual-learning-curve" },
+      `Learning curve (${rmap.best ? FAMILY_TITLES[rmap.best] || rmap.best : "best family"}, held-out RMS against the `
+        + `number of poses): ${curve.map((p) => `${p.poses} poses ${num(p.rms, 3)}`).join(", ")} ${unit}.`) : null);
 }
 
 function stat(label, value, unit, sub, cls = "") {
