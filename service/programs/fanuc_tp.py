@@ -30,9 +30,9 @@ from calibration.transforms import homogeneous
 from calibration.vendors import fanuc_wpr_to_matrix
 
 from ..files import InputError
-from .base import NUM, Number, Program, Target, read_text
+from .base import Number, Program, Target, read_text
 from .frames import Frames
-from .tokens import FANUC_TP, Source
+from .tokens import FANUC_TP, SIGNED_NUMBER, Source
 
 _POS_RE = re.compile(r"^/POS\b", re.MULTILINE)
 _END_RE = re.compile(r"^/END\b", re.MULTILINE)
@@ -43,7 +43,7 @@ _CONFIG_RE = re.compile(r"CONFIG\s*:\s*'([^']*)'")
 _CONF_VALUE_RE = re.compile(
     r"^\s*([NF])\s*([UD])\s*([TB])\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*$", re.IGNORECASE
 )
-_COMP_RE = re.compile(rf"\b([XYZWPR]|J[1-9]|E[1-9])\s*=\s*({NUM})\s*(mm|deg)?")
+_COMP_RE = re.compile(rf"\b([XYZWPR]|J[1-9]|E[1-9])\s*=\s*({SIGNED_NUMBER})\s*(mm|deg)?")
 
 
 def _frame(values) -> np.ndarray:

@@ -26,6 +26,7 @@ LINE_RE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n|$)")
 IDENT = r"[A-Za-z_]\w*"
 IDENT_RE = re.compile(IDENT)
 NUMBER = r"(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
+SIGNED_NUMBER = rf"[+-]?{NUMBER}"  # a number as the languages write a target's components
 
 
 @dataclass(frozen=True)

@@ -29,9 +29,9 @@ from typing import ClassVar
 import numpy as np
 
 from ..files import MAX_MAGNITUDE_SI, InputError, read_bounded, replace_spans
-from .tokens import URSCRIPT, Source, trim
+from .tokens import SIGNED_NUMBER, URSCRIPT, Source, trim
 
-_NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
+_NUM = SIGNED_NUMBER
 _NUM_RE = re.compile(_NUM)
 _LIST_RE = re.compile(rf"\[\s*{_NUM}(?:\s*,\s*{_NUM})*\s*\]")
 _POSE_RE = re.compile(rf"p\s*(\[\s*{_NUM}(?:\s*,\s*{_NUM})*\s*\])")
