@@ -34,11 +34,11 @@ class Language:
     """What a program language's tokens look like: ``comment`` starts a comment to the end of the
     line; a string runs from ``quote`` to the next one on its line (or the line's end); names are
     ``case_sensitive`` or not (:meth:`pattern`); a statement ends at ``terminator`` (``None``: at
-    the end of its line)."""
+    the end of its line). ``None`` for ``comment`` or ``quote``: none is blanked."""
 
     name: str
-    comment: str
-    quote: str = '"'
+    comment: str | None
+    quote: str | None = '"'
     case_sensitive: bool = False
     terminator: str | None = None
 
@@ -49,7 +49,10 @@ class Language:
 
 KRL = Language("krl", comment=";")
 RAPID = Language("rapid", comment="!", terminator=";")
-FANUC_TP = Language("fanuc-tp", comment="!")
+# what is read of a TP listing (its /POS section, /MN's frame selections) holds no comment and no
+# string to blank: /MN's `!` comments are statements of their own, a /POS position's `!` is text
+# (as written, a malformed position), and a label's "comment" is read by its pattern (P[n:"..."])
+FANUC_TP = Language("fanuc-tp", comment=None, quote=None)
 URSCRIPT = Language("urscript", comment="#", case_sensitive=True)
 
 
@@ -71,6 +74,8 @@ _TOKEN_RE = re.compile(rf"\s*(?:(?P<number>{NUMBER})|(?P<ident>{IDENT})|(?P<punc
 def mask(text: str, lang: Language) -> str:
     """``text`` with comments and string contents blanked, same length and line breaks (the
     quotes kept): what a parser reads, so that its offsets are the file's."""
+    if lang.comment is None and lang.quote is None:
+        return text
     out = list(text)
     i, n = 0, len(text)
     while i < n:
@@ -188,7 +193,7 @@ class Source:
                 return
             kind = m.lastgroup or "punct"
             s, e = m.span(kind)
-            if code[s] == q:  # a string: to its closing quote, or the end of its line
+            if q is not None and code[s] == q:  # a string: to its closing quote, or the end of its line
                 e = s + 1
                 while e < stop and code[e] != q and code[e] not in "\r\n":
                     e += 1

@@ -20,7 +20,8 @@ from service.programs.tokens import FANUC_TP, KRL, RAPID, URSCRIPT, Source
         (KRL, 'PTP XP1 ; go "home"\nLIN XP2\n', "PTP XP1            \nLIN XP2\n"),
         (RAPID, 'TPWrite "a;b!c"; ! note\r\nMoveL p1;', 'TPWrite "     ";       \r\nMoveL p1;'),
         (URSCRIPT, 'popup("x # y") # a comment\rmovej(q)', 'popup("     ")            \rmovej(q)'),
-        (FANUC_TP, '  1:  !UFRAME_NUM=2 ;\n  2:  J P[1:"a!"] ;', "  1:" + " " * 17 + '\n  2:  J P[1:"  "] ;'),
+        # TP: what is read holds no comment or string to blank (a label's "comment" read by its pattern)
+        (FANUC_TP, '  1:  !UFRAME_NUM=2 ;\n  2:  J P[1:"a!"] ;', '  1:  !UFRAME_NUM=2 ;\n  2:  J P[1:"a!"] ;'),
         # a string that does not close ends with its line; the next line is read
         (KRL, 'X = "open\nPTP XP1 ; c', 'X = "    \nPTP XP1    '),
     ],
