@@ -4,8 +4,8 @@
 (service/compensate.py) both call :func:`compensate_task`; neither calls the other. It reads the
 task (and a KRL program's .dat) from ``CompensationRequest.task``, compensates every target
 (``calibration.compensation``), and returns the compensated files' texts and the per-point
-report, writing nothing. Formats: task CSV (contracts §5), URScript (``service.taskfiles``) and
-ABB RAPID, KUKA KRL, Fanuc TP (``service.programs``); docs/compensation.md.
+report, writing nothing. Formats: task CSV (contracts §5, ``service.taskfiles``) and the programs
+of ``service.programs`` (URScript, ABB RAPID, KUKA KRL, Fanuc TP); docs/compensation.md.
 """
 
 from __future__ import annotations
@@ -39,9 +39,10 @@ from calibration.transforms import matrix_to_pose, pose_to_matrix
 
 from . import programs
 from .files import InputError
+from .programs import urscript
 from .programs.compensate import compensate_program
 from .programs.frames import Frames
-from .taskfiles import format_task, matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur, read_task
+from .taskfiles import format_task, matrix_to_pose_ur, pose_to_matrix_ur, read_task
 
 # compensation through a residual correction: at most this many passes, and a point whose
 # correction at its command still differs from the one aimed with by more than this is flagged
@@ -389,7 +390,7 @@ def _f(x, digits=9):
 
 def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress):
     nominal, taught, calibrated, kw, qnear = req.nominal, req.taught, req.calibrated, req.settings, req.qnear
-    script = parse_urscript(req.task, model.n_joints)
+    script = urscript.parse(req.task, n_joints=model.n_joints)
     if not script.targets:
         _no_targets(req, model, script)
     if nominal is None:

@@ -1,5 +1,6 @@
 """Robot programs compensated in place (contracts §5): ABB RAPID (:mod:`.rapid`), KUKA KRL
-(:mod:`.krl`), Fanuc TP (:mod:`.fanuc_tp`) and URScript (:mod:`service.taskfiles`).
+(:mod:`.krl`), Fanuc TP (:mod:`.fanuc_tp`) and URScript (:mod:`.urscript`), all read through
+one tokenizer (:mod:`.tokens`) with a rule table per language.
 
 Each language module parses a program into a :class:`~.base.Program`: the files' text (bytes
 kept, undecodable ones as surrogates), its :class:`~.base.Target` s (where each number is, what
@@ -66,11 +67,11 @@ def format_of(path: str | os.PathLike, given: str | None = None, text: str | Non
 def parse(fmt: str, path: str | os.PathLike, **options):
     """Parse a RAPID, KRL or TP program (see each module's ``parse``; a target no robot cell can
     have is refused: ``base.refuse_numbers_beyond_a_cell``), or a URScript program
-    (:func:`service.taskfiles.parse_urscript`, its own target types and the same bound)."""
+    (:func:`.urscript.parse`, its own target types and the same bound)."""
     if fmt == "urscript":
-        from ..taskfiles import parse_urscript
+        from . import urscript
 
-        return parse_urscript(path, options.get("n_joints", 6))
+        return urscript.parse(path, n_joints=options.get("n_joints", 6))
     from .base import refuse_numbers_beyond_a_cell
 
     if fmt == "rapid":

@@ -3,16 +3,11 @@ the byte-preserving rewrite, and how a new number is written."""
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..files import MAX_MAGNITUDE, MAX_MAGNITUDE_SI, InputError, magnitude_problem, read_bounded, replace_spans
-
-NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
-NUM_RE = re.compile(NUM)
-LINE_RE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n|$)")
 
 # The fewest decimals a rewritten number gets (written precision is kept where it has more):
 # 0.5 µm for millimetres, 5e-6° (under 0.1 µm per metre of reach) for degrees, 5e-9 for quaternion
@@ -117,23 +112,6 @@ def read_text(path, data: bytes | None = None) -> str:
     return data.decode("utf-8", "surrogateescape")
 
 
-def line_starts(text: str) -> list[int]:
-    return [m.start() for m in LINE_RE.finditer(text) if m.end() > m.start()] or [0]
-
-
-def line_of(starts: list[int], offset: int) -> int:
-    """1-based line of a character offset."""
-    import bisect
-
-    return bisect.bisect_right(starts, offset)
-
-
-def line_text(text: str, starts: list[int], line: int) -> str:
-    s = starts[line - 1]
-    e = starts[line] if line < len(starts) else len(text)
-    return text[s:e].rstrip("\r\n").strip()
-
-
 def written(number: Number, value: float, unit: str) -> str:
     """``value`` written like ``number`` was: as many decimals (at least :data:`MIN_DECIMALS`),
     no exponent, and no sign on a zero."""
@@ -147,29 +125,6 @@ def written(number: Number, value: float, unit: str) -> str:
     if t.startswith("+") and not s.startswith("-"):
         s = "+" + s
     return s
-
-
-def mask_code(text: str, comment: str) -> str:
-    """``text`` with comments (``comment`` to the end of the line: KRL ``;``, RAPID ``!``) and
-    string contents blanked, same length and line breaks: what a parser reads, so that offsets
-    are the file's."""
-    out = list(text)
-    i, n = 0, len(text)
-    while i < n:
-        ch = text[i]
-        if ch == '"':
-            j = i + 1
-            while j < n and text[j] != '"' and text[j] not in "\r\n":
-                out[j] = " "
-                j += 1
-            i = j + 1
-        elif ch == comment:
-            while i < n and text[i] not in "\r\n":
-                out[i] = " "
-                i += 1
-        else:
-            i += 1
-    return "".join(out)
 
 
 def refuse_numbers_beyond_a_cell(prog: Program) -> Program:

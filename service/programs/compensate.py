@@ -109,6 +109,24 @@ def _f(x, digits=12):
     return None if not np.isfinite(x) else float(f"{x:.{digits}g}")
 
 
+def _pose_texts(t: Target, P_new: np.ndarray) -> list[str]:
+    """The numbers of pose target ``t`` for its new pose ``P_new`` (4, 4, SI, in its work frame),
+    written as its numbers were: position in mm, orientation in its own terms."""
+    new_pos = P_new[:3, 3] * 1e3
+    orig_rot = np.array([n.value for n in t.orientation])
+    if t.rotation == "quat":
+        new_rot, unit = vendors.quat_near(P_new[:3, :3], orig_rot)[0], "quat"
+    elif t.rotation == "kuka_abc":
+        new_rot = np.degrees(vendors.matrix_to_kuka_abc(P_new[:3, :3], np.radians(orig_rot))[0])
+        unit = "deg"
+    else:
+        new_rot = np.degrees(vendors.matrix_to_fanuc_wpr(P_new[:3, :3], np.radians(orig_rot))[0])
+        unit = "deg"
+    return [written(n, v, "mm") for n, v in zip(t.position, new_pos)] + [
+        written(n, v, unit) for n, v in zip(t.orientation, new_rot)
+    ]
+
+
 def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, calibrated, kw: dict):
     """The compensated files (bytes, one per file of ``prog``), the
     :class:`~calibration.compensation.Compensation` of every target in program order, and the
@@ -149,19 +167,7 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
             cp = dataclasses.replace(cp, flags=flags, converged=cp.converged & found)
             P_new = np.linalg.inv(np.array([B @ t.T_work for t in ts])) @ cp.T_command
             for k, t in enumerate(ts):
-                new_pos = P_new[k, :3, 3] * 1e3
-                orig_rot = np.array([n.value for n in t.orientation])
-                if t.rotation == "quat":
-                    new_rot, unit = vendors.quat_near(P_new[k, :3, :3], orig_rot)[0], "quat"
-                elif t.rotation == "kuka_abc":
-                    new_rot = np.degrees(vendors.matrix_to_kuka_abc(P_new[k, :3, :3], np.radians(orig_rot))[0])
-                    unit = "deg"
-                else:
-                    new_rot = np.degrees(vendors.matrix_to_fanuc_wpr(P_new[k, :3, :3], np.radians(orig_rot))[0])
-                    unit = "deg"
-                texts = [written(n, v, "mm") for n, v in zip(t.position, new_pos)] + [
-                    written(n, v, unit) for n, v in zip(t.orientation, new_rot)
-                ]
+                texts = _pose_texts(t, P_new[k])
                 if found[k]:
                     edits += list(zip(t.position + t.orientation, texts))
                 heads.append(

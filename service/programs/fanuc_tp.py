@@ -22,6 +22,7 @@ else, or for a number not given, the program is refused, naming the line.
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -29,8 +30,9 @@ from calibration.transforms import homogeneous
 from calibration.vendors import fanuc_wpr_to_matrix
 
 from ..files import InputError
-from .base import NUM, Number, Program, Target, line_of, line_starts, read_text
+from .base import Number, Program, Target, read_text
 from .frames import Frames
+from .tokens import FANUC_TP, SIGNED_NUMBER, Source
 
 _POS_RE = re.compile(r"^/POS\b", re.MULTILINE)
 _END_RE = re.compile(r"^/END\b", re.MULTILINE)
@@ -41,7 +43,7 @@ _CONFIG_RE = re.compile(r"CONFIG\s*:\s*'([^']*)'")
 _CONF_VALUE_RE = re.compile(
     r"^\s*([NF])\s*([UD])\s*([TB])\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*$", re.IGNORECASE
 )
-_COMP_RE = re.compile(rf"\b([XYZWPR]|J[1-9]|E[1-9])\s*=\s*({NUM})\s*(mm|deg)?")
+_COMP_RE = re.compile(rf"\b([XYZWPR]|J[1-9]|E[1-9])\s*=\s*({SIGNED_NUMBER})\s*(mm|deg)?")
 
 
 def _frame(values) -> np.ndarray:
@@ -54,108 +56,128 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames: Frames 
     if n_joints != 6:
         raise InputError(path, f"TP programs are compensated for six-axis arms; the model has {n_joints} joints")
     frames = frames or Frames()
-    text = read_text(path, data)
-    starts = line_starts(text)
-
-    def fail(offset, message):
-        raise InputError(path, message, line=line_of(starts, offset))
-
-    m = _POS_RE.search(text)
+    src = Source(FANUC_TP, path, read_text(path, data))
+    m = _POS_RE.search(src.code)
     if m is None:
         raise InputError(path, "expected a /POS section (an ASCII .ls program); none found")
-    end = _END_RE.search(text, m.end())
-    stop = end.start() if end else len(text)
-    active = selected_frames(text[: m.start()])
+    end = _END_RE.search(src.code, m.end())
+    stop = end.start() if end else len(src.code)
+    active = selected_frames(src.code[: m.start()])
     out = []
-    for p in _P_RE.finditer(text, m.end(), stop):
-        label = f"P[{p.group(1)}]"
-        body_at = p.start(3)
-        body = p.group(3)
-        gps = list(_GP_RE.finditer(body))
-        if not gps:
-            fail(p.start(), f"{label}: expected a group 'GP1:'")
-        gp1 = [g for g in gps if g.group(1) == "1"]
-        if not gp1:
-            continue
-        g = gp1[0]
-        nxt = [x.start() for x in gps if x.start() > g.start()]
-        seg_s, seg_e = body_at + g.end(), body_at + (nxt[0] if nxt else len(body))
-        seg = text[seg_s:seg_e]
-        fr = {k.upper(): (v, seg_s + mm.start(2)) for mm in _FRAME_RE.finditer(seg) for k, v in [mm.groups()]}
-        for key in ("UF", "UT"):
-            if key not in fr:
-                fail(seg_s, f"{label}: expected '{key} : n'")
-        comps = {}
-        for c in _COMP_RE.finditer(seg):
-            comps[c.group(1).upper()] = Number(0, seg_s + c.start(2), seg_s + c.end(2), c.group(2))
-        last = max((n.start for n in comps.values()), default=seg_s)  # a missing component: named at the last
-        _components(fail, label, comps, last)
-        T_work, uf_name = _resolve(fail, label, "UF", *fr["UF"], frames.bases, "--base-frame", active)
-        T_tool, ut_name = _resolve(fail, label, "UT", *fr["UT"], frames.tools, "--tool-frame", active)
-        ln = line_of(starts, p.start())
-        names = f"UF {uf_name}, UT {ut_name}"
-        if any(k.startswith("J") for k in comps):
-            need = [f"J{i}" for i in range(1, 7)]
-            missing = [k for k in need if k not in comps]
-            if missing:
-                fail(seg_s, f"{label}: expected component {missing[0]}")
-            nums = tuple(comps[k] for k in need)
-            out.append(
-                Target(
-                    "joints",
-                    0,
-                    ln,
-                    label,
-                    "P",
-                    q=np.radians([n.value for n in nums]),
-                    joints=nums,
-                    T_work=T_work,
-                    T_tool=T_tool,
-                    frames=names,
-                )
-            )
-            continue
-        need = list("XYZWPR")
-        missing = [k for k in need if k not in comps]
-        if missing:
-            fail(seg_s, f"{label}: expected component {missing[0]} (Cartesian X, Y, Z, W, P, R or joints J1..J6)")
-        cm = _CONFIG_RE.search(seg)
-        if cm is None:
-            fail(seg_s, f"{label}: expected CONFIG : 'N U T, 0, 0, 0' in a Cartesian position")
-        cv = _CONF_VALUE_RE.match(cm.group(1))
-        if cv is None:
-            fail(
-                seg_s + cm.start(1),
-                f"{label}: CONFIG: expected 'F|N U|D T|B, turn1, turn4, turn6', got {cm.group(1)!r}",
-            )
-        config = (
-            int(cv.group(1).upper() == "F"),
-            int(cv.group(2).upper() == "U"),
-            int(cv.group(3).upper() == "T"),
-            int(cv.group(4)),
-            int(cv.group(5)),
-            int(cv.group(6)),
+    for p in _P_RE.finditer(src.code, m.end(), stop):
+        position = _group1(src, p, frames, active)
+        if position is not None:
+            out.append(_KINDS[position.kind](src, position))
+    return Program((src.path,), (src.text,), "fanuc", out, [])
+
+
+@dataclass(frozen=True)
+class _Position:
+    """A position's group 1 as read: ``label`` (``P[n]``), ``line``, the offset ``at`` and code
+    ``seg`` of its text after ``GP1:``, its components (``comps``) and resolved frames."""
+
+    label: str
+    line: int
+    at: int
+    seg: str
+    comps: dict[str, Number]
+    T_work: np.ndarray
+    T_tool: np.ndarray
+    frames: str
+
+    @property
+    def kind(self) -> str:
+        return "joints" if any(k.startswith("J") for k in self.comps) else "pose"
+
+
+def _group1(src: Source, p: re.Match, frames: Frames, active: dict) -> _Position | None:
+    """Position ``p``'s group 1 (``None`` when it has none: other groups are left untouched)."""
+    label = f"P[{p.group(1)}]"
+    body_at = p.start(3)
+    body = p.group(3)
+    gps = list(_GP_RE.finditer(body))
+    if not gps:
+        src.fail(p.start(), f"{label}: expected a group 'GP1:'")
+    gp1 = [g for g in gps if g.group(1) == "1"]
+    if not gp1:
+        return None
+    g = gp1[0]
+    nxt = [x.start() for x in gps if x.start() > g.start()]
+    seg_s, seg_e = body_at + g.end(), body_at + (nxt[0] if nxt else len(body))
+    seg = src.code[seg_s:seg_e]
+    fr = {k.upper(): (v, seg_s + mm.start(2)) for mm in _FRAME_RE.finditer(seg) for k, v in [mm.groups()]}
+    for key in ("UF", "UT"):
+        if key not in fr:
+            src.fail(seg_s, f"{label}: expected '{key} : n'")
+    comps = {}
+    for c in _COMP_RE.finditer(seg):
+        a, e = seg_s + c.start(2), seg_s + c.end(2)
+        comps[c.group(1).upper()] = Number(0, a, e, src.text[a:e])
+    last = max((n.start for n in comps.values()), default=seg_s)  # a missing component: named at the last
+    _components(src.fail, label, comps, last)
+    T_work, uf_name = _resolve(src.fail, label, "UF", *fr["UF"], frames.bases, "--base-frame", active)
+    T_tool, ut_name = _resolve(src.fail, label, "UT", *fr["UT"], frames.tools, "--tool-frame", active)
+    names = f"UF {uf_name}, UT {ut_name}"
+    return _Position(label, src.line(p.start()), seg_s, seg, comps, T_work, T_tool, names)
+
+
+def _joints(src: Source, pos: _Position) -> Target:
+    """A joint position: ``J1`` .. ``J6`` (deg)."""
+    need = [f"J{i}" for i in range(1, 7)]
+    missing = [k for k in need if k not in pos.comps]
+    if missing:
+        src.fail(pos.at, f"{pos.label}: expected component {missing[0]}")
+    nums = tuple(pos.comps[k] for k in need)
+    q = np.radians([n.value for n in nums])
+    return Target(
+        "joints", 0, pos.line, pos.label, "P", q=q, joints=nums, T_work=pos.T_work, T_tool=pos.T_tool, frames=pos.frames
+    )
+
+
+def _pose(src: Source, pos: _Position) -> Target:
+    """A Cartesian position: ``X``, ``Y``, ``Z`` (mm), ``W``, ``P``, ``R`` (deg) and its ``CONFIG``."""
+    need = list("XYZWPR")
+    missing = [k for k in need if k not in pos.comps]
+    if missing:
+        src.fail(pos.at, f"{pos.label}: expected component {missing[0]} (Cartesian X, Y, Z, W, P, R or joints J1..J6)")
+    cm = _CONFIG_RE.search(pos.seg)
+    if cm is None:
+        src.fail(pos.at, f"{pos.label}: expected CONFIG : 'N U T, 0, 0, 0' in a Cartesian position")
+    config_text = src.text[pos.at + cm.start(1) : pos.at + cm.end(1)]
+    cv = _CONF_VALUE_RE.match(config_text)
+    if cv is None:
+        src.fail(
+            pos.at + cm.start(1),
+            f"{pos.label}: CONFIG: expected 'F|N U|D T|B, turn1, turn4, turn6', got {config_text!r}",
         )
-        v = [comps[k].value for k in need]
-        out.append(
-            Target(
-                "pose",
-                0,
-                ln,
-                label,
-                "P",
-                P=_frame(v),
-                rotation="fanuc_wpr",
-                position=tuple(comps[k] for k in "XYZ"),
-                orientation=tuple(comps[k] for k in "WPR"),
-                config=config,
-                config_text=cm.group(1),
-                T_work=T_work,
-                T_tool=T_tool,
-                frames=names,
-            )
-        )
-    return Program((str(path),), (text,), "fanuc", out, [])
+    config = (
+        int(cv.group(1).upper() == "F"),
+        int(cv.group(2).upper() == "U"),
+        int(cv.group(3).upper() == "T"),
+        int(cv.group(4)),
+        int(cv.group(5)),
+        int(cv.group(6)),
+    )
+    return Target(
+        "pose",
+        0,
+        pos.line,
+        pos.label,
+        "P",
+        P=_frame([pos.comps[k].value for k in need]),
+        rotation="fanuc_wpr",
+        position=tuple(pos.comps[k] for k in "XYZ"),
+        orientation=tuple(pos.comps[k] for k in "WPR"),
+        config=config,
+        config_text=config_text,
+        T_work=pos.T_work,
+        T_tool=pos.T_tool,
+        frames=pos.frames,
+    )
+
+
+# a position's kind (:attr:`_Position.kind`) -> how its target is read
+_KINDS = {"joints": _joints, "pose": _pose}
 
 
 def _components(fail, label, comps, offset):

@@ -36,76 +36,32 @@ from calibration.transforms import homogeneous
 from calibration.vendors import kuka_abc_to_matrix
 
 from ..files import InputError
-from .base import (
-    Number,
-    Program,
-    Target,
-    Uninterpreted,
-    line_of,
-    line_starts,
-    line_text,
-    mask_code,
-    read_text,
-)
+from .base import Number, Program, Target, Uninterpreted, read_text
 from .frames import Frames
+from .tokens import KRL, Source, split_top_level
 
 POSE_TYPES = ("e6pos", "pos", "frame")
 AXIS_TYPES = ("e6axis", "axis")
-_DECL_RE = re.compile(
-    r"^[ \t]*(?:decl\s+)?(?:global\s+)?(?:decl\s+)?(e6pos|pos|frame|e6axis|axis|fdat)\s+(.*)$", re.IGNORECASE
+_DECL_RE = KRL.pattern(r"^[ \t]*(?:decl\s+)?(?:global\s+)?(?:decl\s+)?(e6pos|pos|frame|e6axis|axis|fdat)\s+(.*)$")
+_ELEM_RE = KRL.pattern(r"^[ \t]*([a-z_$]\w*)\s*\[\s*(\d+)\s*\]\s*=\s*(\{.*)$")
+_MOVE_RE = KRL.pattern(
+    r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|spl|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$"
 )
-_ELEM_RE = re.compile(r"^[ \t]*([a-z_$]\w*)\s*\[\s*(\d+)\s*\]\s*=\s*(\{.*)$", re.IGNORECASE)
-_MOVE_RE = re.compile(
-    r"^[ \t]*(ptp|lin|circ|sptp|slin|scirc|spl|ptp_rel|lin_rel|circ_rel|sptp_rel|slin_rel)\b\s*(.*)$", re.IGNORECASE
-)
-_FRAME_SET_RE = re.compile(r"^[ \t]*\$(tool|base)\s*=\s*(.*?)\s*$", re.IGNORECASE)
-_DATA_RE = re.compile(r"^(tool|base)_data\s*\[\s*(\d+)\s*\]$", re.IGNORECASE)
-_BAS_RE = re.compile(r"^[ \t]*bas\s*\(\s*#(tool|base)\s*,\s*(\d+)\s*\)", re.IGNORECASE)
-_FDAT_ACT_RE = re.compile(r"^[ \t]*fdat_act\s*=\s*([a-z_]\w*)\s*$", re.IGNORECASE)
-_REF_RE = re.compile(r"([a-z_]\w*)(?:\s*\[\s*(\d+)\s*\])?$", re.IGNORECASE)
-_IDENT_RE = re.compile(r"[A-Za-z_]\w*")
-_WITH_RE = re.compile(r"\bwith\b", re.IGNORECASE)
-_FDAT_CALL_RE = re.compile(
-    r"^(stool2|stool|sbase|sipo_mode)\s*\(\s*([a-z_]\w*)\s*(?:\.\s*([a-z_]\w*)\s*)?\)$", re.IGNORECASE
-)
+_FRAME_SET_RE = KRL.pattern(r"^[ \t]*\$(tool|base)\s*=\s*(.*?)\s*$")
+_DATA_RE = KRL.pattern(r"^(tool|base)_data\s*\[\s*(\d+)\s*\]$")
+_BAS_RE = KRL.pattern(r"^[ \t]*bas\s*\(\s*#(tool|base)\s*,\s*(\d+)\s*\)")
+_FDAT_ACT_RE = KRL.pattern(r"^[ \t]*fdat_act\s*=\s*([a-z_]\w*)\s*$")
+_REF_RE = KRL.pattern(r"([a-z_]\w*)(?:\s*\[\s*(\d+)\s*\])?$")
+_WITH_RE = KRL.pattern(r"\bwith\b")
+_FDAT_CALL_RE = KRL.pattern(r"^(stool2|stool|sbase|sipo_mode)\s*\(\s*([a-z_]\w*)\s*(?:\.\s*([a-z_]\w*)\s*)?\)$")
 
 
-def _top_level_split(text: str) -> list[str]:
-    """``text`` split at the commas outside parentheses and brackets."""
-    parts, depth, cur = [], 0, []
-    for ch in text:
-        if ch in "([{":
-            depth += 1
-        elif ch in ")]}":
-            depth -= 1
-        if ch == "," and depth == 0:
-            parts.append("".join(cur))
-            cur = []
-        else:
-            cur.append(ch)
-    parts.append("".join(cur))
-    return parts
+def _krl_file(index: int, path, text: str) -> Source:
+    """A KRL file (``index``: 0 the ``.src``, 1 its ``.dat``, -1 ``$config.dat``)."""
+    return Source(KRL, path, text, index)
 
 
-class _File:
-    def __init__(self, index, path, text):
-        self.index, self.path, self.text, self.code = index, str(path), text, mask_code(text, ";")
-        self.starts = line_starts(text)
-
-    def lines(self):
-        """(line number, start offset, masked code of the line)."""
-        for k, s in enumerate(self.starts):
-            e = self.starts[k + 1] if k + 1 < len(self.starts) else len(self.text)
-            yield k + 1, s, self.code[s:e].rstrip("\r\n")
-
-    def fail(self, offset, message):
-        raise InputError(self.path, message, line=line_of(self.starts, offset))
-
-    def line(self, offset):
-        return line_of(self.starts, offset)
-
-
-def _aggregate(f: _File, code: str, i: int, base: int, what: str):
+def _aggregate(f: Source, code: str, i: int, base: int, what: str):
     """``{[TYPE:] NAME value, ...}`` starting at ``code[i] == '{'`` (``base``: the line's offset):
     (dict lowercase name -> Number or text, end index)."""
     j = code.find("}", i)
@@ -128,7 +84,7 @@ def _aggregate(f: _File, code: str, i: int, base: int, what: str):
     return items, j + 1
 
 
-def _value(f: _File, item: Number, what: str, comp: str) -> float:
+def _value(f: Source, item: Number, what: str, comp: str) -> float:
     t = item.text.strip()
     bits = re.fullmatch(r"'([bh])([0-9a-f]+)'", t, re.IGNORECASE)
     if bits:
@@ -146,7 +102,7 @@ def _frame(values) -> np.ndarray:
 
 def _config_frames(path) -> dict:
     """``TOOL_DATA[n]`` and ``BASE_DATA[n]`` of a ``$config.dat``: {("tool"|"base", n): values}."""
-    f = _File(0, path, read_text(path))
+    f = _krl_file(0, path, read_text(path))
     out = {}
     for _ln, s, code in f.lines():
         m = _ELEM_RE.match(code)
@@ -184,12 +140,12 @@ class _Reader:
 
     def __init__(self, path, data: bytes | None, frames: Frames, dat_data: bytes | None):
         self.frames = frames
-        self.src = _File(0, path, read_text(path, data))
+        self.src = _krl_file(0, path, read_text(path, data))
         self.files = [self.src]
         dat_path = _dat_beside(Path(path))
         if dat_data is not None or dat_path is not None:
             dp = dat_path or Path(path).with_suffix(".dat")
-            self.files.append(_File(1, dp, read_text(dp, dat_data)))
+            self.files.append(_krl_file(1, dp, read_text(dp, dat_data)))
         self.config = _config_frames(frames.config_dat) if frames.config_dat else {}
         self.decls: dict[str, dict] = {}
         self.fdat: dict[str, dict] = {}
@@ -200,7 +156,7 @@ class _Reader:
         # rewritten here (other programs share them), its FDATs give frames
         self.glob_decls: dict[str, dict] = {}
         if frames.config_dat:
-            glob = _File(-1, frames.config_dat, read_text(frames.config_dat))
+            glob = _krl_file(-1, frames.config_dat, read_text(frames.config_dat))
             _declarations(glob, self.glob_decls, self.fdat, {}, elements=False)
         self.state: dict[str, tuple] = {"tool": ("opt", None), "base": ("opt", None)}
         self.out: list[Target] = []
@@ -281,17 +237,15 @@ class _Reader:
     # ------------------------------------------------------------------ the .src in program order
 
     def line(self, ln: int, s: int, code: str) -> None:
-        """One line of the ``.src``: a frame selection changes the state, a move is read."""
-        if self._frame_assignment(s, code) or self._bas(code) or self._fdat_act(ln, code):
-            return
-        m = _MOVE_RE.match(code)
-        if m:
-            self._move(ln, s, code, m)
+        """One line of the ``.src``, by the first rule of :data:`STATEMENTS` it matches: a frame
+        selection changes the state, a move is read."""
+        for _kind, pattern, handler in self.STATEMENTS:
+            m = pattern.match(code)
+            if m:
+                handler(self, ln, s, code, m)
+                return
 
-    def _frame_assignment(self, s: int, code: str) -> bool:
-        m = _FRAME_SET_RE.match(code)
-        if not m:
-            return False
+    def _frame_assignment(self, ln: int, s: int, code: str, m: re.Match) -> None:
         kind, val = m.group(1).lower(), m.group(2)
         if val.startswith("{"):
             items, _ = _aggregate(self.src, code, code.index("{"), s, f"${kind.upper()}")
@@ -302,36 +256,28 @@ class _Reader:
             )
         else:
             self.state[kind] = self.frame_value(kind, val)
-        return True
 
-    def _bas(self, code: str) -> bool:
-        m = _BAS_RE.match(code)
-        if m:
-            self.state[m.group(1).lower()] = ("num", int(m.group(2)))
-        return m is not None
+    def _bas(self, ln: int, s: int, code: str, m: re.Match) -> None:
+        self.state[m.group(1).lower()] = ("num", int(m.group(2)))
 
-    def _fdat_act(self, ln: int, code: str) -> bool:
-        m = _FDAT_ACT_RE.match(code)
-        if not m:
-            return False
+    def _fdat_act(self, ln: int, s: int, code: str, m: re.Match) -> None:
         fd = self.fdat.get(m.group(1).lower())
         if fd is None:
             _, why = self.fdat_item(m.group(1), "tool_no")
             self.state["tool"] = self.state["base"] = ("bad", f"FDAT_ACT = {m.group(1)} (line {ln}): {why}")
-            return True
+            return
         for kind, key in (("tool", "tool_no"), ("base", "base_no")):
             if key in fd["items"]:
                 self.state[kind] = ("num", int(_value(fd["file"], fd["items"][key], f"FDAT {fd['name']}", key)))
         ipo = fd["items"].get("ipo_frame")
         if ipo is not None and ipo.text.strip().upper() == "#TCP":
             self.state["tool"] = ("bad", f"FDAT {fd['name']} (line {ln}) with IPO_FRAME #TCP (an external TCP)")
-        return True
 
     def _move(self, ln: int, s: int, code: str, m: re.Match) -> None:
         """A move: its target(s), the frames of its ``WITH`` clause, then each target read (an
         inline one) or noted as a use of a declared name (resolved after the whole ``.src``)."""
         mv = m.group(1).upper()
-        raw = line_text(self.src.text, self.src.starts, ln)
+        raw = self.src.line_text(ln)
         if mv.endswith("_REL"):
             self.skipped.append(Uninterpreted(ln, raw, f"{mv} moves relative to where the robot is: not compensated"))
             return
@@ -382,7 +328,8 @@ class _Reader:
         w = _WITH_RE.search(code, after)
         if not w:
             return
-        for part in _top_level_split(code[w.end() :]):
+        for ps, pe in split_top_level(code, w.end(), len(code)):
+            part = code[ps:pe]
             a = re.match(r"\s*\$(tool|base|ipo_mode)\s*=\s*(.*?)\s*$", part, re.IGNORECASE)
             if not a:
                 continue
@@ -416,7 +363,7 @@ class _Reader:
         for key, dd in self.decls.items():
             f = dd["file"]
             ln = f.line(dd["offset"])
-            raw = line_text(f.text, f.starts, ln)
+            raw = f.line_text(ln)
             us = self.uses.get(key, [])
             if not us:
                 if dd["type"] in POSE_TYPES + AXIS_TYPES:
@@ -463,7 +410,7 @@ class _Reader:
                 )
                 why += ": not compensated"
             for u in us:
-                self.skipped.append(Uninterpreted(u[0], line_text(self.src.text, self.src.starts, u[0]), why))
+                self.skipped.append(Uninterpreted(u[0], self.src.line_text(u[0]), why))
 
     def other_uses(self) -> None:
         """Other uses of a target's name in the ``.src`` (``XP1.Z = ...``): they see the new value."""
@@ -471,14 +418,22 @@ class _Reader:
         for ln, s, code in src.lines():
             if _DECL_RE.match(code) or _ELEM_RE.match(code):
                 continue
-            for m in _IDENT_RE.finditer(code):
-                if m.group().lower() in self.names_done and (0, s + m.start()) not in self.expected:
+            for tok in src.identifiers(s, s + len(code)):
+                if tok.text.lower() in self.names_done and (0, tok.start) not in self.expected:
                     why = (
-                        f"uses target {m.group()} in an expression: this use sees the "
+                        f"uses target {tok.text} in an expression: this use sees the "
                         f"compensated value and is not itself compensated"
                     )
-                    self.skipped.append(Uninterpreted(ln, line_text(src.text, src.starts, ln), why))
+                    self.skipped.append(Uninterpreted(ln, src.line_text(ln), why))
                     break
+
+    # a line's kind -> its handler: the first rule whose pattern matches the line's code reads it
+    STATEMENTS = (
+        ("frame assignment", _FRAME_SET_RE, _frame_assignment),
+        ("BAS", _BAS_RE, _bas),
+        ("FDAT_ACT", _FDAT_ACT_RE, _fdat_act),
+        ("move", _MOVE_RE, _move),
+    )
 
     def program(self) -> Program:
         self.out.sort(key=lambda t: (t.file, t.line))
@@ -501,11 +456,11 @@ def _target_span(code: str, at: int) -> tuple[int, int] | None:
     return (at, at + t.end()) if t else None
 
 
-_NAME_EQ_RE = re.compile(r"\s*([a-z_]\w*)\s*=\s*", re.IGNORECASE)
-_BARE_RE = re.compile(r"\s*([a-z_$]\w*)\s*(?:\[[^\]]*\])?\s*(?=,|$)", re.IGNORECASE)
+_NAME_EQ_RE = KRL.pattern(r"\s*([a-z_]\w*)\s*=\s*")
+_BARE_RE = KRL.pattern(r"\s*([a-z_$]\w*)\s*(?:\[[^\]]*\])?\s*(?=,|$)")
 
 
-def _declarations(f: _File, decls: dict, fdat: dict, bare: dict, elements: bool) -> None:
+def _declarations(f: Source, decls: dict, fdat: dict, bare: dict, elements: bool) -> None:
     """The ``DECL`` lines of ``f`` (and, ``elements``, its ``NAME[k]={...}`` lines) into ``decls``
     (targets) and ``fdat``; names declared without a value into ``bare``."""
     for _ln, s, code in f.lines():
@@ -557,7 +512,7 @@ def _dat_beside(src: Path) -> Path | None:
     return None
 
 
-def _target(f: _File, typ, name, items, mv, offset, tool, base, inline=False, seq=None):
+def _target(f: Source, typ, name, items, mv, offset, tool, base, inline=False, seq=None):
     """A :class:`Target` from a KRL aggregate, or the reason it is left alone (a string)."""
     what = f"{(typ or 'inline').upper()} {name}" if name else f"{mv} inline target"
     is_axis = typ in AXIS_TYPES if typ else any(k in items for k in ("a1", "a2", "a3"))

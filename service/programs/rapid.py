@@ -30,6 +30,7 @@ import dataclasses
 import math
 import re
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -37,17 +38,8 @@ from calibration.errors import RecalError
 from calibration.transforms import homogeneous, quat_to_matrix
 
 from ..files import InputError
-from .base import (
-    Number,
-    Program,
-    Target,
-    Uninterpreted,
-    line_of,
-    line_starts,
-    line_text,
-    mask_code,
-    read_text,
-)
+from .base import Number, Program, Target, Uninterpreted, read_text
+from .tokens import IDENT_RE, RAPID, Source, split_top_level, trim
 
 # instruction -> (number of targets, index of the tool among the positional arguments; -1: the last)
 MOVES = {
@@ -69,16 +61,20 @@ MOVES = {
 }
 # ConfL\Off / ConfJ\Off (and \On): whether the controller holds a linear (and circular) or a
 # joint move to the target's written configuration
-_CONF_RE = re.compile(r"^\s*(ConfL|ConfJ)\s*\\\s*(On|Off)\s*$", re.IGNORECASE)
+_CONF_RE = RAPID.pattern(r"^\s*(ConfL|ConfJ)\s*\\\s*(On|Off)\s*$")
 _JOINT_MOVES = ("movej", "movejdo", "movejsync", "triggj")
-_MOVE_RE = re.compile(r"(?<![\w\\])(" + "|".join(sorted(MOVES, key=len, reverse=True)) + r")(?=[\s\\,])", re.IGNORECASE)
-_DECL_RE = re.compile(
-    r"^[ \t]*(?:(local|task)\s+)?(const|pers|var)\s+([a-z_]\w*)\s+([a-z_]\w*)\s*(\{[^}]*\})?\s*",
-    re.IGNORECASE | re.MULTILINE,
+_MOVE_RE = RAPID.pattern(r"(?<![\w\\])(" + "|".join(sorted(MOVES, key=len, reverse=True)) + r")(?=[\s\\,])")
+_DECL_RE = RAPID.pattern(
+    r"^[ \t]*(?:(local|task)\s+)?(const|pers|var)\s+([a-z_]\w*)\s+([a-z_]\w*)\s*(\{[^}]*\})?\s*", re.MULTILINE
 )
-_IDENT_RE = re.compile(r"[A-Za-z_]\w*")
 _REF_RE = re.compile(r"([A-Za-z_]\w*)\s*(?:\{\s*(\d+)\s*\})?")
 TYPES = ("robtarget", "jointtarget", "tooldata", "wobjdata")
+
+
+def _declaration_match(chunk: str) -> re.Match | None:
+    """A statement's declaration of a robtarget, jointtarget, tooldata or wobjdata."""
+    d = _DECL_RE.search(chunk)
+    return d if d and d.group(3).lower() in TYPES else None
 
 
 class _Bad(RecalError, ValueError):
@@ -95,7 +91,8 @@ def _value(code: str, i: int):
     while i < n and code[i].isspace():
         i += 1
     if i < n and code[i] == "[":
-        items, i = [], i + 1
+        items: list = []
+        i += 1
         while True:
             while i < n and code[i].isspace():
                 i += 1
@@ -128,43 +125,14 @@ def _value(code: str, i: int):
 
 
 def _split_args(code: str, s: int, e: int) -> list[tuple[int, int]]:
-    """Top-level comma-separated pieces of ``code[s:e]``."""
-    out, depth, start = [], 0, s
-    for i in range(s, e):
-        ch = code[i]
-        if ch in "([{":
-            depth += 1
-        elif ch in ")]}":
-            depth -= 1
-        elif ch == "," and depth == 0:
-            out.append((start, i))
-            start = i + 1
-    out.append((start, e))
-    return [(a, b) for a, b in (_trim(code, a, b) for a, b in out)]
-
-
-def _trim(code, s, e):
-    while s < e and code[s].isspace():
-        s += 1
-    while e > s and code[e - 1].isspace():
-        e -= 1
-    return s, e
+    """Top-level comma-separated pieces of ``code[s:e]``, trimmed."""
+    return [trim(code, a, b) for a, b in split_top_level(code, s, e)]
 
 
 def _options(code: str, s: int, e: int) -> tuple[tuple[int, int], dict[str, str]]:
     """An argument ``main\\Opt:=value\\Switch``: the main part and its options (lowercase names)."""
-    parts, depth, start = [], 0, s
-    for i in range(s, e):
-        ch = code[i]
-        if ch in "([{":
-            depth += 1
-        elif ch in ")]}":
-            depth -= 1
-        elif ch == "\\" and depth == 0:
-            parts.append((start, i))
-            start = i + 1
-    parts.append((start, e))
-    main = _trim(code, *parts[0])
+    parts = split_top_level(code, s, e, "\\")
+    main = trim(code, *parts[0])
     opts = {}
     for a, b in parts[1:]:
         t = code[a:b].strip()
@@ -173,16 +141,11 @@ def _options(code: str, s: int, e: int) -> tuple[tuple[int, int], dict[str, str]
     return main, opts
 
 
-class _Reader:
-    def __init__(self, path, text):
-        self.path, self.text, self.code = path, text, mask_code(text, "!")
-        self.starts = line_starts(text)
+class _Reader(Source):
+    """A RAPID file, and how its aggregates are read."""
 
-    def line(self, offset):
-        return line_of(self.starts, offset)
-
-    def fail(self, offset, message):
-        raise InputError(self.path, message, line=self.line(offset))
+    def __init__(self, path, text: str):
+        super().__init__(RAPID, path, text)
 
     def numbers(self, node, count, what, offset):
         if not isinstance(node, list):
@@ -225,9 +188,8 @@ def _module_frames(path) -> dict:
     """The ``tooldata`` and ``wobjdata`` another module of the task declares (not ``LOCAL``):
     lowercase name -> declaration, with the module's reader."""
     r = _Reader(path, read_text(path))
-    code, out, pos = r.code, {}, 0
-    for stmt_end in [m.start() for m in re.finditer(";", code)] + [len(code)]:
-        s0, pos = pos, stmt_end + 1
+    code, out = r.code, {}
+    for s0, stmt_end in r.statements():
         d = _DECL_RE.search(code[s0:stmt_end])
         if not d or d.group(3).lower() not in ("tooldata", "wobjdata") or d.group(5):
             continue
@@ -299,58 +261,105 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
     moves may use, and tools and work objects given by name (``--tool-frame``/``--work-object``)."""
     if n_joints != 6:
         raise InputError(path, f"RAPID programs are compensated for six-axis arms; the model has {n_joints} joints")
-    text = read_text(path, data)
-    r = _Reader(path, text)
-    code = r.code
-    decls: dict[str, dict] = {}  # lowercase name -> {type, node, offset, name}
-    moves = []  # (offset, move, [target arg spans], tool name, wobj name)
-    skipped: list[Uninterpreted] = []
-    expected: set[int] = set()  # offsets of identifiers that are a target's own use
-    monitored = {"confl": True, "confj": True}  # a program starts with both on
-    conf_off: dict[int, bool] = {}  # a move's offset -> its target's confdata is not held
-    pos = 0
-    for stmt_end in [m.start() for m in re.finditer(";", code)] + [len(code)]:
-        s0 = pos
-        pos = stmt_end + 1
-        chunk = code[s0:stmt_end]
-        c = _CONF_RE.match(chunk)
-        if c:
-            monitored[c.group(1).lower()] = c.group(2).lower() == "on"
-            continue
-        d = _DECL_RE.search(chunk)
-        if d and d.group(3).lower() in TYPES:
-            typ, name = d.group(3).lower(), d.group(4)
-            after = s0 + d.end()
-            expected.add(s0 + d.start(4))
-            if not code.startswith(":=", after):
-                continue  # declared without a value: nothing to compensate
-            try:
-                node, _ = _value(code, after + 2)
-            except _Bad as exc:
-                r.fail(exc.offset, f"{typ} {name}: {exc.message}")
-            if d.group(5):
-                if not isinstance(node, list):
-                    r.fail(after, f"{typ} {name}: expected an array aggregate")
-                for k, el in enumerate(node, start=1):
-                    decls[f"{name.lower()}{{{k}}}"] = {
-                        "type": typ,
-                        "node": el,
-                        "offset": after,
-                        "name": f"{name}{{{k}}}",
-                    }
-            else:
-                decls[name.lower()] = {"type": typ, "node": node, "offset": after, "name": name}
-            continue
-        m = _MOVE_RE.search(chunk)
-        if not m:
-            continue
+    module = _Module(path, read_text(path, data), frames)
+    for s0, stmt_end in module.r.statements():
+        module.statement(s0, stmt_end)
+    module.resolve_frames()
+    module.move_targets()
+    module.declared_targets()
+    module.undeclared_uses()
+    module.other_uses()
+    return module.program()
+
+
+class _Move(NamedTuple):
+    """A move statement: its offset, instruction, target argument spans, tool and work object."""
+
+    offset: int
+    mv: str
+    targets: list[tuple[int, int]]
+    tool: str
+    wobj: str | None
+
+
+class _Use(NamedTuple):
+    """A move's use of a declared target: its line, instruction, target kind and frames."""
+
+    line: int
+    mv: str
+    kind: str
+    T_tool: np.ndarray
+    T_work: np.ndarray
+    frames: str
+    tool: str
+    wobj: str | None
+
+
+class _Module:
+    """One RAPID module being read: its declarations (``decls``: lowercase name -> {type, node,
+    offset, name}), its moves in program order and the configuration monitoring each sees, the
+    frames they use, and what was found: targets (``out``), statements left alone (``skipped``)."""
+
+    def __init__(self, path, text: str, frames):
+        self.r = _Reader(path, text)
+        self.decls: dict[str, dict] = {}
+        self.moves: list[_Move] = []
+        self.skipped: list[Uninterpreted] = []
+        self.expected: set[int] = set()  # offsets of identifiers that are a target's own use
+        self.monitored = {"confl": True, "confj": True}  # a program starts with both on
+        self.conf_off: dict[int, bool] = {}  # a move's offset -> its target's confdata is not held
+        self.frames = frames
+        self.sources: dict[str, str] = {}  # a frame declared elsewhere -> where (a module, an option)
+        self.others: dict[str, dict] = {}  # the task's other modules' tooldata and wobjdata
+        self.given: dict[str, dict] = {}  # tools and work objects given by name
+        self.resolved: list[tuple[np.ndarray, np.ndarray, str]] = []
+        self.out: list[Target] = []
+        self.uses: dict[str, list[_Use]] = {}
+        self.first_move: dict[str, int] = {}  # a declared target's first move (offset): its place in the motions
+        self.names_done: set[str] = set()
+
+    # ------------------------------------------------------------------ statements in program order
+
+    def statement(self, s0: int, stmt_end: int) -> None:
+        """One statement, by the first rule of :data:`STATEMENTS` that matches its code."""
+        chunk = self.r.code[s0:stmt_end]
+        for _kind, match, handler in self.STATEMENTS:
+            m = match(chunk)
+            if m:
+                handler(self, s0, stmt_end, m)
+                return
+
+    def _conf(self, s0: int, stmt_end: int, c: re.Match) -> None:
+        self.monitored[c.group(1).lower()] = c.group(2).lower() == "on"
+
+    def _declaration(self, s0: int, stmt_end: int, d: re.Match) -> None:
+        r, code = self.r, self.r.code
+        typ, name = d.group(3).lower(), d.group(4)
+        after = s0 + d.end()
+        self.expected.add(s0 + d.start(4))
+        if not code.startswith(":=", after):
+            return  # declared without a value: nothing to compensate
+        try:
+            node, _ = _value(code, after + 2)
+        except _Bad as exc:
+            r.fail(exc.offset, f"{typ} {name}: {exc.message}")
+        if not d.group(5):
+            self.decls[name.lower()] = {"type": typ, "node": node, "offset": after, "name": name}
+            return
+        if not isinstance(node, list):
+            r.fail(after, f"{typ} {name}: expected an array aggregate")
+        for k, el in enumerate(node, start=1):
+            self.decls[f"{name.lower()}{{{k}}}"] = {"type": typ, "node": el, "offset": after, "name": f"{name}{{{k}}}"}
+
+    def _move(self, s0: int, stmt_end: int, m: re.Match) -> None:
+        code = self.r.code
         mv = m.group(1)
         start = s0 + m.end()
         args = [a for a in _split_args(code, start, stmt_end) if not code[a[0] : a[1]].startswith("\\")]
         n_t, tool_i = MOVES[mv.lower()]
         need = max(tool_i + 1, n_t + 2)
         if len(args) < need:
-            r.fail(
+            self.r.fail(
                 s0 + m.start(),
                 f"{mv}: expected at least {need} arguments (target(s), speed, zone, tool), got {len(args)}",
             )
@@ -359,149 +368,155 @@ def parse(path, data: bytes | None = None, *, n_joints: int = 6, frames=None) ->
         opts = {}
         for a in args:
             opts.update(_options(code, *a)[1])
-        tool = code[tool_main[0] : tool_main[1]]
-        wobj = opts.get("wobj")
-        targets = []
-        for k in range(n_t):
-            (a, b), _ = _options(code, *args[k])
-            targets.append((a, b))
-        moves.append((s0 + m.start(), mv, targets, tool, wobj))
+        targets = [_options(code, *args[k])[0] for k in range(n_t)]
+        self.moves.append(_Move(s0 + m.start(), mv, targets, code[tool_main[0] : tool_main[1]], opts.get("wobj")))
         joint = mv.lower() in _JOINT_MOVES
-        conf_off[s0 + m.start()] = not monitored["confj" if joint else "confl"] if mv.lower() != "moveabsj" else False
+        off = not self.monitored["confj" if joint else "confl"]
+        self.conf_off[s0 + m.start()] = off if mv.lower() != "moveabsj" else False
 
-    # frames: this module's declarations first (they hide the task's), then the task's other
-    # modules in the order given, then --tool-frame/--work-object
-    others: dict = {}
-    for mod in reversed(getattr(frames, "modules", ()) or ()):
-        others.update(_module_frames(mod))
-    given = {"tooldata": getattr(frames, "named_tools", {}) or {}, "wobjdata": getattr(frames, "named_wobjs", {}) or {}}
-    given = {typ: {k.lower(): (k, v) for k, v in d.items()} for typ, d in given.items()}
-    sources: dict[str, str] = {}
+    # a statement's kind -> its handler: the first rule whose match finds the statement's code reads it
+    STATEMENTS = (
+        ("configuration monitoring", _CONF_RE.match, _conf),
+        ("declaration", _declaration_match, _declaration),
+        ("move", _MOVE_RE.search, _move),
+    )
 
-    def frame(name, typ, offset, mv):
+    # ------------------------------------------------------------------ frames
+
+    def resolve_frames(self) -> None:
+        """Each move's tool and work object: this module's declarations first (they hide the
+        task's), then the task's other modules in the order given, then --tool-frame/--work-object."""
+        for mod in reversed(getattr(self.frames, "modules", ()) or ()):
+            self.others.update(_module_frames(mod))
+        given = {
+            "tooldata": getattr(self.frames, "named_tools", {}) or {},
+            "wobjdata": getattr(self.frames, "named_wobjs", {}) or {},
+        }
+        self.given = {typ: {k.lower(): (k, v) for k, v in d.items()} for typ, d in given.items()}
+        for mv in self.moves:
+            T_tool = self.frame(mv.tool, "tooldata", mv.offset, mv.mv)
+            T_work = self.frame(mv.wobj, "wobjdata", mv.offset, mv.mv)
+            t_src = _source(self.sources, mv.tool)
+            w_src = _source(self.sources, mv.wobj)
+            self.resolved.append((T_tool, T_work, f"tool {mv.tool}{t_src}, wobj {mv.wobj or 'wobj0'}{w_src}"))
+
+    def frame(self, name: str | None, typ: str, offset: int, mv: str) -> np.ndarray:
+        r = self.r
         if name is None or name.lower() in (("tool0",) if typ == "tooldata" else ("wobj0",)):
             return np.eye(4)
-        if not _IDENT_RE.fullmatch(name):
+        if not IDENT_RE.fullmatch(name):
             r.fail(offset, f"{mv}: {typ} {name!r} is an expression; Recal resolves only {typ} declared in this file")
-        dd = decls.get(name.lower())
-        if dd is None or dd["type"] != typ:
-            dd = others.get(name.lower())
-            if dd is not None and dd["type"] == typ:
-                sources[name.lower()] = dd["r"].path
-                return _declared_frame(dd["r"], dd, typ, name)
-            if name.lower() in given[typ]:
-                flag = "--tool-frame" if typ == "tooldata" else "--work-object"
-                sources[name.lower()] = flag
-                try:
-                    return _named_frame(given[typ][name.lower()][1])
-                except ValueError as exc:
-                    raise InputError(flag, f"{name}: {exc}") from None
-            flag = "--tool-frame" if typ == "tooldata" else "--work-object"
-            r.fail(
-                offset,
-                f"{mv}: {typ} {name} is not declared in this module"
-                + (" nor in the modules given" if others else "")
-                + f"; pass the module that declares it (--module SYSMOD.sys) or {flag} {name}=X,Y,Z,Q1,Q2,Q3,Q4",
-            )
-        return _declared_frame(r, dd, typ, name)
+        dd = self.decls.get(name.lower())
+        if dd is not None and dd["type"] == typ:
+            return _declared_frame(r, dd, typ, name)
+        dd = self.others.get(name.lower())
+        if dd is not None and dd["type"] == typ:
+            self.sources[name.lower()] = dd["r"].path
+            return _declared_frame(dd["r"], dd, typ, name)
+        flag = "--tool-frame" if typ == "tooldata" else "--work-object"
+        if name.lower() in self.given[typ]:
+            self.sources[name.lower()] = flag
+            try:
+                return _named_frame(self.given[typ][name.lower()][1])
+            except ValueError as exc:
+                raise InputError(flag, f"{name}: {exc}") from None
+        r.fail(
+            offset,
+            f"{mv}: {typ} {name} is not declared in this module"
+            + (" nor in the modules given" if self.others else "")
+            + f"; pass the module that declares it (--module SYSMOD.sys) or {flag} {name}=X,Y,Z,Q1,Q2,Q3,Q4",
+        )
 
-    resolved_frames = []
-    for off, mv, _targets, tool, wobj in moves:
-        T_tool = frame(tool, "tooldata", off, mv)
-        T_work = frame(wobj, "wobjdata", off, mv)
-        t_src = _source(sources, tool)
-        w_src = _source(sources, wobj)
-        resolved_frames.append((T_tool, T_work, f"tool {tool}{t_src}, wobj {wobj or 'wobj0'}{w_src}"))
-    out: list[Target] = []
-    uses: dict[str, list] = {}
-    first_move: dict[str, int] = {}  # a declared target's first move (offset): its place in the motions
-    for (off, mv, targets, tool, wobj), (T_tool, T_work, fr) in zip(moves, resolved_frames):
-        kind = "jointtarget" if mv.lower() == "moveabsj" else "robtarget"
-        for a, b in targets:
-            t = code[a:b]
-            ln = r.line(a)
-            if t.startswith("["):
-                try:
-                    node, _ = _value(code, a)
-                except _Bad as exc:
-                    r.fail(exc.offset, f"{mv}: inline {kind}: {exc.message}")
-                t_in = _target(r, kind, node, None, mv, a, T_tool, T_work, fr)
-                out.append(dataclasses.replace(t_in, seq=off, config_off=conf_off[off]))
+    # ------------------------------------------------------------------ targets
+
+    def move_targets(self) -> None:
+        """Each move's targets: an inline one read, a name noted as a use (resolved after), an
+        expression left alone."""
+        r, code = self.r, self.r.code
+        for move, (T_tool, T_work, fr) in zip(self.moves, self.resolved):
+            off, mv = move.offset, move.mv
+            kind = "jointtarget" if mv.lower() == "moveabsj" else "robtarget"
+            for a, b in move.targets:
+                t = code[a:b]
+                ln = r.line(a)
+                if t.startswith("["):
+                    try:
+                        node, _ = _value(code, a)
+                    except _Bad as exc:
+                        r.fail(exc.offset, f"{mv}: inline {kind}: {exc.message}")
+                    t_in = _target(r, kind, node, None, mv, a, T_tool, T_work, fr)
+                    self.out.append(dataclasses.replace(t_in, seq=off, config_off=self.conf_off[off]))
+                    continue
+                ref = _REF_RE.fullmatch(t)
+                if ref:
+                    key = ref.group(1).lower() + (f"{{{ref.group(2)}}}" if ref.group(2) else "")
+                    self.expected.add(a)
+                    self.uses.setdefault(key, []).append(_Use(ln, mv, kind, T_tool, T_work, fr, move.tool, move.wobj))
+                    self.first_move.setdefault(key, off)
+                    continue
+                why = f"the {mv} target is computed by an expression: not compensated"
+                self.skipped.append(Uninterpreted(ln, r.line_text(ln), why))
+
+    def declared_targets(self) -> None:
+        """Each declared robtarget or jointtarget with the frames of the moves that use it; one
+        used with different frames, or by no move, is left alone and reported."""
+        r = self.r
+        for key, dd in self.decls.items():
+            if dd["type"] not in ("robtarget", "jointtarget"):
                 continue
-            ref = _REF_RE.fullmatch(t)
-            if ref:
-                key = ref.group(1).lower() + (f"{{{ref.group(2)}}}" if ref.group(2) else "")
-                expected.add(a)
-                uses.setdefault(key, []).append((ln, mv, kind, T_tool, T_work, fr, tool, wobj))
-                first_move.setdefault(key, off)
-                continue
-            skipped.append(
-                Uninterpreted(
-                    ln, line_text(text, r.starts, ln), f"the {mv} target is computed by an expression: not compensated"
-                )
-            )
-    names_done = set()
-    for key, dd in decls.items():
-        if dd["type"] not in ("robtarget", "jointtarget"):
-            continue
-        ln = r.line(dd["offset"])
-        us = uses.get(key, [])
-        if not us:
-            skipped.append(
-                Uninterpreted(
-                    ln,
-                    line_text(text, r.starts, ln),
+            ln = r.line(dd["offset"])
+            us = self.uses.get(key, [])
+            if not us:
+                why = (
                     f"{dd['type']} {dd['name']} is not the target of a move in this file: its "
-                    f"tool and work object are unknown",
+                    f"tool and work object are unknown"
                 )
-            )
-            continue
-        combos = {(u[6] or "tool0").lower() + "|" + (u[7] or "wobj0").lower() for u in us}
-        if dd["type"] == "robtarget" and len(combos) > 1:
-            skipped.append(
-                Uninterpreted(
-                    ln,
-                    line_text(text, r.starts, ln),
+                self.skipped.append(Uninterpreted(ln, r.line_text(ln), why))
+                continue
+            combos = {(u.tool or "tool0").lower() + "|" + (u.wobj or "wobj0").lower() for u in us}
+            if dd["type"] == "robtarget" and len(combos) > 1:
+                why = (
                     f"robtarget {dd['name']} is used with different tools or work objects "
-                    f"(lines {', '.join(str(u[0]) for u in us)}): not compensated",
+                    f"(lines {', '.join(str(u.line) for u in us)}): not compensated"
                 )
-            )
-            continue
-        if us[0][2] != dd["type"]:
-            r.fail(dd["offset"], f"{dd['type']} {dd['name']}: used as a {us[0][2]} by {us[0][1]} (line {us[0][0]})")
-        _, mv, kind, T_tool, T_work, fr, _, _ = us[0]
-        t_dd = _target(r, kind, dd["node"], dd["name"], mv, dd["offset"], T_tool, T_work, fr)
-        off = first_move[key]
-        out.append(dataclasses.replace(t_dd, seq=off, config_off=conf_off[off]))
-        names_done.add(dd["name"].split("{")[0].lower())
-    # undeclared names used as targets
-    for key, us in uses.items():
-        if key not in decls:
-            for u in us:
-                skipped.append(
-                    Uninterpreted(
-                        u[0], line_text(text, r.starts, u[0]), f"{key} is not declared in this file: not compensated"
-                    )
+                self.skipped.append(Uninterpreted(ln, r.line_text(ln), why))
+                continue
+            u = us[0]
+            if u.kind != dd["type"]:
+                r.fail(dd["offset"], f"{dd['type']} {dd['name']}: used as a {u.kind} by {u.mv} (line {u.line})")
+            t_dd = _target(r, u.kind, dd["node"], dd["name"], u.mv, dd["offset"], u.T_tool, u.T_work, u.frames)
+            off = self.first_move[key]
+            self.out.append(dataclasses.replace(t_dd, seq=off, config_off=self.conf_off[off]))
+            self.names_done.add(dd["name"].split("{")[0].lower())
+
+    def undeclared_uses(self) -> None:
+        """Names used as targets that this module does not declare: left alone, saying why."""
+        for key, us in self.uses.items():
+            if key not in self.decls:
+                for u in us:
+                    why = f"{key} is not declared in this file: not compensated"
+                    self.skipped.append(Uninterpreted(u.line, self.r.line_text(u.line), why))
+
+    def other_uses(self) -> None:
+        """Other uses of a compensated target's name (``Offs(p10, ...)``): they see the new value."""
+        r = self.r
+        for tok in r.identifiers():
+            if tok.text.lower() in self.names_done and tok.start not in self.expected:
+                ln = r.line(tok.start)
+                why = (
+                    f"uses target {tok.text} in an expression: this use sees the compensated "
+                    f"value and is not itself compensated"
                 )
-    # other uses of a compensated target's name (Offs(p10, ...)): they see the new value
-    for m in _IDENT_RE.finditer(code):
-        if m.group().lower() in names_done and m.start() not in expected:
-            ln = r.line(m.start())
-            skipped.append(
-                Uninterpreted(
-                    ln,
-                    line_text(text, r.starts, ln),
-                    f"uses target {m.group()} in an expression: this use sees the compensated "
-                    f"value and is not itself compensated",
-                )
-            )
-    out.sort(key=lambda t: t.line)
-    seen, dedup = set(), []
-    for u in sorted(skipped, key=lambda u: u.line):
-        if (u.line, u.reason) not in seen:
-            seen.add((u.line, u.reason))
-            dedup.append(u)
-    return Program((str(path),), (text,), "abb", out, dedup)
+                self.skipped.append(Uninterpreted(ln, r.line_text(ln), why))
+
+    def program(self) -> Program:
+        self.out.sort(key=lambda t: t.line)
+        seen, dedup = set(), []
+        for u in sorted(self.skipped, key=lambda u: u.line):
+            if (u.line, u.reason) not in seen:
+                seen.add((u.line, u.reason))
+                dedup.append(u)
+        return Program((self.r.path,), (self.r.text,), "abb", self.out, dedup)
 
 
 def _target(r: _Reader, kind, node, name, mv, offset, T_tool, T_work, frames) -> Target:

@@ -15,7 +15,8 @@ from calibration import robots
 from calibration.kinematics import fk
 from calibration.transforms import matrix_to_quat, rotvec_to_matrix
 from service.files import InputError
-from service.taskfiles import format_task, is_script, matrix_to_pose_ur, parse_urscript, pose_to_matrix_ur, read_task
+from service.programs.urscript import parse as parse_urscript
+from service.taskfiles import format_task, is_script, matrix_to_pose_ur, pose_to_matrix_ur, read_task
 
 UR = robots.nominal("ur10e")  # mm and degrees
 
