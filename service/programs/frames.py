@@ -5,17 +5,23 @@ reads the angles in its own convention (KUKA A, B, C; Fanuc W, P, R)."""
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 
-_OPT_RE = re.compile(r"^\s*(?:(\d+)\s*=)?\s*(.*)$")
+# DOTALL: an option with a line break in it (a pasted value) is refused in words, not matched
+# to nothing
+_OPT_RE = re.compile(r"\s*(?:(\d+)\s*=)?\s*(.*)", re.DOTALL)
 
 
 def parse_frame_option(option: str, flag: str) -> tuple[int | None, tuple[float, ...]]:
     """``[N=]X,Y,Z,A,B,C`` -> (N or None, six numbers)."""
-    m = _OPT_RE.match(option)
+    m = _OPT_RE.fullmatch(option)
+    assert m is not None  # (.*) with DOTALL matches any text
     try:
         vals = tuple(float(v) for v in m.group(2).split(","))
+        if not all(math.isfinite(v) for v in vals):
+            raise ValueError
     except ValueError:
         raise ValueError(f"{flag}: expected [N=]X,Y,Z,A,B,C (six numbers, mm and degrees), got {option!r}") from None
     if len(vals) != 6:

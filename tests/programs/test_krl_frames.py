@@ -137,3 +137,19 @@ def test_without_config_dat_the_home_fold_is_not_refused_and_says_what_to_pass(t
     prog = krl.parse(tmp_path / "t.src")
     reasons = " ".join(u.reason for u in prog.uninterpreted)
     assert "--config-dat" in reasons and prog.targets == []
+
+
+@pytest.mark.parametrize(
+    "option",
+    ["1=1,2,3\n4,5,6", "1=nan,0,0,0,0,0", "1=1,2,3,4,5", "1=1,2,3,4,5,inf"],
+    ids=["break", "nan", "five", "inf"],
+)
+def test_a_frame_option_that_is_not_six_finite_numbers_exits_2_naming_the_option(tmp_path, option):
+    """A pasted value with a line break once raised a traceback (the option's pattern matched
+    nothing); NaN and infinity passed as numbers."""
+    models(tmp_path, "kuka")
+    write(tmp_path, "t", "PTP XP1\n", "{X 1,Y 2,Z 3,A 0,B 0,C 0,S 2,T 2}")
+    r = recal("compensate", "--model", "identified.json", "--task", "t.src", "--out", "o.src", "--tool-frame", option, cwd=tmp_path)  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert "--tool-frame" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o.src").exists()
