@@ -12,6 +12,9 @@ Must / might (after python-can's ``BusABC``):
   ``SteerablePositionSensor`` (a tracker that can be pointed) also ``find_reflector``;
 - a ``Cmm`` **must** implement ``probe``; ``measure_ball`` and ``measure_pose`` are built on it
   here and **might** be overridden by a CMM that measures spheres itself;
+- an instrument (``PositionSensor``, ``Cmm``) **must** declare ``sigma_m``: the per-axis standard
+  uncertainty of one measured position (m), from its typed config, the vendor's figure (named in
+  a comment) by default: sessions plan and weigh with it (``service.device_registry``);
 - a ``JointEncoder`` **must** implement ``read`` and ``status``.
 
 Units are SI: metres, radians, seconds. Arrays carry the frame in their name
@@ -127,6 +130,11 @@ class PointMeasurement:
 class PositionSensor(Device):
     """A laser tracker (or anything that measures one point at a time)."""
 
+    @property
+    @abc.abstractmethod
+    def sigma_m(self) -> float:
+        """The per-axis standard uncertainty of one measured point (m), as its config declares."""
+
     @abc.abstractmethod
     def measure(self) -> PointMeasurement:
         """Take one fresh measurement. Raises ``MeasurementError`` if it cannot be taken."""
@@ -175,6 +183,11 @@ class PoseMeasurement:
 
 class Cmm(Device):
     """A coordinate measuring machine with a touch-trigger probe."""
+
+    @property
+    @abc.abstractmethod
+    def sigma_m(self) -> float:
+        """The per-axis standard uncertainty of a measured tool position (m), as its config declares."""
 
     @abc.abstractmethod
     def probe(self, p_world: np.ndarray, approach_world: np.ndarray) -> np.ndarray:

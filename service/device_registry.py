@@ -58,6 +58,9 @@ class DeviceEntry:
     - ``driver`` / ``fake``: ``module:Class`` of its driver and of its simulation;
     - ``open(config, timeout_s)``: the open driver (None: opened by its session kind);
     - ``test(config, timeout_s)``: the connection test's row (None: tested elsewhere);
+    - ``sigma_m(config)``: for an instrument, the per-axis standard uncertainty (m) its driver's
+      typed config declares for this configuration (the vendor's figure unless stated), what a
+      session plans and weighs with (None: no position instrument);
     - ``page``: the page's kind of field for it (``text``: one text field with the schema's
       pattern; ``text-or-settings``: a text field keeping an object written elsewhere; ``can``:
       the bus's fields and the joints' nodes).
@@ -70,6 +73,7 @@ class DeviceEntry:
     fake: str | None
     open: Callable[[DevicesConfig, float], Any] | None = None
     test: Callable[[DevicesConfig, float], dict] | None = None
+    sigma_m: Callable[[DevicesConfig], float] | None = None
     short_label: str | None = None
     page: str = "text"
 
@@ -156,10 +160,20 @@ def open_emscon(config: DevicesConfig, timeout_s: float) -> Any:
     return EmsconTracker(settings)
 
 
-def open_line_tracker(config: DevicesConfig, timeout_s: float) -> Any:
-    from drivers.tracker import LineTracker, TrackerConfig
+def emscon_sigma_m(config: DevicesConfig) -> float:
+    return emscon_config(config.emscon_settings).sigma_m
 
-    return LineTracker(TrackerConfig(url=config.tracker, timeout_s=timeout_s))
+
+def line_tracker_config(config: DevicesConfig, timeout_s: float = 2.0) -> Any:
+    from drivers.tracker import TrackerConfig
+
+    return TrackerConfig(url=config.tracker, timeout_s=timeout_s)
+
+
+def open_line_tracker(config: DevicesConfig, timeout_s: float) -> Any:
+    from drivers.tracker import LineTracker
+
+    return LineTracker(line_tracker_config(config, timeout_s))
 
 
 def _measure_once(tr: Any, details: dict) -> str:
@@ -215,8 +229,8 @@ def test_line_tracker(config: DevicesConfig, timeout_s: float) -> dict:
 # --------------------------------------------------------------------------- CMM
 
 
-def open_ippdme(config: DevicesConfig, timeout_s: float) -> Any:
-    from drivers.ippdme import IppDmeCmm, IppDmeConfig
+def ippdme_config(config: DevicesConfig, timeout_s: float = 5.0) -> Any:
+    from drivers.ippdme import IppDmeConfig
 
     # The session finds the tooling balls where the cell's current model puts them. After a
     # tracker calibration that model cannot know the tool's orientation (one reflector does not
@@ -224,7 +238,13 @@ def open_ippdme(config: DevicesConfig, timeout_s: float) -> Any:
     # driver's default 3 mm approach the probe then starts inside a ball (I++ 1001 "Illegal
     # touch"). Start 10 mm off the nominal surface and search 15 mm past it, as CMM programs
     # probing a part that is not yet aligned do (each point then takes a little longer).
-    return IppDmeCmm(IppDmeConfig(url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
+    return IppDmeConfig(url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015)
+
+
+def open_ippdme(config: DevicesConfig, timeout_s: float) -> Any:
+    from drivers.ippdme import IppDmeCmm
+
+    return IppDmeCmm(ippdme_config(config, timeout_s))
 
 
 def test_ippdme(config: DevicesConfig, timeout_s: float) -> dict:
@@ -282,6 +302,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.leica_tracker:LeicaTrackerFake",
         open=open_emscon,
         test=test_emscon,
+        sigma_m=emscon_sigma_m,
         page="text-or-settings",
     ),
     DeviceEntry(
@@ -293,6 +314,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.tracker:TrackerFake",
         open=open_line_tracker,
         test=test_line_tracker,
+        sigma_m=lambda config: line_tracker_config(config).sigma_m,
     ),
     DeviceEntry(
         key="cmm",
@@ -302,6 +324,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.cmm:IppCmmFake",
         open=open_ippdme,
         test=test_ippdme,
+        sigma_m=lambda config: ippdme_config(config).sigma_m,
     ),
     # the CAN bus's nodes are opened joint by joint (devices.open_encoders) and tested node by
     # node (devicetest._test_can_nodes): its entry opens and tests nothing itself
@@ -417,6 +440,16 @@ class DevicesConfig(_Strict):
         if self.emscon is None or isinstance(self.emscon, EmsconSettings):
             return self.emscon
         return EmsconSettings.from_address(self.emscon)
+
+    def instrument_sigma(self, device: str) -> tuple[float, DeviceEntry] | None:
+        """What the session's measuring ``device`` (a role) is declared to measure to: the
+        per-axis standard uncertainty (m) of the first device of that role the cell names (the
+        one sessions open), from its driver's typed config, with its entry; None when the cell
+        has no such device or it declares none (a CAN bus's encoders measure no position)."""
+        for entry in self.present(device):
+            if entry.sigma_m is not None:
+                return float(entry.sigma_m(self)), entry
+        return None
 
     def kinds(self) -> list[str]:
         """The kinds of device the document names, in the registry's order (for listings)."""

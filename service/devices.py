@@ -12,6 +12,7 @@ import contextlib
 from dataclasses import dataclass, field
 from typing import Any
 
+from calibration.identification import INSTRUMENT_SIGMA_M
 from drivers.base import Cmm, JointEncoder, PositionSensor, Robot
 
 from .device_config import (
@@ -28,9 +29,11 @@ __all__ = [
     "CellDevices",
     "DeviceConfigError",
     "DevicesConfig",
+    "InstrumentSigma",
     "describe",
     "emscon_config",
     "encoder_nodes",
+    "instrument_sigma",
     "open_cmm",
     "open_encoders",
     "open_robot",
@@ -63,6 +66,44 @@ class CellDevices:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+@dataclass(frozen=True)
+class InstrumentSigma:
+    """The per-axis standard uncertainty ``sigma_m`` (m) a session plans, predicts and weighs
+    with, and ``source``: the registry's label of the instrument that declares it, or why the
+    library's default stands in. Stored with the session's plan (``plan_info["instrument_sigma"]``)
+    so that its figures stay those of its time when the cell's devices change."""
+
+    sigma_m: float
+    source: str
+
+    def as_info(self) -> dict[str, Any]:
+        return {"sigma_m": self.sigma_m, "source": self.source}
+
+    @classmethod
+    def from_info(cls, info: Any) -> InstrumentSigma | None:
+        """The record :meth:`as_info` stored; None when there is none (a session planned before
+        the figure was stored, an imported one)."""
+        if not isinstance(info, dict) or not isinstance(info.get("sigma_m"), int | float) or not info["sigma_m"] > 0:
+            return None
+        return cls(float(info["sigma_m"]), str(info.get("source") or "stored with the session"))
+
+
+def instrument_sigma(doc: Any, role: str) -> InstrumentSigma:
+    """What the cell's measuring device of ``role`` (``tracker``, ``cmm``) declares it measures
+    to (its driver's typed config, through the registry: :meth:`DevicesConfig.instrument_sigma`).
+    Where the cell names none of that role, or its document cannot be read, the library's
+    documented default (``calibration.identification.INSTRUMENT_SIGMA_M``, a laser tracker's)
+    stands in, and ``source`` says so."""
+    try:
+        found = stored_devices(doc).instrument_sigma(role)
+    except DeviceConfigError:
+        found = None
+    if found is not None:
+        return InstrumentSigma(found[0], found[1].label)
+    what = ROLE_NAMES.get(role, role)
+    return InstrumentSigma(INSTRUMENT_SIGMA_M, f"the library's default: the cell declares no {what} figure")
 
 
 def open_role(config: DevicesConfig, role: str, *, timeout_s: float = 10.0) -> Any:

@@ -49,7 +49,7 @@ from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedErro
 
 from . import analysis, controller, records
 from .control import Control, DeviceOpenError, SessionStopped, heavy_slot, retry
-from .devices import CellDevices, DeviceConfigError, open_robot, stored_devices
+from .devices import CellDevices, DeviceConfigError, InstrumentSigma, instrument_sigma, open_robot, stored_devices
 from .kinds import Step, finish_session, kind_of
 from .models import TERMINAL, Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
@@ -99,10 +99,14 @@ def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> Cel
 
 def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | None = None) -> RunSession:
     """Plan the session once (a resumed session keeps its plan) and check it. Between the
-    planning's phases ``control.check()`` stops it (abort, pause, the process stopping)."""
+    planning's phases ``control.check()`` stops it (abort, pause, the process stopping). The plan
+    predicts with the session's instrument's declared sigma, stored with it (``instrument_sigma``)."""
     model = model_from_dict(cell.model)
     if run.plan is None:
         info = run.plan_info or {}
+        sigma = InstrumentSigma.from_info(info.get("instrument_sigma")) or instrument_sigma(
+            cell.devices, kind_of(run.kind).instrument(run)
+        )
         plan = plan_session(
             kind_of(run.kind).plan,
             model,
@@ -111,11 +115,18 @@ def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | Non
             target=run.target,
             joints=info.get("joints"),
             seed=run.id or 0,
+            sigma_m=sigma.sigma_m,
             repeats=int(info.get("repeats") or 1),
             between=None if control is None else control.check,
         )
         run.plan = plan.q.tolist()
-        run.plan_info = {**info, **plan.info, "swept_joint": plan.joint.tolist(), "nominal_version": cell.model_version}
+        run.plan_info = {
+            **info,
+            **plan.info,
+            "swept_joint": plan.joint.tolist(),
+            "nominal_version": cell.model_version,
+            "instrument_sigma": sigma.as_info(),
+        }
         run.planned = len(plan.q)
         db.add(run)
         db.commit()

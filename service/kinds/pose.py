@@ -16,7 +16,7 @@ from calibration.identify import NotEnoughData, Prior, drift_scale, held_relatio
 from calibration.model import KinematicModel, model_from_dict
 from calibration.report import identification_block, identification_report
 
-from ..analysis import AnalysisError, session_data, store_calibration
+from ..analysis import AnalysisError, session_data, session_sigma, store_calibration
 from ..models import Calibration, Cell, KindRules, RunSession
 from ..plans import Plan, PlanRequest, planned_poses
 from ..results import position_residuals, predicted_accuracy
@@ -60,14 +60,18 @@ class Pose(PositionKind):
         return planned_poses(req)
 
     def finish(self, db, run, cell, settings) -> None:
-        cal = identify_session(db, run, cell)
+        cal = identify_session(db, run, cell, self.instrument(run))
         cal.predicted = predicted_accuracy(cal, cell, run.target)  # stored with it: drift lists it without reports
         db.add(cal)
         run.calibration_id = cal.id
 
 
-def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
+def identify_session(db: Session, run: RunSession, cell: Cell, role: str) -> Calibration:
+    """Identify the session's measurements (its ``role``'s instrument's declared sigma weighs the
+    rows that carry none, and the orientations of full poses), from the previous calibration as
+    the prior when there is one; the calibration stored."""
     data = session_data(db, run)
+    sigma_m = session_sigma(run, cell, role).sigma_m
     nominal = model_from_dict(cell.model)
     prev = current_calibration(db, cell)
     prior = None
@@ -83,10 +87,10 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         # what it held at the model's value, confused with what it estimated (e.g. the tool orientation
         # a tracker cannot see): new data that determine them move the combinations it measured
         held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
-        scale = max(drift_scale(start, data, names, cov, drift, held=held), DRIFT_SCALE_MIN)
+        scale = max(drift_scale(start, data, names, cov, drift, sigma_m=sigma_m, held=held), DRIFT_SCALE_MIN)
         prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
     try:
-        result = identify(start, data, prior=prior)
+        result = identify(start, data, prior=prior, sigma_m=sigma_m)
     except NotEnoughData as exc:  # too few poses to check the fit: say how many, as the CLI does
         raise AnalysisError(str(exc)) from None
     if not result.success:
@@ -98,7 +102,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         from calibration.compliance_fit import compare
 
         try:
-            cmp = compare(start, data)
+            cmp = compare(start, data, identify_kw={"sigma_m": sigma_m})
         except NotEnoughData:  # each fold's share of the poses leaves no redundancy: nothing to compare
             cmp = None
         if cmp is not None:
@@ -112,7 +116,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()},
     }
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
-    rmap_doc, report["residual_map"] = _residual_map(start, data, prior, result.model, model)
+    rmap_doc, report["residual_map"] = _residual_map(start, data, prior, sigma_m, result.model, model)
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q, report=report)
     ctrl = current_controller_model(db, cell.id)
@@ -123,11 +127,17 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
 
 
 def _residual_map(
-    start: KinematicModel, data: Measurements, prior: Prior | None, identified: KinematicModel, model: KinematicModel
+    start: KinematicModel,
+    data: Measurements,
+    prior: Prior | None,
+    sigma_m: float,
+    identified: KinematicModel,
+    model: KinematicModel,
 ) -> tuple[dict | None, dict | None]:
     """What ``recal identify --residual-map auto`` does (book §5.4): a smooth correction of what the
     identified model leaves, kept only where k-fold cross-validation of the whole procedure (the
-    identification from ``start``, with the session's ``prior``, then the map) shows a gain.
+    identification from ``start``, with the session's ``prior`` and instrument's ``sigma_m``,
+    then the map) shows a gain.
     Returns the model file's ``residual_map`` section (None when it is left out), which the
     service's compensation applies inside the measured region, and the cross-validation's
     figures in ``model``'s units either way (None when the folds leave too few poses to tell)."""
@@ -135,7 +145,9 @@ def _residual_map(
     from calibration import residual_map as rm
 
     try:
-        rmap, fig = rc.choose_residual_map(start, data, identify_kw={"prior": prior}, final=identified)
+        rmap, fig = rc.choose_residual_map(
+            start, data, identify_kw={"prior": prior, "sigma_m": sigma_m}, final=identified
+        )
     except NotEnoughData:
         return None, None
     L = model.units.length_m
