@@ -18,6 +18,7 @@ they never import it (tests/test_architecture.py).
 from __future__ import annotations
 
 import functools
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
@@ -58,6 +59,8 @@ class DeviceEntry:
     - ``driver`` / ``fake``: ``module:Class`` of its driver and of its simulation;
     - ``open(config, timeout_s)``: the open driver (None: opened by its session kind);
     - ``test(config, timeout_s)``: the connection test's row (None: tested elsewhere);
+    - ``robot_type(config, timeout_s)``: for a robot, what its controller says it is (UR's
+      dashboard: ``UR5``), asked without opening the driver (None: it cannot be asked);
     - ``sigma_m(config)``: for an instrument, the per-axis standard uncertainty (m) its driver's
       typed config declares for this configuration (the vendor's figure unless stated), what a
       session plans and weighs with (None: no position instrument);
@@ -73,9 +76,16 @@ class DeviceEntry:
     fake: str | None
     open: Callable[[DevicesConfig, float], Any] | None = None
     test: Callable[[DevicesConfig, float], dict] | None = None
+    robot_type: Callable[[DevicesConfig, float], str] | None = None
     sigma_m: Callable[[DevicesConfig], float] | None = None
     short_label: str | None = None
     page: str = "text"
+
+    def driver_class(self) -> type:
+        """The driver's class (imported now: a driver module imports its client library only
+        when it connects), for what it declares it can do (drivers/base.py: must and might)."""
+        module, _, name = self.driver.partition(":")
+        return getattr(importlib.import_module(module), name)
 
     def describe(self) -> dict[str, Any]:
         """The entry as the page reads it (``x-devices`` of the served schema)."""
@@ -101,6 +111,14 @@ def open_rtde(config: DevicesConfig, timeout_s: float) -> Any:
             host=config.rtde, probe_timeout_s=timeout_s, command_timeout_s=timeout_s, connect_timeout_s=connect_s
         )
     )
+
+
+def rtde_robot_type(config: DevicesConfig, timeout_s: float) -> str:
+    """The dashboard's ``get robot model`` (``UR5``): asked on the dashboard port, so that the
+    control script is not uploaded (connecting RTDE would stop a program that runs)."""
+    from drivers.ur_rtde import dashboard_query
+
+    return dashboard_query(config.rtde, "get robot model", timeout_s)
 
 
 def open_modbus(config: DevicesConfig, timeout_s: float) -> Any:
@@ -283,6 +301,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.ur_controller:UrControllerFake",
         open=open_rtde,
         test=functools.partial(test_robot, open_rtde),
+        robot_type=rtde_robot_type,
     ),
     DeviceEntry(
         key="modbus",
@@ -419,6 +438,13 @@ class DevicesConfig(_Strict):
     @property
     def has_robot(self) -> bool:
         return bool(self.present("robot"))
+
+    @property
+    def robot_takes_payload(self) -> bool:
+        """The cell's robot (the first of the role, as sessions open it) takes the mounted payload,
+        as its driver declares (``Robot.takes_payload``)."""
+        robots = self.present("robot")
+        return bool(robots) and bool(robots[0].driver_class().takes_payload)
 
     @property
     def has_tracker(self) -> bool:
