@@ -82,11 +82,11 @@ import threading
 
 
 class StubGaugeFake:
-    def __init__(self, cell, host="127.0.0.1", port=0):
+    def __init__(self, cell, host="127.0.0.1", port=0, answer="STUB,GAUGE,1"):
         class Handler(socketserver.StreamRequestHandler):
             def handle(self):
                 for _line in self.rfile:
-                    self.wfile.write(b"STUB,GAUGE,1\\n")
+                    self.wfile.write(answer.encode() + b"\\n")
 
         self.server = socketserver.ThreadingTCPServer((host, port), Handler)
         self.server.daemon_threads = True
@@ -103,7 +103,13 @@ class StubGaugeFake:
         return {"gauge": f"socket://{host}:{port}"}
 
 
-CELL_FAKE = {"key": "gauge", "order": 70, "cls": StubGaugeFake}
+CELL_FAKE = {
+    "key": "gauge",
+    "order": 70,
+    "cls": StubGaugeFake,
+    "kwargs": lambda args: {"answer": args.gauge_answer},
+    "options": [("--gauge-answer", {"default": "STUB,GAUGE,1", "help": "what the stub gauge answers"})],
+}
 '''
 
 STUB_FIELD = """    gauge: SerialUrl | None = Field(None, title="Stub gauge", description="socket://HOST:PORT of the gauge")
@@ -133,13 +139,15 @@ def _stub_identity(config: DevicesConfig, timeout_s: float) -> str:
 
 USE_IT = """
 import json
-from fakes.cell import FAKES
+from fakes.cell import FAKES, build_parser
 from fakes.world import SimCell
 from calibration.robots import nominal
 from service.device_config import parse_devices, devices_json_schema
 from service.devicetest import test_devices
 
-fake = next(f for f in FAKES if f["key"] == "gauge")["cls"](SimCell(nominal("ur5e")), "127.0.0.1")
+entry = next(f for f in FAKES if f["key"] == "gauge")
+args = build_parser().parse_args(["--truth", "truth.json", "--gauge-answer", "GAUGE,2"])
+fake = entry["cls"](SimCell(nominal("ur5e")), "127.0.0.1", **entry["kwargs"](args))
 fake.start()
 try:
     config = parse_devices(fake.endpoint())
@@ -191,9 +199,10 @@ def test_a_stub_instrument_is_its_driver_its_fake_and_one_registry_entry(tmp_pat
     seen = json.loads(done.stdout.splitlines()[-1])
     assert seen["kinds"] == ["gauge"] and seen["has_cmm"]
     assert seen["page"][-1] == "gauge"
+    # the fake's own command-line option (declared on its CELL_FAKE line) reached it through fake-cell's parser
     assert seen["rows"] == [
         {"device": "stub gauge", "address": seen["rows"][0]["address"], "elapsed_ms": seen["rows"][0]["elapsed_ms"]}
-        | {"ok": True, "name": "stub gauge", "answer": "STUB,GAUGE,1"}
+        | {"ok": True, "name": "stub gauge", "answer": "GAUGE,2"}
     ]
 
 
