@@ -290,6 +290,42 @@ def test_ippdme(config: DevicesConfig, timeout_s: float) -> dict:
         cmm.close()
 
 
+# --------------------------------------------------------------------------- the CAN bus's nodes
+# opened joint by joint (service.devices.open_encoders) and tested node by node (service.devicetest)
+
+
+def can_bus_config(config: DevicesConfig):
+    """The driver's configuration of ``devices.can``."""
+    if config.can is None:
+        raise DeviceConfigError("devices.can", "this cell has no CAN bus for reference encoders")
+    from drivers.canopen_encoder import CanBusConfig
+
+    try:
+        return CanBusConfig(**config.can.driver_kwargs())
+    except ValueError as exc:
+        raise DeviceConfigError("devices.can", str(exc)) from exc
+
+
+def can_node_configs(config: DevicesConfig, *, timeout_s: float = 0.5) -> list[tuple[int, Any]]:
+    """``(joint, CanopenEncoderConfig)`` of every reference encoder and resolver reader, by joint
+    then encoder first (a joint may have both)."""
+    from drivers.canopen_encoder import CanopenEncoderConfig
+
+    bus = can_bus_config(config)
+    out = []
+    for key, kind in (("encoders", "encoder"), ("resolvers", "resolver")):
+        for joint, node in getattr(config, key).items():
+            out.append((int(joint), CanopenEncoderConfig(bus=bus, node_id=node, kind=kind, timeout_s=timeout_s)))
+    return sorted(out, key=lambda jc: (jc[0], jc[1].kind))
+
+
+def open_can_node(node_config: Any) -> Any:
+    """One reference encoder or resolver reader on the CAN bus, open (a ``JointEncoder``)."""
+    from drivers.canopen_encoder import CanopenEncoder
+
+    return CanopenEncoder(node_config)
+
+
 # --------------------------------------------------------------------------- the table
 
 DEVICES: tuple[DeviceEntry, ...] = (

@@ -3,7 +3,7 @@ the ``devices`` document by :func:`service.device_config.parse_devices`).
 
 Which driver opens which key is the registry's (:data:`service.device_registry.DEVICES`); the
 orchestrator only sees the interfaces of ``drivers.base``. The CAN bus's nodes are opened here,
-joint by joint.
+joint by joint, each by the registry's ``open_can_node``.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from .device_config import (
     parse_devices,
     stored_devices,
 )
-from .device_registry import DEVICES, ROLE_NAMES, emscon_config
+from .device_registry import DEVICES, ROLE_NAMES, can_bus_config, can_node_configs, emscon_config, open_can_node
 
 __all__ = [
     "DEFAULT_BALL_RADIUS_M",
@@ -30,10 +30,13 @@ __all__ = [
     "DeviceConfigError",
     "DevicesConfig",
     "InstrumentSigma",
+    "can_bus_config",
+    "can_node_configs",
     "describe",
     "emscon_config",
     "encoder_nodes",
     "instrument_sigma",
+    "open_can_node",
     "open_cmm",
     "open_encoders",
     "open_robot",
@@ -135,31 +138,6 @@ def open_cmm(config: DevicesConfig, *, timeout_s: float = 10.0) -> Cmm:
     return open_role(config, "cmm", timeout_s=timeout_s)
 
 
-def can_bus_config(config: DevicesConfig):
-    """The driver's configuration of ``devices.can``."""
-    if config.can is None:
-        raise DeviceConfigError("devices.can", "this cell has no CAN bus for reference encoders")
-    from drivers.canopen_encoder import CanBusConfig
-
-    try:
-        return CanBusConfig(**config.can.driver_kwargs())
-    except ValueError as exc:
-        raise DeviceConfigError("devices.can", str(exc)) from exc
-
-
-def can_node_configs(config: DevicesConfig, *, timeout_s: float = 0.5) -> list[tuple[int, Any]]:
-    """``(joint, CanopenEncoderConfig)`` of every reference encoder and resolver reader, by joint
-    then encoder first (a joint may have both)."""
-    from drivers.canopen_encoder import CanopenEncoderConfig
-
-    bus = can_bus_config(config)
-    out = []
-    for key, kind in (("encoders", "encoder"), ("resolvers", "resolver")):
-        for joint, node in getattr(config, key).items():
-            out.append((int(joint), CanopenEncoderConfig(bus=bus, node_id=node, kind=kind, timeout_s=timeout_s)))
-    return sorted(out, key=lambda jc: (jc[0], jc[1].kind))
-
-
 def encoder_nodes(config: DevicesConfig) -> dict[int, tuple[int, str]]:
     """The cell's reference encoders and resolvers: joint (1-based) -> (CANopen node, ``encoder``
     or ``resolver``); where a joint has both, the encoder (the better reference). None without
@@ -177,8 +155,6 @@ def open_encoders(
     config: DevicesConfig, joints: list[int] | None = None, *, timeout_s: float = 5.0
 ) -> dict[int, JointEncoder]:
     """Reference encoders (preferred) or resolver readers on the given joints (1-based)."""
-    from drivers.canopen_encoder import CanopenEncoder
-
     nodes = {}
     for j, node in reversed(can_node_configs(config, timeout_s=timeout_s)):  # the encoder wins
         nodes[j] = node
@@ -188,7 +164,7 @@ def open_encoders(
         for j in wanted:
             if j not in nodes:
                 raise DeviceConfigError("devices", f"no reference encoder or resolver on joint {j}")
-            out[j] = CanopenEncoder(nodes[j])
+            out[j] = open_can_node(nodes[j])
     except BaseException:
         for e in out.values():
             with contextlib.suppress(Exception):
