@@ -7,11 +7,18 @@ manager; ``close()`` is idempotent.
 Must / might (after python-can's ``BusABC``):
 
 - every device **must** implement ``close()`` and set ``name`` (a human-readable address);
-- a ``Robot`` **must** implement ``read_joints``, ``move_joints``, ``stop`` and ``state``;
+- a ``Robot`` **must** implement ``read_joints``, ``move_joints``, ``stop`` and ``state``; it
+  **might** take the mounted payload (``takes_payload``: ``set_payload``) and tell its own
+  kinematics (``kinematics_source``: ``"forward_kinematics"``, it answers ``forward_kinematics``
+  for any readings; ``"tcp_pose"``, it reports ``read_tcp_pose`` where it stands, its readings
+  resolved to ``joint_resolution_rad``): what it declares is what it does, nobody asks ``hasattr``;
 - a ``PositionSensor`` **must** implement ``measure`` and ``status``; a
   ``SteerablePositionSensor`` (a tracker that can be pointed) also ``find_reflector``;
 - a ``Cmm`` **must** implement ``probe``; ``measure_ball`` and ``measure_pose`` are built on it
   here and **might** be overridden by a CMM that measures spheres itself;
+- an instrument (``PositionSensor``, ``Cmm``) **must** declare ``sigma_m``: the per-axis standard
+  uncertainty of one measured position (m), from its typed config, the vendor's figure (named in
+  a comment) by default: sessions plan and weigh with it (``service.device_registry``);
 - a ``JointEncoder`` **must** implement ``read`` and ``status``.
 
 Units are SI: metres, radians, seconds. Arrays carry the frame in their name
@@ -27,6 +34,7 @@ from __future__ import annotations
 import abc
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -72,10 +80,21 @@ class RobotState:
         return self.protective_stop or self.emergency_stop
 
 
+# What a controller tells of its own kinematics (its factory calibration, not a published table).
+KinematicsSource = Literal["forward_kinematics", "tcp_pose"]
+
+
 class Robot(Device):
-    """A robot controller that reports joint readings and moves to joint targets."""
+    """A robot controller that reports joint readings and moves to joint targets.
+
+    What it **might** do beyond that, declared (the module docstring): ``takes_payload``,
+    ``kinematics_source`` (None: it tells nothing of its kinematics) and ``joint_resolution_rad``
+    (the step of its joint readings; 0: floating point)."""
 
     n_joints: int
+    takes_payload: bool = False
+    kinematics_source: KinematicsSource | None = None
+    joint_resolution_rad: float = 0.0
 
     @abc.abstractmethod
     def read_joints(self) -> np.ndarray:
@@ -102,8 +121,20 @@ class Robot(Device):
         """Tell the controller the payload now mounted: ``mass_kg`` and its centre of gravity
         ``cog_m`` (3,) relative to the tool flange (UR's ``set_payload``), so that it (and a
         calibration with joint compliance) accounts for the arm's sag under it. Controllers
-        without such an interface raise ``NotImplementedError``: set the payload on the pendant."""
+        without such an interface (``takes_payload`` False) raise ``NotImplementedError``: set the
+        payload on the pendant."""
         raise NotImplementedError(f"{type(self).__name__}: this controller has no payload interface")
+
+    def forward_kinematics(self, q: np.ndarray, tcp_offset: np.ndarray | None = None) -> np.ndarray:
+        """(``kinematics_source == "forward_kinematics"``) The controller's own forward kinematics,
+        ``T_base_tcp`` (N, 4, 4) for readings ``q`` (N, n); ``tcp_offset`` a pose from the flange
+        (default none). Nothing moves."""
+        raise NotImplementedError(f"{type(self).__name__}: this controller answers no forward kinematics")
+
+    def read_tcp_pose(self) -> np.ndarray:
+        """(``kinematics_source == "tcp_pose"``) The TCP pose the controller computes where it
+        stands, ``T_base_tcp`` (4, 4)."""
+        raise NotImplementedError(f"{type(self).__name__}: this controller reports no TCP pose")
 
 
 # --------------------------------------------------------------------------- position sensors
@@ -126,6 +157,11 @@ class PointMeasurement:
 
 class PositionSensor(Device):
     """A laser tracker (or anything that measures one point at a time)."""
+
+    @property
+    @abc.abstractmethod
+    def sigma_m(self) -> float:
+        """The per-axis standard uncertainty of one measured point (m), as its config declares."""
 
     @abc.abstractmethod
     def measure(self) -> PointMeasurement:
@@ -175,6 +211,11 @@ class PoseMeasurement:
 
 class Cmm(Device):
     """A coordinate measuring machine with a touch-trigger probe."""
+
+    @property
+    @abc.abstractmethod
+    def sigma_m(self) -> float:
+        """The per-axis standard uncertainty of a measured tool position (m), as its config declares."""
 
     @abc.abstractmethod
     def probe(self, p_world: np.ndarray, approach_world: np.ndarray) -> np.ndarray:

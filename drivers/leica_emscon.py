@@ -199,6 +199,12 @@ def pack_command(command: int, *params) -> bytes:
 
 # --------------------------------------------------------------------------- config
 
+# A Leica AT960's (and AT930's) maximum permissible error of a point, Uxyz = ±(15 um + 6 um/m)
+# (Leica Absolute Tracker AT960 product brochure, ISO 10360-10), at 4 m (39 um) taken as two
+# standard uncertainties: 20 um per axis. Conservative within a cell (Leica: typical errors are
+# half the MPE); the emScon server states each measurement's own uncertainty, stored with it.
+AT960_SIGMA_M = 20e-6
+
 
 @dataclass(frozen=True, slots=True)
 class EmsconConfig:
@@ -211,7 +217,9 @@ class EmsconConfig:
     ``measure_time_s``: stationary averaging time; ``use_adm``: measure the distance with the
     absolute distance meter alone; ``environment``: ``"meteo"`` uses the tracker's weather
     station, ``"config"`` sets ``temperature_c``, ``pressure_mbar`` and ``humidity_pct``;
-    ``reconnect``: reconnect once (full set-up) and resend when the link drops.
+    ``reconnect``: reconnect once (full set-up) and resend when the link drops; ``sigma_m``: the
+    tracker's per-axis standard uncertainty of a point (m), what sessions plan and weigh with
+    (:data:`AT960_SIGMA_M` unless stated).
     """
 
     host: str
@@ -226,13 +234,14 @@ class EmsconConfig:
     pressure_mbar: float = 1013.25
     humidity_pct: float = 50.0
     reconnect: bool = True
+    sigma_m: float = AT960_SIGMA_M
 
     def __post_init__(self):
         if not self.host:
             raise ValueError("host must be the emScon server's address")
         if not 0 < int(self.port) < 65536:
             raise ValueError(f"port must be 1..65535; got {self.port}")
-        for name in ("timeout_s", "initialize_timeout_s"):
+        for name in ("timeout_s", "initialize_timeout_s", "sigma_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive; got {getattr(self, name)}")
         if not 0 < self.measure_time_s <= 60:
@@ -290,6 +299,11 @@ class EmsconTracker(SteerablePositionSensor):
         self._connect()
 
     # ----------------------------------------------------------------- PositionSensor
+
+    @property
+    def sigma_m(self) -> float:
+        """The per-axis standard uncertainty its configuration declares (m)."""
+        return self.config.sigma_m
 
     def measure(self) -> PointMeasurement:
         """One fresh stationary measurement of the reflector (m, tracker frame) with its per-axis

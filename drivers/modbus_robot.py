@@ -45,7 +45,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from calibration.transforms import homogeneous, rotvec_to_matrix
-from drivers.base import Robot, RobotState
+from drivers.base import KinematicsSource, Robot, RobotState
 from drivers.errors import (
     DeviceConnectionError,
     DeviceFaultError,
@@ -175,6 +175,17 @@ class ModbusRobot(Robot):
             raise
 
     # ----------------------------------------------------------------- Robot
+
+    @property
+    def kinematics_source(self) -> KinematicsSource | None:  # type: ignore[override]
+        """``tcp_pose`` when the register map has UR's TCP-pose registers."""
+        return "tcp_pose" if self.map.tcp_pose is not None else None
+
+    @property
+    def joint_resolution_rad(self) -> float:  # type: ignore[override]
+        """1 urad from the motion program's registers (``UR_REGISTER_MAP_HIRES``), else the angle
+        registers' step (UR: 1 mrad)."""
+        return 1e-6 if self.map.joint_urad is not None else self.map.joint_angle_scale
 
     def read_joints(self) -> np.ndarray:
         """Joint readings (rad), read from the controller by this call."""

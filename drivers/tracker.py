@@ -75,6 +75,13 @@ log = logging.getLogger(__name__)
 #: Metres per tracker length unit (the arguments of ``UNIT:LEN``).
 UNITS_M = {"MM": 1e-3, "M": 1.0, "IN": 0.0254}
 
+# The line protocol is a bridge for FARO and API trackers, whose own figures are a little better
+# than Leica's (FARO Vantage: MPE 16 um + 0.8 um/m; API Radian: ±(10 um + 5 um/m)): the per-axis
+# standard uncertainty assumed when the configuration states none is the conservative one of the
+# emScon driver (drivers.leica_emscon.AT960_SIGMA_M: a Leica AT960's MPE at 4 m, as two standard
+# uncertainties). A measurement's own uncertainty (MEAS?) is stored with it; this figure plans.
+LINE_TRACKER_SIGMA_M = 20e-6
+
 #: ``ERR`` codes meaning "this measurement cannot be taken now" (contracts §8: 20).
 MEASUREMENT_ERR_CODES = frozenset({20, 21})
 #: ``ERR`` codes meaning "the tracker did not understand what we sent".
@@ -92,7 +99,9 @@ class TrackerConfig:
     ``timeout_s``: deadline for each reply (a stationary measurement that averages for longer
     needs a longer one); ``units``: the length unit set with ``UNIT:LEN`` on connect (the
     driver converts to metres either way); ``baudrate``: serial ports only;
-    ``reconnect``: reconnect once and resend when the link drops.
+    ``reconnect``: reconnect once and resend when the link drops; ``sigma_m``: the tracker's
+    per-axis standard uncertainty of a point (m), what sessions plan and weigh with
+    (:data:`LINE_TRACKER_SIGMA_M` unless stated).
     """
 
     url: str
@@ -100,12 +109,14 @@ class TrackerConfig:
     units: str = "MM"
     baudrate: int = 115200
     reconnect: bool = True
+    sigma_m: float = LINE_TRACKER_SIGMA_M
 
     def __post_init__(self):
         if self.units.upper() not in UNITS_M:
             raise ValueError(f"units must be one of {', '.join(UNITS_M)}; got {self.units!r}")
-        if not self.timeout_s > 0:
-            raise ValueError(f"timeout_s must be positive; got {self.timeout_s}")
+        for name in ("timeout_s", "sigma_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive; got {getattr(self, name)}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,6 +143,11 @@ class LineTracker(PositionSensor):
         self._connect()
 
     # ----------------------------------------------------------------- PositionSensor
+
+    @property
+    def sigma_m(self) -> float:
+        """The per-axis standard uncertainty its configuration declares (m)."""
+        return self.config.sigma_m
 
     def measure(self) -> PointMeasurement:
         """One fresh reflector position (m, tracker frame) with its per-axis sigma (m).

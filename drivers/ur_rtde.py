@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.transforms import homogeneous, rotvec_to_matrix
-from drivers.base import Robot, RobotState
+from drivers.base import KinematicsSource, Robot, RobotState
 from drivers.errors import (
     DeviceConnectionError,
     DeviceFaultError,
@@ -140,6 +140,9 @@ class UrRtdeRobot(Robot):
 
     Thread-safe: ``stop()`` may be called from another thread while ``move_joints`` waits.
     """
+
+    takes_payload = True  # setPayload
+    kinematics_source: KinematicsSource | None = "forward_kinematics"  # getForwardKinematics: get_forward_kin(q)
 
     n_joints = N_JOINTS
 

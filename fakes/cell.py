@@ -26,7 +26,8 @@ Extension flags (beyond the contract): ``--fault NAME=VALUE`` sets a field of
 ``--no-can`` leave a device out, ``--modbus-port`` moves the Modbus server, ``--emscon-port``
 the emScon server; ``--reflector-axis X,Y,Z`` (tool frame) and ``--arm-radius M`` turn on the
 emScon tracker's beam geometry (the reflector's acceptance angle, the arm blocking the line of
-sight: fakes/leica_tracker.py).
+sight: fakes/leica_tracker.py). A fake's own options are declared by its module (``options`` on
+its ``CELL_FAKE`` line: the Modbus and emScon ports, the beam geometry).
 
 The UR controller's factory calibration (``fakes.world.FactoryCalibration``, docs/devices/ur.md):
 the truth file's ``ur_factory_calibration`` block (``published``, ``delta_theta``, ``delta_a``,
@@ -82,8 +83,9 @@ PROG = "recal fake-cell"
 
 def find_fakes() -> list[dict]:
     """Every device fake of the package, in start order: the ``CELL_FAKE`` line of each module
-    of ``fakes`` (its --no-KEY flag's key, its order, its class, its keyword arguments). A new
-    fake is its module alone; nothing here names it."""
+    of ``fakes`` (its --no-KEY flag's key, its order, its class, its keyword arguments from the
+    parsed command line, and its own command-line ``options``: ``(flag, argparse keywords)``
+    pairs). A new fake, or a new option of one, is its module alone; nothing here names it."""
     import fakes
 
     found = []
@@ -145,32 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the UR controller computes with the published DH table (all deltas zero)",
     )
-    parser.add_argument(
-        "--modbus-port",
-        type=int,
-        default=502,
-        help="Modbus TCP port (default 502; a free port if that cannot be bound)",
-    )
-    parser.add_argument(
-        "--emscon-port",
-        type=int,
-        default=700,
-        help="emScon TPI port (default 700; a free port if that cannot be bound)",
-    )
-    parser.add_argument(
-        "--reflector-axis",
-        type=_vector,
-        default=None,
-        metavar="X,Y,Z",
-        help="emScon tracker: the reflector faces along this tool-frame axis (default: no acceptance check)",
-    )
-    parser.add_argument(
-        "--arm-radius",
-        type=float,
-        default=0.0,
-        metavar="M",
-        help="emScon tracker: the arm's links block the beam within this radius (default 0: not checked)",
-    )
+    for fake in FAKES:  # a fake's own options, declared on its CELL_FAKE line
+        for flag, spec in fake.get("options", ()):
+            parser.add_argument(flag, **spec)
     for fake in FAKES:
         parser.add_argument(f"--no-{fake['key']}", action="store_true", help=f"do not simulate {fake['key']}")
     parser.add_argument(
@@ -180,16 +159,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulate this device alone (python -m fakes.modbus_server, fakes.ur_controller)",
     )
     return parser
-
-
-def _vector(text: str):
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3:
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z; got {text!r}")
-    return values
 
 
 def _faults_help() -> str:

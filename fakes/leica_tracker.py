@@ -521,8 +521,22 @@ class LeicaTrackerFake(LineServer):
         return head + [RESULT.pack(RESULT.size, DT_RESULT, RS_OK, self.meas_mode, 0, *doubles)]
 
 
+def _xyz(text: str) -> list[float]:
+    """``--reflector-axis X,Y,Z``."""
+    import argparse
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z; got {text!r}")
+    return values
+
+
 # What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
-# place in the start order, the class, and its keyword arguments from the command line.
+# place in the start order, the class, its keyword arguments from the command line, and its own
+# command-line options.
 CELL_FAKE = {
     "key": "emscon",
     "order": 40,
@@ -532,6 +546,30 @@ CELL_FAKE = {
         "reflector_axis_tool": args.reflector_axis,
         "arm_radius_m": args.arm_radius,
     },
+    "options": [
+        (
+            "--emscon-port",
+            {"type": int, "default": 700, "help": "emScon TPI port (default 700; a free port if that cannot be bound)"},
+        ),
+        (
+            "--reflector-axis",
+            {
+                "type": _xyz,
+                "default": None,
+                "metavar": "X,Y,Z",
+                "help": "emScon tracker: the reflector faces along this tool-frame axis (default: no acceptance check)",
+            },
+        ),
+        (
+            "--arm-radius",
+            {
+                "type": float,
+                "default": 0.0,
+                "metavar": "M",
+                "help": "emScon tracker: the arm's links block the beam within this radius (default 0: not checked)",
+            },
+        ),
+    ],
 }
 
 

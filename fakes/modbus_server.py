@@ -310,8 +310,20 @@ class _FaultyServer(ModbusTcpServer):
 
 
 # What `recal fake-cell` starts (fakes/cell.py finds this line): the key of its --no-KEY flag, its
-# place in the start order, the class, and its keyword arguments from the command line.
-CELL_FAKE = {"key": "modbus", "order": 20, "cls": ModbusRobotFake, "kwargs": lambda args: {"port": args.modbus_port}}
+# place in the start order, the class, its keyword arguments from the command line, and its own
+# command-line options.
+CELL_FAKE = {
+    "key": "modbus",
+    "order": 20,
+    "cls": ModbusRobotFake,
+    "kwargs": lambda args: {"port": args.modbus_port},
+    "options": [
+        (
+            "--modbus-port",
+            {"type": int, "default": 502, "help": "Modbus TCP port (default 502; a free port if that cannot be bound)"},
+        ),
+    ],
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,6 +11,7 @@ from calibration.identification import Measurements
 from calibration.model import KinematicModel, model_to_dict
 
 from . import records
+from .devices import InstrumentSigma, instrument_sigma
 from .models import Calibration, Cell, Measurement, RunSession
 from .records import NoMeasurementsError, current_model
 from .store import activate_calibration, current_calibration
@@ -18,6 +19,14 @@ from .store import activate_calibration, current_calibration
 
 class AnalysisError(RecalError, RuntimeError):
     """The measurements cannot give a result (the reason is for the technician)."""
+
+
+def session_sigma(run: RunSession, cell: Cell, role: str) -> InstrumentSigma:
+    """The per-axis standard uncertainty the session's instrument (of ``role``) declared when the
+    session was planned (stored with its plan), else what the cell's instrument declares now (a
+    session imported from a file, or planned before the figure was stored)."""
+    stored = InstrumentSigma.from_info((run.plan_info or {}).get("instrument_sigma"))
+    return stored or instrument_sigma(cell.devices, role)
 
 
 def guide_model(db: Session, cell: Cell) -> KinematicModel:

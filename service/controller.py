@@ -161,9 +161,10 @@ def controller_nominal(db, cell) -> dict:
 
 
 def refresh_on_session_start(db, run, cell, robot) -> dict | None:
-    """A session starts on the cell: read its controller's kinematics again (UR over RTDE) and
-    store a new version when it is the first or it changed, or, over Modbus, check the stored
-    one against UR's TCP-pose registers. What happened goes into ``run.plan_info`` under
+    """A session starts on the cell: read its controller's kinematics again where the robot
+    answers forward kinematics (UR over RTDE; ``Robot.kinematics_source``) and store a new
+    version when it is the first or it changed, or, where it reports its TCP pose (UR over
+    Modbus), check the stored one against it. What happened goes into ``run.plan_info`` under
     ``controller_model`` (``version``, ``changed``, ``warning``) and, for a change, the audit
     log. Never raises for the controller's sake: the session goes on with what is stored."""
     from drivers.errors import DeviceError
@@ -173,9 +174,9 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
     stored = current_controller_model(db, cell.id)
     info, new_doc = None, None
     try:
-        if hasattr(robot, "forward_kinematics"):
+        if robot.kinematics_source == "forward_kinematics":
             info, new_doc = _read_again(run, cell, robot, stored)
-        elif hasattr(robot, "read_tcp_pose") and stored is not None:
+        elif robot.kinematics_source == "tcp_pose" and stored is not None:
             info = _check_registers(robot, stored)
     except (ControllerModelError, DeviceError, ValueError) as exc:
         info = {
@@ -231,13 +232,6 @@ def _read_again(run, cell, robot, stored) -> tuple[dict, dict | None]:
     return info, doc
 
 
-def _joint_step_rad(robot) -> float:
-    """The resolution of the Modbus driver's joint readings (rad): 1 urad from the motion
-    program's registers (``UR_REGISTER_MAP_HIRES``), else UR's 1 mrad angle registers."""
-    m = robot.map
-    return 1e-6 if m.joint_urad is not None else m.joint_angle_scale
-
-
 def register_tolerances(model: KinematicModel, q: np.ndarray, joint_step_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """How far (position m, rotation rad; each (N,)) UR's TCP-pose registers may lie from an
     exact model of the controller at readings ``q`` (N, 6): the registers' resolution
@@ -265,7 +259,7 @@ def _check_registers(robot, stored) -> dict:
     T_model = fk(model, q[None, :])[0]
     dp = float(np.linalg.norm(T_model[:3, 3] - T_registers[:3, 3]))
     dr = float(np.linalg.norm(matrix_to_rotvec(T_model[:3, :3].T @ T_registers[:3, :3])))
-    tol_p, tol_r = (float(t[0]) for t in register_tolerances(model, q, _joint_step_rad(robot)))
+    tol_p, tol_r = (float(t[0]) for t in register_tolerances(model, q, robot.joint_resolution_rad))
     info = {
         "version": stored.version,
         "changed": None,
@@ -304,12 +298,11 @@ REGISTER_MAX_FROM_PUBLISHED_M = 0.02
 
 
 def register_sampler(cell, robot):
-    """Over Modbus, on a cell whose robot has UR's TCP-pose registers and a six-revolute-joint
-    nominal model: the function that reads them (``T_base_tcp`` (4, 4)) where the session's robot
-    stands; ``None`` otherwise (over RTDE the model is read at the session's start)."""
-    if hasattr(robot, "forward_kinematics") or not hasattr(robot, "read_tcp_pose"):
-        return None
-    if getattr(getattr(robot, "map", None), "tcp_pose", None) is None:
+    """On a cell whose robot reports its TCP pose (``kinematics_source == "tcp_pose"``: UR's
+    TCP-pose registers over Modbus) and a six-revolute-joint nominal model: the function that
+    reads it (``T_base_tcp`` (4, 4)) where the session's robot stands; ``None`` otherwise (a
+    robot that answers forward kinematics has its model read at the session's start)."""
+    if robot.kinematics_source != "tcp_pose":
         return None
     joints = (cell.model or {}).get("joints") or []
     if len(joints) != 6 or any(j.get("type", "revolute") != "revolute" for j in joints):
@@ -395,7 +388,7 @@ def learn_from_registers(db, run, cell, robot, samples: list[tuple[np.ndarray, n
             T,
             model_from_dict(cell.model),
             source=f"session {run.id} (TCP-pose registers)",
-            joint_step_rad=_joint_step_rad(robot),
+            joint_step_rad=robot.joint_resolution_rad,
         )
     except (ControllerModelError, ValueError) as exc:
         info = {

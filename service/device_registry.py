@@ -18,6 +18,7 @@ they never import it (tests/test_architecture.py).
 from __future__ import annotations
 
 import functools
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any
@@ -58,6 +59,11 @@ class DeviceEntry:
     - ``driver`` / ``fake``: ``module:Class`` of its driver and of its simulation;
     - ``open(config, timeout_s)``: the open driver (None: opened by its session kind);
     - ``test(config, timeout_s)``: the connection test's row (None: tested elsewhere);
+    - ``robot_type(config, timeout_s)``: for a robot, what its controller says it is (UR's
+      dashboard: ``UR5``), asked without opening the driver (None: it cannot be asked);
+    - ``sigma_m(config)``: for an instrument, the per-axis standard uncertainty (m) its driver's
+      typed config declares for this configuration (the vendor's figure unless stated), what a
+      session plans and weighs with (None: no position instrument);
     - ``page``: the page's kind of field for it (``text``: one text field with the schema's
       pattern; ``text-or-settings``: a text field keeping an object written elsewhere; ``can``:
       the bus's fields and the joints' nodes).
@@ -70,8 +76,16 @@ class DeviceEntry:
     fake: str | None
     open: Callable[[DevicesConfig, float], Any] | None = None
     test: Callable[[DevicesConfig, float], dict] | None = None
+    robot_type: Callable[[DevicesConfig, float], str] | None = None
+    sigma_m: Callable[[DevicesConfig], float] | None = None
     short_label: str | None = None
     page: str = "text"
+
+    def driver_class(self) -> type:
+        """The driver's class (imported now: a driver module imports its client library only
+        when it connects), for what it declares it can do (drivers/base.py: must and might)."""
+        module, _, name = self.driver.partition(":")
+        return getattr(importlib.import_module(module), name)
 
     def describe(self) -> dict[str, Any]:
         """The entry as the page reads it (``x-devices`` of the served schema)."""
@@ -97,6 +111,14 @@ def open_rtde(config: DevicesConfig, timeout_s: float) -> Any:
             host=config.rtde, probe_timeout_s=timeout_s, command_timeout_s=timeout_s, connect_timeout_s=connect_s
         )
     )
+
+
+def rtde_robot_type(config: DevicesConfig, timeout_s: float) -> str:
+    """The dashboard's ``get robot model`` (``UR5``): asked on the dashboard port, so that the
+    control script is not uploaded (connecting RTDE would stop a program that runs)."""
+    from drivers.ur_rtde import dashboard_query
+
+    return dashboard_query(config.rtde, "get robot model", timeout_s)
 
 
 def open_modbus(config: DevicesConfig, timeout_s: float) -> Any:
@@ -156,10 +178,20 @@ def open_emscon(config: DevicesConfig, timeout_s: float) -> Any:
     return EmsconTracker(settings)
 
 
-def open_line_tracker(config: DevicesConfig, timeout_s: float) -> Any:
-    from drivers.tracker import LineTracker, TrackerConfig
+def emscon_sigma_m(config: DevicesConfig) -> float:
+    return emscon_config(config.emscon_settings).sigma_m
 
-    return LineTracker(TrackerConfig(url=config.tracker, timeout_s=timeout_s))
+
+def line_tracker_config(config: DevicesConfig, timeout_s: float = 2.0) -> Any:
+    from drivers.tracker import TrackerConfig
+
+    return TrackerConfig(url=config.tracker, timeout_s=timeout_s)
+
+
+def open_line_tracker(config: DevicesConfig, timeout_s: float) -> Any:
+    from drivers.tracker import LineTracker
+
+    return LineTracker(line_tracker_config(config, timeout_s))
 
 
 def _measure_once(tr: Any, details: dict) -> str:
@@ -215,8 +247,8 @@ def test_line_tracker(config: DevicesConfig, timeout_s: float) -> dict:
 # --------------------------------------------------------------------------- CMM
 
 
-def open_ippdme(config: DevicesConfig, timeout_s: float) -> Any:
-    from drivers.ippdme import IppDmeCmm, IppDmeConfig
+def ippdme_config(config: DevicesConfig, timeout_s: float = 5.0) -> Any:
+    from drivers.ippdme import IppDmeConfig
 
     # The session finds the tooling balls where the cell's current model puts them. After a
     # tracker calibration that model cannot know the tool's orientation (one reflector does not
@@ -224,7 +256,13 @@ def open_ippdme(config: DevicesConfig, timeout_s: float) -> Any:
     # driver's default 3 mm approach the probe then starts inside a ball (I++ 1001 "Illegal
     # touch"). Start 10 mm off the nominal surface and search 15 mm past it, as CMM programs
     # probing a part that is not yet aligned do (each point then takes a little longer).
-    return IppDmeCmm(IppDmeConfig(url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015))
+    return IppDmeConfig(url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015)
+
+
+def open_ippdme(config: DevicesConfig, timeout_s: float) -> Any:
+    from drivers.ippdme import IppDmeCmm
+
+    return IppDmeCmm(ippdme_config(config, timeout_s))
 
 
 def test_ippdme(config: DevicesConfig, timeout_s: float) -> dict:
@@ -252,6 +290,42 @@ def test_ippdme(config: DevicesConfig, timeout_s: float) -> dict:
         cmm.close()
 
 
+# --------------------------------------------------------------------------- the CAN bus's nodes
+# opened joint by joint (service.devices.open_encoders) and tested node by node (service.devicetest)
+
+
+def can_bus_config(config: DevicesConfig):
+    """The driver's configuration of ``devices.can``."""
+    if config.can is None:
+        raise DeviceConfigError("devices.can", "this cell has no CAN bus for reference encoders")
+    from drivers.canopen_encoder import CanBusConfig
+
+    try:
+        return CanBusConfig(**config.can.driver_kwargs())
+    except ValueError as exc:
+        raise DeviceConfigError("devices.can", str(exc)) from exc
+
+
+def can_node_configs(config: DevicesConfig, *, timeout_s: float = 0.5) -> list[tuple[int, Any]]:
+    """``(joint, CanopenEncoderConfig)`` of every reference encoder and resolver reader, by joint
+    then encoder first (a joint may have both)."""
+    from drivers.canopen_encoder import CanopenEncoderConfig
+
+    bus = can_bus_config(config)
+    out = []
+    for key, kind in (("encoders", "encoder"), ("resolvers", "resolver")):
+        for joint, node in getattr(config, key).items():
+            out.append((int(joint), CanopenEncoderConfig(bus=bus, node_id=node, kind=kind, timeout_s=timeout_s)))
+    return sorted(out, key=lambda jc: (jc[0], jc[1].kind))
+
+
+def open_can_node(node_config: Any) -> Any:
+    """One reference encoder or resolver reader on the CAN bus, open (a ``JointEncoder``)."""
+    from drivers.canopen_encoder import CanopenEncoder
+
+    return CanopenEncoder(node_config)
+
+
 # --------------------------------------------------------------------------- the table
 
 DEVICES: tuple[DeviceEntry, ...] = (
@@ -263,6 +337,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.ur_controller:UrControllerFake",
         open=open_rtde,
         test=functools.partial(test_robot, open_rtde),
+        robot_type=rtde_robot_type,
     ),
     DeviceEntry(
         key="modbus",
@@ -282,6 +357,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.leica_tracker:LeicaTrackerFake",
         open=open_emscon,
         test=test_emscon,
+        sigma_m=emscon_sigma_m,
         page="text-or-settings",
     ),
     DeviceEntry(
@@ -293,6 +369,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.tracker:TrackerFake",
         open=open_line_tracker,
         test=test_line_tracker,
+        sigma_m=lambda config: line_tracker_config(config).sigma_m,
     ),
     DeviceEntry(
         key="cmm",
@@ -302,6 +379,7 @@ DEVICES: tuple[DeviceEntry, ...] = (
         fake="fakes.cmm:IppCmmFake",
         open=open_ippdme,
         test=test_ippdme,
+        sigma_m=lambda config: ippdme_config(config).sigma_m,
     ),
     # the CAN bus's nodes are opened joint by joint (devices.open_encoders) and tested node by
     # node (devicetest._test_can_nodes): its entry opens and tests nothing itself
@@ -398,6 +476,13 @@ class DevicesConfig(_Strict):
         return bool(self.present("robot"))
 
     @property
+    def robot_takes_payload(self) -> bool:
+        """The cell's robot (the first of the role, as sessions open it) takes the mounted payload,
+        as its driver declares (``Robot.takes_payload``)."""
+        robots = self.present("robot")
+        return bool(robots) and bool(robots[0].driver_class().takes_payload)
+
+    @property
     def has_tracker(self) -> bool:
         """A laser tracker: a Leica on emScon (``emscon``) or one on the line protocol (``tracker``)."""
         return bool(self.present("tracker"))
@@ -417,6 +502,16 @@ class DevicesConfig(_Strict):
         if self.emscon is None or isinstance(self.emscon, EmsconSettings):
             return self.emscon
         return EmsconSettings.from_address(self.emscon)
+
+    def instrument_sigma(self, device: str) -> tuple[float, DeviceEntry] | None:
+        """What the session's measuring ``device`` (a role) is declared to measure to: the
+        per-axis standard uncertainty (m) of the first device of that role the cell names (the
+        one sessions open), from its driver's typed config, with its entry; None when the cell
+        has no such device or it declares none (a CAN bus's encoders measure no position)."""
+        for entry in self.present(device):
+            if entry.sigma_m is not None:
+                return float(entry.sigma_m(self)), entry
+        return None
 
     def kinds(self) -> list[str]:
         """The kinds of device the document names, in the registry's order (for listings)."""

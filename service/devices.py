@@ -3,7 +3,7 @@ the ``devices`` document by :func:`service.device_config.parse_devices`).
 
 Which driver opens which key is the registry's (:data:`service.device_registry.DEVICES`); the
 orchestrator only sees the interfaces of ``drivers.base``. The CAN bus's nodes are opened here,
-joint by joint.
+joint by joint, each by the registry's ``open_can_node``.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import contextlib
 from dataclasses import dataclass, field
 from typing import Any
 
+from calibration.identification import INSTRUMENT_SIGMA_M
 from drivers.base import Cmm, JointEncoder, PositionSensor, Robot
 
 from .device_config import (
@@ -21,16 +22,21 @@ from .device_config import (
     parse_devices,
     stored_devices,
 )
-from .device_registry import DEVICES, ROLE_NAMES, emscon_config
+from .device_registry import DEVICES, ROLE_NAMES, can_bus_config, can_node_configs, emscon_config, open_can_node
 
 __all__ = [
     "DEFAULT_BALL_RADIUS_M",
     "CellDevices",
     "DeviceConfigError",
     "DevicesConfig",
+    "InstrumentSigma",
+    "can_bus_config",
+    "can_node_configs",
     "describe",
     "emscon_config",
     "encoder_nodes",
+    "instrument_sigma",
+    "open_can_node",
     "open_cmm",
     "open_encoders",
     "open_robot",
@@ -65,6 +71,44 @@ class CellDevices:
         self.close()
 
 
+@dataclass(frozen=True)
+class InstrumentSigma:
+    """The per-axis standard uncertainty ``sigma_m`` (m) a session plans, predicts and weighs
+    with, and ``source``: the registry's label of the instrument that declares it, or why the
+    library's default stands in. Stored with the session's plan (``plan_info["instrument_sigma"]``)
+    so that its figures stay those of its time when the cell's devices change."""
+
+    sigma_m: float
+    source: str
+
+    def as_info(self) -> dict[str, Any]:
+        return {"sigma_m": self.sigma_m, "source": self.source}
+
+    @classmethod
+    def from_info(cls, info: Any) -> InstrumentSigma | None:
+        """The record :meth:`as_info` stored; None when there is none (a session planned before
+        the figure was stored, an imported one)."""
+        if not isinstance(info, dict) or not isinstance(info.get("sigma_m"), int | float) or not info["sigma_m"] > 0:
+            return None
+        return cls(float(info["sigma_m"]), str(info.get("source") or "stored with the session"))
+
+
+def instrument_sigma(doc: Any, role: str) -> InstrumentSigma:
+    """What the cell's measuring device of ``role`` (``tracker``, ``cmm``) declares it measures
+    to (its driver's typed config, through the registry: :meth:`DevicesConfig.instrument_sigma`).
+    Where the cell names none of that role, or its document cannot be read, the library's
+    documented default (``calibration.identification.INSTRUMENT_SIGMA_M``, a laser tracker's)
+    stands in, and ``source`` says so."""
+    try:
+        found = stored_devices(doc).instrument_sigma(role)
+    except DeviceConfigError:
+        found = None
+    if found is not None:
+        return InstrumentSigma(found[0], found[1].label)
+    what = ROLE_NAMES.get(role, role)
+    return InstrumentSigma(INSTRUMENT_SIGMA_M, f"the library's default: the cell declares no {what} figure")
+
+
 def open_role(config: DevicesConfig, role: str, *, timeout_s: float = 10.0) -> Any:
     """The cell's device of ``role`` (the registry's first of that role the configuration
     names: ``rtde`` before ``modbus``, ``emscon`` before ``tracker``), open."""
@@ -94,31 +138,6 @@ def open_cmm(config: DevicesConfig, *, timeout_s: float = 10.0) -> Cmm:
     return open_role(config, "cmm", timeout_s=timeout_s)
 
 
-def can_bus_config(config: DevicesConfig):
-    """The driver's configuration of ``devices.can``."""
-    if config.can is None:
-        raise DeviceConfigError("devices.can", "this cell has no CAN bus for reference encoders")
-    from drivers.canopen_encoder import CanBusConfig
-
-    try:
-        return CanBusConfig(**config.can.driver_kwargs())
-    except ValueError as exc:
-        raise DeviceConfigError("devices.can", str(exc)) from exc
-
-
-def can_node_configs(config: DevicesConfig, *, timeout_s: float = 0.5) -> list[tuple[int, Any]]:
-    """``(joint, CanopenEncoderConfig)`` of every reference encoder and resolver reader, by joint
-    then encoder first (a joint may have both)."""
-    from drivers.canopen_encoder import CanopenEncoderConfig
-
-    bus = can_bus_config(config)
-    out = []
-    for key, kind in (("encoders", "encoder"), ("resolvers", "resolver")):
-        for joint, node in getattr(config, key).items():
-            out.append((int(joint), CanopenEncoderConfig(bus=bus, node_id=node, kind=kind, timeout_s=timeout_s)))
-    return sorted(out, key=lambda jc: (jc[0], jc[1].kind))
-
-
 def encoder_nodes(config: DevicesConfig) -> dict[int, tuple[int, str]]:
     """The cell's reference encoders and resolvers: joint (1-based) -> (CANopen node, ``encoder``
     or ``resolver``); where a joint has both, the encoder (the better reference). None without
@@ -136,8 +155,6 @@ def open_encoders(
     config: DevicesConfig, joints: list[int] | None = None, *, timeout_s: float = 5.0
 ) -> dict[int, JointEncoder]:
     """Reference encoders (preferred) or resolver readers on the given joints (1-based)."""
-    from drivers.canopen_encoder import CanopenEncoder
-
     nodes = {}
     for j, node in reversed(can_node_configs(config, timeout_s=timeout_s)):  # the encoder wins
         nodes[j] = node
@@ -147,7 +164,7 @@ def open_encoders(
         for j in wanted:
             if j not in nodes:
                 raise DeviceConfigError("devices", f"no reference encoder or resolver on joint {j}")
-            out[j] = CanopenEncoder(nodes[j])
+            out[j] = open_can_node(nodes[j])
     except BaseException:
         for e in out.values():
             with contextlib.suppress(Exception):

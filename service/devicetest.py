@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .device_registry import DEVICES
-from .devices import DeviceConfigError, DevicesConfig, can_node_configs, stored_devices
+from .devices import DeviceConfigError, DevicesConfig, can_node_configs, open_can_node, stored_devices
 
 
 def _checks(config: DevicesConfig) -> list[tuple[str, str, Callable[[float], Any]]]:
@@ -153,13 +153,11 @@ def _node_state(status: str, timeout_s: float) -> str:
 def _test_can_node(config, joint: int) -> dict:
     """Open one reference encoder or resolver reader, read it once, and wait briefly for its
     heartbeat (nodes send one every 100 ms or so; the first may not have come yet)."""
-    from drivers.canopen_encoder import CanopenEncoder
-
     label = f"{'reference encoder' if config.kind == 'encoder' else 'resolver'}, joint {joint}"
     t0 = time.monotonic()
     base = {"device": label, "address": f"CANopen node {config.node_id} on {config.bus.describe()}"}
     try:
-        enc = CanopenEncoder(config)
+        enc = open_can_node(config)
     except Exception as exc:  # noqa: BLE001 - every failure is a result to show
         return {
             **base,

@@ -47,9 +47,10 @@ from sqlmodel import Session, select
 from calibration.model import model_from_dict
 from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedError
 
-from . import analysis, controller, records
+from . import analysis, records
+from .cell_preparation import CellPreparation, TcpSample, no_payload_interface, prepare_cell
 from .control import Control, DeviceOpenError, SessionStopped, heavy_slot, retry
-from .devices import CellDevices, DeviceConfigError, open_robot, stored_devices
+from .devices import CellDevices, DeviceConfigError, InstrumentSigma, instrument_sigma, open_robot, stored_devices
 from .kinds import Step, finish_session, kind_of
 from .models import TERMINAL, Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
@@ -99,10 +100,14 @@ def open_session_devices(cell: Cell, run: RunSession, settings: Settings) -> Cel
 
 def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | None = None) -> RunSession:
     """Plan the session once (a resumed session keeps its plan) and check it. Between the
-    planning's phases ``control.check()`` stops it (abort, pause, the process stopping)."""
+    planning's phases ``control.check()`` stops it (abort, pause, the process stopping). The plan
+    predicts with the session's instrument's declared sigma, stored with it (``instrument_sigma``)."""
     model = model_from_dict(cell.model)
     if run.plan is None:
         info = run.plan_info or {}
+        sigma = InstrumentSigma.from_info(info.get("instrument_sigma")) or instrument_sigma(
+            cell.devices, kind_of(run.kind).instrument(run)
+        )
         plan = plan_session(
             kind_of(run.kind).plan,
             model,
@@ -111,11 +116,18 @@ def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | Non
             target=run.target,
             joints=info.get("joints"),
             seed=run.id or 0,
+            sigma_m=sigma.sigma_m,
             repeats=int(info.get("repeats") or 1),
             between=None if control is None else control.check,
         )
         run.plan = plan.q.tolist()
-        run.plan_info = {**info, **plan.info, "swept_joint": plan.joint.tolist(), "nominal_version": cell.model_version}
+        run.plan_info = {
+            **info,
+            **plan.info,
+            "swept_joint": plan.joint.tolist(),
+            "nominal_version": cell.model_version,
+            "instrument_sigma": sigma.as_info(),
+        }
         run.planned = len(plan.q)
         db.add(run)
         db.commit()
@@ -238,11 +250,11 @@ def run_session(
         control.devices = devices
         final, reason, stop = "completed", None, None
         try:
-            # a UR cell: the controller's own kinematics, read again (docs/devices/ur.md)
-            controller.refresh_on_session_start(db, run, cell, devices.robot)
-            tcp_registers = _measure_all(db, run, cell, devices, settings, control, owner)
-            # over Modbus: the controller's own kinematics from UR's TCP-pose registers at those poses
-            controller.learn_from_registers(db, run, cell, devices.robot, tcp_registers)
+            # the controller's kinematics and the device checks, before the first move (cell_preparation)
+            prepared = prepare_cell(db, run, cell, devices)
+            tcp_samples = _measure_all(db, run, cell, devices, settings, control, owner, prepared)
+            # a robot that reports its TCP pose: the controller's model fitted from it at those poses
+            prepared.after_measuring(db, run, cell, devices, tcp_samples)
             control.begin_finishing()  # from here on an abort no longer stops it (Control)
             with heavy_slot(control, stoppable=False):  # every pose is measured: identify them
                 finish_session(db, run, cell, settings)
@@ -345,14 +357,21 @@ def _end(
 
 
 def _measure_all(
-    db: Session, run: RunSession, cell: Cell, devices: CellDevices, settings: Settings, control: Control, owner: str
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Move to and measure every configuration of the plan not measured yet. Returns, over
-    Modbus on a UR cell, the controller's TCP-pose registers where the robot stood: (q, T_base_tcp)
-    pairs (``controller.register_sampler``), else an empty list."""
+    db: Session,
+    run: RunSession,
+    cell: Cell,
+    devices: CellDevices,
+    settings: Settings,
+    control: Control,
+    owner: str,
+    prepared: CellPreparation,
+) -> list[TcpSample]:
+    """Move to and measure every configuration of the plan not measured yet. Returns, for a
+    robot that reports its TCP pose (``prepared.read_tcp_pose``), the poses it reported where it
+    stood: (q, T_base_tcp) pairs, else an empty list."""
     model = model_from_dict(cell.model)
-    read_tcp = controller.register_sampler(cell, devices.robot)
-    tcp_registers: list[tuple[np.ndarray, np.ndarray]] = []
+    read_tcp = prepared.read_tcp_pose
+    tcp_registers: list[TcpSample] = []
     plan = np.asarray(run.plan, dtype=float)
     approach = approach_configurations(model, cell.allowed_region, plan) if _repeats(run) > 1 else None
     swept = (run.plan_info or {}).get("swept_joint") or [0] * len(plan)
@@ -425,13 +444,8 @@ def _set_payload(devices: CellDevices, model, payload: np.ndarray, settings: Set
     cog_flange = F[:3, :3] @ payload[1:] + F[:3, 3]
     try:
         retry(lambda: devices.robot.set_payload(float(payload[0]), cog_flange), "set payload", settings, control)
-    except NotImplementedError as exc:
-        raise SessionStopped(
-            "failed",
-            f"{exc}: a session with payloads needs a controller that takes one (UR)",
-            device="robot",
-            cause=exc,
-        ) from None
+    except NotImplementedError as exc:  # declared it takes one (cell_preparation checked), found it does not
+        raise no_payload_interface(devices.robot, exc) from None
 
 
 def commit_measurements(

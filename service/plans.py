@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.errors import RecalError
-from calibration.identification import INSTRUMENT_SIGMA_M
 from calibration.model import KinematicModel
 
 # How far (rad, or m for a prismatic joint, per joint) a repeated verify visit backs away before it
@@ -109,18 +108,20 @@ def check_configurations(model: KinematicModel, q: np.ndarray, region: list | No
 @dataclass(frozen=True)
 class PlanRequest:
     """What a session kind plans from (``SessionKind.plan``): ``count`` configurations inside
-    ``lim`` (n, 2) (the joint limits and the cell's allowed region, SI), with the session's
-    ``target``, ``joints`` (1-based) and ``repeats``; ``between()`` is called between the phases
-    of a long planning (it raises to stop it: an abort, a pause, the process stopping)."""
+    ``lim`` (n, 2) (the joint limits and the cell's allowed region, SI), the session's
+    instrument's per-axis standard uncertainty ``sigma_m`` (m, what the predictions assume:
+    ``service.devices.instrument_sigma``), with the session's ``target``, ``joints`` (1-based)
+    and ``repeats``; ``between()`` is called between the phases of a long planning (it raises to
+    stop it: an abort, a pause, the process stopping)."""
 
     model: KinematicModel
     lim: np.ndarray
     count: int
     rng: np.random.Generator
+    sigma_m: float
     target: str | None = None
     joints: list[int] | None = None
     repeats: int = 1
-    sigma_m: float = INSTRUMENT_SIGMA_M
     between: Callable[[], None] = lambda: None
 
 
@@ -133,17 +134,18 @@ def plan_session(
     target: str | None = None,
     joints: list[int] | None = None,
     seed: int = 0,
-    sigma_m: float = INSTRUMENT_SIGMA_M,
+    sigma_m: float,
     repeats: int = 1,
     between: Callable[[], None] | None = None,
 ) -> Plan:
     """The configurations of a session, planned by its kind (``plan_kind``, the kind's
     ``SessionKind.plan``: see the module docstring), checked against the joint limits and the
-    allowed ``region``, with what they span. ``between()``: as :class:`PlanRequest`."""
+    allowed ``region``, with what they span; ``sigma_m``: the instrument's per-axis standard
+    uncertainty (m). ``between()``: as :class:`PlanRequest`."""
     between = between or (lambda: None)
     lim = allowed_limits(model, region)
     n = model.n_joints
-    req = PlanRequest(model, lim, count, np.random.default_rng(seed), target, joints, repeats, sigma_m, between)
+    req = PlanRequest(model, lim, count, np.random.default_rng(seed), sigma_m, target, joints, repeats, between)
     plan = plan_kind(req)
     between()
     check_configurations(model, plan.q, region)
@@ -285,7 +287,7 @@ def dense_poses(req: PlanRequest) -> Plan:
     from calibration import planning
 
     core = planned_poses(
-        PlanRequest(req.model, req.lim, DENSE_FROM, req.rng, req.target, None, 1, req.sigma_m, req.between)
+        PlanRequest(req.model, req.lim, DENSE_FROM, req.rng, req.sigma_m, req.target, None, 1, req.between)
     )
     req.between()
     fill = latin_hypercube(req.lim, req.count - len(core.q), req.rng, req.model)

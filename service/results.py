@@ -20,7 +20,6 @@ from collections import OrderedDict
 import numpy as np
 from sqlmodel import Session, select
 
-from calibration.identification import INSTRUMENT_SIGMA_M
 from calibration.kinematics import fk
 from calibration.metrics import norm_statistics
 from calibration.model import KinematicModel, model_from_dict
@@ -34,6 +33,7 @@ from calibration.uncertainty import (
     stored_position_bound,
 )
 
+from .analysis import session_sigma
 from .models import KIND_RULES, Calibration, Cell, Measurement, RunSession, identified_calibration_kinds
 from .plans import UnsafePlan, allowed_limits, check_configurations
 from .records import (
@@ -450,13 +450,16 @@ def learning_curve_prediction(db: Session, cell: Cell, poses: int) -> dict:
 
 def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSession) -> dict:
     """What identification from these configurations is predicted to achieve (observation
-    planning's covariance σ²(JᵀJ)⁻¹ propagated to random configurations)."""
+    planning's covariance σ²(JᵀJ)⁻¹ propagated to random configurations), for the noise the
+    session's instrument declares (:func:`service.analysis.session_sigma`)."""
     info = run.plan_info or {}
     L = model_from_dict(cell.model).units.length_m
-    sigma_m = INSTRUMENT_SIGMA_M
+    sigma = session_sigma(run, cell, run.device)
+    sigma_m = sigma.sigma_m
     note = (
         f"RMS position error of the identified model over random configurations, predicted for an "
-        f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis"
+        f"instrument with {sigma_m / L:.3g} {model_from_dict(cell.model).units.length} noise per axis "
+        f"({sigma.source})"
     )
     if "dense" in info:  # the planner predicted for the planned core; the filling poses only add to it
         note += (
@@ -471,6 +474,7 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
             "p95": _r(info.get("predicted_p95_m", float("nan")) / L),
             "max": _r(info.get("predicted_max_m", float("nan")) / L),
             "sigma": _r(sigma_m / L),
+            "sigma_source": sigma.source,
             "unidentifiable": len(un) if isinstance(un, list) else None,
             "unidentifiable_names": un if isinstance(un, list) else None,
             "shortfall": info.get("shortfall"),
@@ -497,6 +501,7 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
         "p95": _r(res.predicted_p95_m / L),
         "max": _r(res.predicted_max_m / L),
         "sigma": _r(sigma_m / L),
+        "sigma_source": sigma.source,
         "identifiable": len(res.params),
         "unidentifiable": len(res.unidentifiable),
         "message": res.message,

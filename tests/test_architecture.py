@@ -209,6 +209,28 @@ def test_service_layers_point_down():
     assert not wrong, "imports that run up service/'s layers:\n" + "\n".join(wrong)
 
 
+def test_only_the_device_registry_names_a_concrete_driver():
+    """A robot's or an instrument's driver module (``drivers.ur_rtde``, ``drivers.ippdme``, ...)
+    is imported in service/ by the registry alone (issue 23): the rest reaches devices through
+    its table and the interfaces of ``drivers.base`` (and ``drivers.errors``)."""
+    shared = {"base", "errors"}
+    concrete = {f"drivers.{p.stem}" for p in (REPO / "drivers").glob("*.py") if p.stem not in shared}
+    concrete.discard("drivers.__init__")
+    wrong = []
+    for name, path in _service_modules().items():
+        if name == "service.device_registry":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and not node.level:
+                found = {node.module or ""}
+            elif isinstance(node, ast.Import):
+                found = {a.name for a in node.names}
+            else:
+                continue
+            wrong += [f"{name} imports {m}" for m in sorted(found & concrete)]
+    assert not wrong, "drivers named outside service/device_registry.py:\n" + "\n".join(wrong)
+
+
 def test_routes_are_http_only():
     """A route parses the request, calls a use case and answers: no numpy (math belongs in
     calibration/), no drivers (devices are opened by the use cases), no other route (what two

@@ -7,11 +7,18 @@ uploads ``ur_rtde``'s control script, which stops a program that is running). Th
 fitted exactly (``calibration.controller``) and written as ``recal.model/1`` with a
 ``controller`` block of check figures, or, when it does not reproduce the controller within
 ``--tolerance``, refused with one line and no file. See docs/devices/ur.md.
+
+The controller is reached through the device registry (``service.device_registry``: the
+``rtde`` entry opens its driver and asks its dashboard what it is), as a session reaches it.
 """
 
 from __future__ import annotations
 
 import json
+
+# Each request to the controller (its dashboard's answer, each forward-kinematics query) gets this
+# long; connecting, which uploads the control script, at least the driver's own 15 s.
+REQUEST_TIMEOUT_S = 5.0
 
 
 def add_parser(s) -> None:
@@ -41,6 +48,7 @@ def run(args) -> int:
     from drivers.errors import DeviceError
     from service.cli import Fail, progress
     from service.controller import ControllerModelError, read_controller_model, reference_model
+    from service.devices import DeviceConfigError, open_robot, parse_devices
     from service.files import check_output, write_atomic
 
     if args.poses < 5:
@@ -49,12 +57,17 @@ def run(args) -> int:
         raise Fail(f"--tolerance {args.tolerance}: expected a positive number of um")
     check_output(args.out)
     try:
-        from drivers.ur_rtde import UrRtdeConfig, UrRtdeRobot, dashboard_query
-
-        answer = None if args.robot else dashboard_query(args.rtde, "get robot model")
+        devices = parse_devices({"rtde": args.rtde})
+    except DeviceConfigError as exc:
+        raise Fail(f"--rtde {args.rtde}: {exc.message}") from None
+    (entry,) = devices.present("robot")
+    try:
+        answer = None if args.robot or entry.robot_type is None else entry.robot_type(devices, REQUEST_TIMEOUT_S)
         reference = reference_model(args.robot, answer)
         progress(f"asking {args.rtde} for its forward kinematics at {2 * args.poses} configurations")
-        with UrRtdeRobot(UrRtdeConfig(host=args.rtde)) as robot:
+        with open_robot(devices, timeout_s=REQUEST_TIMEOUT_S) as robot:
+            if robot.kinematics_source != "forward_kinematics":
+                raise Fail(f"{robot.name} answers no forward kinematics: its model cannot be read")
             doc = read_controller_model(
                 robot,
                 reference,

@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 
 from calibration import robots
-from calibration.identification import INSTRUMENT_SIGMA_M
 from calibration.simulate import perturbed, random_configurations, simulate_measurements
 
 BALLS = {"ball1": [0.06, 0.0, 0.04], "ball2": [-0.03, 0.052, 0.04], "ball3": [-0.03, -0.052, 0.04]}
@@ -351,11 +350,14 @@ def _offline(args) -> int:
 
         rated = np.array(SAGGING_ARMS[args.sag]["payload"])
         payload = lambda n: np.array([rated if i % 2 else np.zeros(4) for i in range(n)])  # noqa: E731
+    from fakes.world import Noise
+
+    sigma_m = Noise().tracker_m  # the simulated cell's line-protocol tracker: what its fake adds
     data = simulate_measurements(
         truth,
         random_configurations(nominal, args.poses, rng),
         rng,
-        sigma_m=INSTRUMENT_SIGMA_M,
+        sigma_m=sigma_m,
         targets=("smr",),
         payload=payload(args.poses) if payload else None,
     )
@@ -363,7 +365,7 @@ def _offline(args) -> int:
         truth,
         random_configurations(nominal, 200, rng),
         rng,
-        sigma_m=INSTRUMENT_SIGMA_M,
+        sigma_m=sigma_m,
         targets=("smr",),
         payload=payload(200) if payload else None,
     )

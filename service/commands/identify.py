@@ -255,7 +255,6 @@ def _corrected_coverage(model, result, section: dict, holdout, kw: dict) -> floa
 
     import numpy as np
 
-    from calibration.identification import INSTRUMENT_SIGMA_M
     from calibration.jacobian import predict
     from calibration.report import identification_block
     from calibration.residual_map import from_model
@@ -263,9 +262,7 @@ def _corrected_coverage(model, result, section: dict, holdout, kw: dict) -> floa
 
     meta = {"identification": identification_block(result, model.units), "residual_map": section}
     stored = dataclasses.replace(result.model, units=model.units, metadata=meta)
-    sigma = np.where(
-        np.isfinite(holdout.sigma) & (holdout.sigma > 0), holdout.sigma, kw.get("sigma_m", INSTRUMENT_SIGMA_M)
-    )
+    sigma = np.where(np.isfinite(holdout.sigma) & (holdout.sigma > 0), holdout.sigma, kw["sigma_m"])
     d2 = np.full(len(holdout), np.nan)
     for t in {None if x is None else str(x) for x in holdout.target}:
         rows = np.array([(None if x is None else str(x)) == t for x in holdout.target])

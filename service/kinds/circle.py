@@ -10,7 +10,7 @@ import numpy as np
 
 from calibration.model import model_from_dict
 
-from ..analysis import AnalysisError, session_measurements, store_calibration
+from ..analysis import AnalysisError, session_measurements, session_sigma, store_calibration
 from ..models import KindRules
 from ..plans import Plan, PlanRequest, joint_sweeps
 from .positions import PositionKind
@@ -30,12 +30,12 @@ class Circle(PositionKind):
         return joint_sweeps(req, "circle sweeps")
 
     def finish(self, db, run, cell, settings) -> None:
-        run.calibration_id = circle_session(db, run, cell).id
+        run.calibration_id = circle_session(db, run, cell, self.instrument(run)).id
 
 
-def circle_session(db, run, cell):
-    """Circle-point analysis of the session's sweeps (book §4.6); the report is the one
-    ``recal cpa`` writes."""
+def circle_session(db, run, cell, role: str):
+    """Circle-point analysis of the session's sweeps (book §4.6), with the noise the session's
+    ``role``'s instrument declares; the report is the one ``recal cpa`` writes."""
     from calibration.cpa import SweepError, Sweeps, circle_point_analysis
     from calibration.report import cpa_report
 
@@ -49,7 +49,7 @@ def circle_session(db, run, cell):
         row=data.row,
     )
     try:
-        res = circle_point_analysis(nominal, sweeps)
+        res = circle_point_analysis(nominal, sweeps, sigma_m=session_sigma(run, cell, role).sigma_m)
     except (SweepError, ValueError) as exc:
         raise AnalysisError(f"circle-point analysis failed: {exc}") from None
     report = cpa_report(res, nominal, sweeps)

@@ -18,7 +18,7 @@ from calibration.identify import NotEnoughData, Prior, drift_scale, held_relatio
 from calibration.model import KinematicModel, model_from_dict
 from calibration.report import identification_block, identification_report
 
-from ..analysis import AnalysisError, session_data, store_calibration
+from ..analysis import AnalysisError, session_data, session_sigma, store_calibration
 from ..models import Calibration, Cell, KindRules, RunSession
 from ..plans import Plan, PlanRequest, planned_poses
 from ..results import position_residuals, predicted_accuracy
@@ -62,14 +62,18 @@ class Pose(PositionKind):
         return planned_poses(req)
 
     def finish(self, db, run, cell, settings) -> None:
-        cal = identify_session(db, run, cell)
+        cal = identify_session(db, run, cell, self.instrument(run))
         cal.predicted = predicted_accuracy(cal, cell, run.target)  # stored with it: drift lists it without reports
         db.add(cal)
         run.calibration_id = cal.id
 
 
-def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
+def identify_session(db: Session, run: RunSession, cell: Cell, role: str) -> Calibration:
+    """Identify the session's measurements (its ``role``'s instrument's declared sigma weighs the
+    rows that carry none, and the orientations of full poses), from the previous calibration as
+    the prior when there is one; the calibration stored."""
     data = session_data(db, run)
+    sigma_m = session_sigma(run, cell, role).sigma_m
     nominal = model_from_dict(cell.model)
     prev = current_calibration(db, cell)
     prior = None
@@ -85,10 +89,10 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         # what it held at the model's value, confused with what it estimated (e.g. the tool orientation
         # a tracker cannot see): new data that determine them move the combinations it measured
         held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
-        scale = max(drift_scale(start, data, names, cov, drift, held=held), DRIFT_SCALE_MIN)
+        scale = max(drift_scale(start, data, names, cov, drift, sigma_m=sigma_m, held=held), DRIFT_SCALE_MIN)
         prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
     try:
-        result = identify(start, data, prior=prior)
+        result = identify(start, data, prior=prior, sigma_m=sigma_m)
     except NotEnoughData as exc:  # too few poses to check the fit: say how many, as the CLI does
         raise AnalysisError(str(exc)) from None
     if not result.success:
@@ -100,7 +104,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         from calibration.compliance_fit import compare
 
         try:
-            cmp = compare(start, data)
+            cmp = compare(start, data, identify_kw={"sigma_m": sigma_m})
         except NotEnoughData:  # each fold's share of the poses leaves no redundancy: nothing to compare
             cmp = None
         if cmp is not None:
@@ -114,7 +118,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()},
     }
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
-    rmap_doc, report["residual_map"] = _residual_map(start, data, prior, result.model, model)
+    rmap_doc, report["residual_map"] = _residual_map(start, data, prior, sigma_m, result.model, model)
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q, report=report)
     ctrl = current_controller_model(db, cell.id)
@@ -125,21 +129,26 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
 
 
 def _residual_map(
-    start: KinematicModel, data: Measurements, prior: Prior | None, identified: KinematicModel, model: KinematicModel
+    start: KinematicModel,
+    data: Measurements,
+    prior: Prior | None,
+    sigma_m: float,
+    identified: KinematicModel,
+    model: KinematicModel,
 ) -> tuple[dict | None, dict | None]:
     """What ``recal identify --residual-map auto`` does, by the same function
     (``calibration.residual_choice.choose_correction``; a session has no setting for it: it is
     always auto, among every family): a correction of what the identified model leaves, kept
     only where nested cross-validation of the whole procedure (the identification from ``start``,
-    with the session's ``prior``, then each family) shows a gain. Returns the model file's
-    ``residual_map`` section of the chosen family (None when none is kept), which every verb
-    applies inside the region it was fitted in, and the CLI report's ``residual_map`` figures in
-    ``model``'s units either way (each family's cross-validated RMS, the choice, the learning
-    curve; None when the folds leave too few poses to tell)."""
+    with the session's ``prior`` and instrument's ``sigma_m``, then each family) shows a gain.
+    Returns the model file's ``residual_map`` section of the chosen family (None when none is
+    kept), which every verb applies inside the region it was fitted in, and the CLI report's
+    ``residual_map`` figures in ``model``'s units either way (each family's cross-validated RMS,
+    the choice, the learning curve; None when the folds leave too few poses to tell)."""
     from calibration import residual_choice as rc
 
     try:
-        choice = rc.choose_correction(start, data, identify_kw={"prior": prior}, final=identified)
+        choice = rc.choose_correction(start, data, identify_kw={"prior": prior, "sigma_m": sigma_m}, final=identified)
     except NotEnoughData:
         return None, None
     return choice.section(model), choice.report(model)

@@ -54,8 +54,8 @@ class PositionKind(SessionKind):
                 )
         elif not devices.has_tracker:
             raise Invalid("body.device", "this cell has no laser tracker")
-        if payloads and not devices.rtde:
-            # only a controller that takes a payload (UR's set_payload) can be told what is mounted
+        if payloads and not devices.robot_takes_payload:
+            # only a controller that takes a payload (its driver says: UR's set_payload) can be told what is mounted
             raise Invalid("body.payloads", "a session with payloads needs a controller that takes one (UR, `rtde`)")
 
     def default_target(self, model, device):

@@ -17,6 +17,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from fakes.cell import FAKES
 from service.device_config import DEVICES, DevicesConfig, devices_json_schema, parse_devices
 
@@ -80,11 +82,11 @@ import threading
 
 
 class StubGaugeFake:
-    def __init__(self, cell, host="127.0.0.1", port=0):
+    def __init__(self, cell, host="127.0.0.1", port=0, answer="STUB,GAUGE,1"):
         class Handler(socketserver.StreamRequestHandler):
             def handle(self):
                 for _line in self.rfile:
-                    self.wfile.write(b"STUB,GAUGE,1\\n")
+                    self.wfile.write(answer.encode() + b"\\n")
 
         self.server = socketserver.ThreadingTCPServer((host, port), Handler)
         self.server.daemon_threads = True
@@ -101,7 +103,13 @@ class StubGaugeFake:
         return {"gauge": f"socket://{host}:{port}"}
 
 
-CELL_FAKE = {"key": "gauge", "order": 70, "cls": StubGaugeFake}
+CELL_FAKE = {
+    "key": "gauge",
+    "order": 70,
+    "cls": StubGaugeFake,
+    "kwargs": lambda args: {"answer": args.gauge_answer},
+    "options": [("--gauge-answer", {"default": "STUB,GAUGE,1", "help": "what the stub gauge answers"})],
+}
 '''
 
 STUB_FIELD = """    gauge: SerialUrl | None = Field(None, title="Stub gauge", description="socket://HOST:PORT of the gauge")
@@ -115,6 +123,7 @@ STUB_ENTRY = """    DeviceEntry(
         fake="fakes.stub_gauge:StubGaugeFake",
         open=lambda config, timeout_s: __import__("drivers.stub_gauge").stub_gauge.StubGauge(config.gauge, timeout_s),
         test=lambda config, timeout_s: {"ok": True, "name": "stub gauge", "answer": _stub_identity(config, timeout_s)},
+        sigma_m=lambda config: 7e-6,  # the gauge's own figure: sessions plan and weigh with it
     ),
 """
 
@@ -130,13 +139,15 @@ def _stub_identity(config: DevicesConfig, timeout_s: float) -> str:
 
 USE_IT = """
 import json
-from fakes.cell import FAKES
+from fakes.cell import FAKES, build_parser
 from fakes.world import SimCell
 from calibration.robots import nominal
 from service.device_config import parse_devices, devices_json_schema
 from service.devicetest import test_devices
 
-fake = next(f for f in FAKES if f["key"] == "gauge")["cls"](SimCell(nominal("ur5e")), "127.0.0.1")
+entry = next(f for f in FAKES if f["key"] == "gauge")
+args = build_parser().parse_args(["--truth", "truth.json", "--gauge-answer", "GAUGE,2"])
+fake = entry["cls"](SimCell(nominal("ur5e")), "127.0.0.1", **entry["kwargs"](args))
 fake.start()
 try:
     config = parse_devices(fake.endpoint())
@@ -188,7 +199,74 @@ def test_a_stub_instrument_is_its_driver_its_fake_and_one_registry_entry(tmp_pat
     seen = json.loads(done.stdout.splitlines()[-1])
     assert seen["kinds"] == ["gauge"] and seen["has_cmm"]
     assert seen["page"][-1] == "gauge"
+    # the fake's own command-line option (declared on its CELL_FAKE line) reached it through fake-cell's parser
     assert seen["rows"] == [
         {"device": "stub gauge", "address": seen["rows"][0]["address"], "elapsed_ms": seen["rows"][0]["elapsed_ms"]}
-        | {"ok": True, "name": "stub gauge", "answer": "STUB,GAUGE,1"}
+        | {"ok": True, "name": "stub gauge", "answer": "GAUGE,2"}
     ]
+
+
+# A session planned on a cell whose measuring device is the stub gauge (its entry declares 7 um),
+# and one planned the same way on a cell that names no such device (the library's 20 um stand in):
+# what each stores with its plan, and what its plan's page predicts, then again after the cell's
+# devices changed (the figure stays the one of its time).
+PLAN_WITH_IT = """
+import json, sys, tempfile
+from pathlib import Path
+from sqlmodel import Session
+from calibration.robots import nominal_document
+from service.models import Cell, RunSession
+from service.orchestrator import ensure_plan
+from service.results import plan_preview
+from service.settings import Settings
+from service.store import make_engine, migrate
+
+def planned(devices, home):
+    engine = make_engine(f"sqlite:///{home}/recal.db")
+    migrate(engine)
+    settings = Settings(home=Path(home))
+    with Session(engine) as db:
+        cell = Cell(name="c", model=nominal_document("ur5e"), devices=devices)
+        db.add(cell)
+        db.commit()
+        db.refresh(cell)
+        run = RunSession(cell_id=cell.id, kind="pose", device="cmm", planned=30)
+        db.add(run)
+        db.commit()
+        db.refresh(run)
+        run = ensure_plan(db, run, cell)
+        before = plan_preview(db, run, cell, settings)["predicted"]
+        cell.devices = {"cmm": "socket://127.0.0.1:1294"}
+        db.add(cell)
+        db.commit()
+        after = plan_preview(db, run, cell, settings)["predicted"]
+    engine.dispose()
+    return {"stored": run.plan_info["instrument_sigma"], "before": before, "after": after}
+
+out = {}
+for name, devices in (("gauge", {"gauge": "socket://127.0.0.1:1"}), ("none", {})):
+    with tempfile.TemporaryDirectory() as home:
+        out[name] = planned(devices, home)
+print(json.dumps(out))
+"""
+
+
+def test_a_stub_instruments_own_sigma_drives_the_plan_and_its_predicted_accuracy(tmp_path):
+    for package in ("calibration", "drivers", "fakes", "service"):
+        shutil.copytree(ROOT / package, tmp_path / package, ignore=shutil.ignore_patterns("__pycache__"))
+    _add_stub_instrument(tmp_path)
+
+    done = subprocess.run(
+        [sys.executable, "-c", PLAN_WITH_IT], cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout.splitlines()[-1])
+    gauge, none = seen["gauge"], seen["none"]
+    assert gauge["stored"] == {"sigma_m": 7e-6, "source": "stub gauge"}
+    assert none["stored"]["sigma_m"] == 20e-6 and "library's default" in none["stored"]["source"]
+    # the page's figure (mm) and its note are the gauge's, and stay so when the cell's devices change
+    for shown in (gauge["before"], gauge["after"]):
+        assert shown["sigma"] == 0.007 and shown["sigma_source"] == "stub gauge"
+        assert "0.007 mm noise per axis (stub gauge)" in shown["note"]
+    # the same plan (the same seed and model) predicts in proportion to the instrument's noise
+    assert gauge["before"]["rms"] / none["before"]["rms"] == pytest.approx(7 / 20, rel=1e-4)
