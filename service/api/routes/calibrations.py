@@ -107,7 +107,7 @@ async def compensate(
     mode: str = "joints",
     name: str = "task.csv",
     payload: str | None = None,
-) -> PlainTextResponse:
+) -> Response:
     """A task CSV or a robot program (URScript, RAPID, TP; ``name`` tells which) in the request
     body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``;
     ``payload``: the task's payload ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the
