@@ -161,45 +161,11 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
     unit = res["units"]["length"]
     device = run.device if run is not None else "tracker"
     test = last_device_test(db, cell.id, cal.created_at) or last_device_test(db, cell.id)
-    identity = None
-    if test:
-        for r in test["results"]:
-            det = r.get("details") or {}
-            if device == "tracker" and r.get("device") == "laser tracker" and det.get("identity"):
-                identity = det["identity"]
-            if device == "cmm" and r.get("device", "").startswith("CMM") and det.get("dme_version"):
-                identity = f"I++ DME server {det['dme_version']}"
-    errors = res.get("errors") or {}
-    before = _iso_figures((errors.get("before") or {}).get("xyz"), unit)
-    after = _iso_figures((errors.get("after") or {}).get("xyz"), unit)
-    verify_before, verify_after = _verify_sessions(db, cell.id, cal)
-    verify_before = _placed_verify_before(db, verify_before, nominal, unit)
-    holdout = _holdout(db, cal, verify_after, unit)
-    ws = res.get("workspace") or {}
+    accuracy = _accuracy(db, cal, cell, res, nominal, unit)
     settings = report.get("settings") or {}
     resid = report.get("residuals") or {}
-    params = []
-    for p in report.get("parameters") or []:
-        se = p.get("std_error")
-        params.append({**p, "expanded_uncertainty": _r(2 * se) if se is not None else None})
-    checks = _checks(res, run, report, resid, settings, verify_after, cell, unit)
+    checks = _checks(res, run, report, resid, settings, accuracy["verify_after"], cell, unit)
     not_run = [c["name"] for c in checks if c["passed"] is None]
-    accuracy = {
-        "before": before,
-        "before_model": (errors.get("before") or {}).get("model"),
-        "after": after,
-        "after_model": (errors.get("after") or {}).get("model"),
-        "after_kind": "in-sample: the identified model's residuals on the measurements it was fitted to "
-        "(optimistic; the hold-out figures are the accuracy to quote)",
-        "holdout": holdout,
-        "holdout_model": None if holdout is None else _holdout_model(holdout, model_from_dict(cal.model)),
-        "verify_before": verify_before,
-        "verify_after": verify_after,
-        "predicted_workspace": _predicted(ws),
-        "note": "ISO 9283-style figures from one measurement per pose: mean position error, its standard "
-        "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
-    }
-    accuracy["rows"] = [{"label": label, **f} for label, f in _accuracy_rows(accuracy)]
     issued = datetime.now(UTC)
     return {
         "title": "Robot calibration certificate",
@@ -224,7 +190,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
             "kind": INSTRUMENTS.get(device, device),
             "device": device,
             "address": _instrument_address(cell, device),
-            "identity": identity,
+            "identity": _instrument_identity(test, device),
             "identity_checked_at": test["at"] if test else None,
             "noise": settings.get("sigma"),
             "target": run.target if run is not None else None,
@@ -238,7 +204,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         },
         "units": res["units"],
         "accuracy": accuracy,
-        "parameters": params,
+        "parameters": _parameters(report),
         "unidentifiable": report.get("unidentifiable") or [],
         "notes": report.get("notes") or [],
         "checks": checks,
@@ -246,6 +212,57 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
         "not_run": not_run,
         "verdict": _verdict(checks, not_run),
     }
+
+
+def _instrument_identity(test: dict | None, device: str) -> str | None:
+    """What the instrument said it is at the cell's last connection test (a tracker's identity,
+    a CMM's I++ DME server version), or None."""
+    identity = None
+    if test:
+        for r in test["results"]:
+            det = r.get("details") or {}
+            if device == "tracker" and r.get("device") == "laser tracker" and det.get("identity"):
+                identity = det["identity"]
+            if device == "cmm" and r.get("device", "").startswith("CMM") and det.get("dme_version"):
+                identity = f"I++ DME server {det['dme_version']}"
+    return identity
+
+
+def _parameters(report: dict) -> list[dict]:
+    """The identified parameters, each with its expanded uncertainty (k = 2)."""
+    params = []
+    for p in report.get("parameters") or []:
+        se = p.get("std_error")
+        params.append({**p, "expanded_uncertainty": _r(2 * se) if se is not None else None})
+    return params
+
+
+def _accuracy(db: Session, cal: Calibration, cell: Cell, res: dict, nominal, unit: str) -> dict:
+    """The certificate's accuracy section: ISO 9283-style figures before and after (in-sample),
+    on hold-out configurations, of the verify sessions around the calibration, and predicted."""
+    errors = res.get("errors") or {}
+    before = _iso_figures((errors.get("before") or {}).get("xyz"), unit)
+    after = _iso_figures((errors.get("after") or {}).get("xyz"), unit)
+    verify_before, verify_after = _verify_sessions(db, cell.id, cal)
+    verify_before = _placed_verify_before(db, verify_before, nominal, unit)
+    holdout = _holdout(db, cal, verify_after, unit)
+    accuracy = {
+        "before": before,
+        "before_model": (errors.get("before") or {}).get("model"),
+        "after": after,
+        "after_model": (errors.get("after") or {}).get("model"),
+        "after_kind": "in-sample: the identified model's residuals on the measurements it was fitted to "
+        "(optimistic; the hold-out figures are the accuracy to quote)",
+        "holdout": holdout,
+        "holdout_model": None if holdout is None else _holdout_model(holdout, model_from_dict(cal.model)),
+        "verify_before": verify_before,
+        "verify_after": verify_after,
+        "predicted_workspace": _predicted(res.get("workspace") or {}),
+        "note": "ISO 9283-style figures from one measurement per pose: mean position error, its standard "
+        "deviation, mean + 3 S, RMS, 95th percentile and maximum; the bias is the mean error vector",
+    }
+    accuracy["rows"] = [{"label": label, **f} for label, f in _accuracy_rows(accuracy)]
+    return accuracy
 
 
 def _verdict(checks: list[dict], not_run: list[str]) -> str:

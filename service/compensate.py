@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 from calibration.compliance import with_payload
@@ -55,10 +56,7 @@ def compensate_text(
     compliant model (``recal compensate --payload``). ``encodings``: file name -> the encoding
     its text was decoded with (:func:`decode_upload`; default UTF-8): each file is compensated
     as those bytes, and its compensated text is given in the same encoding."""
-    try:
-        model, nominal = model_from_dict(model_doc), model_from_dict(nominal_doc)
-    except ModelFormatError as exc:
-        raise CompensationInputError(f"the calibration's model: {exc}") from None
+    model, nominal = _models(model_doc, nominal_doc)
     if payload is not None:
         try:
             model = with_payload(model, parse_payload(payload, model))
@@ -68,11 +66,7 @@ def compensate_text(
         raise CompensationInputError(
             f"the cell's nominal model has {nominal.n_joints} joints, the calibration {model.n_joints}"
         )
-    try:  # a name whose extension says nothing: the format from the content (or refused)
-        fmt_named = programs.format_of(name, None, text=None if name.lower().endswith(".dat") else text)
-    except InputError as exc:
-        raise CompensationInputError(str(exc).replace("--format", "a file name with its extension (?name=)")) from None
-    suffix = Path(name).suffix if programs.format_of(name) == fmt_named else programs.FORMATS[fmt_named][0]
+    suffix, fmt_named = _suffix_and_format(name, text)
     encodings = dict(encodings or {})
     companions = dict(companions or {})
     config = {k: companions.pop(k) for k in list(companions) if k.lower().lstrip("$") == "config.dat"}
@@ -83,60 +77,13 @@ def compensate_text(
         else {}
     )
     with tempfile.TemporaryDirectory() as tmp:
-        d = Path(tmp)
-        src, out = d / f"task{suffix}", d / f"compensated{suffix}"
-        # bytes as uploaded: the text back in the encoding it was decoded with
-        src.write_bytes(text.encode(encodings.get(name, "utf-8")))
-        for other, content in companions.items():  # beside the program, under its stem (KRL's .dat)
-            (d / f"task{Path(other).suffix}").write_bytes(content.encode(encodings.get(other, "utf-8")))
-        config_path = None
-        for other, content in config.items():  # KUKA's $config.dat: the TOOL_DATA and BASE_DATA the program selects
-            config_path = d / "config.dat"
-            config_path.write_bytes(content.encode(encodings.get(other, "utf-8")))
-        module_paths = []
-        for k, (other, content) in enumerate(modules.items()):  # under their own names, kept apart
-            (d / f"m{k}").mkdir()
-            module_paths.append(d / f"m{k}" / Path(other).name)  # its name: the report's frames say it
-            module_paths[-1].write_bytes(content.encode(encodings.get(other, "utf-8")))
-        names = {str(src): name, **{str(d / f"task{Path(o).suffix}"): o for o in companions}}
-        names.update({str(p): o for p, o in zip(module_paths, modules)})
-        if config_path is not None:
-            names[str(config_path)] = "$config.dat"
-
-        def ours(message: str) -> str:  # the user's file names, not our temporary ones
-            for path, user in names.items():
-                message = message.replace(path, user)
-            return message
-
-        try:
-            fmt = programs.format_of(str(src), None)
-            frames = (
-                Frames.from_options(
-                    [], [], str(config_path) if config_path else None, modules=[str(p) for p in module_paths]
-                )
-                if fmt not in ("csv", "urscript")
-                else None
-            )
-            req = CompensationRequest(
-                task=str(src),
-                out=str(out),
-                model_label="the calibration's model",
-                fmt=fmt,
-                mode=mode,
-                nominal=nominal,
-                calibrated=calibrated_range_of(model),
-                frames=frames,
-                report=True,
-            )
-            result = compensate_task(model, req)
-        except (InputError, CompensationInputError, ValueError) as exc:
-            message = ours(str(exc)).replace("(--module SYSMOD.sys)", "(post it with the program)")
-            raise CompensationInputError(message) from None
+        laid = _lay_out(Path(tmp), suffix, name, text, companions, config, modules, encodings)
+        result = _compensate_laid(laid, model, nominal, mode)
         doc = result.report()
         doc["task"] = name
         for point in doc.get("points", []) + doc.get("uninterpreted", []):
             if "file" in point:
-                point["file"] = names.get(str(d / Path(point["file"]).name), name)
+                point["file"] = laid.names.get(str(laid.folder / Path(point["file"]).name), name)
         encs = [encodings.get(name, "utf-8")] + [encodings.get(o, "utf-8") for o in companions]
         texts = [
             data if isinstance(data, str) else data.decode(enc, errors="replace")
@@ -145,6 +92,94 @@ def compensate_text(
         if companions:
             doc["files"] = [{"name": o, "text": t, "encoding": e} for o, t, e in zip(companions, texts[1:], encs[1:])]
         return texts[0], doc
+
+
+def _models(model_doc: dict, nominal_doc: dict):
+    """The calibration's identified model and its cell's nominal model, read from their documents."""
+    try:
+        return model_from_dict(model_doc), model_from_dict(nominal_doc)
+    except ModelFormatError as exc:
+        raise CompensationInputError(f"the calibration's model: {exc}") from None
+
+
+def _suffix_and_format(name: str, text: str) -> tuple[str, str]:
+    """The file suffix the task is laid out under, and its format: from ``name``'s extension, or
+    from the content when the extension says nothing (refused when neither does)."""
+    try:
+        fmt_named = programs.format_of(name, None, text=None if name.lower().endswith(".dat") else text)
+    except InputError as exc:
+        raise CompensationInputError(str(exc).replace("--format", "a file name with its extension (?name=)")) from None
+    suffix = Path(name).suffix if programs.format_of(name) == fmt_named else programs.FORMATS[fmt_named][0]
+    return suffix, fmt_named
+
+
+@dataclass
+class _Laid:
+    """A task and its companions written in a temporary folder, as the parsers read them."""
+
+    folder: Path
+    src: Path  # the task, ``task{suffix}``
+    out: Path  # where its compensated text goes
+    config_path: Path | None  # KUKA's $config.dat
+    module_paths: list[Path]  # RAPID's other modules
+    names: dict[str, str]  # temporary path -> the user's file name
+
+    def ours(self, message: str) -> str:
+        """``message`` with the user's file names, not our temporary ones."""
+        for path, user in self.names.items():
+            message = message.replace(path, user)
+        return message
+
+
+def _lay_out(d: Path, suffix: str, name: str, text: str, companions, config, modules, encodings) -> _Laid:
+    """Write the task ``name``, its companions, $config.dat and RAPID modules in ``d``, each as
+    the bytes uploaded: the text back in the encoding it was decoded with."""
+    src, out = d / f"task{suffix}", d / f"compensated{suffix}"
+    src.write_bytes(text.encode(encodings.get(name, "utf-8")))
+    for other, content in companions.items():  # beside the program, under its stem (KRL's .dat)
+        (d / f"task{Path(other).suffix}").write_bytes(content.encode(encodings.get(other, "utf-8")))
+    config_path = None
+    for other, content in config.items():  # KUKA's $config.dat: the TOOL_DATA and BASE_DATA the program selects
+        config_path = d / "config.dat"
+        config_path.write_bytes(content.encode(encodings.get(other, "utf-8")))
+    module_paths = []
+    for k, (other, content) in enumerate(modules.items()):  # under their own names, kept apart
+        (d / f"m{k}").mkdir()
+        module_paths.append(d / f"m{k}" / Path(other).name)  # its name: the report's frames say it
+        module_paths[-1].write_bytes(content.encode(encodings.get(other, "utf-8")))
+    names = {str(src): name, **{str(d / f"task{Path(o).suffix}"): o for o in companions}}
+    names.update({str(p): o for p, o in zip(module_paths, modules)})
+    if config_path is not None:
+        names[str(config_path)] = "$config.dat"
+    return _Laid(d, src, out, config_path, module_paths, names)
+
+
+def _compensate_laid(laid: _Laid, model, nominal, mode: str):
+    """Compensate the laid-out task (``compensate_task``); bad input refused in the user's names."""
+    try:
+        fmt = programs.format_of(str(laid.src), None)
+        frames = (
+            Frames.from_options(
+                [], [], str(laid.config_path) if laid.config_path else None, modules=[str(p) for p in laid.module_paths]
+            )
+            if fmt not in ("csv", "urscript")
+            else None
+        )
+        req = CompensationRequest(
+            task=str(laid.src),
+            out=str(laid.out),
+            model_label="the calibration's model",
+            fmt=fmt,
+            mode=mode,
+            nominal=nominal,
+            calibrated=calibrated_range_of(model),
+            frames=frames,
+            report=True,
+        )
+        return compensate_task(model, req)
+    except (InputError, CompensationInputError, ValueError) as exc:
+        message = laid.ours(str(exc)).replace("(--module SYSMOD.sys)", "(post it with the program)")
+        raise CompensationInputError(message) from None
 
 
 def read_multipart(content_type: str, body: bytes) -> list[tuple[str, str, str]]:
@@ -248,61 +283,21 @@ def compensate_backup_and_audit(
     :class:`CompensationInputError` naming the zip entry (never a temporary path)."""
     from sqlmodel import Session
 
-    from .backups import (
-        REPORT_NAME,
-        NotABackup,
-        compensate_folder,
-        pack_zip,
-        report_bytes,
-        unpack_zip,
-        with_frame_data,
-    )
+    from .backups import REPORT_NAME, pack_zip, report_bytes, unpack_zip
     from .controller import controller_nominal
     from .models import Cell
-    from .store import audit
 
     with Session(_engine(database_url)) as db:
         cal = _calibration(db, calibration_id)
         model_doc, nominal_doc = cal.model, controller_nominal(db, db.get(Cell, cal.cell_id))
-    try:
-        model, nominal = model_from_dict(model_doc), model_from_dict(nominal_doc)
-    except ModelFormatError as exc:
-        raise CompensationInputError(f"the calibration's model: {exc}") from None
+    model, nominal = _models(model_doc, nominal_doc)
     with tempfile.TemporaryDirectory() as tmp:
         src, out = Path(tmp) / "in", Path(tmp) / "out"
         src.mkdir()
         names = unpack_zip(data, src, limit)  # UnsafeZip (a ValueError): the route's 413 or 422
         if REPORT_NAME in names:
             raise CompensationInputError(f"the zip already holds {REPORT_NAME}: expected a controller backup")
-
-        def request(job, out_path):
-            frames = Frames.from_options([], [], job.config_dat, modules=list(job.modules), rapid=job.fmt == "rapid")
-            frames = with_frame_data(frames, job, src)  # a Fanuc backup's SYSFRAME.VA
-            return CompensationRequest(
-                task=str(job.path),
-                out=str(out_path),
-                model_label="the calibration's model",
-                fmt=job.fmt,
-                nominal=nominal,
-                calibrated=calibrated_range_of(model),
-                frames=frames,
-                report=True,
-            )
-
-        def ours(message: str) -> str:  # the zip's entry names, not our temporary folder nor CLI flags
-            message = message.replace(str(src) + "/", "").replace(str(src), "the zip")
-            return re.sub(
-                r"pass --(?:base|tool)-frame \d+=X,Y,Z,W,P,R",
-                "not set (or Uninitialized) in the backup's frame data (SYSFRAME.VA)",
-                message,
-            )
-
-        try:
-            result = compensate_folder(src, out, model, request)
-        except NotABackup as exc:
-            raise CompensationInputError(f"the zip: {exc}") from None
-        except (InputError, CompensationInputError, ValueError) as exc:
-            raise CompensationInputError(ours(str(exc)).replace(" (--module SYSMOD.sys)", "")) from None
+        result = _compensate_unpacked(src, out, model, nominal)
         result.report["task"] = name
         answer = pack_zip(out, names, {REPORT_NAME: report_bytes(result)})
     summary = {
@@ -312,6 +307,50 @@ def compensate_backup_and_audit(
         "not_compensated": result.not_compensated,
         "shortfalls": result.short,
     }
+    _audit_backup(database_url, actor, calibration_id, name, summary)
+    return answer, result.not_compensated, summary
+
+
+def _compensate_unpacked(src: Path, out: Path, model, nominal):
+    """Compensate the backup unpacked in ``src`` into ``out`` (service.backups.compensate_folder);
+    bad input refused naming the zip's entries, not our temporary folder nor CLI flags."""
+    from .backups import NotABackup, compensate_folder, with_frame_data
+
+    def request(job, out_path):
+        frames = Frames.from_options([], [], job.config_dat, modules=list(job.modules), rapid=job.fmt == "rapid")
+        frames = with_frame_data(frames, job, src)  # a Fanuc backup's SYSFRAME.VA
+        return CompensationRequest(
+            task=str(job.path),
+            out=str(out_path),
+            model_label="the calibration's model",
+            fmt=job.fmt,
+            nominal=nominal,
+            calibrated=calibrated_range_of(model),
+            frames=frames,
+            report=True,
+        )
+
+    def ours(message: str) -> str:  # the zip's entry names, not our temporary folder nor CLI flags
+        message = message.replace(str(src) + "/", "").replace(str(src), "the zip")
+        return re.sub(
+            r"pass --(?:base|tool)-frame \d+=X,Y,Z,W,P,R",
+            "not set (or Uninitialized) in the backup's frame data (SYSFRAME.VA)",
+            message,
+        )
+
+    try:
+        return compensate_folder(src, out, model, request)
+    except NotABackup as exc:
+        raise CompensationInputError(f"the zip: {exc}") from None
+    except (InputError, CompensationInputError, ValueError) as exc:
+        raise CompensationInputError(ours(str(exc)).replace(" (--module SYSMOD.sys)", "")) from None
+
+
+def _audit_backup(database_url: str, actor: str, calibration_id: int, name: str, summary: dict) -> None:
+    from sqlmodel import Session
+
+    from .store import audit
+
     with Session(_engine(database_url)) as db:
         audit(
             db,
@@ -320,7 +359,6 @@ def compensate_backup_and_audit(
             subject=f"calibration {calibration_id}",
             detail={"name": name, **{k: v for k, v in summary.items() if k != "shortfalls"}},
         )
-    return answer, result.not_compensated, summary
 
 
 def _engine(database_url: str):

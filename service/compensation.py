@@ -15,6 +15,7 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -271,11 +272,23 @@ def _chunked(N, fn, t0, progress):
 
 
 def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
-
     task = read_task(req.task, model)
-    N = len(task)
-    nominal, taught, calibrated, kw, qnear = req.nominal, req.taught, req.calibrated, req.settings, req.qnear
-    M, fit_rms = nominal_world_frame(model, nominal, calibrated) if nominal is not None else (np.eye(4), None)
+    M, fit_rms, X = _csv_goals(req, model, task)
+    run = _csv_runner(req, model, task, M)
+    comp = _compensate_with_map(model, run, X, len(task), t0, progress)
+    names = {int(b): ";".join(flag_names(b)) for b in np.unique(comp.flags)}
+    flags = [names[int(b)] for b in comp.flags]
+    text = format_task(task, model, req.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)
+    prefixes = [f'"row":{i + 1},"line":{line},' for i, line in enumerate(task.table.lines)]
+    return text, comp, prefixes, [], M, fit_rms
+
+
+def _csv_goals(req: CompensationRequest, model: KinematicModel, task):
+    """The nominal model's world frame in the identified one's (identity without a nominal), the
+    fit's RMS (or None), and each row's goal pose in the world frame: its own pose, or for a row
+    with only joints the pose they gave the robot they were taught (or planned) on."""
+    nominal, taught = req.nominal, req.taught
+    M, fit_rms = nominal_world_frame(model, nominal, req.calibrated) if nominal is not None else (np.eye(4), None)
     only_q = task.has_q & ~task.has_pose
     if np.any(only_q) and taught is None and nominal is None:
         r = int(np.nonzero(only_q)[0][0])
@@ -286,7 +299,17 @@ def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
     X = task.T_world_tool.copy()
     if np.any(only_q):
         X[only_q] = source_poses(task.q[only_q], taught, nominal, M)
-    q_near = np.where(task.has_q[:, None], np.nan_to_num(task.q), qnear)
+    return M, fit_rms, X
+
+
+def _csv_runner(
+    req: CompensationRequest, model: KinematicModel, task, M: np.ndarray
+) -> Callable[[np.ndarray, slice], Compensation]:
+    """``run(X, rows)``: compensate the task's ``rows`` aiming at goal poses ``X`` (all rows',
+    world frame; ``M``: the nominal world frame in it), as the request's mode asks: targets for
+    the nominal controller, or joint commands."""
+    nominal, calibrated, kw = req.nominal, req.calibrated, req.settings
+    q_near = np.where(task.has_q[:, None], np.nan_to_num(task.q), req.qnear)
     if req.mode == "targets":
         if nominal is None:
             raise CompensationInputError(
@@ -294,7 +317,7 @@ def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
                 f"NOMINAL.json (this model does not record the one it was identified from)"
             )
 
-        def run(sl):
+        def run_targets(X, sl):
             return compensate_targets(
                 model,
                 nominal,
@@ -305,54 +328,56 @@ def _csv(req: CompensationRequest, model: KinematicModel, t0: float, progress):
                 calibrated_range=calibrated,
                 **kw,
             )
-    else:
-        # the correction starts from the nominal controller's solution; without a nominal model,
-        # from the identified model's own inverse kinematics (numerical: calibration.ik.numerical_ik)
-        start = nominal if nominal is not None else model
 
-        def run(sl):
-            q0 = q_near[sl].copy()
-            reachable = np.ones(len(q0), dtype=bool)
-            changed = np.zeros(len(q0), dtype=bool)
-            rows = task.has_pose[sl]
-            if np.any(rows):
-                sol = nominal_solution(start, M @ X[sl][rows], q_near[sl][rows], keep_branch=task.has_q[sl][rows])
-                q0[rows], reachable[rows] = sol.q, sol.reachable
-                if sol.branch_changed is not None:
-                    changed[rows] = sol.branch_changed
-            return compensate_joints(
-                model, X[sl], q0, reachable=reachable, branch_changed=changed, calibrated_range=calibrated, **kw
-            )
+        return run_targets
+    # the correction starts from the nominal controller's solution; without a nominal model,
+    # from the identified model's own inverse kinematics (numerical: calibration.ik.numerical_ik)
+    start = nominal if nominal is not None else model
 
-    comp = _chunked(N, run, t0, progress)
+    def run_joints(X, sl):
+        q0 = q_near[sl].copy()
+        reachable = np.ones(len(q0), dtype=bool)
+        changed = np.zeros(len(q0), dtype=bool)
+        rows = task.has_pose[sl]
+        if np.any(rows):
+            sol = nominal_solution(start, M @ X[sl][rows], q_near[sl][rows], keep_branch=task.has_q[sl][rows])
+            q0[rows], reachable[rows] = sol.q, sol.reachable
+            if sol.branch_changed is not None:
+                changed[rows] = sol.branch_changed
+        return compensate_joints(
+            model, X[sl], q0, reachable=reachable, branch_changed=changed, calibrated_range=calibrated, **kw
+        )
+
+    return run_joints
+
+
+def _compensate_with_map(model: KinematicModel, run, X: np.ndarray, N: int, t0: float, progress) -> Compensation:
+    """``run`` over all ``N`` rows aiming at ``X``; with a residual correction in the model, aimed
+    again until the correction at each command is the one aimed with."""
+    comp = _chunked(N, partial(run, X), t0, progress)
     rmap = residual_map_of(model)
-    if rmap is not None:
-        # the robot is where the parametric model puts it plus the correction at the command: aim
-        # the parametric model at the goal minus that correction (run() reads X when called), again
-        # until the correction at the new command is the one aimed with. A smooth map or the
-        # transmission settles in two passes to well below a micrometre; boosted trees are
-        # piecewise constant, and a command on a leaf's boundary can jump between two leaves:
-        # there the point is flagged no_convergence (the reached position misses the goal by the
-        # jump).
-        goal = X.copy()
+    if rmap is None:
+        return comp
+    # the robot is where the parametric model puts it plus the correction at the command: aim
+    # the parametric model at the goal minus that correction, again until the correction at the
+    # new command is the one aimed with. A smooth map or the transmission settles in two passes to
+    # well below a micrometre; boosted trees are piecewise constant, and a command on a leaf's
+    # boundary can jump between two leaves: there the point is flagged no_convergence (the reached
+    # position misses the goal by the jump).
+    goal = X.copy()
+    corr, inside = rmap.evaluate(comp.q)
+    for _ in range(MAX_CORRECTION_PASSES):
+        aimed = corr
+        X = goal.copy()
+        X[:, :3, 3] -= aimed
+        comp = _chunked(N, partial(run, X), t0, progress)
         corr, inside = rmap.evaluate(comp.q)
-        for _ in range(MAX_CORRECTION_PASSES):
-            aimed = corr
-            X = goal.copy()
-            X[:, :3, 3] -= aimed
-            comp = _chunked(N, run, t0, progress)
-            corr, inside = rmap.evaluate(comp.q)
-            unsettled = np.linalg.norm(corr - aimed, axis=1) > CORRECTION_SETTLED_M
-            if not unsettled.any():
-                break
-        flags = comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"])
-        flags |= np.where(unsettled, FLAG_BIT["no_convergence"], 0)
-        comp = dataclasses.replace(comp, flags=flags, converged=comp.converged & ~unsettled)
-    names = {int(b): ";".join(flag_names(b)) for b in np.unique(comp.flags)}
-    flags = [names[int(b)] for b in comp.flags]
-    text = format_task(task, model, req.mode, comp.q, comp.T_command, comp.converged, comp.residual_m, flags)
-    prefixes = [f'"row":{i + 1},"line":{line},' for i, line in enumerate(task.table.lines)]
-    return text, comp, prefixes, [], M, fit_rms
+        unsettled = np.linalg.norm(corr - aimed, axis=1) > CORRECTION_SETTLED_M
+        if not unsettled.any():
+            break
+    flags = comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"])
+    flags |= np.where(unsettled, FLAG_BIT["no_convergence"], 0)
+    return dataclasses.replace(comp, flags=flags, converged=comp.converged & ~unsettled)
 
 
 def _g(x: float) -> str:
@@ -389,7 +414,7 @@ def _f(x, digits=9):
 
 
 def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress):
-    nominal, taught, calibrated, kw, qnear = req.nominal, req.taught, req.calibrated, req.settings, req.qnear
+    nominal = req.nominal
     script = urscript.parse(req.task, n_joints=model.n_joints)
     if not script.targets:
         _no_targets(req, model, script)
@@ -398,11 +423,35 @@ def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress
             f"{req.model_label}: a URScript program needs the nominal model its controller uses: give --nominal "
             f"NOMINAL.json (this model does not record the one it was identified from)"
         )
-    M, fit_rms = nominal_world_frame(model, nominal, calibrated)
+    M, fit_rms = nominal_world_frame(model, nominal, req.calibrated)
     B = pose_to_matrix(nominal.base)
-    n = model.n_joints
-    # program order: pose targets without qnear take the branch nearest the previous target (what
-    # the controller's get_inverse_kin does from the robot's current joints)
+    pose_t, pose_seed, joint_t = _script_targets(script, nominal, B, req.qnear)
+    replacements: dict = {}
+    literals: dict = {}
+    heads: list[tuple[int, str]] = []  # (line, the point's leading report fields)
+    comps = []
+    if pose_t:
+        comps.append(_script_pose_targets(req, model, M, B, pose_t, pose_seed, replacements, literals, heads))
+    if joint_t:
+        comps.append(_script_joint_targets(req, model, M, joint_t, replacements, literals, heads))
+    comp = concatenate(comps) if len(comps) > 1 else comps[0]
+    # report the targets in program order
+    perm = np.argsort([line for line, _ in heads], kind="stable")
+    comp = take(comp, perm)
+    prefixes = [heads[k][1] for k in perm]
+    skipped = [
+        {"line": u.line, "text": u.text, "reason": u.reason}
+        for u in script.uninterpreted
+        if not (u.tcp is not None and tcp_is_tool(u.tcp, model))
+    ]
+    return script.rewrite(replacements, literals), comp, prefixes, skipped, M, fit_rms
+
+
+def _script_targets(script, nominal: KinematicModel, B: np.ndarray, qnear):
+    """The program's pose targets with the nominal controller's joints for each (the seed of
+    their compensation), and its joint targets. In program order: pose targets without qnear take
+    the branch nearest the previous target (what the controller's get_inverse_kin does from the
+    robot's current joints)."""
     prev = qnear
     pose_t, pose_seed, joint_t = [], [], []
     for t in script.targets:
@@ -416,60 +465,56 @@ def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress
         else:
             prev = t.joints.values
             joint_t.append(t)
-    replacements, literals, prefixes, order = {}, {}, [], []
-    comps = []
-    if pose_t:
-        P = np.array([t.pose.values for t in pose_t])
-        X_nom = B @ pose_to_matrix_ur(P)
-        seeds = np.array(pose_seed)
-        X_d = np.linalg.inv(M) @ X_nom if taught is None else fk(taught, seeds)
-        cp = compensate_targets(
-            model, nominal, X_d, seeds, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
-        )
-        P_new = matrix_to_pose_ur(np.linalg.inv(B) @ cp.T_command, like=P)
-        for i, t in enumerate(pose_t):
-            replacements[id(t.pose)], literals[id(t.pose)] = P_new[i], t.pose
-            if t.joints is not None:
-                replacements[id(t.joints)], literals[id(t.joints)] = cp.q[i], t.joints
-            head = {
-                "line": t.line,
-                "move": t.move,
-                "kind": "pose",
-                "variable": t.pose.name,
-                "qnear_variable": t.joints.name if t.joints is not None else None,
-                "original": [float(v) for v in P[i]],
-                "compensated": [_f(v, 12) for v in P_new[i]],
-            }
-            order.append(t.line)
-            prefixes.append(json.dumps(head)[1:-1] + ",")
-        comps.append(cp)
-    if joint_t:
-        Q = np.array([t.joints.values for t in joint_t]).reshape(-1, n)
-        cj = compensate_joints(model, source_poses(Q, taught, nominal, M), Q, calibrated_range=calibrated, **kw)
-        for i, t in enumerate(joint_t):
-            replacements[id(t.joints)], literals[id(t.joints)] = cj.q[i], t.joints
-            head = {
-                "line": t.line,
-                "move": t.move,
-                "kind": "joints",
-                "variable": t.joints.name,
-                "original": [float(v) for v in Q[i]],
-                "compensated": [_f(v, 12) for v in cj.q[i]],
-            }
-            order.append(t.line)
-            prefixes.append(json.dumps(head)[1:-1] + ",")
-        comps.append(cj)
-    comp = concatenate(comps) if len(comps) > 1 else comps[0]
-    # report the targets in program order
-    perm = np.argsort(order, kind="stable")
-    comp = take(comp, perm)
-    prefixes = [prefixes[k] for k in perm]
-    skipped = [
-        {"line": u.line, "text": u.text, "reason": u.reason}
-        for u in script.uninterpreted
-        if not (u.tcp is not None and tcp_is_tool(u.tcp, model))
-    ]
-    return script.rewrite(replacements, literals), comp, prefixes, skipped, M, fit_rms
+    return pose_t, pose_seed, joint_t
+
+
+def _script_pose_targets(req, model, M, B, pose_t, pose_seed, replacements, literals, heads) -> Compensation:
+    """Compensate the pose targets for the nominal controller (base frame ``B``): each literal's
+    replacement (and its qnear's) into ``replacements``/``literals``, its report head into ``heads``."""
+    nominal, taught = req.nominal, req.taught
+    P = np.array([t.pose.values for t in pose_t])
+    X_nom = B @ pose_to_matrix_ur(P)
+    seeds = np.array(pose_seed)
+    X_d = np.linalg.inv(M) @ X_nom if taught is None else fk(taught, seeds)
+    cp = compensate_targets(
+        model, nominal, X_d, seeds, T_nominal_world=M, keep_branch=True, calibrated_range=req.calibrated, **req.settings
+    )
+    P_new = matrix_to_pose_ur(np.linalg.inv(B) @ cp.T_command, like=P)
+    for i, t in enumerate(pose_t):
+        replacements[id(t.pose)], literals[id(t.pose)] = P_new[i], t.pose
+        if t.joints is not None:
+            replacements[id(t.joints)], literals[id(t.joints)] = cp.q[i], t.joints
+        head = {
+            "line": t.line,
+            "move": t.move,
+            "kind": "pose",
+            "variable": t.pose.name,
+            "qnear_variable": t.joints.name if t.joints is not None else None,
+            "original": [float(v) for v in P[i]],
+            "compensated": [_f(v, 12) for v in P_new[i]],
+        }
+        heads.append((t.line, json.dumps(head)[1:-1] + ","))
+    return cp
+
+
+def _script_joint_targets(req, model, M, joint_t, replacements, literals, heads) -> Compensation:
+    """Compensate the joint targets as joint commands, as :func:`_script_pose_targets` does."""
+    Q = np.array([t.joints.values for t in joint_t]).reshape(-1, model.n_joints)
+    cj = compensate_joints(
+        model, source_poses(Q, req.taught, req.nominal, M), Q, calibrated_range=req.calibrated, **req.settings
+    )
+    for i, t in enumerate(joint_t):
+        replacements[id(t.joints)], literals[id(t.joints)] = cj.q[i], t.joints
+        head = {
+            "line": t.line,
+            "move": t.move,
+            "kind": "joints",
+            "variable": t.joints.name,
+            "original": [float(v) for v in Q[i]],
+            "compensated": [_f(v, 12) for v in cj.q[i]],
+        }
+        heads.append((t.line, json.dumps(head)[1:-1] + ","))
+    return cj
 
 
 # How close a set_tcp must be to the model's tool to count as it: the digits a program gives a TCP

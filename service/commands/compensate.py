@@ -35,6 +35,13 @@ import numpy as np
 
 def add_parser(s) -> None:
     s.add_argument("--model", required=True, help="identified model (recal.model/1)")
+    _add_task_options(s)
+    _add_output_and_model_options(s)
+    _add_solver_options(s)
+
+
+def _add_task_options(s) -> None:
+    """The task file or program, its format, and the frames and modules a program refers to."""
     s.add_argument(
         "--task",
         required=True,
@@ -81,6 +88,10 @@ def add_parser(s) -> None:
         help="RAPID: a wobjdata the program uses but no module declares (its user and object frames in one: "
         "mm and a quaternion). Repeatable; RAPID's --tool-frame is NAME=X,Y,Z,Q1,Q2,Q3,Q4 likewise",
     )
+
+
+def _add_output_and_model_options(s) -> None:
+    """What is written, and the models and conditions besides the identified one."""
     s.add_argument("--out", required=True, help="compensated task file to write")
     s.add_argument(
         "--mode",
@@ -110,6 +121,10 @@ def add_parser(s) -> None:
         help="the identification measurements: their joint "
         "ranges are the calibrated region (default: the ranges the identified model records)",
     )
+
+
+def _add_solver_options(s) -> None:
+    """How the inverse kinematics chooses and judges each row's commands."""
     s.add_argument(
         "--qnear",
         help="comma-separated joints (model units) that choose the branch of rows without "

@@ -337,11 +337,39 @@ def _write_measurements(path: Path, model, data) -> None:
 
 
 def _offline(args) -> int:
-    from service.cli import main as recal
-    from service.files import save_model
-
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
+    _simulate_files(args, out)
+    print(f"recal demo: simulated {args.robot} measured at {args.poses} configurations; files in {out}/")
+    status = _identify(out, "identified.json", "report.json")
+    # a sagging arm: the rigid model cannot explain the data and `recal identify` says so with
+    # exit 3 (model and report written); the compliant identification below is the answer
+    if status != 0 and not (args.sag and status == 3):
+        return status
+    report = json.loads((out / "report.json").read_text())
+    v = report["validation"]
+    print(
+        f"accuracy on 200 fresh configurations: RMS {v['rms']:.4f} mm, max {v['max']:.4f} mm "
+        f"(nominal model after registration: RMS {v['before']['rms']:.3f} mm, max {v['before']['max']:.3f} mm)"
+    )
+    print(f"identified model: {out / 'identified.json'}   full report: {out / 'report.json'}")
+    if args.sag:
+        status = _identify(out, "identified-compliant.json", "report-compliant.json", "--compliance", "auto")
+        if status != 0:
+            return status
+        c = json.loads((out / "report-compliant.json").read_text())
+        print(
+            f"rigid against compliant on 200 fresh configurations: RMS {v['rms']:.4f} mm against "
+            f"{c['validation']['rms']:.4f} mm; inside the predicted 95 % bound {100 * v['inside_predicted_95']:.1f} % "
+            f"against {100 * c['validation']['inside_predicted_95']:.1f} % (noise floor {np.sqrt(3) * 0.02:.4f} mm)"
+        )
+    return 0
+
+
+def _simulate_files(args, out: Path) -> None:
+    """The nominal model, the simulated measurements and 200 hold-out ones written in ``out``."""
+    from service.files import save_model
+
     nominal, truth, rng = truth_and_nominal(args)
     save_model(out / "nominal.json", nominal)
     payload = None
@@ -371,8 +399,13 @@ def _offline(args) -> int:
     )
     _write_measurements(out / "measurements.csv", nominal, data)
     _write_measurements(out / "holdout.csv", nominal, holdout)
-    print(f"recal demo: simulated {args.robot} measured at {args.poses} configurations; files in {out}/")
-    status = recal(
+
+
+def _identify(out: Path, model_name: str, report_name: str, *extra: str) -> int:
+    """``recal identify`` on the demo's files in ``out``, validated on the hold-out; its status."""
+    from service.cli import main as recal
+
+    return recal(
         [
             "identify",
             "--model",
@@ -382,46 +415,9 @@ def _offline(args) -> int:
             "--validate",
             str(out / "holdout.csv"),
             "--out",
-            str(out / "identified.json"),
+            str(out / model_name),
             "--report",
-            str(out / "report.json"),
+            str(out / report_name),
+            *extra,
         ]
     )
-    # a sagging arm: the rigid model cannot explain the data and `recal identify` says so with
-    # exit 3 (model and report written); the compliant identification below is the answer
-    if status != 0 and not (args.sag and status == 3):
-        return status
-    report = json.loads((out / "report.json").read_text())
-    v = report["validation"]
-    print(
-        f"accuracy on 200 fresh configurations: RMS {v['rms']:.4f} mm, max {v['max']:.4f} mm "
-        f"(nominal model after registration: RMS {v['before']['rms']:.3f} mm, max {v['before']['max']:.3f} mm)"
-    )
-    print(f"identified model: {out / 'identified.json'}   full report: {out / 'report.json'}")
-    if args.sag:
-        status = recal(
-            [
-                "identify",
-                "--model",
-                str(out / "nominal.json"),
-                "--data",
-                str(out / "measurements.csv"),
-                "--validate",
-                str(out / "holdout.csv"),
-                "--out",
-                str(out / "identified-compliant.json"),
-                "--report",
-                str(out / "report-compliant.json"),
-                "--compliance",
-                "auto",
-            ]
-        )
-        if status != 0:
-            return status
-        c = json.loads((out / "report-compliant.json").read_text())
-        print(
-            f"rigid against compliant on 200 fresh configurations: RMS {v['rms']:.4f} mm against "
-            f"{c['validation']['rms']:.4f} mm; inside the predicted 95 % bound {100 * v['inside_predicted_95']:.1f} % "
-            f"against {100 * c['validation']['inside_predicted_95']:.1f} % (noise floor {np.sqrt(3) * 0.02:.4f} mm)"
-        )
-    return 0

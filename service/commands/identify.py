@@ -67,37 +67,15 @@ def add_parser(s) -> None:
 
 
 def run(args) -> int:
-
-    from calibration.identification import INSTRUMENT_SIGMA_M
     from calibration.identify import identify
-    from calibration.report import consistency_text, identification_block, identification_report, summary_line
+    from calibration.report import identification_block
     from calibration.uncertainty import validate
     from service.cli import Fail, progress
-    from service.files import check_output, load_model, read_measurements, save_model, write_atomic
+    from service.files import save_model
 
     t0 = time.perf_counter()
-    for path in (args.out, args.report):  # before any work: a run never ends unable to write
-        if path:
-            check_output(path)
-    model = load_model(args.model)
-    progress(f"reading {args.data} ...")
-    data = read_measurements(args.data, model)
-    holdout = read_measurements(args.validate, model) if args.validate else None
-    progress(f"read {len(data)} rows in {time.perf_counter() - t0:.1f} s; identifying ...")
-    L = model.units.length_m
-    if args.sigma is not None and not args.sigma > 0:
-        raise Fail(f"--sigma: expected a positive number, got {args.sigma}")
-    if args.sigma_angle is not None and not args.sigma_angle > 0:
-        raise Fail(f"--sigma-angle: expected a positive number, got {args.sigma_angle}")
-    kw = dict(
-        sigma_m=args.sigma * L if args.sigma is not None else INSTRUMENT_SIGMA_M,
-        sigma_rad=args.sigma_angle * model.units.angle_rad if args.sigma_angle is not None else None,
-        loss=args.loss,
-        f_scale=args.f_scale,
-        register=args.register,
-        gains=args.gains,
-        fixed=tuple(args.fix or ()),
-    )
+    model, data, holdout = _inputs(args, t0)
+    kw = _identify_options(args, model)
     try:
         start, compliance = _with_compliance(args, model, data, kw)
         result = identify(start, data, **kw)
@@ -113,6 +91,59 @@ def run(args) -> int:
         )
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.data}: --residual-map: {exc}") from None
+    report = _write_report(args, result, model, data, validation, compliance, rmap_line, t0)
+    # the block keeps what `recal compensate` needs later: the nominal model the controller
+    # knows, and the joint ranges the data covered (its "calibrated region")
+    block = identification_block(result, model.units, nominal=model, q=data.q, report=report)
+    save_model(args.out, result.model, {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})})
+    _print_summary(result, model, data, validation, compliance, rmap_line)
+    return _exit_status(result, model)
+
+
+def _inputs(args, t0: float):
+    """The nominal model, the measurements and the hold-out ones (or None), once the outputs are
+    known to be writable (a run never ends unable to write)."""
+    from service.cli import progress
+    from service.files import check_output, load_model, read_measurements
+
+    for path in (args.out, args.report):  # before any work: a run never ends unable to write
+        if path:
+            check_output(path)
+    model = load_model(args.model)
+    progress(f"reading {args.data} ...")
+    data = read_measurements(args.data, model)
+    holdout = read_measurements(args.validate, model) if args.validate else None
+    progress(f"read {len(data)} rows in {time.perf_counter() - t0:.1f} s; identifying ...")
+    return model, data, holdout
+
+
+def _identify_options(args, model) -> dict:
+    """:func:`calibration.identify.identify`'s keywords from the flags (SI units)."""
+    from calibration.identification import INSTRUMENT_SIGMA_M
+    from service.cli import Fail
+
+    L = model.units.length_m
+    if args.sigma is not None and not args.sigma > 0:
+        raise Fail(f"--sigma: expected a positive number, got {args.sigma}")
+    if args.sigma_angle is not None and not args.sigma_angle > 0:
+        raise Fail(f"--sigma-angle: expected a positive number, got {args.sigma_angle}")
+    return dict(
+        sigma_m=args.sigma * L if args.sigma is not None else INSTRUMENT_SIGMA_M,
+        sigma_rad=args.sigma_angle * model.units.angle_rad if args.sigma_angle is not None else None,
+        loss=args.loss,
+        f_scale=args.f_scale,
+        register=args.register,
+        gains=args.gains,
+        fixed=tuple(args.fix or ()),
+    )
+
+
+def _write_report(args, result, model, data, validation, compliance, rmap_line, t0: float) -> dict:
+    """The identification report (with the compliance and residual-map entries), written to
+    --report when given."""
+    from calibration.report import identification_report
+    from service.files import write_atomic
+
     report = identification_report(result, model.units, data_rows=data.row, validation=validation)
     if compliance is not None:
         report["compliance"] = compliance
@@ -121,13 +152,16 @@ def run(args) -> int:
     report["elapsed_s"] = round(time.perf_counter() - t0, 3)
     if args.report:
         write_atomic(args.report, json.dumps(report, indent=2) + "\n")
-    # the block keeps what `recal compensate` needs later: the nominal model the controller
-    # knows, and the joint ranges the data covered (its "calibrated region")
-    block = identification_block(result, model.units, nominal=model, q=data.q, report=report)
-    save_model(args.out, result.model, {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})})
+    return report
+
+
+def _print_summary(result, model, data, validation, compliance, rmap_line) -> None:
+    """The summary line, the compliance and residual-map verdicts on stdout; outliers and the
+    identification's warnings on stderr."""
+    from calibration.report import summary_line
+
     u = model.units.length
-    line = summary_line(result, model.units, len(data), validation)
-    print(line)
+    print(summary_line(result, model.units, len(data), validation))
     if compliance is not None and "cross_validation" in compliance:
         cv = compliance["cross_validation"]
         verdict = (
@@ -146,6 +180,12 @@ def run(args) -> int:
         print(f"warning: {len(result.outliers)} rows look like outliers (rows {rows}); see the report", file=sys.stderr)
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
+
+
+def _exit_status(result, model) -> int:
+    """1 not converged; 3 the residuals inconsistent with the stated uncertainty; else 0."""
+    from calibration.report import consistency_text
+
     if not result.success:
         return 1
     if result.consistency is not None and not result.consistency["consistent"]:

@@ -122,14 +122,11 @@ def check_cell(
         "calibration_id": None,
         "tasks": None,
     }
-
-    def done(status: int, result: str, line: str) -> dict:
-        return {**out, "status": status, "result": result, "line": line}
-
     v = start_session(api, cell["id"], {"kind": "verify", "count": verify_count, "device": device}, timeout_s)
     v = api.wait_session(v["id"], timeout_s, poll_s=poll_s, patient=True)
     if v["state"] != "completed":
-        return done(
+        return _done(
+            out,
             EXIT_FAILED,
             f"verify {v['state']}",
             f"{name}: verify session {v['id']} {v['state']}: {v.get('reason') or ''}".strip(),
@@ -137,60 +134,78 @@ def check_cell(
     verified = v["plan_info"]["verify"]
     rms = out["verify_rms"] = verified["rms"]
     if limit is None or rms <= limit:
-        lim = "no threshold set" if limit is None else f"threshold {limit:g} {unit}"
-        outside = verified.get("outside_calibrated_region") or 0
-        where = (
-            f"; {outside} of {verified['n']} configurations outside the calibrated joint ranges (extrapolated)"
-            if outside
-            else ""
-        )
-        corr = verified.get("residual_correction") or {}
-        if corr.get("outside_mapped_region"):  # the verify RMS there is the geometric model's alone
-            where += (
-                f"; {corr['outside_mapped_region']} of {verified['n']} outside the region its residual correction "
-                f"({corr.get('family', 'map')}) was fitted in (the geometric model alone there)"
-            )
-        return done(EXIT_OK, "accurate", f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}){where}; nothing to do")
+        return _done(out, EXIT_OK, "accurate", _accurate_line(name, rms, limit, unit, verified))
+    drifted = f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g})"
     p = start_session(api, cell["id"], {"kind": "pose", "count": count, "device": device}, timeout_s)
     p = api.wait_session(p["id"], timeout_s, poll_s=poll_s, patient=True)
     if p["state"] != "completed" or p.get("calibration_id") is None:
-        return done(
+        return _done(
+            out,
             EXIT_FAILED,
             f"drifted, recalibration {p['state']}",
-            (
-                f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}); recalibration session "
-                f"{p['id']} {p['state']}: {p.get('reason') or ''}"
-            ).strip(),
+            f"{drifted}; recalibration session {p['id']} {p['state']}: {p.get('reason') or ''}".strip(),
         )
     cal = api.call_patiently("GET", f"/calibrations/{p['calibration_id']}", deadline=time.monotonic() + timeout_s)
     out["calibration_id"] = cal["id"]
     if cal.get("status") == "candidate":  # the cell had a calibration: the new one is used once verified
         refused = _verify_candidate(api, cell, cal, verify_count, device, timeout_s, poll_s)
         if refused is not None:
-            return done(
+            return _done(
+                out,
                 EXIT_FAILED,
                 "drifted, recalibration not verified",
-                f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}) -> calibration {cal['id']} {refused}",
+                f"{drifted} -> calibration {cal['id']} {refused}",
             )
+    return _compensate_tasks(api, cell, cal, out, drifted)
+
+
+def _done(out: dict, status: int, result: str, line: str) -> dict:
+    return {**out, "status": status, "result": result, "line": line}
+
+
+def _accurate_line(name: str, rms: float, limit: float | None, unit: str, verified: dict) -> str:
+    """The line of a cell found accurate, with how many verify configurations lay outside the
+    calibrated joint ranges, or outside the region of the model's residual correction."""
+    lim = "no threshold set" if limit is None else f"threshold {limit:g} {unit}"
+    outside = verified.get("outside_calibrated_region") or 0
+    where = (
+        f"; {outside} of {verified['n']} configurations outside the calibrated joint ranges (extrapolated)"
+        if outside
+        else ""
+    )
+    corr = verified.get("residual_correction") or {}
+    if corr.get("outside_mapped_region"):  # the verify RMS there is the geometric model's alone
+        where += (
+            f"; {corr['outside_mapped_region']} of {verified['n']} outside the region its residual correction "
+            f"({corr.get('family', 'map')}) was fitted in (the geometric model alone there)"
+        )
+    return f"{name}: accurate, verify RMS {rms:.4g} {unit} ({lim}){where}; nothing to do"
+
+
+def _compensate_tasks(api: Api, cell: dict, cal: dict, out: dict, drifted: str) -> dict:
+    """After a recalibration: every task file of the cell compensated with calibration ``cal``,
+    and the night's outcome (``drifted``: the line's start)."""
+    unit = out["unit"]
     # Not repeated: each call stores a compensation of every task file (a failure needs a person).
     tasks = api.call("POST", f"/cells/{cell['id']}/tasks/compensate?calibration_id={cal['id']}")
     failed = [t for t in tasks["tasks"] if "error" in t]
     out["tasks"] = len(tasks["tasks"]) - len(failed)
     msg = (
-        f"{name}: drifted (verify RMS {rms:.4g} {unit} > {limit:g}) -> recalibrated: calibration {cal['id']}, "
+        f"{drifted} -> recalibrated: calibration {cal['id']}, "
         f"residual RMS {cal['rms']:.4g} {unit}; {len(tasks['tasks']) - len(failed)} task files compensated"
     )
     if failed:
-        return done(
+        return _done(
+            out,
             EXIT_FAILED,
             f"recalibrated, {len(failed)} task files failed",
             msg + f", {len(failed)} failed ({failed[0]['name']}: {failed[0]['error']})",
         )
     short = shortfalls(tasks["tasks"])
     if short:
-        r = done(EXIT_SHORTFALL, f"recalibrated, {short[0]} targets not compensated", msg + f"; {short[1]}")
+        r = _done(out, EXIT_SHORTFALL, f"recalibrated, {short[0]} targets not compensated", msg + f"; {short[1]}")
         return {**r, "shortfall": short[0]}
-    return done(EXIT_RECALIBRATED, f"recalibrated (RMS {cal['rms']:.4g} {unit})", msg)
+    return _done(out, EXIT_RECALIBRATED, f"recalibrated (RMS {cal['rms']:.4g} {unit})", msg)
 
 
 def _verify_candidate(

@@ -15,6 +15,13 @@ import time
 
 
 def add_parser(s) -> None:
+    _add_choice_options(s)
+    _add_volume_and_sight_options(s)
+    _add_accuracy_options(s)
+
+
+def _add_choice_options(s) -> None:
+    """What to plan: the model, how many poses, among which candidates, by which criterion."""
     s.add_argument("--model", required=True, help="nominal model file (recal.model/1) or a library robot name")
     s.add_argument("--count", type=int, help="number of poses to choose (with --accuracy: the most allowed)")
     s.add_argument("--out", required=True, help="CSV of the chosen configurations to write (q1..qN)")
@@ -40,6 +47,10 @@ def add_parser(s) -> None:
     s.add_argument(
         "--candidates-count", type=int, default=2000, help="candidates to draw without --candidates (default 2000)"
     )
+
+
+def _add_volume_and_sight_options(s) -> None:
+    """Where the instrument can measure: its volume, and the line of sight from it to the target."""
     s.add_argument(
         "--volume-box",
         type=float,
@@ -84,6 +95,10 @@ def add_parser(s) -> None:
         type=float,
         help="beam length before the target not tested for clearance (model length unit; default 100 mm)",
     )
+
+
+def _add_accuracy_options(s) -> None:
+    """Where the accuracy is predicted, what accuracy is wanted, and what else the plan is for."""
     s.add_argument(
         "--evaluation",
         help="CSV with q1..qN where the predicted accuracy is evaluated (default: random configurations)",
@@ -121,28 +136,56 @@ def _positive(name: str, v, allow_zero: bool = False) -> None:
 
 
 def run(args) -> int:
-    import sys
-
     import numpy as np
 
     from calibration import planning
-    from calibration.identification import INSTRUMENT_SIGMA_M
-    from service.cli import Fail, progress
-    from service.files import format_csv, load_model, read_joints, read_table, write_atomic
 
     t0 = time.perf_counter()
+    model, targets = _model_and_targets(args)
+    _check_numbers(args)
+    volume, sight = _volume_and_sight(args, model)
+    rng = np.random.default_rng(args.seed)
+    cand, rows = _candidates(args, model, targets, volume, sight, rng)
+    options = _plan_options(args, model, targets, volume, rng)
+    result, curve = _choose(args, model, cand, options)
+
+    # what the plan leaves undetermined, and how many more poses, or which kind, would determine it (issue 27)
+    short = planning.shortfall(model, cand, len(result.indices), options) if _undetermined(result) else None
+    report = _report(result, curve, model, len(cand), args, time.perf_counter() - t0)
+    report["shortfall"] = None if short is None else short.as_dict()
+    if args.report:
+        from service.files import write_atomic
+
+        write_atomic(args.report, json.dumps(report, indent=2) + "\n")
+    _refuse_unreached(args, model, result, curve)
+    n_poses = _write_poses(args, model, result, rows, options.sigma_m)
+    _print_summary(args, model, result, curve, len(cand), n_poses, short)
+    return 0
+
+
+def _model_and_targets(args):
+    """The nominal model (with a default compliance section when --compliance asks for one) and
+    the targets measured, each known to the model (None: the tool origin)."""
+    from service.cli import Fail
+    from service.files import load_model
+
     model = load_model(args.model)
     if args.compliance and model.compliance is None:
         from calibration.compliance import default_section, with_section
 
         model = with_section(model, default_section(model))
-    u = model.units
-    L, A = u.length_m, u.angle_rad
     targets = tuple(args.target) if args.target else (None,)
     for t in targets:
         if t is not None and t not in model.targets:
             known = ", ".join(sorted(model.targets)) or "none"
             raise Fail(f"{args.model}: unknown target {t!r} (the model has: {known})")
+    return model, targets
+
+
+def _check_numbers(args) -> None:
+    """Refuse counts, uncertainties and angles that cannot be meant, before any work."""
+    from service.cli import Fail
+
     if args.count is None and args.accuracy is None:
         raise Fail("give --count K (or --accuracy A to find how many poses are needed)")
     if args.count is not None and args.count < 1:
@@ -155,6 +198,17 @@ def run(args) -> int:
         raise Fail("--candidates-count and --evaluation-count must be positive")
     if args.volume_box is not None and args.volume_sphere is not None:
         raise Fail("give --volume-box or --volume-sphere, not both")
+
+
+def _volume_and_sight(args, model):
+    """The instrument's measuring volume and line of sight (SI units, world frame), or None each
+    when not given."""
+    import numpy as np
+
+    from calibration import planning
+    from service.cli import Fail
+
+    L, A = model.units.length_m, model.units.angle_rad
     volume = None
     try:
         if args.volume_box is not None:
@@ -176,8 +230,18 @@ def run(args) -> int:
             )
     except ValueError as exc:
         raise Fail(f"volume / line of sight: {exc}") from None
+    return volume, sight
 
-    rng = np.random.default_rng(args.seed)
+
+def _candidates(args, model, targets, volume, sight, rng):
+    """The candidate configurations (SI joint units) and their 1-based rows in --candidates (or
+    in the drawn set): the file's rows that the volume and line of sight allow, or drawn ones."""
+    import numpy as np
+
+    from calibration import planning
+    from service.cli import Fail, progress
+    from service.files import read_joints, read_table
+
     if args.candidates:
         table = read_table(args.candidates)
         cand = read_joints(args.candidates, model, table)
@@ -190,21 +254,28 @@ def run(args) -> int:
                     "of the instrument"
                 )
             cand, rows = cand[ok], rows[ok]
-    else:
-        progress(f"drawing {args.candidates_count} candidate configurations ...")
-        try:
-            cand = planning.generate_candidates(
-                model, args.candidates_count, rng, targets=targets, volume=volume, sight=sight
-            )
-        except ValueError as exc:
-            raise Fail(str(exc)) from None
-        rows = np.arange(1, len(cand) + 1)
+        return cand, rows
+    progress(f"drawing {args.candidates_count} candidate configurations ...")
+    try:
+        cand = planning.generate_candidates(
+            model, args.candidates_count, rng, targets=targets, volume=volume, sight=sight
+        )
+    except ValueError as exc:
+        raise Fail(str(exc)) from None
+    return cand, np.arange(1, len(cand) + 1)
+
+
+def _plan_options(args, model, targets, volume, rng):
+    from calibration import planning
+    from calibration.identification import INSTRUMENT_SIGMA_M
+    from service.files import read_joints
+
     evaluation = read_joints(args.evaluation, model) if args.evaluation else None
-    sigma_m = args.sigma * L if args.sigma is not None else INSTRUMENT_SIGMA_M
-    options = planning.PlanOptions(
+    L = model.units.length_m
+    return planning.PlanOptions(
         targets=targets,
         criterion=args.criterion,
-        sigma_m=sigma_m,
+        sigma_m=args.sigma * L if args.sigma is not None else INSTRUMENT_SIGMA_M,
         evaluation=evaluation,
         n_evaluation=args.evaluation_count,
         volume=volume,
@@ -212,33 +283,55 @@ def run(args) -> int:
         gains=args.gains,
         fixed=tuple(args.fix or ()),
     )
+
+
+def _choose(args, model, cand, options):
+    """The plan of --count poses, or with --accuracy the fewest predicted to reach it: (plan,
+    accuracy curve or None)."""
+    from calibration import planning
+    from service.cli import Fail, progress
+
     progress(f"planning among {len(cand)} candidates ...")
-    curve = None
     try:
         if args.accuracy is not None:
             acc = planning.poses_for_accuracy(
-                model, cand, args.accuracy * L, statistic=args.statistic, k_max=args.count, options=options
+                model,
+                cand,
+                args.accuracy * model.units.length_m,
+                statistic=args.statistic,
+                k_max=args.count,
+                options=options,
             )
-            result, curve = acc.plan, acc
-        else:
-            result = planning.plan(model, cand, args.count, options)
+            return acc.plan, acc
+        return planning.plan(model, cand, args.count, options), None
     except (ValueError, KeyError) as exc:
         raise Fail(f"{args.candidates or 'candidates'}: {exc.args[0] if isinstance(exc, KeyError) else exc}") from None
 
-    # what the plan leaves undetermined, and how many more poses, or which kind, would determine it (issue 27)
-    short = planning.shortfall(model, cand, len(result.indices), options) if _undetermined(result) else None
-    report = _report(result, curve, model, len(cand), args, time.perf_counter() - t0)
-    report["shortfall"] = None if short is None else short.as_dict()
-    if args.report:
-        write_atomic(args.report, json.dumps(report, indent=2) + "\n")
-    unit = u.length
-    if curve is not None and not curve.success:
-        raise Fail(
-            f"even {len(result.indices)} poses are predicted to give a {args.statistic} error of "
-            f"{(result.predicted_rms_m if args.statistic == 'rms' else result.predicted_p95_m) / L:.4g} {unit}, "
-            f"above the {args.accuracy:g} {unit} wanted: allow more poses (--count), more candidates, "
-            "or use a better instrument"
-        )
+
+def _refuse_unreached(args, model, result, curve) -> None:
+    """With --accuracy: fail when even the most poses allowed are predicted to miss it."""
+    from service.cli import Fail
+
+    if curve is None or curve.success:
+        return
+    L, unit = model.units.length_m, model.units.length
+    raise Fail(
+        f"even {len(result.indices)} poses are predicted to give a {args.statistic} error of "
+        f"{(result.predicted_rms_m if args.statistic == 'rms' else result.predicted_p95_m) / L:.4g} {unit}, "
+        f"above the {args.accuracy:g} {unit} wanted: allow more poses (--count), more candidates, "
+        "or use a better instrument"
+    )
+
+
+def _write_poses(args, model, result, rows, sigma_m: float) -> int:
+    """Write the chosen configurations (model units) to --out in measurement order, each with its
+    candidate row; returns how many."""
+    import numpy as np
+
+    from calibration import planning
+    from service.files import format_csv, write_atomic
+
+    L, A, unit = model.units.length_m, model.units.angle_rad, model.units.length
     order = planning.measurement_order(result.q)
     q_out = result.q[order] / np.array([A if j.revolute else L for j in model.joints])
     header = [f"q{i + 1}" for i in range(model.n_joints)] + ["candidate"]
@@ -248,15 +341,22 @@ def run(args) -> int:
         + format_csv(header, [list(map(float, qr)) + [int(rows[result.indices[k]])] for qr, k in zip(q_out, order)])
     )
     write_atomic(args.out, text)
+    return len(order)
+
+
+def _print_summary(args, model, result, curve, n_candidates: int, n_poses: int, short) -> None:
+    import sys
+
+    L, unit = model.units.length_m, model.units.length
     lead = (
-        f"{len(order)} poses are needed for a predicted {args.statistic} error of at most {args.accuracy:g} {unit}"
+        f"{n_poses} poses are needed for a predicted {args.statistic} error of at most {args.accuracy:g} {unit}"
         if curve is not None
-        else f"planned {len(order)} poses"
+        else f"planned {n_poses} poses"
     )
     # the I criterion's value is the predicted RMS printed next
     crit = result.criterion if result.criterion == "I" else f"{result.criterion} = {result.value:.6g}"
     print(
-        f"{lead} (from {len(cand)} candidates, criterion {crit}): predicted "
+        f"{lead} (from {n_candidates} candidates, criterion {crit}): predicted "
         f"accuracy over {len(result.evaluation_q)} configurations RMS {result.predicted_rms_m / L:.4g} {unit}, "
         f"95th percentile {result.predicted_p95_m / L:.4g} {unit}, max {result.predicted_max_m / L:.4g} {unit}; "
         f"{len(result.params)} parameters identifiable, {len(result.unidentifiable)} not"
@@ -265,7 +365,6 @@ def run(args) -> int:
         print(f"not determined: {short.message}")
     if not result.success:
         print(f"warning: {result.message}", file=sys.stderr)
-    return 0
 
 
 def _undetermined(result) -> bool:

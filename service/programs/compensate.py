@@ -109,37 +109,18 @@ def _f(x, digits=12):
     return None if not np.isfinite(x) else float(f"{x:.{digits}g}")
 
 
-def _pose_texts(t: Target, P_new: np.ndarray) -> list[str]:
-    """The numbers of pose target ``t`` for its new pose ``P_new`` (4, 4, SI, in its work frame),
-    written as its numbers were: position in mm, orientation in its own terms."""
-    new_pos = P_new[:3, 3] * 1e3
-    orig_rot = np.array([n.value for n in t.orientation])
-    if t.rotation == "quat":
-        new_rot, unit = vendors.quat_near(P_new[:3, :3], orig_rot)[0], "quat"
-    elif t.rotation == "kuka_abc":
-        new_rot = np.degrees(vendors.matrix_to_kuka_abc(P_new[:3, :3], np.radians(orig_rot))[0])
-        unit = "deg"
-    else:
-        new_rot = np.degrees(vendors.matrix_to_fanuc_wpr(P_new[:3, :3], np.radians(orig_rot))[0])
-        unit = "deg"
-    return [written(n, v, "mm") for n, v in zip(t.position, new_pos)] + [
-        written(n, v, unit) for n, v in zip(t.orientation, new_rot)
-    ]
-
-
 def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, calibrated, kw: dict):
     """The compensated files (bytes, one per file of ``prog``), the
     :class:`~calibration.compensation.Compensation` of every target in program order, and the
     report's leading fields per target (JSON text ending in a comma)."""
-    brand = prog.brand
     B = pose_to_matrix(nominal.base)
-    groups: dict[bytes, list[int]] = {}
+    groups: dict[bytes, list[int]] = {}  # the targets of each tool
     for i, t in enumerate(prog.targets):
         groups.setdefault(np.round(t.T_tool, 12).tobytes(), []).append(i)
-    parts, order, heads, edits = [], [], [], []
     ref = np.zeros(6)
-    ref[1:] = vendors.REFERENCE[brand]
+    ref[1:] = vendors.REFERENCE[prog.brand]
     q_all, found_all = controller_solutions(prog, nominal, B, ref)
+    out = _Compensated()
     for idx in groups.values():
         T_tool = prog.targets[idx[0]].T_tool
         nom = _with_tool(nominal, T_tool, nominal)
@@ -155,47 +136,79 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
             cp = compensate_targets(
                 ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
             )
-            sol = configuration(brand, nom, cp.q)
-            changed = np.array(
-                [t.config is not None and not t.config_off and not same(brand, t.config, s) for t, s in zip(ts, sol)]
-            )
-            flags = (
-                cp.flags
-                | np.where(changed, FLAG_BIT["branch_change"], 0)
-                | np.where(~found, FLAG_BIT["unreachable"] | FLAG_BIT["branch_change"], 0)
-            )
-            cp = dataclasses.replace(cp, flags=flags, converged=cp.converged & found)
-            P_new = np.linalg.inv(np.array([B @ t.T_work for t in ts])) @ cp.T_command
-            for k, t in enumerate(ts):
-                texts = _pose_texts(t, P_new[k])
-                if found[k]:
-                    edits += list(zip(t.position + t.orientation, texts))
-                heads.append(
-                    _head(
-                        prog,
-                        t,
-                        [n.text for n in t.position + t.orientation],
-                        texts if found[k] else None,
-                        {"written": show(brand, t.config), "solution": show(brand, sol[k])},
-                    )
-                )
-                order.append((t.file, t.line))
-            parts.append(cp)
+            out.parts.append(_pose_targets_rewritten(prog, ts, nom, cp, found, B, out))
         if joints:
             ts = [prog.targets[i] for i in joints]
             Q = np.array([t.q for t in ts])
             cj = compensate_joints(ide, source_poses(Q, tau, nom, M), Q, calibrated_range=calibrated, **kw)
             for k, t in enumerate(ts):
                 texts = [written(n, v, "deg") for n, v in zip(t.joints, np.degrees(cj.q[k]))]
-                edits += list(zip(t.joints, texts))
-                heads.append(_head(prog, t, [n.text for n in t.joints], texts, None))
-                order.append((t.file, t.line))
-            parts.append(cj)
-    comp = concatenate(parts)
-    perm = sorted(range(len(order)), key=lambda k: order[k])
+                out.edits += list(zip(t.joints, texts))
+                out.add(t, _head(prog, t, [n.text for n in t.joints], texts, None))
+            out.parts.append(cj)
+    comp = concatenate(out.parts)
+    perm = sorted(range(len(out.order)), key=lambda k: out.order[k])
     comp = take(comp, np.array(perm, dtype=int))
-    heads = [heads[k] for k in perm]
-    return prog.rewrite(edits), comp, heads
+    heads = [out.heads[k] for k in perm]
+    return prog.rewrite(out.edits), comp, heads
+
+
+@dataclasses.dataclass
+class _Compensated:
+    """What :func:`compensate_program` gathers, tool group by tool group."""
+
+    parts: list = dataclasses.field(default_factory=list)  # Compensations, one per group and kind
+    order: list = dataclasses.field(default_factory=list)  # (file, line) of each target, as compensated
+    heads: list = dataclasses.field(default_factory=list)  # the report's leading fields of each target
+    edits: list = dataclasses.field(default_factory=list)  # (number written, its new text)
+
+    def add(self, t: Target, head: str) -> None:
+        self.heads.append(head)
+        self.order.append((t.file, t.line))
+
+
+def _pose_targets_rewritten(prog: Program, ts: list[Target], nom, cp, found: np.ndarray, B: np.ndarray, out):
+    """The pose targets ``ts`` compensated (``cp``) flagged where the solution's configuration
+    differs from the written one or the nominal controller had none (``found``); their new
+    numbers into ``out`` (a target not found is left as written)."""
+    brand = prog.brand
+    sol = configuration(brand, nom, cp.q)
+    changed = np.array(
+        [t.config is not None and not t.config_off and not same(brand, t.config, s) for t, s in zip(ts, sol)]
+    )
+    flags = (
+        cp.flags
+        | np.where(changed, FLAG_BIT["branch_change"], 0)
+        | np.where(~found, FLAG_BIT["unreachable"] | FLAG_BIT["branch_change"], 0)
+    )
+    cp = dataclasses.replace(cp, flags=flags, converged=cp.converged & found)
+    P_new = np.linalg.inv(np.array([B @ t.T_work for t in ts])) @ cp.T_command
+    for k, t in enumerate(ts):
+        texts = _pose_texts(t, P_new[k])
+        if found[k]:
+            out.edits += list(zip(t.position + t.orientation, texts))
+        config = {"written": show(brand, t.config), "solution": show(brand, sol[k])}
+        out.add(t, _head(prog, t, [n.text for n in t.position + t.orientation], texts if found[k] else None, config))
+    return cp
+
+
+def _pose_texts(t: Target, P_new: np.ndarray) -> list[str]:
+    """The texts of pose target ``t``'s numbers for its new pose ``P_new`` (4, 4) in its work
+    object: position in mm, orientation in the target's own terms (quaternion, KUKA A,B,C or
+    Fanuc W,P,R, nearest the written angles)."""
+    new_pos = P_new[:3, 3] * 1e3
+    orig_rot = np.array([n.value for n in t.orientation])
+    if t.rotation == "quat":
+        new_rot, unit = vendors.quat_near(P_new[:3, :3], orig_rot)[0], "quat"
+    elif t.rotation == "kuka_abc":
+        new_rot = np.degrees(vendors.matrix_to_kuka_abc(P_new[:3, :3], np.radians(orig_rot))[0])
+        unit = "deg"
+    else:
+        new_rot = np.degrees(vendors.matrix_to_fanuc_wpr(P_new[:3, :3], np.radians(orig_rot))[0])
+        unit = "deg"
+    return [written(n, v, "mm") for n, v in zip(t.position, new_pos)] + [
+        written(n, v, unit) for n, v in zip(t.orientation, new_rot)
+    ]
 
 
 # Moves whose path is Cartesian (KRL, RAPID, TP, URScript names): the arm cannot change its

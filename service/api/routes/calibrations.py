@@ -107,7 +107,7 @@ async def compensate(
     mode: str = "joints",
     name: str = "task.csv",
     payload: str | None = None,
-) -> PlainTextResponse:
+) -> Response:
     """A task CSV or a robot program (URScript, RAPID, TP; ``name`` tells which) in the request
     body, the compensated file out (contracts §5). ``mode``: ``joints`` or ``targets``;
     ``payload``: the task's payload ``KG[,X,Y,Z]`` (kg, centre of gravity in the tool frame in the
@@ -124,11 +124,36 @@ async def compensate(
     compensate`` exits 3 for them; the stored report's rows name them."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
-    from ...compensate import CompensationInputError, compensate_and_store, decode_upload, read_multipart
+    from ...compensate import CompensationInputError, compensate_and_store
 
     await run_in_threadpool(_exists, request.app.state.engine, calibration_id)  # 404 before any work
     raw = await request.body()
-    content_type = request.headers.get("content-type", "")
+    name, body, companions, encodings = _uploaded(request.headers.get("content-type", ""), raw, name)
+    try:
+        rec_id, output, summary, files = await request.app.state.heavy.run(
+            compensate_and_store,
+            request.app.state.settings.effective_database_url,
+            calibration_id,
+            body,
+            name=name,
+            mode=mode,
+            actor=tok.name,
+            companions=companions,
+            payload=payload,
+            encodings=encodings,
+        )
+    except CompensationInputError as exc:
+        field = "query.payload" if str(exc).startswith("--payload") else "body"
+        raise HTTPException(422, {"field": field, "message": str(exc)}) from None
+    return _compensated_answer(rec_id, name, output, summary, files, companions, encodings)
+
+
+def _uploaded(content_type: str, raw: bytes, name: str):
+    """The uploaded task or program: (its name, its text, the program's other files by name or
+    None, each file's encoding), from a plain body named ``name`` or a multipart one (the program
+    first: the part that is not a KRL ``.dat``). Nothing, or binary data, is refused (422)."""
+    from ...compensate import CompensationInputError, decode_upload, read_multipart
+
     companions = None
     try:
         if content_type.lower().startswith("multipart/form-data"):
@@ -148,23 +173,13 @@ async def compensate(
         raise HTTPException(
             422, {"field": "body", "message": "expected a text file, got NUL characters (binary data?)"}
         )
+    return name, body, companions, encodings
 
-    try:
-        rec_id, output, summary, files = await request.app.state.heavy.run(
-            compensate_and_store,
-            request.app.state.settings.effective_database_url,
-            calibration_id,
-            body,
-            name=name,
-            mode=mode,
-            actor=tok.name,
-            companions=companions,
-            payload=payload,
-            encodings=encodings,
-        )
-    except CompensationInputError as exc:
-        field = "query.payload" if str(exc).startswith("--payload") else "body"
-        raise HTTPException(422, {"field": field, "message": str(exc)}) from None
+
+def _compensated_answer(rec_id, name: str, output: str, summary, files, companions, encodings) -> Response:
+    """The compensated file as the upload came: the text in its encoding, or for a multipart
+    upload JSON with every file; with the compensation's id and the count of targets not
+    compensated in the headers."""
     # the CLI's exit 3: targets left as written (unreachable) or not converged, counted here and
     # named by the stored report's rows (GET /compensations/{id}/report)
     short = int((summary or {}).get("not_compensated", 0))
