@@ -29,6 +29,7 @@ correction applied and flags (:data:`FLAGS`).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -566,6 +567,50 @@ def take(comp: Compensation, idx: np.ndarray) -> Compensation:
             if isinstance(getattr(comp, f.name), np.ndarray)
         },
     )
+
+
+# A residual correction (``calibration.residual_map.from_model``: the smooth map, the joint
+# transmission or boosted trees) is aimed through in passes: at most this many, and a point whose
+# correction at its command still differs from the one aimed with by more than this is flagged.
+MAX_CORRECTION_PASSES = 6
+CORRECTION_SETTLED_M = 1e-6
+
+
+def compensate_through_correction(
+    run: Callable[[np.ndarray], Compensation],
+    X_goal: np.ndarray,
+    correction,
+    p_tool: np.ndarray | None = None,
+) -> Compensation:
+    """Compensate for a model whose robot is the parametric model plus a learned correction of
+    position: ``p_robot(q) = p_model(q) + c(q)``. ``run(X)`` compensates goal poses ``X`` (N, 4, 4)
+    with the parametric model; ``correction.evaluate(q, p_tool)`` gives ``c`` (N, 3) m and (N,)
+    whether each command is inside the region it was fitted in (``c`` is zero outside).
+
+    A fixed-point iteration: aim the parametric model at ``X_goal − c(q_k)``, where ``q_k`` is the
+    previous pass's command, until ``c`` at the new command is the one aimed with. A smooth map or
+    the transmission settles in two passes to well below a micrometre; boosted trees are piecewise
+    constant, and a command on a leaf's boundary can jump between two leaves: such a point is
+    flagged ``no_convergence`` (the reached position misses the goal by the jump). A command
+    outside the correction's region is compensated with the parametric model alone and flagged
+    ``outside_mapped_region``. ``p_tool`` (3,): the point, in the model's tool frame, whose
+    position the goals give (default its origin; only a correction with a physical model, the
+    transmission, moves with it)."""
+    comp = run(X_goal)
+    corr, inside = correction.evaluate(comp.q, p_tool)
+    unsettled = np.zeros(len(comp.q), dtype=bool)
+    for _ in range(MAX_CORRECTION_PASSES):
+        aimed = corr
+        X = X_goal.copy()
+        X[:, :3, 3] -= aimed
+        comp = run(X)
+        corr, inside = correction.evaluate(comp.q, p_tool)
+        unsettled = np.linalg.norm(corr - aimed, axis=1) > CORRECTION_SETTLED_M
+        if not unsettled.any():
+            break
+    flags = comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"])
+    flags |= np.where(unsettled, FLAG_BIT["no_convergence"], 0)
+    return dataclasses.replace(comp, flags=flags, converged=comp.converged & ~unsettled)
 
 
 # ----------------------------------------------------------------------------- book Algorithm A

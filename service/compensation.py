@@ -25,6 +25,7 @@ from calibration.compensation import (
     Compensation,
     compensate_joints,
     compensate_targets,
+    compensate_through_correction,
     concatenate,
     flag_names,
     nominal_solution,
@@ -45,10 +46,6 @@ from .programs.compensate import compensate_program
 from .programs.frames import Frames
 from .taskfiles import format_task, matrix_to_pose_ur, pose_to_matrix_ur, read_task
 
-# compensation through a residual correction: at most this many passes, and a point whose
-# correction at its command still differs from the one aimed with by more than this is flagged
-MAX_CORRECTION_PASSES = 6
-CORRECTION_SETTLED_M = 1e-6
 CHUNK = 25_000
 FLAG_COUNTS = (
     "joint_limit",
@@ -196,7 +193,7 @@ def compensate_task(
     if req.qnear is None:
         req = dataclasses.replace(req, qnear=np.zeros(model.n_joints))
     handler = _script if req.fmt == "urscript" else _program if req.fmt in programs.BRAND else _csv
-    output, comp, prefixes, skipped, M, fit_rms = handler(req, model, t0, progress)
+    output, comp, prefixes, skipped, M, fit_rms, *more_notes = handler(req, model, t0, progress)
     u = model.units
     L = u.length_m
     counts = {name: comp.count(name) for name in FLAG_COUNTS}
@@ -211,15 +208,7 @@ def compensate_task(
         "residual_angle_max": _f(comp.residual_rad.max(initial=0.0) / u.angle_rad),
         "correction_max": _f(np.abs(comp.correction).max(initial=0.0) / u.angle_rad),
         "flags": counts,
-        "notes": notes_for(model)
-        + (
-            [
-                "the model's residual map is applied to CSV tasks only; this program is compensated with the "
-                "parametric model"
-            ]
-            if handler is not _csv and residual_map_of(model) is not None
-            else []
-        ),
+        "notes": notes_for(model) + [note for notes in more_notes for note in notes],
     }
     pose = matrix_to_pose(M)
     script = req.fmt != "csv"
@@ -351,33 +340,19 @@ def _csv_runner(
     return run_joints
 
 
+def _through_correction(model: KinematicModel, run, X: np.ndarray) -> Compensation:
+    """``run(X)``, through the model's residual correction where it has one."""
+    rmap = residual_map_of(model)
+    return run(X) if rmap is None else compensate_through_correction(run, X, rmap)
+
+
 def _compensate_with_map(model: KinematicModel, run, X: np.ndarray, N: int, t0: float, progress) -> Compensation:
-    """``run`` over all ``N`` rows aiming at ``X``; with a residual correction in the model, aimed
-    again until the correction at each command is the one aimed with."""
-    comp = _chunked(N, partial(run, X), t0, progress)
+    """``run`` over all ``N`` rows aiming at ``X``, in chunks; with a residual correction in the
+    model, through it (:func:`calibration.compensation.compensate_through_correction`)."""
     rmap = residual_map_of(model)
     if rmap is None:
-        return comp
-    # the robot is where the parametric model puts it plus the correction at the command: aim
-    # the parametric model at the goal minus that correction, again until the correction at the
-    # new command is the one aimed with. A smooth map or the transmission settles in two passes to
-    # well below a micrometre; boosted trees are piecewise constant, and a command on a leaf's
-    # boundary can jump between two leaves: there the point is flagged no_convergence (the reached
-    # position misses the goal by the jump).
-    goal = X.copy()
-    corr, inside = rmap.evaluate(comp.q)
-    for _ in range(MAX_CORRECTION_PASSES):
-        aimed = corr
-        X = goal.copy()
-        X[:, :3, 3] -= aimed
-        comp = _chunked(N, partial(run, X), t0, progress)
-        corr, inside = rmap.evaluate(comp.q)
-        unsettled = np.linalg.norm(corr - aimed, axis=1) > CORRECTION_SETTLED_M
-        if not unsettled.any():
-            break
-    flags = comp.flags | np.where(inside, 0, FLAG_BIT["outside_mapped_region"])
-    flags |= np.where(unsettled, FLAG_BIT["no_convergence"], 0)
-    return dataclasses.replace(comp, flags=flags, converged=comp.converged & ~unsettled)
+        return _chunked(N, partial(run, X), t0, progress)
+    return compensate_through_correction(lambda X_aim: _chunked(N, partial(run, X_aim), t0, progress), X, rmap)
 
 
 def _g(x: float) -> str:
@@ -476,8 +451,19 @@ def _script_pose_targets(req, model, M, B, pose_t, pose_seed, replacements, lite
     X_nom = B @ pose_to_matrix_ur(P)
     seeds = np.array(pose_seed)
     X_d = np.linalg.inv(M) @ X_nom if taught is None else fk(taught, seeds)
-    cp = compensate_targets(
-        model, nominal, X_d, seeds, T_nominal_world=M, keep_branch=True, calibrated_range=req.calibrated, **req.settings
+    cp = _through_correction(
+        model,
+        lambda X: compensate_targets(
+            model,
+            nominal,
+            X,
+            seeds,
+            T_nominal_world=M,
+            keep_branch=True,
+            calibrated_range=req.calibrated,
+            **req.settings,
+        ),
+        X_d,
     )
     P_new = matrix_to_pose_ur(np.linalg.inv(B) @ cp.T_command, like=P)
     for i, t in enumerate(pose_t):
@@ -500,8 +486,10 @@ def _script_pose_targets(req, model, M, B, pose_t, pose_seed, replacements, lite
 def _script_joint_targets(req, model, M, joint_t, replacements, literals, heads) -> Compensation:
     """Compensate the joint targets as joint commands, as :func:`_script_pose_targets` does."""
     Q = np.array([t.joints.values for t in joint_t]).reshape(-1, model.n_joints)
-    cj = compensate_joints(
-        model, source_poses(Q, req.taught, req.nominal, M), Q, calibrated_range=req.calibrated, **req.settings
+    cj = _through_correction(
+        model,
+        lambda X: compensate_joints(model, X, Q, calibrated_range=req.calibrated, **req.settings),
+        source_poses(Q, req.taught, req.nominal, M),
     )
     for i, t in enumerate(joint_t):
         replacements[id(t.joints)], literals[id(t.joints)] = cj.q[i], t.joints
@@ -543,13 +531,35 @@ def _program(req: CompensationRequest, model: KinematicModel, t0: float, progres
             f"NOMINAL.json (this model does not record the one it was identified from)"
         )
     M, fit_rms = nominal_world_frame(model, nominal, calibrated)
-    outputs, comp, prefixes = compensate_program(prog, model, nominal, taught, M, calibrated, kw)
+    outputs, comp, prefixes = compensate_program(
+        prog, model, nominal, taught, M, calibrated, kw, correction=residual_map_of(model)
+    )
     skipped = [
         {"line": u.line, "text": u.text, "reason": u.reason} | ({"file": prog.paths[u.file]} if u.file else {})
         for u in prog.uninterpreted
     ]
     paths = [req.out] + [companion_path(req.out, p) for p in prog.paths[1:]]
-    return list(zip(paths, outputs)), comp, prefixes, skipped, M, fit_rms
+    return list(zip(paths, outputs)), comp, prefixes, skipped, M, fit_rms, _tool_notes(prog, model, nominal)
+
+
+def _tool_notes(prog, model: KinematicModel, nominal: KinematicModel) -> list[str]:
+    """A note where the model's residual correction is a smooth map or trees (they correct the
+    point they were measured at, the model's tool) and some target uses another tool: that
+    target gets the correction of the measured point, the part a rotation error would add at its
+    own tool not modelled (the joint transmission, a physical model, is evaluated at each tool)."""
+    family = (model.metadata.get("residual_map") or {}).get("family")
+    if residual_map_of(model) is None or family == "transmission":
+        return []
+    T_tool = pose_to_matrix(nominal.tool)
+    other = [t for t in prog.targets if not np.allclose(t.T_tool, T_tool, atol=1e-9)]
+    if not other:
+        return []
+    lines = ", ".join(str(t.line) for t in other[:5]) + (" ..." if len(other) > 5 else "")
+    name = {"trees": "boosted trees"}.get(family, "smooth map")
+    return [
+        f"the residual correction ({name}) corrects the point it was measured at, the model's tool: "
+        f"{len(other)} target(s) with another tool (line {lines}) get that point's correction"
+    ]
 
 
 def companion_path(out: str, path: str) -> str:

@@ -30,6 +30,7 @@ from calibration.compensation import (
     FLAG_BIT,
     compensate_joints,
     compensate_targets,
+    compensate_through_correction,
     concatenate,
     source_poses,
     take,
@@ -109,10 +110,13 @@ def _f(x, digits=12):
     return None if not np.isfinite(x) else float(f"{x:.{digits}g}")
 
 
-def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, calibrated, kw: dict):
+def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, calibrated, kw: dict, correction=None):
     """The compensated files (bytes, one per file of ``prog``), the
     :class:`~calibration.compensation.Compensation` of every target in program order, and the
-    report's leading fields per target (JSON text ending in a comma)."""
+    report's leading fields per target (JSON text ending in a comma). ``correction``: the model's
+    residual correction (``calibration.residual_map.from_model``) or None; targets are compensated
+    through it (:func:`calibration.compensation.compensate_through_correction`), each tool's at
+    that tool's point."""
     B = pose_to_matrix(nominal.base)
     groups: dict[bytes, list[int]] = {}  # the targets of each tool
     for i, t in enumerate(prog.targets):
@@ -126,6 +130,7 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
         nom = _with_tool(nominal, T_tool, nominal)
         ide = _with_tool(model, T_tool, nominal)
         tau = _with_tool(taught, T_tool, nominal) if taught is not None else None
+        through = _through(correction, _tool_point(model, ide))
         poses = [i for i in idx if prog.targets[i].kind == "pose"]
         joints = [i for i in idx if prog.targets[i].kind == "joints"]
         if poses:
@@ -133,14 +138,20 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
             X_nom = np.array([B @ t.T_work @ t.P for t in ts])
             q_nom, found = q_all[poses], found_all[poses]
             X_d = np.linalg.inv(M) @ X_nom if tau is None else fk(tau, q_nom)
-            cp = compensate_targets(
-                ide, nom, X_d, q_nom, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
+            cp = through(
+                lambda X, ide=ide, nom=nom, q_nom=q_nom: compensate_targets(
+                    ide, nom, X, q_nom, T_nominal_world=M, keep_branch=True, calibrated_range=calibrated, **kw
+                ),
+                X_d,
             )
             out.parts.append(_pose_targets_rewritten(prog, ts, nom, cp, found, B, out))
         if joints:
             ts = [prog.targets[i] for i in joints]
             Q = np.array([t.q for t in ts])
-            cj = compensate_joints(ide, source_poses(Q, tau, nom, M), Q, calibrated_range=calibrated, **kw)
+            cj = through(
+                lambda X, ide=ide, Q=Q: compensate_joints(ide, X, Q, calibrated_range=calibrated, **kw),
+                source_poses(Q, tau, nom, M),
+            )
             for k, t in enumerate(ts):
                 texts = [written(n, v, "deg") for n, v in zip(t.joints, np.degrees(cj.q[k]))]
                 out.edits += list(zip(t.joints, texts))
@@ -151,6 +162,21 @@ def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, cal
     comp = take(comp, np.array(perm, dtype=int))
     heads = [out.heads[k] for k in perm]
     return prog.rewrite(out.edits), comp, heads
+
+
+def _tool_point(model, ide) -> np.ndarray:
+    """The program tool's point (3,) m in ``model``'s tool frame (``ide``: the model with the
+    program's tool): where a residual correction with a physical model (the joint transmission)
+    is evaluated. A smooth map or trees correct the point they were measured at, whatever this is
+    (the compensation report's notes say so)."""
+    return (invert(pose_to_matrix(model.tool)) @ pose_to_matrix(ide.tool))[:3, 3]
+
+
+def _through(correction, p_tool: np.ndarray):
+    """``through(run, X)``: ``run(X)``, through ``correction`` where there is one."""
+    if correction is None:
+        return lambda run, X: run(X)
+    return lambda run, X: compensate_through_correction(run, X, correction, p_tool)
 
 
 @dataclasses.dataclass

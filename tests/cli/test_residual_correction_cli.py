@@ -142,6 +142,69 @@ def test_compensation_through_the_transmission_puts_the_true_arm_on_the_targets(
     assert err2.max() > 2 * err.max()  # the geometric model alone does not get there
 
 
+def test_a_urscript_program_through_the_transmission_puts_the_true_arm_on_its_targets(identified, tmp_path):
+    """A URScript program (pose targets with their qnear, as PolyScope writes them, and joint
+    targets), compensated with the stored transmission correction and run by a controller that
+    knows only the nominal model, brings the true arm (transmission included) within 0.01 mm of
+    every target (issue 28: "Compensation applies it too: joints, targets and programs")."""
+    import re
+
+    from calibration.compensation import nominal_world_frame
+    from calibration.ik import solve_ik
+    from calibration.kinematics import fk
+    from calibration.transforms import matrix_to_rotvec, pose_to_matrix, rotvec_to_matrix
+    from service.compensation import calibrated_range_of
+
+    d, rng, nominal, truth, tx, proc = identified
+    assert proc.returncode in (0, 3), proc.stderr
+    model = load_model(d / "id.json")
+    # the nominal's world in the identified one's, as compensation fits it
+    M = nominal_world_frame(model, nominal, calibrated_range_of(model))[0]
+    B = pose_to_matrix(nominal.base)
+    q_pose = random_configurations(nominal, 6, rng, limits=REGION + np.deg2rad([5.0, -5.0]))
+    q_joint = random_configurations(nominal, 4, rng, limits=REGION + np.deg2rad([5.0, -5.0]))
+    T_goal = fk(truth, q_pose + tx.joint_errors(q_pose))  # where the tool must truly be
+    P = np.linalg.inv(B) @ M @ T_goal  # the targets in the nominal robot's base frame
+    lines = ["def main():"]
+    for k in range(len(P)):
+        vals = [*P[k, :3, 3], *matrix_to_rotvec(P[k, :3, :3])]
+        qnear = ", ".join(f"{v:.9f}" for v in q_pose[k])
+        pose = ", ".join(f"{v:.9f}" for v in vals)
+        lines.append(f"  movej(get_inverse_kin(p[{pose}], qnear=[{qnear}]), a=1.4, v=1.05)")
+    for k in range(len(q_joint)):
+        lines.append("  movej([" + ", ".join(f"{v:.9f}" for v in q_joint[k]) + "], a=1.4, v=1.05)")
+    lines.append("end")
+    (tmp_path / "prog.script").write_text("\n".join(lines) + "\n")
+    for name in ("id.json", "nominal.json"):
+        (tmp_path / name).write_text((d / name).read_text())
+    c = recal("compensate", "--model", "id.json", "--nominal", "nominal.json", "--task", "prog.script", "--out", "out.script", cwd=tmp_path)  # fmt: skip
+    assert c.returncode == 0, c.stderr + c.stdout
+    assert "flagged" not in c.stdout, c.stdout  # every target inside the calibrated and corrected region
+    out = (tmp_path / "out.script").read_text().splitlines()[1:-1]
+    numbers = [np.array(re.findall(r"-?\d+\.\d+(?:e-?\d+)?", line)[:6], dtype=float) for line in out]
+    # the nominal controller's inverse kinematics of the new pose near its qnear, then the true
+    # arm there
+    P_new = np.array([pose_to_matrix(np.r_[v[:3], 0, 0, 0]) for v in numbers[: len(P)]])
+    P_new[:, :3, :3] = rotvec_to_matrix(np.array([v[3:] for v in numbers[: len(P)]]))
+    ik = solve_ik(nominal, B @ P_new, q_pose, position_tol_m=1e-12, rotation_tol_rad=1e-12)
+    assert ik.converged.all()
+    reached = fk(truth, ik.q + tx.joint_errors(ik.q))[:, :3, 3]
+    assert np.linalg.norm(reached - T_goal[:, :3, 3], axis=1).max() < 0.01e-3
+    # movej: the pose the nominal joints meant, reached by the true arm at the new joints
+    q_new = np.array(numbers[len(P) :])
+    goal_j = (np.linalg.inv(M) @ fk(nominal, q_joint))[:, :3, 3]
+    reached_j = fk(truth, q_new + tx.joint_errors(q_new))[:, :3, 3]
+    assert np.linalg.norm(reached_j - goal_j, axis=1).max() < 0.01e-3
+    # the same program through the geometry alone misses by the transmission's error
+    doc = json.loads((d / "id.json").read_text())
+    (tmp_path / "id.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "residual_map"}))
+    c2 = recal("compensate", "--model", "id.json", "--nominal", "nominal.json", "--task", "prog.script", "--out", "geo.script", cwd=tmp_path)  # fmt: skip
+    assert c2.returncode == 0, c2.stderr
+    q_geo = np.array([re.findall(r"-?\d+\.\d+(?:e-?\d+)?", line)[:6] for line in (tmp_path / "geo.script").read_text().splitlines()[1 + len(P) : -1]], dtype=float)  # fmt: skip
+    miss_geo = np.linalg.norm(fk(truth, q_geo + tx.joint_errors(q_geo))[:, :3, 3] - goal_j, axis=1)
+    assert miss_geo.max() > 0.02e-3, miss_geo
+
+
 def test_compensation_through_trees_settles_or_flags_every_point(identified, tmp_path):
     from calibration import residual_choice as RC
     from calibration import trees as TT
