@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+import service.kinds  # noqa: F401 (each kind's module fills MAX_COUNT as it registers its rules)
 from service.models import MAX_COUNT
 
 from .conftest import auth, register_cell
