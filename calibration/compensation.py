@@ -1,7 +1,7 @@
 """Compensation: the commands that make the identified robot reach its task (book ch. 5,
 "inverse calibration"), batched over N task points.
 
-Three tasks, one result type (:class:`Compensation`):
+Three tasks, one result type (:class:`CompensatedPoints`):
 
 - :func:`compensate_joints` — off-line programmed tasks, joint commands (book §5.2.1, eq. 5.19,
   5.30): Newton on the *identified* model, started from the nominal solution, so the command
@@ -86,7 +86,7 @@ def flag_names(bits: int) -> list[str]:
 
 
 @dataclass(frozen=True, eq=False)
-class Compensation:
+class CompensatedPoints:
     """Compensated task points (N), SI.
 
     ``q`` (N, n): the joint commands (joints and taught modes: for the identified robot; targets
@@ -295,7 +295,7 @@ def compensate_joints(
     singular_tol: float = 0.02,
     max_correction_rad: float = np.deg2rad(5.0),
     max_correction_m: float = 0.01,
-) -> Compensation:
+) -> CompensatedPoints:
     """Joint commands that bring the identified robot's tool to ``T_desired`` (N, 4, 4, world),
     by damped Newton (Levenberg–Marquardt) on the identified model started from the nominal
     solution ``q_nominal`` (N, n) (book eq. 5.19 solved as §5.2.1 suggests: nominal solution,
@@ -334,7 +334,7 @@ def compensate_joints(
         J=r.jacobian,
         J_nominal=r.jacobian_start,
     )
-    return Compensation(
+    return CompensatedPoints(
         q=r.q,
         T_command=T_desired,
         T_desired=T_desired,
@@ -366,7 +366,7 @@ def compensate_targets(
     singular_tol: float = 0.02,
     max_correction_rad: float = np.deg2rad(5.0),
     max_correction_m: float = 0.01,
-) -> Compensation:
+) -> CompensatedPoints:
     """Corrected targets for a controller that knows only the ``nominal`` model (book §5.2.2,
     "Algorithm B", iterated as ch5 §3.4 recommends).
 
@@ -411,7 +411,7 @@ def compensate_targets(
         max_correction_rad=max_correction_rad,
         max_correction_m=max_correction_m,
     )
-    return Compensation(
+    return CompensatedPoints(
         q=q,
         T_command=X,
         T_desired=T_desired,
@@ -510,7 +510,7 @@ def compensate_taught(
     *,
     T_from_world: np.ndarray | None = None,
     **kwargs,
-) -> Compensation:
+) -> CompensatedPoints:
     """Taught joint vectors ``q_taught`` (N, n) of robot ``model_from`` mapped to the identified
     robot (book eq. 5.21-5.22): the pose the first reaches, ``X = T_from_world⁻¹ · F_from(q)``
     (world), reached by the second, by Newton from ``q_taught`` (:func:`compensate_joints`).
@@ -527,7 +527,7 @@ def compensate_taught(
     return _replace_mode(result, "taught")
 
 
-def _replace_mode(c: Compensation, mode: str) -> Compensation:
+def _replace_mode(c: CompensatedPoints, mode: str) -> CompensatedPoints:
     import dataclasses
 
     return dataclasses.replace(c, mode=mode)
@@ -544,7 +544,7 @@ def _message(converged: np.ndarray, flags: np.ndarray) -> str:
     return "; ".join(parts)
 
 
-def concatenate(parts: list[Compensation]) -> Compensation:
+def concatenate(parts: list[CompensatedPoints]) -> CompensatedPoints:
     """The points of several compensations, in order, as one."""
     if len(parts) == 1:
         return parts[0]
@@ -557,7 +557,7 @@ def concatenate(parts: list[Compensation]) -> Compensation:
     return dataclasses.replace(first, **out)
 
 
-def take(comp: Compensation, idx: np.ndarray) -> Compensation:
+def take(comp: CompensatedPoints, idx: np.ndarray) -> CompensatedPoints:
     """The points ``idx`` of a compensation, in that order."""
     return dataclasses.replace(
         comp,
@@ -577,11 +577,11 @@ CORRECTION_SETTLED_M = 1e-6
 
 
 def compensate_through_correction(
-    run: Callable[[np.ndarray], Compensation],
+    run: Callable[[np.ndarray], CompensatedPoints],
     X_goal: np.ndarray,
     correction,
     p_tool: np.ndarray | None = None,
-) -> Compensation:
+) -> CompensatedPoints:
     """Compensate for a model whose robot is the parametric model plus a learned correction of
     position: ``p_robot(q) = p_model(q) + c(q)``. ``run(X)`` compensates goal poses ``X`` (N, 4, 4)
     with the parametric model; ``correction.evaluate(q, p_tool)`` gives ``c`` (N, 3) m and (N,)
@@ -683,7 +683,7 @@ def error_table(dp_initial: np.ndarray, dp_compensated: np.ndarray) -> dict:
 __all__ = [
     "FLAGS",
     "FLAG_BIT",
-    "Compensation",
+    "CompensatedPoints",
     "assess",
     "compensate_joints",
     "compensate_targets",

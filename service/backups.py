@@ -21,9 +21,9 @@ from pathlib import Path, PurePosixPath
 
 from calibration.errors import RecalError
 
-from .compensation import CompensationRequest, NoTargetsError, compensate_task
 from .files import write_atomic
 from .programs import backup
+from .task_compensation import CompensationRequest, NoTargetsError, compensate_task
 
 # The report's name in a compensated zip, beside the backup's own top-level entries.
 REPORT_NAME = "recal-compensation-report.json"

@@ -146,8 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
         subparsers.choices[verb].check_flags(argv[1:])
     args = parser.parse_args(argv)
-    from service.compensation import CompensationInputError
     from service.files import InputError
+    from service.task_compensation import CompensationInputError
 
     global _quiet  # noqa: PLW0603 - one flag for the whole process (--quiet), set once per command
     _quiet = bool(getattr(args, "quiet", False))

@@ -1,6 +1,6 @@
 """A cell's registered task files (the programs it runs, compensated again after every
 calibration): register, list, read, and what compensating all of them needs. The compensation
-itself is :func:`service.compensate.compensate_and_store`, run in the heavy-work pool."""
+itself is :func:`service.stored_compensation.compensate_and_store`, run in the heavy-work pool."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from .problems import Invalid, NotFound
 from .store import audit, current_calibration
 
 # What a file's ``content`` may be in: ``content.encode(encoding)`` is the file's bytes. These are
-# the compensation route's (service.compensate.decode_upload): UTF-8, or ISO-8859-1, a character
+# the compensation route's (service.stored_compensation.decode_upload): UTF-8, or ISO-8859-1, a character
 # per byte, for a program that is not UTF-8 (a KRL or RAPID file in Windows-1252).
 ENCODINGS = ("utf-8", "iso-8859-1")
 
@@ -114,7 +114,7 @@ def tasks_to_compensate(db: Session, cell: Cell, calibration_id: int | None) -> 
 
 
 def task_input(db: Session, task_id: int) -> dict:
-    """What compensating task file ``task_id`` takes (:func:`service.compensate.compensate_and_store`'s
+    """What compensating task file ``task_id`` takes (:func:`service.stored_compensation.compensate_and_store`'s
     arguments): ``text``, ``companions`` (file name -> text; ``None`` for a single file) and
     ``encodings`` (file name -> encoding), so that each file is compensated as its bytes."""
     t = db.get(TaskFile, task_id)

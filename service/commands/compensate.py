@@ -213,8 +213,8 @@ def _calibrated_range(args, model):
     """(n, 2) joint ranges of the calibration data (``--calibration-data``), else the ones the
     identified model records, SI, or None."""
     from service.cli import Fail
-    from service.compensation import CompensationInputError, calibrated_range_of
     from service.files import read_joints
+    from service.task_compensation import CompensationInputError, calibrated_range_of
 
     if args.calibration_data:
         q = read_joints(args.calibration_data, model)
@@ -325,9 +325,9 @@ def run(args) -> int:
     from pathlib import Path
 
     from service.cli import progress
-    from service.compensation import CompensationRequest, NoTargetsError, compensate_task
     from service.files import InputError, check_output, write_atomic
     from service.programs import format_of
+    from service.task_compensation import CompensationRequest, NoTargetsError, compensate_task
 
     if Path(args.task).is_dir():
         return _run_backup(args)
@@ -408,8 +408,8 @@ def _run_backup(args) -> int:
 
     from service.backups import NotABackup, compensate_folder, report_bytes, with_frame_data
     from service.cli import Fail
-    from service.compensation import CompensationRequest
     from service.files import write_atomic
+    from service.task_compensation import CompensationRequest
 
     root, out = Path(args.task), Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):

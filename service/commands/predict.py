@@ -112,8 +112,8 @@ def _outside_calibrated_region(args, model, q):
     import numpy as np
 
     from calibration.metrics import outside_joint_ranges
-    from service.compensation import CompensationInputError, calibrated_range_of
     from service.files import InputError
+    from service.task_compensation import CompensationInputError, calibrated_range_of
 
     try:
         ranges = calibrated_range_of(model)

@@ -14,12 +14,12 @@ from calibration.identification import Measurements
 from calibration.model import KinematicModel, model_from_dict
 
 from ..analysis import session_data
-from ..compensation import calibrated_range_of
 from ..models import KindRules
 from ..plans import Plan, PlanRequest, random_inside, repeated
 from ..records import corrected_errors, current_model, position_errors, registered_errors
 from ..results import position_residuals
 from ..store import activate_calibration, candidate_calibration
+from ..task_compensation import calibrated_range_of
 from .positions import PositionKind
 
 

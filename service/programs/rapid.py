@@ -19,7 +19,7 @@ move, is left alone and reported, as are targets computed by an expression (``Of
 Configuration monitoring: after ``ConfL\\Off`` (until ``ConfL\\On``) a linear or circular move
 does not hold its target's confdata, and after ``ConfJ\\Off`` a joint move does not: the
 controller takes the configuration nearest the start, as for a KRL or TP target without
-configuration data (service.programs.compensate.controller_solutions); the confdata is kept as
+configuration data (service.programs.retarget.controller_solutions); the confdata is kept as
 written. The state follows the module's text (a controller starts a program with both on); a
 target used by several moves takes its first move's.
 """

@@ -153,7 +153,7 @@ def test_a_urscript_program_through_the_transmission_puts_the_true_arm_on_its_ta
     from calibration.ik import solve_ik
     from calibration.kinematics import fk
     from calibration.transforms import matrix_to_rotvec, pose_to_matrix, rotvec_to_matrix
-    from service.compensation import calibrated_range_of
+    from service.task_compensation import calibrated_range_of
 
     d, rng, nominal, truth, tx, proc = identified
     assert proc.returncode in (0, 3), proc.stderr

@@ -41,7 +41,7 @@ def test_a_krl_program_and_its_dat_as_multipart(calibrated, tokens):
 
     from calibration.compensation import nominal_world_frame
     from calibration.transforms import invert, matrix_to_pose, pose_to_matrix
-    from service.compensation import calibrated_range_of
+    from service.task_compensation import calibrated_range_of
 
     M = nominal_world_frame(model, nominal, calibrated_range_of(model))[0]
     # no $TOOL in the program: the flange ($NULLFRAME), with the identified tool's correction kept

@@ -18,10 +18,10 @@ from calibration.robots import nominal
 from drivers.modbus_robot import UR_REGISTER_MAP_HIRES, ModbusRobot, ModbusRobotConfig
 from fakes.modbus_server import ModbusRobotFake
 from fakes.world import SimCell, draw_factory_calibration
-from service.compensate import compensate_text
 from service.controller import refresh_on_session_start
 from service.models import Cell, RunSession
 from service.store import add_controller_model, current_controller_model, make_engine
+from service.stored_compensation import compensate_text
 
 from .conftest import auth, register_cell
 

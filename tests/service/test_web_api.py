@@ -283,8 +283,8 @@ def test_a_verify_session_counts_configurations_outside_the_calibrated_region(cl
     ranges the calibration covered (exactly, against the ranges its model records), and the
     certificate's hold-out check says so."""
     from calibration.metrics import outside_joint_ranges
-    from service.compensation import calibrated_range_of
     from service.models import Calibration
+    from service.task_compensation import calibrated_range_of
 
     cell = _cell(client, tokens, "region-cell")
     _, cal = stored_session(cell["id"], seed=8, region_deg=10.0)

@@ -11,8 +11,8 @@ import numpy as np
 from calibration.kinematics import fk
 from calibration.model import model_from_dict
 from fakes.world import draw_factory_calibration
-from service.compensate import compensate_text
 from service.processes import start_fake_cell
+from service.stored_compensation import compensate_text
 
 from .conftest import next_host
 

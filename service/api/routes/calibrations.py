@@ -124,7 +124,7 @@ async def compensate(
     compensate`` exits 3 for them; the stored report's rows name them."""
     if mode not in ("joints", "targets"):
         raise HTTPException(422, {"field": "query.mode", "message": "expected joints or targets"})
-    from ...compensate import CompensationInputError, compensate_and_store
+    from ...stored_compensation import CompensationInputError, compensate_and_store
 
     await run_in_threadpool(_exists, request.app.state.engine, calibration_id)  # 404 before any work
     raw = await request.body()
@@ -152,7 +152,7 @@ def _uploaded(content_type: str, raw: bytes, name: str):
     """The uploaded task or program: (its name, its text, the program's other files by name or
     None, each file's encoding), from a plain body named ``name`` or a multipart one (the program
     first: the part that is not a KRL ``.dat``). Nothing, or binary data, is refused (422)."""
-    from ...compensate import CompensationInputError, decode_upload, read_multipart
+    from ...stored_compensation import CompensationInputError, decode_upload, read_multipart
 
     companions = None
     try:
@@ -213,8 +213,8 @@ async def compensate_backup(
     whose entries unpack beyond the input bound ``RECAL_MAX_INPUT_BYTES`` (413), before anything
     is written. The work runs in a worker process (service.heavy); it is audited, not stored."""
     from ...backups import UnsafeZip
-    from ...compensate import CompensationInputError, compensate_backup_and_audit
     from ...files import max_input_bytes
+    from ...stored_compensation import CompensationInputError, compensate_backup_and_audit
 
     await run_in_threadpool(_exists, request.app.state.engine, calibration_id)  # 404 before any work
     raw = await request.body()

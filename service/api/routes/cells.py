@@ -183,7 +183,7 @@ async def compensate_tasks(cell_id: int, request: Request, tok: Compensator, cal
     cell's last pose calibration); each result is stored. Each file is compensated on its own:
     one that fails is answered with its ``error`` beside the others' results. Each is computed and stored in a
     worker process (service.heavy), awaited: no request thread is held meanwhile."""
-    from ...compensate import CompensationInputError, compensate_and_store
+    from ...stored_compensation import CompensationInputError, compensate_and_store
 
     engine, heavy = request.app.state.engine, request.app.state.heavy
     cal_id, todo = await run_in_threadpool(_tasks_to_compensate, engine, cell_id, calibration_id)

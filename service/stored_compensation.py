@@ -1,7 +1,7 @@
-"""Compensating a task file held in memory (the API's compensation routes, the nightly job):
-the files are laid in a temporary folder (the parsers read a KRL program's .dat beside its .src)
+"""Compensations the service makes and stores: a task file held in memory (the API's compensation
+routes, the nightly job) is laid in a temporary folder (the parsers read a KRL program's .dat beside its .src)
 and compensated by the same library function as ``recal compensate``
-(:func:`service.compensation.compensate_task`); messages name the user's files."""
+(:func:`service.task_compensation.compensate_task`); messages name the user's files."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from calibration.compliance import with_payload
 from calibration.model import ModelFormatError, model_from_dict
 
 from . import programs
-from .compensation import CompensationInputError, CompensationRequest, calibrated_range_of, compensate_task
 from .files import InputError, parse_payload
 from .packed import pack_output, pack_report
 from .programs.frames import Frames
+from .task_compensation import CompensationInputError, CompensationRequest, calibrated_range_of, compensate_task
 
 __all__ = ["CompensationInputError", "compensate_and_store", "compensate_text", "decode_upload", "read_multipart"]
 

@@ -1,7 +1,7 @@
 """Use case: compensate a task file (a task CSV or a robot program) with an identified model.
 
 ``recal compensate`` (service/commands/compensate.py) and the service's compensation routes
-(service/compensate.py) both call :func:`compensate_task`; neither calls the other. It reads the
+(service/stored_compensation.py) both call :func:`compensate_task`; neither calls the other. It reads the
 task (and a KRL program's .dat) from ``CompensationRequest.task``, compensates every target
 (``calibration.compensation``), and returns the compensated files' texts and the per-point
 report, writing nothing. Formats: task CSV (contracts §5, ``service.taskfiles``) and the programs
@@ -22,7 +22,7 @@ import numpy as np
 
 from calibration.compensation import (
     FLAG_BIT,
-    Compensation,
+    CompensatedPoints,
     compensate_joints,
     compensate_targets,
     compensate_through_correction,
@@ -42,8 +42,8 @@ from calibration.transforms import matrix_to_pose, pose_to_matrix
 from . import programs
 from .files import InputError
 from .programs import urscript
-from .programs.compensate import compensate_program
 from .programs.frames import Frames
+from .programs.retarget import compensate_program
 from .taskfiles import format_task, matrix_to_pose_ur, pose_to_matrix_ur, read_task
 
 CHUNK = 25_000
@@ -99,13 +99,13 @@ class CompensationRequest:
 @dataclass(frozen=True, eq=False)
 class CompensationResult:
     """The compensated files ``outputs`` (``[(path, text)]``, the task's first), every target's
-    :class:`~calibration.compensation.Compensation` in file order, the report's leading fields
+    :class:`~calibration.compensation.CompensatedPoints` in file order, the report's leading fields
     per point (``prefixes``, JSON text), the lines left alone (``skipped``), the nominal world
     frame ``T_nominal_world`` and its fit RMS (m), the ``summary`` and the report document
     without its points (``report_head``)."""
 
     outputs: list
-    comp: Compensation
+    comp: CompensatedPoints
     prefixes: list
     skipped: list
     T_nominal_world: np.ndarray
@@ -293,7 +293,7 @@ def _csv_goals(req: CompensationRequest, model: KinematicModel, task):
 
 def _csv_runner(
     req: CompensationRequest, model: KinematicModel, task, M: np.ndarray
-) -> Callable[[np.ndarray, slice], Compensation]:
+) -> Callable[[np.ndarray, slice], CompensatedPoints]:
     """``run(X, rows)``: compensate the task's ``rows`` aiming at goal poses ``X`` (all rows',
     world frame; ``M``: the nominal world frame in it), as the request's mode asks: targets for
     the nominal controller, or joint commands."""
@@ -340,13 +340,13 @@ def _csv_runner(
     return run_joints
 
 
-def _through_correction(model: KinematicModel, run, X: np.ndarray) -> Compensation:
+def _through_correction(model: KinematicModel, run, X: np.ndarray) -> CompensatedPoints:
     """``run(X)``, through the model's residual correction where it has one."""
     rmap = residual_map_of(model)
     return run(X) if rmap is None else compensate_through_correction(run, X, rmap)
 
 
-def _compensate_with_map(model: KinematicModel, run, X: np.ndarray, N: int, t0: float, progress) -> Compensation:
+def _compensate_with_map(model: KinematicModel, run, X: np.ndarray, N: int, t0: float, progress) -> CompensatedPoints:
     """``run`` over all ``N`` rows aiming at ``X``, in chunks; with a residual correction in the
     model, through it (:func:`calibration.compensation.compensate_through_correction`)."""
     rmap = residual_map_of(model)
@@ -443,7 +443,7 @@ def _script_targets(script, nominal: KinematicModel, B: np.ndarray, qnear):
     return pose_t, pose_seed, joint_t
 
 
-def _script_pose_targets(req, model, M, B, pose_t, pose_seed, replacements, literals, heads) -> Compensation:
+def _script_pose_targets(req, model, M, B, pose_t, pose_seed, replacements, literals, heads) -> CompensatedPoints:
     """Compensate the pose targets for the nominal controller (base frame ``B``): each literal's
     replacement (and its qnear's) into ``replacements``/``literals``, its report head into ``heads``."""
     nominal, taught = req.nominal, req.taught
@@ -483,7 +483,7 @@ def _script_pose_targets(req, model, M, B, pose_t, pose_seed, replacements, lite
     return cp
 
 
-def _script_joint_targets(req, model, M, joint_t, replacements, literals, heads) -> Compensation:
+def _script_joint_targets(req, model, M, joint_t, replacements, literals, heads) -> CompensatedPoints:
     """Compensate the joint targets as joint commands, as :func:`_script_pose_targets` does."""
     Q = np.array([t.joints.values for t in joint_t]).reshape(-1, model.n_joints)
     cj = _through_correction(

@@ -112,7 +112,7 @@ def _f(x, digits=12):
 
 def compensate_program(prog: Program, model, nominal, taught, M: np.ndarray, calibrated, kw: dict, correction=None):
     """The compensated files (bytes, one per file of ``prog``), the
-    :class:`~calibration.compensation.Compensation` of every target in program order, and the
+    :class:`~calibration.compensation.CompensatedPoints` of every target in program order, and the
     report's leading fields per target (JSON text ending in a comma). ``correction``: the model's
     residual correction (``calibration.residual_map.from_model``) or None; targets are compensated
     through it (:func:`calibration.compensation.compensate_through_correction`), each tool's at
