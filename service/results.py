@@ -226,7 +226,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
             "planned": run.planned,
             "created_by": run.created_by,
             "created_at": as_utc(run.created_at).isoformat(),
-            "plan_method": (run.plan_info or {}).get("method"),
+            "plan_method": run.session_plan().method,
         },
         "units": {"length": model.units.length, "angle": model.units.angle},
         # a model with joint compliance sags under a task's payload: the page asks for it when compensating
@@ -354,7 +354,7 @@ def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
         "device": run.device,
         "target": run.target,
         "dry_run": run.dry_run,
-        "method": (run.plan_info or {}).get("method"),
+        "method": run.session_plan().method,
         "configurations": 0,
         "joints": [],
         "check": None,
@@ -451,7 +451,7 @@ def learning_curve_prediction(db: Session, cell: Cell, poses: int) -> dict:
 def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSession) -> dict:
     """What identification from these configurations is predicted to achieve (observation
     planning's covariance σ²(JᵀJ)⁻¹ propagated to random configurations)."""
-    info = run.plan_info or {}
+    info = run.session_plan().planner  # what the planner predicted for these configurations
     L = model_from_dict(cell.model).units.length_m
     sigma_m = INSTRUMENT_SIGMA_M
     note = (
@@ -513,9 +513,9 @@ def session_model(db: Session, run: RunSession, cell: Cell) -> tuple[KinematicMo
     the session ran. A verify session's is the calibration it checked (None: the nominal model),
     or, until it has finished, the one it will check (the candidate made before it started, else
     the cell's current one then); any other session's is the cell's calibration when it started."""
-    verified = (run.plan_info or {}).get("verify")
+    verified = run.verify_result()
     if verified is not None:
-        cid = verified.get("calibration_id")
+        cid = verified.calibration_id
         cal = db.get(Calibration, cid) if cid is not None else None
     else:
         cal = candidate_calibration(db, cell, made_by=run.created_at) if run.kind == "verify" else None
