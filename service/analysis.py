@@ -57,12 +57,12 @@ def store_calibration(
     kind: str,
     model: KinematicModel,
     report: dict,
-    covariance: dict | None,
     rms: float | None,
     extra: dict | None = None,
 ) -> Calibration:
     """Store what a session gave as a calibration of ``kind`` of ``cell`` (committed); ``extra``
-    goes into the stored model document beside the model."""
+    goes into the stored model document beside the model (an identified model's
+    ``identification`` block: its parameters' covariance is stored there, once)."""
     assert cell.id is not None  # a stored cell
     doc = model_to_dict(model)
     if extra:
@@ -73,7 +73,6 @@ def store_calibration(
         kind=kind,
         model=doc,
         report=report,
-        covariance=covariance,
         rms=rms,
         nominal_version=cell.model_version,
     )

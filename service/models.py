@@ -314,7 +314,7 @@ class Calibration(SQLModel, table=True):
     kind: str = "pose"
     model: dict = Field(sa_column=Column(JSON, nullable=False))
     report: dict = Field(sa_column=Column(JSON, nullable=False))
-    covariance: dict | None = Field(default=None, sa_column=Column(JSON))  # {"names": [...], "matrix": [[...]]} SI
+    # the parameters' covariance is the model's identification.covariance (SI), stored once (schema v11)
     rms: float | None = None  # hold-out / residual RMS, model length unit
     created_at: datetime = Field(default_factory=utcnow)
     nominal_version: int | None = None  # the cell's model_version this was identified from (schema v3)

@@ -236,7 +236,51 @@ def _v10(conn) -> None:
         )
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8, _v9, _v10]
+def _v11(conn) -> None:
+    """A calibration's parameter covariance stored once, in one shape (issue 23): the model's
+    ``identification.covariance`` (calibration.report's block, SI), which ``recal predict`` and
+    the result page read already; ``calibration.covariance``, its copy in another shape, goes.
+    What only the copy had, the relations of the parameters the identification held (the next
+    session's prior needs them), joins the block as ``held_relations``; a model without the
+    block's covariance gets it from the copy. Nothing else of a stored model changes."""
+    if "covariance" not in {c["name"] for c in inspect(conn).get_columns("calibration")}:
+        return
+    calibration = sa_table("calibration", sa_column("id"), sa_column("model", JSON), sa_column("covariance", JSON))
+    rows = conn.execute(
+        select(calibration.c.id, calibration.c.model, calibration.c.covariance).where(
+            calibration.c.covariance.is_not(None)
+        )
+    ).all()
+    for cal_id, model, copy in rows:
+        merged = _covariance_in_block(model, copy)
+        if merged is not None:
+            conn.execute(update(calibration).where(calibration.c.id == cal_id).values(model=merged))
+    conn.execute(text("ALTER TABLE calibration DROP COLUMN covariance"))
+
+
+def _covariance_in_block(model, copy) -> dict | None:
+    """``model`` (a stored model document) with what ``copy`` (a ``calibration.covariance`` of
+    schema v10) adds to its ``identification.covariance``; None when it adds nothing."""
+    if not isinstance(model, dict) or not isinstance(copy, dict) or not copy.get("names"):
+        return None
+    block = model.get("identification") if isinstance(model.get("identification"), dict) else {}
+    cov = dict(block.get("covariance") or {})
+    if not cov.get("names"):
+        cov = {
+            "units": "SI (m, rad; gains 1)",
+            "names": copy["names"],
+            "kinds": copy.get("kinds"),
+            "matrix": copy["matrix"],
+        }
+        cov = {k: v for k, v in cov.items() if v is not None}
+    elif not copy.get("held"):
+        return None
+    if copy.get("held"):
+        cov["held_relations"] = copy["held"]
+    return {**model, "identification": {**block, "covariance": cov}}
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8, _v9, _v10, _v11]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 

@@ -106,7 +106,7 @@ def joint_session(db, run, cell):
         "joints": results,
         "note": "reference encoder offsets are the encoders' own zeros; joint offsets come from pose calibration",
     }
-    return store_calibration(db, cell, run, "joint", new, report, None, None)
+    return store_calibration(db, cell, run, "joint", new, report, None)
 
 
 KIND = Joint()

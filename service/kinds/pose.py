@@ -72,17 +72,13 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     prev = current_calibration(db, cell)
     prior = None
     start = nominal
-    if prev is not None and prev.covariance:
+    stored = None if prev is None else stored_covariance(prev)
+    if prev is not None and stored is not None:
         start = model_from_dict(prev.model)
-        names = tuple(prev.covariance["names"])
-        cov = np.array(prev.covariance["matrix"], dtype=float)
-        kinds = prev.covariance.get("kinds") or ["length"] * len(names)
+        names, kinds, cov, held = stored
         drift = np.array(
             [DRIFT_ANGLE_RAD if k == "angle" else DRIFT_LENGTH_M if k == "length" else 1e-4 for k in kinds]
         )
-        # what it held at the model's value, confused with what it estimated (e.g. the tool orientation
-        # a tracker cannot see): new data that determine them move the combinations it measured
-        held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
         scale = max(drift_scale(start, data, names, cov, drift, held=held), DRIFT_SCALE_MIN)
         prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
     try:
@@ -105,21 +101,36 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
             report["compliance"] = {
                 k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v) for k, v in cmp.items()
             }
-    cov = {
-        "names": list(result.param_names),
-        "kinds": [p.kind for p in result.params],
-        "matrix": result.covariance.tolist(),
-        "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()},
-    }
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
     rmap_doc, report["residual_map"] = _residual_map(start, data, prior, result.model, model)
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q, report=report)
+    held = held_relations(result)
+    if held:  # what the next session's prior needs of the parameters it held (stored_covariance)
+        block["covariance"]["held_relations"] = {n: [[m, c] for m, c in rel] for n, rel in held.items()}
     ctrl = current_controller_model(db, cell.id)
     if ctrl is not None:  # a UR cell: what its controller computes with (targets mode, URScript need it)
         block["controller"] = ctrl.model
     extra = {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})}
-    return store_calibration(db, cell, run, "pose", model, report, cov, result.rms_m / L, extra)
+    return store_calibration(db, cell, run, "pose", model, report, result.rms_m / L, extra)
+
+
+def stored_covariance(cal: Calibration) -> tuple[tuple[str, ...], list[str], np.ndarray, dict] | None:
+    """What a calibration's identification left for the next one's prior, read from the one place
+    it is stored (the model's ``identification.covariance``, SI, calibration.report's block):
+    the parameters' names and kinds, their covariance (P, P) as identified (not grown by the
+    model-error scale: the drift allowance is added to it), and what it held at the model's value,
+    confused with what it estimated (e.g. the tool orientation a tracker cannot see): ``{name:
+    ((estimated name, coefficient SI), ...)}``, so that new data that determine them move the
+    combinations it measured. None when it stores no covariance."""
+    block = cal.model.get("identification")
+    cov = block.get("covariance") if isinstance(block, dict) else None
+    if not isinstance(cov, dict) or not cov.get("names"):
+        return None
+    names = tuple(cov["names"])
+    kinds = list(cov.get("kinds") or ["length"] * len(names))
+    held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (cov.get("held_relations") or {}).items()}
+    return names, kinds, np.array(cov["matrix"], dtype=float), held
 
 
 def _residual_map(
