@@ -499,7 +499,7 @@ class _In(BaseModel):
     @classmethod
     def _documents_are_finite(cls, value: Any, info: ValidationInfo) -> Any:
         if isinstance(value, (dict, list, str, float, int)):
-            _finite(value, info.field_name)
+            _finite(value, info.field_name or "body")
         return value
 
 
@@ -528,11 +528,16 @@ class CellUpdate(_In):
     (refused while a session drives the cell; the old one is kept in the audit log)."""
 
     # Omitted or a value, never null (the OpenAPI document says so: no "null" in their types and
-    # no default, which once let a client generated from it send nulls the route refused).
-    name: Name = PField(None, json_schema_extra=_omitted_or_value)
-    model: dict[str, Any] = PField(None, json_schema_extra=_omitted_or_value)
-    devices: dict[str, Any] = PField(None, description=DEVICES_DOC, json_schema_extra=_omitted_or_value)
-    site: Name = PField(None, json_schema_extra=_omitted_or_value)
+    # no default, which once let a client generated from it send nulls the route refused). The
+    # None default is what "left out" reads as (cells.py reads exclude_unset), never a value.
+    name: Name = PField(None, json_schema_extra=_omitted_or_value)  # type: ignore[assignment]
+    model: dict[str, Any] = PField(None, json_schema_extra=_omitted_or_value)  # type: ignore[arg-type]
+    devices: dict[str, Any] = PField(
+        None,  # type: ignore[arg-type]
+        description=DEVICES_DOC,
+        json_schema_extra=_omitted_or_value,
+    )
+    site: Name = PField(None, json_schema_extra=_omitted_or_value)  # type: ignore[assignment]
     allowed_region: list[list[float]] | None = None  # null: no region beyond the model's joint limits
     drift_threshold: float | None = PField(default=None, gt=0)  # null: no threshold
 
