@@ -4,6 +4,8 @@ way a result is stored, and the error that says the measurements cannot give one
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from sqlmodel import Session
 
 from calibration.errors import RecalError
@@ -59,10 +61,13 @@ def store_calibration(
     report: dict,
     rms: float | None,
     extra: dict | None = None,
+    predict: Callable[[Calibration], dict | None] | None = None,
 ) -> Calibration:
-    """Store what a session gave as a calibration of ``kind`` of ``cell`` (committed); ``extra``
-    goes into the stored model document beside the model (an identified model's
-    ``identification`` block: its parameters' covariance is stored there, once)."""
+    """Store what a session gave as a calibration of ``kind`` of ``cell``, committed once;
+    ``extra`` goes into the stored model document beside the model (an identified model's
+    ``identification`` block: its parameters' covariance is stored there, once). ``predict``:
+    its predicted accuracy (``Calibration.predicted``) from the calibration as stored, with its
+    id (the workspace's samples are drawn from it, as the result page draws them)."""
     assert cell.id is not None  # a stored cell
     doc = model_to_dict(model)
     if extra:
@@ -80,6 +85,9 @@ def store_calibration(
     if kind != "pose":  # only pose calibrations serve as the cell's model: nothing to protect
         cal.activated_at, cal.activated_by = cal.created_at, run.created_by
     db.add(cal)
+    if predict is not None:
+        db.flush()  # its id, in this transaction
+        cal.predicted = predict(cal)
     db.commit()
     db.refresh(cal)
     if first:  # a cell with no current calibration has nothing to protect: this one is current at once

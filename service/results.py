@@ -117,11 +117,19 @@ def start_model_of(db: Session, cal: Calibration, cell: Cell) -> tuple[Kinematic
     return model_from_dict(cell.model), "the nominal model"
 
 
-def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samples: int = WORKSPACE_SAMPLES) -> dict:
+def workspace_accuracy(
+    cal: Calibration,
+    cell: Cell,
+    target: str | None,
+    *,
+    samples: int = WORKSPACE_SAMPLES,
+    model: KinematicModel | None = None,
+) -> dict:
     """The identified model's predicted position uncertainty (95 % radius, from the parameters'
     covariance, instrument noise not included) at ``samples`` configurations drawn uniformly
-    inside the cell's allowed joint ranges; with where the target is there (for a map)."""
-    model = model_from_dict(cal.model)
+    inside the cell's allowed joint ranges; with where the target is there (for a map).
+    ``model``: ``cal.model`` already read (``model_from_dict``), else it is read here."""
+    model = model_from_dict(cal.model) if model is None else model
     try:  # the model's stored covariance is what `recal predict --uncertainty` reads too
         covariance_from_block(model)
         orientation_from_block(model)
@@ -184,7 +192,8 @@ def predicted_accuracy(cal: Calibration, cell: Cell, target: str | None) -> dict
     """The calibration's predicted accuracy over the workspace, compact, to store with it: the
     statistics of the 95 % radius :func:`workspace_accuracy` gives (what /result shows), in the
     model's length unit; None when the calibration has no covariance."""
-    ws = workspace_accuracy(cal, cell, target)
+    model = model_from_dict(cal.model)  # read once
+    ws = workspace_accuracy(cal, cell, target, model=model)
     if not ws.get("available"):
         return None
     st = ws["stats95"]
@@ -194,7 +203,7 @@ def predicted_accuracy(cal: Calibration, cell: Cell, target: str | None) -> dict
         "radius95_max": st["max"],
         "samples": ws["samples"],
         "target": ws["target"],
-        "unit": model_from_dict(cal.model).units.length,
+        "unit": model.units.length,
     }
 
 

@@ -7,6 +7,7 @@ map where cross-validation shows it helps; stored as a new calibration of kind `
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 from sqlmodel import Session
@@ -61,8 +62,6 @@ class Pose(PositionKind):
 
     def finish(self, db, run, cell, settings) -> None:
         cal = identify_session(db, run, cell)
-        cal.predicted = predicted_accuracy(cal, cell, run.target)  # stored with it: drift lists it without reports
-        db.add(cal)
         run.calibration_id = cal.id
 
 
@@ -112,7 +111,9 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
     if ctrl is not None:  # a UR cell: what its controller computes with (targets mode, URScript need it)
         block["controller"] = ctrl.model
     extra = {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})}
-    return store_calibration(db, cell, run, "pose", model, report, result.rms_m / L, extra)
+    # its predicted accuracy stored with it (drift lists it without reading reports)
+    predict = functools.partial(predicted_accuracy, cell=cell, target=run.target)
+    return store_calibration(db, cell, run, "pose", model, report, result.rms_m / L, extra, predict)
 
 
 def stored_covariance(cal: Calibration) -> tuple[tuple[str, ...], list[str], np.ndarray, dict] | None:
