@@ -163,10 +163,10 @@ def controller_nominal(db, cell) -> dict:
 def refresh_on_session_start(db, run, cell, robot) -> dict | None:
     """A session starts on the cell: read its controller's kinematics again (UR over RTDE) and
     store a new version when it is the first or it changed, or, over Modbus, check the stored
-    one against UR's TCP-pose registers. What happened goes into ``run.plan_info`` under
-    ``controller_model`` (``RunSession.controller_event``: ``version``, ``changed``, ``warning``)
-    and, for a change, the audit
-    log. Never raises for the controller's sake: the session goes on with what is stored."""
+    one against UR's TCP-pose registers. What happened is the session's controller event
+    (``RunSession.record_controller``: ``version``, ``changed``, ``warning``; the public
+    ``plan_info.controller_model``) and, for a change, the audit log. Never raises for the
+    controller's sake: the session goes on with what is stored."""
     from drivers.errors import DeviceError
 
     from .store import add_controller_model, audit, current_controller_model
@@ -384,8 +384,8 @@ def learn_from_registers(db, run, cell, robot, samples: list[tuple[np.ndarray, n
     registers read at its configurations (``samples``: (q, T_base_tcp) pairs) and store it as a
     new version when the cell has none, or when the check at the session's start found the
     stored one disagreeing with the registers (then the audit log gets "controller model
-    changed"). An exact model read over RTDE that agrees is kept. ``run.plan_info``'s
-    ``controller_model`` says what happened; never raises for the controller's sake."""
+    changed"). An exact model read over RTDE that agrees is kept. The session's controller event
+    (``RunSession.controller()``) says what happened; never raises for the controller's sake."""
     from calibration.model import model_from_dict
 
     from .store import add_controller_model, audit, current_controller_model
