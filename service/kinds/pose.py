@@ -66,6 +66,7 @@ class Pose(PositionKind):
 
 
 def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
+    assert cell.id is not None  # a stored cell
     data = session_data(db, run)
     nominal = model_from_dict(cell.model)
     prev = current_calibration(db, cell)
@@ -88,7 +89,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell) -> Calibration:
         raise AnalysisError(f"identification did not converge: {result.message}")
     units = nominal.units
     report = identification_report(result, units, data_rows=data.row)
-    report["prior"] = None if prior is None else _prior_summary(result, prev, prior, scale, units)
+    report["prior"] = None if prior is None or prev is None else _prior_summary(result, prev, prior, scale, units)
     if start.compliance is not None:  # a compliant calibration: rigid against compliant, cross-validated
         from calibration.compliance_fit import compare
 

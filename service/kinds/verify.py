@@ -111,6 +111,7 @@ def pose_repeatability(model: KinematicModel, data: Measurements, repeats: int) 
     """ISO 9283 pose accuracy AP and repeatability RP (§7.2.1-7.2.2, ``calibration.metrics``) of
     a verify session that visited each configuration ``repeats`` times (step ``s`` visits
     configuration ``s // repeats``); the command is where the current model puts the target."""
+    assert data.pose_id is not None  # a session's measurements carry their pose numbers (records.session_data)
     p_cmd = data.p_world - position_errors(model, data)
     st = metrics.pose_statistics(p_cmd, data.p_world, data.pose_id // repeats)
     L = model.units.length_m
