@@ -4,6 +4,8 @@ way a result is stored, and the error that says the measurements cannot give one
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from sqlmodel import Session
 
 from calibration.errors import RecalError
@@ -25,8 +27,7 @@ def session_sigma(run: RunSession, cell: Cell, role: str) -> InstrumentSigma:
     """The per-axis standard uncertainty the session's instrument (of ``role``) declared when the
     session was planned (stored with its plan), else what the cell's instrument declares now (a
     session imported from a file, or planned before the figure was stored)."""
-    stored = InstrumentSigma.from_info((run.plan_info or {}).get("instrument_sigma"))
-    return stored or instrument_sigma(cell.devices, role)
+    return run.session_plan().instrument_sigma or instrument_sigma(cell.devices, role)
 
 
 def guide_model(db: Session, cell: Cell) -> KinematicModel:
@@ -66,12 +67,15 @@ def store_calibration(
     kind: str,
     model: KinematicModel,
     report: dict,
-    covariance: dict | None,
     rms: float | None,
     extra: dict | None = None,
+    predict: Callable[[Calibration], dict | None] | None = None,
 ) -> Calibration:
-    """Store what a session gave as a calibration of ``kind`` of ``cell`` (committed); ``extra``
-    goes into the stored model document beside the model."""
+    """Store what a session gave as a calibration of ``kind`` of ``cell``, committed once;
+    ``extra`` goes into the stored model document beside the model (an identified model's
+    ``identification`` block: its parameters' covariance is stored there, once). ``predict``:
+    its predicted accuracy (``Calibration.predicted``) from the calibration as stored, with its
+    id (the workspace's samples are drawn from it, as the result page draws them)."""
     assert cell.id is not None  # a stored cell
     doc = model_to_dict(model)
     if extra:
@@ -82,7 +86,6 @@ def store_calibration(
         kind=kind,
         model=doc,
         report=report,
-        covariance=covariance,
         rms=rms,
         nominal_version=cell.model_version,
     )
@@ -90,6 +93,9 @@ def store_calibration(
     if kind != "pose":  # only pose calibrations serve as the cell's model: nothing to protect
         cal.activated_at, cal.activated_by = cal.created_at, run.created_by
     db.add(cal)
+    if predict is not None:
+        db.flush()  # its id, in this transaction
+        cal.predicted = predict(cal)
     db.commit()
     db.refresh(cal)
     if first:  # a cell with no current calibration has nothing to protect: this one is current at once

@@ -12,7 +12,7 @@ measures and commits.
   (``Robot.takes_payload``); it fails here, before anything moves, naming the controller.
 
 What it found is a typed record (:class:`CellPreparation`); what happened to the controller's
-model is also stored on the session (``plan_info["controller_model"]``), as before.
+model is also stored on the session (its controller event, `RunSession.record_controller`).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def prepare_cell(db: Session, run: RunSession, cell: Cell, devices: CellDevices)
     """Check the open devices against what the session needs and read or check the controller's
     kinematics (the module docstring). Raises :class:`SessionStopped` (``failed``) for a session
     the devices cannot run; never for the controller's kinematics (the session goes on with what
-    is stored, and ``plan_info["controller_model"]`` says why)."""
+    is stored, and the session's controller event says why)."""
     robot = devices.robot
     assert robot is not None  # opened first (service.orchestrator.open_session_devices)
     info = controller.refresh_on_session_start(db, run, cell, robot)

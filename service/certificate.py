@@ -61,9 +61,9 @@ def _verify_sessions(db: Session, cell_id: int, cal: Calibration) -> tuple[dict 
     before = after = None
     for sid, _, v in verifications(db, cell_id, limit=200):
         if sid < (cal.session_id or 0) and before is None:
-            before = {"session_id": sid, **v}
-        if v.get("calibration_id") == cal.id and sid > (cal.session_id or 0):
-            after = {"session_id": sid, **v}  # keeps the earliest (rows go newest first)
+            before = {"session_id": sid, **v.to_json()}
+        if v.calibration_id == cal.id and sid > (cal.session_id or 0):
+            after = {"session_id": sid, **v.to_json()}  # keeps the earliest (rows go newest first)
     return before, after
 
 
@@ -200,7 +200,7 @@ def certificate_data(db: Session, cal: Calibration) -> dict:
             "planned": run.planned if run is not None else None,
             "measured": report.get("rows"),
             "outliers": len(report.get("outliers") or []),
-            "plan_method": (run.plan_info or {}).get("method") if run is not None else None,
+            "plan_method": run.session_plan().method if run is not None else None,
         },
         "units": res["units"],
         "accuracy": accuracy,
@@ -308,7 +308,7 @@ def _checks(res, run, report, resid, settings, verify_after, cell, unit) -> list
         )
         add(
             "every configuration inside the joint limits and allowed region",
-            bool((run.plan_info or {}).get("limits_checked")),
+            run.session_plan().limits_checked,
             "checked before each move",
         )
     sigma = settings.get("sigma")

@@ -164,9 +164,10 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
     """A session starts on the cell: read its controller's kinematics again where the robot
     answers forward kinematics (UR over RTDE; ``Robot.kinematics_source``) and store a new
     version when it is the first or it changed, or, where it reports its TCP pose (UR over
-    Modbus), check the stored one against it. What happened goes into ``run.plan_info`` under
-    ``controller_model`` (``version``, ``changed``, ``warning``) and, for a change, the audit
-    log. Never raises for the controller's sake: the session goes on with what is stored."""
+    Modbus), check the stored one against it. What happened is the session's controller event
+    (``RunSession.record_controller``: ``version``, ``changed``, ``warning``; the public
+    ``plan_info.controller_model``) and, for a change, the audit log. Never raises for the
+    controller's sake: the session goes on with what is stored."""
     from drivers.errors import DeviceError
 
     from .store import add_controller_model, audit, current_controller_model
@@ -198,11 +199,19 @@ def refresh_on_session_start(db, run, cell, robot) -> dict | None:
                 subject=f"cell {cell.id}",
                 detail={"version": rec.version, "moved_mm": info["moved_mm"]},
             )
-    run.plan_info = {**(run.plan_info or {}), "controller_model": info}
+    _record(db, run, info)
+    return info
+
+
+def _record(db, run, info: dict) -> None:
+    """Store what the session did with the controller's kinematics (``RunSession.controller_event``,
+    the public ``plan_info.controller_model``), committed."""
+    from .models import ControllerEvent
+
+    run.record_controller(ControllerEvent.from_json(info))
     db.add(run)
     db.commit()
     db.refresh(run)
-    return info
 
 
 def _read_again(run, cell, robot, stored) -> tuple[dict, dict | None]:
@@ -368,8 +377,8 @@ def learn_from_registers(db, run, cell, robot, samples: list[tuple[np.ndarray, n
     registers read at its configurations (``samples``: (q, T_base_tcp) pairs) and store it as a
     new version when the cell has none, or when the check at the session's start found the
     stored one disagreeing with the registers (then the audit log gets "controller model
-    changed"). An exact model read over RTDE that agrees is kept. ``run.plan_info``'s
-    ``controller_model`` says what happened; never raises for the controller's sake."""
+    changed"). An exact model read over RTDE that agrees is kept. The session's controller event
+    (``RunSession.controller()``) says what happened; never raises for the controller's sake."""
     from calibration.model import model_from_dict
 
     from .store import add_controller_model, audit, current_controller_model
@@ -377,8 +386,9 @@ def learn_from_registers(db, run, cell, robot, samples: list[tuple[np.ndarray, n
     if not samples:
         return None
     stored = current_controller_model(db, cell.id)
-    at_start = (run.plan_info or {}).get("controller_model") or {}
-    if stored is not None and not at_start.get("changed"):
+    started = run.controller()
+    at_start = {} if started is None else started.to_json()
+    if stored is not None and not (started is not None and started.changed):
         return None
     q = np.array([s[0] for s in samples])
     T = np.array([s[1] for s in samples])
@@ -418,10 +428,7 @@ def learn_from_registers(db, run, cell, robot, samples: list[tuple[np.ndarray, n
                 subject=f"cell {cell.id}",
                 detail={"version": rec.version, "moved_mm": info["moved_mm"], "from_registers": True},
             )
-    run.plan_info = {**(run.plan_info or {}), "controller_model": info}
-    db.add(run)
-    db.commit()
-    db.refresh(run)
+    _record(db, run, info)
     return info
 
 

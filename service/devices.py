@@ -23,6 +23,7 @@ from .device_config import (
     stored_devices,
 )
 from .device_registry import DEVICES, ROLE_NAMES, can_bus_config, can_node_configs, emscon_config, open_can_node
+from .models import InstrumentSigma
 
 __all__ = [
     "DEFAULT_BALL_RADIUS_M",
@@ -69,28 +70,6 @@ class CellDevices:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-@dataclass(frozen=True)
-class InstrumentSigma:
-    """The per-axis standard uncertainty ``sigma_m`` (m) a session plans, predicts and weighs
-    with, and ``source``: the registry's label of the instrument that declares it, or why the
-    library's default stands in. Stored with the session's plan (``plan_info["instrument_sigma"]``)
-    so that its figures stay those of its time when the cell's devices change."""
-
-    sigma_m: float
-    source: str
-
-    def as_info(self) -> dict[str, Any]:
-        return {"sigma_m": self.sigma_m, "source": self.source}
-
-    @classmethod
-    def from_info(cls, info: Any) -> InstrumentSigma | None:
-        """The record :meth:`as_info` stored; None when there is none (a session planned before
-        the figure was stored, an imported one)."""
-        if not isinstance(info, dict) or not isinstance(info.get("sigma_m"), int | float) or not info["sigma_m"] > 0:
-            return None
-        return cls(float(info["sigma_m"]), str(info.get("source") or "stored with the session"))
 
 
 def instrument_sigma(doc: Any, role: str) -> InstrumentSigma:

@@ -51,17 +51,17 @@ def cell_drift(db: Session, cell_id: int) -> dict:
         prev, prev_version = params, version
     verify = []
     for sid, at, v in reversed(verifications(db, cell_id)):
-        iso = v.get("iso9283")
+        iso = v.iso9283
         verify.append(
             {
                 "session_id": sid,
                 "at": at,
-                "calibration_id": v.get("calibration_id"),
-                "n": v.get("n"),
-                "rms": v.get("rms"),
-                "max": v.get("max"),
-                "p95": v.get("p95"),
-                "unit": v.get("unit"),
+                "calibration_id": v.calibration_id,
+                "n": v.n,
+                "rms": v.rms,
+                "max": v.max,
+                "p95": v.p95,
+                "unit": v.unit,
                 "iso9283": None
                 if not iso
                 else {

@@ -14,7 +14,7 @@ from calibration.model import model_from_dict
 from . import records
 from .analysis import HANDED_OVER, AnalysisError
 from .kinds import finish_session
-from .models import Cell, RunSession
+from .models import Cell, ImportedFile, RunSession, SessionPlan
 from .problems import Invalid
 from .store import audit, delete_session_rows
 
@@ -78,8 +78,8 @@ def import_measurements(
         target=None,
         plan=data.q.tolist(),
         created_by=actor,
-        plan_info={"imported": {"name": safe_name, "rows": len(data)}, "nominal_version": cell.model_version},
     )
+    run.record_plan(SessionPlan(imported=ImportedFile(safe_name, len(data)), nominal_version=cell.model_version))
     # Nothing else writes this session meanwhile: its row (with the plan, a 100,000-row import's
     # 12 MB of JSON) is not read back after each commit (that cost 2.3 s).
     expire = db.expire_on_commit

@@ -7,7 +7,7 @@ documents (models, reports, endpoint lines) exactly as they were given.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
@@ -34,6 +34,210 @@ TERMINAL = ("completed", "failed", "aborted")  # nothing resumes it
 ID_TYPE = BigInteger().with_variant(Integer, "sqlite")
 
 
+# --------------------------------------------------------------------------- a session's records
+#
+# What a session was asked and planned, what its controller's kinematics did when it ran, and what
+# a verify session found: typed records, each written by one method of RunSession and read through
+# its type; JSON only here, at the store's edge (``to_json``/``from_json``, lossless both ways).
+# The public ``plan_info`` of a session (contracts) is the three together (:func:`public_plan_info`).
+
+
+def _tuple_or_none(values: Any) -> tuple | None:
+    return None if values is None else tuple(values)
+
+
+@dataclass(frozen=True)
+class ImportedFile:
+    """The file an imported session's measurements came from (``plan_info.imported``)."""
+
+    name: str
+    rows: int
+
+
+@dataclass(frozen=True)
+class InstrumentSigma:
+    """The per-axis standard uncertainty ``sigma_m`` (m) a session plans, predicts and weighs
+    with, and ``source``: the registry's label of the instrument that declares it, or why the
+    library's default stands in (service.devices.instrument_sigma). Stored with the session's
+    plan (:attr:`SessionPlan.instrument_sigma`) so that its figures stay those of its time when
+    the cell's devices change."""
+
+    sigma_m: float
+    source: str
+
+    def as_info(self) -> dict[str, Any]:
+        return {"sigma_m": self.sigma_m, "source": self.source}
+
+    @classmethod
+    def from_info(cls, info: Any) -> InstrumentSigma | None:
+        """The record :meth:`as_info` stored; None when there is none (a session planned before
+        the figure was stored, an imported one)."""
+        if not isinstance(info, dict) or not isinstance(info.get("sigma_m"), int | float) or not info["sigma_m"] > 0:
+            return None
+        return cls(float(info["sigma_m"]), str(info.get("source") or "stored with the session"))
+
+
+@dataclass(frozen=True)
+class SessionPlan:
+    """What a session was asked (joints, repeats, payloads), what it was planned from and what its
+    planner said (``planner``: the planner's predictions, JSON-ready as it gave them; ``method``
+    and ``limits_checked`` typed, as the result page and the certificate read them). Stored in
+    ``session.plan_info``."""
+
+    joints: tuple[int, ...] | None = None  # circle / joint sessions: the joints swept (1-based)
+    repeats: int | None = None  # verify sessions: visits of each configuration (None: once)
+    payloads: tuple[tuple[float, ...], ...] | None = None  # [kg, x, y, z] SI, the plan split between them
+    nominal_version: int | None = None  # the cell's nominal model version it was planned for
+    swept_joint: tuple[int, ...] | None = None  # per configuration, the joint a circle sweeps (0: none)
+    dry_run: bool = False  # planned and checked, nothing moved
+    from_dry_run: int | None = None  # the dry run whose plan it runs
+    imported: ImportedFile | None = None  # measurements imported from a file, not measured
+    method: str | None = None  # how the planner chose the configurations
+    limits_checked: bool = False  # every configuration checked against the joint limits and region
+    instrument_sigma: InstrumentSigma | None = None  # the instrument's noise it was planned with
+    planner: dict[str, Any] = field(default_factory=dict)  # the planner's other figures (predictions, spans)
+
+    _TYPED = (
+        "instrument_sigma",
+        "joints",
+        "repeats",
+        "payloads",
+        "nominal_version",
+        "swept_joint",
+        "dry_run",
+        "from_dry_run",
+        "imported",
+        "method",
+        "limits_checked",
+    )
+
+    @property
+    def visits(self) -> int:
+        """How often each configuration is visited (1 unless ``repeats`` says more)."""
+        return int(self.repeats or 1)
+
+    def planned(self, planner_info: dict[str, Any], *, swept_joint: list[int], nominal_version: int) -> SessionPlan:
+        """This request with what the planner said (``planner_info``, service.plans.Plan.info)."""
+        planned = SessionPlan.from_json({**self.to_json(), **planner_info})
+        return replace(planned, swept_joint=tuple(swept_joint), nominal_version=nominal_version)
+
+    def to_json(self) -> dict[str, Any]:
+        doc: dict[str, Any] = dict(self.planner)
+        if self.method is not None:
+            doc["method"] = self.method
+        if self.limits_checked:
+            doc["limits_checked"] = True
+        for name in ("joints", "swept_joint"):
+            if getattr(self, name) is not None:
+                doc[name] = list(getattr(self, name))
+        if self.payloads is not None:
+            doc["payloads"] = [list(p) for p in self.payloads]
+        for name in ("repeats", "nominal_version", "from_dry_run"):
+            if getattr(self, name) is not None:
+                doc[name] = getattr(self, name)
+        if self.dry_run:
+            doc["dry_run"] = True
+        if self.imported is not None:
+            doc["imported"] = {"name": self.imported.name, "rows": self.imported.rows}
+        if self.instrument_sigma is not None:
+            doc["instrument_sigma"] = self.instrument_sigma.as_info()
+        return doc
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any] | None) -> SessionPlan:
+        doc = doc or {}
+        imported = doc.get("imported")
+        payloads = doc.get("payloads")
+        return cls(
+            joints=_tuple_or_none(doc.get("joints")),
+            repeats=doc.get("repeats"),
+            payloads=None if payloads is None else tuple(tuple(p) for p in payloads),
+            nominal_version=doc.get("nominal_version"),
+            swept_joint=_tuple_or_none(doc.get("swept_joint")),
+            dry_run=bool(doc.get("dry_run")),
+            from_dry_run=doc.get("from_dry_run"),
+            imported=None if imported is None else ImportedFile(str(imported["name"]), int(imported["rows"])),
+            method=doc.get("method"),
+            limits_checked=bool(doc.get("limits_checked")),
+            instrument_sigma=InstrumentSigma.from_info(doc.get("instrument_sigma")),
+            planner={k: v for k, v in doc.items() if k not in cls._TYPED},
+        )
+
+
+@dataclass(frozen=True)
+class ControllerEvent:
+    """What a session did with its UR controller's own kinematics (service.controller): the
+    stored version it used or made, whether they changed, a warning for the operator, and the
+    figures of the read or check (``figures``: ``moved_mm``, ``tcp_registers_mm``,
+    ``tolerance_mm``, ``from_registers``, ``registers_rms_um``, as measured). Stored in
+    ``session.controller_event``; the public ``plan_info.controller_model``."""
+
+    version: int | None
+    changed: bool | None
+    warning: str | None
+    figures: dict[str, float | bool | None] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"version": self.version, "changed": self.changed, "warning": self.warning, **self.figures}
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any]) -> ControllerEvent:
+        figures = {k: v for k, v in doc.items() if k not in ("version", "changed", "warning")}
+        return cls(doc.get("version"), doc.get("changed"), doc.get("warning"), figures)
+
+
+@dataclass(frozen=True)
+class VerifyResult:
+    """A verify session's result (service.kinds.verify): the position errors of the calibration
+    it checked (``calibration_id``, None: the nominal model) on its fresh configurations,
+    statistics in the model's length unit ``unit``, with the optional parts when they apply.
+    Stored in ``session.verify``; the public ``plan_info.verify``."""
+
+    calibration_id: int | None
+    n: int | None
+    rms: float | None
+    max: float | None
+    p95: float | None
+    mean: float | None
+    unit: str | None
+    residual_correction: dict[str, Any] | None = None  # the correction's family, rows outside its region
+    registered: dict[str, float] | None = None  # rms, max with the base placed where it fits best
+    outside_calibrated_region: int | None = None  # configurations outside the calibration's data
+    iso9283: dict[str, Any] | None = None  # a repeated session's ISO 9283 figures
+    candidate: dict[str, Any] | None = None  # the candidate calibration it judged, and the verdict
+    extra: dict[str, Any] = field(default_factory=dict)  # any other figure a stored result carries
+
+    _CORE = ("calibration_id", "n", "rms", "max", "p95", "mean", "unit")
+    _OPTIONAL = ("residual_correction", "registered", "outside_calibrated_region", "iso9283", "candidate")
+
+    def to_json(self) -> dict[str, Any]:
+        doc = {k: getattr(self, k) for k in self._CORE}
+        doc.update({k: getattr(self, k) for k in self._OPTIONAL if getattr(self, k) is not None})
+        return {**doc, **self.extra}
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any]) -> VerifyResult:
+        known = cls._CORE + cls._OPTIONAL
+        return cls(
+            **{k: doc.get(k) for k in known},
+            extra={k: v for k, v in doc.items() if k not in known},
+        )
+
+
+def public_plan_info(
+    plan: SessionPlan, controller: ControllerEvent | None, verify: VerifyResult | None
+) -> dict[str, Any] | None:
+    """A session's ``plan_info`` as the API shows it (contracts): its plan (without the swept
+    joint of each configuration, internal), ``controller_model`` and ``verify`` when it has them;
+    None when there is nothing to say."""
+    doc = {k: v for k, v in plan.to_json().items() if k != "swept_joint"}
+    if controller is not None:
+        doc["controller_model"] = controller.to_json()
+    if verify is not None:
+        doc["verify"] = verify.to_json()
+    return doc or None
+
+
 class Cell(SQLModel, table=True):
     id: int | None = Field(default=None, primary_key=True, sa_type=ID_TYPE)
     name: str = Field(index=True, unique=True)
@@ -58,7 +262,7 @@ class RunSession(SQLModel, table=True):
     target: str | None = None
     dry_run: bool = False
     plan: list | None = Field(default=None, sa_column=Column(JSON))  # joint configurations, SI
-    plan_info: dict | None = Field(default=None, sa_column=Column(JSON))
+    plan_info: dict | None = Field(default=None, sa_column=Column(JSON))  # SessionPlan.to_json()
     reason: str | None = None  # why it paused, failed or was interrupted
     calibration_id: int | None = Field(default=None, sa_type=ID_TYPE)
     created_by: str = ""
@@ -72,6 +276,37 @@ class RunSession(SQLModel, table=True):
     device_state: dict | None = Field(default=None, sa_column=Column(JSON))
     # Beam breaks the session repaired itself by pointing the tracker at the reflector (schema v4)
     beam_recoveries: int = Field(default=0, sa_column_kwargs={"server_default": "0"})
+    # What the session did with its UR controller's kinematics (ControllerEvent.to_json()) and a
+    # verify session's result (VerifyResult.to_json()), each in its own column (schema v10; they
+    # were keys of plan_info before)
+    controller_event: dict | None = Field(default=None, sa_column=Column(JSON))
+    verify: dict | None = Field(default=None, sa_column=Column(JSON))
+
+    def session_plan(self) -> SessionPlan:
+        """What the session was asked and planned (an empty plan before it was asked anything)."""
+        return SessionPlan.from_json(self.plan_info)
+
+    def record_plan(self, plan: SessionPlan) -> None:
+        doc = plan.to_json()
+        self.plan_info = doc or None
+
+    def controller(self) -> ControllerEvent | None:
+        """What the session did with its controller's kinematics (None: nothing, not a UR cell)."""
+        return None if not self.controller_event else ControllerEvent.from_json(self.controller_event)
+
+    def record_controller(self, event: ControllerEvent) -> None:
+        self.controller_event = event.to_json()
+
+    def verify_result(self) -> VerifyResult | None:
+        """A completed verify session's result (None: none yet, or not a verify session)."""
+        return None if not self.verify else VerifyResult.from_json(self.verify)
+
+    def record_verify(self, result: VerifyResult) -> None:
+        self.verify = result.to_json()
+
+    def public_plan_info(self) -> dict[str, Any] | None:
+        """``plan_info`` as the API shows it (:func:`public_plan_info`)."""
+        return public_plan_info(self.session_plan(), self.controller(), self.verify_result())
 
 
 class Measurement(SQLModel, table=True):
@@ -107,7 +342,7 @@ class Calibration(SQLModel, table=True):
     kind: str = "pose"
     model: dict = Field(sa_column=Column(JSON, nullable=False))
     report: dict = Field(sa_column=Column(JSON, nullable=False))
-    covariance: dict | None = Field(default=None, sa_column=Column(JSON))  # {"names": [...], "matrix": [[...]]} SI
+    # the parameters' covariance is the model's identification.covariance (SI), stored once (schema v11)
     rms: float | None = None  # hold-out / residual RMS, model length unit
     created_at: datetime = Field(default_factory=utcnow)
     nominal_version: int | None = None  # the cell's model_version this was identified from (schema v3)
@@ -292,7 +527,7 @@ class _In(BaseModel):
     @classmethod
     def _documents_are_finite(cls, value: Any, info: ValidationInfo) -> Any:
         if isinstance(value, (dict, list, str, float, int)):
-            _finite(value, info.field_name)
+            _finite(value, info.field_name or "body")
         return value
 
 
@@ -321,11 +556,16 @@ class CellUpdate(_In):
     (refused while a session drives the cell; the old one is kept in the audit log)."""
 
     # Omitted or a value, never null (the OpenAPI document says so: no "null" in their types and
-    # no default, which once let a client generated from it send nulls the route refused).
-    name: Name = PField(None, json_schema_extra=_omitted_or_value)
-    model: dict[str, Any] = PField(None, json_schema_extra=_omitted_or_value)
-    devices: dict[str, Any] = PField(None, description=DEVICES_DOC, json_schema_extra=_omitted_or_value)
-    site: Name = PField(None, json_schema_extra=_omitted_or_value)
+    # no default, which once let a client generated from it send nulls the route refused). The
+    # None default is what "left out" reads as (cells.py reads exclude_unset), never a value.
+    name: Name = PField(None, json_schema_extra=_omitted_or_value)  # type: ignore[assignment]
+    model: dict[str, Any] = PField(None, json_schema_extra=_omitted_or_value)  # type: ignore[arg-type]
+    devices: dict[str, Any] = PField(
+        None,  # type: ignore[arg-type]
+        description=DEVICES_DOC,
+        json_schema_extra=_omitted_or_value,
+    )
+    site: Name = PField(None, json_schema_extra=_omitted_or_value)  # type: ignore[assignment]
     allowed_region: list[list[float]] | None = None  # null: no region beyond the model's joint limits
     drift_threshold: float | None = PField(default=None, gt=0)  # null: no threshold
 

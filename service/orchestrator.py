@@ -38,6 +38,7 @@ import logging
 import threading
 import time
 import traceback
+from dataclasses import replace
 
 import numpy as np
 from sqlalchemy.engine import Engine
@@ -50,7 +51,7 @@ from drivers.errors import DeviceError, DeviceUnavailableError, RobotStoppedErro
 from . import analysis, records
 from .cell_preparation import CellPreparation, TcpSample, no_payload_interface, prepare_cell
 from .control import Control, DeviceOpenError, SessionStopped, heavy_slot, retry
-from .devices import CellDevices, DeviceConfigError, InstrumentSigma, instrument_sigma, open_robot, stored_devices
+from .devices import CellDevices, DeviceConfigError, instrument_sigma, open_robot, stored_devices
 from .kinds import Step, finish_session, kind_of
 from .models import TERMINAL, Cell, Measurement, RunSession, utcnow
 from .plans import UnsafePlan, approach_configurations, check_configurations, plan_session
@@ -104,30 +105,23 @@ def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | Non
     predicts with the session's instrument's declared sigma, stored with it (``instrument_sigma``)."""
     model = model_from_dict(cell.model)
     if run.plan is None:
-        info = run.plan_info or {}
-        sigma = InstrumentSigma.from_info(info.get("instrument_sigma")) or instrument_sigma(
-            cell.devices, kind_of(run.kind).instrument(run)
-        )
+        asked = run.session_plan()
+        sigma = asked.instrument_sigma or instrument_sigma(cell.devices, kind_of(run.kind).instrument(run))
         plan = plan_session(
             kind_of(run.kind).plan,
             model,
             run.planned,
             region=cell.allowed_region,
             target=run.target,
-            joints=info.get("joints"),
+            joints=None if asked.joints is None else list(asked.joints),
             seed=run.id or 0,
             sigma_m=sigma.sigma_m,
-            repeats=int(info.get("repeats") or 1),
+            repeats=asked.visits,
             between=None if control is None else control.check,
         )
         run.plan = plan.q.tolist()
-        run.plan_info = {
-            **info,
-            **plan.info,
-            "swept_joint": plan.joint.tolist(),
-            "nominal_version": cell.model_version,
-            "instrument_sigma": sigma.as_info(),
-        }
+        planned = asked.planned(plan.info, swept_joint=plan.joint.tolist(), nominal_version=cell.model_version)
+        run.record_plan(replace(planned, instrument_sigma=sigma))
         run.planned = len(plan.q)
         db.add(run)
         db.commit()
@@ -140,7 +134,7 @@ def ensure_plan(db: Session, run: RunSession, cell: Cell, control: Control | Non
 
 
 def _repeats(run: RunSession) -> int:
-    return int((run.plan_info or {}).get("repeats") or 1)
+    return run.session_plan().visits
 
 
 def _device_state(what: str, detail: str) -> dict:
@@ -236,7 +230,7 @@ def run_session(
             _end(db, run, owner, *_stop_outcome(exc, control), None)
             return run.state
         if run.dry_run:
-            run.plan_info = {**(run.plan_info or {}), "dry_run": True}
+            run.record_plan(replace(run.session_plan(), dry_run=True))
             db.add(run)
             _end(db, run, owner, "completed", "dry run: planned and checked, nothing moved", None)
             return "completed"
@@ -374,7 +368,7 @@ def _measure_all(
     tcp_registers: list[TcpSample] = []
     plan = np.asarray(run.plan, dtype=float)
     approach = approach_configurations(model, cell.allowed_region, plan) if _repeats(run) > 1 else None
-    swept = (run.plan_info or {}).get("swept_joint") or [0] * len(plan)
+    swept = run.session_plan().swept_joint or [0] * len(plan)
     done = set(db.exec(select(Measurement.seq).where(Measurement.session_id == run.id)).all())
     todo = [seq for seq in range(len(plan)) if seq not in done]
     speed = settings.max_joint_speed_rad_s

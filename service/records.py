@@ -45,7 +45,7 @@ def payload_of(run: RunSession, seq: np.ndarray) -> np.ndarray | None:
     """The payload (N, 4) (kg, centre of gravity in the tool frame, m) each configuration ``seq``
     of a session with ``payloads`` was measured with: the plan is split between them in order
     (the first share of the configurations with the first payload, ...). None without payloads."""
-    payloads = (run.plan_info or {}).get("payloads")
+    payloads = run.session_plan().payloads
     if not payloads:
         return None
     n = max(int(run.planned or 0), int(np.max(seq, initial=0)) + 1)

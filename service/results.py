@@ -117,11 +117,19 @@ def start_model_of(db: Session, cal: Calibration, cell: Cell) -> tuple[Kinematic
     return model_from_dict(cell.model), "the nominal model"
 
 
-def workspace_accuracy(cal: Calibration, cell: Cell, target: str | None, *, samples: int = WORKSPACE_SAMPLES) -> dict:
+def workspace_accuracy(
+    cal: Calibration,
+    cell: Cell,
+    target: str | None,
+    *,
+    samples: int = WORKSPACE_SAMPLES,
+    model: KinematicModel | None = None,
+) -> dict:
     """The identified model's predicted position uncertainty (95 % radius, from the parameters'
     covariance, instrument noise not included) at ``samples`` configurations drawn uniformly
-    inside the cell's allowed joint ranges; with where the target is there (for a map)."""
-    model = model_from_dict(cal.model)
+    inside the cell's allowed joint ranges; with where the target is there (for a map).
+    ``model``: ``cal.model`` already read (``model_from_dict``), else it is read here."""
+    model = model_from_dict(cal.model) if model is None else model
     try:  # the model's stored covariance is what `recal predict --uncertainty` reads too
         covariance_from_block(model)
         orientation_from_block(model)
@@ -184,7 +192,8 @@ def predicted_accuracy(cal: Calibration, cell: Cell, target: str | None) -> dict
     """The calibration's predicted accuracy over the workspace, compact, to store with it: the
     statistics of the 95 % radius :func:`workspace_accuracy` gives (what /result shows), in the
     model's length unit; None when the calibration has no covariance."""
-    ws = workspace_accuracy(cal, cell, target)
+    model = model_from_dict(cal.model)  # read once
+    ws = workspace_accuracy(cal, cell, target, model=model)
     if not ws.get("available"):
         return None
     st = ws["stats95"]
@@ -194,7 +203,7 @@ def predicted_accuracy(cal: Calibration, cell: Cell, target: str | None) -> dict
         "radius95_max": st["max"],
         "samples": ws["samples"],
         "target": ws["target"],
-        "unit": model_from_dict(cal.model).units.length,
+        "unit": model.units.length,
     }
 
 
@@ -226,7 +235,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
             "planned": run.planned,
             "created_by": run.created_by,
             "created_at": as_utc(run.created_at).isoformat(),
-            "plan_method": (run.plan_info or {}).get("method"),
+            "plan_method": run.session_plan().method,
         },
         "units": {"length": model.units.length, "angle": model.units.angle},
         # a model with joint compliance sags under a task's payload: the page asks for it when compensating
@@ -354,7 +363,7 @@ def plan_preview(db: Session, run: RunSession, cell: Cell, settings) -> dict:
         "device": run.device,
         "target": run.target,
         "dry_run": run.dry_run,
-        "method": (run.plan_info or {}).get("method"),
+        "method": run.session_plan().method,
         "configurations": 0,
         "joints": [],
         "check": None,
@@ -452,7 +461,7 @@ def _predicted_pose_accuracy(db: Session, cell: Cell, q: np.ndarray, run: RunSes
     """What identification from these configurations is predicted to achieve (observation
     planning's covariance σ²(JᵀJ)⁻¹ propagated to random configurations), for the noise the
     session's instrument declares (:func:`service.analysis.session_sigma`)."""
-    info = run.plan_info or {}
+    info = run.session_plan().planner  # what the planner predicted for these configurations
     L = model_from_dict(cell.model).units.length_m
     sigma = session_sigma(run, cell, run.device)
     sigma_m = sigma.sigma_m
@@ -518,9 +527,9 @@ def session_model(db: Session, run: RunSession, cell: Cell) -> tuple[KinematicMo
     the session ran. A verify session's is the calibration it checked (None: the nominal model),
     or, until it has finished, the one it will check (the candidate made before it started, else
     the cell's current one then); any other session's is the cell's calibration when it started."""
-    verified = (run.plan_info or {}).get("verify")
+    verified = run.verify_result()
     if verified is not None:
-        cid = verified.get("calibration_id")
+        cid = verified.calibration_id
         cal = db.get(Calibration, cid) if cid is not None else None
     else:
         cal = candidate_calibration(db, cell, made_by=run.created_at) if run.kind == "verify" else None

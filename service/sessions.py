@@ -6,6 +6,7 @@ session is active while planned or running; a cell runs one at a time). The rout
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 from sqlalchemy import bindparam, delete, func
 from sqlalchemy import select as sa_select
@@ -15,7 +16,21 @@ from sqlmodel import Session, col, select
 from calibration.model import model_from_dict
 
 from .kinds import kind_of
-from .models import ACTIVE, TERMINAL, Cell, Measurement, RunSession, SessionCreate, SessionPublic, Token, utcnow
+from .models import (
+    ACTIVE,
+    TERMINAL,
+    Cell,
+    ControllerEvent,
+    Measurement,
+    RunSession,
+    SessionCreate,
+    SessionPlan,
+    SessionPublic,
+    Token,
+    VerifyResult,
+    public_plan_info,
+    utcnow,
+)
 from .problems import Conflict, Invalid, NotFound
 from .runners import SessionRunner
 from .store import audit, measured_count, set_state_unless
@@ -23,12 +38,10 @@ from .store import audit, measured_count, set_state_unless
 
 def public_session(db, run: RunSession) -> SessionPublic:
     assert run.id is not None  # a stored session
-    info = dict(run.plan_info or {})
-    info.pop("swept_joint", None)
     return SessionPublic(
-        **run.model_dump(exclude={"plan", "plan_info", "lease_owner", "lease_expires"}),
+        **run.model_dump(exclude={"plan", "plan_info", "controller_event", "verify", "lease_owner", "lease_expires"}),
         measured=measured_count(db, run.id),
-        plan_info=info or None,
+        plan_info=run.public_plan_info(),
     )
 
 
@@ -47,7 +60,8 @@ _MEASURED = (
     .scalar_subquery()
     .label("measured")
 )
-_READ_PUBLIC = sa_select(*_PUBLIC, _MEASURED).where(col(RunSession.id) == bindparam("session_id"))  # built once
+_RECORDS = (col(RunSession.controller_event), col(RunSession.verify))  # plan_info's other parts (public_plan_info)
+_READ_PUBLIC = sa_select(*_PUBLIC, *_RECORDS, _MEASURED).where(col(RunSession.id) == bindparam("session_id"))
 
 
 def read_public_session(db, session_id: int) -> SessionPublic:
@@ -55,9 +69,13 @@ def read_public_session(db, session_id: int) -> SessionPublic:
     if row is None:
         raise NotFound(f"no session {session_id}")
     doc = dict(row)
-    info = dict(doc.pop("plan_info") or {})
-    info.pop("swept_joint", None)
-    return SessionPublic(**doc, plan_info=info or None)
+    controller, verify = doc.pop("controller_event"), doc.pop("verify")
+    info = public_plan_info(
+        SessionPlan.from_json(doc.pop("plan_info")),
+        ControllerEvent.from_json(controller) if controller else None,
+        VerifyResult.from_json(verify) if verify else None,
+    )
+    return SessionPublic(**doc, plan_info=info)
 
 
 def get_cell(db, cell_id: int) -> Cell:
@@ -92,13 +110,6 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     if not body.dry_run:  # a dry run moves and measures nothing: any cell can show a plan
         kind.check(cell, model, device=body.device, joints=body.joints, payloads=body.payloads)
         refuse_if_busy(db, cell.id)
-    info = {
-        **({"joints": body.joints} if body.joints else {}),
-        **({"repeats": body.repeats} if body.repeats > 1 else {}),
-    }
-    if body.payloads:  # SI: kg, then the centre of gravity in the tool frame (m)
-        L = model.units.length_m
-        info["payloads"] = [[p[0], p[1] * L, p[2] * L, p[3] * L] for p in body.payloads]
     run = RunSession(
         cell_id=cell.id,
         kind=body.kind,
@@ -107,10 +118,24 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
         target=body.target if body.target is not None else kind.default_target(model, body.device),
         dry_run=body.dry_run,
         created_by=tok.name,
-        plan_info=info or None,
     )
+    run.record_plan(requested_plan(body, model.units.length_m))
     detail = {"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run}
     return _commit_and_start(db, run, orchestrator, tok, detail)
+
+
+def requested_plan(body: SessionCreate, length_m: float) -> SessionPlan:
+    """What a session request asks of its plan: the joints, the repeats and the payloads (SI: kg,
+    then the centre of gravity in the tool frame, m, from the model's length unit ``length_m``)."""
+    return SessionPlan(
+        joints=tuple(body.joints) if body.joints else None,
+        repeats=body.repeats if body.repeats > 1 else None,
+        payloads=(
+            tuple((p[0], p[1] * length_m, p[2] * length_m, p[3] * length_m) for p in body.payloads)
+            if body.payloads
+            else None
+        ),
+    )
 
 
 def _commit_and_start(
@@ -155,7 +180,7 @@ def resume_session(db: Session, run: RunSession, tok: Token, orchestrator) -> Se
     was replaced since it was planned, or another session drives the cell."""
     if run.state not in RESUMABLE:
         raise Conflict(f"session {run.id} is {run.state}; only a paused or interrupted session can resume")
-    planned_for = (run.plan_info or {}).get("nominal_version")
+    planned_for = run.session_plan().nominal_version
     cell = get_cell(db, run.cell_id)
     if run.plan is not None and planned_for is not None and planned_for != cell.model_version:
         raise Conflict(
@@ -197,12 +222,15 @@ def run_dry_plan(db: Session, dry: RunSession, cell: Cell, tok: Token, orchestra
             f"session {dry.id} is not a completed dry run with a plan "
             f"(state {dry.state}{', ' + dry.reason if dry.reason else ''})"
         )
-    info = {k: v for k, v in (dry.plan_info or {}).items() if k != "dry_run"}
+    shown = dry.session_plan()
     kind_of(dry.kind).check(
-        cell, model_from_dict(cell.model), device=dry.device, joints=info.get("joints"), payloads=info.get("payloads")
+        cell,
+        model_from_dict(cell.model),
+        device=dry.device,
+        joints=None if shown.joints is None else list(shown.joints),
+        payloads=None if shown.payloads is None else [list(p) for p in shown.payloads],
     )
     refuse_if_busy(db, cell.id)
-    info["from_dry_run"] = dry.id
     run = RunSession(
         cell_id=cell.id,
         kind=dry.kind,
@@ -212,8 +240,8 @@ def run_dry_plan(db: Session, dry: RunSession, cell: Cell, tok: Token, orchestra
         dry_run=False,
         created_by=tok.name,
         plan=dry.plan,
-        plan_info=info,
     )
+    run.record_plan(replace(shown, dry_run=False, from_dry_run=dry.id))
     return _commit_and_start(
         db, run, orchestrator, tok, {"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id}
     )

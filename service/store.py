@@ -16,7 +16,9 @@ from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-from sqlalchemy import delete, event, func, inspect, text, update
+from sqlalchemy import JSON, delete, event, func, inspect, text, update
+from sqlalchemy import column as sa_column
+from sqlalchemy import table as sa_table
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
@@ -34,6 +36,7 @@ from .models import (
     RunSession,
     SchemaVersion,
     Token,
+    VerifyResult,
     identified_calibration_kinds,
     kinds_that,
     utcnow,
@@ -204,7 +207,80 @@ def _v9(conn) -> None:
     )
 
 
-MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8, _v9]
+def _v10(conn) -> None:
+    """A session's records each in its place (issue 23): what it did with its UR controller's
+    kinematics (``session.controller_event``) and a verify session's result (``session.verify``)
+    move out of ``plan_info`` (its ``controller_model`` and ``verify`` keys), which keeps the plan
+    alone. The public ``plan_info`` shows the three together as before."""
+    columns = {c["name"] for c in inspect(conn).get_columns("session")}
+    for column in ("controller_event", "verify"):
+        if column not in columns:
+            conn.execute(text(f"ALTER TABLE session ADD COLUMN {column} JSON"))
+    # the table as this migration knows it (never the present model's, which may change later)
+    session = sa_table(
+        "session", sa_column("id"), *(sa_column(c, JSON) for c in ("plan_info", "controller_event", "verify"))
+    )
+    rows = conn.execute(select(session.c.id, session.c.plan_info).where(session.c.plan_info.is_not(None))).all()
+    for sid, info in rows:
+        if not isinstance(info, dict) or not ({"controller_model", "verify"} & info.keys()):
+            continue
+        plan = {k: v for k, v in info.items() if k not in ("controller_model", "verify")}
+        conn.execute(
+            update(session)
+            .where(session.c.id == sid)
+            .values(
+                plan_info=plan or None,
+                controller_event=info.get("controller_model") or None,
+                verify=info.get("verify") or None,
+            )
+        )
+
+
+def _v11(conn) -> None:
+    """A calibration's parameter covariance stored once, in one shape (issue 23): the model's
+    ``identification.covariance`` (calibration.report's block, SI), which ``recal predict`` and
+    the result page read already; ``calibration.covariance``, its copy in another shape, goes.
+    What only the copy had, the relations of the parameters the identification held (the next
+    session's prior needs them), joins the block as ``held_relations``; a model without the
+    block's covariance gets it from the copy. Nothing else of a stored model changes."""
+    if "covariance" not in {c["name"] for c in inspect(conn).get_columns("calibration")}:
+        return
+    calibration = sa_table("calibration", sa_column("id"), sa_column("model", JSON), sa_column("covariance", JSON))
+    rows = conn.execute(
+        select(calibration.c.id, calibration.c.model, calibration.c.covariance).where(
+            calibration.c.covariance.is_not(None)
+        )
+    ).all()
+    for cal_id, model, copy in rows:
+        merged = _covariance_in_block(model, copy)
+        if merged is not None:
+            conn.execute(update(calibration).where(calibration.c.id == cal_id).values(model=merged))
+    conn.execute(text("ALTER TABLE calibration DROP COLUMN covariance"))
+
+
+def _covariance_in_block(model, copy) -> dict | None:
+    """``model`` (a stored model document) with what ``copy`` (a ``calibration.covariance`` of
+    schema v10) adds to its ``identification.covariance``; None when it adds nothing."""
+    if not isinstance(model, dict) or not isinstance(copy, dict) or not copy.get("names"):
+        return None
+    block = model.get("identification") if isinstance(model.get("identification"), dict) else {}
+    cov = dict(block.get("covariance") or {})
+    if not cov.get("names"):
+        cov = {
+            "units": "SI (m, rad; gains 1)",
+            "names": copy["names"],
+            "kinds": copy.get("kinds"),
+            "matrix": copy["matrix"],
+        }
+        cov = {k: v for k, v in cov.items() if v is not None}
+    elif not copy.get("held"):
+        return None
+    if copy.get("held"):
+        cov["held_relations"] = copy["held"]
+    return {**model, "identification": {**block, "covariance": cov}}
+
+
+MIGRATIONS: list[Callable] = [_v1, _v2, _v3, _v4, _v5, _v6, _v7, _v8, _v9, _v10, _v11]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -269,12 +345,12 @@ def revoke_token(db: Session, token_id: int) -> bool:
     return True
 
 
-def verifications(db: Session, cell_id: int, *, limit: int | None = None) -> list[tuple[int, datetime, dict]]:
+def verifications(db: Session, cell_id: int, *, limit: int | None = None) -> list[tuple[int, datetime, VerifyResult]]:
     """The cell's completed verify sessions that have a result, newest first (the last ``limit``
-    verify sessions): ``(session id, when it ended, its result)`` (``plan_info["verify"]``, model
+    verify sessions): ``(session id, when it ended, its result)`` (``session.verify``, model
     units). Columns only: the page's trend, the drift page and the certificate read these."""
     q = (
-        select(RunSession.id, RunSession.updated_at, RunSession.plan_info)
+        select(RunSession.id, RunSession.updated_at, RunSession.verify)
         .where(
             RunSession.cell_id == cell_id,
             RunSession.kind.in_(kinds_that(lambda r: r.stores == "verification")),  # type: ignore[attr-defined]
@@ -286,10 +362,9 @@ def verifications(db: Session, cell_id: int, *, limit: int | None = None) -> lis
     if limit is not None:
         q = q.limit(limit)
     out = []
-    for sid, at, info in db.exec(q).all():
-        v = (info or {}).get("verify")
+    for sid, at, v in db.exec(q).all():
         if v:
-            out.append((sid, at, v))
+            out.append((sid, at, VerifyResult.from_json(v)))
     return out
 
 

@@ -56,15 +56,15 @@ def _verified(db, cell_id: int, limit: int = TREND) -> list[dict]:
     identified from), is the cell's accuracy."""
     out = []
     for sid, t, v in reversed(verifications(db, cell_id, limit=limit)):
-        if v.get("calibration_id") is None or v.get("rms") is None:
+        if v.calibration_id is None or v.rms is None:
             continue
         out.append(
             {
                 "session_id": sid,
-                "calibration_id": v["calibration_id"],
-                "rms": v["rms"],
-                "max": v.get("max"),
-                "n": v.get("n"),
+                "calibration_id": v.calibration_id,
+                "rms": v.rms,
+                "max": v.max,
+                "n": v.n,
                 "created_at": as_utc(t).isoformat(),
             }
         )

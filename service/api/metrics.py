@@ -24,7 +24,7 @@ from sqlalchemy import func
 from sqlmodel import Session, select
 
 from ..kinds import KINDS  # noqa: F401 - registers the kinds' rules kinds_that reads
-from ..models import Cell, Measurement, RunSession, kinds_that
+from ..models import Cell, Measurement, RunSession, VerifyResult, kinds_that
 
 router = APIRouter(include_in_schema=False)
 
@@ -46,7 +46,7 @@ class StoreCollector:
             n_meas = db.exec(select(func.count(Measurement.id))).one()
             cells = db.exec(select(Cell.id, Cell.name, Cell.model["units"], Cell.drift_threshold)).all()
             verifies = db.exec(
-                select(RunSession.cell_id, RunSession.plan_info)
+                select(RunSession.cell_id, RunSession.verify)
                 .where(
                     RunSession.kind.in_(kinds_that(lambda r: r.stores == "verification")),  # type: ignore[attr-defined]
                     RunSession.state == "completed",
@@ -59,10 +59,10 @@ class StoreCollector:
             g.add_metric([state], n)
         yield g
         yield GaugeMetricFamily("recal_measurements", "Measurements stored", value=n_meas)
-        last: dict[int, dict] = {}
-        for cell_id, info in verifies:  # oldest first: the last one wins
-            v = (info or {}).get("verify")
-            if v and v.get("max") is not None:
+        last: dict[int, VerifyResult] = {}
+        for cell_id, doc in verifies:  # oldest first: the last one wins
+            v = VerifyResult.from_json(doc) if doc else None
+            if v is not None and v.max is not None:
                 last[cell_id] = v
         rms = GaugeMetricFamily(
             "recal_cell_verified_rms", "Last verify session's measured RMS position error", labels=["cell", "unit"]
@@ -80,13 +80,13 @@ class StoreCollector:
             unit = (units or {}).get("length") or "?"
             v = last.get(cell_id)
             if v is not None:
-                if v.get("rms") is not None:
-                    rms.add_metric([name, unit], float(v["rms"]))
-                mx.add_metric([name, unit], float(v["max"]))
+                if v.rms is not None:
+                    rms.add_metric([name, unit], float(v.rms))
+                mx.add_metric([name, unit], float(v.max or 0.0))
             if threshold:
                 thr.add_metric([name, unit], float(threshold))
                 if v is not None:
-                    ratio.add_metric([name], float(v["max"]) / float(threshold))
+                    ratio.add_metric([name], float(v.max or 0.0) / float(threshold))
         yield from (rms, mx, thr, ratio)
 
 

@@ -54,7 +54,7 @@ def circle_session(db, run, cell, role: str):
         raise AnalysisError(f"circle-point analysis failed: {exc}") from None
     report = cpa_report(res, nominal, sweeps)
     model = dataclasses.replace(res.model, units=nominal.units, name=f"{cell.name}-cpa")
-    return store_calibration(db, cell, run, "cpa", model, report, None, None)
+    return store_calibration(db, cell, run, "cpa", model, report, None)
 
 
 KIND = Circle()

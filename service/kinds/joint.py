@@ -55,7 +55,8 @@ class Joint(SessionKind):
         return joint_sweeps(req, "joint sweeps")
 
     def open_instrument(self, devices, cell, run, settings) -> None:
-        joints = (run.plan_info or {}).get("joints")
+        swept = run.session_plan().joints
+        joints = None if swept is None else list(swept)
         devices.encoders = open_encoders(stored_devices(cell.devices), joints, timeout_s=settings.device_timeout_s)
 
     def measure_one(self, step: Step, seq, q_read, joint) -> list[Measurement]:
@@ -105,7 +106,7 @@ def joint_session(db, run, cell):
         "joints": results,
         "note": "reference encoder offsets are the encoders' own zeros; joint offsets come from pose calibration",
     }
-    return store_calibration(db, cell, run, "joint", new, report, None, None)
+    return store_calibration(db, cell, run, "joint", new, report, None)
 
 
 KIND = Joint()

@@ -9,6 +9,7 @@ of kind ``pose``."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 from sqlmodel import Session
@@ -63,32 +64,27 @@ class Pose(PositionKind):
 
     def finish(self, db, run, cell, settings) -> None:
         cal = identify_session(db, run, cell, self.instrument(run))
-        cal.predicted = predicted_accuracy(cal, cell, run.target)  # stored with it: drift lists it without reports
-        db.add(cal)
         run.calibration_id = cal.id
 
 
 def identify_session(db: Session, run: RunSession, cell: Cell, role: str) -> Calibration:
     """Identify the session's measurements (its ``role``'s instrument's declared sigma weighs the
     rows that carry none, and the orientations of full poses), from the previous calibration as
-    the prior when there is one; the calibration stored."""
+    the prior when there is one; the calibration stored once, with its predicted accuracy."""
+    assert cell.id is not None  # a stored cell
     data = session_data(db, run)
     sigma_m = session_sigma(run, cell, role).sigma_m
     nominal = model_from_dict(cell.model)
     prev = current_calibration(db, cell)
     prior = None
     start = nominal
-    if prev is not None and prev.covariance:
+    stored = None if prev is None else stored_covariance(prev)
+    if prev is not None and stored is not None:
         start = model_from_dict(prev.model)
-        names = tuple(prev.covariance["names"])
-        cov = np.array(prev.covariance["matrix"], dtype=float)
-        kinds = prev.covariance.get("kinds") or ["length"] * len(names)
+        names, kinds, cov, held = stored
         drift = np.array(
             [DRIFT_ANGLE_RAD if k == "angle" else DRIFT_LENGTH_M if k == "length" else 1e-4 for k in kinds]
         )
-        # what it held at the model's value, confused with what it estimated (e.g. the tool orientation
-        # a tracker cannot see): new data that determine them move the combinations it measured
-        held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (prev.covariance.get("held") or {}).items()}
         scale = max(drift_scale(start, data, names, cov, drift, sigma_m=sigma_m, held=held), DRIFT_SCALE_MIN)
         prior = Prior(names, cov + np.diag((scale * drift) ** 2), held)
     try:
@@ -99,7 +95,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell, role: str) -> Cal
         raise AnalysisError(f"identification did not converge: {result.message}")
     units = nominal.units
     report = identification_report(result, units, data_rows=data.row)
-    report["prior"] = None if prior is None else _prior_summary(result, prev, prior, scale, units)
+    report["prior"] = None if prior is None or prev is None else _prior_summary(result, prev, prior, scale, units)
     if start.compliance is not None:  # a compliant calibration: rigid against compliant, cross-validated
         from calibration.compliance_fit import compare
 
@@ -111,21 +107,38 @@ def identify_session(db: Session, run: RunSession, cell: Cell, role: str) -> Cal
             report["compliance"] = {
                 k.removesuffix("_m"): (v / units.length_m if k.endswith("_m") else v) for k, v in cmp.items()
             }
-    cov = {
-        "names": list(result.param_names),
-        "kinds": [p.kind for p in result.params],
-        "matrix": result.covariance.tolist(),
-        "held": {n: [[m, c] for m, c in rel] for n, rel in held_relations(result).items()},
-    }
     model = dataclasses.replace(result.model, units=units, name=f"{cell.name}-calibrated")
     rmap_doc, report["residual_map"] = _residual_map(start, data, prior, sigma_m, result.model, model)
     L = units.length_m
     block = identification_block(result, units, nominal=nominal, q=data.q, report=report)
+    held = held_relations(result)
+    if held:  # what the next session's prior needs of the parameters it held (stored_covariance)
+        block["covariance"]["held_relations"] = {n: [[m, c] for m, c in rel] for n, rel in held.items()}
     ctrl = current_controller_model(db, cell.id)
     if ctrl is not None:  # a UR cell: what its controller computes with (targets mode, URScript need it)
         block["controller"] = ctrl.model
     extra = {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})}
-    return store_calibration(db, cell, run, "pose", model, report, cov, result.rms_m / L, extra)
+    # its predicted accuracy stored with it (drift lists it without reading reports)
+    predict = functools.partial(predicted_accuracy, cell=cell, target=run.target)
+    return store_calibration(db, cell, run, "pose", model, report, result.rms_m / L, extra, predict)
+
+
+def stored_covariance(cal: Calibration) -> tuple[tuple[str, ...], list[str], np.ndarray, dict] | None:
+    """What a calibration's identification left for the next one's prior, read from the one place
+    it is stored (the model's ``identification.covariance``, SI, calibration.report's block):
+    the parameters' names and kinds, their covariance (P, P) as identified (not grown by the
+    model-error scale: the drift allowance is added to it), and what it held at the model's value,
+    confused with what it estimated (e.g. the tool orientation a tracker cannot see): ``{name:
+    ((estimated name, coefficient SI), ...)}``, so that new data that determine them move the
+    combinations it measured. None when it stores no covariance."""
+    block = cal.model.get("identification")
+    cov = block.get("covariance") if isinstance(block, dict) else None
+    if not isinstance(cov, dict) or not cov.get("names"):
+        return None
+    names = tuple(cov["names"])
+    kinds = list(cov.get("kinds") or ["length"] * len(names))
+    held = {n: tuple((m, float(c)) for m, c in rel) for n, rel in (cov.get("held_relations") or {}).items()}
+    return names, kinds, np.array(cov["matrix"], dtype=float), held
 
 
 def _residual_map(

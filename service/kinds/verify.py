@@ -14,7 +14,7 @@ from calibration.identification import Measurements
 from calibration.model import KinematicModel, model_from_dict
 
 from ..analysis import session_data
-from ..models import KindRules
+from ..models import KindRules, VerifyResult
 from ..plans import Plan, PlanRequest, random_inside, repeated
 from ..records import corrected_errors, current_model, position_errors, registered_errors
 from ..results import position_residuals
@@ -43,10 +43,10 @@ class Verify(PositionKind):
         return repeated(random_inside(req.lim, req.count, req.rng, req.model), req.repeats)
 
     def finish(self, db, run, cell, settings) -> None:
-        run.plan_info = {**(run.plan_info or {}), "verify": verify_session(db, run, cell)}
+        run.record_verify(verify_session(db, run, cell))
 
 
-def verify_session(db, run, cell) -> dict:
+def verify_session(db, run, cell) -> VerifyResult:
     """The current model's position errors on the session's measurements (statistics in the
     model's length unit), also with the base placed where it fits best, and the ISO 9283 figures
     of a repeated session."""
@@ -61,15 +61,7 @@ def verify_session(db, run, cell) -> dict:
     e = np.linalg.norm(e_xyz, axis=1)
     L = model.units.length_m
     st = metrics.norm_statistics(e / L)
-    out = {
-        "calibration_id": None if cal is None else cal.id,
-        "n": st.n,
-        "rms": st.rms,
-        "max": st.max,
-        "p95": st.p95,
-        "mean": st.mean,
-        "unit": model.units.length,
-    }
+    out: dict = {}  # the parts that apply
     if inside is not None:
         # where the correction did not apply the geometric model alone was judged: counted, flagged
         out["residual_correction"] = {
@@ -88,12 +80,13 @@ def verify_session(db, run, cell) -> dict:
         ranges = calibrated_range_of(model)
         if ranges is not None:
             out["outside_calibrated_region"] = int(np.count_nonzero(metrics.outside_joint_ranges(data.q, ranges)))
-    repeats = int((run.plan_info or {}).get("repeats") or 1)
+    repeats = run.session_plan().visits
     if repeats > 1:
         out["iso9283"] = pose_repeatability(model, data, repeats)
     if candidate is not None and before is not None:
         out["candidate"] = _judge(db, run, candidate, st.rms, before)
-    return out
+    calibration_id = None if cal is None else cal.id
+    return VerifyResult(calibration_id, st.n, st.rms, st.max, st.p95, st.mean, model.units.length, **out)
 
 
 def _errors(model: KinematicModel, data: Measurements, cal) -> dict:
@@ -118,6 +111,7 @@ def pose_repeatability(model: KinematicModel, data: Measurements, repeats: int) 
     """ISO 9283 pose accuracy AP and repeatability RP (§7.2.1-7.2.2, ``calibration.metrics``) of
     a verify session that visited each configuration ``repeats`` times (step ``s`` visits
     configuration ``s // repeats``); the command is where the current model puts the target."""
+    assert data.pose_id is not None  # a session's measurements carry their pose numbers (records.session_data)
     p_cmd = data.p_world - position_errors(model, data)
     st = metrics.pose_statistics(p_cmd, data.p_world, data.pose_id // repeats)
     L = model.units.length_m
