@@ -5,12 +5,12 @@ orchestrator overhead per pose under 20 ms with the cell at time scale 0;
 Set-up: one simulated UR10e cell (``recal fake-cell``, time scale 0) and ``recal serve`` on its
 embedded default (SQLite), as processes, with ``RECAL_SETTLE_S=0``.
 
-1. **Orchestrator overhead per pose.** A pose session of ``--poses`` configurations through the
+1. **EmbeddedRunner overhead per pose.** A pose session of ``--poses`` configurations through the
    API. Its time per pose is the interval between consecutive measurements' commit times in
    the store (planning before and identification after are not per pose). Side by side, in
    the same run and on the same cell, the baseline: the same configurations through the same
    drivers in a plain loop (``move_joints``, ``read_joints``, ``measure``), with nothing else.
-   The difference is what the orchestrator adds per pose: the limit check, the retry wrapper,
+   The difference is what the session loop adds per pose: the limit check, the retry wrapper,
    the commit of each measurement before the next move, the lease renewal.
 2. **GET latency under load.** ``--clients`` clients (threads spread over
    ``--client-processes`` processes, each client on its own keep-alive connection) each send

@@ -1,5 +1,5 @@
 """Cell preparation: what a session does with its open devices before its first move, as one
-named step (:func:`prepare_cell`), so that the session loop (``service.orchestrator``) only moves,
+named step (:func:`prepare_cell`), so that the session loop (``service.session_loop``) only moves,
 measures and commits.
 
 - the controller's own kinematics (``service.controller``, docs/devices/ur.md), by what the robot
@@ -58,7 +58,7 @@ def prepare_cell(db: Session, run: RunSession, cell: Cell, devices: CellDevices)
     the devices cannot run; never for the controller's kinematics (the session goes on with what
     is stored, and the session's controller event says why)."""
     robot = devices.robot
-    assert robot is not None  # opened first (service.orchestrator.open_session_devices)
+    assert robot is not None  # opened first (service.session_loop.open_session_devices)
     info = controller.refresh_on_session_start(db, run, cell, robot)
     check_payloads(db, run, robot)
     return CellPreparation(controller_model=info, read_tcp_pose=controller.register_sampler(cell, robot))

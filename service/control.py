@@ -1,7 +1,7 @@
 """How a running session is controlled from outside and how it calls its devices: the requests
 it honours between two steps (:class:`Control`: pause, abort, interrupt, the lease), how it
 stops (:class:`SessionStopped`), the retries of a device call (:func:`retry`), and the process's
-slots for heavy work (:func:`heavy_slot`). The orchestrator and every session kind
+slots for heavy work (:func:`heavy_slot`). The session loop and every session kind
 (:mod:`service.kinds`) share these."""
 
 from __future__ import annotations

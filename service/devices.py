@@ -2,7 +2,7 @@
 the ``devices`` document by :func:`service.device_config.parse_devices`).
 
 Which driver opens which key is the registry's (:data:`service.device_registry.DEVICES`); the
-orchestrator only sees the interfaces of ``drivers.base``. The CAN bus's nodes are opened here,
+session loop only sees the interfaces of ``drivers.base``. The CAN bus's nodes are opened here,
 joint by joint, each by the registry's ``open_can_node``.
 """
 

@@ -1,8 +1,8 @@
 """What runs a service's sessions: one :class:`SessionRunner` protocol, two implementations.
 
-- ``embedded`` (the default): :class:`service.orchestrator.Orchestrator`, sessions in threads of
+- ``embedded`` (the default): :class:`service.session_loop.EmbeddedRunner`, sessions in threads of
   the API process;
-- ``procrastinate``: :class:`service.fleet.orchestrator.FleetOrchestrator`, sessions queued for
+- ``procrastinate``: :class:`service.fleet.runner.FleetRunner`, sessions queued for
   ``recal worker`` processes (docs/fleet.md).
 
 ``create_app`` asks :func:`runner_class` once; the routes and the use cases see only the
@@ -62,9 +62,9 @@ class SessionRunner(Protocol):
 def runner_class(settings: Settings):
     """The runner class the settings ask for (``RECAL_ENGINE``): ``cls(engine, settings)``."""
     if settings.engine == "embedded":
-        from .orchestrator import Orchestrator
+        from .session_loop import EmbeddedRunner
 
-        return Orchestrator
-    from .fleet.orchestrator import FleetOrchestrator  # needs the fleet extra (procrastinate)
+        return EmbeddedRunner
+    from .fleet.runner import FleetRunner  # needs the fleet extra (procrastinate)
 
-    return FleetOrchestrator
+    return FleetRunner

@@ -92,7 +92,7 @@ def get_run(db, session_id: int) -> RunSession:
     return run
 
 
-def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orchestrator) -> SessionPublic:
+def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, runner) -> SessionPublic:
     assert cell.id is not None  # a stored cell
     model = model_from_dict(cell.model)
     if body.target is not None and body.target not in model.targets:
@@ -121,7 +121,7 @@ def start_session(db: Session, cell: Cell, body: SessionCreate, tok: Token, orch
     )
     run.record_plan(requested_plan(body, model.units.length_m))
     detail = {"cell": cell.id, "kind": run.kind, "count": body.count, "dry_run": body.dry_run}
-    return _commit_and_start(db, run, orchestrator, tok, detail)
+    return _commit_and_start(db, run, runner, tok, detail)
 
 
 def requested_plan(body: SessionCreate, length_m: float) -> SessionPlan:
@@ -139,11 +139,11 @@ def requested_plan(body: SessionCreate, length_m: float) -> SessionPlan:
 
 
 def _commit_and_start(
-    db: Session, run: RunSession, orchestrator, tok: Token, detail: dict | None, action: str = "start session"
+    db: Session, run: RunSession, runner, tok: Token, detail: dict | None, action: str = "start session"
 ) -> SessionPublic:
     """Store ``run`` planned, audited, and start it (or queue it: :func:`commit_planned`)."""
     try:
-        queued = commit_planned(db, run, orchestrator)
+        queued = commit_planned(db, run, runner)
     except IntegrityError:  # another request (any API process) started one on this cell meanwhile
         db.rollback()
         raise Conflict("another session is already driving this cell") from None
@@ -153,7 +153,7 @@ def _commit_and_start(
         forget_dry_runs(db, run.cell_id, keep=run.id)
     audit(db, actor=tok.name, action=action, subject=f"session {run.id}", detail=detail)
     if not queued:
-        orchestrator.start(run.id)
+        runner.start(run.id)
     return public_session(db, run)
 
 
@@ -174,7 +174,7 @@ RESUMABLE = ("paused", "interrupted", "planned")
 ABORT_WAIT_S = 3.0  # how long an abort waits for the session to have stopped before answering
 
 
-def resume_session(db: Session, run: RunSession, tok: Token, orchestrator) -> SessionPublic:
+def resume_session(db: Session, run: RunSession, tok: Token, runner) -> SessionPublic:
     """Continue a paused or interrupted session (or one left planned) with the first
     configuration not yet measured. Refused (:class:`Conflict`) when the cell's nominal model
     was replaced since it was planned, or another session drives the cell."""
@@ -191,15 +191,15 @@ def resume_session(db: Session, run: RunSession, tok: Token, orchestrator) -> Se
     if busy is not None:
         raise Conflict(f"session {busy.id} is driving this cell")
     run.state, run.reason, run.updated_at = "planned", None, utcnow()
-    return _commit_and_start(db, run, orchestrator, tok, None, action="resume session")
+    return _commit_and_start(db, run, runner, tok, None, action="resume session")
 
 
-def pause_session(db: Session, run: RunSession, tok: Token, orchestrator) -> SessionPublic:
+def pause_session(db: Session, run: RunSession, tok: Token, runner) -> SessionPublic:
     """Pause a running session at its next step (a session nothing runs is paused here)."""
     if run.state not in ACTIVE:
         raise Conflict(f"session {run.id} is {run.state}; only a running session can pause")
     audit(db, actor=tok.name, action="pause session", subject=f"session {run.id}")
-    if not orchestrator.pause(run.id):  # nothing runs it: paused here
+    if not runner.pause(run.id):  # nothing runs it: paused here
         set_state_unless(db, run, TERMINAL + ("paused", "interrupted"), "paused", "paused on request")
     db.refresh(run)
     return public_session(db, run)
@@ -213,7 +213,7 @@ def refuse_if_busy(db: Session, cell_id: int) -> None:
         raise Conflict(f"session {busy.id} is already driving this cell ({busy.state})")
 
 
-def run_dry_plan(db: Session, dry: RunSession, cell: Cell, tok: Token, orchestrator) -> SessionPublic:
+def run_dry_plan(db: Session, dry: RunSession, cell: Cell, tok: Token, runner) -> SessionPublic:
     """Run the plan of a completed dry run for real: a new session measuring exactly the
     configurations that were shown and checked, after the same checks as any start."""
     assert cell.id is not None  # a stored cell
@@ -243,7 +243,7 @@ def run_dry_plan(db: Session, dry: RunSession, cell: Cell, tok: Token, orchestra
     )
     run.record_plan(replace(shown, dry_run=False, from_dry_run=dry.id))
     return _commit_and_start(
-        db, run, orchestrator, tok, {"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id}
+        db, run, runner, tok, {"cell": cell.id, "kind": run.kind, "count": run.planned, "plan_of": dry.id}
     )
 
 
@@ -262,18 +262,18 @@ def forget_dry_runs(db, cell_id: int, *, keep: int) -> None:
     db.commit()
 
 
-def commit_planned(db, run: RunSession, orchestrator: SessionRunner) -> bool:
+def commit_planned(db, run: RunSession, runner: SessionRunner) -> bool:
     """Commit ``run``, planned. Where the runner queues sessions (the fleet), its job is queued in
     the same transaction, so that no session is ever stored planned without one; True then. Else
     (the embedded default) the caller starts it once committed."""
     db.add(run)
     db.flush()  # the id, for the job (and the one-active-session-per-cell index speaks here)
-    queued = orchestrator.queue(db, run)
+    queued = runner.queue(db, run)
     db.commit()
     return queued
 
 
-def abort_session(db: Session, run: RunSession, tok: Token, orchestrator) -> tuple[SessionPublic, float]:
+def abort_session(db: Session, run: RunSession, tok: Token, runner) -> tuple[SessionPublic, float]:
     """Stop the robot now and end the session: the session as it ended (the runner stops the
     robot at once and the session at its next step, while planning within 0.1 s, and stores it
     aborted before its devices close; waited for up to ``ABORT_WAIT_S``), and the
@@ -281,11 +281,11 @@ def abort_session(db: Session, run: RunSession, tok: Token, orchestrator) -> tup
     (planned and never started, paused, interrupted) is aborted here."""
     if run.state in TERMINAL:
         raise Conflict(f"session {run.id} is {run.state} already")
-    stopping = orchestrator.abort(run.id)
+    stopping = runner.abort(run.id)
     stopped_at = time.perf_counter()
     audit(db, actor=tok.name, action="abort session", subject=f"session {run.id}")
     if stopping:
-        orchestrator.wait(run.id, ABORT_WAIT_S)
+        runner.wait(run.id, ABORT_WAIT_S)
     else:
         set_state_unless(db, run, TERMINAL, "aborted", "aborted on request")
     db.refresh(run)

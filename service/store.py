@@ -1,5 +1,5 @@
 """Storage: the engine, schema migrations, and the data-access functions routes and the
-orchestrator use (keyword-only arguments, one transaction each).
+session loop use (keyword-only arguments, one transaction each).
 
 SQLite (the embedded default) runs in WAL mode with ``synchronous=FULL``: a measurement the
 service reported as taken survives a crash or a power loss. PostgreSQL comes through

@@ -1,5 +1,5 @@
 """``create_app(settings)``: the FastAPI application. Nothing is created at import time: the
-engine, the migrations and the orchestrator start in the lifespan."""
+engine, the migrations and the session loop start in the lifespan."""
 
 from __future__ import annotations
 
@@ -117,9 +117,9 @@ def _field(loc) -> str:
     return out
 
 
-def _lifespan(settings: Settings, orchestrator_factory):
+def _lifespan(settings: Settings, runner_factory):
     """Start-up and shut-down: the store migrated and checked, unfinished sessions marked
-    interrupted, the orchestrator and the heavy-work pool."""
+    interrupted, the session loop and the heavy-work pool."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -134,7 +134,7 @@ def _lifespan(settings: Settings, orchestrator_factory):
                 len(unreadable),
                 ", ".join(f"{f['table']} {f['id']} {f['field']}" for f in unreadable[:5]),
             )
-        factory = orchestrator_factory or runner_class(settings)
+        factory = runner_factory or runner_class(settings)
         if not factory.distributed:  # a fleet's sessions run on, in its workers
             with Session(engine) as db:
                 stopped = interrupt_unfinished(db)
@@ -142,15 +142,15 @@ def _lifespan(settings: Settings, orchestrator_factory):
                 log.warning("sessions interrupted by the last stop: %s (resume them to continue)", stopped)
         app.state.engine = engine
         app.state.settings = settings
-        app.state.orchestrator = factory(engine, settings)
+        app.state.runner = factory(engine, settings)
         app.state.heavy = HeavyPool(settings.heavy_workers)
         try:
             yield
         finally:
             app.state.heavy.shutdown()
-            app.state.orchestrator.shutdown()
+            app.state.runner.shutdown()
             with Session(engine) as db:
-                interrupt_unfinished(db, owner=app.state.orchestrator.owner)
+                interrupt_unfinished(db, owner=app.state.runner.owner)
             engine.dispose()
 
     return lifespan
@@ -214,12 +214,12 @@ def _install_error_handlers(app: FastAPI) -> None:
         return _internal_error(request, exc)
 
 
-def create_app(settings: Settings | None = None, *, orchestrator_factory=None) -> FastAPI:
+def create_app(settings: Settings | None = None, *, runner_factory=None) -> FastAPI:
     settings = settings or Settings.from_env()
     app = FastAPI(
         title="Recal",
         version="0.1.0",
-        lifespan=_lifespan(settings, orchestrator_factory),
+        lifespan=_lifespan(settings, runner_factory),
         generate_unique_id_function=_operation_id,
         dependencies=[Depends(bounded_numbers)],
         docs_url=None,

@@ -26,11 +26,11 @@ def get_db(request: Request) -> Iterator[Session]:
 DbSession = Annotated[Session, Depends(get_db)]
 
 
-def get_orchestrator(request: Request):
-    return request.app.state.orchestrator
+def get_runner(request: Request):
+    return request.app.state.runner
 
 
-Orchestrator = Annotated[SessionRunner, Depends(get_orchestrator)]
+SessionRunnerDep = Annotated[SessionRunner, Depends(get_runner)]
 
 
 # The bearer scheme of the OpenAPI document (auto_error off: a missing token is our own 401 with
@@ -149,7 +149,7 @@ def require(permission: str):
 
 
 Reader = Annotated[Token, require("read")]
-Runner = Annotated[Token, require("run")]
+SessionOperator = Annotated[Token, require("run")]
 Compensator = Annotated[Token, require("compensate")]
 CellEditor = Annotated[Token, require("cells")]
 Admin = Annotated[Token, require("admin")]

@@ -9,7 +9,7 @@ A session is one job of the task ``recal.run_session`` (``{"session_id": N}``):
 - ``queueing_lock`` ``session:<id>``: one waiting job per session, however often it is resumed.
 
 The job is deferred in the same transaction as the session's ``planned`` state
-(:func:`defer_session`, called by the API routes through ``FleetOrchestrator.queue``), so a
+(:func:`defer_session`, called by the API routes through ``FleetRunner.queue``), so a
 session is never queued twice and never stored planned without its job.
 """
 

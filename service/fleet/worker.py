@@ -15,7 +15,7 @@ database connections of its own (a busy session pool cannot hold it up):
   once, a poll every 0.25 s is the fallback); an abort stops the robot immediately.
 
 The database going away or answering slowly: claiming a session waits for it (the job is not
-given up, the session stays queued); measurement commits are retried (orchestrator); if a
+given up, the session stays queued); measurement commits are retried (session_loop); if a
 session still cannot go on, the worker waits for the database and, if it still holds the lease,
 continues the session where it stopped; otherwise the session ends ``interrupted``.
 SIGTERM / SIGINT: no new job; every running session stops between two steps as
@@ -41,12 +41,12 @@ from sqlalchemy import create_engine, text, update
 from sqlmodel import Session
 
 from ..models import ACTIVE, RunSession, utcnow
-from ..orchestrator import Control, run_session, store_abort
+from ..session_loop import Control, run_session, store_abort
 from ..settings import Settings
 from ..store import acquire_lease, database_unavailable, held_by_other, migrate, set_state
 from . import jobs
-from .orchestrator import CONTROL_CHANNEL
 from .reaper import Reaper
+from .runner import CONTROL_CHANNEL
 
 log = logging.getLogger("recal.fleet.worker")
 
@@ -165,7 +165,7 @@ class Monitor:
             log.info("session %s: abort requested, stopping the robot", sid)
             certain = c.request_abort()
             # in a thread: a real robot's stop returns once it has decelerated; then, as the
-            # embedded runner does, a certain abort is stored at once (orchestrator.store_abort)
+            # embedded runner does, a certain abort is stored at once (session_loop.store_abort)
             threading.Thread(target=_stop_robot, args=(self.engine, sid, c, certain), daemon=True).start()
         elif req == "pause" and not c.pause.is_set():
             log.info("session %s: pause requested", sid)

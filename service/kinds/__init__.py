@@ -1,6 +1,6 @@
 """The table of session kinds: one module per kind, each saying how it plans, which instrument it
 opens, how it measures one configuration and what it makes of the measurements
-(:class:`~service.kinds.base.SessionKind`). The orchestrator, the start of a session and the
+(:class:`~service.kinds.base.SessionKind`). The session loop, the start of a session and the
 import of external measurements look the kind up here and run any kind the same way (the pages
 show each kind's result: ``service.results``).
 

@@ -1,6 +1,6 @@
 """What every session kind says: how it plans, which instrument it opens, how it measures one
 configuration, and what it makes of the measurements at the end (:class:`SessionKind`). The
-orchestrator runs any kind the same way; :mod:`service.kinds` holds the table."""
+session loop runs any kind the same way; :mod:`service.kinds` holds the table."""
 
 from __future__ import annotations
 

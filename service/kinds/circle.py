@@ -15,6 +15,9 @@ from ..models import KindRules
 from ..plans import Plan, PlanRequest, joint_sweeps
 from .positions import PositionKind
 
+# Calibration.kind of what a circle session stores (named once: its rules and its store)
+CALIBRATION_KIND = "cpa"
+
 
 class Circle(PositionKind):
     name = "circle"
@@ -24,16 +27,18 @@ class Circle(PositionKind):
     heading = "Circle-point session"
     default_count = 12
     count_help = "points per swept joint"
-    rules = KindRules(max_count=120, calibration_kind="cpa")
+    # the session kind names the motion (circles), the calibration kind the method (circle-point
+    # analysis, as `recal cpa`); both are contracts (the API's session and calibration kinds)
+    rules = KindRules(max_count=120, calibration_kind=CALIBRATION_KIND)
 
     def plan(self, req: PlanRequest) -> Plan:
         return joint_sweeps(req, "circle sweeps")
 
     def finish(self, db, run, cell, settings) -> None:
-        run.calibration_id = circle_session(db, run, cell, self.instrument(run)).id
+        run.calibration_id = circle_point_calibration(db, run, cell, self.instrument(run)).id
 
 
-def circle_session(db, run, cell, role: str):
+def circle_point_calibration(db, run, cell, role: str):
     """Circle-point analysis of the session's sweeps (book §4.6), with the noise the session's
     ``role``'s instrument declares; the report is the one ``recal cpa`` writes."""
     from calibration.cpa import SweepError, Sweeps, circle_point_analysis
@@ -54,7 +59,7 @@ def circle_session(db, run, cell, role: str):
         raise AnalysisError(f"circle-point analysis failed: {exc}") from None
     report = cpa_report(res, nominal, sweeps)
     model = dataclasses.replace(res.model, units=nominal.units, name=f"{cell.name}-cpa")
-    return store_calibration(db, cell, run, "cpa", model, report, None)
+    return store_calibration(db, cell, run, CALIBRATION_KIND, model, report, None)
 
 
 KIND = Circle()

@@ -22,6 +22,9 @@ from ..records import current_model
 from ..results import joint_residuals
 from .base import SessionKind, Step, cell_devices
 
+# Calibration.kind of what a joint session stores (named once: its rules and its store)
+CALIBRATION_KIND = "joint"
+
 
 class Joint(SessionKind):
     name = "joint"
@@ -33,7 +36,7 @@ class Joint(SessionKind):
     count_help = "points per swept joint"
     instruments = ("encoder",)
     device_choice = False
-    rules = KindRules(max_count=360, calibration_kind="joint", live_residuals=joint_residuals)
+    rules = KindRules(max_count=360, calibration_kind=CALIBRATION_KIND, live_residuals=joint_residuals)
 
     def check(self, cell, model, *, device, joints, payloads) -> None:
         have = sorted(encoder_nodes(cell_devices(cell, field="body.kind")))
@@ -106,7 +109,7 @@ def joint_session(db, run, cell):
         "joints": results,
         "note": "reference encoder offsets are the encoders' own zeros; joint offsets come from pose calibration",
     }
-    return store_calibration(db, cell, run, "joint", new, report, None)
+    return store_calibration(db, cell, run, CALIBRATION_KIND, new, report, None)
 
 
 KIND = Joint()

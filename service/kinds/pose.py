@@ -37,6 +37,10 @@ DRIFT_ANGLE_RAD = np.deg2rad(0.005)
 DRIFT_SCALE_MIN = 0.1
 
 
+# Calibration.kind of what a pose session stores (named once: its rules and its store)
+CALIBRATION_KIND = "pose"
+
+
 class Pose(PositionKind):
     name = "pose"
     order = 10
@@ -52,7 +56,7 @@ class Pose(PositionKind):
     rules = KindRules(
         max_count=5000,
         carries_payloads=True,
-        calibration_kind="pose",
+        calibration_kind=CALIBRATION_KIND,
         current_model=True,
         importable=True,
         predicts_accuracy=True,
@@ -120,7 +124,7 @@ def identify_session(db: Session, run: RunSession, cell: Cell, role: str) -> Cal
     extra = {"identification": block, **({"residual_map": rmap_doc} if rmap_doc else {})}
     # its predicted accuracy stored with it (drift lists it without reading reports)
     predict = functools.partial(predicted_accuracy, cell=cell, target=run.target)
-    return store_calibration(db, cell, run, "pose", model, report, result.rms_m / L, extra, predict)
+    return store_calibration(db, cell, run, CALIBRATION_KIND, model, report, result.rms_m / L, extra, predict)
 
 
 def stored_covariance(cal: Calibration) -> tuple[tuple[str, ...], list[str], np.ndarray, dict] | None:

@@ -233,7 +233,7 @@ def tracker_then_cmm():
     tool orientation, and the reflector's offset stands in for the tool's); then a CMM session
     (16 full poses) with it as the prior, built as the service builds it (held relations, drift
     allowance scaled by drift_scale). The CMM measures the frame the balls' drawn layout fits
-    best on the real balls (service.orchestrator, book eq. 6.12-6.15): the true tool frame times
+    best on the real balls (service.session_loop, book eq. 6.12-6.15): the true tool frame times
     the constant X, simulated here with the noise the rows state."""
     rng = np.random.default_rng(11)
     targets = {"smr": np.array([0.0, 0.0, 0.05]), **{k: np.array(v) for k, v in BALLS.items()}}

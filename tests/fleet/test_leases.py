@@ -15,7 +15,7 @@ from service.fleet import jobs
 from service.fleet.reaper import Reaper
 from service.fleet.worker import Monitor
 from service.models import Cell, RunSession, utcnow
-from service.orchestrator import Control, SessionStopped
+from service.session_loop import Control, SessionStopped
 from service.settings import Settings
 from service.store import as_utc
 

@@ -112,7 +112,7 @@ def idle_app(settings):
 
     from service.api.app import create_app
 
-    return lambda **kw: TestClient(create_app(settings, orchestrator_factory=NoMotion), **kw)
+    return lambda **kw: TestClient(create_app(settings, runner_factory=NoMotion), **kw)
 
 
 @pytest.fixture
@@ -180,7 +180,7 @@ def store_session(
     region_deg: float | None = None,
     transmission_seed: int | None = None,
 ) -> tuple[int, int | None]:
-    """A completed session of the cell stored as the orchestrator stores one: simulated tracker
+    """A completed session of the cell stored as the session loop stores one: simulated tracker
     measurements (reflector ``smr``) of a robot near the cell's nominal model (link errors from
     ``truth_seed``), then the analysis (identification for ``pose``, accuracy for ``verify``,
     each configuration visited ``repeats`` times; ``sag``: the robot sags under gravity, one of

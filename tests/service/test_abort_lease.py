@@ -1,5 +1,5 @@
 """An aborted session is stored aborted before its devices are closed (so the abort is answered
-at once, orchestrator.run_session), and keeps its cell's lease until they are: a session
+at once, session_loop.run_session), and keeps its cell's lease until they are: a session
 started on the cell meanwhile waits for that, neither opening the robot while the old
 connections close nor being refused as if the cell were driven."""
 

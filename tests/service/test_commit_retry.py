@@ -11,7 +11,7 @@ from sqlalchemy.exc import OperationalError
 from sqlmodel import Session, select
 
 from service.models import Cell, Measurement, RunSession
-from service.orchestrator import Control, commit_measurements
+from service.session_loop import Control, commit_measurements
 from service.settings import Settings
 from service.store import make_engine, migrate
 

@@ -169,7 +169,7 @@ def test_over_modbus_a_changed_controller_is_fitted_again_from_the_tcp_registers
         assert refresh_on_session_start(db, run, cell, robot)["changed"] is True
         q_plan = np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.2]) + np.random.default_rng(6).uniform(-0.8, 0.8, (20, 6))
         samples = []
-        for q in q_plan:  # what the orchestrator reads where the robot stands
+        for q in q_plan:  # what the session loop reads where the robot stands
             robot.move_joints(q, speed_rad_s=1.0, accel_rad_s2=2.0)
             samples.append((robot.read_joints(), robot.read_tcp_pose()))
         info = learn_from_registers(db, run, cell, robot, samples)

@@ -17,7 +17,7 @@ REGION_DEG = 50.0
 
 
 def _dry_plan(client, settings, tokens, cell_id: int, count: int) -> dict:
-    from service.orchestrator import run_session
+    from service.session_loop import run_session
 
     t = auth(tokens["technician"])
     r = client.post(

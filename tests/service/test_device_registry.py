@@ -216,7 +216,7 @@ from pathlib import Path
 from sqlmodel import Session
 from calibration.robots import nominal_document
 from service.models import Cell, RunSession
-from service.orchestrator import ensure_plan
+from service.session_loop import ensure_plan
 from service.results import plan_preview
 from service.settings import Settings
 from service.store import make_engine, migrate

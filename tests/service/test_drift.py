@@ -2,7 +2,7 @@
 (``GET /calibrations/{a}/compare/{b}``): parameters, residuals and predicted accuracy of each
 calibration, verify sessions' measured accuracy (with ISO 9283 pose accuracy and repeatability
 when a verify session repeated its configurations). Sessions are simulated measurements stored
-as the orchestrator stores them; "the robot changed" is a robot with other link errors."""
+as the session loop stores them; "the robot changed" is a robot with other link errors."""
 
 from __future__ import annotations
 

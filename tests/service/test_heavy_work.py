@@ -93,7 +93,7 @@ def test_health_and_status_are_answered_while_a_large_compensation_runs(idle_app
 def test_a_session_waiting_for_a_heavy_work_slot_still_stops_on_abort():
     """Planning and identification hold one of ``heavy_workers`` slots; a session waiting for
     one while another plans is still aborted at once (planning waits are stoppable)."""
-    from service.orchestrator import Control, SessionStopped, heavy_slot
+    from service.session_loop import Control, SessionStopped, heavy_slot
 
     slots = threading.BoundedSemaphore(1)
     busy, waiting = Control(heavy=slots), Control(heavy=slots)

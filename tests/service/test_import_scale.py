@@ -41,7 +41,7 @@ def _measurement_csv(n: int, seed: int = 0) -> bytes:
 
 
 def _app(settings, **limits):
-    return TestClient(create_app(dataclasses.replace(settings, **limits), orchestrator_factory=NoMotion))
+    return TestClient(create_app(dataclasses.replace(settings, **limits), runner_factory=NoMotion))
 
 
 def test_an_import_of_more_configurations_than_the_map_takes_ends_with_its_calibration(settings, tokens):

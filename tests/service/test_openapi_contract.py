@@ -69,7 +69,7 @@ def test_the_api_keeps_its_openapi_contract_under_fuzzing(settings, tmp_path, st
         db.exec(text("UPDATE token SET id = 4611686018427387904 WHERE name = 'fuzzer'"))
         db.commit()
     engine.dispose()
-    app = create_app(settings, orchestrator_factory=NoMotion)
+    app = create_app(settings, runner_factory=NoMotion)
     with TestClient(app) as client:  # one of everything, id 1
         cell = register_cell(client, token, "fuzzed")["id"]
         stored_session(cell, seed=2)
@@ -84,7 +84,7 @@ def test_the_api_keeps_its_openapi_contract_under_fuzzing(settings, tmp_path, st
     port = free_port()
     server = uvicorn.Server(
         uvicorn.Config(
-            create_app(settings, orchestrator_factory=NoMotion),
+            create_app(settings, runner_factory=NoMotion),
             host="127.0.0.1",
             port=port,
             log_level="warning",

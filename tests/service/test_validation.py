@@ -289,7 +289,7 @@ def test_a_session_planned_for_a_replaced_nominal_does_not_resume(quiet_client, 
     c, t = quiet_client, auth(tokens["technician"])
     cell = _register(c, tokens)
     s = c.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "verify", "count": 3}, headers=t).json()
-    from service.orchestrator import run_session
+    from service.session_loop import run_session
 
     engine = make_engine(settings.effective_database_url)
     assert run_session(engine, settings, s["id"]) == "paused"  # planned, then no devices

@@ -140,8 +140,8 @@ def test_plan_of_a_dry_run_then_run_exactly_that_plan(client, settings, tokens):
         f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 25, "dry_run": True}, headers=t
     )
     dry = r.json()
-    # the stub orchestrator moves nothing: run the dry run the way the orchestrator does
-    from service.orchestrator import run_session
+    # the stub runner moves nothing: run the dry run the way the session loop does
+    from service.session_loop import run_session
 
     engine = make_engine(settings.effective_database_url)
     assert run_session(engine, settings, dry["id"]) == "completed"
@@ -207,7 +207,7 @@ def test_library_robots(client, tokens):
 def test_showing_the_plan_stores_no_session(client, settings, tokens):
     # "Show the plan" (a dry run) is a plan to confirm: the cell's sessions never list it, and
     # showing a plan again replaces the previous one instead of adding a session each time
-    from service.orchestrator import run_session
+    from service.session_loop import run_session
 
     cell = _cell(client, tokens, "plans-only")
     t = auth(tokens["technician"])

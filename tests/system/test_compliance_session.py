@@ -1,5 +1,5 @@
 """A pose session with two payloads against the real service and a simulated cell whose arm
-sags under gravity: the orchestrator changes the payload through the robot's own interface (UR
+sags under gravity: the session loop changes the payload through the robot's own interface (UR
 ``set_payload``, which makes the simulated arm sag under it) between the two halves of the
 plan, and the cell's compliant model identifies the joints' compliance itself, shown against
 the rigid model."""

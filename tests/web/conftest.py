@@ -268,7 +268,7 @@ def service_with_technician(tmp_path: Path):
 
 def store_finished_pose_session(engine, settings: Settings, cell_id: int, data, plan_info: dict) -> int:
     """A pose session of the cell that measured ``data`` (simulated rows, stored with the
-    tracker's stated 20 um as a session stores them), finished as the orchestrator finishes one
+    tracker's stated 20 um as a session stores them), finished as the session loop finishes one
     (no cell process needed). Returns its calibration's id."""
     from service import kinds, records
     from service.models import Cell, RunSession

@@ -1,5 +1,5 @@
 """Issue 27 on the page, in a real (headless) browser against the real service; the sessions are
-stored and analysed as the orchestrator analyses them (no cell process needed):
+stored and analysed as the session loop analyses them (no cell process needed):
 
 - calibrations are activated, not overwritten: a second calibration waits until it is activated
   (or a verify session passes it), and can be retired, from the cell's page, audited with who;
@@ -40,7 +40,7 @@ def _store(
     engine, settings, cell_id: int, kind: str, data, *, state: str = "completed", planned: int | None = None, keep=None
 ):
     """A session of the cell that measured ``data`` (its first ``keep`` rows); finished (analysed,
-    as the orchestrator finishes one) when ``state`` is completed, else left in ``state``.
+    as the session loop finishes one) when ``state`` is completed, else left in ``state``.
     Returns (session id, calibration id)."""
     from service import kinds
     from service.models import Cell, RunSession

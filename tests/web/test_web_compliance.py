@@ -1,6 +1,6 @@
 """The result page of a compliant calibration shows the rigid and the compliant model side by
 side, in a real (headless) browser against the real service. The calibration is a stored pose
-session of a sagging arm, analysed as the orchestrator analyses one (no cell process needed)."""
+session of a sagging arm, analysed as the session loop analyses one (no cell process needed)."""
 
 from __future__ import annotations
 

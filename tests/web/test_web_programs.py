@@ -1,7 +1,7 @@
 """The compensate form of the result page takes ABB RAPID, Fanuc TP and KUKA KRL programs, in a
 real (headless) browser against the real service, and hands them back byte for byte but the
 targets' numbers, a program in Windows-1252 (as KUKA's and ABB's editors write them) included.
-The calibration is a stored pose session of an ABB IRB 4600, analysed as the orchestrator
+The calibration is a stored pose session of an ABB IRB 4600, analysed as the session loop
 analyses one (no cell process needed)."""
 
 from __future__ import annotations

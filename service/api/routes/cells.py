@@ -24,7 +24,7 @@ from ...models import (
 )
 from ...sessions import get_cell, start_session
 from ...store import audit
-from ..deps import CellEditor, Compensator, DbSession, Orchestrator, Reader, Runner
+from ..deps import CellEditor, Compensator, DbSession, Reader, SessionOperator, SessionRunnerDep
 from ..schemas import CalibrationListItem, Drift, JsonSchema, TaskFileContent, TaskFileInfo, TasksCompensated
 
 log = logging.getLogger("recal.api")
@@ -67,9 +67,9 @@ def update_cell(cell_id: int, body: CellUpdate, db: DbSession, tok: CellEditor):
 
 
 @router.post("/cells/{cell_id}/sessions", status_code=201, response_model=SessionPublic)
-def create_session(cell_id: int, body: SessionCreate, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+def create_session(cell_id: int, body: SessionCreate, db: DbSession, tok: SessionOperator, runner: SessionRunnerDep):
     cell = get_cell(db, cell_id)
-    return start_session(db, cell, body, tok, orchestrator)
+    return start_session(db, cell, body, tok, runner)
 
 
 @router.get("/cells/{cell_id}/sessions", response_model=list[SessionPublic])

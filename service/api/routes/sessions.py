@@ -23,7 +23,7 @@ from ...sessions import (
     read_public_session,
     resume_session,
 )
-from ..deps import PERMISSIONS, DbSession, Orchestrator, Reader, Runner, current_token, quick_read, tickets
+from ..deps import PERMISSIONS, DbSession, Reader, SessionOperator, SessionRunnerDep, current_token, quick_read, tickets
 from ..schemas import EventTicket, MeasurementOut, SessionKindPublic
 
 router = APIRouter(tags=["sessions"])
@@ -46,22 +46,22 @@ async def read_session(session_id: int, request: Request, tok: Reader):
 
 
 @router.post("/sessions/{session_id}/resume", response_model=SessionPublic)
-def resume(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+def resume(session_id: int, db: DbSession, tok: SessionOperator, runner: SessionRunnerDep):
     """Continue a paused or interrupted session with the first configuration not yet measured."""
-    return resume_session(db, get_run(db, session_id), tok, orchestrator)
+    return resume_session(db, get_run(db, session_id), tok, runner)
 
 
 @router.post("/sessions/{session_id}/pause", response_model=SessionPublic)
-def pause(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+def pause(session_id: int, db: DbSession, tok: SessionOperator, runner: SessionRunnerDep):
     """Pause a running session at its next step."""
-    return pause_session(db, get_run(db, session_id), tok, orchestrator)
+    return pause_session(db, get_run(db, session_id), tok, runner)
 
 
 @router.post("/sessions/{session_id}/abort", response_model=SessionPublic)
-def abort(session_id: int, response: Response, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+def abort(session_id: int, response: Response, db: DbSession, tok: SessionOperator, runner: SessionRunnerDep):
     """Stop the robot now and end the session (answered with the state it ends in)."""
     t0 = time.perf_counter()
-    ended, stop_s = abort_session(db, get_run(db, session_id), tok, orchestrator)
+    ended, stop_s = abort_session(db, get_run(db, session_id), tok, runner)
     # When, after the request reached this route, the robot was told to stop and the session's
     # end was read back (bench/heavy.py).
     response.headers["Server-Timing"] = (

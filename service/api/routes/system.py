@@ -37,12 +37,12 @@ def _database_check(engine) -> ReadyCheck:
 @router.get("/ready", response_model=Ready, responses={503: {"model": Ready, "description": "not ready"}})
 async def ready(request: Request):
     """Whether this process can take work: the database answers a query, and the runner of
-    sessions is up (the embedded orchestrator not shut down; a fleet's queue in the database).
+    sessions is up (the embedded runner not shut down; a fleet's queue in the database).
     503 with the same body when not. No token: for load balancers and orchestrators."""
     state = request.app.state
     db = await run_in_threadpool(_database_check, state.engine)
-    runner_problem = state.orchestrator.not_ready()
-    runner = ReadyCheck(ok=runner_problem is None, detail=runner_problem or type(state.orchestrator).__name__ + ": up")
+    runner_problem = state.runner.not_ready()
+    runner = ReadyCheck(ok=runner_problem is None, detail=runner_problem or type(state.runner).__name__ + ": up")
     body = Ready(ready=db.ok and runner.ok, checks={"database": db, "runner": runner})
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
 

@@ -14,7 +14,7 @@ from ... import workbench
 from ...models import SessionPublic
 from ...results import plan_preview, session_live
 from ...sessions import get_cell, get_run, run_dry_plan
-from ..deps import DbSession, Orchestrator, Reader, Runner
+from ..deps import DbSession, Reader, SessionOperator, SessionRunnerDep
 from ..schemas import (
     CellSummary,
     DeviceTest,
@@ -65,7 +65,9 @@ def session_list(
 
 
 @router.post("/cells/{cell_id}/devices/test", response_model=DeviceTest)
-def test_connections(cell_id: int, request: Request, db: DbSession, tok: Runner, timeout_s: float = 8.0) -> dict:
+def test_connections(
+    cell_id: int, request: Request, db: DbSession, tok: SessionOperator, timeout_s: float = 8.0
+) -> dict:
     """Open each device of the cell, ask it something harmless (nothing moves) and report what
     it answered, or the error, each within ``timeout_s``: the robot, the instrument, and each
     reference encoder and resolver reader on its own (a joint may have both). While a session
@@ -115,11 +117,11 @@ def plan(session_id: int, request: Request, db: DbSession, tok: Reader) -> dict:
 
 
 @router.post("/sessions/{session_id}/run", status_code=201, response_model=SessionPublic)
-def run_plan(session_id: int, db: DbSession, tok: Runner, orchestrator: Orchestrator):
+def run_plan(session_id: int, db: DbSession, tok: SessionOperator, runner: SessionRunnerDep):
     """Run the plan of a completed dry-run session for real: a new session measuring exactly
     the configurations that were shown and checked."""
     dry = get_run(db, session_id)
-    return run_dry_plan(db, dry, get_cell(db, dry.cell_id), tok, orchestrator)
+    return run_dry_plan(db, dry, get_cell(db, dry.cell_id), tok, runner)
 
 
 @router.get("/sessions/{session_id}/live", response_model=LiveSession)

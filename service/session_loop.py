@@ -25,7 +25,7 @@ Rules a robot cell needs (issue: sessions):
   same transaction as its measurements), stop or fault, for the live page.
 
 The embedded default runs each session in a thread of the service process
-(:class:`Orchestrator`); ``run_session`` is the whole job, so a worker process can run it too
+(:class:`EmbeddedRunner`); ``run_session`` is the whole job, so a worker process can run it too
 (``service.fleet``, docs/fleet.md). A session whose database goes away is not at fault: a
 measurement commit is retried (the unique constraint (session, seq, target) makes a retried
 commit that had in fact gone through harmless), and if the store stays away ``run_session``
@@ -68,7 +68,7 @@ from .store import (
 __all__ = [
     "Control",
     "DeviceOpenError",
-    "Orchestrator",
+    "EmbeddedRunner",
     "SessionStopped",
     "commit_measurements",
     "open_session_devices",
@@ -267,7 +267,7 @@ def run_session(
                 raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
             log.error("session %s failed:\n%s", session_id, traceback.format_exc())
             final, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
-            if control.abort.is_set() and not control.finishing:  # said aborted already (Orchestrator.abort)
+            if control.abort.is_set() and not control.finishing:  # said aborted already (EmbeddedRunner.abort)
                 final, reason = "aborted", "aborted on request"
         # An aborted session is over for good (nothing resumes it) and its robot stands still:
         # it is said aborted at once, before its devices close (which can take a while on real
@@ -505,7 +505,7 @@ def store_abort(engine: Engine, session_id: int, control: Control) -> None:
         log.warning("session %s: storing the abort early failed", session_id, exc_info=True)
 
 
-class Orchestrator:
+class EmbeddedRunner:
     """Runs sessions in background threads of this process (the embedded default); a
     :class:`service.runners.SessionRunner`."""
 

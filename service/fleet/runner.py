@@ -1,6 +1,6 @@
-"""``FleetOrchestrator``: what an API process uses when ``RECAL_ENGINE=procrastinate``.
+"""``FleetRunner``: what an API process uses when ``RECAL_ENGINE=procrastinate``.
 
-The same methods as the embedded :class:`service.orchestrator.Orchestrator`, but nothing runs
+The same methods as the embedded :class:`service.session_loop.EmbeddedRunner`, but nothing runs
 here: ``queue`` puts the session's job on the queue of its cell's site in the API request's own
 transaction (the session is stored planned and queued at once; ``start`` does the same in a
 transaction of its own), ``pause`` and ``abort`` go through the database (``session.requested``,
@@ -29,7 +29,7 @@ log = logging.getLogger("recal.fleet")
 CONTROL_CHANNEL = "recal_control"
 
 
-class FleetOrchestrator:
+class FleetRunner:
     """Queues sessions for the fleet's workers and relays pause and abort to them; a
     :class:`service.runners.SessionRunner`."""
 
