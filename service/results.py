@@ -213,13 +213,55 @@ def calibration_result(db: Session, cal: Calibration) -> dict:
     return _cached(key, lambda: _calibration_result(db, cal))
 
 
+# The report's parts the result page shows (the rest stays in the stored report)
+RESULT_REPORT_KEYS = (
+    "success",
+    "message",
+    "rows",
+    "parameters",
+    "unidentifiable",
+    "condition_number",
+    "observability",
+    "residuals",
+    "outliers",
+    "registration",
+    "notes",
+    "prior",
+    "settings",
+    "joints",
+    "note",
+    "compliance",
+    "residual_map",
+)
+
+
 def _calibration_result(db: Session, cal: Calibration) -> dict:
+    """The result page's figures of calibration ``cal``: its header, report and, for the kinds
+    the robot is known by, the errors before and after on its session's measurements."""
     cell = db.get(Cell, cal.cell_id)
     run = db.get(RunSession, cal.session_id) if cal.session_id is not None else None
     report = cal.report or {}
     model = model_from_dict(cal.model)
-    L = model.units.length_m
-    out: dict = {
+    out = _result_header(db, cal, cell, run, model)
+    out["report"] = {k: report.get(k) for k in RESULT_REPORT_KEYS}
+    out["errors"] = None
+    out["workspace"] = None
+    # the before/after errors of an identified model (the kinds whose calibration the robot is known by)
+    if cal.kind not in identified_calibration_kinds() or run is None:
+        return out
+    try:
+        data, rows = session_measurements(db, run)
+    except Exception as exc:  # noqa: BLE001 - a result without its session data still shows its report
+        out["errors"] = {"available": False, "reason": str(exc)}
+        return out
+    out["errors"] = _errors_before_and_after(db, cal, cell, model, data, rows, report)
+    out["workspace"] = workspace_accuracy(cal, cell, run.target)
+    return out
+
+
+def _result_header(db: Session, cal: Calibration, cell: Cell, run: RunSession | None, model) -> dict:
+    """Which calibration, of which cell and session, in which units."""
+    return {
         "id": cal.id,
         "kind": cal.kind,
         "created_at": as_utc(cal.created_at).isoformat(),
@@ -242,39 +284,14 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         "compliant": model.compliance is not None,
         "rms": cal.rms,
         "previous_id": previous_calibration_id(db, cal),
-        "report": {
-            k: report.get(k)
-            for k in (
-                "success",
-                "message",
-                "rows",
-                "parameters",
-                "unidentifiable",
-                "condition_number",
-                "observability",
-                "residuals",
-                "outliers",
-                "registration",
-                "notes",
-                "prior",
-                "settings",
-                "joints",
-                "note",
-                "compliance",
-                "residual_map",
-            )
-        },
-        "errors": None,
-        "workspace": None,
     }
-    # the before/after errors of an identified model (the kinds whose calibration the robot is known by)
-    if cal.kind not in identified_calibration_kinds() or run is None:
-        return out
-    try:
-        data, rows = session_measurements(db, run)
-    except Exception as exc:  # noqa: BLE001 - a result without its session data still shows its report
-        out["errors"] = {"available": False, "reason": str(exc)}
-        return out
+
+
+def _errors_before_and_after(db: Session, cal: Calibration, cell: Cell, model, data, rows, report: dict) -> dict:
+    """The position errors on the session's measurements of the model the robot had before
+    (registered to them where there are 3 or more) and of the identified one (with its residual
+    correction where it applies), in the model's length unit."""
+    L = model.units.length_m
     start, start_name = start_model_of(db, cal, cell)
     e_after, inside = corrected_errors(model, data)  # with its residual correction, as the model is used
     raw_before = np.linalg.norm(position_errors(start, data), axis=1)
@@ -284,7 +301,7 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
     else:
         e_before, before_how = position_errors(start, data), start_name
     nb, na = np.linalg.norm(e_before, axis=1), np.linalg.norm(e_after, axis=1)
-    out["errors"] = {
+    return {
         "available": True,
         "pose": [int(r.seq) + 1 for r in rows],
         "target": [r.target or "" for r in rows],
@@ -311,8 +328,6 @@ def _calibration_result(db: Session, cal: Calibration) -> dict:
         },
         "outlier_poses": [int(o["row"]) for o in report.get("outliers") or []],
     }
-    out["workspace"] = workspace_accuracy(cal, cell, run.target)
-    return out
 
 
 def compare_calibrations(a: Calibration, b: Calibration) -> dict:

@@ -214,26 +214,9 @@ def run_session(
     with Session(engine) as db:
         run = db.get(RunSession, session_id)
         cell = db.get(Cell, run.cell_id)
-        if not leased and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
-            db.refresh(run)
-            if held_by_other(run, owner):  # another process runs this very session: leave it alone
-                return run.state
-            set_state(db, run, "paused", "another session is driving this cell")
-            return "paused"
-        try:
-            with heavy_slot(control, stoppable=True):
-                run = ensure_plan(db, run, cell, control)
-        except UnsafePlan as exc:
-            _end(db, run, owner, "failed", f"unsafe plan: {exc}", None)
-            return "failed"
-        except SessionStopped as exc:  # asked to stop while planning: nothing moved
-            _end(db, run, owner, *_stop_outcome(exc, control), None)
-            return run.state
-        if run.dry_run:
-            run.record_plan(replace(run.session_plan(), dry_run=True))
-            db.add(run)
-            _end(db, run, owner, "completed", "dry run: planned and checked, nothing moved", None)
-            return "completed"
+        ended = _lease_and_plan(db, run, cell, settings, control, owner, leased)
+        if ended is not None:
+            return ended
         set_state(db, run, "running", None)
         try:
             devices = _open_with_retries(open_devices, cell, run, settings, control)
@@ -242,54 +225,106 @@ def run_session(
             _end(db, run, owner, "paused", reason, stopped_device_state(run, None, "paused", reason, exc))
             return "paused"
         control.devices = devices
-        final, reason, stop = "completed", None, None
-        try:
-            # the controller's kinematics and the device checks, before the first move (cell_preparation)
-            prepared = prepare_cell(db, run, cell, devices)
-            tcp_samples = _measure_all(db, run, cell, devices, settings, control, owner, prepared)
-            # a robot that reports its TCP pose: the controller's model fitted from it at those poses
-            prepared.after_measuring(db, run, cell, devices, tcp_samples)
-            control.begin_finishing()  # from here on an abort no longer stops it (Control)
-            with heavy_slot(control, stoppable=False):  # every pose is measured: identify them
-                finish_session(db, run, cell, settings)
-        except SessionStopped as exc:
-            stop = exc
-            final, reason = _stop_outcome(exc, control)
-            if final == "aborted" and devices.robot is not None:
-                try:
-                    devices.robot.stop()
-                except Exception:  # noqa: BLE001 - stopping is best effort; the state is what matters
-                    pass
-        except analysis.AnalysisError as exc:
-            final, reason = "failed", str(exc)
-        except Exception as exc:  # the session must end in a state, never a traceback
-            if database_unavailable(exc):
-                raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
-            log.error("session %s failed:\n%s", session_id, traceback.format_exc())
-            final, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
-            if control.abort.is_set() and not control.finishing:  # said aborted already (EmbeddedRunner.abort)
-                final, reason = "aborted", "aborted on request"
-        # An aborted session is over for good (nothing resumes it) and its robot stands still:
-        # it is said aborted at once, before its devices close (which can take a while on real
-        # ones), so that the abort is answered quickly; it keeps the cell's lease until they are
-        # closed, so that no other session opens them meanwhile (store.acquire_lease). Any other
-        # end closes the devices first, so that whoever resumes the session finds them free.
-        early = final == "aborted"
-        try:
-            state = stopped_device_state(run, devices, final, reason or "session completed", stop)
-            if not early:
-                _close_devices(devices, control)
-            db.refresh(run, with_for_update=True)
-            if run.lease_owner not in (None, owner):
-                db.rollback()  # another process took the session over (ours had expired): its state is not ours to write
-                return run.state
-            _end(db, run, owner, final, reason, state, keep_lease=early)
-            control.ended.set()
-        finally:
-            _close_devices(devices, control)
-        if early:
-            release_lease(db, run, owner)
+        final, reason, stop = _measure_and_finish(db, run, cell, devices, settings, control, owner)
+        return _close_and_end(db, run, devices, control, owner, final, reason, stop)
+
+
+def _lease_and_plan(
+    db: Session, run: RunSession, cell: Cell, settings: Settings, control: Control, owner: str, leased: bool
+) -> str | None:
+    """Take the cell's lease (unless ``leased``) and plan the session once: the state it ended
+    in when it cannot go on (another session drives the cell, an unsafe plan, a stop while
+    planning, a dry run planned), else None."""
+    if not leased and not acquire_lease(db, run, owner, ttl_s=settings.effective_lease_ttl_s):
+        db.refresh(run)
+        if held_by_other(run, owner):  # another process runs this very session: leave it alone
+            return run.state
+        set_state(db, run, "paused", "another session is driving this cell")
+        return "paused"
+    try:
+        with heavy_slot(control, stoppable=True):
+            ensure_plan(db, run, cell, control)
+    except UnsafePlan as exc:
+        _end(db, run, owner, "failed", f"unsafe plan: {exc}", None)
+        return "failed"
+    except SessionStopped as exc:  # asked to stop while planning: nothing moved
+        _end(db, run, owner, *_stop_outcome(exc, control), None)
         return run.state
+    if run.dry_run:
+        run.record_plan(replace(run.session_plan(), dry_run=True))
+        db.add(run)
+        _end(db, run, owner, "completed", "dry run: planned and checked, nothing moved", None)
+        return "completed"
+    return None
+
+
+def _measure_and_finish(
+    db: Session, run: RunSession, cell: Cell, devices: CellDevices, settings: Settings, control: Control, owner: str
+) -> tuple[str, str | None, SessionStopped | None]:
+    """Prepare the cell, measure every configuration, and finish (identify): the final state,
+    its reason and the stop that ended it (None). Never raises for the session's sake; a lost
+    database is raised (module docstring)."""
+    try:
+        # the controller's kinematics and the device checks, before the first move (cell_preparation)
+        prepared = prepare_cell(db, run, cell, devices)
+        tcp_samples = _measure_all(db, run, cell, devices, settings, control, owner, prepared)
+        # a robot that reports its TCP pose: the controller's model fitted from it at those poses
+        prepared.after_measuring(db, run, cell, devices, tcp_samples)
+        control.begin_finishing()  # from here on an abort no longer stops it (Control)
+        with heavy_slot(control, stoppable=False):  # every pose is measured: identify them
+            finish_session(db, run, cell, settings)
+    except SessionStopped as exc:
+        final, reason = _stop_outcome(exc, control)
+        if final == "aborted" and devices.robot is not None:
+            try:
+                devices.robot.stop()
+            except Exception:  # noqa: BLE001 - stopping is best effort; the state is what matters
+                pass
+        return final, reason, exc
+    except analysis.AnalysisError as exc:
+        return "failed", str(exc), None
+    except Exception as exc:  # the session must end in a state, never a traceback
+        if database_unavailable(exc):
+            raise  # not the session's fault: whoever runs it marks it interrupted (module docstring)
+        log.error("session %s failed:\n%s", run.id, traceback.format_exc())
+        if control.abort.is_set() and not control.finishing:  # said aborted already (EmbeddedRunner.abort)
+            return "aborted", "aborted on request", None
+        return "failed", f"internal error: {type(exc).__name__}: {exc}", None
+    return "completed", None, None
+
+
+def _close_and_end(
+    db: Session,
+    run: RunSession,
+    devices: CellDevices,
+    control: Control,
+    owner: str,
+    final: str,
+    reason: str | None,
+    stop: SessionStopped | None,
+) -> str:
+    """Close the devices and store the session's end; the state it ended in."""
+    # An aborted session is over for good (nothing resumes it) and its robot stands still:
+    # it is said aborted at once, before its devices close (which can take a while on real
+    # ones), so that the abort is answered quickly; it keeps the cell's lease until they are
+    # closed, so that no other session opens them meanwhile (store.acquire_lease). Any other
+    # end closes the devices first, so that whoever resumes the session finds them free.
+    early = final == "aborted"
+    try:
+        state = stopped_device_state(run, devices, final, reason or "session completed", stop)
+        if not early:
+            _close_devices(devices, control)
+        db.refresh(run, with_for_update=True)
+        if run.lease_owner not in (None, owner):
+            db.rollback()  # another process took the session over (ours had expired): its state is not ours to write
+            return run.state
+        _end(db, run, owner, final, reason, state, keep_lease=early)
+        control.ended.set()
+    finally:
+        _close_devices(devices, control)
+    if early:
+        release_lease(db, run, owner)
+    return run.state
 
 
 def _close_devices(devices: CellDevices, control: Control) -> None:
