@@ -57,7 +57,8 @@ def test_the_trees_walked_in_numpy_equal_sklearns_predict_and_need_no_sklearn(tm
     m = TT.fit_trees(q, y)
     X = rng.uniform(REGION[:, 0] - 0.2, REGION[:, 1] + 0.2, (2000, 6))
     for axis in range(3):
-        est = HistGradientBoostingRegressor(early_stopping=False, random_state=0, **TT.TREE_SETTINGS)
+        count = m.settings["trees_per_axis"][axis]  # chosen by the inner cross-validation
+        est = HistGradientBoostingRegressor(early_stopping=False, random_state=0, max_iter=count, **TT.TREE_SETTINGS)
         est.fit(q, y[:, axis])
         assert np.array_equal(m.raw(X)[:, axis], est.predict(X))
     # through the model file (mm, deg) and back: plain JSON, the same numbers
