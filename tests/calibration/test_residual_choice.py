@@ -50,6 +50,7 @@ def test_simulated_transmission_errors_have_a_harmonic_drives_size_and_shape():
 
 def test_the_trees_walked_in_numpy_equal_sklearns_predict_and_need_no_sklearn(tmp_path):
     from sklearn.ensemble import HistGradientBoostingRegressor
+    from threadpoolctl import threadpool_limits
 
     rng = np.random.default_rng(0)
     q = rng.uniform(REGION[:, 0], REGION[:, 1], (600, 6))
@@ -59,7 +60,8 @@ def test_the_trees_walked_in_numpy_equal_sklearns_predict_and_need_no_sklearn(tm
     for axis in range(3):
         count = m.settings["trees_per_axis"][axis]  # chosen by the inner cross-validation
         est = HistGradientBoostingRegressor(early_stopping=False, random_state=0, max_iter=count, **TT.TREE_SETTINGS)
-        est.fit(q, y[:, axis])
+        with threadpool_limits(limits=1, user_api="openmp"):  # as fit_trees fits (and as fast)
+            est.fit(q, y[:, axis])
         assert np.array_equal(m.raw(X)[:, axis], est.predict(X))
     # through the model file (mm, deg) and back: plain JSON, the same numbers
     model = nominal("ur10e")
