@@ -22,6 +22,8 @@ the hold-out). Nothing is tuned on the hold-out.
 
 Run: ``python bench/real_arms.py ur10 /work/data/ur10_landgraf`` or
 ``python bench/real_arms.py ur5 /work/data/ur5_jacobi`` (add ``--work DIR`` to keep the files).
+``python bench/real_arms.py ur10 DIR --series B --apply-to C`` identifies on all of Series B and
+holds out all of Series C, whose joint ranges are disjoint from B's: the region check.
 """
 
 from __future__ import annotations
@@ -203,6 +205,8 @@ def holdout_coverage(work: Path, tag: str, target: str, sigma_mm: float) -> dict
 
 def prepare(args: argparse.Namespace, work: Path) -> tuple[list[str], str]:
     """Write nominal.json, train.csv and holdout.csv; return the sigma options and a description."""
+    if args.arm == "ur10" and args.apply_to:
+        return prepare_across_series(args, work)
     if args.arm == "ur10":
         _, q_p, quat = ur10_rows(Path(args.data), args.series)
         # The T-Mac frame sits about 109 mm beyond the flange (the data set's Trafo_TM_F_init.txt);
@@ -222,6 +226,57 @@ def prepare(args: argparse.Namespace, work: Path) -> tuple[list[str], str]:
     write_measurements(work / "train.csv", q_p[fit], None if quat is None else quat[fit], target)
     write_measurements(work / "holdout.csv", q_p[hold], None if quat is None else quat[hold], target)
     return sigma, f"{what}; identification {len(fit)}, hold-out {len(hold)} (seeded split)"
+
+
+def prepare_across_series(args: argparse.Namespace, work: Path) -> tuple[list[str], str]:
+    """``--apply-to``: every pose of ``--series`` for identification, every pose of the other
+    series held out (issue 28: a correction fitted on one series made another, with disjoint
+    joint ranges, worse). Both series are in the same tracker frame (the data set's own
+    ``dataset.py`` reads them alike); what differs is the region of joint space."""
+    _, q_p, quat = ur10_rows(Path(args.data), args.series)
+    _, q_p_other, quat_other = ur10_rows(Path(args.data), args.apply_to)
+    model = nominal_model("ur10", [0.0, 0.0, 109.0, 0.0, 0.0, 0.0], {})
+    (work / "nominal.json").write_text(json.dumps(model, indent=1))
+    write_measurements(work / "train.csv", q_p, quat, "")
+    write_measurements(work / "holdout.csv", q_p_other, quat_other, "")
+    ranges = "; ".join(
+        f"{name}: j1 {q[:, 0].min():.0f} to {q[:, 0].max():.0f} deg"
+        for name, q in ((args.series, q_p), (args.apply_to, q_p_other))
+    )
+    sigma = ["--sigma", str(args.sigma), "--sigma-angle", str(args.sigma_angle)]
+    return sigma, (
+        f"UR10 across series: identified on all {len(q_p)} poses of Series {args.series}, "
+        f"applied to all {len(q_p_other)} of Series {args.apply_to} ({ranges})"
+    )
+
+
+def across_series_check(work: Path) -> dict:
+    """Pose by pose on the other series: the corrected model's error against the geometric
+    model's, and whether every pose where they differ is inside the correction's region (issue 28:
+    outside it, nothing worse than the geometric model, and flagged)."""
+    out = {}
+    for tag in ("geometric", "auto"):
+        with (work / f"predict_{tag}.csv").open(newline="") as f:
+            out[tag] = list(csv.DictReader(f))
+    with (work / "holdout.csv").open(newline="") as f:
+        meas = list(csv.DictReader(f))
+    err = {
+        tag: np.linalg.norm(
+            [[float(m[a]) - float(p[a]) for a in "xyz"] for m, p in zip(meas, rows, strict=True)], axis=1
+        )
+        for tag, rows in out.items()
+    }
+    flagged = np.array(["outside" in p["flags"] for p in out["auto"]])
+    differs = np.abs(err["auto"] - err["geometric"]) > 1e-9
+    return {
+        "poses": len(meas),
+        "flagged_outside": int(flagged.sum()),
+        "rms_geometric": float(np.sqrt(np.mean(err["geometric"] ** 2))),
+        "rms_corrected": float(np.sqrt(np.mean(err["auto"] ** 2))),
+        "flagged_poses_differing_from_geometric": int(np.sum(differs & flagged)),
+        "unflagged_poses": int(np.sum(~flagged)),
+        "unflagged_worse_than_geometric": int(np.sum((err["auto"] > err["geometric"] + 1e-9) & ~flagged)),
+    }
 
 
 def summary(name: str, rep: dict) -> list[str]:
@@ -251,6 +306,11 @@ def main() -> None:
     ap.add_argument("arm", choices=["ur10", "ur5"])
     ap.add_argument("data", help="the data set's checkout (kept outside this repository)")
     ap.add_argument("--series", default="C", choices=["A", "B", "C"], help="UR10 series (default C: random poses)")
+    ap.add_argument(
+        "--apply-to",
+        choices=["A", "B", "C"],
+        help="UR10: identify on all of --series and hold out all of this other series (the region check)",
+    )
     ap.add_argument("--ur5-sign", type=float, default=1.0, choices=[1.0, -1.0])
     ap.add_argument("--sigma", type=float, default=0.02, help="tracker noise per axis, mm")
     ap.add_argument("--sigma-angle", type=float, default=0.005, help="T-Mac orientation noise, deg")
@@ -272,6 +332,8 @@ def main() -> None:
             print("\n".join(summary(name, rep)))
             cov = holdout_coverage(work, name, target, args.sigma)
             print(f"  recal predict on the hold-out (correction applied): {json.dumps(cov)}")
+        if args.apply_to and "geometric" in results:
+            print(f"across series, pose by pose: {json.dumps(across_series_check(work))}")
 
 
 if __name__ == "__main__":

@@ -48,3 +48,22 @@ def corrected_model_sigma(sq_sum_m2: float, noise_sq_sum_m2: float, rows: int) -
     excess = sq_sum_m2 / rows - noise_per_row
     resolution = (noise_per_row / 3.0) * np.sqrt(6.0 / rows)  # scatter of the mean of |noise|²: σ² √(6/n)
     return float(np.sqrt(max(excess, resolution) / 3.0))
+
+
+def quantile_model_sigma(norms_m: np.ndarray, noise_sigma_m: float, chi2_95: float, floor_m: float) -> float:
+    """Per-axis σ (m) of the corrected model inside its region whose 95 % radius (``√χ²₃(0.95)``
+    times it, with the instrument's noise ``noise_sigma_m`` per axis added back) equals the 95 %
+    quantile of the cross-validated held-out errors ``norms_m`` (N,) there: the split-conformal
+    quantile, the ⌈0.95 (N + 1)⌉-th smallest (the largest when N is under 19). Never below
+    ``floor_m`` (:func:`corrected_model_sigma`: the RMS's σ). Why not the RMS's σ alone: the error
+    left depends on the configuration, so the held-out errors are a mixture, longer-tailed than
+    one Gaussian (on a measured UR5 their 95 % quantile was 1.67 RMS against a Gaussian's 1.61),
+    and a Gaussian bound from the RMS covered 92.4 % of hold-out errors instead of 95 %; the
+    quantile covers 95 % of exchangeable held-out errors whatever their distribution."""
+    e = np.sort(np.asarray(norms_m, dtype=float))
+    if len(e) == 0:
+        return float(floor_m)
+    k = min(int(np.ceil(0.95 * (len(e) + 1))), len(e))
+    q95 = float(e[k - 1])
+    excess = q95**2 / chi2_95 - float(noise_sigma_m) ** 2
+    return float(max(np.sqrt(max(excess, 0.0)), floor_m))

@@ -5,7 +5,8 @@ none, the smooth map (:mod:`calibration.residual_map`), the joint transmission
 Outer k-fold cross-validation of the whole procedure, a configuration's rows in one fold: identify
 the geometric model on the training folds, fit each family to its residuals there (each family
 chooses its own settings inside, on the training folds only: the map its smoothness by an inner
-cross-validation, the transmission its gear ratios, the trees are fixed), and measure every
+cross-validation, the transmission its gear ratios, the trees their number by an inner
+cross-validation), and measure every
 family's error on the held-out fold. The family with the least cross-validated RMS is kept when it
 lowers the RMS of none by at least :data:`MIN_CV_GAIN`; it is then fitted to all the data. A
 learning curve (the held-out RMS of the best family fitted to a share of each training fold's
@@ -25,7 +26,7 @@ from . import transmission as tr
 from . import trees as tt
 from .identification import INSTRUMENT_SIGMA_M
 from .model import KinematicModel
-from .residual_base import corrected_model_sigma
+from .residual_base import corrected_model_sigma, quantile_model_sigma
 
 FAMILIES = ("none", "map", "transmission", "trees")
 MIN_CV_GAIN = rm.MIN_CV_GAIN
@@ -112,6 +113,12 @@ def _held_out(correction, model: KinematicModel, te, sigma_m: float) -> tuple[fl
     """:func:`_held_out_sq`, and over the held-out rows inside the correction's region: the sum
     of squared errors, the sum of the stated noise's 3 σ² (rows without their own σ: ``sigma_m``)
     and their number (what :func:`calibration.residual_base.corrected_model_sigma` needs)."""
+    s, share, within, _ = _held_out_errors(correction, model, te, sigma_m)
+    return s, share, within
+
+
+def _held_out_errors(correction, model: KinematicModel, te, sigma_m: float):
+    """:func:`_held_out`, and the (K,) error norms (m) of the held-out rows inside the region."""
     r = rm.residuals(model, te)
     inside = np.ones(len(te), dtype=bool)
     if correction is not None:
@@ -120,7 +127,41 @@ def _held_out(correction, model: KinematicModel, te, sigma_m: float) -> tuple[fl
     sigma = np.where(np.isfinite(te.sigma) & (te.sigma > 0), te.sigma, sigma_m)
     sq = np.sum(r**2, axis=1)
     within = (float(np.sum(sq[inside])), float(np.sum(3.0 * sigma[inside] ** 2)), int(inside.sum()))
-    return float(np.sum(sq)), float(np.mean(inside)) if len(te) else 1.0, within
+    return float(np.sum(sq)), float(np.mean(inside)) if len(te) else 1.0, within, np.sqrt(sq[inside])
+
+
+class _OuterFolds:
+    """What the outer folds of :func:`choose_correction` gather, per family: the held-out Σ|e|²
+    (``sq``; per fold in ``held_sq``: the learning curve's last point), the share inside the
+    region, inside it Σ|e|², Σ 3σ² and rows (``within``) and each row's |e| (``norms``), and each
+    fold's (training, held-out, model) (``fitted``)."""
+
+    def __init__(self, families: tuple[str, ...]):
+        self.families = families
+        self.sq = {f: 0.0 for f in families}
+        self.inside: dict[str, list[float]] = {f: [] for f in families}
+        self.within = {f: np.zeros(3) for f in families}
+        self.norms: dict[str, list[np.ndarray]] = {f: [] for f in families}
+        self.held_sq: list[dict[str, float]] = []
+        self.fitted: list = []
+
+    def run(self, start: KinematicModel, data, test: np.ndarray, kw: dict, seed: int, sigma_m: float) -> None:
+        """One outer fold: identify on the others, fit every family there, test on ``test``."""
+        from .identify import identify
+
+        train = np.setdiff1d(np.arange(len(data)), test)
+        tr_data, te = data.subset(train), data.subset(test)
+        model = identify(start, tr_data, **kw).model
+        self.fitted.append((tr_data, te, model))
+        self.held_sq.append({})
+        for f in self.families:
+            c = None if f == "none" else fit_family(f, start, model, tr_data, kw, seed)
+            s, share, w, e = _held_out_errors(c, model, te, sigma_m)
+            self.norms[f].append(e)
+            self.held_sq[-1][f] = s
+            self.sq[f] += s
+            self.inside[f].append(share)
+            self.within[f] += w
 
 
 def choose_correction(
@@ -142,23 +183,12 @@ def choose_correction(
     kw = dict(identify_kw or {})
     all_data = data
     data = data.subset(rm.map_rows(data, rm.MAX_CV_CONFIGURATIONS, seed + 3))
-    outer = fold_indices(data, folds, seed)
-    sq = {f: 0.0 for f in families}
-    inside: dict[str, list[float]] = {f: [] for f in families}
-    within = {f: np.zeros(3) for f in families}  # inside the region: Σ|e|², Σ 3σ², rows
     sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
-    fitted_per_fold = []
-    for test in outer:
-        train = np.setdiff1d(np.arange(len(data)), test)
-        tr_data, te = data.subset(train), data.subset(test)
-        model = identify(start, tr_data, **kw).model
-        fitted_per_fold.append((tr_data, te, model))
-        for f in families:
-            c = None if f == "none" else fit_family(f, start, model, tr_data, kw, seed)
-            s, share, w = _held_out(c, model, te, sigma_m)
-            sq[f] += s
-            inside[f].append(share)
-            within[f] += w
+    outer = _OuterFolds(families)
+    for test in fold_indices(data, folds, seed):
+        outer.run(start, data, test, kw, seed, sigma_m)
+    sq, inside, within, norms, fitted_per_fold = outer.sq, outer.inside, outer.within, outer.norms, outer.fitted
+    held_sq = outer.held_sq
     n = len(data)
     rms = {f: math.sqrt(sq[f] / n) for f in families}
     best = min((f for f in families if f != "none"), key=lambda f: rms[f], default=None)
@@ -166,6 +196,7 @@ def choose_correction(
     gain = 1.0 - rms[best] / base if best is not None and base > 0 else 0.0
     kept = best is not None and gain >= min_gain
     sigma = {f: corrected_model_sigma(within[f][0], within[f][1], int(within[f][2])) for f in families}
+    sigma_95 = {f: _bound_sigma(norms[f], within[f], sigma[f]) for f in families}
     figures = {
         "folds": folds,
         "cv_rows": n,
@@ -175,6 +206,7 @@ def choose_correction(
                 "rms_m": rms[f],
                 "held_out_inside_share": float(np.mean(inside[f])),
                 "model_sigma_m": sigma[f],
+                "model_sigma_95_m": sigma_95[f],
             }
             for f in families
         },
@@ -182,7 +214,9 @@ def choose_correction(
         "gain": gain,
         "min_gain": min_gain,
         "chosen": best if kept else "none",
-        "learning_curve": learning_curve(best, start, fitted_per_fold, kw, seed) if best else [],
+        "learning_curve": (
+            learning_curve(best, start, fitted_per_fold, kw, seed, [h[best] for h in held_sq]) if best else []
+        ),
         # the instrument's per-axis noise the rows state (what extrapolate_learning_curve needs)
         "noise_sigma_m": noise_sigma(data, sigma_m),
     }
@@ -199,12 +233,26 @@ def choose_correction(
         # the corrected model's per-axis uncertainty inside its region: what u95 uses there
         # (calibration.uncertainty.stored_position_covariance)
         "model_sigma_m": sigma[best],
+        # the σ whose Gaussian 95 % radius is the held-out errors' own 95 % quantile: what the
+        # bound uses (calibration.uncertainty.correction_sigma_from_model)
+        "model_sigma_95_m": sigma_95[best],
     }
     if best == "transmission":
         c = dataclasses.replace(c, transmission=dataclasses.replace(c.transmission, cv=cv_figures))
     else:
         c = dataclasses.replace(c, cv=cv_figures)
     return Choice(best, c, figures)
+
+
+def _bound_sigma(norms: list[np.ndarray], within: np.ndarray, sigma_rms_m: float) -> float:
+    """:func:`calibration.residual_base.quantile_model_sigma` of a family's held-out error norms
+    inside its region, the instrument's noise their stated one (``within``: Σ|e|², Σ 3σ², rows)."""
+    from .uncertainty import chi2_quantile
+
+    rows = int(within[2])
+    noise_m = math.sqrt(within[1] / (3.0 * rows)) if rows else 0.0
+    e = np.concatenate(norms) if norms else np.zeros(0)
+    return quantile_model_sigma(e, noise_m, chi2_quantile(0.95, 3), sigma_rms_m)
 
 
 def noise_sigma(data, sigma_m: float) -> float:
@@ -218,26 +266,32 @@ def _poses(data) -> int:
     return len(np.unique(np.asarray(data.pose_id).astype(str))) if data.pose_id is not None else len(data)
 
 
-def learning_curve(family: str, start, fitted_per_fold, kw: dict, seed: int) -> list[dict]:
+def learning_curve(
+    family: str, start, fitted_per_fold, kw: dict, seed: int, whole_fold_sq: list[float] | None = None
+) -> list[dict]:
     """The held-out RMS (m) of ``family`` (``"none"``: the geometric model alone) fitted to a
     share of each training fold's poses, the geometric model identified on that share too,
     against the number of those poses: the whole procedure's error at that many poses. A share
     too small to identify from gives no point (the whole fold's model in its place made a
-    30-pose session's curve flat: three points of one model)."""
+    30-pose session's curve flat: three points of one model). ``whole_fold_sq``: each fold's
+    held-out Σ|e|² of ``family`` fitted to the whole fold, when the caller has it (the last
+    point is then not fitted again: the same rows, the same fit)."""
     from .identify import identify
 
     out = []
     for share in LEARNING_SHARES:
         sq, n, poses = 0.0, 0, []
         try:
-            for tr_data, te, model in fitted_per_fold:
+            for i, (tr_data, te, model) in enumerate(fitted_per_fold):
                 k = max(int(share * _poses(tr_data)), 10)
                 rows = rm.map_rows(tr_data, k, seed + 7)
                 sub = tr_data.subset(rows)
-                sub_model = model if share == 1.0 else identify(start, sub, **kw).model
-                c = None if family == "none" else fit_family(family, start, sub_model, sub, kw, seed)
-                s, _ = _held_out_sq(c, sub_model, te)
-                sq += s
+                if share == 1.0 and whole_fold_sq is not None:
+                    sq += whole_fold_sq[i]
+                else:
+                    sub_model = model if share == 1.0 else identify(start, sub, **kw).model
+                    c = None if family == "none" else fit_family(family, start, sub_model, sub, kw, seed)
+                    sq += _held_out_sq(c, sub_model, te)[0]
                 n += len(te)
                 poses.append(_poses(sub))
         except ValueError:  # too few poses at this share to identify (NotEnoughData): no point

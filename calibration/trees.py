@@ -24,9 +24,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 FORMAT = "recal.residual_trees/1"
-# Fixed, moderate settings: shallow trees and shrinkage, enough rounds for a few thousand poses.
-# The outer cross-validation judges the family as a whole, with these settings.
-TREE_SETTINGS = dict(max_iter=100, learning_rate=0.15, max_leaf_nodes=15, min_samples_leaf=8, l2_regularization=1e-3)
+# Fixed shape of each tree (shallow, shrunk); how many trees each axis gets is chosen by an inner
+# k-fold cross-validation on the fitting rows alone (:func:`choose_tree_count`): the right number
+# grows with the poses and with how sharply the error varies (on a measured UR10, 2,000 poses
+# wanted about 800 where a UR5's 800 poses wanted about 200), so no fixed number suits every arm.
+TREE_SETTINGS = dict(learning_rate=0.1, max_leaf_nodes=15, min_samples_leaf=16, l2_regularization=1e-3)
+INNER_FOLDS = 3
+TREES_STEP = 100  # the inner CV's error is read every this many trees
+MAX_TREES = 1000  # per axis: a file of a few MB at most (on the UR10, 800 to 1,200 differ by 0.1 %)
+PATIENCE_TREES = 300  # stop adding trees when the inner CV's error has not fallen for this many
 RADIUS_FACTOR = 1.5
 EVALUATE_CHUNK_ROWS = 4096
 
@@ -59,13 +65,15 @@ class Tree:
 class BoostedTrees:
     """Per output axis (x, y, z), a baseline (m) plus a sum of trees over the readings (SI).
     ``q_train`` (M, n) the configurations it was fitted on (its region), ``radius`` the joint-space
-    distance (rad, chordal) within which a configuration counts as near them; ``cv`` figures."""
+    distance (rad, chordal) within which a configuration counts as near them; ``cv`` figures;
+    ``settings`` how the trees were grown (what a refit with scikit-learn needs; informative)."""
 
     baseline: np.ndarray
     trees: tuple[tuple[Tree, ...], ...]
     q_train: np.ndarray
     radius: float
     cv: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
 
     def raw(self, q: np.ndarray) -> np.ndarray:
         """The trees' sum (N, 3) m at readings ``q`` (N, n), region not checked."""
@@ -136,24 +144,69 @@ def export_sklearn(estimator) -> tuple[float, tuple[Tree, ...]]:
 
 
 def fit_trees(q: np.ndarray, residuals: np.ndarray, *, seed: int = 0) -> BoostedTrees:
-    """Boosted trees of ``residuals`` (M, 3) m on readings ``q`` (M, n), one ensemble per axis."""
+    """Boosted trees of ``residuals`` (M, 3) m on readings ``q`` (M, n), one ensemble per axis,
+    each axis's number of trees chosen by :func:`choose_tree_count` on these rows alone."""
     from sklearn.ensemble import HistGradientBoostingRegressor  # the fit only: see the module
     from threadpoolctl import threadpool_limits  # scikit-learn's own dependency
 
     q = np.atleast_2d(np.asarray(q, dtype=float))
     R = np.asarray(residuals, dtype=float)
-    baseline, trees = [], []
-    # on one OpenMP thread: a session's few hundred to few thousand rows are too few to share, and
-    # on a busy machine the threads' spin-waits made a fit 30 times slower (24 rows: 6.7 s against
-    # 0.23 s wall on two loaded cores; 2,400 rows: 9.7 s against 0.68 s); the trees are the same
+    folds = configuration_folds(q, INNER_FOLDS, seed)
+    baseline, trees, counts = [], [], []
+    # One OpenMP thread: a few thousand rows a tree are too few to share, and on a loaded machine
+    # OpenMP's waiting threads made the same fit many times slower (a CLI test went past its
+    # 5-minute limit; one thread: 3.2 s against 4.6 s on a quiet one). Same trees either way.
     with threadpool_limits(limits=1, user_api="openmp"):
         for axis in range(3):
-            est = HistGradientBoostingRegressor(early_stopping=False, random_state=seed, **TREE_SETTINGS)
+            count = choose_tree_count(q, R[:, axis], folds, seed)
+            est = HistGradientBoostingRegressor(
+                early_stopping=False, random_state=seed, max_iter=count, **TREE_SETTINGS
+            )
             est.fit(q, R[:, axis])
             b, t = export_sklearn(est)
             baseline.append(b)
             trees.append(t)
-    return BoostedTrees(np.array(baseline), tuple(trees), q.copy(), training_radius(q))
+            counts.append(count)
+    settings = {**TREE_SETTINGS, "trees_per_axis": counts, "chosen_by": f"{len(folds)}-fold inner cross-validation"}
+    return BoostedTrees(np.array(baseline), tuple(trees), q.copy(), training_radius(q), settings=settings)
+
+
+def configuration_folds(q: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
+    """Row indices of ``k`` folds, every row of one configuration in the same fold (rows of one
+    pose share its error: splitting them would let a fold see its own test configuration)."""
+    _, group = np.unique(np.round(q, 12), axis=0, return_inverse=True)
+    group = np.ravel(group)
+    n_groups = int(group.max()) + 1 if len(group) else 0
+    k = min(k, n_groups)
+    fold_of_group = np.random.default_rng(seed).permutation(n_groups) % max(k, 1)
+    return [np.flatnonzero(fold_of_group[group] == f) for f in range(k)]
+
+
+def choose_tree_count(q: np.ndarray, y: np.ndarray, folds: list[np.ndarray], seed: int) -> int:
+    """The number of trees (a multiple of :data:`TREES_STEP`, at most :data:`MAX_TREES`) with the
+    least k-fold cross-validated squared error of ``y`` on ``q``: the trees grown in steps on each
+    fold's other rows (scikit-learn's warm start adds trees to the same ensemble), stopped when
+    :data:`PATIENCE_TREES` more trees have not lowered the error. Fewer than two folds: one step."""
+    from sklearn.ensemble import HistGradientBoostingRegressor
+
+    if len(folds) < 2:
+        return TREES_STEP
+    ests = [
+        HistGradientBoostingRegressor(early_stopping=False, random_state=seed, warm_start=True, **TREE_SETTINGS)
+        for _ in folds
+    ]
+    best_count, best_sse, count = TREES_STEP, np.inf, 0
+    while count < MAX_TREES and count - best_count < PATIENCE_TREES:
+        count += TREES_STEP
+        sse = 0.0
+        for est, test in zip(ests, folds, strict=True):
+            train = np.setdiff1d(np.arange(len(y)), test)
+            est.set_params(max_iter=count)
+            est.fit(q[train], y[train])
+            sse += float(np.sum((y[test] - est.predict(q[test])) ** 2))
+        if sse < best_sse:
+            best_count, best_sse = count, sse
+    return best_count
 
 
 # ----------------------------------------------------------------------------- the file section
@@ -184,6 +237,7 @@ def to_dict(m: BoostedTrees, model) -> dict:
         "trees": [[tree(t) for t in axis] for axis in m.trees],
         "configurations": (m.q_train / scale).tolist(),
         "radius": m.radius,
+        "settings": m.settings,
         "cross_validation": {k: (v / L if k.endswith("_m") else v) for k, v in m.cv.items()},
     }
 
@@ -214,7 +268,9 @@ def from_dict(d: dict, model) -> BoostedTrees:
         for k, td in enumerate(axis if isinstance(axis, list) else []):
             trees.append(_tree_from_dict(td, f"residual_map.trees[{a}][{k}]", n, scale, L))
         out.append(tuple(trees))
-    return BoostedTrees(baseline, tuple(out), Q * scale, radius, dict(d.get("cross_validation") or {}))
+    cv = dict(d.get("cross_validation") or {})
+    settings = d["settings"] if isinstance(d.get("settings"), dict) else {}  # informative only
+    return BoostedTrees(baseline, tuple(out), Q * scale, radius, cv, settings)
 
 
 def _tree_from_dict(td, where: str, n: int, scale: np.ndarray, L: float) -> Tree:

@@ -185,8 +185,9 @@ def stored_position_bound(
 
     Where the correction applies (inside the region it was fitted in), the position is the
     geometric model's plus the correction, and its error is what the nested cross-validation
-    measured on held-out poses of the region, the instrument's noise taken out
-    (``residual_map.cross_validation.model_sigma_m``, :func:`correction_sigma_from_model`): that
+    measured on held-out poses of the region, the instrument's noise taken out, sized so that the
+    95 % radius is their 95 % quantile (``residual_map.cross_validation.model_sigma_95_m``,
+    :func:`correction_sigma_from_model`): that
     error is of the whole procedure (the geometric model identified on the training folds, the
     correction fitted to them), so the parameters' covariance is in it already. Elsewhere, and
     for a model without a correction: what the ``identification`` block stores, the parameters'
@@ -211,15 +212,18 @@ def stored_position_bound(
 
 
 def correction_sigma_from_model(model: KinematicModel) -> float:
-    """The per-axis standard uncertainty (m) of a model's corrected position inside its residual
-    correction's region, from the cross-validation its ``residual_map`` section stores
-    (``model_sigma_m``, model length unit; :func:`calibration.residual_base.corrected_model_sigma`).
-    A file written before it was stored: the cross-validated RMS with the correction over √3
-    (``rms_with_m``; the instrument's noise left in: wider, never narrower)."""
+    """The per-axis σ (m) of a model's corrected position inside its residual correction's region,
+    from the cross-validation its ``residual_map`` section stores (model length unit):
+    ``model_sigma_95_m``, the σ whose Gaussian 95 % radius is the held-out errors' own 95 %
+    quantile, never below the RMS's (:func:`calibration.residual_base.quantile_model_sigma`: the
+    errors left are longer-tailed than a Gaussian, and the RMS's σ alone covered 92 %, not 95 %).
+    A file written before it was stored: ``model_sigma_m``, the RMS's σ
+    (:func:`calibration.residual_base.corrected_model_sigma`); before that, the cross-validated RMS
+    with the correction over √3 (``rms_with_m``; the instrument's noise left in)."""
     section = model.metadata.get("residual_map")
     cv = section.get("cross_validation") if isinstance(section, dict) else None
     cv = cv if isinstance(cv, dict) else {}
-    for key, scale in (("model_sigma_m", 1.0), ("rms_with_m", 1.0 / math.sqrt(3.0))):
+    for key, scale in (("model_sigma_95_m", 1.0), ("model_sigma_m", 1.0), ("rms_with_m", 1.0 / math.sqrt(3.0))):
         value = cv.get(key)
         if value is None:
             continue

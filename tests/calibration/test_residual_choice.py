@@ -50,6 +50,7 @@ def test_simulated_transmission_errors_have_a_harmonic_drives_size_and_shape():
 
 def test_the_trees_walked_in_numpy_equal_sklearns_predict_and_need_no_sklearn(tmp_path):
     from sklearn.ensemble import HistGradientBoostingRegressor
+    from threadpoolctl import threadpool_limits
 
     rng = np.random.default_rng(0)
     q = rng.uniform(REGION[:, 0], REGION[:, 1], (600, 6))
@@ -57,8 +58,10 @@ def test_the_trees_walked_in_numpy_equal_sklearns_predict_and_need_no_sklearn(tm
     m = TT.fit_trees(q, y)
     X = rng.uniform(REGION[:, 0] - 0.2, REGION[:, 1] + 0.2, (2000, 6))
     for axis in range(3):
-        est = HistGradientBoostingRegressor(early_stopping=False, random_state=0, **TT.TREE_SETTINGS)
-        est.fit(q, y[:, axis])
+        count = m.settings["trees_per_axis"][axis]  # chosen by the inner cross-validation
+        est = HistGradientBoostingRegressor(early_stopping=False, random_state=0, max_iter=count, **TT.TREE_SETTINGS)
+        with threadpool_limits(limits=1, user_api="openmp"):  # as fit_trees fits (and as fast)
+            est.fit(q, y[:, axis])
         assert np.array_equal(m.raw(X)[:, axis], est.predict(X))
     # through the model file (mm, deg) and back: plain JSON, the same numbers
     model = nominal("ur10e")
@@ -225,3 +228,44 @@ def test_the_learning_curve_of_400_poses_predicts_the_error_of_800(chosen):
     assert at_last == pytest.approx(last["rms_m"], rel=0.15)
     ahead = RC.extrapolate_learning_curve(curve, 2 * last["poses"], SIGMA_M)
     assert ahead["extrapolated"] and np.sqrt(3) * SIGMA_M <= ahead["rms_m"] <= last["rms_m"] * 1.0001
+
+
+def test_the_number_of_trees_is_chosen_on_the_fitting_rows_more_for_a_richer_error():
+    """The inner cross-validation gives an error of the configuration that boosting builds up
+    slowly more trees, and pure noise the fewest; a configuration's rows share a fold."""
+    rng = np.random.default_rng(4)
+    q = rng.uniform(REGION[:, 0], REGION[:, 1], (800, 6))
+    # a smooth error of three joints: boosting builds it up over many rounds (measured: 400 trees)
+    rich = 1e-4 * (np.sin(3 * q[:, 0]) + np.cos(4 * q[:, 1]) + np.sin(5 * q[:, 2]))
+    noise = 1e-5 * rng.normal(size=len(q))
+    folds = TT.configuration_folds(q, 3, 0)
+    assert sorted(np.concatenate(folds).tolist()) == list(range(len(q)))
+    assert TT.choose_tree_count(q, rich + noise, folds, 0) >= 3 * TT.choose_tree_count(q, noise, folds, 0)
+    assert TT.choose_tree_count(q, noise, folds, 0) == TT.TREES_STEP
+    twice = np.vstack([q[:50], q[:50]])  # two rows of each configuration: never split
+    fold_of = np.empty(len(twice), dtype=int)
+    for k, f in enumerate(TT.configuration_folds(twice, 3, 1)):
+        fold_of[f] = k
+    assert np.array_equal(fold_of[:50], fold_of[50:])
+
+
+def test_the_bounds_sigma_is_the_held_out_errors_own_95_percent_quantile():
+    """Gaussian held-out errors: the quantile's σ is the RMS's; longer-tailed ones (a mixture of
+    configurations with different errors) of the same RMS: wider, so that 95 % of them are inside."""
+    from calibration.residual_base import quantile_model_sigma
+    from calibration.uncertainty import chi2_quantile
+
+    rng = np.random.default_rng(8)
+    chi2 = chi2_quantile(0.95, 3)
+    gauss = np.linalg.norm(rng.normal(0.0, 1e-4, (20000, 3)), axis=1)
+    assert quantile_model_sigma(gauss, 0.0, chi2, 0.0) == pytest.approx(1e-4, rel=0.03)
+    scale = np.where(rng.random(20000) < 0.9, 0.6e-4, 2.2e-4)  # a mixture, its RMS σ about 1e-4
+    mixed = np.linalg.norm(rng.normal(0.0, 1.0, (20000, 3)) * scale[:, None], axis=1)
+    rms_sigma = float(np.sqrt(np.mean(mixed**2) / 3))
+    s = quantile_model_sigma(mixed, 0.0, chi2, rms_sigma)
+    assert s > 1.1 * rms_sigma
+    assert np.mean(mixed <= np.sqrt(chi2) * s) == pytest.approx(0.95, abs=0.005)
+    assert np.mean(mixed <= np.sqrt(chi2) * rms_sigma) < 0.93
+    # the instrument's noise is taken out, never below the floor given
+    assert quantile_model_sigma(gauss, 0.5e-4, chi2, 0.0) < quantile_model_sigma(gauss, 0.0, chi2, 0.0)
+    assert quantile_model_sigma(gauss[:5], 1.0, chi2, 3e-5) == 3e-5

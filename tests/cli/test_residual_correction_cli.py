@@ -356,7 +356,9 @@ def test_identify_validate_reports_how_many_hold_out_errors_the_corrected_bound_
 
 
 def test_the_bound_of_a_file_without_the_stored_error_is_wider_and_a_bad_one_is_named(identified, tmp_path):
-    """A model file whose correction has no ``model_sigma`` (written before it was stored) gets the
+    """The bound inside the region is the σ whose 95 % radius is the held-out errors' own 95 %
+    quantile (``model_sigma_95``), never below the RMS's σ (``model_sigma``). A model file written
+    before ``model_sigma_95`` was stored gets ``model_sigma``; one written before that, the
     cross-validated RMS with the correction over √3 inside the region (the noise left in: wider,
     never narrower); a malformed figure is refused naming its field, before any output."""
     from calibration.model import model_from_dict
@@ -365,15 +367,25 @@ def test_the_bound_of_a_file_without_the_stored_error_is_wider_and_a_bad_one_is_
     d, _rng, nominal, *_ = identified
     doc = json.loads((d / "id.json").read_text())
     cv = doc["residual_map"]["cross_validation"]
+    assert cv["model_sigma_95_m"] >= cv["model_sigma_m"] > 0
     q = random_configurations(nominal, 20, np.random.default_rng(3), limits=REGION + np.deg2rad([5.0, -5.0]))
     C_new, inside = stored_position_bound(model_from_dict(doc), q)
-    assert inside.all() and np.allclose(C_new, (cv["model_sigma_m"] * 1e-3) ** 2 * np.eye(3))
-    old = json.loads(json.dumps(doc))
+    assert inside.all() and np.allclose(C_new, (cv["model_sigma_95_m"] * 1e-3) ** 2 * np.eye(3))
+    older = json.loads(json.dumps(doc))
+    del older["residual_map"]["cross_validation"]["model_sigma_95_m"]
+    C_older, _ = stored_position_bound(model_from_dict(older), q)
+    assert np.allclose(C_older, (cv["model_sigma_m"] * 1e-3) ** 2 * np.eye(3))
+    old = json.loads(json.dumps(older))
     del old["residual_map"]["cross_validation"]["model_sigma_m"]
     C_old, _ = stored_position_bound(model_from_dict(old), q)
     assert np.allclose(C_old, (cv["rms_with_m"] * 1e-3 / np.sqrt(3)) ** 2 * np.eye(3))
-    assert np.all(C_old[:, 0, 0] > C_new[:, 0, 0])
-    bad = json.loads(json.dumps(doc))
+    assert np.all(C_old[:, 0, 0] > C_older[:, 0, 0])
+    bad95 = json.loads(json.dumps(doc))
+    bad95["residual_map"]["cross_validation"]["model_sigma_95_m"] = "wide"
+    with pytest.raises(CovarianceError) as exc:
+        stored_position_bound(model_from_dict(bad95), q)
+    assert exc.value.field == "residual_map.cross_validation.model_sigma_95_m"
+    bad = json.loads(json.dumps(older))
     bad["residual_map"]["cross_validation"]["model_sigma_m"] = -1
     with pytest.raises(CovarianceError) as exc:
         stored_position_bound(model_from_dict(bad), q)
