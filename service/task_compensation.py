@@ -388,16 +388,22 @@ def _f(x, digits=9):
     return None if not np.isfinite(x) else float(f"{x:.{digits}g}")
 
 
+def _needs_nominal(req: CompensationRequest, what: str) -> None:
+    """A program's targets are for its controller, which computes with the nominal model: refuse
+    ``what`` without one."""
+    if req.nominal is None:
+        raise CompensationInputError(
+            f"{req.model_label}: {what} needs the nominal model its controller uses: give --nominal "
+            f"NOMINAL.json (this model does not record the one it was identified from)"
+        )
+
+
 def _script(req: CompensationRequest, model: KinematicModel, t0: float, progress):
     nominal = req.nominal
     script = urscript.parse(req.task, n_joints=model.n_joints)
     if not script.targets:
         _no_targets(req, model, script)
-    if nominal is None:
-        raise CompensationInputError(
-            f"{req.model_label}: a URScript program needs the nominal model its controller uses: give --nominal "
-            f"NOMINAL.json (this model does not record the one it was identified from)"
-        )
+    _needs_nominal(req, "a URScript program")
     M, fit_rms = nominal_world_frame(model, nominal, req.calibrated)
     B = pose_to_matrix(nominal.base)
     pose_t, pose_seed, joint_t = _script_targets(script, nominal, B, req.qnear)
@@ -525,11 +531,7 @@ def _program(req: CompensationRequest, model: KinematicModel, t0: float, progres
     prog = programs.parse(req.fmt, req.task, n_joints=model.n_joints, frames=req.frames)
     if not prog.targets:
         _no_targets(req, model, prog)
-    if nominal is None:
-        raise CompensationInputError(
-            f"{req.model_label}: a robot program needs the nominal model its controller uses: give --nominal "
-            f"NOMINAL.json (this model does not record the one it was identified from)"
-        )
+    _needs_nominal(req, "a robot program")
     M, fit_rms = nominal_world_frame(model, nominal, calibrated)
     outputs, comp, prefixes = compensate_program(
         prog, model, nominal, taught, M, calibrated, kw, correction=residual_map_of(model)
