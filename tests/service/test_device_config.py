@@ -237,3 +237,31 @@ def test_an_instruments_own_sigma_registers_and_is_stored_as_sent(client, tokens
     devices = {"tracker": "socket://127.0.0.1:1", "tracker_sigma_um": 12}
     r = client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": devices}, headers=t)
     assert r.status_code == 200 and r.json()["devices"] == devices, r.text
+
+
+def test_a_sessions_plan_through_the_api_uses_the_documents_own_sigma(idle_app, tokens, settings):
+    from sqlmodel import Session
+
+    from service.models import Cell, RunSession
+    from service.orchestrator import ensure_plan
+    from service.store import make_engine
+
+    t = auth(tokens["technician"])
+    with idle_app() as client:
+        cell = register_cell(client, tokens["technician"], "own-sigma-plan")
+        devices = {"tracker": "socket://127.0.0.1:1", "tracker_sigma_um": 12}
+        assert client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": devices}, headers=t).status_code == 200
+        r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 30}, headers=t)
+        assert r.status_code == 201, r.text
+        # the session's plan, made as its runner makes it before anything moves (no motion here)
+        engine = make_engine(settings.effective_database_url)
+        try:
+            with Session(engine) as db:
+                run = db.get(RunSession, r.json()["id"])
+                stored = dict(ensure_plan(db, run, db.get(Cell, cell["id"])).plan_info["instrument_sigma"])
+        finally:
+            engine.dispose()
+        plan = client.get(f"/api/v1/sessions/{r.json()['id']}/plan", headers=t).json()
+    assert stored["sigma_m"] == pytest.approx(12e-6) and "tracker_sigma_um" in stored["source"], stored
+    assert plan["predicted"]["sigma"] == pytest.approx(0.012), plan
+    assert plan["predicted"]["sigma_source"].startswith("the cell's devices document: tracker_sigma_um")
