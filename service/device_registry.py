@@ -160,32 +160,41 @@ def test_robot(opener: Callable[[DevicesConfig, float], Any], config: DevicesCon
 # --------------------------------------------------------------------------- laser trackers
 
 
-def emscon_config(settings: EmsconSettings, *, timeout_s: float = 10.0) -> Any:
-    """The driver's configuration of ``devices.emscon`` (:attr:`DevicesConfig.emscon_settings`).
-    What the driver still refuses is named as the entry's fault."""
+def own_sigma(config: DevicesConfig, key: str) -> dict[str, float]:
+    """The instrument's own figure the cell's devices document states (``<key>_sigma_um``), as
+    its driver config's ``sigma_m`` keyword; empty when the document states none (the driver's
+    default, the vendor's figure, then stands)."""
+    sigma_um = getattr(config, f"{key}_sigma_um", None)
+    return {} if sigma_um is None else {"sigma_m": float(sigma_um) * 1e-6}
+
+
+def emscon_config(settings: EmsconSettings, *, timeout_s: float = 10.0, sigma: dict[str, float] | None = None) -> Any:
+    """The driver's configuration of ``devices.emscon`` (:attr:`DevicesConfig.emscon_settings`),
+    with the document's own figure (``sigma``: :func:`own_sigma`) if it states one. What the
+    driver still refuses is named as the entry's fault."""
     from drivers.leica_emscon import EmsconConfig
 
     try:
-        return EmsconConfig(**settings.driver_kwargs(), timeout_s=timeout_s)
+        return EmsconConfig(**settings.driver_kwargs(), timeout_s=timeout_s, **(sigma or {}))
     except ValueError as exc:
         raise DeviceConfigError("devices.emscon", str(exc)) from exc
 
 
 def open_emscon(config: DevicesConfig, timeout_s: float) -> Any:
-    settings = emscon_config(config.emscon_settings, timeout_s=timeout_s)
+    settings = emscon_config(config.emscon_settings, timeout_s=timeout_s, sigma=own_sigma(config, "emscon"))
     from drivers.leica_emscon import EmsconTracker
 
     return EmsconTracker(settings)
 
 
 def emscon_sigma_m(config: DevicesConfig) -> float:
-    return emscon_config(config.emscon_settings).sigma_m
+    return emscon_config(config.emscon_settings, sigma=own_sigma(config, "emscon")).sigma_m
 
 
 def line_tracker_config(config: DevicesConfig, timeout_s: float = 2.0) -> Any:
     from drivers.tracker import TrackerConfig
 
-    return TrackerConfig(url=config.tracker, timeout_s=timeout_s)
+    return TrackerConfig(url=config.tracker, timeout_s=timeout_s, **own_sigma(config, "tracker"))
 
 
 def open_line_tracker(config: DevicesConfig, timeout_s: float) -> Any:
@@ -256,7 +265,9 @@ def ippdme_config(config: DevicesConfig, timeout_s: float = 5.0) -> Any:
     # driver's default 3 mm approach the probe then starts inside a ball (I++ 1001 "Illegal
     # touch"). Start 10 mm off the nominal surface and search 15 mm past it, as CMM programs
     # probing a part that is not yet aligned do (each point then takes a little longer).
-    return IppDmeConfig(url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015)
+    return IppDmeConfig(
+        url=config.cmm, timeout_s=timeout_s, approach_m=0.010, search_m=0.015, **own_sigma(config, "cmm")
+    )
 
 
 def open_ippdme(config: DevicesConfig, timeout_s: float) -> Any:
@@ -396,6 +407,15 @@ DEVICES: tuple[DeviceEntry, ...] = (
 DEVICE_BY_KEY: dict[str, DeviceEntry] = {e.key: e for e in DEVICES}
 
 
+# An instrument's own per-axis noise figure (its certificate's), µm: optional, in a sane range
+# (0.1 µm is beyond any tracker or CMM; 1000 µm is a millimetre, no measuring instrument).
+_SigmaUm = Annotated[float, Field(ge=0.1, le=1000, allow_inf_nan=False)] | None
+_SIGMA_DESC = (
+    "the instrument's own per-axis standard uncertainty (its certificate's figure), µm, 0.1 to 1000; "
+    "sessions plan and weigh with it; absent: its driver's default, the vendor's figure"
+)
+
+
 class DevicesConfig(_Strict):
     """A cell's devices: the robot controller (``rtde`` or ``modbus``), the instruments
     (``emscon``, ``tracker``, ``cmm``), the CAN bus and the reference encoders and resolvers on
@@ -446,6 +466,25 @@ class DevicesConfig(_Strict):
         description="radius of the tool's tooling balls the CMM probes, every ball alike, m (0.0005 to 0.1)",
         # the page shows and takes it in mm, as every length on the page (it converts)
         json_schema_extra={"x-page-unit": "mm"},
+    )
+
+    emscon_sigma_um: _SigmaUm = Field(
+        None,
+        title="emScon tracker's own noise (µm)",
+        description=_SIGMA_DESC + " (the driver's default: the AT960's 20 µm)",
+        json_schema_extra={"x-page-unit": "µm", "x-instrument": "emscon"},
+    )
+    tracker_sigma_um: _SigmaUm = Field(
+        None,
+        title="Line-protocol tracker's own noise (µm)",
+        description=_SIGMA_DESC + " (the driver's default: 20 µm)",
+        json_schema_extra={"x-page-unit": "µm", "x-instrument": "tracker"},
+    )
+    cmm_sigma_um: _SigmaUm = Field(
+        None,
+        title="CMM's own noise (µm)",
+        description=_SIGMA_DESC + " (the driver's default: 10 µm)",
+        json_schema_extra={"x-page-unit": "µm", "x-instrument": "cmm"},
     )
 
     @model_validator(mode="after")

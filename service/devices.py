@@ -79,11 +79,15 @@ def instrument_sigma(doc: Any, role: str) -> InstrumentSigma:
     documented default (``calibration.identification.INSTRUMENT_SIGMA_M``, a laser tracker's)
     stands in, and ``source`` says so."""
     try:
-        found = stored_devices(doc).instrument_sigma(role)
+        config = stored_devices(doc)
+        found = config.instrument_sigma(role)
     except DeviceConfigError:
         found = None
     if found is not None:
-        return InstrumentSigma(found[0], found[1].label)
+        entry = found[1]
+        if getattr(config, f"{entry.key}_sigma_um", None) is not None:
+            return InstrumentSigma(found[0], f"the cell's devices document: {entry.key}_sigma_um ({entry.label})")
+        return InstrumentSigma(found[0], f"the driver's default: {entry.label}")
     what = ROLE_NAMES.get(role, role)
     return InstrumentSigma(INSTRUMENT_SIGMA_M, f"the library's default: the cell declares no {what} figure")
 

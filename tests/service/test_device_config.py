@@ -195,6 +195,13 @@ def test_the_schema_is_served_to_readers(client, tokens):
         ({"tracer": "socket://h:1"}, "body.devices.tracer", "did you mean 'tracker'?"),
         ({"modbus": "x"}, "body.devices.modbus", "expected HOST:PORT"),
         ({"can": {"interface": "socketcand", "channel": "vcan0"}}, "body.devices.can.host", "socketcand"),
+        (
+            {"tracker": "socket://h:1", "tracker_sigma_um": 0},
+            "body.devices.tracker_sigma_um",
+            "greater than or equal to 0.1",
+        ),
+        ({"cmm": "socket://h:1", "cmm_sigma_um": 5000}, "body.devices.cmm_sigma_um", "less than or equal to 1000"),
+        ({"emscon": "h:700", "emscon_sigma_um": "twelve"}, "body.devices.emscon_sigma_um", "expected a number"),
     ],
 )
 def test_a_bad_devices_document_is_refused_naming_the_field(client, tokens, devices, field, message):
@@ -214,3 +221,47 @@ def test_a_bad_devices_document_is_refused_naming_the_field(client, tokens, devi
     summary = client.get(f"/api/v1/cells/{cell['id']}/summary", headers=t).json()
     assert summary["devices"] == ["rtde", "modbus", "emscon", "tracker", "cmm", "can"]
     assert summary["devices_error"] is None
+
+
+def test_the_served_schema_offers_each_instruments_own_sigma_in_um(client, tokens):
+    schema = client.get("/api/v1/schemas/devices", headers=auth(tokens["technician"])).json()
+    for key in ("emscon", "tracker", "cmm"):
+        field = schema["properties"][f"{key}_sigma_um"]
+        assert field["x-page-unit"] == "µm" and field["x-instrument"] == key, field
+        assert "µm" in field["description"] and "0.1 to 1000" in field["description"]
+
+
+def test_an_instruments_own_sigma_registers_and_is_stored_as_sent(client, tokens):
+    t = auth(tokens["technician"])
+    cell = register_cell(client, tokens["technician"], "own-sigma")
+    devices = {"tracker": "socket://127.0.0.1:1", "tracker_sigma_um": 12}
+    r = client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": devices}, headers=t)
+    assert r.status_code == 200 and r.json()["devices"] == devices, r.text
+
+
+def test_a_sessions_plan_through_the_api_uses_the_documents_own_sigma(idle_app, tokens, settings):
+    from sqlmodel import Session
+
+    from service.models import Cell, RunSession
+    from service.orchestrator import ensure_plan
+    from service.store import make_engine
+
+    t = auth(tokens["technician"])
+    with idle_app() as client:
+        cell = register_cell(client, tokens["technician"], "own-sigma-plan")
+        devices = {"tracker": "socket://127.0.0.1:1", "tracker_sigma_um": 12}
+        assert client.patch(f"/api/v1/cells/{cell['id']}", json={"devices": devices}, headers=t).status_code == 200
+        r = client.post(f"/api/v1/cells/{cell['id']}/sessions", json={"kind": "pose", "count": 30}, headers=t)
+        assert r.status_code == 201, r.text
+        # the session's plan, made as its runner makes it before anything moves (no motion here)
+        engine = make_engine(settings.effective_database_url)
+        try:
+            with Session(engine) as db:
+                run = db.get(RunSession, r.json()["id"])
+                stored = dict(ensure_plan(db, run, db.get(Cell, cell["id"])).plan_info["instrument_sigma"])
+        finally:
+            engine.dispose()
+        plan = client.get(f"/api/v1/sessions/{r.json()['id']}/plan", headers=t).json()
+    assert stored["sigma_m"] == pytest.approx(12e-6) and "tracker_sigma_um" in stored["source"], stored
+    assert plan["predicted"]["sigma"] == pytest.approx(0.012), plan
+    assert plan["predicted"]["sigma_source"].startswith("the cell's devices document: tracker_sigma_um")

@@ -31,7 +31,16 @@ def _load(path: str):
 
 
 def test_every_device_field_has_one_entry_whose_driver_and_fake_exist():
-    settings = {"ready", "encoders", "resolvers", "cmm_ball_radius_m"}  # not devices of their own
+    # not devices of their own (an instrument's own figure is a setting of its device)
+    settings = {
+        "ready",
+        "encoders",
+        "resolvers",
+        "cmm_ball_radius_m",
+        "emscon_sigma_um",
+        "tracker_sigma_um",
+        "cmm_sigma_um",
+    }
     assert [e.key for e in DEVICES] == [k for k in DevicesConfig.model_fields if k not in settings]
     fake_classes = {fake["cls"] for fake in FAKES}
     for entry in DEVICES:
@@ -262,11 +271,55 @@ def test_a_stub_instruments_own_sigma_drives_the_plan_and_its_predicted_accuracy
     assert done.returncode == 0, done.stderr
     seen = json.loads(done.stdout.splitlines()[-1])
     gauge, none = seen["gauge"], seen["none"]
-    assert gauge["stored"] == {"sigma_m": 7e-6, "source": "stub gauge"}
+    assert gauge["stored"] == {"sigma_m": 7e-6, "source": "the driver's default: stub gauge"}
     assert none["stored"]["sigma_m"] == 20e-6 and "library's default" in none["stored"]["source"]
     # the page's figure (mm) and its note are the gauge's, and stay so when the cell's devices change
     for shown in (gauge["before"], gauge["after"]):
-        assert shown["sigma"] == 0.007 and shown["sigma_source"] == "stub gauge"
-        assert "0.007 mm noise per axis (stub gauge)" in shown["note"]
+        assert shown["sigma"] == 0.007 and shown["sigma_source"] == "the driver's default: stub gauge"
+        assert "0.007 mm noise per axis (the driver's default: stub gauge)" in shown["note"]
     # the same plan (the same seed and model) predicts in proportion to the instrument's noise
     assert gauge["before"]["rms"] / none["before"]["rms"] == pytest.approx(7 / 20, rel=1e-4)
+
+
+def _plan_with(devices: dict, home) -> tuple[dict, dict]:
+    """The stored plan's instrument figure and the page's predicted accuracy of a pose session
+    measured with the cell's tracker, its devices document ``devices``."""
+    from sqlmodel import Session
+
+    from calibration.robots import nominal_document
+    from service.models import Cell, RunSession
+    from service.orchestrator import ensure_plan
+    from service.results import plan_preview
+    from service.settings import Settings
+    from service.store import make_engine, migrate
+
+    engine = make_engine(f"sqlite:///{home}/recal.db")
+    migrate(engine)
+    try:
+        with Session(engine) as db:
+            cell = Cell(name="c", model=nominal_document("ur5e"), devices=devices)
+            db.add(cell)
+            db.commit()
+            db.refresh(cell)
+            run = RunSession(cell_id=cell.id, kind="pose", device="tracker", planned=30)
+            db.add(run)
+            db.commit()
+            db.refresh(run)
+            run = ensure_plan(db, run, cell)
+            predicted = plan_preview(db, run, cell, Settings(home=Path(home)))["predicted"]
+            return dict(run.plan_info["instrument_sigma"]), predicted
+    finally:
+        engine.dispose()
+
+
+def test_the_devices_documents_own_sigma_drives_the_plan_and_is_recorded_as_its_source(tmp_path):
+    (tmp_path / "own").mkdir()
+    (tmp_path / "vendor").mkdir()
+    own, own_predicted = _plan_with({"tracker": "socket://127.0.0.1:1", "tracker_sigma_um": 12}, tmp_path / "own")
+    vendor, vendor_predicted = _plan_with({"tracker": "socket://127.0.0.1:1"}, tmp_path / "vendor")
+    assert own["sigma_m"] == pytest.approx(12e-6) and own["source"].startswith("the cell's devices document")
+    assert "tracker_sigma_um" in own["source"]
+    assert vendor["sigma_m"] == pytest.approx(20e-6) and vendor["source"].startswith("the driver's default")
+    assert own_predicted["sigma"] == pytest.approx(0.012) and "devices document" in own_predicted["note"]
+    # the same plan predicts in proportion to the instrument's noise
+    assert own_predicted["rms"] / vendor_predicted["rms"] == pytest.approx(12 / 20, rel=1e-4)

@@ -131,7 +131,8 @@ export async function detail(ctx, id) {
   const results = h("div", { id: "device-results" });
   const testBtn = can("run") ? h("button", { class: "primary", id: "test-devices" }, "Test connections") : null;
   const devRows = Object.entries(c.devices_doc || {}).filter(([k]) => k !== "ready")
-    .map(([k, v]) => [DEVICE_NAMES[k] || k, k === "cmm_ball_radius_m" ? `${mmOf(v)} mm` : describeAddress(k, v)]);
+    .map(([k, v]) => [DEVICE_NAMES[k] || k, k === "cmm_ball_radius_m" ? `${mmOf(v)} mm`
+      : k.endsWith("_sigma_um") ? `${v} µm` : describeAddress(k, v)]);
   const devCard = card("Devices", c.devices_error ? h("p", { class: "error-text", id: "devices-error" },
       `This cell's devices cannot be used: ${c.devices_error}. Edit the cell to correct them.`) : null,
     table(["Device", "Address"], devRows),
@@ -439,6 +440,11 @@ function deviceForm(doc, region, schema) {
                   maximum: mmOf(ballM.maximum), default: mmOf(ballM.default),
                   description: `radius of the tool's tooling balls the CMM probes, every ball alike, mm (${mmOf(ballM.minimum)} to ${mmOf(ballM.maximum)})` };
   const ball = input("dev-cmm-ball", mmOf(doc.cmm_ball_radius_m), ballS, { inputmode: "decimal" });
+  // each instrument's own noise figure (x-instrument: its device's key), in µm as the API takes it
+  const sigmas = Object.entries(schema.properties).filter(([, p]) => p["x-instrument"]).map(([key]) => {
+    const s = prop(key, "number");
+    return { key, s, input: input(`dev-${key.replaceAll("_", "-")}`, doc[key], s, { inputmode: "decimal", placeholder: "the driver's default" }) };
+  });
   const canIf = input("dev-can-interface", can.interface, canProp("interface"), { placeholder: canProp("interface").default, list: "can-interfaces" });
   const canCh = input("dev-can-channel", can.channel, canProp("channel"), { placeholder: "e.g. vcan0, can0" });
   const canHost = input("dev-can-host", can.host, canProp("host"), { placeholder: "socketcand only" });
@@ -459,7 +465,7 @@ function deviceForm(doc, region, schema) {
   // are kept as they are; keys it does not know (registered before the service checked them) are
   // left out when saved, and said so.
   const known = Object.keys(schema.properties);
-  const FORM_KEYS = [...(schema["x-devices"] || []).map((e) => e.key), "cmm_ball_radius_m", "encoders", "resolvers", "ready"];
+  const FORM_KEYS = [...(schema["x-devices"] || []).map((e) => e.key), "cmm_ball_radius_m", ...sigmas.map((g) => g.key), "encoders", "resolvers", "ready"];
   const keptAsIs = entries.filter((e) => e.page === "text-or-settings").map((e) => e.key);
   const extra = Object.fromEntries(Object.entries(doc).filter(([k, v]) => known.includes(k) && (!FORM_KEYS.includes(k)
     || (keptAsIs.includes(k) && v && typeof v === "object"))));
@@ -473,6 +479,7 @@ function deviceForm(doc, region, schema) {
   const checks = [
     ...texts.map((t) => [t.input, schemaCheck(t.s)]),
     [ball, schemaCheck(ballS)],
+    ...sigmas.map((g) => [g.input, schemaCheck(g.s)]),
     [canIf, (v) => !v && usesCan() ? "the reference encoders and resolvers need the CAN interface (socketcand, socketcan, pcan, …)" : ""],
     [canCh, (v) => !v && (canIf.value.trim() || usesCan()) ? "expected the CAN channel, e.g. vcan0 or can0" : ""],
     [canHost, (v) => {
@@ -616,6 +623,7 @@ function deviceForm(doc, region, schema) {
     }
     for (const t of texts) t.input.value = typeof d[t.entry.key] === "string" ? d[t.entry.key] : "";
     ball.value = mmOf(d.cmm_ball_radius_m);
+    for (const g of sigmas) g.input.value = d[g.key] ?? "";
     const c = d.can && typeof d.can === "object" ? d.can : {};
     canIf.value = c.interface ?? ""; canCh.value = c.channel ?? ""; canHost.value = c.host ?? ""; canPort.value = c.port ?? "";
     Object.keys(canExtra).forEach((k) => delete canExtra[k]);
@@ -643,6 +651,7 @@ function deviceForm(doc, region, schema) {
     const v = (x) => x.value.trim();
     for (const t of texts) if (v(t.input)) devices[t.entry.key] = v(t.input);
     if (v(ball)) devices.cmm_ball_radius_m = mOf(v(ball));
+    for (const g of sigmas) if (v(g.input)) devices[g.key] = Number(v(g.input));
     if (v(canIf)) {
       devices.can = { interface: v(canIf), channel: v(canCh), ...canExtra };
       if (v(canHost)) devices.can.host = v(canHost);
@@ -670,7 +679,7 @@ function deviceForm(doc, region, schema) {
       pairs(texts.filter((t) => t.entry.role === "robot").map((t) => schemaField(t.input, prop(t.entry.key)))),
       h("h3", {}, "Instrument"),
       pairs([...texts.filter((t) => t.entry.role !== "robot").map((t) => schemaField(t.input, prop(t.entry.key))),
-             schemaField(ball, ballS)]),
+             schemaField(ball, ballS), ...sigmas.map((g) => schemaField(g.input, g.s))]),
       h("h3", {}, "CAN bus (reference encoders and resolvers)"),
       h("datalist", { id: "can-interfaces" }, (canProp("interface").examples || []).map((x) => h("option", { value: x }))),
       h("div", { class: "pair" }, schemaField(canIf, canProp("interface")), schemaField(canCh, canProp("channel"))),
