@@ -26,6 +26,11 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import ConfigDict, Field, ValidationInfo, model_validator
 
+# the drivers' own defaults, stated in the schema's words (the registry is the one place that names drivers)
+from drivers.ippdme import CMM_SIGMA_M
+from drivers.leica_emscon import AT960_SIGMA_M
+from drivers.tracker import LINE_TRACKER_SIGMA_M
+
 from .device_fields import (
     DEFAULT_BALL_RADIUS_M,
     HOST_PATTERN,
@@ -471,19 +476,19 @@ class DevicesConfig(_Strict):
     emscon_sigma_um: _SigmaUm = Field(
         None,
         title="emScon tracker's own noise (µm)",
-        description=_SIGMA_DESC + " (the driver's default: the AT960's 20 µm)",
+        description=_SIGMA_DESC + f" (the driver's default: the AT960's {AT960_SIGMA_M * 1e6:g} µm)",
         json_schema_extra={"x-page-unit": "µm", "x-instrument": "emscon"},
     )
     tracker_sigma_um: _SigmaUm = Field(
         None,
         title="Line-protocol tracker's own noise (µm)",
-        description=_SIGMA_DESC + " (the driver's default: 20 µm)",
+        description=_SIGMA_DESC + f" (the driver's default: {LINE_TRACKER_SIGMA_M * 1e6:g} µm)",
         json_schema_extra={"x-page-unit": "µm", "x-instrument": "tracker"},
     )
     cmm_sigma_um: _SigmaUm = Field(
         None,
         title="CMM's own noise (µm)",
-        description=_SIGMA_DESC + " (the driver's default: 10 µm)",
+        description=_SIGMA_DESC + f" (the driver's default: {CMM_SIGMA_M * 1e6:g} µm)",
         json_schema_extra={"x-page-unit": "µm", "x-instrument": "cmm"},
     )
 

@@ -243,7 +243,7 @@ def test_a_sessions_plan_through_the_api_uses_the_documents_own_sigma(idle_app, 
     from sqlmodel import Session
 
     from service.models import Cell, RunSession
-    from service.orchestrator import ensure_plan
+    from service.session_loop import ensure_plan
     from service.store import make_engine
 
     t = auth(tokens["technician"])
