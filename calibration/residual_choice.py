@@ -183,12 +183,12 @@ def choose_correction(
     kw = dict(identify_kw or {})
     all_data = data
     data = data.subset(rm.map_rows(data, rm.MAX_CV_CONFIGURATIONS, seed + 3))
+    families, not_tried = families_tried(families, _poses(data))
     sigma_m = float(kw.get("sigma_m", INSTRUMENT_SIGMA_M))
     outer = _OuterFolds(families)
     for test in fold_indices(data, folds, seed):
         outer.run(start, data, test, kw, seed, sigma_m)
     sq, inside, within, norms, fitted_per_fold = outer.sq, outer.inside, outer.within, outer.norms, outer.fitted
-    held_sq = outer.held_sq
     n = len(data)
     rms = {f: math.sqrt(sq[f] / n) for f in families}
     best = min((f for f in families if f != "none"), key=lambda f: rms[f], default=None)
@@ -210,12 +210,13 @@ def choose_correction(
             }
             for f in families
         },
+        "not_tried": not_tried,
         "best": best,
         "gain": gain,
         "min_gain": min_gain,
         "chosen": best if kept else "none",
         "learning_curve": (
-            learning_curve(best, start, fitted_per_fold, kw, seed, [h[best] for h in held_sq]) if best else []
+            learning_curve(best, start, fitted_per_fold, kw, seed, [h[best] for h in outer.held_sq]) if best else []
         ),
         # the instrument's per-axis noise the rows state (what extrapolate_learning_curve needs)
         "noise_sigma_m": noise_sigma(data, sigma_m),
@@ -260,6 +261,22 @@ def noise_sigma(data, sigma_m: float) -> float:
     without their own σ: ``sigma_m``)."""
     sigma = np.where(np.isfinite(data.sigma) & (data.sigma > 0), data.sigma, sigma_m)
     return float(np.sqrt(np.mean(sigma**2))) if len(sigma) else float(sigma_m)
+
+
+# Boosted trees learn the error configuration by configuration: with fewer configurations than
+# this, their leaves (at least min_samples_leaf poses each, calibration.trees.TREE_SETTINGS) can
+# barely split on an inner fold's share of an outer fold's training poses, and choosing their
+# number by an inner cross-validation costs seconds for nothing; the family is not tried there and
+# the report says so. Dense pose sessions (issue 28) start at this size too.
+MIN_TREE_POSES = 200
+
+
+def families_tried(families: tuple[str, ...], poses: int) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The families worth trying on ``poses`` configurations, and why each other one is not."""
+    if "trees" in families and poses < MIN_TREE_POSES:
+        why = f"{poses} configurations: boosted trees are tried from {MIN_TREE_POSES} (too few to split leaves)"
+        return tuple(f for f in families if f != "trees"), {"trees": why}
+    return families, {}
 
 
 def _poses(data) -> int:

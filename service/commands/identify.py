@@ -265,6 +265,7 @@ def _residual_map(args, model, start, data, holdout, result, kw):
     fig = choice.figures
     figures = choice.report(model)
     fams = ", ".join(f"{f} {v['rms_m'] / L:.4g}" for f, v in fig["families"].items())
+    fams += "".join(f", {f} not tried ({why})" for f, why in fig.get("not_tried", {}).items())
     line = f"residual map ({fig['folds']}-fold nested cross-validation, RMS {u}): {fams}; "
     if choice.correction is None:
         line += f"no gain of {100 * fig['min_gain']:.0f} % or more: left out"

@@ -269,3 +269,12 @@ def test_the_bounds_sigma_is_the_held_out_errors_own_95_percent_quantile():
     # the instrument's noise is taken out, never below the floor given
     assert quantile_model_sigma(gauss, 0.5e-4, chi2, 0.0) < quantile_model_sigma(gauss, 0.0, chi2, 0.0)
     assert quantile_model_sigma(gauss[:5], 1.0, chi2, 3e-5) == 3e-5
+
+
+def test_the_trees_are_not_tried_on_too_few_configurations_and_the_figures_say_why():
+    """Below MIN_TREE_POSES configurations a tree's leaves (min_samples_leaf poses each) can barely
+    split on an inner fold: the family is left out of the nested cross-validation, and said so."""
+    fams, why = RC.families_tried(RC.FAMILIES, RC.MIN_TREE_POSES - 1)
+    assert fams == ("none", "map", "transmission") and f"{RC.MIN_TREE_POSES - 1} configurations" in why["trees"]
+    assert RC.families_tried(RC.FAMILIES, RC.MIN_TREE_POSES) == (RC.FAMILIES, {})
+    assert RC.families_tried(("none", "map"), 10) == (("none", "map"), {})

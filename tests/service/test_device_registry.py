@@ -288,8 +288,8 @@ def _plan_with(devices: dict, home) -> tuple[dict, dict]:
 
     from calibration.robots import nominal_document
     from service.models import Cell, RunSession
-    from service.session_loop import ensure_plan
     from service.results import plan_preview
+    from service.session_loop import ensure_plan
     from service.settings import Settings
     from service.store import make_engine, migrate
 

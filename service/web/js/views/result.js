@@ -241,8 +241,8 @@ function residualNote(rmap, unit) {
       h("strong", {}, "Residual map: "), `a smooth correction of what the model leaves, as a function of the joints, `
         + `${rmap.folds}-fold cross-validated: RMS ${num(rmap.rms_without, 4)} ${unit} without it, `
         + `${num(rmap.rms_with, 4)} ${unit} with it. `
-        + (rmap.kept ? "Kept: stored with this calibration and applied when compensating task files (CSV), inside the "
-          + "joint region this session measured; outside it, and in robot programs, the model alone."
+        + (rmap.kept ? "Kept: stored with this calibration and applied when compensating task files and robot "
+          + "programs, inside the joint region this session measured; outside it, the model alone."
           : `Left out: it did not lower the error by ${num(100 * rmap.min_gain, 2)} % or more (what remains is noise, `
             + "or too sparse to map)."));
   }
@@ -252,6 +252,7 @@ function residualNote(rmap, unit) {
     h("td", {}, FAMILY_TITLES[name] || name), h("td", { class: "num" }, num(f.rms, 4)),
     h("td", {}, name === rmap.chosen ? "chosen" : "")));
   const curve = rmap.learning_curve || [];
+  const notTried = Object.entries(rmap.not_tried || {}).map(([name, why]) => `${FAMILY_TITLES[name] || name}: not tried (${why}). `);
   return h("div", { id: "residual-map" },
     table(["Correction of what the model leaves", `Cross-validated RMS (${unit})`, ""], rows,
       { class: "families", id: "residual-families" }),
@@ -260,10 +261,10 @@ function residualNote(rmap, unit) {
         + "identified on each training fold, each family fitted to what it leaves there, tested on the held-out fold). "
         + (kept ? `Kept: ${FAMILY_TITLES[rmap.chosen] || rmap.chosen}, ${num(100 * rmap.gain, 2)} % lower error than `
           + "none. Stored with this calibration and applied, inside the joint region this session measured, when "
-          + "compensating task files (CSV), in verify sessions, the certificate and the errors above; outside that "
-          + "region, and in robot programs, the model alone."
+          + "compensating task files and robot programs, in verify sessions, the certificate and the errors above; "
+          + "outside that region, the model alone. "
           : `Left out: no family lowered the error by ${num(100 * rmap.min_gain, 2)} % or more (what remains is noise, `
-            + "or too sparse to learn).")),
+            + "or too sparse to learn). ") + notTried.join("")),
     curve.length ? h("p", { class: "small muted", id: "residual-learning-curve" },
       `Learning curve (${rmap.best ? FAMILY_TITLES[rmap.best] || rmap.best : "best family"}, held-out RMS against the `
         + `number of poses): ${curve.map((p) => `${p.poses} poses ${num(p.rms, 3)}`).join(", ")} ${unit}.`) : null);
