@@ -32,7 +32,7 @@ TREE_SETTINGS = dict(learning_rate=0.1, max_leaf_nodes=15, min_samples_leaf=16, 
 INNER_FOLDS = 3
 TREES_STEP = 100  # the inner CV's error is read every this many trees
 MAX_TREES = 1000  # per axis: a file of a few MB at most (on the UR10, 800 to 1,200 differ by 0.1 %)
-PATIENCE_TREES = 300  # stop adding trees when the inner CV's error has not fallen for this many
+PATIENCE_TREES = 200  # stop adding trees when the inner CV's error has not fallen for this many
 RADIUS_FACTOR = 1.5
 EVALUATE_CHUNK_ROWS = 4096
 

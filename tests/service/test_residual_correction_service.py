@@ -125,7 +125,13 @@ def _session_choice(client, tokens, cal: int) -> tuple[dict, dict]:
     return result.json()["report"]["residual_map"], model
 
 
+# The choice is the analysis's, not the store's: these two run on SQLite only (each store's
+# sessions and calibrations are tested elsewhere), which keeps a minute of fitting out of the suite.
+SQLITE_ONLY = pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+
+
 @pytest.mark.slow
+@SQLITE_ONLY
 def test_a_pose_session_keeps_the_correction_that_recovers_most_of_the_transmission_error(
     idle_app, tokens, stored_session
 ):
@@ -169,6 +175,7 @@ def test_a_pose_session_keeps_the_correction_that_recovers_most_of_the_transmiss
     assert 1.0 - after / before >= 0.70, (before, after)  # measured: 0.81 (41.5 µm -> 7.7 µm)
 
 
+@SQLITE_ONLY
 def test_a_pose_session_without_transmission_errors_keeps_no_correction(idle_app, tokens, stored_session):
     """The same arm without transmission errors: the geometric model explains what is measured up
     to the tracker's noise; every family worth trying on 100 poses is tried (the trees from 200,
