@@ -54,11 +54,31 @@ def identified(tmp_path_factory):
         w.writerow([f"q{i + 1}" for i in range(6)] + ["x", "y", "z"])
         for k in range(len(data)):
             w.writerow([*np.rad2deg(data.q[k]).tolist(), *(data.p_world[k] * 1e3).tolist()])
+    _write_validation(tmp_path / "val.csv", nominal, truth, tx)
+    # one identification serves every test (about 20 s): --validate only reads the hold-out file
     proc = recal(
         "identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "id.json", "--sigma", "0.01",
-        "--report", "r.json", "--residual-map", "auto", cwd=tmp_path,
+        "--report", "r.json", "--residual-map", "auto", "--validate", "val.csv", cwd=tmp_path,
     )  # fmt: skip
     return tmp_path, rng, nominal, truth, tx, proc
+
+
+def _write_validation(path: Path, nominal, truth, tx) -> None:
+    """400 fresh configurations of the region measured as the data are (their own generator)."""
+    rng = np.random.default_rng(195)
+    held = simulate_measurements(
+        truth,
+        random_configurations(nominal, 400, rng, limits=REGION + np.deg2rad([2.0, -2.0])),
+        rng,
+        sigma_m=10e-6,
+        targets=(None,),
+        transmission=tx,
+    )
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([f"q{i + 1}" for i in range(6)] + ["x", "y", "z"])
+        for k in range(len(held)):
+            w.writerow([*np.rad2deg(held.q[k]).tolist(), *(held.p_world[k] * 1e3).tolist()])
 
 
 def test_identify_stores_the_transmission_correction_and_predict_applies_it(identified):
@@ -328,27 +348,9 @@ def test_identify_validate_reports_how_many_hold_out_errors_the_corrected_bound_
     """``recal identify --residual-map auto --validate`` states the share of hold-out rows inside
     the correction's region within the 95 % bound the stored model gives there (the one bound of
     ``recal predict --uncertainty``) plus the tracker's noise."""
-    tmp_path, _, nominal, truth, tx, _ = identified
-    rng = np.random.default_rng(195)
-    held = simulate_measurements(
-        truth,
-        random_configurations(nominal, 400, rng, limits=REGION + np.deg2rad([2.0, -2.0])),
-        rng,
-        sigma_m=10e-6,
-        targets=(None,),
-        transmission=tx,
-    )
-    with (tmp_path / "val.csv").open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow([f"q{i + 1}" for i in range(6)] + ["x", "y", "z"])
-        for k in range(len(held)):
-            w.writerow([*np.rad2deg(held.q[k]).tolist(), *(held.p_world[k] * 1e3).tolist()])
-    proc = recal(
-        "identify", "--model", "nominal.json", "--data", "meas.csv", "--out", "idv.json", "--sigma", "0.01",
-        "--report", "rv.json", "--residual-map", "auto", "--validate", "val.csv", cwd=tmp_path,
-    )  # fmt: skip
+    tmp_path, _, _, _, _, proc = identified
     assert proc.returncode in (0, 3), proc.stderr
-    v = json.loads((tmp_path / "rv.json").read_text())["residual_map"]["validation"]
+    v = json.loads((tmp_path / "r.json").read_text())["residual_map"]["validation"]
     assert v["inside_share"] > 0.95
     assert 0.90 <= v["coverage_95"] <= 0.99, v  # measured: 0.975 of 400
     line = next(x for x in proc.stdout.splitlines() if x.startswith("residual map ("))
