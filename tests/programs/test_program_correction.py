@@ -32,34 +32,24 @@ from .helpers import frame_of, models, pose_error, recal
 from .test_rapid import Q, T_tool, T_wobj, program
 
 
+def _pose_error(X, T):
+    """6 errors of pose ``T`` against ``X`` (4, 4): position, and the rotation's small-angle vector."""
+    dR = X[:3, :3] @ T[:3, :3].T
+    return np.concatenate(
+        [X[:3, 3] - T[:3, 3], 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])]
+    )
+
+
 def _solve_nominal(nom_t, X, q_planned):
     """The nominal controller's joints for command ``X`` (4, 4): Newton on the nominal model from
-    the planned joints, with a finite-difference Jacobian written here (6 pose errors: position,
-    and the rotation's small-angle vector)."""
+    the planned joints, with a finite-difference Jacobian written here."""
     q = q_planned.copy()
     for _ in range(30):
         T = fk(nom_t, q[None])[0]
-        dR = X[:3, :3] @ T[:3, :3].T
-        e = np.concatenate(
-            [X[:3, 3] - T[:3, 3], 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])]
-        )
+        e = _pose_error(X, T)
         if np.linalg.norm(e) < 1e-13:
             break
-        J = np.zeros((6, 6))
-        for i in range(6):
-            dq = np.zeros(6)
-            dq[i] = 1e-7
-            Ti = fk(nom_t, (q + dq)[None])[0]
-            dRi = Ti[:3, :3] @ T[:3, :3].T
-            J[:, i] = (
-                np.concatenate(
-                    [
-                        Ti[:3, 3] - T[:3, 3],
-                        0.5 * np.array([dRi[2, 1] - dRi[1, 2], dRi[0, 2] - dRi[2, 0], dRi[1, 0] - dRi[0, 1]]),
-                    ]
-                )
-                / 1e-7
-            )
+        J = np.stack([_pose_error(fk(nom_t, (q + 1e-7 * np.eye(6)[i])[None])[0], T) / 1e-7 for i in range(6)], axis=1)
         q = q + np.linalg.lstsq(J, e, rcond=None)[0]
     return q
 
